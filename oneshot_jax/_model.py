@@ -1,0 +1,107 @@
+"""The grey-box model of eq. (1): a discrete step f and an observation g."""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+def _identity_observe(x, u, theta):
+    del u, theta
+    return x
+
+
+class _ODEStep(eqx.Module):
+    """Explicit Runge-Kutta discretisation of `rhs` under a zero-order-hold input.
+
+    The input `u` is held constant over the whole sample interval `dt` (every stage of
+    every substep sees the same `u`), which is what a sampled, held input does.
+    """
+
+    rhs: Callable
+    dt: float = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    substeps: int = eqx.field(static=True)
+
+    def _substep(self, x, u, theta, h):
+        f = self.rhs
+        if self.method == "euler":
+            return x + h * f(x, u, theta)
+        # Classical RK4 (Butcher tableau 0; 1/2 1/2; 1/2 0 1/2; 1 0 0 1; 1/6 1/3 1/3 1/6).
+        k1 = f(x, u, theta)
+        k2 = f(x + 0.5 * h * k1, u, theta)
+        k3 = f(x + 0.5 * h * k2, u, theta)
+        k4 = f(x + h * k3, u, theta)
+        return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+    def __call__(self, x, u, theta):
+        h = self.dt / self.substeps
+        if self.substeps <= 8:
+            for _ in range(self.substeps):
+                x = self._substep(x, u, theta, h)
+            return x
+        return jax.lax.fori_loop(
+            0, self.substeps, lambda _, x: self._substep(x, u, theta, h), x
+        )
+
+
+class Model(eqx.Module):
+    """A discrete-time grey-box model, eq. (1)-(2) of the paper:
+
+    x[k+1] = step(x[k], u[k], theta),    z[k] = observe(x[k], u[k], theta).
+
+    `theta` is any pytree of arrays (a dict of named physical parameters is the normal
+    case); `x` is a 1-D state array, `u` a 1-D input array. Both functions must be pure
+    and traceable by JAX. The model is immutable and can be passed through `jax.jit`
+    (`eqx.filter_jit`) as it is.
+
+    **Arguments:**
+
+    - `step`: `step(x, u, theta) -> x_next`, the map f of eq. (1). Must return an array
+        of the same shape and dtype as `x`.
+    - `observe`: `observe(x, u, theta) -> z`, the map g of eq. (1). Defaults to `z = x`.
+    """
+
+    step: Callable[[Any, Any, Any], Any]
+    observe: Callable[[Any, Any, Any], Any]
+
+    def __init__(self, step, observe=None):
+        if not callable(step):
+            raise ValueError(f"`step` must be callable (x, u, theta) -> x_next, got {step!r}.")
+        if observe is not None and not callable(observe):
+            raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
+        self.step = step
+        self.observe = _identity_observe if observe is None else observe
+
+    @classmethod
+    def from_ode(cls, rhs, dt, *, method="rk4", substeps=1, observe=None):
+        """Build a `Model` from a continuous-time right-hand side `dx/dt = rhs(x, u, theta)`.
+
+        The input is a zero-order hold: `u[k]` is held over `[k dt, (k+1) dt)`. Each sample
+        interval is split into `substeps` equal steps of classical RK4 (`method="rk4"`,
+        global error O(h^4)) or explicit Euler (`method="euler"`).
+
+        **Arguments:**
+
+        - `rhs`: `rhs(x, u, theta) -> dx/dt`.
+        - `dt`: the sample interval (> 0).
+        - `method`: `"rk4"` or `"euler"`.
+        - `substeps`: number of integrator steps per sample interval (>= 1).
+        - `observe`: as for `Model`.
+
+        **Returns:**
+
+        A `Model` whose `step` advances the state by one sample interval.
+        """
+        if not callable(rhs):
+            raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
+        if method not in ("rk4", "euler"):
+            raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
+        dt = float(dt)
+        if not (dt > 0 and jnp.isfinite(dt)):
+            raise ValueError(f"`dt` must be a finite positive number, got {dt}.")
+        if int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
+        return cls(_ODEStep(rhs, dt, method, int(substeps)), observe)
