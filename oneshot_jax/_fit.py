@@ -424,7 +424,7 @@ def _restrict(problem, pt, free):
     """The same problem with the entries of p_theta outside `free` fixed at their values."""
     if free.all():
         return problem
-    base = problem.theta_base.at[problem.theta_free].set(pt)
+    base = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(pt)
     lower = None if problem.lower is None else problem.lower[free]
     upper = None if problem.upper is None else problem.upper[free]
     return eqx.tree_at(
