@@ -46,7 +46,8 @@ _MESSAGES = {
     "raise max_epochs or the learning rates",
     StopReason.TOL_LOSS: "the loss fell below tol_loss (the paper's epsilon)",
     StopReason.TOL_GRAD: "the gradient norm fell below tol_grad (the paper's delta)",
-    StopReason.CONVERGED: "converged: the relative step fell below rtol",
+    StopReason.CONVERGED: "converged: the relative step fell below rtol, or the predicted "
+    "decrease of the loss fell below machine precision",
     StopReason.NO_PROGRESS: "no step decreased the loss any more (the damping or the line "
     "search gave up); the point is a minimum to machine precision or the problem is badly "
     "scaled",
@@ -288,11 +289,14 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
             Cn = cost(nt, nx)
             return nt, nx, jnp.where(jnp.isfinite(Cn), Cn, jnp.inf)
 
+        # Decrease of C predicted by the linear model for the full (projected) step.
+        nt, nx, Cn = trial(1.0)
+        st, sx = nt - pt, nx - px
+        Jh = jnp.einsum("nrp,p->nr", Jt, st) + jnp.einsum("nrm,nm->nr", Jx, sx)
+        pred = -(2.0 * (st @ g_t + jnp.sum(sx * g_x)) + jnp.sum(Jh**2))
+        # Nothing left to gain at this precision (MINPACK's ftol test at machine epsilon).
+        at_precision = pred <= 8 * jnp.finfo(dtype).eps * C
         if lm:
-            nt, nx, Cn = trial(1.0)
-            st, sx = nt - pt, nx - px
-            Jh = jnp.einsum("nrp,p->nr", Jt, st) + jnp.einsum("nrm,nm->nr", Jx, sx)
-            pred = -(2.0 * (st @ g_t + jnp.sum(sx * g_x)) + jnp.sum(Jh**2))
             rho = (C - Cn) / jnp.where(pred > 0, pred, jnp.inf)
             accept = (Cn < C) & (rho > 0)
             mu_new = jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), mu * nu)
@@ -307,7 +311,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
                 alpha = c[0] / 2
                 return alpha, trial(alpha)[2]
 
-            alpha, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.array(1.0, dtype), trial(1.0)[2]))
+            alpha, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.array(1.0, dtype), Cn))
             nt, nx, Cn = trial(alpha)
             accept = Cn < C
             mu_new, nu_new = mu, nu
@@ -320,7 +324,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
             code != _RUNNING,
             code,
             jnp.select(
-                [accept & small, gave_up],
+                [(accept & small) | at_precision, gave_up],
                 [StopReason.CONVERGED.value, StopReason.NO_PROGRESS.value],
                 _RUNNING,
             ),
