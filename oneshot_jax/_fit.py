@@ -427,9 +427,10 @@ def _restrict(problem, pt, free):
     base = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(pt)
     lower = None if problem.lower is None else problem.lower[free]
     upper = None if problem.upper is None else problem.upper[free]
-    return eqx.tree_at(
-        lambda p: (p.theta_base, p.theta_free, p.lower, p.upper), problem,
-        (base, tuple(np.asarray(problem.theta_free)[free].tolist()), lower, upper), is_leaf=lambda x: x is None,
+    # theta_free is a static field (not a pytree leaf), so eqx.tree_at cannot replace it.
+    return dataclasses.replace(
+        problem, theta_base=base, theta_free=tuple(np.asarray(problem.theta_free)[free].tolist()),
+        lower=lower, upper=upper,
     )
 
 
