@@ -239,13 +239,13 @@ def markdown(res: dict, cfg) -> str:
             th = np.median(np.asarray(s["theta_hat"]), axis=0)
             reasons = "; ".join(f"{v}x '{k.replace('scipy: ', '')}'"
                                 for k, v in s["stop_reasons"].items())
-            shrink = float(np.min(theta_true / th) ** 2)
+            shrink = np.sort((theta_true / th) ** 2)
             note = (f"{s['label']} ends at a median theta-hat = {_vec(th, 3)} kg m^2 (RMS error "
                     f"{_e(s['rmse'])}; stops: {reasons}): its first trust region has radius 1, "
                     f"{1 / float(np.max(theta_true)):.0f} times the largest theta_i, so the first "
                     "steps leave the physical region for one where the model hardly responds to "
                     "theta (the sensitivity dz/dtheta_i ~ t M / theta_i^2 is "
-                    f"{shrink:.0e} of its value at the true theta)")
+                    f"{shrink[0]:.0e} to {shrink[-1]:.0e} of its value at the true theta)")
             if any("gtol" in k for k in s["stop_reasons"]):
                 note += (", and there the gradient of C falls below gtol = 1e-8 far from the "
                          "minimum")
@@ -350,7 +350,8 @@ def markdown(res: dict, cfg) -> str:
         "fig3_parameter_evolution.png": "Fig. 3: theta-hat_i against epoch for several initial "
         "conditions (true values dashed).",
         "fig4_trajectories.png": "Fig. 4: simulated angular velocity with each method's estimate "
-        "against the true trajectory.",
+        "against the true trajectory (methods that reach the same estimate draw overlapping "
+        "curves).",
         "fig5_estimation_error.png": "Fig. 5: ||theta-hat - theta||_2 over the noise seeds, with "
         "the Cramer-Rao bound.",
         "fig6_horizon.png": "Fig. 6: estimates, error (with the Cramer-Rao bound) and computation "
