@@ -43,8 +43,9 @@ class FitResult:
     - `loss`: final C (eq. 5/21).
     - `stop_reason`: a `StopReason`; `stop_reason.message` says why, `success` if converged.
     - `epochs`: iterations run; `wall_time`: seconds, compilation included.
-    - `history`: dict of arrays `loss` and `grad_norm` per epoch (least-squares solvers
-        record the loss of each accepted iterate).
+    - `history`: dict with `loss` and `grad_norm` per epoch and `theta`, the iterates
+        (theta's pytree with a leading epoch axis); optimistix solvers record only the
+        final point.
     - `residuals`: e = zhat - z, shape of `z`.
     - `names`: a name per free parameter (`"k"`, `"I[2]"`).
     - `covariance`: sigma^2 (J^T J)^{-1} of the free parameters of theta (J the
@@ -82,7 +83,7 @@ class FitResult:
         std, _ = ravel_pytree(self.std)
         rows = [f"oneshot_jax fit: {self.stop_reason.name} ({self.stop_reason.message})"]
         rows.append(
-            f"  loss {self.loss:.6e} after {self.epochs} epochs in {self.wall_time:.3g} s"
+            f"  loss {self.loss:.6e} after {self.epochs} epochs in {self.wall_time:.3g} s (wall, compilation included)"
         )
         rows.append(f"  {'parameter':<14}{'value':>14}{'std':>12}{'95% interval':>30}")
         for name, v, s in zip(_all_names(self.theta), np.asarray(flat), np.asarray(std)):
@@ -415,8 +416,9 @@ def _run_optimistix(problem, solver, pt, px, max_epochs, rtol, proj):
         code = StopReason.NO_PROGRESS
     if not bool(jnp.isfinite(C)):
         code = StopReason.DIVERGED
-    hist = np.full((max_epochs + 1, 2), np.nan)
+    hist = np.full((max_epochs + 1, 2 + pt.shape[0]), np.nan)
     hist[0, 0] = float(C)
+    hist[0, 2:] = np.asarray(pt)
     return pt, px, C, jnp.array(code.value), jnp.array(total_steps), jnp.asarray(hist)
 
 
@@ -465,15 +467,30 @@ def _optx_solve(problem, solver, pt, px, max_epochs):
     )
 
 
-def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts, best):
+@eqx.filter_jit
+def _post(problem, pt, px):
+    """Everything `FitResult` needs from the solution, in one compiled call."""
     theta = problem.theta_of(pt)
     X0 = problem.x0_of(px)
-    xs, zhat = _simulate(problem.model, theta, X0, problem.u, True)
-    e = zhat - problem.z
-    n_free = pt.shape[0] + px.size
-    n_obs = e.size
+    _, zhat = _simulate(problem.model, theta, X0, problem.u, True)
     sse, S_inv, x_diag = covariance_blocks(problem, pt, px)
-    dof = max(n_obs - n_free, 1)
+    n_free = pt.shape[0] + px.size
+    zs = problem.z
+    met = {
+        "rmse": _metrics.rmse(zs, zhat),
+        "nrmse": _metrics.nrmse(zs, zhat),
+        "fit_percent": _metrics.fit_percent(zs, zhat),
+        "r2": _metrics.r2(zs, zhat),
+        "aic": _metrics.aic(zs, zhat, n_free),
+    }
+    return theta, X0, zhat - zs, sse, S_inv, x_diag, met
+
+
+def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts, best):
+    theta, X0, e, sse, S_inv, x_diag, met = _post(problem, pt, px)
+    met = {k: (float(v) if k == "aic" else np.asarray(v)) for k, v in met.items()}
+    n_free = pt.shape[0] + px.size
+    dof = max(e.size - n_free, 1)
     # sigma^2 (J_e^T Q J_e)^{-1} with J = Q^{1/2} J_e / sqrt(N T): sigma^2/(N T) = SSE_r/dof.
     s2 = float(sse) / dof
     cov = np.asarray(S_inv) * s2
@@ -485,16 +502,14 @@ def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts,
     x0_std = np.zeros(X0.shape)
     x0_std[:, list(problem.x0_free)] = np.sqrt(np.maximum(np.asarray(x_diag) * s2, 0.0))
     names = tuple(np.asarray(_all_names(theta))[list(problem.theta_free)].tolist())
-    zs, zh = problem.z, zhat
-    met = {
-        "rmse": np.asarray(_metrics.rmse(zs, zh)),
-        "nrmse": np.asarray(_metrics.nrmse(zs, zh)),
-        "fit_percent": np.asarray(_metrics.fit_percent(zs, zh)),
-        "r2": np.asarray(_metrics.r2(zs, zh)),
-        "aic": float(_metrics.aic(zs, zh, n_free)),
-    }
     valid = ~np.isnan(hist[:, 0])
-    history = {"loss": hist[valid, 0], "grad_norm": hist[valid, 1]}
+    flat_path = np.broadcast_to(np.asarray(problem.theta_base), (int(valid.sum()), problem.theta_base.shape[0])).copy()
+    flat_path[:, list(problem.theta_free)] = hist[valid, 2:]
+    history = {
+        "loss": hist[valid, 0],
+        "grad_norm": hist[valid, 1],
+        "theta": jax.vmap(problem.unravel)(jnp.asarray(flat_path, problem.theta_base.dtype)),
+    }
     if not batched:
         X0, e, x0_std = X0[0], e[0], x0_std[0]
     return FitResult(

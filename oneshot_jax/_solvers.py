@@ -9,6 +9,7 @@ Jacobian).
 """
 
 import enum
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
@@ -134,10 +135,12 @@ class Problem(eqx.Module):
 # ----------------------------------------------------------------------------- Algorithm 1
 
 
+@functools.lru_cache(maxsize=32)
 def adam(lr_theta=1e-3, lr_x0=1e-4, b1=0.9, b2=0.999, eps=1e-8) -> optax.GradientTransformation:
     """Adam with separate learning rates for theta and x0, as in Algorithm 1 (eq. 8-9).
 
-    Acts on the parameter dict `{"theta": ..., "x0": ...}` that `fit` optimises.
+    Acts on the parameter dict `{"theta": ..., "x0": ...}` that `fit` optimises. Calls
+    with the same settings return the same object, so `fit` reuses its compiled loop.
     """
     return optax.partition(
         {"theta": optax.adam(lr_theta, b1, b2, eps), "x0": optax.adam(lr_x0, b1, b2, eps)},
@@ -159,7 +162,7 @@ def run_first_order(problem, optimiser, p_theta, p_x0, max_epochs, tol_loss, tol
     dtype = problem.x0_base.dtype
     params = {"theta": p_theta, "x0": p_x0}
     state0 = optimiser.init(params)
-    hist = jnp.full((max_epochs + 1, 2), jnp.nan, dtype)
+    hist = jnp.full((max_epochs + 1, 2 + p_theta.shape[0]), jnp.nan, dtype)
 
     def cond(carry):
         return carry[4] == _RUNNING
@@ -168,7 +171,7 @@ def run_first_order(problem, optimiser, p_theta, p_x0, max_epochs, tol_loss, tol
         params, opt_state, last, epoch, _, hist, last_C = carry
         C, g_t, g_x = problem.value_and_grad(params["theta"], params["x0"])
         gnorm = _grad_norm(g_t, g_x)
-        hist = hist.at[epoch].set(jnp.stack([C, gnorm]))
+        hist = hist.at[epoch].set(jnp.concatenate([jnp.stack([C, gnorm]), params["theta"]]))
         finite = jnp.isfinite(C) & jnp.isfinite(gnorm)
         code = jnp.select(
             [~finite, C < tol_loss, gnorm < tol_grad, epoch >= max_epochs],
@@ -256,7 +259,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
     dtype = problem.x0_base.dtype
     lm = method == "levenberg_marquardt"
     cost = lambda pt, px: jnp.sum(problem.residuals(pt, px) ** 2)  # noqa: E731
-    hist = jnp.full((max_epochs + 1, 2), jnp.nan, dtype)
+    hist = jnp.full((max_epochs + 1, 2 + p_theta.shape[0]), jnp.nan, dtype)
 
     def linearise(pt, px):
         r, Jt, Jx = problem.jacobian(pt, px)
@@ -275,7 +278,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         C, A, B, Cb, g_t, g_x, Jt, Jx = lin
         act = active_set(pt, g_t)
         gnorm = 2.0 * _grad_norm(jnp.where(act, 0.0, g_t), g_x)
-        hist = hist.at[epoch].set(jnp.stack([C, gnorm]))
+        hist = hist.at[epoch].set(jnp.concatenate([jnp.stack([C, gnorm]), pt]))
         code = jnp.select(
             [C < tol_loss, gnorm < tol_grad, epoch >= max_epochs],
             [StopReason.TOL_LOSS.value, StopReason.TOL_GRAD.value, StopReason.MAX_EPOCHS.value],
@@ -342,7 +345,8 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
     pt, px, lin, _, _, epoch, hist, code = jax.lax.while_loop(cond, body, init)
     # A non-finite starting loss can never be improved on: report it as diverged.
     code = jnp.where(jnp.isfinite(lin[0]), code, StopReason.DIVERGED.value)
-    hist = hist.at[epoch].set(jnp.where(jnp.isnan(hist[epoch, 0]), jnp.stack([lin[0], jnp.nan]), hist[epoch]))
+    last = jnp.concatenate([jnp.stack([lin[0], jnp.nan]), pt])
+    hist = hist.at[epoch].set(jnp.where(jnp.isnan(hist[epoch, 0]), last, hist[epoch]))
     return pt, px, lin[0], code, epoch, hist
 
 
