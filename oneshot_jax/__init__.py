@@ -1,6 +1,7 @@
 """oneshot_jax: grey-box system identification with the one-shot closed-form gradient."""
 
 from . import constraints as constraints
+from . import datasets as datasets
 from . import metrics as metrics
 from ._fit import FitResult as FitResult
 from ._fit import fit as fit

@@ -1,0 +1,240 @@
+"""oneshot_jax.datasets: the loaders' shapes, values, search order and error messages.
+
+Tests on the real benchmark files skip when the files are not present (they are looked
+up in $ONESHOT_JAX_DATA, then ../shared/data); the bad-input tests use temporary files
+and always run.
+"""
+
+import shutil
+
+import numpy as np
+import pytest
+import scipy.io
+
+import oneshot_jax as oj
+from oneshot_jax import datasets as ds
+
+
+def _emps_or_skip():
+    try:
+        return ds.load_emps()
+    except ds.DatasetNotFoundError as err:
+        pytest.skip(f"EMPS files not available: {err}")
+
+
+def _tanks_or_skip():
+    try:
+        return ds.load_cascaded_tanks()
+    except ds.DatasetNotFoundError as err:
+        pytest.skip(f"cascaded-tanks file not available: {err}")
+
+
+def _emps_dict(n=50, pulses=False):
+    t = np.arange(n)[:, None] * 1e-3
+    d = {
+        "t": t,
+        "qm": np.sin(t),
+        "qg": np.sin(t),
+        "vir": np.cos(t),
+        "kp": np.array([[160.18]]),
+        "kv": np.array([[243.45]]),
+        "gtau": np.array([[35.15]]),
+    }
+    if pulses:
+        d["pulses_N"] = np.zeros((n, 1), np.uint8)
+    return d
+
+
+def _write_emps(folder, est=None, val=None):
+    folder.mkdir(parents=True, exist_ok=True)
+    scipy.io.savemat(folder / "DATA_EMPS.mat", est if est is not None else _emps_dict())
+    scipy.io.savemat(
+        folder / "DATA_EMPS_PULSES.mat", val if val is not None else _emps_dict(pulses=True)
+    )
+    return folder
+
+
+def _write_csv(file, text):
+    file.parent.mkdir(parents=True, exist_ok=True)
+    file.write_text(text)
+    return file
+
+
+GOOD_CSV = '"uEst","uVal","yEst","yVal","Ts",\n1,2,3,4,4,\n1.5,2.5,3.5,4.5,,\n2,3,4,5,,\n'
+
+
+def test_exposed_from_package():
+    assert oj.datasets is ds
+    assert callable(oj.datasets.load_emps) and callable(oj.datasets.load_cascaded_tanks)
+
+
+# ----------------------------------------------------------------------- real files
+
+
+def test_emps_shapes_and_values():
+    d = _emps_or_skip()
+    for rec in (d.estimation, d.validation):
+        assert len(rec) == 24_841
+        for a in (rec.t, rec.qm, rec.qg, rec.vir, rec.pulses):
+            assert a.shape == (24_841,) and a.dtype == np.float64
+        assert np.all(np.diff(rec.t) > 0)
+        assert 0.0 <= rec.qm.max() < 0.3  # metres: the stroke is about 0.25 m
+    assert d.kp == pytest.approx(160.18)
+    assert d.kv == pytest.approx(243.45)
+    assert d.gtau == pytest.approx(35.15, abs=0.01)
+    assert d.Ts == pytest.approx(1e-3)  # 1 kHz
+    assert not d.estimation.pulses.any()
+    assert set(np.unique(d.validation.pulses)) == {0.0, 5.0}
+    # The recorded force command is the benchmark's PD law on the recorded positions.
+    qm, rec = d.estimation.qm, d.estimation
+    nu = d.kp * d.kv * (rec.qg[2:] - qm[2:]) - d.kv * (qm[2:] - qm[:-2]) / (2 * d.Ts)
+    assert np.sqrt(np.mean((nu - rec.vir[2:]) ** 2)) < 0.01
+
+
+def test_tanks_shapes_and_values():
+    d = _tanks_or_skip()
+    for a in (d.u_est, d.y_est, d.u_val, d.y_val, d.t):
+        assert a.shape == (1024,) and a.dtype == np.float64
+    assert d.Ts == 4.0
+    assert d.t[-1] == pytest.approx(4.0 * 1023)
+    assert d.u_est[0] == pytest.approx(3.2567) and d.y_val[0] == pytest.approx(4.9728)
+    assert d.y_est.max() == pytest.approx(10.0) and d.y_val.max() == pytest.approx(10.0)
+
+
+def test_explicit_paths_and_env_var(tmp_path, monkeypatch):
+    d = _tanks_or_skip()
+    # The CSV itself, its folder, and a root with a cascaded_tanks/ subfolder.
+    root = tmp_path / "root"
+    (root / "cascaded_tanks").mkdir(parents=True)
+    shutil.copy(d.file, root / "cascaded_tanks" / "dataBenchmark.csv")
+    for p in (
+        root / "cascaded_tanks" / "dataBenchmark.csv",
+        root / "cascaded_tanks",
+        root,
+        str(root),
+    ):
+        np.testing.assert_array_equal(ds.load_cascaded_tanks(p).y_val, d.y_val)
+    monkeypatch.setenv(ds.ENV_VAR, str(root))
+    assert ds.default_data_dirs()[0] == root
+    assert ds.load_cascaded_tanks().file == root / "cascaded_tanks" / "dataBenchmark.csv"
+
+
+def test_emps_from_env_var(tmp_path, monkeypatch):
+    folder = _write_emps(tmp_path / "emps")
+    monkeypatch.setenv(ds.ENV_VAR, str(tmp_path))
+    d = ds.load_emps()
+    assert d.estimation.file == folder / "DATA_EMPS.mat"
+    assert len(d.validation) == 50 and d.Ts == pytest.approx(1e-3)
+
+
+# ----------------------------------------------------------------------- bad input
+
+
+def test_missing_files_say_where_to_get_them(tmp_path):
+    with pytest.raises(
+        ds.DatasetNotFoundError, match=r"(?s)DATA_EMPS\.mat.*nonlinearbenchmark\.org"
+    ) as e:
+        ds.load_emps(tmp_path)
+    assert str(tmp_path) in str(e.value) and ds.ENV_VAR in str(e.value)
+    assert isinstance(e.value, FileNotFoundError)
+    with pytest.raises(
+        ds.DatasetNotFoundError, match=r"(?s)dataBenchmark\.csv.*nonlinearbenchmark\.org"
+    ):
+        ds.load_cascaded_tanks(tmp_path / "nowhere")
+
+
+def test_emps_half_a_data_set(tmp_path):
+    scipy.io.savemat(tmp_path / "DATA_EMPS.mat", _emps_dict())
+    with pytest.raises(ds.DatasetNotFoundError, match=r"missing DATA_EMPS_PULSES\.mat"):
+        ds.load_emps(tmp_path)
+
+
+def test_emps_missing_variable_names_file_and_variables(tmp_path):
+    bad = _emps_dict()
+    del bad["qm"]
+    _write_emps(tmp_path, est=bad)
+    with pytest.raises(ds.DatasetFormatError) as e:
+        ds.load_emps(tmp_path)
+    msg = str(e.value)
+    assert "DATA_EMPS.mat" in msg and "missing variable(s) qm" in msg
+    assert "t, qm, qg, vir" in msg and "kp, kv, gtau" in msg
+    assert isinstance(e.value, ValueError)
+
+
+def test_emps_validation_without_pulses(tmp_path):
+    _write_emps(tmp_path, val=_emps_dict(pulses=False))
+    with pytest.raises(ds.DatasetFormatError, match=r"DATA_EMPS_PULSES\.mat.*pulses_N"):
+        ds.load_emps(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "change, pattern",
+    [
+        (lambda d: d.update(qg=d["qg"][:-1]), r"'qg' has 49 samples but 't' has 50"),
+        (lambda d: d.update(kp=np.ones((2, 1))), r"'kp' must be a numeric scalar"),
+        (lambda d: d.update(vir=np.ones((50, 2))), r"'vir' must be a vector"),
+        (lambda d: d.update(t=d["t"][::-1]), r"'t' .* strictly increasing"),
+        (lambda d: d["qm"].__setitem__((3, 0), np.nan), r"'qm' contains NaN"),
+    ],
+)
+def test_emps_malformed_variables(tmp_path, change, pattern):
+    bad = _emps_dict()
+    change(bad)
+    _write_emps(tmp_path, est=bad)
+    with pytest.raises(ds.DatasetFormatError, match=pattern) as e:
+        ds.load_emps(tmp_path)
+    assert "DATA_EMPS.mat" in str(e.value)
+
+
+def test_emps_not_a_mat_file(tmp_path):
+    _write_emps(tmp_path)
+    (tmp_path / "DATA_EMPS_PULSES.mat").write_bytes(b"this is not a MATLAB file at all" * 8)
+    with pytest.raises(
+        ds.DatasetFormatError, match=r"DATA_EMPS_PULSES\.mat.*not a readable MATLAB"
+    ):
+        ds.load_emps(tmp_path)
+
+
+def test_emps_inconsistent_controller(tmp_path):
+    val = _emps_dict(pulses=True)
+    val["kp"] = np.array([[100.0]])
+    _write_emps(tmp_path, val=val)
+    with pytest.raises(ds.DatasetFormatError, match=r"'kp' differs"):
+        ds.load_emps(tmp_path)
+
+
+def test_tanks_good_small_file(tmp_path):
+    d = ds.load_cascaded_tanks(_write_csv(tmp_path / "dataBenchmark.csv", GOOD_CSV))
+    np.testing.assert_array_equal(d.u_est, [1, 1.5, 2])
+    np.testing.assert_array_equal(d.y_val, [4, 4.5, 5])
+    assert d.Ts == 4.0
+
+
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ('"uEst","uVal","yEst","Ts"\n1,2,3,4\n1,2,3,\n', r"missing column\(s\) yVal"),
+        (
+            '"uEst","uVal","yEst","yVal","Ts"\n1,2,3,4,4\n1,x,3,4,\n',
+            r"line 3: column 'uVal' holds 'x'",
+        ),
+        (
+            '"uEst","uVal","yEst","yVal","Ts"\n1,2,3,4,4\n1,2,3\n',
+            r"line 3: column 'yVal' holds '<missing>'",
+        ),
+        (
+            '"uEst","uVal","yEst","yVal","Ts"\n1,2,3,4,\n1,2,3,4,\n',
+            r"column 'Ts' must hold the sampling time",
+        ),
+        (
+            '"uEst","uVal","yEst","yVal","Ts"\n1,2,3,4,-4\n1,2,3,4,\n',
+            r"not a positive sampling time",
+        ),
+        ("", r"empty file"),
+    ],
+)
+def test_tanks_malformed_csv(tmp_path, text, pattern):
+    f = _write_csv(tmp_path / "dataBenchmark.csv", text)
+    with pytest.raises(ds.DatasetFormatError, match=pattern) as e:
+        ds.load_cascaded_tanks(f)
+    assert "dataBenchmark.csv" in str(e.value)
