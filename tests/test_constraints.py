@@ -1,0 +1,219 @@
+"""Projections onto convex parameter sets (Section 3.3) as optax transforms."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from oneshot_jax import constraints as oc
+
+
+def leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+#
+# The documented hand-written loop: chain the projection last, apply the updates, then
+# project once more so that round-off cannot leave the set.
+#
+
+
+def hand_loop(proj, params, target, optimiser, steps=200):
+    """`optimiser` on sum ||p - target||^2 with `proj` chained last; yields each iterate."""
+    tx = optax.chain(optimiser, proj)
+    state = tx.init(params)
+
+    def loss(p):
+        return sum(jnp.sum((a - b) ** 2) for a, b in zip(jax.tree_util.tree_leaves(p),
+                                                         jax.tree_util.tree_leaves(target)))
+
+    @jax.jit
+    def step(params, state):
+        grads = jax.grad(loss)(params)
+        updates, state = tx.update(grads, state, params)
+        params = optax.apply_updates(params, updates)
+        params = proj.project(params)  # the documented re-projection
+        return params, state
+
+    for _ in range(steps):
+        params, state = step(params, state)
+        yield params
+
+
+PARAMS0 = {"k": jnp.array([0.5, 2.0, -0.3]), "m": jnp.array(1.0)}
+# The unconstrained minimiser lies outside every set below in some entries.
+TARGET = {"k": jnp.array([-1.0, 5.0, 1e-14]), "m": jnp.array(-2.0)}
+
+
+@pytest.mark.parametrize("optimiser", ["adam", "sgd"])
+@pytest.mark.parametrize("kind", ["box", "non_negative", "positive"])
+def test_hand_loop_iterates_are_exactly_feasible(kind, optimiser):
+    if kind == "box":
+        proj = oc.box(lower={"k": jnp.array([-0.2, 0.0, 1e-3]), "m": 0.25}, upper={"k": 3.0})
+    elif kind == "non_negative":
+        proj = oc.non_negative()
+    else:
+        proj = oc.positive(1e-6)
+    lo, hi = proj.bounds(PARAMS0)
+    params0 = proj.project(PARAMS0)
+    last = None
+    opt = optax.adam(0.05) if optimiser == "adam" else optax.sgd(0.1)
+    for last in hand_loop(proj, params0, TARGET, opt):
+        for p, a, b in zip(leaves(last), leaves(lo), leaves(hi)):
+            assert np.all(p >= a) and np.all(p <= b), (p, a, b)  # exact: no round-off outside
+    if optimiser == "adam":
+        return  # constant-step Adam only hovers near the optimum
+    # Projected gradient descent converged to the projection of the unconstrained
+    # minimiser (a box is separable).
+    expected = jax.tree_util.tree_map(jnp.clip, TARGET, lo, hi)
+    for p, e in zip(leaves(last), leaves(expected)):
+        np.testing.assert_allclose(p, e, rtol=1e-6, atol=1e-6)
+    # The active bounds are attained exactly.
+    for p, e, a, b in zip(leaves(last), leaves(expected), leaves(lo), leaves(hi)):
+        on_bound = (e == a) | (e == b)
+        np.testing.assert_array_equal(p[on_bound], e[on_bound])
+
+
+def test_apply_updates_alone_can_round_outside_and_project_restores_it():
+    """Why the loop projects again: params + (P(params + u) - params) != P(params + u) in
+    floating point, and here it lands one rounding below the lower bound."""
+    lower = 4.431343583025715e-05
+    proj = oc.box(lower=lower)
+    params = jnp.array([0.1763570463792119])
+    updates, _ = proj.update(jnp.array([-1.0]), proj.init(params), params)
+    stepped = optax.apply_updates(params, updates)
+    assert float(stepped[0]) < lower  # the update alone is infeasible by round-off
+    assert float(stepped[0]) == pytest.approx(lower, rel=1e-12)
+    assert float(proj.project(stepped)[0]) == lower
+
+
+def test_projection_update_is_projected_step_minus_params():
+    proj = oc.box(lower=0.0, upper=1.0)
+    params = jnp.array([0.2, 0.9, 0.5])
+    u = jnp.array([-0.5, 0.4, 0.1])
+    updates, state = proj.update(u, proj.init(params), params)
+    np.testing.assert_allclose(params + updates, [0.0, 1.0, 0.6], rtol=0, atol=1e-15)
+    assert isinstance(state, optax.EmptyState)
+    with pytest.raises(ValueError, match="params"):
+        proj.update(u, proj.init(params), None)
+
+
+def test_projection_works_under_jit():
+    proj = oc.box(lower={"k": -1.0}, upper={"m": 0.5})
+    tx = optax.chain(optax.sgd(1.0), proj)
+
+    @jax.jit
+    def step(params, state, grads):
+        updates, state = tx.update(grads, state, params)
+        return proj.project(optax.apply_updates(params, updates)), state
+
+    grads = {"k": jnp.array([3.0, -1.0, 0.0]), "m": jnp.array(-4.0)}
+    params, _ = step(PARAMS0, tx.init(PARAMS0), grads)
+    np.testing.assert_array_equal(params["k"], [-1.0, 3.0, -0.3])
+    assert float(params["m"]) == 0.5
+
+
+#
+# Bounds and projections themselves.
+#
+
+
+def test_box_bounds_broadcast_and_default_to_infinity():
+    params = {"k": jnp.zeros(3), "m": jnp.array(0.0), "v": jnp.zeros((2, 2))}
+    lo, hi = oc.box(lower={"k": jnp.array([0.0, 1.0, 2.0]), "m": -1.0}, upper=5.0).bounds(params)
+    np.testing.assert_array_equal(lo["k"], [0.0, 1.0, 2.0])
+    assert float(lo["m"]) == -1.0
+    assert np.all(np.asarray(lo["v"]) == -np.inf) and lo["v"].shape == (2, 2)
+    assert all(np.all(h == 5.0) for h in leaves(hi))
+    p = oc.box(lower={"k": jnp.array([0.0, 1.0, 2.0]), "m": -1.0}, upper=5.0).project(
+        {"k": jnp.array([-1.0, 7.0, 3.0]), "m": jnp.array(-3.0), "v": -9.0 * jnp.ones((2, 2))})
+    np.testing.assert_array_equal(p["k"], [0.0, 5.0, 3.0])
+    assert float(p["m"]) == -1.0
+    np.testing.assert_array_equal(p["v"], -9.0 * np.ones((2, 2)))
+    # A list of parameters takes one bound per leaf; an array theta takes an array bound.
+    lo, _ = oc.box(lower=[0.0, jnp.array([1.0, 2.0])]).bounds([jnp.array(3.0), jnp.zeros(2)])
+    np.testing.assert_array_equal(lo[1], [1.0, 2.0])
+    x = oc.box(lower=jnp.array([0.0, 1.0]), upper=jnp.array([1.0, 2.0])).project(
+        jnp.array([-5.0, 5.0]))
+    np.testing.assert_array_equal(x, [0.0, 2.0])
+
+
+def test_non_negative_and_positive():
+    x = jnp.array([-1.0, 0.0, 1e-300, 2.0])
+    np.testing.assert_array_equal(oc.non_negative().project(x), [0.0, 0.0, 1e-300, 2.0])
+    np.testing.assert_array_equal(oc.positive().project(x), [1e-12, 1e-12, 1e-12, 2.0])
+    np.testing.assert_array_equal(oc.positive(0.5).project(x), [0.5, 0.5, 0.5, 2.0])
+    lo, hi = oc.positive(0.5).bounds(x)
+    assert np.all(np.asarray(lo) == 0.5) and np.all(np.asarray(hi) == np.inf)
+
+
+def test_projections_are_idempotent():
+    x = {"k": jnp.array([-3.0, 0.5, 9.0]), "m": jnp.array(2.0)}
+    for proj in (oc.box(-1.0, 1.0), oc.non_negative(), oc.positive(), oc.project(
+            lambda p: jax.tree_util.tree_map(lambda a: a / jnp.maximum(1.0, jnp.abs(a)), p))):
+        once = proj.project(x)
+        for a, b in zip(leaves(once), leaves(proj.project(once))):
+            np.testing.assert_array_equal(a, b)
+
+
+def simplex(p):
+    """Euclidean projection onto the probability simplex (sort-based algorithm)."""
+    u = jnp.sort(p)[::-1]
+    css = jnp.cumsum(u) - 1.0
+    k = jnp.arange(1, p.size + 1)
+    rho = jnp.max(jnp.where(u - css / k > 0, k, 0))
+    return jnp.maximum(p - css[rho - 1] / rho, 0.0)
+
+
+def test_general_projection_in_a_hand_loop():
+    proj = oc.project(simplex)
+    assert proj.bounds is None
+    target = jnp.array([0.9, 0.6, -0.2, 0.1])
+    last = None
+    for last in hand_loop(proj, simplex(jnp.ones(4)), target, optax.sgd(0.1)):
+        assert np.all(np.asarray(last) >= 0.0)
+        assert float(jnp.sum(last)) == pytest.approx(1.0, abs=1e-12)
+    # Projected gradient descent: min ||p - t||^2 on the simplex is the projection of t.
+    # (Adam would not do: its fixed points on the boundary of a non-box set are not this
+    # point, since its diagonal scaling does not match the Euclidean projection.)
+    np.testing.assert_allclose(last, simplex(target), atol=1e-12)
+    np.testing.assert_allclose(simplex(target), [0.65, 0.35, 0.0, 0.0], atol=1e-15)
+
+
+def test_combine():
+    assert oc.combine(None) is None
+    b = oc.box(0.0, 2.0)
+    assert oc.combine(b) is b and oc.combine([b]) is b
+    both = oc.combine([oc.box(lower=-1.0, upper=2.0), oc.box(lower=0.5, upper=3.0)])
+    lo, hi = both.bounds(jnp.zeros(2))
+    np.testing.assert_array_equal(lo, [0.5, 0.5])
+    np.testing.assert_array_equal(hi, [2.0, 2.0])
+    np.testing.assert_array_equal(both.project(jnp.array([-5.0, 5.0])), [0.5, 2.0])
+    # A general projection in the list: no bounds, projections applied in order.
+    mixed = oc.combine([oc.non_negative(), oc.project(lambda p: p / jnp.sum(p))])
+    assert mixed.bounds is None
+    np.testing.assert_allclose(mixed.project(jnp.array([-1.0, 1.0, 3.0])), [0.0, 0.25, 0.75])
+    with pytest.raises(ValueError, match="`constraints`"):
+        oc.combine("positive")
+    with pytest.raises(ValueError, match="`constraints`"):
+        oc.combine([b, lambda p: p])
+
+
+def test_invalid_constraints_raise():
+    with pytest.raises(ValueError, match="lower <= upper"):
+        oc.box(lower=1.0, upper=0.0).bounds(jnp.zeros(2))
+    with pytest.raises(ValueError, match="lower <= upper"):
+        oc.box(lower=1.0, upper=0.0).project(jnp.zeros(2))
+    with pytest.raises(ValueError, match="`lower`.*not in theta"):
+        oc.box(lower={"nope": 0.0}).bounds({"k": jnp.zeros(2)})
+    with pytest.raises(ValueError, match="`upper`"):
+        oc.box(upper=jnp.zeros(3)).bounds({"k": jnp.zeros(2), "m": jnp.zeros(())})
+    with pytest.raises(ValueError, match="`lower`"):
+        oc.box(lower=jnp.zeros(3)).bounds(jnp.zeros(2))
+    with pytest.raises(ValueError, match="`lower`"):
+        oc.box(lower=[0.0]).bounds([jnp.zeros(()), jnp.zeros(())])
+    with pytest.raises(ValueError, match="`eps`"):
+        oc.positive(0.0)
+    with pytest.raises(ValueError, match="`fn`"):
+        oc.project("not callable")

@@ -1,0 +1,221 @@
+"""The closed-form residual Jacobian (forward sensitivities, `_sensitivity.py`) against
+`jax.jacfwd` of the residual rollout, through `Problem.jacobian` / `Problem.residuals`.
+
+The Problems are built here the way `fit` builds them: the free parameters are the entries
+of the flattened theta and of each trajectory's x0 that are not fixed, so the Jacobian's
+columns are exactly the free variables.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import oneshot_jax as oj
+from oneshot_jax._fit import _residuals
+from oneshot_jax._solvers import Problem
+
+
+def symmetric_sqrt(Q):
+    vals, vecs = np.linalg.eigh(np.asarray(Q))
+    return jnp.asarray((vecs * np.sqrt(np.clip(vals, 0, None))) @ vecs.T)
+
+
+def make_problem(model, theta, x0, u, z, *, fixed=None, x0_mask=None, weight=None,
+                 penalty=None, penalty_weight=1.0):
+    """A Problem for N trajectories: x0 (N, n_x), u (N, T, n_u), z (N, T, n_z)."""
+    flat, unravel = ravel_pytree(theta)
+    fixed_flat = np.zeros(flat.shape, bool) if fixed is None else np.asarray(
+        ravel_pytree(jax.tree_util.tree_map(lambda f: jnp.asarray(f, float), fixed))[0]) > 0
+    x0_mask = np.ones(x0.shape[1], bool) if x0_mask is None else np.asarray(x0_mask)
+    if weight is None:
+        sqrt_q = None
+    elif np.ndim(weight) == 1:
+        sqrt_q = jnp.sqrt(jnp.asarray(weight))
+    else:
+        sqrt_q = symmetric_sqrt(weight)
+    return Problem(
+        model=model, u=jnp.asarray(u), z=jnp.asarray(z),
+        weight=None if weight is None else jnp.asarray(weight), sqrt_q=sqrt_q,
+        penalty=penalty, penalty_weight=jnp.asarray(penalty_weight, flat.dtype),
+        theta_base=flat, theta_free=tuple(int(i) for i in np.flatnonzero(~fixed_flat)),
+        unravel=unravel, x0_base=jnp.asarray(x0),
+        x0_free=tuple(int(i) for i in np.flatnonzero(x0_mask)), project=None, lower=None,
+        upper=None, strategy="auto",
+    )
+
+
+def assert_columns_close(actual, expected, rtol):
+    """Column by column (each free variable), ||a_j - e_j|| <= rtol ||e_j||: a norm over the
+    whole matrix would hide a wrong column of small scale (x0 columns vs theta columns)."""
+    actual, expected = np.asarray(actual), np.asarray(expected)
+    assert actual.shape == expected.shape, (actual.shape, expected.shape)
+    assert np.all(np.isfinite(actual))
+    err = np.linalg.norm(actual - expected, axis=0)
+    ref = np.linalg.norm(expected, axis=0)
+    assert np.all(ref > 0), "a column of the reference Jacobian is zero: a useless test case"
+    assert np.all(err <= rtol * ref), err / ref
+
+
+@eqx.filter_jit
+def closed_form(problem, pt, px):
+    return problem.jacobian(pt, px)
+
+
+@eqx.filter_jit
+def jacfwd_reference(problem, pt, px):
+    return jax.jacfwd(problem.residuals, argnums=(0, 1))(pt, px)
+
+
+@eqx.filter_jit
+def bridge(problem, pt, px):
+    f = lambda pt, px: _residuals(pt, px, problem=problem)  # noqa: E731
+    return f(pt, px), jax.jacfwd(f, argnums=(0, 1))(pt, px)
+
+
+#
+# Test problems.
+#
+
+
+def rich_step(x, u, th):
+    """Nonlinear 3-state map with a dict theta (vector, scalar and matrix leaves)."""
+    k, c, M = th["k"], th["c"], th["M"]
+    return x + 0.1 * jnp.stack([
+        k[0] * x[1] - c * x[0] ** 3 + u[0],
+        -k[1] * jnp.sin(x[0]) + M[0, 0] * x[2] + M[0, 1] * u[1],
+        -k[2] * x[2] + M[1, 0] * x[0] * x[1] + M[1, 1] * u[0],
+    ])
+
+
+def rich_observe(x, u, th):
+    """Outputs that depend on u and theta too."""
+    return jnp.stack([x[0] + th["c"] * u[0], x[1] * x[2], jnp.tanh(th["k"][0] * x[2])])
+
+
+RICH_THETA = {"k": jnp.array([1.2, 0.8, 0.5]), "c": jnp.array(0.3),
+              "M": jnp.array([[0.4, -0.7], [0.9, 0.2]])}
+
+
+def barrier(x, th):
+    """An exponential barrier on x[0] plus a theta term: strictly positive everywhere."""
+    return jnp.exp((x[0] - 1.0) / 0.5) + 0.1 * th["c"] ** 2 + 0.01
+
+
+def rich_problem(N, T, seed, **kwargs):
+    rng = np.random.default_rng(seed)
+    model = oj.Model(rich_step, rich_observe)
+    x0 = jnp.asarray(rng.uniform(-0.5, 0.5, (N, 3)))
+    u = jnp.asarray(rng.standard_normal((N, T, 2)))
+    _, zs = jax.vmap(lambda x0, u: oj.simulate(model, RICH_THETA, x0, u))(x0, u)
+    z = zs + 0.05 * rng.standard_normal(zs.shape)
+    # Evaluate away from the data's parameters, so residuals and Jacobians are generic.
+    theta = jax.tree_util.tree_map(
+        lambda a: a * (1 + 0.1 * rng.standard_normal(a.shape)), RICH_THETA)
+    return make_problem(model, theta, x0 + 0.05, u, z, **kwargs)
+
+
+L = np.array([[1.0, 0.0], [0.5, 1.0], [-0.3, 0.8]])
+
+CASES = {
+    # Fixed entries inside leaves, an x0 mask, three trajectories, a non-diagonal singular
+    # PSD weight and a penalty, all at once.
+    "fixed_elements-x0_mask-N3-nondiagonal_Q-penalty": lambda: rich_problem(
+        3, 15, 0,
+        fixed={"k": [False, True, False], "c": False, "M": [[False, True], [False, False]]},
+        x0_mask=[True, False, True], weight=L @ L.T, penalty=barrier, penalty_weight=0.7),
+    # A whole leaf fixed, a diagonal weight, one trajectory, no penalty.
+    "fixed_leaf-diagonal_Q-N1": lambda: rich_problem(
+        1, 20, 1, fixed={"k": False, "c": True, "M": False}, weight=np.array([1.0, 2.5, 0.3])),
+    # The satellite of Section 4 (RK4 with two substeps, tiny scales: theta ~ 1e-2,
+    # x0 ~ 1e-3 .. 1e-5), everything free.
+    "satellite_rk4": lambda: satellite_problem(),
+}
+
+
+def satellite_problem():
+    rng = np.random.default_rng(2)
+    model = oj.Model.from_ode(lambda w, M, J: (M - jnp.cross(w, J * w)) / J, 0.1, substeps=2)
+    theta = jnp.array([0.0403, 0.0404, 0.0080])
+    w0 = jnp.array([[9.915e-6, -1.102e-3, 1.3179e-5]])
+    M = jnp.asarray(1e-5 + 1e-7 * rng.standard_normal((1, 50, 3)))
+    _, z = oj.simulate(model, theta, w0, M)
+    z = z + 1e-4 * rng.standard_normal(z.shape)
+    return make_problem(model, theta * jnp.array([1.1, 0.9, 1.05]), w0 * 1.3, M, z)
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def case(request):
+    problem = CASES[request.param]()
+    pt, px = problem.split(problem.theta_base, problem.x0_base)
+    return problem, pt, px
+
+
+def test_closed_form_jacobian_equals_jacfwd_of_residuals(case):
+    problem, pt, px = case
+    r, Jt, Jx = closed_form(problem, pt, px)
+    N, R = r.shape
+    assert Jt.shape == (N, R, len(problem.theta_free))
+    assert Jx.shape == (N, R, len(problem.x0_free))
+    np.testing.assert_allclose(r, problem.residuals(pt, px), rtol=1e-13, atol=0)
+    Jt_ref, Jx_ref = jacfwd_reference(problem, pt, px)
+    # Jt_ref: (N, R, p); Jx_ref: (N, R, N, m), where only trajectory i's x0 moves r_i.
+    assert_columns_close(Jt.reshape(N * R, -1), Jt_ref.reshape(N * R, -1), rtol=1e-10)
+    for i in range(N):
+        assert_columns_close(Jx[i], Jx_ref[i, :, i, :], rtol=1e-10)
+        for j in range(N):
+            if j != i:
+                assert np.all(np.asarray(Jx_ref[i, :, j, :]) == 0)
+
+
+def test_residuals_square_to_the_loss(case):
+    """||r||^2 is the multi-step cost C of eq. (5)/(21) (mean over trajectories)."""
+    problem, pt, px = case
+    r = problem.residuals(pt, px)
+    theta, x0 = problem.theta_of(pt), problem.x0_of(px)
+    C = oj.loss(problem.model, theta, x0, problem.u, problem.z, weight=problem.weight,
+                penalty=problem.penalty, penalty_weight=float(problem.penalty_weight))
+    assert float(jnp.sum(r**2)) == pytest.approx(float(C), rel=1e-12)
+    # Fixed entries are constants: theta_of / x0_of put the base values back.
+    fixed = np.setdiff1d(np.arange(problem.theta_base.size), problem.theta_free)
+    flat = ravel_pytree(theta)[0]
+    assert np.array_equal(np.asarray(flat[fixed]), np.asarray(problem.theta_base[fixed]))
+    kept = np.setdiff1d(np.arange(problem.x0_base.shape[1]), problem.x0_free)
+    assert np.array_equal(np.asarray(x0[:, kept]), np.asarray(problem.x0_base[:, kept]))
+
+
+def test_optimistix_bridge_jvp_is_the_closed_form_jacobian(case):
+    """The custom JVP that feeds optimistix gives the same Jacobian."""
+    problem, pt, px = case
+    r_b, (Jt, Jx) = bridge(problem, pt, px)
+    r, Jt_cf, Jx_cf = closed_form(problem, pt, px)
+    N, R = r.shape
+    np.testing.assert_allclose(r_b, r.reshape(-1), rtol=1e-13, atol=0)
+    assert_columns_close(Jt, Jt_cf.reshape(N * R, -1), rtol=1e-12)
+    for i in range(N):
+        assert_columns_close(Jx.reshape(N, R, N, -1)[i, :, i, :], Jx_cf[i], rtol=1e-12)
+
+
+def test_inactive_penalty_rows_are_zero_and_active_rows_match():
+    """A signed h enters as sqrt(max(lambda h, 0)): rows where h <= 0 carry neither residual
+    nor gradient (jacfwd gives 0 * inf = NaN there); active rows match jacfwd."""
+
+    def signed(x, th):
+        return x[0] - 0.1 + 0.0 * th["c"]  # positive on part of the trajectory only
+
+    problem = rich_problem(1, 20, 3, penalty=signed, penalty_weight=2.0)
+    pt, px = problem.split(problem.theta_base, problem.x0_base)
+    r, Jt, Jx = closed_form(problem, pt, px)
+    n_data = 20 * 3
+    h = np.asarray(r[0, n_data:])
+    active = h > 0
+    assert 2 <= active.sum() <= 18, h  # both kinds of rows are present
+    J = np.concatenate([Jt[0], Jx[0]], axis=1)
+    assert np.all(J[n_data:][~active] == 0.0)
+    Jt_ref, Jx_ref = jacfwd_reference(problem, pt, px)
+    J_ref = np.concatenate([Jt_ref[0], Jx_ref[0, :, 0, :]], axis=1)
+    rows = np.concatenate([np.ones(n_data, bool), active])
+    err = np.linalg.norm(J[rows] - J_ref[rows], axis=0)
+    assert np.all(err <= 1e-10 * np.linalg.norm(J_ref[rows], axis=0))
