@@ -473,7 +473,7 @@ def _post(problem, pt, px):
     theta = problem.theta_of(pt)
     X0 = problem.x0_of(px)
     _, zhat = _simulate(problem.model, theta, X0, problem.u, True)
-    sse, S_inv, x_diag = covariance_blocks(problem, pt, px)
+    sse, S_inv, x_diag, identifiable = covariance_blocks(problem, pt, px)
     n_free = pt.shape[0] + px.size
     zs = problem.z
     met = {
@@ -483,17 +483,25 @@ def _post(problem, pt, px):
         "r2": _metrics.r2(zs, zhat),
         "aic": _metrics.aic(zs, zhat, n_free),
     }
-    return theta, X0, zhat - zs, sse, S_inv, x_diag, met
+    return theta, X0, zhat - zs, sse, S_inv, x_diag, identifiable, met
 
 
 def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts, best):
-    theta, X0, e, sse, S_inv, x_diag, met = _post(problem, pt, px)
+    theta, X0, e, sse, S_inv, x_diag, identifiable, met = _post(problem, pt, px)
     met = {k: (float(v) if k == "aic" else np.asarray(v)) for k, v in met.items()}
     n_free = pt.shape[0] + px.size
     dof = max(e.size - n_free, 1)
     # sigma^2 (J_e^T Q J_e)^{-1} with J = Q^{1/2} J_e / sqrt(N T): sigma^2/(N T) = SSE_r/dof.
     s2 = float(sse) / dof
     cov = np.asarray(S_inv) * s2
+    identifiable = np.asarray(identifiable)
+    if not identifiable.all():
+        bad = [str(n) for n, ok in zip(np.asarray(_all_names(theta))[list(problem.theta_free)], identifiable) if not ok]
+        warnings.warn(f"the Jacobian is rank-deficient at the solution: {bad} do not change the "
+                      "outputs there (not identifiable from these data); their std is inf.",
+                      stacklevel=3)
+        cov[~identifiable, :] = np.inf
+        cov[:, ~identifiable] = np.inf
     flat_std = np.zeros(problem.theta_base.shape)
     flat_std[list(problem.theta_free)] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     std = problem.unravel(jnp.asarray(flat_std, problem.theta_base.dtype))

@@ -50,8 +50,8 @@ _MESSAGES = {
     StopReason.CONVERGED: "converged: the relative step fell below rtol, or the predicted "
     "decrease of the loss fell below machine precision",
     StopReason.NO_PROGRESS: "no step decreased the loss any more (the damping or the line "
-    "search gave up); the point is a minimum to machine precision or the problem is badly "
-    "scaled",
+    "search gave up) although the model predicted a decrease; check the scaling of the "
+    "problem or try another solver or starting point",
     StopReason.DIVERGED: "the simulation diverged (inf or NaN loss); the last finite iterate "
     "is returned",
 }
@@ -214,6 +214,23 @@ def _floor(d):
     return jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
 
 
+def _psd_solve(M, b):
+    """M^+ b for symmetric PSD M (batched), by eigendecomposition with a relative cutoff.
+
+    Gauss-Newton's normal equations are singular when a parameter (or an initial state)
+    has no effect at the current point; the pseudo-inverse then gives that direction a
+    zero step instead of NaN or a huge one.
+    """
+    vals, vecs = jnp.linalg.eigh(M)
+    cut = 1e3 * jnp.finfo(M.dtype).eps * jnp.max(jnp.abs(vals), axis=-1, keepdims=True)
+    inv = jnp.where(vals > cut, 1.0 / jnp.where(vals > cut, vals, 1.0), 0.0)
+    if b.ndim == M.ndim - 1:  # one right-hand side per matrix
+        coef = jnp.einsum("...ji,...j->...i", vecs, b)
+        return jnp.einsum("...ij,...j->...i", vecs, inv * coef)
+    coef = jnp.einsum("...ji,...jk->...ik", vecs, b)
+    return jnp.einsum("...ij,...jk->...ik", vecs, inv[..., None] * coef)
+
+
 def structured_step(A, B, Cb, g_t, g_x, mu, active):
     """Solve (J^T J + mu D) h = -J^T r by eliminating each trajectory's x0 block.
 
@@ -229,8 +246,8 @@ def structured_step(A, B, Cb, g_t, g_x, mu, active):
     if m:
         D_x = jax.vmap(lambda c: _floor(jnp.diag(c)))(Cb)
         Cd = Cb + mu * jax.vmap(jnp.diag)(D_x)
-        CinvBt = jnp.linalg.solve(Cd, jnp.swapaxes(B, 1, 2))  # (N, m, p)
-        Cinvg = jnp.linalg.solve(Cd, g_x[..., None])[..., 0]  # (N, m)
+        CinvBt = _psd_solve(Cd, jnp.swapaxes(B, 1, 2))  # (N, m, p)
+        Cinvg = _psd_solve(Cd, g_x)  # (N, m)
         S = A + mu * jnp.diag(D_t) - jnp.einsum("npm,nmq->pq", B, CinvBt)
         rhs = g_t - jnp.einsum("npm,nm->p", B, Cinvg)
     else:
@@ -239,7 +256,7 @@ def structured_step(A, B, Cb, g_t, g_x, mu, active):
     act = active.astype(S.dtype)
     keep = 1.0 - act
     S = S * keep[:, None] * keep[None, :] + jnp.diag(act)
-    h_t = -jnp.linalg.solve(S, rhs * keep) if S.shape[0] else rhs
+    h_t = -_psd_solve(S, rhs * keep) if S.shape[0] else rhs
     if m:
         h_x = -(Cinvg + jnp.einsum("nmp,p->nm", CinvBt, h_t))
     else:
@@ -320,9 +337,17 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
             mu_new, nu_new = mu, nu
             gave_up = ~accept
 
-        step = jnp.concatenate([(nt - pt), (nx - px).reshape(-1)])
         size = jnp.concatenate([jnp.abs(pt), jnp.abs(px).reshape(-1)])
-        small = jnp.all(jnp.abs(step) <= rtol * (size + rtol * jnp.max(size, initial=1.0)))
+        scale = size + jnp.max(size, initial=1.0)
+
+        def relative(step_t, step_x):
+            step = jnp.concatenate([step_t, step_x.reshape(-1)])
+            return jnp.max(jnp.abs(step) / scale, initial=0.0)
+
+        small = relative(nt - pt, nx - px) <= rtol
+        # A full step at the round-off level of the parameters that cannot decrease C:
+        # nothing is left to gain in this precision (matters in float32).
+        at_precision = at_precision | (~accept & (relative(h_t, h_x) <= 10 * jnp.sqrt(jnp.finfo(dtype).eps)))
         code = jnp.where(
             code != _RUNNING,
             code,
@@ -353,7 +378,8 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
 @eqx.filter_jit
 def covariance_blocks(problem, p_theta, p_x0):
     """(J^T J)^{-1} blocks of the data residuals at the solution, via the Schur complement:
-    the theta block S^{-1} and the diagonal of each trajectory's x0 block."""
+    the theta block S^{-1} (a pseudo-inverse), the diagonal of each trajectory's x0 block,
+    and which parameters are identifiable (outside the null space of S)."""
     r, Jt, Jx = problem.jacobian(p_theta, p_x0, penalty=False)
     A, B, Cb, _, _ = _normal_blocks(Jt, Jx, r)
     m = Cb.shape[-1]
@@ -362,10 +388,16 @@ def covariance_blocks(problem, p_theta, p_x0):
         S = A - jnp.einsum("npm,nml,nql->pq", B, Cinv, B)
     else:
         S = A
-    S_inv = jnp.linalg.inv(S) if S.shape[0] else S
+    # A pseudo-inverse, and a flag per parameter: a parameter with a component in the null
+    # space of S does not change the outputs at the solution (not identifiable).
+    vals, vecs = jnp.linalg.eigh(S)
+    cut = 1e3 * jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(vals), initial=0.0)
+    null = vals <= cut
+    identifiable = ~jnp.any(null[None, :] & (jnp.abs(vecs) > 1e-6), axis=1)
+    S_inv = (vecs * jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))) @ vecs.T
     if m:
         W = jnp.einsum("nml,npl->nmp", Cinv, B)  # C_i^{-1} B_i^T
         x_diag = jnp.diagonal(Cinv, axis1=1, axis2=2) + jnp.einsum("nmp,pq,nmq->nm", W, S_inv, W)
     else:
         x_diag = jnp.zeros(p_x0.shape, A.dtype)
-    return jnp.sum(r**2), S_inv, x_diag
+    return jnp.sum(r**2), S_inv, x_diag, identifiable
