@@ -12,6 +12,13 @@ exactly feasible. Do the same in a hand-written loop: `params = tx.project(param
 
 Box-type sets (`non_negative`, `positive`, `box`) also expose their bounds, which the
 least-squares solvers of `fit` use for an exact active-set treatment.
+
+A caveat on projected Adam (Algorithm 1 with a projection): for a box the projection acts
+per coordinate, like Adam's scaling, and the iterates reach the constrained optimum. For a
+general convex set (`project(fn)`, e.g. a half-space) Adam's per-coordinate step sizes do
+not match the Euclidean projection, so projected Adam can settle at a feasible point that
+is not the constrained optimum; use plain gradient descent (`optax.sgd`) or a
+least-squares solver there.
 """
 
 from collections.abc import Callable
