@@ -39,7 +39,12 @@ from ._simulate import check_penalty_output, rollout, step_loss
 
 # Above this many bytes for the stacked J^{x/x}_k, "auto" switches to the vjp strategy.
 _JACOBIAN_BYTES = 256 * 2**20
-_JACOBIAN_MAX_NX = 64
+_JACOBIAN_MAX_NX = 16
+# The "jacobian" strategy also stacks J^{x/theta}_k (forward mode, n_theta JVPs per step)
+# when theta is this small; otherwise its theta term is one reverse-mode VJP after the scan.
+_THETA_FORWARD_MIN = 8
+# Up to this length the reverse scan's matrix-vector products are written elementwise.
+_MATVEC_ELEMENTWISE_MAX = 32
 
 
 def choose_strategy(strategy, n_x, T, itemsize):
@@ -50,66 +55,130 @@ def choose_strategy(strategy, n_x, T, itemsize):
     return "jacobian" if small else "vjp"
 
 
-def _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight):
-    """T L_k, Gamma_k and gamma_k (eq. 14) for every k at once (vmap), times T."""
-    ell = lambda x, u, z, th: step_loss(  # noqa: E731
-        model, th, x, u, z, weight, penalty, penalty_weight
+def theta_forward_mode(n_theta, n_x, T, itemsize):
+    """Whether the "jacobian" strategy stacks J^{x/theta}_k too (few parameters, small memory)."""
+    return (
+        n_theta <= max(n_x, _THETA_FORWARD_MIN)
+        and T * n_x * n_theta * itemsize <= _JACOBIAN_BYTES
     )
-    grad_ell = jax.value_and_grad(ell, argnums=(0, 3))
-    vals, (Gamma, gamma) = jax.vmap(grad_ell, in_axes=(0, 0, 0, None))(xs, u, z, theta)
-    gamma = jax.tree_util.tree_map(lambda g: jnp.sum(g, axis=0), gamma)
-    return vals, Gamma, gamma
+
+
+def _matvec(M, v):
+    """M @ v; for a short v as a multiply and a row sum, which XLA:CPU can keep inside a
+    loop that it compiles into a single kernel (a `dot` there runs as a separate call)."""
+    if v.shape[-1] <= _MATVEC_ELEMENTWISE_MAX:
+        return jnp.sum(M * v[None, :], axis=1)
+    return M @ v
+
+
+def _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight):
+    """sum_k T L_k, every T Gamma_k (eq. 14) and sum_k T gamma_k, by one VJP of the vmapped L_k.
+
+    The pullback of a vmapped function with an unbatched theta sums the per-step gamma_k
+    inside the transposed ops (a weight matrix Q, say, becomes one matrix product).
+    """
+
+    def total(xs, th):
+        per_step = jax.vmap(step_loss, in_axes=(None, None, 0, 0, 0, None, None, None))(
+            model, th, xs, u, z, weight, penalty, penalty_weight
+        )
+        return jnp.sum(per_step)
+
+    S, (Gamma, gamma) = jax.value_and_grad(total, argnums=(0, 1))(xs, theta)
+    return S, Gamma, gamma
+
+
+def _stacked_jacobians_T(step, theta, xs, u, wrt):
+    """Transposed one-step Jacobians at every (xs[j], u[j]), by forward mode (vmapped JVPs).
+
+    Slice j, row i is the JVP of f(x, u_j, theta) at x = xs[j] along the i-th basis vector
+    of x (`wrt="x"`: slice j is (J^{x/x}_{j+1})^T) or of the flattened theta (`wrt="theta"`:
+    (J^{x/theta}_{j+1})^T). Building the transposes directly saves the moveaxis copies of
+    `jax.jacfwd`, and they are what the reverse recursion multiplies with anyway.
+    """
+    if wrt == "x":
+        basis = jnp.eye(xs.shape[-1], dtype=xs.dtype)
+        push = lambda x, u_j, e: jax.jvp(lambda x: step(x, u_j, theta), (x,), (e,))[1]  # noqa: E731
+    else:
+        flat, unravel = ravel_pytree(theta)
+        basis = jnp.eye(flat.shape[0], dtype=flat.dtype)
+        push = lambda x, u_j, e: jax.jvp(  # noqa: E731
+            lambda th: step(x, u_j, th), (theta,), (unravel(e),)
+        )[1]
+    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, u)
+
+
+def _theta_term_vjp(step, theta, xs, u, lam):
+    """sum_j (J^{x/theta}_{j+1})^T lam[j] as one reverse-mode VJP of the vmapped step.
+
+    The sum over steps happens inside the pullback (for a matrix parameter it is one matrix
+    product), so no per-step parameter-sized cotangent is ever materialised.
+    """
+    batched = lambda th: jax.vmap(step, in_axes=(0, 0, None))(xs, u, th)  # noqa: E731
+    return jax.vjp(batched, theta)[1](lam)[0]
 
 
 def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
     """C and (grad_theta C, grad_x0 C) for one trajectory by the O(T) recursion above.
 
-    `strategy="jacobian"`: J^{x/x}_k for all k at once (vmap of jacfwd) after the forward
-    pass (the paper's Remark 1), then a reverse scan of small matrix-vector products; the
-    theta term sum_k (J^{x/theta}_k)^T lam_k is one vmapped VJP after the scan.
-    `strategy="vjp"`: each step of the reverse scan takes the VJP of f at (x_k, u_k) with
-    lam_{k+1}, never forming J^{x/x}; memory O(T n_x) instead of O(T n_x^2).
+    `strategy="jacobian"`: the transposed J^{x/x}_k for all k at once (vmapped forward-mode
+    JVPs) after the forward pass (the paper's Remark 1), then a reverse scan of small
+    matrix-vector products lam_k = Gamma_k^T + (J^{x/x}_{k+1})^T lam_{k+1}. For a small
+    theta the transposed J^{x/theta}_k are stacked the same way and the scan also
+    accumulates sum_k (J^{x/theta}_k)^T lam_k; for a larger theta that sum is one VJP of
+    the vmapped step after the scan.
+    `strategy="vjp"`: each step of the reverse scan takes the VJP of f in x at (x_k, u_k)
+    with lam_{k+1}, never forming J^{x/x}; the theta term is one VJP after the scan.
+    Memory O(T n_x) instead of O(T n_x^2).
     """
     T = u.shape[0]
+    n_x = x0.shape[0]
     xs = rollout(model, theta, x0, u)
-    vals, Gamma, gamma = _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight)
-    strategy = choose_strategy(strategy, x0.shape[0], T, x0.dtype.itemsize)
+    S, Gamma, gamma = _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight)
+    strategy = choose_strategy(strategy, n_x, T, x0.dtype.itemsize)
     step = model.step
+    x_prev, u_prev = xs[:-1], u[:-1]  # step j maps x_j to x_{j+1}, j = 0..T-2
 
     if strategy == "jacobian":
-        # A[j] = J^{x/x}_{j+1} = d f(x_j, u_j) / d x_j, j = 0..T-2.
-        A = jax.vmap(jax.jacfwd(step, argnums=0), in_axes=(0, 0, None))(xs[:-1], u[:-1], theta)
+        # At[j] = (J^{x/x}_{j+1})^T = (d f(x_j, u_j) / d x_j)^T.
+        At = _stacked_jacobians_T(step, theta, x_prev, u_prev, "x")
+        flat, unravel = ravel_pytree(theta)
+        if theta_forward_mode(flat.shape[0], n_x, T, x0.dtype.itemsize):
+            # Bt[j] = (J^{x/theta}_{j+1})^T; acc = sum_j Bt[j] lam_{j+1}.
+            Bt = _stacked_jacobians_T(step, theta, x_prev, u_prev, "theta")
 
-        def body(lam_next, inp):
-            A_j, Gamma_j = inp
-            return Gamma_j + A_j.T @ lam_next, lam_next
+            def body(carry, inp):
+                lam_next, acc = carry
+                At_j, Bt_j, Gamma_j = inp
+                return (Gamma_j + _matvec(At_j, lam_next), acc + _matvec(Bt_j, lam_next)), None
 
-        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (A, Gamma[:-1]), reverse=True)
-        # sum_{j} (J^{x/theta}_{j+1})^T lam_{j+1}, vmapped over j then summed.
-        vjp_theta = lambda x, u_k, lam: jax.vjp(  # noqa: E731
-            lambda th: step(x, u_k, th), theta
-        )[1](lam)[0]
-        theta_term = jax.vmap(vjp_theta, in_axes=(0, 0, 0))(xs[:-1], u[:-1], lam_next)
-        theta_term = jax.tree_util.tree_map(lambda g: jnp.sum(g, axis=0), theta_term)
+            init = (Gamma[-1], jnp.zeros(flat.shape, jnp.result_type(flat, Bt)))
+            (lam0, acc), _ = jax.lax.scan(body, init, (At, Bt, Gamma[:-1]), reverse=True)
+            theta_term = unravel(acc.astype(flat.dtype))
+        else:
+
+            def body(lam_next, inp):
+                At_j, Gamma_j = inp
+                return Gamma_j + _matvec(At_j, lam_next), lam_next
+
+            lam0, lam_next = jax.lax.scan(body, Gamma[-1], (At, Gamma[:-1]), reverse=True)
+            theta_term = _theta_term_vjp(step, theta, x_prev, u_prev, lam_next)
     elif strategy == "vjp":
 
-        def body(carry, inp):
-            lam_next, acc = carry
+        def body(lam_next, inp):
             x_j, u_j, Gamma_j = inp
-            _, vjp_fn = jax.vjp(lambda x, th: step(x, u_j, th), x_j, theta)
-            d_x, d_theta = vjp_fn(lam_next)
-            acc = jax.tree_util.tree_map(jnp.add, acc, d_theta)
-            return (Gamma_j + d_x, acc), None
+            _, vjp_x = jax.vjp(lambda x: step(x, u_j, theta), x_j)
+            return Gamma_j + vjp_x(lam_next)[0], lam_next
 
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, theta)
-        (lam0, theta_term), _ = jax.lax.scan(
-            body, (Gamma[-1], zeros), (xs[:-1], u[:-1], Gamma[:-1]), reverse=True
+        lam0, lam_next = jax.lax.scan(
+            body, Gamma[-1], (x_prev, u_prev, Gamma[:-1]), reverse=True
         )
+        theta_term = _theta_term_vjp(step, theta, x_prev, u_prev, lam_next)
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
 
     grad_theta = jax.tree_util.tree_map(lambda a, b: (a + b) / T, gamma, theta_term)
-    return jnp.mean(vals), (grad_theta, lam0 / T)
+    return S / T, (grad_theta, lam0 / T)
 
 
 @filter_jit
@@ -134,15 +203,15 @@ def value_and_grad(
     The gradient is the O(T) recursion of this module's docstring: a forward pass for the
     states, then one reverse `lax.scan` that accumulates Gamma_k (eq. 14) and the chained
     J^{x/x} products of eq. (16)-(17) into the multiplier lam_k. Per-step Jacobians come
-    from `jax.jacfwd`/`jax.vjp` of the user's `step` and `observe`; there is no
-    differentiation of the whole rollout.
+    from forward-mode JVPs (`jax.jvp`) or `jax.vjp` of the user's `step` and `observe`;
+    there is no differentiation of the whole rollout.
 
     **Arguments:**
 
     - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`: as for `loss`.
     - `strategy`: `"jacobian"` (stacked J^{x/x}_k by vmap, best for small n_x), `"vjp"`
         (VJPs inside the reverse scan, memory O(T n_x), for large states) or `"auto"`
-        (jacobian for n_x <= 64 when the stacked Jacobians fit in 256 MiB).
+        (jacobian for n_x <= 16 when the stacked Jacobians fit in 256 MiB).
 
     **Returns:**
 

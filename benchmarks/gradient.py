@@ -1,0 +1,401 @@
+"""Cost of the one-shot closed-form gradient against the forward simulation and autodiff.
+
+The paper's satellite (Section 4): Euler's equations I w' = M - w x (I w) with a diagonal
+inertia theta = {"I": (3,)}, RK4 at dt = 0.1 s (`Model.from_ode`), w0 as in the paper,
+M ~ N(1e-5, 1e-7) per axis, output noise 1e-4, float64. Gradients are taken at a
+perturbed iterate (theta and w0 off by 10-30 %), as during identification.
+
+Timed at each horizon T, in one run:
+
+- `forward`: the simulation, `oneshot_jax._simulate._simulate` (rollout + outputs);
+- `jacobian`, `vjp`: the closed-form `value_and_grad_impl` with that strategy (eq. 17/20
+  by the reverse recursion, both gradients in theta and x0);
+- `autodiff`: `jax.value_and_grad` (in theta and x0) of `oneshot_jax._simulate._loss`,
+  i.e. reverse-mode differentiation through the same `lax.scan` rollout;
+- `public ...`: the public `oneshot_jax.simulate` / `oneshot_jax.value_and_grad`
+  (strategy "auto"), i.e. including input validation and equinox's dispatch.
+
+The four "internal" columns are each wrapped in one `jax.jit` (model and static flags
+closed over, arrays as arguments), so they share the same dispatch path and only the
+compiled computation differs; the ratios use these. Every time is the median of repeated
+calls after two warm-up calls (compilation excluded), each call blocked with
+`block_until_ready`; the methods are interleaved call by call, so a change in machine load
+hits all of them alike. `rel. diff` is max|g_closed - g_autodiff| / max|g_autodiff| over
+theta and x0 for the jacobian strategy.
+
+The second table is the peak memory of one `value_and_grad` call (strategy "vjp",
+n_x = 1000, T = 1000, a tanh-coupled model with a dense 1000 x 1000 coupling in theta)
+next to autodiff and the forward simulation, measured two ways in a fresh subprocess
+each: XLA's `compiled.memory_analysis()` (argument + output + temporary buffers) and the
+growth of the process's peak resident set (`VmHWM` in /proc/self/status, reset through
+/proc/self/clear_refs after compilation, so it counts the run only).
+
+Run: `python benchmarks/gradient.py` (`--quick`: T in {50, 500} only; `--json PATH`: the
+numbers; `--xla-context`: one more timing table with XLA's small-while-loop hoisting
+threshold raised, in a subprocess, to show how much of the autodiff gap is XLA:CPU's loop
+execution rather than arithmetic).
+"""
+
+import argparse
+import ctypes
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+import oneshot_jax as oj  # noqa: E402
+from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
+from oneshot_jax._simulate import _loss, _simulate  # noqa: E402
+
+HORIZONS = (50, 500, 5000, 50000)
+QUICK_HORIZONS = (50, 500)
+THETA_TRUE = {"I": np.array([0.0403, 0.0404, 0.0080])}
+W0_TRUE = np.array([9.915e-6, -1.102e-3, 1.3179e-5])
+THETA_GUESS = {"I": np.array([0.05, 0.03, 0.01])}
+HOIST_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
+
+
+def satellite_rhs(w, M, theta):
+    inertia = theta["I"]  # diagonal of I in I w' = M - w x (I w), eq. (22)
+    return (M - jnp.cross(w, inertia * w)) / inertia
+
+
+def satellite_model():
+    # Built lazily: `Model.from_ode` touches the backend, and `--pin-cpu` must come first.
+    return oj.Model.from_ode(satellite_rhs, 0.1)
+
+
+def satellite_data(model, T, seed=0):
+    rng = np.random.default_rng(seed)
+    u = jnp.asarray(rng.normal(1e-5, 1e-7, (T, 3)))
+    theta = {k: jnp.asarray(v) for k, v in THETA_TRUE.items()}
+    _, z = oj.simulate(model, theta, jnp.asarray(W0_TRUE), u)
+    z = z + jnp.asarray(rng.normal(0.0, 1e-4, z.shape))
+    return u, z
+
+
+def block(out):
+    return jax.block_until_ready(out)
+
+
+def interleaved_medians(calls, repeats, min_sample_s=2e-3):
+    """Median seconds per call of each callable, the callables interleaved call by call.
+
+    A sample is the mean of `n` back-to-back calls (each blocked), with `n` chosen so that a
+    sample lasts about `min_sample_s`; the order of the callables rotates every round.
+    """
+    names = list(calls)
+    for name in names:  # warm-up: compilation plus one cached call
+        block(calls[name]())
+        block(calls[name]())
+    inner = {}
+    for name in names:
+        t0 = time.perf_counter()
+        block(calls[name]())
+        one = time.perf_counter() - t0
+        inner[name] = int(min(200, max(1, min_sample_s / max(one, 1e-7))))
+    samples = {name: [] for name in names}
+    for r in range(repeats):
+        order = names[r % len(names):] + names[: r % len(names)]
+        for name in order:
+            fn, n = calls[name], inner[name]
+            t0 = time.perf_counter()
+            for _ in range(n):
+                block(fn())
+            samples[name].append((time.perf_counter() - t0) / n)
+    return {name: float(np.median(s)) for name, s in samples.items()}
+
+
+def rel_diff(a, b):
+    a = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(a)])
+    b = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(b)])
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+def time_horizon(model, T, repeats):
+    u, z = satellite_data(model, T)
+    theta = {k: jnp.asarray(v) for k, v in THETA_GUESS.items()}
+    x0 = jnp.asarray(W0_TRUE) * 1.2
+    pw = jnp.asarray(0.0)
+
+    fwd = jax.jit(lambda th, x0, u: _simulate(model, th, x0, u, False))
+    jac = jax.jit(
+        lambda th, x0, u, z: value_and_grad_impl(
+            model, th, x0, u, z, None, None, pw, False, "jacobian"
+        )
+    )
+    vjp = jax.jit(
+        lambda th, x0, u, z: value_and_grad_impl(model, th, x0, u, z, None, None, pw, False, "vjp")
+    )
+    ad = jax.jit(
+        jax.value_and_grad(
+            lambda th, x0, u, z: _loss(model, th, x0, u, z, None, None, pw, False), argnums=(0, 1)
+        )
+    )
+    calls = {
+        "forward": lambda: fwd(theta, x0, u),
+        "jacobian": lambda: jac(theta, x0, u, z),
+        "vjp": lambda: vjp(theta, x0, u, z),
+        "autodiff": lambda: ad(theta, x0, u, z),
+        "public_simulate": lambda: oj.simulate(model, theta, x0, u),
+        "public_value_and_grad": lambda: oj.value_and_grad(model, theta, x0, u, z),
+    }
+    med = interleaved_medians(calls, repeats)
+    g_ref = ad(theta, x0, u, z)
+    med["rel_diff_jacobian"] = rel_diff(jac(theta, x0, u, z), g_ref)
+    med["rel_diff_vjp"] = rel_diff(vjp(theta, x0, u, z), g_ref)
+    med["T"] = T
+    return med
+
+
+def fmt_time(s):
+    us = s * 1e6
+    if us < 1000:
+        return f"{us:.1f} µs"
+    return f"{us / 1000:.2f} ms" if us < 1e5 else f"{us / 1000:.0f} ms"
+
+
+def timing_table(rows):
+    head = (
+        "| T | forward | jacobian | vjp | autodiff | autodiff / jacobian | autodiff / vjp "
+        "| jacobian / forward | vjp / forward | public simulate | public value_and_grad "
+        "| rel. diff vs autodiff |"
+    )
+    lines = [head, "|" + "---|" * 12]
+    for r in rows:
+        lines.append(
+            f"| {r['T']} | {fmt_time(r['forward'])} | {fmt_time(r['jacobian'])} "
+            f"| {fmt_time(r['vjp'])} | {fmt_time(r['autodiff'])} "
+            f"| {r['autodiff'] / r['jacobian']:.1f}x | {r['autodiff'] / r['vjp']:.1f}x "
+            f"| {r['jacobian'] / r['forward']:.2f}x | {r['vjp'] / r['forward']:.2f}x "
+            f"| {fmt_time(r['public_simulate'])} | {fmt_time(r['public_value_and_grad'])} "
+            f"| {max(r['rel_diff_jacobian'], r['rel_diff_vjp']):.1e} |"
+        )
+    return "\n".join(lines)
+
+
+# --- memory: one call in a fresh process ------------------------------------------------
+
+MEM_NX, MEM_T = 1000, 1000
+
+
+def coupled_model(n):
+    def step(x, u, th):
+        return x + 0.05 * (-x / th["tau"] + th["W"] @ jnp.tanh(x) + th["b"] * u[0])
+
+    return oj.Model(step)
+
+
+def _status_kib(field):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(field)
+
+
+def memory_worker(method):
+    """Run in a subprocess: compile one call, reset the peak RSS, run it, report."""
+    n, T = MEM_NX, MEM_T
+    rng = np.random.default_rng(0)
+    model = coupled_model(n)
+    theta = {
+        "W": jnp.asarray(rng.normal(0, 0.5 / np.sqrt(n), (n, n))),
+        "tau": jnp.asarray(rng.uniform(0.5, 2.0, n)),
+        "b": jnp.asarray(rng.normal(0, 1, n)),
+    }
+    x0 = jnp.asarray(rng.normal(0, 0.1, n))
+    u = jnp.asarray(rng.normal(0, 1, (T, 1)))
+    z = jnp.asarray(rng.normal(0, 0.1, (T, n)))
+    pw = jnp.asarray(0.0)
+    if method == "forward":
+        fn = jax.jit(lambda th, x0, u, z: _simulate(model, th, x0, u, False))
+    elif method == "autodiff":
+        fn = jax.jit(
+            jax.value_and_grad(
+                lambda th, x0, u, z: _loss(model, th, x0, u, z, None, None, pw, False),
+                argnums=(0, 1),
+            )
+        )
+    else:
+        fn = jax.jit(
+            lambda th, x0, u, z: value_and_grad_impl(
+                model, th, x0, u, z, None, None, pw, False, method
+            )
+        )
+    compiled = fn.lower(theta, x0, u, z).compile()
+    ma = compiled.memory_analysis()
+    xla_bytes = None
+    if ma is not None:
+        xla_bytes = int(
+            ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes
+            - ma.alias_size_in_bytes
+        )
+        temp_bytes = int(ma.temp_size_in_bytes)
+    block(compiled(theta, x0, u, z))  # first run: allocator warm, pages touched once
+    # The parent sets MALLOC_MMAP_THRESHOLD_, so every large buffer is its own mapping and
+    # goes back to the OS when freed; trim what is left, then reset VmHWM to the RSS now.
+    ctypes.CDLL("libc.so.6").malloc_trim(0)
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    rss0 = _status_kib("VmRSS")
+    t0 = time.perf_counter()
+    block(compiled(theta, x0, u, z))
+    dt = time.perf_counter() - t0
+    hwm = _status_kib("VmHWM")
+    print(
+        json.dumps(
+            {
+                "method": method,
+                "xla_bytes": xla_bytes,
+                "xla_temp_bytes": temp_bytes if ma is not None else None,
+                "rss_peak_delta_bytes": (hwm - rss0) * 1024,
+                "seconds": dt,
+            }
+        )
+    )
+
+
+def memory_rows():
+    rows = []
+    for method in ("forward", "vjp", "autodiff"):
+        env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
+        out = subprocess.run(
+            [sys.executable, __file__, "--_memory-worker", method],
+            capture_output=True, text=True, check=True, env=env,
+        )
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    return rows
+
+
+def memory_table(rows):
+    mib = lambda b: "n/a" if b is None else f"{b / 2**20:.1f} MiB"  # noqa: E731
+    lines = [
+        f"| n_x = {MEM_NX}, T = {MEM_T} | XLA buffers (args + outputs + temps) | XLA temps "
+        "| peak RSS growth of the call (VmHWM) | time |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['method']} | {mib(r['xla_bytes'])} | {mib(r['xla_temp_bytes'])} "
+            f"| {mib(r['rss_peak_delta_bytes'])} | {fmt_time(r['seconds'])} |"
+        )
+    stacked = MEM_T * MEM_NX * MEM_NX * 8
+    lines.append(
+        f"| jacobian (not run) | stacked J^{{x/x}}_k alone: T n_x^2 x 8 B = "
+        f"{stacked / 2**30:.1f} GiB | | | |"
+    )
+    return "\n".join(lines)
+
+
+# --- driver -----------------------------------------------------------------------------
+
+
+def run_timings(horizons, repeats):
+    model = satellite_model()
+    rows = []
+    for T in horizons:
+        rows.append(time_horizon(model, T, repeats))
+        print(f"  T = {T} done", file=sys.stderr, flush=True)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="T in {50, 500} only")
+    ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH")
+    ap.add_argument("--repeats", type=int, default=15, help="samples per median (default 15)")
+    ap.add_argument(
+        "--xla-context", action="store_true",
+        help="also time with XLA's small-while-loop threshold raised (subprocess)",
+    )
+    ap.add_argument("--no-memory", action="store_true", help="skip the memory table")
+    ap.add_argument(
+        "--pin-cpu", type=int, metavar="N",
+        help="run the timings on CPU N only (XLA's threads included): steadier on a busy machine",
+    )
+    ap.add_argument("--_memory-worker", dest="memory_worker", help=argparse.SUPPRESS)
+    ap.add_argument("--_timing-worker", dest="timing_worker", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+
+    if args.pin_cpu is not None:  # before the backend starts its threads
+        os.sched_setaffinity(0, {args.pin_cpu})
+    if args.memory_worker:
+        memory_worker(args.memory_worker)
+        return
+    horizons = QUICK_HORIZONS if args.quick else HORIZONS
+    if args.timing_worker:
+        rows = run_timings([int(t) for t in args.timing_worker.split(",")], args.repeats)
+        print(json.dumps(rows))
+        return
+
+    load0 = os.getloadavg()
+    t_start = time.perf_counter()
+    rows = run_timings(horizons, args.repeats)
+    mem = [] if args.no_memory else memory_rows()
+    context = None
+    if args.xla_context:
+        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + HOIST_FLAG))
+        out = subprocess.run(
+            [sys.executable, __file__, "--_timing-worker", ",".join(map(str, horizons)),
+             "--repeats", str(args.repeats)]
+            + ([] if args.pin_cpu is None else ["--pin-cpu", str(args.pin_cpu)]),
+            capture_output=True, text=True, check=True, env=env,
+        )
+        context = json.loads(out.stdout.strip().splitlines()[-1])
+    load1 = os.getloadavg()
+    wall = time.perf_counter() - t_start
+
+    print(
+        f"Satellite (n_x = 3, n_theta = 3), float64, jax {jax.__version__} on "
+        f"{platform.machine()} CPU x{os.cpu_count()}"
+        f"{'' if args.pin_cpu is None else f' (timings pinned to CPU {args.pin_cpu})'}; "
+        f"median of {args.repeats} interleaved "
+        f"samples; load average {load0[0]:.1f} -> {load1[0]:.1f}. Ratios use the jitted "
+        "internals (first four columns, same jax.jit dispatch).\n"
+    )
+    print(timing_table(rows))
+    print(
+        "\nTargets: autodiff / closed-form >= 5x and closed-form / forward <= 3x at every T "
+        "(closed-form = the strategy 'auto' picks here, jacobian)."
+    )
+    if mem:
+        print("\nPeak memory of one call (fresh subprocess per row):\n")
+        print(memory_table(mem))
+    if context is not None:
+        print(f"\nSame timings with XLA_FLAGS={HOIST_FLAG} (every small while loop compiled "
+              "into one kernel):\n")
+        print(timing_table(context))
+    print(f"\n(total {wall:.0f} s)")
+
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(
+                {
+                    "jax": jax.__version__,
+                    "cpu_count": os.cpu_count(),
+                    "repeats": args.repeats,
+                    "pinned_cpu": args.pin_cpu,
+                    "load_average": [load0[0], load1[0]],
+                    "timing_basis": "jitted internals, each in one jax.jit; seconds per call",
+                    "timings": rows,
+                    "memory": mem,
+                    "memory_case": {"n_x": MEM_NX, "T": MEM_T, "model": "tanh-coupled, dense W"},
+                    "xla_hoisted_timings": context,
+                    "xla_hoisted_flag": HOIST_FLAG if context is not None else None,
+                },
+                f,
+                indent=2,
+            )
+
+
+if __name__ == "__main__":
+    main()
