@@ -85,20 +85,13 @@ def closed_loop_model(Ts, kp, kv, gtau, eps=1e-3, substeps=1, nu_max=10.0):
     One step: nu from the controller on the sampled state, tau = gtau nu held over Ts,
     `substeps` RK4 steps of the plant, then the delay line shifts.
     """
-    h = Ts / substeps
 
     def f(y, tau, th):
         return jnp.stack([y[1], _accel(y[1], tau, th, eps)])
 
     def step(x, u, th):
         tau = gtau * controller(x, u, kp, kv, Ts, nu_max)
-        y = x[:2]
-        for _ in range(substeps):
-            k1 = f(y, tau, th)
-            k2 = f(y + 0.5 * h * k1, tau, th)
-            k3 = f(y + 0.5 * h * k2, tau, th)
-            k4 = f(y + h * k3, tau, th)
-            y = y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        y = oj.ode_step(f, x[:2], tau, th, Ts, substeps=substeps)
         return jnp.stack([y[0], y[1], x[0], x[2]])
 
     def observe(x, u, th):

@@ -13,38 +13,43 @@ def _identity_observe(x, u, theta):
     return x
 
 
-class _ODEStep(eqx.Module):
-    """Explicit Runge-Kutta discretisation of `rhs` under a zero-order-hold input.
+def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1):
+    """Advance `dx/dt = rhs(x, u, theta)` by one sample interval `dt` with `u` held constant.
 
-    The input `u` is held constant over the whole sample interval `dt` (every stage of
-    every substep sees the same `u`), which is what a sampled, held input does.
+    The zero-order hold: every stage of every substep sees the same `u`. `method="rk4"` is
+    classical RK4 (tableau 0; 1/2 1/2; 1/2 0 1/2; 1 0 0 1; weights 1/6 1/3 1/3 1/6), global
+    error O(h^4) with h = dt / substeps; `method="euler"` is explicit Euler, O(h). This is
+    the discretisation behind `Model.from_ode`; call it directly inside a hand-written
+    `step` whose state holds more than the ODE (a controller's delay line, say).
     """
+    h = dt / substeps
+
+    def substep(x):
+        if method == "euler":
+            return x + h * rhs(x, u, theta)
+        k1 = rhs(x, u, theta)
+        k2 = rhs(x + 0.5 * h * k1, u, theta)
+        k3 = rhs(x + 0.5 * h * k2, u, theta)
+        k4 = rhs(x + h * k3, u, theta)
+        return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+    if substeps <= 8:  # unrolled: cheaper to differentiate than a loop for a few substeps
+        for _ in range(substeps):
+            x = substep(x)
+        return x
+    return jax.lax.fori_loop(0, substeps, lambda _, x: substep(x), x)
+
+
+class _ODEStep(eqx.Module):
+    """`ode_step` of `rhs` as a step function (hashable, so jit caches hit)."""
 
     rhs: Callable
     dt: float = eqx.field(static=True)
     method: str = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
 
-    def _substep(self, x, u, theta, h):
-        f = self.rhs
-        if self.method == "euler":
-            return x + h * f(x, u, theta)
-        # Classical RK4 (Butcher tableau 0; 1/2 1/2; 1/2 0 1/2; 1 0 0 1; 1/6 1/3 1/3 1/6).
-        k1 = f(x, u, theta)
-        k2 = f(x + 0.5 * h * k1, u, theta)
-        k3 = f(x + 0.5 * h * k2, u, theta)
-        k4 = f(x + h * k3, u, theta)
-        return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
     def __call__(self, x, u, theta):
-        h = self.dt / self.substeps
-        if self.substeps <= 8:
-            for _ in range(self.substeps):
-                x = self._substep(x, u, theta, h)
-            return x
-        return jax.lax.fori_loop(
-            0, self.substeps, lambda _, x: self._substep(x, u, theta, h), x
-        )
+        return ode_step(self.rhs, x, u, theta, self.dt, method=self.method, substeps=self.substeps)
 
 
 class Model(eqx.Module):

@@ -214,21 +214,31 @@ def _floor(d):
     return jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
 
 
+def _scaled_eigh(M):
+    """Eigendecomposition of the Jacobi-scaled D^{-1/2} M D^{-1/2} (unit diagonal) and its
+    numerically null eigenvalues. Scaling first makes the cutoff detect collinear
+    columns whatever the parameters' units, without dropping small-scale directions."""
+    d = jnp.sqrt(jnp.diagonal(M, axis1=-2, axis2=-1))
+    d = jnp.where(d > 0, d, 1.0)
+    vals, vecs = jnp.linalg.eigh(M / (d[..., :, None] * d[..., None, :]))
+    cut = 1e3 * jnp.finfo(M.dtype).eps * jnp.max(jnp.abs(vals), axis=-1, keepdims=True)
+    return d, vals, vecs, vals <= cut
+
+
 def _psd_solve(M, b):
-    """M^+ b for symmetric PSD M (batched), by eigendecomposition with a relative cutoff.
+    """M^+ b for symmetric PSD M (batched; b a vector or a matrix per M).
 
     Gauss-Newton's normal equations are singular when a parameter (or an initial state)
     has no effect at the current point; the pseudo-inverse then gives that direction a
     zero step instead of NaN or a huge one.
     """
-    vals, vecs = jnp.linalg.eigh(M)
-    cut = 1e3 * jnp.finfo(M.dtype).eps * jnp.max(jnp.abs(vals), axis=-1, keepdims=True)
-    inv = jnp.where(vals > cut, 1.0 / jnp.where(vals > cut, vals, 1.0), 0.0)
-    if b.ndim == M.ndim - 1:  # one right-hand side per matrix
-        coef = jnp.einsum("...ji,...j->...i", vecs, b)
-        return jnp.einsum("...ij,...j->...i", vecs, inv * coef)
-    coef = jnp.einsum("...ji,...jk->...ik", vecs, b)
-    return jnp.einsum("...ij,...jk->...ik", vecs, inv[..., None] * coef)
+    d, vals, vecs, null = _scaled_eigh(M)
+    inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
+    vector = b.ndim == M.ndim - 1
+    b = b[..., None] if vector else b
+    coef = jnp.einsum("...ji,...jk->...ik", vecs, b / d[..., None])
+    out = jnp.einsum("...ij,...jk->...ik", vecs, inv[..., None] * coef) / d[..., None]
+    return out[..., 0] if vector else out
 
 
 def structured_step(A, B, Cb, g_t, g_x, mu, active):
@@ -390,11 +400,9 @@ def covariance_blocks(problem, p_theta, p_x0):
         S = A
     # A pseudo-inverse, and a flag per parameter: a parameter with a component in the null
     # space of S does not change the outputs at the solution (not identifiable).
-    vals, vecs = jnp.linalg.eigh(S)
-    cut = 1e3 * jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(vals), initial=0.0)
-    null = vals <= cut
+    _, _, vecs, null = _scaled_eigh(S)
     identifiable = ~jnp.any(null[None, :] & (jnp.abs(vecs) > 1e-6), axis=1)
-    S_inv = (vecs * jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))) @ vecs.T
+    S_inv = _psd_solve(S, jnp.eye(S.shape[0], dtype=S.dtype))
     if m:
         W = jnp.einsum("nml,npl->nmp", Cinv, B)  # C_i^{-1} B_i^T
         x_diag = jnp.diagonal(Cinv, axis1=1, axis2=2) + jnp.einsum("nmp,pq,nmq->nm", W, S_inv, W)

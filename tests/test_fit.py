@@ -693,3 +693,20 @@ def test_bad_arguments_raise_value_errors_naming_them(tiny):
                fixed={"a": True, "b": True})
     with pytest.raises(ValueError, match="`constraints`"):
         oj.fit(TINY, u, z, TINY_THETA0, TINY_X00, constraints="positive")
+
+
+def test_gauss_newton_steps_past_a_parameter_without_effect():
+    # b multiplies max(x - 100, 0), which is zero along the whole trajectory: its Jacobian
+    # column vanishes, the normal equations are singular, and the pseudo-inverse step
+    # must still move a to the optimum; b is reported as not identifiable (std inf).
+    model = oj.Model(lambda x, u, th: th["a"] * x + u + th["b"] * jnp.maximum(x - 100.0, 0.0))
+    u = jnp.ones((50, 1))
+    _, z = oj.simulate(model, {"a": 0.9, "b": 0.1}, jnp.array([0.0]), u)
+    for solver in ("gauss_newton", "levenberg_marquardt"):
+        with pytest.warns(UserWarning, match="not identifiable"):
+            res = oj.fit(model, u, z, {"a": 0.5, "b": 0.3}, jnp.array([0.0]), solver=solver,
+                         estimate_x0=False)
+        assert res.success, res.stop_reason
+        assert float(res.theta["a"]) == pytest.approx(0.9, rel=1e-10)
+        assert float(res.theta["b"]) == 0.3  # no information: left where it was
+        assert np.isinf(float(res.std["b"]))

@@ -1,0 +1,12 @@
+import jax.numpy as jnp
+
+import oneshot_jax as oj
+
+
+def test_ode_step_is_the_from_ode_discretisation():
+    rhs = lambda x, u, th: jnp.stack([x[1], -th * x[0] + u[0]])  # noqa: E731
+    x, u = jnp.array([0.3, -0.1]), jnp.array([0.2])
+    for method, substeps in (("rk4", 1), ("rk4", 3), ("euler", 12)):
+        model = oj.Model.from_ode(rhs, 0.1, method=method, substeps=substeps)
+        direct = oj.ode_step(rhs, x, u, 2.0, 0.1, method=method, substeps=substeps)
+        assert jnp.array_equal(model.step(x, u, 2.0), direct)
