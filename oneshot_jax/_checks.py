@@ -18,7 +18,12 @@ def is_concrete(*arrays) -> bool:
 
 
 def _as_float(a, name):
-    a = jnp.asarray(a)
+    try:
+        a = jnp.asarray(a)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`{name}` must hold real numbers, got {type(a).__name__}: {err}") from err
+    if jnp.issubdtype(a.dtype, jnp.complexfloating):
+        raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
     if not jnp.issubdtype(a.dtype, jnp.inexact):
         if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
             raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
@@ -114,7 +119,8 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
         z_hat = jax.eval_shape(model.observe, x_1, u_1, theta)
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
         raise ValueError(
-            f"calling the model on x of shape {x_1.shape} and u of shape {u_1.shape} "
+            f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "
+            f"{x0.shape}) and an input of shape {u_1.shape} (from `u` of shape {u.shape}) "
             f"failed: {type(err).__name__}: {err}"
         ) from err
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
@@ -130,7 +136,9 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
         )
     if not isinstance(z_hat, jax.ShapeDtypeStruct) or z_hat.ndim != 1:
         shape = getattr(z_hat, "shape", type(z_hat).__name__)
-        raise ValueError(f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}.")
+        raise ValueError(
+            f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
+        )
     n_z = z_hat.shape[0]
 
     if z is not None:
@@ -152,8 +160,14 @@ def check_penalty(penalty, penalty_weight):
     if penalty is None:
         return None, 0.0
     pw = penalty_weight
-    if not (jnp.ndim(pw) == 0 and (not is_concrete(pw) or np.isfinite(float(pw)))):
-        raise ValueError(f"`penalty_weight` must be a finite scalar, got {penalty_weight!r}.")
+    msg = f"`penalty_weight` must be a finite real scalar, got {penalty_weight!r}."
+    try:
+        ok = np.ndim(pw) == 0 and not np.iscomplexobj(pw)
+        ok = ok and (not is_concrete(pw) or bool(np.isfinite(float(pw))))
+    except (TypeError, ValueError) as err:
+        raise ValueError(msg) from err
+    if not ok:
+        raise ValueError(msg)
     return penalty, pw
 
 

@@ -1,0 +1,296 @@
+"""Bad input is a ValueError that names the argument, before any tracing error, and never
+a silent broadcast."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+
+N_X, N_U, N_Z, T = 3, 2, 2, 6
+
+
+def step(x, u, theta):
+    return theta["a"] * jnp.tanh(x) + theta["B"] @ u
+
+
+def observe(x, u, theta):
+    del u, theta
+    return x[:N_Z]
+
+
+MODEL = oj.Model(step, observe)
+THETA = {"a": jnp.asarray(0.9), "B": jnp.ones((N_X, N_U))}
+_rng = np.random.default_rng(0)
+X0 = jnp.asarray(_rng.standard_normal(N_X))
+U = jnp.asarray(_rng.standard_normal((T, N_U)))
+Z = jnp.asarray(_rng.standard_normal((T, N_Z)))
+X0_B = jnp.stack([X0, -X0])
+U_B = jnp.stack([U, 2 * U])
+Z_B = jnp.stack([Z, -Z])
+
+
+def penalty(x, theta):
+    return jnp.sum(x**2)
+
+
+ENTRY_POINTS = ["simulate", "loss", "value_and_grad", "literal_value_and_grad"]
+WITH_Z = ENTRY_POINTS[1:]
+
+
+def call(entry, model=MODEL, theta=THETA, x0=X0, u=U, z=Z, **kwargs):
+    if entry == "simulate":
+        assert not kwargs
+        return oj.simulate(model, theta, x0, u)
+    fn = {"loss": oj.loss, "value_and_grad": oj.value_and_grad,
+          "literal_value_and_grad": oj.literal_value_and_grad}[entry]
+    return fn(model, theta, x0, u, z, **kwargs)
+
+
+@pytest.mark.parametrize("entry", ENTRY_POINTS)
+def test_good_input_is_accepted(entry):
+    # The baseline that every case below perturbs in one argument only.
+    call(entry)
+    call(entry, x0=X0_B, u=U_B, z=Z_B)
+    if entry != "simulate":
+        call(entry, weight=jnp.array([1.0, 2.0]), penalty=penalty, penalty_weight=0.5)
+        call(entry, weight=jnp.array([[1.0, 1.0], [1.0, 1.0]]))  # PSD, singular
+
+
+# (overrides, regex the message must match). Each case changes one argument of `call`.
+SHAPE_CASES = {
+    "x0 scalar": (dict(x0=jnp.asarray(1.0)), r"`x0` must have shape \(n_x,\)"),
+    "x0 3-D": (dict(x0=jnp.ones((2, 1, N_X))), r"`x0` must have shape .* got shape \(2, 1, 3\)"),
+    "x0 wrong n_x": (dict(x0=jnp.ones(N_X + 1)), r"`x0` of shape \(4,\)"),
+    "x0 too short, broadcasts": (dict(x0=jnp.ones(1)), r"`model.step` must return a state "
+                                 r"of shape \(1,\)"),
+    "u 1-D": (dict(u=jnp.ones(T)), r"`u` must have shape \(T, n_u\)"),
+    "u 3-D for one trajectory": (dict(u=U[None]), r"`u` must have shape \(T, n_u\)"),
+    "u wrong n_u": (dict(u=jnp.ones((T, N_U + 1))), r"`u` of shape \(6, 3\)"),
+    "u empty horizon": (dict(u=jnp.ones((0, N_U)), z=jnp.ones((0, N_Z))), r"`u` must hold "
+                        r"at least one sample"),
+    "u not batched like x0": (dict(x0=X0_B, z=Z_B), r"`u` must have shape \(2, T, n_u\)"),
+    "u wrong N": (dict(x0=X0_B, u=jnp.stack([U, U, U]), z=Z_B),
+                  r"`u` must have shape \(2, T, n_u\)"),
+    "no trajectories": (dict(x0=jnp.ones((0, N_X)), u=jnp.ones((0, T, N_U)),
+                             z=jnp.ones((0, T, N_Z))), r"`x0` must hold at least one trajectory"),
+}
+
+Z_SHAPE_CASES = {
+    "z wrong T": (dict(z=Z[:-1]), r"`z` must have shape \(6, 2\)"),
+    "z wrong n_z": (dict(z=jnp.ones((T, N_Z + 1))), r"`z` must have shape \(6, 2\)"),
+    "z broadcastable n_z": (dict(z=jnp.ones((T, 1))), r"`z` must have shape \(6, 2\)"),
+    "z broadcastable T": (dict(z=jnp.ones((1, N_Z))), r"`z` must have shape \(6, 2\)"),
+    "z 1-D": (dict(z=jnp.ones(T)), r"`z` must have shape \(6, 2\)"),
+    "z batched, one trajectory": (dict(z=Z_B), r"`z` must have shape \(6, 2\)"),
+    "z not batched": (dict(x0=X0_B, u=U_B), r"`z` must have shape \(2, 6, 2\)"),
+    "z wrong N": (dict(x0=X0_B, u=U_B, z=Z_B[:1]), r"`z` must have shape \(2, 6, 2\)"),
+    "weight wrong length": (dict(weight=jnp.ones(N_Z + 1)), r"`weight` must have shape \(2,\)"),
+    "weight scalar": (dict(weight=jnp.asarray(2.0)), r"`weight` must have shape \(2,\)"),
+    "weight non-square": (dict(weight=jnp.ones((N_Z, N_Z + 1))), r"`weight` must have shape"),
+    "weight 3-D": (dict(weight=jnp.ones((N_Z, N_Z, 1))), r"`weight` must have shape"),
+    "weight sized for x": (dict(weight=jnp.eye(N_X)), r"`weight` must have shape .*\(2, 2\)"),
+}
+
+
+@pytest.mark.parametrize("entry", ENTRY_POINTS)
+@pytest.mark.parametrize("case", list(SHAPE_CASES))
+def test_shape_mismatch(case, entry):
+    overrides, match = SHAPE_CASES[case]
+    with pytest.raises(ValueError, match=match):
+        call(entry, **overrides)
+
+
+@pytest.mark.parametrize("entry", WITH_Z)
+@pytest.mark.parametrize("case", list(Z_SHAPE_CASES))
+def test_z_and_weight_shape_mismatch(case, entry):
+    overrides, match = Z_SHAPE_CASES[case]
+    with pytest.raises(ValueError, match=match):
+        call(entry, **overrides)
+
+
+def _with(a, index, value):
+    return jnp.asarray(a).at[index].set(value)
+
+
+VALUE_CASES = {
+    "u NaN": ("u", dict(u=_with(U, (2, 1), jnp.nan))),
+    "u inf": ("u", dict(u=_with(U, (0, 0), jnp.inf))),
+    "u -inf batched": ("u", dict(x0=X0_B, u=_with(U_B, (1, 5, 1), -jnp.inf), z=Z_B)),
+    "z NaN": ("z", dict(z=_with(Z, (3, 0), jnp.nan))),
+    "z inf": ("z", dict(z=_with(Z, (5, 1), jnp.inf))),
+    "z NaN batched": ("z", dict(x0=X0_B, u=U_B, z=_with(Z_B, (1, 0, 0), jnp.nan))),
+    "x0 NaN": ("x0", dict(x0=_with(X0, 1, jnp.nan))),
+    "theta inf": ("theta", dict(theta={"a": jnp.asarray(jnp.inf), "B": THETA["B"]})),
+    "weight NaN": ("weight", dict(weight=jnp.array([1.0, jnp.nan]))),
+}
+
+
+@pytest.mark.parametrize("entry", ENTRY_POINTS)
+@pytest.mark.parametrize("case", list(VALUE_CASES))
+def test_nan_or_inf(case, entry):
+    name, overrides = VALUE_CASES[case]
+    if entry == "simulate" and name in ("z", "weight"):
+        pytest.skip("simulate takes no z or weight")
+    with pytest.raises(ValueError, match=rf"`{name}` contains NaN or inf"):
+        call(entry, **overrides)
+
+
+NOT_REAL = {
+    "x0 complex": (dict(x0=X0.astype(jnp.complex128)), "x0"),
+    "u string": (dict(u=np.array([["a", "b"]] * T)), "u"),
+    "z complex": (dict(z=Z + 1j), "z"),
+    "theta string": (dict(theta={"a": "0.9", "B": THETA["B"]}), "theta"),
+}
+
+
+@pytest.mark.parametrize("entry", WITH_Z)
+@pytest.mark.parametrize("case", list(NOT_REAL))
+def test_not_real_numbers(case, entry):
+    overrides, name = NOT_REAL[case]
+    with pytest.raises(ValueError, match=rf"`{name}` must hold real numbers"):
+        call(entry, **overrides)
+
+
+def test_empty_theta():
+    for theta in ({}, None, []):
+        with pytest.raises(ValueError, match=r"`theta` must contain at least one array leaf"):
+            call("loss", theta=theta)
+
+
+BAD_MODELS = {
+    "step grows the state": (
+        oj.Model(lambda x, u, th: jnp.concatenate([x, u]), observe),
+        r"`model.step` must return a state of shape \(3,\)",
+    ),
+    "step returns a scalar": (
+        oj.Model(lambda x, u, th: jnp.sum(x), observe),
+        r"`model.step` must return a state of shape \(3,\)",
+    ),
+    "step returns a row": (
+        oj.Model(lambda x, u, th: x[None, :], observe),
+        r"`model.step` must return a state of shape \(3,\)",
+    ),
+    "step returns a tuple": (
+        oj.Model(lambda x, u, th: (x, x), observe),
+        r"`model.step` must return a state of shape \(3,\)",
+    ),
+    "step changes dtype": (
+        oj.Model(lambda x, u, th: step(x, u, th).astype(jnp.float32), observe),
+        r"`model.step` must keep the state's dtype float64",
+    ),
+    "step promotes float32 state": (
+        oj.Model(lambda x, u, th: x + jnp.ones(N_X, dtype=jnp.float64), observe),
+        r"`model.step` must keep the state's dtype float32",
+    ),
+    "step fails": (
+        oj.Model(lambda x, u, th: th["missing"] * x, observe),
+        r"calling the model on a state of shape \(3,\) \(from `x0`",
+    ),
+    "observe returns a scalar": (
+        oj.Model(step, lambda x, u, th: x[0]),
+        r"`model.observe` must return a 1-D output",
+    ),
+    "observe returns a matrix": (
+        oj.Model(step, lambda x, u, th: jnp.outer(x, x)),
+        r"`model.observe` must return a 1-D output",
+    ),
+}
+
+
+@pytest.mark.parametrize("entry", ENTRY_POINTS)
+@pytest.mark.parametrize("case", list(BAD_MODELS))
+def test_bad_model(case, entry):
+    model, match = BAD_MODELS[case]
+    kwargs = {}
+    if case == "step promotes float32 state":
+        kwargs = dict(theta={"a": jnp.float32(0.9), "B": THETA["B"].astype(jnp.float32)},
+                      x0=X0.astype(jnp.float32), u=U.astype(jnp.float32),
+                      z=Z.astype(jnp.float32))
+    with pytest.raises(ValueError, match=match):
+        call(entry, model=model, **kwargs)
+
+
+WEIGHT_VALUES = {
+    "negative diagonal": (jnp.array([1.0, -0.1]), r"`weight` \(diagonal of Q\) must be "
+                          r"non-negative"),
+    "not symmetric": (jnp.array([[1.0, 0.5], [0.0, 1.0]]), r"`weight` must be a symmetric"),
+    "not PSD": (jnp.array([[1.0, 2.0], [2.0, 1.0]]), r"`weight` must be positive semi-definite"),
+    "negative definite": (-jnp.eye(N_Z), r"`weight` must be positive semi-definite"),
+}
+
+
+@pytest.mark.parametrize("entry", WITH_Z)
+@pytest.mark.parametrize("case", list(WEIGHT_VALUES))
+def test_bad_weight_values(case, entry):
+    weight, match = WEIGHT_VALUES[case]
+    with pytest.raises(ValueError, match=match):
+        call(entry, weight=weight)
+
+
+PENALTIES = {
+    "vector": (lambda x, th: x, r"`penalty` must return a scalar"),
+    "length-1 vector": (lambda x, th: jnp.sum(x, keepdims=True), r"`penalty` must return a "
+                        r"scalar"),
+    "not callable": (1.0, r"`penalty` must be callable"),
+}
+
+# `literal_value_and_grad` does not call `check_penalty_output` (oneshot_jax/_gradient.py),
+# so a non-scalar penalty reaches `jax.grad` and raises a TypeError there.
+_LITERAL_PENALTY_BUG = pytest.mark.xfail(
+    raises=TypeError, strict=True,
+    reason="literal_value_and_grad does not check the penalty's output shape",
+)
+
+
+@pytest.mark.parametrize(
+    "entry",
+    ["loss", "value_and_grad", pytest.param("literal_value_and_grad", marks=_LITERAL_PENALTY_BUG)],
+)
+@pytest.mark.parametrize("case", ["vector", "length-1 vector"])
+def test_penalty_not_scalar(case, entry):
+    pen, match = PENALTIES[case]
+    with pytest.raises(ValueError, match=match):
+        call(entry, penalty=pen)
+
+
+@pytest.mark.parametrize("entry", WITH_Z)
+def test_penalty_not_callable(entry):
+    pen, match = PENALTIES["not callable"]
+    with pytest.raises(ValueError, match=match):
+        call(entry, penalty=pen)
+
+
+@pytest.mark.parametrize("entry", WITH_Z)
+@pytest.mark.parametrize("penalty_weight", [jnp.ones(2), float("nan"), float("inf"), "heavy",
+                                            1j, None])
+def test_bad_penalty_weight(penalty_weight, entry):
+    with pytest.raises(ValueError, match=r"`penalty_weight` must be a finite real scalar"):
+        call(entry, penalty=penalty, penalty_weight=penalty_weight)
+
+
+@pytest.mark.parametrize("strategy", ["adjoint", "Jacobian", None, "", "literal"])
+def test_bad_strategy(strategy):
+    with pytest.raises(ValueError, match=r"`strategy` must be 'auto', 'jacobian' or 'vjp'"):
+        call("value_and_grad", strategy=strategy)
+
+
+def test_bad_model_construction():
+    with pytest.raises(ValueError, match=r"`step` must be callable"):
+        oj.Model(3.0)
+    with pytest.raises(ValueError, match=r"`observe` must be callable"):
+        oj.Model(step, observe="x")
+    rhs = lambda x, u, th: -x  # noqa: E731
+    with pytest.raises(ValueError, match=r"`rhs` must be callable"):
+        oj.Model.from_ode(None, 0.1)
+    for dt in (0.0, -0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"`dt` must be a finite positive number"):
+            oj.Model.from_ode(rhs, dt)
+    for method in ("rk45", "RK4", "tsit5"):
+        with pytest.raises(ValueError, match=r"`method` must be 'rk4' or 'euler'"):
+            oj.Model.from_ode(rhs, 0.1, method=method)
+    for substeps in (0, -1, 1.5):
+        with pytest.raises(ValueError, match=r"`substeps` must be an integer >= 1"):
+            oj.Model.from_ode(rhs, 0.1, substeps=substeps)
+    with pytest.raises(ValueError, match=r"`observe` must be callable"):
+        oj.Model.from_ode(rhs, 0.1, observe=1)
