@@ -238,6 +238,7 @@ def literal_value_and_grad(model, theta, x0, u, z, *, weight=None, penalty=None,
     """
     data = check_data(model, theta, x0, u, z, weight)
     penalty, penalty_weight = check_penalty(penalty, penalty_weight)
+    check_penalty_output(model, penalty, data)
     flat, unravel = ravel_pytree(data.theta)
     pw = jnp.asarray(penalty_weight, dtype=data.x0.dtype)
 

@@ -235,18 +235,7 @@ PENALTIES = {
     "not callable": (1.0, r"`penalty` must be callable"),
 }
 
-# `literal_value_and_grad` does not call `check_penalty_output` (oneshot_jax/_gradient.py),
-# so a non-scalar penalty reaches `jax.grad` and raises a TypeError there.
-_LITERAL_PENALTY_BUG = pytest.mark.xfail(
-    raises=TypeError, strict=True,
-    reason="literal_value_and_grad does not check the penalty's output shape",
-)
-
-
-@pytest.mark.parametrize(
-    "entry",
-    ["loss", "value_and_grad", pytest.param("literal_value_and_grad", marks=_LITERAL_PENALTY_BUG)],
-)
+@pytest.mark.parametrize("entry", ["loss", "value_and_grad", "literal_value_and_grad"])
 @pytest.mark.parametrize("case", ["vector", "length-1 vector"])
 def test_penalty_not_scalar(case, entry):
     pen, match = PENALTIES[case]
