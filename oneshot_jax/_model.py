@@ -59,8 +59,9 @@ class Model(eqx.Module):
 
     `theta` is any pytree of arrays (a dict of named physical parameters is the normal
     case); `x` is a 1-D state array, `u` a 1-D input array. Both functions must be pure
-    and traceable by JAX. The model is immutable and can be passed through `jax.jit`
-    (`eqx.filter_jit`) as it is.
+    and traceable by JAX. The model is immutable and hashable: pass it to a function under
+    `eqx.filter_jit` (as the library does), as a static argument of `jax.jit`, or close
+    over it; plain `jax.jit` cannot take it as a traced argument because it holds functions.
 
     **Arguments:**
 
