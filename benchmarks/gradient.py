@@ -20,20 +20,26 @@ closed over, arrays as arguments), so they share the same dispatch path and only
 compiled computation differs; the ratios use these. Every time is the median of repeated
 calls after two warm-up calls (compilation excluded), each call blocked with
 `block_until_ready`; the methods are interleaved call by call, so a change in machine load
-hits all of them alike. `rel. diff` is max|g_closed - g_autodiff| / max|g_autodiff| over
-theta and x0 for the jacobian strategy.
+hits all of them alike. `rel. diff` is max|closed - autodiff| / max|autodiff| over C and the
+gradients in theta and x0, the larger of the two strategies.
+
+XLA:CPU runs a while loop as one compiled kernel only when one iteration touches less than
+1 KiB (`xla_cpu_small_while_loop_byte_threshold`); the forward rollout and the jacobian
+strategy's reverse scan qualify, the backward loop of autodiff and the vjp strategy's scan
+do not, and then every operation of every iteration is a separate call. Much of the
+autodiff gap on CPU comes from there (see `--xla-context`).
 
 The second table is the peak memory of one `value_and_grad` call (strategy "vjp",
 n_x = 1000, T = 1000, a tanh-coupled model with a dense 1000 x 1000 coupling in theta)
 next to autodiff and the forward simulation, measured two ways in a fresh subprocess
 each: XLA's `compiled.memory_analysis()` (argument + output + temporary buffers) and the
-growth of the process's peak resident set (`VmHWM` in /proc/self/status, reset through
-/proc/self/clear_refs after compilation, so it counts the run only).
+growth of the process's peak resident set over a second call (`VmHWM` in /proc/self/status,
+reset through /proc/self/clear_refs after compilation and a first call; glibc's mmap
+threshold is pinned and the heap trimmed so that freed buffers do not hide the peak).
 
 Run: `python benchmarks/gradient.py` (`--quick`: T in {50, 500} only; `--json PATH`: the
-numbers; `--xla-context`: one more timing table with XLA's small-while-loop hoisting
-threshold raised, in a subprocess, to show how much of the autodiff gap is XLA:CPU's loop
-execution rather than arithmetic).
+numbers; `--pin-cpu N`: timings on one core, steadier on a shared machine;
+`--xla-context`: one more timing table with that XLA threshold raised, in a subprocess).
 """
 
 import argparse
