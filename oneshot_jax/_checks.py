@@ -126,8 +126,7 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
         shape = getattr(x_next, "shape", type(x_next).__name__)
         raise ValueError(
-            f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), "
-            f"got {shape}."
+            f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), got {shape}."
         )
     if x_next.dtype != x_1.dtype:
         raise ValueError(

@@ -10,7 +10,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
@@ -83,7 +82,8 @@ class FitResult:
         std, _ = ravel_pytree(self.std)
         rows = [f"oneshot_jax fit: {self.stop_reason.name} ({self.stop_reason.message})"]
         rows.append(
-            f"  loss {self.loss:.6e} after {self.epochs} epochs in {self.wall_time:.3g} s (wall, compilation included)"
+            f"  loss {self.loss:.6e} after {self.epochs} epochs in {self.wall_time:.3g} s "
+            "(wall, compilation included)"
         )
         rows.append(f"  {'parameter':<14}{'value':>14}{'std':>12}{'95% interval':>30}")
         for name, v, s in zip(_all_names(self.theta), np.asarray(flat), np.asarray(std)):
@@ -101,17 +101,23 @@ def _all_names(theta):
     """One name per scalar of theta: dict keys (with [i] for array entries) or leaf paths."""
     names = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(theta)[0]:
-        base = "".join(
-            str(getattr(p, "key", getattr(p, "idx", getattr(p, "name", p)))) if i == 0
-            else f".{getattr(p, 'key', getattr(p, 'idx', getattr(p, 'name', p)))}"
-            for i, p in enumerate(path)
-        ) or "theta"
+        base = (
+            "".join(
+                str(getattr(p, "key", getattr(p, "idx", getattr(p, "name", p))))
+                if i == 0
+                else f".{getattr(p, 'key', getattr(p, 'idx', getattr(p, 'name', p)))}"
+                for i, p in enumerate(path)
+            )
+            or "theta"
+        )
         size = int(np.size(leaf))
         if np.ndim(leaf) == 0:
             names.append(base)
         else:
-            names.extend(f"{base}[{', '.join(map(str, ix))}]" if np.ndim(leaf) > 1 else f"{base}[{ix[0]}]"
-                         for ix in np.ndindex(np.shape(leaf)))
+            names.extend(
+                f"{base}[{', '.join(map(str, ix))}]" if np.ndim(leaf) > 1 else f"{base}[{ix[0]}]"
+                for ix in np.ndindex(np.shape(leaf))
+            )
         assert len(names) >= size
     return tuple(names)
 
@@ -162,7 +168,8 @@ def _x0_mask(estimate_x0, n_x):
     est = np.asarray(estimate_x0)
     if est.dtype != bool or est.shape not in ((), (n_x,)):
         raise ValueError(
-            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), got {estimate_x0!r}."
+            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), "
+            f"got {estimate_x0!r}."
         )
     return np.broadcast_to(est, (n_x,)).copy()
 
@@ -186,8 +193,9 @@ def _windows(model, theta, x0, u, z, window):
         raise ValueError(f"`window` ({window}) is longer than the record (T = {T}).")
     N = T // window
     if N * window != T:
-        warnings.warn(f"the last {T - N * window} samples do not fill a window and are dropped.",
-                      stacklevel=3)
+        warnings.warn(
+            f"the last {T - N * window} samples do not fill a window and are dropped.", stacklevel=3
+        )
     u_w = u[: N * window].reshape(N, window, -1)
     z_w = z[: N * window].reshape(N, window, -1)
     if model.observe is _identity_observe:
@@ -256,8 +264,12 @@ def fit(
     """
     solver = _check_solver(solver)
     if max_epochs is None:
-        max_epochs = 100 if (isinstance(solver, str) and solver in _LSQ) or isinstance(
-            solver, optx.AbstractLeastSquaresSolver) else 5000
+        max_epochs = (
+            100
+            if (isinstance(solver, str) and solver in _LSQ)
+            or isinstance(solver, optx.AbstractLeastSquaresSolver)
+            else 5000
+        )
     if int(max_epochs) != max_epochs or max_epochs < 0:
         raise ValueError(f"`max_epochs` must be a non-negative integer, got {max_epochs!r}.")
     max_epochs = int(max_epochs)
@@ -267,9 +279,15 @@ def fit(
     # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
     theta0 = as_theta(theta0)
     if multistart:
-        sizes = {jnp.shape(leaf)[0] if jnp.ndim(leaf) else None for leaf in jax.tree_util.tree_leaves(theta0)}
+        sizes = {
+            jnp.shape(leaf)[0] if jnp.ndim(leaf) else None
+            for leaf in jax.tree_util.tree_leaves(theta0)
+        }
         if len(sizes) != 1 or None in sizes:
-            raise ValueError("with `multistart=True` every leaf of `theta0` needs the same leading axis of starts.")
+            raise ValueError(
+                "with `multistart=True` every leaf of `theta0` needs the same leading axis "
+                "of starts."
+            )
         n_starts = sizes.pop()
         theta_first = jax.tree_util.tree_map(lambda a: a[0], theta0)
     else:
@@ -282,7 +300,9 @@ def fit(
         x0_starts, x0_arr = x0_arr, x0_arr[0]
     if window is not None:
         if jnp.ndim(u_arr) != 2:
-            raise ValueError(f"`window` needs one record: `u` of shape (T, n_u), got {jnp.shape(u_arr)}.")
+            raise ValueError(
+                f"`window` needs one record: `u` of shape (T, n_u), got {jnp.shape(u_arr)}."
+            )
         data = check_data(model, theta_first, x0_arr, u_arr, z_arr, weight)
         x0_w, u_w, z_w = _windows(model, data.theta, data.x0, data.u, data.z, window)
         data = check_data(model, theta_first, x0_w, u_w, z_w, weight)
@@ -310,11 +330,22 @@ def fit(
         upper = ravel_pytree(hi)[0][theta_free]
 
     problem = Problem(
-        model=model, u=U, z=Z, weight=data.weight, sqrt_q=_sqrt_weight(data.weight),
-        penalty=penalty, penalty_weight=jnp.asarray(penalty_weight, X0.dtype),
-        theta_base=flat0, theta_free=tuple(int(i) for i in theta_free), unravel=unravel, x0_base=X0,
-        x0_free=tuple(int(i) for i in x0_free), project=None if proj is None else (proj.project if proj.bounds is None else None),
-        lower=lower, upper=upper, strategy=strategy,
+        model=model,
+        u=U,
+        z=Z,
+        weight=data.weight,
+        sqrt_q=_sqrt_weight(data.weight),
+        penalty=penalty,
+        penalty_weight=jnp.asarray(penalty_weight, X0.dtype),
+        theta_base=flat0,
+        theta_free=tuple(int(i) for i in theta_free),
+        unravel=unravel,
+        x0_base=X0,
+        x0_free=tuple(int(i) for i in x0_free),
+        project=None if proj is None else (proj.project if proj.bounds is None else None),
+        lower=lower,
+        upper=upper,
+        strategy=strategy,
     )
 
     # Every start as free-variable arrays, projected onto the constraint set.
@@ -330,15 +361,19 @@ def fit(
     px0 = X0s[:, :, x0_free]
     projected = jax.vmap(problem.feasible)(pt0)
     if not bool(jnp.all(projected == pt0)):
-        warnings.warn("theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2)
+        warnings.warn(
+            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
+        )
         pt0 = projected
     if len(theta_free) == 0 and len(x0_free) == 0:
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 
     t0 = time.perf_counter()
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
-        outs = [_run_optimistix(problem, solver, pt0[s], px0[s], max_epochs, rtol, proj)
-                for s in range(pt0.shape[0])]
+        outs = [
+            _run_optimistix(problem, solver, pt0[s], px0[s], max_epochs, rtol, proj)
+            for s in range(pt0.shape[0])
+        ]
         pt, px, C, code, epochs, hist = (jnp.stack(a) for a in zip(*outs))
     else:
         run = _compiled_runner(solver, max_epochs)
@@ -348,33 +383,50 @@ def fit(
 
     C_np = np.where(np.isfinite(np.asarray(C)), np.asarray(C), np.inf)
     best = int(np.argmin(C_np))
-    return _result(problem, data, batched, pt[best], px[best], float(C[best]), int(code[best]),
-                   int(epochs[best]), np.asarray(hist[best]), wall,
-                   starts=None if not multistart else _starts(problem, pt, C, code), best=best)
+    return _result(
+        problem,
+        data,
+        batched,
+        pt[best],
+        px[best],
+        float(C[best]),
+        int(code[best]),
+        int(epochs[best]),
+        np.asarray(hist[best]),
+        wall,
+        starts=None if not multistart else _starts(problem, pt, C, code),
+        best=best,
+    )
 
 
 @functools.lru_cache(maxsize=64)
 def _compiled_runner(solver, max_epochs):
     if isinstance(solver, str) and solver in _LSQ:
         one = lambda pr, pt, px, tl, tg, rt: run_least_squares(  # noqa: E731
-            pr, solver, pt, px, max_epochs, tl, tg, rt)
+            pr, solver, pt, px, max_epochs, tl, tg, rt
+        )
     else:
         optimiser = adam() if solver == "adam" else solver
         one = lambda pr, pt, px, tl, tg, rt: run_first_order(  # noqa: E731
-            pr, optimiser, pt, px, max_epochs, tl, tg)
+            pr, optimiser, pt, px, max_epochs, tl, tg
+        )
 
     @eqx.filter_jit
     def run(problem, pt0, px0, tol_loss, tol_grad, rtol):
         return jax.vmap(one, in_axes=(None, 0, 0, None, None, None))(
-            problem, pt0, px0, tol_loss, tol_grad, rtol)
+            problem, pt0, px0, tol_loss, tol_grad, rtol
+        )
 
     return run
 
 
 def _starts(problem, pt, C, code):
     thetas = jax.vmap(lambda p: problem.theta_of(p))(pt)
-    return {"theta": thetas, "loss": np.asarray(C),
-            "stop_reason": [StopReason(int(c)) for c in np.asarray(code)]}
+    return {
+        "theta": thetas,
+        "loss": np.asarray(C),
+        "stop_reason": [StopReason(int(c)) for c in np.asarray(code)],
+    }
 
 
 def _run_optimistix(problem, solver, pt, px, max_epochs, rtol, proj):
@@ -431,8 +483,11 @@ def _restrict(problem, pt, free):
     upper = None if problem.upper is None else problem.upper[free]
     # theta_free is a static field (not a pytree leaf), so eqx.tree_at cannot replace it.
     return dataclasses.replace(
-        problem, theta_base=base, theta_free=tuple(np.asarray(problem.theta_free)[free].tolist()),
-        lower=lower, upper=upper,
+        problem,
+        theta_base=base,
+        theta_free=tuple(np.asarray(problem.theta_free)[free].tolist()),
+        lower=lower,
+        upper=upper,
     )
 
 
@@ -496,22 +551,32 @@ def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts,
     cov = np.asarray(S_inv) * s2
     identifiable = np.asarray(identifiable)
     if not identifiable.all():
-        bad = [str(n) for n, ok in zip(np.asarray(_all_names(theta))[list(problem.theta_free)], identifiable) if not ok]
-        warnings.warn(f"the Jacobian is rank-deficient at the solution: {bad} do not change the "
-                      "outputs there (not identifiable from these data); their std is inf.",
-                      stacklevel=3)
+        bad = [
+            str(n)
+            for n, ok in zip(np.asarray(_all_names(theta))[list(problem.theta_free)], identifiable)
+            if not ok
+        ]
+        warnings.warn(
+            f"the Jacobian is rank-deficient at the solution: {bad} do not change the "
+            "outputs there (not identifiable from these data); their std is inf.",
+            stacklevel=3,
+        )
         cov[~identifiable, :] = np.inf
         cov[:, ~identifiable] = np.inf
     flat_std = np.zeros(problem.theta_base.shape)
     flat_std[list(problem.theta_free)] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     std = problem.unravel(jnp.asarray(flat_std, problem.theta_base.dtype))
-    ci95 = (jax.tree_util.tree_map(lambda v, s: v - 1.96 * s, theta, std),
-            jax.tree_util.tree_map(lambda v, s: v + 1.96 * s, theta, std))
+    ci95 = (
+        jax.tree_util.tree_map(lambda v, s: v - 1.96 * s, theta, std),
+        jax.tree_util.tree_map(lambda v, s: v + 1.96 * s, theta, std),
+    )
     x0_std = np.zeros(X0.shape)
     x0_std[:, list(problem.x0_free)] = np.sqrt(np.maximum(np.asarray(x_diag) * s2, 0.0))
     names = tuple(np.asarray(_all_names(theta))[list(problem.theta_free)].tolist())
     valid = ~np.isnan(hist[:, 0])
-    flat_path = np.broadcast_to(np.asarray(problem.theta_base), (int(valid.sum()), problem.theta_base.shape[0])).copy()
+    flat_path = np.broadcast_to(
+        np.asarray(problem.theta_base), (int(valid.sum()), problem.theta_base.shape[0])
+    ).copy()
     flat_path[:, list(problem.theta_free)] = hist[valid, 2:]
     history = {
         "loss": hist[valid, 0],
@@ -521,7 +586,20 @@ def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts,
     if not batched:
         X0, e, x0_std = X0[0], e[0], x0_std[0]
     return FitResult(
-        theta=theta, x0=X0, loss=C, stop_reason=StopReason(code), epochs=epochs, wall_time=wall,
-        history=history, residuals=e, names=names, covariance=cov, std=std, ci95=ci95,
-        x0_std=x0_std, metrics=met, starts=starts, best=best,
+        theta=theta,
+        x0=X0,
+        loss=C,
+        stop_reason=StopReason(code),
+        epochs=epochs,
+        wall_time=wall,
+        history=history,
+        residuals=e,
+        names=names,
+        covariance=cov,
+        std=std,
+        ci95=ci95,
+        x0_std=x0_std,
+        metrics=met,
+        starts=starts,
+        best=best,
     )

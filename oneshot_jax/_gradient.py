@@ -58,8 +58,7 @@ def choose_strategy(strategy, n_x, T, itemsize):
 def theta_forward_mode(n_theta, n_x, T, itemsize):
     """Whether the "jacobian" strategy stacks J^{x/theta}_k too (few parameters, small memory)."""
     return (
-        n_theta <= max(n_x, _THETA_FORWARD_MIN)
-        and T * n_x * n_theta * itemsize <= _JACOBIAN_BYTES
+        n_theta <= max(n_x, _THETA_FORWARD_MIN) and T * n_x * n_theta * itemsize <= _JACOBIAN_BYTES
     )
 
 
@@ -176,9 +175,7 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
             _, vjp_x = jax.vjp(lambda x: step(x, u_j, theta), x_j)
             return Gamma_j + vjp_x(lam_next)[0], lam_next
 
-        lam0, lam_next = jax.lax.scan(
-            body, Gamma[-1], (x_prev, u_prev, Gamma[:-1]), reverse=True
-        )
+        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (x_prev, u_prev, Gamma[:-1]), reverse=True)
         theta_term = _theta_term_vjp(step, theta, x_prev, u_prev, lam_next)
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
@@ -230,12 +227,22 @@ def value_and_grad(
     check_penalty_output(model, penalty, data)
     strategy = check_strategy(strategy)
     return value_and_grad_impl(
-        model, data.theta, data.x0, data.u, data.z, data.weight, penalty,
-        jnp.asarray(penalty_weight, dtype=data.x0.dtype), data.batched, strategy,
+        model,
+        data.theta,
+        data.x0,
+        data.u,
+        data.z,
+        data.weight,
+        penalty,
+        jnp.asarray(penalty_weight, dtype=data.x0.dtype),
+        data.batched,
+        strategy,
     )
 
 
-def literal_value_and_grad(model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.0):
+def literal_value_and_grad(
+    model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.0
+):
     """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only).
 
     Forms every J^{x/x}_k and J^{x/theta}_k (jacfwd, flattened theta) and every chained

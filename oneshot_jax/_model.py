@@ -1,11 +1,11 @@
 """The grey-box model of eq. (1): a discrete step f and an observation g."""
 
+import math
 from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 
 def _identity_observe(x, u, theta):
@@ -106,7 +106,7 @@ class Model(eqx.Module):
         if method not in ("rk4", "euler"):
             raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
         dt = float(dt)
-        if not (dt > 0 and jnp.isfinite(dt)):
+        if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"`dt` must be a finite positive number, got {dt}.")
         if int(substeps) != substeps or substeps < 1:
             raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")

@@ -26,7 +26,9 @@ import jax
 import jax.numpy as jnp
 
 
-def trajectory_residuals(model, theta_of, p_theta, x0, u, z, sqrt_q, penalty, penalty_weight, scale):
+def trajectory_residuals(
+    model, theta_of, p_theta, x0, u, z, sqrt_q, penalty, penalty_weight, scale
+):
     """Residuals r (R,) of one trajectory, R = T n_z (+ T with a penalty)."""
     theta = theta_of(p_theta)
 
@@ -62,7 +64,6 @@ def trajectory_jacobian(
     the free initial-state entries to x0 (fixed entries are constants inside both), so
     the columns are exactly the free variables.
     """
-    theta = theta_of(p_theta)
     x0 = x0_of(p_x0)
     n_t, n_s = p_theta.shape[0], p_x0.shape[0]
     f_theta = lambda x, u_k, p: model.step(x, u_k, theta_of(p))  # noqa: E731

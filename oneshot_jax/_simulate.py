@@ -117,6 +117,13 @@ def loss(model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.
     penalty, penalty_weight = check_penalty(penalty, penalty_weight)
     check_penalty_output(model, penalty, data)
     return _loss(
-        model, data.theta, data.x0, data.u, data.z, data.weight, penalty,
-        jnp.asarray(penalty_weight), data.batched,
+        model,
+        data.theta,
+        data.x0,
+        data.u,
+        data.z,
+        data.weight,
+        penalty,
+        jnp.asarray(penalty_weight),
+        data.batched,
     )

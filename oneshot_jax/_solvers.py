@@ -101,8 +101,16 @@ class Problem(eqx.Module):
     def value_and_grad(self, p_theta, p_x0):
         """C and its gradient in the free variables, by the one-shot recursion."""
         C, (g_theta, g_x0) = value_and_grad_impl(
-            self.model, self.theta_of(p_theta), self.x0_of(p_x0), self.u, self.z,
-            self.weight, self.penalty, self.penalty_weight, True, self.strategy,
+            self.model,
+            self.theta_of(p_theta),
+            self.x0_of(p_x0),
+            self.u,
+            self.z,
+            self.weight,
+            self.penalty,
+            self.penalty_weight,
+            True,
+            self.strategy,
         )
         g_flat, _ = ravel_pytree(g_theta)
         return C, g_flat[np.asarray(self.theta_free, int)], g_x0[:, np.asarray(self.x0_free, int)]
@@ -113,8 +121,16 @@ class Problem(eqx.Module):
     def residuals(self, p_theta, p_x0, penalty=True):
         """Stacked residuals (N, R) with ||r||^2 = C (see `_sensitivity`)."""
         fn = lambda base, p, u, z: trajectory_residuals(  # noqa: E731
-            self.model, self.theta_of, p_theta, base.at[np.asarray(self.x0_free, int)].set(p), u, z,
-            self.sqrt_q, self.penalty if penalty else None, self.penalty_weight, self._scale(),
+            self.model,
+            self.theta_of,
+            p_theta,
+            base.at[np.asarray(self.x0_free, int)].set(p),
+            u,
+            z,
+            self.sqrt_q,
+            self.penalty if penalty else None,
+            self.penalty_weight,
+            self._scale(),
         )
         return jax.vmap(fn)(self.x0_base, p_x0, self.u, self.z)
 
@@ -124,8 +140,16 @@ class Problem(eqx.Module):
 
         def fn(base, p, u, z):
             return trajectory_jacobian(
-                self.model, self.theta_of, p_theta, lambda q: base.at[x0_free].set(q), p,
-                u, z, self.sqrt_q, self.penalty if penalty else None, self.penalty_weight,
+                self.model,
+                self.theta_of,
+                p_theta,
+                lambda q: base.at[x0_free].set(q),
+                p,
+                u,
+                z,
+                self.sqrt_q,
+                self.penalty if penalty else None,
+                self.penalty_weight,
                 self._scale(),
             )
 
@@ -175,8 +199,12 @@ def run_first_order(problem, optimiser, p_theta, p_x0, max_epochs, tol_loss, tol
         finite = jnp.isfinite(C) & jnp.isfinite(gnorm)
         code = jnp.select(
             [~finite, C < tol_loss, gnorm < tol_grad, epoch >= max_epochs],
-            [StopReason.DIVERGED.value, StopReason.TOL_LOSS.value, StopReason.TOL_GRAD.value,
-             StopReason.MAX_EPOCHS.value],
+            [
+                StopReason.DIVERGED.value,
+                StopReason.TOL_LOSS.value,
+                StopReason.TOL_GRAD.value,
+                StopReason.MAX_EPOCHS.value,
+            ],
             _RUNNING,
         )
         # The last finite iterate is this one unless it diverged.
@@ -192,7 +220,15 @@ def run_first_order(problem, optimiser, p_theta, p_x0, max_epochs, tol_loss, tol
         )
         return params, opt_state, last, epoch + jnp.where(keep, 0, 1), code, hist, last_C
 
-    init = (params, state0, params, jnp.array(0), jnp.array(_RUNNING), hist, jnp.array(jnp.inf, dtype))
+    init = (
+        params,
+        state0,
+        params,
+        jnp.array(0),
+        jnp.array(_RUNNING),
+        hist,
+        jnp.array(jnp.inf, dtype),
+    )
     params, _, _, epoch, code, hist, C = jax.lax.while_loop(cond, body, init)
     return params["theta"], params["x0"], C, code, epoch, hist
 
@@ -357,7 +393,9 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         small = relative(nt - pt, nx - px) <= rtol
         # A full step at the round-off level of the parameters that cannot decrease C:
         # nothing is left to gain in this precision (matters in float32).
-        at_precision = at_precision | (~accept & (relative(h_t, h_x) <= 10 * jnp.sqrt(jnp.finfo(dtype).eps)))
+        at_precision = at_precision | (
+            ~accept & (relative(h_t, h_x) <= 10 * jnp.sqrt(jnp.finfo(dtype).eps))
+        )
         code = jnp.where(
             code != _RUNNING,
             code,
@@ -376,7 +414,16 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
 
     lin0 = linearise(p_theta, p_x0)
     mu0 = jnp.array(1e-3 if lm else 0.0, dtype)
-    init = (p_theta, p_x0, lin0, mu0, jnp.array(2.0, dtype), jnp.array(0), hist, jnp.array(_RUNNING))
+    init = (
+        p_theta,
+        p_x0,
+        lin0,
+        mu0,
+        jnp.array(2.0, dtype),
+        jnp.array(0),
+        hist,
+        jnp.array(_RUNNING),
+    )
     pt, px, lin, _, _, epoch, hist, code = jax.lax.while_loop(cond, body, init)
     # A non-finite starting loss can never be improved on: report it as diverged.
     code = jnp.where(jnp.isfinite(lin[0]), code, StopReason.DIVERGED.value)

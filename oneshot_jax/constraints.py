@@ -58,7 +58,9 @@ def _from_projection(proj, bounds=None) -> ProjectionTransformation:
 
     def update(updates, state, params=None):
         if params is None:
-            raise ValueError("a projection transform needs `params` in `update(updates, state, params)`.")
+            raise ValueError(
+                "a projection transform needs `params` in `update(updates, state, params)`."
+            )
         new = proj(optax.apply_updates(params, updates))
         return jax.tree_util.tree_map(lambda n, p: n - p, new, params), state
 
@@ -68,7 +70,9 @@ def _from_projection(proj, bounds=None) -> ProjectionTransformation:
 def _fill_like(bound, params, fill, name):
     """Broadcast a bound (scalar, pytree like params, or a partial dict) onto params."""
     if bound is None:
-        return jax.tree_util.tree_map(lambda p: jnp.full(jnp.shape(p), fill, jnp.result_type(p)), params)
+        return jax.tree_util.tree_map(
+            lambda p: jnp.full(jnp.shape(p), fill, jnp.result_type(p)), params
+        )
     if isinstance(params, dict) and isinstance(bound, dict):
         unknown = set(bound) - set(params)
         if unknown:

@@ -13,7 +13,9 @@ __all__ = ["rmse", "nrmse", "fit_percent", "r2", "aic"]
 def _flat(z, zhat):
     z, zhat = jnp.asarray(z), jnp.asarray(zhat)
     if z.shape != zhat.shape:
-        raise ValueError(f"`z` and `zhat` must have the same shape, got {z.shape} and {zhat.shape}.")
+        raise ValueError(
+            f"`z` and `zhat` must have the same shape, got {z.shape} and {zhat.shape}."
+        )
     if z.ndim == 1:
         z, zhat = z[:, None], zhat[:, None]
     return z.reshape(-1, z.shape[-1]), zhat.reshape(-1, z.shape[-1])
