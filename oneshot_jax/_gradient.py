@@ -91,26 +91,20 @@ def _stacked_jacobians_T(step, theta, xs, u, wrt):
     """Transposed one-step Jacobians at every (xs[j], u[j]), by forward mode (vmapped JVPs).
 
     Slice j, row i is the JVP of f(x, u_j, theta) at x = xs[j] along the i-th basis vector
-    of x (`wrt="x"`: slice j is (J^{x/x}_{j+1})^T). With `wrt="both"` the basis spans
-    (x, flattened theta) and the result is the pair ((J^{x/x}_{j+1})^T, (J^{x/theta}_{j+1})^T)
-    from one vmapped JVP, so the primal step is evaluated once for both. Building the
-    transposes directly saves the moveaxis copies of `jax.jacfwd`, and they are what the
-    reverse recursion multiplies with anyway.
+    of x (`wrt="x"`: slice j is (J^{x/x}_{j+1})^T) or of the flattened theta (`wrt="theta"`:
+    (J^{x/theta}_{j+1})^T). Building the transposes directly saves the moveaxis copies of
+    `jax.jacfwd`, and they are what the reverse recursion multiplies with anyway.
     """
-    n_x = xs.shape[-1]
     if wrt == "x":
-        basis = jnp.eye(n_x, dtype=xs.dtype)
+        basis = jnp.eye(xs.shape[-1], dtype=xs.dtype)
         push = lambda x, u_j, e: jax.jvp(lambda x: step(x, u_j, theta), (x,), (e,))[1]  # noqa: E731
-        return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, u)
-    flat, unravel = ravel_pytree(theta)
-    basis = jnp.eye(n_x + flat.shape[0], dtype=jnp.result_type(xs, flat))
-
-    def push(x, u_j, e):
-        f = lambda x, th: step(x, u_j, unravel(th))  # noqa: E731
-        return jax.jvp(f, (x, flat), (e[:n_x].astype(x.dtype), e[n_x:].astype(flat.dtype)))[1]
-
-    out = jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, u)
-    return out[:, :n_x], out[:, n_x:]
+    else:
+        flat, unravel = ravel_pytree(theta)
+        basis = jnp.eye(flat.shape[0], dtype=flat.dtype)
+        push = lambda x, u_j, e: jax.jvp(  # noqa: E731
+            lambda th: step(x, u_j, th), (theta,), (unravel(e),)
+        )[1]
+    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, u)
 
 
 def _theta_term_vjp(step, theta, xs, u, lam):
@@ -146,10 +140,11 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
 
     if strategy == "jacobian":
         # At[j] = (J^{x/x}_{j+1})^T = (d f(x_j, u_j) / d x_j)^T.
+        At = _stacked_jacobians_T(step, theta, x_prev, u_prev, "x")
         flat, unravel = ravel_pytree(theta)
         if theta_forward_mode(flat.shape[0], n_x, T, x0.dtype.itemsize):
             # Bt[j] = (J^{x/theta}_{j+1})^T; acc = sum_j Bt[j] lam_{j+1}.
-            At, Bt = _stacked_jacobians_T(step, theta, x_prev, u_prev, "both")
+            Bt = _stacked_jacobians_T(step, theta, x_prev, u_prev, "theta")
 
             def body(carry, inp):
                 lam_next, acc = carry
@@ -160,7 +155,6 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
             (lam0, acc), _ = jax.lax.scan(body, init, (At, Bt, Gamma[:-1]), reverse=True)
             theta_term = unravel(acc.astype(flat.dtype))
         else:
-            At = _stacked_jacobians_T(step, theta, x_prev, u_prev, "x")
 
             def body(lam_next, inp):
                 At_j, Gamma_j = inp
