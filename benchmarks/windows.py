@@ -68,7 +68,9 @@ def main():
     parser.add_argument("--quick", action="store_true", help="N in {10, 50} only")
     parser.add_argument("--figure", default=None, help="save a PNG of time against N")
     parser.add_argument("--json", default=None, help="write the numbers as JSON")
-    parser.add_argument("--dense-max", type=int, default=100, help="largest N for the dense solve (it grows fast)")
+    parser.add_argument(
+        "--dense-max", type=int, default=100, help="largest N for the dense solve (it grows fast)"
+    )
     args = parser.parse_args()
 
     Ns = [10, 50] if args.quick else [10, 50, 100, 250]
@@ -86,7 +88,9 @@ def main():
             solvers["dense"] = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12)
         for label, solver in solvers.items():
             repeats = 3 if label == "structured" else 1
-            res, first, med = timed(lambda s=solver: oj.fit(MODEL, u, z, theta0, x0, solver=s, **common), repeats)
+            res, first, med = timed(
+                lambda s=solver: oj.fit(MODEL, u, z, theta0, x0, solver=s, **common), repeats
+            )
             err = max(abs(float(res.theta[k]) / TRUE[k] - 1) for k in TRUE)
             row[label] = {"time_s": med, "first_call_s": first, "loss": res.loss,
                           "iterations": res.epochs, "max_rel_param_err": err,
@@ -96,7 +100,10 @@ def main():
     print(f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples, float64, CPU "
           f"({jax.devices()[0].device_kind}, {jax.device_count()} device)")
     print()
-    print("| N windows | unknowns | structured LM (s) | iters | dense LM (s) | iters | dense / structured | loss structured | loss dense | max rel. param. error |")
+    print(
+        "| N windows | unknowns | structured LM (s) | iters | dense LM (s) | iters | "
+        "dense / structured | loss structured | loss dense | max rel. param. error |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         s = r["structured"]

@@ -14,8 +14,8 @@ import oneshot_jax as oj  # noqa: E402
 
 def euler(w, M, theta):
     """Euler's equations I w' = M - w x (I w) with diagonal inertia I = theta["I"]."""
-    I = theta["I"]
-    return (M - jnp.cross(w, I * w)) / I
+    inertia = theta["I"]
+    return (M - jnp.cross(w, inertia * w)) / inertia
 
 
 model = oj.Model.from_ode(euler, dt=0.1)  # RK4, zero-order-hold torque
