@@ -5,6 +5,7 @@ Every check runs on shapes (always static) and, where the arrays are concrete, o
 and the shape or range that was expected, so that nothing reaches a tracing error.
 """
 
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -45,6 +46,23 @@ def as_theta(theta):
     for leaf in leaves:
         check_finite(leaf, "theta")
     return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_eval_shape(fn, x, u, theta_leaves, treedef):
+    return jax.eval_shape(fn, x, u, jax.tree_util.tree_unflatten(treedef, theta_leaves))
+
+
+def _abstract_call(fn, x, u, theta):
+    """`jax.eval_shape(fn, x, u, theta)`, cached per function and abstract arguments, so
+    repeated calls with the same model and shapes do not trace the model again."""
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    structs = tuple(jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in leaves)
+    try:
+        hash(fn)
+    except TypeError:  # an unhashable callable: no caching
+        return jax.eval_shape(fn, x, u, theta)
+    return _cached_eval_shape(fn, x, u, structs, treedef)
 
 
 class Data(NamedTuple):
@@ -112,11 +130,11 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
 
     # Trace the user's functions once on abstract values, so that a step that changes the
     # state's shape or dtype is reported here and not as an error deep inside a scan.
-    x_1 = x0[0] if batched else x0
-    u_1 = u[(0,) * (len(lead) + 1)]
+    x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
+    u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
     try:
-        x_next = jax.eval_shape(model.step, x_1, u_1, theta)
-        z_hat = jax.eval_shape(model.observe, x_1, u_1, theta)
+        x_next = _abstract_call(model.step, x_1, u_1, theta)
+        z_hat = _abstract_call(model.observe, x_1, u_1, theta)
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
         raise ValueError(
             f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "

@@ -326,8 +326,9 @@ def fit(
     lower = upper = None
     if proj is not None and proj.bounds is not None:
         lo, hi = proj.bounds(data.theta)
-        lower = ravel_pytree(lo)[0][theta_free]
-        upper = ravel_pytree(hi)[0][theta_free]
+        # Host-side (numpy) indexing: an eager JAX gather costs a dispatch per call.
+        lower = jnp.asarray(np.asarray(ravel_pytree(lo)[0])[theta_free])
+        upper = jnp.asarray(np.asarray(ravel_pytree(hi)[0])[theta_free])
 
     problem = Problem(
         model=model,
@@ -348,18 +349,18 @@ def fit(
         strategy=strategy,
     )
 
-    # Every start as free-variable arrays, projected onto the constraint set.
+    # Every start as free-variable arrays (built on the host), projected onto the set.
     if multistart:
-        starts_flat = jax.vmap(lambda t: ravel_pytree(t)[0])(theta0)
+        starts_flat = np.asarray(jax.vmap(lambda t: ravel_pytree(t)[0])(theta0))
         if x0_starts is not None:
-            X0s = x0_starts if batched else x0_starts[:, None]
+            X0s = np.asarray(x0_starts if batched else x0_starts[:, None])
         else:
-            X0s = jnp.broadcast_to(X0, (n_starts, *X0.shape))
+            X0s = np.broadcast_to(np.asarray(X0), (n_starts, *X0.shape))
     else:
-        starts_flat, X0s = flat0[None], X0[None]
-    pt0 = starts_flat[:, theta_free]
-    px0 = X0s[:, :, x0_free]
-    projected = jax.vmap(problem.feasible)(pt0)
+        starts_flat, X0s = np.asarray(flat0)[None], np.asarray(X0)[None]
+    pt0 = jnp.asarray(starts_flat[:, theta_free])
+    px0 = jnp.asarray(X0s[:, :, x0_free])
+    projected = _project_starts(problem, pt0)
     if not bool(jnp.all(projected == pt0)):
         warnings.warn(
             "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
@@ -381,8 +382,8 @@ def fit(
     jax.block_until_ready(pt)
     wall = time.perf_counter() - t0
 
-    C_np = np.where(np.isfinite(np.asarray(C)), np.asarray(C), np.inf)
-    best = int(np.argmin(C_np))
+    pt, px, C, code, epochs, hist = (np.asarray(a) for a in (pt, px, C, code, epochs, hist))
+    best = int(np.argmin(np.where(np.isfinite(C), C, np.inf)))
     return _result(
         problem,
         data,
@@ -392,11 +393,16 @@ def fit(
         float(C[best]),
         int(code[best]),
         int(epochs[best]),
-        np.asarray(hist[best]),
+        hist[best],
         wall,
         starts=None if not multistart else _starts(problem, pt, C, code),
         best=best,
     )
+
+
+@eqx.filter_jit
+def _project_starts(problem, pt0):
+    return jax.vmap(problem.feasible)(pt0)
 
 
 @functools.lru_cache(maxsize=64)
@@ -541,6 +547,19 @@ def _post(problem, pt, px):
     return theta, X0, zhat - zs, sse, S_inv, x_diag, identifiable, met
 
 
+def _unravel_rows(rows, like, squeeze=False):
+    """Rows of flattened parameters (E, n) as the pytree `like` with a leading axis E
+    (dropped with `squeeze`): the numpy inverse of `ravel_pytree`, without a JAX call."""
+    leaves, treedef = jax.tree_util.tree_flatten(like)
+    out, start = [], 0
+    for leaf in leaves:
+        size = int(np.size(leaf))
+        block = rows[:, start : start + size].reshape(rows.shape[0], *np.shape(leaf))
+        out.append(block[0] if squeeze else block)
+        start += size
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
 def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts, best):
     theta, X0, e, sse, S_inv, x_diag, identifiable, met = _post(problem, pt, px)
     met = {k: (float(v) if k == "aic" else np.asarray(v)) for k, v in met.items()}
@@ -565,7 +584,8 @@ def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts,
         cov[:, ~identifiable] = np.inf
     flat_std = np.zeros(problem.theta_base.shape)
     flat_std[list(problem.theta_free)] = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    std = problem.unravel(jnp.asarray(flat_std, problem.theta_base.dtype))
+    theta = jax.tree_util.tree_map(np.asarray, theta)
+    std = _unravel_rows(flat_std[None], theta, squeeze=True)
     ci95 = (
         jax.tree_util.tree_map(lambda v, s: v - 1.96 * s, theta, std),
         jax.tree_util.tree_map(lambda v, s: v + 1.96 * s, theta, std),
@@ -574,15 +594,15 @@ def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts,
     x0_std[:, list(problem.x0_free)] = np.sqrt(np.maximum(np.asarray(x_diag) * s2, 0.0))
     names = tuple(np.asarray(_all_names(theta))[list(problem.theta_free)].tolist())
     valid = ~np.isnan(hist[:, 0])
-    flat_path = np.broadcast_to(
-        np.asarray(problem.theta_base), (int(valid.sum()), problem.theta_base.shape[0])
-    ).copy()
+    base = np.asarray(problem.theta_base)
+    flat_path = np.broadcast_to(base, (int(valid.sum()), base.shape[0])).copy()
     flat_path[:, list(problem.theta_free)] = hist[valid, 2:]
     history = {
         "loss": hist[valid, 0],
         "grad_norm": hist[valid, 1],
-        "theta": jax.vmap(problem.unravel)(jnp.asarray(flat_path, problem.theta_base.dtype)),
+        "theta": _unravel_rows(flat_path, theta),
     }
+    X0, e = np.asarray(X0), np.asarray(e)
     if not batched:
         X0, e, x0_std = X0[0], e[0], x0_std[0]
     return FitResult(
