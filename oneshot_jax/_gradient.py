@@ -34,8 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._checks import check_data, check_penalty, check_strategy, filter_jit
-from ._simulate import check_penalty_output, rollout, step_loss
+from ._checks import check_strategy, filter_jit
+from ._simulate import check_loss_args, rollout, step_loss
 
 # Above this many bytes for the stacked J^{x/x}_k, "auto" switches to the vjp strategy.
 _JACOBIAN_BYTES = 256 * 2**20
@@ -216,9 +216,7 @@ def value_and_grad(
     `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
-    data = check_data(model, theta, x0, u, z, weight)
-    penalty, penalty_weight = check_penalty(penalty, penalty_weight)
-    check_penalty_output(model, penalty, data)
+    data, penalty, lam = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
     strategy = check_strategy(strategy)
     return value_and_grad_impl(
         model,
@@ -228,7 +226,7 @@ def value_and_grad(
         data.z,
         data.weight,
         penalty,
-        jnp.asarray(penalty_weight, dtype=data.x0.dtype),
+        lam,
         data.batched,
         strategy,
     )
@@ -243,11 +241,8 @@ def literal_value_and_grad(
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.
     Same arguments and returns as `value_and_grad` (one trajectory or N trajectories).
     """
-    data = check_data(model, theta, x0, u, z, weight)
-    penalty, penalty_weight = check_penalty(penalty, penalty_weight)
-    check_penalty_output(model, penalty, data)
+    data, penalty, pw = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
     flat, unravel = ravel_pytree(data.theta)
-    pw = jnp.asarray(penalty_weight, dtype=data.x0.dtype)
 
     def one(x0, u, z):
         T = u.shape[0]

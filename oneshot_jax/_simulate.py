@@ -72,6 +72,15 @@ def check_penalty_output(model, penalty, data):
         )
 
 
+def check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight):
+    """Validate the arguments shared by `loss` and the gradients: (data, penalty, lambda),
+    with lambda as an array in the state's dtype."""
+    data = check_data(model, theta, x0, u, z, weight)
+    penalty, penalty_weight = check_penalty(penalty, penalty_weight)
+    check_penalty_output(model, penalty, data)
+    return data, penalty, jnp.asarray(penalty_weight, dtype=data.x0.dtype)
+
+
 def simulate(model, theta, x0, u):
     """Simulate the model over the horizon of `u`, eq. (2).
 
@@ -113,17 +122,7 @@ def loss(model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.
 
     The scalar C.
     """
-    data = check_data(model, theta, x0, u, z, weight)
-    penalty, penalty_weight = check_penalty(penalty, penalty_weight)
-    check_penalty_output(model, penalty, data)
+    data, penalty, lam = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
     return _loss(
-        model,
-        data.theta,
-        data.x0,
-        data.u,
-        data.z,
-        data.weight,
-        penalty,
-        jnp.asarray(penalty_weight),
-        data.batched,
+        model, data.theta, data.x0, data.u, data.z, data.weight, penalty, lam, data.batched
     )
