@@ -25,19 +25,15 @@ gradient) in O(T n_x^2).
 import jax
 import jax.numpy as jnp
 
+from ._simulate import rollout
+
 
 def trajectory_residuals(
     model, theta_of, p_theta, x0, u, z, sqrt_q, penalty, penalty_weight, scale
 ):
     """Residuals r (R,) of one trajectory, R = T n_z (+ T with a penalty)."""
     theta = theta_of(p_theta)
-
-    def body(x, u_k):
-        x_next = model.step(x, u_k, theta)
-        return x_next, x_next
-
-    _, xs = jax.lax.scan(body, x0, u[:-1])
-    xs = jnp.concatenate([x0[None], xs], axis=0)
+    xs = rollout(model, theta, x0, u)
     e = jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, theta) - z
     r = _weigh(e, sqrt_q) * scale
     r = r.reshape(-1)
