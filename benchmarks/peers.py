@@ -19,8 +19,8 @@ graph building included), and stopped if it exceeds `--timeout` seconds. Then up
 `--repeats` rounds of further calls (the time without compilation) are run, interleaved
 across the tools of the problem so that a change of machine load hits every tool alike;
 the median is reported. oneshot_jax is reported twice per solver: the whole `fit()` call
-(input checks, covariance, metrics: what a user waits for) and the solver alone
-(`FitResult.wall_time`).
+(what a user waits for) and its one compiled call alone (`FitResult.wall_time`:
+start projection, solve, covariance and metrics).
 
 Run:  python benchmarks/peers.py                  # everything, writes benchmarks/results.md
       python benchmarks/peers.py --quick          # a small smoke run (does not write results.md)
@@ -454,6 +454,9 @@ def fmt_ratio_table(summary, problems, tools):
     return lines
 
 
+_STRATEGY_NAMES = {"jacobian": "formed", "vjp": "matrix-free"}
+
+
 def targets(summary, problems):
     out = []
     for prob in problems:
@@ -495,9 +498,9 @@ def fmt_analysis(summary, problems, diags):
         "",
         "## Where the time goes",
         "",
-        "oneshot_jax's `fit()` against its solver alone (the faster of LM / GN per problem); the "
-        "difference is Python-side work around the compiled solver (input checks, setup, "
-        "covariance, metrics, `FitResult`):",
+        "oneshot_jax's `fit()` against its compiled call alone (the faster of LM / GN per "
+        "problem; `FitResult.wall_time`: projection, solve, covariance, metrics); the "
+        "difference is Python-side work around it (input checks, setup, `FitResult`):",
         "",
         "| problem | fit() no JIT | solver no JIT | overhead | fit() 1st call | solver 1st call |",
         "|---|---|---|---|---|---|",
@@ -520,24 +523,28 @@ def fmt_analysis(summary, problems, diags):
             "",
             "One trajectory Jacobian against one simulation (first record, jitted, median "
             "of 10): finite differences need (columns + 1) simulations per Jacobian, "
-            "forward-mode autodiff (`jax.jacfwd`) pushes all columns through the rollout, "
-            "oneshot_jax's closed form forms A = df/dx and B = df/dtheta at every step and "
-            "updates S <- A S + [B, 0]; `jvp recursion` is the same recursion evaluated "
-            "matrix-free, S <- vmap(jvp f)(S) (a prototype in `peers_tools.py`, not in the "
-            "library).",
+            "forward-mode autodiff (`jax.jacfwd`) pushes all columns through the rollout. "
+            "oneshot_jax's closed form evaluates the sensitivity recursion "
+            "S <- A S + [B, 0] in one of two ways (`strategy`): *formed* builds A = df/dx and "
+            "B = df/dtheta at every step at once after the forward pass (vmapped jacfwd, the "
+            "paper's Remark 1) and leaves the scan only small products; *matrix-free* pushes "
+            "the columns of S through the step as JVPs inside the scan. `fit` picks formed "
+            "Jacobians for n_x <= 16 and small batches (`strategy='auto'`).",
             "",
-            "| problem | T | n_x | columns | one simulation | jacfwd | closed form (library) | "
-            "jvp recursion | closed form / simulation | closed form / jacfwd |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| problem | T | n_x | columns | one simulation | jacfwd | closed form, formed | "
+            "closed form, matrix-free | fit's choice | its cost / simulation | "
+            "its cost / jacfwd |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for prob in problems:
             d = diag.get(prob)
             if d:
+                c = d[d["auto"]]
                 L.append(
                     f"| {prob} | {d['T']} | {d['n_x']} | {d['n_columns']} | "
-                    f"{_t(d['simulate'])} | {_t(d['jacfwd'])} | {_t(d['closed_form'])} | "
-                    f"{_t(d['jvp_recursion'])} | {d['closed_form'] / d['simulate']:.3g} | "
-                    f"{d['closed_form'] / d['jacfwd']:.3g} |"
+                    f"{_t(d['simulate'])} | {_t(d['jacfwd'])} | {_t(d['closed_jacobian'])} | "
+                    f"{_t(d['closed_vjp'])} | {_STRATEGY_NAMES[d['auto']]} | "
+                    f"{c / d['simulate']:.3g} | {c / d['jacfwd']:.3g} |"
                 )
     L += ["", "## Targets not met: the reasons found", ""]
     missed = [(prob, why) for prob, met, why in targets(summary, problems) if not met]
@@ -564,101 +571,43 @@ def fmt_analysis(summary, problems, diags):
         )
         its_txt = f"{its[0]}-{its[-1]}" if len(its) > 1 else (str(its[0]) if its else "—")
         one_it = s["ref"]["iterations"]
-        if prob == "satellite_T50":
-            extra = _t(f - sv) if sv is not None else "—"
+        if sv is not None and bt is not None:
             L.append(
-                f"The solver alone takes {_t(sv)} ({_ratio(bt, sv)} faster than {peer}), "
-                f"but `fit()` adds {extra} of Python-side work on a problem this small. A "
-                "profile of the warm call (library at the commit above) shows where: three "
-                "compiled calls (start projection, solver, post-processing), each dispatched "
-                "through `equinox.filter_jit`, which flattens the whole `Problem` pytree "
-                "(about 0.3 ms each); the bounds of the box constraint rebuilt with eager "
-                "`jnp` operations on every call (`constraints.box(...).bounds`, about 0.5 ms); "
-                "the validation in `check_data`; and the assembly of `FitResult`. Suggested: "
-                "merge the start projection into the compiled solver call, build the bounds "
-                "once in NumPy, and offer a reusable fitter object (`oj.Fitter(model, ...)`) "
-                "that validates and compiles once and is then called with new data or "
-                "starts through a single `jax.jit` with the static parts closed over."
+                f"The solver alone (one compiled call: projection, solve, covariance) takes "
+                f"{_t(sv)}, {_ratio(bt, sv)} faster than {peer}; `fit()` adds {_t(f - sv)} of "
+                "Python-side work around it (input checks, building the `Problem`, "
+                "`FitResult`)."
             )
-        elif prob.startswith("satellite"):
-            ratio = d["closed_form"] / d["simulate"] if d else None
-            L.append(
-                "With n_x = 3 and 6 unknowns, one closed-form Jacobian costs about "
-                f"{ratio:.3g} simulations"
-                if ratio
-                else "One closed-form Jacobian costs many simulations"
-            )
-            L[-1] += (
-                " here, while finite differences need 7: the scan body of the sensitivity "
-                "recursion is a long chain of tiny (3 x 3, 3 x 6) operations whose per-step "
-                "dispatch cost in XLA on CPU dominates the arithmetic, so a plain rollout "
-                "(3-vectors) is far cheaper per step than a sensitivity step. The iteration "
-                f"counts are about the same ({one_it} for oneshot_jax, {its_txt} for the "
-                "Gauss-Newton-type peers), so the closed form cannot win by much. "
-                + (
-                    f"Forward-mode autodiff takes {d['jacfwd'] / d['closed_form']:.2g}x and the "
-                    f"matrix-free recursion {d['jvp_recursion'] / d['closed_form']:.2g}x the "
-                    "closed form's time here (table above): forming A and B and multiplying "
-                    "A @ S costs more than pushing the columns through the step. "
-                    if d
-                    else ""
-                )
-                + "Unrolling the scans "
-                "(`lax.scan(unroll=4/16)`) was tried during development and made it slower "
-                "(and compilation 2-5x longer). What would help: fewer, larger operations per "
-                "step (e.g. propagate [x, S] as one (n_x, 1 + columns) array through a hand-"
-                "fused RK4 step), or a mixed strategy that uses finite differences of the "
-                "rollout (vmapped over the columns) when n_x and the columns are tiny."
-            )
-        elif prob.startswith("chain"):
-            L.append(
-                "The chain has no per-record initial states to eliminate (x0 is known, one "
-                "record), so the structured solve has nothing to exploit and everything rides "
-                "on the cost of the Jacobian (40 columns, 20,000 residuals) and the iteration "
-                f"count ({one_it} for oneshot_jax, {its_txt} for the Gauss-Newton-type peers)."
-            )
-            if d:
-                ref = s["ref"]
-                it = ref["iterations"]
-                floor = it * min(d["jacfwd"], d["closed_form"], d["jvp_recursion"])
-                L[-1] += (
-                    f" The closed-form Jacobian costs {d['closed_form'] / d['jacfwd']:.3g}x "
-                    "forward-mode autodiff of the rollout: at every step it materialises the "
-                    f"dense A = df/dx ({d['n_x']} x {d['n_x']}) with jacfwd and multiplies "
-                    "A @ S, O(n_x^2 n_theta) per step, whereas the chain's step is banded "
-                    "(each mass couples to two neighbours) and a forward-mode tangent costs "
-                    "O(n_x). Evaluating the same recursion matrix-free (`jvp recursion`, "
-                    f"S <- vmap(jvp f)(S)) costs {d['jvp_recursion'] / d['closed_form']:.3g}x "
-                    "the library's closed form here. The solver spends "
-                    f"{_t((_median(ref.get('solver_warm_s') or []) or 0) / max(it, 1))} per "
-                    f"iteration against {_t(d['closed_form'])} for the Jacobian itself; the rest "
-                    "is the normal-equation products over the stored (20,000 x 40) Jacobian and "
-                    "the trial evaluations. Even if each of oneshot_jax's "
-                    f"{it} iterations cost one Jacobian at the cheapest price in the table and "
-                    f"nothing else ({_t(floor)} in all), it would be "
-                    f"{_ratio(bt, floor)} faster than {peer}"
-                )
-                if bt is not None and bt / floor >= 3.0:
-                    L[-1] += (
-                        ": 3x is within reach only with a Jacobian at forward-mode-autodiff "
-                        "cost (the matrix-free recursion above, or jacfwd itself) and with the "
-                        "rest of each iteration (normal-equation products, trial evaluations, "
-                        "the storage of J) cut close to nothing, e.g. by accumulating J^T J and "
-                        "J^T r inside the scan instead of storing J; `fit()`'s own overhead "
-                        "(the covariance in `_post` evaluates one more Jacobian) counts too."
-                    )
-                else:
-                    L[-1] += (
-                        ": 3x on this problem needs a Jacobian cheaper than forward-mode "
-                        "autodiff, which the forward-sensitivity structure does not give when "
-                        "every parameter reaches every output and there is no initial state to "
-                        "eliminate. What would still help: the matrix-free recursion above, "
-                        "accumulating J^T J and J^T r inside the scan instead of storing J, and "
-                        "`fit()`'s own overhead (the covariance in `_post` evaluates one more "
-                        "Jacobian)."
-                    )
         else:
             L.append("See the per-problem table above.")
+        if d:
+            c = d[d["auto"]]
+            lin = one_it + 1  # one linearisation per accepted step, plus the start
+            floor = lin * c
+            L[-1] += (
+                f" One Jacobian ({_STRATEGY_NAMES[d['auto']]}) costs {c / d['simulate']:.3g} "
+                f"simulations and {c / d['jacfwd']:.3g}x forward-mode autodiff of the "
+                f"rollout, against {d['n_columns'] + 1} simulations for finite differences; "
+                f"oneshot_jax linearises {lin} times ({one_it} iterations; "
+                f"{its_txt} for the Gauss-Newton-type peers). The Jacobians alone take "
+                f"{_t(floor)}, so even with nothing else in an iteration it would be "
+                f"{_ratio(bt, floor)} faster than {peer}"
+            )
+            need = 3.0 if prob in ("emps", "chain20") else 1.0
+            if bt is not None and bt / floor < need:
+                L[-1] += (
+                    f": the {need:g}x target needs a Jacobian cheaper than forward-mode "
+                    "autodiff, or fewer iterations. Forward sensitivities cost one tangent "
+                    "rollout per free parameter whatever the implementation; where every "
+                    "parameter reaches every output and there is no initial state to "
+                    "eliminate (the chain: x0 known, one record), the structure leaves "
+                    "nothing else to exploit."
+                )
+            else:
+                L[-1] += (
+                    ": the rest of each iteration (normal-equation products over the stored "
+                    "J, trial evaluations) is what is left to cut."
+                )
         L.append("")
     first = [prob for prob in problems if summary.get(prob, {}).get("ref")]
     if first:
@@ -672,9 +621,7 @@ def fmt_analysis(summary, problems, diags):
             "compilation cache (`jax.config.update('jax_compilation_cache_dir', ...)`, "
             "`jax_persistent_cache_min_compile_time_secs`), which in development cut a "
             "fresh process's first `fit()` on the satellite (T = 50) from 6.2 s to 1.9 s; "
-            "and compile less: the runner is vmapped over starts even for one start, and "
-            "`_post` re-traces the Jacobian for the covariance that the solver's last "
-            "linearisation already holds.",
+            "and compile less: the runner is vmapped over starts even for one start.",
             "",
         ]
     return L
@@ -925,8 +872,8 @@ def main():
                 diags.append(d)
                 print(
                     f"{prob:16s} one simulation {_t(d['simulate'])}, Jacobian: jacfwd "
-                    f"{_t(d['jacfwd'])}, closed form {_t(d['closed_form'])}, jvp recursion "
-                    f"{_t(d['jvp_recursion'])}",
+                    f"{_t(d['jacfwd'])}, closed form formed {_t(d['closed_jacobian'])}, "
+                    f"matrix-free {_t(d['closed_vjp'])} (fit uses {d['auto']})",
                     flush=True,
                 )
     wall = time.perf_counter() - t0

@@ -498,44 +498,29 @@ def jacobian_timings(pb, repeats=10):
 
     - `simulate`: the residuals (one rollout), jitted;
     - `jacfwd`: jax.jacfwd of the residuals (forward-mode autodiff through the rollout);
-    - `closed_form`: oneshot_jax's forward-sensitivity Jacobian as `fit` evaluates it
-      (`_sensitivity.trajectory_jacobian`: per step it forms A = df/dx and B = df/dtheta
-      with jacfwd and updates S <- A S + [B, 0]);
-    - `jvp_recursion`: the same recursion evaluated matrix-free, S <- vmap(jvp(f))(S)
-      (a prototype here, not in the library), i.e. without forming A and B.
-    Medians in seconds, after a warm-up call.
+    - `closed_jacobian`: oneshot_jax's forward-sensitivity Jacobian
+      (`_sensitivity.trajectory_jacobian`) with strategy "jacobian": one rollout, then
+      A = df/dx and B = df/dtheta at every step at once (vmapped jacfwd, Remark 1), then
+      a scan of S <- A S + [B, 0];
+    - `closed_vjp`: the same recursion matrix-free (strategy "vjp"), S <- vmap(jvp f)(S)
+      inside the scan, never forming A.
+    `fit` picks "jacobian" for n_x <= 16 ("auto"). Medians in seconds, after a warm-up call.
     """
-    from oneshot_jax._sensitivity import trajectory_jacobian
+    from oneshot_jax._sensitivity import sensitivity_strategy, trajectory_jacobian
 
-    model, nz = pb.model, pb.n_z
     u, z, x0 = (jnp.asarray(a[0]) for a in (pb.U, pb.Z, pb.X0))
     free = np.asarray(pb.x0_free, int)
     pt, px = jnp.asarray(pb.flat(pb.theta0)), x0[free]
     scale = 1.0 / np.sqrt(pb.T)
     x0_of = lambda q: x0.at[free].set(q)  # noqa: E731
 
-    def closed_form(pt, px):
-        return trajectory_jacobian(model, pb.unflat, pt, x0_of, px, u, z, None, None, 1.0, scale)
+    def closed_form(strategy):
+        def jac(pt, px):
+            return trajectory_jacobian(
+                pb.model, pb.unflat, pt, x0_of, px, u, z, None, None, 1.0, scale, strategy
+            )
 
-    def jvp_recursion(pt, px):
-        n_t, n_s = pt.shape[0], px.shape[0]
-        X0 = x0_of(px)
-        S0 = jnp.concatenate([jnp.zeros((X0.shape[0], n_t)), jax.jacfwd(x0_of)(px)], axis=1)
-        E = jnp.concatenate([jnp.eye(n_t), jnp.zeros((n_t, n_s))], axis=1)
-
-        def body(carry, uk):
-            x, S = carry
-            f = lambda x, p: model.step(x, uk, pb.unflat(p))  # noqa: E731
-            xn, Sn = jax.vmap(
-                lambda s, e: jax.jvp(f, (x, pt), (s, e)), in_axes=(1, 1), out_axes=(None, 1)
-            )(S, E)
-            return (xn, Sn), (xn, Sn)
-
-        _, (xs, Ss) = jax.lax.scan(body, (X0, S0), u[:-1])
-        xs = jnp.concatenate([X0[None], xs])
-        Ss = jnp.concatenate([S0[None], Ss])
-        J = (Ss[:, :nz, :] * scale).reshape(-1, n_t + n_s)
-        return ((xs[:, :nz] - z) * scale).reshape(-1), J[:, :n_t], J[:, n_t:]
+        return jax.jit(jac)
 
     one = dataclasses.replace(pb, U=pb.U[:1], Z=pb.Z[:1], X0=pb.X0[:1])
     res = jax_residual(one)
@@ -544,12 +529,12 @@ def jacobian_timings(pb, repeats=10):
     fns = {
         "simulate": (jax.jit(lambda p: res(p, U1, Z1, X01)), (p0,)),
         "jacfwd": (jax.jit(jax.jacfwd(lambda p: res(p, U1, Z1, X01))), (p0,)),
-        "closed_form": (jax.jit(closed_form), (pt, px)),
-        "jvp_recursion": (jax.jit(jvp_recursion), (pt, px)),
+        "closed_jacobian": (closed_form("jacobian"), (pt, px)),
+        "closed_vjp": (closed_form("vjp"), (pt, px)),
     }
-    a = fns["closed_form"][0](pt, px)[1]
-    b = fns["jvp_recursion"][0](pt, px)[1]
-    assert np.allclose(a, b, rtol=1e-8, atol=1e-12 * float(jnp.max(jnp.abs(a)))), "jvp prototype"
+    a = fns["closed_jacobian"][0](pt, px)[1]
+    b = fns["closed_vjp"][0](pt, px)[1]
+    assert np.allclose(a, b, rtol=1e-8, atol=1e-12 * float(jnp.max(jnp.abs(a)))), "strategies"
     out = {}
     for name, (fn, args) in fns.items():
         jax.block_until_ready(fn(*args))
@@ -560,6 +545,9 @@ def jacobian_timings(pb, repeats=10):
             ts.append(time.perf_counter() - t0)
         out[name] = float(np.median(ts))
     out["n_columns"] = int(pt.shape[0] + px.shape[0])
+    out["auto"] = sensitivity_strategy(
+        "auto", 1, int(x0.shape[0]), out["n_columns"], int(u.shape[0]), x0.dtype.itemsize
+    )
     out["T"] = int(pb.T)
     out["n_x"] = int(pb.n_x)
     return out

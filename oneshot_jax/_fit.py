@@ -41,7 +41,8 @@ class FitResult:
     - `x0`: estimated initial state(s), shape (n_x,) or (N, n_x).
     - `loss`: final C (eq. 5/21).
     - `stop_reason`: a `StopReason`; `stop_reason.message` says why, `success` if converged.
-    - `epochs`: iterations run; `wall_time`: seconds, compilation included.
+    - `epochs`: iterations run; `wall_time`: seconds of the solve with the covariance and
+        metrics (one compiled call; compilation included), without the input checks.
     - `history`: dict with `loss` and `grad_norm` per epoch and `theta`, the iterates
         (theta's pytree with a leading epoch axis); optimistix solvers record only the
         final point.
@@ -256,7 +257,11 @@ def fit(
         entries keep their initial value and are removed from the variables.
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
     - `window`: cut one record into windows of this many samples, each with its own x0.
-    - `strategy`: gradient strategy for first-order solvers (see `value_and_grad`).
+    - `strategy`: how the per-step Jacobians enter: for first-order solvers the gradient
+        strategy of `value_and_grad`; for `"gauss_newton"`/`"levenberg_marquardt"` the
+        sensitivity recursion, `"jacobian"` forming J^{x/x}, J^{x/theta} after the forward
+        pass (Remark 1) or `"vjp"` pushing the Jacobian's columns through the step as JVPs
+        inside the scan (matrix-free); `"auto"` forms them for small states and batches.
 
     **Returns:**
 
@@ -360,36 +365,38 @@ def fit(
         starts_flat, X0s = np.asarray(flat0)[None], np.asarray(X0)[None]
     pt0 = jnp.asarray(starts_flat[:, theta_free])
     px0 = jnp.asarray(X0s[:, :, x0_free])
-    projected = _project_starts(problem, pt0)
-    if not bool(jnp.all(projected == pt0)):
-        warnings.warn(
-            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
-        )
-        pt0 = projected
     if len(theta_free) == 0 and len(x0_free) == 0:
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 
     t0 = time.perf_counter()
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
+        moved, pt0 = eqx.filter_jit(_project_starts)(problem, pt0)
         outs = [
             _run_optimistix(problem, solver, pt0[s], px0[s], max_epochs, rtol, proj)
             for s in range(pt0.shape[0])
         ]
         pt, px, C, code, epochs, hist = (jnp.stack(a) for a in zip(*outs))
+        best = int(np.argmin(np.where(np.isfinite(np.asarray(C)), np.asarray(C), np.inf)))
+        post = _post_jit(problem, pt[best], px[best])
     else:
         run = _compiled_runner(solver, max_epochs)
-        pt, px, C, code, epochs, hist = run(problem, pt0, px0, tol_loss, tol_grad, rtol)
-    jax.block_until_ready(pt)
+        moved, (pt, px, C, code, epochs, hist), best, post = run(
+            problem, pt0, px0, tol_loss, tol_grad, rtol
+        )
+    jax.block_until_ready(post)
     wall = time.perf_counter() - t0
+    if bool(moved):
+        warnings.warn(
+            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
+        )
 
     pt, px, C, code, epochs, hist = (np.asarray(a) for a in (pt, px, C, code, epochs, hist))
-    best = int(np.argmin(np.where(np.isfinite(C), C, np.inf)))
+    best = int(best)
     return _result(
         problem,
         data,
         batched,
-        pt[best],
-        px[best],
+        post,
         float(C[best]),
         int(code[best]),
         int(epochs[best]),
@@ -400,13 +407,17 @@ def fit(
     )
 
 
-@eqx.filter_jit
 def _project_starts(problem, pt0):
-    return jax.vmap(problem.feasible)(pt0)
+    """Every start projected onto the constraint set, and whether any of them moved."""
+    projected = jax.vmap(problem.feasible)(pt0)
+    return jnp.any(projected != pt0), projected
 
 
 @functools.lru_cache(maxsize=64)
 def _compiled_runner(solver, max_epochs):
+    """One compiled call for a whole fit: project the starts, run them (vmapped), pick the
+    best and post-process it (`_post`); the least-squares solvers hand their last
+    linearisation to the covariance, so it costs no extra Jacobian."""
     if isinstance(solver, str) and solver in _LSQ:
         one = lambda pr, pt, px, tl, tg, rt: run_least_squares(  # noqa: E731
             pr, solver, pt, px, max_epochs, tl, tg, rt
@@ -419,9 +430,15 @@ def _compiled_runner(solver, max_epochs):
 
     @eqx.filter_jit
     def run(problem, pt0, px0, tol_loss, tol_grad, rtol):
-        return jax.vmap(one, in_axes=(None, 0, 0, None, None, None))(
+        moved, pt0 = _project_starts(problem, pt0)
+        *out, blocks = jax.vmap(one, in_axes=(None, 0, 0, None, None, None))(
             problem, pt0, px0, tol_loss, tol_grad, rtol
         )
+        pt, px, C = out[:3]
+        best = jnp.argmin(jnp.where(jnp.isfinite(C), C, jnp.inf))
+        if blocks is not None:
+            blocks = jax.tree_util.tree_map(lambda a: a[best], blocks)
+        return moved, tuple(out), best, _post(problem, pt[best], px[best], blocks)
 
     return run
 
@@ -528,13 +545,13 @@ def _optx_solve(problem, solver, pt, px, max_epochs):
     )
 
 
-@eqx.filter_jit
-def _post(problem, pt, px):
-    """Everything `FitResult` needs from the solution, in one compiled call."""
+def _post(problem, pt, px, blocks=None):
+    """Everything `FitResult` needs from the solution (traced inside the fit's compiled
+    call; `blocks` as for `covariance_blocks`)."""
     theta = problem.theta_of(pt)
     X0 = problem.x0_of(px)
     _, zhat = _simulate(problem.model, theta, X0, problem.u, True)
-    sse, S_inv, x_diag, identifiable = covariance_blocks(problem, pt, px)
+    sse, S_inv, x_diag, identifiable = covariance_blocks(problem, pt, px, blocks)
     n_free = pt.shape[0] + px.size
     zs = problem.z
     met = {
@@ -544,7 +561,10 @@ def _post(problem, pt, px):
         "r2": _metrics.r2(zs, zhat),
         "aic": _metrics.aic(zs, zhat, n_free),
     }
-    return theta, X0, zhat - zs, sse, S_inv, x_diag, identifiable, met
+    return theta, X0, zhat - zs, sse, S_inv, x_diag, identifiable, met, pt, px
+
+
+_post_jit = eqx.filter_jit(_post)
 
 
 def _unravel_rows(rows, like, squeeze=False):
@@ -560,8 +580,8 @@ def _unravel_rows(rows, like, squeeze=False):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
-def _result(problem, data, batched, pt, px, C, code, epochs, hist, wall, starts, best):
-    theta, X0, e, sse, S_inv, x_diag, identifiable, met = _post(problem, pt, px)
+def _result(problem, data, batched, post, C, code, epochs, hist, wall, starts, best):
+    theta, X0, e, sse, S_inv, x_diag, identifiable, met, pt, px = post
     met = {k: (float(v) if k == "aic" else np.asarray(v)) for k, v in met.items()}
     n_free = pt.shape[0] + px.size
     dof = max(e.size - n_free, 1)

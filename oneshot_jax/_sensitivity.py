@@ -17,15 +17,34 @@ recursion
 which accumulates, forwards in time, the same chained products J^{x/x}_tau ... J^{x/x}_{k+1}
 J^{x/theta}_k as eq. (17) (theta columns) and eq. (20) (x0 columns). Then
 dr_k/dp = Q^{1/2} (J^{z/x}_k S_k + [J^{z/theta}_k, 0]) / sqrt(T N). Forward mode costs
-O(T n_x^2 (n_theta + n_x0)) and gives every row of the Jacobian, which is what
-Gauss-Newton needs; the reverse recursion of `value_and_grad` gives one row-sum (the
-gradient) in O(T n_x^2).
+O(T n_x^2 (n_theta + n_x0)) with formed Jacobians (O(T n_x (n_theta + n_x0)) JVPs
+matrix-free) and gives every row of the Jacobian, which is what Gauss-Newton needs; the
+reverse recursion of `value_and_grad` gives one row-sum (the gradient) in O(T n_x^2).
 """
 
 import jax
 import jax.numpy as jnp
 
+from ._gradient import _JACOBIAN_MAX_NX, choose_strategy
 from ._simulate import rollout
+
+# Up to this state size the scan's A @ S is written elementwise (see `_matmul`).
+_MATMUL_ELEMENTWISE_MAX = _JACOBIAN_MAX_NX
+# "auto" forms the per-step Jacobians only while a step of the scan, over all N
+# trajectories, moves at most this many sensitivity entries (N n_x columns): beyond it the
+# in-scan JVPs are large vectorised operations anyway, and forming J^{x/x} costs more.
+_JACOBIAN_MAX_BATCH_WORK = 512
+
+
+def sensitivity_strategy(strategy, n_traj, n_x, n_cols, T, itemsize):
+    """Resolve "auto" for the sensitivity recursion of N = `n_traj` trajectories (vmapped):
+    formed Jacobians ("jacobian") for small states and small batches, where the scan is
+    dominated by its per-step cost, matrix-free JVPs ("vjp") otherwise."""
+    if strategy != "auto":
+        return strategy
+    if n_traj * n_x * n_cols > _JACOBIAN_MAX_BATCH_WORK:
+        return "vjp"
+    return choose_strategy(strategy, n_x, T, itemsize)
 
 
 def trajectory_residuals(
@@ -52,45 +71,80 @@ def _weigh(e, sqrt_q):
 
 
 def trajectory_jacobian(
-    model, theta_of, p_theta, x0_of, p_x0, u, z, sqrt_q, penalty, penalty_weight, scale
+    model,
+    theta_of,
+    p_theta,
+    x0_of,
+    p_x0,
+    u,
+    z,
+    sqrt_q,
+    penalty,
+    penalty_weight,
+    scale,
+    strategy="auto",
 ):
     """Residuals r (R,) and their Jacobians (R, n_p_theta), (R, n_p_x0) for one trajectory.
 
     `theta_of(p_theta)` maps the free parameter vector to the theta pytree, `x0_of(p_x0)`
     the free initial-state entries to x0 (fixed entries are constants inside both), so
     the columns are exactly the free variables.
+
+    `strategy` picks how the sensitivity recursion S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0]
+    is evaluated, with the same rule and names as the gradient (`choose_strategy`):
+    `"jacobian"` forms every J^{x/x}_k and J^{x/theta}_k at once after the forward pass
+    (vmapped forward mode, the paper's Remark 1) and the scan is left with small
+    matrix products; `"vjp"` (matrix-free) pushes the columns of S_k through the step
+    as JVPs inside the scan, never forming J^{x/x} (O(n_x (n_theta + n_x0)) memory per
+    step, and a banded or sparse step costs what its JVP costs).
     """
     x0 = x0_of(p_x0)
     n_t, n_s = p_theta.shape[0], p_x0.shape[0]
+    n_x = x0.shape[0]
     f_theta = lambda x, u_k, p: model.step(x, u_k, theta_of(p))  # noqa: E731
     # S_0 = d x0 / d (p_theta, p_x0) = [0, d x0/d p_x0]
-    S0 = jnp.concatenate([jnp.zeros((x0.shape[0], n_t), x0.dtype), jax.jacfwd(x0_of)(p_x0)], axis=1)
+    S0 = jnp.concatenate([jnp.zeros((n_x, n_t), x0.dtype), jax.jacfwd(x0_of)(p_x0)], axis=1)
+    # Tangent of p for each column: e_j for the theta columns, 0 for the x0 columns.
+    E = jnp.concatenate([jnp.eye(n_t, dtype=x0.dtype), jnp.zeros((n_t, n_s), x0.dtype)], 1)
+    strategy = choose_strategy(strategy, n_x, u.shape[0], x0.dtype.itemsize)
+    if strategy == "jacobian":
+        xs = rollout(model, theta_of(p_theta), x0, u)
+        A, B = jax.vmap(jax.jacfwd(f_theta, argnums=(0, 2)), in_axes=(0, 0, None))(
+            xs[:-1], u[:-1], p_theta
+        )
+        B = jnp.concatenate([B, jnp.zeros((*B.shape[:2], n_s), B.dtype)], axis=2)
 
-    def body(carry, u_k):
-        x, S = carry
-        # One forward pass gives x_{k+1}, J^{x/x}_{k+1} and J^{x/theta}_{k+1} together.
-        x_next, (A, B) = _value_and_jac(f_theta, x, u_k, p_theta)
-        S_next = A @ S + jnp.concatenate([B, jnp.zeros((x.shape[0], n_s), B.dtype)], axis=1)
-        return (x_next, S_next), (x_next, S_next)
+        def body(S, AB):
+            S_next = _matmul(AB[0], S) + AB[1]
+            return S_next, S_next
 
-    _, (xs, Ss) = jax.lax.scan(body, (x0, S0), u[:-1])
-    xs = jnp.concatenate([x0[None], xs], axis=0)
+        _, Ss = jax.lax.scan(body, S0, (A, B))
+    elif strategy == "vjp":
+
+        def body(carry, u_k):
+            x, S = carry
+            x_next, S_next = _push(lambda x, p: f_theta(x, u_k, p), x, p_theta, S, E)
+            return (x_next, S_next), (x_next, S_next)
+
+        _, (xs, Ss) = jax.lax.scan(body, (x0, S0), u[:-1])
+        xs = jnp.concatenate([x0[None], xs], axis=0)
+    else:
+        raise ValueError(f"unknown strategy {strategy!r}")
     Ss = jnp.concatenate([S0[None], Ss], axis=0)
 
+    # J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the penalty) as JVPs of the
+    # output map along the columns, without forming J^{z/x}.
     g_theta = lambda x, u_k, p: model.observe(x, u_k, theta_of(p))  # noqa: E731
-    e = jax.vmap(g_theta, in_axes=(0, 0, None))(xs, u, p_theta) - z
-    Gx, Gt = jax.vmap(jax.jacfwd(g_theta, argnums=(0, 2)), in_axes=(0, 0, None))(xs, u, p_theta)
-    Je = jnp.einsum("kzx,kxp->kzp", Gx, Ss)
-    Je = Je + jnp.concatenate([Gt, jnp.zeros((*Gt.shape[:2], n_s), Gt.dtype)], axis=2)
+    y, Je = jax.vmap(lambda x, u_k, S: _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E))(
+        xs, u, Ss
+    )
+    e = y - z
     r = (_weigh(e, sqrt_q) * scale).reshape(-1)
     Jr = _weigh_jac(Je, sqrt_q) * scale
     Jr = Jr.reshape(-1, n_t + n_s)
     if penalty is not None:
         h_theta = lambda x, p: penalty(x, theta_of(p))  # noqa: E731
-        h = jax.vmap(h_theta, in_axes=(0, None))(xs, p_theta)
-        hx, ht = jax.vmap(jax.grad(h_theta, argnums=(0, 1)), in_axes=(0, None))(xs, p_theta)
-        dh = jnp.einsum("kx,kxp->kp", hx, Ss)
-        dh = dh + jnp.concatenate([ht, jnp.zeros((ht.shape[0], n_s), ht.dtype)], axis=1)
+        h, dh = jax.vmap(lambda x, S: _push(h_theta, x, p_theta, S, E))(xs, Ss)
         ph = jnp.maximum(penalty_weight * h, 0.0)
         rh = jnp.sqrt(ph)
         # d sqrt(lambda h) = lambda h' / (2 sqrt(lambda h)); zero where the penalty is inactive.
@@ -109,12 +163,15 @@ def _weigh_jac(Je, sqrt_q):
     return jnp.einsum("ij,kjp->kip", sqrt_q, Je)
 
 
-def _value_and_jac(f, x, u_k, p):
-    """f(x, u, p) with its Jacobians in x and p from one jacfwd (the primal rides along)."""
+def _push(fn, x, p, S, E):
+    """fn(x, p) and its directional derivatives along the columns (S[:, j], E[:, j]):
+    J^{fn/x} S + J^{fn/p} E by one vmapped JVP, with the columns last."""
+    return jax.vmap(lambda s, e: jax.jvp(fn, (x, p), (s, e)), in_axes=1, out_axes=(None, -1))(S, E)
 
-    def fx(x, p):
-        y = f(x, u_k, p)
-        return y, y
 
-    (A, B), y = jax.jacfwd(fx, argnums=(0, 1), has_aux=True)(x, p)
-    return y, (A, B)
+def _matmul(A, S):
+    """A @ S; for a small A as a broadcast multiply and a sum, which XLA:CPU compiles into
+    the scan's single loop kernel (a `dot` there runs as a separate call per step)."""
+    if A.shape[-1] <= _MATMUL_ELEMENTWISE_MAX:
+        return jnp.sum(A[:, :, None] * S[None, :, :], axis=1)
+    return A @ S

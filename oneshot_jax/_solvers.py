@@ -20,7 +20,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from ._gradient import value_and_grad_impl
-from ._sensitivity import trajectory_jacobian, trajectory_residuals
+from ._sensitivity import sensitivity_strategy, trajectory_jacobian, trajectory_residuals
 
 
 class StopReason(enum.Enum):
@@ -137,6 +137,11 @@ class Problem(eqx.Module):
     def jacobian(self, p_theta, p_x0, penalty=True):
         """Residuals (N, R) and their closed-form Jacobians (N, R, p), (N, R, m)."""
         x0_free = np.asarray(self.x0_free, int)
+        N, T = self.u.shape[:2]
+        n_x = self.x0_base.shape[1]
+        strategy = sensitivity_strategy(
+            self.strategy, N, n_x, p_theta.shape[0] + x0_free.size, T, self.x0_base.dtype.itemsize
+        )
 
         def fn(base, p, u, z):
             return trajectory_jacobian(
@@ -151,6 +156,7 @@ class Problem(eqx.Module):
                 self.penalty if penalty else None,
                 self.penalty_weight,
                 self._scale(),
+                strategy,
             )
 
         return jax.vmap(fn)(self.x0_base, p_x0, self.u, self.z)
@@ -230,7 +236,7 @@ def run_first_order(problem, optimiser, p_theta, p_x0, max_epochs, tol_loss, tol
         jnp.array(jnp.inf, dtype),
     )
     params, _, _, epoch, code, hist, C = jax.lax.while_loop(cond, body, init)
-    return params["theta"], params["x0"], C, code, epoch, hist
+    return params["theta"], params["x0"], C, code, epoch, hist, None
 
 
 # ------------------------------------------------------------ structured least squares
@@ -325,8 +331,9 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
     hist = jnp.full((max_epochs + 1, 2 + p_theta.shape[0]), jnp.nan, dtype)
 
     def linearise(pt, px):
+        # Only C and the blocks of J^T J, J^T r are kept: the loop never stores J.
         r, Jt, Jx = problem.jacobian(pt, px)
-        return (jnp.sum(r**2), *_normal_blocks(Jt, Jx, r), Jt, Jx)
+        return (jnp.sum(r**2), *_normal_blocks(Jt, Jx, r))
 
     def active_set(pt, g_t):
         if problem.lower is None:
@@ -338,7 +345,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
 
     def body(carry):
         pt, px, lin, mu, nu, epoch, hist, _ = carry
-        C, A, B, Cb, g_t, g_x, Jt, Jx = lin
+        C, A, B, Cb, g_t, g_x = lin
         act = active_set(pt, g_t)
         gnorm = 2.0 * _grad_norm(jnp.where(act, 0.0, g_t), g_x)
         hist = hist.at[epoch].set(jnp.concatenate([jnp.stack([C, gnorm]), pt]))
@@ -358,8 +365,13 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         # Decrease of C predicted by the linear model for the full (projected) step.
         nt, nx, Cn = trial(1.0)
         st, sx = nt - pt, nx - px
-        Jh = jnp.einsum("nrp,p->nr", Jt, st) + jnp.einsum("nrm,nm->nr", Jx, sx)
-        pred = -(2.0 * (st @ g_t + jnp.sum(sx * g_x)) + jnp.sum(Jh**2))
+        # ||J s||^2 from the blocks: s_t A s_t + 2 sum_i s_t B_i s_i + sum_i s_i C_i s_i.
+        Js2 = (
+            st @ A @ st
+            + 2.0 * jnp.einsum("p,npm,nm->", st, B, sx)
+            + jnp.einsum("nm,nml,nl->", sx, Cb, sx)
+        )
+        pred = -(2.0 * (st @ g_t + jnp.sum(sx * g_x)) + Js2)
         # Nothing left to gain at this precision (MINPACK's ftol test at machine epsilon).
         at_precision = pred <= 8 * jnp.finfo(dtype).eps * C
         if lm:
@@ -378,7 +390,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
                 return alpha, trial(alpha)[2]
 
             alpha, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.array(1.0, dtype), Cn))
-            nt, nx, Cn = trial(alpha)
+            nt, nx, Cn = jax.lax.cond(alpha < 1, lambda: trial(alpha), lambda: (nt, nx, Cn))
             accept = Cn < C
             mu_new, nu_new = mu, nu
             gave_up = ~accept
@@ -429,16 +441,27 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
     code = jnp.where(jnp.isfinite(lin[0]), code, StopReason.DIVERGED.value)
     last = jnp.concatenate([jnp.stack([lin[0], jnp.nan]), pt])
     hist = hist.at[epoch].set(jnp.where(jnp.isnan(hist[epoch, 0]), last, hist[epoch]))
-    return pt, px, lin[0], code, epoch, hist
+    # The last linearisation is at the returned point: its blocks give the covariance
+    # (they are the data residuals' blocks when there is no penalty).
+    blocks = None if problem.penalty is not None else lin[:4]
+    return pt, px, lin[0], code, epoch, hist, blocks
 
 
-@eqx.filter_jit
-def covariance_blocks(problem, p_theta, p_x0):
+def covariance_blocks(problem, p_theta, p_x0, blocks=None):
     """(J^T J)^{-1} blocks of the data residuals at the solution, via the Schur complement:
     the theta block S^{-1} (a pseudo-inverse), the diagonal of each trajectory's x0 block,
-    and which parameters are identifiable (outside the null space of S)."""
-    r, Jt, Jx = problem.jacobian(p_theta, p_x0, penalty=False)
-    A, B, Cb, _, _ = _normal_blocks(Jt, Jx, r)
+    and which parameters are identifiable (outside the null space of S).
+
+    `blocks`: (C, A, B, C_i) of the data residuals at (p_theta, p_x0) when the solver
+    already holds them (its last linearisation); otherwise the Jacobian is evaluated here.
+    Returns the data SSE ||r||^2 too.
+    """
+    if blocks is None:
+        r, Jt, Jx = problem.jacobian(p_theta, p_x0, penalty=False)
+        A, B, Cb, _, _ = _normal_blocks(Jt, Jx, r)
+        sse = jnp.sum(r**2)
+    else:
+        sse, A, B, Cb = blocks
     m = Cb.shape[-1]
     if m:
         Cinv = jnp.linalg.inv(Cb)
@@ -455,4 +478,4 @@ def covariance_blocks(problem, p_theta, p_x0):
         x_diag = jnp.diagonal(Cinv, axis1=1, axis2=2) + jnp.einsum("nmp,pq,nmq->nm", W, S_inv, W)
     else:
         x_diag = jnp.zeros(p_x0.shape, A.dtype)
-    return jnp.sum(r**2), S_inv, x_diag, identifiable
+    return sse, S_inv, x_diag, identifiable

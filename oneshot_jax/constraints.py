@@ -69,9 +69,10 @@ def _from_projection(proj, bounds=None) -> ProjectionTransformation:
 
 def _fill_like(bound, params, fill, name):
     """Broadcast a bound (scalar, pytree like params, or a partial dict) onto params."""
+    # Bounds are constants: NumPy builds them without a JAX dispatch per leaf.
     if bound is None:
         return jax.tree_util.tree_map(
-            lambda p: jnp.full(jnp.shape(p), fill, jnp.result_type(p)), params
+            lambda p: np.full(jnp.shape(p), fill, jnp.result_type(p)), params
         )
     if isinstance(params, dict) and isinstance(bound, dict):
         unknown = set(bound) - set(params)
@@ -84,11 +85,12 @@ def _fill_like(bound, params, fill, name):
         return type(params)(_fill_like(b, p, fill, name) for b, p in zip(bound, params))
     leaves, treedef = jax.tree_util.tree_flatten(params)
     if jnp.ndim(bound) == 0 or len(leaves) == 1:
-        b = jnp.asarray(bound)
+        xp = np if is_concrete(bound) else jnp
+        b = xp.asarray(bound)
         out = []
         for p in leaves:
             try:
-                out.append(jnp.broadcast_to(b, jnp.shape(p)).astype(jnp.result_type(p)))
+                out.append(xp.broadcast_to(b, jnp.shape(p)).astype(jnp.result_type(p)))
             except ValueError as err:
                 raise ValueError(
                     f"`{name}` of shape {b.shape} does not fit a parameter of shape {jnp.shape(p)}."

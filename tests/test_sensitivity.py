@@ -6,6 +6,8 @@ of the flattened theta and of each trajectory's x0 that are not fixed, so the Ja
 columns are exactly the free variables.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -132,7 +134,25 @@ CASES = {
     # The satellite of Section 4 (RK4 with two substeps, tiny scales: theta ~ 1e-2,
     # x0 ~ 1e-3 .. 1e-5), everything free.
     "satellite_rk4": lambda: satellite_problem(),
+    # n_x = 20 > 16: the "jacobian" strategy's A @ S is a matrix product, not elementwise.
+    "coupled_nx20": lambda: coupled_problem(),
 }
+
+
+def coupled_problem():
+    rng = np.random.default_rng(3)
+    n = 20
+    W = jnp.asarray(0.3 * rng.standard_normal((n, n)) / np.sqrt(n))
+
+    def step(x, u, th):
+        return jnp.tanh(W @ (th["a"] * x)) + th["b"] * u[0]
+
+    model = oj.Model(step, lambda x, u, th: x[:5] * th["b"])
+    theta = {"a": jnp.asarray(1 + 0.2 * rng.standard_normal(n)), "b": jnp.array(0.7)}
+    x0 = jnp.asarray(rng.standard_normal((2, n)))
+    u = jnp.asarray(rng.standard_normal((2, 12, 1)))
+    z = jnp.asarray(rng.standard_normal((2, 12, 5)))
+    return make_problem(model, theta, x0, u, z, x0_mask=np.arange(n) < 7)
 
 
 def satellite_problem():
@@ -146,9 +166,13 @@ def satellite_problem():
     return make_problem(model, theta * jnp.array([1.1, 0.9, 1.05]), w0 * 1.3, M, z)
 
 
-@pytest.fixture(scope="module", params=list(CASES))
+@pytest.fixture(scope="module", params=[(c, s) for c in CASES for s in ("jacobian", "vjp")],
+                ids=lambda p: "-".join(p))
 def case(request):
-    problem = CASES[request.param]()
+    """Each case with both ways of evaluating the sensitivity recursion: formed per-step
+    Jacobians after the forward pass ("jacobian") and matrix-free JVPs in the scan ("vjp")."""
+    name, strategy = request.param
+    problem = dataclasses.replace(CASES[name](), strategy=strategy)
     pt, px = problem.split(problem.theta_base, problem.x0_base)
     return problem, pt, px
 
