@@ -539,7 +539,7 @@ def fmt_analysis(summary, problems, diags):
         for prob in problems:
             d = diag.get(prob)
             if d:
-                c = d[d["auto"]]
+                c = d["closed_" + d["auto"]]
                 L.append(
                     f"| {prob} | {d['T']} | {d['n_x']} | {d['n_columns']} | "
                     f"{_t(d['simulate'])} | {_t(d['jacfwd'])} | {_t(d['closed_jacobian'])} | "
@@ -581,7 +581,7 @@ def fmt_analysis(summary, problems, diags):
         else:
             L.append("See the per-problem table above.")
         if d:
-            c = d[d["auto"]]
+            c = d["closed_" + d["auto"]]
             lin = one_it + 1  # one linearisation per accepted step, plus the start
             floor = lin * c
             L[-1] += (

@@ -19,10 +19,19 @@ def is_concrete(*arrays) -> bool:
 
 
 def _as_float(a, name):
+    """`a` as a floating array in JAX's canonical dtype. Host data (NumPy arrays, lists)
+    stay NumPy arrays, so validation costs no device transfer or eager JAX call; the
+    compiled functions take them as they are."""
     try:
-        a = jnp.asarray(a)
+        if isinstance(a, jax.Array):
+            a = jnp.asarray(a)
+        else:
+            a = np.asarray(a)
+            a = a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must hold real numbers, got {type(a).__name__}: {err}") from err
+    if a.dtype == object:
+        raise ValueError(f"`{name}` must hold real numbers, got dtype object.")
     if jnp.issubdtype(a.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
     if not jnp.issubdtype(a.dtype, jnp.inexact):

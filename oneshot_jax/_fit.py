@@ -184,6 +184,11 @@ def _sqrt_weight(weight):
     return (vecs * jnp.sqrt(jnp.maximum(vals, 0.0))) @ vecs.T
 
 
+def _flat_host(tree):
+    """`ravel_pytree(tree)[0]` as a NumPy array, without a JAX call."""
+    return np.concatenate([np.ravel(np.asarray(a)) for a in jax.tree_util.tree_leaves(tree)])
+
+
 def _windows(model, theta, x0, u, z, window):
     """Cut one record into consecutive windows, each with an initial state of its own:
     taken from z where the model observes its whole state (z = x), else simulated."""
@@ -200,7 +205,7 @@ def _windows(model, theta, x0, u, z, window):
     u_w = u[: N * window].reshape(N, window, -1)
     z_w = z[: N * window].reshape(N, window, -1)
     if model.observe is _identity_observe:
-        x0_w = z_w[:, 0, :].astype(x0.dtype).at[0].set(x0)
+        x0_w = jnp.asarray(z_w[:, 0, :]).astype(x0.dtype).at[0].set(x0)
     else:
         xs, _ = _simulate(model, theta, x0, u[: N * window], False)
         x0_w = xs[::window]
@@ -298,15 +303,17 @@ def fit(
     else:
         n_starts, theta_first = None, theta0
 
-    u_arr, z_arr, x0_arr = jnp.asarray(u), jnp.asarray(z), jnp.asarray(x0)
+    # The data stay as given until `check_data` converts them (once).
+    u_arr, z_arr, x0_arr = u, z, x0
     x0_starts = None
-    data_ndim_x0 = 2 if jnp.ndim(u_arr) == 3 else 1
-    if multistart and x0_arr.ndim == data_ndim_x0 + 1:
-        x0_starts, x0_arr = x0_arr, x0_arr[0]
+    data_ndim_x0 = 2 if np.ndim(u_arr) == 3 else 1
+    if multistart and np.ndim(x0_arr) == data_ndim_x0 + 1:
+        x0_starts = jnp.asarray(x0_arr)
+        x0_arr = x0_starts[0]
     if window is not None:
-        if jnp.ndim(u_arr) != 2:
+        if np.ndim(u_arr) != 2:
             raise ValueError(
-                f"`window` needs one record: `u` of shape (T, n_u), got {jnp.shape(u_arr)}."
+                f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u_arr)}."
             )
         data = check_data(model, theta_first, x0_arr, u_arr, z_arr, weight)
         x0_w, u_w, z_w = _windows(model, data.theta, data.x0, data.u, data.z, window)
@@ -317,9 +324,9 @@ def fit(
         data = check_data(model, theta_first, x0_arr, u_arr, z_arr, weight)
     check_penalty_output(model, penalty, data)
     batched = data.batched
-    X0 = data.x0 if batched else data.x0[None]
-    U = data.u if batched else data.u[None]
-    Z = data.z if batched else data.z[None]
+    # Host-side (NumPy) views with the trajectory axis: no eager JAX call per array; the
+    # compiled call below takes them as they are.
+    X0, U, Z = (np.asarray(a) if batched else np.asarray(a)[None] for a in data[1:4])
     n_x = X0.shape[1]
 
     flat0, unravel = ravel_pytree(data.theta)
@@ -332,8 +339,8 @@ def fit(
     if proj is not None and proj.bounds is not None:
         lo, hi = proj.bounds(data.theta)
         # Host-side (numpy) indexing: an eager JAX gather costs a dispatch per call.
-        lower = jnp.asarray(np.asarray(ravel_pytree(lo)[0])[theta_free])
-        upper = jnp.asarray(np.asarray(ravel_pytree(hi)[0])[theta_free])
+        lower = _flat_host(lo)[theta_free]
+        upper = _flat_host(hi)[theta_free]
 
     problem = Problem(
         model=model,
@@ -342,7 +349,7 @@ def fit(
         weight=data.weight,
         sqrt_q=_sqrt_weight(data.weight),
         penalty=penalty,
-        penalty_weight=jnp.asarray(penalty_weight, X0.dtype),
+        penalty_weight=np.asarray(penalty_weight, X0.dtype),
         theta_base=flat0,
         theta_free=tuple(int(i) for i in theta_free),
         unravel=unravel,
@@ -363,8 +370,8 @@ def fit(
             X0s = np.broadcast_to(np.asarray(X0), (n_starts, *X0.shape))
     else:
         starts_flat, X0s = np.asarray(flat0)[None], np.asarray(X0)[None]
-    pt0 = jnp.asarray(starts_flat[:, theta_free])
-    px0 = jnp.asarray(X0s[:, :, x0_free])
+    pt0 = starts_flat[:, theta_free]
+    px0 = X0s[:, :, x0_free]
     if len(theta_free) == 0 and len(x0_free) == 0:
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 

@@ -31,8 +31,9 @@ from ._simulate import rollout
 # Up to this state size the scan's A @ S is written elementwise (see `_matmul`).
 _MATMUL_ELEMENTWISE_MAX = _JACOBIAN_MAX_NX
 # "auto" forms the per-step Jacobians only while a step of the scan, over all N
-# trajectories, moves at most this many sensitivity entries (N n_x columns): beyond it the
-# in-scan JVPs are large vectorised operations anyway, and forming J^{x/x} costs more.
+# trajectories, moves at most this many sensitivity entries (N n_x n_cols): beyond it the
+# in-scan JVPs are large vectorised operations anyway, and forming J^{x/x} costs more
+# (on XLA:CPU with n_x = 2..3 and 5..6 columns the two cross between N = 16 and N = 64).
 _JACOBIAN_MAX_BATCH_WORK = 512
 
 

@@ -71,7 +71,7 @@ class Problem(eqx.Module):
     theta_base: jax.Array  # flat theta with the fixed values
     theta_free: tuple = eqx.field(static=True)  # indices of the free entries (tuple of int)
     unravel: Callable = eqx.field(static=True)
-    x0_base: jax.Array  # (N, n_x) with the fixed values
+    x0_base: jax.Array  # (N, n_x) with the fixed values (fit passes NumPy arrays here)
     x0_free: tuple = eqx.field(static=True)
     project: Callable | None = eqx.field(static=True)
     lower: jax.Array | None  # bounds on p_theta
@@ -82,7 +82,7 @@ class Problem(eqx.Module):
         return self.unravel(self.theta_base.at[np.asarray(self.theta_free, int)].set(p_theta))
 
     def x0_of(self, p_x0):
-        return self.x0_base.at[:, np.asarray(self.x0_free, int)].set(p_x0)
+        return jnp.asarray(self.x0_base).at[:, np.asarray(self.x0_free, int)].set(p_x0)
 
     def split(self, theta_flat, x0):
         return theta_flat[np.asarray(self.theta_free, int)], x0[:, np.asarray(self.x0_free, int)]
