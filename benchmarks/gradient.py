@@ -110,7 +110,7 @@ def interleaved_medians(calls, repeats, min_sample_s=2e-3):
         inner[name] = int(min(200, max(1, min_sample_s / max(one, 1e-7))))
     samples = {name: [] for name in names}
     for r in range(repeats):
-        order = names[r % len(names):] + names[: r % len(names)]
+        order = names[r % len(names) :] + names[: r % len(names)]
         for name in order:
             fn, n = calls[name], inner[name]
             t0 = time.perf_counter()
@@ -242,7 +242,9 @@ def memory_worker(method):
     xla_bytes = None
     if ma is not None:
         xla_bytes = int(
-            ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes
+            ma.argument_size_in_bytes
+            + ma.output_size_in_bytes
+            + ma.temp_size_in_bytes
             - ma.alias_size_in_bytes
         )
         temp_bytes = int(ma.temp_size_in_bytes)
@@ -276,7 +278,10 @@ def memory_rows():
         env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
         out = subprocess.run(
             [sys.executable, __file__, "--_memory-worker", method],
-            capture_output=True, text=True, check=True, env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+            env=env,
         )
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
     return rows
@@ -320,12 +325,15 @@ def main():
     ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH")
     ap.add_argument("--repeats", type=int, default=15, help="samples per median (default 15)")
     ap.add_argument(
-        "--xla-context", action="store_true",
+        "--xla-context",
+        action="store_true",
         help="also time with XLA's small-while-loop threshold raised (subprocess)",
     )
     ap.add_argument("--no-memory", action="store_true", help="skip the memory table")
     ap.add_argument(
-        "--pin-cpu", type=int, metavar="N",
+        "--pin-cpu",
+        type=int,
+        metavar="N",
         help="run the timings on CPU N only (XLA's threads included): steadier on a busy machine",
     )
     ap.add_argument("--_memory-worker", dest="memory_worker", help=argparse.SUPPRESS)
@@ -351,10 +359,19 @@ def main():
     if args.xla_context:
         env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + HOIST_FLAG))
         out = subprocess.run(
-            [sys.executable, __file__, "--_timing-worker", ",".join(map(str, horizons)),
-             "--repeats", str(args.repeats)]
+            [
+                sys.executable,
+                __file__,
+                "--_timing-worker",
+                ",".join(map(str, horizons)),
+                "--repeats",
+                str(args.repeats),
+            ]
             + ([] if args.pin_cpu is None else ["--pin-cpu", str(args.pin_cpu)]),
-            capture_output=True, text=True, check=True, env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+            env=env,
         )
         context = json.loads(out.stdout.strip().splitlines()[-1])
     load1 = os.getloadavg()
@@ -377,8 +394,10 @@ def main():
         print("\nPeak memory of one call (fresh subprocess per row):\n")
         print(memory_table(mem))
     if context is not None:
-        print(f"\nSame timings with XLA_FLAGS={HOIST_FLAG} (every small while loop compiled "
-              "into one kernel):\n")
+        print(
+            f"\nSame timings with XLA_FLAGS={HOIST_FLAG} (every small while loop compiled "
+            "into one kernel):\n"
+        )
         print(timing_table(context))
     print(f"\n(total {wall:.0f} s)")
 

@@ -92,13 +92,20 @@ def main():
                 lambda s=solver: oj.fit(MODEL, u, z, theta0, x0, solver=s, **common), repeats
             )
             err = max(abs(float(res.theta[k]) / TRUE[k] - 1) for k in TRUE)
-            row[label] = {"time_s": med, "first_call_s": first, "loss": res.loss,
-                          "iterations": res.epochs, "max_rel_param_err": err,
-                          "stop": res.stop_reason.name}
+            row[label] = {
+                "time_s": med,
+                "first_call_s": first,
+                "loss": res.loss,
+                "iterations": res.epochs,
+                "max_rel_param_err": err,
+                "stop": res.stop_reason.name,
+            }
         rows.append(row)
 
-    print(f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples, float64, CPU "
-          f"({jax.devices()[0].device_kind}, {jax.device_count()} device)")
+    print(
+        f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples, float64, CPU "
+        f"({jax.devices()[0].device_kind}, {jax.device_count()} device)"
+    )
     print()
     print(
         "| N windows | unknowns | structured LM (s) | iters | dense LM (s) | iters | "
@@ -112,13 +119,19 @@ def main():
         dense_i = f"{d['iterations']}" if d else "-"
         ratio = f"{d['time_s'] / s['time_s']:.0f}x" if d else "-"
         dense_l = f"{d['loss']:.6e}" if d else "-"
-        print(f"| {r['N']} | {r['unknowns']} | {s['time_s']:.3g} | {s['iterations']} | {dense_t} | "
-              f"{dense_i} | {ratio} | {s['loss']:.6e} | {dense_l} | {s['max_rel_param_err']:.2e} |")
+        print(
+            f"| {r['N']} | {r['unknowns']} | {s['time_s']:.3g} | {s['iterations']} | {dense_t} | "
+            f"{dense_i} | {ratio} | {s['loss']:.6e} | {dense_l} | {s['max_rel_param_err']:.2e} |"
+        )
     print()
-    print("Times are medians after a warm-up call; first-call (compile + solve) times: "
-          + ", ".join(f"N={r['N']}: {r['structured']['first_call_s']:.2f} s structured"
-                      + (f", {r['dense']['first_call_s']:.2f} s dense" if 'dense' in r else "")
-                      for r in rows))
+    print(
+        "Times are medians after a warm-up call; first-call (compile + solve) times: "
+        + ", ".join(
+            f"N={r['N']}: {r['structured']['first_call_s']:.2f} s structured"
+            + (f", {r['dense']['first_call_s']:.2f} s dense" if "dense" in r else "")
+            for r in rows
+        )
+    )
 
     if args.json:
         with open(args.json, "w") as f:
@@ -130,11 +143,19 @@ def main():
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(5.5, 3.8))
-        ax.loglog([r["N"] for r in rows], [r["structured"]["time_s"] for r in rows], "o-",
-                  label="structured LM (Schur complement)")
+        ax.loglog(
+            [r["N"] for r in rows],
+            [r["structured"]["time_s"] for r in rows],
+            "o-",
+            label="structured LM (Schur complement)",
+        )
         dense = [r for r in rows if "dense" in r]
-        ax.loglog([r["N"] for r in dense], [r["dense"]["time_s"] for r in dense], "s--",
-                  label="dense LM (optimistix, QR)")
+        ax.loglog(
+            [r["N"] for r in dense],
+            [r["dense"]["time_s"] for r in dense],
+            "s--",
+            label="dense LM (optimistix, QR)",
+        )
         ax.set_xlabel("number of windows N (100 samples each)")
         ax.set_ylabel("time to solution (s)")
         ax.set_title("Windowed fit: n_x = 2, 4 parameters + 2N initial states")
