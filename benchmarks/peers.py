@@ -617,11 +617,10 @@ def fmt_analysis(summary, problems, diags):
             "`while_loop` around the sensitivity scan, the structured solve and the step "
             "logic) and the post-processing (covariance, metrics) with XLA, several seconds "
             "even for the satellite, where scipy's only compilation is the jitted residual "
-            "and CasADi generates and compiles C. Suggested: document JAX's persistent "
-            "compilation cache (`jax.config.update('jax_compilation_cache_dir', ...)`, "
-            "`jax_persistent_cache_min_compile_time_secs`), which in development cut a "
-            "fresh process's first `fit()` on the satellite (T = 50) from 6.2 s to 1.9 s; "
-            "and compile less: the runner is vmapped over starts even for one start.",
+            "and CasADi generates and compiles C. JAX's persistent compilation cache "
+            "(`jax.config.update('jax_compilation_cache_dir', ...)`) takes most of it away "
+            "for later processes: `python benchmarks/first_call.py` measures it (README). "
+            "What would compile less: the runner is vmapped over starts even for one start.",
             "",
         ]
     return L

@@ -377,7 +377,7 @@ def fit(
 
     t0 = time.perf_counter()
     if isinstance(solver, optx.AbstractLeastSquaresSolver):
-        moved, pt0 = eqx.filter_jit(_project_starts)(problem, pt0)
+        moved, pt0 = _project_starts_jit(problem, pt0)
         outs = [
             _run_optimistix(problem, solver, pt0[s], px0[s], max_epochs, rtol, proj)
             for s in range(pt0.shape[0])
@@ -418,6 +418,9 @@ def _project_starts(problem, pt0):
     """Every start projected onto the constraint set, and whether any of them moved."""
     projected = jax.vmap(problem.feasible)(pt0)
     return jnp.any(projected != pt0), projected
+
+
+_project_starts_jit = eqx.filter_jit(_project_starts)
 
 
 @functools.lru_cache(maxsize=64)

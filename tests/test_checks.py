@@ -283,3 +283,29 @@ def test_bad_model_construction():
             oj.Model.from_ode(rhs, 0.1, substeps=substeps)
     with pytest.raises(ValueError, match=r"`observe` must be callable"):
         oj.Model.from_ode(rhs, 0.1, observe=1)
+
+
+def test_float64_host_data_run_in_float32_without_x64():
+    """JAX's default (x64 off) with NumPy float64 data, as a user who did not enable x64
+    would call it: the data are canonicalised to float32 once, and `simulate`, `fit` and
+    `value_and_grad` run and return float32, with the fit recovering the parameters."""
+    import jax
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))  # float64
+    x0 = np.array([1.0, 0.0])
+    with jax.enable_x64(False):
+        _, z = oj.simulate(model, {"k": np.array(2.0)}, x0, u)
+        assert z.dtype == jnp.float32
+        z = np.asarray(z, np.float64)
+        r = oj.fit(model, u, z, {"k": np.array(1.5)}, x0, solver="gauss_newton")
+        assert r.theta["k"].dtype == np.float32
+        assert r.success, r.stop_reason
+        assert abs(float(r.theta["k"]) - 2.0) < 1e-4
+        C, (g, gx) = oj.value_and_grad(model, {"k": np.array(2.0)}, x0, u, z)
+        assert C.dtype == jnp.float32 and g["k"].dtype == jnp.float32
+        assert float(C) < 1e-10
