@@ -96,8 +96,8 @@ def trajectory_jacobian(
     `"jacobian"` forms every J^{x/x}_k and J^{x/theta}_k at once after the forward pass
     (vmapped forward mode, the paper's Remark 1) and the scan is left with small
     matrix products; `"vjp"` (matrix-free) pushes the columns of S_k through the step
-    as JVPs inside the scan, never forming J^{x/x} (O(n_x (n_theta + n_x0)) memory per
-    step, and a banded or sparse step costs what its JVP costs).
+    as JVPs inside the scan, never forming J^{x/x} (a banded or sparse step costs what
+    its JVP costs), and stores only the output rows J^{z/x}_k S_k, not S_k.
     """
     x0 = x0_of(p_x0)
     n_t, n_s = p_theta.shape[0], p_x0.shape[0]
@@ -107,6 +107,15 @@ def trajectory_jacobian(
     S0 = jnp.concatenate([jnp.zeros((n_x, n_t), x0.dtype), jax.jacfwd(x0_of)(p_x0)], axis=1)
     # Tangent of p for each column: e_j for the theta columns, 0 for the x0 columns.
     E = jnp.concatenate([jnp.eye(n_t, dtype=x0.dtype), jnp.zeros((n_t, n_s), x0.dtype)], 1)
+    g_theta = lambda x, u_k, p: model.observe(x, u_k, theta_of(p))  # noqa: E731
+    h_theta = None if penalty is None else (lambda x, p: penalty(x, theta_of(p)))  # noqa: E731
+
+    def outputs(x, u_k, S):
+        """z_k and J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the penalty h) as
+        JVPs of the output map along the columns, without forming J^{z/x}."""
+        out = _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
+        return out if h_theta is None else (*out, *_push(h_theta, x, p_theta, S, E))
+
     strategy = choose_strategy(strategy, n_x, u.shape[0], x0.dtype.itemsize)
     if strategy == "jacobian":
         xs = rollout(model, theta_of(p_theta), x0, u)
@@ -120,32 +129,27 @@ def trajectory_jacobian(
             return S_next, S_next
 
         _, Ss = jax.lax.scan(body, S0, (A, B))
+        Ss = jnp.concatenate([S0[None], Ss], axis=0)
+        outs = jax.vmap(outputs)(xs, u, Ss)
     elif strategy == "vjp":
-
+        # Each step emits the outputs of (x_k, S_k), then advances: only the (n_z, columns)
+        # rows are stored, never S_k (the step past the last sample is not used).
         def body(carry, u_k):
             x, S = carry
-            x_next, S_next = _push(lambda x, p: f_theta(x, u_k, p), x, p_theta, S, E)
-            return (x_next, S_next), (x_next, S_next)
+            out = outputs(x, u_k, S)
+            return _push(lambda x, p: f_theta(x, u_k, p), x, p_theta, S, E), out
 
-        _, (xs, Ss) = jax.lax.scan(body, (x0, S0), u[:-1])
-        xs = jnp.concatenate([x0[None], xs], axis=0)
+        _, outs = jax.lax.scan(body, (x0, S0), u)
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
-    Ss = jnp.concatenate([S0[None], Ss], axis=0)
 
-    # J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the penalty) as JVPs of the
-    # output map along the columns, without forming J^{z/x}.
-    g_theta = lambda x, u_k, p: model.observe(x, u_k, theta_of(p))  # noqa: E731
-    y, Je = jax.vmap(lambda x, u_k, S: _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E))(
-        xs, u, Ss
-    )
+    y, Je = outs[:2]
     e = y - z
     r = (_weigh(e, sqrt_q) * scale).reshape(-1)
     Jr = _weigh_jac(Je, sqrt_q) * scale
     Jr = Jr.reshape(-1, n_t + n_s)
     if penalty is not None:
-        h_theta = lambda x, p: penalty(x, theta_of(p))  # noqa: E731
-        h, dh = jax.vmap(lambda x, S: _push(h_theta, x, p_theta, S, E))(xs, Ss)
+        h, dh = outs[2:]
         ph = jnp.maximum(penalty_weight * h, 0.0)
         rh = jnp.sqrt(ph)
         # d sqrt(lambda h) = lambda h' / (2 sqrt(lambda h)); zero where the penalty is inactive.
