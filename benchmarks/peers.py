@@ -522,7 +522,8 @@ def fmt_analysis(summary, problems, diags):
         L += [
             "",
             "One trajectory Jacobian against one simulation (first record, jitted, median "
-            "of 10): finite differences need (columns + 1) simulations per Jacobian, "
+            "of 20 interleaved rounds): finite differences need (columns + 1) simulations "
+            "per Jacobian, "
             "forward-mode autodiff (`jax.jacfwd`) pushes all columns through the rollout. "
             "oneshot_jax's closed form evaluates the sensitivity recursion "
             "S <- A S + [B, 0] in one of two ways (`strategy`): *formed* builds A = df/dx and "
@@ -582,13 +583,15 @@ def fmt_analysis(summary, problems, diags):
             L.append("See the per-problem table above.")
         if d:
             c = d["closed_" + d["auto"]]
-            lin = one_it + 1  # one linearisation per accepted step, plus the start
+            # One linearisation at the start and one per accepted step but the last
+            # (a converged step is not linearised again): at most one per iteration.
+            lin = one_it
             floor = lin * c
             L[-1] += (
                 f" One Jacobian ({_STRATEGY_NAMES[d['auto']]}) costs {c / d['simulate']:.3g} "
                 f"simulations and {c / d['jacfwd']:.3g}x forward-mode autodiff of the "
                 f"rollout, against {d['n_columns'] + 1} simulations for finite differences; "
-                f"oneshot_jax linearises {lin} times ({one_it} iterations; "
+                f"oneshot_jax linearises at most {lin} times ({one_it} iterations; "
                 f"{its_txt} for the Gauss-Newton-type peers). The Jacobians alone take "
                 f"{_t(floor)}, so even with nothing else in an iteration it would be "
                 f"{_ratio(bt, floor)} faster than {peer}"

@@ -493,7 +493,7 @@ def versions():
 # ----------------------------------------------------------------------- diagnostics
 
 
-def jacobian_timings(pb, repeats=10):
+def jacobian_timings(pb, repeats=20):
     """Cost of one trajectory Jacobian against one simulation, for the first record:
 
     - `simulate`: the residuals (one rollout), jitted;
@@ -504,7 +504,8 @@ def jacobian_timings(pb, repeats=10):
       a scan of S <- A S + [B, 0];
     - `closed_vjp`: the same recursion matrix-free (strategy "vjp"), S <- vmap(jvp f)(S)
       inside the scan, never forming A.
-    `fit` picks "jacobian" for n_x <= 16 ("auto"). Medians in seconds, after a warm-up call.
+    `fit` picks "jacobian" for n_x <= 16 ("auto"). Medians in seconds over interleaved
+    rounds, after a warm-up call.
     """
     from oneshot_jax._sensitivity import sensitivity_strategy, trajectory_jacobian
 
@@ -535,15 +536,17 @@ def jacobian_timings(pb, repeats=10):
     a = fns["closed_jacobian"][0](pt, px)[1]
     b = fns["closed_vjp"][0](pt, px)[1]
     assert np.allclose(a, b, rtol=1e-8, atol=1e-12 * float(jnp.max(jnp.abs(a)))), "strategies"
-    out = {}
-    for name, (fn, args) in fns.items():
+    # Interleaved rounds (one call of each per round), so that a change of machine load
+    # hits every column alike.
+    ts = {name: [] for name in fns}
+    for fn, args in fns.values():
         jax.block_until_ready(fn(*args))
-        ts = []
-        for _ in range(repeats):
+    for _ in range(repeats):
+        for name, (fn, args) in fns.items():
             t0 = time.perf_counter()
             jax.block_until_ready(fn(*args))
-            ts.append(time.perf_counter() - t0)
-        out[name] = float(np.median(ts))
+            ts[name].append(time.perf_counter() - t0)
+    out = {name: float(np.median(t)) for name, t in ts.items()}
     out["n_columns"] = int(pt.shape[0] + px.shape[0])
     out["auto"] = sensitivity_strategy(
         "auto", 1, int(x0.shape[0]), out["n_columns"], int(u.shape[0]), x0.dtype.itemsize

@@ -344,7 +344,7 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         return carry[-1] == _RUNNING
 
     def body(carry):
-        pt, px, lin, mu, nu, epoch, hist, _ = carry
+        pt, px, lin, _, mu, nu, epoch, hist, _ = carry
         C, A, B, Cb, g_t, g_x = lin
         act = active_set(pt, g_t)
         gnorm = 2.0 * _grad_norm(jnp.where(act, 0.0, g_t), g_x)
@@ -420,9 +420,14 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         take = accept & (code == _RUNNING) | (accept & (code == StopReason.CONVERGED.value))
         pt = jnp.where(take, nt, pt)
         px = jnp.where(take, nx, px)
-        lin = jax.lax.cond(take, lambda: linearise(pt, px), lambda: lin)
+        C_now = jnp.where(take, Cn, C)
+        # A converged step is taken without linearising again at its end point: that point
+        # is within rtol (relative) of the last linearisation, which the covariance uses.
+        relinearise = take & (code == _RUNNING)
+        lin = jax.lax.cond(relinearise, lambda: linearise(pt, px), lambda: lin)
         advanced = code == _RUNNING
-        return pt, px, lin, mu_new, nu_new, epoch + jnp.where(advanced | take, 1, 0), hist, code
+        epoch = epoch + jnp.where(advanced | take, 1, 0)
+        return pt, px, lin, C_now, mu_new, nu_new, epoch, hist, code
 
     lin0 = linearise(p_theta, p_x0)
     mu0 = jnp.array(1e-3 if lm else 0.0, dtype)
@@ -430,21 +435,23 @@ def run_least_squares(problem, method, p_theta, p_x0, max_epochs, tol_loss, tol_
         p_theta,
         p_x0,
         lin0,
+        lin0[0],
         mu0,
         jnp.array(2.0, dtype),
         jnp.array(0),
         hist,
         jnp.array(_RUNNING),
     )
-    pt, px, lin, _, _, epoch, hist, code = jax.lax.while_loop(cond, body, init)
+    pt, px, lin, C, _, _, epoch, hist, code = jax.lax.while_loop(cond, body, init)
     # A non-finite starting loss can never be improved on: report it as diverged.
-    code = jnp.where(jnp.isfinite(lin[0]), code, StopReason.DIVERGED.value)
-    last = jnp.concatenate([jnp.stack([lin[0], jnp.nan]), pt])
+    code = jnp.where(jnp.isfinite(C), code, StopReason.DIVERGED.value)
+    last = jnp.concatenate([jnp.stack([C, jnp.nan]), pt])
     hist = hist.at[epoch].set(jnp.where(jnp.isnan(hist[epoch, 0]), last, hist[epoch]))
-    # The last linearisation is at the returned point: its blocks give the covariance
-    # (they are the data residuals' blocks when there is no penalty).
-    blocks = None if problem.penalty is not None else lin[:4]
-    return pt, px, lin[0], code, epoch, hist, blocks
+    # The last linearisation (at the returned point, or within rtol of it after a
+    # converged step) gives the covariance: its blocks are the data residuals' blocks
+    # when there is no penalty; the SSE is the returned point's.
+    blocks = None if problem.penalty is not None else (C, *lin[1:4])
+    return pt, px, C, code, epoch, hist, blocks
 
 
 def covariance_blocks(problem, p_theta, p_x0, blocks=None):
