@@ -50,6 +50,8 @@ class FitResult:
     - `names`: a name per free parameter (`"k"`, `"I[2]"`).
     - `covariance`: sigma^2 (J^T J)^{-1} of the free parameters of theta (J the
         data-residual Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free)).
+        The least-squares solvers take J from their last linearisation, at the returned
+        point or one converged step (relative size <= rtol) before it.
     - `std`, `ci95`: standard errors and 95% intervals (value -+ 1.96 std) shaped like
         theta; fixed entries have std 0. `x0_std`: standard errors of x0 (0 where fixed).
     - `metrics`: RMSE, NRMSE, FIT%, R^2 per output and AIC on the fitted data.
