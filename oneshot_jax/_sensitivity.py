@@ -116,7 +116,8 @@ def trajectory_jacobian(
         out = _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
         return out if h_theta is None else (*out, *_push(h_theta, x, p_theta, S, E))
 
-    strategy = choose_strategy(strategy, n_x, u.shape[0], x0.dtype.itemsize)
+    # One trajectory here; `Problem.jacobian` resolves "auto" for its whole batch.
+    strategy = sensitivity_strategy(strategy, 1, n_x, n_t + n_s, u.shape[0], x0.dtype.itemsize)
     if strategy == "jacobian":
         xs = rollout(model, theta_of(p_theta), x0, u)
         A, B = jax.vmap(jax.jacfwd(f_theta, argnums=(0, 2)), in_axes=(0, 0, None))(
