@@ -22,8 +22,9 @@ def np_metrics(z, zhat, n_params):
     }
 
 
-@pytest.mark.parametrize("shape", [(50,), (50, 1), (40, 3), (4, 25, 2)],
-                         ids=["T", "T-1", "T-3", "N-T-2"])
+@pytest.mark.parametrize(
+    "shape", [(50,), (50, 1), (40, 3), (4, 25, 2)], ids=["T", "T-1", "T-3", "N-T-2"]
+)
 def test_metrics_match_numpy(shape):
     rng = np.random.default_rng(sum(shape))
     z = rng.standard_normal(shape) * np.linspace(1, 3, shape[-1]) + 2.0
@@ -64,10 +65,12 @@ def test_aic_penalises_parameters_and_rewards_smaller_errors():
 def test_metrics_are_jittable():
     rng = np.random.default_rng(2)
     z, zhat = rng.standard_normal((20, 2)), rng.standard_normal((20, 2))
-    np.testing.assert_allclose(jax.jit(metrics.fit_percent)(z, zhat),
-                               metrics.fit_percent(z, zhat), rtol=1e-14)
-    np.testing.assert_allclose(jax.jit(metrics.aic, static_argnums=2)(z, zhat, 4),
-                               metrics.aic(z, zhat, 4), rtol=1e-14)
+    np.testing.assert_allclose(
+        jax.jit(metrics.fit_percent)(z, zhat), metrics.fit_percent(z, zhat), rtol=1e-14
+    )
+    np.testing.assert_allclose(
+        jax.jit(metrics.aic, static_argnums=2)(z, zhat, 4), metrics.aic(z, zhat, 4), rtol=1e-14
+    )
 
 
 @pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2"])
@@ -76,3 +79,130 @@ def test_shape_mismatch_raises(name):
         getattr(metrics, name)(jnp.zeros((10, 2)), jnp.zeros((10, 3)))
     with pytest.raises(ValueError, match="same shape"):
         metrics.aic(jnp.zeros((10, 2)), jnp.zeros((9, 2)), 1)
+
+
+# ----------------------------------------------------------------------- benchmark protocol
+
+
+def _pair(shape, seed):
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal(shape) * 2.0 + 1.0
+    return z, z + 0.3 * rng.standard_normal(shape)
+
+
+@pytest.mark.parametrize("shape, n", [((200,), 0), ((200,), 20), ((150, 3), 50)])
+def test_benchmark_scores_match_formulas(shape, n):
+    """Written out in NumPy on samples n: (RMSE / std with ddof 0, R^2 = 1 - NRMSE^2,
+    FIT = 100 (1 - NRMSE)); FIT and R^2 agree with this module's fit_percent and r2."""
+    z, zhat = _pair(shape, n)
+    s = metrics.benchmark_scores(z, zhat, n)
+    y, yh = z[n:].reshape(len(z) - n, -1), zhat[n:].reshape(len(z) - n, -1)
+    rmse = np.sqrt(((yh - y) ** 2).mean(axis=0))
+    np.testing.assert_allclose(s.rmse, rmse, rtol=1e-13)
+    np.testing.assert_allclose(s.nrmse, rmse / y.std(axis=0), rtol=1e-13)
+    np.testing.assert_allclose(s.r2, 1 - ((yh - y) ** 2).mean(0) / y.var(0), rtol=1e-12)
+    np.testing.assert_allclose(s.fit_percent, metrics.fit_percent(y, yh), rtol=1e-12)
+    np.testing.assert_allclose(s.r2, metrics.r2(y, yh), rtol=1e-12)
+    assert s.rmse.shape == (y.shape[1],) and s.rmse.dtype == np.float64
+    assert (s.n, s.n_scored) == (n, len(z) - n)
+    # The first n samples do not count: spoiling them changes nothing.
+    zhat_bad_head = zhat.copy()
+    zhat_bad_head[:n] += 100.0
+    np.testing.assert_array_equal(metrics.benchmark_scores(z, zhat_bad_head, n).rmse, s.rmse)
+
+
+@pytest.mark.parametrize("shape, n", [((300,), 0), ((300,), 50), ((120, 2), 5)])
+def test_benchmark_scores_match_nonlinear_benchmarks(shape, n):
+    """Against the package's own error metrics (`R_squared` ignores `n_init` for plain
+    arrays, so it gets the scored samples directly; with Input_output_data it uses the
+    record's window)."""
+    em = pytest.importorskip("nonlinear_benchmarks.error_metrics")
+    from nonlinear_benchmarks import Input_output_data
+
+    z, zhat = _pair(shape, 7 + n)
+    s = metrics.benchmark_scores(z, zhat, n)
+    flat = np.atleast_1d
+    np.testing.assert_allclose(s.rmse, flat(em.RMSE(z, zhat, n_init=n)), rtol=1e-13)
+    np.testing.assert_allclose(s.nrmse, flat(em.NRMSE(z, zhat, n_init=n)), rtol=1e-13)
+    np.testing.assert_allclose(s.fit_percent, flat(em.fit_index(z, zhat, n_init=n)), rtol=1e-13)
+    np.testing.assert_allclose(s.r2, flat(em.R_squared(z[n:], zhat[n:])), rtol=1e-13)
+    u = np.zeros(shape[0])
+    true = Input_output_data(u=u, y=z, sampling_time=1.0, state_initialization_window_length=n)
+    model = Input_output_data(u=u, y=zhat, sampling_time=1.0)
+    np.testing.assert_allclose(s.r2, flat(em.R_squared(true, model)), rtol=1e-13)
+    # A record carries its n: the package's object and ours give the same scores.
+    s2 = metrics.benchmark_scores(true, model)
+    np.testing.assert_array_equal(s2.rmse, s.rmse)
+    assert s2.n == n
+
+
+def test_benchmark_scores_of_a_record_and_its_output():
+    from oneshot_jax.datasets import Record
+
+    z, zhat = _pair((100,), 3)
+    rec = Record(u=np.zeros(100), y=z, Ts=0.1, n=10, name="test")
+    s = rec.score(zhat)
+    assert s.n == 10
+    np.testing.assert_array_equal(s.rmse, metrics.benchmark_scores(z, zhat, 10).rmse)
+    np.testing.assert_array_equal(metrics.benchmark_scores(rec, zhat).nrmse, s.nrmse)
+
+
+def test_benchmark_scores_print_and_json():
+    import json
+
+    z, zhat = _pair((80, 2), 4)
+    s = metrics.benchmark_scores(z, zhat, 5)
+    d = json.loads(json.dumps(s.as_dict()))
+    assert set(d) == {"rmse", "nrmse", "r2", "fit_percent", "n", "n_scored"}
+    assert d["rmse"] == pytest.approx(list(s.rmse), rel=1e-15) and d["n_scored"] == 75
+    text = str(s)
+    assert "RMSE" in text and "FIT" in text and len(text.splitlines()) == 4
+    assert f"{s.rmse[1]:.6g}" in text
+
+
+def test_benchmark_scores_perfect_and_mean_models():
+    z, _ = _pair((60, 2), 5)
+    s = metrics.benchmark_scores(z, z, 10)
+    np.testing.assert_array_equal(s.rmse, [0.0, 0.0])
+    np.testing.assert_array_equal(s.fit_percent, [100.0, 100.0])
+    mean_model = np.broadcast_to(z[10:].mean(axis=0), z.shape)
+    s = metrics.benchmark_scores(z, mean_model, 10)
+    np.testing.assert_allclose(s.nrmse, [1.0, 1.0], rtol=1e-12)
+    np.testing.assert_allclose(s.r2, [0.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "z_shape, zhat_shape, n, error, pattern",
+    [
+        ((50, 2), (50, 3), 5, ValueError, "same shape"),
+        ((50,), (50, 1), 5, ValueError, "same shape"),
+        ((4, 50, 2), (4, 50, 2), 5, ValueError, r"\(T,\) or \(T, n_z\)"),
+        ((50,), (50,), 49, ValueError, r"0 <= n <= T - 2 = 48"),
+        ((50,), (50,), -1, ValueError, r"0 <= n"),
+        ((50,), (50,), 2.0, TypeError, "`n` must be an integer"),
+        ((50,), (50,), True, TypeError, "`n` must be an integer"),
+        ((50,), (50,), None, ValueError, "`n` .* is required"),
+    ],
+)
+def test_benchmark_scores_bad_input(z_shape, zhat_shape, n, error, pattern):
+    rng = np.random.default_rng(0)
+    with pytest.raises(error, match=pattern):
+        metrics.benchmark_scores(rng.standard_normal(z_shape), rng.standard_normal(zhat_shape), n)
+
+
+def test_benchmark_scores_refuses_diverged_output_and_constant_data():
+    z, zhat = _pair((50, 2), 6)
+    zhat[30:, 1] = np.nan
+    with pytest.raises(ValueError, match=r"`zhat` contains NaN or inf from sample 30 on \(20"):
+        metrics.benchmark_scores(z, zhat, 5)
+    # NaN only in the head (not scored) is fine.
+    z, zhat = _pair((50,), 6)
+    zhat[:5] = np.inf
+    assert np.isfinite(metrics.benchmark_scores(z, zhat, 5).rmse).all()
+    z[10] = np.nan
+    with pytest.raises(ValueError, match="`z` contains NaN"):
+        metrics.benchmark_scores(z, np.zeros(50), 5)
+    z = np.ones((50, 2))
+    z[:, 0] = np.arange(50)
+    with pytest.raises(ValueError, match=r"constant in output channel\(s\) \[1\]"):
+        metrics.benchmark_scores(z, z + 0.1, 5)
