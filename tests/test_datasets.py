@@ -238,3 +238,149 @@ def test_tanks_malformed_csv(tmp_path, text, pattern):
     with pytest.raises(ds.DatasetFormatError, match=pattern) as e:
         ds.load_cascaded_tanks(f)
     assert "dataBenchmark.csv" in str(e.value)
+
+
+# ----------------------------------------------------------------------- protocol views
+
+
+def test_emps_protocol_views_real_files():
+    """Open loop: u = vir (V), y = qm (m), n = 20 on the test record."""
+    d = _emps_or_skip()
+    tr, te = d.train, d.test
+    assert isinstance(tr, ds.Record) and isinstance(te, ds.Record)
+    np.testing.assert_array_equal(tr.u, d.estimation.vir)
+    np.testing.assert_array_equal(tr.y, d.estimation.qm)
+    np.testing.assert_array_equal(te.u, d.validation.vir)
+    np.testing.assert_array_equal(te.y, d.validation.qm)
+    assert (tr.n, te.n) == (0, 20) == (0, ds.EMPS_N_INIT)
+    assert tr.Ts == te.Ts == d.Ts == pytest.approx(1e-3)
+    assert te.name == "test (DATA_EMPS_PULSES)"
+    np.testing.assert_array_equal(te.y_head, d.validation.qm[:20])
+
+
+def test_tanks_protocol_views_real_file():
+    d = _tanks_or_skip()
+    np.testing.assert_array_equal(d.train.u, d.u_est)
+    np.testing.assert_array_equal(d.train.y, d.y_est)
+    np.testing.assert_array_equal(d.test.u, d.u_val)
+    np.testing.assert_array_equal(d.test.y, d.y_val)
+    assert (d.train.n, d.test.n, d.test.Ts) == (0, 5, 4.0)
+    np.testing.assert_array_equal(d.test.t, d.t)
+
+
+def test_emps_views_match_nonlinear_benchmarks(tmp_path):
+    """The package's own EMPS loader on the same files (placed where its cache looks, so
+    it downloads nothing) gives the same arrays and window."""
+    nb = pytest.importorskip("nonlinear_benchmarks")
+    _write_emps(tmp_path / "EMPS")
+    (tmp_path / "EMPS" / "EMPS.zip").write_bytes(b"")  # the package's "already downloaded"
+    train, test = nb.EMPS(dir_placement=tmp_path)
+    d = ds.load_emps(tmp_path / "EMPS")
+    for theirs, ours in ((train, d.train), (test, d.test)):
+        np.testing.assert_array_equal(theirs.u, ours.u)
+        np.testing.assert_array_equal(theirs.y, ours.y)
+        assert (theirs.state_initialization_window_length or 0) == ours.n
+        assert theirs.sampling_time == pytest.approx(ours.Ts, rel=1e-6)
+        back = ds.Record.from_nonlinear_benchmarks(theirs)
+        assert back.n == ours.n and back.name == ours.name
+
+
+def test_tanks_small_file_views_and_mat_fallback(tmp_path):
+    rows = "".join(f"{k},{k + 1},{k + 2},{k + 3},{'4' if k == 0 else ''}\n" for k in range(8))
+    big = ds.load_cascaded_tanks(
+        _write_csv(tmp_path / "big.csv", GOOD_CSV.split("\n")[0] + "\n" + rows)
+    )
+    assert big.test.n == 5 and len(big.test) == 8
+    np.testing.assert_array_equal(big.test.y_head, [3, 4, 5, 6, 7])
+    d = ds.load_cascaded_tanks(_write_csv(tmp_path / "csv" / "dataBenchmark.csv", GOOD_CSV))
+    with pytest.raises(ValueError, match=r"0 <= n < T = 3"):
+        d.test  # three samples cannot hold a five-sample head
+    # The .mat version of the archive is read when there is no CSV.
+    col = lambda *v: np.array(v, dtype=float)[:, None]  # noqa: E731
+    mat = {
+        "uEst": col(1, 1.5, 2),
+        "uVal": col(2, 2.5, 3),
+        "yEst": col(3, 3.5, 4),
+        "yVal": col(4, 4.5, 5),
+        "Ts": np.array([[4.0]]),
+    }
+    (tmp_path / "mat" / "cascaded_tanks").mkdir(parents=True)
+    scipy.io.savemat(tmp_path / "mat" / "cascaded_tanks" / "dataBenchmark.mat", mat)
+    m = ds.load_cascaded_tanks(tmp_path / "mat")
+    assert m.file.name == "dataBenchmark.mat"
+    for k in ("u_est", "u_val", "y_est", "y_val"):
+        np.testing.assert_array_equal(getattr(m, k), getattr(d, k))
+    assert m.Ts == 4.0
+    del mat["Ts"]
+    scipy.io.savemat(tmp_path / "mat" / "cascaded_tanks" / "dataBenchmark.mat", mat)
+    with pytest.raises(ds.DatasetFormatError, match=r"dataBenchmark\.mat: missing variable"):
+        ds.load_cascaded_tanks(tmp_path / "mat")
+
+
+# ----------------------------------------------------------------------- Record
+
+
+def test_record_basics():
+    rec = ds.Record(u=[0.0, 1.0, 2.0, 3.0], y=np.arange(4), Ts=0.5, n=2, name="r")
+    u, y = rec
+    assert u.dtype == y.dtype == np.float64 and len(rec) == 4
+    np.testing.assert_array_equal(rec.t, [0.0, 0.5, 1.0, 1.5])
+    np.testing.assert_array_equal(rec.y_head, [0.0, 1.0])
+    assert rec.sampling_time == 0.5 and rec.state_initialization_window_length == 2
+    r2 = rec.atleast_2d()
+    assert r2.u.shape == (4, 1) and r2.y.shape == (4, 1) and r2.n == 2
+    assert "n=2" in repr(rec) and "'r'" in repr(rec)
+    with pytest.raises(ValueError, match="discrete-time"):
+        ds.Record(u=[1.0, 2.0], y=[1.0, 2.0], Ts=None).t
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, pattern",
+    [
+        (dict(u=np.zeros(5), y=np.zeros(4)), ValueError, "same number of samples"),
+        (dict(u=np.zeros((5, 1, 1)), y=np.zeros(5)), ValueError, r"`u` must have shape"),
+        (dict(u=np.zeros(5), y=["a"] * 5), TypeError, "`y` must be a numeric array"),
+        (dict(u=np.zeros(0), y=np.zeros(0)), ValueError, "at least one sample"),
+        (dict(Ts=-1.0), ValueError, "positive finite sampling time"),
+        (dict(Ts="1"), TypeError, "`Ts` must be a positive number"),
+        (dict(n=5), ValueError, r"0 <= n < T = 5"),
+        (dict(n=-1), ValueError, r"0 <= n < T"),
+        (dict(n=1.0), TypeError, "`n` must be an integer"),
+        (dict(name=3), TypeError, "`name` must be a string"),
+    ],
+)
+def test_record_bad_input(kwargs, error, pattern):
+    args = dict(u=np.zeros(5), y=np.zeros(5), Ts=1.0, n=0, name="")
+    args.update(kwargs)
+    with pytest.raises(error, match=pattern):
+        ds.Record(**args)
+
+
+def test_record_round_trip_through_nonlinear_benchmarks():
+    nb = pytest.importorskip("nonlinear_benchmarks")
+    rng = np.random.default_rng(0)
+    rec = ds.Record(
+        u=rng.standard_normal(30), y=rng.standard_normal((30, 2)), Ts=0.01, n=7, name="x"
+    )
+    io = rec.to_nonlinear_benchmarks()
+    assert isinstance(io, nb.Input_output_data)
+    assert io.state_initialization_window_length == 7 and io.sampling_time == 0.01
+    back = ds.Record.from_nonlinear_benchmarks(io)
+    np.testing.assert_array_equal(back.u, rec.u)
+    np.testing.assert_array_equal(back.y, rec.y)
+    assert (back.Ts, back.n, back.name) == (0.01, 7, "x")
+    # A training record (n = 0) goes out as None and comes back as 0; overrides apply.
+    train = ds.Record.from_nonlinear_benchmarks(
+        nb.Input_output_data(u=np.zeros(4), y=np.ones(4)), name="t"
+    )
+    assert (train.n, train.Ts, train.name) == (0, None, "t")
+    assert ds.Record.from_nonlinear_benchmarks(io, n=3).n == 3
+    # The package's error metrics accept the converted record.
+    yhat = rec.y + 0.1
+    theirs = nb.error_metrics.RMSE(io, yhat)
+    np.testing.assert_allclose(rec.score(yhat).rmse, theirs, rtol=1e-13)
+
+
+def test_record_from_something_else():
+    with pytest.raises(TypeError, match="Input_output_data .* without u, y"):
+        ds.Record.from_nonlinear_benchmarks(np.zeros(3))

@@ -1,0 +1,310 @@
+"""Shared parts of the loaders: where files are looked for, the two error types, and
+readers for the benchmarks' MATLAB and CSV files with errors that name the file and what
+was expected."""
+
+from __future__ import annotations
+
+import csv
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ENV_VAR = "ONESHOT_JAX_DATA"
+"""Environment variable naming a data folder (holding `emps/`, `cascaded_tanks/`,
+`silverbox/`, `wiener_hammerstein/`, or the files themselves)."""
+
+CACHE_ENV_VAR = "ONESHOT_JAX_CACHE"
+"""Environment variable naming the folder that `download=True` fetches into."""
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """The benchmark's files were not found in any of the searched places."""
+
+
+class DatasetFormatError(ValueError):
+    """A benchmark file exists but does not hold what the loader expects."""
+
+
+# --------------------------------------------------------------------------- locating
+
+
+def default_cache_dir() -> Path:
+    """The folder that `download=True` fetches into: `$ONESHOT_JAX_CACHE` when set, else
+    the user cache folder (`$XDG_CACHE_HOME/oneshot_jax` or `~/.cache/oneshot_jax` on
+    Linux, `~/Library/Caches/oneshot_jax` on macOS, `%LOCALAPPDATA%\\oneshot_jax\\Cache` on
+    Windows). It holds one subfolder per benchmark (`emps/`, `cascaded_tanks/`, ...)."""
+    env = os.environ.get(CACHE_ENV_VAR)
+    if env:
+        return Path(env).expanduser()
+    if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):
+        return Path(os.environ["LOCALAPPDATA"]) / "oneshot_jax" / "Cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "oneshot_jax"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "oneshot_jax"
+
+
+def default_data_dirs() -> list[Path]:
+    """Data roots searched when no `path` is given, in order: `$ONESHOT_JAX_DATA` when set,
+    then the `shared/data` folders beside the repository and beside the working directory
+    that exist, then the download cache (`default_cache_dir()`) when it exists."""
+    out = []
+    env = os.environ.get(ENV_VAR)
+    if env:
+        out.append(Path(env).expanduser())
+    for p in (
+        Path(__file__).resolve().parents[3] / "shared" / "data",
+        Path.cwd().resolve().parent / "shared" / "data",
+        default_cache_dir(),
+    ):
+        if p.is_dir() and all(p.resolve() != q.resolve() for q in out):
+            out.append(p)
+    return out
+
+
+def candidates(path, subdirs) -> list[Path]:
+    """Folders to look in: for each root (the given path, else `default_data_dirs()`), its
+    `subdirs` (relative paths, e.g. `silverbox`, `silverbox/SilverboxFiles`), then the root
+    itself."""
+    roots = [Path(path).expanduser()] if path is not None else default_data_dirs()
+    out = []
+    for r in roots:
+        out.extend([*(r / s for s in subdirs), r])
+    return out
+
+
+def find_folder(dirs, alternatives):
+    """The first folder of `dirs` holding every file of one of the `alternatives` (tuples
+    of file names, in order of preference), as `(folder, files)`, else `(None, None)`."""
+    for d in dirs:
+        for names in alternatives:
+            if all((d / f).is_file() for f in names):
+                return d, names
+    return None, None
+
+
+def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, on_missing):
+    """Find a benchmark's files, downloading them when asked.
+
+    **Arguments:**
+
+    - `path`: the user's folder (or file, whose folder is used), or None for the defaults.
+    - `subdirs`: subfolders of a root that may hold the files (e.g. `silverbox`).
+    - `alternatives`: tuples of file names, each a complete set, in order of preference.
+    - `name`: the benchmark's key in `_download.SOURCES`.
+    - `download`, `cache_dir`, `base_url`: see `_download.fetch`; the cache folder is
+        searched too when `cache_dir` is given or `download` is True.
+    - `on_missing`: called with the searched folders; returns the exception to raise.
+
+    **Returns:**
+
+    `(folder, files)`: the folder and the set of file names found there.
+    """
+    if path is not None and Path(path).expanduser().is_file():
+        path = Path(path).expanduser().parent
+    dirs = candidates(path, subdirs)
+    if cache_dir is not None or download:
+        dirs += candidates(cache_dir if cache_dir is not None else default_cache_dir(), subdirs)
+    dirs = list(dict.fromkeys(dirs))
+    folder, names = find_folder(dirs, alternatives)
+    if folder is not None:
+        return folder, names
+    if not download:
+        raise on_missing(dirs)
+    from ._download import fetch
+
+    target = fetch(name, cache_dir=cache_dir, base_url=base_url)
+    # The archive may keep the files in a subfolder (e.g. SilverboxFiles/).
+    folders = sorted(
+        {p.parent for p in target.rglob("*") if p.is_file()}, key=lambda p: len(p.parts)
+    )
+    folder, names = find_folder(folders, alternatives)
+    if folder is None:
+        raise DatasetFormatError(
+            f"{target}: the download does not hold {' or '.join(map(' and '.join, alternatives))}."
+        )
+    return folder, names
+
+
+def not_found(what, files, searched, url, subdir):
+    """A `DatasetNotFoundError` listing the places searched and where to get the files."""
+    if searched:
+        where = "Searched:\n" + "\n".join(f"  - {p}" for p in searched)
+    else:
+        where = (
+            f"No folder to search: no path given, ${ENV_VAR} unset, no ../shared/data and no "
+            f"download cache."
+        )
+    return DatasetNotFoundError(
+        f"{what}: could not find {' or '.join(files)}. {where}\n"
+        f"Download the official files from {url} and pass path=<folder holding them>, or "
+        f"set ${ENV_VAR} to a folder that holds them directly or in a subfolder "
+        f"'{subdir}/', or call the loader with download=True to fetch them into "
+        f"{default_cache_dir()} (${CACHE_ENV_VAR})."
+    )
+
+
+# --------------------------------------------------------------------------- readers
+
+
+def read_mat(file: Path, required_series, required_scalars=(), optional=()) -> dict:
+    """Read a MATLAB 5 `.mat` file: the `required_series` (and present `optional` ones) as
+    1-D float64 vectors of one common length, the `required_scalars` as floats.
+
+    **Raises:**
+
+    `DatasetFormatError` naming the file and the variable when the file cannot be read, a
+    variable is missing, is not numeric, is not a vector (or scalar), has a different
+    length, or holds NaN or inf.
+    """
+    import scipy.io
+
+    try:
+        raw = scipy.io.loadmat(file, squeeze_me=False)
+    except NotImplementedError as err:  # MATLAB v7.3 (HDF5) files
+        raise DatasetFormatError(
+            f"{file}: a MATLAB v7.3 (HDF5) file, which scipy.io cannot read; expected the "
+            f"benchmark's original MATLAB 5 .mat file ({err})."
+        ) from err
+    except Exception as err:  # noqa: BLE001 - any parse failure is a format error
+        raise DatasetFormatError(
+            f"{file}: not a readable MATLAB .mat file ({type(err).__name__}: {err}); expected "
+            f"variables {', '.join((*required_series, *required_scalars))}."
+        ) from err
+    names = [k for k in raw if not k.startswith("__")]
+    missing = [k for k in (*required_series, *required_scalars) if k not in raw]
+    if missing:
+        scalars = f" and {', '.join(required_scalars)} (scalars)" if required_scalars else ""
+        raise DatasetFormatError(
+            f"{file}: missing variable(s) {', '.join(missing)}; expected "
+            f"{', '.join(required_series)} (column vectors of equal length){scalars}; "
+            f"found {', '.join(names) or 'none'}."
+        )
+    out = {}
+    n = None
+    for k in (*required_series, *[o for o in optional if o in raw]):
+        a = raw[k]
+        if not (isinstance(a, np.ndarray) and np.issubdtype(a.dtype, np.number)):
+            raise DatasetFormatError(
+                f"{file}: variable '{k}' must be numeric, got {type(a).__name__}"
+                f" of dtype {getattr(a, 'dtype', None)}."
+            )
+        if a.ndim > 2 or (a.ndim == 2 and min(a.shape) != 1) or a.size < 2:
+            raise DatasetFormatError(
+                f"{file}: variable '{k}' must be a vector (n x 1), got shape {a.shape}."
+            )
+        a = np.asarray(a, dtype=np.float64).reshape(-1)
+        if n is None:
+            n = a.shape[0]
+        elif a.shape[0] != n:
+            raise DatasetFormatError(
+                f"{file}: variable '{k}' has {a.shape[0]} samples but '{required_series[0]}' "
+                f"has {n}; expected vectors of equal length."
+            )
+        if not np.all(np.isfinite(a)):
+            raise DatasetFormatError(f"{file}: variable '{k}' contains NaN or inf values.")
+        out[k] = a
+    for k in required_scalars:
+        a = raw[k]
+        if not (isinstance(a, np.ndarray) and np.issubdtype(a.dtype, np.number)) or a.size != 1:
+            raise DatasetFormatError(
+                f"{file}: variable '{k}' must be a numeric scalar, got "
+                f"{getattr(a, 'shape', type(a).__name__)}."
+            )
+        out[k] = float(np.asarray(a, dtype=np.float64).reshape(()))
+        if not np.isfinite(out[k]):
+            raise DatasetFormatError(f"{file}: variable '{k}' is not finite.")
+    return out
+
+
+def read_csv(file: Path, series, scalars=(), scalar_meaning="") -> dict:
+    """Read a benchmark CSV: a header row naming the columns, then one numeric row per
+    sample. The `series` columns become 1-D float64 vectors; each of the `scalars` columns
+    holds one number in the first data row (the others may be empty), returned as a float.
+
+    **Arguments:**
+
+    - `file`: the CSV file.
+    - `series`: names of the per-sample columns.
+    - `scalars`: names of the one-value columns (e.g. the sampling time `Ts`).
+    - `scalar_meaning`: what the scalars are, for the error messages (e.g. "the sampling
+        time in s").
+
+    **Raises:**
+
+    `DatasetFormatError` naming the file (and the line and column) when it cannot be read,
+    is empty, lacks a column, or holds a non-numeric, NaN or inf value.
+    """
+    where = f" ({', '.join(scalars)} in the first data row)" if scalars else ""
+    expected = (
+        f"a header row with columns {', '.join((*series, *scalars))} and one numeric row "
+        f"per sample{where}"
+    )
+    try:
+        with open(file, newline="") as fh:
+            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise DatasetFormatError(
+            f"{file}: cannot be read as CSV ({err}); expected {expected}."
+        ) from err
+    if not rows:
+        raise DatasetFormatError(f"{file}: empty file; expected {expected}.")
+    header = [c.strip().strip('"') for c in rows[0]]
+    missing = [c for c in (*series, *scalars) if c not in header]
+    if missing:
+        raise DatasetFormatError(
+            f"{file}: missing column(s) {', '.join(missing)} in the header {header}; "
+            f"expected {expected}."
+        )
+    idx = {c: header.index(c) for c in (*series, *scalars)}
+    body = rows[1:]
+    if len(body) < 2:
+        raise DatasetFormatError(f"{file}: {len(body)} data row(s); expected {expected}.")
+    cols = {}
+    try:  # fast path: NumPy parses whole columns
+        for c in series:
+            j = idx[c]
+            cols[c] = np.array([r[j] if j < len(r) else "" for r in body], dtype=np.float64)
+    except ValueError:  # find the first bad cell, row by row, for the message
+        for i, r in enumerate(body):
+            for c in series:
+                cell = r[idx[c]] if idx[c] < len(r) else "<missing>"
+                try:
+                    float(cell)
+                except ValueError as err:
+                    raise DatasetFormatError(
+                        f"{file}, line {i + 2}: column '{c}' holds {cell!r}, not a number; "
+                        f"expected {expected}."
+                    ) from err
+        raise DatasetFormatError(f"{file}: non-numeric values; expected {expected}.") from None
+    for c, a in cols.items():
+        if not np.all(np.isfinite(a)):
+            raise DatasetFormatError(f"{file}: column '{c}' contains NaN or inf values.")
+    out = dict(cols)
+    for c in scalars:
+        try:
+            out[c] = float(body[0][idx[c]])
+        except (IndexError, ValueError) as err:
+            raise DatasetFormatError(
+                f"{file}, line 2: column '{c}' must hold {scalar_meaning or 'a number'}; "
+                f"expected {expected}."
+            ) from err
+    return out
+
+
+def positive_scalar(file, name, value, meaning):
+    """`value` if it is a positive finite number, else a `DatasetFormatError`."""
+    if not (np.isfinite(value) and value > 0):
+        raise DatasetFormatError(f"{file}: {name} = {value} is not a positive {meaning}.")
+    return value
+
+
+def require_length(file, what, n, minimum, official):
+    """A `DatasetFormatError` unless the record has at least `minimum` samples."""
+    if n < minimum:
+        raise DatasetFormatError(
+            f"{file}: {what} has {n} samples; the official splits need at least {minimum} "
+            f"(the official file has {official})."
+        )

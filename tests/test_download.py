@@ -1,0 +1,193 @@
+"""`download=True` against a local HTTP server on 127.0.0.1 serving synthetic archives.
+
+Nothing here reaches the internet: every download goes to `base_url` (or
+`$ONESHOT_JAX_DATA_URL`) pointing at the local server, and into a temporary cache folder.
+"""
+
+import dataclasses
+import functools
+import http.server
+import threading
+import zipfile
+
+import numpy as np
+import pytest
+import scipy.io
+
+from oneshot_jax import datasets as ds
+from oneshot_jax.datasets import _download
+
+
+class _Handler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):  # keep the test output clean
+        pass
+
+    def do_GET(self):
+        self.server.requests.append(self.path)
+        if self.path.startswith("/truncated/"):
+            body = b"PK" + b"\0" * 100
+            self.send_response(200)
+            self.send_header("Content-Length", str(10 * len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+            return
+        super().do_GET()
+
+
+@pytest.fixture
+def server(tmp_path):
+    """A server on 127.0.0.1 serving `tmp_path / "www"`; yields (base URL, folder, log)."""
+    www = tmp_path / "www"
+    www.mkdir()
+    httpd = http.server.ThreadingHTTPServer(
+        ("127.0.0.1", 0), functools.partial(_Handler, directory=str(www))
+    )
+    httpd.requests = []
+    thread = threading.Thread(target=httpd.serve_forever, args=(0.05,), daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}", www, httpd.requests
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join()
+
+
+def _emps_mats(folder, n=40):
+    t = np.arange(n)[:, None] * 1e-3
+    common = {"t": t, "qm": np.sin(t), "qg": np.sin(t), "vir": np.cos(t), "kp": 160.18,
+              "kv": 243.45, "gtau": 35.15}  # fmt: skip
+    scipy.io.savemat(folder / "DATA_EMPS.mat", common)
+    scipy.io.savemat(folder / "DATA_EMPS_PULSES.mat", {**common, "pulses_N": np.zeros((n, 1))})
+    return [folder / "DATA_EMPS.mat", folder / "DATA_EMPS_PULSES.mat"]
+
+
+def _zip(archive, files, prefix=""):
+    with zipfile.ZipFile(archive, "w") as zf:
+        for f in files:
+            zf.write(f, prefix + f.name)
+    return archive
+
+
+def _trust(monkeypatch, name, files):
+    """Register the synthetic files' SHA-256 as the reference checksums."""
+    src = _download.SOURCES[name]
+    hashes = {f.name: _download.sha256(f) for f in files}
+    monkeypatch.setitem(_download.SOURCES, name, dataclasses.replace(src, files=hashes))
+
+
+def _nothing_kept(cache, subdir):
+    return not (cache / subdir).exists() and not list(cache.glob(f".{subdir}-*"))
+
+
+def test_emps_download_checksum_and_cache(server, tmp_path, monkeypatch):
+    base, www, log = server
+    src = tmp_path / "src"
+    src.mkdir()
+    files = _emps_mats(src)
+    _zip(www / "EMPS.zip", files)
+    _trust(monkeypatch, "emps", files)
+    cache = tmp_path / "cache"
+    d = ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert log == ["/EMPS.zip"]
+    assert d.estimation.file == cache / "emps" / "DATA_EMPS.mat"
+    assert len(d.test) == 40 and d.test.n == 20
+    for f in files:
+        assert (cache / "emps" / f.name).read_bytes() == f.read_bytes()
+    # Found in the cache next time: no second request, with or without download=True.
+    ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    ds.load_emps(tmp_path / "empty", cache_dir=cache)
+    assert log == ["/EMPS.zip"]
+    # The cache is a default data root when it exists.
+    monkeypatch.setenv(ds.CACHE_ENV_VAR, str(cache))
+    assert ds.default_cache_dir() == cache and cache in ds.default_data_dirs()
+
+
+def test_checksum_mismatch_keeps_nothing(server, tmp_path):
+    """Synthetic files are not the official ones: the reference SHA-256 refuses them."""
+    base, www, _ = server
+    src = tmp_path / "src"
+    src.mkdir()
+    _zip(www / "EMPS.zip", _emps_mats(src))
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetChecksumError, match=r"DATA_EMPS(_PULSES)?\.mat from .*SHA-256"):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "emps")
+
+
+def test_silverbox_download_warns_without_reference_checksum(server, tmp_path):
+    """The archive's subfolder (SilverboxFiles/) is found in the cache; with no reference
+    checksum the warning gives the file's SHA-256."""
+    base, www, _ = server
+    src = tmp_path / "src"
+    src.mkdir()
+    k = np.arange(131_072, dtype=float)
+    scipy.io.savemat(src / "SNLS80mV.mat", {"V1": k[None], "V2": -k[None]})
+    _zip(www / "SilverboxFiles.zip", [src / "SNLS80mV.mat"], prefix="SilverboxFiles/")
+    cache = tmp_path / "cache"
+    digest = _download.sha256(src / "SNLS80mV.mat")
+    with pytest.warns(UserWarning, match=f"no reference SHA-256.*{digest}"):
+        d = ds.load_silverbox(tmp_path / "e", download=True, cache_dir=cache, base_url=base + "/")
+    assert d.file == cache / "silverbox" / "SilverboxFiles" / "SNLS80mV.mat"
+    assert d.train.u[0] == 40_650 and d.test_multisine.n == 50
+
+
+def test_wiener_hammerstein_download_from_env_base_url(server, tmp_path, monkeypatch):
+    """The WH archive is the .mat file itself; the base URL comes from the environment."""
+    base, www, log = server
+    k = np.arange(188_000, dtype=float)
+    scipy.io.savemat(
+        www / "WienerHammerBenchMark.mat",
+        {"uBenchMark": k[:, None], "yBenchMark": k[:, None], "fs": np.array([[51200.0]])},
+    )
+    _trust(monkeypatch, "wiener_hammerstein", [www / "WienerHammerBenchMark.mat"])
+    monkeypatch.setenv(ds.URL_ENV_VAR, base)
+    monkeypatch.setenv(ds.CACHE_ENV_VAR, str(tmp_path / "cache"))
+    d = ds.load_wiener_hammerstein(tmp_path / "empty", download=True)
+    assert log == ["/WienerHammerBenchMark.mat"]
+    assert d.file == tmp_path / "cache" / "wiener_hammerstein" / "WienerHammerBenchMark.mat"
+    assert d.test.u[0] == 105_200
+
+
+def test_http_error_says_where_to_get_the_files(server, tmp_path):
+    base, _, _ = server
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetDownloadError) as e:
+        ds.load_cascaded_tanks(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    msg = str(e.value)
+    assert f"{base}/CascadedTanksFiles.zip" in msg and "404" in msg
+    assert "nonlinearbenchmark.org/benchmarks/cascaded-tanks" in msg
+    assert isinstance(e.value, ds.DatasetNotFoundError)
+    assert _nothing_kept(cache, "cascaded_tanks")
+
+
+def test_truncated_transfer_is_an_error(server, tmp_path):
+    base, _, _ = server
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetDownloadError, match=r"truncated|IncompleteRead|incomplete"):
+        ds.load_emps(tmp_path / "e", download=True, cache_dir=cache, base_url=base + "/truncated")
+    assert _nothing_kept(cache, "emps")
+
+
+def test_html_page_instead_of_an_archive(server, tmp_path):
+    base, www, _ = server
+    (www / "EMPS.zip").write_text("<!DOCTYPE html><html>Google Drive: virus scan</html>")
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetFormatError, match=r"did not return a zip archive .*DOCTYPE"):
+        ds.load_emps(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "emps")
+
+
+@pytest.mark.parametrize(
+    "member, pattern",
+    [("../escape.csv", "leaves the folder"), ("other.csv", "holds none of dataBenchmark")],
+)
+def test_bad_archives(server, tmp_path, member, pattern):
+    base, www, _ = server
+    with zipfile.ZipFile(www / "CascadedTanksFiles.zip", "w") as zf:
+        zf.writestr(member, "uEst,uVal,yEst,yVal,Ts\n1,2,3,4,4\n1,2,3,4,\n")
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetFormatError, match=pattern):
+        ds.load_cascaded_tanks(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "cascaded_tanks")
+    assert not (tmp_path / "escape.csv").exists()
