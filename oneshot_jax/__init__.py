@@ -3,15 +3,26 @@
 from . import constraints as constraints
 from . import datasets as datasets
 from . import metrics as metrics
-from ._fit import FitResult as FitResult
 from ._fit import fit as fit
+from ._fit_result import FitHistory as FitHistory
+from ._fit_result import FitResult as FitResult
+from ._fit_result import Starts as Starts
 from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
+from ._io import load_result as load_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step
+from ._progress import NoProgress as NoProgress
+from ._progress import TqdmProgress as TqdmProgress
+from ._results import RESULTS as RESULTS
 from ._simulate import loss as loss
 from ._simulate import simulate as simulate
-from ._solvers import StopReason as StopReason
-from ._solvers import adam as adam
+from ._solver import LBFGS as LBFGS
+from ._solver import AbstractSolver as AbstractSolver
+from ._solver import Adam as Adam
+from ._solver import GaussNewton as GaussNewton
+from ._solver import LevenbergMarquardt as LevenbergMarquardt
+from ._solver import Optax as Optax
+from ._solver import Optimistix as Optimistix
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -1,33 +1,44 @@
-"""Input validation shared by every public entry point.
+"""Input validation: the one home of every check on the arguments of the public functions.
 
 Every check runs on shapes (always static) and, where the arrays are concrete, on values
-(NaN, inf, positive semi-definiteness). Errors are `ValueError`s that name the argument
-and the shape or range that was expected, so that nothing reaches a tracing error.
+(NaN, inf, positive semi-definiteness). Errors are `ValueError`s (or `TypeError`s for an
+argument of the wrong kind) that name the argument and the shape or range that was
+expected, so that nothing reaches a tracing error.
 """
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from . import _pytree
+from ._cost import Cost
+from ._model import Model
+from ._strategy import STRATEGIES
 
 
 def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(arrays))
 
 
-def _as_float(a, name):
-    """`a` as a floating array in JAX's canonical dtype. Host data (NumPy arrays, lists)
-    stay NumPy arrays, so validation costs no device transfer or eager JAX call; the
-    compiled functions take them as they are."""
+def _is_weak(a) -> bool:
+    """Python scalars take the dtype of the arrays they meet, as in NumPy and JAX."""
+    return isinstance(a, (int, float)) and not isinstance(a, bool)
+
+
+def as_float(a, name, dtype=None):
+    """`a` as a floating array (JAX's canonical dtype, or `dtype`). Host data (NumPy
+    arrays, lists) stay NumPy arrays, so validation costs no device transfer or eager JAX
+    call; the compiled functions take them as they are."""
     try:
         if isinstance(a, jax.Array):
             a = jnp.asarray(a)
         else:
             a = np.asarray(a)
-            a = a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+            if a.dtype != object:
+                a = a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must hold real numbers, got {type(a).__name__}: {err}") from err
     if a.dtype == object:
@@ -38,6 +49,8 @@ def _as_float(a, name):
         if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
             raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
         a = a.astype(jnp.result_type(float))
+    if dtype is not None and a.dtype != dtype:
+        a = a.astype(dtype)
     return a
 
 
@@ -46,15 +59,51 @@ def check_finite(a, name):
         raise ValueError(f"`{name}` contains NaN or inf values.")
 
 
-def as_theta(theta):
-    """Leaves of `theta` as floating JAX arrays (integers are promoted, not rejected)."""
-    leaves, treedef = jax.tree_util.tree_flatten(theta)
+def common_dtype(*trees):
+    """The floating dtype every argument is promoted to: NumPy's promotion of the arrays
+    (Python scalars are weak and do not widen it), canonicalised for JAX (float32 when
+    x64 is off)."""
+    dtypes = []
+    for leaf in jax.tree_util.tree_leaves(trees):
+        if _is_weak(leaf) or leaf is None:
+            continue
+        dt = getattr(leaf, "dtype", None)
+        if dt is None:
+            dt = np.asarray(leaf).dtype
+        if jnp.issubdtype(dt, jnp.inexact) and not jnp.issubdtype(dt, jnp.complexfloating):
+            dtypes.append(dt)
+    dt = np.result_type(*dtypes) if dtypes else np.result_type(float)
+    return jax.dtypes.canonicalize_dtype(dt)
+
+
+def check_theta(theta, dtype=None, name="theta"):
+    """theta split into its parameters (floating arrays, the trainable leaves) and its
+    static part (functions and other non-numeric leaves of equinox modules, or None)."""
+    for leaf in jax.tree_util.tree_leaves(theta):
+        if isinstance(leaf, (str, bytes, complex)) or (
+            isinstance(leaf, (np.ndarray, jax.Array))
+            and not (jnp.issubdtype(leaf.dtype, jnp.number) or leaf.dtype == jnp.bool_)
+        ):
+            raise ValueError(f"`{name}` must hold real numbers, got {leaf!r}.")
+    params, static = _pytree.split(theta)
+    leaves, treedef = jax.tree_util.tree_flatten(params)
     if not leaves:
-        raise ValueError("`theta` must contain at least one array leaf.")
-    leaves = [_as_float(leaf, "theta") for leaf in leaves]
+        raise ValueError(f"`{name}` must contain at least one array leaf.")
+    leaves = [as_float(leaf, name, dtype) for leaf in leaves]
     for leaf in leaves:
-        check_finite(leaf, "theta")
-    return jax.tree_util.tree_unflatten(treedef, leaves)
+        check_finite(leaf, name)
+    return jax.tree_util.tree_unflatten(treedef, leaves), static
+
+
+def bind_model(model, static):
+    """The model seen with theta's trainable part only (static part bound in)."""
+    if not isinstance(model, Model):
+        raise TypeError(f"`model` must be a oneshot_jax.Model, got {type(model).__name__}.")
+    if static is None:
+        return model
+    return Model(
+        _pytree.Bound(model.step, static), _pytree.Bound(model.observe, static), input=model.input
+    )
 
 
 @functools.lru_cache(maxsize=256)
@@ -75,19 +124,25 @@ def _abstract_call(fn, x, u, theta):
 
 
 class Data(NamedTuple):
-    theta: object
-    x0: jax.Array
-    u: jax.Array
-    z: jax.Array | None
-    weight: jax.Array | None
+    """Validated arguments: theta's trainable part, the model with theta's static part
+    bound in, and the data, all in one floating dtype."""
+
+    model: Any
+    theta: Any
+    static: Any
+    x0: Any
+    u: Any
+    z: Any
+    weight: Any
     batched: bool
+    n_z: int
 
 
 def check_weight(weight, n_z, dtype):
     """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix; None stays None."""
     if weight is None:
         return None
-    w = _as_float(weight, "weight").astype(dtype)
+    w = as_float(weight, "weight", dtype)
     if w.shape not in ((n_z,), (n_z, n_z)):
         raise ValueError(
             f"`weight` must have shape ({n_z},) (a diagonal Q) or ({n_z}, {n_z}) "
@@ -112,17 +167,20 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
     Single trajectory: x0 (n_x,), u (T, n_u), z (T, n_z). Several trajectories sharing
-    theta (the paper's footnote 1): x0 (N, n_x), u (N, T, n_u), z (N, T, n_z).
+    theta (the paper's footnote 1): x0 (N, n_x), u (N, T, n_u), z (N, T, n_z). Every array
+    is promoted to one floating dtype, as NumPy would promote them.
     """
-    theta = as_theta(theta)
-    x0 = _as_float(x0, "x0")
+    dtype = common_dtype(_pytree.split(theta)[0], x0, u, z)
+    theta, static = check_theta(theta, dtype)
+    model = bind_model(model, static)
+    x0 = as_float(x0, "x0", dtype)
     if x0.ndim not in (1, 2):
         raise ValueError(
             "`x0` must have shape (n_x,) for one trajectory or (N, n_x) for N "
             f"trajectories, got shape {x0.shape}."
         )
     batched = x0.ndim == 2
-    u = _as_float(u, "u")
+    u = as_float(u, "u", dtype)
     lead = x0.shape[:1] if batched else ()
     if u.ndim != len(lead) + 2 or u.shape[: len(lead)] != lead:
         want = f"({x0.shape[0]}, T, n_u)" if batched else "(T, n_u)"
@@ -141,8 +199,10 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
     # state's shape or dtype is reported here and not as an error deep inside a scan.
     x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
     u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
+    u_step = jax.eval_shape(model.step_inputs, jax.ShapeDtypeStruct((2, *u_1.shape), u.dtype))
+    u_step = jax.ShapeDtypeStruct(u_step.shape[1:], u_step.dtype)
     try:
-        x_next = _abstract_call(model.step, x_1, u_1, theta)
+        x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_1, theta)
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
         raise ValueError(
@@ -158,7 +218,7 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
     if x_next.dtype != x_1.dtype:
         raise ValueError(
             f"`model.step` must keep the state's dtype {x_1.dtype} (the dtype of x0), "
-            f"got {x_next.dtype}. Pass x0 and theta in the same precision."
+            f"got {x_next.dtype}."
         )
     if not isinstance(z_hat, jax.ShapeDtypeStruct) or z_hat.ndim != 1:
         shape = getattr(z_hat, "shape", type(z_hat).__name__)
@@ -168,7 +228,7 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
     n_z = z_hat.shape[0]
 
     if z is not None:
-        z = _as_float(z, "z").astype(z_hat.dtype)
+        z = as_float(z, "z", z_hat.dtype)
         want = (*lead, T, n_z)
         if z.shape != want:
             raise ValueError(
@@ -177,30 +237,99 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
             )
         check_finite(z, "z")
     weight = check_weight(weight, n_z, z_hat.dtype)
-    return Data(theta, x0, u, z, weight, batched)
+    return Data(model, theta, static, x0, u, z, weight, batched, n_z)
 
 
-def check_penalty(penalty, penalty_weight):
+def check_cost(data: Data, penalty, penalty_weight) -> Cost:
+    """The `Cost` of validated data: the weight, and the penalty with its multiplier
+    lambda as an array in the data's dtype (a penalty must return a scalar)."""
     if penalty is not None and not callable(penalty):
         raise ValueError(f"`penalty` must be callable h(x, theta) -> scalar, got {penalty!r}.")
+    dtype = data.x0.dtype
     if penalty is None:
-        return None, 0.0
+        return Cost(data.weight, None, np.zeros((), dtype))
     pw = penalty_weight
     msg = f"`penalty_weight` must be a finite real scalar, got {penalty_weight!r}."
     try:
-        ok = np.ndim(pw) == 0 and not np.iscomplexobj(pw)
+        ok = np.ndim(pw) == 0 and not np.iscomplexobj(pw) and not isinstance(pw, str)
         ok = ok and (not is_concrete(pw) or bool(np.isfinite(float(pw))))
     except (TypeError, ValueError) as err:
         raise ValueError(msg) from err
     if not ok:
         raise ValueError(msg)
-    return penalty, pw
+    if data.static is not None:
+        penalty = _pytree.BoundPenalty(penalty, data.static)
+    x = data.x0[0] if data.batched else data.x0
+    try:
+        out = jax.eval_shape(penalty, x, data.theta)
+    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
+        raise ValueError(
+            f"calling `penalty` on a state of shape {x.shape} failed: {type(err).__name__}: {err}"
+        ) from err
+    if getattr(out, "shape", None) != ():
+        raise ValueError(
+            f"`penalty` must return a scalar h(x, theta), got shape {getattr(out, 'shape', out)}."
+        )
+    pw = jnp.asarray(pw, dtype) if not is_concrete(pw) else np.asarray(pw, dtype)
+    return Cost(data.weight, penalty, pw)
 
 
-def check_strategy(strategy):
-    if strategy not in ("auto", "jacobian", "vjp"):
-        raise ValueError(f"`strategy` must be 'auto', 'jacobian' or 'vjp', got {strategy!r}.")
+def check_strategy(strategy, allowed=STRATEGIES):
+    if strategy not in allowed:
+        names = ", ".join(repr(s) for s in allowed[:-1]) + f" or {allowed[-1]!r}"
+        raise ValueError(f"`strategy` must be {names}, got {strategy!r}.")
     return strategy
 
 
-filter_jit = eqx.filter_jit
+def fixed_mask(fixed, theta) -> np.ndarray:
+    """Flat boolean mask of the fixed entries of theta's parameters (leaf order).
+
+    `fixed` is a pytree of booleans with the structure of theta, or a prefix of it: a
+    boolean where theta has a subtree (an equinox module, a dict) fixes or frees the whole
+    subtree; an array of booleans where theta has an array leaf fixes it per entry.
+    """
+    n = sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(theta))
+    if fixed is None:
+        return np.zeros(n, bool)
+    if isinstance(fixed, (bool, np.bool_)):
+        return np.full(n, bool(fixed))
+    leaves, treedef = jax.tree_util.tree_flatten(fixed)
+    try:
+        subtrees = treedef.flatten_up_to(theta)
+    except (ValueError, TypeError) as err:
+        raise ValueError(
+            "`fixed` must be a pytree of booleans with the structure of theta0 (or a prefix "
+            f"of it: one boolean for a whole subtree); theta0 has "
+            f"{jax.tree_util.tree_structure(theta)}, got {treedef}."
+        ) from err
+    parts = []
+    for f, sub in zip(leaves, subtrees):
+        f = np.asarray(f)
+        if f.dtype != bool:
+            raise ValueError(f"`fixed` entries must be booleans, got dtype {f.dtype}.")
+        sub_leaves = jax.tree_util.tree_leaves(sub)
+        if f.ndim and len(sub_leaves) != 1:
+            raise ValueError(
+                f"`fixed` entry of shape {f.shape} stands for a subtree of theta0 with "
+                f"{len(sub_leaves)} leaves; use one boolean for a whole subtree."
+            )
+        for t in sub_leaves:
+            try:
+                parts.append(np.broadcast_to(f, np.shape(t)).reshape(-1))
+            except ValueError as err:
+                raise ValueError(
+                    f"`fixed` entry of shape {f.shape} does not fit a parameter of shape "
+                    f"{np.shape(t)}."
+                ) from err
+    return np.concatenate(parts) if parts else np.zeros(0, bool)
+
+
+def x0_mask(estimate_x0, n_x) -> np.ndarray:
+    """(n_x,) boolean mask of the initial-state entries to estimate."""
+    est = np.asarray(estimate_x0)
+    if est.dtype != bool or est.shape not in ((), (n_x,)):
+        raise ValueError(
+            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), "
+            f"got {estimate_x0!r}."
+        )
+    return np.broadcast_to(est, (n_x,)).copy()

@@ -29,37 +29,19 @@ the k = 0 term Gamma_0 (an empty Jacobian product); grad_theta is unaffected exc
 through gamma_0 (a theta-dependent observation or penalty), which is included too.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._checks import check_strategy, filter_jit
-from ._simulate import check_loss_args, rollout, step_loss
+from ._checks import check_cost, check_data, check_strategy
+from ._simulate import rollout
+from ._strategy import gradient_strategy, theta_forward_mode
 
-# Above this many bytes for the stacked J^{x/x}_k, "auto" switches to the vjp strategy.
-_JACOBIAN_BYTES = 256 * 2**20
-_JACOBIAN_MAX_NX = 16
-# The "jacobian" strategy also stacks J^{x/theta}_k (forward mode, n_theta JVPs per step)
-# when theta is this small; otherwise its theta term is one reverse-mode VJP after the scan.
-_THETA_FORWARD_MIN = 8
 # Up to this length the reverse scan's matrix-vector products are written elementwise.
 _MATVEC_ELEMENTWISE_MAX = 32
-
-
-def choose_strategy(strategy, n_x, T, itemsize):
-    """Resolve "auto": stacked Jacobians for small states, in-scan VJPs for large ones."""
-    if strategy != "auto":
-        return strategy
-    small = n_x <= _JACOBIAN_MAX_NX and T * n_x * n_x * itemsize <= _JACOBIAN_BYTES
-    return "jacobian" if small else "vjp"
-
-
-def theta_forward_mode(n_theta, n_x, T, itemsize):
-    """Whether the "jacobian" strategy stacks J^{x/theta}_k too (few parameters, small memory)."""
-    return (
-        n_theta <= max(n_x, _THETA_FORWARD_MIN) and T * n_x * n_theta * itemsize <= _JACOBIAN_BYTES
-    )
 
 
 def _matvec(M, v):
@@ -70,7 +52,7 @@ def _matvec(M, v):
     return M @ v
 
 
-def _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight):
+def local_terms(model, cost, theta, xs, u, z):
     """sum_k T L_k, every T Gamma_k (eq. 14) and sum_k T gamma_k, by one VJP of the vmapped L_k.
 
     The pullback of a vmapped function with an unbatched theta sums the per-step gamma_k
@@ -78,19 +60,17 @@ def _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight):
     """
 
     def total(xs, th):
-        per_step = jax.vmap(step_loss, in_axes=(None, None, 0, 0, 0, None, None, None))(
-            model, th, xs, u, z, weight, penalty, penalty_weight
-        )
+        per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0))(model, th, xs, u, z)
         return jnp.sum(per_step)
 
     S, (Gamma, gamma) = jax.value_and_grad(total, argnums=(0, 1))(xs, theta)
     return S, Gamma, gamma
 
 
-def _stacked_jacobians_T(step, theta, xs, u, wrt):
-    """Transposed one-step Jacobians at every (xs[j], u[j]), by forward mode (vmapped JVPs).
+def stacked_jacobians_T(step, theta, xs, us, wrt):
+    """Transposed one-step Jacobians at every (xs[j], us[j]), by forward mode (vmapped JVPs).
 
-    Slice j, row i is the JVP of f(x, u_j, theta) at x = xs[j] along the i-th basis vector
+    Slice j, row i is the JVP of f(x, us_j, theta) at x = xs[j] along the i-th basis vector
     of x (`wrt="x"`: slice j is (J^{x/x}_{j+1})^T) or of the flattened theta (`wrt="theta"`:
     (J^{x/theta}_{j+1})^T). Building the transposes directly saves the moveaxis copies of
     `jax.jacfwd`, and they are what the reverse recursion multiplies with anyway.
@@ -104,20 +84,20 @@ def _stacked_jacobians_T(step, theta, xs, u, wrt):
         push = lambda x, u_j, e: jax.jvp(  # noqa: E731
             lambda th: step(x, u_j, th), (theta,), (unravel(e),)
         )[1]
-    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, u)
+    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, us)
 
 
-def _theta_term_vjp(step, theta, xs, u, lam):
+def theta_term_vjp(step, theta, xs, us, lam):
     """sum_j (J^{x/theta}_{j+1})^T lam[j] as one reverse-mode VJP of the vmapped step.
 
     The sum over steps happens inside the pullback (for a matrix parameter it is one matrix
     product), so no per-step parameter-sized cotangent is ever materialised.
     """
-    batched = lambda th: jax.vmap(step, in_axes=(0, 0, None))(xs, u, th)  # noqa: E731
+    batched = lambda th: jax.vmap(step, in_axes=(0, 0, None))(xs, us, th)  # noqa: E731
     return jax.vjp(batched, theta)[1](lam)[0]
 
 
-def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
+def one_shot(model, cost, theta, x0, u, z, strategy):
     """C and (grad_theta C, grad_x0 C) for one trajectory by the O(T) recursion above.
 
     `strategy="jacobian"`: the transposed J^{x/x}_k for all k at once (vmapped forward-mode
@@ -133,18 +113,18 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
     T = u.shape[0]
     n_x = x0.shape[0]
     xs = rollout(model, theta, x0, u)
-    S, Gamma, gamma = _local_terms(model, theta, xs, u, z, weight, penalty, penalty_weight)
-    strategy = choose_strategy(strategy, n_x, T, x0.dtype.itemsize)
+    S, Gamma, gamma = local_terms(model, cost, theta, xs, u, z)
+    strategy = gradient_strategy(strategy, n_x, T, x0.dtype.itemsize)
     step = model.step
-    x_prev, u_prev = xs[:-1], u[:-1]  # step j maps x_j to x_{j+1}, j = 0..T-2
+    x_prev, us = xs[:-1], model.step_inputs(u)  # step j maps x_j to x_{j+1}, j = 0..T-2
 
     if strategy == "jacobian":
         # At[j] = (J^{x/x}_{j+1})^T = (d f(x_j, u_j) / d x_j)^T.
-        At = _stacked_jacobians_T(step, theta, x_prev, u_prev, "x")
+        At = stacked_jacobians_T(step, theta, x_prev, us, "x")
         flat, unravel = ravel_pytree(theta)
         if theta_forward_mode(flat.shape[0], n_x, T, x0.dtype.itemsize):
             # Bt[j] = (J^{x/theta}_{j+1})^T; acc = sum_j Bt[j] lam_{j+1}.
-            Bt = _stacked_jacobians_T(step, theta, x_prev, u_prev, "theta")
+            Bt = stacked_jacobians_T(step, theta, x_prev, us, "theta")
 
             def body(carry, inp):
                 lam_next, acc = carry
@@ -161,7 +141,7 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
                 return Gamma_j + _matvec(At_j, lam_next), lam_next
 
             lam0, lam_next = jax.lax.scan(body, Gamma[-1], (At, Gamma[:-1]), reverse=True)
-            theta_term = _theta_term_vjp(step, theta, x_prev, u_prev, lam_next)
+            theta_term = theta_term_vjp(step, theta, x_prev, us, lam_next)
     elif strategy == "vjp":
 
         def body(lam_next, inp):
@@ -169,8 +149,8 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
             _, vjp_x = jax.vjp(lambda x: step(x, u_j, theta), x_j)
             return Gamma_j + vjp_x(lam_next)[0], lam_next
 
-        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (x_prev, u_prev, Gamma[:-1]), reverse=True)
-        theta_term = _theta_term_vjp(step, theta, x_prev, u_prev, lam_next)
+        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (x_prev, us, Gamma[:-1]), reverse=True)
+        theta_term = theta_term_vjp(step, theta, x_prev, us, lam_next)
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
 
@@ -178,12 +158,10 @@ def one_shot(model, theta, x0, u, z, weight, penalty, penalty_weight, strategy):
     return S / T, (grad_theta, lam0 / T)
 
 
-@filter_jit
-def value_and_grad_impl(model, theta, x0, u, z, weight, penalty, penalty_weight, batched, strategy):
+@eqx.filter_jit
+def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy):
     """Jitted `value_and_grad` on validated inputs (used by `fit`)."""
-    fn = lambda x0, u, z: one_shot(  # noqa: E731
-        model, theta, x0, u, z, weight, penalty, penalty_weight, strategy
-    )
+    fn = lambda x0, u, z: one_shot(model, cost, theta, x0, u, z, strategy)  # noqa: E731
     if not batched:
         return fn(x0, u, z)
     N = x0.shape[0]
@@ -193,8 +171,17 @@ def value_and_grad_impl(model, theta, x0, u, z, weight, penalty, penalty_weight,
 
 
 def value_and_grad(
-    model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.0, strategy="auto"
-):
+    model,
+    theta: PyTree,
+    x0: Float[ArrayLike, "*N n_x"],
+    u: Float[ArrayLike, "*N T n_u"],
+    z: Float[ArrayLike, "*N T n_z"],
+    *,
+    weight: Float[ArrayLike, " n_z"] | Float[ArrayLike, "n_z n_z"] | None = None,
+    penalty=None,
+    penalty_weight: float = 1.0,
+    strategy: str = "auto",
+) -> tuple[Float[Array, ""], tuple[PyTree, Float[Array, "*N n_x"]]]:
     """The cost C of eq. (5)/(21) and its one-shot closed-form gradient, eq. (17) and (20).
 
     The gradient is the O(T) recursion of this module's docstring: a forward pass for the
@@ -212,28 +199,29 @@ def value_and_grad(
 
     **Returns:**
 
-    `(C, (grad_theta, grad_x0))` with `grad_theta` shaped like `theta` and `grad_x0` like
-    `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
+    `(C, (grad_theta, grad_x0))` with `grad_theta` shaped like `theta`'s parameters (None
+    where theta holds non-numeric parts, as `equinox.filter_grad` gives) and `grad_x0`
+    like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
-    data, penalty, lam = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
+    data = check_data(model, theta, x0, u, z, weight)
+    cost = check_cost(data, penalty, penalty_weight)
     strategy = check_strategy(strategy)
     return value_and_grad_impl(
-        model,
-        data.theta,
-        data.x0,
-        data.u,
-        data.z,
-        data.weight,
-        penalty,
-        lam,
-        data.batched,
-        strategy,
+        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy
     )
 
 
 def literal_value_and_grad(
-    model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.0
+    model,
+    theta: PyTree,
+    x0: Float[ArrayLike, "*N n_x"],
+    u: Float[ArrayLike, "*N T n_u"],
+    z: Float[ArrayLike, "*N T n_z"],
+    *,
+    weight=None,
+    penalty=None,
+    penalty_weight: float = 1.0,
 ):
     """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only).
 
@@ -241,22 +229,23 @@ def literal_value_and_grad(
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.
     Same arguments and returns as `value_and_grad` (one trajectory or N trajectories).
     """
-    data, penalty, pw = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
+    data = check_data(model, theta, x0, u, z, weight)
+    cost = check_cost(data, penalty, penalty_weight)
+    model = data.model
     flat, unravel = ravel_pytree(data.theta)
 
     def one(x0, u, z):
         T = u.shape[0]
         xs = rollout(model, data.theta, x0, u)
+        us = model.step_inputs(u)
         f = lambda x, u_k, th: model.step(x, u_k, unravel(th))  # noqa: E731
-        ell = lambda x, u_k, z_k, th: step_loss(  # noqa: E731
-            model, unravel(th), x, u_k, z_k, data.weight, penalty, pw
-        )
+        ell = lambda x, u_k, z_k, th: cost.local(model, unravel(th), x, u_k, z_k)  # noqa: E731
         L = np.asarray(jax.vmap(ell, in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
         Gamma = np.asarray(jax.vmap(jax.grad(ell, 0), in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
         gamma = np.asarray(jax.vmap(jax.grad(ell, 3), in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
         # J[k] = J^{x/x}_k and B[k] = J^{x/theta}_k for k = 1..T-1 (index 0 unused).
-        Jxx = np.asarray(jax.vmap(jax.jacfwd(f, 0), in_axes=(0, 0, None))(xs[:-1], u[:-1], flat))
-        Jxt = np.asarray(jax.vmap(jax.jacfwd(f, 2), in_axes=(0, 0, None))(xs[:-1], u[:-1], flat))
+        Jxx = np.asarray(jax.vmap(jax.jacfwd(f, 0), in_axes=(0, 0, None))(xs[:-1], us, flat))
+        Jxt = np.asarray(jax.vmap(jax.jacfwd(f, 2), in_axes=(0, 0, None))(xs[:-1], us, flat))
         n_x = x0.shape[0]
         J = np.concatenate([np.zeros((1, n_x, n_x), Jxx.dtype), Jxx])
         B = np.concatenate([np.zeros((1, n_x, flat.size), Jxt.dtype), Jxt])

@@ -1,87 +1,58 @@
 """Multi-step propagation of the model, eq. (2) and (7), and the loss of eq. (4), (5), (21)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._checks import check_data, check_penalty, filter_jit
+from ._checks import check_cost, check_data
 
 
 def rollout(model, theta, x0, u):
-    """States x[0..T-1] of eq. (7) for one trajectory: x[0] = x0, x[k+1] = f(x[k], u[k])."""
+    """States x[0..T-1] of eq. (7) for one trajectory: x[0] = x0, x[k+1] = f(x[k], u[k])
+    (f sees `model.step_inputs(u)[k]`, which is u[k] under a zero-order hold)."""
 
     def body(x, u_k):
         x_next = model.step(x, u_k, theta)
         return x_next, x_next
 
-    _, xs = jax.lax.scan(body, x0, u[:-1])
+    _, xs = jax.lax.scan(body, x0, model.step_inputs(u))
     return jnp.concatenate([x0[None], xs], axis=0)
 
 
-def step_loss(model, theta, x, u, z, weight, penalty, penalty_weight):
-    """T times the local loss L_k of eq. (4) with the penalty of eq. (21):
-
-    e^T Q e + penalty_weight * h(x, theta),  e = g(x, u, theta) - z  (eq. 3).
-    """
-    e = model.observe(x, u, theta) - z
-    if weight is None:
-        out = jnp.sum(e * e)
-    elif weight.ndim == 1:
-        out = jnp.sum(weight * e * e)
-    else:
-        out = e @ weight @ e
-    if penalty is not None:
-        out = out + penalty_weight * penalty(x, theta)
-    return out
+def outputs(model, theta, xs, u):
+    """z[k] = g(x[k], u[k], theta) for every k (eq. 1)."""
+    return jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, theta)
 
 
-def trajectory_loss(model, theta, x0, u, z, weight, penalty, penalty_weight):
-    """C of eq. (5)/(21) for one trajectory: the mean over k of `step_loss`."""
+def trajectory_loss(model, cost, theta, x0, u, z):
+    """C of eq. (5)/(21) for one trajectory: the mean over k of T L_k."""
     xs = rollout(model, theta, x0, u)
-    per_step = jax.vmap(step_loss, in_axes=(None, None, 0, 0, 0, None, None, None))(
-        model, theta, xs, u, z, weight, penalty, penalty_weight
-    )
+    per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0))(model, theta, xs, u, z)
     return jnp.mean(per_step)
 
 
-@filter_jit
-def _simulate(model, theta, x0, u, batched):
+@eqx.filter_jit
+def simulate_impl(model, theta, x0, u, batched):
     def one(x0, u):
         xs = rollout(model, theta, x0, u)
-        zs = jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, theta)
-        return xs, zs
+        return xs, outputs(model, theta, xs, u)
 
     return jax.vmap(one)(x0, u) if batched else one(x0, u)
 
 
-@filter_jit
-def _loss(model, theta, x0, u, z, weight, penalty, penalty_weight, batched):
-    fn = lambda x0, u, z: trajectory_loss(  # noqa: E731
-        model, theta, x0, u, z, weight, penalty, penalty_weight
-    )
+@eqx.filter_jit
+def loss_impl(model, cost, theta, x0, u, z, batched):
+    fn = lambda x0, u, z: trajectory_loss(model, cost, theta, x0, u, z)  # noqa: E731
     return jnp.mean(jax.vmap(fn)(x0, u, z)) if batched else fn(x0, u, z)
 
 
-def check_penalty_output(model, penalty, data):
-    if penalty is None:
-        return
-    x = data.x0[0] if data.batched else data.x0
-    out = jax.eval_shape(penalty, x, data.theta)
-    if getattr(out, "shape", None) != ():
-        raise ValueError(
-            f"`penalty` must return a scalar h(x, theta), got shape {getattr(out, 'shape', out)}."
-        )
-
-
-def check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight):
-    """Validate the arguments shared by `loss` and the gradients: (data, penalty, lambda),
-    with lambda as an array in the state's dtype."""
-    data = check_data(model, theta, x0, u, z, weight)
-    penalty, penalty_weight = check_penalty(penalty, penalty_weight)
-    check_penalty_output(model, penalty, data)
-    return data, penalty, jnp.asarray(penalty_weight, dtype=data.x0.dtype)
-
-
-def simulate(model, theta, x0, u):
+def simulate(
+    model,
+    theta: PyTree,
+    x0: Float[ArrayLike, "*N n_x"],
+    u: Float[ArrayLike, "*N T n_u"],
+) -> tuple[Float[Array, "*N T n_x"], Float[Array, "*N T n_z"]]:
     """Simulate the model over the horizon of `u`, eq. (2).
 
     **Arguments:**
@@ -98,10 +69,20 @@ def simulate(model, theta, x0, u):
     several trajectories.
     """
     data = check_data(model, theta, x0, u)
-    return _simulate(model, data.theta, data.x0, data.u, data.batched)
+    return simulate_impl(data.model, data.theta, data.x0, data.u, data.batched)
 
 
-def loss(model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.0):
+def loss(
+    model,
+    theta: PyTree,
+    x0: Float[ArrayLike, "*N n_x"],
+    u: Float[ArrayLike, "*N T n_u"],
+    z: Float[ArrayLike, "*N T n_z"],
+    *,
+    weight: Float[ArrayLike, " n_z"] | Float[ArrayLike, "n_z n_z"] | None = None,
+    penalty=None,
+    penalty_weight: float = 1.0,
+) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
     C = (1/T) sum_{k=0}^{T-1} e_k^T Q e_k + (penalty_weight / T) sum_{k=0}^{T-1} h(x_k, theta),
@@ -122,7 +103,6 @@ def loss(model, theta, x0, u, z, *, weight=None, penalty=None, penalty_weight=1.
 
     The scalar C.
     """
-    data, penalty, lam = check_loss_args(model, theta, x0, u, z, weight, penalty, penalty_weight)
-    return _loss(
-        model, data.theta, data.x0, data.u, data.z, data.weight, penalty, lam, data.batched
-    )
+    data = check_data(model, theta, x0, u, z, weight)
+    cost = check_cost(data, penalty, penalty_weight)
+    return loss_impl(data.model, cost, data.theta, data.x0, data.u, data.z, data.batched)

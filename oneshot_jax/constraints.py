@@ -186,3 +186,20 @@ def combine(constraints) -> ProjectionTransformation | None:
             return lo, hi
 
     return _from_projection(proj, bounds)
+
+
+def check_projection(proj: ProjectionTransformation, theta, rtol=1e-10):
+    """Raise a ValueError unless `proj.project` is idempotent at theta: a projection
+    satisfies P(P(p)) = P(p); a map that is not one (p -> p/2, say) would make every fit
+    report convergence wherever it happens to stop."""
+    once = proj.project(theta)
+    twice = proj.project(once)
+    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(once)])
+    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(twice)])
+    if a.shape != b.shape or not np.allclose(
+        a, b, rtol=rtol, atol=rtol * max(np.max(np.abs(a), initial=0.0), 1e-300)
+    ):
+        raise ValueError(
+            "`constraints`: the projection is not idempotent (P(P(theta0)) != P(theta0)); "
+            "a projection onto a convex set must map every point of the set to itself."
+        )

@@ -313,8 +313,22 @@ def _perturb(tree, rng, scale):
     )
 
 
-def _make(name, *, rhs, dt, theta_true, x0_true, u, noise, rng, substeps=1, observe=None,
-          theta_scale=0.05, x0_shift=None, **kwargs):
+def _make(
+    name,
+    *,
+    rhs,
+    dt,
+    theta_true,
+    x0_true,
+    u,
+    noise,
+    rng,
+    substeps=1,
+    observe=None,
+    theta_scale=0.05,
+    x0_shift=None,
+    **kwargs,
+):
     """Generate z by our own RK4 at the true values plus noise; perturb theta and x0."""
     obs = _identity if observe is None else observe
     step = own_step(rhs, dt, substeps)
@@ -331,8 +345,9 @@ def _make(name, *, rhs, dt, theta_true, x0_true, u, noise, rng, substeps=1, obse
     theta = _perturb(theta_true, rng, theta_scale)
     shift = x0_shift if x0_shift is not None else 0.05 * rng.standard_normal(x0_true.shape)
     x0 = x0_true + shift
-    return Problem(name, theta, x0, u, z, rhs=rhs, dt=dt, substeps=substeps, observe=observe,
-                   **kwargs)
+    return Problem(
+        name, theta, x0, u, z, rhs=rhs, dt=dt, substeps=substeps, observe=observe, **kwargs
+    )
 
 
 def satellite_rhs(w, M, inertia):
@@ -347,8 +362,15 @@ def satellite(T=50, seed=0):
     w0 = jnp.array([9.915e-6, -1.102e-3, 1.3179e-5])
     M = 1e-5 + 1e-7 * rng.standard_normal((T, 3))
     return _make(
-        "satellite", rhs=satellite_rhs, dt=0.1, theta_true=theta_true, x0_true=w0,
-        u=jnp.asarray(M), noise=1e-4, rng=rng, theta_scale=0.05,
+        "satellite",
+        rhs=satellite_rhs,
+        dt=0.1,
+        theta_true=theta_true,
+        x0_true=w0,
+        u=jnp.asarray(M),
+        noise=1e-4,
+        rng=rng,
+        theta_scale=0.05,
         x0_shift=jnp.array([2e-5, -1e-4, 3e-5]),
     )
 
@@ -369,9 +391,16 @@ def pendulum(T=40, seed=1, substeps=2):
     rng = _rng(seed)
     u = 0.5 * jnp.sin(0.3 * jnp.arange(T))[:, None]
     return _make(
-        "pendulum", rhs=pendulum_rhs, dt=0.05, substeps=substeps,
-        theta_true=jnp.array([9.81, 0.4]), x0_true=jnp.array([0.8, 0.0]), u=u,
-        noise=1e-2, rng=rng, observe=angle_only,
+        "pendulum",
+        rhs=pendulum_rhs,
+        dt=0.05,
+        substeps=substeps,
+        theta_true=jnp.array([9.81, 0.4]),
+        x0_true=jnp.array([0.8, 0.0]),
+        u=u,
+        noise=1e-2,
+        rng=rng,
+        observe=angle_only,
     )
 
 
@@ -386,9 +415,15 @@ def lotka_volterra(T=40, seed=2):
     rng = _rng(seed)
     u = 0.05 * jnp.abs(jnp.asarray(rng.standard_normal((T, 2))))
     return _make(
-        "lotka_volterra", rhs=lotka_volterra_rhs, dt=0.1,
-        theta_true=jnp.array([1.1, 0.4, 0.1, 0.4]), x0_true=jnp.array([2.0, 1.0]), u=u,
-        noise=0.02, rng=rng, weight=jnp.array([1.0, 2.5]),
+        "lotka_volterra",
+        rhs=lotka_volterra_rhs,
+        dt=0.1,
+        theta_true=jnp.array([1.1, 0.4, 0.1, 0.4]),
+        x0_true=jnp.array([2.0, 1.0]),
+        u=u,
+        noise=0.02,
+        rng=rng,
+        weight=jnp.array([1.0, 2.5]),
     )
 
 
@@ -412,7 +447,7 @@ def chain_rhs(x, u, theta):
 
 def chain_observe(x, u, theta):
     del u, theta
-    return x[: N_MASSES : 4]
+    return x[:N_MASSES:4]
 
 
 def spring_chain(T=20, seed=3):
@@ -426,8 +461,16 @@ def spring_chain(T=20, seed=3):
     x0_true = jnp.concatenate([0.1 * jnp.sin(jnp.linspace(0, 3, N_MASSES)), jnp.zeros(N_MASSES)])
     u = jnp.asarray(np.sin(0.5 * np.arange(T))[:, None])
     return _make(
-        "spring_chain", rhs=chain_rhs, dt=0.05, theta_true=theta_true, x0_true=x0_true,
-        u=u, noise=1e-3, rng=rng, observe=chain_observe, x0_shift=0.01 * jnp.ones(2 * N_MASSES),
+        "spring_chain",
+        rhs=chain_rhs,
+        dt=0.05,
+        theta_true=theta_true,
+        x0_true=x0_true,
+        u=u,
+        noise=1e-3,
+        rng=rng,
+        observe=chain_observe,
+        x0_shift=0.01 * jnp.ones(2 * N_MASSES),
     )
 
 
@@ -449,13 +492,27 @@ def motor_observe_u_theta(T=30, seed=4):
     """Outputs depend on u and theta, and theta is a dict with an entry that nothing reads
     (`"unused"`, whose gradient must be exactly zero)."""
     rng = _rng(seed)
-    theta_true = {"R": 1.0, "L": 0.5, "K": 0.1, "b": 0.2, "J": 0.02, "fc": 0.01,
-                  "unused": np.ones((2, 3))}
+    theta_true = {
+        "R": 1.0,
+        "L": 0.5,
+        "K": 0.1,
+        "b": 0.2,
+        "J": 0.02,
+        "fc": 0.01,
+        "unused": np.ones((2, 3)),
+    }
     theta_true = {k: jnp.asarray(v) for k, v in theta_true.items()}
     u = jnp.asarray(np.where(np.arange(T) % 10 < 5, 1.0, -0.5)[:, None])
     return _make(
-        "observe_u_theta_unused_entry", rhs=motor_rhs, dt=0.02, theta_true=theta_true,
-        x0_true=jnp.array([0.0, 0.5]), u=u, noise=1e-3, rng=rng, observe=motor_observe,
+        "observe_u_theta_unused_entry",
+        rhs=motor_rhs,
+        dt=0.02,
+        theta_true=theta_true,
+        x0_true=jnp.array([0.0, 0.5]),
+        u=u,
+        noise=1e-3,
+        rng=rng,
+        observe=motor_observe,
     )
 
 
@@ -482,9 +539,18 @@ def van_der_pol_barrier(T=30, seed=6):
     Q = L @ L.T
     u = jnp.asarray(0.2 * rng.standard_normal((T, 1)))
     return _make(
-        "nondiagonal_Q_barrier", rhs=van_der_pol_rhs, dt=0.1, theta_true=jnp.array([1.0, 1.0]),
-        x0_true=jnp.array([1.5, 0.0]), u=u, noise=0.02, rng=rng, observe=van_der_pol_observe,
-        weight=Q, penalty=vdp_barrier, penalty_weight=0.3,
+        "nondiagonal_Q_barrier",
+        rhs=van_der_pol_rhs,
+        dt=0.1,
+        theta_true=jnp.array([1.0, 1.0]),
+        x0_true=jnp.array([1.5, 0.0]),
+        u=u,
+        noise=0.02,
+        rng=rng,
+        observe=van_der_pol_observe,
+        weight=Q,
+        penalty=vdp_barrier,
+        penalty_weight=0.3,
     )
 
 
@@ -510,8 +576,16 @@ def energy_penalty(T=30, seed=8):
         return (duffing_energy(x, theta) - E_ref) ** 2
 
     return _make(
-        "energy_penalty", rhs=duffing_rhs, dt=0.1, theta_true=theta_true, x0_true=x0_true,
-        u=jnp.zeros((T, 1)), noise=1e-2, rng=rng, observe=angle_only, penalty=penalty,
+        "energy_penalty",
+        rhs=duffing_rhs,
+        dt=0.1,
+        theta_true=theta_true,
+        x0_true=x0_true,
+        u=jnp.zeros((T, 1)),
+        noise=1e-2,
+        rng=rng,
+        observe=angle_only,
+        penalty=penalty,
         penalty_weight=2.0,
     )
 
@@ -523,9 +597,17 @@ def multi_trajectory(N=4, T=25, seed=9):
     u = jnp.stack([0.3 * (i + 1) * jnp.sin(0.2 * (i + 1) * t)[:, None] for i in range(N)])
     x0_true = jnp.asarray(np.stack([[0.2 * (i + 1), 0.1 * (-1) ** i] for i in range(N)]))
     return _make(
-        "multi_trajectory", rhs=pendulum_rhs, dt=0.05, substeps=1,
-        theta_true=jnp.array([9.81, 0.4]), x0_true=x0_true, u=u, noise=1e-2, rng=rng,
-        observe=angle_only, weight=jnp.array([3.0]),
+        "multi_trajectory",
+        rhs=pendulum_rhs,
+        dt=0.05,
+        substeps=1,
+        theta_true=jnp.array([9.81, 0.4]),
+        x0_true=x0_true,
+        u=u,
+        noise=1e-2,
+        rng=rng,
+        observe=angle_only,
+        weight=jnp.array([3.0]),
     )
 
 

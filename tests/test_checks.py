@@ -42,8 +42,11 @@ def call(entry, model=MODEL, theta=THETA, x0=X0, u=U, z=Z, **kwargs):
     if entry == "simulate":
         assert not kwargs
         return oj.simulate(model, theta, x0, u)
-    fn = {"loss": oj.loss, "value_and_grad": oj.value_and_grad,
-          "literal_value_and_grad": oj.literal_value_and_grad}[entry]
+    fn = {
+        "loss": oj.loss,
+        "value_and_grad": oj.value_and_grad,
+        "literal_value_and_grad": oj.literal_value_and_grad,
+    }[entry]
     return fn(model, theta, x0, u, z, **kwargs)
 
 
@@ -62,18 +65,28 @@ SHAPE_CASES = {
     "x0 scalar": (dict(x0=jnp.asarray(1.0)), r"`x0` must have shape \(n_x,\)"),
     "x0 3-D": (dict(x0=jnp.ones((2, 1, N_X))), r"`x0` must have shape .* got shape \(2, 1, 3\)"),
     "x0 wrong n_x": (dict(x0=jnp.ones(N_X + 1)), r"`x0` of shape \(4,\)"),
-    "x0 too short, broadcasts": (dict(x0=jnp.ones(1)), r"`model.step` must return a state "
-                                 r"of shape \(1,\)"),
+    "x0 too short, broadcasts": (
+        dict(x0=jnp.ones(1)),
+        r"`model.step` must return a state "
+        r"of shape \(1,\)",
+    ),
     "u 1-D": (dict(u=jnp.ones(T)), r"`u` must have shape \(T, n_u\)"),
     "u 3-D for one trajectory": (dict(u=U[None]), r"`u` must have shape \(T, n_u\)"),
     "u wrong n_u": (dict(u=jnp.ones((T, N_U + 1))), r"`u` of shape \(6, 3\)"),
-    "u empty horizon": (dict(u=jnp.ones((0, N_U)), z=jnp.ones((0, N_Z))), r"`u` must hold "
-                        r"at least one sample"),
+    "u empty horizon": (
+        dict(u=jnp.ones((0, N_U)), z=jnp.ones((0, N_Z))),
+        r"`u` must hold "
+        r"at least one sample",
+    ),
     "u not batched like x0": (dict(x0=X0_B, z=Z_B), r"`u` must have shape \(2, T, n_u\)"),
-    "u wrong N": (dict(x0=X0_B, u=jnp.stack([U, U, U]), z=Z_B),
-                  r"`u` must have shape \(2, T, n_u\)"),
-    "no trajectories": (dict(x0=jnp.ones((0, N_X)), u=jnp.ones((0, T, N_U)),
-                             z=jnp.ones((0, T, N_Z))), r"`x0` must hold at least one trajectory"),
+    "u wrong N": (
+        dict(x0=X0_B, u=jnp.stack([U, U, U]), z=Z_B),
+        r"`u` must have shape \(2, T, n_u\)",
+    ),
+    "no trajectories": (
+        dict(x0=jnp.ones((0, N_X)), u=jnp.ones((0, T, N_U)), z=jnp.ones((0, T, N_Z))),
+        r"`x0` must hold at least one trajectory",
+    ),
 }
 
 Z_SHAPE_CASES = {
@@ -204,16 +217,22 @@ def test_bad_model(case, entry):
     model, match = BAD_MODELS[case]
     kwargs = {}
     if case == "step promotes float32 state":
-        kwargs = dict(theta={"a": jnp.float32(0.9), "B": THETA["B"].astype(jnp.float32)},
-                      x0=X0.astype(jnp.float32), u=U.astype(jnp.float32),
-                      z=Z.astype(jnp.float32))
+        kwargs = dict(
+            theta={"a": jnp.float32(0.9), "B": THETA["B"].astype(jnp.float32)},
+            x0=X0.astype(jnp.float32),
+            u=U.astype(jnp.float32),
+            z=Z.astype(jnp.float32),
+        )
     with pytest.raises(ValueError, match=match):
         call(entry, model=model, **kwargs)
 
 
 WEIGHT_VALUES = {
-    "negative diagonal": (jnp.array([1.0, -0.1]), r"`weight` \(diagonal of Q\) must be "
-                          r"non-negative"),
+    "negative diagonal": (
+        jnp.array([1.0, -0.1]),
+        r"`weight` \(diagonal of Q\) must be "
+        r"non-negative",
+    ),
     "not symmetric": (jnp.array([[1.0, 0.5], [0.0, 1.0]]), r"`weight` must be a symmetric"),
     "not PSD": (jnp.array([[1.0, 2.0], [2.0, 1.0]]), r"`weight` must be positive semi-definite"),
     "negative definite": (-jnp.eye(N_Z), r"`weight` must be positive semi-definite"),
@@ -230,10 +249,14 @@ def test_bad_weight_values(case, entry):
 
 PENALTIES = {
     "vector": (lambda x, th: x, r"`penalty` must return a scalar"),
-    "length-1 vector": (lambda x, th: jnp.sum(x, keepdims=True), r"`penalty` must return a "
-                        r"scalar"),
+    "length-1 vector": (
+        lambda x, th: jnp.sum(x, keepdims=True),
+        r"`penalty` must return a "
+        r"scalar",
+    ),
     "not callable": (1.0, r"`penalty` must be callable"),
 }
+
 
 @pytest.mark.parametrize("entry", ["loss", "value_and_grad", "literal_value_and_grad"])
 @pytest.mark.parametrize("case", ["vector", "length-1 vector"])
@@ -251,8 +274,9 @@ def test_penalty_not_callable(entry):
 
 
 @pytest.mark.parametrize("entry", WITH_Z)
-@pytest.mark.parametrize("penalty_weight", [jnp.ones(2), float("nan"), float("inf"), "heavy",
-                                            1j, None])
+@pytest.mark.parametrize(
+    "penalty_weight", [jnp.ones(2), float("nan"), float("inf"), "heavy", 1j, None]
+)
 def test_bad_penalty_weight(penalty_weight, entry):
     with pytest.raises(ValueError, match=r"`penalty_weight` must be a finite real scalar"):
         call(entry, penalty=penalty, penalty_weight=penalty_weight)
@@ -302,7 +326,7 @@ def test_float64_host_data_run_in_float32_without_x64():
         _, z = oj.simulate(model, {"k": np.array(2.0)}, x0, u)
         assert z.dtype == jnp.float32
         z = np.asarray(z, np.float64)
-        r = oj.fit(model, u, z, {"k": np.array(1.5)}, x0, solver="gauss_newton")
+        r = oj.fit(model, {"k": np.array(1.5)}, x0, u, z, solver="gauss_newton")
         assert r.theta["k"].dtype == np.float32
         assert r.success, r.stop_reason
         assert abs(float(r.theta["k"]) - 2.0) < 1e-4

@@ -25,8 +25,10 @@ def hand_loop(proj, params, target, optimiser, steps=200):
     state = tx.init(params)
 
     def loss(p):
-        return sum(jnp.sum((a - b) ** 2) for a, b in zip(jax.tree_util.tree_leaves(p),
-                                                         jax.tree_util.tree_leaves(target)))
+        return sum(
+            jnp.sum((a - b) ** 2)
+            for a, b in zip(jax.tree_util.tree_leaves(p), jax.tree_util.tree_leaves(target))
+        )
 
     @jax.jit
     def step(params, state):
@@ -127,7 +129,8 @@ def test_box_bounds_broadcast_and_default_to_infinity():
     assert np.all(np.asarray(lo["v"]) == -np.inf) and lo["v"].shape == (2, 2)
     assert all(np.all(h == 5.0) for h in leaves(hi))
     p = oc.box(lower={"k": jnp.array([0.0, 1.0, 2.0]), "m": -1.0}, upper=5.0).project(
-        {"k": jnp.array([-1.0, 7.0, 3.0]), "m": jnp.array(-3.0), "v": -9.0 * jnp.ones((2, 2))})
+        {"k": jnp.array([-1.0, 7.0, 3.0]), "m": jnp.array(-3.0), "v": -9.0 * jnp.ones((2, 2))}
+    )
     np.testing.assert_array_equal(p["k"], [0.0, 5.0, 3.0])
     assert float(p["m"]) == -1.0
     np.testing.assert_array_equal(p["v"], -9.0 * np.ones((2, 2)))
@@ -135,7 +138,8 @@ def test_box_bounds_broadcast_and_default_to_infinity():
     lo, _ = oc.box(lower=[0.0, jnp.array([1.0, 2.0])]).bounds([jnp.array(3.0), jnp.zeros(2)])
     np.testing.assert_array_equal(lo[1], [1.0, 2.0])
     x = oc.box(lower=jnp.array([0.0, 1.0]), upper=jnp.array([1.0, 2.0])).project(
-        jnp.array([-5.0, 5.0]))
+        jnp.array([-5.0, 5.0])
+    )
     np.testing.assert_array_equal(x, [0.0, 2.0])
 
 
@@ -150,8 +154,12 @@ def test_non_negative_and_positive():
 
 def test_projections_are_idempotent():
     x = {"k": jnp.array([-3.0, 0.5, 9.0]), "m": jnp.array(2.0)}
-    for proj in (oc.box(-1.0, 1.0), oc.non_negative(), oc.positive(), oc.project(
-            lambda p: jax.tree_util.tree_map(lambda a: a / jnp.maximum(1.0, jnp.abs(a)), p))):
+    for proj in (
+        oc.box(-1.0, 1.0),
+        oc.non_negative(),
+        oc.positive(),
+        oc.project(lambda p: jax.tree_util.tree_map(lambda a: a / jnp.maximum(1.0, jnp.abs(a)), p)),
+    ):
         once = proj.project(x)
         for a, b in zip(leaves(once), leaves(proj.project(once))):
             np.testing.assert_array_equal(a, b)

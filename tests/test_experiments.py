@@ -40,7 +40,8 @@ OPTIONS = [(g, o) for g, opts in GROUPS.items() for o in opts]
 def test_groups_discovered():
     assert "satellite" in GROUPS["experiment"]
     assert {"adam", "gauss_newton", "levenberg_marquardt", "slsqp", "trust_constr"} <= set(
-        GROUPS["solver"])
+        GROUPS["solver"]
+    )
 
 
 def test_default_config():
@@ -72,8 +73,9 @@ def test_experiment_solver_pairs_compose(experiment, solver):
 
 
 def test_command_line_overrides_compose():
-    cfg = _compose(["solver=gauss_newton", "experiment.T=100", "seed=3",
-                    "solver.kwargs.max_epochs=7"])
+    cfg = _compose(
+        ["solver=gauss_newton", "experiment.T=100", "seed=3", "solver.kwargs.max_epochs=7"]
+    )
     assert (cfg.solver.name, cfg.experiment.T, cfg.seed) == ("gauss_newton", 100, 3)
     assert cfg.solver.kwargs.max_epochs == 7
 
@@ -112,9 +114,20 @@ def test_cli_locates_the_checkout(tmp_path):
     assert _cli._repo_root() == REPO
     # the console script's entry point composes the same configs from any folder
     proc = subprocess.run(
-        [sys.executable, "-m", "oneshot_jax._cli", "--cfg", "job", "solver=gauss_newton",
-         "experiment.T=100", "seed=3"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "oneshot_jax._cli",
+            "--cfg",
+            "job",
+            "solver=gauss_newton",
+            "experiment.T=100",
+            "seed=3",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = OmegaConf.create(proc.stdout)
@@ -122,9 +135,14 @@ def test_cli_locates_the_checkout(tmp_path):
 
 
 SMALL = [
-    "experiment.T=20", "experiment.n_seeds=2", "experiment.horizon_seeds=2",
-    "experiment.horizons=[10,20]", "experiment.fig3.n_starts=2", "experiment.fig2.grid=12",
-    "experiment.solver_defaults.adam.max_epochs=300", "experiment.simulate_time=5",
+    "experiment.T=20",
+    "experiment.n_seeds=2",
+    "experiment.horizon_seeds=2",
+    "experiment.horizons=[10,20]",
+    "experiment.fig3.n_starts=2",
+    "experiment.fig2.grid=12",
+    "experiment.solver_defaults.adam.max_epochs=300",
+    "experiment.simulate_time=5",
     "experiment.run_methods=[slsqp_fd,slsqp_fd_one_step]",
 ]
 
@@ -133,7 +151,10 @@ def test_run_end_to_end(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, str(REPO / "experiments" / "run.py"), f"hydra.run.dir={out}", *SMALL],
-        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     res = json.loads((out / "results.json").read_text())
@@ -152,5 +173,6 @@ def test_run_end_to_end(tmp_path):
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
     # the recorded path (Figs. 2, 3) ends at the estimate, and recording does not change it
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
-    np.testing.assert_allclose(res["seed0_estimates"]["proposed"]["theta"]["I"],
-                               main["theta"]["I"], rtol=1e-9)
+    np.testing.assert_allclose(
+        res["seed0_estimates"]["proposed"]["theta"]["I"], main["theta"]["I"], rtol=1e-9
+    )

@@ -148,8 +148,14 @@ def _linear_problem(rng, T, n_x, n_u, n_z, weight_kind="none", N=None, rho=0.9):
         L = rng.standard_normal((n_z, max(n_z - 1, 1)))
         weight = jnp.asarray(L @ L.T)
     return Problem(
-        "linear", theta, x0, u, z,
-        step=linear_step, observe=linear_observe, weight=weight,
+        "linear",
+        theta,
+        x0,
+        u,
+        z,
+        step=linear_step,
+        observe=linear_observe,
+        weight=weight,
     )
 
 
@@ -177,8 +183,9 @@ def test_random_linear_systems(T, n_x, n_u, n_z, weight_kind, N, seed):
     literal = oj.literal_value_and_grad(p.model(), p.theta, p.x0, p.u, p.z, weight=p.weight)
     assert_value_and_grad_close(literal, expected)
     for strategy in STRATEGIES:
-        out = oj.value_and_grad(p.model(), p.theta, p.x0, p.u, p.z, weight=p.weight,
-                                strategy=strategy)
+        out = oj.value_and_grad(
+            p.model(), p.theta, p.x0, p.u, p.z, weight=p.weight, strategy=strategy
+        )
         assert_value_and_grad_close(out, expected)
 
 
@@ -200,9 +207,7 @@ def test_gradient_under_jit_and_vmap():
     thetas = jnp.stack([p.theta, 1.1 * p.theta])
     C, (g_theta, g_x0) = jax.vmap(fn, in_axes=(0, None))(thetas, p.x0)
     for i in range(2):
-        assert_value_and_grad_close(
-            (C[i], (g_theta[i], g_x0[i])), fn(thetas[i], p.x0), rtol=1e-12
-        )
+        assert_value_and_grad_close((C[i], (g_theta[i], g_x0[i])), fn(thetas[i], p.x0), rtol=1e-12)
 
 
 #
@@ -248,8 +253,9 @@ def test_float32_with_python_scalar_penalty_weight():
     p = problem("satellite")
     theta, x0, u, z = cast((p.theta, p.x0, p.u, p.z), jnp.float32)
     pen = lambda x, th: jnp.sum(jnp.exp(-th / 0.01))  # noqa: E731
-    C, (g_theta, g_x0) = oj.value_and_grad(p.model(), theta, x0, u, z, penalty=pen,
-                                           penalty_weight=0.5)
+    C, (g_theta, g_x0) = oj.value_and_grad(
+        p.model(), theta, x0, u, z, penalty=pen, penalty_weight=0.5
+    )
     assert C.dtype == g_theta.dtype == g_x0.dtype == jnp.float32
     assert oj.loss(p.model(), theta, x0, u, z, penalty=pen, penalty_weight=0.5).dtype == (
         jnp.float32

@@ -146,8 +146,14 @@ def _hand_loss(model, theta, x0, u, z, Q, h, lam):
 
 @pytest.mark.parametrize(
     "weight, with_penalty, batched",
-    [("identity", False, False), ("diagonal", False, True), ("matrix", False, False),
-     ("identity", True, True), ("diagonal", True, False), ("matrix", True, True)],
+    [
+        ("identity", False, False),
+        ("diagonal", False, True),
+        ("matrix", False, False),
+        ("identity", True, True),
+        ("diagonal", True, False),
+        ("matrix", True, True),
+    ],
 )
 def test_loss_equals_hand_formula(weight, with_penalty, batched, linear):
     rng = np.random.default_rng(1)
@@ -157,8 +163,11 @@ def test_loss_equals_hand_formula(weight, with_penalty, batched, linear):
         x0 = jnp.stack([x0, -x0, 2 * x0])
         u = jnp.stack([u, jnp.flip(u, 0), 0.5 * u])
     z = jnp.asarray(rng.standard_normal((*u.shape[:-1], 2)))
-    Q = {"identity": None, "diagonal": jnp.array([2.0, 0.5]),
-         "matrix": jnp.array([[2.0, 0.7], [0.7, 1.0]])}[weight]
+    Q = {
+        "identity": None,
+        "diagonal": jnp.array([2.0, 0.5]),
+        "matrix": jnp.array([[2.0, 0.7], [0.7, 1.0]]),
+    }[weight]
     h = (lambda x, th: jnp.exp(x[0] - 1.0) + th**2) if with_penalty else None  # noqa: E731
     C = oj.loss(m, th, x0, u, z, weight=Q, penalty=h, penalty_weight=0.3)
     assert C.shape == () and C.dtype == jnp.float64
@@ -181,8 +190,10 @@ def test_loss_is_zero_on_noise_free_data(linear):
 #
 
 
-@pytest.mark.parametrize("method, substeps", [("rk4", 1), ("rk4", 3), ("rk4", 12),
-                                              ("euler", 1), ("euler", 5), ("euler", 10)])
+@pytest.mark.parametrize(
+    "method, substeps",
+    [("rk4", 1), ("rk4", 3), ("rk4", 12), ("euler", 1), ("euler", 5), ("euler", 10)],
+)
 def test_from_ode_step_is_the_integrator(method, substeps):
     # substeps > 8 also exercises the fori_loop path.
     theta = jnp.array([9.81, 0.4])
@@ -195,8 +206,12 @@ def test_from_ode_step_is_the_integrator(method, substeps):
 
 ORDER_PROBLEMS = {
     "pendulum": (pendulum_rhs, jnp.array([9.81, 0.4]), jnp.array([1.0, 0.0]), 0.25),
-    "lotka_volterra": (lotka_volterra_rhs, jnp.array([1.1, 0.4, 0.1, 0.4]),
-                       jnp.array([2.0, 1.0]), 0.5),
+    "lotka_volterra": (
+        lotka_volterra_rhs,
+        jnp.array([1.1, 0.4, 0.1, 0.4]),
+        jnp.array([2.0, 1.0]),
+        0.5,
+    ),
 }
 # A held input that changes from sample to sample, over 5 samples (4 integration intervals).
 ORDER_INPUT = jnp.stack([0.3 * jnp.sin(jnp.arange(5.0)), 0.1 * jnp.cos(jnp.arange(5.0))], axis=1)
@@ -207,7 +222,13 @@ def _reference_solution(name):
     """Tsit5 with rtol = atol = 1e-12 under the same zero-order hold, at the last sample."""
     rhs, theta, x0, dt = ORDER_PROBLEMS[name]
     xs = diffrax_rollout(
-        rhs, dt, 1, theta, x0, ORDER_INPUT, solver=diffrax.Tsit5(),
+        rhs,
+        dt,
+        1,
+        theta,
+        x0,
+        ORDER_INPUT,
+        solver=diffrax.Tsit5(),
         controller=diffrax.PIDController(rtol=1e-12, atol=1e-12),
     )
     return xs[-1]
@@ -254,8 +275,9 @@ def test_model_is_jittable():
     assert tree_allclose(h(p.theta, p.x0), expected, rtol=1e-13, atol=1e-15)
     # loss and value_and_grad traced under jit give the eager answer.
     k = jax.jit(lambda th, x0: oj.loss(model, th, x0, p.u, p.z))
-    assert np.isclose(float(k(p.theta, p.x0)), float(oj.loss(model, p.theta, p.x0, p.u, p.z)),
-                      rtol=1e-13, atol=0)
+    assert np.isclose(
+        float(k(p.theta, p.x0)), float(oj.loss(model, p.theta, p.x0, p.u, p.z)), rtol=1e-13, atol=0
+    )
 
 
 def test_model_is_immutable():

@@ -6,8 +6,6 @@ of the flattened theta and of each trajectory's x0 that are not fixed, so the Ja
 columns are exactly the free variables.
 """
 
-import dataclasses
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -16,36 +14,53 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._fit import _residuals
-from oneshot_jax._solvers import Problem
+from oneshot_jax._cost import Cost
+from oneshot_jax._problem import FitProblem, Params
+from oneshot_jax._solver.optimistix import _Held, _residuals
 
 
-def symmetric_sqrt(Q):
-    vals, vecs = np.linalg.eigh(np.asarray(Q))
-    return jnp.asarray((vecs * np.sqrt(np.clip(vals, 0, None))) @ vecs.T)
-
-
-def make_problem(model, theta, x0, u, z, *, fixed=None, x0_mask=None, weight=None,
-                 penalty=None, penalty_weight=1.0):
-    """A Problem for N trajectories: x0 (N, n_x), u (N, T, n_u), z (N, T, n_z)."""
+def make_problem(
+    model,
+    theta,
+    x0,
+    u,
+    z,
+    *,
+    fixed=None,
+    x0_mask=None,
+    weight=None,
+    penalty=None,
+    penalty_weight=1.0,
+):
+    """A FitProblem for N trajectories: x0 (N, n_x), u (N, T, n_u), z (N, T, n_z)."""
     flat, unravel = ravel_pytree(theta)
-    fixed_flat = np.zeros(flat.shape, bool) if fixed is None else np.asarray(
-        ravel_pytree(jax.tree_util.tree_map(lambda f: jnp.asarray(f, float), fixed))[0]) > 0
+    fixed_flat = (
+        np.zeros(flat.shape, bool)
+        if fixed is None
+        else np.asarray(
+            ravel_pytree(jax.tree_util.tree_map(lambda f: jnp.asarray(f, float), fixed))[0]
+        )
+        > 0
+    )
     x0_mask = np.ones(x0.shape[1], bool) if x0_mask is None else np.asarray(x0_mask)
-    if weight is None:
-        sqrt_q = None
-    elif np.ndim(weight) == 1:
-        sqrt_q = jnp.sqrt(jnp.asarray(weight))
-    else:
-        sqrt_q = symmetric_sqrt(weight)
-    return Problem(
-        model=model, u=jnp.asarray(u), z=jnp.asarray(z),
-        weight=None if weight is None else jnp.asarray(weight), sqrt_q=sqrt_q,
-        penalty=penalty, penalty_weight=jnp.asarray(penalty_weight, flat.dtype),
-        theta_base=flat, theta_free=tuple(int(i) for i in np.flatnonzero(~fixed_flat)),
-        unravel=unravel, x0_base=jnp.asarray(x0),
-        x0_free=tuple(int(i) for i in np.flatnonzero(x0_mask)), project=None, lower=None,
-        upper=None, strategy="auto",
+    cost = Cost(
+        None if weight is None else jnp.asarray(weight),
+        penalty,
+        jnp.asarray(penalty_weight if penalty is not None else 0.0, flat.dtype),
+    )
+    return FitProblem(
+        model=model,
+        cost=cost,
+        u=jnp.asarray(u),
+        z=jnp.asarray(z),
+        theta_base=flat,
+        theta_free=tuple(int(i) for i in np.flatnonzero(~fixed_flat)),
+        unravel=unravel,
+        x0_base=jnp.asarray(x0),
+        x0_free=tuple(int(i) for i in np.flatnonzero(x0_mask)),
+        project=None,
+        lower=None,
+        upper=None,
     )
 
 
@@ -62,18 +77,28 @@ def assert_columns_close(actual, expected, rtol):
 
 
 @eqx.filter_jit
-def closed_form(problem, pt, px):
-    return problem.jacobian(pt, px)
+def closed_form(problem, pt, px, strategy):
+    lin = problem.jacobian(Params(pt, px), strategy)
+    return lin.r, lin.Jt, lin.Jx
+
+
+def _residuals_of(problem):
+    return lambda pt, px: problem.residuals(Params(pt, px))[0]
 
 
 @eqx.filter_jit
 def jacfwd_reference(problem, pt, px):
-    return jax.jacfwd(problem.residuals, argnums=(0, 1))(pt, px)
+    return jax.jacfwd(_residuals_of(problem), argnums=(0, 1))(pt, px)
 
 
 @eqx.filter_jit
-def bridge(problem, pt, px):
-    f = lambda pt, px: _residuals(pt, px, problem=problem)  # noqa: E731
+def bridge(problem, pt, px, strategy):
+    held = _Held(jnp.zeros(pt.shape, bool), pt)
+    n = pt.shape[0]
+
+    def f(pt, px):
+        return _residuals((pt, px), problem=problem, held=held, strategy=strategy)[: -n or None]
+
     return f(pt, px), jax.jacfwd(f, argnums=(0, 1))(pt, px)
 
 
@@ -85,11 +110,13 @@ def bridge(problem, pt, px):
 def rich_step(x, u, th):
     """Nonlinear 3-state map with a dict theta (vector, scalar and matrix leaves)."""
     k, c, M = th["k"], th["c"], th["M"]
-    return x + 0.1 * jnp.stack([
-        k[0] * x[1] - c * x[0] ** 3 + u[0],
-        -k[1] * jnp.sin(x[0]) + M[0, 0] * x[2] + M[0, 1] * u[1],
-        -k[2] * x[2] + M[1, 0] * x[0] * x[1] + M[1, 1] * u[0],
-    ])
+    return x + 0.1 * jnp.stack(
+        [
+            k[0] * x[1] - c * x[0] ** 3 + u[0],
+            -k[1] * jnp.sin(x[0]) + M[0, 0] * x[2] + M[0, 1] * u[1],
+            -k[2] * x[2] + M[1, 0] * x[0] * x[1] + M[1, 1] * u[0],
+        ]
+    )
 
 
 def rich_observe(x, u, th):
@@ -97,8 +124,11 @@ def rich_observe(x, u, th):
     return jnp.stack([x[0] + th["c"] * u[0], x[1] * x[2], jnp.tanh(th["k"][0] * x[2])])
 
 
-RICH_THETA = {"k": jnp.array([1.2, 0.8, 0.5]), "c": jnp.array(0.3),
-              "M": jnp.array([[0.4, -0.7], [0.9, 0.2]])}
+RICH_THETA = {
+    "k": jnp.array([1.2, 0.8, 0.5]),
+    "c": jnp.array(0.3),
+    "M": jnp.array([[0.4, -0.7], [0.9, 0.2]]),
+}
 
 
 def barrier(x, th):
@@ -115,7 +145,8 @@ def rich_problem(N, T, seed, **kwargs):
     z = zs + 0.05 * rng.standard_normal(zs.shape)
     # Evaluate away from the data's parameters, so residuals and Jacobians are generic.
     theta = jax.tree_util.tree_map(
-        lambda a: a * (1 + 0.1 * rng.standard_normal(a.shape)), RICH_THETA)
+        lambda a: a * (1 + 0.1 * rng.standard_normal(a.shape)), RICH_THETA
+    )
     return make_problem(model, theta, x0 + 0.05, u, z, **kwargs)
 
 
@@ -125,12 +156,19 @@ CASES = {
     # Fixed entries inside leaves, an x0 mask, three trajectories, a non-diagonal singular
     # PSD weight and a penalty, all at once.
     "fixed_elements-x0_mask-N3-nondiagonal_Q-penalty": lambda: rich_problem(
-        3, 15, 0,
+        3,
+        15,
+        0,
         fixed={"k": [False, True, False], "c": False, "M": [[False, True], [False, False]]},
-        x0_mask=[True, False, True], weight=L @ L.T, penalty=barrier, penalty_weight=0.7),
+        x0_mask=[True, False, True],
+        weight=L @ L.T,
+        penalty=barrier,
+        penalty_weight=0.7,
+    ),
     # A whole leaf fixed, a diagonal weight, one trajectory, no penalty.
     "fixed_leaf-diagonal_Q-N1": lambda: rich_problem(
-        1, 20, 1, fixed={"k": False, "c": True, "M": False}, weight=np.array([1.0, 2.5, 0.3])),
+        1, 20, 1, fixed={"k": False, "c": True, "M": False}, weight=np.array([1.0, 2.5, 0.3])
+    ),
     # The satellite of Section 4 (RK4 with two substeps, tiny scales: theta ~ 1e-2,
     # x0 ~ 1e-3 .. 1e-5), everything free.
     "satellite_rk4": lambda: satellite_problem(),
@@ -166,24 +204,27 @@ def satellite_problem():
     return make_problem(model, theta * jnp.array([1.1, 0.9, 1.05]), w0 * 1.3, M, z)
 
 
-@pytest.fixture(scope="module", params=[(c, s) for c in CASES for s in ("jacobian", "vjp")],
-                ids=lambda p: "-".join(p))
+@pytest.fixture(
+    scope="module",
+    params=[(c, s) for c in CASES for s in ("jacobian", "vjp")],
+    ids=lambda p: "-".join(p),
+)
 def case(request):
     """Each case with both ways of evaluating the sensitivity recursion: formed per-step
     Jacobians after the forward pass ("jacobian") and matrix-free JVPs in the scan ("vjp")."""
     name, strategy = request.param
-    problem = dataclasses.replace(CASES[name](), strategy=strategy)
+    problem = CASES[name]()
     pt, px = problem.split(problem.theta_base, problem.x0_base)
-    return problem, pt, px
+    return problem, pt, px, strategy
 
 
 def test_closed_form_jacobian_equals_jacfwd_of_residuals(case):
-    problem, pt, px = case
-    r, Jt, Jx = closed_form(problem, pt, px)
+    problem, pt, px, strategy = case
+    r, Jt, Jx = closed_form(problem, pt, px, strategy)
     N, R = r.shape
     assert Jt.shape == (N, R, len(problem.theta_free))
     assert Jx.shape == (N, R, len(problem.x0_free))
-    np.testing.assert_allclose(r, problem.residuals(pt, px), rtol=1e-13, atol=0)
+    np.testing.assert_allclose(r, _residuals_of(problem)(pt, px), rtol=1e-13, atol=0)
     Jt_ref, Jx_ref = jacfwd_reference(problem, pt, px)
     # Jt_ref: (N, R, p); Jx_ref: (N, R, N, m), where only trajectory i's x0 moves r_i.
     assert_columns_close(Jt.reshape(N * R, -1), Jt_ref.reshape(N * R, -1), rtol=1e-10)
@@ -196,11 +237,19 @@ def test_closed_form_jacobian_equals_jacfwd_of_residuals(case):
 
 def test_residuals_square_to_the_loss(case):
     """||r||^2 is the multi-step cost C of eq. (5)/(21) (mean over trajectories)."""
-    problem, pt, px = case
-    r = problem.residuals(pt, px)
+    problem, pt, px, _ = case
+    r = _residuals_of(problem)(pt, px)
     theta, x0 = problem.theta_of(pt), problem.x0_of(px)
-    C = oj.loss(problem.model, theta, x0, problem.u, problem.z, weight=problem.weight,
-                penalty=problem.penalty, penalty_weight=float(problem.penalty_weight))
+    C = oj.loss(
+        problem.model,
+        theta,
+        x0,
+        problem.u,
+        problem.z,
+        weight=problem.cost.weight,
+        penalty=problem.cost.penalty,
+        penalty_weight=float(problem.cost.penalty_weight),
+    )
     assert float(jnp.sum(r**2)) == pytest.approx(float(C), rel=1e-12)
     # Fixed entries are constants: theta_of / x0_of put the base values back.
     fixed = np.setdiff1d(np.arange(problem.theta_base.size), problem.theta_free)
@@ -212,9 +261,9 @@ def test_residuals_square_to_the_loss(case):
 
 def test_optimistix_bridge_jvp_is_the_closed_form_jacobian(case):
     """The custom JVP that feeds optimistix gives the same Jacobian."""
-    problem, pt, px = case
-    r_b, (Jt, Jx) = bridge(problem, pt, px)
-    r, Jt_cf, Jx_cf = closed_form(problem, pt, px)
+    problem, pt, px, strategy = case
+    r_b, (Jt, Jx) = bridge(problem, pt, px, strategy)
+    r, Jt_cf, Jx_cf = closed_form(problem, pt, px, strategy)
     N, R = r.shape
     np.testing.assert_allclose(r_b, r.reshape(-1), rtol=1e-13, atol=0)
     assert_columns_close(Jt, Jt_cf.reshape(N * R, -1), rtol=1e-12)
@@ -223,15 +272,15 @@ def test_optimistix_bridge_jvp_is_the_closed_form_jacobian(case):
 
 
 def test_inactive_penalty_rows_are_zero_and_active_rows_match():
-    """A signed h enters as sqrt(max(lambda h, 0)): rows where h <= 0 carry neither residual
-    nor gradient (jacfwd gives 0 * inf = NaN there); active rows match jacfwd."""
+    """h = max(x0 - 0.1, 0)^2 enters as sqrt(lambda h): rows where h = 0 carry neither
+    residual nor gradient (jacfwd gives 0 * inf = NaN there); active rows match jacfwd."""
 
-    def signed(x, th):
-        return x[0] - 0.1 + 0.0 * th["c"]  # positive on part of the trajectory only
+    def one_sided(x, th):
+        return jnp.maximum(x[0] - 0.1, 0.0) ** 2 + 0.0 * th["c"]
 
-    problem = rich_problem(1, 20, 3, penalty=signed, penalty_weight=2.0)
+    problem = rich_problem(1, 20, 3, penalty=one_sided, penalty_weight=2.0)
     pt, px = problem.split(problem.theta_base, problem.x0_base)
-    r, Jt, Jx = closed_form(problem, pt, px)
+    r, Jt, Jx = closed_form(problem, pt, px, "auto")
     n_data = 20 * 3
     h = np.asarray(r[0, n_data:])
     active = h > 0
@@ -243,3 +292,23 @@ def test_inactive_penalty_rows_are_zero_and_active_rows_match():
     rows = np.concatenate([np.ones(n_data, bool), active])
     err = np.linalg.norm(J[rows] - J_ref[rows], axis=0)
     assert np.all(err <= 1e-10 * np.linalg.norm(J_ref[rows], axis=0))
+
+
+def test_negative_penalty_is_reported_by_the_linearisation():
+    """A signed h cannot be a squared residual: the linearisation reports min lambda h, which
+    the least-squares solvers stop on (never a silent clip)."""
+
+    def signed(x, th):
+        return x[0] - 0.1 + 0.0 * th["c"]
+
+    problem = rich_problem(1, 20, 3, penalty=signed, penalty_weight=2.0)
+    params = problem.split(problem.theta_base, problem.x0_base)
+    for strategy in ("jacobian", "vjp"):
+        lin = eqx.filter_jit(problem.jacobian)(params, strategy)
+        xs, _ = oj.simulate(
+            problem.model, problem.theta_of(params.theta), problem.x0_base[0], problem.u[0]
+        )
+        assert float(lin.h_min) == pytest.approx(2.0 * float(jnp.min(xs[:, 0] - 0.1)), rel=1e-12)
+        assert float(lin.h_min) < 0
+    _, h_min = problem.residuals(params)
+    assert float(h_min) < 0

@@ -1,0 +1,149 @@
+"""From the solvers' raw output to a `FitResult`: the traced post-processing inside the
+fit's compiled call (`post`), and the host-side assembly (`assemble`)."""
+
+import warnings
+
+import jax
+import numpy as np
+
+from . import _pytree
+from . import metrics as _metrics
+from ._covariance import covariance, scale
+from ._fit_result import FitHistory, FitResult, Starts
+from ._results import from_index, name_of
+from ._simulate import simulate_impl
+
+
+def post(problem, params, blocks, strategy):
+    """Everything `FitResult` needs from the solution, traced inside the fit's compiled
+    call: theta (flat), x0, the residuals, the covariance blocks and the metrics."""
+    theta = problem.theta_of(params.theta)
+    X0 = problem.x0_of(params.x0)
+    _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True)
+    cov = covariance(problem, params, strategy, blocks)
+    zs = problem.z
+    n_free = params.theta.shape[0] + params.x0.size
+    met = {
+        "rmse": _metrics.rmse(zs, zhat),
+        "nrmse": _metrics.nrmse(zs, zhat),
+        "fit_percent": _metrics.fit_percent(zs, zhat),
+        "r2": _metrics.r2(zs, zhat),
+        "aic": _metrics.aic(zs, zhat, n_free),
+    }
+    theta_flat = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(params.theta)
+    return theta_flat, X0, zhat - zs, cov, met
+
+
+def _history(problem, stages, best, like):
+    """One `FitHistory` from every stage's bounded buffer (the best start's rows)."""
+    losses, gnorms, paths, steps, stage_ids = [], [], [], [], []
+    base = np.asarray(problem.theta_base)
+    free = list(problem.theta_free)
+    for i, sol in enumerate(stages):
+        h = jax.tree_util.tree_map(lambda a: np.asarray(a)[best], sol.history)
+        n = int(h.count)
+        flat = np.broadcast_to(base, (n, base.shape[0])).copy()
+        flat[:, free] = h.theta[:n]
+        losses.append(h.loss[:n])
+        gnorms.append(h.grad_norm[:n])
+        paths.append(flat)
+        steps.append(h.step[:n])
+        stage_ids.append(np.full(n, i, np.int32))
+    return FitHistory(
+        loss=np.concatenate(losses),
+        grad_norm=np.concatenate(gnorms),
+        theta=_pytree.unflatten_rows(np.concatenate(paths), like),
+        step=np.concatenate(steps),
+        stage=np.concatenate(stage_ids),
+    )
+
+
+def _warn_identifiability(names, ok, what):
+    bad = [n for n, k in zip(names, ok) if not k]
+    if bad:
+        warnings.warn(
+            f"the Jacobian is rank-deficient at the solution: {what} {bad} do not change the "
+            "outputs there (not identifiable from these data); their std is inf.",
+            stacklevel=4,
+        )
+
+
+def assemble(
+    *,
+    model,
+    problem,
+    data,
+    stages,
+    best,
+    posted,
+    wall_time,
+    solvers,
+    fixed,
+    x0_estimated,
+    multistart,
+) -> FitResult:
+    """The `FitResult` of the best start, on the host."""
+    theta_flat, X0, e, cov, met = jax.tree_util.tree_map(np.asarray, posted)
+    like = jax.tree_util.tree_map(np.asarray, data.theta)
+    params = _pytree.unflatten_rows(theta_flat[None], like, squeeze=True)
+    final = stages[-1]
+    free = np.asarray(problem.theta_free, int)
+    all_names = _pytree.leaf_names(params)
+    names = tuple(all_names[i] for i in free)
+
+    n_obs = int(e.size)
+    scaled = scale(cov, n_obs)
+    _warn_identifiability(names, scaled.theta_identifiable, "parameters")
+    x0_names = [
+        f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
+        for i in range(X0.shape[0])
+        for j in problem.x0_free
+    ]
+    _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
+
+    flat_std = np.zeros(theta_flat.shape)
+    flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0)) if free.size else []
+    std = _pytree.unflatten_rows(flat_std[None], like, squeeze=True)
+    x0_free = np.asarray(problem.x0_free, int)
+    x0_std = np.zeros(X0.shape)
+    if x0_free.size:
+        x0_std[:, x0_free] = np.sqrt(np.maximum(np.diagonal(scaled.x0, axis1=1, axis2=2), 0.0))
+    x0_cov = scaled.x0
+
+    results = np.asarray(final.result._value)
+    losses = np.asarray(final.loss)
+    starts = None
+    if multistart:
+        rows = np.broadcast_to(np.asarray(problem.theta_base), (losses.shape[0], theta_flat.size))
+        rows = rows.copy()
+        rows[:, free] = np.asarray(final.params.theta)
+        starts = Starts(
+            theta=_pytree.unflatten_rows(rows, like),
+            loss=losses,
+            stop_reason=tuple(name_of(from_index(int(c))) for c in results),
+        )
+    metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
+    if not data.batched:
+        X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
+    return FitResult(
+        theta=_pytree.combine(params, data.static),
+        x0=X0,
+        loss=np.asarray(losses[best]),
+        stop_reason=from_index(int(results[best])),
+        num_steps=int(sum(int(np.asarray(s.num_steps)[best]) for s in stages)),
+        wall_time=float(wall_time),
+        history=_history(problem, stages, best, like),
+        residuals=e,
+        names=names,
+        fixed=np.asarray(fixed, bool),
+        covariance=scaled.theta,
+        std=std,
+        x0_covariance=x0_cov,
+        x0_std=x0_std,
+        x0_estimated=np.asarray(x0_estimated, bool),
+        metrics=metrics,
+        starts=starts,
+        best=int(best),
+        solver=tuple(s.settings() for s in solvers),
+        model=model,
+    )

@@ -1,0 +1,172 @@
+"""`FitResult`: what `fit` returns (cf. scipy's OptimizeResult and MATLAB's idnlgrey
+reports), a pytree that prints as a parameter table, simulates the fitted model and saves
+to one file."""
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from . import _pytree
+from ._results import RESULTS, is_success, name_of
+
+
+class FitHistory(eqx.Module):
+    """The recorded iterates of a fit (bounded: see `fit(history=...)`).
+
+    **Fields:**
+
+    - `loss`, `grad_norm`: C and ||grad C|| at each recorded step (NaN where a solver has
+        no gradient at hand).
+    - `theta`: the iterates, theta's parameter pytree with a leading axis of rows.
+    - `step`: the step each row was recorded at, counted from the start of its stage.
+    - `stage`: which solver of a sequence the row belongs to (0 for a single solver).
+    """
+
+    loss: np.ndarray
+    grad_norm: np.ndarray
+    theta: Any
+    step: np.ndarray
+    stage: np.ndarray
+
+    def __len__(self):
+        return int(np.shape(self.loss)[0])
+
+
+class Starts(eqx.Module):
+    """Per-start outcomes of a multistart fit.
+
+    **Fields:**
+
+    - `theta`: theta's parameter pytree with a leading axis of starts.
+    - `loss`: the final loss of each start.
+    - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
+    """
+
+    theta: Any
+    loss: np.ndarray
+    stop_reason: tuple = eqx.field(static=True)
+
+
+class FitResult(eqx.Module):
+    """The estimate, why the solver stopped, its uncertainty and its fit to the data.
+
+    **Fields:**
+
+    - `theta`: the estimated parameters, same pytree as `theta0` (a start of it for a
+        multistart fit).
+    - `x0`: the estimated initial state(s), shape (n_x,) or (N, n_x).
+    - `loss`: the final C of eq. (5)/(21): the objective at `theta`, `x0`.
+    - `stop_reason`: a `RESULTS` item; `message` says why in words, `success` whether it
+        converged.
+    - `num_steps`: the solver steps taken (all solvers of a sequence together).
+    - `wall_time`: seconds of the compiled solve with its covariance and metrics
+        (compilation included on the first call of a configuration), without the input
+        checks.
+    - `history`: a `FitHistory` of the iterates.
+    - `residuals`: e = zhat - z, the shape of `z`.
+    - `names`: a name per free parameter (`"k"`, `"I[2]"`, `"net.layers.0.weight[1, 3]"`).
+    - `fixed`: a flat boolean mask over theta's parameter entries (True where fixed).
+    - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta (J the data-residual
+        Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free)); inf in the
+        rows and columns of a parameter the data do not determine. The least-squares
+        solvers take J from their last linearisation, at the returned point or one
+        converged step (of scaled size <= rtol) before it.
+    - `std`: standard errors shaped like theta's parameters (0 where fixed).
+    - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
+        `x0_std`: standard errors shaped like `x0` (0 where not estimated).
+    - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries.
+    - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, on the fitted data.
+    - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
+    - `solver`: the settings of the solver(s) that ran, as dicts.
+    - `model`: the fitted `Model` (None for a result loaded without one).
+    """
+
+    theta: Any
+    x0: np.ndarray
+    loss: np.ndarray
+    stop_reason: RESULTS
+    num_steps: int
+    wall_time: float
+    history: FitHistory
+    residuals: np.ndarray
+    names: tuple = eqx.field(static=True)
+    fixed: np.ndarray
+    covariance: np.ndarray
+    std: Any
+    x0_covariance: np.ndarray
+    x0_std: np.ndarray
+    x0_estimated: np.ndarray
+    metrics: dict
+    starts: Starts | None
+    best: int
+    solver: tuple
+    model: Any = None
+
+    @property
+    def success(self) -> bool:
+        """Whether the solver converged (`converged`, `tol_loss` or `tol_grad`)."""
+        return is_success(self.stop_reason)
+
+    @property
+    def message(self) -> str:
+        """Why the solver stopped, in words."""
+        return RESULTS[self.stop_reason]
+
+    @property
+    def ci95(self):
+        """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper)."""
+        params, _ = _pytree.split(self.theta)
+        lo = jax.tree_util.tree_map(lambda v, s: np.asarray(v) - 1.96 * s, params, self.std)
+        hi = jax.tree_util.tree_map(lambda v, s: np.asarray(v) + 1.96 * s, params, self.std)
+        return lo, hi
+
+    def simulate(self, u, x0=None):
+        """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`
+        (default: the fitted initial state, which needs the shape of the fitted data).
+
+        **Returns:**
+
+        `(x, z)` as `oneshot_jax.simulate`.
+        """
+        from ._simulate import simulate
+
+        if self.model is None:
+            raise ValueError(
+                "this result holds no model (it was loaded without one): pass "
+                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.simulate`."
+            )
+        return simulate(self.model, self.theta, self.x0 if x0 is None else x0, u)
+
+    def save(self, path):
+        """Save to one `.npz` file (see `oneshot_jax.load_result` for the format)."""
+        from ._io import save_result
+
+        return save_result(self, path)
+
+    def __str__(self):
+        params, _ = _pytree.split(self.theta)
+        flat = _pytree.flat_host(params)
+        std = _pytree.flat_host(self.std)
+        rows = [f"oneshot_jax fit: {name_of(self.stop_reason)} ({self.message})"]
+        rows.append(
+            f"  loss {float(self.loss):.6e} after {self.num_steps} steps in "
+            f"{self.wall_time:.3g} s (wall, compilation included)"
+        )
+        rows.append(f"  {'parameter':<14}{'value':>14}{'std':>12}{'95% interval':>30}")
+        names = _pytree.leaf_names(params)
+        for name, v, s, f in zip(names, flat, std, self.fixed):
+            if f:
+                ci = "(fixed)"
+            elif np.isfinite(s):
+                ci = f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]"
+            else:
+                ci = "(not identifiable)"
+            rows.append(f"  {name:<14}{v:>14.6g}{s:>12.3g}{ci:>30}")
+        fitp = ", ".join(f"{f:.2f}" for f in np.atleast_1d(self.metrics["fit_percent"]))
+        rmse = ", ".join(f"{f:.4g}" for f in np.atleast_1d(self.metrics["rmse"]))
+        rows.append(f"  FIT% [{fitp}]  RMSE [{rmse}]  AIC {float(self.metrics['aic']):.4g}")
+        return "\n".join(rows)
+
+    __repr__ = __str__

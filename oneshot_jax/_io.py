@@ -1,0 +1,228 @@
+"""Saving and loading a `FitResult`: one `.npz` file, documented format, versioned.
+
+The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle):
+
+- `__meta__`: a JSON document (a 0-d unicode array) with `format`
+  ("oneshot_jax.FitResult"), `version` (1), the structure of theta (`theta_tree`: nested
+  `{"dict": {...}}`, `{"list": [...]}`, `{"tuple": [...]}`, `{"none": null}` and
+  `{"leaf": i}` nodes, or null for a structure JSON cannot describe), `names`,
+  `stop_reason` (a `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the
+  settings of each solver), the metric names and `starts_stop_reason`.
+- arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order), `x0`,
+  `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
+  `history/loss`, `history/grad_norm`, `history/step`, `history/stage`,
+  `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
+  `starts/loss`.
+
+Values round-trip exactly (same dtypes and bits). Functions cannot be saved: a theta that
+holds equinox modules (a neural residual) is saved by its arrays, and `load_result`
+needs `like=` (a theta of the same structure, e.g. theta0) to rebuild it; the model is
+never saved (pass `model=` to `load_result` to simulate).
+"""
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from . import _pytree
+from ._fit_result import FitHistory, FitResult, Starts
+from ._results import from_name, name_of
+
+FORMAT = "oneshot_jax.FitResult"
+VERSION = 1
+
+
+def _encode_tree(tree):
+    """theta's structure as JSON, or None when it holds other node types."""
+    counter = iter(range(10**9))
+
+    def enc(node):
+        if node is None:
+            return {"none": None}
+        if isinstance(node, dict):
+            if not all(isinstance(k, str) for k in node):
+                raise TypeError
+            return {"dict": {k: enc(v) for k, v in node.items()}}
+        if isinstance(node, list):
+            return {"list": [enc(v) for v in node]}
+        if type(node) is tuple:
+            return {"tuple": [enc(v) for v in node]}
+        if _pytree.is_parameter(node):
+            return {"leaf": next(counter)}
+        raise TypeError
+
+    try:
+        return enc(tree)
+    except TypeError:
+        return None
+
+
+def _decode_tree(spec, leaves):
+    if "none" in spec:
+        return None
+    if "dict" in spec:
+        return {k: _decode_tree(v, leaves) for k, v in spec["dict"].items()}
+    if "list" in spec:
+        return [_decode_tree(v, leaves) for v in spec["list"]]
+    if "tuple" in spec:
+        return tuple(_decode_tree(v, leaves) for v in spec["tuple"])
+    return leaves[spec["leaf"]]
+
+
+def _leaves(tree):
+    return [np.asarray(a) for a in jax.tree_util.tree_leaves(tree)]
+
+
+def save_result(result: FitResult, path):
+    """Write `result` to `path` (a `.npz` file; the suffix is added when missing).
+
+    **Returns:**
+
+    The path written.
+    """
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    params, _ = _pytree.split(result.theta)
+    arrays = {}
+    for i, a in enumerate(_leaves(params)):
+        arrays[f"theta/{i}"] = a
+    for i, a in enumerate(_leaves(result.std)):
+        arrays[f"std/{i}"] = a
+    for i, a in enumerate(_leaves(result.history.theta)):
+        arrays[f"history/theta/{i}"] = a
+    for key in ("loss", "grad_norm", "step", "stage"):
+        arrays[f"history/{key}"] = np.asarray(getattr(result.history, key))
+    for key in ("x0", "x0_std", "x0_covariance", "x0_estimated", "loss", "residuals"):
+        arrays[key] = np.asarray(getattr(result, key))
+    arrays["fixed"] = np.asarray(result.fixed)
+    arrays["covariance"] = np.asarray(result.covariance)
+    for key, value in result.metrics.items():
+        arrays[f"metrics/{key}"] = np.asarray(value)
+    if result.starts is not None:
+        for i, a in enumerate(_leaves(result.starts.theta)):
+            arrays[f"starts/theta/{i}"] = a
+        arrays["starts/loss"] = np.asarray(result.starts.loss)
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "theta_tree": _encode_tree(params),
+        "names": list(result.names),
+        "stop_reason": name_of(result.stop_reason),
+        "num_steps": int(result.num_steps),
+        "wall_time": float(result.wall_time),
+        "best": int(result.best),
+        "solver": [dict(s) for s in result.solver],
+        "metrics": {
+            k: ("float" if isinstance(v, float) else "array") for k, v in result.metrics.items()
+        },
+        "starts_stop_reason": None if result.starts is None else list(result.starts.stop_reason),
+    }
+    arrays["__meta__"] = np.array(json.dumps(meta))
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+    return path
+
+
+def load_result(path, *, model=None, like=None) -> FitResult:
+    """Load a `FitResult` written by `FitResult.save`.
+
+    **Arguments:**
+
+    - `path`: the `.npz` file.
+    - `model`: the `Model`, for `FitResult.simulate` (models are not saved).
+    - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
+        equinox modules or other nodes that the file's JSON cannot describe; its
+        non-numeric parts are put back around the loaded arrays.
+
+    **Returns:**
+
+    The `FitResult`, equal to the saved one field by field.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"`path`: no saved result at {path}.")
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    if "__meta__" not in arrays:
+        raise ValueError(f"`path`: {path} is not a saved oneshot_jax FitResult (no __meta__).")
+    meta = json.loads(str(arrays["__meta__"]))
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"`path`: {path} holds {meta.get('format')!r}, not a {FORMAT}.")
+    if meta.get("version") != VERSION:
+        raise ValueError(
+            f"`path`: {path} has format version {meta.get('version')}; this oneshot_jax "
+            f"reads version {VERSION}."
+        )
+
+    def group(prefix):
+        n = sum(1 for k in arrays if k.startswith(prefix) and k[len(prefix) :].isdigit())
+        return [arrays[f"{prefix}{i}"] for i in range(n)]
+
+    static = None
+    if like is not None:
+        like_params, static = _pytree.split(like)
+        treedef = jax.tree_util.tree_structure(like_params)
+
+        def build(leaves):
+            if len(leaves) != treedef.num_leaves:
+                raise ValueError(
+                    f"`like` has {treedef.num_leaves} parameter leaves, the saved theta "
+                    f"{len(leaves)}."
+                )
+            return jax.tree_util.tree_unflatten(treedef, leaves)
+
+    elif meta["theta_tree"] is not None:
+
+        def build(leaves):
+            return _decode_tree(meta["theta_tree"], leaves)
+
+    else:
+        raise ValueError(
+            "the saved theta's structure is not plain dicts/lists/tuples (it holds other "
+            "pytree nodes, e.g. equinox modules): pass `like=` a theta of that structure."
+        )
+
+    params = build(group("theta/"))
+    history = FitHistory(
+        loss=arrays["history/loss"],
+        grad_norm=arrays["history/grad_norm"],
+        theta=build(group("history/theta/")),
+        step=arrays["history/step"],
+        stage=arrays["history/stage"],
+    )
+    metrics = {
+        k: (float(arrays[f"metrics/{k}"]) if kind == "float" else arrays[f"metrics/{k}"])
+        for k, kind in meta["metrics"].items()
+    }
+    starts = None
+    if meta["starts_stop_reason"] is not None:
+        starts = Starts(
+            theta=build(group("starts/theta/")),
+            loss=arrays["starts/loss"],
+            stop_reason=tuple(meta["starts_stop_reason"]),
+        )
+    return FitResult(
+        theta=_pytree.combine(params, static),
+        x0=arrays["x0"],
+        loss=arrays["loss"],
+        stop_reason=from_name(meta["stop_reason"]),
+        num_steps=int(meta["num_steps"]),
+        wall_time=float(meta["wall_time"]),
+        history=history,
+        residuals=arrays["residuals"],
+        names=tuple(meta["names"]),
+        fixed=arrays["fixed"],
+        covariance=arrays["covariance"],
+        std=build(group("std/")),
+        x0_covariance=arrays["x0_covariance"],
+        x0_std=arrays["x0_std"],
+        x0_estimated=arrays["x0_estimated"],
+        metrics=metrics,
+        starts=starts,
+        best=int(meta["best"]),
+        solver=tuple(meta["solver"]),
+        model=model,
+    )

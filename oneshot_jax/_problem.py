@@ -1,0 +1,148 @@
+"""What a fit optimises: the data, the cost and the parametrisation of the free variables.
+
+The free variables are two arrays, `Params.theta` (the free entries of the flattened
+theta) and `Params.x0` (N, m) (the free entries of each trajectory's initial state).
+Fixed entries are constants inside `FitProblem.theta_of` / `FitProblem.x0_of`, so they are
+removed from the variables rather than masked (a masked variable leaves a singular
+Jacobian).
+"""
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from ._cost import Cost
+from ._gradient import value_and_grad_impl
+from ._sensitivity import Linearisation, trajectory_jacobian, trajectory_residuals
+from ._simulate import loss_impl
+from ._strategy import sensitivity_strategy
+
+
+class Params(NamedTuple):
+    """The free variables of a fit: theta's free entries (p,) and x0's free entries (N, m)."""
+
+    theta: jax.Array
+    x0: jax.Array
+
+
+class FitProblem(eqx.Module):
+    """Data, cost and parametrisation of the free variables (built by `fit`)."""
+
+    model: eqx.Module
+    cost: Cost
+    u: jax.Array  # (N, T, n_u)
+    z: jax.Array  # (N, T, n_z)
+    theta_base: jax.Array  # flat theta with the fixed values
+    theta_free: tuple = eqx.field(static=True)  # indices of the free entries (tuple of int)
+    unravel: Callable = eqx.field(static=True)
+    x0_base: jax.Array  # (N, n_x) with the fixed values
+    x0_free: tuple = eqx.field(static=True)
+    project: Callable | None = eqx.field(static=True)  # a general projection, or None
+    lower: jax.Array | None  # box bounds on Params.theta (or None)
+    upper: jax.Array | None
+
+    @property
+    def dtype(self):
+        return self.x0_base.dtype
+
+    @property
+    def n_traj(self):
+        return self.u.shape[0]
+
+    def theta_of(self, p_theta):
+        return self.unravel(self.theta_base.at[np.asarray(self.theta_free, int)].set(p_theta))
+
+    def x0_of(self, p_x0):
+        return jnp.asarray(self.x0_base).at[:, np.asarray(self.x0_free, int)].set(p_x0)
+
+    def split(self, theta_flat, x0) -> Params:
+        """The free variables of a flat theta and an (N, n_x) x0."""
+        return Params(
+            theta_flat[np.asarray(self.theta_free, int)], x0[:, np.asarray(self.x0_free, int)]
+        )
+
+    def feasible(self, p_theta):
+        """Project p_theta onto the constraint set (exactly: the result is inside)."""
+        if self.lower is not None:
+            p_theta = jnp.clip(p_theta, self.lower, self.upper)
+        if self.project is not None:
+            flat, _ = ravel_pytree(self.project(self.theta_of(p_theta)))
+            p_theta = flat[np.asarray(self.theta_free, int)]
+            if self.lower is not None:
+                p_theta = jnp.clip(p_theta, self.lower, self.upper)
+        return p_theta
+
+    def loss(self, params: Params):
+        """C (eq. 5/21) at the free variables: one simulation."""
+        return loss_impl(
+            self.model,
+            self.cost,
+            self.theta_of(params.theta),
+            self.x0_of(params.x0),
+            self.u,
+            self.z,
+            True,
+        )
+
+    def value_and_grad(self, params: Params, strategy):
+        """C and its gradient in the free variables, by the one-shot recursion (eq. 17, 20)."""
+        C, (g_theta, g_x0) = value_and_grad_impl(
+            self.model,
+            self.cost,
+            self.theta_of(params.theta),
+            self.x0_of(params.x0),
+            self.u,
+            self.z,
+            True,
+            strategy,
+        )
+        g_flat, _ = ravel_pytree(g_theta)
+        return C, Params(
+            g_flat[np.asarray(self.theta_free, int)], g_x0[:, np.asarray(self.x0_free, int)]
+        )
+
+    def _scale(self):
+        return 1.0 / jnp.sqrt(jnp.asarray(self.u.shape[0] * self.u.shape[1], self.dtype))
+
+    def residuals(self, params: Params, penalty=True):
+        """Stacked residuals (N, R) with ||r||^2 = C (see `_sensitivity`), and the smallest
+        lambda h(x_k) over all trajectories (+inf without a penalty)."""
+        cost = self.cost if penalty else Cost(self.cost.weight, None, self.cost.penalty_weight)
+        theta = self.theta_of(params.theta)
+        x0 = self.x0_of(params.x0)
+        fn = lambda x0, u, z: trajectory_residuals(  # noqa: E731
+            self.model, cost, theta, x0, u, z, scale=self._scale()
+        )
+        r, h_min = jax.vmap(fn)(x0, self.u, self.z)
+        return r, jnp.min(h_min)
+
+    def jacobian(self, params: Params, strategy, penalty=True) -> Linearisation:
+        """Residuals (N, R) and their closed-form Jacobians (N, R, p), (N, R, m)."""
+        cost = self.cost if penalty else Cost(self.cost.weight, None, self.cost.penalty_weight)
+        x0_free = np.asarray(self.x0_free, int)
+        N, T = self.u.shape[:2]
+        n_x = self.x0_base.shape[1]
+        n_cols = params.theta.shape[0] + x0_free.size
+        strategy = sensitivity_strategy(strategy, N, n_x, n_cols, T, self.dtype.itemsize)
+
+        def fn(base, p, u, z):
+            return trajectory_jacobian(
+                self.model,
+                cost,
+                self.theta_of,
+                params.theta,
+                lambda q: base.at[x0_free].set(q),
+                p,
+                u,
+                z,
+                scale=self._scale(),
+                strategy=strategy,
+            )
+
+        lin = jax.vmap(fn)(jnp.asarray(self.x0_base), params.x0, self.u, self.z)
+        return lin._replace(h_min=jnp.min(lin.h_min))

@@ -1,0 +1,67 @@
+"""Why a fit stopped: one enumeration whose members carry their messages."""
+
+import equinox as eqx
+import numpy as np
+
+
+class RESULTS(eqx.Enumeration):
+    """Why a fit stopped (`FitResult.stop_reason`). `RESULTS[item]` is the message;
+    `FitResult.success` is True for `converged`, `tol_loss` and `tol_grad` only."""
+
+    converged = (
+        "converged: the scaled step and the relative decrease of the loss fell below the "
+        "solver's rtol/atol, or the predicted decrease fell below machine precision"
+    )
+    tol_loss = "the loss fell below tol_loss (the paper's epsilon)"
+    tol_grad = "the gradient norm fell below tol_grad (the paper's delta)"
+    max_steps_reached = (
+        "reached the solver's max_steps before converging; raise max_steps (or the "
+        "learning rates), or start a second solver where this one stopped"
+    )
+    no_progress = (
+        "no step decreased the loss any more (the damping or the line search gave up) "
+        "although the model predicted a decrease; check the scaling of the problem or try "
+        "another solver or starting point"
+    )
+    diverged = (
+        "the simulation diverged (inf or NaN loss or gradient); the last finite iterate is returned"
+    )
+    negative_penalty = (
+        "lambda h(x, theta) became negative; the least-squares solvers need a non-negative "
+        "penalty (they minimise a sum of squares that includes sqrt(lambda h)): use a "
+        "non-negative h, or a first-order solver (Adam, LBFGS), which accept any sign"
+    )
+
+
+SUCCESS = ("converged", "tol_loss", "tol_grad")
+
+
+def name_of(item) -> str:
+    """The member name of a concrete `RESULTS` item (e.g. "converged")."""
+    value = int(np.asarray(item._value))
+    for name, member in RESULTS._name_to_item.items():
+        if int(np.asarray(member._value)) == value:
+            return name
+    raise ValueError(f"not a RESULTS item: {item!r}")
+
+
+def from_name(name: str):
+    """The `RESULTS` item called `name`."""
+    try:
+        return RESULTS._name_to_item[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown stop reason {name!r}; valid: {', '.join(RESULTS._name_to_item)}."
+        ) from None
+
+
+def is_success(item) -> bool:
+    return name_of(item) in SUCCESS
+
+
+def from_index(index: int):
+    """The `RESULTS` item with integer value `index`."""
+    for member in RESULTS._name_to_item.values():
+        if int(np.asarray(member._value)) == int(index):
+            return member
+    raise ValueError(f"no RESULTS item has index {index}.")

@@ -1,0 +1,88 @@
+"""The interface every solver of `fit` implements, and the pieces they share.
+
+A solver is an equinox Module holding its options. `fit` runs it through one loop
+(`oneshot_jax._iterate`):
+
+    state = solver.init(problem, params)
+    while not solver.terminate(problem, params, state)[0] and step < solver.max_steps:
+        params, state = solver.step(problem, params, state)
+    params, loss, blocks = solver.postprocess(problem, params, state, result)
+
+`summary(state)` gives the loss C and the gradient norm at the current `params`, which the
+loop records in the history and shows on a progress bar. A new solver is one file that
+implements these methods, plus a test.
+"""
+
+import abc
+import dataclasses
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._problem import FitProblem, Params
+
+
+class AbstractSolver(eqx.Module):
+    """Base class of the solvers of `fit`."""
+
+    max_steps: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def init(self, problem: FitProblem, params: Params) -> Any:
+        """The solver's state at the starting point (evaluating whatever it needs there)."""
+
+    @abc.abstractmethod
+    def step(self, problem: FitProblem, params: Params, state) -> tuple[Params, Any]:
+        """One iteration: the next iterate and state."""
+
+    @abc.abstractmethod
+    def terminate(self, problem: FitProblem, params: Params, state) -> tuple[jax.Array, Any]:
+        """Whether to stop at `params`, and the `RESULTS` item saying why."""
+
+    @abc.abstractmethod
+    def summary(self, state) -> tuple[jax.Array, jax.Array]:
+        """(C, ||grad C||) at the current iterate (NaN where the solver has no gradient)."""
+
+    def postprocess(self, problem: FitProblem, params: Params, state, result):
+        """The point to return, its loss, and the normal-equation blocks (C, A, B, C_i) of
+        the data residuals at it when the solver holds them (else None: the covariance
+        evaluates the Jacobian itself)."""
+        del problem, result
+        return params, self.summary(state)[0], None
+
+    def settings(self) -> dict:
+        """The options, for `FitResult.solver` and saved results (JSON-friendly)."""
+        out = {"solver": type(self).__name__}
+        for name, value in ((f.name, getattr(self, f.name)) for f in dataclasses.fields(self)):
+            if isinstance(value, (bool, int, float, str)) or value is None:
+                out[name] = value
+            else:
+                out[name] = repr(value)
+        return out
+
+
+def grad_norm(g: Params):
+    return jnp.sqrt(jnp.sum(g.theta**2) + jnp.sum(g.x0**2))
+
+
+def check_options(solver, *, positive=(), non_negative=(), integers=()):
+    """ValueErrors naming the option, for a solver's __check_init__."""
+    name = type(solver).__name__
+    for field in integers:
+        v = getattr(solver, field)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"`{name}({field}=...)` must be a non-negative integer, got {v!r}.")
+    for field in positive:
+        v = getattr(solver, field)
+        if not _is_real(v) or not v > 0:
+            raise ValueError(f"`{name}({field}=...)` must be a positive number, got {v!r}.")
+    for field in non_negative:
+        v = getattr(solver, field)
+        if not _is_real(v) or not v >= 0:
+            raise ValueError(f"`{name}({field}=...)` must be a number >= 0, got {v!r}.")
+
+
+def _is_real(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v

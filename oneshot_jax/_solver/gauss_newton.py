@@ -1,0 +1,54 @@
+"""Gauss-Newton with backtracking on the projected step."""
+
+import jax
+import jax.numpy as jnp
+
+from .least_squares import AbstractLeastSquares, Trial
+
+
+class GaussNewton(AbstractLeastSquares):
+    """Gauss-Newton on the closed-form residual Jacobian (forward sensitivities), with the
+    x0 blocks of each trajectory eliminated by a Schur complement, an exact active set for
+    box bounds, and backtracking (alpha = 1, 1/2, ...) along the projected step until the
+    loss decreases. A non-finite trial loss counts as no decrease.
+
+    **Arguments:**
+
+    - `rtol`, `atol`: convergence tolerances on the scaled step and the decrease of the
+        loss (see `oneshot_jax._solver.least_squares`).
+    - `max_steps`: the maximum number of iterations.
+    - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`: formed
+        per-step Jacobians, `"vjp"`: matrix-free JVPs in the scan).
+    """
+
+    rtol: float = 1e-10
+    atol: float = 0.0
+    max_steps: int = 100
+    strategy: str = "auto"
+
+    def __check_init__(self):
+        self._check()
+
+    def _mu0(self, dtype):
+        return jnp.array(0.0, dtype)
+
+    def _search(self, problem, params, blocks, step, full, pred, mu, nu):
+        del pred
+        C = blocks.C
+        first, C1 = full
+
+        def cond(c):
+            return (c[1] >= C) & (c[0] > 2.0**-30)
+
+        def body(c):
+            alpha = c[0] / 2
+            return alpha, self.trial(problem, params, step, alpha)[1]
+
+        alpha, _ = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), C1))
+        new, Cn = jax.lax.cond(
+            alpha < 1,
+            lambda: self.trial(problem, params, step, alpha),
+            lambda: (first, C1),
+        )
+        accept = Cn < C
+        return Trial(new, Cn, accept, mu, nu, ~accept)

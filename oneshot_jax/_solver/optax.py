@@ -1,0 +1,254 @@
+"""First-order solvers: Algorithm 1 of the paper with any optax transform, Adam, L-BFGS.
+
+Each step evaluates C and its one-shot closed-form gradient (eq. 17, 20) at the current
+iterate, hands the gradient to the optax transform, applies the update and projects theta
+back onto the constraint set (Section 3.3), so every iterate is feasible. The transform
+sees the free variables as the dict `{"theta": p_theta, "x0": p_x0}`, so a transform can
+treat them differently (`optax.partition`, as `Adam` does).
+
+Stopping (Algorithm 1, line 3): `tol_loss` (epsilon; off by default, since a loss with a
+signed penalty can be negative) and `tol_grad` (delta); a non-finite loss or gradient
+stops with `RESULTS.diverged` and returns the last finite iterate.
+"""
+
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+
+from .._problem import FitProblem, Params
+from .._results import RESULTS
+from .._strategy import STRATEGIES
+from .base import AbstractSolver, check_options, grad_norm
+
+
+class _OptaxState(NamedTuple):
+    opt_state: Any
+    loss: jax.Array  # C at the current iterate
+    grad: Params  # its gradient
+    last: Params  # the last iterate with a finite loss and gradient
+    last_loss: jax.Array
+
+
+def _as_dict(p: Params):
+    return {"theta": p.theta, "x0": p.x0}
+
+
+def _as_params(d) -> Params:
+    return Params(d["theta"], d["x0"])
+
+
+class _ClosedFormLoss(eqx.Module):
+    """C at the projected point as a function of the optax parameter dict, whose gradient
+    (for line searches that call `jax.value_and_grad` on it) is the one-shot closed form."""
+
+    problem: FitProblem
+    strategy: str
+
+    def __call__(self, d):
+        return _loss_with_closed_form_grad(d, self.problem, self.strategy)
+
+
+def _make_loss():
+    def value(d, problem, strategy):
+        p = Params(problem.feasible(d["theta"]), d["x0"])
+        return problem.value_and_grad(p, strategy)
+
+    @eqx.filter_custom_vjp
+    def loss(d, problem, strategy):
+        return value(d, problem, strategy)[0]
+
+    @loss.def_fwd
+    def loss_fwd(perturbed, d, problem, strategy):
+        del perturbed
+        C, g = value(d, problem, strategy)
+        return C, g
+
+    @loss.def_bwd
+    def loss_bwd(g, ct, perturbed, d, problem, strategy):
+        del perturbed, d, problem, strategy
+        return {"theta": ct * g.theta, "x0": ct * g.x0}
+
+    return loss
+
+
+_loss_with_closed_form_grad = _make_loss()
+
+
+class _AbstractOptax(AbstractSolver):
+    """Algorithm 1 around an optax transform (built by `_transform`)."""
+
+    max_steps: eqx.AbstractVar[int]
+    tol_loss: eqx.AbstractVar[float | None]
+    tol_grad: eqx.AbstractVar[float]
+    strategy: eqx.AbstractVar[str]
+
+    def _transform(self) -> optax.GradientTransformation:
+        raise NotImplementedError
+
+    def _check(self):
+        check_options(self, non_negative=("tol_grad",), integers=("max_steps",))
+        if self.tol_loss is not None and not isinstance(self.tol_loss, (int, float)):
+            raise ValueError(
+                f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
+                f"got {self.tol_loss!r}."
+            )
+        if self.strategy not in STRATEGIES:
+            raise ValueError(
+                f"`{type(self).__name__}(strategy=...)` must be one of {STRATEGIES}, "
+                f"got {self.strategy!r}."
+            )
+
+    def init(self, problem, params):
+        C, g = problem.value_and_grad(params, self.strategy)
+        opt_state = self._transform().init(_as_dict(params))
+        return _OptaxState(opt_state, C, g, params, C)
+
+    def step(self, problem, params, state):
+        tx = self._transform()
+        d = _as_dict(params)
+        g = _as_dict(state.grad)
+        if isinstance(tx, optax.GradientTransformationExtraArgs):
+            value_fn = _ClosedFormLoss(problem, self.strategy)
+            updates, opt_state = tx.update(
+                g, state.opt_state, d, value=state.loss, grad=g, value_fn=value_fn
+            )
+        else:
+            updates, opt_state = tx.update(g, state.opt_state, d)
+        new = _as_params(optax.apply_updates(d, updates))
+        new = Params(problem.feasible(new.theta), new.x0)
+        C, g_new = problem.value_and_grad(new, self.strategy)
+        finite = jnp.isfinite(C) & jnp.isfinite(grad_norm(g_new))
+        last = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, state.last)
+        last_loss = jnp.where(finite, C, state.last_loss)
+        return new, _OptaxState(opt_state, C, g_new, last, last_loss)
+
+    def terminate(self, problem, params, state):
+        del problem, params
+        gnorm = grad_norm(state.grad)
+        finite = jnp.isfinite(state.loss) & jnp.isfinite(gnorm)
+        small_loss = jnp.array(False) if self.tol_loss is None else state.loss < self.tol_loss
+        small_grad = gnorm < self.tol_grad
+        result = RESULTS.where(
+            ~finite,
+            RESULTS.diverged,
+            RESULTS.where(small_loss, RESULTS.tol_loss, RESULTS.tol_grad),
+        )
+        return (~finite) | small_loss | small_grad, result
+
+    def summary(self, state):
+        return state.loss, grad_norm(state.grad)
+
+    def postprocess(self, problem, params, state, result):
+        del problem
+        diverged = result == RESULTS.diverged
+        params = jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, a, b), state.last, params)
+        loss = jnp.where(diverged, state.last_loss, state.loss)
+        return params, loss, None
+
+
+class Optax(_AbstractOptax):
+    """Algorithm 1 of the paper with any optax transform.
+
+    The transform receives the closed-form gradient of C in the free variables as the
+    dict `{"theta": ..., "x0": ...}`. Transforms that take extra arguments (line searches,
+    `optax.lbfgs`) also get `value`, `grad` and `value_fn`, where `value_fn`'s gradient is
+    the closed form too.
+
+    **Arguments:**
+
+    - `transform`: an `optax.GradientTransformation`.
+    - `max_steps`: the number of updates (E_max).
+    - `tol_loss`: stop when C < tol_loss (epsilon); None (default) never.
+    - `tol_grad`: stop when ||grad C|| < tol_grad (delta); 0 (default) never.
+    - `strategy`: how the gradient's per-step Jacobians are formed (`"auto"`,
+        `"jacobian"`, `"vjp"`; see `oneshot_jax.value_and_grad`).
+    """
+
+    transform: optax.GradientTransformation
+    max_steps: int = 1000
+    tol_loss: float | None = None
+    tol_grad: float = 0.0
+    strategy: str = "auto"
+
+    def __check_init__(self):
+        if not (hasattr(self.transform, "init") and hasattr(self.transform, "update")):
+            raise TypeError(
+                f"`Optax(transform=...)` must be an optax.GradientTransformation, "
+                f"got {self.transform!r}."
+            )
+        self._check()
+
+    def _transform(self):
+        return self.transform
+
+
+class Adam(_AbstractOptax):
+    """Algorithm 1 of the paper: Adam (eq. 8-9) with separate learning rates for theta
+    and x0, on the one-shot closed-form gradient.
+
+    **Arguments:**
+
+    - `lr_theta`, `lr_x0`: the learning rates eta_theta and eta_x0.
+    - `b1`, `b2`, `eps`: Adam's moment decay rates and denominator offset.
+    - `max_steps`, `tol_loss`, `tol_grad`, `strategy`: as for `Optax`.
+    """
+
+    lr_theta: float = 1e-3
+    lr_x0: float = 1e-4
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    max_steps: int = 5000
+    tol_loss: float | None = None
+    tol_grad: float = 0.0
+    strategy: str = "auto"
+
+    def __check_init__(self):
+        check_options(self, non_negative=("lr_theta", "lr_x0", "b1", "b2"), positive=("eps",))
+        self._check()
+
+    def _transform(self):
+        return optax.partition(
+            {
+                "theta": optax.adam(self.lr_theta, self.b1, self.b2, self.eps),
+                "x0": optax.adam(self.lr_x0, self.b1, self.b2, self.eps),
+            },
+            {"theta": "theta", "x0": "x0"},
+        )
+
+
+class LBFGS(_AbstractOptax):
+    """L-BFGS (optax's, with its zoom line search) on the one-shot closed-form value and
+    gradient. Constraints are applied by projecting each accepted point (exact for boxes
+    that are inactive at the optimum; prefer the least-squares solvers when bounds are
+    active).
+
+    **Arguments:**
+
+    - `memory_size`: the number of past updates kept.
+    - `max_linesearch_steps`: the zoom line search's budget per step.
+    - `max_steps`, `tol_loss`, `tol_grad`, `strategy`: as for `Optax` (defaults 500,
+        None, 0).
+    """
+
+    memory_size: int = 10
+    max_linesearch_steps: int = 20
+    max_steps: int = 500
+    tol_loss: float | None = None
+    tol_grad: float = 0.0
+    strategy: str = "auto"
+
+    def __check_init__(self):
+        check_options(self, integers=("memory_size", "max_linesearch_steps"))
+        self._check()
+
+    def _transform(self):
+        return optax.lbfgs(
+            memory_size=self.memory_size,
+            linesearch=optax.scale_by_zoom_linesearch(
+                max_linesearch_steps=self.max_linesearch_steps, initial_guess_strategy="one"
+            ),
+        )

@@ -1,0 +1,219 @@
+"""Any optimistix least-squares solver or minimiser, fed the closed-form derivatives.
+
+The residuals (for a least-squares solver) or the loss C (for a minimiser) are a function
+with a custom JVP: the tangent is the closed-form residual Jacobian (forward sensitivities)
+or the one-shot gradient applied to it, so optimistix never differentiates the rollout.
+The solver's own `init`/`step`/`terminate` run inside `fit`'s compiled loop, so a fit is
+one compiled call, multistart runs under vmap, and every step is recorded.
+
+Box constraints: optimistix has no bounds, so the bridge keeps an active set. The model is
+only ever simulated at the projected point P(y). When the inner solve stops, every free
+entry at a bound whose gradient points outwards is held at the bound (extra residuals
+y_i - bound_i, zero at the solution, keep the Jacobian's rank) and the solver starts again
+from there, until no bound is violated: the returned point is feasible and satisfies the
+optimality conditions on the box. A general projection (`constraints.project`) is applied
+as P(y) without an active set.
+"""
+
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .._problem import FitProblem, Params
+from .._results import RESULTS
+from .._strategy import STRATEGIES
+from .base import AbstractSolver, check_options, grad_norm
+
+
+class _Held(NamedTuple):
+    mask: jax.Array  # (p,) entries of Params.theta held at a bound
+    values: jax.Array  # (p,) the bound they are held at
+
+
+def _point(problem: FitProblem, y, held: _Held) -> Params:
+    theta = jnp.where(held.mask, held.values, problem.feasible(y[0]))
+    return Params(theta, y[1])
+
+
+@eqx.filter_custom_jvp
+def _residuals(y, *, problem, held, strategy):
+    r, _ = problem.residuals(_point(problem, y, held))
+    extra = jnp.where(held.mask, y[0] - held.values, 0.0)
+    return jnp.concatenate([r.reshape(-1), extra])
+
+
+@_residuals.def_jvp
+def _residuals_jvp(primals, tangents, *, problem, held, strategy):
+    """The closed-form Jacobian (forward sensitivities) applied to the tangent."""
+    (y,) = primals
+    (dy,) = tangents
+    lin = problem.jacobian(_point(problem, y, held), strategy)
+    extra = jnp.where(held.mask, y[0] - held.values, 0.0)
+    out = jnp.concatenate([lin.r.reshape(-1), extra])
+    d_theta, d_x0 = dy
+    dr = jnp.zeros(lin.r.shape, lin.r.dtype)
+    d_extra = jnp.zeros(extra.shape, extra.dtype)
+    if d_theta is not None:
+        dr = dr + jnp.einsum("nrp,p->nr", lin.Jt, jnp.where(held.mask, 0.0, d_theta))
+        d_extra = jnp.where(held.mask, d_theta, 0.0)
+    if d_x0 is not None:
+        dr = dr + jnp.einsum("nrm,nm->nr", lin.Jx, d_x0)
+    return out, jnp.concatenate([dr.reshape(-1), d_extra])
+
+
+@eqx.filter_custom_jvp
+def _loss(y, *, problem, held, strategy):
+    C = problem.loss(_point(problem, y, held))
+    return C + jnp.sum(jnp.where(held.mask, y[0] - held.values, 0.0) ** 2)
+
+
+@_loss.def_jvp
+def _loss_jvp(primals, tangents, *, problem, held, strategy):
+    """The one-shot gradient (eq. 17, 20) applied to the tangent."""
+    (y,) = primals
+    (dy,) = tangents
+    C, g = problem.value_and_grad(_point(problem, y, held), strategy)
+    extra = jnp.where(held.mask, y[0] - held.values, 0.0)
+    d_theta, d_x0 = dy
+    dC = jnp.zeros((), C.dtype)
+    if d_theta is not None:
+        dC = dC + jnp.sum(jnp.where(held.mask, 2.0 * extra, g.theta) * d_theta)
+    if d_x0 is not None:
+        dC = dC + jnp.sum(g.x0 * d_x0)
+    return C + jnp.sum(extra**2), dC
+
+
+class _Fn(eqx.Module):
+    """`fn(y, args) -> (out, aux)` as optimistix's solvers call it."""
+
+    minimise: bool = eqx.field(static=True)
+    strategy: str = eqx.field(static=True)
+
+    def __call__(self, y, args):
+        problem, held = args
+        fn = _loss if self.minimise else _residuals
+        return fn(y, problem=problem, held=held, strategy=self.strategy), None
+
+
+class _OptxState(NamedTuple):
+    y: Any  # optimistix's iterate (p_theta, p_x0), possibly outside the box
+    inner: Any  # optimistix's solver state
+    held: _Held
+    loss: jax.Array
+    gnorm: jax.Array
+    done: jax.Array
+    result: RESULTS
+    rounds: jax.Array
+
+
+class Optimistix(AbstractSolver):
+    """Any optimistix least-squares solver (`optx.GaussNewton`, `optx.LevenbergMarquardt`,
+    `optx.Dogleg`, ...) or minimiser (`optx.BFGS`, ...), fed the closed-form Jacobian or
+    gradient, run inside `fit`'s compiled loop.
+
+    Remember that the multi-step loss can be tiny (1e-8 on the satellite): give the
+    optimistix solver scale-aware tolerances, e.g. `optx.LevenbergMarquardt(rtol=1e-12,
+    atol=1e-20)`.
+
+    **Arguments:**
+
+    - `solver`: an `optx.AbstractLeastSquaresSolver` or `optx.AbstractMinimiser`.
+    - `max_steps`: the maximum number of the solver's steps (all active-set rounds
+        together).
+    - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`).
+    """
+
+    solver: Any
+    max_steps: int = 256
+    strategy: str = "auto"
+
+    def __check_init__(self):
+        if not isinstance(self.solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+            raise TypeError(
+                "`Optimistix(solver=...)` must be an optimistix least-squares solver or "
+                f"minimiser (e.g. optx.LevenbergMarquardt(rtol, atol)), got {self.solver!r}."
+            )
+        check_options(self, integers=("max_steps",))
+        if self.strategy not in STRATEGIES:
+            raise ValueError(
+                f"`Optimistix(strategy=...)` must be one of {STRATEGIES}, got {self.strategy!r}."
+            )
+
+    @property
+    def _minimise(self):
+        return isinstance(self.solver, optx.AbstractMinimiser)
+
+    def _fn(self):
+        return _Fn(self._minimise, self.strategy)
+
+    def _inner_init(self, problem, y, held):
+        fn = self._fn()
+        args = (problem, held)
+        f_struct = jax.eval_shape(lambda: fn(y, args)[0])
+        return self.solver.init(fn, y, args, {}, f_struct, None, frozenset())
+
+    def init(self, problem, params):
+        held = _Held(jnp.zeros(params.theta.shape, bool), params.theta)
+        y = (params.theta, params.x0)
+        loss, g = problem.value_and_grad(params, self.strategy)
+        return _OptxState(
+            y,
+            self._inner_init(problem, y, held),
+            held,
+            loss,
+            grad_norm(g),
+            jnp.array(False),
+            RESULTS.converged,
+            jnp.array(0),
+        )
+
+    def step(self, problem, params, state):
+        del params
+        fn = self._fn()
+        args = (problem, state.held)
+        y, inner, _ = self.solver.step(fn, state.y, args, {}, state.inner, frozenset())
+        inner_done, inner_result = self.solver.terminate(fn, y, args, {}, inner, frozenset())
+        params = _point(problem, y, state.held)
+        loss, g = problem.value_and_grad(params, self.strategy)
+        gnorm = grad_norm(g)
+
+        # Active set: free entries at a bound whose gradient points outwards get held.
+        if problem.lower is not None:
+            at_lo = params.theta <= problem.lower
+            at_hi = params.theta >= problem.upper
+            push = (at_lo & (g.theta > 0)) | (at_hi & (g.theta < 0))
+            new_mask = state.held.mask | (push & ~state.held.mask)
+        else:
+            new_mask = state.held.mask
+        changed = jnp.any(new_mask != state.held.mask)
+        n_rounds = params.theta.shape[0] + 1
+        restart = inner_done & changed & (state.rounds < n_rounds)
+        held = _Held(
+            new_mask, jnp.where(new_mask & ~state.held.mask, params.theta, state.held.values)
+        )
+        y_restart = (jnp.where(held.mask, held.values, params.theta), y[1])
+        fresh = self._inner_init(problem, y_restart, held)
+        dyn_inner, static_inner = eqx.partition(inner, eqx.is_array)
+        dyn_fresh, _ = eqx.partition(fresh, eqx.is_array)
+        dyn = jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), dyn_fresh, dyn_inner)
+        inner = eqx.combine(dyn, static_inner)
+        y = jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), y_restart, y)
+        held = jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), held, state.held)
+
+        done = inner_done & ~restart
+        ok = inner_result == optx.RESULTS.successful
+        nonfinite = (inner_result == optx.RESULTS.nonfinite) | ~jnp.isfinite(loss)
+        result = RESULTS.where(
+            ok, RESULTS.converged, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
+        )
+        return params, _OptxState(y, inner, held, loss, gnorm, done, result, state.rounds + restart)
+
+    def terminate(self, problem, params, state):
+        del problem, params
+        return state.done, state.result
+
+    def summary(self, state):
+        return state.loss, state.gnorm

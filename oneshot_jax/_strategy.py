@@ -1,0 +1,51 @@
+"""The one home of the "auto" rule: how per-step Jacobians enter the gradient and the
+sensitivities.
+
+- `"jacobian"`: every J^{x/x}_k (and, for few parameters, J^{x/theta}_k) is formed at
+  once after the forward pass by vmapped forward-mode JVPs (the paper's Remark 1); the
+  recursions are then small matrix products. Best for small states.
+- `"vjp"` (matrix-free): the recursions push vectors through the step as VJPs (gradient)
+  or JVPs (sensitivities) inside the scan and never form J^{x/x}; memory O(T n_x).
+  Best for large or sparse states and large batches.
+"""
+
+STRATEGIES = ("auto", "jacobian", "vjp")
+
+# Above this many bytes for the stacked J^{x/x}_k, "auto" takes the vjp strategy.
+JACOBIAN_BYTES = 256 * 2**20
+JACOBIAN_MAX_NX = 16
+# The "jacobian" gradient also stacks J^{x/theta}_k (forward mode, n_theta JVPs per step)
+# when theta is this small; otherwise its theta term is one reverse-mode VJP after the scan.
+THETA_FORWARD_MIN = 8
+# "auto" forms the per-step Jacobians for the sensitivities only while a step of the scan,
+# over all N trajectories, moves at most this many sensitivity entries (N n_x n_cols):
+# beyond it the in-scan JVPs are large vectorised operations anyway, and forming J^{x/x}
+# costs more (on XLA:CPU with n_x = 2..3 and 5..6 columns the two cross between N = 16
+# and N = 64).
+JACOBIAN_MAX_BATCH_WORK = 512
+
+
+def gradient_strategy(strategy, n_x, T, itemsize):
+    """Resolve "auto" for the one-shot gradient of one trajectory: stacked Jacobians for
+    small states, in-scan VJPs for large ones."""
+    if strategy != "auto":
+        return strategy
+    small = n_x <= JACOBIAN_MAX_NX and T * n_x * n_x * itemsize <= JACOBIAN_BYTES
+    return "jacobian" if small else "vjp"
+
+
+def theta_forward_mode(n_theta, n_x, T, itemsize):
+    """Whether the "jacobian" gradient stacks J^{x/theta}_k too (few parameters, small
+    memory); otherwise its theta term is one VJP, whose cost does not grow with n_theta."""
+    return n_theta <= max(n_x, THETA_FORWARD_MIN) and T * n_x * n_theta * itemsize <= JACOBIAN_BYTES
+
+
+def sensitivity_strategy(strategy, n_traj, n_x, n_cols, T, itemsize):
+    """Resolve "auto" for the sensitivity recursion of N = `n_traj` trajectories (vmapped):
+    formed Jacobians for small states and small batches, where the scan is dominated by its
+    per-step cost, matrix-free JVPs otherwise."""
+    if strategy != "auto":
+        return strategy
+    if n_traj * n_x * n_cols > JACOBIAN_MAX_BATCH_WORK:
+        return "vjp"
+    return gradient_strategy(strategy, n_x, T, itemsize)

@@ -1,0 +1,53 @@
+"""Cutting one long record into windows, each with an initial state of its own."""
+
+import warnings
+
+import numpy as np
+
+from ._simulate import simulate_impl
+
+
+def cut(data, window, x0_windows=None):
+    """Consecutive windows of `window` samples from one record, as N trajectories:
+    (x0_w (N, n_x), u_w (N, window, n_u), z_w (N, window, n_z)).
+
+    Each window's starting state is `x0_windows[i]` when given; else it is taken from z
+    where the model observes its whole state (z = x), else from a simulation of the
+    record with the starting parameters; the first window starts at the given x0.
+    """
+    u, z, x0 = data.u, data.z, data.x0
+    T = u.shape[0]
+    if isinstance(window, bool) or int(window) != window or window < 1:
+        raise ValueError(f"`window` must be a positive integer, got {window!r}.")
+    window = int(window)
+    if window > T:
+        raise ValueError(f"`window` ({window}) is longer than the record (T = {T}).")
+    N = T // window
+    if N * window != T:
+        warnings.warn(
+            f"the last {T - N * window} samples do not fill a window and are dropped.", stacklevel=3
+        )
+    u_w = np.asarray(u[: N * window]).reshape(N, window, -1)
+    z_w = np.asarray(z[: N * window]).reshape(N, window, -1)
+    if x0_windows is not None:
+        x0_w = np.asarray(x0_windows)
+        if x0_w.shape != (N, np.shape(x0)[-1]):
+            raise ValueError(
+                f"`x0` of shape {x0_w.shape} gives one starting state per window, but the "
+                f"record of T = {T} samples holds {N} windows of {window}: expected shape "
+                f"({N}, {np.shape(x0)[-1]})."
+            )
+    elif data.model.observes_state:
+        x0_w = np.array(z_w[:, 0, :], dtype=np.asarray(x0).dtype)
+        x0_w[0] = np.asarray(x0)
+    else:
+        xs, _ = simulate_impl(data.model, data.theta, x0, u[: N * window], False)
+        x0_w = np.asarray(xs[::window])
+        if not np.all(np.isfinite(x0_w)):
+            raise ValueError(
+                "the windows' starting states come from simulating the whole record with "
+                "theta0, and that simulation diverged (NaN or inf): theta0 makes the model "
+                "unstable over the record. Give each window's starting state as `x0` of "
+                "shape (n_windows, n_x), or start from parameters that keep the model stable."
+            )
+    return x0_w, u_w, z_w

@@ -1,0 +1,261 @@
+"""The 0.2 API: solver objects and sequences, the persistent `FitResult` (pytree,
+save/load, simulate), x0-only fits with every solver, the bounded history, the progress
+bar, and a library that does not import its experiments.
+
+The satellite here is the same problem as in test_fit.py (seeds 0 and 1)."""
+
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+
+import oneshot_jax as oj
+from oneshot_jax import constraints as oc
+
+SAT_THETA = np.array([0.0403, 0.0404, 0.0080])
+SAT_W0 = np.array([9.915e-6, -1.102e-3, 1.3179e-5])
+SAT_THETA0 = SAT_THETA * np.array([1.1, 0.9, 1.15])
+SAT_X00 = SAT_W0 + np.array([2e-5, -1e-4, 3e-5])
+
+# `fit(model, M, z, theta0, x0, solver="gauss_newton", constraints=positive())` of
+# oneshot_jax 0.1.0 (commit 96dc177) on this data: the optimum before the API change.
+V01_THETA = np.array([0.03848733316053412, 0.04076939874933451, 0.00811819874371629])
+V01_X0 = np.array([-9.8075529605390327e-06, -1.1014525397598678e-03, 2.9384175593573372e-05])
+V01_LOSS = 2.1419966452136643e-08
+V01_STD = np.array([1.2593423687482794e-03, 1.4133928226752195e-03, 5.5477606462395796e-05])
+
+
+def satellite_rhs(w, M, inertia):
+    return (M - jnp.cross(w, inertia * w)) / inertia
+
+
+SAT_MODEL = oj.Model.from_ode(satellite_rhs, 0.1)
+
+
+@pytest.fixture(scope="module")
+def sat():
+    rng = np.random.default_rng(0)
+    M = 1e-5 + 1e-7 * rng.standard_normal((50, 3))
+    _, z = oj.simulate(SAT_MODEL, SAT_THETA, SAT_W0, M)
+    z = np.asarray(z) + 1e-4 * np.random.default_rng(1).standard_normal(z.shape)
+    return {"M": M, "z": z}
+
+
+@pytest.fixture(scope="module")
+def sat_lm(sat):
+    return oj.fit(SAT_MODEL, SAT_THETA0, SAT_X00, sat["M"], sat["z"], constraints=oc.positive())
+
+
+def test_default_solver_reaches_the_0_1_optimum(sat_lm):
+    r = sat_lm
+    assert r.success and r.solver[0]["solver"] == "LevenbergMarquardt"
+    np.testing.assert_allclose(r.theta, V01_THETA, rtol=1e-8)
+    np.testing.assert_allclose(r.x0, V01_X0, rtol=1e-7)
+    assert float(r.loss) == pytest.approx(V01_LOSS, rel=1e-10)
+    np.testing.assert_allclose(r.std, V01_STD, rtol=1e-6)
+
+
+def test_solver_names_are_aliases_of_default_objects():
+    from oneshot_jax._fit import as_solvers
+
+    assert as_solvers("gauss_newton") == (oj.GaussNewton(),)
+    assert as_solvers("levenberg_marquardt") == (oj.LevenbergMarquardt(),)
+    assert as_solvers("adam") == (oj.Adam(),)
+    assert as_solvers("lbfgs") == (oj.LBFGS(),)
+    seq = as_solvers(["adam", oj.LBFGS(max_steps=7)])
+    assert seq == (oj.Adam(), oj.LBFGS(max_steps=7))
+    tx = optax.sgd(1e-3)
+    assert isinstance(as_solvers(tx)[0], oj.Optax)
+    assert isinstance(as_solvers(optx.GaussNewton(1e-6, 1e-9))[0], oj.Optimistix)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: oj.GaussNewton(rtol=-1.0), r"GaussNewton\(rtol=...\)"),
+        (lambda: oj.LevenbergMarquardt(max_steps=2.5), r"LevenbergMarquardt\(max_steps=...\)"),
+        (lambda: oj.Adam(lr_theta=-1e-3), r"Adam\(lr_theta=...\)"),
+        (lambda: oj.Adam(strategy="magic"), r"Adam\(strategy=...\)"),
+        (lambda: oj.LBFGS(memory_size=-1), r"LBFGS\(memory_size=...\)"),
+        (lambda: oj.Adam(tol_loss="small"), r"Adam\(tol_loss=...\)"),
+    ],
+)
+def test_solver_options_are_checked_when_the_object_is_made(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_solver_objects_of_the_wrong_kind_are_type_errors():
+    with pytest.raises(TypeError, match=r"Optax\(transform=...\)"):
+        oj.Optax("adam")
+    with pytest.raises(TypeError, match=r"Optimistix\(solver=...\)"):
+        oj.Optimistix(optax.adam(1e-3))
+    with pytest.raises(ValueError, match="empty sequence"):
+        oj.fit(SAT_MODEL, SAT_THETA0, SAT_X00, np.zeros((5, 3)), np.zeros((5, 3)), solver=[])
+
+
+def test_fit_result_is_a_pytree_and_round_trips_through_save_and_load(sat_lm, tmp_path):
+    r = sat_lm
+    leaves = jax.tree_util.tree_leaves(r)
+    assert any(isinstance(a, np.ndarray) for a in leaves)
+    assert all(not isinstance(a, jax.Array) for a in leaves)  # host results: NumPy throughout
+    path = r.save(tmp_path / "sat")
+    assert path.suffix == ".npz"
+    loaded = oj.load_result(path, model=SAT_MODEL)
+    assert eqx.tree_equal(loaded, r) is True
+    assert loaded.names == r.names and loaded.solver == r.solver
+    assert loaded.stop_reason == r.stop_reason and loaded.message == r.message
+    assert str(loaded) == str(r)
+    # The file is plain NumPy: readable without oneshot_jax or pickle.
+    with np.load(path, allow_pickle=False) as npz:
+        assert "__meta__" in npz.files and "covariance" in npz.files
+
+
+def test_save_and_load_a_dict_theta_with_starts(tmp_path):
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"][0] * u)
+    u = np.ones((30, 1))
+    z = np.asarray(oj.simulate(model, {"a": 0.8, "b": np.array([0.5])}, np.array([1.0]), u)[1])
+    starts = {"a": np.array([0.2, 0.5, 0.9]), "b": np.array([[0.1], [0.2], [0.3]])}
+    r = oj.fit(
+        model,
+        starts,
+        np.array([1.0]),
+        u,
+        z,
+        multistart=True,
+        solver=oj.GaussNewton(),
+        estimate_x0=False,
+    )
+    loaded = oj.load_result(r.save(tmp_path / "dict.npz"))
+    assert eqx.tree_equal(loaded, eqx.tree_at(lambda x: x.model, r, None)) is True
+    assert loaded.starts.stop_reason == r.starts.stop_reason
+    with pytest.raises(ValueError, match="holds no model"):
+        loaded.simulate(u)
+
+
+def test_load_refuses_a_foreign_file(tmp_path):
+    path = tmp_path / "other.npz"
+    np.savez(path, a=np.ones(3))
+    with pytest.raises(ValueError, match="not a saved oneshot_jax FitResult"):
+        oj.load_result(path)
+    with pytest.raises(FileNotFoundError, match="`path`"):
+        oj.load_result(tmp_path / "missing.npz")
+
+
+def test_result_simulate_runs_the_fitted_model(sat, sat_lm):
+    x, z = sat_lm.simulate(sat["M"])
+    np.testing.assert_allclose(z - sat["z"], sat_lm.residuals, rtol=0, atol=1e-15)
+    x2, _ = sat_lm.simulate(sat["M"][:10], x0=SAT_W0)
+    assert x2.shape == (10, 3) and np.array_equal(x2[0], SAT_W0)
+
+
+X0_ONLY_SOLVERS = {
+    "gauss_newton": lambda: oj.GaussNewton(),
+    "levenberg_marquardt": lambda: oj.LevenbergMarquardt(),
+    "adam": lambda: oj.Adam(lr_x0=2e-5, max_steps=3000),
+    "lbfgs": lambda: oj.LBFGS(max_steps=100),
+    "optimistix": lambda: oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-12, atol=1e-20)),
+    "sequence": lambda: [oj.Adam(lr_x0=1e-5, max_steps=100), oj.GaussNewton()],
+}
+
+
+@pytest.mark.parametrize("name", list(X0_ONLY_SOLVERS))
+def test_estimating_x0_alone_works_with_every_solver(sat, name):
+    """Every parameter fixed, x0 estimated: what a user does on new data. The reference is
+    the linear least-squares solution in x0 computed here (the outputs are affine in x0
+    to first order; at the optimum the GN step of our own residuals vanishes)."""
+    r = oj.fit(
+        SAT_MODEL,
+        SAT_THETA,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        solver=X0_ONLY_SOLVERS[name](),
+        fixed=True,
+    )
+    assert r.names == () and r.covariance.shape == (0, 0)
+    assert np.array_equal(r.theta, SAT_THETA) and np.all(r.std == 0)
+    res = lambda x0: (oj.simulate(SAT_MODEL, SAT_THETA, x0, sat["M"])[1] - sat["z"]).ravel()  # noqa: E731
+    J = np.asarray(jax.jacfwd(res)(jnp.asarray(r.x0)))
+    step = np.linalg.lstsq(J, -np.asarray(res(jnp.asarray(r.x0))), rcond=None)[0]
+    assert np.linalg.norm(step) <= 1e-6 * np.linalg.norm(r.x0), (name, step)
+    # x0's covariance: sigma^2 (J^T J)^{-1} with the data residual Jacobian.
+    e = np.asarray(res(jnp.asarray(r.x0)))
+    cov = np.sum(e**2) / (e.size - 3) * np.linalg.inv(J.T @ J)
+    assert r.x0_covariance.shape == (3, 3)
+    np.testing.assert_allclose(r.x0_covariance, cov, rtol=1e-5)
+    np.testing.assert_allclose(r.x0_std, np.sqrt(np.diag(cov)), rtol=1e-5)
+
+
+def test_optimistix_runs_compiled_with_a_real_history_and_multistart(sat):
+    starts = np.stack([SAT_THETA0, SAT_THETA * np.array([0.9, 1.1, 0.95])])
+    r = oj.fit(
+        SAT_MODEL,
+        starts,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        multistart=True,
+        solver=oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-12, atol=1e-20)),
+    )
+    assert r.success
+    np.testing.assert_allclose(r.theta, V01_THETA, rtol=1e-7)
+    h = r.history
+    assert len(h) == r.num_steps + 1 >= 3
+    assert np.all(np.isfinite(h.loss)) and np.all(np.isfinite(h.grad_norm))
+    assert h.loss[-1] == pytest.approx(float(r.loss), rel=1e-12)
+    assert h.loss[-1] < h.loss[0]
+    assert r.starts.loss.shape == (2,)
+    assert all(s == "converged" for s in r.starts.stop_reason)
+
+
+def test_history_is_bounded_and_evenly_thinned(sat):
+    """A step budget of 10^9 allocates nothing per step: the history keeps at most
+    `history` rows, evenly strided, with the final iterate last."""
+    r = oj.fit(
+        SAT_MODEL,
+        SAT_THETA0,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        history=8,
+        solver=oj.Adam(lr_x0=1e-5, max_steps=10**9, tol_grad=1e-6),
+    )
+    assert r.stop_reason == oj.RESULTS.tol_grad
+    h = r.history
+    assert 2 <= len(h) <= 9
+    assert h.step[-1] == r.num_steps and h.step[0] == 0
+    strides = np.diff(h.step[:-1])
+    assert np.all(strides == strides[0])  # one stride, a power of two
+    assert strides[0] & (strides[0] - 1) == 0
+    assert h.grad_norm[-1] < 1e-6 <= h.grad_norm[-2]
+
+
+def test_progress_bar_shows_the_loss(sat, capsys):
+    oj.fit(
+        SAT_MODEL,
+        SAT_THETA0,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        progress=oj.TqdmProgress(1),
+        solver=oj.Adam(lr_x0=1e-5, max_steps=30),
+    )
+    err = capsys.readouterr().err
+    assert "loss" in err and "/30" in err
+
+
+def test_library_does_not_import_experiments_or_their_dependencies():
+    code = (
+        "import sys, oneshot_jax; "
+        "names = ('experiments', 'hydra', 'omegaconf', 'matplotlib'); "
+        "print([m for m in names if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
