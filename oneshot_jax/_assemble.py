@@ -4,6 +4,7 @@ fit's compiled call (`post`), and the host-side assembly (`assemble`)."""
 import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
@@ -22,16 +23,18 @@ def post(problem, params, blocks, strategy):
     _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True)
     cov = covariance(problem, params, strategy, blocks)
     zs = problem.z
+    m = None if problem.mask is None else problem.mask.outputs
     n_free = params.theta.shape[0] + params.x0.size
     met = {
-        "rmse": _metrics.rmse(zs, zhat),
-        "nrmse": _metrics.nrmse(zs, zhat),
-        "fit_percent": _metrics.fit_percent(zs, zhat),
-        "r2": _metrics.r2(zs, zhat),
-        "aic": _metrics.aic(zs, zhat, n_free),
+        "rmse": _metrics.rmse(zs, zhat, m),
+        "nrmse": _metrics.nrmse(zs, zhat, m),
+        "fit_percent": _metrics.fit_percent(zs, zhat, m),
+        "r2": _metrics.r2(zs, zhat, m),
+        "aic": _metrics.aic(zs, zhat, n_free, m),
     }
     theta_flat = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(params.theta)
-    return theta_flat, X0, zhat - zs, cov, met
+    e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
+    return theta_flat, X0, e, cov, met
 
 
 def _history(problem, stages, best, like):
@@ -91,7 +94,7 @@ def assemble(
     all_names = _pytree.leaf_names(params)
     names = tuple(all_names[i] for i in free)
 
-    n_obs = int(e.size)
+    n_obs = int(np.sum(np.isfinite(e)))
     scaled = scale(cov, n_obs)
     _warn_identifiability(names, scaled.theta_identifiable, "parameters")
     x0_names = [

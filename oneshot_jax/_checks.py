@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _pytree
+from . import _cost, _pytree
 from ._cost import Cost
 from ._model import Model
 from ._strategy import STRATEGIES
@@ -136,6 +136,8 @@ class Data(NamedTuple):
     weight: Any
     batched: bool
     n_z: int
+    mask: Any = None  # a `Mask` (padding of ragged trajectories, missing outputs) or None
+    lengths: Any = None  # each trajectory's length when they were given as ragged lists
 
 
 def check_weight(weight, n_z, dtype):
@@ -160,17 +162,81 @@ def check_weight(weight, n_z, dtype):
                 raise ValueError("`weight` must be a symmetric matrix Q.")
             if np.min(np.linalg.eigvalsh(wn)) < -1e-10 * scale:
                 raise ValueError("`weight` must be positive semi-definite (Q >= 0, eq. 4).")
+        if not np.any(wn):
+            raise ValueError(
+                "`weight` is all zeros: Q = 0 weighs every output error by zero, so the "
+                "data carry no information; give a non-zero Q (None for the identity)."
+            )
     return w
 
 
-def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
+def check_outside_transformations(*args):
+    """`fit` and the helpers built on it run their own compiled call on concrete data."""
+    if not is_concrete(*args):
+        raise TypeError(
+            "`fit` runs outside JAX transformations (jit, vmap, grad): it was given traced "
+            "values. It compiles its own solve; to fit several data sets at once use "
+            "several trajectories (x0 (N, n_x), u (N, T, n_u)) or `multistart=True`, and "
+            "to transform the loss or its gradient use `oneshot_jax.loss` / "
+            "`oneshot_jax.value_and_grad` / `oneshot_jax.simulate`, which work under jit, "
+            "vmap and grad."
+        )
+
+
+def _is_ragged(a):
+    """A list or tuple of per-trajectory arrays whose lengths differ."""
+    if not isinstance(a, (list, tuple)) or not a:
+        return False
+    try:
+        lengths = {np.shape(item)[0] for item in a if np.ndim(item) >= 1}
+    except (TypeError, ValueError):
+        return False
+    return len(lengths) > 1
+
+
+def _pad(items, name, dtype, n_traj):
+    """Ragged trajectories (T_i, c) padded to (N, T_max, c) by repeating the last row."""
+    if len(items) != n_traj:
+        raise ValueError(
+            f"`{name}` holds {len(items)} trajectories but `x0` has {n_traj} rows (N, n_x)."
+        )
+    arrays = [as_float(a, f"{name}[{i}]", dtype) for i, a in enumerate(items)]
+    for i, a in enumerate(arrays):
+        if a.ndim != 2 or a.shape[0] < 1:
+            raise ValueError(
+                f"`{name}[{i}]` must have shape (T_{i}, {'n_u' if name == 'u' else 'n_z'}) "
+                f"with T_{i} >= 1, got shape {a.shape}."
+            )
+        if a.shape[1] != arrays[0].shape[1]:
+            raise ValueError(
+                f"`{name}[{i}]` has {a.shape[1]} channels but `{name}[0]` has {arrays[0].shape[1]}."
+            )
+    T = max(a.shape[0] for a in arrays)
+    padded = np.stack(
+        [
+            np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:], T - a.shape[0], 0)])
+            for a in arrays
+        ]
+    ).astype(dtype)
+    return padded, tuple(a.shape[0] for a in arrays)
+
+
+def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
     Single trajectory: x0 (n_x,), u (T, n_u), z (T, n_z). Several trajectories sharing
-    theta (the paper's footnote 1): x0 (N, n_x), u (N, T, n_u), z (N, T, n_z). Every array
-    is promoted to one floating dtype, as NumPy would promote them.
+    theta (the paper's footnote 1): x0 (N, n_x), u (N, T, n_u), z (N, T, n_z), or `u` and
+    `z` as lists of N arrays of different lengths T_i (padded to the longest and masked).
+    Every array is promoted to one floating dtype, as NumPy would promote them.
+    `missing="mask"` takes NaN entries of z as missing samples (masked); with "raise"
+    (default) they are an error.
     """
-    dtype = common_dtype(_pytree.split(theta)[0], x0, u, z)
+    if missing not in ("raise", "mask"):
+        raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
+    ragged = _is_ragged(u) or (z is not None and _is_ragged(z))
+    rows_u = list(u) if ragged and isinstance(u, (list, tuple)) else [u]
+    rows_z = list(z) if ragged and isinstance(z, (list, tuple)) else [z]
+    dtype = common_dtype(_pytree.split(theta)[0], x0, *rows_u, *rows_z)
     theta, static = check_theta(theta, dtype)
     model = bind_model(model, static)
     x0 = as_float(x0, "x0", dtype)
@@ -180,6 +246,28 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
             f"trajectories, got shape {x0.shape}."
         )
     batched = x0.ndim == 2
+    lengths = None
+    if ragged:
+        if not batched:
+            raise ValueError(
+                "`u` and `z` given as lists of trajectories of different lengths need `x0` "
+                f"of shape (N, n_x), one row per trajectory; got shape {x0.shape}."
+            )
+        if not (isinstance(u, (list, tuple)) and (z is None or isinstance(z, (list, tuple)))):
+            raise ValueError(
+                "trajectories of different lengths: give both `u` and `z` as lists of "
+                "per-trajectory arrays."
+            )
+        u, lengths = _pad(u, "u", dtype, x0.shape[0])
+        if z is not None:
+            z_padded, z_lengths = _pad(z, "z", dtype, x0.shape[0])
+            for i, (a, b) in enumerate(zip(lengths, z_lengths)):
+                if a != b:
+                    raise ValueError(
+                        f"`z[{i}]` has {b} samples but `u[{i}]` has {a}: each trajectory "
+                        "needs one output sample per input sample."
+                    )
+            z = z_padded
     u = as_float(u, "u", dtype)
     lead = x0.shape[:1] if batched else ()
     if u.ndim != len(lead) + 2 or u.shape[: len(lead)] != lead:
@@ -227,6 +315,7 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
         )
     n_z = z_hat.shape[0]
 
+    mask = None
     if z is not None:
         z = as_float(z, "z", z_hat.dtype)
         want = (*lead, T, n_z)
@@ -235,9 +324,27 @@ def check_data(model, theta, x0, u, z=None, weight=None) -> Data:
                 f"`z` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
                 f"`model.observe`), got shape {z.shape}."
             )
-        check_finite(z, "z")
+        observed = None
+        if missing == "mask" and is_concrete(z):
+            zn = np.asarray(z)
+            if np.any(np.isinf(zn)):
+                raise ValueError("`z` contains inf values (NaN marks a missing sample).")
+            observed = ~np.isnan(zn)
+            if not observed.any():
+                raise ValueError("`z` is NaN everywhere: no output sample is measured.")
+            z = np.where(observed, zn, 0.0).astype(zn.dtype)
+        else:
+            check_finite(z, "z")
+        if lengths is not None or (observed is not None and not observed.all()):
+            samples = np.ones(z.shape[:-1], z.dtype)
+            if lengths is not None:
+                samples = (np.arange(T)[None, :] < np.asarray(lengths)[:, None]).astype(z.dtype)
+            outputs = samples[..., None] * np.ones(z.shape, z.dtype)
+            if observed is not None:
+                outputs = outputs * observed
+            mask = _cost.Mask(outputs.astype(z.dtype), samples)
     weight = check_weight(weight, n_z, z_hat.dtype)
-    return Data(model, theta, static, x0, u, z, weight, batched, n_z)
+    return Data(model, theta, static, x0, u, z, weight, batched, n_z, mask, lengths)
 
 
 def check_cost(data: Data, penalty, penalty_weight) -> Cost:

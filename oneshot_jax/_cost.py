@@ -1,10 +1,22 @@
 """The terms of the multi-step cost: the weight Q of eq. (4) and the penalty of eq. (21)."""
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
+
+
+class Mask(NamedTuple):
+    """Which samples count, for trajectories of different lengths (padded) and missing
+    outputs: `outputs` (..., T, n_z) is 1 where an output sample is measured, 0 where it
+    is missing; `samples` (..., T) is 1 for the time points of a trajectory, 0 for its
+    padding. C sums over the counted terms and divides by the number of time points."""
+
+    outputs: jax.Array
+    samples: jax.Array
 
 
 class Cost(eqx.Module):
@@ -20,12 +32,17 @@ class Cost(eqx.Module):
     penalty: Callable | None
     penalty_weight: Array
 
-    def local(self, model, theta, x, u, z):
+    def local(self, model, theta, x, u, z, mask=None):
         """T times the local loss L_k of eq. (4) with the penalty of eq. (21):
 
-        e^T Q e + lambda h(x, theta),  e = g(x, u, theta) - z  (eq. 3).
+        e^T Q e + lambda h(x, theta),  e = g(x, u, theta) - z  (eq. 3),
+
+        with the missing entries of e set to zero and the penalty counted only at the
+        time points of the trajectory when a `Mask` (of this sample) is given.
         """
         e = model.observe(x, u, theta) - z
+        if mask is not None:
+            e = e * mask.outputs
         if self.weight is None:
             out = jnp.sum(e * e)
         elif self.weight.ndim == 1:
@@ -33,7 +50,8 @@ class Cost(eqx.Module):
         else:
             out = e @ self.weight @ e
         if self.penalty is not None:
-            out = out + self.penalty_weight * self.penalty(x, theta)
+            h = self.penalty_weight * self.penalty(x, theta)
+            out = out + (h if mask is None else mask.samples * h)
         return out
 
     def sqrt_weight(self):

@@ -19,7 +19,14 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._assemble import assemble, post
-from ._checks import check_cost, check_data, fixed_mask, x0_mask
+from ._checks import (
+    check_cost,
+    check_data,
+    _is_ragged,
+    check_outside_transformations,
+    fixed_mask,
+    x0_mask,
+)
 from ._fit_result import FitResult
 from ._iterate import run
 from ._problem import FitProblem, Params
@@ -131,6 +138,7 @@ def fit(
     fixed=None,
     estimate_x0=True,
     window: int | None = None,
+    missing: str = "raise",
     multistart: bool = False,
     progress=False,
     history: int = 1000,
@@ -162,6 +170,9 @@ def fit(
         removed from the variables.
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
     - `window`: cut one record into windows of this many samples, each with its own x0.
+    - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z
+        as missing samples (zero weight in the loss, the gradient and the Jacobian).
+        Trajectories of different lengths (lists for `u` and `z`) are masked the same way.
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
@@ -171,6 +182,7 @@ def fit(
 
     A `FitResult`.
     """
+    check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
     solvers = as_solvers(solver)
     if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
         raise ValueError(f"`history` must be an even integer >= 2, got {history!r}.")
@@ -185,8 +197,9 @@ def fit(
 
     # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
     theta_params, theta_static = _pytree.split(theta0)
-    per_window_x0 = window is not None and np.ndim(x0) == 2 and np.ndim(u) == 2
-    data_x0_ndim = 2 if (np.ndim(u) == 3 or per_window_x0) else 1
+    u_ndim = 3 if _is_ragged(u) or _is_ragged(z) else np.ndim(u)
+    per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
+    data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
     if multistart:
         n_starts = _n_starts(theta_params, x0, data_x0_ndim)
         theta_first = _pytree.combine(
@@ -200,18 +213,18 @@ def fit(
         x0 = x0_starts[0]
 
     if window is not None:
-        if np.ndim(u) != 2:
+        if u_ndim != 2:
             raise ValueError(
                 f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u)}."
             )
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
-        data = check_data(model, theta_first, x0_record, u, z, weight)
-        x0_w, u_w, z_w = cut(data, window, np.asarray(x0) if per_window_x0 else None)
-        data = check_data(model, theta_first, x0_w, u_w, z_w, weight)
+        data = check_data(model, theta_first, x0_record, u, z, weight, missing)
+        x0_w, u_w, z_w, mask_w = cut(data, window, np.asarray(x0) if per_window_x0 else None)
+        data = check_data(model, theta_first, x0_w, u_w, z_w, weight)._replace(mask=mask_w)
         if x0_starts is not None:
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
-        data = check_data(model, theta_first, x0, u, z, weight)
+        data = check_data(model, theta_first, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
         if any(isinstance(s, AbstractLeastSquares) for s in solvers):
@@ -262,6 +275,11 @@ def fit(
         project=project,
         lower=lower,
         upper=upper,
+        mask=None
+        if data.mask is None
+        else jax.tree_util.tree_map(
+            lambda a: np.asarray(a) if batched else np.asarray(a)[None], data.mask
+        ),
     )
 
     # Every start as free-variable arrays (built on the host).

@@ -37,7 +37,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._checks import check_cost, check_data, check_strategy
-from ._simulate import rollout
+from ._simulate import rollout, sample_count
 from ._strategy import gradient_strategy, theta_forward_mode
 
 # Up to this length the reverse scan's matrix-vector products are written elementwise.
@@ -52,7 +52,7 @@ def _matvec(M, v):
     return M @ v
 
 
-def local_terms(model, cost, theta, xs, u, z):
+def local_terms(model, cost, theta, xs, u, z, mask=None):
     """sum_k T L_k, every T Gamma_k (eq. 14) and sum_k T gamma_k, by one VJP of the vmapped L_k.
 
     The pullback of a vmapped function with an unbatched theta sums the per-step gamma_k
@@ -60,7 +60,7 @@ def local_terms(model, cost, theta, xs, u, z):
     """
 
     def total(xs, th):
-        per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0))(model, th, xs, u, z)
+        per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0, 0))(model, th, xs, u, z, mask)
         return jnp.sum(per_step)
 
     S, (Gamma, gamma) = jax.value_and_grad(total, argnums=(0, 1))(xs, theta)
@@ -97,8 +97,10 @@ def theta_term_vjp(step, theta, xs, us, lam):
     return jax.vjp(batched, theta)[1](lam)[0]
 
 
-def one_shot(model, cost, theta, x0, u, z, strategy):
-    """C and (grad_theta C, grad_x0 C) for one trajectory by the O(T) recursion above.
+def one_shot(model, cost, theta, x0, u, z, strategy, mask=None, norm=None):
+    """C and (grad_theta C, grad_x0 C) for one trajectory by the O(T) recursion above,
+    with C = sum_k T L_k / norm (norm = T by default: eq. 5; the number of time points of
+    all trajectories when `value_and_grad_impl` sums several, or masked ones).
 
     `strategy="jacobian"`: the transposed J^{x/x}_k for all k at once (vmapped forward-mode
     JVPs) after the forward pass (the paper's Remark 1), then a reverse scan of small
@@ -113,7 +115,7 @@ def one_shot(model, cost, theta, x0, u, z, strategy):
     T = u.shape[0]
     n_x = x0.shape[0]
     xs = rollout(model, theta, x0, u)
-    S, Gamma, gamma = local_terms(model, cost, theta, xs, u, z)
+    S, Gamma, gamma = local_terms(model, cost, theta, xs, u, z, mask)
     strategy = gradient_strategy(strategy, n_x, T, x0.dtype.itemsize)
     step = model.step
     x_prev, us = xs[:-1], model.step_inputs(u)  # step j maps x_j to x_{j+1}, j = 0..T-2
@@ -154,20 +156,22 @@ def one_shot(model, cost, theta, x0, u, z, strategy):
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
 
-    grad_theta = jax.tree_util.tree_map(lambda a, b: (a + b) / T, gamma, theta_term)
-    return S / T, (grad_theta, lam0 / T)
+    norm = T if norm is None else norm
+    grad_theta = jax.tree_util.tree_map(lambda a, b: (a + b) / norm, gamma, theta_term)
+    return S / norm, (grad_theta, lam0 / norm)
 
 
 @eqx.filter_jit
-def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy):
-    """Jitted `value_and_grad` on validated inputs (used by `fit`)."""
-    fn = lambda x0, u, z: one_shot(model, cost, theta, x0, u, z, strategy)  # noqa: E731
+def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy, mask=None):
+    """Jitted `value_and_grad` on validated inputs (used by `fit`): the one-shot recursion
+    per trajectory, each normalised by the number of time points of all of them."""
+    norm = sample_count(u, mask, x0.dtype)
+    fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
     if not batched:
-        return fn(x0, u, z)
-    N = x0.shape[0]
-    C, (g_theta, g_x0) = jax.vmap(fn)(x0, u, z)
-    g_theta = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), g_theta)
-    return jnp.mean(C), (g_theta, g_x0 / N)
+        return fn(x0, u, z, mask)
+    C, (g_theta, g_x0) = jax.vmap(fn)(x0, u, z, mask)
+    g_theta = jax.tree_util.tree_map(lambda g: jnp.sum(g, axis=0), g_theta)
+    return jnp.sum(C), (g_theta, g_x0)
 
 
 def value_and_grad(
@@ -181,6 +185,7 @@ def value_and_grad(
     penalty=None,
     penalty_weight: float = 1.0,
     strategy: str = "auto",
+    missing: str = "raise",
 ) -> tuple[Float[Array, ""], tuple[PyTree, Float[Array, "*N n_x"]]]:
     """The cost C of eq. (5)/(21) and its one-shot closed-form gradient, eq. (17) and (20).
 
@@ -192,7 +197,8 @@ def value_and_grad(
 
     **Arguments:**
 
-    - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`: as for `loss`.
+    - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`:
+        as for `loss`.
     - `strategy`: `"jacobian"` (stacked J^{x/x}_k by vmap, best for small n_x), `"vjp"`
         (VJPs inside the reverse scan, memory O(T n_x), for large states) or `"auto"`
         (jacobian for n_x <= 16 when the stacked Jacobians fit in 256 MiB).
@@ -204,11 +210,11 @@ def value_and_grad(
     like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
-    data = check_data(model, theta, x0, u, z, weight)
+    data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
     strategy = check_strategy(strategy)
     return value_and_grad_impl(
-        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy
+        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
     )
 
 
@@ -222,6 +228,7 @@ def literal_value_and_grad(
     weight=None,
     penalty=None,
     penalty_weight: float = 1.0,
+    missing: str = "raise",
 ):
     """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only).
 
@@ -229,20 +236,22 @@ def literal_value_and_grad(
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.
     Same arguments and returns as `value_and_grad` (one trajectory or N trajectories).
     """
-    data = check_data(model, theta, x0, u, z, weight)
+    data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
     model = data.model
     flat, unravel = ravel_pytree(data.theta)
+    norm = float(sample_count(data.u, data.mask, data.x0.dtype))
 
-    def one(x0, u, z):
+    def one(x0, u, z, m):
         T = u.shape[0]
         xs = rollout(model, data.theta, x0, u)
         us = model.step_inputs(u)
         f = lambda x, u_k, th: model.step(x, u_k, unravel(th))  # noqa: E731
-        ell = lambda x, u_k, z_k, th: cost.local(model, unravel(th), x, u_k, z_k)  # noqa: E731
-        L = np.asarray(jax.vmap(ell, in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
-        Gamma = np.asarray(jax.vmap(jax.grad(ell, 0), in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
-        gamma = np.asarray(jax.vmap(jax.grad(ell, 3), in_axes=(0, 0, 0, None))(xs, u, z, flat)) / T
+        ell = lambda x, u_k, z_k, m_k, th: cost.local(model, unravel(th), x, u_k, z_k, m_k)  # noqa: E731
+        axes = (0, 0, 0, 0, None)
+        L = np.asarray(jax.vmap(ell, in_axes=axes)(xs, u, z, m, flat)) / norm
+        Gamma = np.asarray(jax.vmap(jax.grad(ell, 0), in_axes=axes)(xs, u, z, m, flat)) / norm
+        gamma = np.asarray(jax.vmap(jax.grad(ell, 4), in_axes=axes)(xs, u, z, m, flat)) / norm
         # J[k] = J^{x/x}_k and B[k] = J^{x/theta}_k for k = 1..T-1 (index 0 unused).
         Jxx = np.asarray(jax.vmap(jax.jacfwd(f, 0), in_axes=(0, 0, None))(xs[:-1], us, flat))
         Jxt = np.asarray(jax.vmap(jax.jacfwd(f, 2), in_axes=(0, 0, None))(xs[:-1], us, flat))
@@ -267,11 +276,14 @@ def literal_value_and_grad(
         return L.sum(), g_theta, g_x0
 
     if not data.batched:
-        C, g_theta, g_x0 = one(data.x0, data.u, data.z)
+        C, g_theta, g_x0 = one(data.x0, data.u, data.z, data.mask)
         return jnp.asarray(C), (unravel(jnp.asarray(g_theta)), jnp.asarray(g_x0))
-    outs = [one(data.x0[i], data.u[i], data.z[i]) for i in range(data.x0.shape[0])]
-    N = len(outs)
-    C = np.mean([o[0] for o in outs])
-    g_theta = np.mean([o[1] for o in outs], axis=0)
-    g_x0 = np.stack([o[2] for o in outs]) / N
+    masks = [
+        None if data.mask is None else jax.tree_util.tree_map(lambda a, i=i: a[i], data.mask)
+        for i in range(data.x0.shape[0])
+    ]
+    outs = [one(data.x0[i], data.u[i], data.z[i], masks[i]) for i in range(data.x0.shape[0])]
+    C = np.sum([o[0] for o in outs])
+    g_theta = np.sum([o[1] for o in outs], axis=0)
+    g_x0 = np.stack([o[2] for o in outs])
     return jnp.asarray(C), (unravel(jnp.asarray(g_theta)), jnp.asarray(g_x0))

@@ -16,10 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._cost import Cost
+from ._cost import Cost, Mask
 from ._gradient import value_and_grad_impl
 from ._sensitivity import Linearisation, trajectory_jacobian, trajectory_residuals
-from ._simulate import loss_impl
+from ._simulate import loss_impl, sample_count
 from ._strategy import sensitivity_strategy
 
 
@@ -45,6 +45,7 @@ class FitProblem(eqx.Module):
     project: Callable | None = eqx.field(static=True)  # a general projection, or None
     lower: jax.Array | None  # box bounds on Params.theta (or None)
     upper: jax.Array | None
+    mask: Mask | None = None  # padded or missing samples (N, T, n_z) / (N, T), or None
 
     @property
     def dtype(self):
@@ -87,6 +88,7 @@ class FitProblem(eqx.Module):
             self.u,
             self.z,
             True,
+            self.mask,
         )
 
     def value_and_grad(self, params: Params, strategy):
@@ -100,6 +102,7 @@ class FitProblem(eqx.Module):
             self.z,
             True,
             strategy,
+            self.mask,
         )
         g_flat, _ = ravel_pytree(g_theta)
         return C, Params(
@@ -107,7 +110,7 @@ class FitProblem(eqx.Module):
         )
 
     def _scale(self):
-        return 1.0 / jnp.sqrt(jnp.asarray(self.u.shape[0] * self.u.shape[1], self.dtype))
+        return 1.0 / jnp.sqrt(sample_count(self.u, self.mask, self.dtype))
 
     def residuals(self, params: Params, penalty=True):
         """Stacked residuals (N, R) with ||r||^2 = C (see `_sensitivity`), and the smallest
@@ -115,10 +118,10 @@ class FitProblem(eqx.Module):
         cost = self.cost if penalty else Cost(self.cost.weight, None, self.cost.penalty_weight)
         theta = self.theta_of(params.theta)
         x0 = self.x0_of(params.x0)
-        fn = lambda x0, u, z: trajectory_residuals(  # noqa: E731
-            self.model, cost, theta, x0, u, z, scale=self._scale()
+        fn = lambda x0, u, z, m: trajectory_residuals(  # noqa: E731
+            self.model, cost, theta, x0, u, z, scale=self._scale(), mask=m
         )
-        r, h_min = jax.vmap(fn)(x0, self.u, self.z)
+        r, h_min = jax.vmap(fn)(x0, self.u, self.z, self.mask)
         return r, jnp.min(h_min)
 
     def jacobian(self, params: Params, strategy, penalty=True) -> Linearisation:
@@ -130,7 +133,7 @@ class FitProblem(eqx.Module):
         n_cols = params.theta.shape[0] + x0_free.size
         strategy = sensitivity_strategy(strategy, N, n_x, n_cols, T, self.dtype.itemsize)
 
-        def fn(base, p, u, z):
+        def fn(base, p, u, z, m):
             return trajectory_jacobian(
                 self.model,
                 cost,
@@ -142,7 +145,8 @@ class FitProblem(eqx.Module):
                 z,
                 scale=self._scale(),
                 strategy=strategy,
+                mask=m,
             )
 
-        lin = jax.vmap(fn)(jnp.asarray(self.x0_base), params.x0, self.u, self.z)
+        lin = jax.vmap(fn)(jnp.asarray(self.x0_base), params.x0, self.u, self.z, self.mask)
         return lin._replace(h_min=jnp.min(lin.h_min))

@@ -51,27 +51,41 @@ def _penalty_rows(cost, xs, theta):
     return lh
 
 
-def trajectory_residuals(model, cost, theta, x0, u, z, *, scale):
+def _masked(e, mask):
+    return e if mask is None else e * mask.outputs
+
+
+def _min_penalty(lh, mask):
+    return jnp.min(lh if mask is None else jnp.where(mask.samples > 0, lh, jnp.inf))
+
+
+def trajectory_residuals(model, cost, theta, x0, u, z, *, scale, mask=None):
     """Residuals r (R,) of one trajectory, R = T n_z (+ T with a penalty), and the
-    smallest lambda h(x_k)."""
+    smallest lambda h(x_k). Masked entries (a `Mask`) are zero rows."""
     xs = rollout(model, theta, x0, u)
-    r = (weigh(outputs(model, theta, xs, u) - z, cost.sqrt_weight()) * scale).reshape(-1)
+    e = _masked(outputs(model, theta, xs, u) - z, mask)
+    r = (weigh(e, cost.sqrt_weight()) * scale).reshape(-1)
     if cost.penalty is None:
         return r, jnp.array(jnp.inf, r.dtype)
     lh = _penalty_rows(cost, xs, theta)
-    return jnp.concatenate([r, jnp.sqrt(jnp.maximum(lh, 0.0)) * scale]), jnp.min(lh)
+    rh = jnp.sqrt(jnp.maximum(lh, 0.0)) * scale
+    if mask is not None:
+        rh = rh * mask.samples
+    return jnp.concatenate([r, rh]), _min_penalty(lh, mask)
 
 
-def trajectory_jacobian(model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, scale, strategy):
+def trajectory_jacobian(
+    model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, scale, strategy, mask=None
+):
     """The `Linearisation` of one trajectory's residuals in its free variables.
 
     `theta_of(p_theta)` maps the free parameter vector to the theta pytree, `x0_of(p_x0)`
     the free initial-state entries to x0 (fixed entries are constants inside both), so
     the columns are exactly the free variables.
 
-    `strategy` picks how the sensitivity recursion S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0]
-    is evaluated (see `_strategy`): `"jacobian"` forms every J^{x/x}_k and J^{x/theta}_k at
-    once after the forward pass (vmapped forward mode, the paper's Remark 1) and the scan
+    Masked entries (a `Mask`) are zero rows. `strategy` picks how the sensitivity recursion
+    S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0] is evaluated (see `_strategy`): `"jacobian"`
+    forms every J^{x/x}_k and J^{x/theta}_k at once after the forward pass (vmapped forward mode, the paper's Remark 1) and the scan
     is left with small matrix products; `"vjp"` (matrix-free) pushes the columns of S_k
     through the step as JVPs inside the scan, never forming J^{x/x} (a banded or sparse
     step costs what its JVP costs), and stores only the output rows J^{z/x}_k S_k, not S_k.
@@ -129,14 +143,18 @@ def trajectory_jacobian(model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, sc
 
     sqrt_q = cost.sqrt_weight()
     y, Je = outs[:2]
-    r = (weigh(y - z, sqrt_q) * scale).reshape(-1)
+    r = (weigh(_masked(y - z, mask), sqrt_q) * scale).reshape(-1)
+    if mask is not None:
+        Je = Je * mask.outputs[:, :, None]
     Jr = _weigh_jac(Je, sqrt_q) * scale
     Jr = Jr.reshape(-1, n_t + n_s)
     h_min = jnp.array(jnp.inf, r.dtype)
     if h_theta is not None:
         h, dh = outs[2:]
         lh = cost.penalty_weight * h
-        h_min = jnp.min(lh)
+        h_min = _min_penalty(lh, mask)
+        if mask is not None:
+            lh = lh * mask.samples
         rh = jnp.sqrt(jnp.maximum(lh, 0.0))
         # d sqrt(lambda h) = lambda h' / (2 sqrt(lambda h)); zero where the penalty is 0.
         safe = jnp.where(rh > 0, rh, 1.0)

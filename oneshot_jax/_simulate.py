@@ -3,6 +3,7 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._checks import check_cost, check_data
@@ -25,11 +26,18 @@ def outputs(model, theta, xs, u):
     return jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, theta)
 
 
-def trajectory_loss(model, cost, theta, x0, u, z):
-    """C of eq. (5)/(21) for one trajectory: the mean over k of T L_k."""
+def trajectory_sum(model, cost, theta, x0, u, z, mask=None):
+    """sum_k T L_k (eq. 4, 21) for one trajectory (masked terms excluded)."""
     xs = rollout(model, theta, x0, u)
-    per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0))(model, theta, xs, u, z)
-    return jnp.mean(per_step)
+    per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0, 0))(model, theta, xs, u, z, mask)
+    return jnp.sum(per_step)
+
+
+def sample_count(u, mask, dtype):
+    """The number of time points C is normalised by: N T, or the unpadded ones."""
+    if mask is None:
+        return jnp.asarray(np.prod(u.shape[:-1]), dtype)
+    return jnp.sum(mask.samples).astype(dtype)
 
 
 @eqx.filter_jit
@@ -42,9 +50,13 @@ def simulate_impl(model, theta, x0, u, batched):
 
 
 @eqx.filter_jit
-def loss_impl(model, cost, theta, x0, u, z, batched):
-    fn = lambda x0, u, z: trajectory_loss(model, cost, theta, x0, u, z)  # noqa: E731
-    return jnp.mean(jax.vmap(fn)(x0, u, z)) if batched else fn(x0, u, z)
+def loss_impl(model, cost, theta, x0, u, z, batched, mask=None):
+    """C of eq. (5)/(21): the sum of T L_k over trajectories and time points, divided by
+    the number of time points (the mean over trajectories of each one's C when they are
+    all of the same length and nothing is masked)."""
+    fn = lambda x0, u, z, m: trajectory_sum(model, cost, theta, x0, u, z, m)  # noqa: E731
+    total = jnp.sum(jax.vmap(fn)(x0, u, z, mask)) if batched else fn(x0, u, z, mask)
+    return total / sample_count(u, mask, x0.dtype)
 
 
 def simulate(
@@ -60,16 +72,22 @@ def simulate(
     - `model`: a `Model`.
     - `theta`: parameter pytree.
     - `x0`: initial state, shape (n_x,), or (N, n_x) for N trajectories.
-    - `u`: inputs, shape (T, n_u), or (N, T, n_u).
+    - `u`: inputs, shape (T, n_u), or (N, T, n_u), or a list of N arrays (T_i, n_u) of
+        different lengths.
 
     **Returns:**
 
     `(x, z)` with `x` of shape (T, n_x) (`x[0] = x0`, `x[k+1] = step(x[k], u[k], theta)`)
     and `z[k] = observe(x[k], u[k], theta)` of shape (T, n_z); with a leading N axis for
-    several trajectories.
+    several trajectories (lists of arrays for a list `u`).
     """
     data = check_data(model, theta, x0, u)
-    return simulate_impl(data.model, data.theta, data.x0, data.u, data.batched)
+    x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched)
+    if data.lengths is not None:  # ragged lists in, ragged lists out
+        return [x[i, :n] for i, n in enumerate(data.lengths)], [
+            z[i, :n] for i, n in enumerate(data.lengths)
+        ]
+    return x, z
 
 
 def loss(
@@ -82,27 +100,32 @@ def loss(
     weight: Float[ArrayLike, " n_z"] | Float[ArrayLike, "n_z n_z"] | None = None,
     penalty=None,
     penalty_weight: float = 1.0,
+    missing: str = "raise",
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
     C = (1/T) sum_{k=0}^{T-1} e_k^T Q e_k + (penalty_weight / T) sum_{k=0}^{T-1} h(x_k, theta),
 
     with e_k = zhat_k - z_k (eq. 3) the simulation (multi-step) error. For N trajectories
-    it is the mean over trajectories of the single-trajectory C.
+    it is the sum over all of them divided by the number of time points N T (the mean of
+    their C's); for trajectories of different lengths T_i it is divided by sum_i T_i, and
+    missing output samples contribute zero.
 
     **Arguments:**
 
     - `model`, `theta`, `x0`, `u`: as for `simulate`.
-    - `z`: measured outputs, shape (T, n_z) or (N, T, n_z).
+    - `z`: measured outputs, shape (T, n_z) or (N, T, n_z), or a list like `u`.
     - `weight`: Q of eq. (4), a (n_z,) vector (diagonal) or an (n_z, n_z) PSD matrix;
         identity by default.
     - `penalty`: h(x, theta) -> scalar of eq. (21), or None.
     - `penalty_weight`: the multiplier lambda of eq. (21).
+    - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
+        missing samples, which contribute nothing to C (nor to its derivatives).
 
     **Returns:**
 
     The scalar C.
     """
-    data = check_data(model, theta, x0, u, z, weight)
+    data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
-    return loss_impl(data.model, cost, data.theta, data.x0, data.u, data.z, data.batched)
+    return loss_impl(data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask)

@@ -9,7 +9,7 @@ from ._simulate import simulate_impl
 
 def cut(data, window, x0_windows=None):
     """Consecutive windows of `window` samples from one record, as N trajectories:
-    (x0_w (N, n_x), u_w (N, window, n_u), z_w (N, window, n_z)).
+    (x0_w (N, n_x), u_w (N, window, n_u), z_w (N, window, n_z), mask_w (or None)).
 
     Each window's starting state is `x0_windows[i]` when given; else it is taken from z
     where the model observes its whole state (z = x), else from a simulation of the
@@ -29,6 +29,12 @@ def cut(data, window, x0_windows=None):
         )
     u_w = np.asarray(u[: N * window]).reshape(N, window, -1)
     z_w = np.asarray(z[: N * window]).reshape(N, window, -1)
+    mask_w = None
+    if data.mask is not None:
+        mask_w = type(data.mask)(
+            np.asarray(data.mask.outputs[: N * window]).reshape(N, window, -1),
+            np.asarray(data.mask.samples[: N * window]).reshape(N, window),
+        )
     if x0_windows is not None:
         x0_w = np.asarray(x0_windows)
         if x0_w.shape != (N, np.shape(x0)[-1]):
@@ -50,4 +56,4 @@ def cut(data, window, x0_windows=None):
                 "unstable over the record. Give each window's starting state as `x0` of "
                 "shape (n_windows, n_x), or start from parameters that keep the model stable."
             )
-    return x0_w, u_w, z_w
+    return x0_w, u_w, z_w, mask_w

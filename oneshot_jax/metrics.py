@@ -21,55 +21,73 @@ import numpy as np
 __all__ = ["rmse", "nrmse", "fit_percent", "r2", "aic", "benchmark_scores", "BenchmarkScores"]
 
 
-def _flat(z, zhat):
+def _flat(z, zhat, mask=None):
+    """(n, n_z) views of z, zhat and the weights of the samples (1, or the mask)."""
     z, zhat = jnp.asarray(z), jnp.asarray(zhat)
     if z.shape != zhat.shape:
         raise ValueError(
             f"`z` and `zhat` must have the same shape, got {z.shape} and {zhat.shape}."
         )
+    if mask is not None and jnp.shape(mask) != z.shape:
+        raise ValueError(f"`mask` must have the shape of `z` {z.shape}, got {jnp.shape(mask)}.")
     if z.ndim == 1:
         z, zhat = z[:, None], zhat[:, None]
-    return z.reshape(-1, z.shape[-1]), zhat.reshape(-1, z.shape[-1])
+        mask = None if mask is None else jnp.asarray(mask)[:, None]
+    n_z = z.shape[-1]
+    w = jnp.ones(z.shape, z.dtype) if mask is None else jnp.asarray(mask, z.dtype)
+    w = w.reshape(-1, n_z)
+    # Missing samples may hold anything (NaN): they must not reach the sums.
+    z = jnp.where(w > 0, z.reshape(-1, n_z), 0.0)
+    zhat = jnp.where(w > 0, zhat.reshape(-1, n_z), 0.0)
+    return z, zhat, w
 
 
-def rmse(z, zhat):
-    """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2)."""
-    z, zhat = _flat(z, zhat)
-    return jnp.sqrt(jnp.mean((zhat - z) ** 2, axis=0))
+def _mean(a, w):
+    return jnp.sum(w * a, axis=0) / jnp.sum(w, axis=0)
 
 
-def nrmse(z, zhat):
+def rmse(z, zhat, mask=None):
+    """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2), over the samples
+    where `mask` (shaped like z, optional) is true."""
+    z, zhat, w = _flat(z, zhat, mask)
+    return jnp.sqrt(_mean((zhat - z) ** 2, w))
+
+
+def nrmse(z, zhat, mask=None):
     """RMSE divided by the standard deviation of the measured output, per output."""
-    z, zhat = _flat(z, zhat)
-    return rmse(z, zhat) / jnp.std(z, axis=0)
+    z, zhat, w = _flat(z, zhat, mask)
+    std = jnp.sqrt(_mean((z - _mean(z, w)) ** 2, w))
+    return jnp.sqrt(_mean((zhat - z) ** 2, w)) / std
 
 
-def fit_percent(z, zhat):
+def fit_percent(z, zhat, mask=None):
     """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`)."""
-    z, zhat = _flat(z, zhat)
-    num = jnp.linalg.norm(zhat - z, axis=0)
-    den = jnp.linalg.norm(z - jnp.mean(z, axis=0), axis=0)
+    z, zhat, w = _flat(z, zhat, mask)
+    num = jnp.sqrt(jnp.sum(w * (zhat - z) ** 2, axis=0))
+    den = jnp.sqrt(jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0))
     return 100.0 * (1.0 - num / den)
 
 
-def r2(z, zhat):
+def r2(z, zhat, mask=None):
     """Coefficient of determination R^2 = 1 - SSE / SST per output."""
-    z, zhat = _flat(z, zhat)
-    sse = jnp.sum((zhat - z) ** 2, axis=0)
-    sst = jnp.sum((z - jnp.mean(z, axis=0)) ** 2, axis=0)
+    z, zhat, w = _flat(z, zhat, mask)
+    sse = jnp.sum(w * (zhat - z) ** 2, axis=0)
+    sst = jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0)
     return 1.0 - sse / sst
 
 
-def aic(z, zhat, n_params):
+def aic(z, zhat, n_params, mask=None):
     """Akaike's information criterion, AIC = n log det(E^T E / n) + 2 n_params.
 
-    E is the (n, n_z) matrix of errors over all n samples (MATLAB's raw AIC without the
-    constant n n_z (log 2 pi + 1)). Lower is better; only differences between models on
-    the same data mean anything.
+    E is the (n, n_z) matrix of errors over the n samples (those where every output is
+    measured, when a `mask` is given) (MATLAB's raw AIC without the constant
+    n n_z (log 2 pi + 1)). Lower is better; only differences between models on the same
+    data mean anything.
     """
-    z, zhat = _flat(z, zhat)
-    e = zhat - z
-    n = e.shape[0]
+    z, zhat, w = _flat(z, zhat, mask)
+    full = jnp.all(w > 0, axis=1).astype(z.dtype)
+    e = (zhat - z) * full[:, None]
+    n = jnp.sum(full)
     _, logdet = jnp.linalg.slogdet(e.T @ e / n)
     return n * logdet + 2.0 * n_params
 
