@@ -28,7 +28,8 @@ be told the step of the update it follows.
 - Adam: use `proximal_adam(eta, l1(lam))`. Adam moves coordinate i by a step
     d_i = eta / (sqrt(v_i) + eps) along its averaged gradient, and `proximal_adam` applies
     the prox with those same per-coordinate steps (the proximal step in Adam's diagonal
-    metric), so its fixed points are exactly the stationary points of C + g. Chaining
+    metric, with sqrt(v_i) floored at lam so that no step moves a coordinate by much more
+    than eta), so its fixed points are exactly the stationary points of C + g. Chaining
     `l1(lam, learning_rate=eta)` after `optax.adam(eta)` instead thresholds every
     coordinate at eta * lam: its fixed points are stationary points of the re-weighted
     penalty lam sum_i (sqrt(v_i) + eps) |theta_i|, whose weights vanish with the
@@ -92,12 +93,15 @@ class ProximalTransformation(NamedTuple):
     - `prox`: `(params, step_size) -> params`, the proximal map of g with step `step_size`
         (a scalar, or a pytree of per-coordinate steps > 0).
     - `value`: `params -> scalar`, the penalty g(params), to report C + g.
+    - `strength`: the penalty's weight lambda (the largest one for `combine`), or None
+        when it is traced.
     """
 
     init: Callable
     update: Callable
     prox: Callable
     value: Callable
+    strength: float | None = None
 
 
 class ProximalState(NamedTuple):
@@ -261,7 +265,7 @@ def _step_at(learning_rate, count):
     return learning_rate(count) if callable(learning_rate) else learning_rate
 
 
-def _from_prox(prox, value, learning_rate, name) -> ProximalTransformation:
+def _from_prox(prox, value, learning_rate, name, strength) -> ProximalTransformation:
     _check_learning_rate(learning_rate, allow_none=True)
 
     def init(params):
@@ -283,7 +287,8 @@ def _from_prox(prox, value, learning_rate, name) -> ProximalTransformation:
         out = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
         return out, ProximalState(count=optax.safe_increment(state.count))
 
-    return ProximalTransformation(init, update, prox, value)
+    strength = float(strength) if is_concrete(strength) else None
+    return ProximalTransformation(init, update, prox, value, strength)
 
 
 def _step_leaves(step, params):
@@ -350,7 +355,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
         return strength * total
 
-    return _from_prox(prox, value, learning_rate, "l1")
+    return _from_prox(prox, value, learning_rate, "l1", strength)
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -411,7 +416,7 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
                 total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
         return strength * total
 
-    return _from_prox(prox, value, learning_rate, "group_lasso")
+    return _from_prox(prox, value, learning_rate, "group_lasso", strength)
 
 
 def combine(regularisers) -> ProximalTransformation | None:
@@ -449,25 +454,38 @@ def combine(regularisers) -> ProximalTransformation | None:
     def value(params):
         return sum(r.value(params) for r in regularisers)
 
-    return ProximalTransformation(chained.init, chained.update, prox, value)
+    strengths = [r.strength for r in regularisers]
+    strength = None if None in strengths else max(strengths)
+    return ProximalTransformation(chained.init, chained.update, prox, value, strength)
 
 
 def proximal_adam(
-    learning_rate, regulariser, *, b1=0.9, b2=0.999, eps=1e-8
+    learning_rate, regulariser, *, b1=0.9, b2=0.999, eps=1e-8, floor=None
 ) -> optax.GradientTransformation:
     """Adam with a proximal step in its own diagonal metric, for C + g with g non-smooth.
 
     With Adam's bias-corrected moments m_hat, v_hat (Kingma and Ba 2015, Algorithm 1) and
-    the per-coordinate steps d_i = eta / (sqrt(v_hat_i) + eps), the update is
+    the per-coordinate steps
 
-        theta+ = prox_{g, D}(theta - d * m_hat),   D = diag(d),
+        d_i = eta / (max(sqrt(v_hat_i), floor) + eps),
 
-    the proximal map of g in the metric D^{-1} (`regulariser.prox(params, d)`: soft
-    thresholding at d_i lambda for `l1`). At a fixed point m_hat = grad C and theta =
-    prox_{g, D}(theta - D grad C), which holds exactly when 0 is in grad C + dg(theta): the
-    fixed points are the stationary points of C + g, whatever the steps d.
-    Without a regulariser's selection (`where`), the other coordinates take plain Adam
+    the update is theta+ = prox_{g, D}(theta - d * m_hat), D = diag(d): the proximal map
+    of g in the metric D^{-1} (`regulariser.prox(params, d)`: soft-thresholding at
+    d_i lambda for `l1`; the proximal-gradient method with a diagonal preconditioner, as
+    in Yun, Lozano and Yang, "Adaptive proximal gradient methods for structured neural
+    networks", NeurIPS 2021). At a fixed point m_hat = grad C and
+    theta = prox_{g, D}(theta - D grad C), which holds exactly when 0 is in
+    grad C + dg(theta): the fixed points are the stationary points of C + g, whatever the
+    steps d. Coordinates that the regulariser does not select take plain (floored) Adam
     steps.
+
+    **The floor.** Adam's move d_i m_hat_i is at most about eta, but the threshold
+    d_i lambda is not: with plain Adam steps (`floor=0`) a coordinate whose gradient is far
+    below lambda, as all are near a converged fit, is thresholded by
+    eta lambda / sqrt(v_hat_i) >> eta in one step and lands on zero however large it is.
+    The default floor, the regulariser's `strength` lambda, keeps every move at most about
+    eta (the threshold d_i lambda <= eta) and changes no fixed point; below it the step is
+    gradient descent with step eta / lambda.
 
     **Arguments:**
 
@@ -475,6 +493,7 @@ def proximal_adam(
     - `regulariser`: a `ProximalTransformation` (`l1`, `group_lasso`, or `combine` of
         them); its own `learning_rate` is not used.
     - `b1`, `b2`, `eps`: as for `optax.adam`.
+    - `floor`: the floor on sqrt(v_hat) (>= 0); None takes `regulariser.strength`.
 
     **Returns:**
 
@@ -491,6 +510,9 @@ def proximal_adam(
             raise ValueError(f"`{name}` must be in [0, 1), got {b!r}.")
     if not eps > 0:
         raise ValueError(f"`eps` must be > 0, got {eps!r}.")
+    if floor is None:
+        floor = regulariser.strength or 0.0
+    _check_nonneg_scalar(floor, "floor")
 
     def init(params):
         zeros = lambda p: jnp.zeros_like(p)  # noqa: E731
@@ -508,9 +530,10 @@ def proximal_adam(
         nu = jax.tree_util.tree_map(lambda v, g: b2 * v + (1 - b2) * g * g, state.nu, grads)
         eta = _step_at(learning_rate, state.count)
 
-        def step(v):  # d_i = eta / (sqrt(v_hat_i) + eps), in the parameter's dtype
+        def step(v):  # d_i, in the parameter's dtype
             v_hat = v / (1 - b2 ** count.astype(v.dtype))
-            return jnp.asarray(eta / (jnp.sqrt(v_hat) + eps), v.dtype)
+            root = jnp.maximum(jnp.sqrt(v_hat), jnp.asarray(floor, v.dtype))
+            return jnp.asarray(eta / (root + eps), v.dtype)
 
         steps = jax.tree_util.tree_map(step, nu)
         moved = jax.tree_util.tree_map(

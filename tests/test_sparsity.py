@@ -224,6 +224,27 @@ def test_proximal_adam_converges_to_the_lasso_solution():
     np.testing.assert_allclose(plain, run_adam(optax.adam(1e-2), A, b, 200), rtol=1e-12)
 
 
+def test_proximal_adam_floor_bounds_the_first_step():
+    A, b, lam = lasso_problem()
+    m = A.shape[0]
+    x_ls = jnp.asarray(np.linalg.lstsq(A, b, rcond=None)[0])  # grad C = 0 up to round-off
+    grad = jax.grad(lambda x: 0.5 * jnp.sum((jnp.asarray(A) @ x - jnp.asarray(b)) ** 2) / m)
+    eta = 1e-3
+
+    def one_step(tx):
+        upd, _ = tx.update(grad(x_ls), tx.init(x_ls), x_ls)
+        return np.asarray(optax.apply_updates(x_ls, upd))
+
+    # Adam's own steps (floor 0): eta / |g| is huge where g ~ 0, and so is the threshold:
+    # every coefficient lands on zero in one step, however large it was.
+    collapsed = one_step(sp.proximal_adam(eta, sp.l1(lam), floor=0.0))
+    assert np.all(collapsed == 0.0) and float(jnp.max(jnp.abs(x_ls))) > 1.0
+    # The default floor (lam): no coordinate moves by more than 2 eta.
+    moved = one_step(sp.proximal_adam(eta, sp.l1(lam))) - np.asarray(x_ls)
+    assert np.max(np.abs(moved)) <= 2 * eta * (1 + 1e-12)
+    assert sp.l1(lam).strength == lam
+
+
 def test_group_prox_with_per_coordinate_steps_is_exact():
     rng = np.random.default_rng(5)
     V = rng.standard_normal((30, 4))
@@ -314,3 +335,19 @@ def test_bad_where_and_step():
         sp.proximal_adam(0.1, optax.sgd(0.1))
     with pytest.raises(ValueError, match="`learning_rate`"):
         sp.proximal_adam(-1.0, sp.l1(0.1))
+    with pytest.raises(ValueError, match="`floor`"):
+        sp.proximal_adam(0.1, sp.l1(0.1), floor=-1.0)
+
+
+def test_float32_parameters_stay_float32():
+    theta = {"w": jnp.asarray([0.5, -0.01, 2.0], jnp.float32)}
+    grads = {"w": jnp.asarray([0.1, 0.0, -0.2], jnp.float32)}
+    for tx, zeros in [
+        (optax.chain(optax.sgd(0.1), sp.l1(0.5, learning_rate=0.1)), [1]),
+        (sp.proximal_adam(0.1, sp.l1(0.05)), [1]),
+        (sp.proximal_adam(0.1, sp.group_lasso(100.0), floor=0.0), [0, 1, 2]),
+    ]:
+        upd, _ = tx.update(grads, tx.init(theta), theta)
+        new = optax.apply_updates(theta, upd)
+        assert new["w"].dtype == jnp.float32
+        assert np.all(np.asarray(new["w"])[zeros] == 0.0)
