@@ -135,6 +135,8 @@ class MLP(eqx.Module):
             raise ValueError(f"`scale` must be a finite number, got {scale!r}.")
         if bound is not None and not (isinstance(bound, numbers.Real) and 0 < bound < math.inf):
             raise ValueError(f"`bound` must be None or a finite number > 0, got {bound!r}.")
+        input_offset = _float_tuple(input_offset, in_size, "input_offset")
+        input_scale = _float_tuple(input_scale, in_size, "input_scale", positive=True)
         sizes = (in_size, *widths, out_size)
         keys = jax.random.split(key, len(sizes) - 1)
         layers = [
@@ -153,8 +155,8 @@ class MLP(eqx.Module):
         self.out_size = out_size
         self.scale = float(scale)
         self.bound = None if bound is None else float(bound)
-        self.input_offset = _float_tuple(input_offset, in_size, "input_offset")
-        self.input_scale = _float_tuple(input_scale, in_size, "input_scale", positive=True)
+        self.input_offset = input_offset
+        self.input_scale = input_scale
 
     def __call__(self, features):
         """The residual at one feature vector of shape (in_size,); returns (out_size,)."""
