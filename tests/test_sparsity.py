@@ -1,0 +1,353 @@
+"""The proximal steps of `oneshot_jax.sparsity`: closed forms, exact zeros, and ISTA built
+from `optax.sgd` + `l1` converging to the lasso solution computed by coordinate descent."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import oneshot_jax.sparsity as sp
+
+
+def test_soft_threshold_closed_form_and_exact_zeros():
+    rng = np.random.default_rng(0)
+    v = rng.standard_normal(200)
+    v[:5] = [0.3, -0.3, 0.0, 0.2999, -0.3001]
+    t = 0.3
+    out = np.asarray(sp.soft_threshold(jnp.asarray(v), t))
+    expected = np.sign(v) * np.maximum(np.abs(v) - t, 0.0)
+    np.testing.assert_array_equal(out == 0, np.abs(v) <= t)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-16)
+    assert np.all(out[np.abs(v) <= t] == 0.0) and np.sum(np.abs(v) <= t) > 20
+    # The prox of t|.|: y - v + t * subgradient(|y|) = 0.
+    nz = out != 0
+    np.testing.assert_allclose(out[nz] - v[nz] + t * np.sign(out[nz]), 0.0, atol=1e-15)
+    assert np.all(np.abs(v[~nz]) <= t)
+
+
+def test_soft_threshold_idempotent_where_it_should_be():
+    rng = np.random.default_rng(1)
+    v = jnp.asarray(rng.standard_normal(50))
+    once = sp.soft_threshold(v, 0.5)
+    # A zero threshold is the identity; zeros of the prox are fixed points of any prox.
+    np.testing.assert_array_equal(sp.soft_threshold(v, 0.0), v)
+    twice = sp.soft_threshold(once, 0.5)
+    np.testing.assert_array_equal(np.asarray(twice)[np.asarray(once) == 0], 0.0)
+    # Thresholds add: prox_s(prox_t(v)) = prox_{s+t}(v) for the L1 norm.
+    np.testing.assert_allclose(twice, sp.soft_threshold(v, 1.0), rtol=0, atol=1e-15)
+
+
+def test_block_soft_threshold_zeroes_whole_groups():
+    rng = np.random.default_rng(2)
+    W = rng.standard_normal((12, 3))
+    W[3] *= 1e-3  # a group far below the threshold
+    t = 1.2
+    out = np.asarray(sp.block_soft_threshold(jnp.asarray(W), t, axis=-1))
+    norms = np.linalg.norm(W, axis=1)
+    expected = W * np.maximum(1 - t / norms, 0)[:, None]
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-15)
+    dead = norms <= t
+    assert 0 < dead.sum() < len(dead)
+    assert np.all(out[dead] == 0.0)  # whole rows, exactly
+    assert np.all(out[~dead] != 0.0)
+    # Optimality of a surviving group: y - v + t y / ||y|| = 0.
+    y = out[~dead]
+    np.testing.assert_allclose(
+        y - W[~dead] + t * y / np.linalg.norm(y, axis=1, keepdims=True), 0.0, atol=1e-14
+    )
+    # axis=None: the whole array is one group.
+    whole = np.asarray(sp.block_soft_threshold(jnp.asarray(W), t, axis=None))
+    np.testing.assert_allclose(whole, W * (1 - t / np.linalg.norm(W)), rtol=1e-14)
+    assert np.all(sp.block_soft_threshold(jnp.asarray(W), 100.0) == 0.0)
+
+
+class Res(eqx.Module):
+    coef: jax.Array
+    net: jax.Array
+    tag: str = eqx.field(static=True)
+
+
+def params_tree():
+    rng = np.random.default_rng(3)
+    return {
+        "k": jnp.asarray(0.05),
+        "res": Res(
+            jnp.asarray(rng.standard_normal((6, 2))), jnp.asarray(rng.standard_normal(4)), "r"
+        ),
+    }
+
+
+def test_where_selects_leaves_and_entries():
+    theta = params_tree()
+    tx = sp.l1(1.0, where=sp.mask(lambda th: th["res"].coef))
+    out = tx.prox(theta, 1.0)  # threshold 1.0 on the coefficients only
+    assert out["k"] is theta["k"] and out["res"].net is theta["res"].net
+    np.testing.assert_array_equal(out["res"].coef, sp.soft_threshold(theta["res"].coef, 1.0))
+    assert out["res"].tag == "r"
+
+    # Entry by entry: only the first column of coef.
+    entries = jax.tree_util.tree_map(lambda _: False, theta)
+    col = np.zeros((6, 2), bool)
+    col[:, 0] = True
+    entries = eqx.tree_at(lambda th: th["res"].coef, entries, col)
+    out = sp.l1(1.0, where=entries).prox(theta, 1.0)
+    c, c0 = np.asarray(out["res"].coef), np.asarray(theta["res"].coef)
+    np.testing.assert_array_equal(c[:, 1], c0[:, 1])
+    np.testing.assert_array_equal(c[:, 0], np.asarray(sp.soft_threshold(c0[:, 0], 1.0)))
+    assert sp.l1(2.0, where=entries).value(theta) == pytest.approx(2 * np.abs(c0[:, 0]).sum())
+
+    # None: every floating leaf; the per-coordinate step (a pytree) scales the threshold.
+    steps = jax.tree_util.tree_map(lambda p: 0.5 * jnp.ones_like(p), theta)
+    a = sp.l1(2.0).prox(theta, steps)
+    b = sp.l1(1.0).prox(theta, 1.0)
+    assert bool(eqx.tree_equal(a, b))
+    assert float(a["k"]) == 0.0
+
+
+def test_group_lasso_rows_of_a_dictionary():
+    theta = params_tree()
+    tx = sp.group_lasso(1.0, where=sp.mask(lambda th: th["res"].coef), axis=-1)
+    out = tx.prox(theta, 1.2)
+    np.testing.assert_array_equal(
+        out["res"].coef, sp.block_soft_threshold(theta["res"].coef, 1.2, axis=-1)
+    )
+    assert out["res"].net is theta["res"].net
+    norms = np.linalg.norm(np.asarray(theta["res"].coef), axis=1)
+    assert tx.value(theta) == pytest.approx(norms.sum())
+
+
+def test_update_is_prox_after_the_step_and_zeros_survive_apply_updates():
+    theta = params_tree()
+    grads = jax.tree_util.tree_map(lambda p: 0.3 * jnp.ones_like(p), theta)
+    eta, lam = 0.1, 2.0
+    tx = optax.chain(optax.sgd(eta), sp.l1(lam, learning_rate=eta))
+    state = tx.init(theta)
+    upd, state = tx.update(grads, state, theta)
+    new = optax.apply_updates(theta, upd)
+    ref = sp.l1(lam).prox(
+        optax.apply_updates(theta, jax.tree_util.tree_map(lambda g: -eta * g, grads)), eta
+    )
+    zeros = np.asarray(ref["res"].coef) == 0
+    assert zeros.any()
+    assert np.all(np.asarray(new["res"].coef)[zeros] == 0.0)  # exact, through apply_updates
+    assert bool(eqx.tree_equal(new, ref, rtol=1e-15, atol=1e-15))
+
+
+def lasso_problem():
+    rng = np.random.default_rng(4)
+    m, n = 60, 20
+    A = rng.standard_normal((m, n))
+    x_true = np.zeros(n)
+    x_true[[1, 5, 11]] = [2.0, -1.5, 0.8]
+    b = A @ x_true + 0.1 * rng.standard_normal(m)
+    return A, b, 0.1
+
+
+def lasso_coordinate_descent(A, b, lam, sweeps=5000):
+    """argmin (1/(2m)) ||A x - b||^2 + lam ||x||_1 by cyclic coordinate descent (NumPy)."""
+    m, n = A.shape
+    x = np.zeros(n)
+    r = b.copy()
+    col = (A * A).sum(axis=0) / m
+    for _ in range(sweeps):
+        x_old = x.copy()
+        for j in range(n):
+            r += A[:, j] * x[j]
+            rho = A[:, j] @ r / m
+            x[j] = np.sign(rho) * max(abs(rho) - lam, 0.0) / col[j]
+            r -= A[:, j] * x[j]
+        if np.max(np.abs(x - x_old)) < 1e-16:
+            break
+    return x
+
+
+def test_sgd_plus_l1_converges_to_the_lasso_solution():
+    A, b, lam = lasso_problem()
+    m = A.shape[0]
+    x_star = lasso_coordinate_descent(A, b, lam)
+    support = x_star != 0
+    assert 2 <= support.sum() < len(x_star) - 5  # a sparse, non-trivial solution
+
+    A_j, b_j = jnp.asarray(A), jnp.asarray(b)
+    grad = jax.grad(lambda x: 0.5 * jnp.sum((A_j @ x - b_j) ** 2) / m)
+    eta = 1.0 / (np.linalg.norm(A, 2) ** 2 / m)  # 1 / L
+    tx = optax.chain(optax.sgd(eta), sp.l1(lam, learning_rate=eta))
+
+    def step(carry, _):
+        x, state = carry
+        upd, state = tx.update(grad(x), state, x)
+        x = optax.apply_updates(x, upd)
+        return (x, state), x == 0
+
+    x0 = jnp.zeros(A.shape[1])
+    (x, _), zero_trace = jax.lax.scan(step, (x0, tx.init(x0)), None, length=1500)
+    x, zero_trace = np.asarray(x), np.asarray(zero_trace)
+    np.testing.assert_allclose(x, x_star, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(x == 0, ~support)  # exact zeros off the support
+    # Once the support is found, the zeros stay exactly zero at every later iterate.
+    settled = np.all(zero_trace == ~support, axis=1)
+    first = int(np.argmax(settled))
+    assert settled[first:].all() and first < 500
+    # The solution is a fixed point of the proximal gradient map.
+    fixed = sp.l1(lam).prox(jnp.asarray(x_star) - eta * grad(jnp.asarray(x_star)), eta)
+    np.testing.assert_allclose(fixed, x_star, rtol=0, atol=1e-12)
+
+
+def run_adam(tx, A, b, steps):
+    A_j, b_j = jnp.asarray(A), jnp.asarray(b)
+    grad = jax.grad(lambda x: 0.5 * jnp.mean((A_j @ x - b_j) ** 2))
+
+    def step(carry, _):
+        x, state = carry
+        upd, state = tx.update(grad(x), state, x)
+        return (optax.apply_updates(x, upd), state), None
+
+    x0 = jnp.zeros(A.shape[1])
+    (x, _), _ = jax.lax.scan(step, (x0, tx.init(x0)), None, length=steps)
+    return np.asarray(x)
+
+
+def test_proximal_adam_converges_to_the_lasso_solution():
+    A, b, lam = lasso_problem()
+    x_star = lasso_coordinate_descent(A, b, lam)
+    x = run_adam(sp.proximal_adam(1e-2, sp.l1(lam)), A, b, 2000)
+    np.testing.assert_array_equal(x == 0, x_star == 0)  # the exact support, exact zeros
+    np.testing.assert_allclose(x, x_star, rtol=0, atol=1e-10)
+    # The same threshold chained after optax.adam (one step eta for every coordinate)
+    # settles at the fixed points of a re-weighted penalty instead: far fewer zeros.
+    chained = run_adam(optax.chain(optax.adam(1e-2), sp.l1(lam, learning_rate=1e-2)), A, b, 2000)
+    assert np.sum(chained == 0) < np.sum(x_star == 0) // 2
+    # Without a penalty proximal_adam is Adam.
+    plain = run_adam(sp.proximal_adam(1e-2, sp.l1(0.0)), A, b, 200)
+    np.testing.assert_allclose(plain, run_adam(optax.adam(1e-2), A, b, 200), rtol=1e-12)
+
+
+def test_proximal_adam_floor_bounds_the_first_step():
+    A, b, lam = lasso_problem()
+    m = A.shape[0]
+    x_ls = jnp.asarray(np.linalg.lstsq(A, b, rcond=None)[0])  # grad C = 0 up to round-off
+    grad = jax.grad(lambda x: 0.5 * jnp.sum((jnp.asarray(A) @ x - jnp.asarray(b)) ** 2) / m)
+    eta = 1e-3
+
+    def one_step(tx):
+        upd, _ = tx.update(grad(x_ls), tx.init(x_ls), x_ls)
+        return np.asarray(optax.apply_updates(x_ls, upd))
+
+    # Adam's own steps (floor 0): eta / |g| is huge where g ~ 0, and so is the threshold:
+    # every coefficient lands on zero in one step, however large it was.
+    collapsed = one_step(sp.proximal_adam(eta, sp.l1(lam), floor=0.0))
+    assert np.all(collapsed == 0.0) and float(jnp.max(jnp.abs(x_ls))) > 1.0
+    # The default floor (lam): no coordinate moves by more than 2 eta.
+    moved = one_step(sp.proximal_adam(eta, sp.l1(lam))) - np.asarray(x_ls)
+    assert np.max(np.abs(moved)) <= 2 * eta * (1 + 1e-12)
+    assert sp.l1(lam).strength == lam
+
+
+def test_group_prox_with_per_coordinate_steps_is_exact():
+    rng = np.random.default_rng(5)
+    V = rng.standard_normal((30, 4))
+    D = rng.uniform(0.2, 2.0, size=V.shape)
+    lam = 0.8
+    Y = np.asarray(sp.group_lasso(lam, axis=-1).prox(jnp.asarray(V), jnp.asarray(D)))
+    zero = np.all(Y == 0.0, axis=1)
+    assert 0 < zero.sum() < len(zero)
+    # Optimality of min lam sum ||y_G|| + sum (y - v)^2 / (2 d): zero iff ||v / d|| <= lam,
+    # otherwise (y - v) / d + lam y / ||y|| = 0.
+    np.testing.assert_array_equal(zero, np.linalg.norm(V / D, axis=1) <= lam)
+    y, v, d = Y[~zero], V[~zero], D[~zero]
+    kkt = (y - v) / d + lam * y / np.linalg.norm(y, axis=1, keepdims=True)
+    np.testing.assert_allclose(kkt, 0.0, atol=1e-13)
+    # Equal steps: block soft-thresholding.
+    same = sp.group_lasso(lam, axis=-1).prox(jnp.asarray(V), jnp.full(V.shape, 0.7))
+    np.testing.assert_allclose(same, sp.block_soft_threshold(V, 0.7 * lam, axis=-1), atol=1e-14)
+
+
+def test_schedule_and_combine():
+    theta = {"a": jnp.asarray([3.0, -0.2, 0.05]), "b": jnp.asarray([[1.0, 1.0], [0.1, 0.1]])}
+    sched = optax.linear_schedule(1.0, 0.5, 10)
+    tx = sp.combine(
+        [
+            sp.l1(0.1, {"a": True, "b": False}, learning_rate=sched),
+            sp.group_lasso(1.0, {"a": False, "b": True}, axis=-1, learning_rate=sched),
+        ]
+    )
+    state = tx.init(theta)
+    zero = jax.tree_util.tree_map(jnp.zeros_like, theta)
+    upd, state = tx.update(zero, state, theta)
+    new = optax.apply_updates(theta, upd)
+    np.testing.assert_allclose(new["a"], [2.9, -0.1, 0.0], atol=1e-15)
+    np.testing.assert_allclose(new["b"][1], 0.0, atol=0)
+    np.testing.assert_allclose(new["b"][0], 1 - 1 / np.sqrt(2), atol=1e-15)
+    assert tx.value(theta) == pytest.approx(0.1 * 3.25 + np.sqrt(2) + 0.1 * np.sqrt(2))
+    # The second update uses the schedule's second value (0.95).
+    upd, _ = tx.update(zero, state, theta)
+    np.testing.assert_allclose(optax.apply_updates(theta, upd)["a"][0], 3.0 - 0.095, atol=1e-15)
+    # Sparse group lasso on the same leaf: l1 then group = the composition of the proxes.
+    v = jnp.asarray([[3.0, -0.5], [0.2, 0.1]])
+    both = sp.combine([sp.l1(1.0), sp.group_lasso(1.0, axis=-1)]).prox(v, 0.4)
+    expected = sp.block_soft_threshold(sp.soft_threshold(v, 0.4), 0.4, axis=-1)
+    np.testing.assert_array_equal(both, expected)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: sp.l1(-1.0), "`strength`"),
+        (lambda: sp.l1(float("nan")), "`strength`"),
+        (lambda: sp.l1(0.1, learning_rate=0.0), "`learning_rate`"),
+        (lambda: sp.l1(0.1, learning_rate="fast"), "`learning_rate`"),
+        (lambda: sp.group_lasso(0.1, axis="rows"), "`axis`"),
+        (lambda: sp.mask(3), "`select`"),
+        (lambda: sp.combine([optax.sgd(0.1)]), "`regularisers`"),
+    ],
+)
+def test_bad_arguments(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_bad_where_and_step():
+    theta = params_tree()
+    with pytest.raises(ValueError, match="`where`"):
+        sp.l1(0.1, where={"k": True}).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`where`"):
+        entries = jax.tree_util.tree_map(lambda p: np.ones(np.shape(p), bool), theta)
+        sp.group_lasso(0.1, where=entries).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`where`"):
+        bad = jax.tree_util.tree_map(lambda p: np.ones(3, bool), theta)
+        sp.l1(0.1, where=bad).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`select`"):
+        sp.l1(0.1, where=sp.mask(lambda th: th["missing"])).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`axis`"):
+        sp.group_lasso(0.1, axis=3).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`step_size`"):
+        sp.group_lasso(0.1).prox(theta, {"k": 1.0})
+    with pytest.raises(ValueError, match="`step_size`"):
+        sp.l1(0.1).prox(theta, {"k": 1.0})
+    with pytest.raises(ValueError, match="params"):
+        tx = sp.l1(0.1, learning_rate=0.1)
+        tx.update(theta, tx.init(theta))
+    with pytest.raises(ValueError, match="`learning_rate`"):
+        optax.chain(optax.sgd(0.1), sp.l1(0.1)).init(theta)
+    with pytest.raises(ValueError, match="`regulariser`"):
+        sp.proximal_adam(0.1, optax.sgd(0.1))
+    with pytest.raises(ValueError, match="`learning_rate`"):
+        sp.proximal_adam(-1.0, sp.l1(0.1))
+    with pytest.raises(ValueError, match="`floor`"):
+        sp.proximal_adam(0.1, sp.l1(0.1), floor=-1.0)
+
+
+def test_float32_parameters_stay_float32():
+    theta = {"w": jnp.asarray([0.5, -0.01, 2.0], jnp.float32)}
+    grads = {"w": jnp.asarray([0.1, 0.0, -0.2], jnp.float32)}
+    for tx, zeros in [
+        (optax.chain(optax.sgd(0.1), sp.l1(0.5, learning_rate=0.1)), [1]),
+        (sp.proximal_adam(0.1, sp.l1(0.05)), [1]),
+        (sp.proximal_adam(0.1, sp.group_lasso(100.0), floor=0.0), [0, 1, 2]),
+    ]:
+        upd, _ = tx.update(grads, tx.init(theta), theta)
+        new = optax.apply_updates(theta, upd)
+        assert new["w"].dtype == jnp.float32
+        assert np.all(np.asarray(new["w"])[zeros] == 0.0)
