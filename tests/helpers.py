@@ -223,7 +223,7 @@ def diffrax_rollout(rhs, dt, substeps, theta, x0, u, *, solver=None, controller=
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class Problem:
+class GradientCase:
     """Data and model of one identification problem, with the gradient taken at (theta, x0).
 
     Continuous-time problems give `rhs` and `dt` (the model is `Model.from_ode` with RK4
@@ -345,7 +345,7 @@ def _make(
     theta = _perturb(theta_true, rng, theta_scale)
     shift = x0_shift if x0_shift is not None else 0.05 * rng.standard_normal(x0_true.shape)
     x0 = x0_true + shift
-    return Problem(
+    return GradientCase(
         name, theta, x0, u, z, rhs=rhs, dt=dt, substeps=substeps, observe=observe, **kwargs
     )
 

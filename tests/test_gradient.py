@@ -1,7 +1,7 @@
 """The one-shot gradient of eq. (17) and (20) against three independent references.
 
 - Oracle A: `jax.grad` of the cost written out in the test (our own RK4 in a Python
-  for-loop, our own sum of e^T Q e + lambda h), see `helpers.Problem.oracle_a_cost`.
+  for-loop, our own sum of e^T Q e + lambda h), see `helpers.GradientCase.oracle_a_cost`.
 - Oracle B: `jax.grad` through a diffrax rollout with classical RK4 given as a
   `ButcherTableau`, one `diffeqsolve` per sample interval (`helpers.diffrax_rollout`).
 - The literal O(T^2) double sums of eq. (17) and (20), `literal_value_and_grad`.
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from helpers import (
     PROBLEMS,
-    Problem,
+    GradientCase,
     assert_tree_rel_close,
     cast,
 )
@@ -33,7 +33,7 @@ ORACLES = ["own_rk4_loop", "diffrax_rk4", "literal_eq17_eq20"]
 
 
 @functools.cache
-def problem(name) -> Problem:
+def problem(name) -> GradientCase:
     return PROBLEMS[name]()
 
 
@@ -147,7 +147,7 @@ def _linear_problem(rng, T, n_x, n_u, n_z, weight_kind="none", N=None, rho=0.9):
     else:
         L = rng.standard_normal((n_z, max(n_z - 1, 1)))
         weight = jnp.asarray(L @ L.T)
-    return Problem(
+    return GradientCase(
         "linear",
         theta,
         x0,

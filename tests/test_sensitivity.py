@@ -1,7 +1,7 @@
 """The closed-form residual Jacobian (forward sensitivities, `_sensitivity.py`) against
-`jax.jacfwd` of the residual rollout, through `Problem.jacobian` / `Problem.residuals`.
+`jax.jacfwd` of the residual rollout, through `FitProblem.jacobian` / `FitProblem.residuals`.
 
-The Problems are built here the way `fit` builds them: the free parameters are the entries
+The FitProblems are built here the way `fit` builds them: the free parameters are the entries
 of the flattened theta and of each trajectory's x0 that are not fixed, so the Jacobian's
 columns are exactly the free variables.
 """
