@@ -514,7 +514,8 @@ def _estimate(
         )
     if stop_reason is not None and not is_success(stop_reason):
         warnings.warn(
-            f"estimate_x0: Gauss-Newton stopped: {RESULTS[stop_reason]}", stacklevel=stacklevel
+            f"estimate_x0: the least-squares solver stopped: {RESULTS[stop_reason]}",
+            stacklevel=stacklevel,
         )
     std = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
     del n_x

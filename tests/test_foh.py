@@ -98,15 +98,32 @@ def foh_model(method, substeps=2):
     )
 
 
+@functools.cache
+def autodiff_gradient(method):
+    theta, x0, u, z = data()
+    grad = jax.value_and_grad(functools.partial(own_loss, method=method), argnums=(0, 1))
+    return eqx.filter_jit(grad)(theta, x0, u, z)
+
+
+@functools.cache
+def autodiff_jacobian(method):
+    """The residuals r = (z_hat - z) / sqrt(T) and their Jacobians in (flat theta, x0)."""
+    theta, x0, u, z = data()
+    flat, unravel = ravel_pytree(theta)
+
+    def residuals(pt, px):
+        e = own_outputs(unravel(pt), px, u, method=method) - z
+        return (e / jnp.sqrt(u.shape[0])).reshape(-1)
+
+    return residuals(flat, x0), jax.jit(jax.jacfwd(residuals, argnums=(0, 1)))(flat, x0)
+
+
 @pytest.mark.parametrize("strategy", ["jacobian", "vjp"])
 @pytest.mark.parametrize("method", ["rk4", "euler"])
 def test_foh_one_shot_gradient_equals_autodiff(method, strategy):
     theta, x0, u, z = data()
     C, (g_theta, g_x0) = oj.value_and_grad(foh_model(method), theta, x0, u, z, strategy=strategy)
-    ref = eqx.filter_jit(
-        jax.value_and_grad(functools.partial(own_loss, method=method), argnums=(0, 1))
-    )
-    C_ref, (gt_ref, gx_ref) = ref(theta, x0, u, z)
+    C_ref, (gt_ref, gx_ref) = autodiff_gradient(method)
     assert float(C) == pytest.approx(float(C_ref), rel=1e-12)
     for key in THETA:
         np.testing.assert_allclose(g_theta[key], gt_ref[key], rtol=1e-10, atol=0)
@@ -140,15 +157,9 @@ def one_trajectory_problem(model, theta, x0, u, z):
 def test_foh_sensitivities_equal_autodiff(method, strategy):
     theta, x0, u, z = data()
     problem = one_trajectory_problem(foh_model(method), theta, x0, u, z)
-    flat, unravel = ravel_pytree(theta)
+    flat, _ = ravel_pytree(theta)
     lin = eqx.filter_jit(lambda p, s: p.jacobian(Params(flat, x0[None]), s))(problem, strategy)
-
-    def residuals(pt, px):
-        e = own_outputs(unravel(pt), px, u, method=method) - z
-        return (e / jnp.sqrt(u.shape[0])).reshape(-1)
-
-    r_ref = residuals(flat, x0)
-    Jt_ref, Jx_ref = jax.jit(jax.jacfwd(residuals, argnums=(0, 1)))(flat, x0)
+    r_ref, (Jt_ref, Jx_ref) = autodiff_jacobian(method)
     np.testing.assert_allclose(lin.r[0], r_ref, rtol=1e-12, atol=1e-15)
     # Column by column: a norm over the whole matrix would hide a wrong small column.
     for J, J_ref in ((lin.Jt[0], Jt_ref), (lin.Jx[0], Jx_ref)):
