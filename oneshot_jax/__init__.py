@@ -9,6 +9,11 @@ from ._fit_result import FitResult as FitResult
 from ._fit_result import Starts as Starts
 from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
+from ._initial_state import KalmanPath as KalmanPath
+from ._initial_state import Prediction as Prediction
+from ._initial_state import X0Estimate as X0Estimate
+from ._initial_state import estimate_x0 as estimate_x0
+from ._initial_state import predict as predict
 from ._io import load_result as load_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step

@@ -139,6 +139,41 @@ class FitResult(eqx.Module):
             )
         return simulate(self.model, self.theta, self.x0 if x0 is None else x0, u)
 
+    def predict(self, u, z_head, **kwargs):
+        """Predict a new record from its first measured outputs: estimate its x0 from
+        `z_head` (the first n outputs, n = len(z_head)) and simulate the whole input `u`
+        with the fitted model and theta (see `oneshot_jax.predict`).
+
+        **Arguments:**
+
+        - `u`: the new record's inputs (T, n_u).
+        - `z_head`: its first n measured outputs (n, n_z).
+        - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
+            `"smoother"`, `x0=` the starting guess, ...). Where the model does not observe
+            its whole state, the starting guess defaults to the fitted x0 (the mean over
+            trajectories of a multi-trajectory fit): a typical state of the system.
+
+        **Returns:**
+
+        A `oneshot_jax.Prediction(z, x, x0, estimate)`; score it with
+        `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`.
+        """
+        from ._initial_state import _predict
+
+        if self.model is None:
+            raise ValueError(
+                "this result holds no model (it was loaded without one): pass "
+                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
+            )
+        kwargs = dict(kwargs)
+        method = kwargs.pop("method", "lsq")
+        if kwargs.get("x0") is None and not self.model.observes_state:
+            x0 = np.asarray(self.x0)
+            kwargs["x0"] = x0 if x0.ndim == 1 else x0.mean(axis=0)
+        return _predict(
+            self.model, self.theta, u, z_head, np.shape(z_head)[0], method, kwargs, stacklevel=3
+        )
+
     def save(self, path):
         """Save to one `.npz` file (see `oneshot_jax.load_result` for the format)."""
         from ._io import save_result

@@ -36,10 +36,13 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
         an error of order dt against which a higher-order integrator gains nothing.
 
     `method="rk4"` is classical RK4 (tableau 0; 1/2 1/2; 1/2 0 1/2; 1 0 0 1; weights 1/6
-    1/3 1/3 1/6), global error O(h^4) with h = dt / substeps for a smooth input under
-    "foh" (or a constant one under "zoh"); `method="euler"` is explicit Euler, O(h). This
-    is the discretisation behind `Model.from_ode`; call it directly inside a hand-written
-    `step` whose state holds more than the ODE (a controller's delay line, say).
+    1/3 1/3 1/6), global error O(h^4) with h = dt / substeps against the ODE driven by the
+    held input ("zoh") or by the linear interpolant of the samples ("foh");
+    `method="euler"` is explicit Euler, O(h). Against a smooth input u(t) that the samples
+    come from, the hold adds an error of O(dt) under "zoh" and O(dt^2) under "foh" (the
+    interpolant is off by dt^2 u''/8 mid-interval). This is the discretisation behind
+    `Model.from_ode`; call it directly inside a hand-written `step` whose state holds more
+    than the ODE (a controller's delay line, say).
 
     **Arguments:**
 

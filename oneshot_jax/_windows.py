@@ -4,16 +4,15 @@ import warnings
 
 import numpy as np
 
-from ._simulate import simulate_impl
-
 
 def cut(data, window, x0_windows=None):
     """Consecutive windows of `window` samples from one record, as N trajectories:
     (x0_w (N, n_x), u_w (N, window, n_u), z_w (N, window, n_z), mask_w (or None)).
 
     Each window's starting state is `x0_windows[i]` when given; else it is taken from z
-    where the model observes its whole state (z = x), else from a simulation of the
-    record with the starting parameters; the first window starts at the given x0.
+    where the model observes its whole state (z = x), else estimated from the window's
+    own samples with the starting parameters (x0-only Gauss-Newton, all windows at once,
+    see `_initial_state.window_starts`); the first window starts at the given x0.
     """
     u, z, x0 = data.u, data.z, data.x0
     T = u.shape[0]
@@ -47,13 +46,7 @@ def cut(data, window, x0_windows=None):
         x0_w = np.array(z_w[:, 0, :], dtype=np.asarray(x0).dtype)
         x0_w[0] = np.asarray(x0)
     else:
-        xs, _ = simulate_impl(data.model, data.theta, x0, u[: N * window], False)
-        x0_w = np.asarray(xs[::window])
-        if not np.all(np.isfinite(x0_w)):
-            raise ValueError(
-                "the windows' starting states come from simulating the whole record with "
-                "theta0, and that simulation diverged (NaN or inf): theta0 makes the model "
-                "unstable over the record. Give each window's starting state as `x0` of "
-                "shape (n_windows, n_x), or start from parameters that keep the model stable."
-            )
+        from ._initial_state import window_starts  # (it runs `fit`, which imports this)
+
+        x0_w = window_starts(data, u_w, z_w, mask_w)
     return x0_w, u_w, z_w, mask_w

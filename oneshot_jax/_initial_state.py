@@ -1,0 +1,628 @@
+"""The initial state of a new record from its first samples, and prediction from it.
+
+A fitted model used on a record it has never seen needs that record's x0. `estimate_x0`
+takes it from the head of the record (MATLAB's `findstates`): by Gauss-Newton on x0 alone
+(`fit` with every parameter fixed, so the closed-form sensitivities of eq. (20)'s forward
+twin give the Jacobian), or by an extended Kalman filter and Rauch-Tung-Striebel smoother.
+`predict` then simulates the whole record from it, which is the community's benchmark
+protocol: the model may use the test input and the first n test outputs, and is scored on
+the rest (`oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`).
+"""
+
+import warnings
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import ArrayLike, Float, PyTree
+
+from ._checks import as_float, check_data
+from ._cost import weigh
+from ._fit import fit
+from ._linalg import identifiable, psd_solve
+from ._results import RESULTS, is_success
+from ._simulate import outputs, rollout, simulate_impl
+from ._solver import GaussNewton
+
+METHODS = ("lsq", "smoother")
+
+# Defaults of the smoother, relative to the scales of the head (see `estimate_x0`).
+MEASUREMENT_NOISE_REL = 1e-2
+PROCESS_NOISE_REL = 1e-3
+PRIOR_STD_REL = 1e2
+
+
+class KalmanPath(eqx.Module):
+    """The states over the head from the extended Kalman filter and the RTS smoother.
+
+    **Fields:**
+
+    - `filtered_mean`, `filtered_covariance`: x[k | k] (n, n_x) and P[k | k] (n, n_x, n_x),
+        given z[0..k].
+    - `smoothed_mean`, `smoothed_covariance`: x[k | n-1] and P[k | n-1], given the whole
+        head; `smoothed_mean[0]` is the estimate of x0.
+    """
+
+    filtered_mean: np.ndarray
+    filtered_covariance: np.ndarray
+    smoothed_mean: np.ndarray
+    smoothed_covariance: np.ndarray
+
+
+class X0Estimate(eqx.Module):
+    """An initial state estimated from the head of a record (what `estimate_x0` returns).
+
+    **Fields:**
+
+    - `x0`: the estimate, shape (n_x,).
+    - `covariance`: its (n_x, n_x) covariance; `std` the standard deviations. For
+        `"lsq"`, sigma^2 (J^T Q J)^+ with sigma^2 = SSE / (n n_z - n_x) estimated from the
+        residuals (inf in the rows of an entry the head does not determine, and everywhere
+        when n n_z <= n_x); for `"smoother"`, the smoothed posterior covariance P[0 | n-1]
+        under the given noise covariances and prior.
+    - `identifiable`: (n_x,) booleans, False for an entry the head's outputs do not
+        determine (a numerically null direction of J^T Q J, J = d z[0..n-1] / d x0).
+    - `loss`: C of eq. (5) over the head from `x0` (mean over k of e_k^T Q e_k).
+    - `method`: `"lsq"` or `"smoother"`; `n`: the number of samples used.
+    - `stop_reason`: for `"lsq"`, the `RESULTS` item saying why Gauss-Newton stopped
+        (None for the smoother); `success` and `message` as in `FitResult`.
+    - `kalman`: for `"smoother"`, the filtered and smoothed states over the head (a
+        `KalmanPath`); None for `"lsq"`.
+    """
+
+    x0: np.ndarray
+    covariance: np.ndarray
+    std: np.ndarray
+    identifiable: np.ndarray
+    loss: np.ndarray
+    method: str = eqx.field(static=True)
+    n: int = eqx.field(static=True)
+    stop_reason: Any = None
+    kalman: KalmanPath | None = None
+
+    @property
+    def success(self) -> bool:
+        """Gauss-Newton converged (`"lsq"`), or the smoother's estimate is finite."""
+        if self.stop_reason is not None:
+            return is_success(self.stop_reason)
+        return bool(np.all(np.isfinite(self.x0)) and np.all(np.isfinite(self.covariance)))
+
+    @property
+    def message(self) -> str:
+        if self.stop_reason is not None:
+            return RESULTS[self.stop_reason]
+        return "smoothed" if self.success else "the smoother's estimate is not finite"
+
+
+class Prediction(NamedTuple):
+    """What `predict` returns: the simulated outputs `z` (T, n_z) and states `x` (T, n_x)
+    of the whole record from the estimated initial state `x0` (n_x,), and the
+    `X0Estimate` it came from."""
+
+    z: np.ndarray
+    x: np.ndarray
+    x0: np.ndarray
+    estimate: X0Estimate
+
+
+#
+# Validation.
+#
+
+
+def _check_head(u, z, n):
+    """u (T, n_u), z (T_z, n_z) and 1 <= n <= min(T, T_z), as the number of samples used."""
+    if np.ndim(u) != 2:
+        raise ValueError(f"`u` must have shape (T, n_u) (one record), got shape {np.shape(u)}.")
+    if np.ndim(z) != 2:
+        raise ValueError(f"`z` must have shape (T, n_z) (one record), got shape {np.shape(z)}.")
+    T, T_z = np.shape(u)[0], np.shape(z)[0]
+    if n is None:
+        n = T_z
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+        raise TypeError(f"`n` (the number of head samples) must be an integer, got {n!r}.")
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"`n` (the number of head samples) must be >= 1, got {n}.")
+    if n > T_z:
+        raise ValueError(f"`n` = {n} is more than the {T_z} samples of `z`.")
+    if n > T:
+        raise ValueError(f"`n` = {n} is more than the {T} samples of `u`.")
+    return n
+
+
+def _covariance_arg(value, size, name, *, definite):
+    """A covariance from a scalar (times I), a vector (its diagonal) or a matrix (symmetric,
+    positive semi-definite, or definite where `definite`)."""
+    a = np.asarray(as_float(value, name), dtype=np.float64)
+    if a.shape == ():
+        a = np.full(size, float(a))
+    if a.shape == (size,):
+        a = np.diag(a)
+    if a.shape != (size, size):
+        raise ValueError(
+            f"`{name}` must be a scalar, a ({size},) vector of variances or a ({size}, {size}) "
+            f"covariance matrix, got shape {np.shape(value)}."
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"`{name}` contains NaN or inf values.")
+    scale = max(float(np.max(np.abs(a))), 1e-300)
+    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-12 * scale):
+        raise ValueError(f"`{name}` must be a symmetric matrix.")
+    low = float(np.min(np.linalg.eigvalsh(a)))
+    if definite and low <= 0:
+        raise ValueError(f"`{name}` must be positive definite (variances > 0).")
+    if low < -1e-10 * scale:
+        raise ValueError(f"`{name}` must be positive semi-definite (variances >= 0).")
+    return 0.5 * (a + a.T)
+
+
+def _rms(a, axis=0):
+    """Root-mean-square per column, with 1 where it is zero or not finite."""
+    s = np.sqrt(np.mean(np.square(np.asarray(a, np.float64)), axis=axis))
+    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+
+
+#
+# The two methods.
+#
+
+
+@eqx.filter_jit
+def _x0_jacobian(model, theta, x0, u, weight):
+    """Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x), by forward mode."""
+
+    def weighted_outputs(x0):
+        return weigh(outputs(model, theta, rollout(model, theta, x0, u), u), weight).reshape(-1)
+
+    return jax.jacfwd(weighted_outputs)(x0)
+
+
+def _sqrt_weight(weight):
+    if weight is None or np.ndim(weight) == 1:
+        return None if weight is None else np.sqrt(weight)
+    vals, vecs = np.linalg.eigh(np.asarray(weight, np.float64))
+    return (vecs * np.sqrt(np.maximum(vals, 0.0))) @ vecs.T
+
+
+def _observable(data):
+    """Per x0 entry, whether the head's (weighted) outputs determine it (`_linalg`'s rule,
+    the one `fit` uses for its covariance)."""
+    sqrt_q = _sqrt_weight(None if data.weight is None else np.asarray(data.weight))
+    sqrt_q = None if sqrt_q is None else jnp.asarray(sqrt_q, data.x0.dtype)
+    J = _x0_jacobian(data.model, data.theta, jnp.asarray(data.x0), jnp.asarray(data.u), sqrt_q)
+    return np.asarray(identifiable(J.T @ J))
+
+
+def _lsq(model, theta, x0, u, z, weight, solver, missing="raise"):
+    """x0 alone by `fit` (every parameter fixed): one trajectory or N at once (x0 (N, n_x),
+    u (N, n, n_u), z (N, n, n_z)). fit's "not identifiable" warning is left to the caller,
+    which says what it means for an initial state."""
+    solver = GaussNewton() if solver is None else solver
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fit(
+            model, theta, x0, u, z, fixed=True, weight=weight, solver=solver, missing=missing
+        )
+    for w in caught:
+        if "not identifiable" not in str(w.message):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return result
+
+
+@eqx.filter_jit
+def _smooth(model, theta, m0, P0, Qp, R, u, z):
+    """Extended Kalman filter and Rauch-Tung-Striebel smoother over one head.
+
+    Model: x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
+    v_k ~ N(0, R); x[0] ~ N(m0, P0). f and g are linearised by `jax.jacfwd` at the filtered
+    and predicted means (Särkkä 2013, Algorithm 5.4); the backward pass is the extended
+    RTS smoother (ibid., Chapter 9; Theorem 8.2 for the linear case):
+
+        G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
+        P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
+    """
+    eye = jnp.eye(m0.shape[0], dtype=m0.dtype)
+
+    def update(m, P, u_k, z_k):
+        H = jax.jacfwd(model.observe)(m, u_k, theta)
+        S = H @ P @ H.T + R
+        Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
+        m = m + Kt.T @ (z_k - model.observe(m, u_k, theta))
+        A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
+        P = A @ P @ A.T + Kt.T @ R @ Kt
+        return m, 0.5 * (P + P.T)
+
+    def forward(carry, inp):
+        m, P = carry
+        u_k, z_k, u_step = inp
+        mf, Pf = update(m, P, u_k, z_k)
+        F = jax.jacfwd(model.step)(mf, u_step, theta)
+        Pp = F @ Pf @ F.T + Qp
+        mp = model.step(mf, u_step, theta)
+        return (mp, 0.5 * (Pp + Pp.T)), (mf, Pf, mp, Pp, F)
+
+    n = u.shape[0]
+    (m, P), (mf, Pf, mp, Pp, F) = jax.lax.scan(
+        forward, (m0, P0), (u[: n - 1], z[: n - 1], model.step_inputs(u))
+    )
+    m_last, P_last = update(m, P, u[n - 1], z[n - 1])
+
+    def backward(carry, inp):
+        ms, Ps = carry
+        mf, Pf, mp, Pp, F = inp
+        G = psd_solve(Pp, F @ Pf).T  # P[k|k] F^T P[k+1|k]^+ (P symmetric)
+        ms = mf + G @ (ms - mp)
+        Ps = Pf + G @ (Ps - Pp) @ G.T
+        Ps = 0.5 * (Ps + Ps.T)
+        return (ms, Ps), (ms, Ps)
+
+    _, (ms, Ps) = jax.lax.scan(backward, (m_last, P_last), (mf, Pf, mp, Pp, F), reverse=True)
+    filtered = (jnp.concatenate([mf, m_last[None]]), jnp.concatenate([Pf, P_last[None]]))
+    smoothed = (jnp.concatenate([ms, m_last[None]]), jnp.concatenate([Ps, P_last[None]]))
+    return filtered, smoothed
+
+
+def _smoother_defaults(
+    data, observes_state, guess, process_noise, measurement_noise, prior_covariance
+):
+    """The covariances of the smoother, defaults from the scales of the head."""
+    n_x, n_z = guess.shape[0], data.n_z
+    z = np.asarray(data.z)
+    s_z = _rms(z)
+    if observes_state:
+        s_x = s_z
+    else:
+        xs, _ = simulate_impl(data.model, data.theta, jnp.asarray(guess), data.u, False)
+        xs = np.asarray(xs, np.float64)
+        s_x = _rms(xs) if np.all(np.isfinite(xs)) else _rms(guess[None])
+    if measurement_noise is not None:
+        R = _covariance_arg(measurement_noise, n_z, "measurement_noise", definite=True)
+    elif data.weight is not None:
+        w = np.asarray(data.weight, np.float64)
+        ok = np.all(w > 0) if w.ndim == 1 else np.min(np.linalg.eigvalsh(w)) > 0
+        if not ok:
+            raise ValueError(
+                "the smoother reads `weight` as the inverse of the measurement noise "
+                "covariance, which needs a positive definite weight; give "
+                "`measurement_noise` for a singular one."
+            )
+        R = np.diag(1.0 / w) if w.ndim == 1 else np.linalg.inv(w)
+    else:
+        R = np.diag((MEASUREMENT_NOISE_REL * s_z) ** 2)
+    if process_noise is not None:
+        Qp = _covariance_arg(process_noise, n_x, "process_noise", definite=False)
+    else:
+        Qp = np.diag((PROCESS_NOISE_REL * s_x) ** 2)
+    if prior_covariance is not None:
+        P0 = _covariance_arg(prior_covariance, n_x, "prior_covariance", definite=True)
+    else:
+        P0 = np.diag((PRIOR_STD_REL * s_x) ** 2)
+    return P0, Qp, R
+
+
+#
+# Public functions.
+#
+
+
+def estimate_x0(
+    model,
+    theta: PyTree,
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T n_z"],
+    *,
+    n: int | None = None,
+    method: str = "lsq",
+    x0: Float[ArrayLike, " n_x"] | None = None,
+    weight=None,
+    solver=None,
+    process_noise=None,
+    measurement_noise=None,
+    prior_covariance=None,
+) -> X0Estimate:
+    """Estimate the initial state x0 of a record from its first n samples (MATLAB's
+    `findstates`), with theta known.
+
+    - `method="lsq"` minimises the head's multi-step cost C of eq. (5) over x0 alone by
+        Gauss-Newton on the closed-form Jacobian: `fit(model, theta, x0, u[:n], z[:n],
+        fixed=True, solver=GaussNewton())`. For a deterministic model it is the
+        maximum-likelihood x0 (the least-squares solution; with a nonlinear model, the
+        local one nearest the starting guess). Directions of x0 that the head's outputs do
+        not determine get no step (pseudo-inverse): they keep their starting value, so
+        from zeros an entry that never reaches the output stays 0 (the minimum-norm
+        solution); a warning names them and their std is inf.
+    - `method="smoother"`: an extended Kalman filter forward and a Rauch-Tung-Striebel
+        smoother backward over the head (Särkkä, *Bayesian Filtering and Smoothing*,
+        Cambridge University Press, 2013: the EKF of Algorithm 5.4 and the extended RTS
+        smoother of Chapter 9), each a `lax.scan`, with f and g linearised by
+        `jax.jacfwd`. The process noise lets the estimate follow the data rather than
+        one simulation of n steps: over a long head, a model that drifts from the data
+        (slightly wrong parameters, unmodelled disturbances) biases the least-squares x0
+        much more than the smoothed one, and the problem stays well conditioned. The
+        smoothed mean and covariance at k = 0 are the estimate. Unobservable directions
+        stay at the prior (mean `x0`) with the prior's variance; a warning names them.
+        One pass, no iteration: jax-sysid's `learn_x0` runs the same EKF and RTS pair
+        (optionally repeated, then refined by L-BFGS); `"lsq"` here is the refinement to
+        the exact least-squares optimum, by Gauss-Newton rather than L-BFGS.
+
+    **Arguments:**
+
+    - `model`, `theta`: a `Model` and its parameters (any pytree, as for `simulate`).
+    - `u`: inputs (T, n_u); `z`: measured outputs (T_z, n_z). Only u[:n] and z[:n] are
+        used, so a whole test record can be passed together with the protocol's n.
+    - `n`: the number of head samples, 1 <= n <= min(T, T_z); default T_z.
+    - `method`: `"lsq"` or `"smoother"`.
+    - `x0`: the starting guess (lsq) or the prior mean (smoother), shape (n_x,). Default
+        z[0] where the model observes its whole state (z = x); otherwise it is required,
+        since the state's size is known only from it (zeros are the usual neutral guess,
+        a typical state of the system a better one where f or g are singular at 0).
+    - `weight`: Q of eq. (4), as for `loss`. The smoother reads it as the inverse of the
+        measurement noise covariance when `measurement_noise` is not given.
+    - `solver`: for `"lsq"`, the least-squares solver (default `GaussNewton()`; any
+        solver of `fit` works).
+    - `process_noise`, `measurement_noise`, `prior_covariance`: for `"smoother"`, the
+        covariances of the process noise w_k (n_x), of the measurement noise v_k (n_z) and
+        of the prior on x0 around `x0` (n_x): each a scalar (times I), a vector of
+        variances or a matrix. Defaults, from the head's scales (s_z the root-mean-square
+        of each output over z[:n]; s_x the same of each state, over z[:n] when z = x,
+        else over a simulation of the head from `x0`, 1 where zero): measurement noise
+        Q^{-1} when `weight` is given, else (0.01 s_z)^2 (1 % noise); process noise
+        (0.001 s_x)^2 per step; prior (100 s_x)^2 (broad). The smoother's covariance
+        reflects these assumptions: give `measurement_noise` for calibrated ones.
+
+    **Returns:**
+
+    An `X0Estimate` (x0, covariance, std, identifiable, loss, method, n, and the solver's
+    stop reason or the smoother's states).
+
+    **Raises:**
+
+    `ValueError` for a method other than "lsq" or "smoother", n outside 1..min(T, T_z),
+    arrays of the wrong shape, a missing `x0` for a partly observed state, smoother
+    arguments with "lsq" (or `solver` with "smoother"), or when the model's simulation of
+    the head from the estimate is not finite (theta makes it blow up there); `TypeError`
+    for a non-integer n.
+    """
+    return _estimate(
+        model,
+        theta,
+        u,
+        z,
+        n=n,
+        method=method,
+        x0=x0,
+        weight=weight,
+        solver=solver,
+        process_noise=process_noise,
+        measurement_noise=measurement_noise,
+        prior_covariance=prior_covariance,
+        stacklevel=3,
+    )
+
+
+def _estimate(
+    model,
+    theta,
+    u,
+    z,
+    *,
+    n,
+    method,
+    x0,
+    weight,
+    solver,
+    process_noise,
+    measurement_noise,
+    prior_covariance,
+    stacklevel,
+):
+    """`estimate_x0`, with its warnings attributed `stacklevel` frames up."""
+    if method not in METHODS:
+        raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
+    n = _check_head(u, z, n)
+    u, z = u[:n], z[:n]
+    if method == "lsq":
+        given = {
+            "process_noise": process_noise,
+            "measurement_noise": measurement_noise,
+            "prior_covariance": prior_covariance,
+        }
+        extra = [k for k, v in given.items() if v is not None]
+        if extra:
+            raise ValueError(
+                f"{', '.join(f'`{k}`' for k in extra)} only apply to method='smoother'; "
+                "method='lsq' weighs the outputs by `weight`."
+            )
+    elif solver is not None:
+        raise ValueError("`solver` only applies to method='lsq'.")
+    if x0 is None:
+        if not model.observes_state:
+            raise ValueError(
+                "`x0` (the starting guess, shape (n_x,)) is needed: the model does not "
+                "observe its whole state, so the state's size is known only from x0. Zeros "
+                "are the neutral guess; a typical state of the system (the fitted x0 of the "
+                "training data, say) is better where the model is singular at zero."
+            )
+        x0 = z[0]
+    if np.ndim(x0) != 1:
+        raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
+    data = check_data(model, theta, x0, u, z, weight)
+    guess = np.asarray(data.x0)
+    n_x = guess.shape[0]
+
+    stop_reason, kalman = None, None
+    if method == "lsq":
+        r = _lsq(data.model, data.theta, guess, data.u, data.z, data.weight, solver)
+        x0_hat = np.asarray(r.x0)
+        cov = np.asarray(r.x0_covariance, np.float64)
+        loss = np.asarray(r.loss)
+        stop_reason = r.stop_reason
+    else:
+        P0, Qp, R = _smoother_defaults(
+            data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
+        )
+        dtype = data.x0.dtype
+        (mf, Pf), (ms, Ps) = _smooth(
+            data.model,
+            data.theta,
+            jnp.asarray(guess),
+            *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
+            jnp.asarray(data.u),
+            jnp.asarray(data.z),
+        )
+        kalman = KalmanPath(*(np.asarray(a) for a in (mf, Pf, ms, Ps)))
+        x0_hat = kalman.smoothed_mean[0]
+        cov = np.asarray(kalman.smoothed_covariance[0], np.float64)
+        loss = None
+
+    x0_hat = x0_hat.astype(guess.dtype)
+    _, zhat = simulate_impl(data.model, data.theta, jnp.asarray(x0_hat), data.u, False)
+    e = np.asarray(zhat, np.float64) - np.asarray(data.z, np.float64)
+    if not (np.all(np.isfinite(x0_hat)) and np.all(np.isfinite(e))):
+        raise ValueError(
+            f"simulating the model over the first n = {n} samples from the estimated x0 "
+            f"({x0_hat}) gives NaN or inf: with these parameters the model blows up over "
+            "the head (or the starting guess `x0` is far off). Check theta, or use a "
+            "shorter head."
+        )
+    if loss is None:
+        w = None if data.weight is None else np.asarray(data.weight, np.float64)
+        if w is None:
+            per_k = np.sum(e * e, axis=1)
+        elif w.ndim == 1:
+            per_k = np.sum(w * e * e, axis=1)
+        else:
+            per_k = np.einsum("ki,ij,kj->k", e, w, e)
+        loss = np.asarray(np.mean(per_k), guess.dtype)
+
+    data = data._replace(x0=jnp.asarray(x0_hat))
+    ok = _observable(data)
+    if not np.all(ok):
+        bad = [f"x0[{i}]" for i in np.flatnonzero(~ok)]
+        then = (
+            "they keep their starting value (from zeros: the minimum-norm solution) and "
+            "their std is inf"
+            if method == "lsq"
+            else "the smoother leaves them at the prior (mean `x0`, `prior_covariance`)"
+        )
+        warnings.warn(
+            f"initial state entries {bad} do not change the first n = {n} outputs with "
+            f"these parameters (not observable from this head): {then}.",
+            stacklevel=stacklevel,
+        )
+    if stop_reason is not None and not is_success(stop_reason):
+        warnings.warn(
+            f"estimate_x0: the least-squares solver stopped: {RESULTS[stop_reason]}",
+            stacklevel=stacklevel,
+        )
+    std = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
+    del n_x
+    return X0Estimate(
+        x0=x0_hat,
+        covariance=cov,
+        std=std,
+        identifiable=ok,
+        loss=np.asarray(loss),
+        method=method,
+        n=n,
+        stop_reason=stop_reason,
+        kalman=kalman,
+    )
+
+
+def predict(
+    model,
+    theta: PyTree,
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T_z n_z"],
+    n: int,
+    *,
+    method: str = "lsq",
+    **kwargs,
+) -> Prediction:
+    """Simulate a record from an initial state estimated from its first n outputs: the
+    benchmark protocol's prediction (the model may use the whole input and z[:n]).
+
+    **Arguments:**
+
+    - `model`, `theta`: a `Model` and its parameters.
+    - `u`: the record's inputs (T, n_u).
+    - `z`: its measured outputs, the whole record or only the head (T_z >= n rows); only
+        z[:n] is used.
+    - `n`: the number of head samples x0 is estimated from (EMPS 20, Cascaded Tanks 5,
+        Silverbox and Wiener-Hammerstein 50 under the protocol).
+    - `method` and further keyword arguments: as for `estimate_x0` (`x0=` the starting
+        guess, `weight=`, the smoother's noise covariances, ...).
+
+    **Returns:**
+
+    A `Prediction(z, x, x0, estimate)`: the simulated outputs and states over the whole
+    record, x0 and its `X0Estimate`.
+
+    **Example:**
+
+    ```python
+    test = oneshot_jax.datasets.load_cascaded_tanks().test
+    pred = oneshot_jax.predict(model, theta, test.u, test.y, test.n, x0=x0_guess)
+    scores = oneshot_jax.metrics.benchmark_scores(test.y, pred.z, test.n)
+    ```
+    """
+    return _predict(model, theta, u, z, n, method, kwargs, stacklevel=3)
+
+
+def _predict(model, theta, u, z, n, method, kwargs, *, stacklevel):
+    n = _check_head(u, z, n)
+    options = dict(
+        x0=None,
+        weight=None,
+        solver=None,
+        process_noise=None,
+        measurement_noise=None,
+        prior_covariance=None,
+    )
+    unknown = sorted(set(kwargs) - set(options))
+    if unknown:
+        raise TypeError(
+            f"unexpected keyword arguments {unknown}; `predict` takes those of "
+            f"`estimate_x0`: {', '.join(options)}."
+        )
+    options.update(kwargs)
+    est = _estimate(
+        model, theta, u, z[:n], n=n, method=method, stacklevel=stacklevel + 1, **options
+    )
+    data = check_data(model, theta, est.x0, u)
+    x, zhat = simulate_impl(data.model, data.theta, data.x0, data.u, False)
+    return Prediction(np.asarray(zhat), np.asarray(x), est.x0, est)
+
+
+def window_starts(data, u_w, z_w, mask_w=None):
+    """Each window's starting state from its own samples with theta0, for `fit(window=)`
+    on a partly observed state: x0-only Gauss-Newton on all windows at once (one batched
+    `fit`), from the record's x0 as the guess; the first window keeps the given x0."""
+    N = u_w.shape[0]
+    guess = np.broadcast_to(np.asarray(data.x0), (N, np.shape(data.x0)[-1]))
+    if mask_w is not None:  # missing samples: NaN again, masked by the x0-only fit
+        z_w = np.where(np.asarray(mask_w.outputs) > 0, z_w, np.nan)
+    missing = "raise" if mask_w is None else "mask"
+    r = _lsq(data.model, data.theta, guess, u_w, z_w, data.weight, None, missing)
+    e = np.asarray(r.residuals)
+    observed = np.ones(e.shape, bool) if mask_w is None else np.asarray(mask_w.outputs) > 0
+    finite = np.all(np.isfinite(e) | ~observed, axis=(1, 2)) & np.all(
+        np.isfinite(np.asarray(r.x0)), axis=1
+    )
+    if not np.all(finite):
+        bad = [int(i) for i in np.flatnonzero(~finite)]
+        raise ValueError(
+            f"theta0 makes the model blow up (NaN or inf) within windows {bad} of "
+            f"{u_w.shape[1]} samples: each window's starting state is estimated from its "
+            "own samples by simulating it with theta0. Start from parameters that keep the "
+            "model stable over a window, use shorter windows, or give each window's "
+            f"starting state as `x0` of shape ({N}, {guess.shape[1]})."
+        )
+    x0_w = np.array(r.x0, dtype=np.asarray(data.x0).dtype)
+    x0_w[0] = np.asarray(data.x0)
+    return x0_w

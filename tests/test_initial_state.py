@@ -1,0 +1,315 @@
+"""`estimate_x0`, `predict`, `FitResult.predict` and the windows' starting states.
+
+References are computed here: the least-squares x0 of a linear model by `np.linalg.lstsq`
+on its output map (the outputs are affine in x0), and the spread of the estimates over
+noise realisations against their reported standard deviations.
+"""
+
+import functools
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+
+#
+# Models.
+#
+
+DT = 0.05
+PEND_THETA = np.array([9.81, 0.4])
+
+
+def pendulum_rhs(x, u, th):
+    return jnp.stack([x[1], -th[0] * jnp.sin(x[0]) - th[1] * x[1] + u[0]])
+
+
+def angle(x, u, th):
+    del u, th
+    return x[:1]
+
+
+PENDULUM = oj.Model.from_ode(pendulum_rhs, DT, observe=angle, input="foh")
+
+# A linear model whose third state never reaches the output (it is driven by u only).
+A = np.array([[0.9, 0.2, 0.0], [-0.2, 0.8, 0.0], [0.0, 0.0, 0.7]])
+B = np.array([[0.0], [1.0], [0.5]])
+LINEAR = oj.Model(lambda x, u, th: th * (A @ x) + B @ u, lambda x, u, th: x[:1] + 0.0 * th)
+
+
+def duffing_rhs(x, u, th):
+    return jnp.stack([x[1], -th[0] * x[0] - th[1] * x[1] - th[2] * x[0] ** 3 + u[0]])
+
+
+DUFFING = oj.Model.from_ode(duffing_rhs, DT, observe=angle)
+DUFFING_THETA = np.array([4.0, 0.3, 1.0])
+
+
+def pendulum_record(T, seed, noise, x0=(0.8, -0.3)):
+    rng = np.random.default_rng(seed)
+    u = 0.5 * np.sin(0.3 * np.arange(T) + rng.uniform(0, 6))[:, None]
+    x, z = oj.simulate(PENDULUM, PEND_THETA, np.asarray(x0), u)
+    return u, np.asarray(z) + noise * rng.standard_normal((T, 1)), np.asarray(x)
+
+
+#
+# estimate_x0.
+#
+
+NOISE = 0.01
+N_HEAD = 30  # one head length throughout: each new shape compiles the solvers again
+
+
+def test_lsq_recovers_x0_to_the_noise_level():
+    """Over 20 noise realisations, the errors divided by the reported std have mean square
+    about 1 (chi-square with 40 degrees of freedom: 95 % of it in [0.61, 1.48])."""
+    x0_true = np.array([0.8, -0.3])
+    scores = []
+    for seed in range(20):
+        u, z, _ = pendulum_record(N_HEAD, seed, NOISE)
+        est = oj.estimate_x0(PENDULUM, PEND_THETA, u, z, x0=np.zeros(2))
+        assert est.success and est.method == "lsq" and est.n == N_HEAD
+        assert est.covariance.shape == (2, 2) and np.all(est.identifiable)
+        scores.append((est.x0 - x0_true) / est.std)
+    scores = np.array(scores)
+    assert np.max(np.abs(scores)) < 4.0, scores
+    assert 0.5 < np.mean(scores**2) < 1.7, np.mean(scores**2)
+
+
+def test_lsq_and_smoother_agree_within_their_std():
+    u, z, _ = pendulum_record(40, 100, NOISE)
+    lsq = oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=np.zeros(2))
+    sm = oj.estimate_x0(
+        PENDULUM,
+        PEND_THETA,
+        u,
+        z,
+        n=N_HEAD,
+        x0=np.zeros(2),
+        method="smoother",
+        measurement_noise=NOISE**2,
+    )
+    assert sm.success and sm.stop_reason is None and sm.method == "smoother"
+    assert np.all(np.abs(lsq.x0 - sm.x0) < np.minimum(lsq.std, sm.std)), (lsq.x0, sm.x0)
+    assert np.all(sm.std < 2 * lsq.std) and np.all(lsq.std < 2 * sm.std), (lsq.std, sm.std)
+    # The smoother's details: filtered and smoothed states over the head, whose k = 0 row
+    # is the estimate; smoothing shrinks the filter's uncertainty at k = 0.
+    k = sm.kalman
+    assert k.smoothed_mean.shape == (N_HEAD, 2)
+    assert k.filtered_covariance.shape == (N_HEAD, 2, 2)
+    np.testing.assert_array_equal(k.smoothed_mean[0], sm.x0)
+    np.testing.assert_array_equal(k.smoothed_mean[-1], k.filtered_mean[-1])
+    assert np.all(np.diagonal(k.smoothed_covariance[0]) < np.diagonal(k.filtered_covariance[0]))
+    # The head's loss from either estimate is at the noise level.
+    assert lsq.loss <= sm.loss < 2 * NOISE**2
+
+
+def test_smoother_is_less_biased_than_lsq_on_a_long_head_of_an_imperfect_model():
+    """Parameters 3-10 % off over a head of 200 samples: the least-squares x0 fits one
+    simulation of the whole head and is pulled far off; the smoother, whose process noise
+    absorbs the model's drift, stays close. With the true parameters both are at the
+    noise level."""
+    T, x0_true = 200, np.array([0.5, -0.4])
+    rng = np.random.default_rng(0)
+    u = np.sin(0.03 * np.arange(T))[:, None] + 0.3 * rng.standard_normal((T, 1))
+    _, z = oj.simulate(DUFFING, DUFFING_THETA, x0_true, u)
+    z = np.asarray(z) + 0.005 * rng.standard_normal((T, 1))
+    off = DUFFING_THETA * np.array([1.03, 0.9, 1.1])
+    kw = dict(x0=np.zeros(2), measurement_noise=0.005**2)
+    lsq = oj.estimate_x0(DUFFING, off, u, z, x0=np.zeros(2))
+    sm = oj.estimate_x0(DUFFING, off, u, z, method="smoother", **kw)
+    err_lsq, err_sm = np.abs(lsq.x0 - x0_true), np.abs(sm.x0 - x0_true)
+    assert err_sm[1] < 0.6 * err_lsq[1], (err_lsq, err_sm)
+    sm_true = oj.estimate_x0(DUFFING, DUFFING_THETA, u, z, method="smoother", **kw)
+    assert np.all(np.abs(sm_true.x0 - x0_true) < 4 * sm_true.std)
+
+
+@functools.cache
+def linear_record():
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal((25, 1))
+    x0_true = np.array([1.0, -0.5, 2.0])
+    _, z = oj.simulate(LINEAR, 1.0, x0_true, u)
+    return u, np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+
+
+def test_unobservable_entry_lsq_gives_the_minimum_norm_solution_and_warns():
+    u, z = linear_record()
+    n = 12
+    with pytest.warns(UserWarning, match=r"\['x0\[2\]'\] do not change the first n = 12"):
+        est = oj.estimate_x0(LINEAR, 1.0, u, z, n=n, x0=np.zeros(3))
+    # The outputs are affine in x0: z_hat = c + J x0; lstsq gives the minimum-norm solution.
+    c = np.asarray(oj.simulate(LINEAR, 1.0, np.zeros(3), u[:n])[1]).ravel()
+    J = np.stack(
+        [np.asarray(oj.simulate(LINEAR, 1.0, e, u[:n])[1]).ravel() - c for e in np.eye(3)], 1
+    )
+    ref = np.linalg.lstsq(J, z[:n].ravel() - c, rcond=None)[0]
+    assert ref[2] == 0.0
+    np.testing.assert_allclose(est.x0, ref, rtol=1e-8, atol=1e-12)
+    assert est.x0[2] == 0.0
+    assert list(est.identifiable) == [True, True, False]
+    assert np.isinf(est.std[2]) and np.all(np.isfinite(est.std[:2]))
+
+
+def test_unobservable_entry_smoother_keeps_the_prior_and_warns():
+    u, z = linear_record()
+    prior = np.array([4.0, 4.0, 9.0])
+    with pytest.warns(UserWarning, match=r"x0\[2\].*leaves them at the prior"):
+        est = oj.estimate_x0(
+            LINEAR,
+            1.0,
+            u,
+            z,
+            n=12,
+            x0=np.array([0.0, 0.0, 0.7]),
+            method="smoother",
+            measurement_noise=1e-4,
+            prior_covariance=prior,
+        )
+    assert est.x0[2] == pytest.approx(0.7, abs=1e-12)
+    assert est.std[2] == pytest.approx(3.0, rel=1e-12)
+    assert list(est.identifiable) == [True, True, False]
+    assert np.all(np.abs(est.x0[:2] - np.array([1.0, -0.5])) < 4 * est.std[:2])
+
+
+def test_one_sample_of_an_observed_state():
+    """z = x: one sample determines x0 (lsq: exactly, with no degrees of freedom left
+    for the noise level, so the std is inf; the smoother: up to its prior)."""
+    model = oj.Model(lambda x, u, th: th * x + u)
+    u, z = np.ones((5, 2)), np.array([[0.3, -1.2]] * 5)
+    est = oj.estimate_x0(model, 0.5, u, z, n=1)
+    np.testing.assert_allclose(est.x0, z[0], rtol=1e-12)
+    assert np.all(np.isinf(est.std))
+    sm = oj.estimate_x0(model, 0.5, u, z, n=1, method="smoother", measurement_noise=1e-6)
+    np.testing.assert_allclose(sm.x0, z[0], rtol=1e-6)
+    assert np.all(sm.std < 1.1e-3)
+
+
+#
+# predict.
+#
+
+
+def test_predict_round_trip_on_noise_free_data():
+    """Noise-free record from a known x0: predict from its first 30 outputs reproduces
+    the whole record, and uses nothing of z beyond the head."""
+    x0_true = np.array([0.6, 0.4])
+    u, z, x = pendulum_record(80, 7, 0.0, x0=x0_true)
+    z_hidden = z.copy()
+    z_hidden[N_HEAD:] = np.nan  # only the first n outputs may be used
+    pred = oj.predict(PENDULUM, PEND_THETA, u, z_hidden, N_HEAD, x0=np.zeros(2))
+    assert isinstance(pred, oj.Prediction) and isinstance(pred.estimate, oj.X0Estimate)
+    np.testing.assert_allclose(pred.x0, x0_true, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(pred.z, z, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(pred.x, x, rtol=1e-8, atol=1e-10)
+    scores = oj.metrics.benchmark_scores(z, pred.z, N_HEAD)
+    assert np.all(scores.rmse < 1e-9)
+    # The smoother (with a tiny noise floor) lands on the same record.
+    sm = oj.predict(
+        PENDULUM, PEND_THETA, u, z_hidden, N_HEAD, x0=np.zeros(2), method="smoother",
+        measurement_noise=1e-12, process_noise=1e-14,
+    )  # fmt: skip
+    np.testing.assert_allclose(sm.x0, x0_true, atol=1e-4)
+
+
+def test_fit_result_predict():
+    """Fit on one record, predict another from its head: the same as `oj.predict` with the
+    fitted model and theta, from the fitted x0 as the starting guess."""
+    u, z, _ = pendulum_record(60, 11, 0.0)
+    r = oj.fit(PENDULUM, np.array([9.0, 0.5]), np.array([0.7, -0.2]), u, z, solver="gauss_newton")
+    assert r.success
+    u_new, z_new, _ = pendulum_record(80, 12, 0.0, x0=(-0.5, 0.9))
+    pred = r.predict(u_new, z_new[:N_HEAD])
+    ref = oj.predict(PENDULUM, r.theta, u_new, z_new, N_HEAD, x0=r.x0)
+    np.testing.assert_array_equal(pred.z, ref.z)
+    np.testing.assert_allclose(pred.x0, [-0.5, 0.9], rtol=1e-7)
+    np.testing.assert_allclose(pred.z, z_new, atol=1e-7)
+
+
+#
+# Windows.
+#
+
+
+@functools.cache
+def duffing_record(T=300):
+    rng = np.random.default_rng(1)
+    u = np.sin(0.025 * np.arange(T))[:, None]
+    _, z = oj.simulate(DUFFING, DUFFING_THETA, np.array([0.5, 0.0]), u)
+    return u, np.asarray(z) + 0.005 * rng.standard_normal((T, 1))
+
+
+def test_windows_start_from_their_own_heads_when_theta0_is_unstable():
+    """theta0 with negative damping and a softening spring: its simulation of the whole
+    record reaches inf (the windows' starting states used to come from it, and the fit
+    stopped there); each window's head gives its start instead, and the fit recovers
+    theta."""
+    u, z = duffing_record()
+    theta0 = np.array([3.0, -0.5, -1.0])
+    x, _ = oj.simulate(DUFFING, theta0, np.array([0.5, 0.0]), u)
+    assert not np.all(np.isfinite(np.asarray(x)))
+    r = oj.fit(DUFFING, theta0, np.zeros(2), u, z, window=30, solver="gauss_newton")
+    assert r.success, r.message
+    assert r.x0.shape == (10, 2)
+    np.testing.assert_allclose(r.theta, DUFFING_THETA, rtol=0.2)
+    np.testing.assert_allclose(r.x0[0], [0.5, 0.0], atol=0.05)
+
+
+def test_windows_take_given_starting_states_and_name_a_blow_up():
+    u, z = duffing_record()
+    x0_w = np.tile([0.1, 0.2], (10, 1))
+    r = oj.fit(
+        DUFFING, DUFFING_THETA, x0_w, u, z, window=30, estimate_x0=False,
+        solver=oj.GaussNewton(max_steps=1),
+    )  # fmt: skip
+    np.testing.assert_array_equal(r.x0, x0_w)  # not estimated: exactly the given ones
+    with pytest.raises(ValueError, match="theta0 makes the model blow up .* within windows"):
+        oj.fit(DUFFING, np.array([3.0, -40.0, -30.0]), np.zeros(2), u, z, window=30)
+
+
+#
+# Bad input.
+#
+
+
+def test_bad_input_errors():
+    u, z = linear_record()
+    x0 = np.zeros(3)
+    est = functools.partial(oj.estimate_x0, LINEAR, 1.0, u, z)
+    with pytest.raises(ValueError, match="`method` must be 'lsq' or 'smoother'"):
+        est(x0=x0, method="kalman")
+    with pytest.raises(ValueError, match="`n`.* must be >= 1"):
+        est(x0=x0, n=0)
+    with pytest.raises(ValueError, match="`n` = 26 is more than the 25 samples of `z`"):
+        est(x0=x0, n=26)
+    with pytest.raises(ValueError, match="`n` = 20 is more than the 10 samples of `u`"):
+        oj.estimate_x0(LINEAR, 1.0, u[:10], z, n=20, x0=x0)
+    with pytest.raises(TypeError, match="`n`.* must be an integer"):
+        est(x0=x0, n=2.5)
+    with pytest.raises(ValueError, match=r"`u` must have shape \(T, n_u\)"):
+        oj.estimate_x0(LINEAR, 1.0, u[:, 0], z, x0=x0)
+    with pytest.raises(ValueError, match=r"`z` must have shape \(T, n_z\)"):
+        oj.estimate_x0(LINEAR, 1.0, u, z[None], x0=x0)
+    with pytest.raises(ValueError, match="`x0` .* is needed"):
+        est()
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):
+        est(x0=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="`measurement_noise`.* only apply to method='smoother'"):
+        est(x0=x0, measurement_noise=1.0)
+    with pytest.raises(ValueError, match="`solver` only applies to method='lsq'"):
+        est(x0=x0, method="smoother", solver=oj.GaussNewton())
+    with pytest.raises(ValueError, match="`measurement_noise` must be positive definite"):
+        est(x0=x0, method="smoother", measurement_noise=-1.0)
+    with pytest.raises(ValueError, match=r"`process_noise` must be a scalar, a \(3,\) vector"):
+        est(x0=x0, method="smoother", process_noise=np.ones(2))
+    with pytest.raises(ValueError, match="`weight` must have shape"):
+        est(x0=x0, weight=np.ones(3))
+    with pytest.raises(TypeError, match="unexpected keyword arguments \\['x_0'\\]"):
+        oj.predict(LINEAR, 1.0, u, z, 5, x_0=x0)
+    # theta that makes the model blow up over the head: said so.
+    with pytest.raises(ValueError, match="the model blows up over the head"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            oj.estimate_x0(LINEAR, 1e40, u, z, n=12, x0=np.ones(3))
