@@ -20,9 +20,9 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._assemble import assemble, post
 from ._checks import (
+    _is_ragged,
     check_cost,
     check_data,
-    _is_ragged,
     check_outside_transformations,
     fixed_mask,
     x0_mask,
