@@ -86,9 +86,10 @@ def trajectory_jacobian(
     Masked entries (a `Mask`) are zero rows. `strategy` picks how the sensitivity recursion
     S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0] is evaluated (see `_strategy`): `"jacobian"`
     forms every J^{x/x}_k and J^{x/theta}_k at once after the forward pass (vmapped
-    forward mode, the paper's Remark 1) and the scan is left with small matrix products; `"vjp"` (matrix-free) pushes the columns of S_k
-    through the step as JVPs inside the scan, never forming J^{x/x} (a banded or sparse
-    step costs what its JVP costs), and stores only the output rows J^{z/x}_k S_k, not S_k.
+    forward mode, the paper's Remark 1) and the scan is left with small matrix products;
+    `"vjp"` (matrix-free) pushes the columns of S_k through the step as JVPs inside the
+    scan, never forming J^{x/x} (a banded or sparse step costs what its JVP costs), and
+    stores only the output rows J^{z/x}_k S_k, not S_k.
     """
     x0 = x0_of(p_x0)
     n_t, n_s = p_theta.shape[0], p_x0.shape[0]
