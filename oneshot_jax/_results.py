@@ -9,8 +9,8 @@ class RESULTS(eqx.Enumeration):
     `FitResult.success` is True for `converged`, `tol_loss` and `tol_grad` only."""
 
     converged = (
-        "converged: the scaled step and the relative decrease of the loss fell below the "
-        "solver's rtol/atol, or the predicted decrease fell below machine precision"
+        "the scaled step and the relative decrease of the loss fell below the solver's "
+        "rtol/atol, or the predicted decrease fell below machine precision"
     )
     tol_loss = "the loss fell below tol_loss (the paper's epsilon)"
     tol_grad = "the gradient norm fell below tol_grad (the paper's delta)"
