@@ -60,6 +60,7 @@ jax.config.update("jax_enable_x64", True)
 from timing import block, conditions, fmt_time, interleaved  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
+from oneshot_jax._pytree import flat_host  # noqa: E402
 from oneshot_jax.examples import satellite  # noqa: E402
 
 HORIZONS = (50, 500, 5000, 50000)
@@ -68,8 +69,7 @@ HOIST_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshol
 
 
 def rel_diff(a, b):
-    a = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(a)])
-    b = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(b)])
+    a, b = flat_host(a), flat_host(b)
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 

@@ -102,13 +102,6 @@ class Problem:
     def _vector(self):
         return {k: np.ndim(self.theta0[k]) > 0 for k in self.names}
 
-    def theta_dict(self, v):
-        """Flat numpy vector -> dict of floats / arrays (what FitResult.theta holds)."""
-        return {
-            k: (np.asarray(val) if self._vector[k] else float(val))
-            for k, val in self.unflat(np.asarray(v, float)).items()
-        }
-
     @property
     def th_scale(self):
         return self.flat(

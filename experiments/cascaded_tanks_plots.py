@@ -56,7 +56,7 @@ def figures(data, rows, outdir) -> list[str]:
             bins=bins,
             alpha=0.55,
             color=COLORS[kind],
-            label=f"{kind} (RMS {np.sqrt(np.mean(e**2)):.3f} V)",
+            label=f"{kind} (RMS {rows[kind]['rmse_validation_V']:.3f} V)",
         )
     ax.set_xlabel("simulation error on validation (V)")
     ax.set_ylabel("samples")

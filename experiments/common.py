@@ -95,11 +95,6 @@ def same_solver(a, b) -> bool:
     return _spec(a) == _spec(b)
 
 
-def describe(spec) -> str:
-    """The settings of a spec as `key = value, ...`."""
-    return ", ".join(f"{k} = {v}" for k, v in _spec(spec)[1].items())
-
-
 def to_jsonable(obj):
     """Recursively turn arrays, numpy scalars and dataclasses into JSON values; non-finite
     floats become None (strict JSON)."""

@@ -95,7 +95,7 @@ def fig3(path, runs, theta_true, label):
         ax.set_xscale("symlog", linthresh=10)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, ncol=3, loc="best")
-    axes[0].set_title(f"Fig. 3: estimates against the solver's step ({label})", fontsize=10)
+    axes[0].set_title(f"Fig. 3: estimates against the step ({label})", fontsize=9)
     axes[-1].set_xlabel(r"step $\ell$")
     return _save(fig, path)
 
