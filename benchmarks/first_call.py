@@ -1,14 +1,16 @@
 """First `fit()` in a fresh process, with and without JAX's persistent compilation cache.
 
-The satellite of Section 4 (T = 50, Gauss-Newton, positivity constraint) is fitted in
-three fresh Python processes that share one empty cache folder:
+The satellite of Section 4 (`oneshot_jax.examples.satellite`, T = 50, Gauss-Newton,
+positivity constraint) is fitted in three fresh Python processes that share one empty
+cache folder:
 
 - `no cache`: the cache is off (what a fresh process costs by default);
 - `cache, cold`: the cache is on and empty, so this process compiles and writes it;
 - `cache, warm`: a later process that finds the compiled solver in the cache.
 
-Each process reports the wall time of its first `fit()` call (compilation included)
-and of a second call with the same shapes (compilation excluded).
+Each process reports the wall time of its first `fit()` call (compilation included) and
+the median of three further calls with the same shapes (compilation excluded), both from
+`timing.timed`.
 
 Run: `python benchmarks/first_call.py`
 """
@@ -17,40 +19,40 @@ import json
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
+
+from timing import conditions
+
+HERE = Path(__file__).resolve().parent
 
 WORKER = r"""
-import json, sys, time
+import json, sys
+sys.path.insert(0, sys.argv[2])
 import jax
 jax.config.update("jax_enable_x64", True)
 if sys.argv[1] != "off":
     jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-import numpy as np, jax.numpy as jnp
+import numpy as np
 import oneshot_jax as oj
+from oneshot_jax.examples import satellite
+from timing import timed
 
-def rhs(w, M, inertia):
-    return (M - jnp.cross(w, inertia * w)) / inertia
-
-model = oj.Model.from_ode(rhs, 0.1)
-rng = np.random.default_rng(0)
-M = 1e-5 + 1e-7 * rng.standard_normal((50, 3))
-theta = np.array([0.0403, 0.0404, 0.0080])
-w0 = np.array([9.915e-6, -1.102e-3, 1.3179e-5])
-_, z = oj.simulate(model, theta, w0, M)
-z = np.asarray(z) + 1e-4 * rng.standard_normal((50, 3))
-times = []
-for _ in range(2):
-    t0 = time.perf_counter()
-    r = oj.fit(model, M, z, theta * 1.2, w0, solver="gauss_newton",
-               constraints=oj.constraints.positive())
-    times.append(time.perf_counter() - t0)
-print(json.dumps({"first": times[0], "second": times[1], "loss": r.loss}))
+model = satellite.model()
+data = satellite.generate([0], 50)
+M, z = data["u"][0], data["z"][0]
+theta0 = {"I": np.asarray(satellite.THETA0)}
+w0 = np.asarray(satellite.W0)
+fit = lambda: oj.fit(model, theta0, w0, M, z, solver="gauss_newton",
+                     constraints=oj.constraints.positive())
+r, first, second = timed(fit, repeats=3)
+print(json.dumps({"first": first, "second": second, "loss": float(r.loss)}))
 """
 
 
 def run(cache):
     out = subprocess.run(
-        [sys.executable, "-c", WORKER, cache], capture_output=True, text=True, check=True
+        [sys.executable, "-c", WORKER, cache, str(HERE)], capture_output=True, text=True, check=True
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -62,9 +64,10 @@ def main():
             ("cache, cold", run(cache)),
             ("cache, warm", run(cache)),
         ]
-    print("First fit() in a fresh process: satellite T = 50, Gauss-Newton, float64, CPU")
+    print("First fit() in a fresh process: satellite T = 50, Gauss-Newton.")
+    print(conditions())
     print()
-    print("| process | first fit() (s), compilation included | second fit() (ms) | loss |")
+    print("| process | first fit() (s), compilation included | later fit() (ms), median | loss |")
     print("|---|---|---|---|")
     for name, r in rows:
         print(f"| {name} | {r['first']:.2f} | {1e3 * r['second']:.2f} | {r['loss']:.6e} |")

@@ -1,27 +1,27 @@
 """Cost of the one-shot closed-form gradient against the forward simulation and autodiff.
 
-The paper's satellite (Section 4): Euler's equations I w' = M - w x (I w) with a diagonal
-inertia theta = {"I": (3,)}, RK4 at dt = 0.1 s (`Model.from_ode`), w0 as in the paper,
-M ~ N(1e-5, 1e-7) per axis, output noise 1e-4, float64. Gradients are taken at a
-perturbed iterate (theta and w0 off by 10-30 %), as during identification.
+The paper's satellite (Section 4, `oneshot_jax.examples.satellite`): Euler's equations
+I w' = M - w x (I w) with a diagonal inertia theta = {"I": (3,)}, RK4 at dt = 0.1 s, the
+paper's w0, its torque and noise statistics, float64. Gradients are taken at the paper's
+tentative values (theta and w0 off by 20-30 %), as during identification.
 
 Timed at each horizon T, in one run:
 
-- `forward`: the simulation, `oneshot_jax._simulate._simulate` (rollout + outputs);
-- `jacobian`, `vjp`: the closed-form `value_and_grad_impl` with that strategy (eq. 17/20
-  by the reverse recursion, both gradients in theta and x0);
-- `autodiff`: `jax.value_and_grad` (in theta and x0) of `oneshot_jax._simulate._loss`,
-  i.e. reverse-mode differentiation through the same `lax.scan` rollout;
-- `public ...`: the public `oneshot_jax.simulate` / `oneshot_jax.value_and_grad`
-  (strategy "auto"), i.e. including input validation and equinox's dispatch.
+- `forward`: the simulation, `oneshot_jax.simulate`;
+- `jacobian`, `vjp`: the closed-form `oneshot_jax.value_and_grad` with that `strategy`
+  (eq. 17/20 by the reverse recursion, both gradients in theta and x0);
+- `autodiff`: `jax.value_and_grad` (in theta and x0) of `oneshot_jax.loss`, i.e.
+  reverse-mode differentiation through the same `lax.scan` rollout;
+- `public ...`: `oneshot_jax.simulate` / `oneshot_jax.value_and_grad` (strategy "auto")
+  called directly, i.e. including input validation and equinox's dispatch.
 
-The four "internal" columns are each wrapped in one `jax.jit` (model and static flags
-closed over, arrays as arguments), so they share the same dispatch path and only the
-compiled computation differs; the ratios use these. Every time is the median of repeated
-calls after two warm-up calls (compilation excluded), each call blocked with
-`block_until_ready`; the methods are interleaved call by call, so a change in machine load
-hits all of them alike. `rel. diff` is max|closed - autodiff| / max|autodiff| over C and the
-gradients in theta and x0, the larger of the two strategies.
+The first four columns are each wrapped in one `jax.jit` (model closed over, arrays as
+arguments), so they share the same dispatch path and only the compiled computation
+differs; the ratios use these. Every time is the median of interleaved samples after two
+warm-up calls (`timing.interleaved`: compilation excluded, each call blocked, the methods
+alternating so that a change of machine load hits all of them alike). `rel. diff` is
+max|closed - autodiff| / max|autodiff| over C and the gradients in theta and x0, the larger
+of the two strategies.
 
 XLA:CPU runs a while loop as one compiled kernel only when one iteration touches less than
 1 KiB (`xla_cpu_small_while_loop_byte_threshold`); the forward rollout and the jacobian
@@ -39,14 +39,14 @@ threshold is pinned and the heap trimmed so that freed buffers do not hide the p
 
 Run: `python benchmarks/gradient.py` (`--quick`: T in {50, 500} only; `--json PATH`: the
 numbers; `--pin-cpu N`: timings on one core, steadier on a shared machine;
-`--xla-context`: one more timing table with that XLA threshold raised, in a subprocess).
+`--xla-context`: one more timing table with that XLA threshold raised, in a subprocess;
+`--no-memory`: skip the memory table).
 """
 
 import argparse
 import ctypes
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -57,94 +57,33 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from timing import block, conditions, fmt_time, interleaved  # noqa: E402
+
 import oneshot_jax as oj  # noqa: E402
-from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
-from oneshot_jax._simulate import _loss, _simulate  # noqa: E402
+from oneshot_jax._pytree import flat_host  # noqa: E402
+from oneshot_jax.examples import satellite  # noqa: E402
 
 HORIZONS = (50, 500, 5000, 50000)
 QUICK_HORIZONS = (50, 500)
-THETA_TRUE = {"I": np.array([0.0403, 0.0404, 0.0080])}
-W0_TRUE = np.array([9.915e-6, -1.102e-3, 1.3179e-5])
-THETA_GUESS = {"I": np.array([0.05, 0.03, 0.01])}
 HOIST_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000000"
 
 
-def satellite_rhs(w, M, theta):
-    inertia = theta["I"]  # diagonal of I in I w' = M - w x (I w), eq. (22)
-    return (M - jnp.cross(w, inertia * w)) / inertia
-
-
-def satellite_model():
-    # Built lazily: `Model.from_ode` touches the backend, and `--pin-cpu` must come first.
-    return oj.Model.from_ode(satellite_rhs, 0.1)
-
-
-def satellite_data(model, T, seed=0):
-    rng = np.random.default_rng(seed)
-    u = jnp.asarray(rng.normal(1e-5, 1e-7, (T, 3)))
-    theta = {k: jnp.asarray(v) for k, v in THETA_TRUE.items()}
-    _, z = oj.simulate(model, theta, jnp.asarray(W0_TRUE), u)
-    z = z + jnp.asarray(rng.normal(0.0, 1e-4, z.shape))
-    return u, z
-
-
-def block(out):
-    return jax.block_until_ready(out)
-
-
-def interleaved_medians(calls, repeats, min_sample_s=2e-3):
-    """Median seconds per call of each callable, the callables interleaved call by call.
-
-    A sample is the mean of `n` back-to-back calls (each blocked), with `n` chosen so that a
-    sample lasts about `min_sample_s`; the order of the callables rotates every round.
-    """
-    names = list(calls)
-    for name in names:  # warm-up: compilation plus one cached call
-        block(calls[name]())
-        block(calls[name]())
-    inner = {}
-    for name in names:
-        t0 = time.perf_counter()
-        block(calls[name]())
-        one = time.perf_counter() - t0
-        inner[name] = int(min(200, max(1, min_sample_s / max(one, 1e-7))))
-    samples = {name: [] for name in names}
-    for r in range(repeats):
-        order = names[r % len(names) :] + names[: r % len(names)]
-        for name in order:
-            fn, n = calls[name], inner[name]
-            t0 = time.perf_counter()
-            for _ in range(n):
-                block(fn())
-            samples[name].append((time.perf_counter() - t0) / n)
-    return {name: float(np.median(s)) for name, s in samples.items()}
-
-
 def rel_diff(a, b):
-    a = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(a)])
-    b = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(b)])
+    a, b = flat_host(a), flat_host(b)
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
 def time_horizon(model, T, repeats):
-    u, z = satellite_data(model, T)
-    theta = {k: jnp.asarray(v) for k, v in THETA_GUESS.items()}
-    x0 = jnp.asarray(W0_TRUE) * 1.2
-    pw = jnp.asarray(0.0)
+    data = satellite.generate([0], T)
+    u, z = jnp.asarray(data["u"][0]), jnp.asarray(data["z"][0])
+    theta = {"I": jnp.asarray(satellite.THETA0)}
+    x0 = jnp.asarray(satellite.W0) * 1.2
 
-    fwd = jax.jit(lambda th, x0, u: _simulate(model, th, x0, u, False))
-    jac = jax.jit(
-        lambda th, x0, u, z: value_and_grad_impl(
-            model, th, x0, u, z, None, None, pw, False, "jacobian"
-        )
-    )
-    vjp = jax.jit(
-        lambda th, x0, u, z: value_and_grad_impl(model, th, x0, u, z, None, None, pw, False, "vjp")
-    )
+    fwd = jax.jit(lambda th, x0, u: oj.simulate(model, th, x0, u))
+    jac = jax.jit(lambda th, x0, u, z: oj.value_and_grad(model, th, x0, u, z, strategy="jacobian"))
+    vjp = jax.jit(lambda th, x0, u, z: oj.value_and_grad(model, th, x0, u, z, strategy="vjp"))
     ad = jax.jit(
-        jax.value_and_grad(
-            lambda th, x0, u, z: _loss(model, th, x0, u, z, None, None, pw, False), argnums=(0, 1)
-        )
+        jax.value_and_grad(lambda th, x0, u, z: oj.loss(model, th, x0, u, z), argnums=(0, 1))
     )
     calls = {
         "forward": lambda: fwd(theta, x0, u),
@@ -154,19 +93,12 @@ def time_horizon(model, T, repeats):
         "public_simulate": lambda: oj.simulate(model, theta, x0, u),
         "public_value_and_grad": lambda: oj.value_and_grad(model, theta, x0, u, z),
     }
-    med = interleaved_medians(calls, repeats)
+    med = interleaved(calls, repeats)
     g_ref = ad(theta, x0, u, z)
     med["rel_diff_jacobian"] = rel_diff(jac(theta, x0, u, z), g_ref)
     med["rel_diff_vjp"] = rel_diff(vjp(theta, x0, u, z), g_ref)
     med["T"] = T
     return med
-
-
-def fmt_time(s):
-    us = s * 1e6
-    if us < 1000:
-        return f"{us:.1f} µs"
-    return f"{us / 1000:.2f} ms" if us < 1e5 else f"{us / 1000:.0f} ms"
 
 
 def timing_table(rows):
@@ -221,22 +153,14 @@ def memory_worker(method):
     x0 = jnp.asarray(rng.normal(0, 0.1, n))
     u = jnp.asarray(rng.normal(0, 1, (T, 1)))
     z = jnp.asarray(rng.normal(0, 0.1, (T, n)))
-    pw = jnp.asarray(0.0)
     if method == "forward":
-        fn = jax.jit(lambda th, x0, u, z: _simulate(model, th, x0, u, False))
+        fn = jax.jit(lambda th, x0, u, z: oj.simulate(model, th, x0, u))
     elif method == "autodiff":
         fn = jax.jit(
-            jax.value_and_grad(
-                lambda th, x0, u, z: _loss(model, th, x0, u, z, None, None, pw, False),
-                argnums=(0, 1),
-            )
+            jax.value_and_grad(lambda th, x0, u, z: oj.loss(model, th, x0, u, z), argnums=(0, 1))
         )
     else:
-        fn = jax.jit(
-            lambda th, x0, u, z: value_and_grad_impl(
-                model, th, x0, u, z, None, None, pw, False, method
-            )
-        )
+        fn = jax.jit(lambda th, x0, u, z: oj.value_and_grad(model, th, x0, u, z, strategy=method))
     compiled = fn.lower(theta, x0, u, z).compile()
     ma = compiled.memory_analysis()
     xla_bytes = None
@@ -311,7 +235,8 @@ def memory_table(rows):
 
 
 def run_timings(horizons, repeats):
-    model = satellite_model()
+    # Built here: the backend must start after `--pin-cpu` has taken effect.
+    model = satellite.model()
     rows = []
     for T in horizons:
         rows.append(time_horizon(model, T, repeats))
@@ -351,7 +276,6 @@ def main():
         print(json.dumps(rows))
         return
 
-    load0 = os.getloadavg()
     t_start = time.perf_counter()
     rows = run_timings(horizons, args.repeats)
     mem = [] if args.no_memory else memory_rows()
@@ -374,22 +298,16 @@ def main():
             env=env,
         )
         context = json.loads(out.stdout.strip().splitlines()[-1])
-    load1 = os.getloadavg()
     wall = time.perf_counter() - t_start
 
     print(
-        f"Satellite (n_x = 3, n_theta = 3), float64, jax {jax.__version__} on "
-        f"{platform.machine()} CPU x{os.cpu_count()}"
-        f"{'' if args.pin_cpu is None else f' (timings pinned to CPU {args.pin_cpu})'}; "
-        f"median of {args.repeats} interleaved "
-        f"samples; load average {load0[0]:.1f} -> {load1[0]:.1f}. Ratios use the jitted "
-        "internals (first four columns, same jax.jit dispatch).\n"
+        "Satellite (n_x = 3, n_theta = 3): time per call, median of "
+        f"{args.repeats} interleaved samples"
+        f"{'' if args.pin_cpu is None else f', timings pinned to CPU {args.pin_cpu}'}. "
+        "Ratios use the first four columns (each in one jax.jit)."
     )
+    print(conditions() + "\n")
     print(timing_table(rows))
-    print(
-        "\nTargets: autodiff / closed-form >= 5x and closed-form / forward <= 3x at every T "
-        "(closed-form = the strategy 'auto' picks here, jacobian)."
-    )
     if mem:
         print("\nPeak memory of one call (fresh subprocess per row):\n")
         print(memory_table(mem))
@@ -405,12 +323,10 @@ def main():
         with open(args.json, "w") as f:
             json.dump(
                 {
-                    "jax": jax.__version__,
-                    "cpu_count": os.cpu_count(),
+                    "conditions": conditions(),
                     "repeats": args.repeats,
                     "pinned_cpu": args.pin_cpu,
-                    "load_average": [load0[0], load1[0]],
-                    "timing_basis": "jitted internals, each in one jax.jit; seconds per call",
+                    "timing_basis": "each method in one jax.jit; seconds per call",
                     "timings": rows,
                     "memory": mem,
                     "memory_case": {"n_x": MEM_NX, "T": MEM_T, "model": "tanh-coupled, dense W"},

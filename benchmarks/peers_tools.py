@@ -19,8 +19,11 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from timing import interleaved
+from timing import versions as _versions
 
 import oneshot_jax as oj
+from oneshot_jax._results import name_of
 
 # ------------------------------------------------------------------ shared JAX residual
 
@@ -75,10 +78,12 @@ class Tool:
 class Oneshot(Tool):
     """oneshot_jax.fit with a structured least-squares solver on the closed-form Jacobian."""
 
+    SOLVERS = {"levenberg_marquardt": oj.LevenbergMarquardt, "gauss_newton": oj.GaussNewton}
+
     def __init__(self, pb, solver):
         super().__init__(pb)
-        self.solver = solver
-        self.label = f"oneshot_jax fit(solver='{solver}')"
+        self.solver = self.SOLVERS[solver](max_steps=200)
+        self.label = f"oneshot_jax fit(solver={type(self.solver).__name__}())"
         self.method = {"levenberg_marquardt": "LM", "gauss_newton": "GN"}[
             solver
         ] + ", closed-form forward sensitivities, Schur complement over the records' x0"
@@ -94,22 +99,21 @@ class Oneshot(Tool):
     def run(self):
         res = oj.fit(
             self.pb.model,
-            self.u,
-            self.z,
             self.pb.theta0,
             self.x0,
+            self.u,
+            self.z,
             solver=self.solver,
             constraints=self.box,
             estimate_x0=self.estimate_x0,
-            max_epochs=200,
         )
         X0 = np.atleast_2d(np.asarray(res.x0))
         p = np.concatenate([self.pb.flat(res.theta), X0[:, list(self.pb.x0_free)].reshape(-1)])
         return {
             "p": p,
-            "iterations": int(res.epochs),
+            "iterations": int(res.num_steps),
             "fevals": None,
-            "stop": res.stop_reason.name,
+            "stop": name_of(res.stop_reason),
             "solver_s": float(res.wall_time),
             "loss_reported": float(res.loss),
         }
@@ -449,8 +453,8 @@ TOOLS = {
 }
 ONESHOT = ("oneshot_lm", "oneshot_gn")
 LABELS = {
-    "oneshot_lm": "oneshot_jax fit(solver='levenberg_marquardt')",
-    "oneshot_gn": "oneshot_jax fit(solver='gauss_newton')",
+    "oneshot_lm": "oneshot_jax fit(solver=LevenbergMarquardt())",
+    "oneshot_gn": "oneshot_jax fit(solver=GaussNewton())",
     "scipy_lm": ScipyLM.label,
     "scipy_trf": ScipyTRF.label,
     "scipy_slsqp": ScipySLSQP.label,
@@ -461,26 +465,7 @@ LABELS = {
 
 
 def versions():
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for name in (
-        "oneshot_jax",
-        "jax",
-        "jaxlib",
-        "numpy",
-        "scipy",
-        "optimistix",
-        "lineax",
-        "equinox",
-        "casadi",
-        "jax-sysid",
-        "jaxopt",
-    ):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = "not installed"
+    out = _versions(("lineax", "casadi", "jax-sysid", "jaxopt"))
     try:
         import casadi as ca
 
@@ -505,8 +490,9 @@ def jacobian_timings(pb, repeats=20):
     - `closed_vjp`: the same recursion matrix-free (strategy "vjp"), S <- vmap(jvp f)(S)
       inside the scan, never forming A.
     `fit` picks "jacobian" for n_x <= 16 ("auto"). Medians in seconds over interleaved
-    rounds, after a warm-up call.
+    rounds of one call each (`timing.interleaved`), after a warm-up call.
     """
+    from oneshot_jax._cost import Cost
     from oneshot_jax._sensitivity import sensitivity_strategy, trajectory_jacobian
 
     u, z, x0 = (jnp.asarray(a[0]) for a in (pb.U, pb.Z, pb.X0))
@@ -515,11 +501,14 @@ def jacobian_timings(pb, repeats=20):
     scale = 1.0 / np.sqrt(pb.T)
     x0_of = lambda q: x0.at[free].set(q)  # noqa: E731
 
+    cost = Cost(None, None, jnp.asarray(0.0))
+
     def closed_form(strategy):
         def jac(pt, px):
-            return trajectory_jacobian(
-                pb.model, pb.unflat, pt, x0_of, px, u, z, None, None, 1.0, scale, strategy
+            lin = trajectory_jacobian(
+                pb.model, cost, pb.unflat, pt, x0_of, px, u, z, scale=scale, strategy=strategy
             )
+            return lin.r, lin.Jt, lin.Jx
 
         return jax.jit(jac)
 
@@ -533,20 +522,11 @@ def jacobian_timings(pb, repeats=20):
         "closed_jacobian": (closed_form("jacobian"), (pt, px)),
         "closed_vjp": (closed_form("vjp"), (pt, px)),
     }
-    a = fns["closed_jacobian"][0](pt, px)[1]
-    b = fns["closed_vjp"][0](pt, px)[1]
-    assert np.allclose(a, b, rtol=1e-8, atol=1e-12 * float(jnp.max(jnp.abs(a)))), "strategies"
-    # Interleaved rounds (one call of each per round), so that a change of machine load
-    # hits every column alike.
-    ts = {name: [] for name in fns}
-    for fn, args in fns.values():
-        jax.block_until_ready(fn(*args))
-    for _ in range(repeats):
-        for name, (fn, args) in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            ts[name].append(time.perf_counter() - t0)
-    out = {name: float(np.median(t)) for name, t in ts.items()}
+    a = np.concatenate(fns["closed_jacobian"][0](pt, px)[1:], axis=1)
+    b = np.concatenate(fns["closed_vjp"][0](pt, px)[1:], axis=1)
+    assert np.allclose(a, b, rtol=1e-8, atol=1e-12 * float(np.max(np.abs(a)))), "strategies"
+    calls = {name: (lambda fn=fn, args=args: fn(*args)) for name, (fn, args) in fns.items()}
+    out = interleaved(calls, repeats, min_sample_s=0.0, warmup=1)
     out["n_columns"] = int(pt.shape[0] + px.shape[0])
     out["auto"] = sensitivity_strategy(
         "auto", 1, int(x0.shape[0]), out["n_columns"], int(u.shape[0]), x0.dtype.itemsize

@@ -1,66 +1,53 @@
 """Structured vs dense least squares for many windows, each with its own initial state.
 
-A mass with viscous and (smoothed) Coulomb friction and an offset, n_x = 2, 4 parameters
-(the EMPS structure), simulated with noise and cut into N windows of 100 samples. Each
-window has its own x0, so the unknowns are 4 + 2N. Compared, in one run:
+The EMPS plant (`oneshot_jax.examples.emps.open_loop_model`: a mass with viscous and
+smoothed Coulomb friction and an offset, n_x = 2, 4 parameters) at Ts = 1 ms, simulated at
+the benchmark's IDIM-LS reference parameters under a two-sine force with output noise, and
+cut into N windows of 100 samples. Each window has its own x0, so the unknowns are 4 + 2N.
+Compared, in one run:
 
-- `structured`: `fit(solver="levenberg_marquardt", window=100)`: the Schur complement
-  eliminates each window's x0 block (cost linear in N);
-- `dense`: `fit(solver=optimistix.LevenbergMarquardt(...), window=100)`: the same
-  closed-form Jacobian, but optimistix solves the dense (N T) x (4 + 2N) system by QR.
+- `structured`: `fit(solver=LevenbergMarquardt(rtol=1e-8), window=100)`: the Schur
+  complement eliminates each window's x0 block (cost linear in N);
+- `dense`: `fit(solver=Optimistix(optimistix.LevenbergMarquardt(...)), window=100)`: the
+  same closed-form Jacobian, but optimistix solves the dense (N T) x (4 + 2N) system by QR.
 
-Run: `python benchmarks/windows.py` (add `--quick` for N <= 50, `--figure PATH` to save
-the plot, `--json PATH` for the numbers). Times are medians of repeated solves after a
-warm-up call (compilation excluded; the compile time is its own column).
+Times come from `timing.timed`: the first call (compilation included) and the median of
+further calls (compilation excluded).
+
+Run: `python benchmarks/windows.py` (`--quick`: N in {10, 50}; `--figure PATH`: save the
+plot; `--json PATH`: the numbers; `--dense-max N`: the largest N for the dense solve).
 """
 
 import argparse
 import json
-import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
 jax.config.update("jax_enable_x64", True)
 
+from timing import conditions, fmt_time, timed  # noqa: E402
+
 import oneshot_jax as oj  # noqa: E402
+from oneshot_jax._results import name_of  # noqa: E402
+from oneshot_jax.examples import emps  # noqa: E402
 
-TRUE = {"M": 95.0, "Fv": 200.0, "Fc": 20.0, "offset": -3.0}
-
-
-def rhs(x, u, theta):
-    q, v = x
-    friction = theta["Fv"] * v + theta["Fc"] * jnp.tanh(v / 1e-3) + theta["offset"]
-    return jnp.stack([v, (u[0] - friction) / theta["M"]])
-
-
-MODEL = oj.Model.from_ode(rhs, 1e-3, observe=lambda x, u, th: x[:1])
+TS = 1e-3
+MODEL = emps.open_loop_model(TS)
+TRUE = emps.REFERENCE
+THETA0 = {"M": 80.0, "Fv": 150.0, "Fc": 10.0, "offset": 0.0}
 
 
 def make_data(N, T_w, seed=0):
-    key = jax.random.PRNGKey(seed)
-    t = np.arange(N * T_w) * 1e-3
+    """A record of N T_w samples at the reference parameters, from rest, with 10 µm noise."""
+    t = np.arange(N * T_w) * TS
     force = 300.0 * np.sin(2 * np.pi * 0.7 * t) + 150.0 * np.sin(2 * np.pi * 3.1 * t + 1.0)
-    u = jnp.asarray(force)[:, None]
-    x0 = jnp.array([0.0, 0.0])
-    theta = {k: jnp.asarray(v) for k, v in TRUE.items()}
-    _, z = oj.simulate(MODEL, theta, x0, u)
-    z = z + 1e-5 * jax.random.normal(key, z.shape)
+    u = force[:, None]
+    x0 = np.zeros(2)
+    _, z = oj.simulate(MODEL, TRUE, x0, u)
+    z = np.asarray(z) + 1e-5 * np.random.default_rng(seed).standard_normal(z.shape)
     return u, z, x0
-
-
-def timed(fn, repeats):
-    t0 = time.perf_counter()
-    res = fn()
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = fn()
-        times.append(time.perf_counter() - t0)
-    return res, first, float(np.median(times))
 
 
 def main():
@@ -75,67 +62,62 @@ def main():
 
     Ns = [10, 50] if args.quick else [10, 50, 100, 250]
     T_w = 100
-    theta0 = {"M": 80.0, "Fv": 150.0, "Fc": 10.0, "offset": 0.0}
-    # x0 of each window is free (q from z, v by simulation from the initial guess).
     positive = oj.constraints.box(lower={"M": 1e-6, "Fv": 0.0, "Fc": 0.0})
-    common = dict(window=T_w, constraints=positive, rtol=1e-8, max_epochs=100)
     rows = []
     for N in Ns:
         u, z, x0 = make_data(N, T_w)
         row = {"N": N, "unknowns": 4 + 2 * N}
-        solvers = {"structured": "levenberg_marquardt"}
+        solvers = {"structured": oj.LevenbergMarquardt(rtol=1e-8, max_steps=100)}
         if N <= args.dense_max:
-            solvers["dense"] = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12)
+            dense = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12)
+            solvers["dense"] = oj.Optimistix(dense, max_steps=100)
         for label, solver in solvers.items():
-            repeats = 3 if label == "structured" else 1
             res, first, med = timed(
-                lambda s=solver: oj.fit(MODEL, u, z, theta0, x0, solver=s, **common), repeats
+                lambda s=solver: oj.fit(
+                    MODEL, THETA0, x0, u, z, solver=s, window=T_w, constraints=positive
+                ),
+                repeats=3 if label == "structured" else 1,
             )
             err = max(abs(float(res.theta[k]) / TRUE[k] - 1) for k in TRUE)
             row[label] = {
                 "time_s": med,
                 "first_call_s": first,
-                "loss": res.loss,
-                "iterations": res.epochs,
+                "loss": float(res.loss),
+                "iterations": int(res.num_steps),
                 "max_rel_param_err": err,
-                "stop": res.stop_reason.name,
+                "stop": name_of(res.stop_reason),
             }
         rows.append(row)
+        print(f"  N = {N} done", flush=True)
 
-    print(
-        f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples, float64, CPU "
-        f"({jax.devices()[0].device_kind}, {jax.device_count()} device)"
-    )
+    print(f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples.")
+    print(conditions())
     print()
     print(
-        "| N windows | unknowns | structured LM (s) | iters | dense LM (s) | iters | "
-        "dense / structured | loss structured | loss dense | max rel. param. error |"
+        "| N windows | unknowns | structured LM | steps | dense LM | steps | "
+        "dense / structured | loss structured | loss dense | max rel. param. error | "
+        "first call structured | first call dense |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        s = r["structured"]
-        d = r.get("dense")
-        dense_t = f"{d['time_s']:.3g}" if d else "-"
-        dense_i = f"{d['iterations']}" if d else "-"
-        ratio = f"{d['time_s'] / s['time_s']:.0f}x" if d else "-"
-        dense_l = f"{d['loss']:.6e}" if d else "-"
+        s, d = r["structured"], r.get("dense")
+        ratio = f"{d['time_s'] / s['time_s']:.0f}x" if d else "—"
+        dense_loss = f"{d['loss']:.6e}" if d else "—"
         print(
-            f"| {r['N']} | {r['unknowns']} | {s['time_s']:.3g} | {s['iterations']} | {dense_t} | "
-            f"{dense_i} | {ratio} | {s['loss']:.6e} | {dense_l} | {s['max_rel_param_err']:.2e} |"
+            f"| {r['N']} | {r['unknowns']} | {fmt_time(s['time_s'])} | {s['iterations']} | "
+            f"{fmt_time(d['time_s']) if d else '—'} | {d['iterations'] if d else '—'} | "
+            f"{ratio} | {s['loss']:.6e} | {dense_loss} | {s['max_rel_param_err']:.2e} | "
+            f"{fmt_time(s['first_call_s'])} | {fmt_time(d['first_call_s']) if d else '—'} |"
         )
     print()
     print(
-        "Times are medians after a warm-up call; first-call (compile + solve) times: "
-        + ", ".join(
-            f"N={r['N']}: {r['structured']['first_call_s']:.2f} s structured"
-            + (f", {r['dense']['first_call_s']:.2f} s dense" if "dense" in r else "")
-            for r in rows
-        )
+        "Times: median of later calls (compilation excluded); first call: compilation "
+        "included. Parameter error: max_i |theta_i / theta_i,true - 1| (structured fit)."
     )
 
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(rows, f, indent=2)
+            json.dump({"conditions": conditions(), "rows": rows}, f, indent=2)
     if args.figure:
         import matplotlib
 

@@ -1,25 +1,30 @@
-"""Hydra entry point for the experiments (configs in ../configs).
+"""Hydra entry point for the experiments (configs in ../configs, schema in config.py).
 
     python experiments/run.py                                   # experiment=satellite solver=adam
     python experiments/run.py solver=gauss_newton experiment.T=100 seed=3
     python experiments/run.py -m solver=adam,gauss_newton seed=0,1
-    python experiments/run.py publish=true                      # also refresh the README material
+    python experiments/run.py experiment=emps publish=true      # also refresh the published files
+    python -m experiments ...                                   # the same, from the checkout
 
-The experiment module `experiments/<experiment.name>.py` must expose
-`run(cfg, outdir: pathlib.Path) -> dict`. This script enables float64, writes
-`resolved_config.yaml` (Hydra keeps its own copy under `.hydra/`), calls `run`, and writes
-the returned dict to `results.json` in the run's output folder. With `publish=true` the
-run's `results.md` is copied to `experiments/<name>_results.md` (figure links rewritten to
-`../docs/figures/`) and the figures named in `results["figures"]` to
-`docs/figures/<name>_<figure>`.
+The experiment module `experiments/<experiment.name>.py` exposes
+`run(cfg, outdir, command) -> dict`, where `cfg` is the validated `config.Config`. This
+script enables float64 and, in the run's output folder: removes the results of an earlier
+run there (results.json, results.md and its figures), checks the configuration (a bad value
+stops the run before anything is computed, exit status 2), writes `resolved_config.yaml`
+(Hydra keeps its own copy under `.hydra/`), calls `run`, and writes `results.json`
+atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error. With
+`publish=true` the run's `results.md` is copied to `experiments/<name>_results.md` (figure
+links rewritten to `../docs/figures/`) and its figures to `docs/figures/<name>_<figure>`.
 """
 
 from __future__ import annotations
 
 import importlib
 import json
+import os
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -31,8 +36,13 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from experiments import config  # noqa: E402
+
 # Identification runs in float64; the library never enables it itself.
 jax.config.update("jax_enable_x64", True)
+config.register()
+
+OUTPUTS = ("results.json", "results.md", "resolved_config.yaml")
 
 
 def _setup_cache(cache_dir):
@@ -43,8 +53,44 @@ def _setup_cache(cache_dir):
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
+def write_json(path: Path, obj) -> None:
+    """Write `obj` as JSON to `path` atomically (a temporary file, then a rename), so a
+    reader sees the old file or the new one, never a partial one."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=2, allow_nan=False)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give it a normal file's mode
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def clear_stale(outdir: Path) -> list[Path]:
+    """Remove the outputs of an earlier run in `outdir` (results.json, results.md,
+    resolved_config.yaml and the figures the old results.json lists)."""
+    removed = []
+    old = outdir / "results.json"
+    names = list(OUTPUTS)
+    if old.exists():
+        try:
+            names += [str(f) for f in json.loads(old.read_text()).get("figures") or []]
+        except (ValueError, AttributeError):
+            pass
+    for name in names:
+        p = outdir / Path(name).name
+        if p.is_file():
+            p.unlink()
+            removed.append(p)
+    return removed
+
+
 def publish(name: str, outdir: Path, figures) -> list[Path]:
-    """Copy a run's results.md and figures into the repository (README material)."""
+    """Copy a run's results.md and figures into the repository (the published results)."""
     written = []
     fig_dir = REPO / "docs" / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -62,20 +108,62 @@ def publish(name: str, outdir: Path, figures) -> list[Path]:
     return written
 
 
-def execute(cfg: DictConfig, outdir: Path) -> dict:
-    """Run `cfg.experiment.name` into `outdir` and write the run's files."""
+def command_line() -> str:
+    """The command line of this run, from Hydra's overrides when run through Hydra."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith("hydra.")]
+    except ValueError:  # not running under Hydra
+        overrides = []
+    return " ".join(["python experiments/run.py", *overrides])
+
+
+def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=None) -> dict:
+    """Run the configured experiment into `outdir` and write the run's files.
+
+    **Arguments:**
+
+    - `cfg`: the composed configuration (validated here, before anything runs).
+    - `outdir`: the run's folder; the outputs of an earlier run there are removed first.
+    - `command`: the command line shown in results.md.
+    - `runner`: `run(cfg, outdir, command) -> dict` (default: the experiment module's).
+
+    **Returns:**
+
+    The results dict, as written to results.json. A failure writes results.json with
+    `"status": "failed"` and the error, then raises.
+    """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    _setup_cache(cfg.get("jax_cache_dir"))
-    (outdir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    name = cfg.experiment.name
-    module = importlib.import_module(f"experiments.{name}")
+    clear_stale(outdir)
+    command = command or command_line()
     t0 = time.perf_counter()
-    results = module.run(cfg, outdir)
-    results = dict(results)
+    name = OmegaConf.select(cfg, "experiment.name", throw_on_missing=False)
+    try:
+        conf = config.load(cfg)
+        name = conf.experiment.name
+        (outdir / "resolved_config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        _setup_cache(conf.jax_cache_dir)
+        if runner is None:
+            runner = importlib.import_module(f"experiments.{name}").run
+        results = dict(runner(conf, outdir, command=command))
+    except BaseException as err:
+        write_json(
+            outdir / "results.json",
+            {
+                "status": "failed",
+                "error": f"{type(err).__name__}: {err}",
+                "experiment": name,
+                "command": command,
+                "wall_time_s": time.perf_counter() - t0,
+            },
+        )
+        raise
+    results = {"status": "ok", **results}
     results.setdefault("wall_time_s", time.perf_counter() - t0)
-    (outdir / "results.json").write_text(json.dumps(results, indent=2, allow_nan=False))
-    if cfg.get("publish", False):
+    write_json(outdir / "results.json", results)
+    if conf.publish:
         for path in publish(name, outdir, results.get("figures")):
             print(f"published {path.relative_to(REPO)}")
     print(f"{name}: results in {outdir} ({results['wall_time_s']:.1f} s)")
@@ -86,11 +174,14 @@ def task(cfg: DictConfig) -> None:
     """The Hydra task: run the configured experiment into Hydra's output folder."""
     from hydra.core.hydra_config import HydraConfig
 
-    execute(cfg, Path(HydraConfig.get().runtime.output_dir))
+    try:
+        execute(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except config.ConfigError as err:
+        print(f"invalid configuration: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
-# An absolute config path, so that the same entry point works as a script and when
-# imported by the `oneshot-jax` console script (oneshot_jax/_cli.py).
+# An absolute config path, so that the entry point works from any working directory.
 main = hydra.main(version_base="1.3", config_path=str(REPO / "configs"), config_name="config")(task)
 
 

@@ -1,4 +1,6 @@
-"""The Hydra experiments: every config composes, run.py runs end to end, data are seeded."""
+"""The Hydra experiments: every config composes and validates, a bad value is refused
+before anything runs, results.json says whether the run succeeded, and the entry points
+run end to end."""
 
 import json
 import subprocess
@@ -8,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parent.parent
@@ -15,7 +18,9 @@ CONFIGS = REPO / "configs"
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from experiments import common, satellite  # noqa: E402
+from experiments import common, config, run, satellite  # noqa: E402
+
+config.register()
 
 
 def _groups():
@@ -32,25 +37,39 @@ def _compose(overrides=()):
         return compose(config_name="config", overrides=list(overrides))
 
 
+def _load(overrides=()):
+    return config.load(_compose(overrides))
+
+
 GROUPS = _groups()
 PAIRS = [(e, s) for e in GROUPS.get("experiment", []) for s in GROUPS.get("solver", [])]
 OPTIONS = [(g, o) for g, opts in GROUPS.items() for o in opts]
 
 
 def test_groups_discovered():
-    assert "satellite" in GROUPS["experiment"]
-    assert {"adam", "gauss_newton", "levenberg_marquardt", "slsqp", "trust_constr"} <= set(
-        GROUPS["solver"]
-    )
+    assert {"satellite", "emps", "cascaded_tanks"} <= set(GROUPS["experiment"])
+    assert {
+        "adam",
+        "lbfgs",
+        "gauss_newton",
+        "levenberg_marquardt",
+        "slsqp",
+        "trust_constr",
+    } <= set(GROUPS["solver"])
 
 
 def test_default_config():
-    cfg = _compose()
+    cfg = _load()
+    assert isinstance(cfg.experiment, config.SatelliteConfig)
     assert cfg.experiment.name == "satellite"
     assert cfg.solver.name == "adam"
     assert cfg.seed == 0
     # the tuned Adam settings of the satellite experiment reach the solver config
-    assert cfg.solver.kwargs.lr_theta == cfg.experiment.solver_defaults.adam.lr_theta
+    assert cfg.solver.kwargs["lr_theta"] == cfg.experiment.solver_defaults["adam"]["lr_theta"]
+    # the physical constants default to the example module, their one home
+    from oneshot_jax.examples import satellite as example
+
+    assert cfg.experiment.theta_true == list(example.THETA_TRUE)
 
 
 @pytest.mark.parametrize("group,option", OPTIONS)
@@ -58,80 +77,145 @@ def test_every_option_composes(group, option):
     cfg = _compose([f"{group}={option}"])
     resolved = OmegaConf.to_container(cfg, resolve=True)
     assert resolved[group] is not None
-    if group == "solver":
-        common.solver_spec(cfg.solver)
 
 
 @pytest.mark.parametrize("experiment,solver", PAIRS)
-def test_experiment_solver_pairs_compose(experiment, solver):
+def test_experiment_solver_pairs(experiment, solver):
+    """Every pair either validates (and the solver builds), or is refused with a message
+    that names the experiment and the solvers it runs."""
     cfg = _compose([f"experiment={experiment}", f"solver={solver}"])
-    OmegaConf.to_container(cfg, resolve=True)
-    assert cfg.experiment.name == experiment
     assert (REPO / "experiments" / f"{cfg.experiment.name}.py").is_file()
-    name, kwargs = common.solver_spec(cfg.solver)
-    assert name in common.SOLVER_NAMES
+    if cfg.solver.name in config.LIBRARY_SOLVERS or experiment == "satellite":
+        conf = config.load(cfg)
+        assert conf.solver.name in type(conf.experiment).SOLVERS
+        if conf.solver.name != "scipy":
+            common.make_solver(conf.solver.name, conf.solver.kwargs)
+    else:
+        with pytest.raises(config.ConfigError, match=f"experiment={experiment} runs the library"):
+            config.load(cfg)
+
+
+def test_real_data_experiments_choose_their_solver_and_honour_another():
+    emps = _load(["experiment=emps"])
+    assert emps.solver.name == "levenberg_marquardt"
+    assert emps.solver.kwargs["max_steps"] == 200  # the experiment's solver_defaults
+    gn = _load(["experiment=emps", "solver=gauss_newton"])
+    assert gn.solver.name == "gauss_newton" and gn.solver.kwargs["max_steps"] == 200
+    tanks = _load(["experiment=cascaded_tanks", "solver=adam"])
+    assert tanks.solver.name == "adam"
 
 
 def test_command_line_overrides_compose():
-    cfg = _compose(
-        ["solver=gauss_newton", "experiment.T=100", "seed=3", "solver.kwargs.max_epochs=7"]
-    )
+    cfg = _load(["solver=gauss_newton", "experiment.T=100", "seed=3", "solver.kwargs.max_steps=7"])
     assert (cfg.solver.name, cfg.experiment.T, cfg.seed) == ("gauss_newton", 100, 3)
-    assert cfg.solver.kwargs.max_epochs == 7
+    assert common.make_solver(cfg.solver.name, cfg.solver.kwargs) == common.make_solver(
+        "gauss_newton", {"max_steps": 7, "rtol": 1e-10}
+    )
 
 
 def test_satellite_methods_are_valid_specs():
-    cfg = _compose()
-    methods = OmegaConf.to_container(cfg.experiment.methods, resolve=True)
-    for key, spec in methods.items():
-        assert spec["cost"] in ("multi_step", "single_step"), key
-        common.solver_spec(spec["solver"])
-    for key in list(cfg.experiment.fig4_methods) + list(cfg.experiment.fig5_methods):
+    cfg = _load()
+    methods = cfg.experiment.methods
+    for m in methods.values():
+        assert m.cost in ("multi_step", "single_step")
+    for key in cfg.experiment.fig4_methods + cfg.experiment.fig5_methods:
         assert key in methods
     # the Adam baseline is the default solver: it is deduplicated into the proposed method
-    assert common.same_solver(methods["adam"]["solver"], cfg.solver)
+    assert common.same_solver(methods["adam"].solver, cfg.solver)
 
 
-def test_satellite_data_deterministic():
-    ex = _compose().experiment
-    a = satellite.generate(ex, [3, 4], 30)
-    b = satellite.generate(ex, [3, 4], 30)
-    for key in ("u", "x", "z"):
-        np.testing.assert_array_equal(a[key], b[key])
-    assert not np.allclose(a["z"][0], a["z"][1])  # seeds differ
-    short = satellite.generate(ex, [4], 10)  # a shorter record is a prefix of a longer one
-    np.testing.assert_array_equal(short["z"][0], a["z"][1, :10])
-    np.testing.assert_allclose(a["x"][0, 0], np.asarray(ex.w0))
-    # noise and torque have the configured statistics (loosely)
-    big = satellite.generate(ex, [0], 600)
-    assert abs(np.std(big["z"][0] - big["x"][0]) / ex.noise_std - 1) < 0.1
-    assert abs(np.mean(big["u"][0]) / ex.torque_mean - 1) < 1e-3
+BAD = [
+    (["experiment.T=-5"], "`experiment.T` must be an integer >= 2, got -5"),
+    (["experiment.T=0"], "`experiment.T` must be an integer >= 2, got 0"),
+    (["experiment.noise_std=-1"], "`experiment.noise_std` must be a finite number > 0"),
+    (["seed=-1"], "`seed` must be an integer >= 0"),
+    (["experiment.theta_true=[0.04,0.04]"], "`experiment.theta_true` must be a list of 3"),
+    (["experiment.init.x0=zero"], "`experiment.init.x0` must be 'first_sample'"),
+    (["experiment.fig2.pair=[0,0]"], "`experiment.fig2.pair` must be two different"),
+    (["experiment.run_methods=[nope]"], "`experiment.run_methods` must be one of"),
+    (["solver.kwargs.max_steps=-3"], r"Adam\(max_steps=...\)"),
+    (["+solver.kwargs.foo=1"], r"unknown kwargs \['foo'\]"),
+    (["experiment=emps", "solver=slsqp"], "experiment=emps runs the library's solvers only"),
+    (["experiment=emps", "experiment.eps=0"], "`experiment.eps` must be a finite number > 0"),
+    (["experiment=emps", "experiment.open_loop.windows=[1]"], r"open_loop.windows\[0\]"),
+    (["experiment=cascaded_tanks", "experiment.overflow.theta0.k5=2"], "k5` must be"),
+    (["experiment=cascaded_tanks", "experiment.x0=[1]"], "`experiment.x0` must be a list"),
+]
 
 
-def test_cli_locates_the_checkout(tmp_path):
-    from oneshot_jax import _cli
+@pytest.mark.parametrize("overrides,message", BAD, ids=[" ".join(b[0]) for b in BAD])
+def test_bad_values_are_refused(overrides, message):
+    with pytest.raises(config.ConfigError, match=message):
+        _load(overrides)
 
-    assert _cli._repo_root() == REPO
-    # the console script's entry point composes the same configs from any folder
-    proc = subprocess.run(
-        [
+
+def test_wrong_types_are_refused_when_composing():
+    with pytest.raises(ConfigCompositionException) as info:
+        _compose(["seed=abc"])
+    assert "seed" in str(info.value.__cause__ or info.value)
+
+
+def _cli(args, cwd, module=False, timeout=300):
+    cmd = (
+        [sys.executable, "-m", "experiments"]
+        if module
+        else [
             sys.executable,
-            "-m",
-            "oneshot_jax._cli",
-            "--cfg",
-            "job",
-            "solver=gauss_newton",
-            "experiment.T=100",
-            "seed=3",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+            str(REPO / "experiments" / "run.py"),
+        ]
     )
+    return subprocess.run(cmd + args, cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_refuses_a_bad_value_before_running(tmp_path):
+    """`experiment.T=-5` stops with exit status 2 and a message naming the key; nothing
+    runs (no resolved config, no figures), and results.json records the failure."""
+    out = tmp_path / "run"
+    proc = _cli([f"hydra.run.dir={out}", "experiment.T=-5"], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "invalid configuration: `experiment.T` must be an integer >= 2" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "failed" and "experiment.T" in res["error"]
+    assert not (out / "resolved_config.yaml").exists()
+    assert not list(out.glob("*.png"))
+
+
+def test_python_m_experiments_composes(tmp_path):
+    proc = _cli(["--cfg", "job", "solver=gauss_newton", "experiment.T=100", "seed=3"], REPO, True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = OmegaConf.create(proc.stdout)
     assert (cfg.solver.name, cfg.experiment.T, cfg.seed) == ("gauss_newton", 100, 3)
+
+
+def test_failed_run_replaces_stale_results(tmp_path):
+    """An earlier run's results.json and results.md are removed at the start; a run that
+    fails leaves results.json with status "failed" and its error."""
+    (tmp_path / "results.json").write_text(json.dumps({"status": "ok", "figures": ["a.png"]}))
+    (tmp_path / "results.md").write_text("old")
+    (tmp_path / "a.png").write_bytes(b"old")
+
+    def boom(cfg, outdir, command):
+        assert not (outdir / "results.json").exists()
+        assert not (outdir / "results.md").exists() and not (outdir / "a.png").exists()
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        run.execute(_compose(), tmp_path, command="cmd", runner=boom)
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res == {
+        "status": "failed",
+        "error": "RuntimeError: boom",
+        "experiment": "satellite",
+        "command": "cmd",
+        "wall_time_s": res["wall_time_s"],
+    }
+    assert not (tmp_path / "results.md").exists()
+    assert not list(tmp_path.glob(".results.json.*"))  # no temporary file left
+
+    out = run.execute(_compose(), tmp_path, command="cmd", runner=lambda c, o, command: {"x": 1})
+    assert json.loads((tmp_path / "results.json").read_text()) == out
+    assert out["status"] == "ok" and out["x"] == 1
 
 
 SMALL = [
@@ -141,7 +225,7 @@ SMALL = [
     "experiment.horizons=[10,20]",
     "experiment.fig3.n_starts=2",
     "experiment.fig2.grid=12",
-    "experiment.solver_defaults.adam.max_epochs=300",
+    "experiment.solver_defaults.adam.max_steps=300",
     "experiment.simulate_time=5",
     "experiment.run_methods=[slsqp_fd,slsqp_fd_one_step]",
 ]
@@ -149,15 +233,10 @@ SMALL = [
 
 def test_run_end_to_end(tmp_path):
     out = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, str(REPO / "experiments" / "run.py"), f"hydra.run.dir={out}", *SMALL],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _cli([f"hydra.run.dir={out}", *SMALL], cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "ok"
     assert (out / "resolved_config.yaml").is_file()
     assert (out / ".hydra" / "config.yaml").is_file()
     assert (out / "results.md").read_text().startswith("## Satellite")
@@ -171,8 +250,5 @@ def test_run_end_to_end(tmp_path):
     assert len(main["theta"]["I"]) == 3 and main["path_length"] >= 2
     assert main["stop_reason"] and main["time_s"] > 0
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
-    # the recorded path (Figs. 2, 3) ends at the estimate, and recording does not change it
+    # the recorded path (Figs. 2, 3: FitResult.history) ends at the estimate
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
-    np.testing.assert_allclose(
-        res["seed0_estimates"]["proposed"]["theta"]["I"], main["theta"]["I"], rtol=1e-9
-    )

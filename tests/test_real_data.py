@@ -1,23 +1,29 @@
 """Reduced fits on the real benchmarks: a short stretch of each estimation record, fitted
-with the experiments' own models, lands near the full-run parameters.
+with the experiments' own code, lands near the full-run parameters; the experiments run
+the configured solver.
 
 The full runs (`python experiments/run.py experiment=emps|cascaded_tanks`) use the whole
-records; the numbers they print are in experiments/real_data_results.md. These tests
-skip when the benchmark files are not available.
+records; the numbers they print are in experiments/emps_results.md and
+experiments/cascaded_tanks_results.md. These tests skip when the benchmark files are not
+available.
 """
 
-import importlib.util
-import pathlib
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
+import oneshot_jax as oj
 from oneshot_jax import datasets as ds
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
-# Full-run estimates (experiments/real_data_results.md).
+from experiments import cascaded_tanks, config, emps  # noqa: E402
+
+# Full-run estimates (experiments/emps_results.md, experiments/cascaded_tanks_results.md).
 EMPS_FULL = {"M": 95.1070, "Fv": 203.8237, "Fc": 20.4664, "offset": -3.1684}
 TANKS_FULL = {
     "k1": 0.04589,
@@ -28,16 +34,6 @@ TANKS_FULL = {
     "h2": 11.73456,
     "k5": 0.93745,
 }
-
-
-def _experiment(name):
-    spec = importlib.util.spec_from_file_location(
-        f"_exp_{name}", ROOT / "experiments" / f"{name}.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    cfg = OmegaConf.load(ROOT / "configs" / "experiment" / f"{name}.yaml")
-    return mod, cfg
 
 
 def _load(loader):
@@ -52,9 +48,8 @@ def test_emps_closed_loop_on_six_seconds():
     and the offset within 8 % of the full run; the validation error in the closed-loop
     simulator stays at the full run's level."""
     data = _load(ds.load_emps)
-    emps, ex = _experiment("emps")
-    ex.n_samples = 6000
-    row = emps.fit_closed_loop(data, None, ex)
+    ex = config.EMPSConfig(n_samples=6000)
+    row = emps.fit_closed_loop(data, None, ex, oj.LevenbergMarquardt(max_steps=200))
     th = row["theta"]
     for k in ("M", "Fv", "Fc"):
         assert th[k] > 0
@@ -65,18 +60,47 @@ def test_emps_closed_loop_on_six_seconds():
     assert sc["validation"]["relerr_position_pct"] < 0.0016
 
 
+def test_emps_experiment_runs_the_configured_solver(tmp_path):
+    """`experiment=emps solver=gauss_newton` runs Gauss-Newton (the solver is honoured,
+    not replaced by the experiment's default), on a reduced sweep."""
+    _load(ds.load_emps)
+    from hydra import compose, initialize_config_dir
+
+    config.register()
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose(
+            config_name="config",
+            overrides=[
+                "experiment=emps",
+                "solver=gauss_newton",
+                "experiment.n_samples=3000",
+                "experiment.open_loop.windows=[500]",
+                "experiment.closed_loop.windows=[]",
+                "experiment.figures=false",
+                "experiment.check_unconstrained=false",
+                "progress=false",
+            ],
+        )
+    res = emps.run(config.load(cfg), tmp_path, command="test")
+    assert res["solver"]["name"] == "gauss_newton"
+    (row,) = res["sweeps"]["open_loop"]
+    assert row["n_windows"] == 6 and row["stop_reason"] == "converged"
+    assert row["theta"]["M"] == pytest.approx(EMPS_FULL["M"], rel=0.05)
+    assert "Gauss-Newton" in (tmp_path / "results.md").read_text()
+
+
 def test_tanks_overflow_on_first_600_samples():
     """Overflow model on the first 600 of 1024 estimation samples (both overflow episodes
     start before sample 600), from the full-run parameters perturbed by +-10 %: lands
-    within 20 % of them, and its validation RMSE stays below the 0.40 V target."""
+    within 20 % of them, and its validation RMSE stays below 0.40 V."""
     data = _load(ds.load_cascaded_tanks)
-    tanks, ex = _experiment("cascaded_tanks")
+    ex = config.TanksConfig()
     start = {k: v * (1.1 if i % 2 else 0.9) for i, (k, v) in enumerate(TANKS_FULL.items())}
-    ex.max_epochs = 150
-    res, model = tanks.fit_model("overflow", data, ex, start, [9.0, 7.0], n=600)
+    solver = oj.LevenbergMarquardt(max_steps=150)
+    res, model = cascaded_tanks.fit_model("overflow", data, ex, start, [9.0, 7.0], solver, n=600)
     th = {k: float(v) for k, v in res.theta.items()}
     for k, v in TANKS_FULL.items():
         assert th[k] == pytest.approx(v, rel=0.2), (k, th)
     assert 0.0 <= th["k5"] <= 1.0
-    y_val = tanks.simulate(model, res.theta, res.x0, data.u_val)
-    assert tanks.rmse(y_val, data.y_val) < 0.40
+    y_val = cascaded_tanks.simulate(model, res.theta, res.x0, data.u_val)
+    assert float(oj.metrics.rmse(data.y_val, y_val)[0]) < 0.40

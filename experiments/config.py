@@ -1,0 +1,398 @@
+"""The configuration schema of the experiments: dataclasses registered with Hydra's
+ConfigStore, checked before anything runs.
+
+Hydra checks the types when it composes the configuration (`seed=abc` is refused there,
+naming the key). `load(cfg)` then builds these dataclasses (`OmegaConf.to_object`), whose
+`__post_init__` checks the ranges and the consistency of the values (`experiment.T=0`,
+`experiment.noise_std=-1`, an unknown method or a solver the experiment cannot run), so
+a bad value is refused with a `ConfigError` naming it, before any data is generated.
+
+The YAML files in `configs/` extend these schemas: `configs/config.yaml` starts from
+`base_config`, `configs/experiment/<name>.yaml` from `/schema/experiment/<name>` and
+`configs/solver/<name>.yaml` from `/schema/solver`. Physical constants default to the
+example modules (`oneshot_jax.examples`), their one home.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from oneshot_jax.examples import cascaded_tanks as tanks_example
+from oneshot_jax.examples import emps as emps_example
+from oneshot_jax.examples import satellite as sat
+
+LIBRARY_SOLVERS = ("adam", "lbfgs", "gauss_newton", "levenberg_marquardt")
+SOLVER_NAMES = (*LIBRARY_SOLVERS, "scipy")
+
+
+class ConfigError(ValueError):
+    """A configuration value out of its range, or values that do not fit together."""
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _fail(key, expected, value):
+    raise ConfigError(f"`{key}` must be {expected}, got {value!r}.")
+
+
+def _number(key, value, *, lo=None, hi=None, lo_open=False, hi_open=False):
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if not ok:
+        parts = []
+        if lo is not None:
+            parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+        if hi is not None:
+            parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+        _fail(key, "a finite number" + (" " + " and ".join(parts) if parts else ""), value)
+
+
+def _integer(key, value, lo, hi=None):
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        _fail(key, f"an integer >= {lo}" + (f" and <= {hi}" if hi is not None else ""), value)
+    if hi is not None and value > hi:
+        _fail(key, f"an integer >= {lo} and <= {hi}", value)
+
+
+def _vector(key, value, n, *, positive=False):
+    if len(value) != n:
+        _fail(key, f"a list of {n} numbers", value)
+    for i, v in enumerate(value):
+        _number(f"{key}[{i}]", v, lo=0.0 if positive else None, lo_open=positive)
+
+
+def _one_of(key, value, options):
+    if value not in options:
+        _fail(key, "one of " + ", ".join(map(str, options)), value)
+
+
+def _params(key, value, names, positive=()):
+    if set(value) != set(names):
+        _fail(key, f"a mapping with the keys {', '.join(names)}", value)
+    for name in names:
+        _number(
+            f"{key}.{name}",
+            value[name],
+            lo=0.0 if name in positive else None,
+            lo_open=name in positive,
+        )
+
+
+def _history(key, value):
+    if isinstance(value, bool) or not isinstance(value, int) or value < 2 or value % 2:
+        _fail(key, "an even integer >= 2", value)
+
+
+# --------------------------------------------------------------------------- solver
+
+
+@dataclass
+class SolverConfig:
+    """A solver spec `{name, label, kwargs}` (`configs/solver/*.yaml`, and the baselines
+    of the satellite study). `name`: adam, lbfgs, gauss_newton, levenberg_marquardt (the
+    library's solvers; `kwargs` are the solver object's options, see
+    `experiments/common.py`) or scipy (`scipy.optimize.minimize` on the same cost)."""
+
+    name: str = MISSING
+    label: str | None = None
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        from . import common
+
+        _one_of("solver.name", self.name, SOLVER_NAMES)
+        common.check_solver(self.name, self.kwargs)
+
+    @property
+    def title(self) -> str:
+        return self.label or self.name
+
+
+# --------------------------------------------------------------------------- satellite
+
+
+@dataclass
+class Fig2:
+    pair: list[int] = field(default_factory=lambda: [0, 1])
+    grid: int = 80
+    margin: float = 0.15
+
+
+@dataclass
+class Fig3:
+    n_starts: int = 5
+    spread: float = 0.4
+
+
+@dataclass
+class Init:
+    theta0: list[float] = field(default_factory=lambda: list(sat.THETA0))
+    x0: Any = "first_sample"  # "first_sample" (z_0) or a list of 3 numbers
+
+
+@dataclass
+class Method:
+    """A method of the satellite study: a solver on the multi-step cost C of eq. (5)
+    ("multi_step", x0 estimated) or on the one-step prediction error ("single_step")."""
+
+    label: str = MISSING
+    cost: str = "multi_step"
+    solver: SolverConfig = MISSING
+
+
+@dataclass
+class SatelliteConfig:
+    """The satellite study of Section 4 (`experiments/satellite.py`)."""
+
+    name: str = "satellite"
+    dt: float = sat.DT
+    T: int = 50
+    theta_true: list[float] = field(default_factory=lambda: list(sat.THETA_TRUE))
+    w0: list[float] = field(default_factory=lambda: list(sat.W0))
+    torque_mean: float = sat.TORQUE_MEAN
+    torque_std: float = sat.TORQUE_STD
+    noise_std: float = sat.NOISE_STD
+    data_substeps: int = 5
+    model_substeps: int = 1
+    theta_lower: float = 1e-12
+    init: Init = field(default_factory=Init)
+    n_seeds: int = 20
+    horizons: list[int] = field(default_factory=lambda: [10, 20, 50, 100, 200, 500])
+    horizon_seeds: int = 20
+    simulate_time: float = 100.0
+    figures: bool = True
+    history: int = 2000
+    fig2: Fig2 = field(default_factory=Fig2)
+    fig3: Fig3 = field(default_factory=Fig3)
+    solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
+    methods: dict[str, Method] = field(default_factory=dict)
+    run_methods: list[str] | None = None
+    fig4_methods: list[str] = field(default_factory=list)
+    fig5_methods: list[str] = field(default_factory=list)
+
+    SOLVERS = SOLVER_NAMES
+
+    def __post_init__(self):
+        k = "experiment."
+        _number(k + "dt", self.dt, lo=0.0, lo_open=True)
+        _integer(k + "T", self.T, 2)
+        _vector(k + "theta_true", self.theta_true, 3, positive=True)
+        _vector(k + "w0", self.w0, 3)
+        _number(k + "torque_mean", self.torque_mean)
+        _number(k + "torque_std", self.torque_std, lo=0.0)
+        # The Cramer-Rao bound (Figs. 5, 6, the tables) is sigma^2 (J^T J)^-1: it needs noise.
+        _number(k + "noise_std", self.noise_std, lo=0.0, lo_open=True)
+        _integer(k + "data_substeps", self.data_substeps, 1)
+        _integer(k + "model_substeps", self.model_substeps, 1)
+        _number(k + "theta_lower", self.theta_lower, lo=0.0, lo_open=True)
+        _vector(k + "init.theta0", self.init.theta0, 3, positive=True)
+        if isinstance(self.init.x0, str):
+            if self.init.x0 != "first_sample":
+                _fail(k + "init.x0", "'first_sample' or a list of 3 numbers", self.init.x0)
+        else:
+            _vector(k + "init.x0", list(self.init.x0), 3)
+        _integer(k + "n_seeds", self.n_seeds, 1)
+        for i, h in enumerate(self.horizons):
+            _integer(f"{k}horizons[{i}]", h, 2)
+        _integer(k + "horizon_seeds", self.horizon_seeds, 0)
+        _number(k + "simulate_time", self.simulate_time, lo=self.dt)
+        _history(k + "history", self.history)
+        pair = list(self.fig2.pair)
+        if len(pair) != 2 or len(set(pair)) != 2 or not set(pair) <= {0, 1, 2}:
+            _fail(k + "fig2.pair", "two different indices among 0, 1, 2", pair)
+        _integer(k + "fig2.grid", self.fig2.grid, 2)
+        _number(k + "fig2.margin", self.fig2.margin, lo=0.0)
+        _integer(k + "fig3.n_starts", self.fig3.n_starts, 1)
+        _number(k + "fig3.spread", self.fig3.spread, lo=0.0, hi=1.0, hi_open=True)
+        for key, m in self.methods.items():
+            _one_of(f"{k}methods.{key}.cost", m.cost, ("multi_step", "single_step"))
+        names = list(self.methods)
+        for group in ("run_methods", "fig4_methods", "fig5_methods"):
+            for key in getattr(self, group) or []:
+                _one_of(f"{k}{group}", key, names)
+
+
+# --------------------------------------------------------------------------- EMPS
+
+
+@dataclass
+class Windows:
+    windows: list[int | None] = field(default_factory=list)
+
+
+@dataclass
+class EMPSConfig:
+    """The EMPS study (`experiments/emps.py`)."""
+
+    name: str = "emps"
+    data_path: str | None = None
+    eps: float = emps_example.EPS
+    substeps: int = 1
+    velocity_halfwidth: int = 5
+    n_samples: int | None = None
+    theta0: dict[str, float] = field(default_factory=lambda: dict(emps_example.THETA0))
+    open_loop: Windows = field(default_factory=lambda: Windows([20, 50, 100, 200, 500, 2000]))
+    closed_loop: Windows = field(default_factory=lambda: Windows([1000, 5000, None]))
+    figures: bool = True
+    check_unconstrained: bool = True
+    history: int = 1000
+    solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    SOLVERS = LIBRARY_SOLVERS
+
+    def __post_init__(self):
+        k = "experiment."
+        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
+        _integer(k + "substeps", self.substeps, 1)
+        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
+        if self.n_samples is not None:
+            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _params(k + "theta0", self.theta0, emps_example.PARAMS, positive=("M", "Fv", "Fc"))
+        _history(k + "history", self.history)
+        for fam in ("open_loop", "closed_loop"):
+            wins = getattr(self, fam).windows
+            if fam == "open_loop" and None in wins:
+                _fail(k + "open_loop.windows", "window lengths (integers >= 2)", wins)
+            for i, w in enumerate(wins):
+                if w is not None:
+                    _integer(f"{k}{fam}.windows[{i}]", w, 2)
+        if not (self.open_loop.windows or self.closed_loop.windows):
+            _fail(k + "open_loop.windows", "non-empty (or closed_loop.windows)", [])
+
+
+# --------------------------------------------------------------------------- tanks
+
+
+@dataclass
+class TanksModel:
+    substeps: int = 1
+    theta0: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class OverflowModel(TanksModel):
+    h1_starts: list[float] = field(default_factory=lambda: [5.0, 10.0, 15.0])
+
+
+@dataclass
+class TanksConfig:
+    """The cascaded-tanks study (`experiments/cascaded_tanks.py`)."""
+
+    name: str = "cascaded_tanks"
+    data_path: str | None = None
+    n_samples: int | None = None
+    x0: list[float] = field(default_factory=lambda: [5.0, 5.0])
+    gate_width: float = tanks_example.GATE_WIDTH
+    relu_width: float = tanks_example.RELU_WIDTH
+    basic: TanksModel = field(
+        default_factory=lambda: TanksModel(2, {"k1": 0.05, "k3": 0.05, "k4": 0.03, "c": 0.0})
+    )
+    overflow: OverflowModel = field(
+        default_factory=lambda: OverflowModel(4, {"h2": 10.0, "k5": 0.5}, [5.0, 10.0, 15.0])
+    )
+    figures: bool = True
+    history: int = 1000
+    solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    SOLVERS = LIBRARY_SOLVERS
+
+    def __post_init__(self):
+        k = "experiment."
+        if self.n_samples is not None:
+            _integer(k + "n_samples", self.n_samples, 10)
+        _vector(k + "x0", self.x0, 2)
+        _number(k + "gate_width", self.gate_width, lo=0.0, lo_open=True)
+        _number(k + "relu_width", self.relu_width, lo=0.0, lo_open=True)
+        _integer(k + "basic.substeps", self.basic.substeps, 1)
+        _integer(k + "overflow.substeps", self.overflow.substeps, 1)
+        _params(
+            k + "basic.theta0",
+            self.basic.theta0,
+            ("k1", "k3", "k4", "c"),
+            positive=("k1", "k3", "k4"),
+        )
+        _params(k + "overflow.theta0", self.overflow.theta0, ("h2", "k5"))
+        _number(k + "overflow.theta0.k5", self.overflow.theta0["k5"], lo=0.0, hi=1.0)
+        starts = self.overflow.h1_starts
+        if not starts:
+            _fail(k + "overflow.h1_starts", "a non-empty list of levels (V)", starts)
+        for i, h in enumerate(starts):
+            _number(f"{k}overflow.h1_starts[{i}]", h, lo=0.0)
+        _history(k + "history", self.history)
+
+
+# --------------------------------------------------------------------------- top level
+
+
+@dataclass
+class Config:
+    """The whole configuration (`configs/config.yaml`)."""
+
+    experiment: Any = MISSING
+    solver: SolverConfig = MISSING
+    seed: int = 0
+    publish: bool = False
+    progress: bool = True  # progress bars on the long fits (EMPS, cascaded tanks)
+    jax_cache_dir: str | None = None
+
+    def __post_init__(self):
+        _integer("seed", self.seed, 0)
+        allowed = type(self.experiment).SOLVERS
+        if self.solver.name not in allowed:
+            raise ConfigError(
+                f"experiment={self.experiment.name} runs the library's solvers only "
+                f"({', '.join(allowed)}); solver {self.solver.name!r} is not supported. "
+                f"Pick one of these, e.g. solver=levenberg_marquardt."
+            )
+
+
+def register() -> None:
+    """Register the schemas with Hydra's ConfigStore (idempotent)."""
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(group="schema/experiment", name="satellite", node=SatelliteConfig)
+    cs.store(group="schema/experiment", name="emps", node=EMPSConfig)
+    cs.store(group="schema/experiment", name="cascaded_tanks", node=TanksConfig)
+    cs.store(group="schema", name="solver", node=SolverConfig)
+
+
+def load(cfg) -> Config:
+    """The composed configuration as validated dataclasses (`ConfigError` on a bad value)."""
+    try:
+        out = OmegaConf.to_object(cfg)
+    except OmegaConfBaseException as err:
+        # OmegaConf wraps errors raised in __post_init__; show the original message.
+        cause = err.__cause__ or err.__context__
+        if isinstance(cause, (ValueError, TypeError)):
+            raise ConfigError(str(cause)) from None
+        raise ConfigError(str(err)) from err
+    except (ValueError, TypeError) as err:
+        raise ConfigError(str(err)) from None
+    if not isinstance(out, Config) or not dataclasses.is_dataclass(out.experiment):
+        raise ConfigError(
+            "the configuration does not follow the schema of experiments/config.py "
+            "(compose it from configs/config.yaml)."
+        )
+    return out
+
+
+def as_dict(obj) -> Any:
+    """A validated config (or part of it) as plain Python (for JSON and reports)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: as_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {k: as_dict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [as_dict(v) for v in obj]
+    return obj
