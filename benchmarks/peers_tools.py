@@ -23,7 +23,6 @@ from timing import interleaved
 from timing import versions as _versions
 
 import oneshot_jax as oj
-from oneshot_jax._results import name_of
 
 # ------------------------------------------------------------------ shared JAX residual
 
@@ -113,7 +112,7 @@ class Oneshot(Tool):
             "p": p,
             "iterations": int(res.num_steps),
             "fevals": None,
-            "stop": name_of(res.stop_reason),
+            "stop": res.status,
             "solver_s": float(res.wall_time),
             "loss_reported": float(res.loss),
         }

@@ -30,7 +30,6 @@ jax.config.update("jax_enable_x64", True)
 from timing import conditions, fmt_time, timed  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
-from oneshot_jax._results import name_of  # noqa: E402
 from oneshot_jax.examples import emps  # noqa: E402
 
 TS = 1e-3
@@ -85,7 +84,7 @@ def main():
                 "loss": float(res.loss),
                 "iterations": int(res.num_steps),
                 "max_rel_param_err": err,
-                "stop": name_of(res.stop_reason),
+                "stop": res.status,
             }
         rows.append(row)
         print(f"  N = {N} done", flush=True)

@@ -35,7 +35,6 @@ from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
 from oneshot_jax._pytree import flat_host, unflatten_rows
-from oneshot_jax._results import name_of
 
 SOLVER_CLASSES = {
     "adam": oj.Adam,
@@ -177,7 +176,7 @@ def from_fit(result: oj.FitResult) -> Estimate:
         loss=float(result.loss),
         iterations=int(result.num_steps),
         time_s=float(result.wall_time),
-        stop_reason=name_of(result.stop_reason),
+        stop_reason=result.status,
         success=bool(result.success),
         message=result.message,
         theta_std=flat_host(result.std),

@@ -2,6 +2,7 @@
 
 from . import constraints as constraints
 from . import datasets as datasets
+from . import examples as examples
 from . import metrics as metrics
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory

@@ -115,6 +115,11 @@ class FitResult(eqx.Module):
         return RESULTS[self.stop_reason]
 
     @property
+    def status(self) -> str:
+        """The name of the stop reason (`"converged"`, `"max_steps_reached"`, ...)."""
+        return name_of(self.stop_reason)
+
+    @property
     def ci95(self):
         """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper)."""
         params, _ = _pytree.split(self.theta)
@@ -184,7 +189,7 @@ class FitResult(eqx.Module):
         params, _ = _pytree.split(self.theta)
         flat = _pytree.flat_host(params)
         std = _pytree.flat_host(self.std)
-        rows = [f"oneshot_jax fit: {name_of(self.stop_reason)} ({self.message})"]
+        rows = [f"oneshot_jax fit: {self.status} ({self.message})"]
         rows.append(
             f"  loss {float(self.loss):.6e} after {self.num_steps} steps in "
             f"{self.wall_time:.3g} s (wall, compilation included)"
