@@ -2,7 +2,6 @@
 
 from . import constraints as constraints
 from . import datasets as datasets
-from . import examples as examples
 from . import metrics as metrics
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
@@ -30,5 +29,9 @@ from ._solver import GaussNewton as GaussNewton
 from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
+
+# isort: split
+# Last: the example models use the public API above.
+from . import examples as examples
 
 __version__ = "0.2.0"
