@@ -38,20 +38,27 @@ def post(problem, params, blocks, strategy):
 
 
 def _history(problem, stages, best, like):
-    """One `FitHistory` from every stage's bounded buffer (the best start's rows)."""
+    """One `FitHistory` from every stage's bounded buffer: the best start's rows before
+    its last step, then its last iterate."""
     losses, gnorms, paths, steps, stage_ids = [], [], [], [], []
     base = np.asarray(problem.theta_base)
     free = list(problem.theta_free)
     for i, sol in enumerate(stages):
-        h = jax.tree_util.tree_map(lambda a: np.asarray(a)[best], sol.history)
-        n = int(h.count)
-        flat = np.broadcast_to(base, (n, base.shape[0])).copy()
-        flat[:, free] = h.theta[:n]
-        losses.append(h.loss[:n])
-        gnorms.append(h.grad_norm[:n])
+        h = sol.history
+        n = int(np.asarray(sol.num_steps)[best])
+        rows = (np.asarray(h.step) >= 0) & (np.asarray(h.step) < n)
+        theta = np.concatenate(
+            [np.asarray(h.theta)[rows, best], np.asarray(sol.final_theta)[best][None]]
+        )
+        flat = np.broadcast_to(base, (theta.shape[0], base.shape[0])).copy()
+        flat[:, free] = theta
+        losses.append(np.append(np.asarray(h.loss)[rows, best], np.asarray(sol.final_loss)[best]))
+        gnorms.append(
+            np.append(np.asarray(h.grad_norm)[rows, best], np.asarray(sol.final_grad_norm)[best])
+        )
         paths.append(flat)
-        steps.append(h.step[:n])
-        stage_ids.append(np.full(n, i, np.int32))
+        steps.append(np.append(np.asarray(h.step)[rows], n).astype(np.int32))
+        stage_ids.append(np.full(theta.shape[0], i, np.int32))
     return FitHistory(
         loss=np.concatenate(losses),
         grad_norm=np.concatenate(gnorms),

@@ -123,6 +123,22 @@ def _abstract_call(fn, x, u, theta):
     return _cached_eval_shape(fn, x, u, structs, treedef)
 
 
+@functools.lru_cache(maxsize=256)
+def _cached_step_inputs(model_input, shape, dtype):
+    probe = jax.ShapeDtypeStruct((2, *shape), dtype)
+    out = jax.eval_shape(Model(_identity_step, input=model_input).step_inputs, probe)
+    return jax.ShapeDtypeStruct(out.shape[1:], out.dtype)
+
+
+def _identity_step(x, u, theta):
+    return x
+
+
+def _step_input_struct(model, u_1):
+    """What the step sees of one input sample (`Model.step_inputs`), abstractly."""
+    return _cached_step_inputs(model.input, u_1.shape, u_1.dtype)
+
+
 class Data(NamedTuple):
     """Validated arguments: theta's trainable part, the model with theta's static part
     bound in, and the data, all in one floating dtype."""
@@ -287,8 +303,7 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
     # state's shape or dtype is reported here and not as an error deep inside a scan.
     x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
     u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
-    u_step = jax.eval_shape(model.step_inputs, jax.ShapeDtypeStruct((2, *u_1.shape), u.dtype))
-    u_step = jax.ShapeDtypeStruct(u_step.shape[1:], u_step.dtype)
+    u_step = _step_input_struct(model, u_1)
     try:
         x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_1, theta)

@@ -103,16 +103,12 @@ def _n_starts(theta0_params, x0, data_x0_ndim):
 
 @eqx.filter_jit
 def _solve(solvers, problem, starts, history_size, meter, bar_id):
-    """The whole fit as one compiled call: project the starts, run the solvers from each
-    (vmapped), pick the best start and post-process it (covariance and metrics)."""
+    """The whole fit as one compiled call: project the starts, run the solvers from all of
+    them at once, pick the best start and post-process it (covariance and metrics)."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = jnp.any(projected != starts.theta)
     starts = Params(projected, starts.x0)
-
-    def one(p):
-        return run(solvers, problem, p, history_size=history_size, meter=meter, bar_id=bar_id)
-
-    stages = jax.vmap(one)(starts)
+    stages = run(solvers, problem, starts, history_size=history_size, meter=meter, bar_id=bar_id)
     final = stages[-1]
     best = jnp.argmin(jnp.where(jnp.isfinite(final.loss), final.loss, jnp.inf))
     params = jax.tree_util.tree_map(lambda a: a[best], final.params)
@@ -254,12 +250,12 @@ def fit(
     lower = upper = None
     project = None
     if proj is not None:
-        check_projection(proj, data.theta)
         if proj.bounds is not None:
             lo, hi = proj.bounds(data.theta)
             lower = _pytree.flat_host(lo)[theta_free]
             upper = _pytree.flat_host(hi)[theta_free]
-        else:
+        else:  # a general projection: check that it is one (boxes are by construction)
+            check_projection(proj, data.theta)
             project = proj.project
 
     problem = FitProblem(
@@ -303,7 +299,7 @@ def fit(
     try:
         t0 = time.perf_counter()
         moved, stages, best, posted = _solve(
-            solvers, problem, starts, history, meter, jnp.asarray(bar_id, jnp.int32)
+            solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
         )
         jax.block_until_ready(posted)
         wall = time.perf_counter() - t0

@@ -3,7 +3,10 @@
 The buffer holds at most `size` rows whatever the step budget. Rows are written every
 `stride` steps, starting at step 0; when the buffer fills, every other row is dropped and
 the stride doubles. So a run of any length keeps its whole path at an even spacing of at
-most 2 (steps / size), and the final iterate is always the last row.
+most 2 (steps / size). The step counter is shared by all starting points (they advance
+together, a finished one frozen), so the decisions to write and to thin are plain
+conditionals, taken only when due; each row holds every start's values. The final
+iterate of each start is kept apart (`FitHistory` puts it last).
 """
 
 from typing import NamedTuple
@@ -13,21 +16,21 @@ import jax.numpy as jnp
 
 
 class History(NamedTuple):
-    loss: jax.Array  # (size,)
-    grad_norm: jax.Array  # (size,)
-    theta: jax.Array  # (size, p): the free entries of theta
-    step: jax.Array  # (size,) int: the step each row was recorded at
+    loss: jax.Array  # (size, S)
+    grad_norm: jax.Array  # (size, S)
+    theta: jax.Array  # (size, S, p): the free entries of theta
+    step: jax.Array  # (size,) int: the step each row was recorded at (-1: unused)
     count: jax.Array  # rows in use
     stride: jax.Array  # rows are recorded every `stride` steps
 
 
-def init(size, n_theta, dtype) -> History:
+def init(size, n_starts, n_theta, dtype) -> History:
     if size < 2 or size % 2:
         raise ValueError(f"`history` must be an even number of rows >= 2, got {size}.")
     return History(
-        loss=jnp.full((size,), jnp.nan, dtype),
-        grad_norm=jnp.full((size,), jnp.nan, dtype),
-        theta=jnp.full((size, n_theta), jnp.nan, dtype),
+        loss=jnp.full((size, n_starts), jnp.nan, dtype),
+        grad_norm=jnp.full((size, n_starts), jnp.nan, dtype),
+        theta=jnp.full((size, n_starts, n_theta), jnp.nan, dtype),
         step=jnp.full((size,), -1, jnp.int32),
         count=jnp.array(0, jnp.int32),
         stride=jnp.array(1, jnp.int32),
@@ -47,13 +50,12 @@ def _write(h: History, step, loss, grad_norm, theta) -> History:
 
 def _compact(h: History) -> History:
     """Keep rows 0, 2, 4, ... (steps that are multiples of 2 stride) and double the stride."""
-    size = h.loss.shape[0]
+    size = h.step.shape[0]
     keep = jnp.arange(0, size, 2)
     half = size // 2
 
     def thin(a, fill):
-        kept = a[keep]
-        return jnp.concatenate([kept, jnp.full((size - half, *a.shape[1:]), fill, a.dtype)])
+        return jnp.concatenate([a[keep], jnp.full((size - half, *a.shape[1:]), fill, a.dtype)])
 
     return History(
         loss=thin(h.loss, jnp.nan),
@@ -66,20 +68,15 @@ def _compact(h: History) -> History:
 
 
 def record(h: History, step, loss, grad_norm, theta) -> History:
-    """Record step `step` if it falls on the stride (compacting a full buffer)."""
+    """Record step `step` (shared by the starts) if it falls on the stride, and thin a full
+    buffer."""
     due = step % h.stride == 0
-    h = jax.tree_util.tree_map(
-        lambda new, old: jnp.where(due, new, old), _write(h, step, loss, grad_norm, theta), h
+    i = jnp.where(due, h.count, h.step.shape[0] - 1)
+    h = h._replace(
+        loss=h.loss.at[i].set(jnp.where(due, loss, h.loss[i])),
+        grad_norm=h.grad_norm.at[i].set(jnp.where(due, grad_norm, h.grad_norm[i])),
+        theta=h.theta.at[i].set(jnp.where(due, theta, h.theta[i])),
+        step=h.step.at[i].set(jnp.where(due, step, h.step[i])),
+        count=h.count + due,
     )
-    full = h.count == h.loss.shape[0]
-    return jax.lax.cond(full, _compact, lambda h: h, h)
-
-
-def finish(h: History, step, loss, grad_norm, theta) -> History:
-    """Make the final iterate the last row: overwrite it if it is already recorded (the
-    returned point may differ from the last iterate, e.g. the last finite one), append
-    it otherwise (a record always leaves a free row)."""
-    last = jnp.maximum(h.count - 1, 0)
-    same = (h.count > 0) & (h.step[last] == step)
-    h = h._replace(count=jnp.where(same, last, h.count))
-    return _write(h, step, loss, grad_norm, theta)
+    return jax.lax.cond(h.count == h.step.shape[0], _compact, lambda h: h, h)

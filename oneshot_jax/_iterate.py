@@ -1,9 +1,11 @@
 """The one loop every solver runs in, solver sequences and multistart.
 
-`iterate` runs one solver from one starting point as a `lax.while_loop` (see
-`oneshot_jax._solver.base` for the interface), recording a bounded history and updating
-the progress bar. `run` chains a sequence of solvers, each starting where the last
-stopped, and is what `fit` vmaps over the starting points and compiles as one call.
+`iterate` runs one solver from S starting points at once as a `lax.while_loop` (see
+`oneshot_jax._solver.base` for the interface): every step applies the solver's `step` to
+all starts (vmapped) and freezes the ones that have stopped, so the step counter, the
+history's bookkeeping and the progress bar are shared and cost nothing per start. `run`
+chains a sequence of solvers, each starting where the last stopped; `fit` compiles it as
+one call.
 """
 
 from typing import Any, NamedTuple
@@ -18,68 +20,116 @@ from ._results import RESULTS
 
 
 class Solution(NamedTuple):
-    """What one solver returns from one start."""
+    """What one solver returns from S starts (every field has a leading S axis, but the
+    history's shared `step`, `count` and `stride`)."""
 
     params: Params
     loss: jax.Array
     result: RESULTS
     num_steps: jax.Array
     history: _history.History
+    final_loss: jax.Array  # the loss and gradient norm at each start's last iterate
+    final_grad_norm: jax.Array
+    final_theta: jax.Array  # (the last iterate, before `postprocess`)
     blocks: Any  # normal-equation blocks for the covariance, or None
 
 
 class _Carry(NamedTuple):
     params: Params
-    state: Any  # the dynamic (array) part of the solver state
-    step: jax.Array
+    state: Any  # the dynamic (array) part of the solvers' states
+    step: jax.Array  # shared by the starts
+    num_steps: jax.Array  # per start: the steps it took before stopping
     done: jax.Array
     result: RESULTS
     history: _history.History
 
 
-def _check_state(solver, problem, params, state):
-    """The solver's verdict, plus non-finite values, which always stop the loop."""
-    loss, gnorm = solver.summary(state)
-    done, result = solver.terminate(problem, params, state)
-    finite = jnp.isfinite(loss)
-    return done | ~finite, RESULTS.where(finite, result, RESULTS.diverged), loss, gnorm
+def _where(pred, a, b):
+    """`RESULTS.where` for a batch of starts (a boolean per start)."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _freeze(done, old, new):
+    """`new` where a start is still running, `old` where it has stopped."""
+
+    def pick(a, b):
+        if not eqx.is_array(a):  # static parts (an optimistix jaxpr) are the same in both
+            return b
+        d = done.reshape(done.shape + (1,) * (a.ndim - 1))
+        return jnp.where(d, a, b)
+
+    return jax.tree_util.tree_map(pick, old, new)
 
 
 def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter, meter_args):
-    """Run `solver` from `params` until it terminates or takes `solver.max_steps` steps."""
-    state = solver.init(problem, params)
-    done, result, loss, gnorm = _check_state(solver, problem, params, state)
-    hist = _history.init(history_size, params.theta.shape[0], problem.dtype)
+    """Run `solver` from the S starts `params` (leading axis S) until every start has
+    terminated or `solver.max_steps` steps are taken."""
+    n_starts = params.theta.shape[0]
+
+    def check(p, s):
+        loss, gnorm = solver.summary(s)
+        done, result = solver.terminate(problem, p, s)
+        finite = jnp.isfinite(loss)
+        return done | ~finite, RESULTS.where(finite, result, RESULTS.diverged), loss, gnorm
+
+    check_all = eqx.filter_vmap(check)
+    state = eqx.filter_vmap(lambda p: solver.init(problem, p))(params)
+    done, result, loss, gnorm = check_all(params, state)
+    hist = _history.init(history_size, n_starts, params.theta.shape[1], problem.dtype)
     hist = _history.record(hist, jnp.array(0, jnp.int32), loss, gnorm, params.theta)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset = meter_args
+    step_all = eqx.filter_vmap(lambda p, s: solver.step(problem, p, s))
 
     def cond(c):
-        return ~c.done & (c.step < solver.max_steps)
+        return jnp.any(~c.done) & (c.step < solver.max_steps)
 
     def body(c):
         state = eqx.combine(c.state, static)
-        params, state = solver.step(problem, c.params, state)
+        new_params, new_state = step_all(c.params, state)
+        params = _freeze(c.done, c.params, new_params)
+        state = _freeze(c.done, state, new_state)
         step = c.step + 1
-        done, result, loss, gnorm = _check_state(solver, problem, params, state)
+        done, result, loss, gnorm = check_all(params, state)
+        result = _where(c.done, c.result, result)
         hist = _history.record(c.history, step, loss, gnorm, params.theta)
-        meter.update(bar_id, offset, step, loss)
+        meter.update(bar_id, offset, step, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
         dynamic, _ = eqx.partition(state, eqx.is_array)
-        return _Carry(params, dynamic, step, done, result, hist)
+        return _Carry(
+            params,
+            dynamic,
+            step,
+            c.num_steps + jnp.where(c.done, 0, 1),
+            c.done | done,
+            result,
+            hist,
+        )
 
-    init = _Carry(params, dynamic, jnp.array(0, jnp.int32), done, result, hist)
+    zero = jnp.array(0, jnp.int32)
+    init = _Carry(params, dynamic, zero, jnp.zeros(n_starts, jnp.int32), done, result, hist)
     c = jax.lax.while_loop(cond, body, init)
     state = eqx.combine(c.state, static)
-    result = RESULTS.where(c.done, c.result, RESULTS.max_steps_reached)
-    loss, gnorm = solver.summary(state)
-    hist = _history.finish(c.history, c.step, loss, gnorm, c.params.theta)
-    params, loss, blocks = solver.postprocess(problem, c.params, state, result)
-    return Solution(params, loss, result, c.step, hist, blocks)
+    result = _where(c.done, c.result, RESULTS.max_steps_reached)
+    final_loss, final_gnorm = eqx.filter_vmap(solver.summary)(state)
+    out_params, out_loss, blocks = eqx.filter_vmap(
+        lambda p, s, r: solver.postprocess(problem, p, s, r)
+    )(c.params, state, result)
+    return Solution(
+        out_params,
+        out_loss,
+        result,
+        c.num_steps,
+        c.history,
+        final_loss,
+        final_gnorm,
+        c.params.theta,
+        blocks,
+    )
 
 
 def run(solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id):
-    """The solvers in order, each from where the last stopped. Returns the last solver's
-    `Solution` and the list of every stage's `Solution` (for their histories)."""
+    """The solvers in order, each from where the last stopped; S starts at once. Returns
+    every stage's `Solution` (the last one holds the result)."""
     stages = []
     offset = jnp.array(0, jnp.int32)
     for solver in solvers:

@@ -6,10 +6,7 @@ import itertools
 import threading
 
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
-import jax.numpy as jnp
-import numpy as np
 
 _BARS: dict[int, object] = {}
 _LOCK = threading.Lock()
@@ -44,22 +41,20 @@ class TqdmProgress(eqx.Module):
             bar.close()
 
     def update(self, bar_id, offset, step, loss):
-        """Called inside the loop: every `refresh_steps` steps, move the bar to
-        `offset + step` and show `loss` (the smallest over vmapped starts)."""
-        step_all = eqxi.unvmap_max(step)
-        loss_all = -eqxi.unvmap_max(-jnp.where(jnp.isnan(loss), jnp.inf, loss))
-        due = eqxi.nonbatchable(step_all % self.refresh_steps == 0)
+        """Called inside the loop with the step shared by the starts: every
+        `refresh_steps` steps, move the bar to `offset + step` and show `loss` (the
+        smallest over the starts)."""
 
         def show(bar_id, n, loss):
             with _LOCK:
-                bar = _BARS.get(int(np.asarray(bar_id).reshape(-1)[0]))
+                bar = _BARS.get(int(bar_id))
             if bar is not None:
-                bar.n = int(np.asarray(n).reshape(-1)[0])
-                bar.set_postfix_str(f"loss {float(np.asarray(loss).reshape(-1)[0]):.6e}")
+                bar.n = int(n)
+                bar.set_postfix_str(f"loss {float(loss):.6e}")
 
         jax.lax.cond(
-            due,
-            lambda: jax.debug.callback(show, bar_id, offset + step_all, loss_all),
+            step % self.refresh_steps == 0,
+            lambda: jax.debug.callback(show, bar_id, offset + step, loss),
             lambda: None,
         )
 
