@@ -64,6 +64,30 @@ def simulate(model, theta, x0, u):
     return np.asarray(z)[:, 0]
 
 
+def protocol(model, theta, data, x0_guess):
+    """The community's protocol (Champneys et al. 2024) on the validation record: x0 from
+    its first n = 5 outputs only (`oneshot_jax.predict`, Gauss-Newton on x0), simulated
+    over the whole record, scored on samples n: (`benchmark_scores`)."""
+    test = data.test
+    pred = oj.predict(
+        model,
+        theta,
+        np.asarray(test.u)[:, None],
+        np.asarray(test.y)[:, None],
+        test.n,
+        x0=np.asarray(x0_guess, float),
+    )
+    sc = oj.metrics.benchmark_scores(np.asarray(test.y)[:, None], np.asarray(pred.z), test.n)
+    return {
+        "n": int(sc.n),
+        "rmse_V": float(sc.rmse[0]),
+        "nrmse": float(sc.nrmse[0]),
+        "r2": float(sc.r2[0]),
+        "fit_percent": float(sc.fit_percent[0]),
+        "x0": [float(v) for v in np.asarray(pred.x0)],
+    }
+
+
 def _summary(res, model, data, kind, wall):
     y_est_sim = simulate(model, res.theta, res.x0, data.u_est)
     y_val_sim = simulate(model, res.theta, res.x0, data.u_val)  # the same initial state
@@ -76,6 +100,7 @@ def _summary(res, model, data, kind, wall):
         "rmse_estimation_V": float(oj.metrics.rmse(data.y_est, y_est_sim)[0]),
         "rmse_validation_V": float(oj.metrics.rmse(data.y_val, y_val_sim)[0]),
         "fit_percent_validation": float(oj.metrics.fit_percent(data.y_val, y_val_sim)[0]),
+        "protocol": protocol(model, res.theta, data, res.x0),
         "stop_reason": common.from_fit(res).stop_reason,
         "iterations": int(res.num_steps),
         "wall_time_s": float(wall),

@@ -40,26 +40,33 @@ def markdown(res) -> str:
         )
     L += [
         "",
-        "| model | RMSE estimation (V) | RMSE validation, simulation (V) | iterations | stop "
-        "| time (s) |",
-        "|---|---|---|---|---|---|",
+        "| model | RMSE estimation (V) | RMSE validation, x0 of the estimation record (V) "
+        "| RMSE validation, protocol: x0 from 5 samples (V) | iterations | stop | time (s) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for kind in ("basic", "overflow"):
         r = m[kind]
         L.append(
             f"| {kind} (this work) | {r['rmse_estimation_V']:.4f} | "
-            f"**{r['rmse_validation_V']:.4f}** | {r['iterations']} | {r['stop_reason']} | "
-            f"{r['wall_time_s']:.1f} |"
+            f"{r['rmse_validation_V']:.4f} | **{r['protocol']['rmse_V']:.4f}** | "
+            f"{r['iterations']} | {r['stop_reason']} | {r['wall_time_s']:.1f} |"
         )
     for name, v in res["published_validation_rmse_V"].items():
-        L.append(f"| {name} (published) | | {v} | | | |")
+        L.append(f"| {name} (published) | | {v} | | | | |")
     ov = m["overflow"]
     L += [
         "",
         'Published values as compiled in Table 2 of "Hammerstein Box-Jenkins System '
         'Identification of the Cascaded Tanks Benchmark System", Mathematical Problems in '
         "Engineering 2021, article 6613425 (the benchmark description itself reports no "
-        "results). Time (s): the whole `fit` call, compilation included.",
+        "results). Time (s): the whole `fit` call, compilation included. The protocol "
+        "column follows Champneys et al. 2024 (*Baseline results for selected nonlinear "
+        "system identification benchmarks*): the model may use the validation input and "
+        "only its first 5 outputs (x0 estimated from them by Gauss-Newton), and is scored on "
+        "the rest; the other validation column reuses the estimation record's x0, as the "
+        "benchmark description allows (both records start from the same state). Published "
+        "protocol-comparable results: best grey-box 0.18 V (Rogers et al. 2017), CT-SUBNET "
+        "0.217 V at its best seed, best black-box in Forgione and Piga 2021's table 0.33 V.",
         "",
         "Overflow model, multistart over h1 = "
         + ", ".join(f"{h:g}" for h in ov["h1_starts"])

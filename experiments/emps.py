@@ -124,6 +124,19 @@ def score(data, theta, ex) -> dict:
     return out
 
 
+def _protocol(data, theta, ex) -> dict:
+    """The protocol scores of one parameter set (position in mm)."""
+    pred, sc = example.protocol_prediction(data, theta, ex.eps, ex.substeps)
+    return {
+        "n": int(sc.n),
+        "rmse_mm": float(sc.rmse[0]),
+        "nrmse": float(sc.nrmse[0]),
+        "r2": float(sc.r2[0]),
+        "fit_percent": float(sc.fit_percent[0]),
+        "x0": [float(v) for v in np.asarray(pred.x0)],
+    }
+
+
 def _sweep(data, ex, solver, n_used, progress):
     fitters = {"open_loop": fit_open_loop, "closed_loop": fit_closed_loop}
     sweeps = {"open_loop": [], "closed_loop": []}
@@ -203,6 +216,12 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps") -> dic
             unconstrained = fit_closed_loop(data, None, ex, solver, constrained=False)
             unconstrained["scores"] = score(data, unconstrained["theta"], ex)
 
+    # The community's protocol (Champneys et al. 2024): open loop, u = vir, y = qm in mm,
+    # x0 from the first 20 test outputs, scored on the rest.
+    protocol = {"reference": _protocol(data, example.REFERENCE, ex)}
+    for fam, row in best.items():
+        protocol[fam] = _protocol(data, row["theta"], ex)
+
     rel_dev = {
         k: 100.0 * (chosen["theta"][k] - example.REFERENCE[k]) / abs(example.REFERENCE[k])
         for k in PARAMS
@@ -226,6 +245,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps") -> dic
         "chosen": chosen,
         "deviation_from_reference_pct": rel_dev,
         "closed_loop_unconstrained": unconstrained,
+        "protocol": protocol,
         "pulse_gain_V_per_unit": example.pulse_voltage(data.validation, data.kp, data.kv, data.Ts)[
             1
         ],

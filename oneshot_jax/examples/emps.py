@@ -289,3 +289,34 @@ def simulate_closed_loop(data, record, theta, eps=EPS, substeps=1):
 def relative_error(sim, meas):
     """The benchmark's relative error (eq. 11), 100 ||sim - meas|| / ||meas||, in percent."""
     return float(100.0 * np.linalg.norm(sim - meas) / np.linalg.norm(meas))
+
+
+def protocol_prediction(data, theta, eps=EPS, substeps=1, n=None, half=5):
+    """The community's protocol on the test record (Champneys et al. 2024): the open-loop
+    model, input tau = gtau vir and output qm, with x0 = (q, q') estimated from the first
+    n = 20 test outputs only (`oneshot_jax.estimate_x0`, Gauss-Newton), then simulated over
+    the whole test record.
+
+    **Arguments:**
+
+    - `data`: the `oneshot_jax.datasets.EMPS` benchmark.
+    - `theta`: the parameters (M, Fv, Fc, offset).
+    - `eps`, `substeps`: as for `open_loop_model`.
+    - `n`: the protocol's number of initial test outputs (default: the record's, 20).
+    - `half`: the half-width of the central difference that gives the velocity guess.
+
+    **Returns:**
+
+    `(prediction, scores)`: the `oneshot_jax.Prediction` (q in m) and the
+    `oneshot_jax.metrics.benchmark_scores` of q in mm over samples n:.
+    """
+    test = data.test
+    n = test.n if n is None else int(n)
+    model = open_loop_model(data.Ts, eps, substeps)
+    u = data.gtau * np.asarray(test.u).reshape(-1, 1)
+    y = np.asarray(test.y).reshape(-1, 1)
+    v0 = velocity_estimate(y[: max(n, 2 * half + 1), 0], data.Ts, half)[0]
+    guess = np.array([y[0, 0], v0])
+    pred = oj.predict(model, dict(theta), u, y, n, x0=guess)
+    scores = oj.metrics.benchmark_scores(1e3 * y, 1e3 * np.asarray(pred.z), n)
+    return pred, scores
