@@ -1,0 +1,19 @@
+"""Parallel-in-time evaluation of the rollout, the one-shot gradient and the sensitivities.
+
+DEER (Lim et al., ICLR 2024) and ELK / quasi-DEER (Gonzalez et al., NeurIPS 2024): Newton
+iterations over the whole record, each a linear recurrence solved by
+`jax.lax.associative_scan` in O(log T) depth; a sequential fallback where they do not
+converge.
+"""
+
+from ._adjoint import parallel_sensitivities as parallel_sensitivities
+from ._adjoint import parallel_value_and_grad as parallel_value_and_grad
+from ._recurrence import diagonal_linear_recurrence as diagonal_linear_recurrence
+from ._recurrence import linear_recurrence as linear_recurrence
+from ._recurrence import matrix_linear_recurrence as matrix_linear_recurrence
+from ._recurrence import reverse_diagonal_linear_recurrence as reverse_diagonal_linear_recurrence
+from ._recurrence import reverse_linear_recurrence as reverse_linear_recurrence
+from ._rollout import METHOD_NAMES as METHOD_NAMES
+from ._rollout import NewtonOptions as NewtonOptions
+from ._rollout import RolloutInfo as RolloutInfo
+from ._rollout import newton_rollout as newton_rollout

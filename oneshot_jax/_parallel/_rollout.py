@@ -1,0 +1,437 @@
+r"""The rollout of eq. (7) by Newton iterations over the whole record (DEER), safeguarded.
+
+The states x_1..x_L of x_{k+1} = f(x_k, u_k, theta) (eq. 7) are the root of the residual
+F(x)_k = x_{k+1} - f(x_k, u_k, theta), k = 0..L-1. DEER (Lim et al., ICLR 2024) solves
+F(x) = 0 by Newton's method: about the current iterate xbar, the increment d = x - xbar
+solves the linear recurrence
+
+    d_0 = 0,   d_{k+1} = A_k d_k + r_k,   A_k = f_x(xbar_k, u_k, theta),
+    r_k = f(xbar_k, u_k, theta) - xbar_{k+1},
+
+one associative scan (`linear_recurrence`) of depth O(log L). Every Jacobian and residual
+is evaluated at all k at once (vmapped forward mode), so an iteration is a few large
+parallel operations instead of L small sequential ones. Writing the step for the
+increment rather than for x keeps the scan's roundoff relative to the (small) increment.
+
+The safeguards, in order:
+
+1. **Newton (DEER).** From the constant guess x_k = x_0, at most `max_iter` iterations.
+   Converged when max|d| <= rtol (max|x| + tiny) (the max over the whole chunk,
+   rtol = 256 eps of the state's dtype by default); the converged increment is applied,
+   so the error left is O(|d|^2), at roundoff. A Newton step also measures conditioning:
+   near the solution d is the residual's roundoff amplified by the products of the A_k,
+   so a trajectory too sensitive to be reproduced to rtol never passes the test.
+2. **Damped (ELK).** If Newton stops without converging (iteration cap, or a non-finite
+   iterate: it diverges on unstable and chaotic dynamics), the Kalman-filtered
+   Levenberg-Marquardt step of ELK (Gonzalez et al., NeurIPS 2024; `_elk.py`) runs from the
+   iterate with the smallest residual max|r| seen so far, at most `max_iter` iterations.
+   When its increment passes the test, one undamped Newton step is taken and accepted
+   only if it passes the test too, so the damped solution is held to Newton's standard.
+3. **Sequential fallback.** Otherwise the chunk is rolled out by the sequential loop
+   x_{k+1} = f(x_k, u_k, theta), the definition of eq. (7): the result is never a
+   non-converged iterate. Under `vmap` the loop's trip count is 0 for the trajectories
+   that converged, and L while any of the batch needs it.
+
+`jacobian="diagonal"` replaces A_k by its diagonal in both iterations (quasi-DEER and
+quasi-ELK): O(L n) memory instead of O(L n^2) and elementwise scans, at the price of
+linear instead of quadratic convergence (the increment test still bounds the error by
+rtol times the contraction factor of the iteration).
+
+Memory: with `chunk_size = c` the record is solved c steps at a time (a parallel solve
+inside a chunk, the last state carried sequentially to the next), so the iterations need
+O(c n^2) (`"full"`; O(c n) for `"diagonal"`) plus O(L n) for the states themselves, against
+O(L n^2) unchunked. For L = 1e7 and n = 4 in float64 the states take 320 MB and a chunk of
+1e5 steps about 50 MB of Jacobians and scan buffers. The number of sequential steps is
+L / c, each a whole parallel solve.
+
+Differentiation: the states are defined implicitly by F(x, theta) = 0, and their tangent
+solves the sensitivity recursion dx_{k+1} = A_k dx_k + f_theta dtheta + f_u du_k,
+dx_0 = dx0 (a `custom_jvp`, evaluated by the same associative scan), so `jax.jvp`,
+`jax.grad` and `jax.jacfwd` of the rollout never differentiate the iterations.
+"""
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._chunks import chunked_scan
+from ._elk import diagonal_elk_increment, elk_increment
+from ._recurrence import diagonal_linear_recurrence, linear_recurrence
+
+NEWTON, DAMPED, SEQUENTIAL = 0, 1, 2
+"""Codes of `RolloutInfo.method`: which solve produced the states."""
+METHOD_NAMES = ("newton", "damped", "sequential")
+# Newton stops after this many iterations without a new smallest residual.
+_PATIENCE = 5
+# The Levenberg-Marquardt damping is divided by this on an accepted step, else multiplied.
+_DAMPING_FACTOR = 3.0
+
+
+class RolloutInfo(NamedTuple):
+    """How `newton_rollout` obtained the states (arrays; with a leading axis under vmap).
+
+    - `method`: int, the last-resort solve taken in any chunk: `NEWTON` (0, DEER),
+      `DAMPED` (1, ELK then a Newton step) or `SEQUENTIAL` (2, the sequential loop).
+    - `converged`: bool, whether the parallel iterations converged in every chunk. With
+      `fallback=False` the states of a chunk that did not converge are its best iterate
+      (smallest residual), not a trajectory of the model: check this flag.
+    - `fallback`: bool, whether the sequential fallback ran (in any chunk).
+    - `newton_iterations`, `damped_iterations`: ints, iterations summed over chunks.
+    - `chunks`: int, the number of chunks.
+    """
+
+    method: jax.Array
+    converged: jax.Array
+    fallback: jax.Array
+    newton_iterations: jax.Array
+    damped_iterations: jax.Array
+    chunks: jax.Array
+
+
+class NewtonOptions(NamedTuple):
+    """Options of the parallel rollout (hashable: a static argument under jit)."""
+
+    rtol: float | None = None
+    max_iter: int = 50
+    damping: float = 1.0
+    jacobian: str = "full"
+    fallback: bool = True
+    chunk_size: int | None = None
+
+
+def check_options(options):
+    """Validate `NewtonOptions`, with errors that name the option."""
+    if options.rtol is not None and not (0 < options.rtol < 1):
+        raise ValueError(f"`rtol` must be in (0, 1) or None, got {options.rtol!r}.")
+    if int(options.max_iter) != options.max_iter or options.max_iter < 1:
+        raise ValueError(f"`max_iter` must be an integer >= 1, got {options.max_iter!r}.")
+    if not (options.damping > 0 and np.isfinite(options.damping)):
+        raise ValueError(f"`damping` must be a finite positive number, got {options.damping!r}.")
+    if options.jacobian not in ("full", "diagonal"):
+        raise ValueError(f"`jacobian` must be 'full' or 'diagonal', got {options.jacobian!r}.")
+    if options.chunk_size is not None and (
+        int(options.chunk_size) != options.chunk_size or options.chunk_size < 1
+    ):
+        raise ValueError(
+            f"`chunk_size` must be an integer >= 1 or None, got {options.chunk_size!r}."
+        )
+    return options
+
+
+def default_rtol(dtype):
+    """256 eps of `dtype`: the default convergence tolerance of the Newton iterations."""
+    return 256 * float(jnp.finfo(dtype).eps)
+
+
+def step_jacobians(step, theta, xs, us, diagonal):
+    """f_x(xs[k], us[k], theta) for all k: (L, n, n), or its diagonal (L, n).
+
+    Forward mode, vmapped over k. The diagonal takes one JVP per state component (each
+    keeping only its own entry) in a `lax.map`, so that its memory stays O(L n).
+    """
+    n = xs.shape[-1]
+    if not diagonal:
+        return jax.vmap(jax.jacfwd(step), in_axes=(0, 0, None))(xs, us, theta)
+    if n <= 16:
+        J = jax.vmap(jax.jacfwd(step), in_axes=(0, 0, None))(xs, us, theta)
+        return jnp.diagonal(J, axis1=-2, axis2=-1)
+
+    def column(i):
+        e = jnp.zeros((n,), xs.dtype).at[i].set(1.0)
+        jvp = lambda x, u: jax.jvp(lambda x: step(x, u, theta), (x,), (e,))[1][i]  # noqa: E731
+        return jax.vmap(jvp)(xs, us)
+
+    return jax.lax.map(column, jnp.arange(n)).T
+
+
+def _sequential(step, theta, x0, us, n_steps):
+    """x_1..x_L of eq. (7) by the sequential loop, running only the first `n_steps` steps
+    (0 or L): a while loop, so that under vmap it costs nothing unless some trajectory
+    needs it (a `lax.cond` would run both branches)."""
+    L = jax.tree_util.tree_leaves(us)[0].shape[0]
+
+    def body(carry):
+        k, x, out = carry
+        x = step(x, jax.tree_util.tree_map(lambda a: a[k], us), theta)
+        return k + 1, x, jax.lax.dynamic_update_index_in_dim(out, x, k, 0)
+
+    out = jnp.zeros((L, x0.shape[0]), x0.dtype)
+    return jax.lax.while_loop(lambda c: c[0] < n_steps, body, (0, x0, out))[2]
+
+
+# Phases of the iteration (one `while_loop`, so the linearisation is compiled once).
+_LIN_NEWTON, _NEWTON, _LIN_DAMPED, _DAMPED, _POLISH, _CONVERGED, _FAILED = range(7)
+
+
+class _State(NamedTuple):
+    phase: jax.Array
+    x: jax.Array  # (L, n): the current iterate x_1..x_L
+    A: jax.Array  # its linearisation: Jacobians (L, n, n) or their diagonals (L, n)
+    r: jax.Array  # and residuals f(x_k) - x_{k+1} (L, n)
+    merit: jax.Array  # ||r||^2
+    best_x: jax.Array  # Newton's iterate with the smallest ||r||^2
+    best_merit: jax.Array
+    since_best: jax.Array  # Newton iterations since best_merit last improved
+    damping: jax.Array  # Levenberg-Marquardt lambda
+    newton_it: jax.Array
+    damped_it: jax.Array
+
+
+def _solve_chunk(step, theta, x0, us, options):
+    """States x_1..x_L of x_{k+1} = step(x_k, us[k]) and this chunk's info (`us`: a pytree
+    with leading axis L).
+
+    One loop over the phases: linearise the initial guess; Newton; (on failure) linearise
+    the best Newton iterate; Levenberg-Marquardt; one Newton polish; converged or failed.
+    Each pass computes one increment (a `lax.switch`: none, Newton or damped) and
+    linearises the new iterate. Under `vmap` the switch computes every branch.
+    """
+    L, n = jax.tree_util.tree_leaves(us)[0].shape[0], x0.shape[0]
+    dtype = x0.dtype
+    diagonal = options.jacobian == "diagonal"
+    rtol = default_rtol(dtype) if options.rtol is None else options.rtol
+    tiny = jnp.finfo(dtype).tiny
+    f = jax.vmap(step, in_axes=(0, 0, None))
+
+    def linearise(x):
+        x_prev = jnp.concatenate([x0[None], x[:-1]])
+        r = f(x_prev, us, theta) - x
+        return step_jacobians(step, theta, x_prev, us, diagonal), r
+
+    def newton(A, r, damping):
+        del damping
+        zero = jnp.zeros((n,), dtype)
+        return diagonal_linear_recurrence(A, r, zero) if diagonal else linear_recurrence(A, r, zero)
+
+    def damped(A, r, damping):
+        return diagonal_elk_increment(A, r, damping) if diagonal else elk_increment(A, r, damping)
+
+    def none(A, r, damping):
+        return jnp.zeros_like(r)
+
+    def body(s):
+        branch = jnp.where(
+            s.phase == _DAMPED, 2, jnp.where((s.phase == _NEWTON) | (s.phase == _POLISH), 1, 0)
+        )
+        d = jax.lax.switch(branch, (none, newton, damped), s.A, s.r, s.damping)
+        x_try = s.x + d
+        A_try, r_try = linearise(x_try)
+        m_try = jnp.sum(r_try * r_try)
+        finite = jnp.isfinite(m_try) & jnp.all(jnp.isfinite(x_try))
+        small = finite & (jnp.max(jnp.abs(d)) <= rtol * (jnp.max(jnp.abs(x_try)) + tiny))
+        phase = s.phase
+        in_newton = phase == _NEWTON
+        in_damped = phase == _DAMPED
+        newton_it = s.newton_it + in_newton
+        damped_it = s.damped_it + in_damped
+        # Newton and the linearisations accept every iterate; the damped phase only one
+        # that lowers ||r||^2 (NaN compares False), and then shrinks the damping.
+        accept = jnp.where(in_damped, m_try < s.merit, True)
+        damping = jnp.where(
+            in_damped,
+            jnp.where(accept, s.damping / _DAMPING_FACTOR, s.damping * _DAMPING_FACTOR),
+            s.damping,
+        )
+        # Newton's best iterate (it starts the damped phase).
+        better = ((phase == _LIN_NEWTON) | in_newton) & (m_try < s.best_merit)
+        best_x = jnp.where(better, x_try, s.best_x)
+        best_merit = jnp.where(better, m_try, s.best_merit)
+        since_best = jnp.where(better, 0, s.since_best + in_newton)
+        newton_failed = ~finite | (newton_it >= options.max_iter) | (since_best >= _PATIENCE)
+        next_phase = jnp.select(
+            [
+                phase == _LIN_NEWTON,
+                in_newton,
+                phase == _LIN_DAMPED,
+                in_damped,
+                phase == _POLISH,
+            ],
+            [
+                jnp.where(finite, _NEWTON, _FAILED),
+                jnp.where(small, _CONVERGED, jnp.where(newton_failed, _LIN_DAMPED, _NEWTON)),
+                jnp.where(finite, _DAMPED, _FAILED),
+                jnp.where(
+                    small, _POLISH, jnp.where(damped_it >= options.max_iter, _FAILED, _DAMPED)
+                ),
+                jnp.where(small, _CONVERGED, _FAILED),
+            ],
+            phase,
+        )
+        # A failed polish keeps the damped iterate (the one with the smallest residual).
+        accept = accept & ~((phase == _POLISH) & ~small)
+        # Newton giving up restarts from its best iterate, linearised in the next pass.
+        restart = in_newton & (next_phase == _LIN_DAMPED)
+        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        x = jnp.where(restart, s.best_x, pick(x_try, s.x))
+        return _State(
+            phase=next_phase,
+            x=x,
+            A=pick(A_try, s.A),
+            r=pick(r_try, s.r),
+            merit=pick(m_try, s.merit),
+            best_x=best_x,
+            best_merit=best_merit,
+            since_best=since_best,
+            damping=damping,
+            newton_it=newton_it,
+            damped_it=damped_it,
+        )
+
+    guess = jnp.broadcast_to(x0, (L, n))
+    zero_i = jnp.int32(0)
+    init = _State(
+        phase=jnp.int32(_LIN_NEWTON),
+        x=guess,
+        A=jnp.zeros((L, n) if diagonal else (L, n, n), dtype),
+        r=jnp.zeros((L, n), dtype),
+        merit=jnp.asarray(jnp.inf, dtype),
+        best_x=guess,
+        best_merit=jnp.asarray(jnp.inf, dtype),
+        since_best=zero_i,
+        damping=jnp.asarray(options.damping, dtype),
+        newton_it=zero_i,
+        damped_it=zero_i,
+    )
+    s = jax.lax.while_loop(lambda s: (s.phase != _CONVERGED) & (s.phase != _FAILED), body, init)
+    converged = s.phase == _CONVERGED
+    fallback = ~converged & options.fallback
+    x_seq = _sequential(step, theta, x0, us, jnp.where(fallback, L, 0))
+    x = jnp.where(fallback, x_seq, s.x)
+    method = jnp.where(fallback, SEQUENTIAL, jnp.where(s.damped_it > 0, DAMPED, NEWTON))
+    info = RolloutInfo(
+        method=method.astype(jnp.int32),
+        converged=converged,
+        fallback=fallback,
+        newton_iterations=s.newton_it,
+        damped_iterations=s.damped_it,
+        chunks=jnp.int32(1),
+    )
+    return x, info
+
+
+def _merge(info):
+    """One `RolloutInfo` from per-chunk rows."""
+    return RolloutInfo(
+        method=jnp.max(info.method).astype(jnp.int32),
+        converged=jnp.all(info.converged),
+        fallback=jnp.any(info.fallback),
+        newton_iterations=jnp.sum(info.newton_iterations).astype(jnp.int32),
+        damped_iterations=jnp.sum(info.damped_iterations).astype(jnp.int32),
+        chunks=jnp.sum(info.chunks).astype(jnp.int32),
+    )
+
+
+def _holding(step):
+    """The step on inputs (u, valid): a padding step (valid False) holds the state."""
+    return lambda x, u, theta: jnp.where(u[1], step(x, u[0], theta), x)
+
+
+def _states(step, options, theta, x0, us):
+    """x_1..x_L for the steps us (L, n_u) and the merged info, chunk by chunk."""
+    L = us.shape[0]
+    if L == 0:
+        info = RolloutInfo(
+            jnp.int32(NEWTON),
+            jnp.array(True),
+            jnp.array(False),
+            jnp.int32(0),
+            jnp.int32(0),
+            jnp.int32(0),
+        )
+        return jnp.zeros((0, x0.shape[0]), x0.dtype), info
+
+    def fn(x_start, chunk):
+        xs, info = _solve_chunk(_holding(step), theta, x_start, chunk, options)
+        return xs[-1], (xs, info)
+
+    _, xs, info = chunked_scan(fn, x0, us, options.chunk_size)
+    return xs, _merge(info)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _states_diff(step, options, theta, x0, us):
+    return _states(step, options, theta, x0, us)
+
+
+@_states_diff.defjvp
+def _states_jvp(step, options, primals, tangents):
+    """Tangent of the implicitly defined states: dx_{k+1} = A_k dx_k + f_theta dtheta +
+    f_u du_k, dx_0 = dx0, by the associative scan (chunked like the primal)."""
+    theta, x0, us = primals
+    dtheta, dx0, dus = tangents
+    xs, info = _states(step, options, theta, x0, us)
+    x_prev = jnp.concatenate([x0[None], xs[:-1]])
+
+    def fn(dx_start, chunk):
+        (x_c, u_c, du_c), valid = chunk
+        A = step_jacobians(_holding(step), theta, x_c, (u_c, valid), diagonal=False)
+
+        def drive(x, u, du, v):
+            push = jax.jvp(lambda th, u: step(x, u, th), (theta, u), (dtheta, du))[1]
+            return jnp.where(v, push, 0.0)
+
+        dxs = linear_recurrence(A, jax.vmap(drive)(x_c, u_c, du_c, valid), dx_start)
+        return dxs[-1], (dxs, ())
+
+    if us.shape[0] == 0:
+        dxs = jnp.zeros_like(xs)
+    else:
+        _, dxs, _ = chunked_scan(fn, dx0, (x_prev, us, dus), options.chunk_size)
+    zeros = jax.tree_util.tree_map(lambda a: np.zeros(a.shape, dtype=jax.dtypes.float0), info)
+    return (xs, info), (dxs, zeros)
+
+
+def newton_rollout(
+    step,
+    theta,
+    x0,
+    us,
+    *,
+    rtol=None,
+    max_iter=50,
+    damping=1.0,
+    jacobian="full",
+    fallback=True,
+    chunk_size=None,
+):
+    """States x_0..x_{T-1} of eq. (7), x_{k+1} = step(x_k, us[k], theta), in parallel.
+
+    The same states as `oneshot_jax._simulate.rollout` (the last input is not used), by
+    DEER Newton iterations with a damped (ELK) stage and a sequential fallback; see this
+    module's docstring for the algorithm, its convergence test and its memory cost.
+
+    **Arguments:**
+
+    - `step`: `step(x, u, theta) -> x_next` (a `Model.step`).
+    - `theta`: parameter pytree.
+    - `x0`: (n,) initial state. `us`: (T, n_u) inputs.
+    - `rtol`: convergence tolerance on max|increment| / max|x| (default 256 eps).
+    - `max_iter`: iteration cap of the Newton stage and of the damped stage, each.
+    - `damping`: ELK's lambda = 1 / sigma^2 (larger: shorter, safer steps).
+    - `jacobian`: `"full"` (DEER / ELK) or `"diagonal"` (quasi-DEER / quasi-ELK).
+    - `fallback`: roll out sequentially where the parallel iterations do not converge
+        (default). With False, such a chunk holds its best iterate and
+        `info.converged` is False.
+    - `chunk_size`: steps per parallel solve (None: the whole record at once).
+
+    **Returns:**
+
+    `(xs, info)`: `xs` of shape (T, n) with `xs[0] = x0`, and a `RolloutInfo`.
+    Differentiable (`jax.jvp`, `jax.grad`) through the implicit function theorem.
+    """
+    options = check_options(
+        NewtonOptions(rtol, int(max_iter), float(damping), jacobian, bool(fallback), chunk_size)
+    )
+    x0 = jnp.asarray(x0)
+    us = jnp.asarray(us)
+    if x0.ndim != 1:
+        raise ValueError(f"`x0` must have shape (n,), got shape {x0.shape}.")
+    if us.ndim != 2 or us.shape[0] < 1:
+        raise ValueError(f"`us` must have shape (T, n_u) with T >= 1, got shape {us.shape}.")
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        raise ValueError(f"`x0` must be a floating array, got dtype {x0.dtype}.")
+    xs, info = _states_diff(step, options, theta, x0, us[:-1])
+    return jnp.concatenate([x0[None], xs]), info
