@@ -28,6 +28,8 @@ from oneshot_jax._parallel import (
     parallel_value_and_grad,
     reverse_diagonal_linear_recurrence,
     reverse_linear_recurrence,
+    sensitivities_of_states,
+    value_and_grad_of_states,
 )
 from oneshot_jax._parallel._elk import diagonal_elk_increment, elk_increment
 from oneshot_jax._parallel._rollout import DAMPED, NEWTON, SEQUENTIAL
@@ -320,10 +322,14 @@ def test_chunked_rollout_equals_unchunked():
 
 
 def test_float32():
-    model, theta, x0, u = satellite(dtype=jnp.float32)[:4]
+    """float32 in, float32 out; the tolerance is 256 eps of float32 (3e-5) by default."""
+    model, theta, x0, u, z = satellite(dtype=jnp.float32)[:5]
     xs, info = parallel_states(model.step, theta, x0, u)
     assert xs.dtype == jnp.float32 and bool(info.converged)
     assert_tree_rel_close(xs, sequential_states(model.step, theta, x0, u), rtol=1e-5)
+    got = vg_of_states(model, theta, xs, u, z, None, None, jnp.float32(1.0))
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
+    assert_tree_rel_close(got, want, rtol=1e-4)
 
 
 def test_rollout_derivatives_equal_those_of_the_sequential_rollout():
@@ -375,11 +381,19 @@ def parallel_vg(model, theta, x0, u, z, weight, penalty, penalty_weight, chunk_s
     )
 
 
+@functools.partial(jax.jit, static_argnums=(0, 6))
+def vg_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight):
+    return value_and_grad_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight)
+
+
 @pytest.mark.parametrize("name", list(MODELS))
 def test_value_and_grad_equals_the_sequential_strategies(name):
+    """The gradient recursion by the reverse scan, at the parallel states (the rollout
+    test above compiled them)."""
     model, theta, x0, u, z, weight, penalty, pw = case(name)
-    (C, grads), info = parallel_vg(model, theta, x0, u, z, weight, penalty, jnp.asarray(pw))
+    xs, info = parallel_states(model.step, theta, x0, u)
     assert int(info.method) == NEWTON
+    got = vg_of_states(model, theta, xs, u, z, weight, penalty, jnp.asarray(pw))
     # Both sequential strategies agree to round-off (tests/test_gradient.py); "vjp" is
     # compared on the model with the richest cost (u- and theta-dependent outputs, a
     # weight, a penalty).
@@ -395,17 +409,17 @@ def test_value_and_grad_equals_the_sequential_strategies(name):
             penalty_weight=pw,
             strategy=strategy,
         )
-        assert_tree_rel_close((C, grads), want, rtol=RTOL)
+        assert_tree_rel_close(got, want, rtol=RTOL)
 
 
-def test_chunked_value_and_grad_equals_unchunked():
+def test_chunked_parallel_value_and_grad_equals_sequential():
+    """The whole `parallel_value_and_grad`, chunked (4 chunks, the last one padded): the
+    rollout and the reverse recursion both carry between chunks."""
     model, theta, x0, u, z, weight, penalty, pw = case("satellite")
-    whole = parallel_vg(model, theta, x0, u, z, weight, penalty, jnp.asarray(pw))[0]
-    (C, grads), info = parallel_vg(
-        model, theta, x0, u, z, weight, penalty, jnp.asarray(pw), chunk_size=64
-    )
-    assert int(info.chunks) == 4 and bool(info.converged)
-    assert_tree_rel_close((C, grads), whole, rtol=RTOL)
+    got, info = parallel_vg(model, theta, x0, u, z, weight, penalty, jnp.asarray(pw), chunk_size=64)
+    assert int(info.chunks) == 4 and int(info.method) == NEWTON
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
+    assert_tree_rel_close(got, want, rtol=RTOL)
 
 
 def test_value_and_grad_with_fallback_equals_sequential():
@@ -413,10 +427,11 @@ def test_value_and_grad_with_fallback_equals_sequential():
     model = oj.Model(step)
     u = jnp.zeros((T, 1))
     z = jnp.ones((T, 1))
-    (C, grads), info = parallel_vg(model, theta, x0, u, z, None, None, jnp.asarray(1.0))
+    xs, info = parallel_states(step, theta, x0, u)  # compiled by the fallback test
     assert bool(info.fallback)
+    got = vg_of_states(model, theta, xs, u, z, None, None, jnp.asarray(1.0))
     want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
-    assert_tree_rel_close((C, grads), want, rtol=RTOL)
+    assert_tree_rel_close(got, want, rtol=RTOL)
 
 
 def sensitivity_args(name):
@@ -433,14 +448,26 @@ def sensitivity_args(name):
     return (model, theta_of, p_theta, x0_of, x0[1:], u, z, sqrt_q, penalty, jnp.asarray(pw), scale)
 
 
-@pytest.mark.parametrize("name, chunk_size", [("motor", None), ("satellite", 64)])
-def test_sensitivities_equal_trajectory_jacobian(name, chunk_size):
-    args = sensitivity_args(name)
+def test_sensitivities_equal_trajectory_jacobian():
+    """Motor (a penalty, u- and theta-dependent outputs, fixed entries): the sensitivity
+    recursion by the associative scan at the parallel states."""
+    args = sensitivity_args("motor")
+    model, theta, x0, u = case("motor")[:4]
+    xs, info = parallel_states(model.step, theta, x0, u)
+    want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
+    got = jax.jit(lambda xs: sensitivities_of_states(*args[:5], xs, *args[5:]))(xs)
+    for a, b in zip(got, want):
+        assert a.shape == b.shape
+        assert_tree_rel_close(a, b, rtol=RTOL)
+
+
+def test_chunked_parallel_sensitivities_equal_trajectory_jacobian():
+    args = sensitivity_args("satellite")
     want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
     got, info = jax.jit(
-        lambda: parallel_sensitivities(*args, newton={"chunk_size": chunk_size}, with_info=True)
+        lambda: parallel_sensitivities(*args, newton={"chunk_size": 64}, with_info=True)
     )()
-    assert int(info.method) == NEWTON
+    assert int(info.method) == NEWTON and int(info.chunks) == 4
     for a, b in zip(got, want):
         assert a.shape == b.shape
         assert_tree_rel_close(a, b, rtol=RTOL)

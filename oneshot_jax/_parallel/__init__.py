@@ -8,6 +8,8 @@ converge.
 
 from ._adjoint import parallel_sensitivities as parallel_sensitivities
 from ._adjoint import parallel_value_and_grad as parallel_value_and_grad
+from ._adjoint import sensitivities_of_states as sensitivities_of_states
+from ._adjoint import value_and_grad_of_states as value_and_grad_of_states
 from ._recurrence import diagonal_linear_recurrence as diagonal_linear_recurrence
 from ._recurrence import linear_recurrence as linear_recurrence
 from ._recurrence import matrix_linear_recurrence as matrix_linear_recurrence

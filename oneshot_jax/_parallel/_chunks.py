@@ -12,7 +12,7 @@ def chunked_scan(fn, carry, xs, chunk_size, *, reverse=False):
     at the end, by repeating its last entry, to a multiple of `chunk_size`, and cut into
     chunks of exactly `chunk_size` steps, so that `fn` is compiled once; `valid` (a bool
     array of the chunk's length) is False on the padding, which `fn` must make inert (a
-    step that holds its state, a zero cotangent: see `masked_step`). `chunk_size=None`
+    step that holds its state, a Jacobian of zero). `chunk_size=None`
     (or >= L) is one call on the whole record, all valid. With `reverse=True` the chunks
     are processed from the end of the record (the padding, at the end, comes first).
 
@@ -38,13 +38,3 @@ def chunked_scan(fn, carry, xs, chunk_size, *, reverse=False):
     carry, (per_step, per_chunk) = jax.lax.scan(fn, carry, chunks, reverse=reverse)
     join = lambda a: a.reshape(n_chunks * chunk_size, *a.shape[2:])[:L]  # noqa: E731
     return carry, jax.tree_util.tree_map(join, per_step), per_chunk
-
-
-def masked_step(step, valid, fill):
-    """`step(x, u, theta)` where `valid`, `fill(x)` elsewhere (an inert padding step).
-
-    `fill = lambda x: x` holds the state (Jacobian I, no theta dependence); `fill =
-    jnp.zeros_like` ends the recursion (Jacobian 0). A `jnp.where`, so derivatives of the
-    padding never see the step's own values (even non-finite ones).
-    """
-    return lambda x, u, theta: jnp.where(valid, step(x, u, theta), fill(x))

@@ -1,4 +1,4 @@
-r"""The damped Newton step of ELK: a Kalman filter run as one associative scan.
+r"""The damped Newton step of ELK: a Kalman smoother as two parallel scans.
 
 DEER's Newton step for the rollout x_{k+1} = f(x_k) (eq. 7) solves, for the increment
 d = x - xbar about the current iterate xbar,
@@ -7,19 +7,22 @@ d = x - xbar about the current iterate xbar,
 
 which amplifies without bound where the A_k are unstable, and Newton then diverges. ELK
 (Gonzalez et al., "Towards scalable and stable parallelization of nonlinear RNNs",
-NeurIPS 2024) damps the step in the Levenberg-Marquardt way: d_{k+1} = A_k d_k + r_k + w_k
-becomes the dynamics of a linear-Gaussian state-space model with unit process noise
-w_k ~ N(0, I), observed through 0 = d_{k+1} + v_k, v_k ~ N(0, sigma^2 I) (the trust region:
-stay near the current iterate), and the step is the Kalman-filtered mean of d (as in the
-authors' implementation, lindermanlab/elk). `damping` is lambda = 1 / sigma^2: lambda -> 0
-gives DEER's step back, and the filter's gain keeps even unstable A_k from amplifying the
-step (the filter's closed loop (I - K) A_k is stable). The true trajectory (r = 0) is a
-fixed point for every lambda.
+NeurIPS 2024) damps the step in the Levenberg-Marquardt way,
 
-The filter runs in parallel as the associative scan of Sarkka and Garcia-Fernandez
-("Temporal parallelization of Bayesian smoothers", IEEE TAC 2021), whose elements
-(A, b, C, eta, J) describe p(d_k | d_{i-1}, observations i..k). With unit process noise,
-an identity observation and kappa = lambda / (1 + lambda) they are
+    d = argmin sum_k ||d_{k+1} - A_k d_k - r_k||^2 + lambda sum_k ||d_{k+1}||^2,
+
+and evaluates it as the posterior mean of a linear-Gaussian state-space model: dynamics
+d_{k+1} = A_k d_k + r_k + w_k with w_k ~ N(0, I), observations 0 = d_{k+1} + v_k with
+v_k ~ N(0, I / lambda) (the trust region: stay near the current iterate). `damping` is
+lambda: lambda -> 0 gives DEER's step back. Here the step is the *smoothed* mean, the
+exact minimiser above (checked against a dense solve in the tests), so it is a descent
+direction of ||r||^2 for every lambda > 0; the authors' code (lindermanlab/elk) takes the
+filtered mean, which is cheaper but is not the Levenberg-Marquardt step.
+
+The filter is the parallel scan of Sarkka and Garcia-Fernandez ("Temporal parallelization
+of Bayesian smoothers", IEEE TAC 2021), whose elements (A, b, C, eta, J) describe
+p(d_k | d_{i-1}, observations i..k). With unit process noise, an identity observation
+and kappa = lambda / (1 + lambda) they are
 
     A = (1 - kappa) A_k,  b = (1 - kappa) r_k,  C = (1 - kappa) I,
     eta = -kappa A_k^T r_k,  J = kappa A_k^T A_k,
@@ -30,9 +33,16 @@ with A = eta = J = 0 for k = 0 (d_0 = 0 is known), and two elements combine (i t
     A = A_j M A_i,  b = A_j M (b_i + C_i eta_j) + b_j,  C = A_j M C_i A_j^T + C_j,
     eta = (M A_i)^T (eta_j - J_j b_i) + eta_i,  J = (M A_i)^T J_j A_i + J_i,
 
-using (I + J_j C_i)^{-1} = M^T (C and J are symmetric). The filtered means are the b of the
-prefix compositions. A combine costs one n x n solve (O(n^3)); the diagonal form
-(quasi-ELK, diagonal A_k) is elementwise, O(n).
+using (I + J_j C_i)^{-1} = M^T (C and J are symmetric). The filtered means m_k and
+covariances P_k are the b and C of the prefix compositions. The Rauch-Tung-Striebel
+smoother is then a reverse linear recurrence, m^s_k = g_k + E_k m^s_{k+1} with
+E_k = P_k A_{k+1}^T (A_{k+1} P_k A_{k+1}^T + I)^{-1} and g_k = m_k - E_k (A_{k+1} m_k
++ r_{k+1}), m^s at the last step being the filtered mean.
+
+A combine costs one n x n solve (O(n^3)); the diagonal form (quasi-ELK, diagonal A_k) is
+elementwise, O(n). Both scans use recursive doubling (`doubling_scan`): this is the
+safeguard stage, and its large combine would take several times longer to compile as an
+`associative_scan`.
 """
 
 import jax.numpy as jnp

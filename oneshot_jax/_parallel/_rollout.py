@@ -13,20 +13,24 @@ is evaluated at all k at once (vmapped forward mode), so an iteration is a few l
 parallel operations instead of L small sequential ones. Writing the step for the
 increment rather than for x keeps the scan's roundoff relative to the (small) increment.
 
-The safeguards, in order:
+The safeguards, in order, all in one `lax.while_loop` over phases:
 
 1. **Newton (DEER).** From the constant guess x_k = x_0, at most `max_iter` iterations.
    Converged when max|d| <= rtol (max|x| + tiny) (the max over the whole chunk,
    rtol = 256 eps of the state's dtype by default); the converged increment is applied,
    so the error left is O(|d|^2), at roundoff. A Newton step also measures conditioning:
    near the solution d is the residual's roundoff amplified by the products of the A_k,
-   so a trajectory too sensitive to be reproduced to rtol never passes the test.
-2. **Damped (ELK).** If Newton stops without converging (iteration cap, or a non-finite
-   iterate: it diverges on unstable and chaotic dynamics), the Kalman-filtered
-   Levenberg-Marquardt step of ELK (Gonzalez et al., NeurIPS 2024; `_elk.py`) runs from the
-   iterate with the smallest residual max|r| seen so far, at most `max_iter` iterations.
-   When its increment passes the test, one undamped Newton step is taken and accepted
-   only if it passes the test too, so the damped solution is held to Newton's standard.
+   so a trajectory too sensitive to be reproduced to rtol does not pass the test. Newton
+   gives up on a non-finite iterate (it diverges on unstable and chaotic dynamics), at
+   the iteration cap, or after 5 iterations without a new smallest ||r||^2.
+2. **Damped (ELK).** Levenberg-Marquardt steps (`_elk.py`: ELK, Gonzalez et al.,
+   NeurIPS 2024) from the Newton iterate with the smallest ||r||^2, at most `max_iter`:
+   a step that lowers ||r||^2 is accepted and the damping divided by 3, otherwise the
+   damping is multiplied by 3 (starting from `damping`). The Jacobian of the residual
+   F is unit lower block-bidiagonal, hence never singular, so every stationary point of
+   ||F||^2 is the trajectory; in floating point a long unstable stretch can still stall
+   it. The phase ends when a step is negligible (by the same test); one undamped Newton
+   step must then pass the test too, so the damped solution is held to Newton's standard.
 3. **Sequential fallback.** Otherwise the chunk is rolled out by the sequential loop
    x_{k+1} = f(x_k, u_k, theta), the definition of eq. (7): the result is never a
    non-converged iterate. Under `vmap` the loop's trip count is 0 for the trajectories
@@ -34,15 +38,20 @@ The safeguards, in order:
 
 `jacobian="diagonal"` replaces A_k by its diagonal in both iterations (quasi-DEER and
 quasi-ELK): O(L n) memory instead of O(L n^2) and elementwise scans, at the price of
-linear instead of quadratic convergence (the increment test still bounds the error by
-rtol times the contraction factor of the iteration).
+linear instead of quadratic convergence: the error left after the last increment passes
+the test is about rtol q / (1 - q) of max|x|, q the iteration's contraction factor, rather
+than roundoff.
 
 Memory: with `chunk_size = c` the record is solved c steps at a time (a parallel solve
-inside a chunk, the last state carried sequentially to the next), so the iterations need
-O(c n^2) (`"full"`; O(c n) for `"diagonal"`) plus O(L n) for the states themselves, against
-O(L n^2) unchunked. For L = 1e7 and n = 4 in float64 the states take 320 MB and a chunk of
-1e5 steps about 50 MB of Jacobians and scan buffers. The number of sequential steps is
-L / c, each a whole parallel solve.
+inside a chunk, the last state carried sequentially to the next; the last chunk is padded
+with steps that hold the state), so the iterations need O(c n^2) (`"full"`; O(c n) for
+`"diagonal"`) plus O(L n) for the states themselves, against O(L n^2) unchunked. The
+constant is large: the loop keeps the iterate, the best iterate, a linearisation and the
+damped stage's filter elements. At n = 4 in float64, XLA's memory analysis
+(`benchmarks/parallel.py --memory`) gives 3.1 GiB for L = 1e6 unchunked (about 3.3 kB a
+step, 25 times the stacked Jacobians), 0.36 GiB with `chunk_size = 1e5`, and 1.0 GiB for
+L = 1e7 with `chunk_size = 1e5` (0.3 GiB of it the states). The number of sequential
+steps is L / c, each a whole parallel solve.
 
 Differentiation: the states are defined implicitly by F(x, theta) = 0, and their tangent
 solves the sensitivity recursion dx_{k+1} = A_k dx_k + f_theta dtheta + f_u du_k,
@@ -218,10 +227,13 @@ def _solve_chunk(step, theta, x0, us, options):
         )
         d = jax.lax.switch(branch, (none, newton, damped), s.A, s.r, s.damping)
         x_try = s.x + d
-        A_try, r_try = linearise(x_try)
+        finite_x = jnp.all(jnp.isfinite(x_try))
+        small = finite_x & (jnp.max(jnp.abs(d)) <= rtol * (jnp.max(jnp.abs(x_try)) + tiny))
+        # A converged Newton or polish step ends the loop: its iterate needs no linearisation.
+        ends = small & ((s.phase == _NEWTON) | (s.phase == _POLISH))
+        A_try, r_try = jax.lax.cond(ends, lambda: (s.A, s.r), lambda: linearise(x_try))
         m_try = jnp.sum(r_try * r_try)
-        finite = jnp.isfinite(m_try) & jnp.all(jnp.isfinite(x_try))
-        small = finite & (jnp.max(jnp.abs(d)) <= rtol * (jnp.max(jnp.abs(x_try)) + tiny))
+        finite = finite_x & jnp.isfinite(m_try)
         phase = s.phase
         in_newton = phase == _NEWTON
         in_damped = phase == _DAMPED
