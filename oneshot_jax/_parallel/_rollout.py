@@ -13,7 +13,7 @@ is evaluated at all k at once (vmapped forward mode), so an iteration is a few l
 parallel operations instead of L small sequential ones. Writing the step for the
 increment rather than for x keeps the scan's roundoff relative to the (small) increment.
 
-The safeguards, in order, all in one `lax.while_loop` over phases:
+The safeguards, in order:
 
 1. **Newton (DEER).** From the constant guess x_k = x_0, at most `max_iter` iterations.
    Converged when max|d| <= rtol (max|x| + tiny) (the max over the whole chunk,
@@ -171,32 +171,50 @@ def _sequential(step, theta, x0, us, n_steps):
     return jax.lax.while_loop(lambda c: c[0] < n_steps, body, (0, x0, out))[2]
 
 
-# Phases of the iteration (one `while_loop`, so the linearisation is compiled once).
-_LIN_NEWTON, _NEWTON, _LIN_DAMPED, _DAMPED, _POLISH, _CONVERGED, _FAILED = range(7)
+def _once_if(pred, fn, default):
+    """`fn()` if `pred` else `default`, as a while loop of 0 or 1 trips: under `vmap` it
+    runs if some element needs it (a `lax.cond` there would always run both branches)."""
+    body = lambda c: (jnp.array(False), fn())  # noqa: E731
+    return jax.lax.while_loop(lambda c: c[0], body, (pred, default))[1]
 
 
-class _State(NamedTuple):
-    phase: jax.Array
-    x: jax.Array  # (L, n): the current iterate x_1..x_L
+_RUNNING, _CONVERGED, _FAILED = 0, 1, 2
+
+
+def _status(converged, failed):
+    return jnp.where(converged, _CONVERGED, jnp.where(failed, _FAILED, _RUNNING)).astype(jnp.int32)
+
+
+class _Newton(NamedTuple):
+    x: jax.Array  # (L, n): the iterate x_1..x_L
     A: jax.Array  # its linearisation: Jacobians (L, n, n) or their diagonals (L, n)
     r: jax.Array  # and residuals f(x_k) - x_{k+1} (L, n)
-    merit: jax.Array  # ||r||^2
-    best_x: jax.Array  # Newton's iterate with the smallest ||r||^2
+    best_x: jax.Array  # the iterate with the smallest ||r||^2
     best_merit: jax.Array
-    since_best: jax.Array  # Newton iterations since best_merit last improved
+    since_best: jax.Array  # iterations since best_merit last improved
+    passes: jax.Array  # the first pass only linearises the initial guess
+    status: jax.Array
+
+
+class _Damped(NamedTuple):
+    x: jax.Array  # the last accepted iterate
+    A: jax.Array
+    r: jax.Array
+    merit: jax.Array  # its ||r||^2
     damping: jax.Array  # Levenberg-Marquardt lambda
-    newton_it: jax.Array
-    damped_it: jax.Array
+    passes: jax.Array
+    status: jax.Array  # converged here: the last step was negligible
 
 
 def _solve_chunk(step, theta, x0, us, options):
     """States x_1..x_L of x_{k+1} = step(x_k, us[k]) and this chunk's info (`us`: a pytree
     with leading axis L).
 
-    One loop over the phases: linearise the initial guess; Newton; (on failure) linearise
-    the best Newton iterate; Levenberg-Marquardt; one Newton polish; converged or failed.
-    Each pass computes one increment (a `lax.switch`: none, Newton or damped) and
-    linearises the new iterate. Under `vmap` the switch computes every branch.
+    Two `while_loop`s (Newton; Levenberg-Marquardt, which runs 0 times when Newton
+    converged, and under `vmap` only while some trajectory needs it), a Newton polish and
+    the sequential fallback. A pass of either loop takes a step from the current
+    linearisation and linearises the new iterate; the first pass, with a zero
+    linearisation, takes no step.
     """
     L, n = jax.tree_util.tree_leaves(us)[0].shape[0], x0.shape[0]
     dtype = x0.dtype
@@ -210,115 +228,114 @@ def _solve_chunk(step, theta, x0, us, options):
         r = f(x_prev, us, theta) - x
         return step_jacobians(step, theta, x_prev, us, diagonal), r
 
-    def newton(A, r, damping):
-        del damping
+    def newton(A, r):
         zero = jnp.zeros((n,), dtype)
         return diagonal_linear_recurrence(A, r, zero) if diagonal else linear_recurrence(A, r, zero)
 
     def damped(A, r, damping):
         return diagonal_elk_increment(A, r, damping) if diagonal else elk_increment(A, r, damping)
 
-    def none(A, r, damping):
-        return jnp.zeros_like(r)
+    def small(d, x):
+        return jnp.all(jnp.isfinite(x)) & (
+            jnp.max(jnp.abs(d)) <= rtol * (jnp.max(jnp.abs(x)) + tiny)
+        )
 
-    def body(s):
-        branch = jnp.where(
-            s.phase == _DAMPED, 2, jnp.where((s.phase == _NEWTON) | (s.phase == _POLISH), 1, 0)
-        )
-        d = jax.lax.switch(branch, (none, newton, damped), s.A, s.r, s.damping)
+    zero_A = jnp.zeros((L, n) if diagonal else (L, n, n), dtype)
+    zero_r = jnp.zeros((L, n), dtype)
+    inf = jnp.asarray(jnp.inf, dtype)
+    zero_i = jnp.int32(0)
+
+    # 1. Newton (DEER) from the constant guess.
+    def newton_body(s):
+        first = s.passes == 0
+        d = newton(s.A, s.r)  # zero on the first pass (zero linearisation)
         x_try = s.x + d
-        finite_x = jnp.all(jnp.isfinite(x_try))
-        small = finite_x & (jnp.max(jnp.abs(d)) <= rtol * (jnp.max(jnp.abs(x_try)) + tiny))
-        # A converged Newton or polish step ends the loop: its iterate needs no linearisation.
-        ends = small & ((s.phase == _NEWTON) | (s.phase == _POLISH))
-        A_try, r_try = jax.lax.cond(ends, lambda: (s.A, s.r), lambda: linearise(x_try))
-        m_try = jnp.sum(r_try * r_try)
-        finite = finite_x & jnp.isfinite(m_try)
-        phase = s.phase
-        in_newton = phase == _NEWTON
-        in_damped = phase == _DAMPED
-        newton_it = s.newton_it + in_newton
-        damped_it = s.damped_it + in_damped
-        # Newton and the linearisations accept every iterate; the damped phase only one
-        # that lowers ||r||^2 (NaN compares False), and then shrinks the damping.
-        accept = jnp.where(in_damped, m_try < s.merit, True)
-        damping = jnp.where(
-            in_damped,
-            jnp.where(accept, s.damping / _DAMPING_FACTOR, s.damping * _DAMPING_FACTOR),
-            s.damping,
-        )
-        # Newton's best iterate (it starts the damped phase).
-        better = ((phase == _LIN_NEWTON) | in_newton) & (m_try < s.best_merit)
-        best_x = jnp.where(better, x_try, s.best_x)
-        best_merit = jnp.where(better, m_try, s.best_merit)
-        since_best = jnp.where(better, 0, s.since_best + in_newton)
-        newton_failed = ~finite | (newton_it >= options.max_iter) | (since_best >= _PATIENCE)
-        next_phase = jnp.select(
-            [
-                phase == _LIN_NEWTON,
-                in_newton,
-                phase == _LIN_DAMPED,
-                in_damped,
-                phase == _POLISH,
-            ],
-            [
-                jnp.where(finite, _NEWTON, _FAILED),
-                jnp.where(small, _CONVERGED, jnp.where(newton_failed, _LIN_DAMPED, _NEWTON)),
-                jnp.where(finite, _DAMPED, _FAILED),
-                jnp.where(
-                    small, _POLISH, jnp.where(damped_it >= options.max_iter, _FAILED, _DAMPED)
-                ),
-                jnp.where(small, _CONVERGED, _FAILED),
-            ],
-            phase,
-        )
-        # A failed polish keeps the damped iterate (the one with the smallest residual).
-        accept = accept & ~((phase == _POLISH) & ~small)
-        # Newton giving up restarts from its best iterate, linearised in the next pass.
-        restart = in_newton & (next_phase == _LIN_DAMPED)
-        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-        x = jnp.where(restart, s.best_x, pick(x_try, s.x))
-        return _State(
-            phase=next_phase,
-            x=x,
-            A=pick(A_try, s.A),
-            r=pick(r_try, s.r),
-            merit=pick(m_try, s.merit),
-            best_x=best_x,
-            best_merit=best_merit,
+        converged = ~first & small(d, x_try)
+        # A converged iterate needs no linearisation.
+        A, r = jax.lax.cond(converged, lambda: (s.A, s.r), lambda: linearise(x_try))
+        merit = jnp.sum(r * r)
+        better = merit < s.best_merit  # NaN compares False
+        since_best = jnp.where(better, 0, s.since_best + 1).astype(jnp.int32)
+        passes = s.passes + 1
+        failed = ~jnp.isfinite(merit) | (passes > options.max_iter) | (since_best >= _PATIENCE)
+        return _Newton(
+            x=x_try,
+            A=A,
+            r=r,
+            best_x=jnp.where(better, x_try, s.best_x),
+            best_merit=jnp.where(better, merit, s.best_merit),
             since_best=since_best,
-            damping=damping,
-            newton_it=newton_it,
-            damped_it=damped_it,
+            passes=passes,
+            status=_status(converged, failed),
         )
 
     guess = jnp.broadcast_to(x0, (L, n))
-    zero_i = jnp.int32(0)
-    init = _State(
-        phase=jnp.int32(_LIN_NEWTON),
-        x=guess,
-        A=jnp.zeros((L, n) if diagonal else (L, n, n), dtype),
-        r=jnp.zeros((L, n), dtype),
-        merit=jnp.asarray(jnp.inf, dtype),
-        best_x=guess,
-        best_merit=jnp.asarray(jnp.inf, dtype),
-        since_best=zero_i,
-        damping=jnp.asarray(options.damping, dtype),
-        newton_it=zero_i,
-        damped_it=zero_i,
+    s1 = jax.lax.while_loop(
+        lambda s: s.status == _RUNNING,
+        newton_body,
+        _Newton(guess, zero_A, zero_r, guess, inf, zero_i, zero_i, jnp.int32(_RUNNING)),
     )
-    s = jax.lax.while_loop(lambda s: (s.phase != _CONVERGED) & (s.phase != _FAILED), body, init)
-    converged = s.phase == _CONVERGED
+    newton_ok = s1.status == _CONVERGED
+
+    # 2. Levenberg-Marquardt (ELK) from the best Newton iterate: a step is accepted if it
+    # lowers ||r||^2 (and the damping shrinks), else the damping grows. A solution and a
+    # stall both end in a negligible step; a Newton step then decides.
+    def damped_body(s):
+        first = s.passes == 0
+        d = jax.lax.cond(first, lambda: zero_r, lambda: damped(s.A, s.r, s.damping))
+        x_try = s.x + d
+        A, r = linearise(x_try)
+        merit = jnp.sum(r * r)
+        accept = merit < s.merit  # always on the first pass, unless non-finite
+        passes = s.passes + 1
+        stop = ~first & small(d, x_try)
+        failed = (first & ~accept) | (passes > options.max_iter)
+        pick = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        factor = jnp.where(accept, 1.0 / _DAMPING_FACTOR, _DAMPING_FACTOR)
+        return _Damped(
+            x=pick(x_try, s.x),
+            A=pick(A, s.A),
+            r=pick(r, s.r),
+            merit=pick(merit, s.merit),
+            damping=jnp.where(first, s.damping, s.damping * factor),
+            passes=passes,
+            status=_status(stop, failed),
+        )
+
+    s2 = jax.lax.while_loop(
+        lambda s: s.status == _RUNNING,
+        damped_body,
+        _Damped(
+            s1.best_x,
+            zero_A,
+            zero_r,
+            inf,
+            jnp.asarray(options.damping, dtype),
+            zero_i,
+            jnp.where(newton_ok, _CONVERGED, _RUNNING).astype(jnp.int32),
+        ),
+    )
+
+    # Hold the damped solution to Newton's standard: one undamped step that must pass too.
+    def polish():
+        d = newton(s2.A, s2.r)
+        return s2.x + d, small(d, s2.x + d)
+
+    tried = ~newton_ok & (s2.status == _CONVERGED)
+    polished, polish_ok = _once_if(tried, polish, (s2.x, jnp.array(False)))
+    damped_ok = tried & polish_ok
+    converged = newton_ok | damped_ok
+    x = jnp.where(newton_ok, s1.x, jnp.where(damped_ok, polished, s2.x))
     fallback = ~converged & options.fallback
-    x_seq = _sequential(step, theta, x0, us, jnp.where(fallback, L, 0))
-    x = jnp.where(fallback, x_seq, s.x)
-    method = jnp.where(fallback, SEQUENTIAL, jnp.where(s.damped_it > 0, DAMPED, NEWTON))
+    x = jnp.where(fallback, _sequential(step, theta, x0, us, jnp.where(fallback, L, 0)), x)
+    damped_it = jnp.maximum(s2.passes - 1, 0)
+    method = jnp.where(fallback, SEQUENTIAL, jnp.where(newton_ok, NEWTON, DAMPED))
     info = RolloutInfo(
         method=method.astype(jnp.int32),
         converged=converged,
         fallback=fallback,
-        newton_iterations=s.newton_it,
-        damped_iterations=s.damped_it,
+        newton_iterations=s1.passes - 1,
+        damped_iterations=damped_it.astype(jnp.int32),
         chunks=jnp.int32(1),
     )
     return x, info
