@@ -1,9 +1,12 @@
 """Parallel-in-time evaluation of the rollout, the one-shot gradient and the sensitivities.
 
-DEER (Lim et al., ICLR 2024) and ELK / quasi-DEER (Gonzalez et al., NeurIPS 2024): Newton
-iterations over the whole record, each a linear recurrence solved by
-`jax.lax.associative_scan` in O(log T) depth; a sequential fallback where they do not
-converge.
+DEER (Lim et al., ICLR 2024): Newton iterations over the whole record, each a linear
+recurrence solved by a parallel prefix scan in O(log T) depth (`_recurrence.py`); ELK and
+quasi-DEER (Gonzalez et al., NeurIPS 2024): a damped Levenberg-Marquardt stage by a
+parallel Kalman smoother (`_elk.py`) and diagonal Jacobians; a sequential fallback where
+neither converges (`_rollout.py`). The one-shot gradient and the sensitivities replace
+their recursions over k by the same scans (`_adjoint.py`); long records go chunk by chunk
+(`_chunks.py`).
 """
 
 from ._adjoint import parallel_sensitivities as parallel_sensitivities

@@ -48,8 +48,8 @@ with steps that hold the state), so the iterations need O(c n^2) (`"full"`; O(c 
 `"diagonal"`) plus O(L n) for the states themselves, against O(L n^2) unchunked. The
 constant is large: the loop keeps the iterate, the best iterate, a linearisation and the
 damped stage's filter elements. At n = 4 in float64, XLA's memory analysis
-(`benchmarks/parallel.py --memory`) gives 3.1 GiB for L = 1e6 unchunked (about 3.3 kB a
-step, 25 times the stacked Jacobians), 0.36 GiB with `chunk_size = 1e5`, and 1.0 GiB for
+(`benchmarks/parallel.py --memory`) gives 3.0 GiB for L = 1e6 unchunked (about 3.2 kB a
+step, 25 times the stacked Jacobians), 0.35 GiB with `chunk_size = 1e5`, and 1.0 GiB for
 L = 1e7 with `chunk_size = 1e5` (0.3 GiB of it the states). The number of sequential
 steps is L / c, each a whole parallel solve.
 
