@@ -29,7 +29,7 @@ sequential or the parallel path; `rel. diff` compares the final theta.
 reports it (temporaries, arguments, outputs; nothing is run): T = 1e6 unchunked and
 chunked, and T = 1e7 chunked.
 
-Run: `python benchmarks/parallel.py` (default grid sized for a small CPU: a few minutes);
+Run: `python benchmarks/parallel.py` (default grid: the ten cells with T n_x^3 <= 1.1e7);
 `--quick` (T in {1e3, 1e4}, n_x in {2, 8}); `--full` (T up to 1e6 at every n_x, for an
 accelerator); `--json PATH` writes the numbers.
 """
