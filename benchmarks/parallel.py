@@ -1,0 +1,354 @@
+"""Parallel-in-time (DEER Newton + associative scans) against the sequential `lax.scan`.
+
+The model family: a chain of n_x / 2 damped Duffing oscillators, mass i with stiffness
+k_i, cubic stiffness eps_i and damping c_i, neighbours coupled by springs kc, a force on
+the first mass; RK4 at dt = 0.05 (`Model.from_ode`), theta = {"k", "eps", "c", "kc"},
+n_x in {2, 4, 8, 16}. The input is a slow sine plus white noise, the data z the first
+position plus noise. Float64 unless `--float32`.
+
+Timed at each (n_x, T), one trajectory:
+
+- `forward`: sequential `oneshot_jax._simulate.rollout` against
+  `oneshot_jax._parallel.newton_rollout` (states x_0..x_{T-1});
+- `value_and_grad`: sequential `oneshot_jax._gradient.value_and_grad_impl` (strategy
+  "jacobian") against `oneshot_jax._parallel.parallel_value_and_grad`.
+
+Each callable is one `jax.jit`; the time is the median of interleaved samples after two
+warm-up calls (`interleaved_medians` of `benchmarks/gradient.py`). `iters` are the
+parallel rollout's Newton (+ damped) iterations and `solve` the stage that produced the
+states (newton / damped / sequential fallback); `rel. diff` is the largest of
+max|parallel - sequential| / max|sequential| over the states, C and the gradients.
+Cells whose stacked Jacobians (T n_x^2 floats) exceed `--max-mib` run with
+`chunk_size` set to stay within it (the `chunk` column).
+
+A fit-like loop: `--fit-steps` steps of gradient descent with Adam on
+theta, the whole loop in one `jax.jit` (`lax.fori_loop`), with each gradient from the
+sequential or the parallel path; `rel. diff` compares the final theta.
+
+`--memory` adds the memory of one call at n_x = 4 as XLA's compiled memory analysis
+reports it (temporaries, arguments, outputs; nothing is run): T = 1e6 unchunked and
+chunked, and T = 1e7 chunked.
+
+Run: `python benchmarks/parallel.py` (default grid: the ten cells with T n_x^3 <= 1.1e7);
+`--quick` (T in {1e3, 1e4}, n_x in {2, 8}); `--full` (T up to 1e6 at every n_x, for an
+accelerator); `--json PATH` writes the numbers.
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+jax.config.update("jax_enable_x64", True)
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from gradient import fmt_time, interleaved_medians  # noqa: E402
+
+import oneshot_jax as oj  # noqa: E402
+from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
+from oneshot_jax._parallel import METHOD_NAMES, newton_rollout, parallel_value_and_grad  # noqa: E402
+from oneshot_jax._simulate import rollout  # noqa: E402
+
+NX = (2, 4, 8, 16)
+HORIZONS = (1_000, 10_000, 100_000, 1_000_000)
+# The default grid skips cells with T n_x^3 above this (the parallel path's work per
+# Newton iteration is O(T n_x^3)): on a 2-core CPU the whole run stays at a few minutes.
+DEFAULT_WORK = 1.1e7
+
+
+def chain_rhs(x, u, th):
+    """n_x / 2 damped Duffing oscillators in a chain: q_i'' = -k q - eps q^3 - c q' + springs."""
+    m = x.shape[0] // 2
+    q, v = x[:m], x[m:]
+    zero = jnp.zeros(1, x.dtype)
+    left, right = jnp.concatenate([zero, q[:-1]]), jnp.concatenate([q[1:], zero])
+    f = -th["k"] * q - th["eps"] * q**3 - th["c"] * v + th["kc"] * (left - 2 * q + right)
+    return jnp.concatenate([v, f.at[0].add(u[0])])
+
+
+def chain_problem(n_x, T, dtype, seed=0):
+    m = n_x // 2
+    rng = np.random.default_rng(seed)
+    model = oj.Model.from_ode(chain_rhs, 0.05, observe=lambda x, u, th: x[:1])
+    theta = {
+        "k": jnp.linspace(1.0, 2.0, m, dtype=dtype),
+        "eps": jnp.full((m,), 0.5, dtype),
+        "c": jnp.full((m,), 0.3, dtype),
+        "kc": jnp.asarray(0.5, dtype),
+    }
+    u = 0.5 * np.sin(0.01 * np.arange(T)) + 0.1 * rng.standard_normal(T)
+    u = jnp.asarray(u[:, None], dtype)
+    x0 = jnp.zeros(n_x, dtype).at[0].set(1.0)
+    _, z = oj.simulate(model, theta, x0, u)
+    z = z + jnp.asarray(0.01 * rng.standard_normal(z.shape), dtype)
+    guess = jax.tree_util.tree_map(lambda a: a * 1.1, theta)
+    return model, guess, x0, u, z
+
+
+def rel_diff(a, b):
+    a = np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in jax.tree_util.tree_leaves(a)])
+    b = np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in jax.tree_util.tree_leaves(b)])
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+def chunk_for(T, n_x, itemsize, max_mib):
+    per_step = n_x * n_x * itemsize
+    return None if T * per_step <= max_mib * 2**20 else max(1, int(max_mib * 2**20 // per_step))
+
+
+def time_cell(n_x, T, dtype, repeats, max_mib):
+    model, theta, x0, u, z = chain_problem(n_x, T, dtype)
+    chunk = chunk_for(T, n_x, jnp.dtype(dtype).itemsize, max_mib)
+    newton = {"chunk_size": chunk}
+    pw = jnp.asarray(0.0, dtype)
+    seq_fwd = jax.jit(lambda th, x0, u: rollout(model, th, x0, u))
+    par_fwd = jax.jit(lambda th, x0, u: newton_rollout(model.step, th, x0, u, chunk_size=chunk))
+    seq_vg = jax.jit(
+        lambda th, x0, u, z: value_and_grad_impl(
+            model, th, x0, u, z, None, None, pw, False, "jacobian"
+        )
+    )
+    par_vg = jax.jit(
+        lambda th, x0, u, z: parallel_value_and_grad(
+            model, th, x0, u, z, None, None, pw, newton=newton, with_info=True
+        )
+    )
+    calls = {
+        "seq_forward": lambda: seq_fwd(theta, x0, u),
+        "par_forward": lambda: par_fwd(theta, x0, u),
+        "seq_vg": lambda: seq_vg(theta, x0, u, z),
+        "par_vg": lambda: par_vg(theta, x0, u, z),
+    }
+    t0 = time.perf_counter()
+    med = interleaved_medians(calls, repeats)
+    xs, info = par_fwd(theta, x0, u)
+    vg, info_vg = par_vg(theta, x0, u, z)
+    med.update(
+        n_x=n_x,
+        T=T,
+        chunk=chunk,
+        method=METHOD_NAMES[max(int(info.method), int(info_vg.method))],
+        newton_iterations=int(info.newton_iterations),
+        damped_iterations=int(info.damped_iterations),
+        rel_diff=max(rel_diff(xs, seq_fwd(theta, x0, u)), rel_diff(vg, seq_vg(theta, x0, u, z))),
+        wall=time.perf_counter() - t0,
+    )
+    return med
+
+
+def time_fit(n_x, T, steps, dtype, repeats, max_mib):
+    model, theta, x0, u, z = chain_problem(n_x, T, dtype, seed=1)
+    chunk = chunk_for(T, n_x, jnp.dtype(dtype).itemsize, max_mib)
+    pw = jnp.asarray(0.0, dtype)
+    opt = optax.adam(1e-2)
+
+    def grads(kind, th):
+        if kind == "sequential":
+            return value_and_grad_impl(model, th, x0, u, z, None, None, pw, False, "jacobian")[1][0]
+        return parallel_value_and_grad(
+            model, th, x0, u, z, None, None, pw, newton={"chunk_size": chunk}
+        )[1][0]
+
+    def fit(kind):
+        @jax.jit
+        def run(th):
+            def body(_, carry):
+                th, state = carry
+                updates, state = opt.update(grads(kind, th), state, th)
+                return optax.apply_updates(th, updates), state
+
+            return jax.lax.fori_loop(0, steps, body, (th, opt.init(th)))[0]
+
+        return run
+
+    seq, par = fit("sequential"), fit("parallel")
+    med = interleaved_medians(
+        {"sequential": lambda: seq(theta), "parallel": lambda: par(theta)}, repeats
+    )
+    med.update(n_x=n_x, T=T, steps=steps, rel_diff=rel_diff(par(theta), seq(theta)))
+    return med
+
+
+MEMORY_CASES = (
+    (1_000_000, None),
+    (1_000_000, 100_000),
+    (10_000_000, 100_000),
+    (10_000_000, 10_000),
+)
+
+
+def memory_rows(dtype):
+    """Compiled memory of the parallel forward and value_and_grad at n_x = 4 (not run)."""
+    rows = []
+    model, theta, x0, _, _ = chain_problem(4, 10, dtype)
+    for T, chunk in MEMORY_CASES:
+        u = jax.ShapeDtypeStruct((T, 1), dtype)
+        fns = {
+            "forward": (
+                lambda th, x0, u, z: newton_rollout(model.step, th, x0, u, chunk_size=chunk)
+            ),
+            "value_and_grad": (
+                lambda th, x0, u, z: parallel_value_and_grad(
+                    model, th, x0, u, z, None, None, 0.0, newton={"chunk_size": chunk}
+                )
+            ),
+        }
+        row = {"T": T, "chunk": chunk}
+        for name, fn in fns.items():
+            ma = jax.jit(fn).lower(theta, x0, u, u).compile().memory_analysis()
+            row[name] = {
+                "temp": ma.temp_size_in_bytes,
+                "argument": ma.argument_size_in_bytes,
+                "output": ma.output_size_in_bytes,
+            }
+        rows.append(row)
+    return rows
+
+
+def memory_table(rows):
+    def total(m):
+        gib = (m["temp"] + m["argument"] + m["output"]) / 2**30
+        return f"{gib:.2f} GiB (temp {m['temp'] / 2**30:.2f})"
+
+    lines = ["| T | chunk | forward | value_and_grad |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {fmt_T(r['T'])} | {r['chunk'] or '-'} | {total(r['forward'])} "
+            f"| {total(r['value_and_grad'])} |"
+        )
+    return "\n".join(lines)
+
+
+def fmt_T(T):
+    return f"{T:.0e}".replace("e+0", "e")
+
+
+def cell_table(rows):
+    lines = [
+        "| n_x | T | forward seq | forward par | par/seq | value_and_grad seq "
+        "| value_and_grad par | par/seq | iters | solve | chunk | rel. diff |",
+        "|" + "---|" * 12,
+    ]
+    for r in rows:
+        its = f"{r['newton_iterations']}" + (
+            f"+{r['damped_iterations']}" if r["damped_iterations"] else ""
+        )
+        lines.append(
+            f"| {r['n_x']} | {fmt_T(r['T'])} | {fmt_time(r['seq_forward'])} "
+            f"| {fmt_time(r['par_forward'])} | {r['par_forward'] / r['seq_forward']:.2f} "
+            f"| {fmt_time(r['seq_vg'])} | {fmt_time(r['par_vg'])} "
+            f"| {r['par_vg'] / r['seq_vg']:.2f} | {its} | {r['method']} "
+            f"| {r['chunk'] or '-'} | {r['rel_diff']:.1e} |"
+        )
+    return "\n".join(lines)
+
+
+def fit_table(rows):
+    lines = [
+        "| n_x | T | Adam steps | sequential | parallel | par/seq | rel. diff (theta) |",
+        "|" + "---|" * 7,
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['n_x']} | {fmt_T(r['T'])} | {r['steps']} | {fmt_time(r['sequential'])} "
+            f"| {fmt_time(r['parallel'])} | {r['parallel'] / r['sequential']:.2f} "
+            f"| {r['rel_diff']:.1e} |"
+        )
+    return "\n".join(lines)
+
+
+def hardware():
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        name = platform.processor() or platform.machine()
+        try:
+            with open("/proc/cpuinfo") as f:
+                name = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
+        except (OSError, StopIteration):
+            pass
+        return f"CPU: {name}, {os.cpu_count()} logical cores"
+    return f"{dev.platform.upper()}: {dev.device_kind} x{len(jax.devices())}"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    grid = ap.add_mutually_exclusive_group()
+    grid.add_argument("--quick", action="store_true", help="T in {1e3, 1e4}, n_x in {2, 8}")
+    grid.add_argument("--full", action="store_true", help="every T up to 1e6 at every n_x")
+    ap.add_argument("--float32", action="store_true", help="float32 instead of float64")
+    ap.add_argument("--repeats", type=int, default=3, help="samples per median (default 3)")
+    ap.add_argument(
+        "--max-mib", type=float, default=256.0, help="stacked-Jacobian budget per chunk (MiB)"
+    )
+    ap.add_argument("--fit-T", type=int, default=None, help="record length of the fit loop")
+    ap.add_argument("--fit-steps", type=int, default=20, help="Adam steps in the fit loop")
+    ap.add_argument("--memory", action="store_true", help="add the compiled-memory table")
+    ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH")
+    args = ap.parse_args()
+
+    dtype = jnp.float32 if args.float32 else jnp.float64
+    if args.quick:
+        cells = [(n, T) for n in (2, 8) for T in (1_000, 10_000)]
+    elif args.full:
+        cells = [(n, T) for n in NX for T in HORIZONS]
+    else:
+        cells = [(n, T) for n in NX for T in HORIZONS if T * n**3 <= DEFAULT_WORK]
+    fit_T = args.fit_T or (10_000 if args.quick else 100_000)
+
+    load0 = os.getloadavg()
+    t_start = time.perf_counter()
+    rows = []
+    for n, T in cells:
+        rows.append(time_cell(n, T, dtype, args.repeats, args.max_mib))
+        print(f"  n_x={n} T={T}: {rows[-1]['wall']:.0f} s", file=sys.stderr, flush=True)
+    fits = [time_fit(2, fit_T, args.fit_steps, dtype, min(args.repeats, 3), args.max_mib)]
+    mem = memory_rows(dtype) if args.memory else []
+    wall = time.perf_counter() - t_start
+    load1 = os.getloadavg()
+
+    command = "python benchmarks/parallel.py " + " ".join(sys.argv[1:])
+    print(
+        f"Chain of damped Duffing oscillators (RK4, dt = 0.05), {jnp.dtype(dtype).name}, "
+        f"jax {jax.__version__}, backend {jax.default_backend()}; {hardware()}. Median of "
+        f"{args.repeats} interleaved samples; load average {load0[0]:.1f} -> {load1[0]:.1f}. "
+        f"Command: `{command.strip()}`.\n"
+    )
+    print(cell_table(rows))
+    print("\nFit-like loop (one jitted loop of Adam steps on theta, n_x = 2):\n")
+    print(fit_table(fits))
+    if mem:
+        print(
+            "\nMemory of one call at n_x = 4 (XLA's compiled memory analysis: temporaries, "
+            "arguments and outputs):\n"
+        )
+        print(memory_table(mem))
+    print(f"\n(total {wall:.0f} s)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(
+                {
+                    "jax": jax.__version__,
+                    "backend": jax.default_backend(),
+                    "hardware": hardware(),
+                    "dtype": jnp.dtype(dtype).name,
+                    "repeats": args.repeats,
+                    "load_average": [load0[0], load1[0]],
+                    "command": command.strip(),
+                    "cells": rows,
+                    "fit": fits,
+                    "memory": mem,
+                },
+                f,
+                indent=2,
+            )
+
+
+if __name__ == "__main__":
+    main()

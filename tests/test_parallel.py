@@ -1,0 +1,473 @@
+"""Parallel-in-time rollout, gradient and sensitivities against the sequential library.
+
+Every parallel result is compared with the sequential path it replaces, in float64 to
+1e-12 (norm-wise relative, per leaf): the rollout with `oneshot_jax._simulate.rollout`
+(`lax.scan`), the gradient with `oneshot_jax.value_and_grad` (strategies "jacobian" and
+"vjp"), the residual Jacobian with `oneshot_jax._sensitivity.trajectory_jacobian`. The
+building blocks (linear recurrences, the ELK step) are checked against Python loops and a
+dense least-squares solve. Each model also asserts which solve produced its states, so a
+test of the parallel path cannot pass on the sequential fallback.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import assert_tree_rel_close, duffing_rhs, motor_observe, motor_rhs
+from jax.flatten_util import ravel_pytree
+
+import oneshot_jax as oj
+from oneshot_jax._parallel import (
+    diagonal_linear_recurrence,
+    linear_recurrence,
+    matrix_linear_recurrence,
+    newton_rollout,
+    parallel_sensitivities,
+    parallel_value_and_grad,
+    reverse_diagonal_linear_recurrence,
+    reverse_linear_recurrence,
+    sensitivities_of_states,
+    value_and_grad_of_states,
+)
+from oneshot_jax._parallel._elk import diagonal_elk_increment, elk_increment
+from oneshot_jax._parallel._rollout import DAMPED, NEWTON, SEQUENTIAL
+from oneshot_jax._sensitivity import trajectory_jacobian
+from oneshot_jax._simulate import rollout
+
+RTOL = 1e-12
+
+#
+# Models: each returns (model, theta, x0, u, z, weight, penalty, penalty_weight).
+#
+
+
+def satellite_rhs(w, M, theta):
+    """Euler's equations I w' = M - w x (I w), diagonal inertia (the paper's Section 4)."""
+    inertia = theta["I"]
+    return (M - jnp.cross(w, inertia * w)) / inertia
+
+
+def satellite(T=200, dtype=jnp.float64):
+    rng = np.random.default_rng(0)
+    model = oj.Model.from_ode(satellite_rhs, 0.1)
+    theta = {"I": jnp.array([0.05, 0.03, 0.01], dtype)}
+    x0 = jnp.array([9.915e-6, -1.102e-3, 1.3179e-5], dtype)
+    u = jnp.asarray(rng.normal(1e-5, 1e-7, (T, 3)), dtype)
+    z = jnp.asarray(rng.normal(0.0, 1e-3, (T, 3)), dtype)
+    return model, theta, x0, u, z, None, None, 1.0
+
+
+def duffing(T=200, damping=0.3):
+    """A damped Duffing oscillator (n_x = 2, RK4 at dt = 0.05), observed through q."""
+    model = oj.Model.from_ode(
+        lambda x, u, th: duffing_rhs(x, u, th) - jnp.stack([0.0, th["c"] * x[1]]),
+        0.05,
+        observe=lambda x, u, th: x[:1],
+    )
+    theta = {
+        "k": jnp.asarray(1.0),
+        "eps": jnp.asarray(0.5),
+        "m": jnp.asarray(1.0),
+        "c": jnp.asarray(damping),
+    }
+    u = jnp.asarray(0.5 * np.sin(0.05 * np.arange(T)))[:, None]
+    z = jnp.asarray(np.cos(0.07 * np.arange(T)))[:, None]
+    return model, theta, jnp.array([1.0, 0.0]), u, z, None, None, 1.0
+
+
+def linear8(T=200):
+    """x_{k+1} = A x_k + B u_k with n_x = 8 (a contraction), three outputs, a matrix weight."""
+    rng = np.random.default_rng(1)
+    Q, _ = np.linalg.qr(rng.standard_normal((8, 8)))
+    theta = {"A": jnp.asarray(0.95 * Q), "B": jnp.asarray(0.3 * rng.standard_normal((8, 2)))}
+    model = oj.Model(lambda x, u, th: th["A"] @ x + th["B"] @ u, lambda x, u, th: x[:3])
+    u = jnp.asarray(rng.standard_normal((T, 2)))
+    z = jnp.asarray(rng.standard_normal((T, 3)))
+    L = rng.standard_normal((3, 3))
+    return model, theta, jnp.asarray(rng.standard_normal(8)), u, z, jnp.asarray(L @ L.T), None, 1.0
+
+
+def motor_barrier(x, theta):
+    """Strictly positive, depends on x and theta."""
+    return jnp.exp((x[1] - 3.0) / 0.5) + 0.1 * theta["b"] ** 2 + 0.01
+
+
+def motor(T=200):
+    """DC motor with Coulomb friction; outputs depend on u and theta; a penalty."""
+    theta = {"R": 1.0, "L": 0.5, "K": 0.1, "b": 0.2, "J": 0.02, "fc": 0.01}
+    theta = {k: jnp.asarray(v) for k, v in theta.items()}
+    model = oj.Model.from_ode(motor_rhs, 0.02, observe=motor_observe)
+    u = jnp.asarray(np.where(np.arange(T) % 50 < 25, 1.0, -0.5)[:, None])
+    z = jnp.asarray(np.random.default_rng(2).normal(0.0, 0.1, (T, 3)))
+    return model, theta, jnp.array([0.0, 0.5]), u, z, jnp.array([1.0, 2.0, 0.5]), motor_barrier, 0.7
+
+
+MODELS = {"satellite": satellite, "duffing": duffing, "linear8": linear8, "motor": motor}
+
+
+@functools.cache
+def case(name):
+    return MODELS[name]()
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def sequential_states(step, theta, x0, u):
+    return rollout(oj.Model(step), theta, x0, u)
+
+
+@functools.partial(jax.jit, static_argnums=(0,), static_argnames=("jacobian", "chunk_size"))
+def parallel_states(step, theta, x0, u, jacobian="full", chunk_size=None):
+    return newton_rollout(step, theta, x0, u, jacobian=jacobian, chunk_size=chunk_size)
+
+
+#
+# Building blocks.
+#
+
+
+@functools.partial(jax.jit, static_argnums=(5,))
+def all_recurrences(A, b, x0, B, S0, everything):
+    a = jnp.einsum("kii->ki", A)
+    out = (
+        linear_recurrence(A, b, x0),
+        reverse_diagonal_linear_recurrence(a, b, x0),
+    )
+    if not everything:
+        return out
+    return out + (
+        matrix_linear_recurrence(A, B, S0),
+        reverse_linear_recurrence(A, b, x0),
+        diagonal_linear_recurrence(a, b, x0),
+    )
+
+
+# T = 37: recursive doubling, all five recurrences; T = 700: `jax.lax.associative_scan`, a
+# forward full and a reverse diagonal one; n = 20: `einsum` products.
+@pytest.mark.parametrize("T, n", [(37, 3), (700, 3), (37, 20)])
+def test_linear_recurrences_equal_loops(T, n):
+    rng = np.random.default_rng(n)
+    m = 2
+    A = rng.standard_normal((T, n, n)) / np.sqrt(n)
+    b, x0 = rng.standard_normal((T, n)), rng.standard_normal(n)
+    B, S0 = rng.standard_normal((T, n, m)), rng.standard_normal((n, m))
+    x, S, lam = [x0], [S0], [x0]
+    xd, lamd = [x0], [x0]
+    a = np.einsum("kii->ki", A)
+    for k in range(T):
+        x.append(A[k] @ x[-1] + b[k])
+        S.append(A[k] @ S[-1] + B[k])
+        xd.append(a[k] * xd[-1] + b[k])
+    for k in reversed(range(T)):
+        lam.append(b[k] + A[k] @ lam[-1])
+        lamd.append(b[k] + a[k] * lamd[-1])
+    want = (x[1:], lamd[1:][::-1], S[1:], lam[1:][::-1], xd[1:])
+    got = all_recurrences(*map(jnp.asarray, (A, b, x0, B, S0)), T < 100)
+    assert len(got) == (5 if T < 100 else 2)
+    for g, w in zip(got, want):
+        assert_tree_rel_close(g, jnp.asarray(np.stack(w)), rtol=1e-12)
+
+
+def dense_levenberg_marquardt(A, r, damping):
+    """argmin_d sum_k ||d_{k+1} - A_k d_k - r_k||^2 + damping sum_k ||d_{k+1}||^2, d_0 = 0,
+    by the normal equations; also returns their condition number."""
+    T, n = r.shape
+    D = np.eye(T * n)
+    for k in range(1, T):
+        D[k * n : (k + 1) * n, (k - 1) * n : k * n] = -A[k]
+    H = D.T @ D + damping * np.eye(T * n)
+    return np.linalg.solve(H, D.T @ r.reshape(-1)).reshape(T, n), np.linalg.cond(H)
+
+
+@pytest.mark.parametrize("damping", [1e-6, 1.0, 30.0])
+def test_elk_step_is_the_levenberg_marquardt_step(damping):
+    """The Kalman filter + smoother scans give the Levenberg-Marquardt step, to the
+    accuracy the problem allows (eps times the normal equations' condition number, 2e7
+    for the nearly undamped unstable case)."""
+    rng = np.random.default_rng(3)
+    T, n = 30, 3
+    A = 1.2 * rng.standard_normal((T, n, n))  # unstable: the undamped step would blow up
+    r = rng.standard_normal((T, n))
+    a = np.einsum("kii->ki", A)
+    for got, (want, cond) in [
+        (
+            jax.jit(elk_increment)(jnp.asarray(A), jnp.asarray(r), damping),
+            dense_levenberg_marquardt(A, r, damping),
+        ),
+        (
+            jax.jit(diagonal_elk_increment)(jnp.asarray(a), jnp.asarray(r), damping),
+            dense_levenberg_marquardt(np.stack([np.diag(d) for d in a]), r, damping),
+        ),
+    ]:
+        rtol = max(1e-13, 10 * np.finfo(np.float64).eps * cond)
+        assert_tree_rel_close(got, jnp.asarray(want), rtol=rtol)
+
+
+#
+# Rollout.
+#
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_rollout_equals_sequential(name):
+    model, theta, x0, u = case(name)[:4]
+    xs, info = parallel_states(model.step, theta, x0, u)
+    assert int(info.method) == NEWTON and bool(info.converged) and not bool(info.fallback)
+    assert xs.shape == u.shape[:1] + x0.shape
+    assert_tree_rel_close(xs, sequential_states(model.step, theta, x0, u), rtol=RTOL)
+
+
+def test_damped_stage_converges_where_newton_diverges():
+    """Lightly damped Duffing over 1000 steps: Newton from the constant guess overshoots
+    into the cubic term and overflows; the Levenberg-Marquardt (ELK) stage converges."""
+    model, theta, x0, u = duffing(T=1000, damping=0.1)[:4]
+    xs, info = parallel_states(model.step, theta, x0, u)
+    assert int(info.method) == DAMPED and bool(info.converged) and not bool(info.fallback)
+    assert int(info.damped_iterations) > 0
+    assert_tree_rel_close(xs, sequential_states(model.step, theta, x0, u), rtol=RTOL)
+
+
+def pitchfork_step(x, u, theta):
+    """x' = theta x - x^3 by Euler: x = 0 is unstable, the state runs off to sqrt(theta)."""
+    return x + 0.1 * (theta * x - x**3) + u
+
+
+def lorenz_step(x, u, theta):
+    """Lorenz '63 (sigma = 10, rho = theta = 28, beta = 8/3), one RK4 step of 0.01."""
+    del u
+
+    def rhs(x):
+        return jnp.stack(
+            [10.0 * (x[1] - x[0]), x[0] * (theta - x[2]) - x[1], x[0] * x[1] - 8.0 / 3.0 * x[2]]
+        )
+
+    return oj.ode_step(lambda x, u, th: rhs(x), x, None, None, 0.01)
+
+
+def logistic_step(x, u, theta):
+    return theta * x * (1.0 - x) + 0.0 * u
+
+
+FALLBACK_CASES = {
+    # Unstable: the linearisation about the initial guess grows like 1.1^k.
+    "unstable_pitchfork": (pitchfork_step, jnp.asarray(1.0), jnp.array([1e-3]), 400),
+    # Chaotic: perturbations grow like e^{0.9 t}; over t = 20 no parallel solve can
+    # reproduce the sequential rounding, so the rollout must be the sequential one.
+    "chaotic_lorenz": (lorenz_step, jnp.asarray(28.0), jnp.array([1.0, 1.0, 1.0]), 2000),
+    "chaotic_logistic": (logistic_step, jnp.asarray(3.9), jnp.array([0.3]), 300),
+}
+
+
+@pytest.mark.parametrize("name", list(FALLBACK_CASES))
+def test_unstable_and_chaotic_fall_back_to_the_sequential_rollout(name):
+    step, theta, x0, T = FALLBACK_CASES[name]
+    u = jnp.zeros((T, 1))
+    xs, info = parallel_states(step, theta, x0, u)
+    assert bool(info.fallback) and int(info.method) == SEQUENTIAL and not bool(info.converged)
+    assert int(info.damped_iterations) > 0  # the damped stage was tried first
+    want = sequential_states(step, theta, x0, u)
+    assert np.all(np.isfinite(np.asarray(want)))
+    assert_tree_rel_close(xs, want, rtol=RTOL)
+
+
+def test_without_fallback_a_nonconverged_rollout_is_flagged():
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    xs, info = jax.jit(lambda x0, u: newton_rollout(step, theta, x0, u, fallback=False))(
+        x0, jnp.zeros((T, 1))
+    )
+    assert not bool(info.converged) and not bool(info.fallback)
+    assert int(info.method) == DAMPED
+
+
+def test_vmap_falls_back_only_where_needed():
+    """Under vmap the fallback is per trajectory: x0 = 1 sits at the stable equilibrium
+    (Newton converges at once), x0 = 1e-3 starts at the unstable one."""
+    x0 = jnp.array([[1.0], [1e-3]])
+    u = jnp.zeros((2, 400, 1))
+    theta = jnp.asarray(1.0)
+    xs, info = jax.jit(jax.vmap(lambda x0, u: newton_rollout(pitchfork_step, theta, x0, u)))(x0, u)
+    assert list(np.asarray(info.fallback)) == [False, True]
+    assert list(np.asarray(info.method)) == [NEWTON, SEQUENTIAL]
+    want = jax.vmap(lambda x0, u: sequential_states(pitchfork_step, theta, x0, u))(x0, u)
+    assert_tree_rel_close(xs, want, rtol=RTOL)
+
+
+def leaky_rnn_step(x, u, theta):
+    """A leaky tanh network: diagonally dominant Jacobians, where quasi-DEER converges."""
+    return 0.8 * x + 0.2 * jnp.tanh(theta["W"] @ x + theta["b"] * u[0])
+
+
+def test_diagonal_jacobian_variant():
+    rng = np.random.default_rng(4)
+    n = 4
+    theta = {
+        "W": jnp.asarray(0.3 * rng.standard_normal((n, n)) / np.sqrt(n)),
+        "b": jnp.asarray(rng.standard_normal(n)),
+    }
+    u = jnp.asarray(rng.standard_normal((300, 1)))
+    x0 = jnp.asarray(rng.standard_normal(n))
+    xs, info = parallel_states(leaky_rnn_step, theta, x0, u, jacobian="diagonal")
+    assert int(info.method) == NEWTON and bool(info.converged)
+    assert_tree_rel_close(xs, sequential_states(leaky_rnn_step, theta, x0, u), rtol=RTOL)
+
+
+def test_chunked_rollout_equals_unchunked():
+    model, theta, x0, u = case("duffing")[:4]
+    whole, _ = parallel_states(model.step, theta, x0, u)
+    # 199 steps: three chunks of 64 and one padded with 57 holding steps.
+    xs, info = parallel_states(model.step, theta, x0, u, chunk_size=64)
+    assert int(info.chunks) == 4 and bool(info.converged)
+    assert_tree_rel_close(xs, whole, rtol=RTOL)
+
+
+def test_float32():
+    """float32 in, float32 out; the tolerance is 256 eps of float32 (3e-5) by default."""
+    model, theta, x0, u, z = satellite(dtype=jnp.float32)[:5]
+    xs, info = parallel_states(model.step, theta, x0, u)
+    assert xs.dtype == jnp.float32 and bool(info.converged)
+    assert_tree_rel_close(xs, sequential_states(model.step, theta, x0, u), rtol=1e-5)
+    got = vg_of_states(model, theta, xs, u, z, None, None, jnp.float32(1.0))
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
+    assert_tree_rel_close(got, want, rtol=1e-4)
+
+
+def test_rollout_derivatives_equal_those_of_the_sequential_rollout():
+    """`jax.grad` and `jax.jacfwd` go through the implicit-function tangent (custom_jvp)."""
+    model, theta, x0, u = case("duffing")[:4]
+
+    def loss(fn, theta, x0, u):
+        return jnp.sum(jnp.sin(fn(theta, x0, u)))
+
+    seq = lambda th, x0, u: rollout(model, th, x0, u)  # noqa: E731
+    par = lambda th, x0, u: newton_rollout(model.step, th, x0, u, chunk_size=64)[0]  # noqa: E731
+    want = jax.jit(jax.grad(functools.partial(loss, seq), argnums=(0, 1, 2)))(theta, x0, u)
+    got = jax.jit(jax.grad(functools.partial(loss, par), argnums=(0, 1, 2)))(theta, x0, u)
+    assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def test_bad_options_raise():
+    model, theta, x0, u = case("duffing")[:4]
+    with pytest.raises(ValueError, match="jacobian"):
+        newton_rollout(model.step, theta, x0, u, jacobian="dense")
+    with pytest.raises(ValueError, match="chunk_size"):
+        newton_rollout(model.step, theta, x0, u, chunk_size=0)
+    with pytest.raises(ValueError, match="max_iter"):
+        newton_rollout(model.step, theta, x0, u, max_iter=0)
+    with pytest.raises(ValueError, match="x0"):
+        newton_rollout(model.step, theta, x0[None], u)
+    with pytest.raises(ValueError, match="us"):
+        newton_rollout(model.step, theta, x0, u[0])
+
+
+#
+# Gradient and sensitivities.
+#
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6), static_argnames=("chunk_size",))
+def parallel_vg(model, theta, x0, u, z, weight, penalty, penalty_weight, chunk_size=None):
+    return parallel_value_and_grad(
+        model,
+        theta,
+        x0,
+        u,
+        z,
+        weight,
+        penalty,
+        penalty_weight,
+        newton={"chunk_size": chunk_size},
+        with_info=True,
+    )
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6))
+def vg_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight):
+    return value_and_grad_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_value_and_grad_equals_the_sequential_strategies(name):
+    """The gradient recursion by the reverse scan, at the parallel states (the rollout
+    test above compiled them)."""
+    model, theta, x0, u, z, weight, penalty, pw = case(name)
+    xs, info = parallel_states(model.step, theta, x0, u)
+    assert int(info.method) == NEWTON
+    got = vg_of_states(model, theta, xs, u, z, weight, penalty, jnp.asarray(pw))
+    # Both sequential strategies agree to round-off (tests/test_gradient.py); "vjp" is
+    # compared on the model with the richest cost (u- and theta-dependent outputs, a
+    # weight, a penalty).
+    for strategy in ("jacobian", "vjp") if name == "motor" else ("jacobian",):
+        want = oj.value_and_grad(
+            model,
+            theta,
+            x0,
+            u,
+            z,
+            weight=weight,
+            penalty=penalty,
+            penalty_weight=pw,
+            strategy=strategy,
+        )
+        assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def test_chunked_parallel_value_and_grad_equals_sequential():
+    """The whole `parallel_value_and_grad`, chunked (4 chunks, the last one padded): the
+    rollout and the reverse recursion both carry between chunks."""
+    model, theta, x0, u, z, weight, penalty, pw = case("satellite")
+    got, info = parallel_vg(model, theta, x0, u, z, weight, penalty, jnp.asarray(pw), chunk_size=64)
+    assert int(info.chunks) == 4 and int(info.method) == NEWTON
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
+    assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def test_value_and_grad_with_fallback_equals_sequential():
+    step, theta, x0, T = FALLBACK_CASES["unstable_pitchfork"]
+    model = oj.Model(step)
+    u = jnp.zeros((T, 1))
+    z = jnp.ones((T, 1))
+    xs, info = parallel_states(step, theta, x0, u)  # compiled by the fallback test
+    assert bool(info.fallback)
+    got = vg_of_states(model, theta, xs, u, z, None, None, jnp.asarray(1.0))
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
+    assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def sensitivity_args(name):
+    """The arguments of `trajectory_jacobian` as `fit` builds them: one fixed theta entry,
+    one fixed x0 entry, sqrt(Q) and the 1/sqrt(T) scale."""
+    model, theta, x0, u, z, weight, penalty, pw = case(name)
+    flat, unravel = ravel_pytree(theta)
+    free = np.arange(flat.size) != 1
+    p_theta = flat[free]
+    theta_of = lambda p: unravel(flat.at[np.flatnonzero(free)].set(p))  # noqa: E731
+    x0_of = lambda p: x0.at[1:].set(p)  # noqa: E731
+    sqrt_q = None if weight is None else jnp.sqrt(weight)
+    scale = 1.0 / np.sqrt(u.shape[0])
+    return (model, theta_of, p_theta, x0_of, x0[1:], u, z, sqrt_q, penalty, jnp.asarray(pw), scale)
+
+
+def test_sensitivities_equal_trajectory_jacobian():
+    """Motor (a penalty, u- and theta-dependent outputs, fixed entries): the sensitivity
+    recursion by the associative scan at the parallel states."""
+    args = sensitivity_args("motor")
+    model, theta, x0, u = case("motor")[:4]
+    xs, info = parallel_states(model.step, theta, x0, u)
+    want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
+    got = jax.jit(lambda xs: sensitivities_of_states(*args[:5], xs, *args[5:]))(xs)
+    for a, b in zip(got, want):
+        assert a.shape == b.shape
+        assert_tree_rel_close(a, b, rtol=RTOL)
+
+
+def test_chunked_parallel_sensitivities_equal_trajectory_jacobian():
+    args = sensitivity_args("satellite")
+    want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
+    got, info = jax.jit(
+        lambda: parallel_sensitivities(*args, newton={"chunk_size": 64}, with_info=True)
+    )()
+    assert int(info.method) == NEWTON and int(info.chunks) == 4
+    for a, b in zip(got, want):
+        assert a.shape == b.shape
+        assert_tree_rel_close(a, b, rtol=RTOL)
