@@ -8,13 +8,16 @@ position plus noise. Float64 unless `--float32`.
 
 Timed at each (n_x, T), one trajectory:
 
-- `forward`: sequential `oneshot_jax._simulate.rollout` against
-  `oneshot_jax._parallel.newton_rollout` (states x_0..x_{T-1});
+- `forward`: sequential `oneshot_jax._simulate.rollout` against the parallel rollout
+  (`oneshot_jax._parallel.rollout`, states x_0..x_{T-1}): what `oneshot_jax.simulate`
+  runs with `strategy="jacobian"` and `"parallel"`;
 - `value_and_grad`: sequential `oneshot_jax._gradient.value_and_grad_impl` (strategy
-  "jacobian") against `oneshot_jax._parallel.parallel_value_and_grad`.
+  "jacobian") against `oneshot_jax._parallel.parallel_value_and_grad`: what
+  `oneshot_jax.value_and_grad` runs with `strategy="jacobian"` and `"parallel"`.
 
-Each callable is one `jax.jit`; the time is the median of interleaved samples after two
-warm-up calls (`interleaved_medians` of `benchmarks/gradient.py`). `iters` are the
+Each callable is one `jax.jit` of the library's internals (the public functions add
+their input checks, about a millisecond); the time is the median of interleaved samples
+after two warm-up calls (`benchmarks/timing.py`). `iters` are the
 parallel rollout's Newton (+ damped) iterations and `solve` the stage that produced the
 states (newton / damped / sequential fallback); `rel. diff` is the largest of
 max|parallel - sequential| / max|sequential| over the states, C and the gradients.
@@ -37,7 +40,6 @@ accelerator); `--json PATH` writes the numbers.
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 
@@ -49,11 +51,13 @@ import optax
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from gradient import fmt_time, interleaved_medians  # noqa: E402
+from timing import conditions, fmt_time, interleaved  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
+from oneshot_jax._cost import Cost  # noqa: E402
 from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
-from oneshot_jax._parallel import METHOD_NAMES, newton_rollout, parallel_value_and_grad  # noqa: E402
+from oneshot_jax._parallel import METHOD_NAMES, parallel_value_and_grad  # noqa: E402
+from oneshot_jax._parallel import rollout as parallel_rollout  # noqa: E402
 from oneshot_jax._simulate import rollout  # noqa: E402
 
 NX = (2, 4, 8, 16)
@@ -107,17 +111,15 @@ def time_cell(n_x, T, dtype, repeats, max_mib):
     model, theta, x0, u, z = chain_problem(n_x, T, dtype)
     chunk = chunk_for(T, n_x, jnp.dtype(dtype).itemsize, max_mib)
     newton = {"chunk_size": chunk}
-    pw = jnp.asarray(0.0, dtype)
+    cost = Cost(None, None, jnp.asarray(0.0, dtype))
     seq_fwd = jax.jit(lambda th, x0, u: rollout(model, th, x0, u))
-    par_fwd = jax.jit(lambda th, x0, u: newton_rollout(model.step, th, x0, u, chunk_size=chunk))
+    par_fwd = jax.jit(lambda th, x0, u: parallel_rollout(model, th, x0, u, newton))
     seq_vg = jax.jit(
-        lambda th, x0, u, z: value_and_grad_impl(
-            model, th, x0, u, z, None, None, pw, False, "jacobian"
-        )
+        lambda th, x0, u, z: value_and_grad_impl(model, cost, th, x0, u, z, False, "jacobian")
     )
     par_vg = jax.jit(
         lambda th, x0, u, z: parallel_value_and_grad(
-            model, th, x0, u, z, None, None, pw, newton=newton, with_info=True
+            model, cost, th, x0, u, z, newton=newton, with_info=True
         )
     )
     calls = {
@@ -127,7 +129,7 @@ def time_cell(n_x, T, dtype, repeats, max_mib):
         "par_vg": lambda: par_vg(theta, x0, u, z),
     }
     t0 = time.perf_counter()
-    med = interleaved_medians(calls, repeats)
+    med = interleaved(calls, repeats)
     xs, info = par_fwd(theta, x0, u)
     vg, info_vg = par_vg(theta, x0, u, z)
     med.update(
@@ -146,15 +148,15 @@ def time_cell(n_x, T, dtype, repeats, max_mib):
 def time_fit(n_x, T, steps, dtype, repeats, max_mib):
     model, theta, x0, u, z = chain_problem(n_x, T, dtype, seed=1)
     chunk = chunk_for(T, n_x, jnp.dtype(dtype).itemsize, max_mib)
-    pw = jnp.asarray(0.0, dtype)
+    cost = Cost(None, None, jnp.asarray(0.0, dtype))
     opt = optax.adam(1e-2)
 
     def grads(kind, th):
         if kind == "sequential":
-            return value_and_grad_impl(model, th, x0, u, z, None, None, pw, False, "jacobian")[1][0]
-        return parallel_value_and_grad(
-            model, th, x0, u, z, None, None, pw, newton={"chunk_size": chunk}
-        )[1][0]
+            return value_and_grad_impl(model, cost, th, x0, u, z, False, "jacobian")[1][0]
+        return parallel_value_and_grad(model, cost, th, x0, u, z, newton={"chunk_size": chunk})[1][
+            0
+        ]
 
     def fit(kind):
         @jax.jit
@@ -169,9 +171,7 @@ def time_fit(n_x, T, steps, dtype, repeats, max_mib):
         return run
 
     seq, par = fit("sequential"), fit("parallel")
-    med = interleaved_medians(
-        {"sequential": lambda: seq(theta), "parallel": lambda: par(theta)}, repeats
-    )
+    med = interleaved({"sequential": lambda: seq(theta), "parallel": lambda: par(theta)}, repeats)
     med.update(n_x=n_x, T=T, steps=steps, rel_diff=rel_diff(par(theta), seq(theta)))
     return med
 
@@ -188,15 +188,16 @@ def memory_rows(dtype):
     """Compiled memory of the parallel forward and value_and_grad at n_x = 4 (not run)."""
     rows = []
     model, theta, x0, _, _ = chain_problem(4, 10, dtype)
+    cost = Cost(None, None, jnp.asarray(0.0, dtype))
     for T, chunk in MEMORY_CASES:
         u = jax.ShapeDtypeStruct((T, 1), dtype)
         fns = {
             "forward": (
-                lambda th, x0, u, z: newton_rollout(model.step, th, x0, u, chunk_size=chunk)
+                lambda th, x0, u, z: parallel_rollout(model, th, x0, u, {"chunk_size": chunk})
             ),
             "value_and_grad": (
                 lambda th, x0, u, z: parallel_value_and_grad(
-                    model, th, x0, u, z, None, None, 0.0, newton={"chunk_size": chunk}
+                    model, cost, th, x0, u, z, newton={"chunk_size": chunk}
                 )
             ),
         }
@@ -264,19 +265,6 @@ def fit_table(rows):
     return "\n".join(lines)
 
 
-def hardware():
-    dev = jax.devices()[0]
-    if dev.platform == "cpu":
-        name = platform.processor() or platform.machine()
-        try:
-            with open("/proc/cpuinfo") as f:
-                name = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
-        except (OSError, StopIteration):
-            pass
-        return f"CPU: {name}, {os.cpu_count()} logical cores"
-    return f"{dev.platform.upper()}: {dev.device_kind} x{len(jax.devices())}"
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     grid = ap.add_mutually_exclusive_group()
@@ -313,12 +301,11 @@ def main():
     wall = time.perf_counter() - t_start
     load1 = os.getloadavg()
 
-    command = "python benchmarks/parallel.py " + " ".join(sys.argv[1:])
     print(
-        f"Chain of damped Duffing oscillators (RK4, dt = 0.05), {jnp.dtype(dtype).name}, "
-        f"jax {jax.__version__}, backend {jax.default_backend()}; {hardware()}. Median of "
-        f"{args.repeats} interleaved samples; load average {load0[0]:.1f} -> {load1[0]:.1f}. "
-        f"Command: `{command.strip()}`.\n"
+        f"Chain of damped Duffing oscillators (RK4, dt = 0.05), {jnp.dtype(dtype).name} "
+        f"(the header's float64 aside), backend {jax.default_backend()}. Median of "
+        f"{args.repeats} interleaved samples; load average {load0[0]:.1f} -> {load1[0]:.1f}; "
+        f"{wall:.0f} s in all. {conditions()}\n"
     )
     print(cell_table(rows))
     print("\nFit-like loop (one jitted loop of Adam steps on theta, n_x = 2):\n")
@@ -329,18 +316,16 @@ def main():
             "arguments and outputs):\n"
         )
         print(memory_table(mem))
-    print(f"\n(total {wall:.0f} s)")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(
                 {
                     "jax": jax.__version__,
                     "backend": jax.default_backend(),
-                    "hardware": hardware(),
+                    "conditions": conditions(),
                     "dtype": jnp.dtype(dtype).name,
                     "repeats": args.repeats,
                     "load_average": [load0[0], load1[0]],
-                    "command": command.strip(),
                     "cells": rows,
                     "fit": fits,
                     "memory": mem,

@@ -20,7 +20,7 @@ def post(problem, params, blocks, strategy):
     call: theta (flat), x0, the residuals, the covariance blocks and the metrics."""
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
-    _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True)
+    _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
     cov = covariance(problem, params, strategy, blocks)
     zs = problem.z
     m = None if problem.mask is None else problem.mask.outputs
@@ -91,6 +91,7 @@ def assemble(
     fixed,
     x0_estimated,
     multistart,
+    diagnostics=None,
 ) -> FitResult:
     """The `FitResult` of the best start, on the host."""
     theta_flat, X0, e, cov, met = jax.tree_util.tree_map(np.asarray, posted)
@@ -156,4 +157,5 @@ def assemble(
         best=int(best),
         solver=tuple(s.settings() for s in solvers),
         model=model,
+        diagnostics=dict(diagnostics or {}),
     )

@@ -29,6 +29,7 @@ from ._checks import (
 )
 from ._fit_result import FitResult
 from ._iterate import run
+from ._parallel._report import counting
 from ._problem import FitProblem, Params
 from ._progress import NoProgress, TqdmProgress
 from ._solver import (
@@ -99,6 +100,14 @@ def _n_starts(theta0_params, x0, data_x0_ndim):
             f"starts like `theta0`, got {np.shape(x0)[0]} (shape {np.shape(x0)})."
         )
     return n
+
+
+def _host(a):
+    """Data as NumPy arrays (no device transfer until the compiled call), except arrays
+    sharded over several devices (`oneshot_jax.sharding`), which stay where they are."""
+    if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1:
+        return a
+    return np.asarray(a)
 
 
 @eqx.filter_jit
@@ -233,9 +242,7 @@ def fit(
     batched = data.batched
     # Host-side (NumPy) views with the trajectory axis: no eager JAX call per array; the
     # compiled call below takes them as they are.
-    X0, U, Z = (
-        np.asarray(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z)
-    )
+    X0, U, Z = (_host(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z))
     n_x = X0.shape[1]
 
     flat0, unravel = ravel_pytree(data.theta)
@@ -297,14 +304,25 @@ def fit(
     total = sum(s.max_steps for s in solvers)
     bar_id = meter.open(total)
     try:
-        t0 = time.perf_counter()
-        moved, stages, best, posted = _solve(
-            solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
-        )
-        jax.block_until_ready(posted)
-        wall = time.perf_counter() - t0
+        with counting() as counts:
+            t0 = time.perf_counter()
+            moved, stages, best, posted = _solve(
+                solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
+            )
+            jax.block_until_ready(posted)
+            jax.effects_barrier()
+            wall = time.perf_counter() - t0
     finally:
         meter.close(bar_id)
+    diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
+    if counts["sequential_fallbacks"]:
+        warnings.warn(
+            f"{counts['sequential_fallbacks']} of {counts['parallel_rollouts']} parallel "
+            "rollouts did not converge and fell back to the sequential loop (the results are "
+            "exact; see FitResult.diagnostics).",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if bool(moved):
         warnings.warn(
             "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
@@ -321,4 +339,5 @@ def fit(
         fixed=fixed_flat,
         x0_estimated=x0_est,
         multistart=multistart,
+        diagnostics=diagnostics,
     )

@@ -81,6 +81,9 @@ class FitResult(eqx.Module):
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
+    - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
+        strategy, `parallel_rollouts` and `sequential_fallbacks` (rollouts that did not
+        converge in parallel and were computed sequentially, with the same result).
     """
 
     theta: Any
@@ -103,6 +106,7 @@ class FitResult(eqx.Module):
     best: int
     solver: tuple
     model: Any = None
+    diagnostics: dict = eqx.field(default_factory=dict)
 
     @property
     def success(self) -> bool:

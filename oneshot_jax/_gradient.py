@@ -38,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._checks import check_cost, check_data, check_strategy
 from ._simulate import rollout, sample_count
-from ._strategy import gradient_strategy, theta_forward_mode
+from ._strategy import gradient_strategy, is_parallel, theta_forward_mode
 
 # Up to this length the reverse scan's matrix-vector products are written elementwise.
 _MATVEC_ELEMENTWISE_MAX = 32
@@ -166,7 +166,18 @@ def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy, mask=No
     """Jitted `value_and_grad` on validated inputs (used by `fit`): the one-shot recursion
     per trajectory, each normalised by the number of time points of all of them."""
     norm = sample_count(u, mask, x0.dtype)
-    fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
+    if is_parallel(strategy, u.shape[-2]):
+        from ._parallel import parallel_value_and_grad, report
+
+        def fn(x0, u, z, m):
+            out, info = parallel_value_and_grad(
+                model, cost, theta, x0, u, z, mask=m, norm=norm, with_info=True
+            )
+            report(info)
+            return out
+
+    else:
+        fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
     if not batched:
         return fn(x0, u, z, mask)
     C, (g_theta, g_x0) = jax.vmap(fn)(x0, u, z, mask)
@@ -200,8 +211,12 @@ def value_and_grad(
     - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`:
         as for `loss`.
     - `strategy`: `"jacobian"` (stacked J^{x/x}_k by vmap, best for small n_x), `"vjp"`
-        (VJPs inside the reverse scan, memory O(T n_x), for large states) or `"auto"`
-        (jacobian for n_x <= 16 when the stacked Jacobians fit in 256 MiB).
+        (VJPs inside the reverse scan, memory O(T n_x), for large states), `"parallel"`
+        (parallel in time: the rollout by Newton iterations with associative scans and
+        the recursion as an associative scan, for GPUs and TPUs; a rollout that does not
+        converge falls back to the sequential loop, with a warning) or `"auto"`
+        (parallel on a GPU or TPU for T >= 512, else jacobian for n_x <= 16 when the
+        stacked Jacobians fit in 256 MiB, else vjp).
 
     **Returns:**
 

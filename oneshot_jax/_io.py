@@ -7,7 +7,7 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `{"dict": {...}}`, `{"list": [...]}`, `{"tuple": [...]}`, `{"none": null}` and
   `{"leaf": i}` nodes, or null for a structure JSON cannot describe), `names`,
   `stop_reason` (a `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the
-  settings of each solver), the metric names and `starts_stop_reason`.
+  settings of each solver), the metric names, `starts_stop_reason` and `diagnostics`.
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage`,
@@ -225,4 +225,5 @@ def load_result(path, *, model=None, like=None) -> FitResult:
         best=int(meta["best"]),
         solver=tuple(meta["solver"]),
         model=model,
+        diagnostics=dict(meta.get("diagnostics", {})),
     )

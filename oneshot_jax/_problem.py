@@ -20,7 +20,7 @@ from ._cost import Cost, Mask
 from ._gradient import value_and_grad_impl
 from ._sensitivity import Linearisation, trajectory_jacobian, trajectory_residuals
 from ._simulate import loss_impl, sample_count
-from ._strategy import sensitivity_strategy
+from ._strategy import is_parallel, sensitivity_strategy
 
 
 class Params(NamedTuple):
@@ -78,7 +78,7 @@ class FitProblem(eqx.Module):
                 p_theta = jnp.clip(p_theta, self.lower, self.upper)
         return p_theta
 
-    def loss(self, params: Params):
+    def loss(self, params: Params, strategy="auto"):
         """C (eq. 5/21) at the free variables: one simulation."""
         return loss_impl(
             self.model,
@@ -89,6 +89,7 @@ class FitProblem(eqx.Module):
             self.z,
             True,
             self.mask,
+            strategy,
         )
 
     def value_and_grad(self, params: Params, strategy):
@@ -112,14 +113,14 @@ class FitProblem(eqx.Module):
     def _scale(self):
         return 1.0 / jnp.sqrt(sample_count(self.u, self.mask, self.dtype))
 
-    def residuals(self, params: Params, penalty=True):
+    def residuals(self, params: Params, penalty=True, strategy="auto"):
         """Stacked residuals (N, R) with ||r||^2 = C (see `_sensitivity`), and the smallest
         lambda h(x_k) over all trajectories (+inf without a penalty)."""
         cost = self.cost if penalty else Cost(self.cost.weight, None, self.cost.penalty_weight)
         theta = self.theta_of(params.theta)
         x0 = self.x0_of(params.x0)
         fn = lambda x0, u, z, m: trajectory_residuals(  # noqa: E731
-            self.model, cost, theta, x0, u, z, scale=self._scale(), mask=m
+            self.model, cost, theta, x0, u, z, scale=self._scale(), mask=m, strategy=strategy
         )
         r, h_min = jax.vmap(fn)(x0, self.u, self.z, self.mask)
         return r, jnp.min(h_min)
@@ -131,9 +132,28 @@ class FitProblem(eqx.Module):
         N, T = self.u.shape[:2]
         n_x = self.x0_base.shape[1]
         n_cols = params.theta.shape[0] + x0_free.size
+        parallel = is_parallel(strategy, T)
         strategy = sensitivity_strategy(strategy, N, n_x, n_cols, T, self.dtype.itemsize)
 
         def fn(base, p, u, z, m):
+            if parallel:
+                from ._parallel import parallel_sensitivities, report
+
+                lin, info = parallel_sensitivities(
+                    self.model,
+                    cost,
+                    self.theta_of,
+                    params.theta,
+                    lambda q: base.at[x0_free].set(q),
+                    p,
+                    u,
+                    z,
+                    scale=self._scale(),
+                    mask=m,
+                    with_info=True,
+                )
+                report(info)
+                return lin
             return trajectory_jacobian(
                 self.model,
                 cost,

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ._cost import weigh
-from ._simulate import outputs, rollout
+from ._simulate import outputs, rollout, states
 from ._strategy import JACOBIAN_MAX_NX, sensitivity_strategy
 
 # Up to this state size the scan's A @ S is written elementwise (see `_matmul`).
@@ -59,10 +59,10 @@ def _min_penalty(lh, mask):
     return jnp.min(lh if mask is None else jnp.where(mask.samples > 0, lh, jnp.inf))
 
 
-def trajectory_residuals(model, cost, theta, x0, u, z, *, scale, mask=None):
+def trajectory_residuals(model, cost, theta, x0, u, z, *, scale, mask=None, strategy="auto"):
     """Residuals r (R,) of one trajectory, R = T n_z (+ T with a penalty), and the
     smallest lambda h(x_k). Masked entries (a `Mask`) are zero rows."""
-    xs = rollout(model, theta, x0, u)
+    xs = states(model, theta, x0, u, strategy)
     e = _masked(outputs(model, theta, xs, u) - z, mask)
     r = (weigh(e, cost.sqrt_weight()) * scale).reshape(-1)
     if cost.penalty is None:
@@ -100,14 +100,7 @@ def trajectory_jacobian(
     S0 = jnp.concatenate([jnp.zeros((n_x, n_t), x0.dtype), jax.jacfwd(x0_of)(p_x0)], axis=1)
     # Tangent of p for each column: e_j for the theta columns, 0 for the x0 columns.
     E = jnp.concatenate([jnp.eye(n_t, dtype=x0.dtype), jnp.zeros((n_t, n_s), x0.dtype)], 1)
-    g_theta = lambda x, u_k, p: model.observe(x, u_k, theta_of(p))  # noqa: E731
-    h_theta = None if cost.penalty is None else (lambda x, p: cost.penalty(x, theta_of(p)))  # noqa: E731
-
-    def emit(x, u_k, S):
-        """z_k and J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the penalty h) as
-        JVPs of the output map along the columns, without forming J^{z/x}."""
-        out = _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
-        return out if h_theta is None else (*out, *_push(h_theta, x, p_theta, S, E))
+    emit = emitter(model, cost, theta_of, p_theta, E)
 
     # One trajectory here; `FitProblem.jacobian` resolves "auto" for its whole batch.
     strategy = sensitivity_strategy(strategy, 1, n_x, n_t + n_s, u.shape[0], x0.dtype.itemsize)
@@ -142,6 +135,13 @@ def trajectory_jacobian(
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
 
+    return rows(outs, z, cost, scale, mask, n_t, n_s)
+
+
+def rows(outs, z, cost, scale, mask, n_t, n_s) -> Linearisation:
+    """The `Linearisation` from the emitted outputs of every sample: z_k and its column
+    derivatives J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the penalty h):
+    weighted, scaled and masked residual rows, with the penalty rows sqrt(lambda h)."""
     sqrt_q = cost.sqrt_weight()
     y, Je = outs[:2]
     r = (weigh(_masked(y - z, mask), sqrt_q) * scale).reshape(-1)
@@ -150,7 +150,7 @@ def trajectory_jacobian(
     Jr = _weigh_jac(Je, sqrt_q) * scale
     Jr = Jr.reshape(-1, n_t + n_s)
     h_min = jnp.array(jnp.inf, r.dtype)
-    if h_theta is not None:
+    if cost.penalty is not None:
         h, dh = outs[2:]
         lh = cost.penalty_weight * h
         h_min = _min_penalty(lh, mask)
@@ -163,6 +163,22 @@ def trajectory_jacobian(
         r = jnp.concatenate([r, rh * scale])
         Jr = jnp.concatenate([Jr, Jh * scale], axis=0)
     return Linearisation(r, Jr[:, :n_t], Jr[:, n_t:], h_min)
+
+
+def emitter(model, cost, theta_of, p_theta, E):
+    """`emit(x, u_k, S)`: z_k and J^{z/x}_k S_k + [J^{z/theta}_k, 0] (and the same for the
+    penalty h) as JVPs of the output map along the columns, without forming J^{z/x}."""
+
+    def g_theta(x, u_k, p):
+        return model.observe(x, u_k, theta_of(p))
+
+    def emit(x, u_k, S):
+        out = _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
+        if cost.penalty is None:
+            return out
+        return (*out, *_push(lambda x, p: cost.penalty(x, theta_of(p)), x, p_theta, S, E))
+
+    return emit
 
 
 def _weigh_jac(Je, sqrt_q):

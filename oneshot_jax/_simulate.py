@@ -6,7 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data
+from ._checks import check_cost, check_data, check_strategy
+from ._strategy import is_parallel
 
 
 def rollout(model, theta, x0, u):
@@ -26,9 +27,9 @@ def outputs(model, theta, xs, u):
     return jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, theta)
 
 
-def trajectory_sum(model, cost, theta, x0, u, z, mask=None):
+def trajectory_sum(model, cost, theta, x0, u, z, mask=None, strategy="auto"):
     """sum_k T L_k (eq. 4, 21) for one trajectory (masked terms excluded)."""
-    xs = rollout(model, theta, x0, u)
+    xs = states(model, theta, x0, u, strategy)
     per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0, 0))(model, theta, xs, u, z, mask)
     return jnp.sum(per_step)
 
@@ -40,21 +41,34 @@ def sample_count(u, mask, dtype):
     return jnp.sum(mask.samples).astype(dtype)
 
 
+def states(model, theta, x0, u, strategy="auto", newton=None):
+    """The states of eq. (7) for one trajectory, sequentially or parallel in time (see
+    `oneshot_jax._strategy`)."""
+    if is_parallel(strategy, u.shape[0]):
+        from ._parallel import report
+        from ._parallel import rollout as parallel_rollout
+
+        xs, info = parallel_rollout(model, theta, x0, u, newton)
+        report(info)
+        return xs
+    return rollout(model, theta, x0, u)
+
+
 @eqx.filter_jit
-def simulate_impl(model, theta, x0, u, batched):
+def simulate_impl(model, theta, x0, u, batched, strategy="auto"):
     def one(x0, u):
-        xs = rollout(model, theta, x0, u)
+        xs = states(model, theta, x0, u, strategy)
         return xs, outputs(model, theta, xs, u)
 
     return jax.vmap(one)(x0, u) if batched else one(x0, u)
 
 
 @eqx.filter_jit
-def loss_impl(model, cost, theta, x0, u, z, batched, mask=None):
+def loss_impl(model, cost, theta, x0, u, z, batched, mask=None, strategy="auto"):
     """C of eq. (5)/(21): the sum of T L_k over trajectories and time points, divided by
     the number of time points (the mean over trajectories of each one's C when they are
     all of the same length and nothing is masked)."""
-    fn = lambda x0, u, z, m: trajectory_sum(model, cost, theta, x0, u, z, m)  # noqa: E731
+    fn = lambda x0, u, z, m: trajectory_sum(model, cost, theta, x0, u, z, m, strategy)  # noqa: E731
     total = jnp.sum(jax.vmap(fn)(x0, u, z, mask)) if batched else fn(x0, u, z, mask)
     return total / sample_count(u, mask, x0.dtype)
 
@@ -64,6 +78,8 @@ def simulate(
     theta: PyTree,
     x0: Float[ArrayLike, "*N n_x"],
     u: Float[ArrayLike, "*N T n_u"],
+    *,
+    strategy: str = "auto",
 ) -> tuple[Float[Array, "*N T n_x"], Float[Array, "*N T n_z"]]:
     """Simulate the model over the horizon of `u`, eq. (2).
 
@@ -74,6 +90,11 @@ def simulate(
     - `x0`: initial state, shape (n_x,), or (N, n_x) for N trajectories.
     - `u`: inputs, shape (T, n_u), or (N, T, n_u), or a list of N arrays (T_i, n_u) of
         different lengths.
+    - `strategy`: `"parallel"` computes the rollout parallel in time (Newton iterations
+        over the whole record with associative scans, and a sequential fallback, reported
+        by a warning, where they do not converge); any other value is the sequential
+        loop, except that `"auto"` takes the parallel one on a GPU or TPU for long
+        records (see `value_and_grad`).
 
     **Returns:**
 
@@ -82,7 +103,8 @@ def simulate(
     several trajectories (lists of arrays for a list `u`).
     """
     data = check_data(model, theta, x0, u)
-    x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched)
+    strategy = check_strategy(strategy)
+    x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
         return [x[i, :n] for i, n in enumerate(data.lengths)], [
             z[i, :n] for i, n in enumerate(data.lengths)
@@ -101,6 +123,7 @@ def loss(
     penalty=None,
     penalty_weight: float = 1.0,
     missing: str = "raise",
+    strategy: str = "auto",
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 

@@ -7,9 +7,25 @@ sensitivities.
 - `"vjp"` (matrix-free): the recursions push vectors through the step as VJPs (gradient)
   or JVPs (sensitivities) inside the scan and never form J^{x/x}; memory O(T n_x).
   Best for large or sparse states and large batches.
+- `"parallel"`: parallel in time (`oneshot_jax._parallel`): the rollout by Newton
+  iterations whose linear recurrences are associative scans (DEER, with a damped stage
+  and a sequential fallback), and the gradient's and the sensitivities' recursions as
+  associative scans. O(log T) depth instead of T sequential steps: for accelerators, where
+  a sequential scan pays a kernel launch per step. On a CPU the sequential strategies are
+  faster (`benchmarks/parallel.py`).
+
+"auto" takes "parallel" on a GPU or TPU for records of at least `PARALLEL_MIN_T` samples,
+and otherwise "jacobian" for small states and "vjp" for large ones.
 """
 
-STRATEGIES = ("auto", "jacobian", "vjp")
+import jax
+
+STRATEGIES = ("auto", "jacobian", "vjp", "parallel")
+ACCELERATORS = ("gpu", "tpu", "cuda", "rocm")
+# On an accelerator a sequential scan costs one or more kernel launches per step (about
+# 10 microseconds), a parallel solve a few dozen launches in all: from a few hundred
+# steps on, parallel wins there.
+PARALLEL_MIN_T = 512
 
 # Above this many bytes for the stacked J^{x/x}_k, "auto" takes the vjp strategy.
 JACOBIAN_BYTES = 256 * 2**20
@@ -23,6 +39,14 @@ THETA_FORWARD_MIN = 8
 # costs more (on XLA:CPU with n_x = 2..3 and 5..6 columns the two cross between N = 16
 # and N = 64).
 JACOBIAN_MAX_BATCH_WORK = 512
+
+
+def is_parallel(strategy, T):
+    """Whether the time recursions run in parallel: asked for, or "auto" on an accelerator
+    for a long record."""
+    if strategy == "parallel":
+        return True
+    return strategy == "auto" and T >= PARALLEL_MIN_T and jax.default_backend() in ACCELERATORS
 
 
 def gradient_strategy(strategy, n_x, T, itemsize):

@@ -19,6 +19,7 @@ from helpers import assert_tree_rel_close, duffing_rhs, motor_observe, motor_rhs
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
+from oneshot_jax._cost import Cost
 from oneshot_jax._parallel import (
     diagonal_linear_recurrence,
     linear_recurrence,
@@ -365,17 +366,20 @@ def test_bad_options_raise():
 #
 
 
+def cost_of(weight, penalty, penalty_weight):
+    pw = jnp.asarray(penalty_weight if penalty is not None else 0.0)
+    return Cost(weight, penalty, pw)
+
+
 @functools.partial(jax.jit, static_argnums=(0, 6), static_argnames=("chunk_size",))
 def parallel_vg(model, theta, x0, u, z, weight, penalty, penalty_weight, chunk_size=None):
     return parallel_value_and_grad(
         model,
+        cost_of(weight, penalty, penalty_weight),
         theta,
         x0,
         u,
         z,
-        weight,
-        penalty,
-        penalty_weight,
         newton={"chunk_size": chunk_size},
         with_info=True,
     )
@@ -383,7 +387,8 @@ def parallel_vg(model, theta, x0, u, z, weight, penalty, penalty_weight, chunk_s
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def vg_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight):
-    return value_and_grad_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight)
+    cost = cost_of(weight, penalty, penalty_weight)
+    return value_and_grad_of_states(model, cost, theta, xs, u, z)
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -436,38 +441,113 @@ def test_value_and_grad_with_fallback_equals_sequential():
 
 def sensitivity_args(name):
     """The arguments of `trajectory_jacobian` as `fit` builds them: one fixed theta entry,
-    one fixed x0 entry, sqrt(Q) and the 1/sqrt(T) scale."""
+    one fixed x0 entry, the cost and the 1/sqrt(T) scale."""
     model, theta, x0, u, z, weight, penalty, pw = case(name)
     flat, unravel = ravel_pytree(theta)
     free = np.arange(flat.size) != 1
     p_theta = flat[free]
     theta_of = lambda p: unravel(flat.at[np.flatnonzero(free)].set(p))  # noqa: E731
     x0_of = lambda p: x0.at[1:].set(p)  # noqa: E731
-    sqrt_q = None if weight is None else jnp.sqrt(weight)
     scale = 1.0 / np.sqrt(u.shape[0])
-    return (model, theta_of, p_theta, x0_of, x0[1:], u, z, sqrt_q, penalty, jnp.asarray(pw), scale)
+    cost = cost_of(weight, penalty, pw)
+    return (model, cost, theta_of, p_theta, x0_of, x0[1:], u, z), scale
 
 
 def test_sensitivities_equal_trajectory_jacobian():
     """Motor (a penalty, u- and theta-dependent outputs, fixed entries): the sensitivity
     recursion by the associative scan at the parallel states."""
-    args = sensitivity_args("motor")
+    args, scale = sensitivity_args("motor")
     model, theta, x0, u = case("motor")[:4]
     xs, info = parallel_states(model.step, theta, x0, u)
-    want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
-    got = jax.jit(lambda xs: sensitivities_of_states(*args[:5], xs, *args[5:]))(xs)
-    for a, b in zip(got, want):
+    want = jax.jit(lambda: trajectory_jacobian(*args, scale=scale, strategy="jacobian"))()
+    got = jax.jit(lambda xs: sensitivities_of_states(*args[:6], xs, *args[6:], scale=scale))(xs)
+    for a, b in zip(got[:3], want[:3]):  # r, J_theta, J_x0
         assert a.shape == b.shape
         assert_tree_rel_close(a, b, rtol=RTOL)
+    assert float(got.h_min) == pytest.approx(float(want.h_min), rel=RTOL)
 
 
 def test_chunked_parallel_sensitivities_equal_trajectory_jacobian():
-    args = sensitivity_args("satellite")
-    want = jax.jit(lambda: trajectory_jacobian(*args, strategy="jacobian"))()
+    args, scale = sensitivity_args("satellite")
+    want = jax.jit(lambda: trajectory_jacobian(*args, scale=scale, strategy="jacobian"))()
     got, info = jax.jit(
-        lambda: parallel_sensitivities(*args, newton={"chunk_size": 64}, with_info=True)
+        lambda: parallel_sensitivities(
+            *args, scale=scale, newton={"chunk_size": 64}, with_info=True
+        )
     )()
     assert int(info.method) == NEWTON and int(info.chunks) == 4
-    for a, b in zip(got, want):
+    for a, b in zip(got[:3], want[:3]):  # r, J_theta, J_x0
         assert a.shape == b.shape
         assert_tree_rel_close(a, b, rtol=RTOL)
+    assert float(got.h_min) == pytest.approx(float(want.h_min), rel=RTOL)
+
+
+#
+# The public entry points with strategy="parallel".
+#
+
+
+def test_public_functions_with_the_parallel_strategy_equal_the_sequential_ones():
+    model, theta, x0, u, z, weight, penalty, pw = case("motor")
+    kw = dict(weight=weight, penalty=penalty, penalty_weight=pw)
+    xs, zs = oj.simulate(model, theta, x0, u)
+    xp, zp = oj.simulate(model, theta, x0, u, strategy="parallel")
+    assert_tree_rel_close((xp, zp), (xs, zs), rtol=RTOL)
+    C = oj.loss(model, theta, x0, u, z, **kw)
+    assert float(oj.loss(model, theta, x0, u, z, strategy="parallel", **kw)) == pytest.approx(
+        float(C), rel=RTOL
+    )
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian", **kw)
+    got = oj.value_and_grad(model, theta, x0, u, z, strategy="parallel", **kw)
+    assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def test_parallel_strategy_with_foh_input_missing_samples_and_several_trajectories():
+    """The parallel path sees what the step sees (u[k], u[k+1] under "foh"), the masks
+    and the normalisation of several trajectories of different lengths."""
+    model = oj.Model.from_ode(
+        lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]]),
+        0.1,
+        observe=lambda x, u, th: x[:1],
+        input="foh",
+    )
+    theta = {"k": jnp.asarray(2.0), "c": jnp.asarray(0.4)}
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal((60, 1))
+    z = rng.standard_normal((60, 1))
+    z[5:9] = np.nan
+    x0 = np.array([[0.5, 0.0], [0.1, 0.2]])
+    us, zs = [u, u[:40]], [z, z[:40]]
+    want = oj.value_and_grad(model, theta, x0, us, zs, missing="mask", strategy="jacobian")
+    got = oj.value_and_grad(model, theta, x0, us, zs, missing="mask", strategy="parallel")
+    assert_tree_rel_close(got, want, rtol=RTOL)
+
+
+def test_fit_with_parallel_solvers_equals_the_sequential_fit():
+    model, theta, x0, u, z = case("satellite")[:5]
+    _, zt = oj.simulate(model, theta, x0, u)
+    z = np.asarray(zt) + 1e-4 * np.random.default_rng(4).standard_normal(zt.shape)
+    theta0 = {"I": theta["I"] * 1.05}
+    seq = oj.fit(model, theta0, x0, u, z, solver=oj.GaussNewton())
+    par = oj.fit(model, theta0, x0, u, z, solver=oj.GaussNewton(strategy="parallel"))
+    assert seq.diagnostics == {} and par.diagnostics["sequential_fallbacks"] == 0
+    assert par.diagnostics["parallel_rollouts"] >= par.num_steps
+    assert par.num_steps == seq.num_steps
+    assert_tree_rel_close(par.theta, seq.theta, rtol=1e-10)
+    np.testing.assert_allclose(par.std["I"], seq.std["I"], rtol=1e-8)
+
+
+def test_a_fallback_is_reported():
+    """A chaotic logistic map: the parallel rollout falls back, with a warning outside
+    fit and in FitResult.diagnostics inside it; the results are the sequential ones."""
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    model = oj.Model(step)
+    u = jnp.zeros((T, 1))
+    with pytest.warns(RuntimeWarning, match="fell back to the sequential loop"):
+        xp, _ = oj.simulate(model, theta, x0, u, strategy="parallel")
+    xs, _ = oj.simulate(model, theta, x0, u)
+    np.testing.assert_array_equal(np.asarray(xp), np.asarray(xs))
+    z = np.asarray(xs)
+    with pytest.warns(RuntimeWarning, match="fell back to the sequential loop"):
+        r = oj.fit(model, theta, x0, u, z, fixed=True, solver=oj.GaussNewton(strategy="parallel"))
+    assert r.diagnostics["sequential_fallbacks"] >= 1

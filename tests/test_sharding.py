@@ -1,4 +1,4 @@
-"""Fleets sharded over devices (`oneshot_jax._sharding`) give the unsharded results.
+"""Fleets sharded over devices (`oneshot_jax.sharding`) give the unsharded results.
 
 The check runs in a subprocess with `XLA_FLAGS=--xla_force_host_platform_device_count=4`:
 the flag only takes effect before JAX initialises its CPU backend, which this test
@@ -7,9 +7,10 @@ process has already done. There, with 8 trajectories split over 4 CPU devices:
 - `oneshot_jax.value_and_grad` (batched, strategy "jacobian" and "vjp") on sharded
   inputs equals the call on unsharded ones, and its compiled form reduces over devices
   (an all-reduce in the HLO), with grad_x0 left sharded;
-- the Gauss-Newton normal equations (`_solvers._normal_blocks`, einsums over the
+- the Gauss-Newton normal equations (`_linalg.normal_blocks`, einsums over the
   trajectory axis) of the closed-form residual Jacobians equal the unsharded ones;
-- the parallel-in-time gradient, vmapped over the sharded fleet, equals the sequential one;
+- the parallel-in-time gradient over the sharded fleet equals the sequential one;
+- `fit` on the sharded fleet equals `fit` on the unsharded one;
 - N = 6 on 4 devices is refused with a ValueError.
 """
 
@@ -28,11 +29,11 @@ SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
 
     import oneshot_jax as oj
+    from oneshot_jax._cost import Cost
     from oneshot_jax._gradient import value_and_grad_impl
-    from oneshot_jax._parallel import parallel_value_and_grad
+    from oneshot_jax._linalg import normal_blocks
     from oneshot_jax._sensitivity import trajectory_jacobian
-    from oneshot_jax._sharding import AXIS, fleet_mesh, replicate, shard_fleet
-    from oneshot_jax._solvers import _normal_blocks
+    from oneshot_jax.sharding import AXIS, fleet_mesh, replicate, shard_fleet
 
     assert len(jax.devices()) == 4, jax.devices()
 
@@ -69,8 +70,9 @@ SCRIPT = textwrap.dedent(
         got = oj.value_and_grad(model, th, xs, us, zs, strategy=strategy)
         check(got, want, "value_and_grad " + strategy)
         assert got[1][1].sharding.spec[0] == AXIS  # grad_x0 stays sharded
+    cost = Cost(None, None, jnp.asarray(0.0))
     fn = jax.jit(lambda th, x0, u, z: value_and_grad_impl(
-        model, th, x0, u, z, None, None, jnp.asarray(1.0), True, "jacobian"))
+        model, cost, th, x0, u, z, True, "jacobian"))
     hlo = fn.lower(th, xs, us, zs).compile().as_text()
     assert "all-reduce" in hlo
 
@@ -79,10 +81,10 @@ SCRIPT = textwrap.dedent(
         flat = theta["I"]
         def one(x0, u, z):
             return trajectory_jacobian(
-                model, lambda p: {"I": p}, flat, lambda p: p, x0, u, z, None, None,
-                1.0, 1.0 / np.sqrt(N * T), strategy="jacobian")
-        r, Jt, Jx = jax.vmap(one)(x0, u, z)
-        return _normal_blocks(Jt, Jx, r.reshape(N, -1))
+                model, cost, lambda p: {"I": p}, flat, lambda p: p, x0, u, z,
+                scale=1.0 / np.sqrt(N * T), strategy="jacobian")
+        lin = jax.vmap(one)(x0, u, z)
+        return normal_blocks(lin.Jt, lin.Jx, lin.r.reshape(N, -1))
 
     normal_equations = jax.jit(normal_equations)
     want = normal_equations(theta, x0, u, z)
@@ -92,17 +94,21 @@ SCRIPT = textwrap.dedent(
     assert "all-reduce" in hlo
 
     # 3. The parallel-in-time gradient over the sharded fleet.
-    @jax.jit
-    def fleet_parallel(theta, x0, u, z):
-        C, (g_theta, g_x0) = jax.vmap(lambda x0, u, z: parallel_value_and_grad(
-            model, theta, x0, u, z, None, None, 1.0))(x0, u, z)
-        return jnp.mean(C), (jax.tree_util.tree_map(lambda g: jnp.mean(g, 0), g_theta),
-                             g_x0 / N)
-
     want = oj.value_and_grad(model, theta, x0, u, z, strategy="jacobian")
-    check(fleet_parallel(th, xs, us, zs), want, "parallel fleet")
+    check(oj.value_and_grad(model, th, xs, us, zs, strategy="parallel"), want, "parallel fleet")
 
-    # 4. Uneven fleets are refused.
+    # 4. fit on the sharded fleet (the data stay sharded in its compiled call).
+    _, zt = oj.simulate(model, theta, x0, u)
+    zt = zt + 1e-4 * jnp.asarray(rng.standard_normal(zt.shape))
+    xs, us, zts = shard_fleet(x0, u, zt, mesh=mesh)
+    theta0 = {"I": theta["I"] * 1.05}
+    want = oj.fit(model, theta0, x0, u, zt, solver=oj.GaussNewton())
+    got = oj.fit(model, theta0, xs, us, zts, solver=oj.GaussNewton())
+    assert got.num_steps == want.num_steps, (got.num_steps, want.num_steps)
+    assert rel(got.theta["I"], want.theta["I"]) <= 1e-10, rel(got.theta["I"], want.theta["I"])
+    assert rel(got.x0, want.x0) <= 1e-10
+
+    # 5. Uneven fleets are refused.
     try:
         shard_fleet(x0[:6], u[:6], z[:6], mesh=mesh)
     except ValueError as err:

@@ -458,8 +458,11 @@ def newton_rollout(
     us = jnp.asarray(us)
     if x0.ndim != 1:
         raise ValueError(f"`x0` must have shape (n,), got shape {x0.shape}.")
-    if us.ndim != 2 or us.shape[0] < 1:
-        raise ValueError(f"`us` must have shape (T, n_u) with T >= 1, got shape {us.shape}.")
+    if us.ndim < 2 or us.shape[0] < 1:
+        raise ValueError(
+            f"`us` must have shape (T, n_u) (or (T, 2, n_u) for a first-order hold) with "
+            f"T >= 1, got shape {us.shape}."
+        )
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         raise ValueError(f"`x0` must be a floating array, got dtype {x0.dtype}.")
     xs, info = _states_diff(step, options, theta, x0, us[:-1])

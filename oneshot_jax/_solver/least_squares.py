@@ -161,7 +161,7 @@ class AbstractLeastSquares(AbstractSolver):
         new = Params(
             problem.feasible(params.theta + alpha * step.theta), params.x0 + alpha * step.x0
         )
-        r, _ = problem.residuals(new)
+        r, _ = problem.residuals(new, strategy=self.strategy)
         C = jnp.sum(r**2)
         return new, jnp.where(jnp.isfinite(C), C, jnp.inf)
 
@@ -230,7 +230,7 @@ class AbstractLeastSquares(AbstractSolver):
         # With a negative lambda h the sum of squares is not C: report C itself.
         loss = jax.lax.cond(
             result == RESULTS.negative_penalty,
-            lambda: problem.loss(params),
+            lambda: problem.loss(params, self.strategy),
             lambda: state.loss,
         )
         blocks = None if problem.cost.penalty is not None else (state.loss, b.A, b.B, b.Cb)

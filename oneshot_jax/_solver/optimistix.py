@@ -40,7 +40,7 @@ def _point(problem: FitProblem, y, held: _Held) -> Params:
 
 @eqx.filter_custom_jvp
 def _residuals(y, *, problem, held, strategy):
-    r, _ = problem.residuals(_point(problem, y, held))
+    r, _ = problem.residuals(_point(problem, y, held), strategy=strategy)
     extra = jnp.where(held.mask, y[0] - held.values, 0.0)
     return jnp.concatenate([r.reshape(-1), extra])
 
@@ -66,7 +66,7 @@ def _residuals_jvp(primals, tangents, *, problem, held, strategy):
 
 @eqx.filter_custom_jvp
 def _loss(y, *, problem, held, strategy):
-    C = problem.loss(_point(problem, y, held))
+    C = problem.loss(_point(problem, y, held), strategy)
     return C + jnp.sum(jnp.where(held.mask, y[0] - held.values, 0.0) ** 2)
 
 

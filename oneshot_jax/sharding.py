@@ -11,10 +11,13 @@ are, and XLA's SPMD partitioner turns every mean or einsum over the trajectory a
 local reduction followed by one all-reduce across devices. Per-trajectory outputs
 (grad_x0, residuals, Jacobian rows) stay sharded. Nothing in the library changes.
 
-    mesh = fleet_mesh()                       # all of jax.devices()
-    x0, u, z = shard_fleet(x0, u, z, mesh=mesh)
-    theta = replicate(theta, mesh)
+    from oneshot_jax import sharding
+
+    mesh = sharding.fleet_mesh()              # all of jax.devices()
+    x0, u, z = sharding.shard_fleet(x0, u, z, mesh=mesh)
+    theta = sharding.replicate(theta, mesh)
     C, (g_theta, g_x0) = oneshot_jax.value_and_grad(model, theta, x0, u, z)
+    result = oneshot_jax.fit(model, theta, x0, u, z)   # the data stay sharded in the fit
 
 N must be a multiple of the number of devices: `shard_fleet` raises a `ValueError`
 otherwise. Padding with dummy trajectories is not done, because the cost is the plain
