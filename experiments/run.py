@@ -13,8 +13,8 @@ run there (results.json, results.md and its figures), checks the configuration (
 stops the run before anything is computed, exit status 2), writes `resolved_config.yaml`
 (Hydra keeps its own copy under `.hydra/`), calls `run`, and writes `results.json`
 atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error. With
-`publish=true` the run's `results.md` is copied to `experiments/<name>_results.md` (figure
-links rewritten to `../docs/figures/`) and its figures to `docs/figures/<name>_<figure>`.
+`publish=true` the run's `results.md` is copied to `docs/case-studies/<name>.md` (figure
+links rewritten to `../figures/`) and its figures to `docs/figures/<name>_<figure>`.
 """
 
 from __future__ import annotations
@@ -90,7 +90,8 @@ def clear_stale(outdir: Path) -> list[Path]:
 
 
 def publish(name: str, outdir: Path, figures) -> list[Path]:
-    """Copy a run's results.md and figures into the repository (the published results)."""
+    """Copy a run's results.md and figures into the documentation: the case-study page
+    `docs/case-studies/<name>.md` and its figures `docs/figures/<name>_<figure>`."""
     written = []
     fig_dir = REPO / "docs" / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -100,9 +101,10 @@ def publish(name: str, outdir: Path, figures) -> list[Path]:
         shutil.copyfile(outdir / fig, target)
         written.append(target)
         if md is not None:
-            md = md.replace(f"]({fig})", f"](../docs/figures/{name}_{fig})")
+            md = md.replace(f"]({fig})", f"](../figures/{name}_{fig})")
     if md is not None:
-        target = REPO / "experiments" / f"{name}_results.md"
+        target = REPO / "docs" / "case-studies" / f"{name}.md"
+        target.parent.mkdir(parents=True, exist_ok=True)
         target.write_text(md)
         written.append(target)
     return written

@@ -16,6 +16,8 @@ GUIDES = [
     "docs/guides/fixed-and-x0.md",
     "docs/guides/data.md",
     "docs/guides/uncertainty.md",
+    "docs/guides/parallel.md",
+    "docs/guides/real-data.md",
 ]
 
 

@@ -3,8 +3,8 @@ with the experiments' own code, lands near the full-run parameters; the experime
 the configured solver.
 
 The full runs (`python experiments/run.py experiment=emps|cascaded_tanks`) use the whole
-records; the numbers they print are in experiments/emps_results.md and
-experiments/cascaded_tanks_results.md. These tests skip when the benchmark files are not
+records; the numbers they print are in docs/case-studies/emps.md and
+docs/case-studies/cascaded_tanks.md. These tests skip when the benchmark files are not
 available.
 """
 
@@ -23,7 +23,7 @@ if str(ROOT) not in sys.path:
 
 from experiments import cascaded_tanks, config, emps  # noqa: E402
 
-# Full-run estimates (experiments/emps_results.md, experiments/cascaded_tanks_results.md).
+# Full-run estimates (docs/case-studies/emps.md, docs/case-studies/cascaded_tanks.md).
 EMPS_FULL = {"M": 95.1070, "Fv": 203.8237, "Fc": 20.4664, "offset": -3.1684}
 TANKS_FULL = {
     "k1": 0.04589,
