@@ -551,3 +551,17 @@ def test_a_fallback_is_reported():
     with pytest.warns(RuntimeWarning, match="fell back to the sequential loop"):
         r = oj.fit(model, theta, x0, u, z, fixed=True, solver=oj.GaussNewton(strategy="parallel"))
     assert r.diagnostics["sequential_fallbacks"] >= 1
+
+
+def test_auto_takes_the_parallel_path_only_on_accelerators(monkeypatch):
+    """On a CPU the sequential scan is faster at every size (benchmarks/parallel.py), so
+    "auto" never takes the parallel path there; on a GPU or TPU it does for long records."""
+    from oneshot_jax import _strategy
+
+    assert jax.default_backend() == "cpu"
+    assert not _strategy.is_parallel("auto", 10**7)
+    assert _strategy.is_parallel("parallel", 2)
+    monkeypatch.setattr(_strategy.jax, "default_backend", lambda: "gpu")
+    assert _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T)
+    assert not _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T - 1)
+    assert not _strategy.is_parallel("jacobian", 10**7)
