@@ -284,7 +284,9 @@ def test_bad_penalty_weight(penalty_weight, entry):
 
 @pytest.mark.parametrize("strategy", ["adjoint", "Jacobian", None, "", "literal"])
 def test_bad_strategy(strategy):
-    with pytest.raises(ValueError, match=r"`strategy` must be 'auto', 'jacobian' or 'vjp'"):
+    with pytest.raises(
+        ValueError, match=r"`strategy` must be 'auto', 'jacobian', 'vjp' or 'parallel'"
+    ):
         call("value_and_grad", strategy=strategy)
 
 
