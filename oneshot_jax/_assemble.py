@@ -69,9 +69,11 @@ def _history(problem, stages, best, like):
 def _warn_identifiability(names, ok, what):
     bad = [n for n, k in zip(names, ok) if not k]
     if bad:
+        # A network's weights are many and never all identifiable: name a few.
+        listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
         warnings.warn(
-            f"the Jacobian is rank-deficient at the solution: {what} {bad} do not change the "
-            "outputs there (not identifiable from these data); their std is inf.",
+            f"the Jacobian is rank-deficient at the solution: {what} {listed} do not change "
+            "the outputs there (not identifiable from these data); their std is inf.",
             stacklevel=4,
         )
 

@@ -180,7 +180,7 @@ def fit(
     - `weight`, `penalty`, `penalty_weight`: Q and h, lambda of eq. (4), (21), as for
         `loss`. The least-squares solvers need lambda h >= 0.
     - `constraints`: a projection from `oneshot_jax.constraints`, a proximal regulariser
-        from `oneshot_jax.sparsity` (`l1`, `group_lasso`), or a list of them, on theta
+        from `oneshot_jax.sparsity` (`l1`, `group_lasso`, `l2`), or a list of them, on theta
         (their `where` is written on theta as given, modules included). A regulariser g
         makes the objective C + g(theta): `loss` and the history then report C + g. Only
         `Adam` (proximal Adam: the prox with its per-coordinate steps) and

@@ -217,7 +217,7 @@ def separate(constraints):
             raise ValueError(
                 "`constraints` must hold projections from oneshot_jax.constraints "
                 "(non_negative, positive, box, project) and proximal regularisers from "
-                f"oneshot_jax.sparsity (l1, group_lasso), or a list of them; got {c!r}."
+                f"oneshot_jax.sparsity (l1, group_lasso, l2), or a list of them; got {c!r}."
             )
     projections = [c for c in items if isinstance(c, ProjectionTransformation)]
     regularisers = [c for c in items if isinstance(c, ProximalTransformation)]

@@ -44,11 +44,12 @@ be told the step of the update it follows.
     `fixed=` mask of the zeros, to refit the selected terms alone with a least-squares
     solver (see `oneshot_jax.fit`).
 
-**Weight decay** (an L2 penalty on network weights) is smooth and needs no proximal step:
-use optax's masked transforms with `mask` from this module to pick the leaves, e.g.
-`optax.adamw(eta, weight_decay=1e-4, mask=mask(lambda th: th["net"]))` (decoupled decay)
-or `optax.chain(optax.add_decayed_weights(1e-4, mask=...), optax.adam(eta))` (the
-gradient of (1e-4 / 2) ||w||^2 added before Adam's scaling).
+**Weight decay** (an L2 penalty (lambda / 2) ||w||^2 on network weights) is smooth, but
+its prox is exact too, w / (1 + step lambda): `l2(lam, where)` applies it like the others,
+which is how to decay selected leaves of theta inside `oneshot_jax.fit` (whose optax
+transforms see the flat free entries, not theta's leaves). In a hand-written loop over
+theta, optax's masked transforms do the same with `mask` from this module, e.g.
+`optax.adamw(eta, weight_decay=1e-4, mask=mask(lambda th: th["net"]))`.
 
 **Selecting what is regularised** (`where`), as optax's masks:
 
@@ -77,6 +78,7 @@ __all__ = [
     "ProximalState",
     "ProximalAdamState",
     "l1",
+    "l2",
     "group_lasso",
     "combine",
     "proximal_adam",
@@ -406,6 +408,39 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     return _from_prox(prox, value, learning_rate, "l1", strength)
 
 
+def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
+    """Weight decay `(strength / 2) ||w||^2` as an exact proximal step (a shrinkage).
+
+    prox(v)_i = v_i / (1 + step_i strength): the implicit step on the penalty, stable for
+    any step. No exact zeros (the penalty is smooth); with `proximal_adam` or `fit`'s
+    `Adam` it is weight decay in Adam's diagonal metric.
+
+    **Arguments:**
+
+    - `strength`: lambda >= 0.
+    - `where`, `learning_rate`: as for `l1`.
+
+    **Returns:**
+
+    A `ProximalTransformation`.
+    """
+    _check_nonneg_scalar(strength, "strength")
+
+    def prox(params, step_size):
+        sel = _resolve_where(where, params, entries=True)
+        return _map_selected(lambda p, s, _: p / (1 + s * strength), params, sel, step_size)
+
+    def value(params):
+        sel = _resolve_where(where, params, entries=True)
+        total = 0.0
+        for p, b in zip(jax.tree_util.tree_leaves(params), sel):
+            if b is not False:
+                total = total + jnp.sum(jnp.where(b, p * p, 0))
+        return 0.5 * strength * total
+
+    return _from_prox(prox, value, learning_rate, "l2", strength)
+
+
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
     """Group lasso `strength * sum_G ||w_G||_2` as an exact (block soft-thresholding) prox.
 
@@ -488,7 +523,7 @@ def combine(regularisers) -> ProximalTransformation | None:
     ):
         raise ValueError(
             "`regularisers` must be a ProximalTransformation from oneshot_jax.sparsity "
-            f"(l1, group_lasso) or a non-empty list of them, got {regularisers!r}."
+            f"(l1, group_lasso, l2) or a non-empty list of them, got {regularisers!r}."
         )
     if len(regularisers) == 1:
         return regularisers[0]

@@ -52,8 +52,8 @@ class AbstractSolver(eqx.Module):
         del regulariser
         name = type(self).__name__
         raise ValueError(
-            f"`{name}` needs a smooth objective and cannot minimise C + g with the "
-            "non-smooth regulariser (l1, group_lasso) in `constraints`. Select the terms "
+            f"`{name}` cannot minimise C + g with a proximal regulariser (l1, group_lasso, "
+            "l2) in `constraints`: it needs a smooth sum of squares or loss. Select the terms "
             "with a proximal solver: oneshot_jax.Adam (proximal Adam, exact zeros) or "
             "oneshot_jax.Optax(transform) with the regulariser's learning_rate; then refit "
             f"the surviving terms without the regulariser, e.g. with `{name}` and "
