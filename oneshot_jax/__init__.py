@@ -3,7 +3,10 @@
 from . import constraints as constraints
 from . import datasets as datasets
 from . import metrics as metrics
+from . import penalties as penalties
+from . import residual as residual
 from . import sharding as sharding
+from . import sparsity as sparsity
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult

@@ -13,6 +13,7 @@ from ._covariance import covariance, scale
 from ._fit_result import FitHistory, FitResult, Starts
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
+from ._strategy import COVARIANCE_MAX_THETA
 
 
 def post(problem, params, blocks, strategy):
@@ -21,7 +22,11 @@ def post(problem, params, blocks, strategy):
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
     _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
-    cov = covariance(problem, params, strategy, blocks)
+    # Above COVARIANCE_MAX_THETA free entries of theta the covariance (a dense Jacobian with
+    # a column per parameter, and a p x p eigendecomposition) is not computed.
+    cov = None
+    if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
+        cov = covariance(problem, params, strategy, blocks)
     zs = problem.z
     m = None if problem.mask is None else problem.mask.outputs
     n_free = params.theta.shape[0] + params.x0.size
@@ -71,9 +76,11 @@ def _history(problem, stages, best, like):
 def _warn_identifiability(names, ok, what):
     bad = [n for n, k in zip(names, ok) if not k]
     if bad:
+        # A network's weights are many and never all identifiable: name a few.
+        listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
         warnings.warn(
-            f"the Jacobian is rank-deficient at the solution: {what} {bad} do not change the "
-            "outputs there (not identifiable from these data); their std is inf.",
+            f"the Jacobian is rank-deficient at the solution: {what} {listed} do not change "
+            "the outputs there (not identifiable from these data); their std is inf.",
             stacklevel=4,
         )
 
@@ -102,24 +109,31 @@ def assemble(
     all_names = _pytree.leaf_names(params)
     names = tuple(all_names[i] for i in free)
 
-    n_obs = int(np.sum(np.isfinite(e)))
-    scaled = scale(cov, n_obs)
-    _warn_identifiability(names, scaled.theta_identifiable, "parameters")
-    x0_names = [
-        f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
-        for i in range(X0.shape[0])
-        for j in problem.x0_free
-    ]
-    _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
-
-    flat_std = np.zeros(theta_flat.shape)
-    flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0)) if free.size else []
-    std = _pytree.unflatten_rows(flat_std[None], like, squeeze=True)
     x0_free = np.asarray(problem.x0_free, int)
+    flat_std = np.zeros(theta_flat.shape)
     x0_std = np.zeros(X0.shape)
-    if x0_free.size:
-        x0_std[:, x0_free] = np.sqrt(np.maximum(np.diagonal(scaled.x0, axis1=1, axis2=2), 0.0))
-    x0_cov = scaled.x0
+    if cov is None:  # not computed (a large theta): NaN standard errors, no (p, p) matrix
+        theta_cov = np.zeros((0, 0))
+        flat_std[free] = np.nan
+        x0_std[:, x0_free] = np.nan
+        x0_cov = np.full((X0.shape[0], x0_free.size, x0_free.size), np.nan)
+    else:
+        n_obs = int(np.sum(np.isfinite(e)))
+        scaled = scale(cov, n_obs)
+        _warn_identifiability(names, scaled.theta_identifiable, "parameters")
+        x0_names = [
+            f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
+            for i in range(X0.shape[0])
+            for j in problem.x0_free
+        ]
+        _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
+        theta_cov = scaled.theta
+        flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0)) if free.size else []
+        if x0_free.size:
+            diag = np.diagonal(scaled.x0, axis1=1, axis2=2)
+            x0_std[:, x0_free] = np.sqrt(np.maximum(diag, 0.0))
+        x0_cov = scaled.x0
+    std = _pytree.unflatten_rows(flat_std[None], like, squeeze=True)
 
     results = np.asarray(final.result._value)
     losses = np.asarray(final.loss)
@@ -147,7 +161,7 @@ def assemble(
         residuals=e,
         names=names,
         fixed=np.asarray(fixed, bool),
-        covariance=scaled.theta,
+        covariance=theta_cov,
         std=std,
         x0_covariance=x0_cov,
         x0_std=x0_std,

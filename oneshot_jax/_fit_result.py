@@ -17,8 +17,8 @@ class FitHistory(eqx.Module):
 
     **Fields:**
 
-    - `loss`, `grad_norm`: C and ||grad C|| at each recorded step (NaN where a solver has
-        no gradient at hand).
+    - `loss`, `grad_norm`: the objective (C, or C + g with a regulariser) and ||grad C||
+        at each recorded step (NaN where a solver has no gradient at hand).
     - `theta`: the iterates, theta's parameter pytree with a leading axis of rows.
     - `step`: the step each row was recorded at, counted from the start of its stage.
     - `stage`: which solver of a sequence the row belongs to (0 for a single solver).
@@ -57,7 +57,8 @@ class FitResult(eqx.Module):
     - `theta`: the estimated parameters, same pytree as `theta0` (a start of it for a
         multistart fit).
     - `x0`: the estimated initial state(s), shape (n_x,) or (N, n_x).
-    - `loss`: the final C of eq. (5)/(21): the objective at `theta`, `x0`.
+    - `loss`: the final objective at `theta`, `x0`: C of eq. (5)/(21), plus g(theta) when
+        `fit(constraints=...)` holds a regulariser from `oneshot_jax.sparsity`.
     - `stop_reason`: a `RESULTS` item; `message` says why in words, `success` whether it
         converged.
     - `num_steps`: the solver steps taken (all solvers of a sequence together).
@@ -72,7 +73,9 @@ class FitResult(eqx.Module):
         Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free)); inf in the
         rows and columns of a parameter the data do not determine. The least-squares
         solvers take J from their last linearisation, at the returned point or one
-        converged step (of scaled size <= rtol) before it.
+        converged step (of scaled size <= rtol) before it. Not computed above 1024 free
+        entries of theta (a neural residual, say): then an empty (0, 0) array, and `std`,
+        `x0_std`, `x0_covariance` are NaN.
     - `std`: standard errors shaped like theta's parameters (0 where fixed).
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
@@ -203,6 +206,8 @@ class FitResult(eqx.Module):
         for name, v, s, f in zip(names, flat, std, self.fixed):
             if f:
                 ci = "(fixed)"
+            elif np.isnan(s):
+                ci = "(not computed)"
             elif np.isfinite(s):
                 ci = f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]"
             else:

@@ -5,10 +5,15 @@ theta) and `Params.x0` (N, m) (the free entries of each trajectory's initial sta
 Fixed entries are constants inside `FitProblem.theta_of` / `FitProblem.x0_of`, so they are
 removed from the variables rather than masked (a masked variable leaves a singular
 Jacobian).
+
+A fit with a proximal regulariser g (`oneshot_jax.sparsity`, passed in `constraints=`)
+minimises C + g(theta). g is written on the user's theta; `FitProblem.prox` applies its
+proximal map to the free entries with per-coordinate steps (zero on the fixed entries,
+which a prox with a zero step leaves unchanged).
 """
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,9 +21,18 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from . import _pytree
 from ._cost import Cost, Mask
 from ._gradient import value_and_grad_impl
-from ._sensitivity import Linearisation, trajectory_jacobian, trajectory_residuals
+from ._sensitivity import (
+    Linearisation,
+    Trajectory,
+    linearise_trajectory,
+    residual_jvp,
+    residual_vjp,
+    trajectory_jacobian,
+    trajectory_residuals,
+)
 from ._simulate import loss_impl, sample_count
 from ._strategy import is_parallel, sensitivity_strategy
 
@@ -28,6 +42,30 @@ class Params(NamedTuple):
 
     theta: jax.Array
     x0: jax.Array
+
+
+class Regulariser(eqx.Module):
+    """A `sparsity.ProximalTransformation` seen on theta's trainable part: the user's
+    prox and value (written on the whole theta, `where` included) with theta's static part
+    (functions and other non-numeric leaves of equinox modules) bound in."""
+
+    prox_fn: Callable
+    value_fn: Callable
+    static: Any
+    strength: float | None = eqx.field(static=True)
+    learning_rate: Any
+
+    def _whole(self, params):
+        return _pytree.combine(params, self.static)
+
+    def value(self, params):
+        """g(theta)."""
+        return self.value_fn(self._whole(params))
+
+    def prox(self, params, steps):
+        """prox of g at theta with per-coordinate steps (a pytree like `params`)."""
+        new = self.prox_fn(self._whole(params), self._whole(steps))
+        return eqx.filter(new, _pytree.is_parameter)
 
 
 class FitProblem(eqx.Module):
@@ -46,6 +84,7 @@ class FitProblem(eqx.Module):
     lower: jax.Array | None  # box bounds on Params.theta (or None)
     upper: jax.Array | None
     mask: Mask | None = None  # padded or missing samples (N, T, n_z) / (N, T), or None
+    regulariser: Regulariser | None = None  # a proximal g of theta (objective C + g), or None
 
     @property
     def dtype(self):
@@ -77,6 +116,26 @@ class FitProblem(eqx.Module):
             if self.lower is not None:
                 p_theta = jnp.clip(p_theta, self.lower, self.upper)
         return p_theta
+
+    def g(self, p_theta):
+        """The regulariser g(theta) at the free entries (0 without one)."""
+        if self.regulariser is None:
+            return jnp.zeros((), self.dtype)
+        return jnp.asarray(self.regulariser.value(self.theta_of(p_theta)), self.dtype)
+
+    def prox(self, p_theta, steps):
+        """prox of g at the free entries p_theta in the metric diag(1 / steps):
+        argmin_y g(y) + sum_i (y_i - p_i)^2 / (2 steps_i), with `steps` a scalar or one
+        step per free entry (the fixed entries get step 0: unchanged). The identity
+        without a regulariser."""
+        if self.regulariser is None:
+            return p_theta
+        free = np.asarray(self.theta_free, int)
+        steps = jnp.broadcast_to(jnp.asarray(steps, p_theta.dtype), p_theta.shape)
+        full = jnp.zeros_like(self.theta_base).at[free].set(steps)
+        new = self.regulariser.prox(self.theta_of(p_theta), self.unravel(full))
+        flat, _ = ravel_pytree(new)
+        return flat[free].astype(p_theta.dtype)
 
     def loss(self, params: Params, strategy="auto"):
         """C (eq. 5/21) at the free variables: one simulation."""
@@ -170,3 +229,63 @@ class FitProblem(eqx.Module):
 
         lin = jax.vmap(fn)(jnp.asarray(self.x0_base), params.x0, self.u, self.z, self.mask)
         return lin._replace(h_min=jnp.min(lin.h_min))
+
+    # Matrix-free products with the Jacobian of `residuals` (see `_sensitivity`).
+
+    def linearise(self, params: Params, strategy):
+        """The residuals (N, R), the smallest lambda h, and each trajectory's linearisation
+        point (`Trajectory`, batched) for `jvp` / `vjp`."""
+        r, h_min = self.residuals(params)
+        theta = self.theta_of(params.theta)
+        x0 = self.x0_of(params.x0)
+        traj = jax.vmap(lambda x0, u: linearise_trajectory(self.model, theta, x0, u, strategy))(
+            x0, self.u
+        )
+        return r, h_min, traj
+
+    def jvp(self, params: Params, traj: Trajectory, v_theta, v_x0, strategy):
+        """J v for a direction in the free variables: v_theta (p,) and v_x0 (N, m). (N, R)."""
+        theta = self.theta_of(params.theta)
+        free = np.asarray(self.theta_free, int)
+        dtheta = self.unravel(jnp.zeros_like(self.theta_base).at[free].set(v_theta))
+        x0_free = np.asarray(self.x0_free, int)
+        dx0 = jnp.zeros(self.x0_base.shape, self.dtype).at[:, x0_free].set(v_x0)
+
+        def one(traj, u, dx0, m):
+            return residual_jvp(
+                self.model,
+                self.cost,
+                theta,
+                traj,
+                u,
+                dtheta,
+                dx0,
+                scale=self._scale(),
+                strategy=strategy,
+                mask=m,
+            )
+
+        return jax.vmap(one)(traj, self.u, dx0, self.mask)
+
+    def vjp(self, params: Params, traj: Trajectory, w, strategy):
+        """J^T w for residual cotangents w (N, R): each trajectory's theta part (N, p) (sum
+        them for J^T w) and its x0 part (N, m)."""
+        theta = self.theta_of(params.theta)
+        free = np.asarray(self.theta_free, int)
+        x0_free = np.asarray(self.x0_free, int)
+
+        def one(traj, u, w, m):
+            g_theta, g_x0 = residual_vjp(
+                self.model,
+                self.cost,
+                theta,
+                traj,
+                u,
+                w,
+                scale=self._scale(),
+                strategy=strategy,
+                mask=m,
+            )
+            return ravel_pytree(g_theta)[0][free], g_x0[x0_free]
+
+        return jax.vmap(one)(traj, self.u, w, self.mask)

@@ -21,6 +21,12 @@ dr_k/dp = Q^{1/2} (J^{z/x}_k S_k + [J^{z/theta}_k, 0]) / sqrt(T N). Forward mode
 O(T n_x^2 (n_theta + n_x0)) with formed Jacobians (O(T n_x (n_theta + n_x0)) JVPs
 matrix-free) and gives every row of the Jacobian, which is what Gauss-Newton needs; the
 reverse recursion of `value_and_grad` gives one row-sum (the gradient) in O(T n_x^2).
+
+For a large theta the Jacobian is not formed: `residual_jvp` (J v, the recursion above
+with one column) and `residual_vjp` (J^T w, the one-shot reverse recursion of eq. 17/20
+with the output cotangents w in place of dL/dx) are the matrix-free products of the
+conjugate-gradient normal-equation solve, each costing about one model evaluation per
+step whatever n_theta.
 """
 
 from typing import NamedTuple
@@ -29,8 +35,9 @@ import jax
 import jax.numpy as jnp
 
 from ._cost import weigh
+from ._gradient import stacked_jacobians_T, theta_term_vjp
 from ._simulate import outputs, rollout, states
-from ._strategy import JACOBIAN_MAX_NX, sensitivity_strategy
+from ._strategy import JACOBIAN_MAX_NX, gradient_strategy, sensitivity_strategy
 
 # Up to this state size the scan's A @ S is written elementwise (see `_matmul`).
 _MATMUL_ELEMENTWISE_MAX = JACOBIAN_MAX_NX
@@ -201,3 +208,152 @@ def _matmul(A, S):
     if A.shape[-1] <= _MATMUL_ELEMENTWISE_MAX:
         return jnp.sum(A[:, :, None] * S[None, :, :], axis=1)
     return A @ S
+
+
+#
+# Matrix-free products with the residual Jacobian J, for normal equations solved by
+# conjugate gradients when theta is large (`oneshot_jax._solver.least_squares`).
+#
+
+
+class Trajectory(NamedTuple):
+    """One trajectory's linearisation point for `residual_jvp` / `residual_vjp`: its states
+    xs (T, n_x) and, with the "jacobian" strategy, the transposed J^{x/x}_{k+1} (T-1, n_x,
+    n_x) stacked after the forward pass (an empty (0, n_x, n_x) array with "vjp")."""
+
+    xs: jax.Array
+    At: jax.Array
+
+
+def product_strategy(strategy, n_x, T, itemsize):
+    """The strategy of `linearise_trajectory` and the products (that of the gradient)."""
+    return gradient_strategy(strategy, n_x, T, itemsize)
+
+
+def linearise_trajectory(model, theta, x0, u, strategy) -> Trajectory:
+    """Simulate once and keep what the products with J need: x_k and, for small states,
+    every J^{x/x}_k (vmapped forward mode, the paper's Remark 1)."""
+    xs = rollout(model, theta, x0, u)
+    T, n_x = xs.shape
+    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
+        At = stacked_jacobians_T(model.step, theta, xs[:-1], model.step_inputs(u), "x")
+    else:
+        At = jnp.zeros((0, n_x, n_x), xs.dtype)
+    return Trajectory(xs, At)
+
+
+def _penalty_values(cost, xs, theta, mask):
+    """lambda h(x_k) (masked) and sqrt of it, as in `trajectory_jacobian`."""
+    lh = cost.penalty_weight * jax.vmap(cost.penalty, in_axes=(0, None))(xs, theta)
+    if mask is not None:
+        lh = lh * mask.samples
+    return lh, jnp.sqrt(jnp.maximum(lh, 0.0))
+
+
+def residual_jvp(model, cost, theta, traj, u, dtheta, dx0, *, scale, strategy, mask=None):
+    """J v: the residuals' derivative along a direction (dtheta, dx0), one forward
+    sensitivity.
+
+    The states' tangent follows s_0 = dx0, s_{k+1} = J^{x/x}_{k+1} s_k + J^{x/theta}_{k+1}
+    dtheta (the sensitivity recursion of this module's docstring with one column); the
+    theta terms of every step are one vmapped JVP (parallel in time), the recursion a
+    scan of small matrix-vector products (or in-scan JVPs in x for large states).
+    Returns the (R,) tangent of `trajectory_residuals`, rows as there.
+    """
+    xs = traj.xs
+    T, n_x = xs.shape
+    us = model.step_inputs(u)
+    step = model.step
+    b = jax.vmap(lambda x, u_k: jax.jvp(lambda th: step(x, u_k, th), (theta,), (dtheta,))[1])(
+        xs[:-1], us
+    )
+    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
+
+        def body(s, inp):
+            At_k, b_k = inp
+            s_next = jnp.einsum("ji,j->i", At_k, s) + b_k
+            return s_next, s_next
+
+        _, ss = jax.lax.scan(body, dx0, (traj.At, b))
+    else:
+
+        def body(s, inp):
+            x_k, u_k, b_k = inp
+            s_next = jax.jvp(lambda x: step(x, u_k, theta), (x_k,), (s,))[1] + b_k
+            return s_next, s_next
+
+        _, ss = jax.lax.scan(body, dx0, (xs[:-1], us, b))
+    ss = jnp.concatenate([dx0[None], ss], axis=0)
+    dy = jax.vmap(
+        lambda x, u_k, s: jax.jvp(lambda x, th: model.observe(x, u_k, th), (x, theta), (s, dtheta))[
+            1
+        ]
+    )(xs, u, ss)
+    dr = (weigh(_masked(dy, mask), cost.sqrt_weight()) * scale).reshape(-1)
+    if cost.penalty is None:
+        return dr
+    _, rh = _penalty_values(cost, xs, theta, mask)
+    dh = jax.vmap(lambda x, s: jax.jvp(cost.penalty, (x, theta), (s, dtheta))[1])(xs, ss)
+    safe = jnp.where(rh > 0, rh, 1.0)
+    drh = jnp.where(rh > 0, cost.penalty_weight * dh / (2.0 * safe), 0.0)
+    return jnp.concatenate([dr, drh * scale])
+
+
+def residual_vjp(model, cost, theta, traj, u, w, *, scale, strategy, mask=None):
+    """J^T w: the residuals' Jacobian transposed, applied to w (R,), by the one-shot
+    reverse recursion of eq. (17) and (20) with Gamma_k = (d r_k / d x_k)^T w_k:
+
+        lam_{T-1} = Gamma_{T-1},  lam_k = Gamma_k + (J^{x/x}_{k+1})^T lam_{k+1},
+        J_theta^T w = sum_k (d r_k / d theta)^T w_k + sum_{k>=1} (J^{x/theta}_k)^T lam_k,
+        J_x0^T w = lam_0.
+
+    Its cost does not grow with n_theta beyond the model's own VJP: the theta terms are
+    one reverse-mode VJP of the vmapped step and output map (`_gradient.theta_term_vjp`).
+
+    **Returns:**
+
+    `(theta cotangent (a pytree like theta), x0 cotangent (n_x,))`.
+    """
+    xs = traj.xs
+    T, n_x = xs.shape
+    n_z = (w.shape[0] - (T if cost.penalty is not None else 0)) // T
+    sqrt_q = cost.sqrt_weight()
+    w_e = w[: T * n_z].reshape(T, n_z) * scale
+    if sqrt_q is not None:
+        w_e = w_e * sqrt_q if sqrt_q.ndim == 1 else w_e @ sqrt_q
+    ct_y = _masked(w_e, mask)
+
+    def local(xs, th):
+        y = jax.vmap(model.observe, in_axes=(0, 0, None))(xs, u, th)
+        if cost.penalty is None:
+            return y
+        return y, jax.vmap(cost.penalty, in_axes=(0, None))(xs, th)
+
+    if cost.penalty is None:
+        cts = ct_y
+    else:
+        _, rh = _penalty_values(cost, xs, theta, mask)
+        safe = jnp.where(rh > 0, rh, 1.0)
+        w_h = w[T * n_z :] * scale
+        cts = (ct_y, jnp.where(rh > 0, cost.penalty_weight * w_h / (2.0 * safe), 0.0))
+    Gamma, gamma = jax.vjp(local, xs, theta)[1](cts)
+
+    us = model.step_inputs(u)
+    step = model.step
+    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
+
+        def body(lam_next, inp):
+            At_k, Gamma_k = inp
+            return Gamma_k + At_k @ lam_next, lam_next
+
+        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (traj.At, Gamma[:-1]), reverse=True)
+    else:
+
+        def body(lam_next, inp):
+            x_k, u_k, Gamma_k = inp
+            _, vjp_x = jax.vjp(lambda x: step(x, u_k, theta), x_k)
+            return Gamma_k + vjp_x(lam_next)[0], lam_next
+
+        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (xs[:-1], us, Gamma[:-1]), reverse=True)
+    theta_term = theta_term_vjp(step, theta, xs[:-1], us, lam_next)
+    return jax.tree_util.tree_map(lambda a, c: a + c, gamma, theta_term), lam0

@@ -1,5 +1,5 @@
 """The one home of the "auto" rule: how per-step Jacobians enter the gradient and the
-sensitivities.
+sensitivities, and how the least-squares solvers solve their normal equations.
 
 - `"jacobian"`: every J^{x/x}_k (and, for few parameters, J^{x/theta}_k) is formed at
   once after the forward pass by vmapped forward-mode JVPs (the paper's Remark 1); the
@@ -16,6 +16,19 @@ sensitivities.
 
 "auto" takes "parallel" on a GPU or TPU for records of at least `PARALLEL_MIN_T` samples,
 and otherwise "jacobian" for small states and "vjp" for large ones.
+
+Whatever the strategy, the gradient's theta term for a theta larger than
+`THETA_FORWARD_MIN` (or n_x) is one reverse-mode VJP of the vmapped step after the scan
+(`_gradient.theta_term_vjp`): the gradient costs a fixed number of model evaluations per
+step, whatever n_theta (`benchmarks/hybrid.py` measures it).
+
+The least-squares solvers (`GaussNewton`, `LevenbergMarquardt`) form the residual
+Jacobian with one forward-sensitivity column per free parameter, which grows with
+n_theta in time (n_theta JVPs per step) and memory (R n_theta, plus n_theta^2 for
+J^T J). Their `linear_solver="auto"` (`least_squares_solver`) switches to the
+matrix-free normal-equation solve (conjugate gradients on J v and J^T w, see
+`_solver/least_squares.py`) above `MATRIX_FREE_MIN_THETA` free entries of theta. For
+the same reason `fit` skips the covariance of the estimates above `COVARIANCE_MAX_THETA`.
 """
 
 import jax
@@ -26,6 +39,15 @@ ACCELERATORS = ("gpu", "tpu", "cuda", "rocm")
 # 10 microseconds), a parallel solve a few dozen launches in all: from a few hundred
 # steps on, parallel wins there.
 PARALLEL_MIN_T = 512
+
+LINEAR_SOLVERS = ("auto", "dense", "cg")
+
+# "auto" solves the least-squares normal equations matrix-free (conjugate gradients)
+# above this many free entries of theta (`benchmarks/hybrid.py` compares both).
+MATRIX_FREE_MIN_THETA = 256
+# `fit` computes the covariance of the estimates (a dense Jacobian, one column per free
+# parameter, and a p x p eigendecomposition) only up to this many free entries of theta.
+COVARIANCE_MAX_THETA = 1024
 
 # Above this many bytes for the stacked J^{x/x}_k, "auto" takes the vjp strategy.
 JACOBIAN_BYTES = 256 * 2**20
@@ -73,3 +95,12 @@ def sensitivity_strategy(strategy, n_traj, n_x, n_cols, T, itemsize):
     if n_traj * n_x * n_cols > JACOBIAN_MAX_BATCH_WORK:
         return "vjp"
     return gradient_strategy(strategy, n_x, T, itemsize)
+
+
+def least_squares_solver(linear_solver, n_theta):
+    """Resolve "auto" for the normal equations of `GaussNewton` / `LevenbergMarquardt`:
+    the dense structured solve (formed Jacobian) up to `MATRIX_FREE_MIN_THETA` free
+    entries of theta, conjugate gradients on Jacobian products above."""
+    if linear_solver != "auto":
+        return linear_solver
+    return "cg" if n_theta > MATRIX_FREE_MIN_THETA else "dense"

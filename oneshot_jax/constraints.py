@@ -13,6 +13,11 @@ exactly feasible. Do the same in a hand-written loop: `params = tx.project(param
 Box-type sets (`non_negative`, `positive`, `box`) also expose their bounds, which the
 least-squares solvers of `fit` use for an exact active-set treatment.
 
+A projection is the proximal map of the indicator of its set, so `fit(constraints=...)`
+also takes the proximal regularisers of `oneshot_jax.sparsity` (`l1`, `group_lasso`) in
+the same list: the fit then minimises C + g(theta), applying the prox (with the solver's
+step sizes) before the projection after every update (see `separate`).
+
 A caveat on projected Adam (Algorithm 1 with a projection): for a box the projection acts
 per coordinate, like Adam's scaling, and the iterates reach the constrained optimum. For a
 general convex set (`project(fn)`, e.g. a half-space) Adam's per-coordinate step sizes do
@@ -186,6 +191,40 @@ def combine(constraints) -> ProjectionTransformation | None:
             return lo, hi
 
     return _from_projection(proj, bounds)
+
+
+def separate(constraints):
+    """(projection, regulariser): the `constraints` of `fit` split into one
+    `ProjectionTransformation` (or None) and one `sparsity.ProximalTransformation` (or
+    None), each combined from the list's entries of its kind in order.
+
+    A step of `fit` applies the regulariser's prox, then the projection. For a box and a
+    separable penalty (`l1`) this is the exact prox of g plus the box's indicator (in one
+    dimension the constrained minimiser is the clipped unconstrained one); for a group
+    penalty it is a feasible approximation of it.
+    """
+    from .sparsity import ProximalTransformation
+    from .sparsity import combine as combine_regularisers
+
+    if constraints is None:
+        return None, None
+    kinds = (ProjectionTransformation, ProximalTransformation)
+    # Both kinds are NamedTuples (tuples): a single one is not a list of constraints.
+    single = isinstance(constraints, kinds) or not isinstance(constraints, (list, tuple))
+    items = [constraints] if single else list(constraints)
+    for c in items:
+        if not isinstance(c, kinds):
+            raise ValueError(
+                "`constraints` must hold projections from oneshot_jax.constraints "
+                "(non_negative, positive, box, project) and proximal regularisers from "
+                f"oneshot_jax.sparsity (l1, group_lasso, l2), or a list of them; got {c!r}."
+            )
+    projections = [c for c in items if isinstance(c, ProjectionTransformation)]
+    regularisers = [c for c in items if isinstance(c, ProximalTransformation)]
+    return (
+        combine(projections) if projections else None,
+        combine_regularisers(regularisers) if regularisers else None,
+    )
 
 
 def check_projection(proj: ProjectionTransformation, theta, rtol=1e-10):

@@ -35,14 +35,21 @@ be told the step of the update it follows.
     penalty lam sum_i (sqrt(v_i) + eps) |theta_i|, whose weights vanish with the
     gradients, so full-batch training then gives few or no exact zeros.
 - Any other solver calls `prox(params, step)` with the step it took (a scalar, or a
-    pytree of per-coordinate steps > 0); `learning_rate` may be an optax schedule
-    `count -> eta`.
+    pytree of per-coordinate steps >= 0; a zero step leaves its coordinate unchanged);
+    `learning_rate` may be an optax schedule `count -> eta`.
+- In `oneshot_jax.fit`, pass the regulariser in `constraints=` (next to projections):
+    the fit minimises C + g, `oneshot_jax.Adam` applies the prox with its own
+    per-coordinate steps (as `proximal_adam`) and `oneshot_jax.Optax(transform)` with the
+    regulariser's `learning_rate`. `fixed_zeros(result.theta, where)` then gives the
+    `fixed=` mask of the zeros, to refit the selected terms alone with a least-squares
+    solver (see `oneshot_jax.fit`).
 
-**Weight decay** (an L2 penalty on network weights) is smooth and needs no proximal step:
-use optax's masked transforms with `mask` from this module to pick the leaves, e.g.
-`optax.adamw(eta, weight_decay=1e-4, mask=mask(lambda th: th["net"]))` (decoupled decay)
-or `optax.chain(optax.add_decayed_weights(1e-4, mask=...), optax.adam(eta))` (the
-gradient of (1e-4 / 2) ||w||^2 added before Adam's scaling).
+**Weight decay** (an L2 penalty (lambda / 2) ||w||^2 on network weights) is smooth, but
+its prox is exact too, w / (1 + step lambda): `l2(lam, where)` applies it like the others,
+which is how to decay selected leaves of theta inside `oneshot_jax.fit` (whose optax
+transforms see the flat free entries, not theta's leaves). In a hand-written loop over
+theta, optax's masked transforms do the same with `mask` from this module, e.g.
+`optax.adamw(eta, weight_decay=1e-4, mask=mask(lambda th: th["net"]))`.
 
 **Selecting what is regularised** (`where`), as optax's masks:
 
@@ -71,10 +78,12 @@ __all__ = [
     "ProximalState",
     "ProximalAdamState",
     "l1",
+    "l2",
     "group_lasso",
     "combine",
     "proximal_adam",
     "mask",
+    "fixed_zeros",
     "soft_threshold",
     "block_soft_threshold",
 ]
@@ -91,10 +100,14 @@ class ProximalTransformation(NamedTuple):
     - `init`, `update`: the optax interface (chain after a gradient step; `update` needs
         `params`, and the factory's `learning_rate`).
     - `prox`: `(params, step_size) -> params`, the proximal map of g with step `step_size`
-        (a scalar, or a pytree of per-coordinate steps > 0).
+        (a scalar, or a pytree of per-coordinate steps >= 0; a zero step holds its
+        coordinate).
     - `value`: `params -> scalar`, the penalty g(params), to report C + g.
     - `strength`: the penalty's weight lambda (the largest one for `combine`), or None
         when it is traced.
+    - `learning_rate`: the step the transform thresholds with after an optimiser (a
+        scalar or an optax schedule), or None when none was given (for `combine`: the
+        terms' common one, None when they differ).
     """
 
     init: Callable
@@ -102,6 +115,7 @@ class ProximalTransformation(NamedTuple):
     prox: Callable
     value: Callable
     strength: float | None = None
+    learning_rate: Any = None
 
 
 class ProximalState(NamedTuple):
@@ -145,17 +159,21 @@ def block_soft_threshold(v, threshold, axis=None):
 
 
 def _block_soft_threshold_metric(v, steps, strength, axis):
-    """argmin_y strength sum_G ||y_G|| + sum_i (y_i - v_i)^2 / (2 steps_i), steps_i > 0.
+    """argmin_y strength sum_G ||y_G|| + sum_i (y_i - v_i)^2 / (2 steps_i), steps_i >= 0.
 
     Per group: y = 0 iff ||v / steps|| <= strength; otherwise y_i = v_i r / (r + strength
     steps_i) with r = ||y|| the root of sum_i v_i^2 / (r + strength steps_i)^2 = 1, which
     lies in [||v|| - strength max(steps), ||v|| - strength min(steps)] and is found by
-    bisection (for equal steps the bracket is a point: block soft-thresholding).
+    bisection (for equal steps the bracket is a point: block soft-thresholding). A zero
+    step holds its coordinate (y_i = v_i, the limit steps_i -> 0): a group with a held
+    non-zero entry is never zero.
     """
     d = jnp.broadcast_to(jnp.asarray(steps, v.dtype), v.shape)
     red = lambda a, f: f(a, axis=axis, keepdims=True)  # noqa: E731
     norm = jnp.sqrt(red(v * v, jnp.sum))
-    zero = jnp.sqrt(red((v / d) ** 2, jnp.sum)) <= strength
+    moves = d > 0
+    ratio = jnp.where(moves, v / jnp.where(moves, d, 1), jnp.where(v == 0, 0.0, jnp.inf))
+    zero = jnp.sqrt(red(ratio**2, jnp.sum)) <= strength
     lo = jnp.maximum(norm - strength * red(d, jnp.max), 0)
     hi = jnp.maximum(norm - strength * red(d, jnp.min), lo)
 
@@ -193,6 +211,38 @@ def mask(select: Callable[[Any], Any]) -> Callable[[Any], Any]:
             ) from err
 
     return where
+
+
+def fixed_zeros(theta, where=None):
+    """The `fixed=` mask of `oneshot_jax.fit` that holds the exact zeros of a sparse fit.
+
+    True at every selected entry of `theta` that is exactly 0, False elsewhere, so that
+    `fit(..., fixed=fixed_zeros(result.theta, where))` refits the surviving terms alone
+    (e.g. with `LevenbergMarquardt`, which removes the debiasing shrinkage of the L1
+    penalty) while the deselected terms stay exactly zero.
+
+    **Arguments:**
+
+    - `theta`: the parameters (any pytree; equinox modules allowed), e.g. `result.theta`.
+    - `where`: the entries that may be fixed, as the regulariser's `where` (None: every
+        floating leaf; a pytree of bools or boolean arrays; or a callable, see `mask`).
+        Pass the regulariser's `where` so that a physical parameter that happens to be 0
+        stays free.
+
+    **Returns:**
+
+    A pytree of booleans with theta's structure: a boolean array per selected leaf, False
+    for the other leaves.
+    """
+    sel = _resolve_where(where, theta, entries=True)
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    out = []
+    for p, b in zip(leaves, sel):
+        if b is False:
+            out.append(False)
+        else:
+            out.append(np.asarray(b, bool) & (np.asarray(p) == 0))
+    return jax.tree_util.tree_unflatten(treedef, out)
 
 
 def _is_float(p):
@@ -288,7 +338,7 @@ def _from_prox(prox, value, learning_rate, name, strength) -> ProximalTransforma
         return out, ProximalState(count=optax.safe_increment(state.count))
 
     strength = float(strength) if is_concrete(strength) else None
-    return ProximalTransformation(init, update, prox, value, strength)
+    return ProximalTransformation(init, update, prox, value, strength, learning_rate)
 
 
 def _step_leaves(step, params):
@@ -356,6 +406,39 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
         return strength * total
 
     return _from_prox(prox, value, learning_rate, "l1", strength)
+
+
+def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
+    """Weight decay `(strength / 2) ||w||^2` as an exact proximal step (a shrinkage).
+
+    prox(v)_i = v_i / (1 + step_i strength): the implicit step on the penalty, stable for
+    any step. No exact zeros (the penalty is smooth); with `proximal_adam` or `fit`'s
+    `Adam` it is weight decay in Adam's diagonal metric.
+
+    **Arguments:**
+
+    - `strength`: lambda >= 0.
+    - `where`, `learning_rate`: as for `l1`.
+
+    **Returns:**
+
+    A `ProximalTransformation`.
+    """
+    _check_nonneg_scalar(strength, "strength")
+
+    def prox(params, step_size):
+        sel = _resolve_where(where, params, entries=True)
+        return _map_selected(lambda p, s, _: p / (1 + s * strength), params, sel, step_size)
+
+    def value(params):
+        sel = _resolve_where(where, params, entries=True)
+        total = 0.0
+        for p, b in zip(jax.tree_util.tree_leaves(params), sel):
+            if b is not False:
+                total = total + jnp.sum(jnp.where(b, p * p, 0))
+        return 0.5 * strength * total
+
+    return _from_prox(prox, value, learning_rate, "l2", strength)
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -440,7 +523,7 @@ def combine(regularisers) -> ProximalTransformation | None:
     ):
         raise ValueError(
             "`regularisers` must be a ProximalTransformation from oneshot_jax.sparsity "
-            f"(l1, group_lasso) or a non-empty list of them, got {regularisers!r}."
+            f"(l1, group_lasso, l2) or a non-empty list of them, got {regularisers!r}."
         )
     if len(regularisers) == 1:
         return regularisers[0]
@@ -456,7 +539,18 @@ def combine(regularisers) -> ProximalTransformation | None:
 
     strengths = [r.strength for r in regularisers]
     strength = None if None in strengths else max(strengths)
-    return ProximalTransformation(chained.init, chained.update, prox, value, strength)
+    rates = [r.learning_rate for r in regularisers]
+    same = all(r is rates[0] or _same_number(r, rates[0]) for r in rates)
+    return ProximalTransformation(
+        chained.init, chained.update, prox, value, strength, rates[0] if same else None
+    )
+
+
+def _same_number(a, b):
+    try:
+        return not callable(a) and not callable(b) and float(a) == float(b)
+    except (TypeError, ValueError):
+        return False
 
 
 def proximal_adam(

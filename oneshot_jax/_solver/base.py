@@ -45,6 +45,21 @@ class AbstractSolver(eqx.Module):
     def summary(self, state) -> tuple[jax.Array, jax.Array]:
         """(C, ||grad C||) at the current iterate (NaN where the solver has no gradient)."""
 
+    def check_regulariser(self, regulariser) -> None:
+        """Raise a ValueError unless this solver can minimise C + g with the non-smooth
+        regulariser g (a `sparsity.ProximalTransformation`) given in `fit(constraints=...)`.
+        Only the proximal first-order solvers (`Adam`, `Optax`) can."""
+        del regulariser
+        name = type(self).__name__
+        raise ValueError(
+            f"`{name}` cannot minimise C + g with a proximal regulariser (l1, group_lasso, "
+            "l2) in `constraints`: it needs a smooth sum of squares or loss. Select the terms "
+            "with a proximal solver: oneshot_jax.Adam (proximal Adam, exact zeros) or "
+            "oneshot_jax.Optax(transform) with the regulariser's learning_rate; then refit "
+            f"the surviving terms without the regulariser, e.g. with `{name}` and "
+            "fixed=oneshot_jax.sparsity.fixed_zeros(result.theta, where)."
+        )
+
     def postprocess(self, problem: FitProblem, params: Params, state, result):
         """The point to return, its loss, and the normal-equation blocks (C, A, B, C_i) of
         the data residuals at it when the solver holds them (else None: the covariance

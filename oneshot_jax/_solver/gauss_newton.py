@@ -18,13 +18,25 @@ class GaussNewton(AbstractLeastSquares):
         loss (see `oneshot_jax._solver.least_squares`).
     - `max_steps`: the maximum number of iterations.
     - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`: formed
-        per-step Jacobians, `"vjp"`: matrix-free JVPs in the scan).
+        per-step Jacobians, `"vjp"`: matrix-free JVPs in the scan, `"parallel"`:
+        associative scans; see `oneshot_jax._strategy`).
+    - `linear_solver`: how the normal equations are solved: `"dense"` (the Jacobian
+        formed, one forward-sensitivity column per free parameter), `"cg"` (matrix-free:
+        conjugate gradients on Jacobian-vector products, for a large theta such as a
+        neural residual) or `"auto"` (`"cg"` above 256 free entries of theta, except
+        with `strategy="parallel"`, whose sensitivities form the Jacobian; see
+        `oneshot_jax._solver.least_squares`).
+    - `cg_rtol`, `cg_max_steps`: the conjugate-gradient solve's relative residual and
+        iteration budget per step (with `"cg"`).
     """
 
     rtol: float = 1e-10
     atol: float = 0.0
     max_steps: int = 100
     strategy: str = "auto"
+    linear_solver: str = "auto"
+    cg_rtol: float = 1e-8
+    cg_max_steps: int = 50
 
     def __check_init__(self):
         self._check()

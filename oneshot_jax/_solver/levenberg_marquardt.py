@@ -19,7 +19,16 @@ class LevenbergMarquardt(AbstractLeastSquares):
         loss (see `oneshot_jax._solver.least_squares`).
     - `max_steps`: the maximum number of iterations (rejected steps count).
     - `mu0`: the initial damping.
-    - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`, `"vjp"`).
+    - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`, `"vjp"`,
+        `"parallel"`; see `GaussNewton`).
+    - `linear_solver`: how the normal equations are solved: `"dense"` (the Jacobian
+        formed, one forward-sensitivity column per free parameter), `"cg"` (matrix-free:
+        conjugate gradients on Jacobian-vector products, for a large theta such as a
+        neural residual) or `"auto"` (`"cg"` above 256 free entries of theta, except
+        with `strategy="parallel"`, whose sensitivities form the Jacobian; see
+        `oneshot_jax._solver.least_squares`).
+    - `cg_rtol`, `cg_max_steps`: the conjugate-gradient solve's relative residual and
+        iteration budget per step (with `"cg"`).
     """
 
     rtol: float = 1e-10
@@ -27,6 +36,9 @@ class LevenbergMarquardt(AbstractLeastSquares):
     max_steps: int = 100
     mu0: float = 1e-3
     strategy: str = "auto"
+    linear_solver: str = "auto"
+    cg_rtol: float = 1e-8
+    cg_max_steps: int = 50
 
     def __check_init__(self):
         self._check()

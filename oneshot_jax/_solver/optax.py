@@ -9,6 +9,16 @@ treat them differently (`optax.partition`, as `Adam` does).
 Stopping (Algorithm 1, line 3): `tol_loss` (epsilon; off by default, since a loss with a
 signed penalty can be negative) and `tol_grad` (delta); a non-finite loss or gradient
 stops with `RESULTS.diverged` and returns the last finite iterate.
+
+A proximal regulariser g (`oneshot_jax.sparsity.l1`, `group_lasso`, given in
+`fit(constraints=...)`) turns each step into a proximal-gradient step on C + g: the prox
+of g with the step's own step sizes, then the projection (Parikh and Boyd, "Proximal
+algorithms", 2014, Sec. 4.2). `Adam` uses its per-coordinate steps
+d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps) (`sparsity.proximal_adam`: the prox
+in Adam's diagonal metric, whose fixed points are the stationary points of C + g);
+`Optax(transform)` uses the regulariser's `learning_rate` (exact for `optax.sgd` with that
+rate). The loss recorded and returned is then the objective C + g; the gradient norm is
+that of C. `LBFGS` (a smooth line search) refuses a regulariser.
 """
 
 from typing import Any, NamedTuple
@@ -18,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from .. import sparsity
 from .._problem import FitProblem, Params
 from .._results import RESULTS
 from .._strategy import STRATEGIES
@@ -26,10 +37,12 @@ from .base import AbstractSolver, check_options, grad_norm
 
 class _OptaxState(NamedTuple):
     opt_state: Any
-    loss: jax.Array  # C at the current iterate
-    grad: Params  # its gradient
+    loss: jax.Array  # the objective C + g at the current iterate (C without a regulariser)
+    smooth: jax.Array  # C at the current iterate
+    grad: Params  # the gradient of C
     last: Params  # the last iterate with a finite loss and gradient
     last_loss: jax.Array
+    count: jax.Array  # updates made (for the regulariser's learning-rate schedule)
 
 
 def _as_dict(p: Params):
@@ -85,8 +98,14 @@ class _AbstractOptax(AbstractSolver):
     tol_grad: eqx.AbstractVar[float]
     strategy: eqx.AbstractVar[str]
 
-    def _transform(self) -> optax.GradientTransformation:
+    def _transform(self, problem: FitProblem) -> optax.GradientTransformation:
         raise NotImplementedError
+
+    def _prox(self, problem: FitProblem, p_theta, count):
+        """The proximal step of the regulariser after an update (none by default: the
+        transform applies it itself)."""
+        del problem, count
+        return p_theta
 
     def _check(self):
         check_options(self, non_negative=("tol_grad",), integers=("max_steps",))
@@ -103,27 +122,31 @@ class _AbstractOptax(AbstractSolver):
 
     def init(self, problem, params):
         C, g = problem.value_and_grad(params, self.strategy)
-        opt_state = self._transform().init(_as_dict(params))
-        return _OptaxState(opt_state, C, g, params, C)
+        opt_state = self._transform(problem).init(_as_dict(params))
+        obj = C + problem.g(params.theta)
+        return _OptaxState(opt_state, obj, C, g, params, obj, jnp.array(0, jnp.int32))
 
     def step(self, problem, params, state):
-        tx = self._transform()
+        tx = self._transform(problem)
         d = _as_dict(params)
         g = _as_dict(state.grad)
         if isinstance(tx, optax.GradientTransformationExtraArgs):
             value_fn = _ClosedFormLoss(problem, self.strategy)
             updates, opt_state = tx.update(
-                g, state.opt_state, d, value=state.loss, grad=g, value_fn=value_fn
+                g, state.opt_state, d, value=state.smooth, grad=g, value_fn=value_fn
             )
         else:
             updates, opt_state = tx.update(g, state.opt_state, d)
         new = _as_params(optax.apply_updates(d, updates))
-        new = Params(problem.feasible(new.theta), new.x0)
+        theta = self._prox(problem, new.theta, state.count)
+        new = Params(problem.feasible(theta), new.x0)
         C, g_new = problem.value_and_grad(new, self.strategy)
-        finite = jnp.isfinite(C) & jnp.isfinite(grad_norm(g_new))
+        obj = C + problem.g(new.theta)
+        finite = jnp.isfinite(obj) & jnp.isfinite(grad_norm(g_new))
         last = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, state.last)
-        last_loss = jnp.where(finite, C, state.last_loss)
-        return new, _OptaxState(opt_state, C, g_new, last, last_loss)
+        last_loss = jnp.where(finite, obj, state.last_loss)
+        count = optax.safe_increment(state.count)
+        return new, _OptaxState(opt_state, obj, C, g_new, last, last_loss, count)
 
     def terminate(self, problem, params, state):
         del problem, params
@@ -157,6 +180,12 @@ class Optax(_AbstractOptax):
     `optax.lbfgs`) also get `value`, `grad` and `value_fn`, where `value_fn`'s gradient is
     the closed form too.
 
+    With a regulariser g in `fit(constraints=...)`, each update is followed by the prox of
+    g with step `learning_rate` (the regulariser's, e.g. `l1(lam, where,
+    learning_rate=eta)`, or an optax schedule of the update count): with
+    `optax.sgd(eta)` this is proximal gradient descent (ISTA) on C + g. For Adam's
+    per-coordinate steps use `Adam`, which matches the prox to them.
+
     **Arguments:**
 
     - `transform`: an `optax.GradientTransformation`.
@@ -181,23 +210,52 @@ class Optax(_AbstractOptax):
             )
         self._check()
 
-    def _transform(self):
+    def _transform(self, problem):
+        del problem
         return self.transform
+
+    def check_regulariser(self, regulariser):
+        if regulariser.learning_rate is None:
+            raise ValueError(
+                "`Optax(transform)` applies the regulariser's prox after each update with "
+                "the regulariser's `learning_rate` (the step size of `transform`), which "
+                "was not given (or differs between the terms): e.g. "
+                "l1(lam, where, learning_rate=eta) with optax.sgd(eta). Or use "
+                "oneshot_jax.Adam, which applies the prox with its own per-coordinate steps."
+            )
+
+    def _prox(self, problem, p_theta, count):
+        rate = problem.regulariser.learning_rate if problem.regulariser is not None else None
+        if rate is None:
+            return p_theta
+        step = rate(count) if callable(rate) else rate
+        return problem.prox(p_theta, step)
 
 
 class Adam(_AbstractOptax):
     """Algorithm 1 of the paper: Adam (eq. 8-9) with separate learning rates for theta
     and x0, on the one-shot closed-form gradient.
 
+    With a regulariser g (`sparsity.l1`, `group_lasso`) in `fit(constraints=...)`, theta
+    takes proximal Adam steps (`sparsity.proximal_adam`): with Adam's bias-corrected
+    moments m_hat, v_hat, theta+ = prox_{g, D}(theta - D m_hat), D = diag(d),
+    d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps), lambda the regulariser's
+    strength (the largest one of a combination). The prox in this metric soft-thresholds
+    coordinate i at d_i lambda, so selected terms land exactly on zero and stay there
+    while |dC/dtheta_i| <= lambda; the fixed points are the stationary points of C + g.
+    The floor lambda on sqrt(v_hat) keeps every move at most about lr_theta (it also
+    applies to the unregularised entries of theta). x0 takes plain Adam steps.
+
     **Arguments:**
 
-    - `lr_theta`, `lr_x0`: the learning rates eta_theta and eta_x0.
+    - `lr_theta`, `lr_x0`: the learning rates eta_theta and eta_x0 (numbers, or optax
+        schedules `count -> rate`, e.g. `optax.cosine_decay_schedule(1e-2, 2000)`).
     - `b1`, `b2`, `eps`: Adam's moment decay rates and denominator offset.
     - `max_steps`, `tol_loss`, `tol_grad`, `strategy`: as for `Optax`.
     """
 
-    lr_theta: float = 1e-3
-    lr_x0: float = 1e-4
+    lr_theta: Any = 1e-3
+    lr_x0: Any = 1e-4
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8
@@ -207,17 +265,30 @@ class Adam(_AbstractOptax):
     strategy: str = "auto"
 
     def __check_init__(self):
-        check_options(self, non_negative=("lr_theta", "lr_x0", "b1", "b2"), positive=("eps",))
+        rates = tuple(f for f in ("lr_theta", "lr_x0") if not callable(getattr(self, f)))
+        check_options(self, non_negative=(*rates, "b1", "b2"), positive=("eps",))
         self._check()
 
-    def _transform(self):
-        return optax.partition(
-            {
-                "theta": optax.adam(self.lr_theta, self.b1, self.b2, self.eps),
-                "x0": optax.adam(self.lr_x0, self.b1, self.b2, self.eps),
-            },
-            {"theta": "theta", "x0": "x0"},
+    def check_regulariser(self, regulariser):
+        del regulariser
+
+    def _transform(self, problem):
+        x0_tx = optax.adam(self.lr_x0, self.b1, self.b2, self.eps)
+        if problem.regulariser is None:
+            return optax.partition(
+                {"theta": optax.adam(self.lr_theta, self.b1, self.b2, self.eps), "x0": x0_tx},
+                {"theta": "theta", "x0": "x0"},
+            )
+        # The regulariser as a prox on the flat free entries (what the transform sees).
+        flat = sparsity.ProximalTransformation(
+            init=None,
+            update=None,
+            prox=problem.prox,
+            value=problem.g,
+            strength=problem.regulariser.strength,
         )
+        theta_tx = sparsity.proximal_adam(self.lr_theta, flat, b1=self.b1, b2=self.b2, eps=self.eps)
+        return _by_part(theta_tx, x0_tx)
 
 
 class LBFGS(_AbstractOptax):
@@ -245,10 +316,25 @@ class LBFGS(_AbstractOptax):
         check_options(self, integers=("memory_size", "max_linesearch_steps"))
         self._check()
 
-    def _transform(self):
+    def _transform(self, problem):
+        del problem
         return optax.lbfgs(
             memory_size=self.memory_size,
             linesearch=optax.scale_by_zoom_linesearch(
                 max_linesearch_steps=self.max_linesearch_steps, initial_guess_strategy="one"
             ),
         )
+
+
+def _by_part(theta_tx, x0_tx) -> optax.GradientTransformation:
+    """One transform of the dict {"theta", "x0"} from one transform per part."""
+
+    def init(d):
+        return {"theta": theta_tx.init(d["theta"]), "x0": x0_tx.init(d["x0"])}
+
+    def update(g, state, d):
+        u_t, s_t = theta_tx.update(g["theta"], state["theta"], d["theta"])
+        u_x, s_x = x0_tx.update(g["x0"], state["x0"], d["x0"])
+        return {"theta": u_t, "x0": u_x}, {"theta": s_t, "x0": s_x}
+
+    return optax.GradientTransformation(init, update)
