@@ -79,8 +79,9 @@ def _warn_identifiability(names, ok, what):
         # A network's weights are many and never all identifiable: name a few.
         listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
         warnings.warn(
-            f"the Jacobian is rank-deficient at the solution: {what} {listed} do not change "
-            "the outputs there (not identifiable from these data); their std is inf.",
+            f"the Jacobian is rank-deficient at the solution: {what} {listed} enter its "
+            "null space (a change of them, alone or together, that leaves the outputs "
+            "unchanged: not identifiable from these data); their std is inf.",
             stacklevel=4,
         )
 

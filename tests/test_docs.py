@@ -18,6 +18,7 @@ GUIDES = [
     "docs/guides/uncertainty.md",
     "docs/guides/parallel.md",
     "docs/guides/real-data.md",
+    "docs/guides/hybrid.md",
 ]
 
 

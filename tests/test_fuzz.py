@@ -23,7 +23,7 @@ NAMES = re.compile(
 )
 
 FUZZ = settings(
-    max_examples=80,
+    max_examples=40,
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
@@ -176,7 +176,7 @@ def fit_calls(draw):
     return p, kwargs
 
 
-@settings(FUZZ, max_examples=40)
+@settings(FUZZ, max_examples=20)
 @given(fit_calls())
 def test_fit_either_works_or_names_the_argument(call):
     p, kwargs = call
@@ -206,7 +206,7 @@ def plain_thetas(draw):
     return theta
 
 
-@settings(FUZZ, max_examples=6)
+@settings(FUZZ, max_examples=4)
 @given(plain_thetas(), st.booleans())
 def test_save_and_load_round_trip(tmp_path_factory, theta, multistart):
     import equinox as eqx

@@ -162,7 +162,7 @@ def _linear_problem(rng, T, n_x, n_u, n_z, weight_kind="none", N=None, rho=0.9):
 # Shapes come from small sets, so that examples share compiled code (the eager oracle and
 # the literal reference compile every primitive once per shape).
 @settings(
-    max_examples=15,
+    max_examples=8,
     deadline=None,
     derandomize=True,
     database=None,
