@@ -2,7 +2,9 @@
 
 Problems (`peers_problems.py`): (a) the satellite of Section 4 at T = 50 and T = 5000,
 (b) the EMPS benchmark as a windowed fit (248 windows of 100 samples, each with its own
-initial state), (c) a chain of 20 masses with 40 unknown stiffness and damping values.
+initial state), (c) a chain of 20 masses with 40 unknown stiffness and damping values,
+(d) `tanks_hybrid`: the cascaded tanks with an MLP residual (`peers_hybrid.py`), against
+jax-sysid only: the cost of one gradient, and Adam + L-BFGS fits with the same budget.
 
 Tools (`peers_tools.py`): oneshot_jax `fit` (Levenberg-Marquardt and Gauss-Newton on the
 closed-form Jacobian), scipy `least_squares` ('lm', and 'trf' with bounds and, for the
@@ -25,6 +27,7 @@ start projection, solve, covariance and metrics).
 Run:  python benchmarks/peers.py                  # everything, writes benchmarks/results.md
       python benchmarks/peers.py --quick          # a small smoke run (does not write results.md)
       python benchmarks/peers.py --problems emps --tools oneshot_lm,scipy_trf
+      python benchmarks/peers.py --problems tanks_hybrid --pin-cpu 1   # (d) only, printed
 Needs the peers: pip install -e .[bench]
 """
 
@@ -56,6 +59,7 @@ DEFAULT_TOOLS = (
     "optimistix_lm",
 )
 MARK = "@@PEERS-RESULT@@"
+HYBRID = "tanks_hybrid"  # (d): its own protocol (`peers_hybrid.py`), not a `peers_problems` one
 
 
 # ------------------------------------------------------------------------------ worker
@@ -122,6 +126,36 @@ def worker(problem, tool):
         if "solver_s" in res:
             out["solver_warm_s"].append(res["solver_s"])
         report(res)
+
+
+def hybrid_worker(adam, lbfgs, repeats):
+    """Runs in its own process: the hybrid-tanks comparison (`peers_hybrid.measure`)."""
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import peers_hybrid
+
+    out = peers_hybrid.measure(
+        adam=adam, lbfgs=lbfgs, repeats=repeats, log=lambda m: print(m, file=sys.stderr, flush=True)
+    )
+    print(MARK + json.dumps(out), flush=True)
+
+
+def run_hybrid(adam, lbfgs, repeats, timeout=900):
+    """The hybrid-tanks comparison in a fresh process; None (with a message) if it fails."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--hybrid-worker"]
+    cmd += [str(adam), str(lbfgs), str(repeats)]
+    try:
+        cp = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        print(f"tanks_hybrid: timeout at {timeout} s")
+        return None
+    for line in cp.stdout.splitlines():
+        if line.startswith(MARK):
+            return json.loads(line[len(MARK) :])
+    print("tanks_hybrid failed (its messages are above)")
+    return None
 
 
 def diagnose_worker(problem):
@@ -538,7 +572,7 @@ def fmt_faster(summary, problems):
     ]
 
 
-def write_report(results, problems, tools, args, path, wall, diags=()):
+def write_report(results, problems, tools, args, path, wall, diags=(), hybrid=None):
     import peers_tools
 
     summary = summarise(results)
@@ -579,6 +613,11 @@ def write_report(results, problems, tools, args, path, wall, diags=()):
     for prob in problems:
         if prob in summary:
             L += fmt_problem(prob, summary[prob])
+    if hybrid:
+        import peers_hybrid
+
+        L += ["## A hybrid model: oneshot_jax against jax-sysid", ""]
+        L += peers_hybrid.fmt_hybrid(hybrid)
     L += ["## How each tool is used", ""]
     seen = {}
     for r in results:
@@ -655,7 +694,8 @@ def main():
     ap.add_argument(
         "--problems",
         default=None,
-        help="comma-separated subset of: satellite_T50, satellite_T5000, emps, chain20",
+        help="comma-separated subset of: satellite_T50, satellite_T5000, emps, chain20, "
+        "tanks_hybrid",
     )
     ap.add_argument(
         "--tools", default=None, help="comma-separated subset of: " + ", ".join(DEFAULT_TOOLS)
@@ -673,11 +713,31 @@ def main():
         default=20.0,
         help="seconds per pair after which no further warm run is started",
     )
+    ap.add_argument(
+        "--hybrid-budget",
+        default="200,100",
+        metavar="ADAM,LBFGS",
+        help="tanks_hybrid: Adam epochs and L-BFGS iterations of each fit (default 200,100)",
+    )
+    ap.add_argument(
+        "--hybrid-repeats",
+        type=int,
+        default=2,
+        help="tanks_hybrid: fits of each tool after the first call (default 2)",
+    )
+    ap.add_argument(
+        "--pin-cpu",
+        type=int,
+        metavar="N",
+        help="run every worker process on CPU N only (XLA's threads included): steadier on a "
+        "busy machine",
+    )
     ap.add_argument("--quick", action="store_true", help="small problems, 2 repeats; no results.md")
     ap.add_argument("--out", default=str(HERE / "results.md"))
     ap.add_argument("--json", default=None, help="also write the raw results as JSON")
     ap.add_argument("--worker", nargs=2, metavar=("PROBLEM", "TOOL"), help=argparse.SUPPRESS)
     ap.add_argument("--diagnose", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--hybrid-worker", nargs=3, type=int, help=argparse.SUPPRESS)
     ap.add_argument(
         "--no-diagnostics",
         action="store_true",
@@ -703,6 +763,7 @@ def main():
             args.out,
             m["wall_s"],
             saved["diagnostics"],
+            saved.get("hybrid"),
         )
         print(f"wrote {args.out}")
         return
@@ -712,6 +773,11 @@ def main():
     if args.diagnose:
         diagnose_worker(args.diagnose)
         return
+    if args.hybrid_worker:
+        hybrid_worker(*args.hybrid_worker)
+        return
+    if args.pin_cpu is not None:  # inherited by every worker process
+        os.sched_setaffinity(0, {args.pin_cpu})
     # the command shown in results.md: without the output paths
     argv, args.passthrough = sys.argv[1:], []
     while argv:
@@ -726,9 +792,11 @@ def main():
         problems = ["satellite_T50", "chain5_quick"]
         args.repeats, args.timeout = 2, 60.0
     else:
-        problems = list(peers_problems.PROBLEMS)
+        problems = [*peers_problems.PROBLEMS, HYBRID]
     if args.problems:
         problems = args.problems.split(",")
+    run_tanks = HYBRID in problems
+    problems = [p for p in problems if p != HYBRID]
     tools = args.tools.split(",") if args.tools else list(DEFAULT_TOOLS)
     t0 = time.perf_counter()
     args.commit = _commit()
@@ -737,6 +805,10 @@ def main():
         results += run_problem(
             prob, tools, args.repeats, args.timeout, args.budget, log=lambda m: print(m, flush=True)
         )
+    hybrid = None
+    if run_tanks:
+        adam, lbfgs = (int(n) for n in args.hybrid_budget.split(","))
+        hybrid = run_hybrid(adam, lbfgs, args.hybrid_repeats)
     diags = []
     if not args.no_diagnostics:
         for prob in problems:
@@ -761,16 +833,26 @@ def main():
             "commit": args.commit,
         }
         Path(args.json).write_text(
-            json.dumps({"results": results, "diagnostics": diags, "meta": meta}, indent=1)
+            json.dumps(
+                {"results": results, "diagnostics": diags, "hybrid": hybrid, "meta": meta},
+                indent=1,
+            )
         )
-    out = None if args.quick else args.out
+    out = None if args.quick or not problems else args.out  # (d) alone: printed only
     if out:
-        write_report(results, problems, tools, args, out, wall, diags)
+        write_report(results, problems, tools, args, out, wall, diags, hybrid)
         print(f"\nwrote {out} ({wall / 60:.1f} min)")
-    else:
+    elif problems:
         summary = summarise(results)
         print()
         print("\n".join(fmt_ratio_table(summary, problems, tools)))
+    if hybrid:
+        import peers_hybrid
+        from timing import conditions
+
+        print()
+        print("\n".join(peers_hybrid.fmt_hybrid(hybrid)))
+        print(conditions(("jax-sysid", "jaxopt")))
 
 
 if __name__ == "__main__":
