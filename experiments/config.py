@@ -306,7 +306,7 @@ class EMPSHybridConfig:
     history: int = 1000
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
 
-    SOLVERS = ("gauss_newton", "levenberg_marquardt")
+    SOLVERS = LIBRARY_SOLVERS  # the physics stage's solver
 
     def __post_init__(self):
         k = "experiment."

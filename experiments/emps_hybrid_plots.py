@@ -65,8 +65,9 @@ def figures(data, ex, outdir, preds, scores, theta_phys, theta_hybrid) -> list[s
     a0.set_ylabel("position (mm)")
     a0.legend(loc="upper right", fontsize=8)
     a0.set_title(
-        "EMPS validation record (DATA_EMPS_PULSES.mat), open-loop simulation, "
-        f"x0 from the first {scores['physical']['n']} samples"
+        "EMPS validation record (DATA_EMPS_PULSES.mat): open-loop simulation, "
+        f"x0 from {scores['physical']['n']} samples",
+        fontsize=10,
     )
     a1.plot(t, z_p - y, "C3", lw=0.8, label="physical")
     a1.plot(t, z_h - y, "C0", lw=0.8, label=f"physics + NN friction r({r_of})")
