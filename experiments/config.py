@@ -301,7 +301,7 @@ class EMPSHybridConfig:
     output_scale: float = 10.0
     seed: int = 0
     adam: HybridAdam = field(default_factory=HybridAdam)
-    lm_steps: int = 50
+    lm_steps: int = 100
     figures: bool = True
     history: int = 1000
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)

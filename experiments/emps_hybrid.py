@@ -259,6 +259,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_hybrid")
     )
 
     v = example.velocity_estimate(data.estimation.qm, data.Ts, ex.velocity_halfwidth)
+    v_val = example.velocity_estimate(data.validation.qm, data.Ts, ex.velocity_halfwidth)
     v_grid = np.linspace(-np.max(np.abs(v)), np.max(np.abs(v)), 401)
     q_mid = float(np.mean(data.estimation.qm))
     r_grid = learned_force(hybrid.theta, q_mid, v_grid)
@@ -298,6 +299,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_hybrid")
             "learned_force_N": {
                 "q_m": q_mid,
                 "v_max_m_per_s": float(v_grid[-1]),
+                "v_max_validation_m_per_s": float(np.max(np.abs(v_val))),
                 "max_abs": float(np.max(np.abs(r_grid))),
                 "at_zero_velocity": float(learned_force(hybrid.theta, q_mid, 0.0)),
             },

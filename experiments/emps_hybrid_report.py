@@ -78,7 +78,10 @@ def markdown(res) -> str:
         f"{'lower' if change > 0 else 'higher'} than the physical model's. "
         f"Largest learned force over |q'| <= {lf['v_max_m_per_s']:.3f} m/s (at "
         f"q = {lf['q_m']:.3f} m): {lf['max_abs']:.2f} N; at q' = 0: "
-        f"{lf['at_zero_velocity']:+.2f} N.",
+        f"{lf['at_zero_velocity']:+.2f} N. The network has seen the velocities of the "
+        f"estimation record, |q'| <= {lf['v_max_m_per_s']:.3f} m/s (central differences of "
+        f"qm); the validation record reaches {lf['v_max_validation_m_per_s']:.3f} m/s, where "
+        "it extrapolates.",
         "",
         "| parameter | physical model | hybrid model | IDIM-LS reference |",
         "|---|---|---|---|",
