@@ -271,6 +271,65 @@ class EMPSConfig:
             _fail(k + "open_loop.windows", "non-empty (or closed_loop.windows)", [])
 
 
+@dataclass
+class HybridAdam:
+    """The joint Adam stage of the EMPS hybrid: `steps` (0 skips it), the peak rate of the
+    cosine-decayed `lr` on theta, `lr_x0` on the windows' initial states, and
+    `weight_decay` (0: none) on the network (`sparsity.l2`)."""
+
+    steps: int = 200
+    lr: float = 3e-3
+    lr_x0: float = 1e-4
+    weight_decay: float = 0.0
+
+
+@dataclass
+class EMPSHybridConfig:
+    """The EMPS hybrid study: physics plus a neural friction term
+    (`experiments/emps_hybrid.py`)."""
+
+    name: str = "emps_hybrid"
+    data_path: str | None = None
+    eps: float = emps_example.EPS
+    substeps: int = 1
+    velocity_halfwidth: int = 5
+    n_samples: int | None = None
+    window: int = 50
+    theta0: dict[str, float] = field(default_factory=lambda: dict(emps_example.THETA0))
+    inputs: str = "v"
+    widths: list[int] = field(default_factory=lambda: [8, 8])
+    output_scale: float = 10.0
+    seed: int = 0
+    adam: HybridAdam = field(default_factory=HybridAdam)
+    lm_steps: int = 100
+    figures: bool = True
+    history: int = 1000
+    solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    SOLVERS = LIBRARY_SOLVERS  # the physics stage's solver
+
+    def __post_init__(self):
+        k = "experiment."
+        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
+        _integer(k + "substeps", self.substeps, 1)
+        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
+        if self.n_samples is not None:
+            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _integer(k + "window", self.window, 2)
+        _params(k + "theta0", self.theta0, emps_example.PARAMS, positive=("M", "Fv", "Fc"))
+        _one_of(k + "inputs", self.inputs, ("v", "qv"))
+        for i, w in enumerate(self.widths):
+            _integer(f"{k}widths[{i}]", w, 1)
+        _number(k + "output_scale", self.output_scale, lo=0.0, lo_open=True)
+        _integer(k + "seed", self.seed, 0)
+        _integer(k + "adam.steps", self.adam.steps, 0)
+        _number(k + "adam.lr", self.adam.lr, lo=0.0, lo_open=True)
+        _number(k + "adam.lr_x0", self.adam.lr_x0, lo=0.0)
+        _number(k + "adam.weight_decay", self.adam.weight_decay, lo=0.0)
+        _integer(k + "lm_steps", self.lm_steps, 0)
+        _history(k + "history", self.history)
+
+
 # --------------------------------------------------------------------------- tanks
 
 
@@ -363,6 +422,7 @@ def register() -> None:
     cs.store(name="base_config", node=Config)
     cs.store(group="schema/experiment", name="satellite", node=SatelliteConfig)
     cs.store(group="schema/experiment", name="emps", node=EMPSConfig)
+    cs.store(group="schema/experiment", name="emps_hybrid", node=EMPSHybridConfig)
     cs.store(group="schema/experiment", name="cascaded_tanks", node=TanksConfig)
     cs.store(group="schema", name="solver", node=SolverConfig)
 

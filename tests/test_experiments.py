@@ -138,6 +138,8 @@ BAD = [
     (["experiment=emps", "solver=slsqp"], "experiment=emps runs the library's solvers only"),
     (["experiment=emps", "experiment.eps=0"], "`experiment.eps` must be a finite number > 0"),
     (["experiment=emps", "experiment.open_loop.windows=[1]"], r"open_loop.windows\[0\]"),
+    (["experiment=emps_hybrid", "experiment.inputs=x"], "`experiment.inputs` must be one of"),
+    (["experiment=emps_hybrid", "experiment.window=1"], "`experiment.window` must be an int"),
     (["experiment=cascaded_tanks", "experiment.overflow.theta0.k5=2"], "k5` must be"),
     (["experiment=cascaded_tanks", "experiment.x0=[1]"], "`experiment.x0` must be a list"),
 ]
@@ -252,3 +254,46 @@ def test_run_end_to_end(tmp_path):
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
     # the recorded path (Figs. 2, 3: FitResult.history) ends at the estimate
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
+
+
+def test_emps_hybrid_end_to_end(tmp_path):
+    """`experiment=emps_hybrid` on a tiny budget: the three stages run, both models are
+    scored with the protocol (finite numbers) and the figures are written."""
+    from oneshot_jax import datasets
+
+    try:
+        datasets.load_emps()
+    except datasets.DatasetNotFoundError as err:
+        pytest.skip(f"benchmark files not available: {err}")
+    out = tmp_path / "run"
+    args = [
+        f"hydra.run.dir={out}",
+        "experiment=emps_hybrid",
+        "experiment.n_samples=400",
+        "experiment.window=20",
+        "experiment.widths=[4]",
+        "experiment.adam.steps=3",
+        "experiment.adam.weight_decay=1e-3",
+        "experiment.lm_steps=1",
+        "experiment.solver_defaults.levenberg_marquardt.max_steps=3",
+        "progress=false",
+    ]
+    proc = _cli(args, cwd=tmp_path, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "ok"
+    assert (out / "results.md").read_text().startswith("# EMPS: physics plus a neural friction")
+    assert [s["stage"] for s in res["stages"]] == [
+        "physics",
+        "joint, Adam",
+        "joint, Levenberg-Marquardt",
+    ]
+    assert res["n_windows"] == 20 and res["network"]["parameters"] == 13
+    for model in ("physical", "hybrid", "reference"):
+        scores = res[model]["protocol"]
+        assert scores["n"] == 20
+        assert all(np.isfinite(scores[k]) for k in ("rmse_mm", "nrmse", "r2", "fit_percent"))
+    assert np.isfinite(res["hybrid"]["learned_force_N"]["max_abs"])
+    assert set(res["figures"]) == {"compare.png", "friction.png"}
+    for fig in res["figures"]:
+        assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig

@@ -291,7 +291,7 @@ def relative_error(sim, meas):
     return float(100.0 * np.linalg.norm(sim - meas) / np.linalg.norm(meas))
 
 
-def protocol_prediction(data, theta, eps=EPS, substeps=1, n=None, half=5):
+def protocol_prediction(data, theta, eps=EPS, substeps=1, n=None, half=5, model=None):
     """The community's protocol on the test record (Champneys et al. 2024): the open-loop
     model, input tau = gtau vir and output qm, with x0 = (q, q') estimated from the first
     n = 20 test outputs only (`oneshot_jax.estimate_x0`, Gauss-Newton), then simulated over
@@ -304,6 +304,9 @@ def protocol_prediction(data, theta, eps=EPS, substeps=1, n=None, half=5):
     - `eps`, `substeps`: as for `open_loop_model`.
     - `n`: the protocol's number of initial test outputs (default: the record's, 20).
     - `half`: the half-width of the central difference that gives the velocity guess.
+    - `model`: another open-loop model with the same state (q, q'), input tau (N) and
+        output q, e.g. a hybrid one; `theta` is then its parameters (default:
+        `open_loop_model(data.Ts, eps, substeps)`).
 
     **Returns:**
 
@@ -312,7 +315,8 @@ def protocol_prediction(data, theta, eps=EPS, substeps=1, n=None, half=5):
     """
     test = data.test
     n = test.n if n is None else int(n)
-    model = open_loop_model(data.Ts, eps, substeps)
+    if model is None:
+        model = open_loop_model(data.Ts, eps, substeps)
     u = data.gtau * np.asarray(test.u).reshape(-1, 1)
     y = np.asarray(test.y).reshape(-1, 1)
     v0 = velocity_estimate(y[: max(n, 2 * half + 1), 0], data.Ts, half)[0]
