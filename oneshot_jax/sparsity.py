@@ -195,7 +195,9 @@ def mask(select: Callable[[Any], Any]) -> Callable[[Any], Any]:
     `select` is written like the `where` of `equinox.tree_at`: a function of the
     parameters returning one node or a tuple of nodes, e.g.
     `lambda theta: theta["residual"].coef` or `lambda theta: (theta["a"], theta["b"])`.
-    Every leaf at or below a selected node is True, every other leaf False.
+    Every floating leaf at or below a selected node is True (so `lambda theta:
+    theta["r"]` selects an `MLP`'s weights and biases, not its activation function), every
+    other leaf False.
     """
     if not callable(select):
         raise ValueError(f"`select` must be callable params -> node(s), got {select!r}.")
@@ -204,11 +206,14 @@ def mask(select: Callable[[Any], Any]) -> Callable[[Any], Any]:
         false = jax.tree_util.tree_map(lambda _: False, params)
         mark = lambda node: jax.tree_util.tree_map(lambda _: True, node)  # noqa: E731
         try:
-            return eqx.tree_at(select, false, replace_fn=mark)
+            picked = eqx.tree_at(select, false, replace_fn=mark)
         except Exception as err:  # noqa: BLE001 - re-raised naming the argument
             raise ValueError(
                 f"`select` must pick nodes of the parameter pytree: {type(err).__name__}: {err}"
             ) from err
+        # Only floating leaves are parameters: a module's activation function or integer
+        # buffers below a selected node stay unselected.
+        return jax.tree_util.tree_map(lambda b, p: b and _is_float(p), picked, params)
 
     return where
 
@@ -246,6 +251,8 @@ def fixed_zeros(theta, where=None):
 
 
 def _is_float(p):
+    if isinstance(p, float):
+        return True
     return hasattr(p, "dtype") and jnp.issubdtype(p.dtype, jnp.floating)
 
 

@@ -611,3 +611,19 @@ def test_l2_weight_decay_prox():
     np.testing.assert_allclose(out["w"], [1 / 1.1, -2.0, 0.5 / 1.1], rtol=1e-15)
     assert float(out["b"]) == 3.0
     np.testing.assert_allclose(reg.value(v), 0.25 * 5.25, rtol=1e-15)
+
+
+def test_a_mask_on_a_whole_network_selects_its_arrays_only():
+    """`sparsity.mask(lambda th: th["r"])` on an MLP selects the weights and biases, not
+    the activation function, so weight decay on the whole network works in fit."""
+    net = MLP(1, 1, (3,), key=jax.random.PRNGKey(0), zero_last=False)
+    theta = {"a": jnp.asarray(0.5), "r": net}
+    where = sparsity.mask(lambda th: th["r"])(theta)
+    assert where["a"] is False and where["r"].activation is False
+    assert all(b is True for b in jax.tree_util.tree_leaves(where["r"].layers))
+    out = sparsity.l2(0.1, where=sparsity.mask(lambda th: th["r"])).prox(
+        theta, jax.tree_util.tree_map(lambda p: 0.5 if sparsity._is_float(p) else p, theta)
+    )
+    w0, w1 = net.layers[0].weight, out["r"].layers[0].weight
+    np.testing.assert_allclose(w1, w0 / 1.05, rtol=1e-15)
+    assert float(out["a"]) == 0.5 and out["r"].activation is net.activation
