@@ -252,3 +252,44 @@ def test_run_end_to_end(tmp_path):
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
     # the recorded path (Figs. 2, 3: FitResult.history) ends at the estimate
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
+
+
+TANKS_HYBRID_SMALL = [
+    "experiment=cascaded_tanks_hybrid",
+    "experiment.n_samples=40",
+    "experiment.basic.substeps=1",
+    "experiment.overflow.substeps=1",
+    "experiment.overflow.h1_starts=[10]",
+    "experiment.substeps=1",
+    "experiment.residual.widths=[3]",
+    "experiment.joint.adam_steps=3",
+    "experiment.joint.refine=none",
+    "solver.kwargs.max_steps=3",
+    "progress=false",
+]
+
+
+def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
+    """The hybrid tanks experiment on a tiny budget through the Hydra entry point: the
+    run succeeds, writes its tables and figures, and every score is finite."""
+    from oneshot_jax import datasets
+
+    try:
+        datasets.load_cascaded_tanks()
+    except datasets.DatasetNotFoundError as err:
+        pytest.skip(f"benchmark files not available: {err}")
+    out = tmp_path / "run"
+    proc = _cli([f"hydra.run.dir={out}", *TANKS_HYBRID_SMALL], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "ok"
+    assert (out / "results.md").read_text().startswith("# Cascaded tanks: a hybrid model")
+    assert res["figures"] == ["compare.png", "learned_terms.png"]
+    for fig in res["figures"]:
+        assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
+    for row in (res["physical"], res["hybrid"]):
+        scores = [row["rmse_estimation_V"], row["rmse_validation_V"], row["protocol"]["rmse_V"]]
+        assert all(v is not None and np.isfinite(v) for v in scores)
+        assert all(v is not None and np.isfinite(v) for v in row["theta"].values())
+    assert res["hybrid"]["n_network_parameters"] == 3 * 3 + 3 + 3 * 2 + 2
+    assert set(res["hybrid"]["stages"]) == {"adam"}
