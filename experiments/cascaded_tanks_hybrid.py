@@ -3,9 +3,11 @@
 The physical part is the overflow model of `oneshot_jax.examples.cascaded_tanks`; an
 `oneshot_jax.residual.MLP` r adds a correction to both level derivatives:
 
-    x' = f_overflow(x, u; k1, k3, k4, h1, h2, k5) + s r((x, u); w),     y = x2 + c,
+    x' = f_overflow(x, u; k1, k3, k4, h1, h2, k5) + s r(features; w),     y = x2 + c,
 
-with the network's features centred and scaled by their mean and standard deviation on
+with the features the levels (x1, x2) (by default: the pump flow already enters the
+physics, and a network of the levels alone stays closer to a correction of the outflows
+and spills) or (x1, x2, u), centred and scaled by their mean and standard deviation on
 the physical model's estimation trajectory, and the constant s the RMS of f_overflow
 there (so that the network's outputs are of order one). The last layer starts at zero:
 the hybrid starts as the physical model. theta = {k1, k3, k4, c, h1, h2, k5, "r": MLP}.
@@ -49,7 +51,8 @@ from . import cascaded_tanks, common
 from .config import as_dict
 
 PHYSICAL = ("k1", "k3", "k4", "c", "h1", "h2", "k5")
-NETWORK = sparsity.mask(lambda theta: theta["r"])
+# The network's weights and biases (its activation is a function leaf, not a parameter).
+NETWORK = sparsity.mask(lambda theta: theta["r"].layers)
 
 
 class HybridRHS(eqx.Module):

@@ -337,8 +337,8 @@ class Residual:
     """The neural residual of the hybrid tanks model (`oneshot_jax.residual.MLP`)."""
 
     widths: list[int] = field(default_factory=lambda: [16, 16])
-    inputs: str = "states_and_input"  # or "states": the features of the network
-    n_starts: int = 1  # initialisations (seeds seed, seed+1, ...), run in parallel
+    inputs: str = "states"  # the features: (x1, x2), or "states_and_input": (x1, x2, u)
+    n_starts: int = 3  # initialisations (seeds seed, seed+1, ...), run in parallel
 
 
 @dataclass
