@@ -338,7 +338,7 @@ class Residual:
 
     widths: list[int] = field(default_factory=lambda: [16, 16])
     inputs: str = "states"  # the features: (x1, x2), or "states_and_input": (x1, x2, u)
-    n_starts: int = 3  # initialisations (seeds seed, seed+1, ...), run in parallel
+    n_starts: int = 3  # network initialisations (keys split from `seed`), in parallel
 
 
 @dataclass
@@ -350,8 +350,8 @@ class Joint:
     lr: float = 3e-3
     lr_x0: float = 1e-3
     weight_decay: float = 0.0
-    refine: str = "lbfgs"
-    refine_steps: int = 200
+    refine: str = "levenberg_marquardt"
+    refine_steps: int = 30
 
 
 @dataclass
