@@ -140,6 +140,14 @@ BAD = [
     (["experiment=emps", "experiment.open_loop.windows=[1]"], r"open_loop.windows\[0\]"),
     (["experiment=cascaded_tanks", "experiment.overflow.theta0.k5=2"], "k5` must be"),
     (["experiment=cascaded_tanks", "experiment.x0=[1]"], "`experiment.x0` must be a list"),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.joint.refine=newton"],
+        "`experiment.joint.refine` must be one of",
+    ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.residual.widths=[0]"],
+        r"`experiment.residual.widths\[0\]` must be an integer >= 1",
+    ),
 ]
 
 
@@ -262,7 +270,9 @@ TANKS_HYBRID_SMALL = [
     "experiment.overflow.h1_starts=[10]",
     "experiment.substeps=1",
     "experiment.residual.widths=[3]",
+    "experiment.residual.n_starts=2",
     "experiment.joint.adam_steps=3",
+    "experiment.joint.weight_decay=1e-4",
     "experiment.joint.refine=none",
     "solver.kwargs.max_steps=3",
     "progress=false",
@@ -291,5 +301,6 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
         scores = [row["rmse_estimation_V"], row["rmse_validation_V"], row["protocol"]["rmse_V"]]
         assert all(v is not None and np.isfinite(v) for v in scores)
         assert all(v is not None and np.isfinite(v) for v in row["theta"].values())
-    assert res["hybrid"]["n_network_parameters"] == 3 * 3 + 3 + 3 * 2 + 2
+    # features (x1, x2) -> 3 hidden -> 2 outputs
+    assert res["hybrid"]["n_network_parameters"] == 2 * 3 + 3 + 3 * 2 + 2
     assert set(res["hybrid"]["stages"]) == {"adam"}
