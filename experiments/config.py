@@ -391,6 +391,54 @@ class TanksConfig:
         _history(k + "history", self.history)
 
 
+@dataclass
+class Residual:
+    """The neural residual of the hybrid tanks model (`oneshot_jax.residual.MLP`)."""
+
+    widths: list[int] = field(default_factory=lambda: [16, 16])
+    inputs: str = "states"  # the features: (x1, x2), or "states_and_input": (x1, x2, u)
+    n_starts: int = 3  # network initialisations (keys split from `seed`), in parallel
+
+
+@dataclass
+class Joint:
+    """The joint stage: Adam (cosine-decayed rate, optional weight decay on the network),
+    then a refinement by another solver ("lbfgs", "levenberg_marquardt" or "none")."""
+
+    adam_steps: int = 1000
+    lr: float = 3e-3
+    lr_x0: float = 1e-3
+    weight_decay: float = 0.0
+    refine: str = "levenberg_marquardt"
+    refine_steps: int = 30
+
+
+@dataclass
+class TanksHybridConfig(TanksConfig):
+    """The hybrid cascaded-tanks study (`experiments/cascaded_tanks_hybrid.py`): the
+    overflow model of `TanksConfig` plus a neural residual on the level derivatives."""
+
+    name: str = "cascaded_tanks_hybrid"
+    substeps: int = 2
+    residual: Residual = field(default_factory=Residual)
+    joint: Joint = field(default_factory=Joint)
+
+    def __post_init__(self):
+        super().__post_init__()
+        k = "experiment."
+        _integer(k + "substeps", self.substeps, 1)
+        for i, w in enumerate(self.residual.widths):
+            _integer(f"{k}residual.widths[{i}]", w, 1)
+        _one_of(k + "residual.inputs", self.residual.inputs, ("states_and_input", "states"))
+        _integer(k + "residual.n_starts", self.residual.n_starts, 1)
+        _integer(k + "joint.adam_steps", self.joint.adam_steps, 1)
+        _number(k + "joint.lr", self.joint.lr, lo=0.0, lo_open=True)
+        _number(k + "joint.lr_x0", self.joint.lr_x0, lo=0.0)
+        _number(k + "joint.weight_decay", self.joint.weight_decay, lo=0.0)
+        _one_of(k + "joint.refine", self.joint.refine, ("lbfgs", "levenberg_marquardt", "none"))
+        _integer(k + "joint.refine_steps", self.joint.refine_steps, 1)
+
+
 # --------------------------------------------------------------------------- top level
 
 
@@ -424,6 +472,7 @@ def register() -> None:
     cs.store(group="schema/experiment", name="emps", node=EMPSConfig)
     cs.store(group="schema/experiment", name="emps_hybrid", node=EMPSHybridConfig)
     cs.store(group="schema/experiment", name="cascaded_tanks", node=TanksConfig)
+    cs.store(group="schema/experiment", name="cascaded_tanks_hybrid", node=TanksHybridConfig)
     cs.store(group="schema", name="solver", node=SolverConfig)
 
 

@@ -142,6 +142,14 @@ BAD = [
     (["experiment=emps_hybrid", "experiment.window=1"], "`experiment.window` must be an int"),
     (["experiment=cascaded_tanks", "experiment.overflow.theta0.k5=2"], "k5` must be"),
     (["experiment=cascaded_tanks", "experiment.x0=[1]"], "`experiment.x0` must be a list"),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.joint.refine=newton"],
+        "`experiment.joint.refine` must be one of",
+    ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.residual.widths=[0]"],
+        r"`experiment.residual.widths\[0\]` must be an integer >= 1",
+    ),
 ]
 
 
@@ -297,3 +305,47 @@ def test_emps_hybrid_end_to_end(tmp_path):
     assert set(res["figures"]) == {"compare.png", "friction.png"}
     for fig in res["figures"]:
         assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
+
+
+TANKS_HYBRID_SMALL = [
+    "experiment=cascaded_tanks_hybrid",
+    "experiment.n_samples=40",
+    "experiment.basic.substeps=1",
+    "experiment.overflow.substeps=1",
+    "experiment.overflow.h1_starts=[10]",
+    "experiment.substeps=1",
+    "experiment.residual.widths=[3]",
+    "experiment.residual.n_starts=2",
+    "experiment.joint.adam_steps=3",
+    "experiment.joint.weight_decay=1e-4",
+    "experiment.joint.refine=none",
+    "solver.kwargs.max_steps=3",
+    "progress=false",
+]
+
+
+def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
+    """The hybrid tanks experiment on a tiny budget through the Hydra entry point: the
+    run succeeds, writes its tables and figures, and every score is finite."""
+    from oneshot_jax import datasets
+
+    try:
+        datasets.load_cascaded_tanks()
+    except datasets.DatasetNotFoundError as err:
+        pytest.skip(f"benchmark files not available: {err}")
+    out = tmp_path / "run"
+    proc = _cli([f"hydra.run.dir={out}", *TANKS_HYBRID_SMALL], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "ok"
+    assert (out / "results.md").read_text().startswith("# Cascaded tanks: a hybrid model")
+    assert res["figures"] == ["compare.png", "learned_terms.png"]
+    for fig in res["figures"]:
+        assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
+    for row in (res["physical"], res["hybrid"]):
+        scores = [row["rmse_estimation_V"], row["rmse_validation_V"], row["protocol"]["rmse_V"]]
+        assert all(v is not None and np.isfinite(v) for v in scores)
+        assert all(v is not None and np.isfinite(v) for v in row["theta"].values())
+    # features (x1, x2) -> 3 hidden -> 2 outputs
+    assert res["hybrid"]["n_network_parameters"] == 2 * 3 + 3 + 3 * 2 + 2
+    assert set(res["hybrid"]["stages"]) == {"adam"}

@@ -1,0 +1,328 @@
+"""Cascaded tanks benchmark: the overflow model plus a neural residual (a hybrid model).
+
+The physical part is the overflow model of `oneshot_jax.examples.cascaded_tanks`; an
+`oneshot_jax.residual.MLP` r adds a correction to both level derivatives:
+
+    x' = f_overflow(x, u; k1, k3, k4, h1, h2, k5) + s r(features; w),     y = x2 + c,
+
+with the features the levels (x1, x2) (by default: the pump flow already enters the
+physics, and a network of the levels alone stays closer to a correction of the outflows
+and spills) or (x1, x2, u), centred and scaled by their mean and standard deviation on
+the physical model's estimation trajectory, and the constant s the RMS of f_overflow
+there (so that the network's outputs are of order one). The last layer starts at zero:
+the hybrid starts as the physical model. theta = {k1, k3, k4, c, h1, h2, k5, "r": MLP}.
+
+Training, in stages that each start where the last stopped (all through `oneshot_jax.fit`):
+
+1. physics alone (the residual is zero): the basic model from a rough guess, then the
+   overflow model from it with a multistart over h1 (as `experiments/cascaded_tanks.py`,
+   with the configured solver);
+2. jointly: Adam on the one-shot gradient (cosine-decayed rate, optionally weight decay
+   on the network, `sparsity.l2`), with a multistart over the network's initialisation;
+3. a refinement by L-BFGS or Levenberg-Marquardt (or none).
+
+The physical bounds hold throughout. Evaluation follows the community protocol
+(Champneys et al. 2024): train on the estimation record, simulate the validation record
+from an x0 estimated from its first 5 outputs only, and score the RMS error on the rest.
+
+Run: `python experiments/run.py experiment=cascaded_tanks_hybrid`; figures in
+`cascaded_tanks_hybrid_plots.py`, the tables in `cascaded_tanks_hybrid_report.py`.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import oneshot_jax as oj
+from oneshot_jax import sparsity
+from oneshot_jax._results import name_of
+from oneshot_jax.examples import cascaded_tanks as example
+from oneshot_jax.residual import MLP, count_parameters
+
+from . import cascaded_tanks, common
+from .config import as_dict
+
+PHYSICAL = ("k1", "k3", "k4", "c", "h1", "h2", "k5")
+# The network's weights and biases (its activation is a function leaf, not a parameter).
+NETWORK = sparsity.mask(lambda theta: theta["r"].layers)
+
+
+class HybridRHS(eqx.Module):
+    """x' = f_overflow(x, u) + theta["r"](features): the overflow model's right-hand side
+    plus the network's correction of both level derivatives."""
+
+    physics: example.OverflowRHS
+    inputs: str = eqx.field(static=True)
+
+    def features(self, x, u):
+        """The network's input: (x1, x2, u) or (x1, x2)."""
+        return jnp.concatenate([x, u]) if self.inputs == "states_and_input" else x
+
+    def terms(self, x, u, theta):
+        """(physical derivative, residual), each (2,), at one state and input."""
+        return self.physics(x, u, theta), theta["r"](self.features(x, u))
+
+    def __call__(self, x, u, theta):
+        f, r = self.terms(x, u, theta)
+        return f + r
+
+
+def hybrid_model(data, ex) -> tuple[oj.Model, HybridRHS]:
+    """The hybrid `Model` (RK4, `ex.substeps` steps per sample) and its right-hand side."""
+    rhs = HybridRHS(example.OverflowRHS(ex.gate_width, ex.relu_width), ex.residual.inputs)
+    model = oj.Model.from_ode(
+        rhs, data.Ts, method="rk4", substeps=ex.substeps, observe=example.observe
+    )
+    return model, rhs
+
+
+def make_network(rhs, ex, theta_phys, x0, u, Ts, key) -> MLP:
+    """An MLP that starts at zero, its features normalised on the physical model's
+    trajectory under the inputs u (T,) and its output scaled by the RMS of the physical
+    derivative there."""
+    phys = example.model("overflow", Ts, ex.overflow.substeps, ex.gate_width, ex.relu_width)
+    xs, _ = oj.simulate(phys, theta_phys, np.asarray(x0), np.asarray(u)[:, None])
+    xs = jnp.asarray(xs)
+    uu = jnp.asarray(u)[:, None]
+    feats = np.asarray(jax.vmap(rhs.features)(xs, uu))
+    f = np.asarray(jax.vmap(lambda x, v: rhs.physics(x, v, theta_phys))(xs, uu))
+    return MLP(
+        feats.shape[1],
+        2,
+        tuple(ex.residual.widths),
+        key=key,
+        scale=float(np.sqrt(np.mean(f**2))),
+        input_offset=feats.mean(0),
+        input_scale=np.maximum(feats.std(0), 1e-6),
+    )
+
+
+def evaluate(model, theta, x0, data):
+    """Estimation RMSE, validation RMSE from the estimation x0, and the protocol scores
+    (x0 from the first 5 validation outputs), with the simulated and predicted signals."""
+    _, z_est = oj.simulate(model, theta, np.asarray(x0), data.u_est[:, None])
+    _, z_val = oj.simulate(model, theta, np.asarray(x0), data.u_val[:, None])
+    z_est, z_val = np.asarray(z_est)[:, 0], np.asarray(z_val)[:, 0]
+    test = data.test
+    pred = oj.predict(
+        model,
+        theta,
+        np.asarray(test.u)[:, None],
+        np.asarray(test.y)[:, None],
+        test.n,
+        x0=np.asarray(x0, float),
+    )
+    sc = oj.metrics.benchmark_scores(np.asarray(test.y)[:, None], np.asarray(pred.z), test.n)
+    return {
+        "rmse_estimation_V": float(oj.metrics.rmse(data.y_est, z_est)[0]),
+        "rmse_validation_V": float(oj.metrics.rmse(data.y_val, z_val)[0]),
+        "protocol": {
+            "n": int(sc.n),
+            "rmse_V": float(sc.rmse[0]),
+            "nrmse": float(sc.nrmse[0]),
+            "r2": float(sc.r2[0]),
+            "fit_percent": float(sc.fit_percent[0]),
+            "x0": [float(v) for v in np.asarray(pred.x0)],
+        },
+        "_pred": {"z": np.asarray(pred.z)[:, 0], "x": np.asarray(pred.x)},
+    }
+
+
+def _stack(trees):
+    """One pytree whose array leaves carry a leading axis of starts (other parts shared)."""
+    params = [eqx.filter(t, eqx.is_array) for t in trees]
+    static = eqx.filter(trees[0], eqx.is_array, inverse=True)
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *params)
+    return eqx.combine(stacked, static)
+
+
+def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, history):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return oj.fit(
+            model,
+            theta0,
+            np.asarray(x0, float),
+            u,
+            y,
+            solver=solver,
+            constraints=constraints,
+            multistart=multistart,
+            progress=progress,
+            history=history,
+        )
+
+
+def _stage(res, wall):
+    return {
+        "loss": float(res.loss),
+        "iterations": int(res.num_steps),
+        "stop_reason": name_of(res.stop_reason),
+        "wall_time_s": float(wall),
+    }
+
+
+def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
+    """Stages 2 and 3 from the physical estimate (theta_phys, x0). Returns (FitResult,
+    model, rhs, stage summaries, the multistart's final Adam losses)."""
+    n = len(data.u_est) if ex.n_samples is None else int(ex.n_samples)
+    u, y = data.u_est[:n, None], data.y_est[:n, None]
+    model, rhs = hybrid_model(data, ex)
+    S = ex.residual.n_starts
+    nets = [
+        make_network(rhs, ex, theta_phys, x0, data.u_est[:n], data.Ts, k)
+        for k in jax.random.split(jax.random.PRNGKey(seed), S)
+    ]
+    box = example.constraints("overflow")
+    jt = ex.joint
+    constraints = [box]
+    if jt.weight_decay > 0:
+        constraints.append(sparsity.l2(jt.weight_decay, where=NETWORK))
+    lr = optax.cosine_decay_schedule(jt.lr, jt.adam_steps, alpha=1e-2)
+    adam = oj.Adam(lr, jt.lr_x0, max_steps=jt.adam_steps)
+    if S > 1:
+        theta0 = {**{k: jnp.full((S,), v) for k, v in theta_phys.items()}, "r": _stack(nets)}
+    else:
+        theta0 = {**theta_phys, "r": nets[0]}
+    t0 = time.perf_counter()
+    res = _fit(model, theta0, x0, u, y, adam, constraints, S > 1, progress, ex.history)
+    stages = {"adam": _stage(res, time.perf_counter() - t0)}
+    starts = None if res.starts is None else [float(v) for v in np.asarray(res.starts.loss)]
+    if jt.refine != "none":
+        cls = {"lbfgs": oj.LBFGS, "levenberg_marquardt": oj.LevenbergMarquardt}[jt.refine]
+        t0 = time.perf_counter()
+        refined = _fit(
+            model,
+            res.theta,
+            res.x0,
+            u,
+            y,
+            cls(max_steps=jt.refine_steps),
+            box,
+            False,
+            progress,
+            ex.history,
+        )
+        stages[jt.refine] = _stage(refined, time.perf_counter() - t0)
+        res = refined
+    return res, model, rhs, stages, starts
+
+
+def learned_terms(rhs, theta, x, u):
+    """The physical derivative and the residual (each (T, 2), V/s) along states x (T, 2)
+    under inputs u (T,)."""
+    f, r = jax.vmap(lambda a, b: rhs.terms(a, b, theta))(jnp.asarray(x), jnp.asarray(u)[:, None])
+    return np.asarray(f), np.asarray(r)
+
+
+def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tanks_hybrid") -> dict:
+    """Fit the physical model, then the hybrid; score both on validation under the
+    protocol, write figures and results.md into `outdir`; `cfg` is the validated
+    `config.Config`."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            "the cascaded-tanks hybrid experiment needs float64: call "
+            "jax.config.update('jax_enable_x64', True) before run() (experiments/run.py does)."
+        )
+    ex = cfg.experiment
+    solver = common.make_solver(cfg.solver.name, cfg.solver.kwargs)
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    data = oj.datasets.load_cascaded_tanks(ex.data_path)
+    n = ex.n_samples
+    print(
+        f"Cascaded tanks, hybrid: {len(data.u_est) if n is None else n} estimation samples, "
+        f"Ts = {data.Ts} s; validation on {len(data.u_val)} samples, x0 from its first "
+        f"{data.test.n}; physics stage: {cfg.solver.title}",
+        flush=True,
+    )
+
+    # 1. physics alone: basic, then overflow (multistart over h1); the residual is zero.
+    t0 = time.perf_counter()
+    res, _ = cascaded_tanks.fit_model(
+        "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=cfg.progress
+    )
+    base = {**{k: float(v) for k, v in res.theta.items()}, **dict(ex.overflow.theta0)}
+    h1s = [float(h) for h in ex.overflow.h1_starts]
+    starts = {k: jnp.full((len(h1s),), v) for k, v in base.items()}
+    starts["h1"] = jnp.asarray(h1s)
+    phys, phys_model = cascaded_tanks.fit_model(
+        "overflow", data, ex, starts, res.x0, solver, n, multistart=True, progress=cfg.progress
+    )
+    theta_phys = {k: float(v) for k, v in phys.theta.items()}
+    physical = {
+        "theta": theta_phys,
+        "x0": [float(v) for v in np.asarray(phys.x0)],
+        "stage": _stage(phys, time.perf_counter() - t0),
+        **evaluate(phys_model, phys.theta, phys.x0, data),
+    }
+    print(
+        f"physical (overflow) model: protocol RMSE {physical['protocol']['rmse_V']:.4f} V",
+        flush=True,
+    )
+
+    # 2, 3. jointly: Adam (multistart over the network's initialisation), then refined.
+    hyb, model, rhs, stages, adam_starts = train_hybrid(
+        data, ex, theta_phys, phys.x0, cfg.seed, cfg.progress
+    )
+    hybrid = {
+        "theta": {k: float(hyb.theta[k]) for k in PHYSICAL},
+        "x0": [float(v) for v in np.asarray(hyb.x0)],
+        "n_network_parameters": count_parameters(hyb.theta["r"]),
+        "network_scale_V_per_s": float(hyb.theta["r"].scale),
+        "stages": stages,
+        "adam_start_losses": adam_starts,
+        **evaluate(model, hyb.theta, hyb.x0, data),
+    }
+    # Integration check: the same parameters with twice the RK4 substeps.
+    fine = oj.Model.from_ode(
+        rhs, data.Ts, method="rk4", substeps=2 * ex.substeps, observe=example.observe
+    )
+    _, z_fine = oj.simulate(fine, hyb.theta, np.asarray(hyb.x0), data.u_val[:, None])
+    _, z_val = oj.simulate(model, hyb.theta, np.asarray(hyb.x0), data.u_val[:, None])
+    hybrid["integration_check_max_abs_V"] = float(np.max(np.abs(np.asarray(z_fine - z_val))))
+    print(
+        f"hybrid model: estimation RMSE {hybrid['rmse_estimation_V']:.4f} V, protocol RMSE "
+        f"{hybrid['protocol']['rmse_V']:.4f} V",
+        flush=True,
+    )
+
+    figures = []
+    if ex.figures:
+        from . import cascaded_tanks_hybrid_plots
+
+        x = hybrid["_pred"]["x"][: len(data.u_val)]
+        f, r = learned_terms(rhs, hyb.theta, x, data.u_val[: len(x)])
+        figures = cascaded_tanks_hybrid_plots.figures(data, physical, hybrid, f, r, outdir)
+    for row in (physical, hybrid):
+        row.pop("_pred")
+    out = {
+        "benchmark": "cascaded_tanks",
+        "command": command,
+        "solver": as_dict(cfg.solver),
+        "config": as_dict(ex),
+        "seed": cfg.seed,
+        "Ts_s": data.Ts,
+        "n_estimation_samples": len(data.u_est) if n is None else int(n),
+        "units": example.UNITS,
+        "physical": physical,
+        "hybrid": hybrid,
+        "figures": figures,
+        "total_time_s": time.perf_counter() - t_start,
+    }
+    out = common.to_jsonable(out)
+    from . import cascaded_tanks_hybrid_report
+
+    md = cascaded_tanks_hybrid_report.markdown(out)
+    (outdir / "results.md").write_text(md)
+    print(md.split("![")[0])
+    return out
