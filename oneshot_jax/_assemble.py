@@ -113,11 +113,16 @@ def assemble(
     x0_free = np.asarray(problem.x0_free, int)
     flat_std = np.zeros(theta_flat.shape)
     x0_std = np.zeros(X0.shape)
-    if cov is None:  # not computed (a large theta): NaN standard errors, no (p, p) matrix
+    if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
+        warnings.warn(
+            f"the covariance of the estimates is not computed above {COVARIANCE_MAX_THETA} "
+            f"free entries of theta ({free.size} here): std and x0_std are inf (unknown).",
+            stacklevel=3,
+        )
         theta_cov = np.zeros((0, 0))
-        flat_std[free] = np.nan
-        x0_std[:, x0_free] = np.nan
-        x0_cov = np.full((X0.shape[0], x0_free.size, x0_free.size), np.nan)
+        flat_std[free] = np.inf
+        x0_std[:, x0_free] = np.inf
+        x0_cov = np.full((X0.shape[0], x0_free.size, x0_free.size), np.inf)
     else:
         n_obs = int(np.sum(np.isfinite(e)))
         scaled = scale(cov, n_obs)

@@ -74,8 +74,8 @@ class FitResult(eqx.Module):
         rows and columns of a parameter the data do not determine. The least-squares
         solvers take J from their last linearisation, at the returned point or one
         converged step (of scaled size <= rtol) before it. Not computed above 1024 free
-        entries of theta (a neural residual, say): then an empty (0, 0) array, and `std`,
-        `x0_std`, `x0_covariance` are NaN.
+        entries of theta (a neural residual, say): then an empty (0, 0) array, `std`,
+        `x0_std` and `x0_covariance` are inf (unknown), and `fit` warns.
     - `std`: standard errors shaped like theta's parameters (0 where fixed).
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
@@ -206,7 +206,7 @@ class FitResult(eqx.Module):
         for name, v, s, f in zip(names, flat, std, self.fixed):
             if f:
                 ci = "(fixed)"
-            elif np.isnan(s):
+            elif self.covariance.shape == (0, 0):
                 ci = "(not computed)"
             elif np.isfinite(s):
                 ci = f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]"

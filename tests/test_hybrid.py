@@ -627,3 +627,23 @@ def test_a_mask_on_a_whole_network_selects_its_arrays_only():
     w0, w1 = net.layers[0].weight, out["r"].layers[0].weight
     np.testing.assert_allclose(w1, w0 / 1.05, rtol=1e-15)
     assert float(out["a"]) == 0.5 and out["r"].activation is net.activation
+
+
+def test_without_a_covariance_the_errors_are_unknown_not_nan(monkeypatch):
+    """Above the covariance limit (lowered here to 2 free entries) fit warns, reports inf
+    (unknown) standard errors, never NaN, and still reports its convergence."""
+    from oneshot_jax import _assemble
+
+    monkeypatch.setattr(_assemble, "COVARIANCE_MAX_THETA", 2)
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u + th["c"] * x**2)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((40, 1))
+    true = {"a": jnp.asarray(0.5), "b": jnp.asarray(1.0), "c": jnp.asarray(0.05)}
+    _, z = oj.simulate(model, true, jnp.zeros(1), u)
+    theta0 = {"a": jnp.asarray(0.4), "b": jnp.asarray(0.9), "c": jnp.asarray(0.0)}
+    with pytest.warns(UserWarning, match="not computed above 2 free entries"):
+        r = oj.fit(model, theta0, jnp.zeros(1), u, z, estimate_x0=False)
+    assert r.success and r.covariance.shape == (0, 0)
+    std = np.array([float(r.std[k]) for k in ("a", "b", "c")])
+    assert np.all(np.isinf(std)) and not np.any(np.isnan(std))
+    assert "(not computed)" in str(r)
