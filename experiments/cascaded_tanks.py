@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -64,10 +62,11 @@ def simulate(model, theta, x0, u):
     return np.asarray(z)[:, 0]
 
 
-def protocol(model, theta, data, x0_guess):
+def protocol_prediction(model, theta, data, x0_guess):
     """The community's protocol (Champneys et al. 2024) on the validation record: x0 from
     its first n = 5 outputs only (`oneshot_jax.predict`, Gauss-Newton on x0), simulated
-    over the whole record, scored on samples n: (`benchmark_scores`)."""
+    over the whole record, scored on samples n: (`benchmark_scores`). Returns the
+    `Prediction` and the scores."""
     test = data.test
     pred = oj.predict(
         model,
@@ -78,14 +77,12 @@ def protocol(model, theta, data, x0_guess):
         x0=np.asarray(x0_guess, float),
     )
     sc = oj.metrics.benchmark_scores(np.asarray(test.y)[:, None], np.asarray(pred.z), test.n)
-    return {
-        "n": int(sc.n),
-        "rmse_V": float(sc.rmse[0]),
-        "nrmse": float(sc.nrmse[0]),
-        "r2": float(sc.r2[0]),
-        "fit_percent": float(sc.fit_percent[0]),
-        "x0": [float(v) for v in np.asarray(pred.x0)],
-    }
+    return pred, common.protocol_scores(sc, pred, "V")
+
+
+def protocol(model, theta, data, x0_guess):
+    """The protocol scores of `protocol_prediction`."""
+    return protocol_prediction(model, theta, data, x0_guess)[1]
 
 
 def _summary(res, model, data, kind, wall):
@@ -114,16 +111,8 @@ def _summary(res, model, data, kind, wall):
 def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tanks") -> dict:
     """Fit the basic and the overflow model, score them on validation, write figures and
     results.md into `outdir`; `cfg` is the validated `config.Config`."""
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "the cascaded-tanks experiment needs float64: call "
-            "jax.config.update('jax_enable_x64', True) before run() (experiments/run.py does)."
-        )
     ex = cfg.experiment
-    solver = common.make_solver(cfg.solver.name, cfg.solver.kwargs)
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
+    solver, outdir, t_start = common.start(cfg, outdir, "cascaded-tanks")
     data = oj.datasets.load_cascaded_tanks(ex.data_path)
     n = ex.n_samples
     print(

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -43,7 +42,6 @@ import optax
 
 import oneshot_jax as oj
 from oneshot_jax import sparsity
-from oneshot_jax._results import name_of
 from oneshot_jax.examples import cascaded_tanks as example
 from oneshot_jax.residual import MLP, count_parameters
 
@@ -108,30 +106,13 @@ def make_network(rhs, ex, theta_phys, x0, u, Ts, key) -> MLP:
 def evaluate(model, theta, x0, data):
     """Estimation RMSE, validation RMSE from the estimation x0, and the protocol scores
     (x0 from the first 5 validation outputs), with the simulated and predicted signals."""
-    _, z_est = oj.simulate(model, theta, np.asarray(x0), data.u_est[:, None])
-    _, z_val = oj.simulate(model, theta, np.asarray(x0), data.u_val[:, None])
-    z_est, z_val = np.asarray(z_est)[:, 0], np.asarray(z_val)[:, 0]
-    test = data.test
-    pred = oj.predict(
-        model,
-        theta,
-        np.asarray(test.u)[:, None],
-        np.asarray(test.y)[:, None],
-        test.n,
-        x0=np.asarray(x0, float),
-    )
-    sc = oj.metrics.benchmark_scores(np.asarray(test.y)[:, None], np.asarray(pred.z), test.n)
+    z_est = cascaded_tanks.simulate(model, theta, x0, data.u_est)
+    z_val = cascaded_tanks.simulate(model, theta, x0, data.u_val)
+    pred, scores = cascaded_tanks.protocol_prediction(model, theta, data, x0)
     return {
         "rmse_estimation_V": float(oj.metrics.rmse(data.y_est, z_est)[0]),
         "rmse_validation_V": float(oj.metrics.rmse(data.y_val, z_val)[0]),
-        "protocol": {
-            "n": int(sc.n),
-            "rmse_V": float(sc.rmse[0]),
-            "nrmse": float(sc.nrmse[0]),
-            "r2": float(sc.r2[0]),
-            "fit_percent": float(sc.fit_percent[0]),
-            "x0": [float(v) for v in np.asarray(pred.x0)],
-        },
+        "protocol": scores,
         "_pred": {"z": np.asarray(pred.z)[:, 0], "x": np.asarray(pred.x)},
     }
 
@@ -165,7 +146,7 @@ def _stage(res, wall):
     return {
         "loss": float(res.loss),
         "iterations": int(res.num_steps),
-        "stop_reason": name_of(res.stop_reason),
+        "stop_reason": res.status,
         "wall_time_s": float(wall),
     }
 
@@ -227,16 +208,8 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
     """Fit the physical model, then the hybrid; score both on validation under the
     protocol, write figures and results.md into `outdir`; `cfg` is the validated
     `config.Config`."""
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "the cascaded-tanks hybrid experiment needs float64: call "
-            "jax.config.update('jax_enable_x64', True) before run() (experiments/run.py does)."
-        )
     ex = cfg.experiment
-    solver = common.make_solver(cfg.solver.name, cfg.solver.kwargs)
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
+    solver, outdir, t_start = common.start(cfg, outdir, "cascaded-tanks hybrid")
     data = oj.datasets.load_cascaded_tanks(ex.data_path)
     n = ex.n_samples
     print(

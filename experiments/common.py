@@ -24,6 +24,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -65,6 +66,33 @@ def make_solver(name: str, kwargs: Mapping) -> oj.AbstractSolver:
             f"solver {name!r} ({cls.__name__}) got unknown kwargs {unknown}; valid: {valid}."
         )
     return cls(**kwargs)
+
+
+def start(cfg, outdir, title: str):
+    """The common start of an experiment's `run()`: float64 checked, the configured
+    solver built, the output folder made. Returns (solver, outdir, start time)."""
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            f"the {title} experiment needs float64: call "
+            "jax.config.update('jax_enable_x64', True) before run() (experiments/run.py does)."
+        )
+    solver = make_solver(cfg.solver.name, cfg.solver.kwargs)
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    return solver, outdir, time.perf_counter()
+
+
+def protocol_scores(scores, pred, unit: str) -> dict:
+    """The protocol's scores (`oneshot_jax.metrics.benchmark_scores` of one output) and
+    the x0 its prediction used, as JSON-ready numbers; the RMSE under `rmse_<unit>`."""
+    return {
+        "n": int(scores.n),
+        f"rmse_{unit}": float(scores.rmse[0]),
+        "nrmse": float(scores.nrmse[0]),
+        "r2": float(scores.r2[0]),
+        "fit_percent": float(scores.fit_percent[0]),
+        "x0": [float(v) for v in np.asarray(pred.x0)],
+    }
 
 
 def check_solver(name: str, kwargs: Mapping) -> None:

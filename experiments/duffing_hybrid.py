@@ -48,7 +48,6 @@ if __name__ == "__main__":
 
 import oneshot_jax as oj  # noqa: E402
 from oneshot_jax import sparsity  # noqa: E402
-from oneshot_jax._results import name_of  # noqa: E402
 from oneshot_jax.residual import MLP, Dictionary, Features  # noqa: E402
 
 DT = 0.05
@@ -288,7 +287,7 @@ def main(T=2000):
     for label, res in (("physics", physics), ("joint", joint)):
         print(
             f"  {label:7s}: c = {float(res.theta['c']):.4f}, k = {float(res.theta['k']):.4f}; "
-            f"training loss {float(res.loss):.4g} ({name_of(res.stop_reason)}); validation "
+            f"training loss {float(res.loss):.4g} ({res.status}); validation "
             f"RMSE [{fmt(rmses(res.theta))}] sigma"
         )
 

@@ -26,9 +26,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from pathlib import Path
 
-import jax
 import numpy as np
 
 import oneshot_jax as oj
@@ -127,14 +125,7 @@ def score(data, theta, ex) -> dict:
 def _protocol(data, theta, ex) -> dict:
     """The protocol scores of one parameter set (position in mm)."""
     pred, sc = example.protocol_prediction(data, theta, ex.eps, ex.substeps)
-    return {
-        "n": int(sc.n),
-        "rmse_mm": float(sc.rmse[0]),
-        "nrmse": float(sc.nrmse[0]),
-        "r2": float(sc.r2[0]),
-        "fit_percent": float(sc.fit_percent[0]),
-        "x0": [float(v) for v in np.asarray(pred.x0)],
-    }
+    return common.protocol_scores(sc, pred, "mm")
 
 
 def _sweep(data, ex, solver, n_used, progress):
@@ -165,16 +156,8 @@ def _sweep(data, ex, solver, n_used, progress):
 def run(cfg, outdir, command="python experiments/run.py experiment=emps") -> dict:
     """Fit both structures over the window sweep, score them, write figures and
     results.md into `outdir`; `cfg` is the validated `config.Config`."""
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "the EMPS experiment needs float64: call jax.config.update('jax_enable_x64', True) "
-            "before run() (experiments/run.py does)."
-        )
     ex = cfg.experiment
-    solver = common.make_solver(cfg.solver.name, cfg.solver.kwargs)
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
+    solver, outdir, t_start = common.start(cfg, outdir, "EMPS")
     data = oj.datasets.load_emps(ex.data_path)
     n_used = (
         len(data.estimation) if ex.n_samples is None else min(ex.n_samples, len(data.estimation))

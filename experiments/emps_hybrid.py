@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -199,29 +198,14 @@ def _protocol(data, theta, ex, model=None):
     pred, sc = example.protocol_prediction(
         data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
     )
-    return pred, {
-        "n": int(sc.n),
-        "rmse_mm": float(sc.rmse[0]),
-        "nrmse": float(sc.nrmse[0]),
-        "r2": float(sc.r2[0]),
-        "fit_percent": float(sc.fit_percent[0]),
-        "x0": [float(v) for v in np.asarray(pred.x0)],
-    }
+    return pred, common.protocol_scores(sc, pred, "mm")
 
 
 def run(cfg, outdir, command="python experiments/run.py experiment=emps_hybrid") -> dict:
     """Train the physical and the hybrid model, score both with the protocol, write the
     figures and results.md into `outdir`; `cfg` is the validated `config.Config`."""
-    if not jax.config.jax_enable_x64:
-        raise RuntimeError(
-            "the EMPS hybrid experiment needs float64: call "
-            "jax.config.update('jax_enable_x64', True) before run() (experiments/run.py does)."
-        )
     ex = cfg.experiment
-    solver = common.make_solver(cfg.solver.name, cfg.solver.kwargs)
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
+    solver, outdir, t_start = common.start(cfg, outdir, "EMPS hybrid")
     data = oj.datasets.load_emps(ex.data_path)
     n_used = (
         len(data.estimation) if ex.n_samples is None else min(ex.n_samples, len(data.estimation))
