@@ -4,6 +4,7 @@ from . import constraints as constraints
 from . import datasets as datasets
 from . import metrics as metrics
 from . import penalties as penalties
+from . import plot as plot
 from . import residual as residual
 from . import sharding as sharding
 from . import sparsity as sparsity

@@ -1,0 +1,255 @@
+"""The figures a MATLAB user draws right after a fit: `compare`, the measured outputs
+against the simulated or predicted outputs of one or several models with their FIT %,
+and `resid`, the residual analysis with its 99 % bounds.
+
+matplotlib is an optional dependency (`pip install "oneshot_jax[plot]"`). It is imported
+when a figure is drawn, never by `import oneshot_jax`; the functions use `pyplot`, so the
+figure shows in a notebook or a window as usual, and return it (`fig.savefig(...)`).
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+from . import metrics
+from ._fit_result import FitResult
+from ._initial_state import Prediction
+
+__all__ = ["compare", "resid"]
+
+
+def _pyplot():
+    try:
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise ImportError(
+            "oneshot_jax.plot draws with matplotlib, which is not installed: "
+            'pip install "oneshot_jax[plot]" (the `plot` extra).'
+        ) from err
+    return plt
+
+
+def _columns(a, name):
+    """`a` as a float64 (T, n) array."""
+    try:
+        a = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`{name}` must be a numeric array, got {type(a).__name__}.") from err
+    if a.ndim not in (1, 2):
+        raise ValueError(f"`{name}` must have shape (T,) or (T, n) (one record), got {a.shape}.")
+    return a[:, None] if a.ndim == 1 else a
+
+
+def _axes(ax, count, plt, figsize):
+    """`count` Axes: new ones in a column, or those of `ax` (one Axes or a sequence)."""
+    if ax is None:
+        fig, axes = plt.subplots(count, 1, sharex=True, squeeze=False, figsize=figsize)
+        return fig, list(axes[:, 0])
+    axes = list(np.ravel(np.asarray(ax, dtype=object)))
+    if len(axes) != count or not all(hasattr(a, "plot") for a in axes):
+        raise ValueError(f"`ax` must be {count} matplotlib Axes (one per output), got {ax!r}.")
+    return axes[0].figure, axes
+
+
+def _model_output(i, model, u, z, n):
+    """The output (T, n_z) of the i-th model: a FitResult's simulation (or its prediction
+    from the first n samples), a Prediction's z, or the array itself."""
+    name = f"models[{i}]"
+    if isinstance(model, FitResult):
+        if u is None:
+            raise ValueError(f"`u` is required to simulate {name}, a FitResult.")
+        zhat = model.predict(u, z[:n]).z if n else model.simulate(u)[1]
+    elif isinstance(model, Prediction):
+        zhat = model.z
+    else:
+        zhat = model
+    zhat = _columns(zhat, name)
+    if zhat.shape != z.shape:
+        hint = (
+            " (a FitResult of several trajectories simulates each: pass `n` to predict this "
+            "record from its head instead)"
+            if isinstance(model, FitResult)
+            else ""
+        )
+        raise ValueError(
+            f"the output of `{name}` must have the shape of `z` {z.shape}, got {zhat.shape}{hint}."
+        )
+    return zhat
+
+
+def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
+    """Plot measured outputs against the outputs of one or several models, with each
+    model's FIT % in the legend (MATLAB's `compare`).
+
+    FIT = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (`metrics.fit_percent`),
+    over the samples n: when `n` is given, as the benchmark protocol scores: the first n
+    samples, from which a model's initial state is estimated, are shaded and left out.
+
+    **Arguments:**
+
+    - `z`: the measured outputs, shape (T,) or (T, n_z) (NaN where missing), or a record
+        with `u`, `y` (a `oneshot_jax.datasets.Record`): then `u`, `n` and the time axis
+        (from `Ts`) default to the record's.
+    - `models`: one or several of: a `FitResult`, simulated on `u` from its fitted x0
+        (the data it was fitted on, or a record from the same initial state), or, with
+        `n`, predicted from the first n samples of `z` (`FitResult.predict`); a
+        `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
+        shaped like `z`.
+    - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
+    - `t`: the time axis (T,); default the sample index (times `Ts` for a record).
+    - `n`: the protocol's head: the number of first samples used for x0, left out of the
+        FIT; 0 <= n <= T - 2. Default: none (the record's `n` for a record).
+    - `labels`: one name per model; default `"model"` or `"model 1"`, `"model 2"`, ...
+    - `ax`: matplotlib Axes to draw in, one per output; default a new figure.
+
+    **Returns:**
+
+    The matplotlib `Figure`.
+
+    **Raises:**
+
+    `ImportError` without matplotlib (install the `plot` extra); `ValueError` naming the
+    argument for a shape that does not match `z`, a missing `u`, or `n`, `t`, `labels`
+    or `ax` that do not fit.
+    """
+    plt = _pyplot()
+    Ts = None
+    if hasattr(z, "u") and hasattr(z, "y"):
+        record = z
+        z, Ts = record.y, getattr(record, "Ts", None)
+        u = record.u if u is None else u
+        n = getattr(record, "n", None) if n is None else n
+    z = _columns(z, "z")
+    T, n_z = z.shape
+    if not models:
+        raise ValueError("`models` is empty: pass at least one model (or model output).")
+    if u is not None:
+        u = _columns(u, "u")
+        if u.shape[0] != T:
+            raise ValueError(f"`u` must have the T = {T} samples of `z`, got {u.shape[0]}.")
+    if n is not None:
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 0 <= n <= T - 2:
+            raise ValueError(f"`n` must be an integer with 0 <= n <= T - 2 = {T - 2}, got {n!r}.")
+        n = int(n)
+    n = n or 0
+    if labels is None:
+        labels = ["model"] if len(models) == 1 else [f"model {i + 1}" for i in range(len(models))]
+    elif isinstance(labels, str):
+        labels = [labels]
+    labels = list(labels)
+    if len(labels) != len(models):
+        raise ValueError(f"`labels` must hold {len(models)} names (one per model), got {labels}.")
+    if t is None:
+        t = np.arange(T) * (1.0 if Ts is None else float(Ts))
+        xlabel = "sample" if Ts is None else "time (s)"
+    else:
+        t = np.asarray(t, dtype=np.float64)
+        if t.shape != (T,):
+            raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
+        xlabel = "time"
+
+    outputs = [_model_output(i, m, u, z, n) for i, m in enumerate(models)]
+    fig, axes = _axes(ax, n_z, plt, (8.0, 0.6 + 2.6 * n_z))
+    measured = np.isfinite(z[n:])  # missing samples are left out of the FIT
+    fits = [np.asarray(metrics.fit_percent(z[n:], zhat[n:], measured)) for zhat in outputs]
+    for k, a in enumerate(axes):
+        a.plot(t, z[:, k], color="k", lw=1.2, label="measured")
+        for zhat, fit, label in zip(outputs, fits, labels):
+            a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {fit[k]:.2f} %")
+        if n:
+            a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
+            a.axvline(t[n], color="0.4", lw=0.8, ls="--")
+        a.set_ylabel(f"output {k}" if n_z > 1 else "output")
+        a.legend(fontsize=8, loc="best")
+    axes[-1].set_xlabel(xlabel)
+    axes[0].set_title(
+        "Measured and model outputs"
+        + (f" (x0 from the first {n} samples, FIT over the rest)" if n else "")
+    )
+    if ax is None:
+        fig.tight_layout()
+    return fig
+
+
+def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True):
+    """Plot the residual analysis of MATLAB's `resid`: the autocorrelation of the residuals
+    and their cross-correlation with each input, with the confidence band, and the
+    whiteness and independence verdicts in the title.
+
+    The numbers are those of `oneshot_jax.metrics.residual_correlations` (definitions,
+    bounds after Ljung, *System Identification*, Sec. 16.6, and verdicts there): one row
+    per output, the autocorrelation over lags 0..max_lag in the first column, the
+    cross-correlation with input j over lags -max_lag..max_lag in column j + 1. Points
+    outside the band are drawn in red.
+
+    **Arguments:**
+
+    - `e`: the residuals (T,), (T, n_z) or (N, T, n_z), NaN where missing, or a
+        `FitResult` (its `residuals`, zhat - z on the fitted data).
+    - `u`: the inputs of the same record(s), (T,), (T, n_u) or (N, T, n_u); None: the
+        autocorrelation only.
+    - `max_lag`, `confidence`, `tolerance`, `demean`: as for `residual_correlations`.
+
+    **Returns:**
+
+    The matplotlib `Figure`.
+
+    **Raises:**
+
+    `ImportError` without matplotlib (install the `plot` extra); `ValueError` as
+    `residual_correlations`.
+    """
+    plt = _pyplot()
+    if isinstance(e, FitResult):
+        e = e.residuals
+    rc = metrics.residual_correlations(
+        e, u, max_lag, confidence=confidence, tolerance=tolerance, demean=demean
+    )
+    n_z = rc.auto.shape[1]
+    n_u = 0 if rc.cross is None else rc.cross.shape[2]
+    fig, axes = plt.subplots(
+        n_z, 1 + n_u, squeeze=False, figsize=(4.2 * (1 + n_u), 0.9 + 2.4 * n_z)
+    )
+    pct = f"{100 * confidence:g} %"
+
+    def stems(a, lags, r, bound, auto=False):
+        a.axhspan(-bound, bound, color="C0", alpha=0.18, lw=0, label=f"{pct} confidence")
+        a.axhline(0.0, color="k", lw=0.6)
+        a.vlines(lags, 0.0, r, color="C0", lw=1.0)
+        out = (np.abs(r) > bound) & ~(auto & (lags == 0))  # r_e(0) = 1 is no test
+        a.plot(lags[~out], r[~out], "o", color="C0", ms=3)
+        a.plot(lags[out], r[out], "o", color="C3", ms=3.5)
+        a.set_xlabel("lag (samples)")
+
+    verdicts = []
+    for i in range(n_z):
+        lags = rc.lags[max_lag:]
+        stems(axes[i, 0], lags, rc.auto[max_lag:, i], rc.bound[i], auto=True)
+        axes[i, 0].set_title(f"autocorrelation of e[{i}]", fontsize=9)
+        axes[i, 0].legend(fontsize=7, loc="upper right")
+        text = (
+            f"e[{i}]: {'white' if rc.white[i] else 'not white'} "
+            f"({100 * rc.auto_outside[i]:.0f} % of lags outside)"
+        )
+        for j in range(n_u):
+            stems(axes[i, j + 1], rc.lags, rc.cross[:, i, j], rc.bound[i])
+            axes[i, j + 1].axvline(0.0, color="0.5", lw=0.6, ls=":")
+            axes[i, j + 1].set_title(f"cross-correlation of e[{i}] and u[{j}]", fontsize=9)
+        if n_u:
+            worst = 100 * float(np.max(rc.cross_outside[i]))
+            text += (
+                ", independent of past inputs"
+                if rc.independent[i]
+                else f", correlated with past inputs ({worst:.0f} % of lags outside)"
+            )
+        verdicts.append(text)
+    counts = np.unique(rc.n)
+    samples = str(int(counts[0])) if len(counts) == 1 else "/".join(str(int(c)) for c in rc.n)
+    fig.suptitle(
+        f"Residual analysis ({pct} bounds, n = {samples} samples)\n" + "\n".join(verdicts),
+        fontsize=10,
+    )
+    fig.tight_layout()
+    return fig

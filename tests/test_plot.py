@@ -1,0 +1,268 @@
+"""`metrics.residual_correlations` against correlations written out with `np.correlate`,
+and the figures of `oneshot_jax.plot` (Agg backend)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+from oneshot_jax import metrics
+
+matplotlib = pytest.importorskip("matplotlib")
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+Z99 = 2.5758293035489004  # the 0.995 quantile of the standard normal
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plt.close("all")
+
+
+def ar1(rng, T, a):
+    w = rng.standard_normal(T)
+    e = np.empty(T)
+    e[0] = w[0]
+    for k in range(1, T):
+        e[k] = a * e[k - 1] + w[k]
+    return e
+
+
+def np_corr(a, b, max_lag):
+    """sum_t a(t) b(t - tau) for tau = -max_lag..max_lag, by np.correlate."""
+    full = np.correlate(a, b, "full")  # full[T - 1 + tau] = sum_t a(t + tau) b(t)
+    T = len(a)
+    return full[T - 1 - max_lag : T + max_lag]
+
+
+# --------------------------------------------------------------------------- numbers
+
+
+def test_autocorrelation_matches_numpy():
+    rng = np.random.default_rng(0)
+    T, M = 400, 12
+    e = np.stack([ar1(rng, T, 0.8), ar1(rng, T, -0.5) + 0.3], axis=1)  # with a mean
+    rc = metrics.residual_correlations(e, max_lag=M, demean=False)  # MATLAB's sums
+    np.testing.assert_array_equal(rc.lags, np.arange(-M, M + 1))
+    assert rc.auto.shape == (2 * M + 1, 2) and rc.cross is None and rc.independent is None
+    for i in range(2):
+        c = np_corr(e[:, i], e[:, i], M)
+        np.testing.assert_allclose(rc.auto[:, i], c / c[M], rtol=1e-12, atol=1e-15)
+    # AR(1): r(tau) close to a^|tau|, with the sign of a.
+    assert rc.auto[M + 1, 0] == pytest.approx(0.8, abs=0.08)
+    assert rc.auto[M + 2, 0] == pytest.approx(0.64, abs=0.1)
+    np.testing.assert_allclose(rc.bound, Z99 / np.sqrt(T), rtol=1e-12)
+    np.testing.assert_array_equal(rc.n, [T, T])
+    # By default, the correlations of the centred signal.
+    d = e[:, 1] - e[:, 1].mean()
+    c = np_corr(d, d, M)
+    got = metrics.residual_correlations(e, max_lag=M).auto[:, 1]
+    np.testing.assert_allclose(got, c / c[M], rtol=1e-12, atol=1e-15)
+    assert not np.allclose(got, rc.auto[:, 1])
+
+
+def test_cross_correlation_matches_numpy_and_finds_the_lag():
+    rng = np.random.default_rng(1)
+    T, M = 1000, 8
+    u = rng.standard_normal((T, 2)) + np.array([0.0, 1.0])
+    # e(t) = 0.8 u0(t - 3) + noise: a past input the model missed. Output 1 depends on
+    # a future input only (as under feedback): not part of the independence verdict.
+    e = 0.2 * rng.standard_normal((T, 2))
+    e[3:, 0] += 0.8 * u[:-3, 0]
+    e[:-2, 1] += 0.8 * (u[2:, 0] - 0.0)
+    for demean in (False, True):
+        rc = metrics.residual_correlations(e, u, max_lag=M, demean=demean)
+        assert rc.cross.shape == (2 * M + 1, 2, 2)
+        ec, uc = (e - e.mean(0), u - u.mean(0)) if demean else (e, u)
+        for i in range(2):
+            for j in range(2):
+                ref = np_corr(ec[:, i], uc[:, j], M)
+                ref = ref / np.sqrt(ec[:, i] @ ec[:, i] * (uc[:, j] @ uc[:, j]))
+                np.testing.assert_allclose(rc.cross[:, i, j], ref, rtol=1e-12, atol=1e-15)
+    assert rc.lags[np.argmax(rc.cross[:, 0, 0])] == 3
+    assert rc.lags[np.argmax(rc.cross[:, 1, 0])] == -2
+    np.testing.assert_array_equal(rc.independent, [False, True])
+    assert rc.cross_outside[0, 0] == pytest.approx(1 / (M + 1))  # lag 3 only, of 0..M
+
+
+def test_missing_samples_and_trajectories_are_pooled():
+    rng = np.random.default_rng(2)
+    N, T, M = 3, 150, 6
+    e = np.stack([ar1(rng, T, 0.6) for _ in range(N)])[..., None]
+    u = rng.standard_normal((N, T, 1))
+    e[0, 10:14, 0] = np.nan
+    e[2, -1, 0] = np.nan
+    n = int(np.isfinite(e).sum())
+    for demean in (False, True):
+        e0 = np.nan_to_num(e - np.nanmean(e) if demean else e)[..., 0]
+        u0 = u[..., 0] - u.mean() if demean else u[..., 0]
+        see = sum(np_corr(e0[k], e0[k], M) for k in range(N))  # pairs within each record
+        seu = sum(np_corr(e0[k], u0[k], M) for k in range(N))
+        r0, ru0 = see[M] / n, np.sum(u0**2) / (N * T)
+        rc = metrics.residual_correlations(e, u, max_lag=M, demean=demean)
+        np.testing.assert_allclose(rc.auto[:, 0], see / see[M], rtol=1e-12)
+        np.testing.assert_allclose(rc.cross[:, 0, 0], seu / n / np.sqrt(r0 * ru0), rtol=1e-12)
+        np.testing.assert_allclose(rc.bound, Z99 / np.sqrt(n), rtol=1e-12)
+    assert rc.n[0] == n == N * T - 5
+    # Not the correlation of the records laid end to end (no pairs across two).
+    glued = metrics.residual_correlations(e.reshape(-1, 1), max_lag=M)
+    assert not np.allclose(glued.auto, rc.auto)
+
+
+def test_whiteness_verdict():
+    rng = np.random.default_rng(3)
+    T = 2000
+    white = metrics.residual_correlations(rng.standard_normal(T))
+    assert white.white.tolist() == [True]
+    assert white.auto_outside[0] <= 0.05
+    coloured = metrics.residual_correlations(ar1(rng, T, 0.5))
+    assert coloured.white.tolist() == [False]
+    # Independent input, white residual: independent; 0 tolerance is the strict reading.
+    u = rng.standard_normal((T, 1))
+    rc = metrics.residual_correlations(rng.standard_normal(T), u)
+    assert rc.white.tolist() == [True] and rc.independent.tolist() == [True]
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(max_lag=0), "max_lag"),
+        (dict(max_lag=50), "max_lag"),
+        (dict(max_lag=2.5), "max_lag"),
+        (dict(max_lag=True), "max_lag"),
+        (dict(confidence=1.0), "confidence"),
+        (dict(confidence="0.99"), "confidence"),
+        (dict(tolerance=-0.1), "tolerance"),
+        (dict(e=np.zeros((2, 3, 50, 1))), "e"),
+        (dict(e=np.full(50, np.nan)), "e"),
+        (dict(e=np.zeros(50)), "e"),
+        (dict(e="residuals"), "e"),
+        (dict(u=np.ones((49, 1))), "u"),
+        (dict(u=np.r_[np.nan, np.ones(49)]), "u"),
+        (dict(u=np.zeros(50)), "u"),
+    ],
+)
+def test_bad_arguments_raise(kwargs, name):
+    args = dict(e=np.random.default_rng(4).standard_normal(50), u=np.ones(50), max_lag=5)
+    args.update(kwargs)
+    e, u = args.pop("e"), args.pop("u")
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        metrics.residual_correlations(e, u, **args)
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _step(x, u, theta):
+    return theta["a"] * x + theta["b"] * u
+
+
+def _observe(x, u, theta):
+    del u, theta
+    return x
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    rng = np.random.default_rng(5)
+    model = oj.Model(_step, _observe)
+    T = 200
+    u = rng.standard_normal((T, 1))
+    _, x = oj.simulate(model, {"a": 0.8, "b": 0.5}, np.array([1.0]), u)
+    z = np.asarray(x) + 0.02 * rng.standard_normal((T, 1))
+    result = oj.fit(model, {"a": 0.5, "b": 1.0}, np.array([0.0]), u, z)
+    return model, u, z, result
+
+
+def _legend_texts(ax):
+    return [t.get_text() for t in ax.get_legend().get_texts()]
+
+
+def test_compare_figure(fitted):
+    model, u, z, result = fitted
+    rng = np.random.default_rng(6)
+    other = z + 0.1 * rng.standard_normal(z.shape)
+    fig = oj.plot.compare(z, result, other, u=u, labels=["fit", "noisy"])
+    assert len(fig.axes) == 1
+    texts = _legend_texts(fig.axes[0])
+    assert texts[0] == "measured"
+    fit = 100 * (1 - np.linalg.norm(other - z) / np.linalg.norm(z - z.mean()))
+    assert texts[2] == f"noisy: FIT {fit:.2f} %"
+    assert texts[1].startswith("fit: FIT ") and texts[1].endswith(" %")
+
+    # With the protocol's head n: a FitResult is predicted from z[:n], FIT over n:.
+    n = 20
+    pred = oj.predict(model, result.theta, u, z, n, x0=np.zeros(1))
+    fig = oj.plot.compare(np.c_[z, 2 * z], np.c_[pred.z, 2 * pred.z], u=u, n=n)
+    assert len(fig.axes) == 2
+    fit = 100 * (1 - np.linalg.norm(pred.z[n:] - z[n:]) / np.linalg.norm(z[n:] - z[n:].mean()))
+    for ax in fig.axes:
+        texts = _legend_texts(ax)
+        assert f"model: FIT {fit:.2f} %" in texts
+        assert f"first {n} samples (x0)" in texts
+    fig = oj.plot.compare(z, result, pred, u=u, n=n)
+    texts = _legend_texts(fig.axes[0])
+    assert texts[1].split(":")[1] == texts[2].split(":")[1] == f" FIT {fit:.2f} %"
+
+    # A record brings u, n and the time axis; several models on given Axes.
+    record = oj.datasets.Record(u=u[:, 0], y=z[:, 0], Ts=0.5, n=n)
+    _, ax = plt.subplots()
+    fig = oj.plot.compare(record, result, pred, ax=ax)
+    assert fig is ax.figure and len(_legend_texts(ax)) == 4
+    assert ax.get_xlabel() == "time (s)"
+
+
+def test_resid_figure(fitted):
+    model, u, z, result = fitted
+    rng = np.random.default_rng(7)
+    u2 = np.c_[u, rng.standard_normal(u.shape)]
+    fig = oj.plot.resid(result, u2, max_lag=10)
+    assert len(fig.axes) == 3  # autocorrelation, and one cross-correlation per input
+    rc = metrics.residual_correlations(result.residuals, u2, max_lag=10)
+    title = fig._suptitle.get_text()
+    assert ("e[0]: white" if rc.white[0] else "e[0]: not white") in title
+    assert "99 % bounds" in title
+    e = np.stack([ar1(rng, 300, 0.9), rng.standard_normal(300)], axis=1)
+    fig = oj.plot.resid(e)
+    assert len(fig.axes) == 2
+    title = fig._suptitle.get_text()
+    assert "e[0]: not white" in title and "e[1]: white" in title
+
+
+def test_plot_arguments_are_checked(fitted):
+    model, u, z, result = fitted
+    with pytest.raises(ValueError, match=r"`models\[0\]`"):
+        oj.plot.compare(z, z[:-1])
+    with pytest.raises(ValueError, match="`u`"):
+        oj.plot.compare(z, result)
+    with pytest.raises(ValueError, match="`labels`"):
+        oj.plot.compare(z, z, labels=["a", "b"])
+    with pytest.raises(ValueError, match="`n`"):
+        oj.plot.compare(z, z, n=len(z))
+    with pytest.raises(ValueError, match="`t`"):
+        oj.plot.compare(z, z, t=np.arange(3))
+    with pytest.raises(ValueError, match="`ax`"):
+        oj.plot.compare(np.c_[z, z], np.c_[z, z], ax=plt.subplots()[1])
+    with pytest.raises(ValueError, match="`models`"):
+        oj.plot.compare(z)
+    with pytest.raises(ValueError, match="`max_lag`"):
+        oj.plot.resid(result, max_lag=0)
+
+
+def test_missing_matplotlib_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    z = np.arange(10.0)
+    with pytest.raises(ImportError, match=r'pip install "oneshot_jax\[plot\]"'):
+        oj.plot.compare(z, z)
+    with pytest.raises(ImportError, match=r"oneshot_jax\[plot\]"):
+        oj.plot.resid(z)
+
+
+def test_import_does_not_import_matplotlib():
+    code = "import sys, oneshot_jax; assert 'matplotlib' not in sys.modules, 'matplotlib'"
+    subprocess.run([sys.executable, "-c", code], check=True)
