@@ -7,6 +7,7 @@ expected, so that nothing reaches a tracing error.
 """
 
 import functools
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -15,7 +16,7 @@ import numpy as np
 
 from . import _cost, _pytree
 from ._cost import Cost
-from ._model import Model
+from ._model import FloatObserve, Model
 from ._strategy import STRATEGIES
 
 
@@ -78,7 +79,8 @@ def common_dtype(*trees):
 
 def check_theta(theta, dtype=None, name="theta"):
     """theta split into its parameters (floating arrays, the trainable leaves) and its
-    static part (functions and other non-numeric leaves of equinox modules, or None)."""
+    static part (functions, integer and boolean arrays and other non-floating leaves, or
+    None)."""
     for leaf in jax.tree_util.tree_leaves(theta):
         if isinstance(leaf, (str, bytes, complex)) or (
             isinstance(leaf, (np.ndarray, jax.Array))
@@ -88,7 +90,10 @@ def check_theta(theta, dtype=None, name="theta"):
     params, static = _pytree.split(theta)
     leaves, treedef = jax.tree_util.tree_flatten(params)
     if not leaves:
-        raise ValueError(f"`{name}` must contain at least one array leaf.")
+        raise ValueError(
+            f"`{name}` must contain at least one array leaf of floating dtype (a parameter: "
+            "integer and boolean leaves are data, not parameters)."
+        )
     leaves = [as_float(leaf, name, dtype) for leaf in leaves]
     for leaf in leaves:
         check_finite(leaf, name)
@@ -328,6 +333,9 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
         raise ValueError(
             f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
         )
+    if not jnp.issubdtype(z_hat.dtype, jnp.inexact):  # outputs are real numbers
+        model = Model(model.step, FloatObserve(model.observe, dtype), input=model.input)
+        z_hat = jax.ShapeDtypeStruct(z_hat.shape, dtype)
     n_z = z_hat.shape[0]
 
     mask = None
@@ -444,6 +452,33 @@ def fixed_mask(fixed, theta) -> np.ndarray:
                     f"{np.shape(t)}."
                 ) from err
     return np.concatenate(parts) if parts else np.zeros(0, bool)
+
+
+def check_fixed_bounds(theta, fixed, lower, upper):
+    """Warn about fixed entries of theta outside the box bounds of `constraints`: a fixed
+    entry is not a variable, so `fit` keeps its given value and never projects it.
+
+    **Arguments:**
+
+    - `theta`: the parameters; `fixed`, `lower`, `upper`: flat over theta's entries (leaf
+        order), the fixed mask and the bounds.
+    """
+    values = _pytree.flat_host(theta)
+    names = _pytree.leaf_names(theta)
+    for i in np.flatnonzero(fixed):
+        for side, bound, outside in (
+            ("lower", lower[i], values[i] < lower[i]),
+            ("upper", upper[i], values[i] > upper[i]),
+        ):
+            if outside:
+                warnings.warn(
+                    f"fixed parameter {names[i]!r} = {float(values[i])!r} is "
+                    f"{'below' if side == 'lower' else 'above'} its {side} bound "
+                    f"{float(bound)!r} of `constraints`: a fixed entry keeps its given value "
+                    "(it is not projected); free it or move it inside the bounds.",
+                    UserWarning,
+                    stacklevel=3,
+                )
 
 
 def x0_mask(estimate_x0, n_x) -> np.ndarray:

@@ -23,6 +23,7 @@ from ._checks import (
     _is_ragged,
     check_cost,
     check_data,
+    check_fixed_bounds,
     check_outside_transformations,
     fixed_mask,
     x0_mask,
@@ -169,9 +170,9 @@ def fit(
 
     - `model`: a `Model`.
     - `theta0`: the starting parameters, any pytree (it may hold equinox modules: their
-        arrays are estimated, their other parts kept). With `multistart=True` every
-        parameter leaf has a leading axis of starts, run in parallel (vmap); the start
-        with the best final loss is returned.
+        floating arrays are estimated; integer and boolean arrays and other parts are
+        kept). With `multistart=True` every parameter leaf has a leading axis of starts,
+        run in parallel (vmap); the start with the best final loss is returned.
     - `x0`: the starting initial state (n_x,), or (N, n_x) for N trajectories (with
         `window`, optionally one per window; with `multistart`, optionally with a leading
         axis of starts too).
@@ -297,8 +298,9 @@ def fit(
     if proj is not None:
         if proj.bounds is not None:
             lo, hi = proj.bounds(data.theta)
-            lower = _pytree.flat_host(lo)[theta_free]
-            upper = _pytree.flat_host(hi)[theta_free]
+            lo, hi = _pytree.flat_host(lo), _pytree.flat_host(hi)
+            check_fixed_bounds(data.theta, fixed_flat, lo, hi)
+            lower, upper = lo[theta_free], hi[theta_free]
         else:  # a general projection: check that it is one (boxes are by construction)
             check_projection(proj, data.theta)
             project = proj.project

@@ -5,10 +5,13 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
 - `__meta__`: a JSON document (a 0-d unicode array) with `format`
   ("oneshot_jax.FitResult"), `version` (1), the structure of theta (`theta_tree`: nested
   `{"dict": {...}}`, `{"list": [...]}`, `{"tuple": [...]}`, `{"none": null}` and
-  `{"leaf": i}` nodes, or null for a structure JSON cannot describe), `names`,
-  `stop_reason` (a `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the
-  settings of each solver), the metric names, `starts_stop_reason` and `diagnostics`.
-- arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order), `x0`,
+  `{"leaf": i}` nodes for the parameters, `{"static": j}` nodes for integer and boolean
+  arrays (`{"scalar": true}` added for NumPy scalars) and `{"const": v}` nodes for Python
+  booleans, or null for a structure JSON cannot describe), `names`, `stop_reason` (a
+  `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
+  solver), the metric names, `starts_stop_reason` and `diagnostics` (a JSON object).
+- arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
+  `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage`,
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
@@ -17,10 +20,13 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
 Values round-trip exactly (same dtypes and bits). Functions cannot be saved: a theta that
 holds equinox modules (a neural residual) is saved by its arrays, and `load_result`
 needs `like=` (a theta of the same structure, e.g. theta0) to rebuild it; the model is
-never saved (pass `model=` to `load_result` to simulate).
+never saved (pass `model=` to `load_result` to simulate). A file that is damaged (cut
+short, edited, or another program's archive) is refused with one ValueError naming it.
 """
 
 import json
+import zipfile
+import zlib
 from pathlib import Path
 
 import jax
@@ -35,8 +41,10 @@ VERSION = 1
 
 
 def _encode_tree(tree):
-    """theta's structure as JSON, or None when it holds other node types."""
+    """theta's structure as JSON and its integer and boolean arrays (saved beside the
+    parameters), or (None, []) when it holds other node types (functions, modules)."""
     counter = iter(range(10**9))
+    statics = []
 
     def enc(node):
         if node is None:
@@ -51,24 +59,53 @@ def _encode_tree(tree):
             return {"tuple": [enc(v) for v in node]}
         if _pytree.is_parameter(node):
             return {"leaf": next(counter)}
+        if isinstance(node, bool):
+            return {"const": node}
+        if isinstance(node, (np.ndarray, np.generic, jax.Array)) and (
+            np.issubdtype(node.dtype, np.integer) or node.dtype == np.bool_
+        ):
+            statics.append(np.asarray(node))
+            spec = {"static": len(statics) - 1}
+            return {**spec, "scalar": True} if isinstance(node, np.generic) else spec
         raise TypeError
 
     try:
-        return enc(tree)
+        return enc(tree), statics
     except TypeError:
-        return None
+        return None, []
 
 
-def _decode_tree(spec, leaves):
+def _decode_tree(spec, leaves, statics=None):
+    """The pytree of `spec` with `leaves` at its parameters, and the saved `statics` (or
+    None, for trees shaped like the parameters only: std, history) elsewhere."""
     if "none" in spec:
         return None
     if "dict" in spec:
-        return {k: _decode_tree(v, leaves) for k, v in spec["dict"].items()}
+        return {k: _decode_tree(v, leaves, statics) for k, v in spec["dict"].items()}
     if "list" in spec:
-        return [_decode_tree(v, leaves) for v in spec["list"]]
+        return [_decode_tree(v, leaves, statics) for v in spec["list"]]
     if "tuple" in spec:
-        return tuple(_decode_tree(v, leaves) for v in spec["tuple"])
+        return tuple(_decode_tree(v, leaves, statics) for v in spec["tuple"])
+    if "const" in spec:
+        return None if statics is None else spec["const"]
+    if "static" in spec:
+        if statics is None:
+            return None
+        a = statics[spec["static"]]
+        return a[()] if spec.get("scalar") else a
     return leaves[spec["leaf"]]
+
+
+def _plain(value):
+    """`value` as JSON data: NumPy and JAX numbers as Python ones (ints stay ints), arrays
+    as nested lists, dicts and sequences item by item."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.ndarray, np.generic, jax.Array)):
+        return np.asarray(value).tolist()
+    return value
 
 
 def _leaves(tree):
@@ -86,9 +123,12 @@ def save_result(result: FitResult, path):
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
     params, _ = _pytree.split(result.theta)
+    theta_tree, statics = _encode_tree(result.theta)
     arrays = {}
     for i, a in enumerate(_leaves(params)):
         arrays[f"theta/{i}"] = a
+    for j, a in enumerate(statics):
+        arrays[f"static/{j}"] = a
     for i, a in enumerate(_leaves(result.std)):
         arrays[f"std/{i}"] = a
     for i, a in enumerate(_leaves(result.history.theta)):
@@ -108,7 +148,7 @@ def save_result(result: FitResult, path):
     meta = {
         "format": FORMAT,
         "version": VERSION,
-        "theta_tree": _encode_tree(params),
+        "theta_tree": theta_tree,
         "names": list(result.names),
         "stop_reason": name_of(result.stop_reason),
         "num_steps": int(result.num_steps),
@@ -119,11 +159,55 @@ def save_result(result: FitResult, path):
             k: ("float" if isinstance(v, float) else "array") for k, v in result.metrics.items()
         },
         "starts_stop_reason": None if result.starts is None else list(result.starts.stop_reason),
+        "diagnostics": _plain(result.diagnostics),
     }
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
     return path
+
+
+def _damaged(path, what):
+    return ValueError(f"`path`: {path} is damaged or was not written by FitResult.save: {what}.")
+
+
+_META_KEYS = (
+    "theta_tree",
+    "names",
+    "stop_reason",
+    "num_steps",
+    "wall_time",
+    "best",
+    "solver",
+    "metrics",
+    "starts_stop_reason",
+)
+
+
+def _read_arrays(path):
+    """Every array of the `.npz` file, never unpickling (a saved result holds none)."""
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        if "pickle" in str(err):  # NumPy's advice (load it unsafely) is not ours to give
+            raise _damaged(path, "not an .npz archive of arrays") from None
+        raise _damaged(path, f"not a readable .npz archive ({type(err).__name__}: {err})") from err
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise _damaged(path, "a single NumPy array, not an .npz archive")
+    arrays = {}
+    with npz:
+        for key in npz.files:
+            try:
+                arrays[key] = npz[key]
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+                if "pickle" in str(err):
+                    raise _damaged(
+                        path, f"its entry {key!r} holds Python objects, not numbers"
+                    ) from None
+                raise _damaged(
+                    path, f"its entry {key!r} cannot be read ({type(err).__name__}: {err})"
+                ) from err
+    return arrays
 
 
 def load_result(path, *, model=None, like=None) -> FitResult:
@@ -144,11 +228,15 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"`path`: no saved result at {path}.")
-    with np.load(path, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
+    arrays = _read_arrays(path)
     if "__meta__" not in arrays:
         raise ValueError(f"`path`: {path} is not a saved oneshot_jax FitResult (no __meta__).")
-    meta = json.loads(str(arrays["__meta__"]))
+    try:
+        meta = json.loads(str(arrays["__meta__"]))
+    except ValueError as err:
+        raise _damaged(path, f"its __meta__ is not valid JSON ({err})") from err
+    if not isinstance(meta, dict):
+        raise _damaged(path, "its __meta__ is not a JSON object")
     if meta.get("format") != FORMAT:
         raise ValueError(f"`path`: {path} holds {meta.get('format')!r}, not a {FORMAT}.")
     if meta.get("version") != VERSION:
@@ -156,6 +244,9 @@ def load_result(path, *, model=None, like=None) -> FitResult:
             f"`path`: {path} has format version {meta.get('version')}; this oneshot_jax "
             f"reads version {VERSION}."
         )
+    missing = [k for k in _META_KEYS if k not in meta]
+    if missing:
+        raise _damaged(path, f"its __meta__ lacks {', '.join(missing)}")
 
     def group(prefix):
         n = sum(1 for k in arrays if k.startswith(prefix) and k[len(prefix) :].isdigit())
@@ -166,18 +257,18 @@ def load_result(path, *, model=None, like=None) -> FitResult:
         like_params, static = _pytree.split(like)
         treedef = jax.tree_util.tree_structure(like_params)
 
-        def build(leaves):
-            if len(leaves) != treedef.num_leaves:
-                raise ValueError(
-                    f"`like` has {treedef.num_leaves} parameter leaves, the saved theta "
-                    f"{len(leaves)}."
-                )
-            return jax.tree_util.tree_unflatten(treedef, leaves)
+        n_saved = sum(1 for k in arrays if k.startswith("theta/") and k[6:].isdigit())
+        if n_saved != treedef.num_leaves:
+            raise ValueError(
+                f"`like` has {treedef.num_leaves} parameter leaves, the saved theta {n_saved}."
+            )
 
+        def build(leaves, whole=False):
+            return jax.tree_util.tree_unflatten(treedef, leaves)
     elif meta["theta_tree"] is not None:
 
-        def build(leaves):
-            return _decode_tree(meta["theta_tree"], leaves)
+        def build(leaves, whole=False):
+            return _decode_tree(meta["theta_tree"], leaves, group("static/") if whole else None)
 
     else:
         raise ValueError(
@@ -185,7 +276,19 @@ def load_result(path, *, model=None, like=None) -> FitResult:
             "pytree nodes, e.g. equinox modules): pass `like=` a theta of that structure."
         )
 
-    params = build(group("theta/"))
+    try:
+        return _result(arrays, meta, group, build, static, model)
+    except KeyError as err:
+        raise _damaged(path, f"it lacks the entry {err.args[0]!r}") from err
+    except (IndexError, TypeError, ValueError, AttributeError) as err:
+        raise _damaged(
+            path, f"its entries do not fit together ({type(err).__name__}: {err})"
+        ) from err
+
+
+def _result(arrays, meta, group, build, static, model) -> FitResult:
+    """The `FitResult` of a file's arrays and metadata."""
+    params = build(group("theta/"), whole=True)
     history = FitHistory(
         loss=arrays["history/loss"],
         grad_norm=arrays["history/grad_norm"],
@@ -225,5 +328,5 @@ def load_result(path, *, model=None, like=None) -> FitResult:
         best=int(meta["best"]),
         solver=tuple(meta["solver"]),
         model=model,
-        diagnostics=dict(meta.get("diagnostics", {})),
+        diagnostics=dict(meta.get("diagnostics") or {}),
     )

@@ -110,6 +110,18 @@ class _ODEStep(eqx.Module):
         )
 
 
+class FloatObserve(eqx.Module):
+    """`observe` with its outputs promoted to a floating dtype. Outputs are measurements:
+    an observation that returns integers or booleans (a quantised sensor, a threshold) is
+    compared with z as real numbers, and z is never cast to its integer dtype."""
+
+    fn: Callable
+    dtype: Any = eqx.field(static=True)
+
+    def __call__(self, x, u, theta):
+        return jnp.asarray(self.fn(x, u, theta), self.dtype)
+
+
 class Model(eqx.Module):
     """A discrete-time grey-box model, eq. (1)-(2) of the paper:
 
@@ -128,7 +140,8 @@ class Model(eqx.Module):
     - `step`: `step(x, u_step, theta) -> x_next`, the map f of eq. (1). Must return an
         array of the same shape and dtype as `x`.
     - `observe`: `observe(x, u, theta) -> z`, the map g of eq. (1), with u = u[k] of
-        shape (n_u,). Defaults to `z = x`.
+        shape (n_u,). Defaults to `z = x`. Integer or boolean outputs are promoted to the
+        data's floating dtype.
     - `input`: what the step sees of the input record u (T, n_u). `"zoh"` (default):
         `u_step[k] = u[k]`, shape (n_u,). `"foh"`: the pair `(u[k], u[k+1])`, shape
         (2, n_u), for a step that interpolates between the samples (see `ode_step`).
@@ -186,7 +199,14 @@ class Model(eqx.Module):
             raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
         if method not in ("rk4", "euler"):
             raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
-        dt = float(dt)
+        try:
+            if isinstance(dt, (str, bytes, bool)):
+                raise TypeError
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"`dt` must be a number, the sample interval (> 0), got {dt!r}."
+            ) from None
         if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"`dt` must be a finite positive number, got {dt}.")
         if int(substeps) != substeps or substeps < 1:

@@ -2,25 +2,32 @@
 
 theta may be any pytree: a dict of named physical parameters, or one that also holds
 equinox modules (a neural-network residual) whose leaves include functions and other
-non-numeric parts. The library trains the numeric leaves and carries the rest as static
-data, so a user never calls `eqx.partition` themselves.
+non-numeric parts. The library trains the floating leaves and carries the rest (functions,
+integer and boolean arrays) as static data, so a user never calls `eqx.partition`
+themselves.
 """
 
 from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
 def is_parameter(leaf) -> bool:
-    """Trainable leaves: numeric arrays and Python/NumPy numbers (booleans excluded)."""
+    """Trainable leaves: floating arrays (and complex ones, which the checks refuse), NumPy
+    floating scalars and Python numbers (weakly typed: `{"k": 2}` is a parameter).
+
+    Integer and boolean arrays (and NumPy integer and boolean scalars) are not parameters:
+    an equinox module's exponent, index buffer or mask is data, carried unchanged like a
+    function."""
     if isinstance(leaf, (bool, np.bool_)):
         return False
-    if isinstance(leaf, (int, float, complex, np.number)):
+    if isinstance(leaf, (int, float, complex)):
         return True
-    if isinstance(leaf, (jax.Array, np.ndarray)):
-        return leaf.dtype != np.bool_
+    if isinstance(leaf, (jax.Array, np.ndarray, np.generic)):
+        return bool(jnp.issubdtype(leaf.dtype, jnp.inexact))
     return False
 
 

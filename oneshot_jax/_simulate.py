@@ -144,6 +144,7 @@ def loss(
     - `penalty_weight`: the multiplier lambda of eq. (21).
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
         missing samples, which contribute nothing to C (nor to its derivatives).
+    - `strategy`: how the rollout is computed, as for `simulate`.
 
     **Returns:**
 
@@ -151,4 +152,7 @@ def loss(
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
-    return loss_impl(data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask)
+    strategy = check_strategy(strategy)
+    return loss_impl(
+        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
+    )

@@ -227,11 +227,49 @@ def separate(constraints):
     )
 
 
+def _check_like(out, theta):
+    """Raise a ValueError unless `out` has theta's leaves: the same paths (dict keys,
+    attributes, indices), shapes and dtypes. `fit` reads a projection's output back as a
+    flat vector, so a missing leaf would shift the others into its place."""
+    want = jax.tree_util.tree_flatten_with_path(theta)[0]
+    got = jax.tree_util.tree_flatten_with_path(out)[0]
+    want_paths = [jax.tree_util.keystr(p) for p, _ in want]
+    got_paths = [jax.tree_util.keystr(p) for p, _ in got]
+    if got_paths != want_paths:
+        missing = [p for p in want_paths if p not in got_paths]
+        extra = [p for p in got_paths if p not in want_paths]
+        detail = "; ".join(
+            f"{what} {', '.join(f'theta{p}' for p in paths)}"
+            for what, paths in (("it drops", missing), ("it adds", extra))
+            if paths
+        )
+        raise ValueError(
+            "`constraints`: the projection must return parameters with the structure of "
+            f"theta (leaves {', '.join(want_paths)}), got leaves {', '.join(got_paths) or 'none'}"
+            f"{'; ' + detail if detail else ' (in another order)'}."
+        )
+    for path, (_, a), (_, b) in zip(want_paths, got, want):
+        if jnp.shape(a) != jnp.shape(b):
+            raise ValueError(
+                f"`constraints`: the projection returned shape {jnp.shape(a)} for theta{path} "
+                f"of shape {jnp.shape(b)}; it must keep the structure, shapes and dtypes of theta."
+            )
+        weak = isinstance(a, (int, float)) and not isinstance(a, bool)
+        if not weak and jnp.result_type(a) != jnp.result_type(b):
+            raise ValueError(
+                f"`constraints`: the projection returned dtype {jnp.result_type(a)} for "
+                f"theta{path} of dtype {jnp.result_type(b)}; it must keep the structure, shapes "
+                "and dtypes of theta."
+            )
+
+
 def check_projection(proj: ProjectionTransformation, theta, rtol=1e-10):
-    """Raise a ValueError unless `proj.project` is idempotent at theta: a projection
-    satisfies P(P(p)) = P(p); a map that is not one (p -> p/2, say) would make every fit
-    report convergence wherever it happens to stop."""
+    """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
+    (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
+    P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
+    wherever it happens to stop."""
     once = proj.project(theta)
+    _check_like(once, theta)
     twice = proj.project(once)
     a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(once)])
     b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(twice)])

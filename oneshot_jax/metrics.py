@@ -99,6 +99,16 @@ def aic(z, zhat, n_params, mask=None):
     n n_z (log 2 pi + 1)). Lower is better; only differences between models on the same
     data mean anything.
     """
+    dtype = getattr(n_params, "dtype", None)
+    if isinstance(n_params, (bool, np.bool_)) or not (
+        isinstance(n_params, numbers.Integral)
+        or (dtype is not None and jnp.ndim(n_params) == 0 and jnp.issubdtype(dtype, jnp.integer))
+    ):
+        raise TypeError(
+            f"`n_params` must be an integer, the number of estimated parameters, got {n_params!r}."
+        )
+    if isinstance(n_params, numbers.Integral) and n_params < 0:
+        raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
     z, zhat, w = _flat(z, zhat, mask)
     full = jnp.all(w > 0, axis=1).astype(z.dtype)
     e = (zhat - z) * full[:, None]

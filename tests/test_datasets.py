@@ -60,7 +60,10 @@ def _write_csv(file, text):
     return file
 
 
-GOOD_CSV = '"uEst","uVal","yEst","yVal","Ts",\n1,2,3,4,4,\n1.5,2.5,3.5,4.5,,\n2,3,4,5,,\n'
+GOOD_CSV = (
+    '"uEst","uVal","yEst","yVal","Ts",\n1,2,3,4,4,\n1.5,2.5,3.5,4.5,,\n2,3,4,5,,\n'
+    + "".join(f"{k},{k + 1},{k + 2},{k + 3},,\n" for k in (3, 4, 5))
+)
 
 
 def test_exposed_from_package():
@@ -205,8 +208,8 @@ def test_emps_inconsistent_controller(tmp_path):
 
 def test_tanks_good_small_file(tmp_path):
     d = ds.load_cascaded_tanks(_write_csv(tmp_path / "dataBenchmark.csv", GOOD_CSV))
-    np.testing.assert_array_equal(d.u_est, [1, 1.5, 2])
-    np.testing.assert_array_equal(d.y_val, [4, 4.5, 5])
+    np.testing.assert_array_equal(d.u_est, [1, 1.5, 2, 3, 4, 5])
+    np.testing.assert_array_equal(d.y_val, [4, 4.5, 5, 6, 7, 8])
     assert d.Ts == 4.0
 
 
@@ -292,16 +295,18 @@ def test_tanks_small_file_views_and_mat_fallback(tmp_path):
     )
     assert big.test.n == 5 and len(big.test) == 8
     np.testing.assert_array_equal(big.test.y_head, [3, 4, 5, 6, 7])
+    short = GOOD_CSV.split("\n")
+    with pytest.raises(ds.DatasetFormatError, match=r"short\.csv: .* 5 samples.* at least 6"):
+        # five samples cannot hold the test view's five-sample head and a scored sample
+        ds.load_cascaded_tanks(_write_csv(tmp_path / "short.csv", "\n".join(short[:6]) + "\n"))
     d = ds.load_cascaded_tanks(_write_csv(tmp_path / "csv" / "dataBenchmark.csv", GOOD_CSV))
-    with pytest.raises(ValueError, match=r"0 <= n < T = 3"):
-        d.test  # three samples cannot hold a five-sample head
     # The .mat version of the archive is read when there is no CSV.
     col = lambda *v: np.array(v, dtype=float)[:, None]  # noqa: E731
     mat = {
-        "uEst": col(1, 1.5, 2),
-        "uVal": col(2, 2.5, 3),
-        "yEst": col(3, 3.5, 4),
-        "yVal": col(4, 4.5, 5),
+        "uEst": col(1, 1.5, 2, 3, 4, 5),
+        "uVal": col(2, 2.5, 3, 4, 5, 6),
+        "yEst": col(3, 3.5, 4, 5, 6, 7),
+        "yVal": col(4, 4.5, 5, 6, 7, 8),
         "Ts": np.array([[4.0]]),
     }
     (tmp_path / "mat" / "cascaded_tanks").mkdir(parents=True)

@@ -5,15 +5,20 @@ not the objective, a silent clip) and checks the behaviour now.
 The setup of the reproducers: a damped oscillator observed through its position,
 T = 100, theta0 = {"k": 1.5, "c": 0.3}, x0 = [0.9, 0.1]."""
 
+import dataclasses
+import json
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.io
 
 import oneshot_jax as oj
 from oneshot_jax import constraints as oc
+from oneshot_jax import datasets as ds
 
 T = 100
 TH_TRUE = {"k": 2.0, "c": 0.4}
@@ -213,3 +218,172 @@ def test_fit_under_jax_transformations_says_what_can_be_transformed(data):
         jax.vmap(lambda k: oj.fit(M, {"k": k, "c": 0.3}, X0, u, z).loss)(jnp.array([1.0, 2.0]))
     with pytest.raises(TypeError, match="outside JAX transformations"):
         jax.grad(lambda k: oj.fit(M, {"k": k, "c": 0.3}, X0, u, z).loss)(1.5)
+
+
+# ----------------------------------------------------- issue 18, point 5: adversarial inputs
+
+
+def test_a_projection_that_drops_a_parameter_is_refused(data):
+    """A projection returning {"k"} for theta {"k", "c"} used to set c to k's value."""
+    u, z = data
+    drop = oc.project(lambda t: {"k": jnp.clip(t["k"], 0, 10)})
+    with pytest.raises(ValueError, match=r"`constraints`.*structure") as e:
+        oj.fit(M, TH0, X0, u, z, constraints=drop)
+    assert "'c'" in str(e.value)
+    reshape = oc.project(lambda t: {"k": jnp.full(2, t["k"]), "c": t["c"]})
+    with pytest.raises(ValueError, match=r"`constraints`.*shape \(2,\)"):
+        oj.fit(M, TH0, X0, u, z, constraints=reshape)
+    cast = oc.project(lambda t: {"k": jnp.asarray(t["k"], jnp.float32), "c": t["c"]})
+    with pytest.raises(ValueError, match=r"`constraints`.*float32"):
+        oj.fit(M, TH0, X0, u, z, constraints=cast)
+
+
+def test_integer_outputs_are_promoted_to_float():
+    """An observation returning integers used to cast the measured z to int too."""
+    model = oj.Model(lambda x, u, th: th["a"] * x, lambda x, u, th: jnp.round(x).astype(int))
+    z = np.array([[0.3], [0.6], [0.2], [0.9]])
+    x0, u = np.array([1.4]), np.zeros((4, 1))
+    _, zhat = oj.simulate(model, {"a": 1.0}, x0, u)
+    assert jnp.issubdtype(zhat.dtype, jnp.floating)
+    np.testing.assert_array_equal(zhat, np.ones((4, 1)))
+    C = oj.loss(model, {"a": 1.0}, x0, u, z)
+    assert float(C) == pytest.approx(np.mean((1.0 - z) ** 2), rel=1e-12)
+
+
+def test_integer_leaves_of_theta_are_not_parameters(data, tmp_path):
+    """An integer exponent in theta used to become a free float parameter."""
+    u, z = data
+
+    def rhs_p(x, u, th):
+        return jnp.array([x[1], -th["k"] * x[0] ** th["p"] - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs_p, 0.1, observe=observe)
+    th0 = {**TH0, "p": np.array(1), "on": np.array([True])}
+    r = oj.fit(model, th0, X0, u, z)
+    assert r.success and r.names == ("c", "k")
+    assert r.theta["p"] is th0["p"] and r.theta["on"] is th0["on"]
+    assert abs(float(r.theta["k"]) - 2.0) < 0.05
+    _, (g, _) = oj.value_and_grad(model, th0, X0, u, z)
+    assert g["p"] is None and g["on"] is None and np.ndim(g["k"]) == 0
+    loaded = oj.load_result(r.save(tmp_path / "int.npz"))
+    assert loaded.theta["p"].dtype == th0["p"].dtype and int(loaded.theta["p"]) == 1
+    assert eqx.tree_equal(loaded.theta, r.theta) is True
+
+
+@pytest.fixture(scope="module")
+def saved(data, tmp_path_factory):
+    u, z = data
+    r = oj.fit(M, TH0, X0, u, z, solver=oj.GaussNewton())
+    return r, r.save(tmp_path_factory.mktemp("saved") / "r.npz")
+
+
+def _rewrite(path, out, drop=(), **replace):
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files if k not in drop}
+    arrays.update(replace)
+    np.savez(out, **arrays)
+    return out
+
+
+def test_a_damaged_result_file_gives_one_clear_error(saved, tmp_path):
+    _, path = saved
+    good = path.read_bytes()
+    with np.load(path, allow_pickle=False) as npz:
+        meta = json.loads(str(npz["__meta__"]))
+    bad_tree = {**meta, "theta_tree": {"dict": {"c": {"leaf": 0}, "k": {"leaf": 7}}}}
+    cases = {
+        "truncated.npz": lambda f: f.write_bytes(good[: len(good) // 2]),
+        "garbage.npz": lambda f: f.write_bytes(b"not a result at all" * 20),
+        "no_x0.npz": lambda f: _rewrite(path, f, drop=("x0",)),
+        "bad_json.npz": lambda f: _rewrite(path, f, __meta__=np.array("{not json")),
+        "bad_tree.npz": lambda f: _rewrite(path, f, __meta__=np.array(json.dumps(bad_tree))),
+        "objects.npz": lambda f: np.savez(
+            f, __meta__=np.array(json.dumps(meta)), x0=np.array([None, 1], dtype=object)
+        ),
+    }
+    for name, write in cases.items():
+        f = tmp_path / name
+        write(f)
+        with pytest.raises(ValueError) as e:
+            oj.load_result(f)
+        msg = str(e.value)
+        assert type(e.value) is ValueError, (name, type(e.value))
+        assert name in msg and "damaged" in msg, (name, msg)
+        assert "allow_pickle" not in msg and "unsafe" not in msg, (name, msg)
+
+
+def test_save_and_load_keep_the_diagnostics(saved, tmp_path):
+    r, _ = saved
+    diag = {"parallel_rollouts": 4, "sequential_fallbacks": 1, "newton_iters": 2.5}
+    r = dataclasses.replace(r, diagnostics=diag)
+    loaded = oj.load_result(r.save(tmp_path / "diag.npz"))
+    assert loaded.diagnostics == diag
+    assert [type(v) for v in loaded.diagnostics.values()] == [int, int, float]
+
+
+def test_loss_validates_and_passes_on_its_strategy(data, monkeypatch):
+    from oneshot_jax import _simulate
+
+    u, z = data
+    with pytest.raises(ValueError, match="`strategy` must be"):
+        oj.loss(M, TH0, X0, u, z, strategy="fastest")
+    seen = []
+    impl = _simulate.loss_impl
+
+    def spy(*args, **kwargs):
+        seen.append(args[8] if len(args) > 8 else kwargs.get("strategy"))
+        return impl(*args, **kwargs)
+
+    monkeypatch.setattr(_simulate, "loss_impl", spy)
+    C = oj.loss(M, TH0, X0, u, z, strategy="vjp")
+    assert seen == ["vjp"] and float(C) == pytest.approx(float(oj.loss(M, TH0, X0, u, z)))
+
+
+@pytest.mark.parametrize("dt", [None, "0.1", True, [0.1]])
+def test_from_ode_names_a_bad_dt(dt):
+    with pytest.raises((TypeError, ValueError), match="`dt`"):
+        oj.Model.from_ode(rhs, dt)
+
+
+def test_short_or_bom_benchmark_files(tmp_path):
+    head = "uEst,uVal,yEst,yVal,Ts\n"
+    rows = "".join(f"{k},{k + 1},{k + 2},{k + 3},{'4' if k == 0 else ''}\n" for k in range(4))
+    short = tmp_path / "short" / "dataBenchmark.csv"
+    short.parent.mkdir()
+    short.write_text(head + rows)
+    with pytest.raises(ValueError, match=r"short/dataBenchmark\.csv.* 4 samples"):
+        ds.load_cascaded_tanks(short)
+    rows = "".join(f"{k},{k + 1},{k + 2},{k + 3},{'4' if k == 0 else ''}\n" for k in range(8))
+    bom = tmp_path / "bom" / "dataBenchmark.csv"
+    bom.parent.mkdir()
+    bom.write_bytes((head + rows).encode("utf-8-sig"))
+    d = ds.load_cascaded_tanks(bom)
+    np.testing.assert_array_equal(d.u_est, np.arange(8))
+    assert len(d.test) == 8
+
+    def mat(n, pulses):
+        t = np.arange(n)[:, None] * 1e-3
+        d = {"t": t, "qm": t, "qg": t, "vir": t, "kp": 1.0, "kv": 2.0, "gtau": 3.0}
+        return {**d, "pulses_N": np.zeros((n, 1))} if pulses else d
+
+    scipy.io.savemat(tmp_path / "DATA_EMPS.mat", mat(50, False))
+    scipy.io.savemat(tmp_path / "DATA_EMPS_PULSES.mat", mat(10, True))
+    with pytest.raises(ValueError, match=r"DATA_EMPS_PULSES\.mat.* 10 samples"):
+        ds.load_emps(tmp_path)
+
+
+def test_a_fixed_parameter_outside_its_bound_warns(data):
+    u, z = data
+    box = oc.box(upper={"c": 1.0})
+    with pytest.warns(UserWarning, match=r"fixed parameter 'c' = 2\.0.*upper bound 1\.0"):
+        r = oj.fit(
+            M, {"k": 1.5, "c": 2.0}, X0, u, z, fixed={"k": False, "c": True}, constraints=box
+        )
+    assert float(r.theta["c"]) == 2.0
+
+
+@pytest.mark.parametrize("n_params", ["3", None, 2.5, True])
+def test_aic_names_a_bad_n_params(data, n_params):
+    _, z = data
+    with pytest.raises((TypeError, ValueError), match="`n_params`"):
+        oj.metrics.aic(z, z + 0.1, n_params=n_params)

@@ -7,7 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import DatasetFormatError, DatasetNotFoundError, locate, not_found
+from ._files import (
+    DatasetFormatError,
+    DatasetNotFoundError,
+    locate,
+    not_found,
+    require_length,
+)
 from ._files import read_mat as _read_mat
 from ._record import Record
 
@@ -101,6 +107,8 @@ def _record(file: Path, with_pulses: bool):
             f"{file}: missing variable pulses_N; the validation file is expected to hold "
             f"{', '.join(_SERIES)}, pulses_N (vectors) and {', '.join(_SCALARS)}."
         )
+    if with_pulses:  # the test view keeps EMPS_N_INIT outputs for the initial state
+        require_length(file, "the record t, qm, qg, vir", d["t"].shape[0], EMPS_N_INIT + 1, 24841)
     if not np.all(np.diff(d["t"]) > 0):
         raise DatasetFormatError(f"{file}: variable 't' (time, s) must be strictly increasing.")
     pulses = d.get("pulses_N", np.zeros_like(d["t"]))
@@ -143,7 +151,9 @@ def load_emps(path=None, *, download=False, cache_dir=None, base_url=None) -> EM
     **Raises:**
 
     `DatasetNotFoundError` if the files are not found (or cannot be downloaded),
-    `DatasetFormatError` if a file lacks a variable or has inconsistent shapes.
+    `DatasetFormatError` if a file lacks a variable or has inconsistent shapes, or the
+    validation record holds fewer than `EMPS_N_INIT + 1` samples (the test view's initial
+    window and one scored sample).
 
     **Reference:**
 

@@ -243,7 +243,8 @@ def read_csv(file: Path, series, scalars=(), scalar_meaning="") -> dict:
         f"per sample{where}"
     )
     try:
-        with open(file, newline="") as fh:
+        # utf-8-sig: spreadsheets export CSV with a byte-order mark before the first column.
+        with open(file, newline="", encoding="utf-8-sig") as fh:
             rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise DatasetFormatError(
