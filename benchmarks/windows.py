@@ -20,6 +20,7 @@ plot; `--json PATH`: the numbers; `--dense-max N`: the largest N for the dense s
 
 import argparse
 import json
+import sys
 
 import jax
 import numpy as np
@@ -87,7 +88,7 @@ def main():
                 "stop": res.status,
             }
         rows.append(row)
-        print(f"  N = {N} done", flush=True)
+        print(f"  N = {N} done", file=sys.stderr, flush=True)  # progress, not the table
 
     print(f"Windowed fit, n_x = 2, 4 parameters, windows of {T_w} samples.")
     print(conditions())

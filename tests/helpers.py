@@ -15,6 +15,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import oneshot_jax as oj
 
@@ -66,6 +67,17 @@ def assert_tree_rel_close(actual, expected, *, rtol, atol=0.0, check_dtype=True)
             f"leaf {i}: ||a - b|| = {diff:.3e} > {rtol:.1e} * ||b|| ({ref:.3e}) + {atol:.1e}; "
             f"relative error {diff / ref if ref else np.inf:.3e}\na = {a64}\nb = {e64}"
         )
+
+
+def benchmark_or_skip(loader, **kwargs):
+    """`loader(**kwargs)` (a loader of `oneshot_jax.datasets`), or a skip naming the files
+    it needs. The benchmark files are not part of the repository: they are found in
+    `$ONESHOT_JAX_DATA` or `../shared/data` (hidden with `ONESHOT_JAX_HIDE_DATA=1`)."""
+    try:
+        return loader(**kwargs)
+    except oj.datasets.DatasetNotFoundError as err:
+        first = str(err).split(". ")[0]  # "<benchmark>: could not find <files>"
+        pytest.skip(f"{first}: benchmark files, not in the repository (set ${oj.datasets.ENV_VAR})")
 
 
 def fitted_order(hs, errors):

@@ -1,8 +1,9 @@
 """oneshot_jax.datasets: the loaders' shapes, values, search order and error messages.
 
-Tests on the real benchmark files skip when the files are not present (they are looked
-up in $ONESHOT_JAX_DATA, then ../shared/data); the bad-input tests use temporary files
-and always run.
+Tests on the real benchmark files skip, naming the files, when they are not found (they
+are not in the repository: they are looked up in $ONESHOT_JAX_DATA, then ../shared/data,
+which ONESHOT_JAX_HIDE_DATA=1 hides); the bad-input tests use temporary files and always
+run.
 """
 
 import shutil
@@ -10,23 +11,18 @@ import shutil
 import numpy as np
 import pytest
 import scipy.io
+from helpers import benchmark_or_skip
 
 import oneshot_jax as oj
 from oneshot_jax import datasets as ds
 
 
 def _emps_or_skip():
-    try:
-        return ds.load_emps()
-    except ds.DatasetNotFoundError as err:
-        pytest.skip(f"EMPS files not available: {err}")
+    return benchmark_or_skip(ds.load_emps)
 
 
 def _tanks_or_skip():
-    try:
-        return ds.load_cascaded_tanks()
-    except ds.DatasetNotFoundError as err:
-        pytest.skip(f"cascaded-tanks file not available: {err}")
+    return benchmark_or_skip(ds.load_cascaded_tanks)
 
 
 def _emps_dict(n=50, pulses=False):

@@ -1,10 +1,18 @@
 """The documentation runs: README's quick start and the code of the getting-started page
-and the guides execute as pasted, and every public name has a page in the API reference."""
+and the guides execute as pasted, the home page shows the quick start's real output, and
+every public name has a page in the API reference.
 
+A guide whose code loads a benchmark (`oj.datasets.load_emps()`, ...) runs in its own test,
+which skips, naming the files, where they are not found (they are not in the repository)."""
+
+import contextlib
+import importlib.util
+import io
 import re
 from pathlib import Path
 
 import pytest
+from helpers import benchmark_or_skip
 
 import oneshot_jax as oj
 
@@ -27,6 +35,14 @@ def _blocks(path):
     return re.findall(r"```python\n(.*?)```", text, re.S)
 
 
+def _loaders(path):
+    """The dataset loaders a page's code calls without a path (the default search)."""
+    return sorted(set(re.findall(r"datasets\.(load_\w+)\(\s*\)", "\n".join(_blocks(path)))))
+
+
+DATA_GUIDES = [g for g in GUIDES if _loaders(g)]
+
+
 def _run(paths, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace = {"__name__": "__main__"}
@@ -38,15 +54,49 @@ def _run(paths, tmp_path, monkeypatch):
     return namespace
 
 
-def test_readme_quick_start_runs(tmp_path, monkeypatch):
-    ns = _run(["README.md"], tmp_path, monkeypatch)
+def _generate():
+    spec = importlib.util.spec_from_file_location("docs_generate", ROOT / "docs" / "generate.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_readme_quick_start_runs_and_the_home_page_shows_its_output(tmp_path, monkeypatch):
+    """README's quick start is the home page's (docs/snippets/quickstart.py), and the
+    output the home page shows (docs/snippets/quickstart.txt, written by
+    `python docs/generate.py`) is what it prints, up to the wall time and the last
+    digits."""
+    generate = _generate()
+    (readme_code,) = _blocks("README.md")
+    assert readme_code == generate.QUICK_START.read_text(), (
+        "README's quick start differs from docs/snippets/quickstart.py; keep them the same"
+    )
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        ns = _run(["README.md"], tmp_path, monkeypatch)
     assert ns["result"].success
     assert len((ROOT / "README.md").read_text().splitlines()) <= 150
+    stored = generate.QUICK_START_OUTPUT.read_text()
+    assert generate.same_output(out.getvalue(), stored), (
+        "the quick start's output changed; run `python docs/generate.py` and commit "
+        f"docs/snippets/quickstart.txt.\nNow:\n{out.getvalue()}\nStored:\n{stored}"
+    )
+    home = (ROOT / "docs" / "index.md").read_text()
+    assert '--8<-- "quickstart.py"' in home and '--8<-- "quickstart.txt"' in home
 
 
 def test_getting_started_and_guides_run(tmp_path, monkeypatch):
-    ns = _run(GUIDES, tmp_path, monkeypatch)
+    ns = _run([g for g in GUIDES if g not in DATA_GUIDES], tmp_path, monkeypatch)
     assert ns["result"].success and ns["again"].loss == ns["result"].loss
+
+
+@pytest.mark.parametrize("path", DATA_GUIDES)
+def test_guides_on_the_benchmark_files_run(path, tmp_path, monkeypatch):
+    """The guides that load a benchmark, after the getting-started page (whose imports
+    they use); a skip names the files when they are not found."""
+    for name in _loaders(path):
+        benchmark_or_skip(getattr(oj.datasets, name))
+    _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
 
 
 def _public_names():

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import benchmark_or_skip
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
@@ -237,7 +238,7 @@ SMALL = [
     "experiment.fig2.grid=12",
     "experiment.solver_defaults.adam.max_steps=300",
     "experiment.simulate_time=5",
-    "experiment.run_methods=[slsqp_fd,slsqp_fd_one_step]",
+    "experiment.run_methods=[slsqp_fd,slsqp_fd_one_step,trust_constr_fd_raw]",
 ]
 
 
@@ -249,11 +250,22 @@ def test_run_end_to_end(tmp_path):
     assert res["status"] == "ok"
     assert (out / "resolved_config.yaml").is_file()
     assert (out / ".hydra" / "config.yaml").is_file()
-    assert (out / "results.md").read_text().startswith("## Satellite")
+    md = (out / "results.md").read_text()
+    assert md.startswith("## Satellite")
+    # the run's output holds no INFO line of JAX's backend probing (configs/config.yaml)
+    assert "Unable to initialize backend" not in proc.stdout + proc.stderr
+    # the raw trust-constr baseline fails on purpose, and its rows say so
+    assert "trust-constr + finite differences (raw, default tol) †" in md
+    assert "† Shown failing on purpose" in md
     assert set(res["figures"]) == set(satellite.FIGURES.values())
     for fig in res["figures"]:
         assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
-    assert set(res["monte_carlo"]) == {"proposed", "slsqp_fd", "slsqp_fd_one_step"}
+    assert set(res["monte_carlo"]) == {
+        "proposed",
+        "slsqp_fd",
+        "slsqp_fd_one_step",
+        "trust_constr_fd_raw",
+    }
     assert res["monte_carlo"]["proposed"]["n"] == 2
     assert set(res["horizons"]) == {"10", "20"}
     main = res["main_fit"]
@@ -269,10 +281,7 @@ def test_emps_hybrid_end_to_end(tmp_path):
     scored with the protocol (finite numbers) and the figures are written."""
     from oneshot_jax import datasets
 
-    try:
-        datasets.load_emps()
-    except datasets.DatasetNotFoundError as err:
-        pytest.skip(f"benchmark files not available: {err}")
+    benchmark_or_skip(datasets.load_emps)
     out = tmp_path / "run"
     args = [
         f"hydra.run.dir={out}",
@@ -329,10 +338,7 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
     run succeeds, writes its tables and figures, and every score is finite."""
     from oneshot_jax import datasets
 
-    try:
-        datasets.load_cascaded_tanks()
-    except datasets.DatasetNotFoundError as err:
-        pytest.skip(f"benchmark files not available: {err}")
+    benchmark_or_skip(datasets.load_cascaded_tanks)
     out = tmp_path / "run"
     proc = _cli([f"hydra.run.dir={out}", *TANKS_HYBRID_SMALL], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -4,8 +4,8 @@ the configured solver.
 
 The full runs (`python experiments/run.py experiment=emps|cascaded_tanks`) use the whole
 records; the numbers they print are in docs/case-studies/emps.md and
-docs/case-studies/cascaded_tanks.md. These tests skip when the benchmark files are not
-available.
+docs/case-studies/cascaded_tanks.md. These tests skip, naming the files, when the
+benchmark files are not found (they are not in the repository).
 """
 
 import sys
@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import benchmark_or_skip
 
 import oneshot_jax as oj
 from oneshot_jax import datasets as ds
@@ -37,10 +38,7 @@ TANKS_FULL = {
 
 
 def _load(loader):
-    try:
-        return loader()
-    except ds.DatasetNotFoundError as err:
-        pytest.skip(f"benchmark files not available: {err}")
+    return benchmark_or_skip(loader)
 
 
 def test_emps_closed_loop_on_six_seconds():

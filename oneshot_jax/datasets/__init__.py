@@ -14,6 +14,10 @@ The loaders read the benchmarks' own files from, in order:
 4. the download cache (`default_cache_dir()`: `$ONESHOT_JAX_CACHE`, else the user cache
    folder such as `~/.cache/oneshot_jax`), when it exists.
 
+Setting `ONESHOT_JAX_HIDE_DATA=1` hides the places of 3. and 4. that no variable names
+(the `shared/data` folders and the user cache folder), as on a fresh checkout without the
+data: the tests that need the benchmark files then skip, naming the files.
+
 If the files are not found, a `DatasetNotFoundError` (a `FileNotFoundError`) lists the
 places searched and where to download the official files. A file that is there but not
 what was expected (a missing variable or column, wrong lengths, non-numeric values)
@@ -81,6 +85,7 @@ from ._emps import EMPSRecord as EMPSRecord
 from ._emps import load_emps as load_emps
 from ._files import CACHE_ENV_VAR as CACHE_ENV_VAR
 from ._files import ENV_VAR as ENV_VAR
+from ._files import HIDE_ENV_VAR as HIDE_ENV_VAR
 from ._files import DatasetFormatError as DatasetFormatError
 from ._files import DatasetNotFoundError as DatasetNotFoundError
 from ._files import default_cache_dir as default_cache_dir
@@ -97,6 +102,7 @@ from ._wiener_hammerstein import load_wiener_hammerstein as load_wiener_hammerst
 __all__ = [
     "CACHE_ENV_VAR",
     "ENV_VAR",
+    "HIDE_ENV_VAR",
     "URL_ENV_VAR",
     "EMPS_IDIM_LS_REFERENCE",
     "EMPS_N_INIT",

@@ -18,6 +18,17 @@ ENV_VAR = "ONESHOT_JAX_DATA"
 CACHE_ENV_VAR = "ONESHOT_JAX_CACHE"
 """Environment variable naming the folder that `download=True` fetches into."""
 
+HIDE_ENV_VAR = "ONESHOT_JAX_HIDE_DATA"
+"""Environment variable that, set to `1`, hides the folders the loaders would find on their
+own (`shared/data` beside the repository or the working directory, and the user cache
+folder unless `$ONESHOT_JAX_CACHE` names it), as on a fresh checkout. `path=`,
+`$ONESHOT_JAX_DATA`, `$ONESHOT_JAX_CACHE`, `cache_dir=` and `download=True` still work."""
+
+
+def data_hidden() -> bool:
+    """Whether `$ONESHOT_JAX_HIDE_DATA` is set to a true value (`1`, `true`, `yes`, `on`)."""
+    return os.environ.get(HIDE_ENV_VAR, "").strip().lower() in ("1", "true", "yes", "on")
+
 
 class DatasetNotFoundError(FileNotFoundError):
     """The benchmark's files were not found in any of the searched places."""
@@ -49,16 +60,23 @@ def default_cache_dir() -> Path:
 def default_data_dirs() -> list[Path]:
     """Data roots searched when no `path` is given, in order: `$ONESHOT_JAX_DATA` when set,
     then the `shared/data` folders beside the repository and beside the working directory
-    that exist, then the download cache (`default_cache_dir()`) when it exists."""
+    that exist, then the download cache (`default_cache_dir()`) when it exists.
+
+    With `$ONESHOT_JAX_HIDE_DATA=1` only the folders named by `$ONESHOT_JAX_DATA` and
+    `$ONESHOT_JAX_CACHE` are searched, as on a fresh checkout without the data."""
     out = []
     env = os.environ.get(ENV_VAR)
     if env:
         out.append(Path(env).expanduser())
-    for p in (
-        Path(__file__).resolve().parents[3] / "shared" / "data",
-        Path.cwd().resolve().parent / "shared" / "data",
-        default_cache_dir(),
-    ):
+    if data_hidden():
+        found = [default_cache_dir()] if os.environ.get(CACHE_ENV_VAR) else []
+    else:
+        found = [
+            Path(__file__).resolve().parents[3] / "shared" / "data",
+            Path.cwd().resolve().parent / "shared" / "data",
+            default_cache_dir(),
+        ]
+    for p in found:
         if p.is_dir() and all(p.resolve() != q.resolve() for q in out):
             out.append(p)
     return out
@@ -137,6 +155,8 @@ def not_found(what, files, searched, url, subdir):
             f"No folder to search: no path given, ${ENV_VAR} unset, no ../shared/data and no "
             f"download cache."
         )
+        if data_hidden():
+            where += f" (${HIDE_ENV_VAR} is set: ../shared/data and the cache are hidden.)"
     return DatasetNotFoundError(
         f"{what}: could not find {' or '.join(files)}. {where}\n"
         f"Download the official files from {url} and pass path=<folder holding them>, or "

@@ -1,0 +1,56 @@
+"""Write the generated parts of the documentation: the output of the quick start
+(`docs/snippets/quickstart.py`, README's quick start) that the home page shows, in
+`docs/snippets/quickstart.txt`.
+
+    python docs/generate.py
+
+`tests/test_docs.py` runs the quick start and checks that the stored output is what it
+prints (up to the wall time and the last digits of the numbers).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import re
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+SNIPPETS = REPO / "docs" / "snippets"
+QUICK_START = SNIPPETS / "quickstart.py"
+QUICK_START_OUTPUT = SNIPPETS / "quickstart.txt"
+
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+_WALL = re.compile(r"in [\d.]+ s \(wall")
+
+
+def run_quick_start() -> str:
+    """What the quick start prints, run in this process."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(QUICK_START.read_text(), str(QUICK_START), "exec"), {"__name__": "__main__"})
+    return out.getvalue()
+
+
+def same_output(a: str, b: str, rtol: float = 1e-3, atol: float = 1e-10) -> bool:
+    """Whether two printed outputs agree: the same text, with the wall time ignored and
+    the other numbers equal to `rtol` or `atol` (the last digits, and numbers at the
+    level of rounding errors, may differ between machines)."""
+    a, b = _WALL.sub("in _ s (wall", a), _WALL.sub("in _ s (wall", b)
+    if _NUMBER.sub("#", a).split() != _NUMBER.sub("#", b).split():
+        return False
+    xs, ys = _NUMBER.findall(a), _NUMBER.findall(b)
+    return all(math.isclose(float(x), float(y), rel_tol=rtol, abs_tol=atol) for x, y in zip(xs, ys))
+
+
+def main() -> None:
+    sys.path.insert(0, str(REPO))  # the package of this checkout
+    text = run_quick_start()
+    QUICK_START_OUTPUT.write_text(text)
+    print(f"wrote {QUICK_START_OUTPUT}:\n{text}")
+
+
+if __name__ == "__main__":
+    main()
