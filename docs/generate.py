@@ -1,11 +1,13 @@
 """Write the generated parts of the documentation: the output of the quick start
 (`docs/snippets/quickstart.py`, README's quick start) that the home page shows, in
-`docs/snippets/quickstart.txt`.
+`docs/snippets/quickstart.txt`, and what the first code block of each page in
+`PAGE_OUTPUTS` prints (`print(result)` on the getting-started page), in the snippet named
+there.
 
     python docs/generate.py
 
-`tests/test_docs.py` runs the quick start and checks that the stored output is what it
-prints (up to the wall time and the last digits of the numbers).
+`tests/test_docs.py` runs the quick start and those blocks and checks that the stored
+outputs are what they print (up to the wall time and the last digits of the numbers).
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ SNIPPETS = REPO / "docs" / "snippets"
 QUICK_START = SNIPPETS / "quickstart.py"
 QUICK_START_OUTPUT = SNIPPETS / "quickstart.txt"
 
+# Pages whose first ```python block prints a result, and the snippet of its output that
+# the page includes (`--8<-- "<name>"` in a ```text block after the code).
+PAGE_OUTPUTS = {"docs/getting-started.md": SNIPPETS / "getting-started.txt"}
+
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _WALL = re.compile(r"in [\d.]+ s \(wall")
 
@@ -31,6 +37,16 @@ def run_quick_start() -> str:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         exec(compile(QUICK_START.read_text(), str(QUICK_START), "exec"), {"__name__": "__main__"})
+    return out.getvalue()
+
+
+def run_first_block(page: str) -> str:
+    """What the first ```python block of `page` (a path from the repository root) prints,
+    run in this process."""
+    (code, *_) = re.findall(r"```python\n(.*?)```", (REPO / page).read_text(), re.S)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        exec(compile(code, page, "exec"), {"__name__": "__main__"})
     return out.getvalue()
 
 
@@ -50,6 +66,10 @@ def main() -> None:
     text = run_quick_start()
     QUICK_START_OUTPUT.write_text(text)
     print(f"wrote {QUICK_START_OUTPUT}:\n{text}")
+    for page, snippet in PAGE_OUTPUTS.items():
+        text = run_first_block(page)
+        snippet.write_text(text)
+        print(f"wrote {snippet} ({page}):\n{text}")
 
 
 if __name__ == "__main__":

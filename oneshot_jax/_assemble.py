@@ -100,6 +100,8 @@ def assemble(
     x0_estimated,
     multistart,
     diagnostics=None,
+    theta_order=(),
+    units=None,
 ) -> FitResult:
     """The `FitResult` of the best start, on the host."""
     theta_flat, X0, e, cov, met = jax.tree_util.tree_map(np.asarray, posted)
@@ -178,4 +180,6 @@ def assemble(
         solver=tuple(s.settings() for s in solvers),
         model=model,
         diagnostics=dict(diagnostics or {}),
+        theta_order=tuple(theta_order),
+        units=dict(units or {}),
     )

@@ -28,6 +28,7 @@ from ._checks import (
     fixed_mask,
     x0_mask,
 )
+from ._fit_report import check_units, theta_order
 from ._fit_result import FitResult
 from ._iterate import run
 from ._parallel._report import counting
@@ -163,6 +164,7 @@ def fit(
     multistart: bool = False,
     progress=False,
     history: int = 1000,
+    units: dict[str, str] | None = None,
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -205,6 +207,8 @@ def fit(
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
         evenly (see `FitHistory`).
+    - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` for
+        a nested one), e.g. `{"I": "kg m^2"}`, shown by `print(result)`.
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -221,6 +225,7 @@ def fit(
     A `FitResult`.
     """
     check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
+    units = check_units(units, theta0)
     solvers = as_solvers(solver)
     if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
         raise ValueError(f"`history` must be an even integer >= 2, got {history!r}.")
@@ -381,4 +386,6 @@ def fit(
         x0_estimated=x0_est,
         multistart=multistart,
         diagnostics=diagnostics,
+        theta_order=theta_order(theta0),
+        units=units,
     )

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 
 from . import _pytree
+from ._fit_report import report
 from ._results import RESULTS, is_success, name_of
 
 
@@ -52,6 +53,13 @@ class Starts(eqx.Module):
 class FitResult(eqx.Module):
     """The estimate, why the solver stopped, its uncertainty and its fit to the data.
 
+    `print(result)` reports it in the manner of MATLAB's nlgreyest: the solver, the stop
+    (`status` and the test that fired), the loss, steps and wall time; the parameters in
+    theta0's order with their units, standard errors and 95 % intervals (an equinox
+    module, such as a neural residual, as one row with its number of weights); the
+    initial states with their standard errors (the first trajectories of several); FIT%
+    and RMSE per output, and the AIC.
+
     **Fields:**
 
     - `theta`: the estimated parameters, same pytree as `theta0` (a start of it for a
@@ -84,6 +92,9 @@ class FitResult(eqx.Module):
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
+    - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
+        order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
+    - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts` and `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result).
@@ -110,6 +121,8 @@ class FitResult(eqx.Module):
     solver: tuple
     model: Any = None
     diagnostics: dict = eqx.field(default_factory=dict)
+    theta_order: tuple = eqx.field(static=True, default=())
+    units: dict = eqx.field(default_factory=dict)
 
     @property
     def success(self) -> bool:
@@ -193,29 +206,6 @@ class FitResult(eqx.Module):
         return save_result(self, path)
 
     def __str__(self):
-        params, _ = _pytree.split(self.theta)
-        flat = _pytree.flat_host(params)
-        std = _pytree.flat_host(self.std)
-        rows = [f"oneshot_jax fit: {self.status} ({self.message})"]
-        rows.append(
-            f"  loss {float(self.loss):.6e} after {self.num_steps} steps in "
-            f"{self.wall_time:.3g} s (wall, compilation included)"
-        )
-        rows.append(f"  {'parameter':<14}{'value':>14}{'std':>12}{'95% interval':>30}")
-        names = _pytree.leaf_names(params)
-        for name, v, s, f in zip(names, flat, std, self.fixed):
-            if f:
-                ci = "(fixed)"
-            elif self.covariance.shape == (0, 0):
-                ci = "(not computed)"
-            elif np.isfinite(s):
-                ci = f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]"
-            else:
-                ci = "(not identifiable)"
-            rows.append(f"  {name:<14}{v:>14.6g}{s:>12.3g}{ci:>30}")
-        fitp = ", ".join(f"{f:.2f}" for f in np.atleast_1d(self.metrics["fit_percent"]))
-        rmse = ", ".join(f"{f:.4g}" for f in np.atleast_1d(self.metrics["rmse"]))
-        rows.append(f"  FIT% [{fitp}]  RMSE [{rmse}]  AIC {float(self.metrics['aic']):.4g}")
-        return "\n".join(rows)
+        return report(self)
 
     __repr__ = __str__

@@ -92,6 +92,8 @@ class X0Estimate(eqx.Module):
 
     @property
     def message(self) -> str:
+        """Why Gauss-Newton stopped (`"lsq"`), or whether the smoother's estimate is
+        finite, in words."""
         if self.stop_reason is not None:
             return RESULTS[self.stop_reason]
         return "smoothed" if self.success else "the smoother's estimate is not finite"

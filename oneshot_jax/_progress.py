@@ -35,6 +35,7 @@ class TqdmProgress(eqx.Module):
         return bar_id
 
     def close(self, bar_id: int):
+        """Close the bar `bar_id` on the host (after the fit, also when it failed)."""
         with _LOCK:
             bar = _BARS.pop(bar_id, None)
         if bar is not None:
@@ -63,10 +64,11 @@ class NoProgress(eqx.Module):
     """No progress bar (the default of `fit`)."""
 
     def open(self, total: int, description: str = "fit") -> int:
+        """No bar to create: returns the id 0."""
         return 0
 
     def close(self, bar_id: int):
-        pass
+        """No bar to close."""
 
     def update(self, bar_id, offset, step, loss):
-        pass
+        """Nothing to show."""

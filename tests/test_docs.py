@@ -85,6 +85,21 @@ def test_readme_quick_start_runs_and_the_home_page_shows_its_output(tmp_path, mo
     assert '--8<-- "quickstart.py"' in home and '--8<-- "quickstart.txt"' in home
 
 
+@pytest.mark.parametrize("page", sorted(_generate().PAGE_OUTPUTS))
+def test_pages_show_what_their_code_prints(page, tmp_path, monkeypatch):
+    """A page that prints a result shows the output of its first code block, generated
+    by `python docs/generate.py` and included from docs/snippets/."""
+    generate = _generate()
+    snippet = generate.PAGE_OUTPUTS[page]
+    assert f'```text\n--8<-- "{snippet.name}"\n```' in (ROOT / page).read_text()
+    monkeypatch.chdir(tmp_path)
+    now, stored = generate.run_first_block(page), snippet.read_text()
+    assert generate.same_output(now, stored), (
+        f"what {page} prints changed; run `python docs/generate.py` and commit "
+        f"docs/snippets/{snippet.name}.\nNow:\n{now}\nStored:\n{stored}"
+    )
+
+
 def test_getting_started_and_guides_run(tmp_path, monkeypatch):
     ns = _run([g for g in GUIDES if g not in DATA_GUIDES], tmp_path, monkeypatch)
     assert ns["result"].success and ns["again"].loss == ns["result"].loss

@@ -20,6 +20,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._problem import FitProblem, Params
 
@@ -67,6 +68,14 @@ class AbstractSolver(eqx.Module):
         del problem, result
         return params, self.summary(state)[0], None
 
+    def __repr__(self) -> str:
+        # Every option with its value (equinox's repr hides those left at their defaults),
+        # on one line; a wrapped transform, solver or schedule is named briefly.
+        options = ", ".join(
+            f"{f.name}={_brief(getattr(self, f.name))}" for f in dataclasses.fields(self) if f.repr
+        )
+        return f"{type(self).__name__}({options})"
+
     def settings(self) -> dict:
         """The options, for `FitResult.solver` and saved results (JSON-friendly)."""
         out = {"solver": type(self).__name__}
@@ -101,3 +110,26 @@ def check_options(solver, *, positive=(), non_negative=(), integers=()):
 
 def _is_real(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+
+
+def _brief(value) -> str:
+    """A solver option in a few characters: numbers and strings as Python writes them, an
+    optimistix solver by its name and numeric options, an optax transform by its type, a
+    function (a learning-rate schedule) by its name."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, (bool, int, float, str)) or value is None:
+        return repr(value)
+    if isinstance(value, eqx.Module):
+        prefix = "optx." if type(value).__module__.startswith("optimistix") else ""
+        scalars = ((f.name, getattr(value, f.name)) for f in dataclasses.fields(value) if f.repr)
+        options = ", ".join(
+            f"{k}={v!r}" for k, v in scalars if isinstance(v, (bool, int, float, str))
+        )
+        return f"{prefix}{type(value).__name__}({options})"
+    if hasattr(value, "init") and hasattr(value, "update"):
+        return f"<optax.{type(value).__name__}>"
+    if callable(value):
+        name = getattr(value, "__qualname__", type(value).__name__)
+        return f"<function {name.split('.<locals>')[0]}>"
+    return repr(value)

@@ -1,0 +1,224 @@
+"""`print(result)`: a `FitResult` as a report in the manner of MATLAB's nlgreyest
+(`present`): the solver and why it stopped; the parameters, named, in the order theta0
+was written, with units, standard errors and 95 % intervals; the initial states; the fit
+to the data. Also the rows it is built from, which `fit` uses to record theta0's order
+and to check `units=`."""
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from . import _pytree
+
+
+def _child(node, entry):
+    """The child of `node` at one entry of a JAX key path (None where it cannot be read)."""
+    if node is None:
+        return None
+    try:
+        if isinstance(entry, jax.tree_util.DictKey):
+            return node[entry.key]
+        if isinstance(entry, jax.tree_util.SequenceKey):
+            return node[entry.idx]
+        if isinstance(entry, jax.tree_util.GetAttrKey):
+            return getattr(node, entry.name)
+    except (KeyError, IndexError, TypeError, AttributeError):
+        pass
+    return None
+
+
+def _rows(theta):
+    """`(name, key path, start, stop, module, shape)` per row of theta's parameters in
+    JAX's leaf order: one row per leaf, except that an equinox module below the root (a
+    neural residual) is one row, named by its path, with its class name as `module` (None
+    for a leaf, whose `shape` is given)."""
+    params, _ = _pytree.split(theta)
+    rows, start = [], 0
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        size = int(np.size(leaf))
+        node, module, cut = theta, None, len(path)
+        for depth, entry in enumerate(path[:-1]):
+            node = _child(node, entry)
+            if isinstance(node, eqx.Module):
+                module, cut = type(node).__name__, depth + 1
+                break
+        name = ".".join(_pytree._key(p) for p in path[:cut]) or "theta"
+        if module is not None and rows and rows[-1][0] == name:  # the module's next leaf
+            rows[-1] = (*rows[-1][:3], start + size, module, None)
+        else:
+            rows.append((name, path[:cut], start, start + size, module, np.shape(leaf)))
+        start += size
+    return rows
+
+
+def theta_order(theta) -> tuple[str, ...]:
+    """The names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the order they were
+    written: dicts in their insertion order, where JAX sorts their keys."""
+
+    def rank(path):
+        node, out = theta, []
+        for entry in path:
+            keys = list(node) if isinstance(node, dict) else []
+            # Outside dicts JAX's order is the written one: rank 0 keeps it (stable sort).
+            out.append(keys.index(entry.key) if getattr(entry, "key", None) in keys else 0)
+            node = _child(node, entry)
+        return out
+
+    return tuple(row[0] for row in sorted(_rows(theta), key=lambda row: rank(row[1])))
+
+
+def check_units(units, theta) -> dict:
+    """`fit(units=...)` as a dict of strings, checked against theta's row names."""
+    if units is None:
+        return {}
+    if not isinstance(units, dict):
+        raise TypeError(
+            "`units` must be a dict from parameter names to unit strings, e.g. "
+            f"{{'k': 'N/m'}}; got {type(units).__name__}."
+        )
+    valid = theta_order(theta)
+    for name, unit in units.items():
+        if name not in valid:
+            raise ValueError(
+                f"`units` names {name!r}, which is not a parameter of theta0; valid names: "
+                f"{', '.join(valid)}."
+            )
+        if not isinstance(unit, str):
+            raise ValueError(f"`units[{name!r}]` must be a string (e.g. 'kg m^2'), got {unit!r}.")
+    return dict(units)
+
+
+def _interval(value, std, fixed, computed) -> str:
+    if fixed:
+        return "(fixed)"
+    if not computed:
+        return "(not computed)"
+    if not np.isfinite(std):
+        return "(not identifiable)"
+    return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
+
+
+def _entry_names(name, shape):
+    if not shape:
+        return [name]
+    if len(shape) == 1:
+        return [f"{name}[{i}]" for i in range(shape[0])]
+    return [f"{name}[{', '.join(map(str, ix))}]" for ix in np.ndindex(shape)]
+
+
+def _module_row(module, values, fixed) -> str:
+    """A module in a few words: its class, its number of weights, how many are fixed
+    and (a sparse residual) how many are exactly zero."""
+    n, n_fixed = values.size, int(np.sum(fixed))
+    desc = f"{module}, {n} weights"
+    if n_fixed == n:
+        return desc + " (fixed)"
+    if n_fixed:
+        desc += f", {n_fixed} fixed"
+    n_zero = int(np.sum(values == 0))
+    return desc + (f", {n_zero} zero" if n_zero else "")
+
+
+def _parameter_table(result):
+    """The parameter rows (name, unit, value, std, interval) in theta0's order, and the
+    indices of the module rows (name, unit and a description only)."""
+    params, _ = _pytree.split(result.theta)
+    flat, std = _pytree.flat_host(params), _pytree.flat_host(result.std)
+    fixed = np.asarray(result.fixed, bool)
+    computed = np.shape(result.covariance) != (0, 0)
+    order = {name: i for i, name in enumerate(result.theta_order)}
+    rows = sorted(_rows(result.theta), key=lambda row: order.get(row[0], len(order)))
+    table, modules = [], set()
+    for name, _, a, b, module, shape in rows:
+        unit = result.units.get(name, "")
+        if module is not None:
+            modules.add(len(table))
+            table.append((name, unit, _module_row(module, flat[a:b], fixed[a:b]), "", ""))
+            continue
+        for i, entry in enumerate(_entry_names(name, shape), start=a):
+            v, s = flat[i], std[i]
+            table.append((entry, unit, f"{v:.6g}", f"{s:.3g}", _interval(v, s, fixed[i], computed)))
+    return table, modules
+
+
+def _x0_table(result, shown_max=3):
+    """The initial-state rows: every entry of one trajectory, or of the first two of more
+    than `shown_max`; and the number of trajectories left out."""
+    x0, x0_std = np.asarray(result.x0), np.asarray(result.x0_std)
+    estimated = np.asarray(result.x0_estimated, bool)
+    batched = x0.ndim == 2
+    X0, S0 = (x0, x0_std) if batched else (x0[None], x0_std[None])
+    computed = np.shape(result.covariance) != (0, 0)
+    n_traj, n_x = X0.shape
+    shown = n_traj if n_traj <= shown_max else 2
+    if batched and not estimated.any():
+        return [], n_traj
+    table = []
+    for i in range(shown):
+        for j in range(n_x):
+            entry = f"x0[{i}, {j}]" if batched else f"x0[{j}]"
+            v, s = X0[i, j], S0[i, j]
+            table.append(
+                (entry, "", f"{v:.6g}", f"{s:.3g}", _interval(v, s, not estimated[j], computed))
+            )
+    return table, n_traj - shown
+
+
+def _seconds(t: float) -> str:
+    return f"{t:.3g}" if t < 1000 else f"{t:.0f}"
+
+
+def report(result) -> str:
+    """What `print(result)` shows (see `FitResult`)."""
+    table, modules = _parameter_table(result)
+    x0_table, left_out = _x0_table(result)
+    header = ("parameter", "unit", "value", "std", "95% interval")
+    x0_header = ("initial state", "", "value", "std", "95% interval")
+    cells = [header, x0_header, *x0_table, *(r for k, r in enumerate(table) if k not in modules)]
+    cells += [(table[k][0], table[k][1], "", "", "") for k in modules]
+    w = [max(len(c[k]) for c in cells) for k in range(4)]
+    has_units = any(r[1] for r in table)
+
+    def line(r, module=False):
+        unit = f"{r[1]:<{w[1]}}  " if has_units else ""
+        if module:
+            return f"  {r[0]:<{w[0]}}  {unit}{r[2]}"
+        return f"  {r[0]:<{w[0]}}  {unit}{r[2]:>{w[2]}}  {r[3]:>{w[3]}}  {r[4]}".rstrip()
+
+    fixed = np.asarray(result.fixed, bool)
+    estimated = np.asarray(result.x0_estimated, bool)
+    x0 = np.asarray(result.x0)
+    states = f"{int(estimated.sum())} of {estimated.size} initial states"
+    if x0.ndim == 2:
+        states += f" (per trajectory, {x0.shape[0]} trajectories)"
+    solvers = " then ".join(str(s.get("solver", "?")) for s in result.solver) or "?"
+    # The stop: FitResult.message's first part (the test that fired, with its values, or
+    # the reason's own words), never the RESULTS repr.
+    stop = " ".join(result.message.split(";")[0].split())
+    out = [
+        f"oneshot_jax fit by {solvers}: {int(np.sum(~fixed))} of {fixed.size} parameters "
+        f"and {states} estimated",
+        f"status: {result.status} ({stop})",
+        f"loss {float(result.loss):.6e} after {result.num_steps} steps in "
+        f"{_seconds(result.wall_time)} s (wall, compilation included)",
+    ]
+    if result.starts is not None:
+        stops = {}
+        for r in result.starts.stop_reason:
+            stops[r] = stops.get(r, 0) + 1
+        out.append(
+            f"multistart: the best of {len(result.starts.stop_reason)} starts (index "
+            f"{result.best}); stops: {', '.join(f'{k} {n}' for k, n in stops.items())}"
+        )
+    out.append(line(header))
+    out.extend(line(r, k in modules) for k, r in enumerate(table))
+    out.append(line(x0_header))
+    out.extend(line(r) for r in x0_table)
+    if not x0_table:
+        out.append(f"  (fixed, not estimated: result.x0, {left_out} trajectories)")
+    elif left_out:
+        out.append(f"  ... and {left_out} more trajectories (result.x0, result.x0_std)")
+    fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
+    rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
+    out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {float(result.metrics['aic']):.4g}")
+    return "\n".join(out)

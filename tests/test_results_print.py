@@ -1,0 +1,214 @@
+"""`print(result)` reads like MATLAB nlgreyest's report, and the solvers print their
+settings: the stop on one line (never the RESULTS repr), the parameters in theta0's
+order with their units, x0 with its standard errors, a neural residual as one row, FIT%,
+RMSE and AIC; `theta_order` and `units` survive save and load."""
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+
+import oneshot_jax as oj
+from oneshot_jax.residual import MLP, count_parameters
+
+DT = 0.05
+TRUTH = {"w0sq": 4.0, "c": 0.3, "b": 1.0}
+
+
+def oscillator(x, u, theta):
+    """A damped oscillator with an optional residual `r` on its acceleration."""
+    r = theta["r"](x)[0] if "r" in theta else 0.0
+    return jnp.stack([x[1], -theta["w0sq"] * x[0] - theta["c"] * x[1] + theta["b"] * u[0] + r])
+
+
+MODEL = oj.Model.from_ode(oscillator, DT, observe=lambda x, u, theta: x[:1])
+
+
+def data(n_traj=None, T=120, seed=0):
+    rng = np.random.default_rng(seed)
+    shape = (T, 1) if n_traj is None else (n_traj, T, 1)
+    u = rng.standard_normal(shape)
+    x0 = np.array([1.0, 0.0]) if n_traj is None else np.tile([1.0, 0.0], (n_traj, 1))
+    _, z = oj.simulate(MODEL, TRUTH, x0, u)
+    return x0, u, np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    """theta0 written w0sq, c, b (JAX sorts it b, c, w0sq); b fixed, x0[1] known."""
+    x0, u, z = data()
+    theta0 = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    return oj.fit(
+        MODEL,
+        theta0,
+        x0,
+        u,
+        z,
+        fixed={"w0sq": False, "c": False, "b": True},
+        estimate_x0=np.array([True, False]),
+        units={"w0sq": "1/s^2", "c": "1/s"},
+    )
+
+
+def _row(text, name):
+    (line,) = [ln for ln in text.splitlines() if ln.startswith(f"  {name} ")]
+    return line
+
+
+def test_parameters_print_in_theta0_order_with_units(fitted):
+    text = str(fitted)
+    assert fitted.theta_order == ("w0sq", "c", "b")
+    names = [ln.split()[0] for ln in text.splitlines() if ln.startswith("  ")]
+    assert names.index("w0sq") < names.index("c") < names.index("b")
+    assert "1/s^2" in _row(text, "w0sq") and "1/s" in _row(text, "c")
+    assert _row(text, "b").endswith("(fixed)")
+    # value, std and the 95 % interval of an estimated parameter
+    v, s = float(fitted.theta["w0sq"]), float(fitted.std["w0sq"])
+    assert f"{v:.6g}" in _row(text, "w0sq") and f"{s:.3g}" in _row(text, "w0sq")
+    assert f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]" in _row(text, "w0sq")
+
+
+def test_the_stop_is_one_readable_line_never_the_results_repr(fitted):
+    text = str(fitted)
+    assert "RESULTS<" not in text and "RESULTS<" not in fitted.message
+    (status,) = [ln for ln in text.splitlines() if ln.startswith("status: ")]
+    assert status.startswith(f"status: {fitted.status} (")
+    assert "gtol" in status  # the test that fired, with its values
+    lines = text.splitlines()
+    assert lines[lines.index(status) + 1].startswith("loss ")
+    assert " steps in " in text and "s (wall" in text
+    assert "FIT% [" in text and "RMSE [" in text and "AIC " in text
+    assert repr(fitted) == text
+
+
+def test_every_stop_prints_without_the_results_repr():
+    x0, u, z = data()
+    r = oj.fit(MODEL, TRUTH, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=1))
+    assert r.status == "max_steps_reached"
+    # A result without the values of the test (e.g. one written before they were kept):
+    # the reason's own words, up to its advice.
+    bare = eqx.tree_at(lambda res: res.stop_info, r, {})
+    for result in (r, bare):
+        (status,) = [ln for ln in str(result).splitlines() if ln.startswith("status: ")]
+        assert "RESULTS<" not in str(result)
+        assert status.startswith("status: max_steps_reached (") and "\n" not in status
+    assert "before the first-order test held" in str(bare)
+
+
+def test_x0_rows_show_their_standard_errors(fitted):
+    text = str(fitted)
+    x0, std = fitted.x0, fitted.x0_std
+    row = _row(text, "x0[0]")
+    assert f"{x0[0]:.6g}" in row and f"{std[0]:.3g}" in row
+    assert f"[{x0[0] - 1.96 * std[0]:.6g}," in row
+    assert _row(text, "x0[1]").endswith("(fixed)")
+    assert "initial state" in text
+
+
+def test_several_trajectories_show_the_first_rows_and_a_count():
+    x0, u, z = data(n_traj=5)
+    r = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z)
+    text = str(r)
+    assert "5 trajectories" in text
+    row = _row(text, "x0[1, 0]")
+    assert f"{r.x0[1, 0]:.6g}" in row and f"{r.x0_std[1, 0]:.3g}" in row
+    assert "x0[4, 0]" not in text and "3 more trajectories" in text
+
+
+def test_a_neural_residual_is_one_row():
+    x0, u, z = data(T=60)
+    net = MLP(2, 1, (8,), key=jax.random.PRNGKey(0))
+    theta0 = {"w0sq": 3.0, "c": 0.2, "b": 1.0, "r": net}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # weights are never all identifiable
+        r = oj.fit(
+            MODEL,
+            theta0,
+            x0,
+            u,
+            z,
+            solver=oj.LevenbergMarquardt(max_steps=3),
+            units={"r": "m/s^2"},
+        )
+    text = str(r)
+    n = count_parameters(net)
+    assert f"MLP, {n} weights" in _row(text, "r") and "m/s^2" in _row(text, "r")
+    assert "layers" not in text and "weight[" not in text
+    names = [ln.split()[0] for ln in text.splitlines() if ln.startswith("  ")]
+    assert names.index("w0sq") < names.index("c") < names.index("b") < names.index("r")
+    fixed = oj.fit(
+        MODEL,
+        theta0,
+        x0,
+        u,
+        z,
+        solver=oj.LevenbergMarquardt(max_steps=3),
+        fixed={"w0sq": False, "c": False, "b": False, "r": True},
+    )
+    assert _row(str(fixed), "r").endswith(f"MLP, {n} weights (fixed)")
+
+
+def test_units_are_checked():
+    x0, u, z = data(T=20)
+    theta0 = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    with pytest.raises(ValueError, match=r"`units` names 'k'.*valid names: w0sq, c, b\."):
+        oj.fit(MODEL, theta0, x0, u, z, units={"k": "N/m"})
+    with pytest.raises(ValueError, match=r"`units\['c'\]` must be a string"):
+        oj.fit(MODEL, theta0, x0, u, z, units={"c": 1.0})
+    with pytest.raises(TypeError, match="`units`"):
+        oj.fit(MODEL, theta0, x0, u, z, units=["1/s"])
+
+
+def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path):
+    loaded = oj.load_result(fitted.save(tmp_path / "osc"), model=MODEL)
+    assert loaded.theta_order == fitted.theta_order == ("w0sq", "c", "b")
+    assert loaded.units == fitted.units == {"w0sq": "1/s^2", "c": "1/s"}
+    assert eqx.tree_equal(loaded, fitted) is True
+    assert str(loaded) == str(fitted)
+
+
+def test_nested_dicts_keep_their_written_order():
+    from oneshot_jax._fit_report import theta_order
+
+    theta = {
+        "z": {"q": 1.0, "a": 2.0},
+        "b": [3.0, 4.0],
+        "m": MLP(2, 1, (4,), key=jax.random.PRNGKey(0)),
+    }
+    assert theta_order(theta) == ("z.q", "z.a", "b.0", "b.1", "m")
+
+
+def test_solver_reprs_show_every_setting():
+    lm = oj.LevenbergMarquardt()
+    assert repr(lm) == (
+        "LevenbergMarquardt(rtol=0.0, atol=0.0, gtol=1e-08, max_steps=100, mu0=0.001, "
+        "strategy='auto', linear_solver='auto', cg_rtol=1e-08, cg_max_steps=50)"
+    )
+    assert repr(oj.Adam()).startswith("Adam(lr_theta=0.001, lr_x0=0.0001, b1=0.9, b2=0.999,")
+    namespace = {name: getattr(oj, name) for name in ("LevenbergMarquardt", "GaussNewton")}
+    namespace.update(Adam=oj.Adam, LBFGS=oj.LBFGS)
+    for solver in (
+        oj.LevenbergMarquardt(gtol=1e-6, max_steps=7),
+        oj.GaussNewton(linear_solver="cg"),
+        oj.Adam(lr_theta=1e-2),
+        oj.LBFGS(memory_size=5),
+    ):
+        text = repr(solver)
+        fields = [f.name for f in solver.__dataclass_fields__.values()]
+        assert all(f"{name}=" in text for name in fields), text
+        assert eval(text, namespace) == solver  # every option, with its value
+    wrapped = repr(oj.Optax(optax.adam(1e-2), max_steps=10))
+    assert wrapped.startswith("Optax(transform=<optax.") and "max_steps=10, " in wrapped
+    assert "\n" not in wrapped
+    optimistix = repr(oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-12, atol=1e-20)))
+    assert optimistix == (
+        "Optimistix(solver=optx.LevenbergMarquardt(rtol=1e-12, atol=1e-20), max_steps=256, "
+        "gtol=1e-08, strategy='auto')"
+    )
+    schedule = repr(oj.Adam(lr_theta=optax.cosine_decay_schedule(1e-2, 10)))
+    assert "lr_theta=<function cosine_decay_schedule>" in schedule
