@@ -11,6 +11,7 @@ from . import _pytree
 from . import metrics as _metrics
 from ._covariance import covariance, scale
 from ._fit_result import FitHistory, FitResult, Starts
+from ._optimality import roundoff_limit
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
 from ._strategy import COVARIANCE_MAX_THETA
@@ -156,6 +157,15 @@ def assemble(
             stop_reason=tuple(name_of(from_index(int(c))) for c in results),
         )
     metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
+    m = final.measures
+    stop_info = {
+        "first_order": float(np.asarray(m.first_order)[best]),
+        "gtol": float(getattr(solvers[-1], "gtol", np.nan)),
+        "step": float(np.asarray(m.step)[best]),
+        "decrease": float(np.asarray(m.decrease)[best]),
+        "at_step": int(np.asarray(final.num_steps)[best]),
+        "roundoff_limit": roundoff_limit(problem.dtype),
+    }
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
     return FitResult(
@@ -180,6 +190,7 @@ def assemble(
         solver=tuple(s.settings() for s in solvers),
         model=model,
         diagnostics=dict(diagnostics or {}),
+        stop_info=stop_info,
         theta_order=tuple(theta_order),
         units=dict(units or {}),
     )

@@ -13,6 +13,38 @@ from ._fit_report import report
 from ._results import RESULTS, is_success, name_of
 
 
+def _g(x):
+    return f"{x:.3g}"
+
+
+def stop_detail(status: str, info: dict) -> str:
+    """The test that fired and its values, in one line (empty where unknown)."""
+    fo, gtol = info.get("first_order", np.nan), info.get("gtol", np.nan)
+    step, decrease = info.get("step", np.nan), info.get("decrease", np.nan)
+    at = info.get("at_step")
+    known = np.isfinite(fo)
+    vs = f"first-order measure {_g(fo)}" + (f" (gtol {_g(gtol)})" if np.isfinite(gtol) else "")
+    if status == "converged" and known:
+        if not fo > gtol:
+            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}"
+        limit = info.get("roundoff_limit", np.nan)
+        return (
+            f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
+            f"{_g(gtol)}): no step decreases the loss at round-off"
+        )
+    if status == "stalled":
+        return f"step {_g(step)} (scaled) with predicted decrease {_g(decrease)}: stalled, " + (
+            vs.replace("measure", "measure", 1) + " > gtol" if known else "not stationary"
+        )
+    if status == "zero_residual":
+        return "loss at the round-off level of the data" + (f", {vs}" if known else "")
+    if status == "diverged":
+        return "the simulation diverged" + (f" at step {at}" if at is not None else "")
+    if status in ("max_steps_reached", "no_progress") and known:
+        return f"{vs} not met"
+    return ""
+
+
 class FitHistory(eqx.Module):
     """The recorded iterates of a fit (bounded: see `fit(history=...)`).
 
@@ -92,6 +124,12 @@ class FitResult(eqx.Module):
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
+    - `stop_info`: the values the stop was tested on, at the returned point:
+        `first_order` (the scaled projected gradient, see `oneshot_jax._optimality`),
+        `gtol` (the last solver's first-order tolerance), `step` (the last step's scaled
+        size relative to the scaled parameters), `decrease` (the decrease of the loss its
+        linear model predicted, relative to the loss) and `at_step` (the last solver's
+        step count); NaN where the solver has no such quantity.
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
@@ -121,18 +159,22 @@ class FitResult(eqx.Module):
     solver: tuple
     model: Any = None
     diagnostics: dict = eqx.field(default_factory=dict)
+    stop_info: dict = eqx.field(default_factory=dict)
     theta_order: tuple = eqx.field(static=True, default=())
     units: dict = eqx.field(default_factory=dict)
 
     @property
     def success(self) -> bool:
-        """Whether the solver converged (`converged`, `tol_loss` or `tol_grad`)."""
+        """Whether the solver converged (`converged`, `zero_residual`, `tol_loss` or
+        `tol_grad`)."""
         return is_success(self.stop_reason)
 
     @property
     def message(self) -> str:
-        """Why the solver stopped, in words."""
-        return RESULTS[self.stop_reason]
+        """Why the solver stopped, in words: the test that fired with its values, then
+        the reason's explanation (`RESULTS`)."""
+        detail = stop_detail(self.status, self.stop_info)
+        return f"{detail}; {RESULTS[self.stop_reason]}" if detail else RESULTS[self.stop_reason]
 
     @property
     def status(self) -> str:

@@ -9,8 +9,8 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   arrays (`{"scalar": true}` added for NumPy scalars) and `{"const": v}` nodes for Python
   booleans, or null for a structure JSON cannot describe), `names`, `stop_reason` (a
   `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
-  solver), the metric names, `starts_stop_reason`, `diagnostics` (a JSON object),
-  `theta_order` (a list of names) and `units` (a JSON object).
+  solver), the metric names, `starts_stop_reason`, `diagnostics` and
+  `stop_info` (JSON objects), `theta_order` (a list of names) and `units` (a JSON object).
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
@@ -161,6 +161,7 @@ def save_result(result: FitResult, path):
         },
         "starts_stop_reason": None if result.starts is None else list(result.starts.stop_reason),
         "diagnostics": _plain(result.diagnostics),
+        "stop_info": _plain(result.stop_info),
         "theta_order": list(result.theta_order),
         "units": dict(result.units),
     }
@@ -332,6 +333,7 @@ def _result(arrays, meta, group, build, static, model) -> FitResult:
         solver=tuple(meta["solver"]),
         model=model,
         diagnostics=dict(meta.get("diagnostics") or {}),
+        stop_info=dict(meta.get("stop_info") or {}),
         theta_order=tuple(meta.get("theta_order") or ()),
         units=dict(meta.get("units") or {}),
     )

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _history
+from ._optimality import Measures
 from ._problem import FitProblem, Params
 from ._results import RESULTS
 
@@ -32,6 +33,7 @@ class Solution(NamedTuple):
     final_grad_norm: jax.Array
     final_theta: jax.Array  # (the last iterate, before `postprocess`)
     blocks: Any  # normal-equation blocks for the covariance, or None
+    measures: Measures  # what each start's stop was tested on
 
 
 class _Carry(NamedTuple):
@@ -69,7 +71,7 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
     def check(p, s):
         loss, gnorm = solver.summary(s)
         done, result = solver.terminate(problem, p, s)
-        finite = jnp.isfinite(loss)
+        finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
         return done | ~finite, RESULTS.where(finite, result, RESULTS.diverged), loss, gnorm
 
     check_all = eqx.filter_vmap(check)
@@ -111,6 +113,7 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
     final_loss, final_gnorm = eqx.filter_vmap(solver.summary)(state)
+    measures = eqx.filter_vmap(solver.measures)(state)
     out_params, out_loss, blocks = eqx.filter_vmap(
         lambda p, s, r: solver.postprocess(problem, p, s, r)
     )(c.params, state, result)
@@ -124,6 +127,7 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
         final_gnorm,
         c.params.theta,
         blocks,
+        measures,
     )
 
 

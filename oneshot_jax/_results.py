@@ -6,25 +6,41 @@ import numpy as np
 
 class RESULTS(eqx.Enumeration):
     """Why a fit stopped (`FitResult.stop_reason`). `RESULTS[item]` is the message;
-    `FitResult.success` is True for `converged`, `tol_loss` and `tol_grad` only."""
+    `FitResult.success` is True for `converged`, `zero_residual`, `tol_loss` and
+    `tol_grad` only: each is a test of optimality at the returned point.
+    `FitResult.message` adds the values the test fired on."""
 
     converged = (
-        "the scaled step and the relative decrease of the loss fell below the solver's "
-        "rtol/atol, or the predicted decrease fell below machine precision"
+        "first-order optimality: the scaled projected gradient (the largest cosine between "
+        "the residual and a Jacobian column, 0 at a constrained stationary point) is at "
+        "most the solver's gtol"
+    )
+    zero_residual = (
+        "zero residual: the loss is at the round-off level of the data (the model "
+        "reproduces the outputs exactly), where no step can decrease it further"
     )
     tol_loss = "the loss fell below tol_loss (the paper's epsilon)"
     tol_grad = "the gradient norm fell below tol_grad (the paper's delta)"
     max_steps_reached = (
-        "reached the solver's max_steps before converging; raise max_steps (or the "
-        "learning rates), or start a second solver where this one stopped"
+        "reached the solver's max_steps before the first-order test held: not a "
+        "stationary point yet; raise max_steps (or the learning rates), or start a second "
+        "solver where this one stopped"
+    )
+    stalled = (
+        "stalled: the step or the predicted decrease reached round-off, but the point is "
+        "not stationary (the first-order measure is above gtol); this is not a solution. "
+        "Check the scaling of the problem; bounds that keep the model stable, windows "
+        "(multiple shooting) or a better start help"
     )
     no_progress = (
         "no step decreased the loss any more (the damping or the line search gave up) "
-        "although the model predicted a decrease; check the scaling of the problem or try "
+        "before the first-order test held; check the scaling of the problem or try "
         "another solver or starting point"
     )
     diverged = (
-        "the simulation diverged (inf or NaN loss or gradient); the last finite iterate is returned"
+        "the simulation diverged (a non-finite loss or gradient); the last finite iterate "
+        "is returned. Bounds that keep the model stable, windows (multiple shooting) or a "
+        "better start help"
     )
     negative_penalty = (
         "lambda h(x, theta) became negative; the least-squares solvers need a non-negative "
@@ -33,7 +49,7 @@ class RESULTS(eqx.Enumeration):
     )
 
 
-SUCCESS = ("converged", "tol_loss", "tol_grad")
+SUCCESS = ("converged", "zero_residual", "tol_loss", "tol_grad")
 
 
 def name_of(item) -> str:

@@ -125,7 +125,8 @@ SAT_SOLVERS = {
     "optx.LevenbergMarquardt": lambda: optx.LevenbergMarquardt(rtol=1e-12, atol=1e-20),
     "optx.Dogleg": lambda: optx.Dogleg(rtol=1e-12, atol=1e-20),
     "optx.BFGS": lambda: oj.Optimistix(optx.BFGS(rtol=1e-13, atol=1e-20)),
-    "adam_schedule": lambda: oj.Optax(_adam_schedule(ADAM_EPOCHS), max_steps=ADAM_EPOCHS),
+    # gtol=0: the whole schedule runs (the first-order test would stop it earlier).
+    "adam_schedule": lambda: oj.Optax(_adam_schedule(ADAM_EPOCHS), max_steps=ADAM_EPOCHS, gtol=0.0),
     "lbfgs": lambda: oj.LBFGS(max_steps=200),
     "optax.lbfgs": lambda: oj.Optax(optax.lbfgs(), max_steps=200),
     "adam_then_lbfgs": lambda: [oj.Adam(lr_x0=1e-5, max_steps=200), oj.LBFGS(max_steps=200)],
@@ -148,9 +149,9 @@ def test_solvers_reach_the_same_satellite_optimum(sat, sat_gn, name):
         np.testing.assert_array_equal(r.history.step, np.arange(ADAM_EPOCHS + 1))
         # Algorithm 1 is a descent method here: the final loss is the best seen.
         assert r.history.loss[-1] <= r.history.loss.min() * (1 + 1e-12)
-    elif name in ("lbfgs", "optax.lbfgs", "adam_then_lbfgs"):
-        # The L-BFGS runs use their whole budget at the round-off level of C; what counts
-        # is that they reach the optimum (checked above) with a decreasing loss.
+    elif name == "optax.lbfgs":
+        # optax's L-BFGS through `Optax` is not monotone here: it runs its budget at the
+        # round-off level of C or stops on the first-order test.
         assert r.history.loss[-1] <= r.history.loss[0]
     else:
         assert r.success, (name, r.stop_reason)

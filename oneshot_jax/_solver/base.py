@@ -15,6 +15,7 @@ implements these methods, plus a test.
 
 import abc
 import dataclasses
+import math
 from typing import Any
 
 import equinox as eqx
@@ -22,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._optimality import Measures, no_measures
 from .._problem import FitProblem, Params
 
 
@@ -60,6 +62,12 @@ class AbstractSolver(eqx.Module):
             f"the surviving terms without the regulariser, e.g. with `{name}` and "
             "fixed=oneshot_jax.sparsity.fixed_zeros(result.theta, where)."
         )
+
+    def measures(self, state) -> Measures:
+        """The quantities the last stop was tested on (`oneshot_jax._optimality.Measures`):
+        the first-order measure at the current iterate, the last step's scaled size and
+        its predicted relative decrease (NaN where the solver has none)."""
+        return no_measures(self.summary(state)[0].dtype)
 
     def postprocess(self, problem: FitProblem, params: Params, state, result):
         """The point to return, its loss, and the normal-equation blocks (C, A, B, C_i) of
@@ -101,15 +109,16 @@ def check_options(solver, *, positive=(), non_negative=(), integers=()):
     for field in positive:
         v = getattr(solver, field)
         if not _is_real(v) or not v > 0:
-            raise ValueError(f"`{name}({field}=...)` must be a positive number, got {v!r}.")
+            raise ValueError(f"`{name}({field}=...)` must be a positive finite number, got {v!r}.")
     for field in non_negative:
         v = getattr(solver, field)
         if not _is_real(v) or not v >= 0:
-            raise ValueError(f"`{name}({field}=...)` must be a number >= 0, got {v!r}.")
+            raise ValueError(f"`{name}({field}=...)` must be a finite number >= 0, got {v!r}.")
 
 
 def _is_real(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v
+    """A finite real number (not a bool, NaN or inf)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _brief(value) -> str:

@@ -9,13 +9,21 @@ from .least_squares import AbstractLeastSquares, Trial
 class GaussNewton(AbstractLeastSquares):
     """Gauss-Newton on the closed-form residual Jacobian (forward sensitivities), with the
     x0 blocks of each trajectory eliminated by a Schur complement, an exact active set for
-    box bounds, and backtracking (alpha = 1, 1/2, ...) along the projected step until the
-    loss decreases. A non-finite trial loss counts as no decrease.
+    box bounds, and backtracking (alpha = 1, 1/2, ...) along the projection arc
+    P(theta + alpha h) until the loss decreases; if it does not, a projected-gradient
+    step with an Armijo search. A non-finite trial loss counts as no decrease.
 
     **Arguments:**
 
-    - `rtol`, `atol`: convergence tolerances on the scaled step and the decrease of the
-        loss (see `oneshot_jax._solver.least_squares`).
+    - `gtol`: the first-order test: the fit converges (succeeds) when the scaled
+        projected gradient, the largest cosine between the residual and a Jacobian
+        column, is at most `gtol` (see `oneshot_jax._optimality`).
+    - `rtol`, `atol`: an optional step test (off by default): an accepted step of
+        scaled size at most rtol ||D p|| + atol that decreased the loss by at most
+        rtol C + atol ends the fit, as `converged` if the first-order test holds there
+        and as `stalled` otherwise (see `oneshot_jax._solver.least_squares`). Without it
+        the fit runs until the first-order test holds, no step can decrease the loss at
+        round-off, or `max_steps`.
     - `max_steps`: the maximum number of iterations.
     - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`: formed
         per-step Jacobians, `"vjp"`: matrix-free JVPs in the scan, `"parallel"`:
@@ -30,8 +38,9 @@ class GaussNewton(AbstractLeastSquares):
         iteration budget per step (with `"cg"`).
     """
 
-    rtol: float = 1e-10
+    rtol: float = 0.0
     atol: float = 0.0
+    gtol: float = 1e-8
     max_steps: int = 100
     strategy: str = "auto"
     linear_solver: str = "auto"
@@ -44,23 +53,21 @@ class GaussNewton(AbstractLeastSquares):
     def _mu0(self, dtype):
         return jnp.array(0.0, dtype)
 
+    def _fallback(self, clipped, pred):
+        del clipped, pred
+        return jnp.array(True)
+
     def _search(self, problem, params, blocks, step, full, pred, mu, nu):
         del pred
         C = blocks.C
-        first, C1 = full
 
         def cond(c):
-            return (c[1] >= C) & (c[0] > 2.0**-30)
+            return (c[2] >= C) & (c[0] > 2.0**-30)
 
         def body(c):
             alpha = c[0] / 2
-            return alpha, self.trial(problem, params, step, alpha)[1]
+            return alpha, *self.trial(problem, params, step, alpha)
 
-        alpha, _ = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), C1))
-        new, Cn = jax.lax.cond(
-            alpha < 1,
-            lambda: self.trial(problem, params, step, alpha),
-            lambda: (first, C1),
-        )
+        _, new, Cn = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), *full))
         accept = Cn < C
         return Trial(new, Cn, accept, mu, nu, ~accept)

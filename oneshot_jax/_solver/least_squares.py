@@ -11,10 +11,6 @@ The linear algebra is structured: theta's columns are shared by all trajectories
 matrix and the x0 blocks are eliminated by a Schur complement (`structured_step`); the
 cost is linear in the number of trajectories.
 
-Box bounds are exact: each iterate is projected (clipped), and entries at a bound whose
-gradient points outwards are held for the step (an active set), so a bound that is active
-at the optimum neither stalls the other parameters nor is left.
-
 **Matrix-free normal equations** (`linear_solver="cg"`, chosen by "auto" above
 `_strategy.MATRIX_FREE_MIN_THETA` free entries of theta). The theta block is never
 formed: the Schur complement system S h_theta = -(g_t - sum_i B_i C_i^{-1} g_i) is solved
@@ -37,12 +33,28 @@ a relative residual `cg_rtol` or after `cg_max_steps` iterations: a truncated st
 still a descent direction, and the step's decrease is measured with J s itself, so the
 globalisation is unchanged (an inexact Gauss-Newton / LM method).
 
-Stopping: an accepted step converges when its scaled size ||D s|| (D = Marquardt's
-sqrt(diag(J^T J)), which makes the test invariant to the parameters' units) is at most
-rtol ||D p|| + atol AND the loss decreased by at most rtol C + atol; or when the decrease
-the linear model predicts is at the round-off level of C. A penalty enters as residuals
-sqrt(lambda h / T): lambda h must be non-negative, and the solver stops with
-`RESULTS.negative_penalty` (reporting the true loss) when it is not.
+Bounds and projections: each iterate is projected (a box is clipped), and entries at a
+bound whose gradient points outwards are held for the step (an active set). A step that
+the projection clipped can predict no decrease (or fail) at any damping; it is then
+replaced by a projected scaled-gradient step with an Armijo search along the projection
+arc (`_gradient_arc`; Kanzow, Yamashita and Fukushima 2004), which decreases C at every
+point that is not stationary. So a bound never stops the fit short of a solution.
+
+Stopping (`oneshot_jax._optimality`): the fit converges (succeeds) when the first-order
+measure at the current iterate, the scaled projected gradient, is at most `gtol`, or
+when no step decreases C at round-off with the measure at most its round-off limit
+10 sqrt(eps) (a loss known to relative precision eps resolves cosines down to about
+sqrt(eps) only, so a slowly converging fit can stop a little above gtol = 1e-8); it
+is `zero_residual` (success) when it can make no further progress with the loss at the
+round-off level of the data. Every other stop is a failure that names its test:
+`stalled` when no step decreases C while the linear model's predicted decrease is at
+round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
+level of the parameters, or when the optional step test fired (rtol, atol: an accepted
+step with ||D s|| <= rtol ||D p|| + atol and a decrease <= rtol C + atol, D =
+sqrt(diag(J^T J))) before the first-order test; `no_progress` when LM's damping passes
+1e20 or GN's backtracking 2^-30 and the gradient step fails too; `max_steps_reached`.
+A penalty enters as residuals sqrt(lambda h / T): lambda h must be non-negative, and the
+solver stops with `RESULTS.negative_penalty` (reporting the true loss) when it is not.
 """
 
 from typing import NamedTuple
@@ -52,6 +64,14 @@ import jax
 import jax.numpy as jnp
 
 from .._linalg import floor, normal_blocks, psd_solve
+from .._optimality import (
+    Measures,
+    data_scale,
+    first_order,
+    lazy_cond,
+    roundoff_limit,
+    zero_residual,
+)
 from .._problem import Params
 from .._results import RESULTS
 from .._sensitivity import Trajectory
@@ -90,11 +110,13 @@ class MatrixFreeBlocks(NamedTuple):
 
 
 class LSQState(NamedTuple):
-    blocks: Blocks | MatrixFreeBlocks  # the last linearisation
-    loss: jax.Array  # C at the current iterate (that of `blocks` but after a final step)
-    h_min: jax.Array  # the smallest lambda h(x_k) at the last linearisation
+    blocks: Blocks | MatrixFreeBlocks  # the linearisation at the current iterate
+    loss: jax.Array  # C at the current iterate
+    h_min: jax.Array  # the smallest lambda h(x_k) at the current iterate
     mu: jax.Array  # damping (0 for Gauss-Newton)
     nu: jax.Array  # Nielsen's damping growth
+    scale: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
+    measures: Measures  # the first-order measure here, the last step and its prediction
     done: jax.Array
     result: RESULTS
 
@@ -194,6 +216,7 @@ class AbstractLeastSquares(AbstractSolver):
 
     rtol: eqx.AbstractVar[float]
     atol: eqx.AbstractVar[float]
+    gtol: eqx.AbstractVar[float]
     max_steps: eqx.AbstractVar[int]
     strategy: eqx.AbstractVar[str]
     linear_solver: eqx.AbstractVar[str]
@@ -202,7 +225,9 @@ class AbstractLeastSquares(AbstractSolver):
 
     def _check(self):
         check_options(
-            self, non_negative=("rtol", "atol", "cg_rtol"), integers=("max_steps", "cg_max_steps")
+            self,
+            non_negative=("rtol", "atol", "gtol", "cg_rtol"),
+            integers=("max_steps", "cg_max_steps"),
         )
         if self.strategy not in STRATEGIES:
             raise ValueError(
@@ -333,17 +358,31 @@ class AbstractLeastSquares(AbstractSolver):
             return jnp.zeros(p_theta.shape, bool)
         return ((p_theta <= problem.lower) & (g_t > 0)) | ((p_theta >= problem.upper) & (g_t < 0))
 
+    def _first_order(self, problem, params, b):
+        """The first-order measure at the linearisation point of `b` (`_optimality`)."""
+        d_x = jax.vmap(jnp.diag)(b.Cb) if params.x0.size else params.x0
+        return first_order(problem, params, b.C, Params(b.g_t, b.g_x), _diag_t(b), d_x)
+
+    def _fallback(self, clipped, pred):
+        """Whether a rejected step is followed by a projected-gradient step."""
+        raise NotImplementedError
+
     def init(self, problem, params):
         blocks, h_min = self._linearise(problem, params)
         dtype = problem.dtype
+        fo = self._first_order(problem, params, blocks)
+        nan = jnp.array(jnp.nan, dtype)
         negative = h_min < 0
+        stationary = fo <= self.gtol
         return LSQState(
             blocks,
             blocks.C,
             h_min,
             self._mu0(dtype),
             jnp.array(2.0, dtype),
-            negative,
+            data_scale(problem),
+            Measures(fo, nan, nan),
+            negative | stationary,
             RESULTS.where(negative, RESULTS.negative_penalty, RESULTS.converged),
         )
 
@@ -352,9 +391,53 @@ class AbstractLeastSquares(AbstractSolver):
         new = Params(
             problem.feasible(params.theta + alpha * step.theta), params.x0 + alpha * step.x0
         )
-        r, _ = problem.residuals(new, strategy=self.strategy)
+        return new, self._loss(problem, new)
+
+    def _loss(self, problem, params):
+        r, _ = problem.residuals(params, strategy=self.strategy)
         C = jnp.sum(r**2)
-        return new, jnp.where(jnp.isfinite(C), C, jnp.inf)
+        return jnp.where(jnp.isfinite(C), C, jnp.inf)
+
+    def _gradient_arc(self, problem, params, b):
+        """A projected scaled-gradient step with an Armijo search along the projection arc
+        theta(t) = P(theta - t D^-2 g) (Bertsekas, "Nonlinear programming", 1999, Sec.
+        2.3; the fallback of Kanzow, Yamashita and Fukushima 2004), from the Cauchy step
+        length t0 = (g^T D^-2 g) / ||J D^-2 g||^2 of the linear model, halving t until
+        C(t) <= C + 2 sigma g^T (theta(t) - theta), sigma = 1e-4. D is Marquardt's
+        diagonal (a box commutes with it); a general projection takes the common step
+        min_i D_ii^-2. It decreases C whenever theta is not stationary, so that a step
+        clipped at a bound never ends the fit at a non-stationary point. Returns (point,
+        loss, whether it decreased C)."""
+        C = b.C
+        inv_t = 1.0 / floor(_diag_t(b))
+        if problem.project is not None:
+            inv_t = jnp.full_like(inv_t, jnp.min(inv_t))
+        inv_x = 1.0 / jax.vmap(lambda c: floor(jnp.diag(c)))(b.Cb) if params.x0.size else b.g_x
+        dt, dx = -inv_t * b.g_t, -inv_x * b.g_x
+        slope = -(b.g_t @ dt + jnp.sum(b.g_x * dx))
+        curv = self._model_curvature(problem, params, b, dt, dx)
+        t0 = jnp.where(curv > 0, slope / jnp.where(curv > 0, curv, 1.0), 1.0)
+        t0 = jnp.where(jnp.isfinite(t0) & (t0 > 0), t0, 1.0)
+
+        def point(t):
+            new = Params(problem.feasible(params.theta + t * dt), params.x0 + t * dx)
+            return new, self._loss(problem, new)
+
+        def armijo(new, Cn):
+            lin = b.g_t @ (new.theta - params.theta) + jnp.sum(b.g_x * (new.x0 - params.x0))
+            return (Cn < C) & (Cn <= C + 2e-4 * lin)
+
+        def cond(c):
+            return ~c[3] & (c[4] < 40)
+
+        def body(c):
+            t = c[0] * jnp.where(c[4] > 0, 0.5, 1.0)
+            new, Cn = point(t)
+            return t, new, Cn, armijo(new, Cn), c[4] + 1
+
+        init = (t0, params, C, jnp.array(False), jnp.array(0))
+        _, new, Cn, ok, _ = jax.lax.while_loop(cond, body, init)
+        return new, Cn, ok
 
     def step(self, problem, params, state):
         b = state.blocks
@@ -362,47 +445,80 @@ class AbstractLeastSquares(AbstractSolver):
         eps = jnp.finfo(dtype).eps
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, state.mu, act)
+        full = self.trial(problem, params, h, 1.0)
+        if problem.lower is not None or problem.project is not None:
+            # Entries that the projection leaves where they are although the step moves
+            # them (at a bound, pushed outwards by the coupling with the other entries,
+            # or held by a general projection): hold them too and solve again, so that
+            # the other entries take the step of the reduced problem.
+            blocked = (full[0].theta == params.theta) & (h.theta != 0) & ~act
+
+            def again():
+                h2 = self._solve(problem, params, b, state.mu, act | blocked)
+                return h2, self.trial(problem, params, h2, 1.0)
+
+            h, full = lazy_cond(jnp.any(blocked), again, (h, full))
         # The decrease of C the linear model predicts for the full projected step:
         # -(2 s^T J^T r + ||J s||^2).
-        full = self.trial(problem, params, h, 1.0)
         st, sx = full[0].theta - params.theta, full[0].x0 - params.x0
         Js2 = self._model_curvature(problem, params, b, st, sx)
         pred = -(2.0 * (st @ b.g_t + jnp.sum(sx * b.g_x)) + Js2)
         t = self._search(problem, params, b, h, full, pred, state.mu, state.nu)
+        # A step that the projection clipped (or whose model predicts no decrease) and
+        # that failed: a projected-gradient step instead, which decreases C unless
+        # theta is stationary.
+        clipped = jnp.any(st != h.theta)
+        need = ~t.accept & self._fallback(clipped, pred)
+        arc = lazy_cond(
+            need, lambda: self._gradient_arc(problem, params, b), (params, b.C, jnp.array(False))
+        )
+        take = t.accept | arc[2]
+        new = jax.tree_util.tree_map(lambda a, c: jnp.where(t.accept, a, c), t.params, arc[0])
+        new_loss = jnp.where(t.accept, t.loss, arc[1])
+        old = params
+        params = jax.tree_util.tree_map(lambda a, c: jnp.where(take, a, c), new, params)
+        loss = jnp.where(take, new_loss, state.loss)
+        blocks, h_min = lazy_cond(take, lambda: self._linearise(problem, params), (b, state.h_min))
+        fo = self._first_order(problem, params, blocks)
 
-        s = Params(t.params.theta - params.theta, t.params.x0 - params.x0)
-        small_step = _scaled_norm(b, s) <= self.rtol * _scaled_norm(b, params) + self.atol
-        small_decrease = state.loss - t.loss <= self.rtol * state.loss + self.atol
-        converged = t.accept & small_step & small_decrease
-        # Nothing left to gain at this precision: the predicted decrease is at round-off
-        # (MINPACK's ftol test at machine epsilon), or a full step at the round-off level
-        # of the parameters cannot decrease C (matters in float32).
-        size = jnp.sqrt(jnp.sum(params.theta**2) + jnp.sum(params.x0**2))
+        s = Params(params.theta - old.theta, params.x0 - old.x0)
+        size_d = _scaled_norm(b, old)
+        step_d = _scaled_norm(b, s)
+        small_step = take & (step_d <= self.rtol * size_d + self.atol)
+        small_step = small_step & (state.loss - loss <= self.rtol * state.loss + self.atol)
+        # Nothing left to gain at this precision: nothing decreased C and the predicted
+        # decrease is at round-off (MINPACK's ftol test at machine epsilon), or the step
+        # is at the round-off level of the parameters (matters in float32).
+        size = jnp.sqrt(jnp.sum(old.theta**2) + jnp.sum(old.x0**2))
         hsize = jnp.sqrt(jnp.sum(h.theta**2) + jnp.sum(h.x0**2))
-        at_precision = (pred <= 8 * eps * state.loss) | (
-            ~t.accept & (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, 1e-300))
+        round_off = ~take & (
+            (pred <= 8 * eps * state.loss)
+            | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
         )
-        converged = converged | at_precision
-        gave_up = t.gave_up & ~converged
-        take = t.accept
-        params = jax.tree_util.tree_map(lambda a, c: jnp.where(take, a, c), t.params, params)
-        loss = jnp.where(take, t.loss, state.loss)
-        # A converged step is taken without linearising again at its end point: that point
-        # is within rtol (scaled) of the last linearisation, which the covariance uses.
-        relinearise = take & ~converged
-        blocks, h_min = jax.lax.cond(
-            relinearise,
-            lambda: self._linearise(problem, params),
-            lambda: (b, state.h_min),
-        )
+        gave_up = t.gave_up & ~take
+        stalled = small_step | round_off | gave_up
+        # At round-off, stationary to the precision of the loss (`_optimality`).
+        stationary = (fo <= self.gtol) | (round_off & (fo <= roundoff_limit(dtype)))
         negative = h_min < 0
-        done = converged | gave_up | negative
+        done = stationary | stalled | negative
         result = RESULTS.where(
-            negative,
-            RESULTS.negative_penalty,
-            RESULTS.where(gave_up, RESULTS.no_progress, RESULTS.converged),
+            stationary,
+            RESULTS.converged,
+            RESULTS.where(
+                zero_residual(loss, state.scale),
+                RESULTS.zero_residual,
+                RESULTS.where(gave_up, RESULTS.no_progress, RESULTS.stalled),
+            ),
         )
-        return params, LSQState(blocks, loss, h_min, t.mu, t.nu, done, result)
+        result = RESULTS.where(negative, RESULTS.negative_penalty, result)
+        tiny = jnp.finfo(dtype).tiny
+        measures = Measures(
+            fo,
+            step_d / jnp.maximum(size_d, tiny),
+            jnp.where(take, pred, jnp.maximum(pred, 0.0)) / jnp.maximum(state.loss, tiny),
+        )
+        state = LSQState(blocks, loss, h_min, t.mu, t.nu, state.scale, measures, done, result)
+        return params, state
 
     def terminate(self, problem, params, state):
         del problem, params
@@ -411,6 +527,9 @@ class AbstractLeastSquares(AbstractSolver):
     def summary(self, state):
         b = state.blocks
         return state.loss, 2.0 * jnp.sqrt(jnp.sum(b.g_t**2) + jnp.sum(b.g_x**2))
+
+    def measures(self, state):
+        return state.measures
 
     def postprocess(self, problem, params, state, result):
         b = state.blocks

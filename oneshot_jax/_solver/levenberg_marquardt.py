@@ -2,21 +2,32 @@
 
 import jax.numpy as jnp
 
+from .base import check_options
 from .least_squares import AbstractLeastSquares, Trial
 
 
 class LevenbergMarquardt(AbstractLeastSquares):
     """Levenberg-Marquardt on the closed-form residual Jacobian (forward sensitivities),
     with Marquardt's scaling D = diag(J^T J), the x0 blocks of each trajectory eliminated
-    by a Schur complement and an exact active set for box bounds. The damping mu follows
-    Nielsen's rule: on an accepted step mu *= max(1/3, 1 - (2 rho - 1)^3), on a rejected
+    by a Schur complement and an exact active set for box bounds. A step that a bound or
+    a projection clipped and that fails is replaced by a projected-gradient step with an
+    Armijo search along the projection arc (Kanzow, Yamashita and Fukushima 2004). The
+    damping mu follows Nielsen's rule: on an accepted step mu *= max(1/3, 1 - (2 rho - 1)^3),
+    on a rejected
     one mu *= nu, nu *= 2 (rho = actual / predicted decrease). A non-finite trial loss is
     a rejected step.
 
     **Arguments:**
 
-    - `rtol`, `atol`: convergence tolerances on the scaled step and the decrease of the
-        loss (see `oneshot_jax._solver.least_squares`).
+    - `gtol`: the first-order test: the fit converges (succeeds) when the scaled
+        projected gradient, the largest cosine between the residual and a Jacobian
+        column, is at most `gtol` (see `oneshot_jax._optimality`).
+    - `rtol`, `atol`: an optional step test (off by default): an accepted step of
+        scaled size at most rtol ||D p|| + atol that decreased the loss by at most
+        rtol C + atol ends the fit, as `converged` if the first-order test holds there
+        and as `stalled` otherwise (see `oneshot_jax._solver.least_squares`). Without it
+        the fit runs until the first-order test holds, no step can decrease the loss at
+        round-off, or `max_steps`.
     - `max_steps`: the maximum number of iterations (rejected steps count).
     - `mu0`: the initial damping.
     - `strategy`: how the sensitivities are computed (`"auto"`, `"jacobian"`, `"vjp"`,
@@ -31,8 +42,9 @@ class LevenbergMarquardt(AbstractLeastSquares):
         iteration budget per step (with `"cg"`).
     """
 
-    rtol: float = 1e-10
+    rtol: float = 0.0
     atol: float = 0.0
+    gtol: float = 1e-8
     max_steps: int = 100
     mu0: float = 1e-3
     strategy: str = "auto"
@@ -41,10 +53,16 @@ class LevenbergMarquardt(AbstractLeastSquares):
     cg_max_steps: int = 50
 
     def __check_init__(self):
+        check_options(self, positive=("mu0",))
         self._check()
 
     def _mu0(self, dtype):
         return jnp.array(self.mu0, dtype)
+
+    def _fallback(self, clipped, pred):
+        # A step that the projection clipped can have a model decrease <= 0 at any
+        # damping: take a projected-gradient step then. Otherwise a larger damping will do.
+        return clipped | (pred <= 0)
 
     def _search(self, problem, params, blocks, step, full, pred, mu, nu):
         del step

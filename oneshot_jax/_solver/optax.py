@@ -6,9 +6,21 @@ back onto the constraint set (Section 3.3), so every iterate is feasible. The tr
 sees the free variables as the dict `{"theta": p_theta, "x0": p_x0}`, so a transform can
 treat them differently (`optax.partition`, as `Adam` does).
 
-Stopping (Algorithm 1, line 3): `tol_loss` (epsilon; off by default, since a loss with a
-signed penalty can be negative) and `tol_grad` (delta); a non-finite loss or gradient
-stops with `RESULTS.diverged` and returns the last finite iterate.
+Stopping: the first-order test of every solver of `fit` (`gtol`, see
+`oneshot_jax._optimality`; success), and Algorithm 1's tests, line 3: `tol_loss`
+(epsilon; off by default, since a loss with a signed penalty can be negative) and
+`tol_grad` (delta, an unscaled gradient norm; off by default). The first-order measure
+needs Marquardt's diagonal diag(J^T J), which a first-order solver does not have: it is
+computed at the start (one Jacobian, or a 16-probe estimate above 256 free entries) and
+again wherever the estimate from the kept diagonal passes the test, so the test that
+ends a fit is exact at the returned point. `LBFGS` is monotone: a step that does not
+decrease the loss is not taken; it tries once more from a fresh memory and then stops
+(`stalled`, or converged where the measure is below its round-off limit). With
+constraints its quasi-Newton model covers the free entries only: the entries that a
+projected diagonal-Newton step leaves at their bound get a zero gradient, and the memory
+starts afresh when that set changes. A non-finite loss or gradient stops with
+`RESULTS.diverged` and returns the last finite iterate. Otherwise the solver runs to
+`max_steps` (`max_steps_reached`, not a success).
 
 A proximal regulariser g (`oneshot_jax.sparsity.l1`, `group_lasso`, given in
 `fit(constraints=...)`) turns each step into a proximal-gradient step on C + g: the prox
@@ -29,6 +41,15 @@ import jax.numpy as jnp
 import optax
 
 from .. import sparsity
+from .._linalg import floor
+from .._optimality import (
+    Measures,
+    Scaling,
+    check_first_order,
+    data_scale,
+    scaling,
+    zero_residual,
+)
 from .._problem import FitProblem, Params
 from .._results import RESULTS
 from .._strategy import STRATEGIES
@@ -43,6 +64,12 @@ class _OptaxState(NamedTuple):
     last: Params  # the last iterate with a finite loss and gradient
     last_loss: jax.Array
     count: jax.Array  # updates made (for the regulariser's learning-rate schedule)
+    scale: Scaling  # Marquardt's diagonal for the first-order measure
+    data: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
+    first_order: jax.Array  # the first-order measure at the current iterate
+    stationary: jax.Array
+    stalls: jax.Array  # (LBFGS) consecutive steps that did not decrease the loss
+    held: jax.Array  # (LBFGS) entries of theta held by the constraints at the last step
 
 
 def _as_dict(p: Params):
@@ -96,7 +123,12 @@ class _AbstractOptax(AbstractSolver):
     max_steps: eqx.AbstractVar[int]
     tol_loss: eqx.AbstractVar[float | None]
     tol_grad: eqx.AbstractVar[float]
+    gtol: eqx.AbstractVar[float]
     strategy: eqx.AbstractVar[str]
+
+    # A monotone method (LBFGS's line search) rejects a step that does not decrease the
+    # objective and stops there (a stall); Adam's steps may go up and down.
+    _monotone = False
 
     def _transform(self, problem: FitProblem) -> optax.GradientTransformation:
         raise NotImplementedError
@@ -108,7 +140,7 @@ class _AbstractOptax(AbstractSolver):
         return p_theta
 
     def _check(self):
-        check_options(self, non_negative=("tol_grad",), integers=("max_steps",))
+        check_options(self, non_negative=("tol_grad", "gtol"), integers=("max_steps",))
         if self.tol_loss is not None and not isinstance(self.tol_loss, (int, float)):
             raise ValueError(
                 f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
@@ -124,29 +156,108 @@ class _AbstractOptax(AbstractSolver):
         C, g = problem.value_and_grad(params, self.strategy)
         opt_state = self._transform(problem).init(_as_dict(params))
         obj = C + problem.g(params.theta)
-        return _OptaxState(opt_state, obj, C, g, params, obj, jnp.array(0, jnp.int32))
+        scale = scaling(problem, params, self.strategy)
+        no = jnp.array(False)
+        fo, stationary, scale = check_first_order(
+            problem, params, C, g, scale, no, self.gtol, self.strategy
+        )
+        zero = jnp.array(0, jnp.int32)
+        held = jnp.zeros(params.theta.shape, bool)
+        return _OptaxState(
+            opt_state,
+            obj,
+            C,
+            g,
+            params,
+            obj,
+            zero,
+            scale,
+            data_scale(problem),
+            fo,
+            stationary,
+            zero,
+            held,
+        )
+
+    def _held(self, problem, params, grad, scale):
+        """Entries of theta that the constraints hold where they are: a projected
+        diagonal-Newton step P(theta - grad C / (2 d^2)) leaves them in place although
+        their gradient is not zero (at a bound that the gradient pushes against)."""
+        if problem.lower is None and problem.project is None:
+            return jnp.zeros(params.theta.shape, bool)
+        eps = jnp.finfo(problem.dtype).eps
+        t = 0.5 / floor(scale.d_t)
+        trial = problem.feasible(params.theta - t * grad.theta)
+        return (jnp.abs(trial - params.theta) <= 4 * eps * jnp.abs(params.theta)) & (
+            grad.theta != 0
+        )
 
     def step(self, problem, params, state):
         tx = self._transform(problem)
         d = _as_dict(params)
-        g = _as_dict(state.grad)
+        opt_state, held = state.opt_state, state.held
+        grad = state.grad
+        if self._monotone:
+            # A quasi-Newton model of the free entries only: the gradient of the entries
+            # that the constraints hold is zero for it, and its memory starts afresh when
+            # that set changes or after a step that did not decrease the loss.
+            held = self._held(problem, params, grad, state.scale)
+            grad = Params(jnp.where(held, 0.0, grad.theta), grad.x0)
+            reset = (state.stalls > 0) | jnp.any(held != state.held)
+            fresh = tx.init(d)
+            opt_state = jax.tree_util.tree_map(
+                lambda a, b: jnp.where(reset, a, b) if eqx.is_array(a) else b,
+                fresh,
+                opt_state,
+            )
+        g = _as_dict(grad)
         if isinstance(tx, optax.GradientTransformationExtraArgs):
             value_fn = _ClosedFormLoss(problem, self.strategy)
             updates, opt_state = tx.update(
-                g, state.opt_state, d, value=state.smooth, grad=g, value_fn=value_fn
+                g, opt_state, d, value=state.smooth, grad=g, value_fn=value_fn
             )
         else:
-            updates, opt_state = tx.update(g, state.opt_state, d)
+            updates, opt_state = tx.update(g, opt_state, d)
         new = _as_params(optax.apply_updates(d, updates))
         theta = self._prox(problem, new.theta, state.count)
         new = Params(problem.feasible(theta), new.x0)
         C, g_new = problem.value_and_grad(new, self.strategy)
         obj = C + problem.g(new.theta)
         finite = jnp.isfinite(obj) & jnp.isfinite(grad_norm(g_new))
+        stall = jnp.array(False)
+        stalls = state.stalls
+        if self._monotone:
+            # No decrease: keep the current iterate; try once more from a fresh memory,
+            # and stop after a second such step.
+            stall = finite & ~(obj < state.loss)
+            keep = lambda a, b: jax.tree_util.tree_map(  # noqa: E731
+                lambda x, y: jnp.where(stall, x, y), a, b
+            )
+            new, C, g_new, obj = keep(
+                (params, state.smooth, state.grad, state.loss), (new, C, g_new, obj)
+            )
+            stalls = jnp.where(stall, stalls + 1, 0)
         last = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, state.last)
         last_loss = jnp.where(finite, obj, state.last_loss)
         count = optax.safe_increment(state.count)
-        return new, _OptaxState(opt_state, obj, C, g_new, last, last_loss, count)
+        fo, stationary, scale = check_first_order(
+            problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy
+        )
+        return new, _OptaxState(
+            opt_state,
+            obj,
+            C,
+            g_new,
+            last,
+            last_loss,
+            count,
+            scale,
+            state.data,
+            fo,
+            stationary,
+            stalls,
+            held,
+        )
 
     def terminate(self, problem, params, state):
         del problem, params
@@ -154,15 +265,23 @@ class _AbstractOptax(AbstractSolver):
         finite = jnp.isfinite(state.loss) & jnp.isfinite(gnorm)
         small_loss = jnp.array(False) if self.tol_loss is None else state.loss < self.tol_loss
         small_grad = gnorm < self.tol_grad
+        stalled = (state.stalls >= 2) & ~state.stationary
         result = RESULTS.where(
-            ~finite,
-            RESULTS.diverged,
-            RESULTS.where(small_loss, RESULTS.tol_loss, RESULTS.tol_grad),
+            zero_residual(state.smooth, state.data), RESULTS.zero_residual, RESULTS.stalled
         )
-        return (~finite) | small_loss | small_grad, result
+        result = RESULTS.where(state.stationary, RESULTS.converged, result)
+        result = RESULTS.where(small_grad, RESULTS.tol_grad, result)
+        result = RESULTS.where(small_loss, RESULTS.tol_loss, result)
+        result = RESULTS.where(~finite, RESULTS.diverged, result)
+        done = (~finite) | small_loss | small_grad | state.stationary | stalled
+        return done, result
 
     def summary(self, state):
         return state.loss, grad_norm(state.grad)
+
+    def measures(self, state):
+        nan = jnp.full_like(state.loss, jnp.nan)
+        return Measures(state.first_order, nan, nan)
 
     def postprocess(self, problem, params, state, result):
         del problem
@@ -192,6 +311,10 @@ class Optax(_AbstractOptax):
     - `max_steps`: the number of updates (E_max).
     - `tol_loss`: stop when C < tol_loss (epsilon); None (default) never.
     - `tol_grad`: stop when ||grad C|| < tol_grad (delta); 0 (default) never.
+    - `gtol`: the first-order test: stop (converged) when the scaled projected
+        gradient, the largest cosine between the residual and a Jacobian column, is at
+        most `gtol` (see `oneshot_jax._optimality`; estimated from the gradient with
+        Marquardt's diagonal of the start, recomputed where the estimate passes).
     - `strategy`: how the gradient's per-step Jacobians are formed (`"auto"`,
         `"jacobian"`, `"vjp"`; see `oneshot_jax.value_and_grad`).
     """
@@ -200,6 +323,7 @@ class Optax(_AbstractOptax):
     max_steps: int = 1000
     tol_loss: float | None = None
     tol_grad: float = 0.0
+    gtol: float = 1e-8
     strategy: str = "auto"
 
     def __check_init__(self):
@@ -251,7 +375,7 @@ class Adam(_AbstractOptax):
     - `lr_theta`, `lr_x0`: the learning rates eta_theta and eta_x0 (numbers, or optax
         schedules `count -> rate`, e.g. `optax.cosine_decay_schedule(1e-2, 2000)`).
     - `b1`, `b2`, `eps`: Adam's moment decay rates and denominator offset.
-    - `max_steps`, `tol_loss`, `tol_grad`, `strategy`: as for `Optax`.
+    - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
 
     lr_theta: Any = 1e-3
@@ -262,6 +386,7 @@ class Adam(_AbstractOptax):
     max_steps: int = 5000
     tol_loss: float | None = None
     tol_grad: float = 0.0
+    gtol: float = 1e-8
     strategy: str = "auto"
 
     def __check_init__(self):
@@ -301,8 +426,10 @@ class LBFGS(_AbstractOptax):
 
     - `memory_size`: the number of past updates kept.
     - `max_linesearch_steps`: the zoom line search's budget per step.
-    - `max_steps`, `tol_loss`, `tol_grad`, `strategy`: as for `Optax` (defaults 500,
-        None, 0).
+    - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`
+        (defaults 500, None, 0, 1e-8). A step that does not decrease the loss (the line
+        search failed) ends the fit: converged where the first-order measure is below
+        its round-off limit, stalled otherwise.
     """
 
     memory_size: int = 10
@@ -310,10 +437,18 @@ class LBFGS(_AbstractOptax):
     max_steps: int = 500
     tol_loss: float | None = None
     tol_grad: float = 0.0
+    gtol: float = 1e-8
     strategy: str = "auto"
+
+    _monotone = True
 
     def __check_init__(self):
         check_options(self, integers=("memory_size", "max_linesearch_steps"))
+        for field in ("memory_size", "max_linesearch_steps"):
+            if getattr(self, field) < 1:
+                raise ValueError(
+                    f"`LBFGS({field}=...)` must be an integer >= 1, got {getattr(self, field)!r}."
+                )
         self._check()
 
     def _transform(self, problem):

@@ -22,6 +22,15 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from .._optimality import (
+    Measures,
+    column_norms,
+    data_scale,
+    first_order,
+    lazy_cond,
+    roundoff_limit,
+    zero_residual,
+)
 from .._problem import FitProblem, Params
 from .._results import RESULTS
 from .._strategy import STRATEGIES
@@ -107,6 +116,7 @@ class _OptxState(NamedTuple):
     done: jax.Array
     result: RESULTS
     rounds: jax.Array
+    first_order: jax.Array  # the first-order measure where the inner solver stopped
 
 
 class Optimistix(AbstractSolver):
@@ -123,11 +133,16 @@ class Optimistix(AbstractSolver):
     - `solver`: an `optx.AbstractLeastSquaresSolver` or `optx.AbstractMinimiser`.
     - `max_steps`: the maximum number of the solver's steps (all active-set rounds
         together).
+    - `gtol`: the first-order test applied where the optimistix solver stops: the fit
+        is `converged` only if the scaled projected gradient there is at most `gtol`, or
+        at most its round-off limit (see `oneshot_jax._optimality`); otherwise
+        `stalled`.
     - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`).
     """
 
     solver: Any
     max_steps: int = 256
+    gtol: float = 1e-8
     strategy: str = "auto"
 
     def __check_init__(self):
@@ -136,7 +151,7 @@ class Optimistix(AbstractSolver):
                 "`Optimistix(solver=...)` must be an optimistix least-squares solver or "
                 f"minimiser (e.g. optx.LevenbergMarquardt(rtol, atol)), got {self.solver!r}."
             )
-        check_options(self, integers=("max_steps",))
+        check_options(self, integers=("max_steps",), non_negative=("gtol",))
         if self.strategy not in STRATEGIES:
             raise ValueError(
                 f"`Optimistix(strategy=...)` must be one of {STRATEGIES}, got {self.strategy!r}."
@@ -168,6 +183,7 @@ class Optimistix(AbstractSolver):
             jnp.array(False),
             RESULTS.converged,
             jnp.array(0),
+            jnp.array(jnp.nan, loss.dtype),
         )
 
     def step(self, problem, params, state):
@@ -206,10 +222,29 @@ class Optimistix(AbstractSolver):
         done = inner_done & ~restart
         ok = inner_result == optx.RESULTS.successful
         nonfinite = (inner_result == optx.RESULTS.nonfinite) | ~jnp.isfinite(loss)
-        result = RESULTS.where(
-            ok, RESULTS.converged, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
+        # optimistix stops on its step and loss tests: certify the point by the
+        # first-order test (its stop counts as a stall: the round-off limit applies).
+        half = Params(0.5 * g.theta, 0.5 * g.x0)
+        fo = lazy_cond(
+            done,
+            lambda: first_order(
+                problem, params, loss, half, *column_norms(problem, params, self.strategy)
+            ),
+            jnp.array(jnp.nan, loss.dtype),
         )
-        return params, _OptxState(y, inner, held, loss, gnorm, done, result, state.rounds + restart)
+        stationary = (fo <= self.gtol) | (fo <= roundoff_limit(problem.dtype))
+        zero = zero_residual(loss, data_scale(problem))
+        result = RESULTS.where(
+            stationary,
+            RESULTS.converged,
+            RESULTS.where(zero, RESULTS.zero_residual, RESULTS.stalled),
+        )
+        result = RESULTS.where(
+            ok, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
+        )
+        return params, _OptxState(
+            y, inner, held, loss, gnorm, done, result, state.rounds + restart, fo
+        )
 
     def terminate(self, problem, params, state):
         del problem, params
@@ -217,3 +252,7 @@ class Optimistix(AbstractSolver):
 
     def summary(self, state):
         return state.loss, state.gnorm
+
+    def measures(self, state):
+        nan = jnp.full_like(state.loss, jnp.nan)
+        return Measures(state.first_order, nan, nan)

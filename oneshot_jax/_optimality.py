@@ -1,0 +1,201 @@
+"""First-order optimality: the measure on which every solver of `fit` declares success.
+
+A fit succeeds only at a (constrained) stationary point of C (eq. 5/21), tested in
+variables that do not depend on the parameters' units. With g = J^T r (half the gradient
+of C = ||r||^2, eq. 17/20) and d_i = ||J e_i|| the norm of the residual Jacobian's
+column i (Marquardt's scaling), the unconstrained measure is MINPACK's gradient test,
+
+    max_i |g_i| / (d_i ||r||),
+
+the largest cosine between the residual and a column of the Jacobian (More, Garbow and
+Hillstrom, "User guide for MINPACK-1", 1980, the `gtol` test): 0 at a stationary point,
+at most 1, and invariant to the scaling of the parameters and of the loss.
+
+With constraints it is the projected gradient in the same scaled variables: for a step
+theta+ = P(theta - t grad C) with the diagonal-Newton step sizes t_i = 1 / (2 d_i^2)
+(P a box, which commutes with a diagonal metric, or the prox of a separable
+regulariser), the measure is max_i |theta+_i - theta_i| d_i / ||r||, which is the cosine
+where the bound is inactive and 0 where theta sits at a bound that the gradient pushes
+against (Conn, Gould and Toint, "Global convergence of a class of trust region
+algorithms for optimization with simple bounds", 1988; Kanzow, Yamashita and Fukushima,
+"Levenberg-Marquardt methods with strong local convergence properties for solving
+nonlinear equations with convex constraints", 2004). A general convex projection is
+applied with one step size t = min_i t_i (the Euclidean projection does not commute
+with a diagonal metric; a common t keeps its fixed points the stationary points).
+Round-off of theta - t grad C (4 eps |theta_i|) is not counted.
+
+A loss evaluated in floating point resolves the measure down to about sqrt(eps) only
+(`roundoff_limit`): where no step decreases C any more, a measure below 10 sqrt(eps)
+also counts as stationary.
+
+Where the data determine the outputs exactly (a zero-residual fit, noise-free data), r
+is round-off at the solution and the cosine is meaningless; `zero_residual` tests the
+loss against the round-off level of the data instead.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._cost import weigh
+from ._linalg import floor
+from ._problem import FitProblem, Params
+
+# The loss of a zero-residual fit, relative to the loss of predicting zero outputs, at
+# which the residuals count as round-off: eps in float64 (a relative RMS residual of
+# 1.5e-8) and in float32 (3.5e-4).
+ZERO_RESIDUAL_RTOL = 1.0
+
+
+def roundoff_limit(dtype):
+    """The first-order measure below which a point is stationary to the precision of its
+    loss: 10 sqrt(eps) (1.5e-7 in float64, 3.5e-3 in float32). A loss C known to a
+    relative precision eps cannot tell a point whose cosines are below about sqrt(eps)
+    from the optimum (the decrease left, about cos^2 C, is at round-off), so a fit that
+    converges linearly can stop there, above a tighter `gtol`."""
+    return 10.0 * float(np.sqrt(np.finfo(dtype).eps))
+
+
+class Measures(NamedTuple):
+    """The quantities a stop is tested on, at the returned point (NaN where a solver has no
+    such test): the first-order measure, the last step's scaled size (relative to the
+    scaled parameters), and the decrease of the loss the last step's linear model predicted
+    (relative to the loss)."""
+
+    first_order: jax.Array
+    step: jax.Array
+    decrease: jax.Array
+
+
+def no_measures(dtype) -> Measures:
+    nan = jnp.array(jnp.nan, dtype)
+    return Measures(nan, nan, nan)
+
+
+def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
+    """The first-order measure at `params` (see the module docstring).
+
+    **Arguments:**
+
+    - `problem`: the fit's `FitProblem` (its box bounds, projection and regulariser).
+    - `params`: the free variables.
+    - `C`: the smooth loss C = ||r||^2 at `params`.
+    - `g`: half its gradient, J^T r, as `Params`.
+    - `d_t`, `d_x`: diag(J^T J) of the theta columns (p,) and of each trajectory's x0
+        columns (N, m).
+
+    **Returns:**
+
+    A scalar in [0, 1] (up to round-off): 0 at a constrained stationary point.
+    """
+    dtype = problem.dtype
+    eps = jnp.finfo(dtype).eps
+    norm = jnp.sqrt(jnp.maximum(C, jnp.finfo(dtype).tiny))
+    dt2 = floor(d_t) if d_t.size else d_t
+    dx2 = floor(d_x) if d_x.size else d_x
+    # x0 is never constrained: its cosines.
+    c_x = jnp.abs(g.x0) / (jnp.sqrt(dx2) * norm) if g.x0.size else g.x0
+    theta = params.theta
+    if not theta.size:
+        return jnp.max(c_x, initial=0.0)
+    constrained = (
+        problem.lower is not None or problem.project is not None or problem.regulariser is not None
+    )
+    if not constrained:
+        c_t = jnp.abs(g.theta) / (jnp.sqrt(dt2) * norm)
+        return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
+    t = 0.5 / dt2
+    if problem.project is not None:
+        t = jnp.full_like(t, jnp.min(t))
+    trial = problem.feasible(problem.prox(theta - t * 2.0 * g.theta, t))
+    moved = jnp.maximum(jnp.abs(trial - theta) - 4 * eps * jnp.abs(theta), 0.0)
+    c_t = moved / (2.0 * t * jnp.sqrt(dt2) * norm)
+    return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
+
+
+def data_scale(problem: FitProblem):
+    """The loss of predicting zero outputs: sum over the counted samples of
+    ||Q^{1/2} z_k||^2 / T, the scale against which a zero residual is judged."""
+    z = problem.z
+    if problem.mask is not None:
+        z = z * problem.mask.outputs
+    w = weigh(z, problem.cost.sqrt_weight()) * problem._scale()
+    return jnp.sum(w * w)
+
+
+def zero_residual(C, scale):
+    """Whether C is at the round-off level of the data (`data_scale`)."""
+    eps = jnp.finfo(jnp.result_type(C)).eps
+    return C <= ZERO_RESIDUAL_RTOL * eps * scale
+
+
+def column_norms(problem: FitProblem, params: Params, strategy, *, dense_max=256, probes=16):
+    """diag(J^T J) of the residual Jacobian at `params`: of the theta columns (p,) and of
+    each trajectory's x0 columns (N, m).
+
+    The x0 columns are formed (m forward sensitivities per trajectory). The theta
+    columns are formed too while p <= `dense_max`; above, the diagonal is estimated as
+    the mean of (J_t^T w)^2 over `probes` Rademacher vectors w (E[(J^T w)(J^T w)^T] =
+    J^T J; Bekas, Kokiopoulou and Saad, "An estimator for the diagonal of a matrix",
+    2007), which is unbiased and scales with the parameters' units as the exact one does.
+    """
+    p, (N, m) = params.theta.shape[0], params.x0.shape
+    dtype = problem.dtype
+    if p <= dense_max:
+        lin = problem.jacobian(params, strategy)
+        return jnp.sum(lin.Jt**2, axis=(0, 1)), jnp.sum(lin.Jx**2, axis=1)
+    r, _, traj = problem.linearise(params, strategy)
+    zeros_t = jnp.zeros((p,), dtype)
+    E_x = np.eye(m, dtype=dtype)
+    Jx = jax.vmap(
+        lambda e: problem.jvp(params, traj, zeros_t, jnp.broadcast_to(e, (N, m)), strategy)
+    )(E_x)  # (m, N, R)
+    d_x = jnp.moveaxis(jnp.sum(Jx**2, axis=-1), 0, -1)
+    signs = jax.random.rademacher(jax.random.PRNGKey(0), (probes, *r.shape), dtype=dtype)
+    W = jax.vmap(lambda w: jnp.sum(problem.vjp(params, traj, w, strategy)[0], 0))(signs)
+    return jnp.mean(W**2, axis=0), d_x
+
+
+class Scaling(NamedTuple):
+    """Marquardt's diagonal kept by a solver that has no Jacobian at hand (the first-order
+    solvers), to estimate the first-order measure at every step from the gradient alone;
+    refreshed where the estimate says the test may hold."""
+
+    d_t: jax.Array
+    d_x: jax.Array
+
+
+def scaling(problem: FitProblem, params: Params, strategy) -> Scaling:
+    return Scaling(*column_norms(problem, params, strategy))
+
+
+def check_first_order(problem, params, C, grad: Params, scale: Scaling, stall, gtol, strategy):
+    """The first-order test of a solver that has the gradient of C only.
+
+    With the kept `scale`, the measure is estimated from `grad` (the gradient of C, twice
+    J^T r); where the estimate is at most `gtol` or the solver `stall`s, the diagonal is
+    refreshed at `params` (a Jacobian) and the measure recomputed. Returns the measure,
+    whether `params` is stationary (the measure at most `gtol`, or at a stall at most
+    `roundoff_limit`) and the scaling to keep.
+    """
+    half = Params(0.5 * grad.theta, 0.5 * grad.x0)
+    fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
+    refresh = (fo <= gtol) | stall
+    scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy), scale)
+    fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
+    stationary = (fo <= gtol) | (stall & (fo <= roundoff_limit(problem.dtype)))
+    return fo, stationary, scale
+
+
+def lazy_cond(pred, true_fn, false_value):
+    """`true_fn()` where `pred`, else `false_value`, evaluating `true_fn` only when `pred`
+    holds. Under `vmap` (the starts of a multistart fit) a `lax.cond` with a batched
+    predicate evaluates both branches; a while loop runs its body only while some start
+    needs it."""
+
+    def body(c):
+        return jnp.array(False), true_fn()
+
+    return jax.lax.while_loop(lambda c: c[0], body, (pred, false_value))[1]
