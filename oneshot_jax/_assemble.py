@@ -2,6 +2,7 @@
 fit's compiled call (`post`), and the host-side assembly (`assemble`)."""
 
 import warnings
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,75 @@ from ._optimality import roundoff_limit
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
 from ._strategy import COVARIANCE_MAX_THETA
+
+
+class StageOut(NamedTuple):
+    """What `assemble` reads of one solver's `Solution`, for the best start."""
+
+    step: jax.Array  # (size,) the step of each history row (-1: unused)
+    loss: jax.Array  # (size,)
+    grad_norm: jax.Array  # (size,)
+    theta: jax.Array  # (size, p)
+    num_steps: jax.Array
+    final_theta: jax.Array  # (p,) its last iterate, its loss and gradient norm
+    final_loss: jax.Array
+    final_grad_norm: jax.Array
+
+
+class Out(NamedTuple):
+    """Everything `assemble` reads from a fit's compiled call (`collect`)."""
+
+    moved: jax.Array  # whether a start was projected onto the constraint set
+    best: jax.Array
+    theta: jax.Array  # (n,) flat theta of the best start
+    x0: jax.Array  # (N, n_x)
+    residuals: jax.Array
+    covariance: Any  # a `Covariance`, or None above COVARIANCE_MAX_THETA
+    metrics: dict
+    stages: tuple  # a `StageOut` per solver
+    results: jax.Array  # (S,) the last solver's RESULTS index per start
+    losses: jax.Array  # (S,)
+    start_theta: jax.Array  # (S, p) the free entries of theta per start
+    first_order: jax.Array  # the measures the best start's stop was tested on
+    step: jax.Array
+    decrease: jax.Array
+
+
+def collect(stages, best, moved, posted) -> Out:
+    """`Out` from the solvers' `Solution`s and `post`'s output (traced, inside the fit's
+    compiled call: indexing only)."""
+    theta, x0, e, cov, met = posted
+    final = stages[-1]
+    per_stage = tuple(
+        StageOut(
+            s.history.step,
+            s.history.loss[:, best],
+            s.history.grad_norm[:, best],
+            s.history.theta[:, best],
+            s.num_steps[best],
+            s.final_theta[best],
+            s.final_loss[best],
+            s.final_grad_norm[best],
+        )
+        for s in stages
+    )
+    m = final.measures
+    return Out(
+        moved,
+        best,
+        theta,
+        x0,
+        e,
+        cov,
+        met,
+        per_stage,
+        final.result._value,
+        final.loss,
+        final.params.theta,
+        m.first_order[best],
+        m.step[best],
+        m.decrease[best],
+    )
 
 
 def post(problem, params, blocks, strategy):
@@ -43,38 +113,76 @@ def post(problem, params, blocks, strategy):
     return theta_flat, X0, e, cov, met
 
 
-def _history(problem, stages, best, like):
-    """One `FitHistory` from every stage's bounded buffer: the best start's rows before
-    its last step, then its last iterate."""
+def _history(problem, stages, like):
+    """One `FitHistory` from every stage's bounded buffer (`StageOut`s): the best start's
+    rows before its last step, then its last iterate."""
     losses, gnorms, paths, steps, stage_ids = [], [], [], [], []
     base = np.asarray(problem.theta_base)
-    free = list(problem.theta_free)
-    for i, sol in enumerate(stages):
-        h = sol.history
-        n = int(np.asarray(sol.num_steps)[best])
-        rows = (np.asarray(h.step) >= 0) & (np.asarray(h.step) < n)
-        theta = np.concatenate(
-            [np.asarray(h.theta)[rows, best], np.asarray(sol.final_theta)[best][None]]
-        )
-        flat = np.broadcast_to(base, (theta.shape[0], base.shape[0])).copy()
-        flat[:, free] = theta
-        losses.append(np.append(np.asarray(h.loss)[rows, best], np.asarray(sol.final_loss)[best]))
-        gnorms.append(
-            np.append(np.asarray(h.grad_norm)[rows, best], np.asarray(sol.final_grad_norm)[best])
-        )
+    free = np.asarray(problem.theta_free, int)
+    all_free = free.size == base.size  # (then the rows are the free entries themselves)
+    for i, h in enumerate(stages):
+        n = int(h.num_steps)
+        rows = np.flatnonzero((h.step >= 0) & (h.step < n))
+        if not rows.size or rows[-1] == rows.size - 1:  # the usual prefix: slices, no gathers
+            rows = slice(0, rows.size)
+        theta = np.concatenate([h.theta[rows], h.final_theta[None]])
+        if all_free and theta.dtype == base.dtype:
+            flat = theta
+        else:
+            flat = np.empty((theta.shape[0], base.shape[0]), base.dtype)
+            flat[:] = base
+            flat[:, free] = theta
+        losses.append(np.concatenate([h.loss[rows], h.final_loss[None]]))
+        gnorms.append(np.concatenate([h.grad_norm[rows], h.final_grad_norm[None]]))
         paths.append(flat)
-        steps.append(np.append(np.asarray(h.step)[rows], n).astype(np.int32))
+        steps.append(np.concatenate([h.step[rows], [n]]).astype(np.int32))
         stage_ids.append(np.full(theta.shape[0], i, np.int32))
-    return FitHistory(
-        loss=np.concatenate(losses),
-        grad_norm=np.concatenate(gnorms),
-        theta=_pytree.unflatten_rows(np.concatenate(paths), like),
-        step=np.concatenate(steps),
-        stage=np.concatenate(stage_ids),
+    one = len(stages) == 1
+    return _pytree.build(
+        FitHistory,
+        loss=losses[0] if one else np.concatenate(losses),
+        grad_norm=gnorms[0] if one else np.concatenate(gnorms),
+        theta=_pytree.unflatten_rows(paths[0] if one else np.concatenate(paths), like),
+        step=steps[0] if one else np.concatenate(steps),
+        stage=stage_ids[0] if one else np.concatenate(stage_ids),
     )
 
 
+_SETTINGS: dict = {}
+
+
+def _settings(solver) -> dict:
+    """`solver.settings()`, kept per solver object (solvers are immutable); a fresh dict
+    each time."""
+    kept = _SETTINGS.get(id(solver))
+    if kept is None or kept[0] is not solver:  # (an id can be reused by a new object)
+        kept = (solver, solver.settings())
+        if len(_SETTINGS) >= 64:
+            _SETTINGS.pop(next(iter(_SETTINGS)))
+        _SETTINGS[id(solver)] = kept
+    return dict(kept[1])
+
+
+_NAMES: dict = {}
+
+
+def _free_names(params, free):
+    """The names of theta's free entries (`_pytree.leaf_names`), kept per structure."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    key = (treedef, tuple(np.shape(a) for a in leaves), tuple(free))
+    names = _NAMES.get(key)
+    if names is None:
+        all_names = _pytree.leaf_names(params)
+        names = tuple(all_names[i] for i in free)
+        if len(_NAMES) >= 256:
+            _NAMES.pop(next(iter(_NAMES)))
+        _NAMES[key] = names
+    return names
+
+
 def _warn_identifiability(names, ok, what):
+    if ok.all():
+        return
     bad = [n for n, k in zip(names, ok) if not k]
     if bad:
         # A network's weights are many and never all identifiable: name a few.
@@ -92,9 +200,7 @@ def assemble(
     model,
     problem,
     data,
-    stages,
-    best,
-    posted,
+    out: Out,
     wall_time,
     solvers,
     fixed,
@@ -104,14 +210,14 @@ def assemble(
     theta_order=(),
     units=None,
 ) -> FitResult:
-    """The `FitResult` of the best start, on the host."""
-    theta_flat, X0, e, cov, met = jax.tree_util.tree_map(np.asarray, posted)
+    """The `FitResult` of the best start, on the host, from the compiled call's `Out`
+    (NumPy arrays)."""
+    theta_flat, X0, e, cov, met = out.theta, out.x0, out.residuals, out.covariance, out.metrics
+    best = int(out.best)
     like = jax.tree_util.tree_map(np.asarray, data.theta)
     params = _pytree.unflatten_rows(theta_flat[None], like, squeeze=True)
-    final = stages[-1]
     free = np.asarray(problem.theta_free, int)
-    all_names = _pytree.leaf_names(params)
-    names = tuple(all_names[i] for i in free)
+    names = _free_names(params, problem.theta_free)
 
     x0_free = np.asarray(problem.x0_free, int)
     flat_std = np.zeros(theta_flat.shape)
@@ -127,55 +233,61 @@ def assemble(
         x0_std[:, x0_free] = np.inf
         x0_cov = np.full((X0.shape[0], x0_free.size, x0_free.size), np.inf)
     else:
-        n_obs = int(np.sum(np.isfinite(e)))
+        n_obs = int(np.count_nonzero(np.isfinite(e)))
         scaled = scale(cov, n_obs)
         _warn_identifiability(names, scaled.theta_identifiable, "parameters")
-        x0_names = [
-            f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
-            for i in range(X0.shape[0])
-            for j in problem.x0_free
-        ]
-        _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
+        if not scaled.x0_identifiable.all():
+            x0_names = [
+                f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
+                for i in range(X0.shape[0])
+                for j in problem.x0_free
+            ]
+            _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
         theta_cov = scaled.theta
-        flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0)) if free.size else []
+        if free.size == flat_std.size:  # every entry free: no scatter
+            flat_std = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0))
+        elif free.size:
+            flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0))
         if x0_free.size:
-            diag = np.diagonal(scaled.x0, axis1=1, axis2=2)
-            x0_std[:, x0_free] = np.sqrt(np.maximum(diag, 0.0))
+            diag = np.sqrt(np.maximum(np.diagonal(scaled.x0, axis1=1, axis2=2), 0.0))
+            if x0_free.size == x0_std.shape[1]:
+                x0_std = diag
+            else:
+                x0_std[:, x0_free] = diag
         x0_cov = scaled.x0
     std = _pytree.unflatten_rows(flat_std[None], like, squeeze=True)
 
-    results = np.asarray(final.result._value)
-    losses = np.asarray(final.loss)
+    results, losses = out.results, out.losses
     starts = None
     if multistart:
         rows = np.broadcast_to(np.asarray(problem.theta_base), (losses.shape[0], theta_flat.size))
         rows = rows.copy()
-        rows[:, free] = np.asarray(final.params.theta)
+        rows[:, free] = out.start_theta
         starts = Starts(
             theta=_pytree.unflatten_rows(rows, like),
             loss=losses,
             stop_reason=tuple(name_of(from_index(int(c))) for c in results),
         )
     metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
-    m = final.measures
     stop_info = {
-        "first_order": float(np.asarray(m.first_order)[best]),
+        "first_order": float(out.first_order),
         "gtol": float(getattr(solvers[-1], "gtol", np.nan)),
-        "step": float(np.asarray(m.step)[best]),
-        "decrease": float(np.asarray(m.decrease)[best]),
-        "at_step": int(np.asarray(final.num_steps)[best]),
+        "step": float(out.step),
+        "decrease": float(out.decrease),
+        "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": roundoff_limit(problem.dtype),
     }
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
-    return FitResult(
+    return _pytree.build(
+        FitResult,
         theta=_pytree.combine(params, data.static),
         x0=X0,
         loss=np.asarray(losses[best]),
         stop_reason=from_index(int(results[best])),
-        num_steps=int(sum(int(np.asarray(s.num_steps)[best]) for s in stages)),
+        num_steps=int(sum(int(s.num_steps) for s in out.stages)),
         wall_time=float(wall_time),
-        history=_history(problem, stages, best, like),
+        history=_history(problem, out.stages, like),
         residuals=e,
         names=names,
         fixed=np.asarray(fixed, bool),
@@ -186,8 +298,8 @@ def assemble(
         x0_estimated=np.asarray(x0_estimated, bool),
         metrics=metrics,
         starts=starts,
-        best=int(best),
-        solver=tuple(s.settings() for s in solvers),
+        best=best,
+        solver=tuple(_settings(s) for s in solvers),
         model=model,
         diagnostics=dict(diagnostics or {}),
         stop_info=stop_info,

@@ -33,6 +33,8 @@ def as_float(a, name, dtype=None):
     """`a` as a floating array (JAX's canonical dtype, or `dtype`). Host data (NumPy
     arrays, lists) stay NumPy arrays, so validation costs no device transfer or eager JAX
     call; the compiled functions take them as they are."""
+    if type(a) is np.ndarray and a.dtype == dtype and a.dtype.kind == "f":
+        return a  # already what it would become (the common case of `fit`'s data)
     try:
         if isinstance(a, jax.Array):
             a = jnp.asarray(a)
@@ -56,8 +58,9 @@ def as_float(a, name, dtype=None):
 
 
 def check_finite(a, name):
-    if is_concrete(a) and not bool(np.all(np.isfinite(np.asarray(a)))):
-        raise ValueError(f"`{name}` contains NaN or inf values.")
+    if isinstance(a, np.ndarray) or is_concrete(a):
+        if not np.isfinite(np.asarray(a)).all():
+            raise ValueError(f"`{name}` contains NaN or inf values.")
 
 
 def common_dtype(*trees):
@@ -81,14 +84,18 @@ def check_theta(theta, dtype=None, name="theta"):
     """theta split into its parameters (floating arrays, the trainable leaves) and its
     static part (functions, integer and boolean arrays and other non-floating leaves, or
     None)."""
-    for leaf in jax.tree_util.tree_leaves(theta):
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    for leaf in leaves:
         if isinstance(leaf, (str, bytes, complex)) or (
             isinstance(leaf, (np.ndarray, jax.Array))
             and not (jnp.issubdtype(leaf.dtype, jnp.number) or leaf.dtype == jnp.bool_)
         ):
             raise ValueError(f"`{name}` must hold real numbers, got {leaf!r}.")
-    params, static = _pytree.split(theta)
-    leaves, treedef = jax.tree_util.tree_flatten(params)
+    if leaves and all(map(_pytree.is_parameter, leaves)):
+        static = None  # (what `split` gives, without its copy of the tree)
+    else:
+        params, static = _pytree.split(theta)
+        leaves, treedef = jax.tree_util.tree_flatten(params)
     if not leaves:
         raise ValueError(
             f"`{name}` must contain at least one array leaf of floating dtype (a parameter: "
@@ -142,6 +149,78 @@ def _identity_step(x, u, theta):
 def _step_input_struct(model, u_1):
     """What the step sees of one input sample (`Model.step_inputs`), abstractly."""
     return _cached_step_inputs(model.input, u_1.shape, u_1.dtype)
+
+
+class _Uncacheable(Exception):
+    """An argument whose structural checks cannot be keyed (a ragged list, an integer
+    array in theta, which is bound into the model by value, an unhashable leaf)."""
+
+
+def _array_signature(a):
+    """What the structural checks see of one array argument: its kind, shape and dtype."""
+    if a is None:
+        return None
+    if isinstance(a, (np.ndarray, jax.Array)):
+        return (isinstance(a, np.ndarray), a.shape, a.dtype, getattr(a, "weak_type", False))
+    raise _Uncacheable
+
+
+def _theta_signature(theta):
+    """theta's structure, each parameter leaf's kind, shape and dtype, and its static
+    leaves themselves (they are bound into the model)."""
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    sig = [treedef]
+    for leaf in leaves:
+        if isinstance(leaf, (np.ndarray, jax.Array, np.generic)):
+            if not jnp.issubdtype(leaf.dtype, jnp.inexact):
+                raise _Uncacheable  # data bound in by value (or a wrong dtype: the checks say)
+            if isinstance(leaf, np.generic):
+                sig.append((np.generic, leaf.dtype))
+            else:
+                sig.append(_array_signature(leaf))
+        elif _is_weak(leaf):
+            sig.append(type(leaf))
+        else:
+            try:
+                hash(leaf)
+            except TypeError:
+                raise _Uncacheable from None
+            sig.append(("static", type(leaf), leaf))
+    return tuple(sig)
+
+
+def _signature(model, theta, x0, u, z, weight, missing):
+    """A key for the structural results of `check_data` (the dtype, the model with theta's
+    static part bound in, the abstract output), or None where there is none."""
+    try:
+        key = (
+            id(model),  # (hashing a model walks all of it; the entry keeps it alive)
+            _theta_signature(theta),
+            _array_signature(x0),
+            _array_signature(u),
+            _array_signature(z),
+            _array_signature(weight),
+            missing,
+            jax.config.jax_enable_x64,  # the canonical dtypes depend on it
+        )
+        hash(key)
+    except (_Uncacheable, TypeError):  # TypeError: an unhashable model
+        return None
+    return key
+
+
+# check_data's structural results by `_signature`: (the given model, dtype, the bound
+# model, z_hat). Bounded, so that models made anew in a loop do not accumulate.
+_STRUCTURE: dict = {}
+_STRUCTURE_MAX = 256
+
+
+def _remember(key, value):
+    if key is None:
+        return
+    if len(_STRUCTURE) >= _STRUCTURE_MAX:
+        _STRUCTURE.pop(next(iter(_STRUCTURE)))
+    _STRUCTURE[key] = value
 
 
 class Data(NamedTuple):
@@ -242,6 +321,44 @@ def _pad(items, name, dtype, n_traj):
     return padded, tuple(a.shape[0] for a in arrays)
 
 
+def _check_model(model, theta, x0, u, lead, dtype):
+    """Trace the user's functions once on abstract values, so that a step that changes the
+    state's shape or dtype is reported here and not as an error deep inside a scan.
+    Returns the model (its observation promoted to `dtype` where it returns integers) and
+    the abstract output z."""
+    x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
+    u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
+    u_step = _step_input_struct(model, u_1)
+    try:
+        x_next = _abstract_call(model.step, x_1, u_step, theta)
+        z_hat = _abstract_call(model.observe, x_1, u_1, theta)
+    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
+        raise ValueError(
+            f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "
+            f"{x0.shape}) and an input of shape {u_1.shape} (from `u` of shape {u.shape}) "
+            f"failed: {type(err).__name__}: {err}"
+        ) from err
+    if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
+        shape = getattr(x_next, "shape", type(x_next).__name__)
+        raise ValueError(
+            f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), got {shape}."
+        )
+    if x_next.dtype != x_1.dtype:
+        raise ValueError(
+            f"`model.step` must keep the state's dtype {x_1.dtype} (the dtype of x0), "
+            f"got {x_next.dtype}."
+        )
+    if not isinstance(z_hat, jax.ShapeDtypeStruct) or z_hat.ndim != 1:
+        shape = getattr(z_hat, "shape", type(z_hat).__name__)
+        raise ValueError(
+            f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
+        )
+    if not jnp.issubdtype(z_hat.dtype, jnp.inexact):  # outputs are real numbers
+        model = Model(model.step, FloatObserve(model.observe, dtype), input=model.input)
+        z_hat = jax.ShapeDtypeStruct(z_hat.shape, dtype)
+    return model, z_hat
+
+
 def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
@@ -254,12 +371,23 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
     """
     if missing not in ("raise", "mask"):
         raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
+    # What depends only on the model, the structure, shapes and dtypes of the arguments
+    # (the dtype, the bound model, the abstract trace below) is kept from an earlier call
+    # that passed the checks; the checks of values run every time.
+    key = _signature(model, theta, x0, u, z, weight, missing)
+    known = _STRUCTURE.get(key) if key is not None else None
+    if known is not None and known[0] is not model:  # an id reused by a new object
+        known = None
     ragged = _is_ragged(u) or (z is not None and _is_ragged(z))
-    rows_u = list(u) if ragged and isinstance(u, (list, tuple)) else [u]
-    rows_z = list(z) if ragged and isinstance(z, (list, tuple)) else [z]
-    dtype = common_dtype(_pytree.split(theta)[0], x0, *rows_u, *rows_z)
+    if known is None:
+        rows_u = list(u) if ragged and isinstance(u, (list, tuple)) else [u]
+        rows_z = list(z) if ragged and isinstance(z, (list, tuple)) else [z]
+        dtype = common_dtype(_pytree.split(theta)[0], x0, *rows_u, *rows_z)
+    else:
+        _, dtype, bound, z_hat = known
     theta, static = check_theta(theta, dtype)
-    model = bind_model(model, static)
+    given = model
+    model = bind_model(model, static) if known is None else bound
     x0 = as_float(x0, "x0", dtype)
     if x0.ndim not in (1, 2):
         raise ValueError(
@@ -304,38 +432,8 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
     check_finite(x0, "x0")
     check_finite(u, "u")
 
-    # Trace the user's functions once on abstract values, so that a step that changes the
-    # state's shape or dtype is reported here and not as an error deep inside a scan.
-    x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
-    u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
-    u_step = _step_input_struct(model, u_1)
-    try:
-        x_next = _abstract_call(model.step, x_1, u_step, theta)
-        z_hat = _abstract_call(model.observe, x_1, u_1, theta)
-    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
-        raise ValueError(
-            f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "
-            f"{x0.shape}) and an input of shape {u_1.shape} (from `u` of shape {u.shape}) "
-            f"failed: {type(err).__name__}: {err}"
-        ) from err
-    if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
-        shape = getattr(x_next, "shape", type(x_next).__name__)
-        raise ValueError(
-            f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), got {shape}."
-        )
-    if x_next.dtype != x_1.dtype:
-        raise ValueError(
-            f"`model.step` must keep the state's dtype {x_1.dtype} (the dtype of x0), "
-            f"got {x_next.dtype}."
-        )
-    if not isinstance(z_hat, jax.ShapeDtypeStruct) or z_hat.ndim != 1:
-        shape = getattr(z_hat, "shape", type(z_hat).__name__)
-        raise ValueError(
-            f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
-        )
-    if not jnp.issubdtype(z_hat.dtype, jnp.inexact):  # outputs are real numbers
-        model = Model(model.step, FloatObserve(model.observe, dtype), input=model.input)
-        z_hat = jax.ShapeDtypeStruct(z_hat.shape, dtype)
+    if known is None:
+        model, z_hat = _check_model(model, theta, x0, u, lead, dtype)
     n_z = z_hat.shape[0]
 
     mask = None
@@ -367,6 +465,8 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
                 outputs = outputs * observed
             mask = _cost.Mask(outputs.astype(z.dtype), samples)
     weight = check_weight(weight, n_z, z_hat.dtype)
+    if known is None:
+        _remember(key, (given, dtype, model, z_hat))
     return Data(model, theta, static, x0, u, z, weight, batched, n_z, mask, lengths)
 
 
@@ -377,7 +477,9 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
         raise ValueError(f"`penalty` must be callable h(x, theta) -> scalar, got {penalty!r}.")
     dtype = data.x0.dtype
     if penalty is None:
-        return Cost(data.weight, None, np.zeros((), dtype))
+        return _pytree.build(
+            Cost, weight=data.weight, penalty=None, penalty_weight=np.zeros((), dtype)
+        )
     pw = penalty_weight
     msg = f"`penalty_weight` must be a finite real scalar, got {penalty_weight!r}."
     try:
@@ -463,6 +565,8 @@ def check_fixed_bounds(theta, fixed, lower, upper):
     - `theta`: the parameters; `fixed`, `lower`, `upper`: flat over theta's entries (leaf
         order), the fixed mask and the bounds.
     """
+    if not np.any(fixed):
+        return
     values = _pytree.flat_host(theta)
     names = _pytree.leaf_names(theta)
     for i in np.flatnonzero(fixed):
@@ -483,6 +587,8 @@ def check_fixed_bounds(theta, fixed, lower, upper):
 
 def x0_mask(estimate_x0, n_x) -> np.ndarray:
     """(n_x,) boolean mask of the initial-state entries to estimate."""
+    if estimate_x0 is True or estimate_x0 is False:
+        return np.full(n_x, estimate_x0)
     est = np.asarray(estimate_x0)
     if est.dtype != bool or est.shape not in ((), (n_x,)):
         raise ValueError(

@@ -85,9 +85,11 @@ def scale(cov: Covariance, n_obs: int) -> Scaled:
     s2 = float(cov.sse) / dof if dof > 0 else float("inf")
     theta = np.array(cov.theta, dtype=float) * s2 if dof > 0 else np.full(cov.theta.shape, np.inf)
     x0 = np.array(cov.x0, dtype=float) * s2 if dof > 0 else np.full(cov.x0.shape, np.inf)
-    theta[~t_ok, :] = np.inf
-    theta[:, ~t_ok] = np.inf
-    for i in range(x0.shape[0]):
-        x0[i][~x_ok[i], :] = np.inf
-        x0[i][:, ~x_ok[i]] = np.inf
+    if not t_ok.all():
+        theta[~t_ok, :] = np.inf
+        theta[:, ~t_ok] = np.inf
+    if not x_ok.all():
+        for i in range(x0.shape[0]):
+            x0[i][~x_ok[i], :] = np.inf
+            x0[i][:, ~x_ok[i]] = np.inf
     return Scaled(theta, x0, s2, t_ok, x_ok)

@@ -5,6 +5,7 @@ the solvers' loop (`oneshot_jax._iterate`) as one compiled call, and assembles t
 `FitResult` (`oneshot_jax._assemble`).
 """
 
+import functools
 import time
 import warnings
 
@@ -14,11 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
-from ._assemble import assemble, post
+from ._assemble import assemble, collect, post
 from ._checks import (
     _is_ragged,
     check_cost,
@@ -47,12 +47,21 @@ from ._solver.least_squares import AbstractLeastSquares
 from ._windows import cut
 from .constraints import check_projection, separate
 
+_NO_PROGRESS = NoProgress()
+
 SOLVER_ALIASES = {
     "adam": Adam,
     "lbfgs": LBFGS,
     "gauss_newton": GaussNewton,
     "levenberg_marquardt": LevenbergMarquardt,
 }
+
+
+@functools.cache
+def _default_solver(name):
+    """The solver a name stands for, with its default settings (made once: solvers are
+    immutable)."""
+    return SOLVER_ALIASES[name]()
 
 
 def as_solvers(solver) -> tuple:
@@ -70,7 +79,7 @@ def as_solvers(solver) -> tuple:
                 f"unknown `solver` {solver!r}; valid names are {', '.join(SOLVER_ALIASES)}, "
                 "or pass a solver object (oneshot_jax.GaussNewton(...), Adam(...), ...)."
             )
-        return (SOLVER_ALIASES[solver](),)
+        return (_default_solver(solver),)
     if isinstance(solver, AbstractSolver):
         return (solver,)
     if isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
@@ -127,10 +136,43 @@ def _check_regulariser(regulariser, theta):
         raise ValueError("`constraints`: the regulariser's prox changed the structure of theta.")
 
 
+def _written_order(tree):
+    """The keys of theta's dicts in the order they were written (JAX's tree structure
+    sorts them), down through dicts, lists and tuples to array and number leaves; a
+    TypeError for any other node (a module's dicts count too: not keyed here)."""
+    if isinstance(tree, dict):
+        return tuple((k, _written_order(v)) for k, v in tree.items())
+    if isinstance(tree, (list, tuple)):
+        return tuple(_written_order(v) for v in tree)
+    if tree is None or isinstance(tree, (np.ndarray, jax.Array, np.generic, int, float)):
+        return None
+    raise TypeError
+
+
+_ORDERS: dict = {}
+
+
+def _theta_order(theta):
+    """`theta_order(theta)`, kept per structure and written order of dicts."""
+    try:
+        key = (jax.tree_util.tree_structure(theta), _written_order(theta))
+        hash(key)
+    except TypeError:
+        return theta_order(theta)
+    order = _ORDERS.get(key)
+    if order is None:
+        order = theta_order(theta)
+        if len(_ORDERS) >= 256:
+            _ORDERS.pop(next(iter(_ORDERS)))
+        _ORDERS[key] = order
+    return order
+
+
 @eqx.filter_jit
 def _solve(solvers, problem, starts, history_size, meter, bar_id):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
-    them at once, pick the best start and post-process it (covariance and metrics)."""
+    them at once, pick the best start and post-process it (covariance and metrics).
+    Returns what `assemble` reads (an `Out`), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = jnp.any(projected != starts.theta)
     starts = Params(projected, starts.x0)
@@ -142,7 +184,9 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id):
         None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[best], final.blocks)
     )
     strategy = getattr(solvers[-1], "strategy", "auto")
-    return moved, stages, best, post(problem, params, blocks, strategy)
+    out = collect(stages, best, moved, post(problem, params, blocks, strategy))
+    # One buffer per dtype to the host instead of one per array (`_pytree.pack`).
+    return _pytree.pack(out)
 
 
 def fit(
@@ -232,18 +276,18 @@ def fit(
     if progress is True:
         meter = TqdmProgress()
     elif progress is False or progress is None:
-        meter = NoProgress()
+        meter = _NO_PROGRESS
     elif hasattr(progress, "update") and hasattr(progress, "open"):
         meter = progress
     else:
         raise TypeError(f"`progress` must be a bool or a progress object, got {progress!r}.")
 
     # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
-    theta_params, theta_static = _pytree.split(theta0)
     u_ndim = 3 if _is_ragged(u) or _is_ragged(z) else np.ndim(u)
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
     if multistart:
+        theta_params, theta_static = _pytree.split(theta0)
         n_starts = _n_starts(theta_params, x0, data_x0_ndim)
         theta_first = _pytree.combine(
             jax.tree_util.tree_map(lambda a: a[0], theta_params), theta_static
@@ -283,7 +327,7 @@ def fit(
     X0, U, Z = (_host(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z))
     n_x = X0.shape[1]
 
-    flat0, unravel = ravel_pytree(data.theta)
+    flat0, unravel = _pytree.ravel(data.theta)
     fixed_flat = fixed_mask(fixed, data.theta)
     theta_free = np.flatnonzero(~fixed_flat)
     x0_est = x0_mask(estimate_x0, n_x)
@@ -310,7 +354,8 @@ def fit(
             check_projection(proj, data.theta)
             project = proj.project
 
-    problem = FitProblem(
+    problem = _pytree.build(
+        FitProblem,
         model=data.model,
         cost=cost,
         u=U,
@@ -345,21 +390,28 @@ def fit(
             X0s = np.broadcast_to(X0, (n_starts, *X0.shape))
     else:
         starts_flat, X0s = np.asarray(flat0)[None], X0[None]
-    starts = Params(starts_flat[:, theta_free], X0s[:, :, x0_free])
+    all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x
+    starts = Params(
+        starts_flat if all_t else starts_flat[:, theta_free],
+        X0s if all_x else X0s[:, :, x0_free],
+    )
 
-    total = sum(s.max_steps for s in solvers)
-    bar_id = meter.open(total)
+    # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
+    bar = not isinstance(meter, NoProgress)
+    bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
     try:
         with counting() as counts:
             t0 = time.perf_counter()
-            moved, stages, best, posted = _solve(
+            buffers, layout = _solve(
                 solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
             )
-            jax.block_until_ready(posted)
+            jax.block_until_ready(buffers)
             jax.effects_barrier()
             wall = time.perf_counter() - t0
     finally:
-        meter.close(bar_id)
+        if bar:
+            meter.close(bar_id)
+    out = _pytree.unpack(buffers, layout)
     diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
     if counts["sequential_fallbacks"]:
         warnings.warn(
@@ -369,7 +421,7 @@ def fit(
             RuntimeWarning,
             stacklevel=2,
         )
-    if bool(moved):
+    if out.moved:
         warnings.warn(
             "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
         )
@@ -377,15 +429,13 @@ def fit(
         model=model,
         problem=problem,
         data=data,
-        stages=stages,
-        best=int(best),
-        posted=posted,
+        out=out,
         wall_time=wall,
         solvers=solvers,
         fixed=fixed_flat,
         x0_estimated=x0_est,
         multistart=multistart,
         diagnostics=diagnostics,
-        theta_order=theta_order(theta0),
+        theta_order=_theta_order(theta0),
         units=units,
     )

@@ -174,13 +174,16 @@ def _rms(a, axis=0):
 
 
 @eqx.filter_jit
-def _x0_jacobian(model, theta, x0, u, weight):
-    """Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x), by forward mode."""
+def _x0_identifiable(model, theta, x0, u, weight):
+    """Per x0 entry, whether it is identifiable from Q^{1/2} z[0..n-1]: `identifiable` of
+    J^T J, J = Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x) by forward mode (one compiled
+    call)."""
 
     def weighted_outputs(x0):
         return weigh(outputs(model, theta, rollout(model, theta, x0, u), u), weight).reshape(-1)
 
-    return jax.jacfwd(weighted_outputs)(x0)
+    J = jax.jacfwd(weighted_outputs)(x0)
+    return identifiable(J.T @ J)
 
 
 def _sqrt_weight(weight):
@@ -195,8 +198,9 @@ def _observable(data):
     the one `fit` uses for its covariance)."""
     sqrt_q = _sqrt_weight(None if data.weight is None else np.asarray(data.weight))
     sqrt_q = None if sqrt_q is None else jnp.asarray(sqrt_q, data.x0.dtype)
-    J = _x0_jacobian(data.model, data.theta, jnp.asarray(data.x0), jnp.asarray(data.u), sqrt_q)
-    return np.asarray(identifiable(J.T @ J))
+    return np.asarray(
+        _x0_identifiable(data.model, data.theta, jnp.asarray(data.x0), jnp.asarray(data.u), sqrt_q)
+    )
 
 
 def _lsq(model, theta, x0, u, z, weight, solver, missing="raise"):
@@ -456,13 +460,14 @@ def _estimate(
     guess = np.asarray(data.x0)
     n_x = guess.shape[0]
 
-    stop_reason, kalman = None, None
+    stop_reason, kalman, e = None, None, None
     if method == "lsq":
         r = _lsq(data.model, data.theta, guess, data.u, data.z, data.weight, solver)
         x0_hat = np.asarray(r.x0)
         cov = np.asarray(r.x0_covariance, np.float64)
         loss = np.asarray(r.loss)
         stop_reason = r.stop_reason
+        e = np.asarray(r.residuals)  # the head simulated from x0_hat, minus z
     else:
         P0, Qp, R = _smoother_defaults(
             data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
@@ -482,8 +487,9 @@ def _estimate(
         loss = None
 
     x0_hat = x0_hat.astype(guess.dtype)
-    _, zhat = simulate_impl(data.model, data.theta, jnp.asarray(x0_hat), data.u, False)
-    e = np.asarray(zhat, np.float64) - np.asarray(data.z, np.float64)
+    if e is None:
+        _, zhat = simulate_impl(data.model, data.theta, jnp.asarray(x0_hat), data.u, False)
+        e = np.asarray(zhat, np.float64) - np.asarray(data.z, np.float64)
     if not (np.all(np.isfinite(x0_hat)) and np.all(np.isfinite(e))):
         raise ValueError(
             f"simulating the model over the first n = {n} samples from the estimated x0 "

@@ -78,7 +78,7 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
     state = eqx.filter_vmap(lambda p: solver.init(problem, p))(params)
     done, result, loss, gnorm = check_all(params, state)
     hist = _history.init(history_size, n_starts, params.theta.shape[1], problem.dtype)
-    hist = _history.record(hist, jnp.array(0, jnp.int32), loss, gnorm, params.theta)
+    hist = _history.first(hist, loss, gnorm, params.theta)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset = meter_args
     step_all = eqx.filter_vmap(lambda p, s: solver.step(problem, p, s))

@@ -95,7 +95,9 @@ class FitProblem(eqx.Module):
         return self.u.shape[0]
 
     def theta_of(self, p_theta):
-        return self.unravel(self.theta_base.at[np.asarray(self.theta_free, int)].set(p_theta))
+        return self.unravel(
+            jnp.asarray(self.theta_base).at[np.asarray(self.theta_free, int)].set(p_theta)
+        )
 
     def x0_of(self, p_x0):
         return jnp.asarray(self.x0_base).at[:, np.asarray(self.x0_free, int)].set(p_x0)

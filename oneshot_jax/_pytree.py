@@ -7,12 +7,15 @@ integer and boolean arrays) as static data, so a user never calls `eqx.partition
 themselves.
 """
 
+import dataclasses
+import functools
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 
 def is_parameter(leaf) -> bool:
@@ -73,6 +76,29 @@ def flat_host(tree) -> np.ndarray:
     return np.concatenate([np.ravel(np.asarray(a)) for a in leaves])
 
 
+@functools.lru_cache(maxsize=256)
+def _unravel_for(treedef, shapes, dtype):
+    # Traced on abstract values: the inverse holds only the structure, shapes and dtype,
+    # and nothing is computed (or compiled) to make it.
+    out = []
+    structs = [jax.ShapeDtypeStruct(shape, dtype) for shape in shapes]
+    jax.eval_shape(
+        lambda leaves: out.append(ravel_pytree(jax.tree_util.tree_unflatten(treedef, leaves))[1]),
+        structs,
+    )
+    return out[0]
+
+
+def ravel(tree):
+    """`jax.flatten_util.ravel_pytree` of a tree of arrays of one dtype, on the host:
+    the flat NumPy array and the (traceable) inverse, the same object for every tree of
+    one structure, shapes and dtype."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    flat = flat_host(leaves) if leaves else np.zeros(0, jnp.result_type(float))
+    unravel = _unravel_for(treedef, tuple(np.shape(a) for a in leaves), flat.dtype)
+    return flat, unravel
+
+
 def unflatten_rows(rows, like, squeeze=False):
     """Rows of flattened parameters (E, n) as the pytree `like` with a leading axis E
     (dropped with `squeeze`): the NumPy inverse of `flat_host`."""
@@ -107,3 +133,58 @@ def leaf_names(theta) -> tuple[str, ...]:
         else:
             names.extend(f"{base}[{', '.join(map(str, ix))}]" for ix in np.ndindex(np.shape(leaf)))
     return tuple(names)
+
+
+@functools.cache
+def _fields(cls):
+    return tuple((f.name, f.default, f.default_factory) for f in dataclasses.fields(cls))
+
+
+def build(cls, **fields):
+    """`cls(**fields)` for an equinox module without `__init__` logic or checks of its own
+    (`FitProblem`, `FitResult`, `FitHistory`), built from checked parts on every `fit`:
+    the fields are set as equinox's own unflattening sets them (defaults filled in),
+    without `Module.__init__`'s walk over every leaf of every argument (the model and
+    theta included), which costs more than the rest of a fit's host-side work."""
+    self = object.__new__(cls)
+    for name, default, factory in _fields(cls):
+        if name in fields:
+            value = fields.pop(name)
+        elif factory is not dataclasses.MISSING:
+            value = factory()
+        elif default is not dataclasses.MISSING:
+            value = default
+        else:
+            raise TypeError(f"{cls.__name__}: field {name!r} was not given.")
+        object.__setattr__(self, name, value)
+    if fields:
+        raise TypeError(f"{cls.__name__}: unknown fields {sorted(fields)}.")
+    return self
+
+
+def pack(tree):
+    """A pytree of arrays as one flat array per dtype, and the layout to rebuild it
+    (`unpack`): inside a compiled call, so that its output reaches the host as a few
+    buffers rather than one per leaf. Only data movement: the values are unchanged."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    groups: dict = {}
+    items = []
+    for leaf in leaves:
+        leaf = jnp.asarray(leaf)
+        group = groups.setdefault(leaf.dtype, [])
+        start = sum(a.size for a in group)
+        group.append(leaf.reshape(-1))
+        items.append((leaf.dtype, start, start + leaf.size, leaf.shape))
+    dtypes = tuple(groups)
+    index = {d: k for k, d in enumerate(dtypes)}
+    items = tuple((index[d], start, stop, shape) for d, start, stop, shape in items)
+    buffers = tuple(jnp.concatenate(groups[d]) for d in dtypes)
+    return buffers, (treedef, items)
+
+
+def unpack(buffers, layout):
+    """The pytree `pack` packed, as NumPy views of the (host) buffers."""
+    treedef, items = layout
+    host = [np.asarray(b) for b in buffers]
+    leaves = [host[k][start:stop].reshape(shape) for k, start, stop, shape in items]
+    return jax.tree_util.tree_unflatten(treedef, leaves)

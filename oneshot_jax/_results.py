@@ -77,7 +77,12 @@ def is_success(item) -> bool:
 
 def from_index(index: int):
     """The `RESULTS` item with integer value `index`."""
-    for member in RESULTS._name_to_item.values():
-        if int(np.asarray(member._value)) == int(index):
-            return member
-    raise ValueError(f"no RESULTS item has index {index}.")
+    if not _BY_INDEX:
+        _BY_INDEX.update((int(np.asarray(m._value)), m) for m in RESULTS._name_to_item.values())
+    member = _BY_INDEX.get(int(index))
+    if member is None:
+        raise ValueError(f"no RESULTS item has index {index}.")
+    return member
+
+
+_BY_INDEX: dict = {}

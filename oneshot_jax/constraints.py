@@ -203,11 +203,11 @@ def separate(constraints):
     dimension the constrained minimiser is the clipped unconstrained one); for a group
     penalty it is a feasible approximation of it.
     """
+    if constraints is None:
+        return None, None
     from .sparsity import ProximalTransformation
     from .sparsity import combine as combine_regularisers
 
-    if constraints is None:
-        return None, None
     kinds = (ProjectionTransformation, ProximalTransformation)
     # Both kinds are NamedTuples (tuples): a single one is not a list of constraints.
     single = isinstance(constraints, kinds) or not isinstance(constraints, (list, tuple))

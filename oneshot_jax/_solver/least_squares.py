@@ -533,12 +533,16 @@ class AbstractLeastSquares(AbstractSolver):
 
     def postprocess(self, problem, params, state, result):
         b = state.blocks
-        # With a negative lambda h the sum of squares is not C: report C itself.
-        loss = jax.lax.cond(
-            result == RESULTS.negative_penalty,
-            lambda: problem.loss(params, self.strategy),
-            lambda: state.loss,
-        )
+        # With a negative lambda h the sum of squares is not C: report C itself (without
+        # a penalty h_min is +inf and the stop never happens: nothing to trace).
+        if problem.cost.penalty is None:
+            loss = state.loss
+        else:
+            loss = jax.lax.cond(
+                result == RESULTS.negative_penalty,
+                lambda: problem.loss(params, self.strategy),
+                lambda: state.loss,
+            )
         dense = isinstance(b, Blocks) and problem.cost.penalty is None
         blocks = (state.loss, b.A, b.B, b.Cb) if dense else None
         return params, loss, blocks
