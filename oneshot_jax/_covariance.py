@@ -4,7 +4,8 @@ J is the Jacobian of the weighted, scaled data residuals r = Q^{1/2} e / sqrt(N 
 free variables (theta's free entries, and each trajectory's free x0 entries), taken from
 the solver's last linearisation when it holds one, else evaluated here (closed form,
 forward sensitivities). J^T J is an arrow matrix; its inverse is formed blockwise through
-the Schur complement S = A - sum_i B_i C_i^+ B_i^T, with pseudo-inverses, so a parameter or
+the Schur complement S = A - sum_i B_i C_i^+ B_i^T (`_linalg.eliminate_x0`, the elimination
+the least-squares step uses, here with the pseudo-inverses C_i^+ formed), so a parameter or
 an initial state that does not change the outputs is flagged as not identifiable instead
 of producing NaN.
 """
@@ -15,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._linalg import identifiable, normal_blocks, psd_solve
+from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve
 from ._problem import FitProblem, Params
 
 
@@ -42,23 +43,14 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     else:
         sse, A, B, Cb = blocks
     p, m = A.shape[0], Cb.shape[-1]
-    if m:
-        Cinv = psd_solve(Cb, jnp.broadcast_to(jnp.eye(m, dtype=Cb.dtype), Cb.shape))
-        x_ok = identifiable(Cb)
-    else:
-        Cinv = Cb
-        x_ok = jnp.ones(Cb.shape[:2], bool)
+    elim = eliminate_x0(B, Cb, pseudo_inverse=True)
+    x_ok = identifiable(Cb) if m else jnp.ones(Cb.shape[:2], bool)
     if p == 0:
-        return Covariance(sse, A, Cinv, jnp.ones((0,), bool), x_ok)
-    S = A - jnp.einsum("npm,nml,nql->pq", B, Cinv, B) if m else A
+        return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok)
+    S = elim.schur(A, B)
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype))
     t_ok = identifiable(S)
-    if m:
-        W = jnp.einsum("nml,npl->nmp", Cinv, B)  # C_i^+ B_i^T
-        x_cov = Cinv + jnp.einsum("nmp,pq,nlq->nml", W, S_inv, W)
-    else:
-        x_cov = Cinv
-    return Covariance(sse, S_inv, x_cov, t_ok, x_ok)
+    return Covariance(sse, S_inv, elim.covariance(S_inv), t_ok, x_ok)
 
 
 class Scaled(NamedTuple):

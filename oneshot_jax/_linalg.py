@@ -1,7 +1,11 @@
 """Symmetric positive semi-definite solves shared by the least-squares solvers and the
 covariance: the normal equations J^T J of a fit are singular when a parameter or an
-initial state has no effect on the outputs, and both then need a pseudo-inverse."""
+initial state has no effect on the outputs, and both then need a pseudo-inverse; and the
+one elimination of the per-trajectory x0 blocks of the arrow matrix J^T J (`eliminate_x0`)."""
 
+from typing import NamedTuple
+
+import jax
 import jax.numpy as jnp
 
 
@@ -52,3 +56,93 @@ def identifiable(M):
     space (the outputs do not determine it)."""
     _, _, vecs, null = scaled_eigh(M)
     return ~jnp.any(null[..., None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
+
+
+class Elimination(NamedTuple):
+    """The x0 blocks of an arrow matrix [[A, B_1 .. B_N], [B_i^T, C_i]] eliminated, from
+    `eliminate_x0`: (C_i)^{-1} applied to B_i^T and to g_i, with C_i damped or not."""
+
+    CinvBt: jax.Array  # (N, m, p): C_i^{-1} B_i^T
+    Cinvg: jax.Array  # (N, m): C_i^{-1} g_i
+    Cinv: jax.Array | None  # (N, m, m): C_i^+ itself (formed with `pseudo_inverse`)
+
+    def schur(self, A, B):
+        """The Schur complement S = A - sum_i B_i C_i^{-1} B_i^T (A given damped or not)."""
+        if not B.shape[-1]:
+            return A
+        if self.Cinv is not None:  # formed: contracted as (B_i C_i^+) B_i^T
+            return A - jnp.einsum("npm,nml,nql->pq", B, self.Cinv, B)
+        return A - jnp.einsum("npm,nmq->pq", B, self.CinvBt)
+
+    def schur_correction(self, B, v):
+        """sum_i B_i C_i^{-1} B_i^T v: what S v subtracts from A v (matrix-free)."""
+        return jnp.einsum("npm,nmq,q->p", B, self.CinvBt, v)
+
+    def schur_diagonal(self, B):
+        """diag(sum_i B_i C_i^{-1} B_i^T)."""
+        return jnp.einsum("npm,nmp->p", B, self.CinvBt)
+
+    def rhs(self, B, g_t):
+        """The reduced right-hand side g_t - sum_i B_i C_i^{-1} g_i."""
+        if not B.shape[-1]:
+            return g_t
+        return g_t - jnp.einsum("npm,nm->p", B, self.Cinvg)
+
+    def back(self, h_t):
+        """Back-substitution: h_i = -C_i^{-1} (g_i + B_i^T h_theta)."""
+        if not self.Cinvg.shape[-1]:
+            return jnp.zeros_like(self.Cinvg)
+        return -(self.Cinvg + jnp.einsum("nmp,p->nm", self.CinvBt, h_t))
+
+    def covariance(self, S_inv):
+        """The x0 blocks of the inverse of the arrow matrix: C_i^+ + W_i S^+ W_i^T with
+        W_i = C_i^+ B_i^T (needs `pseudo_inverse`)."""
+        if not self.Cinv.shape[-1]:
+            return self.Cinv
+        W = self.CinvBt
+        return self.Cinv + jnp.einsum("nmp,pq,nlq->nml", W, S_inv, W)
+
+
+def eliminate_x0(B, Cb, g_x=None, mu=None, *, pseudo_inverse=False):
+    """Eliminate each trajectory's x0 block of the arrow matrix
+    M = [[A, B_1 .. B_N], [B_i^T, C_i]] (J^T J of a fit whose theta columns are shared by
+    all trajectories and whose x0_i columns touch trajectory i only, eq. (17)/(20)).
+
+    Solving M h = -(g_t, g_i) reduces to the Schur complement system
+    S h_theta = -(g_t - sum_i B_i C_i^{-1} g_i), S = A - sum_i B_i C_i^{-1} B_i^T, and
+    h_i = -C_i^{-1} (g_i + B_i^T h_theta) (`Elimination.schur`, `.rhs`, `.back`); the
+    inverse of M has the x0 blocks C_i^{-1} + W_i S^{-1} W_i^T, W_i = C_i^{-1} B_i^T
+    (`Elimination.covariance`). The cost is O(N m^3) for the x0 blocks, linear in the
+    number of trajectories N. This is the one elimination of the package: the damped
+    least-squares step (`_solver._linearisation`) and the covariance (`_covariance`).
+
+    **Arguments:**
+
+    - `B`: (N, p, m) the blocks B_i = J_t,i^T J_x,i.
+    - `Cb`: (N, m, m) the blocks C_i = J_x,i^T J_x,i.
+    - `g_x`: (N, m) the x0 parts g_i = J_x,i^T r_i of the right-hand side (or None).
+    - `mu`: Marquardt's damping: C_i + mu D_i with D_i = diag(C_i) floored (`floor`), or
+        None for C_i itself.
+    - `pseudo_inverse`: form C_i^+ (and W_i = C_i^+ B_i^T from it), for the covariance;
+        otherwise C_i^{-1} is applied to B_i^T and g_i by `psd_solve`.
+
+    **Returns:**
+
+    An `Elimination`. Pseudo-inverses throughout: a direction without effect gets a zero
+    step (and is flagged as not identifiable by the covariance) instead of NaN.
+    """
+    m = Cb.shape[-1]
+    if not m:
+        return Elimination(jnp.swapaxes(B, 1, 2), g_x, Cb if pseudo_inverse else None)
+    Cd = Cb
+    if mu is not None:
+        D_x = jax.vmap(lambda c: floor(jnp.diag(c)))(Cb)
+        Cd = Cb + mu * jax.vmap(jnp.diag)(D_x)
+    if pseudo_inverse:
+        Cinv = psd_solve(Cd, jnp.broadcast_to(jnp.eye(m, dtype=Cd.dtype), Cd.shape))
+        CinvBt = jnp.einsum("nml,npl->nmp", Cinv, B)
+        Cinvg = None if g_x is None else jnp.einsum("nml,nl->nm", Cinv, g_x)
+        return Elimination(CinvBt, Cinvg, Cinv)
+    CinvBt = psd_solve(Cd, jnp.swapaxes(B, 1, 2))  # (N, m, p)
+    Cinvg = None if g_x is None else psd_solve(Cd, g_x)  # (N, m)
+    return Elimination(CinvBt, Cinvg, None)

@@ -135,27 +135,57 @@ def column_norms(problem: FitProblem, params: Params, strategy, *, dense_max=256
     """diag(J^T J) of the residual Jacobian at `params`: of the theta columns (p,) and of
     each trajectory's x0 columns (N, m).
 
-    The x0 columns are formed (m forward sensitivities per trajectory). The theta
-    columns are formed too while p <= `dense_max`; above, the diagonal is estimated as
-    the mean of (J_t^T w)^2 over `probes` Rademacher vectors w (E[(J^T w)(J^T w)^T] =
-    J^T J; Bekas, Kokiopoulou and Saad, "An estimator for the diagonal of a matrix",
-    2007), which is unbiased and scales with the parameters' units as the exact one does.
+    The x0 columns are formed (`x0_columns`). The theta columns are formed too while
+    p <= `dense_max`; above, the diagonal is estimated (`rademacher_diagonal`).
     """
-    p, (N, m) = params.theta.shape[0], params.x0.shape
-    dtype = problem.dtype
+    p = params.theta.shape[0]
     if p <= dense_max:
         lin = problem.jacobian(params, strategy)
         return jnp.sum(lin.Jt**2, axis=(0, 1)), jnp.sum(lin.Jx**2, axis=1)
     r, _, traj = problem.linearise(params, strategy)
+    Jx = x0_columns(problem, params, traj, strategy)  # (m, N, R)
+    d_x = jnp.moveaxis(jnp.sum(Jx**2, axis=-1), 0, -1)
+    return rademacher_diagonal(problem, params, traj, r, strategy, probes), d_x
+
+
+def x0_columns(problem: FitProblem, params: Params, traj, strategy):
+    """The Jacobian's x0 columns at the linearisation `traj`: m forward sensitivities
+    (eq. (17)/(20)'s forward twin, `FitProblem.jvp`), direction e_j in every trajectory's
+    x0 at once.
+
+    **Returns:**
+
+    (m, N, R): column j of each trajectory's residual Jacobian J_x,i.
+    """
+    p, (N, m) = params.theta.shape[0], params.x0.shape
+    dtype = problem.dtype
     zeros_t = jnp.zeros((p,), dtype)
     E_x = np.eye(m, dtype=dtype)
-    Jx = jax.vmap(
+    return jax.vmap(
         lambda e: problem.jvp(params, traj, zeros_t, jnp.broadcast_to(e, (N, m)), strategy)
-    )(E_x)  # (m, N, R)
-    d_x = jnp.moveaxis(jnp.sum(Jx**2, axis=-1), 0, -1)
-    signs = jax.random.rademacher(jax.random.PRNGKey(0), (probes, *r.shape), dtype=dtype)
+    )(E_x)
+
+
+def rademacher_diagonal(problem: FitProblem, params: Params, traj, r, strategy, probes):
+    """An estimate of diag(J_t^T J_t) without forming J_t: the mean of (J_t^T w)^2 over
+    `probes` Rademacher vectors w (E[(J^T w)(J^T w)^T] = J^T J; Bekas, Kokiopoulou and
+    Saad, "An estimator for the diagonal of a matrix", 2007), each J_t^T w one reverse
+    product (the one-shot recursion of eq. (17)/(20), `FitProblem.vjp`). Unbiased, and it
+    scales with the parameters' units as the exact diagonal does.
+
+    **Arguments:**
+
+    - `problem`, `params`, `traj`, `strategy`: the linearisation (`FitProblem.linearise`).
+    - `r`: its residuals (N, R) (their shape and dtype).
+    - `probes`: the number of probe vectors (a fixed key: the estimate is deterministic).
+
+    **Returns:**
+
+    (p,) the estimated diagonal.
+    """
+    signs = jax.random.rademacher(jax.random.PRNGKey(0), (probes, *r.shape), dtype=problem.dtype)
     W = jax.vmap(lambda w: jnp.sum(problem.vjp(params, traj, w, strategy)[0], 0))(signs)
-    return jnp.mean(W**2, axis=0), d_x
+    return jnp.mean(W**2, axis=0)
 
 
 class Scaling(NamedTuple):

@@ -515,7 +515,7 @@ def test_matrix_free_normal_equations_match_the_dense_solve():
     Marquardt's D is exact up to DIAG_PROBES free entries and the probe estimate mean
     (J^T w)^2 above; the conjugate-gradient step solves the same damped system (Gauss-
     Newton and Levenberg-Marquardt, with entries held by an active set)."""
-    from oneshot_jax._solver.least_squares import DIAG_PROBES
+    from oneshot_jax._solver._linearisation import DIAG_PROBES
 
     x0, u, z = short_data(N=2, T=40)
     for theta in (small_dictionary_theta(), mlp_theta(widths=(4,))):

@@ -1,9 +1,8 @@
-"""Gauss-Newton with backtracking on the projected step."""
+"""Gauss-Newton: the linearisation's undamped step (`_linearisation`) with backtracking
+(`_search.Backtracking`) in the loop of `least_squares`."""
 
-import jax
-import jax.numpy as jnp
-
-from .least_squares import AbstractLeastSquares, Trial
+from ._search import Backtracking
+from .least_squares import AbstractLeastSquares
 
 
 class GaussNewton(AbstractLeastSquares):
@@ -50,24 +49,5 @@ class GaussNewton(AbstractLeastSquares):
     def __check_init__(self):
         self._check()
 
-    def _mu0(self, dtype):
-        return jnp.array(0.0, dtype)
-
-    def _fallback(self, clipped, pred):
-        del clipped, pred
-        return jnp.array(True)
-
-    def _search(self, problem, params, blocks, step, full, pred, mu, nu):
-        del pred
-        C = blocks.C
-
-        def cond(c):
-            return (c[2] >= C) & (c[0] > 2.0**-30)
-
-        def body(c):
-            alpha = c[0] / 2
-            return alpha, *self.trial(problem, params, step, alpha)
-
-        _, new, Cn = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), *full))
-        accept = Cn < C
-        return Trial(new, Cn, accept, mu, nu, ~accept)
+    def _search(self):
+        return Backtracking()

@@ -1,9 +1,9 @@
-"""Levenberg-Marquardt with Nielsen's damping update."""
+"""Levenberg-Marquardt: the linearisation's damped step (`_linearisation`) with Nielsen's
+damping update (`_search.NielsenDamping`) in the loop of `least_squares`."""
 
-import jax.numpy as jnp
-
+from ._search import NielsenDamping
 from .base import check_options
-from .least_squares import AbstractLeastSquares, Trial
+from .least_squares import AbstractLeastSquares
 
 
 class LevenbergMarquardt(AbstractLeastSquares):
@@ -56,20 +56,5 @@ class LevenbergMarquardt(AbstractLeastSquares):
         check_options(self, positive=("mu0",))
         self._check()
 
-    def _mu0(self, dtype):
-        return jnp.array(self.mu0, dtype)
-
-    def _fallback(self, clipped, pred):
-        # A step that the projection clipped can have a model decrease <= 0 at any
-        # damping: take a projected-gradient step then. Otherwise a larger damping will do.
-        return clipped | (pred <= 0)
-
-    def _search(self, problem, params, blocks, step, full, pred, mu, nu):
-        del step
-        C = blocks.C
-        new, Cn = full
-        rho = (C - Cn) / jnp.where(pred > 0, pred, jnp.inf)
-        accept = (Cn < C) & (rho > 0)
-        mu_new = jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), mu * nu)
-        nu_new = jnp.where(accept, 2.0, 2.0 * nu)
-        return Trial(new, Cn, accept, mu_new, nu_new, mu_new > 1e20)
+    def _search(self):
+        return NielsenDamping(self.mu0)

@@ -1,0 +1,119 @@
+"""The pieces of GaussNewton / LevenbergMarquardt: the one x0 elimination
+(`_linalg.eliminate_x0`) in the damped step and in the covariance, against dense solves of
+the full normal equations of a random arrow-shaped Jacobian, and the searches."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from oneshot_jax._covariance import covariance
+from oneshot_jax._linalg import normal_blocks
+from oneshot_jax._problem import Params
+from oneshot_jax._solver._linearisation import DenseLinearisation
+from oneshot_jax._solver._search import Backtracking, Damping, NielsenDamping
+
+
+def _arrow(N=3, R=12, p=4, m=2, seed=0):
+    """A random residual Jacobian with shared theta columns and per-trajectory x0 columns,
+    and the same Jacobian as one dense (N R, p + N m) matrix."""
+    rng = np.random.default_rng(seed)
+    Jt = rng.standard_normal((N, R, p)) * np.logspace(-1, 1, p)
+    Jx = rng.standard_normal((N, R, m)) + 0.5 * Jt[..., :m]  # coupled with theta
+    r = rng.standard_normal((N, R))
+    J = np.zeros((N * R, p + N * m))
+    for i in range(N):
+        J[i * R : (i + 1) * R, :p] = Jt[i]
+        J[i * R : (i + 1) * R, p + i * m : p + (i + 1) * m] = Jx[i]
+    return Jt, Jx, r, J
+
+
+def _linearisation(Jt, Jx, r):
+    blocks = normal_blocks(jnp.asarray(Jt), jnp.asarray(Jx), jnp.asarray(r))
+    return DenseLinearisation(jnp.sum(jnp.asarray(r) ** 2), *blocks)
+
+
+def _floor(d):
+    return np.maximum(d, 1e-12 * max(d.max(), 1e-300))
+
+
+@pytest.mark.parametrize("mu", [0.0, 1e-2, 3.0])
+def test_the_damped_step_solves_the_full_normal_equations(mu):
+    Jt, Jx, r, J = _arrow()
+    N, _, p = Jt.shape
+    m = Jx.shape[-1]
+    M = J.T @ J
+    g = J.T @ r.reshape(-1)
+    D = np.concatenate(
+        [_floor(np.diag(M)[:p])]
+        + [_floor(np.diag(M)[p + i * m : p + (i + 1) * m]) for i in range(N)]
+    )
+    lin = _linearisation(Jt, Jx, r)
+    for held in (None, 1):
+        active = np.zeros(p, bool)
+        free = np.ones(p + N * m, bool)
+        if held is not None:
+            active[held] = True
+            free[held] = False
+        h = np.zeros(p + N * m)
+        K = M + mu * np.diag(D)
+        h[free] = -np.linalg.solve(K[np.ix_(free, free)], g[free])
+        step = lin.step(None, None, mu, jnp.asarray(active))
+        np.testing.assert_allclose(step.theta, h[:p], rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(step.x0, h[p:].reshape(N, m), rtol=1e-10, atol=1e-13)
+        # The model's curvature ||J s||^2 from the blocks.
+        s = Params(step.theta, step.x0)
+        Js = J @ np.r_[np.asarray(s.theta), np.asarray(s.x0).ravel()]
+        np.testing.assert_allclose(lin.curvature(None, None, s.theta, s.x0), Js @ Js, rtol=1e-12)
+
+
+def test_the_covariance_is_the_inverse_of_the_full_normal_equations():
+    Jt, Jx, r, J = _arrow(seed=1)
+    N, _, p = Jt.shape
+    m = Jx.shape[-1]
+    lin = _linearisation(Jt, Jx, r)
+    cov = covariance(None, None, None, blocks=lin.covariance_blocks(lin.C))
+    inv = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(cov.theta, inv[:p, :p], rtol=1e-9)
+    for i in range(N):
+        sl = slice(p + i * m, p + (i + 1) * m)
+        np.testing.assert_allclose(cov.x0[i], inv[sl, sl], rtol=1e-9)
+    assert np.all(cov.theta_identifiable) and np.all(cov.x0_identifiable)
+
+
+def test_an_x0_entry_without_effect_gets_no_step_and_is_not_identifiable():
+    Jt, Jx, r, J = _arrow(seed=2)
+    Jx[1, :, 0] = 0.0  # trajectory 1's first x0 entry does not change its outputs
+    lin = _linearisation(Jt, Jx, r)
+    step = lin.step(None, None, 0.0, jnp.zeros(Jt.shape[-1], bool))
+    assert step.x0[1, 0] == 0.0 and np.all(np.isfinite(step.x0))
+    cov = covariance(None, None, None, blocks=lin.covariance_blocks(lin.C))
+    assert not cov.x0_identifiable[1, 0] and cov.x0_identifiable[0].all()
+
+
+def test_the_searches_own_their_state():
+    C = jnp.array(1.0)
+    # Backtracking halves until the loss decreases; it has no damping.
+    losses = {1.0: 2.0, 0.5: 1.5, 0.25: 0.9}
+
+    def trial(alpha):
+        return Params(jnp.array([alpha]), jnp.zeros((1, 0))), jnp.array(
+            losses.get(float(alpha), 3.0)
+        )
+
+    search = Backtracking()
+    assert search.damping(search.init(jnp.float64)) == 0.0
+    step = Params(jnp.array([1.0]), jnp.zeros((1, 0)))
+    t, _ = jax.disable_jit()(lambda: search.search(trial, C, step, trial(1.0), 0.1, ()))()
+    assert bool(t.accept) and float(t.params.theta[0]) == 0.25 and float(t.loss) == 0.9
+    # Nielsen's damping: rho = 1 divides mu by 3 and resets nu; a rejection grows both.
+    search = NielsenDamping(1e-3)
+    state = search.init(jnp.float64)
+    assert float(search.damping(state)) == 1e-3 and float(state.nu) == 2.0
+    full = (step, jnp.array(0.5))
+    t, state = search.search(trial, C, step, full, jnp.array(0.5), Damping(jnp.array(0.3), 8.0))
+    assert bool(t.accept) and float(state.mu) == pytest.approx(0.1) and float(state.nu) == 2.0
+    full = (step, jnp.array(1.5))
+    t, state = search.search(trial, C, step, full, jnp.array(0.5), Damping(jnp.array(0.3), 4.0))
+    assert not bool(t.accept) and float(state.mu) == pytest.approx(1.2) and float(state.nu) == 8.0
+    assert bool(search.fallback(jnp.array(True), 1.0)) and not bool(search.fallback(False, 1.0))
