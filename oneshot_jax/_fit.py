@@ -25,6 +25,8 @@ from ._checks import (
     check_data,
     check_fixed_bounds,
     check_outside_transformations,
+    check_projection,
+    check_regulariser,
     fixed_mask,
     x0_mask,
 )
@@ -34,6 +36,7 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
+from ._prox import split
 from ._solver import (
     LBFGS,
     Adam,
@@ -45,7 +48,6 @@ from ._solver import (
 from ._solver.base import AbstractSolver
 from ._solver.least_squares import AbstractLeastSquares
 from ._windows import cut
-from .constraints import check_projection, separate
 
 _NO_PROGRESS = NoProgress()
 
@@ -121,21 +123,6 @@ def _host(a):
     return np.asarray(a)
 
 
-def _check_regulariser(regulariser, theta):
-    """Evaluate the regulariser once on theta0 (outside the compiled solve), so that a
-    `where` that does not fit theta is reported here, naming the argument."""
-    value = regulariser.value(theta)
-    if np.ndim(value) != 0 or not np.isfinite(float(value)):
-        raise ValueError(
-            f"`constraints`: the regulariser's value g(theta0) must be a finite scalar, got "
-            f"{value!r}."
-        )
-    steps = jax.tree_util.tree_map(jnp.zeros_like, theta)
-    out = regulariser.prox(theta, steps)
-    if jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(theta):
-        raise ValueError("`constraints`: the regulariser's prox changed the structure of theta.")
-
-
 def _written_order(tree):
     """The keys of theta's dicts in the order they were written (JAX's tree structure
     sorts them), down through dicts, lists and tuples to array and number leaves; a
@@ -201,6 +188,7 @@ def fit(
     penalty=None,
     penalty_weight: float = 1.0,
     constraints=None,
+    regulariser=None,
     fixed=None,
     estimate_x0=True,
     window: int | None = None,
@@ -231,14 +219,17 @@ def fit(
         order, each starting where the last stopped (e.g. `[Adam(), LBFGS()]`).
     - `weight`, `penalty`, `penalty_weight`: Q and h, lambda of eq. (4), (21), as for
         `loss`. The least-squares solvers need lambda h >= 0.
-    - `constraints`: a projection from `oneshot_jax.constraints`, a proximal regulariser
-        from `oneshot_jax.sparsity` (`l1`, `group_lasso`, `l2`), or a list of them, on theta
-        (their `where` is written on theta as given, modules included). A regulariser g
-        makes the objective C + g(theta): `loss` and the history then report C + g. Only
-        `Adam` (proximal Adam: the prox with its per-coordinate steps) and
-        `Optax(transform)` (the prox with the regulariser's `learning_rate`) take one;
-        the other solvers raise a ValueError. Each update applies the prox, then the
-        projection.
+    - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
+        `positive`, `project`), or a list of them, on theta: every iterate lies in the
+        intersection of their sets (Section 3.3). A regulariser here (the mixed form of
+        0.2) still works, with a DeprecationWarning: pass it as `regulariser`.
+    - `regulariser`: a proximal regulariser from `oneshot_jax.sparsity` (`l1`,
+        `group_lasso`, `l2`), or a list of them, on theta (their `where` is written on
+        theta as given, modules included). A regulariser g makes the objective
+        C + g(theta): `loss` and the history then report C + g. Only `Adam` (proximal
+        Adam: the prox with its per-coordinate steps) and `Optax(transform)` (the prox
+        with the regulariser's `learning_rate`) take one; the other solvers raise a
+        ValueError. Each update applies the prox, then the projection.
     - `fixed`: a pytree of booleans shaped like theta0 (per leaf, per element, or one
         boolean for a whole subtree): True entries keep their starting value and are
         removed from the variables.
@@ -260,7 +251,7 @@ def fit(
     1. the physical part alone: `fixed={"k": False, "c": False, "r": True}` holds the
        residual (a prefix pytree: one boolean for a whole module);
     2. jointly: `solver=[Adam(...), LevenbergMarquardt()]`;
-    3. selection: `solver=Adam(lr_theta)` with `constraints=sparsity.l1(lam, where)`;
+    3. selection: `solver=Adam(lr_theta)` with `regulariser=sparsity.l1(lam, where)`;
     4. debiasing on the support: `solver=LevenbergMarquardt()` with
        `fixed=sparsity.fixed_zeros(result.theta, where)` (the deselected terms stay 0).
 
@@ -335,13 +326,13 @@ def fit(
     if len(theta_free) == 0 and len(x0_free) == 0:
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 
-    proj, reg = separate(constraints)
-    regulariser = None
+    proj, reg = split(constraints, regulariser)
+    g = None
     if reg is not None:
         for s in solvers:
             s.check_regulariser(reg)
-        regulariser = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
-        _check_regulariser(regulariser, data.theta)
+        g = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
+        check_regulariser(g, data.theta)
     lower = upper = None
     project = None
     if proj is not None:
@@ -368,7 +359,7 @@ def fit(
         project=project,
         lower=lower,
         upper=upper,
-        regulariser=regulariser,
+        regulariser=g,
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(

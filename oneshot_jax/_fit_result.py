@@ -98,7 +98,7 @@ class FitResult(eqx.Module):
         multistart fit).
     - `x0`: the estimated initial state(s), shape (n_x,) or (N, n_x).
     - `loss`: the final objective at `theta`, `x0`: C of eq. (5)/(21), plus g(theta) when
-        `fit(constraints=...)` holds a regulariser from `oneshot_jax.sparsity`.
+        `fit(regulariser=...)` holds one from `oneshot_jax.sparsity`.
     - `stop_reason`: a `RESULTS` item; `message` says why in words, `success` whether it
         converged.
     - `num_steps`: the solver steps taken (all solvers of a sequence together).

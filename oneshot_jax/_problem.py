@@ -6,7 +6,7 @@ Fixed entries are constants inside `FitProblem.theta_of` / `FitProblem.x0_of`, s
 removed from the variables rather than masked (a masked variable leaves a singular
 Jacobian).
 
-A fit with a proximal regulariser g (`oneshot_jax.sparsity`, passed in `constraints=`)
+A fit with a proximal regulariser g (`oneshot_jax.sparsity`, passed in `regulariser=`)
 minimises C + g(theta). g is written on the user's theta; `FitProblem.prox` applies its
 proximal map to the free entries with per-coordinate steps (zero on the fixed entries,
 which a prox with a zero step leaves unchanged).
