@@ -327,12 +327,12 @@ def fit(
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 
     proj, reg = split(constraints, regulariser)
-    g = None
+    on_theta = None  # the regulariser on theta's trainable part
     if reg is not None:
         for s in solvers:
             s.check_regulariser(reg)
-        g = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
-        check_regulariser(g, data.theta)
+        on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
+        check_regulariser(on_theta, data.theta)
     lower = upper = None
     project = None
     if proj is not None:
@@ -359,7 +359,7 @@ def fit(
         project=project,
         lower=lower,
         upper=upper,
-        regulariser=g,
+        regulariser=on_theta,
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(
