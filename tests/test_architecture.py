@@ -1,7 +1,7 @@
 """The package's layering (docs/architecture.md), checked on the source.
 
-- The import graph of `oneshot_jax` has no cycle. Every module of the package is parsed
-  (not imported), and every import it holds counts: at the top, under a condition, and
+- The import graph of `oneshot_jax` has no cycle. Every module of the package is parsed,
+  and every import it holds counts: at the top, under a condition, and
   inside a function. `from . import x` and `from .x import y` are resolved to modules (`y`
   may be a submodule or a name), and importing `a.b.c` also runs the packages `a.b` and
   `a` above it.
@@ -19,6 +19,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -30,7 +31,7 @@ ROOT = PACKAGE_DIR.parent
 
 # Function-local imports kept on purpose: (importing module, imported module) -> why.
 # They run on first use, not when the module is imported, so they are no edge of the
-# import graph (as diffrax's `import diffrax` inside `PIDController`).
+# import graph (diffrax keeps such imports of `_integrate` in `_adjoint.py`).
 LAZY = {
     ("oneshot_jax", "oneshot_jax.examples"): (
         "`oneshot_jax.__getattr__` loads the example models on first use of `oj.examples` "
@@ -93,14 +94,13 @@ def package_modules() -> dict[str, Path]:
     return out
 
 
-class Import:
+class Import(NamedTuple):
     """One import statement (or `importlib.import_module("...")` call) of a module."""
 
-    def __init__(self, module, targets, function, line):
-        self.module = module  # the importing module
-        self.targets = targets  # the modules it runs, nearest first
-        self.function = function  # the enclosing function's qualified name, or None
-        self.line = line
+    module: str  # the importing module
+    targets: list  # the modules it names
+    function: str | None  # the enclosing function's qualified name, or None
+    line: int
 
 
 def _names(node, module, is_package, modules):
