@@ -54,11 +54,14 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from timing import conditions, fmt_time, interleaved  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
-from oneshot_jax._cost import Cost  # noqa: E402
-from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
-from oneshot_jax._parallel import METHOD_NAMES, parallel_value_and_grad  # noqa: E402
-from oneshot_jax._parallel import rollout as parallel_rollout  # noqa: E402
-from oneshot_jax._simulate import rollout  # noqa: E402
+from oneshot_jax.internal import (  # noqa: E402
+    METHOD_NAMES,
+    Cost,
+    parallel_rollout,
+    parallel_value_and_grad,
+    rollout,
+    value_and_grad_impl,
+)
 
 NX = (2, 4, 8, 16)
 HORIZONS = (1_000, 10_000, 100_000, 1_000_000)

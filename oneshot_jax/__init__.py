@@ -1,5 +1,7 @@
 """oneshot_jax: grey-box system identification with the one-shot closed-form gradient."""
 
+import importlib as _importlib
+
 from . import constraints as constraints
 from . import datasets as datasets
 from . import metrics as metrics
@@ -36,8 +38,18 @@ from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
 
-# isort: split
-# Last: the example models use the public API above.
-from . import examples as examples
-
 __version__ = "0.2.0"
+
+
+def __getattr__(name):
+    """`oneshot_jax.examples` on first use (PEP 562). The example models are written
+    against the public API above (`import oneshot_jax as oj`), so they sit above this
+    module: importing them here would be an import cycle, and would load them into every
+    program that imports the library."""
+    if name == "examples":
+        return _importlib.import_module("oneshot_jax.examples")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), "examples"})

@@ -1,4 +1,21 @@
-"""Input validation: the one home of every check on the arguments of the public functions.
+"""Validation of the arguments that the public functions share, and what is built from
+them on the way.
+
+What it checks: the data (`theta`, `x0`, `u`, `z`, `weight`, `missing`) against the
+model, which it calls abstractly once so that a wrong shape is reported with the
+argument's name (`check_data`); the penalty and its weight (`check_cost`); `strategy`;
+the fixed entries, bounds and the x0 mask; that `fit` is not called under a JAX
+transformation. What it builds: `Data` (every array promoted to one floating dtype,
+ragged trajectories padded and masked, the model bound to its static arguments), the
+`Cost` bundle, the masks; and it keeps, per model, structure, shapes and dtypes, what
+does not depend on the values (`_STRUCTURE`), while the checks of values run on every
+call.
+
+Checks that belong to one object live with that object, not here: a solver's options in
+`_solver/`, a constraint's, penalty's or regulariser's arguments in `constraints.py`,
+`penalties.py` and `sparsity.py`, a model's in `_model.py`, `fit`'s and `estimate_x0`'s
+own keywords where those are defined, a saved file's in `_io.py`, the loaders' in
+`datasets/`, and the parallel-in-time options in `_parallel/`.
 
 Every check runs on shapes (always static) and, where the arrays are concrete, on values
 (NaN, inf, positive semi-definiteness). Errors are `ValueError`s (or `TypeError`s for an

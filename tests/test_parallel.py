@@ -19,9 +19,14 @@ from helpers import assert_tree_rel_close, duffing_rhs, motor_observe, motor_rhs
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._cost import Cost
-from oneshot_jax._parallel import (
+from oneshot_jax.internal import (
+    DAMPED,
+    NEWTON,
+    SEQUENTIAL,
+    Cost,
+    diagonal_elk_increment,
     diagonal_linear_recurrence,
+    elk_increment,
     linear_recurrence,
     matrix_linear_recurrence,
     newton_rollout,
@@ -29,13 +34,11 @@ from oneshot_jax._parallel import (
     parallel_value_and_grad,
     reverse_diagonal_linear_recurrence,
     reverse_linear_recurrence,
+    rollout,
     sensitivities_of_states,
+    trajectory_jacobian,
     value_and_grad_of_states,
 )
-from oneshot_jax._parallel._elk import diagonal_elk_increment, elk_increment
-from oneshot_jax._parallel._rollout import DAMPED, NEWTON, SEQUENTIAL
-from oneshot_jax._sensitivity import trajectory_jacobian
-from oneshot_jax._simulate import rollout
 
 RTOL = 1e-12
 
@@ -560,12 +563,12 @@ def test_a_fallback_is_reported():
 def test_auto_takes_the_parallel_path_only_on_accelerators(monkeypatch):
     """On a CPU the sequential scan is faster at every size (benchmarks/parallel.py), so
     "auto" never takes the parallel path there; on a GPU or TPU it does for long records."""
-    from oneshot_jax import _strategy
+    from oneshot_jax.internal import PARALLEL_MIN_T, is_parallel
 
     assert jax.default_backend() == "cpu"
-    assert not _strategy.is_parallel("auto", 10**7)
-    assert _strategy.is_parallel("parallel", 2)
-    monkeypatch.setattr(_strategy.jax, "default_backend", lambda: "gpu")
-    assert _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T)
-    assert not _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T - 1)
-    assert not _strategy.is_parallel("jacobian", 10**7)
+    assert not is_parallel("auto", 10**7)
+    assert is_parallel("parallel", 2)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert is_parallel("auto", PARALLEL_MIN_T)
+    assert not is_parallel("auto", PARALLEL_MIN_T - 1)
+    assert not is_parallel("jacobian", 10**7)
