@@ -25,8 +25,6 @@ from ._checks import (
     check_data,
     check_fixed_bounds,
     check_outside_transformations,
-    check_projection,
-    check_regulariser,
     fixed_mask,
     x0_mask,
 )
@@ -36,7 +34,7 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
-from ._prox import split
+from ._prox import check_projection, check_regulariser, split
 from ._solver import (
     LBFGS,
     Adam,

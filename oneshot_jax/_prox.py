@@ -34,9 +34,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
-from ._checks import check_learning_rate, is_concrete
+from ._checks import is_concrete
 
 __all__ = ["ProximalTransformation", "ProximalState", "combine"]
 
@@ -88,6 +89,110 @@ class ProximalState(NamedTuple):
     """The number of updates made, for a `learning_rate` schedule."""
 
     count: jax.Array
+
+
+# The arguments of the factories, and what `fit` checks of a projection and a
+# regulariser on theta0 before the compiled solve.
+
+
+def check_non_negative_scalar(value, name):
+    """Raise a ValueError unless `value` is a finite scalar >= 0 (or traced)."""
+    try:
+        ok = np.ndim(value) == 0 and (not is_concrete(value) or np.isfinite(float(value)))
+        ok = ok and (not is_concrete(value) or float(value) >= 0)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"`{name}` must be a finite scalar >= 0, got {value!r}.")
+
+
+def check_learning_rate(learning_rate, allow_none):
+    """Raise a ValueError unless `learning_rate` is a step size: a finite scalar > 0 or an
+    optax schedule (or None where `allow_none`)."""
+    if callable(learning_rate) or (learning_rate is None and allow_none):
+        return
+    try:
+        ok = np.ndim(learning_rate) == 0 and (
+            not is_concrete(learning_rate)
+            or (np.isfinite(float(learning_rate)) and float(learning_rate) > 0)
+        )
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(
+            "`learning_rate` must be the step size of the update the prox follows (a "
+            f"finite scalar > 0, or an optax schedule count -> step), got {learning_rate!r}."
+        )
+
+
+def _check_like(out, theta):
+    """Raise a ValueError unless `out` has theta's leaves: the same paths (dict keys,
+    attributes, indices), shapes and dtypes. `fit` reads a projection's output back as a
+    flat vector, so a missing leaf would shift the others into its place."""
+    want = jax.tree_util.tree_flatten_with_path(theta)[0]
+    got = jax.tree_util.tree_flatten_with_path(out)[0]
+    want_paths = [jax.tree_util.keystr(p) for p, _ in want]
+    got_paths = [jax.tree_util.keystr(p) for p, _ in got]
+    if got_paths != want_paths:
+        missing = [p for p in want_paths if p not in got_paths]
+        extra = [p for p in got_paths if p not in want_paths]
+        detail = "; ".join(
+            f"{what} {', '.join(f'theta{p}' for p in paths)}"
+            for what, paths in (("it drops", missing), ("it adds", extra))
+            if paths
+        )
+        raise ValueError(
+            "`constraints`: the projection must return parameters with the structure of "
+            f"theta (leaves {', '.join(want_paths)}), got leaves {', '.join(got_paths) or 'none'}"
+            f"{'; ' + detail if detail else ' (in another order)'}."
+        )
+    for path, (_, a), (_, b) in zip(want_paths, got, want):
+        if jnp.shape(a) != jnp.shape(b):
+            raise ValueError(
+                f"`constraints`: the projection returned shape {jnp.shape(a)} for theta{path} "
+                f"of shape {jnp.shape(b)}; it must keep the structure, shapes and dtypes of theta."
+            )
+        weak = isinstance(a, (int, float)) and not isinstance(a, bool)
+        if not weak and jnp.result_type(a) != jnp.result_type(b):
+            raise ValueError(
+                f"`constraints`: the projection returned dtype {jnp.result_type(a)} for "
+                f"theta{path} of dtype {jnp.result_type(b)}; it must keep the structure, shapes "
+                "and dtypes of theta."
+            )
+
+
+def check_projection(proj, theta, rtol=1e-10):
+    """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
+    (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
+    P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
+    wherever it happens to stop."""
+    once = proj.project(theta)
+    _check_like(once, theta)
+    twice = proj.project(once)
+    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(once)])
+    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(twice)])
+    if a.shape != b.shape or not np.allclose(
+        a, b, rtol=rtol, atol=rtol * max(np.max(np.abs(a), initial=0.0), 1e-300)
+    ):
+        raise ValueError(
+            "`constraints`: the projection is not idempotent (P(P(theta0)) != P(theta0)); "
+            "a projection onto a convex set must map every point of the set to itself."
+        )
+
+
+def check_regulariser(regulariser, theta):
+    """Evaluate the regulariser (a `_problem.Regulariser`) once on theta0 (outside the
+    compiled solve), so that a `where` that does not fit theta is reported here, naming
+    the argument."""
+    value = regulariser.value(theta)
+    if np.ndim(value) != 0 or not np.isfinite(float(value)):
+        raise ValueError(
+            f"`regulariser`: its value g(theta0) must be a finite scalar, got {value!r}."
+        )
+    steps = jax.tree_util.tree_map(jnp.zeros_like, theta)
+    out = regulariser.prox(theta, steps)
+    if jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(theta):
+        raise ValueError("`regulariser`: its prox changed the structure of theta.")
 
 
 def step_at(learning_rate, count):

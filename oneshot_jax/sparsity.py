@@ -73,8 +73,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_non_negative_scalar, is_concrete
-from ._prox import ProximalState, ProximalTransformation, combine, penalty
+from ._checks import is_concrete
+from ._prox import (
+    ProximalState,
+    ProximalTransformation,
+    check_non_negative_scalar,
+    combine,
+    penalty,
+)
 from ._solver.optax import ProximalAdamState, proximal_adam
 
 __all__ = [

@@ -74,8 +74,6 @@ KNOWN = {
     ("oneshot_jax._problem", "FitProblem.jacobian.fn", "oneshot_jax._parallel"),
     ("oneshot_jax._simulate", "states", "oneshot_jax._parallel"),
     ("oneshot_jax._windows", "cut", "oneshot_jax._initial_state"),
-    # One proximal abstraction (issue 20.4).
-    ("oneshot_jax.constraints", "separate", "oneshot_jax.sparsity"),
 }
 
 # Folders whose Python files use only the public API and `oneshot_jax.internal`.

@@ -40,7 +40,6 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from .._checks import check_learning_rate, check_non_negative_scalar
 from .._linalg import floor
 from .._optimality import (
     Measures,
@@ -51,7 +50,12 @@ from .._optimality import (
     zero_residual,
 )
 from .._problem import FitProblem, Params
-from .._prox import ProximalTransformation, step_at
+from .._prox import (
+    ProximalTransformation,
+    check_learning_rate,
+    check_non_negative_scalar,
+    step_at,
+)
 from .._results import RESULTS
 from .._strategy import STRATEGIES
 from .base import AbstractSolver, check_options, grad_norm
