@@ -62,7 +62,7 @@ def test_default_solver_reaches_the_0_1_optimum(sat_lm):
 
 
 def test_solver_names_are_aliases_of_default_objects():
-    from oneshot_jax._fit import as_solvers
+    from oneshot_jax._solver_arg import as_solvers
 
     assert as_solvers("gauss_newton") == (oj.GaussNewton(),)
     assert as_solvers("levenberg_marquardt") == (oj.LevenbergMarquardt(),)
