@@ -15,14 +15,14 @@ from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult
 from ._fit_result import Starts as Starts
+from ._fit_result import load_result as load_result
 from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
-from ._initial_state import KalmanPath as KalmanPath
 from ._initial_state import Prediction as Prediction
 from ._initial_state import X0Estimate as X0Estimate
 from ._initial_state import estimate_x0 as estimate_x0
 from ._initial_state import predict as predict
-from ._io import load_result as load_result
+from ._io import save_result as save_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step
 from ._progress import NoProgress as NoProgress
@@ -37,6 +37,7 @@ from ._solver import GaussNewton as GaussNewton
 from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
+from ._x0_smoother import KalmanPath as KalmanPath
 
 __version__ = "0.2.0"
 

@@ -24,7 +24,6 @@ from ._checks import check_data as check_data
 from ._checks import fixed_mask as fixed_mask
 from ._cost import Cost as Cost
 from ._fit import _theta_order as kept_theta_order  # noqa: F401
-from ._fit import as_solvers as as_solvers
 from ._fit_report import theta_order as theta_order
 from ._gradient import value_and_grad_impl as value_and_grad_impl
 from ._linalg import normal_blocks as normal_blocks
@@ -58,6 +57,7 @@ from ._simulate import rollout as rollout
 from ._solver.least_squares import DIAG_PROBES as DIAG_PROBES
 from ._solver.optimistix import _Held as OptimistixHeld  # noqa: F401
 from ._solver.optimistix import _residuals as optimistix_residuals  # noqa: F401
+from ._solver_arg import as_solvers as as_solvers
 from ._strategy import MATRIX_FREE_MIN_THETA as MATRIX_FREE_MIN_THETA
 from ._strategy import PARALLEL_MIN_T as PARALLEL_MIN_T
 from ._strategy import is_parallel as is_parallel

@@ -43,18 +43,6 @@ LAZY = {
 # removed by issue 20 branches; must be empty at merge
 KNOWN = {
     # Import cycles, as the set of modules each one joins.
-    # x0 solved below fit (issue 20.2): FitResult's methods and the windows' starting
-    # states call up into _initial_state / _simulate / _io.
-    frozenset(
-        {
-            "oneshot_jax._assemble",
-            "oneshot_jax._fit",
-            "oneshot_jax._fit_result",
-            "oneshot_jax._initial_state",
-            "oneshot_jax._io",
-            "oneshot_jax._windows",
-        }
-    ),
     # Strategies as objects (issue 20.1): the sequential modules dispatch to the parallel
     # package, which borrows their kernels.
     frozenset(
@@ -67,13 +55,9 @@ KNOWN = {
         }
     ),
     # Function-local imports, as (module, function, imported module).
-    ("oneshot_jax._fit_result", "FitResult.predict", "oneshot_jax._initial_state"),
-    ("oneshot_jax._fit_result", "FitResult.save", "oneshot_jax._io"),
-    ("oneshot_jax._fit_result", "FitResult.simulate", "oneshot_jax._simulate"),
     ("oneshot_jax._gradient", "value_and_grad_impl", "oneshot_jax._parallel"),
     ("oneshot_jax._problem", "FitProblem.jacobian.fn", "oneshot_jax._parallel"),
     ("oneshot_jax._simulate", "states", "oneshot_jax._parallel"),
-    ("oneshot_jax._windows", "cut", "oneshot_jax._initial_state"),
 }
 
 # Folders whose Python files use only the public API and `oneshot_jax.internal`.
