@@ -37,6 +37,11 @@ from ._solver import GaussNewton as GaussNewton
 from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
+from ._strategy import VJP as VJP
+from ._strategy import AbstractStrategy as AbstractStrategy
+from ._strategy import Auto as Auto
+from ._strategy import Jacobian as Jacobian
+from ._strategy import ParallelInTime as ParallelInTime
 from ._x0_smoother import KalmanPath as KalmanPath
 
 __version__ = "0.2.0"

@@ -35,7 +35,6 @@ import numpy as np
 from . import _cost, _pytree
 from ._cost import Cost
 from ._model import FloatObserve, Model
-from ._strategy import STRATEGIES
 
 
 def is_concrete(*arrays) -> bool:
@@ -522,13 +521,6 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
         )
     pw = jnp.asarray(pw, dtype) if not is_concrete(pw) else np.asarray(pw, dtype)
     return Cost(data.weight, penalty, pw)
-
-
-def check_strategy(strategy, allowed=STRATEGIES):
-    if strategy not in allowed:
-        names = ", ".join(repr(s) for s in allowed[:-1]) + f" or {allowed[-1]!r}"
-        raise ValueError(f"`strategy` must be {names}, got {strategy!r}.")
-    return strategy
 
 
 def fixed_mask(fixed, theta) -> np.ndarray:

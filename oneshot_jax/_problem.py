@@ -34,7 +34,7 @@ from ._sensitivity import (
     trajectory_residuals,
 )
 from ._simulate import loss_impl, sample_count
-from ._strategy import is_parallel, sensitivity_strategy
+from ._strategy import as_strategy
 
 
 class Params(NamedTuple):
@@ -193,28 +193,10 @@ class FitProblem(eqx.Module):
         N, T = self.u.shape[:2]
         n_x = self.x0_base.shape[1]
         n_cols = params.theta.shape[0] + x0_free.size
-        parallel = is_parallel(strategy, T)
-        strategy = sensitivity_strategy(strategy, N, n_x, n_cols, T, self.dtype.itemsize)
+        # The strategy for the whole batch (`Auto` counts the work of all N trajectories).
+        strategy = as_strategy(strategy).resolve(n_x, T, self.dtype.itemsize, N, n_cols)
 
         def fn(base, p, u, z, m):
-            if parallel:
-                from ._parallel import parallel_sensitivities, report
-
-                lin, info = parallel_sensitivities(
-                    self.model,
-                    cost,
-                    self.theta_of,
-                    params.theta,
-                    lambda q: base.at[x0_free].set(q),
-                    p,
-                    u,
-                    z,
-                    scale=self._scale(),
-                    mask=m,
-                    with_info=True,
-                )
-                report(info)
-                return lin
             return trajectory_jacobian(
                 self.model,
                 cost,

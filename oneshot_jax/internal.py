@@ -26,19 +26,15 @@ from ._cost import Cost as Cost
 from ._fit import _theta_order as kept_theta_order  # noqa: F401
 from ._fit_report import theta_order as theta_order
 from ._gradient import value_and_grad_impl as value_and_grad_impl
+from ._gradient import value_and_grad_of_states as value_and_grad_of_states
 from ._linalg import normal_blocks as normal_blocks
 from ._parallel import METHOD_NAMES as METHOD_NAMES
 from ._parallel import diagonal_linear_recurrence as diagonal_linear_recurrence
 from ._parallel import linear_recurrence as linear_recurrence
 from ._parallel import matrix_linear_recurrence as matrix_linear_recurrence
 from ._parallel import newton_rollout as newton_rollout
-from ._parallel import parallel_sensitivities as parallel_sensitivities
-from ._parallel import parallel_value_and_grad as parallel_value_and_grad
 from ._parallel import reverse_diagonal_linear_recurrence as reverse_diagonal_linear_recurrence
 from ._parallel import reverse_linear_recurrence as reverse_linear_recurrence
-from ._parallel import rollout as parallel_rollout  # noqa: F401
-from ._parallel import sensitivities_of_states as sensitivities_of_states
-from ._parallel import value_and_grad_of_states as value_and_grad_of_states
 from ._parallel._elk import diagonal_elk_increment as diagonal_elk_increment
 from ._parallel._elk import elk_increment as elk_increment
 from ._parallel._rollout import DAMPED as DAMPED
@@ -70,6 +66,8 @@ from .sparsity import _is_float as is_float_leaf  # noqa: F401
 
 # isort: split
 # Modules whose globals a test replaces with `monkeypatch.setattr`: `COVARIANCE_MAX_THETA`
-# of `assemble_module`, `loss_impl` of `simulate_module`.
+# of `assemble_module`, `loss_impl` of `simulate_module`, `newton_rollout` of
+# `strategy_module`.
 from . import _assemble as assemble_module  # noqa: F401
 from . import _simulate as simulate_module  # noqa: F401
+from . import _strategy as strategy_module  # noqa: F401

@@ -57,7 +57,7 @@ from .._prox import (
     step_at,
 )
 from .._results import RESULTS
-from .._strategy import STRATEGIES
+from .._strategy import as_strategy
 from .base import AbstractSolver, check_options, grad_norm
 
 
@@ -151,11 +151,7 @@ class _AbstractOptax(AbstractSolver):
                 f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
                 f"got {self.tol_loss!r}."
             )
-        if self.strategy not in STRATEGIES:
-            raise ValueError(
-                f"`{type(self).__name__}(strategy=...)` must be one of {STRATEGIES}, "
-                f"got {self.strategy!r}."
-            )
+        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
 
     def init(self, problem, params):
         C, g = problem.value_and_grad(params, self.strategy)
