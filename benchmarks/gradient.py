@@ -60,8 +60,8 @@ jax.config.update("jax_enable_x64", True)
 from timing import block, conditions, fmt_time, interleaved  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
-from oneshot_jax._pytree import flat_host  # noqa: E402
 from oneshot_jax.examples import satellite  # noqa: E402
+from oneshot_jax.internal import flat_host  # noqa: E402
 
 HORIZONS = (50, 500, 5000, 50000)
 QUICK_HORIZONS = (50, 500)

@@ -39,8 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import oneshot_jax as oj  # noqa: E402
 from experiments import duffing_hybrid as duffing  # noqa: E402
-from oneshot_jax._checks import check_cost, check_data  # noqa: E402
-from oneshot_jax._problem import FitProblem  # noqa: E402
+from oneshot_jax.internal import FitProblem, check_cost, check_data  # noqa: E402
 from oneshot_jax.residual import MLP, count_parameters  # noqa: E402
 
 WIDTHS = ((4,), (16, 16), (32, 32), (64, 64), (128, 128))

@@ -9,10 +9,11 @@ position plus noise. Float64 unless `--float32`.
 Timed at each (n_x, T), one trajectory:
 
 - `forward`: sequential `oneshot_jax._simulate.rollout` against the parallel rollout
-  (`oneshot_jax._parallel.rollout`, states x_0..x_{T-1}): what `oneshot_jax.simulate`
+  (`oneshot_jax.ParallelInTime().rollout`, states x_0..x_{T-1}): what `oneshot_jax.simulate`
   runs with `strategy="jacobian"` and `"parallel"`;
 - `value_and_grad`: sequential `oneshot_jax._gradient.value_and_grad_impl` (strategy
-  "jacobian") against `oneshot_jax._parallel.parallel_value_and_grad`: what
+  "jacobian") against the `ParallelInTime` rollout and reverse sweep (`parallel_value_and_grad`
+  below): what
   `oneshot_jax.value_and_grad` runs with `strategy="jacobian"` and `"parallel"`.
 
 Each callable is one `jax.jit` of the library's internals (the public functions add
@@ -54,11 +55,13 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from timing import conditions, fmt_time, interleaved  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
-from oneshot_jax._cost import Cost  # noqa: E402
-from oneshot_jax._gradient import value_and_grad_impl  # noqa: E402
-from oneshot_jax._parallel import METHOD_NAMES, parallel_value_and_grad  # noqa: E402
-from oneshot_jax._parallel import rollout as parallel_rollout  # noqa: E402
-from oneshot_jax._simulate import rollout  # noqa: E402
+from oneshot_jax.internal import (  # noqa: E402
+    METHOD_NAMES,
+    Cost,
+    rollout,
+    value_and_grad_impl,
+    value_and_grad_of_states,
+)
 
 NX = (2, 4, 8, 16)
 HORIZONS = (1_000, 10_000, 100_000, 1_000_000)
@@ -102,6 +105,20 @@ def rel_diff(a, b):
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
+def parallel_rollout(model, theta, x0, u, chunk_size):
+    """The states and `RolloutInfo` of the parallel rollout."""
+    return oj.ParallelInTime(chunk_size=chunk_size).rollout(model, theta, x0, u)
+
+
+def parallel_value_and_grad(model, cost, theta, x0, u, z, chunk_size, with_info=False):
+    """C and its gradient parallel in time (`ParallelInTime`: the rollout, then the
+    reverse recursion by associative scans), and the rollout's info with `with_info`."""
+    strategy = oj.ParallelInTime(chunk_size=chunk_size)
+    xs, info = strategy.rollout(model, theta, x0, u)
+    out = value_and_grad_of_states(model, cost, theta, xs, u, z, strategy)
+    return (out, info) if with_info else out
+
+
 def chunk_for(T, n_x, itemsize, max_mib):
     per_step = n_x * n_x * itemsize
     return None if T * per_step <= max_mib * 2**20 else max(1, int(max_mib * 2**20 // per_step))
@@ -110,16 +127,15 @@ def chunk_for(T, n_x, itemsize, max_mib):
 def time_cell(n_x, T, dtype, repeats, max_mib):
     model, theta, x0, u, z = chain_problem(n_x, T, dtype)
     chunk = chunk_for(T, n_x, jnp.dtype(dtype).itemsize, max_mib)
-    newton = {"chunk_size": chunk}
     cost = Cost(None, None, jnp.asarray(0.0, dtype))
     seq_fwd = jax.jit(lambda th, x0, u: rollout(model, th, x0, u))
-    par_fwd = jax.jit(lambda th, x0, u: parallel_rollout(model, th, x0, u, newton))
+    par_fwd = jax.jit(lambda th, x0, u: parallel_rollout(model, th, x0, u, chunk))
     seq_vg = jax.jit(
         lambda th, x0, u, z: value_and_grad_impl(model, cost, th, x0, u, z, False, "jacobian")
     )
     par_vg = jax.jit(
         lambda th, x0, u, z: parallel_value_and_grad(
-            model, cost, th, x0, u, z, newton=newton, with_info=True
+            model, cost, th, x0, u, z, chunk, with_info=True
         )
     )
     calls = {
@@ -154,9 +170,7 @@ def time_fit(n_x, T, steps, dtype, repeats, max_mib):
     def grads(kind, th):
         if kind == "sequential":
             return value_and_grad_impl(model, cost, th, x0, u, z, False, "jacobian")[1][0]
-        return parallel_value_and_grad(model, cost, th, x0, u, z, newton={"chunk_size": chunk})[1][
-            0
-        ]
+        return parallel_value_and_grad(model, cost, th, x0, u, z, chunk)[1][0]
 
     def fit(kind):
         @jax.jit
@@ -192,13 +206,9 @@ def memory_rows(dtype):
     for T, chunk in MEMORY_CASES:
         u = jax.ShapeDtypeStruct((T, 1), dtype)
         fns = {
-            "forward": (
-                lambda th, x0, u, z: parallel_rollout(model, th, x0, u, {"chunk_size": chunk})
-            ),
+            "forward": (lambda th, x0, u, z: parallel_rollout(model, th, x0, u, chunk)),
             "value_and_grad": (
-                lambda th, x0, u, z: parallel_value_and_grad(
-                    model, cost, th, x0, u, z, newton={"chunk_size": chunk}
-                )
+                lambda th, x0, u, z: parallel_value_and_grad(model, cost, th, x0, u, z, chunk)
             ),
         }
         row = {"T": T, "chunk": chunk}

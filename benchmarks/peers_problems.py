@@ -31,10 +31,10 @@ from collections.abc import Callable
 import numpy as np
 
 import oneshot_jax as oj
-from oneshot_jax._pytree import flat_host
 from oneshot_jax.examples import chain as chain_example
 from oneshot_jax.examples import emps as emps_example
 from oneshot_jax.examples import satellite as sat
+from oneshot_jax.internal import flat_host
 
 
 @dataclasses.dataclass

@@ -491,8 +491,7 @@ def jacobian_timings(pb, repeats=20):
     `fit` picks "jacobian" for n_x <= 16 ("auto"). Medians in seconds over interleaved
     rounds of one call each (`timing.interleaved`), after a warm-up call.
     """
-    from oneshot_jax._cost import Cost
-    from oneshot_jax._sensitivity import sensitivity_strategy, trajectory_jacobian
+    from oneshot_jax.internal import Cost, sensitivity_strategy, trajectory_jacobian
 
     u, z, x0 = (jnp.asarray(a[0]) for a in (pb.U, pb.Z, pb.X0))
     free = np.asarray(pb.x0_free, int)

@@ -125,7 +125,7 @@ def _stack(trees):
     return eqx.combine(stacked, static)
 
 
-def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, history):
+def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, history, reg=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return oj.fit(
@@ -136,6 +136,7 @@ def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, his
             y,
             solver=solver,
             constraints=constraints,
+            regulariser=reg,
             multistart=multistart,
             progress=progress,
             history=history,
@@ -164,9 +165,7 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
     ]
     box = example.constraints("overflow")
     jt = ex.joint
-    constraints = [box]
-    if jt.weight_decay > 0:
-        constraints.append(sparsity.l2(jt.weight_decay, where=NETWORK))
+    decay = sparsity.l2(jt.weight_decay, where=NETWORK) if jt.weight_decay > 0 else None
     lr = optax.cosine_decay_schedule(jt.lr, jt.adam_steps, alpha=1e-2)
     adam = oj.Adam(lr, jt.lr_x0, max_steps=jt.adam_steps)
     if S > 1:
@@ -174,7 +173,7 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
     else:
         theta0 = {**theta_phys, "r": nets[0]}
     t0 = time.perf_counter()
-    res = _fit(model, theta0, x0, u, y, adam, constraints, S > 1, progress, ex.history)
+    res = _fit(model, theta0, x0, u, y, adam, box, S > 1, progress, ex.history, decay)
     stages = {"adam": _stage(res, time.perf_counter() - t0)}
     starts = None if res.starts is None else [float(v) for v in np.asarray(res.starts.loss)]
     if jt.refine != "none":

@@ -35,7 +35,7 @@ import scipy.optimize
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._pytree import flat_host, unflatten_rows
+from oneshot_jax.internal import flat_host, unflatten_rows
 
 SOLVER_CLASSES = {
     "adam": oj.Adam,

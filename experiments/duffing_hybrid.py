@@ -14,7 +14,7 @@ the last stopped:
 - **Dictionary** (16 candidate monomials of degree 2 and 3 in q, v = q', u):
   1. every candidate: Adam (cosine-decayed rate) then Levenberg-Marquardt;
   2. selection: proximal Adam with the adaptive lasso (`sparsity.l1` in
-     `constraints=`; weights 1 / |w| from stage 1, applied through the dictionary's
+     `regulariser=`; weights 1 / |w| from stage 1, applied through the dictionary's
      `scale`), which sets the wrong candidates to exactly zero;
   3. debiasing: Levenberg-Marquardt on the surviving terms, the zeros held by
      `fixed=sparsity.fixed_zeros(...)`.
@@ -153,7 +153,7 @@ def select_terms(u, z, *, adam_steps=2000, prox_steps=2000, lam=1e-3, prox_lr=5e
         u,
         z,
         solver=oj.Adam(lr, 1e-4, max_steps=prox_steps),
-        constraints=sparsity.l1(lam, where=COEF),
+        regulariser=sparsity.l1(lam, where=COEF),
         progress=progress,
     )
     refit = oj.fit(

@@ -162,9 +162,9 @@ def train(data, ex, solver, progress=False):
         res = physics
         if ex.adam.steps > 0:
             lr = optax.cosine_decay_schedule(ex.adam.lr, ex.adam.steps, alpha=1e-2)
-            cons = [box]
+            decay = None
             if ex.adam.weight_decay > 0:
-                cons.append(sparsity.l2(ex.adam.weight_decay, where=NETWORK))
+                decay = sparsity.l2(ex.adam.weight_decay, where=NETWORK)
             t0 = time.perf_counter()
             res = oj.fit(
                 model,
@@ -173,7 +173,8 @@ def train(data, ex, solver, progress=False):
                 u,
                 z,
                 solver=oj.Adam(lr, ex.adam.lr_x0, max_steps=ex.adam.steps),
-                constraints=cons,
+                constraints=box,
+                regulariser=decay,
                 **common_kw,
             )
             rows.append(_stage("joint, Adam", res, t0))

@@ -1,5 +1,7 @@
 """oneshot_jax: grey-box system identification with the one-shot closed-form gradient."""
 
+import importlib as _importlib
+
 from . import constraints as constraints
 from . import datasets as datasets
 from . import metrics as metrics
@@ -13,14 +15,14 @@ from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult
 from ._fit_result import Starts as Starts
+from ._fit_result import load_result as load_result
 from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
-from ._initial_state import KalmanPath as KalmanPath
 from ._initial_state import Prediction as Prediction
 from ._initial_state import X0Estimate as X0Estimate
 from ._initial_state import estimate_x0 as estimate_x0
 from ._initial_state import predict as predict
-from ._io import load_result as load_result
+from ._io import save_result as save_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step
 from ._progress import NoProgress as NoProgress
@@ -35,9 +37,25 @@ from ._solver import GaussNewton as GaussNewton
 from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
-
-# isort: split
-# Last: the example models use the public API above.
-from . import examples as examples
+from ._strategy import VJP as VJP
+from ._strategy import AbstractStrategy as AbstractStrategy
+from ._strategy import Auto as Auto
+from ._strategy import Jacobian as Jacobian
+from ._strategy import ParallelInTime as ParallelInTime
+from ._x0_smoother import KalmanPath as KalmanPath
 
 __version__ = "0.2.0"
+
+
+def __getattr__(name):
+    """`oneshot_jax.examples` on first use (PEP 562). The example models are written
+    against the public API above (`import oneshot_jax as oj`), so they sit above this
+    module: importing them here would be an import cycle, and would load them into every
+    program that imports the library."""
+    if name == "examples":
+        return _importlib.import_module("oneshot_jax.examples")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), "examples"})

@@ -1,4 +1,22 @@
-"""Input validation: the one home of every check on the arguments of the public functions.
+"""Validation of the arguments that the public functions share, and what is built from
+them on the way.
+
+What it checks: the data (`theta`, `x0`, `u`, `z`, `weight`, `missing`) against the
+model, which it calls abstractly once so that a wrong shape is reported with the
+argument's name (`check_data`); the penalty and its weight (`check_cost`); `strategy`;
+the fixed entries, bounds and the x0 mask; that `fit` is not called under a JAX
+transformation. What it builds: `Data` (every array promoted to one floating dtype,
+ragged trajectories padded and masked, the model bound to its static arguments), the
+`Cost` bundle, the masks; and it keeps, per model, structure, shapes and dtypes, what
+does not depend on the values (`_STRUCTURE`), while the checks of values run on every
+call.
+
+Checks that belong to one object live with that object, not here: a solver's options in
+`_solver/`, a constraint's, penalty's or regulariser's arguments in `_prox.py` (with
+what `fit` checks of them on theta0), `constraints.py`, `penalties.py` and
+`sparsity.py`, a model's in `_model.py`, `fit`'s and `estimate_x0`'s own keywords
+where those are defined, a saved file's in `_io.py`, the loaders' in
+`datasets/`, and the parallel-in-time options in `_parallel/`.
 
 Every check runs on shapes (always static) and, where the arrays are concrete, on values
 (NaN, inf, positive semi-definiteness). Errors are `ValueError`s (or `TypeError`s for an
@@ -17,7 +35,6 @@ import numpy as np
 from . import _cost, _pytree
 from ._cost import Cost
 from ._model import FloatObserve, Model
-from ._strategy import STRATEGIES
 
 
 def is_concrete(*arrays) -> bool:
@@ -504,13 +521,6 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
         )
     pw = jnp.asarray(pw, dtype) if not is_concrete(pw) else np.asarray(pw, dtype)
     return Cost(data.weight, penalty, pw)
-
-
-def check_strategy(strategy, allowed=STRATEGIES):
-    if strategy not in allowed:
-        names = ", ".join(repr(s) for s in allowed[:-1]) + f" or {allowed[-1]!r}"
-        raise ValueError(f"`strategy` must be {names}, got {strategy!r}.")
-    return strategy
 
 
 def fixed_mask(fixed, theta) -> np.ndarray:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import jax
 
-from .datasets._files import default_cache_dir
+from .datasets._locations import default_cache_dir
 
 
 def enable_compilation_cache(

@@ -5,7 +5,6 @@ the solvers' loop (`oneshot_jax._iterate`) as one compiled call, and assembles t
 `FitResult` (`oneshot_jax._assemble`).
 """
 
-import functools
 import time
 import warnings
 
@@ -13,8 +12,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
-import optimistix as optx
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
@@ -34,63 +31,12 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
-from ._solver import (
-    LBFGS,
-    Adam,
-    GaussNewton,
-    LevenbergMarquardt,
-    Optax,
-    Optimistix,
-)
-from ._solver.base import AbstractSolver
+from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
+from ._solver_arg import as_solvers
 from ._windows import cut
-from .constraints import check_projection, separate
 
 _NO_PROGRESS = NoProgress()
-
-SOLVER_ALIASES = {
-    "adam": Adam,
-    "lbfgs": LBFGS,
-    "gauss_newton": GaussNewton,
-    "levenberg_marquardt": LevenbergMarquardt,
-}
-
-
-@functools.cache
-def _default_solver(name):
-    """The solver a name stands for, with its default settings (made once: solvers are
-    immutable)."""
-    return SOLVER_ALIASES[name]()
-
-
-def as_solvers(solver) -> tuple:
-    """`solver` as a tuple of solver objects (strings are aliases of default objects;
-    optax transforms and optimistix solvers are wrapped)."""
-    if isinstance(solver, optax.GradientTransformation):
-        return (Optax(solver),)
-    if isinstance(solver, (list, tuple)):
-        if not solver:
-            raise ValueError("`solver` is an empty sequence; give at least one solver.")
-        return tuple(as_solvers(s)[0] for s in solver)
-    if isinstance(solver, str):
-        if solver not in SOLVER_ALIASES:
-            raise ValueError(
-                f"unknown `solver` {solver!r}; valid names are {', '.join(SOLVER_ALIASES)}, "
-                "or pass a solver object (oneshot_jax.GaussNewton(...), Adam(...), ...)."
-            )
-        return (_default_solver(solver),)
-    if isinstance(solver, AbstractSolver):
-        return (solver,)
-    if isinstance(solver, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
-        return (Optimistix(solver),)
-    if hasattr(solver, "init") and hasattr(solver, "update") and callable(solver.update):
-        return (Optax(solver),)
-    raise TypeError(
-        f"`solver` must be one of {', '.join(SOLVER_ALIASES)}, a oneshot_jax solver object, "
-        f"an optax.GradientTransformation, an optimistix solver, or a sequence of these; "
-        f"got {solver!r}."
-    )
 
 
 def _n_starts(theta0_params, x0, data_x0_ndim):
@@ -119,21 +65,6 @@ def _host(a):
     if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1:
         return a
     return np.asarray(a)
-
-
-def _check_regulariser(regulariser, theta):
-    """Evaluate the regulariser once on theta0 (outside the compiled solve), so that a
-    `where` that does not fit theta is reported here, naming the argument."""
-    value = regulariser.value(theta)
-    if np.ndim(value) != 0 or not np.isfinite(float(value)):
-        raise ValueError(
-            f"`constraints`: the regulariser's value g(theta0) must be a finite scalar, got "
-            f"{value!r}."
-        )
-    steps = jax.tree_util.tree_map(jnp.zeros_like, theta)
-    out = regulariser.prox(theta, steps)
-    if jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(theta):
-        raise ValueError("`constraints`: the regulariser's prox changed the structure of theta.")
 
 
 def _written_order(tree):
@@ -201,6 +132,7 @@ def fit(
     penalty=None,
     penalty_weight: float = 1.0,
     constraints=None,
+    regulariser=None,
     fixed=None,
     estimate_x0=True,
     window: int | None = None,
@@ -231,14 +163,17 @@ def fit(
         order, each starting where the last stopped (e.g. `[Adam(), LBFGS()]`).
     - `weight`, `penalty`, `penalty_weight`: Q and h, lambda of eq. (4), (21), as for
         `loss`. The least-squares solvers need lambda h >= 0.
-    - `constraints`: a projection from `oneshot_jax.constraints`, a proximal regulariser
-        from `oneshot_jax.sparsity` (`l1`, `group_lasso`, `l2`), or a list of them, on theta
-        (their `where` is written on theta as given, modules included). A regulariser g
-        makes the objective C + g(theta): `loss` and the history then report C + g. Only
-        `Adam` (proximal Adam: the prox with its per-coordinate steps) and
-        `Optax(transform)` (the prox with the regulariser's `learning_rate`) take one;
-        the other solvers raise a ValueError. Each update applies the prox, then the
-        projection.
+    - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
+        `positive`, `project`), or a list of them, on theta: every iterate lies in the
+        intersection of their sets (Section 3.3). A regulariser here (the mixed form of
+        0.2) still works, with a DeprecationWarning: pass it as `regulariser`.
+    - `regulariser`: a proximal regulariser from `oneshot_jax.sparsity` (`l1`,
+        `group_lasso`, `l2`), or a list of them, on theta (their `where` is written on
+        theta as given, modules included). A regulariser g makes the objective
+        C + g(theta): `loss` and the history then report C + g. Only `Adam` (proximal
+        Adam: the prox with its per-coordinate steps) and `Optax(transform)` (the prox
+        with the regulariser's `learning_rate`) take one; the other solvers raise a
+        ValueError. Each update applies the prox, then the projection.
     - `fixed`: a pytree of booleans shaped like theta0 (per leaf, per element, or one
         boolean for a whole subtree): True entries keep their starting value and are
         removed from the variables.
@@ -260,7 +195,7 @@ def fit(
     1. the physical part alone: `fixed={"k": False, "c": False, "r": True}` holds the
        residual (a prefix pytree: one boolean for a whole module);
     2. jointly: `solver=[Adam(...), LevenbergMarquardt()]`;
-    3. selection: `solver=Adam(lr_theta)` with `constraints=sparsity.l1(lam, where)`;
+    3. selection: `solver=Adam(lr_theta)` with `regulariser=sparsity.l1(lam, where)`;
     4. debiasing on the support: `solver=LevenbergMarquardt()` with
        `fixed=sparsity.fixed_zeros(result.theta, where)` (the deselected terms stay 0).
 
@@ -335,13 +270,13 @@ def fit(
     if len(theta_free) == 0 and len(x0_free) == 0:
         raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
 
-    proj, reg = separate(constraints)
-    regulariser = None
+    proj, reg = split(constraints, regulariser)
+    on_theta = None  # the regulariser on theta's trainable part
     if reg is not None:
         for s in solvers:
             s.check_regulariser(reg)
-        regulariser = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
-        _check_regulariser(regulariser, data.theta)
+        on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
+        check_regulariser(on_theta, data.theta)
     lower = upper = None
     project = None
     if proj is not None:
@@ -368,7 +303,7 @@ def fit(
         project=project,
         lower=lower,
         upper=upper,
-        regulariser=regulariser,
+        regulariser=on_theta,
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(

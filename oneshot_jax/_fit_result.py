@@ -1,6 +1,7 @@
 """`FitResult`: what `fit` returns (cf. scipy's OptimizeResult and MATLAB's idnlgrey
-reports), a pytree that prints as a parameter table, simulates the fitted model and saves
-to one file."""
+reports), a pytree of data that prints as a parameter table; its `simulate`, `predict`
+and `save` are thin calls of `oneshot_jax.simulate`, `oneshot_jax._initial_state` and
+`oneshot_jax._io`, and `load_result` builds one from a saved file."""
 
 from typing import Any
 
@@ -8,9 +9,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from . import _pytree
+from . import _io, _pytree
 from ._fit_report import report
+from ._initial_state import predict_impl
 from ._results import RESULTS, is_success, name_of
+from ._simulate import simulate
 
 
 def _g(x):
@@ -98,7 +101,7 @@ class FitResult(eqx.Module):
         multistart fit).
     - `x0`: the estimated initial state(s), shape (n_x,) or (N, n_x).
     - `loss`: the final objective at `theta`, `x0`: C of eq. (5)/(21), plus g(theta) when
-        `fit(constraints=...)` holds a regulariser from `oneshot_jax.sparsity`.
+        `fit(regulariser=...)` holds one from `oneshot_jax.sparsity`.
     - `stop_reason`: a `RESULTS` item; `message` says why in words, `success` whether it
         converged.
     - `num_steps`: the solver steps taken (all solvers of a sequence together).
@@ -197,8 +200,6 @@ class FitResult(eqx.Module):
 
         `(x, z)` as `oneshot_jax.simulate`.
         """
-        from ._simulate import simulate
-
         if self.model is None:
             raise ValueError(
                 "this result holds no model (it was loaded without one): pass "
@@ -225,8 +226,6 @@ class FitResult(eqx.Module):
         A `oneshot_jax.Prediction(z, x, x0, estimate)`; score it with
         `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`.
         """
-        from ._initial_state import _predict
-
         if self.model is None:
             raise ValueError(
                 "this result holds no model (it was loaded without one): pass "
@@ -237,17 +236,47 @@ class FitResult(eqx.Module):
         if kwargs.get("x0") is None and not self.model.observes_state:
             x0 = np.asarray(self.x0)
             kwargs["x0"] = x0 if x0.ndim == 1 else x0.mean(axis=0)
-        return _predict(
+        return predict_impl(
             self.model, self.theta, u, z_head, np.shape(z_head)[0], method, kwargs, stacklevel=3
         )
 
     def save(self, path):
-        """Save to one `.npz` file (see `oneshot_jax.load_result` for the format)."""
-        from ._io import save_result
+        """Save to one `.npz` file (`oneshot_jax.save_result`; read it back with
+        `oneshot_jax.load_result`).
 
-        return save_result(self, path)
+        **Returns:**
+
+        The path written.
+        """
+        return _io.save_result(self, path)
 
     def __str__(self):
         return report(self)
 
     __repr__ = __str__
+
+
+def load_result(path, *, model=None, like=None) -> FitResult:
+    """Load a `FitResult` written by `FitResult.save` (or `save_result`).
+
+    **Arguments:**
+
+    - `path`: the `.npz` file.
+    - `model`: the `Model`, for `FitResult.simulate` (models are not saved).
+    - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
+        equinox modules or other nodes that the file's JSON cannot describe; its
+        non-numeric parts are put back around the loaded arrays.
+
+    **Returns:**
+
+    The `FitResult`, equal to the saved one field by field.
+    """
+    fields = _io.read_result(path, like=like)
+    history = FitHistory(**fields.pop("history"))
+    starts = fields.pop("starts")
+    return FitResult(
+        **fields,
+        history=history,
+        starts=None if starts is None else Starts(**starts),
+        model=model,
+    )

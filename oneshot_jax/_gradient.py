@@ -23,6 +23,10 @@ tail gives the O(T) recursion used everywhere else (the multiplier `lam`):
 since lam_k^T = sum_{tau>=k} Gamma_tau J^{x/x}_tau ... J^{x/x}_{k+1} is exactly the bracket
 that multiplies J^{x/theta}_k in eq. (17), and lam_0 is eq. (20).
 
+The recursion is written once, `oneshot_jax._kernels.reverse_sweep`; the strategy object
+(`oneshot_jax._strategy`) says how a step is applied and how the recursion runs
+(`AbstractStrategy.reverse_sweep`).
+
 On indices: the paper writes the sums of eq. (17) and (20) from k = 1, while C of eq. (5)
 starts at k = 0. With x0 estimated, L_0 depends on x0 directly, so grad_x0 here includes
 the k = 0 term Gamma_0 (an empty Jacobian product); grad_theta is unaffected except
@@ -36,129 +40,40 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data, check_strategy
+from ._checks import check_cost, check_data
+from ._kernels import local_terms
 from ._simulate import rollout, sample_count
-from ._strategy import gradient_strategy, is_parallel, theta_forward_mode
-
-# Up to this length the reverse scan's matrix-vector products are written elementwise.
-_MATVEC_ELEMENTWISE_MAX = 32
+from ._strategy import AbstractStrategy, as_strategy
 
 
-def _matvec(M, v):
-    """M @ v; for a short v as a multiply and a row sum, which XLA:CPU can keep inside a
-    loop that it compiles into a single kernel (a `dot` there runs as a separate call)."""
-    if v.shape[-1] <= _MATVEC_ELEMENTWISE_MAX:
-        return jnp.sum(M * v[None, :], axis=1)
-    return M @ v
+def value_and_grad_of_states(model, cost, theta, xs, u, z, strategy, mask=None, norm=None):
+    """C and (grad_theta C, grad_x0 C) for one trajectory from its states `xs` (T, n_x), by
+    the O(T) recursion above, with C = sum_k T L_k / norm (norm = T by default: eq. 5; the
+    number of time points of all trajectories when `value_and_grad_impl` sums several, or
+    masked ones).
 
-
-def local_terms(model, cost, theta, xs, u, z, mask=None):
-    """sum_k T L_k, every T Gamma_k (eq. 14) and sum_k T gamma_k, by one VJP of the vmapped L_k.
-
-    The pullback of a vmapped function with an unbatched theta sums the per-step gamma_k
-    inside the transposed ops (a weight matrix Q, say, becomes one matrix product).
+    The local terms Gamma_k, gamma_k (eq. 14) are one VJP of the vmapped L_k
+    (`_kernels.local_terms`); the reverse recursion lam_k = Gamma_k + (J^{x/x}_{k+1})^T
+    lam_{k+1} and the theta term sum_k (J^{x/theta}_k)^T lam_k run as the (concrete)
+    `strategy` says (`AbstractStrategy.reverse_sweep`): stacked transposed Jacobians and a
+    reverse scan of small products (`Jacobian()`; for a small theta the scan also
+    accumulates the theta term in forward mode), VJPs of the step inside the scan
+    (`VJP()`), or associative scans (`ParallelInTime()`).
     """
-
-    def total(xs, th):
-        per_step = jax.vmap(cost.local, in_axes=(None, None, 0, 0, 0, 0))(model, th, xs, u, z, mask)
-        return jnp.sum(per_step)
-
-    S, (Gamma, gamma) = jax.value_and_grad(total, argnums=(0, 1))(xs, theta)
-    return S, Gamma, gamma
-
-
-def stacked_jacobians_T(step, theta, xs, us, wrt):
-    """Transposed one-step Jacobians at every (xs[j], us[j]), by forward mode (vmapped JVPs).
-
-    Slice j, row i is the JVP of f(x, us_j, theta) at x = xs[j] along the i-th basis vector
-    of x (`wrt="x"`: slice j is (J^{x/x}_{j+1})^T) or of the flattened theta (`wrt="theta"`:
-    (J^{x/theta}_{j+1})^T). Building the transposes directly saves the moveaxis copies of
-    `jax.jacfwd`, and they are what the reverse recursion multiplies with anyway.
-    """
-    if wrt == "x":
-        basis = jnp.eye(xs.shape[-1], dtype=xs.dtype)
-        push = lambda x, u_j, e: jax.jvp(lambda x: step(x, u_j, theta), (x,), (e,))[1]  # noqa: E731
-    else:
-        flat, unravel = ravel_pytree(theta)
-        basis = jnp.eye(flat.shape[0], dtype=flat.dtype)
-        push = lambda x, u_j, e: jax.jvp(  # noqa: E731
-            lambda th: step(x, u_j, th), (theta,), (unravel(e),)
-        )[1]
-    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: push(x, u_j, e))(basis))(xs, us)
-
-
-def theta_term_vjp(step, theta, xs, us, lam):
-    """sum_j (J^{x/theta}_{j+1})^T lam[j] as one reverse-mode VJP of the vmapped step.
-
-    The sum over steps happens inside the pullback (for a matrix parameter it is one matrix
-    product), so no per-step parameter-sized cotangent is ever materialised.
-    """
-    batched = lambda th: jax.vmap(step, in_axes=(0, 0, None))(xs, us, th)  # noqa: E731
-    return jax.vjp(batched, theta)[1](lam)[0]
-
-
-def one_shot(model, cost, theta, x0, u, z, strategy, mask=None, norm=None):
-    """C and (grad_theta C, grad_x0 C) for one trajectory by the O(T) recursion above,
-    with C = sum_k T L_k / norm (norm = T by default: eq. 5; the number of time points of
-    all trajectories when `value_and_grad_impl` sums several, or masked ones).
-
-    `strategy="jacobian"`: the transposed J^{x/x}_k for all k at once (vmapped forward-mode
-    JVPs) after the forward pass (the paper's Remark 1), then a reverse scan of small
-    matrix-vector products lam_k = Gamma_k^T + (J^{x/x}_{k+1})^T lam_{k+1}. For a small
-    theta the transposed J^{x/theta}_k are stacked the same way and the scan also
-    accumulates sum_k (J^{x/theta}_k)^T lam_k; for a larger theta that sum is one VJP of
-    the vmapped step after the scan.
-    `strategy="vjp"`: each step of the reverse scan takes the VJP of f in x at (x_k, u_k)
-    with lam_{k+1}, never forming J^{x/x}; the theta term is one VJP after the scan.
-    Memory O(T n_x) instead of O(T n_x^2).
-    """
-    T = u.shape[0]
-    n_x = x0.shape[0]
-    xs = rollout(model, theta, x0, u)
+    T = xs.shape[0]
     S, Gamma, gamma = local_terms(model, cost, theta, xs, u, z, mask)
-    strategy = gradient_strategy(strategy, n_x, T, x0.dtype.itemsize)
-    step = model.step
-    x_prev, us = xs[:-1], model.step_inputs(u)  # step j maps x_j to x_{j+1}, j = 0..T-2
-
-    if strategy == "jacobian":
-        # At[j] = (J^{x/x}_{j+1})^T = (d f(x_j, u_j) / d x_j)^T.
-        At = stacked_jacobians_T(step, theta, x_prev, us, "x")
-        flat, unravel = ravel_pytree(theta)
-        if theta_forward_mode(flat.shape[0], n_x, T, x0.dtype.itemsize):
-            # Bt[j] = (J^{x/theta}_{j+1})^T; acc = sum_j Bt[j] lam_{j+1}.
-            Bt = stacked_jacobians_T(step, theta, x_prev, us, "theta")
-
-            def body(carry, inp):
-                lam_next, acc = carry
-                At_j, Bt_j, Gamma_j = inp
-                return (Gamma_j + _matvec(At_j, lam_next), acc + _matvec(Bt_j, lam_next)), None
-
-            init = (Gamma[-1], jnp.zeros(flat.shape, jnp.result_type(flat, Bt)))
-            (lam0, acc), _ = jax.lax.scan(body, init, (At, Bt, Gamma[:-1]), reverse=True)
-            theta_term = unravel(acc.astype(flat.dtype))
-        else:
-
-            def body(lam_next, inp):
-                At_j, Gamma_j = inp
-                return Gamma_j + _matvec(At_j, lam_next), lam_next
-
-            lam0, lam_next = jax.lax.scan(body, Gamma[-1], (At, Gamma[:-1]), reverse=True)
-            theta_term = theta_term_vjp(step, theta, x_prev, us, lam_next)
-    elif strategy == "vjp":
-
-        def body(lam_next, inp):
-            x_j, u_j, Gamma_j = inp
-            _, vjp_x = jax.vjp(lambda x: step(x, u_j, theta), x_j)
-            return Gamma_j + vjp_x(lam_next)[0], lam_next
-
-        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (x_prev, us, Gamma[:-1]), reverse=True)
-        theta_term = theta_term_vjp(step, theta, x_prev, us, lam_next)
-    else:
-        raise ValueError(f"unknown strategy {strategy!r}")
-
+    lam0, theta_term = strategy.reverse_sweep(model, theta, xs, u, Gamma)
     norm = T if norm is None else norm
     grad_theta = jax.tree_util.tree_map(lambda a, b: (a + b) / norm, gamma, theta_term)
     return S / norm, (grad_theta, lam0 / norm)
+
+
+def one_shot(model, cost, theta, x0, u, z, strategy, mask=None, norm=None):
+    """C and (grad_theta C, grad_x0 C) for one trajectory: the states as the strategy
+    (resolved for this trajectory) rolls them out, then `value_and_grad_of_states`."""
+    strategy = as_strategy(strategy).resolve(x0.shape[0], u.shape[0], x0.dtype.itemsize)
+    xs = strategy.states(model, theta, x0, u)
+    return value_and_grad_of_states(model, cost, theta, xs, u, z, strategy, mask, norm)
 
 
 @eqx.filter_jit
@@ -166,18 +81,7 @@ def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy, mask=No
     """Jitted `value_and_grad` on validated inputs (used by `fit`): the one-shot recursion
     per trajectory, each normalised by the number of time points of all of them."""
     norm = sample_count(u, mask, x0.dtype)
-    if is_parallel(strategy, u.shape[-2]):
-        from ._parallel import parallel_value_and_grad, report
-
-        def fn(x0, u, z, m):
-            out, info = parallel_value_and_grad(
-                model, cost, theta, x0, u, z, mask=m, norm=norm, with_info=True
-            )
-            report(info)
-            return out
-
-    else:
-        fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
+    fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
     if not batched:
         return fn(x0, u, z, mask)
     C, (g_theta, g_x0) = jax.vmap(fn)(x0, u, z, mask)
@@ -195,7 +99,7 @@ def value_and_grad(
     weight: Float[ArrayLike, " n_z"] | Float[ArrayLike, "n_z n_z"] | None = None,
     penalty=None,
     penalty_weight: float = 1.0,
-    strategy: str = "auto",
+    strategy: str | AbstractStrategy = "auto",
     missing: str = "raise",
 ) -> tuple[Float[Array, ""], tuple[PyTree, Float[Array, "*N n_x"]]]:
     """The cost C of eq. (5)/(21) and its one-shot closed-form gradient, eq. (17) and (20).
@@ -210,13 +114,14 @@ def value_and_grad(
 
     - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`:
         as for `loss`.
-    - `strategy`: `"jacobian"` (stacked J^{x/x}_k by vmap, best for small n_x), `"vjp"`
-        (VJPs inside the reverse scan, memory O(T n_x), for large states), `"parallel"`
-        (parallel in time: the rollout by Newton iterations with associative scans and
-        the recursion as an associative scan, for GPUs and TPUs; a rollout that does not
-        converge falls back to the sequential loop, with a warning) or `"auto"`
-        (parallel on a GPU or TPU for T >= 512, else jacobian for n_x <= 16 when the
-        stacked Jacobians fit in 256 MiB, else vjp).
+    - `strategy`: `Jacobian()` / `"jacobian"` (stacked J^{x/x}_k by vmap, best for small
+        n_x), `VJP()` / `"vjp"` (VJPs inside the reverse scan, memory O(T n_x), for large
+        states), `ParallelInTime(...)` / `"parallel"` (parallel in time: the rollout by
+        Newton iterations with associative scans and the recursion as an associative
+        scan, for GPUs and TPUs; a rollout that does not converge falls back to the
+        sequential loop, with a warning) or `Auto()` / `"auto"` (parallel on a GPU or TPU
+        for T >= 512, else jacobian for n_x <= 16 when the stacked Jacobians fit in
+        256 MiB, else vjp).
 
     **Returns:**
 
@@ -227,7 +132,7 @@ def value_and_grad(
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
-    strategy = check_strategy(strategy)
+    strategy = as_strategy(strategy)
     return value_and_grad_impl(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
     )

@@ -37,17 +37,6 @@ def init(size, n_starts, n_theta, dtype) -> History:
     )
 
 
-def _write(h: History, step, loss, grad_norm, theta) -> History:
-    i = h.count
-    return h._replace(
-        loss=h.loss.at[i].set(loss),
-        grad_norm=h.grad_norm.at[i].set(grad_norm),
-        theta=h.theta.at[i].set(theta),
-        step=h.step.at[i].set(step),
-        count=i + 1,
-    )
-
-
 def _compact(h: History) -> History:
     """Keep rows 0, 2, 4, ... (steps that are multiples of 2 stride) and double the stride."""
     size = h.step.shape[0]
@@ -69,7 +58,14 @@ def _compact(h: History) -> History:
 def first(h: History, loss, grad_norm, theta) -> History:
     """`record` at step 0 of an empty buffer: row 0, no stride test and no thinning to
     trace (a buffer of size >= 2 cannot be full after one row)."""
-    return _write(h, jnp.array(0, jnp.int32), loss, grad_norm, theta)
+    i = h.count
+    return h._replace(
+        loss=h.loss.at[i].set(loss),
+        grad_norm=h.grad_norm.at[i].set(grad_norm),
+        theta=h.theta.at[i].set(theta),
+        step=h.step.at[i].set(jnp.array(0, jnp.int32)),
+        count=i + 1,
+    )
 
 
 def record(h: History, step, loss, grad_norm, theta) -> History:

@@ -1,12 +1,14 @@
 """The initial state of a new record from its first samples, and prediction from it.
 
 A fitted model used on a record it has never seen needs that record's x0. `estimate_x0`
-takes it from the head of the record (MATLAB's `findstates`): by Gauss-Newton on x0 alone
-(`fit` with every parameter fixed, so the closed-form sensitivities of eq. (20)'s forward
-twin give the Jacobian), or by an extended Kalman filter and Rauch-Tung-Striebel smoother.
-`predict` then simulates the whole record from it, which is the community's benchmark
-protocol: the model may use the test input and the first n test outputs, and is scored on
-the rest (`oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`).
+takes it from the head of the record (MATLAB's `findstates`): by least squares on x0
+alone (`oneshot_jax._x0_lsq`: the solvers of `fit` with every parameter fixed, so the
+closed-form sensitivities of eq. (20)'s forward twin give the Jacobian), or by an extended
+Kalman filter and Rauch-Tung-Striebel smoother (`oneshot_jax._x0_smoother`). `predict`
+then simulates the whole record from it, which is the community's benchmark protocol: the
+model may use the test input and the first n test outputs, and is scored on the rest
+(`oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`). This module holds the public
+functions, their checks and results, and the observability check of an estimate.
 """
 
 import warnings
@@ -15,41 +17,18 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import as_float, check_data
+from ._checks import check_data
 from ._cost import weigh
-from ._fit import fit
-from ._linalg import identifiable, psd_solve
+from ._linalg import identifiable
 from ._results import RESULTS, is_success
 from ._simulate import outputs, rollout, simulate_impl
-from ._solver import GaussNewton
+from ._x0_lsq import solve_x0
+from ._x0_smoother import KalmanPath, kalman_path
 
 METHODS = ("lsq", "smoother")
-
-# Defaults of the smoother, relative to the scales of the head (see `estimate_x0`).
-MEASUREMENT_NOISE_REL = 1e-2
-PROCESS_NOISE_REL = 1e-3
-PRIOR_STD_REL = 1e2
-
-
-class KalmanPath(eqx.Module):
-    """The states over the head from the extended Kalman filter and the RTS smoother.
-
-    **Fields:**
-
-    - `filtered_mean`, `filtered_covariance`: x[k | k] (n, n_x) and P[k | k] (n, n_x, n_x),
-        given z[0..k].
-    - `smoothed_mean`, `smoothed_covariance`: x[k | n-1] and P[k | n-1], given the whole
-        head; `smoothed_mean[0]` is the estimate of x0.
-    """
-
-    filtered_mean: np.ndarray
-    filtered_covariance: np.ndarray
-    smoothed_mean: np.ndarray
-    smoothed_covariance: np.ndarray
 
 
 class X0Estimate(eqx.Module):
@@ -136,40 +115,8 @@ def _check_head(u, z, n):
     return n
 
 
-def _covariance_arg(value, size, name, *, definite):
-    """A covariance from a scalar (times I), a vector (its diagonal) or a matrix (symmetric,
-    positive semi-definite, or definite where `definite`)."""
-    a = np.asarray(as_float(value, name), dtype=np.float64)
-    if a.shape == ():
-        a = np.full(size, float(a))
-    if a.shape == (size,):
-        a = np.diag(a)
-    if a.shape != (size, size):
-        raise ValueError(
-            f"`{name}` must be a scalar, a ({size},) vector of variances or a ({size}, {size}) "
-            f"covariance matrix, got shape {np.shape(value)}."
-        )
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"`{name}` contains NaN or inf values.")
-    scale = max(float(np.max(np.abs(a))), 1e-300)
-    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-12 * scale):
-        raise ValueError(f"`{name}` must be a symmetric matrix.")
-    low = float(np.min(np.linalg.eigvalsh(a)))
-    if definite and low <= 0:
-        raise ValueError(f"`{name}` must be positive definite (variances > 0).")
-    if low < -1e-10 * scale:
-        raise ValueError(f"`{name}` must be positive semi-definite (variances >= 0).")
-    return 0.5 * (a + a.T)
-
-
-def _rms(a, axis=0):
-    """Root-mean-square per column, with 1 where it is zero or not finite."""
-    s = np.sqrt(np.mean(np.square(np.asarray(a, np.float64)), axis=axis))
-    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
-
-
 #
-# The two methods.
+# Observability of the estimate.
 #
 
 
@@ -203,113 +150,6 @@ def _observable(data):
     )
 
 
-def _lsq(model, theta, x0, u, z, weight, solver, missing="raise"):
-    """x0 alone by `fit` (every parameter fixed): one trajectory or N at once (x0 (N, n_x),
-    u (N, n, n_u), z (N, n, n_z)). fit's "not identifiable" warning is left to the caller,
-    which says what it means for an initial state."""
-    solver = GaussNewton() if solver is None else solver
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = fit(
-            model, theta, x0, u, z, fixed=True, weight=weight, solver=solver, missing=missing
-        )
-    for w in caught:
-        if "not identifiable" not in str(w.message):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return result
-
-
-@eqx.filter_jit
-def _smooth(model, theta, m0, P0, Qp, R, u, z):
-    """Extended Kalman filter and Rauch-Tung-Striebel smoother over one head.
-
-    Model: x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
-    v_k ~ N(0, R); x[0] ~ N(m0, P0). f and g are linearised by `jax.jacfwd` at the filtered
-    and predicted means (Särkkä 2013, Algorithm 5.4); the backward pass is the extended
-    RTS smoother (ibid., Chapter 9; Theorem 8.2 for the linear case):
-
-        G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
-        P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
-    """
-    eye = jnp.eye(m0.shape[0], dtype=m0.dtype)
-
-    def update(m, P, u_k, z_k):
-        H = jax.jacfwd(model.observe)(m, u_k, theta)
-        S = H @ P @ H.T + R
-        Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
-        m = m + Kt.T @ (z_k - model.observe(m, u_k, theta))
-        A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
-        P = A @ P @ A.T + Kt.T @ R @ Kt
-        return m, 0.5 * (P + P.T)
-
-    def forward(carry, inp):
-        m, P = carry
-        u_k, z_k, u_step = inp
-        mf, Pf = update(m, P, u_k, z_k)
-        F = jax.jacfwd(model.step)(mf, u_step, theta)
-        Pp = F @ Pf @ F.T + Qp
-        mp = model.step(mf, u_step, theta)
-        return (mp, 0.5 * (Pp + Pp.T)), (mf, Pf, mp, Pp, F)
-
-    n = u.shape[0]
-    (m, P), (mf, Pf, mp, Pp, F) = jax.lax.scan(
-        forward, (m0, P0), (u[: n - 1], z[: n - 1], model.step_inputs(u))
-    )
-    m_last, P_last = update(m, P, u[n - 1], z[n - 1])
-
-    def backward(carry, inp):
-        ms, Ps = carry
-        mf, Pf, mp, Pp, F = inp
-        G = psd_solve(Pp, F @ Pf).T  # P[k|k] F^T P[k+1|k]^+ (P symmetric)
-        ms = mf + G @ (ms - mp)
-        Ps = Pf + G @ (Ps - Pp) @ G.T
-        Ps = 0.5 * (Ps + Ps.T)
-        return (ms, Ps), (ms, Ps)
-
-    _, (ms, Ps) = jax.lax.scan(backward, (m_last, P_last), (mf, Pf, mp, Pp, F), reverse=True)
-    filtered = (jnp.concatenate([mf, m_last[None]]), jnp.concatenate([Pf, P_last[None]]))
-    smoothed = (jnp.concatenate([ms, m_last[None]]), jnp.concatenate([Ps, P_last[None]]))
-    return filtered, smoothed
-
-
-def _smoother_defaults(
-    data, observes_state, guess, process_noise, measurement_noise, prior_covariance
-):
-    """The covariances of the smoother, defaults from the scales of the head."""
-    n_x, n_z = guess.shape[0], data.n_z
-    z = np.asarray(data.z)
-    s_z = _rms(z)
-    if observes_state:
-        s_x = s_z
-    else:
-        xs, _ = simulate_impl(data.model, data.theta, jnp.asarray(guess), data.u, False)
-        xs = np.asarray(xs, np.float64)
-        s_x = _rms(xs) if np.all(np.isfinite(xs)) else _rms(guess[None])
-    if measurement_noise is not None:
-        R = _covariance_arg(measurement_noise, n_z, "measurement_noise", definite=True)
-    elif data.weight is not None:
-        w = np.asarray(data.weight, np.float64)
-        ok = np.all(w > 0) if w.ndim == 1 else np.min(np.linalg.eigvalsh(w)) > 0
-        if not ok:
-            raise ValueError(
-                "the smoother reads `weight` as the inverse of the measurement noise "
-                "covariance, which needs a positive definite weight; give "
-                "`measurement_noise` for a singular one."
-            )
-        R = np.diag(1.0 / w) if w.ndim == 1 else np.linalg.inv(w)
-    else:
-        R = np.diag((MEASUREMENT_NOISE_REL * s_z) ** 2)
-    if process_noise is not None:
-        Qp = _covariance_arg(process_noise, n_x, "process_noise", definite=False)
-    else:
-        Qp = np.diag((PROCESS_NOISE_REL * s_x) ** 2)
-    if prior_covariance is not None:
-        P0 = _covariance_arg(prior_covariance, n_x, "prior_covariance", definite=True)
-    else:
-        P0 = np.diag((PRIOR_STD_REL * s_x) ** 2)
-    return P0, Qp, R
-
-
 #
 # Public functions.
 #
@@ -334,8 +174,8 @@ def estimate_x0(
     `findstates`), with theta known.
 
     - `method="lsq"` minimises the head's multi-step cost C of eq. (5) over x0 alone by
-        Gauss-Newton on the closed-form Jacobian: `fit(model, theta, x0, u[:n], z[:n],
-        fixed=True, solver=GaussNewton())`. For a deterministic model it is the
+        Gauss-Newton on the closed-form Jacobian, with the numbers of `fit(model, theta,
+        x0, u[:n], z[:n], fixed=True, solver=GaussNewton())`. For a deterministic model it is the
         maximum-likelihood x0 (the least-squares solution; with a nonlinear model, the
         local one nearest the starting guess). Directions of x0 that the head's outputs do
         not determine get no step (pseudo-inverse): they keep their starting value, so
@@ -458,30 +298,19 @@ def _estimate(
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
     data = check_data(model, theta, x0, u, z, weight)
     guess = np.asarray(data.x0)
-    n_x = guess.shape[0]
 
     stop_reason, kalman, e = None, None, None
     if method == "lsq":
-        r = _lsq(data.model, data.theta, guess, data.u, data.z, data.weight, solver)
-        x0_hat = np.asarray(r.x0)
-        cov = np.asarray(r.x0_covariance, np.float64)
+        r = solve_x0(data, solver)
+        x0_hat = r.x0[0]
+        cov = np.asarray(r.covariance[0], np.float64)
         loss = np.asarray(r.loss)
         stop_reason = r.stop_reason
-        e = np.asarray(r.residuals)  # the head simulated from x0_hat, minus z
+        e = r.residuals[0]  # the head simulated from x0_hat, minus z
     else:
-        P0, Qp, R = _smoother_defaults(
-            data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
+        kalman = kalman_path(
+            data, model.observes_state, process_noise, measurement_noise, prior_covariance
         )
-        dtype = data.x0.dtype
-        (mf, Pf), (ms, Ps) = _smooth(
-            data.model,
-            data.theta,
-            jnp.asarray(guess),
-            *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
-            jnp.asarray(data.u),
-            jnp.asarray(data.z),
-        )
-        kalman = KalmanPath(*(np.asarray(a) for a in (mf, Pf, ms, Ps)))
         x0_hat = kalman.smoothed_mean[0]
         cov = np.asarray(kalman.smoothed_covariance[0], np.float64)
         loss = None
@@ -528,7 +357,6 @@ def _estimate(
             stacklevel=stacklevel,
         )
     std = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
-    del n_x
     return X0Estimate(
         x0=x0_hat,
         covariance=cov,
@@ -579,10 +407,12 @@ def predict(
     scores = oneshot_jax.metrics.benchmark_scores(test.y, pred.z, test.n)
     ```
     """
-    return _predict(model, theta, u, z, n, method, kwargs, stacklevel=3)
+    return predict_impl(model, theta, u, z, n, method, kwargs, stacklevel=3)
 
 
-def _predict(model, theta, u, z, n, method, kwargs, *, stacklevel):
+def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel):
+    """`predict`, with its warnings attributed `stacklevel` frames up (`FitResult.predict`
+    calls it too)."""
     n = _check_head(u, z, n)
     options = dict(
         x0=None,
@@ -605,32 +435,3 @@ def _predict(model, theta, u, z, n, method, kwargs, *, stacklevel):
     data = check_data(model, theta, est.x0, u)
     x, zhat = simulate_impl(data.model, data.theta, data.x0, data.u, False)
     return Prediction(np.asarray(zhat), np.asarray(x), est.x0, est)
-
-
-def window_starts(data, u_w, z_w, mask_w=None):
-    """Each window's starting state from its own samples with theta0, for `fit(window=)`
-    on a partly observed state: x0-only Gauss-Newton on all windows at once (one batched
-    `fit`), from the record's x0 as the guess; the first window keeps the given x0."""
-    N = u_w.shape[0]
-    guess = np.broadcast_to(np.asarray(data.x0), (N, np.shape(data.x0)[-1]))
-    if mask_w is not None:  # missing samples: NaN again, masked by the x0-only fit
-        z_w = np.where(np.asarray(mask_w.outputs) > 0, z_w, np.nan)
-    missing = "raise" if mask_w is None else "mask"
-    r = _lsq(data.model, data.theta, guess, u_w, z_w, data.weight, None, missing)
-    e = np.asarray(r.residuals)
-    observed = np.ones(e.shape, bool) if mask_w is None else np.asarray(mask_w.outputs) > 0
-    finite = np.all(np.isfinite(e) | ~observed, axis=(1, 2)) & np.all(
-        np.isfinite(np.asarray(r.x0)), axis=1
-    )
-    if not np.all(finite):
-        bad = [int(i) for i in np.flatnonzero(~finite)]
-        raise ValueError(
-            f"theta0 makes the model blow up (NaN or inf) within windows {bad} of "
-            f"{u_w.shape[1]} samples: each window's starting state is estimated from its "
-            "own samples by simulating it with theta0. Start from parameters that keep the "
-            "model stable over a window, use shorter windows, or give each window's "
-            f"starting state as `x0` of shape ({N}, {guess.shape[1]})."
-        )
-    x0_w = np.array(r.x0, dtype=np.asarray(data.x0).dtype)
-    x0_w[0] = np.asarray(data.x0)
-    return x0_w

@@ -1,4 +1,8 @@
-"""Saving and loading a `FitResult`: one `.npz` file, documented format, versioned.
+"""The file of a saved `FitResult`: one `.npz` file, documented format, versioned.
+
+`save_result` writes it; `read_result` reads the fields back, from which
+`oneshot_jax.load_result` builds the `FitResult` (`oneshot_jax._fit_result`: this module
+comes below the data classes it saves, so that `FitResult.save` can call it).
 
 The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle):
 
@@ -34,7 +38,6 @@ import jax
 import numpy as np
 
 from . import _pytree
-from ._fit_result import FitHistory, FitResult, Starts
 from ._results import from_name, name_of
 
 FORMAT = "oneshot_jax.FitResult"
@@ -113,8 +116,14 @@ def _leaves(tree):
     return [np.asarray(a) for a in jax.tree_util.tree_leaves(tree)]
 
 
-def save_result(result: FitResult, path):
-    """Write `result` to `path` (a `.npz` file; the suffix is added when missing).
+def save_result(result, path):
+    """Save a `FitResult` to one `.npz` file (NumPy arrays and a JSON header, no pickle),
+    the same as `result.save(path)`; `load_result` reads it back.
+
+    **Arguments:**
+
+    - `result`: the `FitResult`.
+    - `path`: the file; the suffix `.npz` is added when missing.
 
     **Returns:**
 
@@ -214,21 +223,10 @@ def _read_arrays(path):
     return arrays
 
 
-def load_result(path, *, model=None, like=None) -> FitResult:
-    """Load a `FitResult` written by `FitResult.save`.
-
-    **Arguments:**
-
-    - `path`: the `.npz` file.
-    - `model`: the `Model`, for `FitResult.simulate` (models are not saved).
-    - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
-        equinox modules or other nodes that the file's JSON cannot describe; its
-        non-numeric parts are put back around the loaded arrays.
-
-    **Returns:**
-
-    The `FitResult`, equal to the saved one field by field.
-    """
+def read_result(path, *, like=None) -> dict:
+    """The fields of the `FitResult` saved at `path` (`load_result` builds it), with
+    `history` and `starts` as dicts of the fields of a `FitHistory` and a `Starts` (or
+    None), and without the model. `like` as for `load_result`."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"`path`: no saved result at {path}.")
@@ -281,7 +279,7 @@ def load_result(path, *, model=None, like=None) -> FitResult:
         )
 
     try:
-        return _result(arrays, meta, group, build, static, model)
+        return _fields(arrays, meta, group, build, static)
     except KeyError as err:
         raise _damaged(path, f"it lacks the entry {err.args[0]!r}") from err
     except (IndexError, TypeError, ValueError, AttributeError) as err:
@@ -290,10 +288,10 @@ def load_result(path, *, model=None, like=None) -> FitResult:
         ) from err
 
 
-def _result(arrays, meta, group, build, static, model) -> FitResult:
-    """The `FitResult` of a file's arrays and metadata."""
+def _fields(arrays, meta, group, build, static) -> dict:
+    """The fields of the `FitResult` of a file's arrays and metadata."""
     params = build(group("theta/"), whole=True)
-    history = FitHistory(
+    history = dict(
         loss=arrays["history/loss"],
         grad_norm=arrays["history/grad_norm"],
         theta=build(group("history/theta/")),
@@ -306,12 +304,12 @@ def _result(arrays, meta, group, build, static, model) -> FitResult:
     }
     starts = None
     if meta["starts_stop_reason"] is not None:
-        starts = Starts(
+        starts = dict(
             theta=build(group("starts/theta/")),
             loss=arrays["starts/loss"],
             stop_reason=tuple(meta["starts_stop_reason"]),
         )
-    return FitResult(
+    return dict(
         theta=_pytree.combine(params, static),
         x0=arrays["x0"],
         loss=arrays["loss"],
@@ -331,7 +329,6 @@ def _result(arrays, meta, group, build, static, model) -> FitResult:
         starts=starts,
         best=int(meta["best"]),
         solver=tuple(meta["solver"]),
-        model=model,
         diagnostics=dict(meta.get("diagnostics") or {}),
         stop_info=dict(meta.get("stop_info") or {}),
         theta_order=tuple(meta.get("theta_order") or ()),

@@ -6,7 +6,7 @@ Fixed entries are constants inside `FitProblem.theta_of` / `FitProblem.x0_of`, s
 removed from the variables rather than masked (a masked variable leaves a singular
 Jacobian).
 
-A fit with a proximal regulariser g (`oneshot_jax.sparsity`, passed in `constraints=`)
+A fit with a proximal regulariser g (`oneshot_jax.sparsity`, passed in `regulariser=`)
 minimises C + g(theta). g is written on the user's theta; `FitProblem.prox` applies its
 proximal map to the free entries with per-coordinate steps (zero on the fixed entries,
 which a prox with a zero step leaves unchanged).
@@ -34,7 +34,7 @@ from ._sensitivity import (
     trajectory_residuals,
 )
 from ._simulate import loss_impl, sample_count
-from ._strategy import is_parallel, sensitivity_strategy
+from ._strategy import as_strategy
 
 
 class Params(NamedTuple):
@@ -193,28 +193,10 @@ class FitProblem(eqx.Module):
         N, T = self.u.shape[:2]
         n_x = self.x0_base.shape[1]
         n_cols = params.theta.shape[0] + x0_free.size
-        parallel = is_parallel(strategy, T)
-        strategy = sensitivity_strategy(strategy, N, n_x, n_cols, T, self.dtype.itemsize)
+        # The strategy for the whole batch (`Auto` counts the work of all N trajectories).
+        strategy = as_strategy(strategy).resolve(n_x, T, self.dtype.itemsize, N, n_cols)
 
         def fn(base, p, u, z, m):
-            if parallel:
-                from ._parallel import parallel_sensitivities, report
-
-                lin, info = parallel_sensitivities(
-                    self.model,
-                    cost,
-                    self.theta_of,
-                    params.theta,
-                    lambda q: base.at[x0_free].set(q),
-                    p,
-                    u,
-                    z,
-                    scale=self._scale(),
-                    mask=m,
-                    with_info=True,
-                )
-                report(info)
-                return lin
             return trajectory_jacobian(
                 self.model,
                 cost,

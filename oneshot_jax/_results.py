@@ -1,6 +1,7 @@
 """Why a fit stopped: one enumeration whose members carry their messages."""
 
 import equinox as eqx
+import jax
 import numpy as np
 
 
@@ -52,23 +53,40 @@ class RESULTS(eqx.Enumeration):
 SUCCESS = ("converged", "zero_residual", "tol_loss", "tol_grad")
 
 
+def _index(item) -> int:
+    """The integer of a concrete enumeration item: its one pytree leaf."""
+    (value,) = jax.tree_util.tree_leaves(item)
+    return int(np.asarray(value))
+
+
+def _members(enumeration) -> dict:
+    """An equinox enumeration's items by name, in the order they are declared.
+
+    Equinox (0.13) has no public way to list them: they are kept in the class's
+    `_name_to_item` (equinox/_enum.py). This is the one read of that private attribute;
+    an item's integer is read through the public pytree API (`_index`)."""
+    return dict(enumeration._name_to_item)
+
+
+_BY_NAME = _members(RESULTS)
+_BY_INDEX = {_index(item): item for item in _BY_NAME.values()}
+_NAME_BY_INDEX = {_index(item): name for name, item in _BY_NAME.items()}
+
+
 def name_of(item) -> str:
     """The member name of a concrete `RESULTS` item (e.g. "converged")."""
-    value = int(np.asarray(item._value))
-    for name, member in RESULTS._name_to_item.items():
-        if int(np.asarray(member._value)) == value:
-            return name
-    raise ValueError(f"not a RESULTS item: {item!r}")
+    name = _NAME_BY_INDEX.get(_index(item))
+    if name is None:
+        raise ValueError(f"not a RESULTS item: {item!r}")
+    return name
 
 
 def from_name(name: str):
     """The `RESULTS` item called `name`."""
     try:
-        return RESULTS._name_to_item[name]
+        return _BY_NAME[name]
     except KeyError:
-        raise ValueError(
-            f"unknown stop reason {name!r}; valid: {', '.join(RESULTS._name_to_item)}."
-        ) from None
+        raise ValueError(f"unknown stop reason {name!r}; valid: {', '.join(_BY_NAME)}.") from None
 
 
 def is_success(item) -> bool:
@@ -77,12 +95,7 @@ def is_success(item) -> bool:
 
 def from_index(index: int):
     """The `RESULTS` item with integer value `index`."""
-    if not _BY_INDEX:
-        _BY_INDEX.update((int(np.asarray(m._value)), m) for m in RESULTS._name_to_item.values())
     member = _BY_INDEX.get(int(index))
     if member is None:
         raise ValueError(f"no RESULTS item has index {index}.")
     return member
-
-
-_BY_INDEX: dict = {}

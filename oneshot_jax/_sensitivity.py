@@ -22,6 +22,11 @@ O(T n_x^2 (n_theta + n_x0)) with formed Jacobians (O(T n_x (n_theta + n_x0)) JVP
 matrix-free) and gives every row of the Jacobian, which is what Gauss-Newton needs; the
 reverse recursion of `value_and_grad` gives one row-sum (the gradient) in O(T n_x^2).
 
+The sensitivity recursion is written once, `oneshot_jax._kernels.forward_sweep` (and the
+reverse one, `_kernels.reverse_sweep`); the strategy object (`oneshot_jax._strategy`)
+says how a step is applied and how the recursion runs (`AbstractStrategy.sensitivities`,
+`tangents`, `reverse_sweep`).
+
 For a large theta the Jacobian is not formed: `residual_jvp` (J v, the recursion above
 with one column) and `residual_vjp` (J^T w, the one-shot reverse recursion of eq. 17/20
 with the output cotangents w in place of dL/dx) are the matrix-free products of the
@@ -35,12 +40,9 @@ import jax
 import jax.numpy as jnp
 
 from ._cost import weigh
-from ._gradient import stacked_jacobians_T, theta_term_vjp
+from ._kernels import push
 from ._simulate import outputs, rollout, states
-from ._strategy import JACOBIAN_MAX_NX, gradient_strategy, sensitivity_strategy
-
-# Up to this state size the scan's A @ S is written elementwise (see `_matmul`).
-_MATMUL_ELEMENTWISE_MAX = JACOBIAN_MAX_NX
+from ._strategy import as_strategy
 
 
 class Linearisation(NamedTuple):
@@ -82,7 +84,7 @@ def trajectory_residuals(model, cost, theta, x0, u, z, *, scale, mask=None, stra
 
 
 def trajectory_jacobian(
-    model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, scale, strategy, mask=None
+    model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, scale, strategy, mask=None, xs=None
 ):
     """The `Linearisation` of one trajectory's residuals in its free variables.
 
@@ -91,17 +93,20 @@ def trajectory_jacobian(
     the columns are exactly the free variables.
 
     Masked entries (a `Mask`) are zero rows. `strategy` picks how the sensitivity recursion
-    S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0] is evaluated (see `_strategy`): `"jacobian"`
-    forms every J^{x/x}_k and J^{x/theta}_k at once after the forward pass (vmapped
-    forward mode, the paper's Remark 1) and the scan is left with small matrix products;
-    `"vjp"` (matrix-free) pushes the columns of S_k through the step as JVPs inside the
-    scan, never forming J^{x/x} (a banded or sparse step costs what its JVP costs), and
-    stores only the output rows J^{z/x}_k S_k, not S_k.
+    S_{k+1} = J^{x/x} S_k + [J^{x/theta}, 0] is evaluated (`AbstractStrategy.sensitivities`,
+    the recursion itself is `_kernels.forward_sweep`): `Jacobian()` forms every J^{x/x}_k
+    and J^{x/theta}_k at once after the forward pass (vmapped forward mode, the paper's
+    Remark 1) and the scan is left with small matrix products; `VJP()` (matrix-free)
+    pushes the columns of S_k through the step as JVPs inside the scan, never forming
+    J^{x/x} (a banded or sparse step costs what its JVP costs), and stores only the
+    output rows J^{z/x}_k S_k, not S_k; `ParallelInTime()` runs the recursion as an
+    associative scan. `xs`: the states, if already known (not with `VJP()`, which rolls
+    them out inside its scan).
     """
     x0 = x0_of(p_x0)
+    theta = theta_of(p_theta)
     n_t, n_s = p_theta.shape[0], p_x0.shape[0]
     n_x = x0.shape[0]
-    us = model.step_inputs(u)
     f_theta = lambda x, u_k, p: model.step(x, u_k, theta_of(p))  # noqa: E731
     # S_0 = d x0 / d (p_theta, p_x0) = [0, d x0/d p_x0]
     S0 = jnp.concatenate([jnp.zeros((n_x, n_t), x0.dtype), jax.jacfwd(x0_of)(p_x0)], axis=1)
@@ -110,38 +115,8 @@ def trajectory_jacobian(
     emit = emitter(model, cost, theta_of, p_theta, E)
 
     # One trajectory here; `FitProblem.jacobian` resolves "auto" for its whole batch.
-    strategy = sensitivity_strategy(strategy, 1, n_x, n_t + n_s, u.shape[0], x0.dtype.itemsize)
-    if strategy == "jacobian":
-        xs = rollout(model, theta_of(p_theta), x0, u)
-        A, B = jax.vmap(jax.jacfwd(f_theta, argnums=(0, 2)), in_axes=(0, 0, None))(
-            xs[:-1], us, p_theta
-        )
-        B = jnp.concatenate([B, jnp.zeros((*B.shape[:2], n_s), B.dtype)], axis=2)
-
-        def body(S, AB):
-            S_next = _matmul(AB[0], S) + AB[1]
-            return S_next, S_next
-
-        _, Ss = jax.lax.scan(body, S0, (A, B))
-        Ss = jnp.concatenate([S0[None], Ss], axis=0)
-        outs = jax.vmap(emit)(xs, u, Ss)
-    elif strategy == "vjp":
-        # Each step emits the outputs of (x_k, S_k), then advances: only the (n_z, columns)
-        # rows are stored, never S_k.
-        def body(carry, inp):
-            x, S = carry
-            u_step, u_k = inp
-            out = emit(x, u_k, S)
-            return _push(lambda x, p: f_theta(x, u_step, p), x, p_theta, S, E), out
-
-        (x_last, S_last), outs = jax.lax.scan(body, (x0, S0), (us, u[:-1]))
-        last = emit(x_last, u[-1], S_last)
-        outs = jax.tree_util.tree_map(
-            lambda a, b: jnp.concatenate([a, b[None]], axis=0), outs, last
-        )
-    else:
-        raise ValueError(f"unknown strategy {strategy!r}")
-
+    strategy = as_strategy(strategy).resolve(n_x, u.shape[0], x0.dtype.itemsize, 1, n_t + n_s)
+    outs = strategy.sensitivities(model, theta, f_theta, p_theta, x0, S0, E, u, emit, xs)
     return rows(outs, z, cost, scale, mask, n_t, n_s)
 
 
@@ -180,10 +155,10 @@ def emitter(model, cost, theta_of, p_theta, E):
         return model.observe(x, u_k, theta_of(p))
 
     def emit(x, u_k, S):
-        out = _push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
+        out = push(lambda x, p: g_theta(x, u_k, p), x, p_theta, S, E)
         if cost.penalty is None:
             return out
-        return (*out, *_push(lambda x, p: cost.penalty(x, theta_of(p)), x, p_theta, S, E))
+        return (*out, *push(lambda x, p: cost.penalty(x, theta_of(p)), x, p_theta, S, E))
 
     return emit
 
@@ -194,20 +169,6 @@ def _weigh_jac(Je, sqrt_q):
     if sqrt_q.ndim == 1:
         return Je * sqrt_q[None, :, None]
     return jnp.einsum("ij,kjp->kip", sqrt_q, Je)
-
-
-def _push(fn, x, p, S, E):
-    """fn(x, p) and its directional derivatives along the columns (S[:, j], E[:, j]):
-    J^{fn/x} S + J^{fn/p} E by one vmapped JVP, with the columns last."""
-    return jax.vmap(lambda s, e: jax.jvp(fn, (x, p), (s, e)), in_axes=1, out_axes=(None, -1))(S, E)
-
-
-def _matmul(A, S):
-    """A @ S; for a small A as a broadcast multiply and a sum, which XLA:CPU compiles into
-    the scan's single loop kernel (a `dot` there runs as a separate call per step)."""
-    if A.shape[-1] <= _MATMUL_ELEMENTWISE_MAX:
-        return jnp.sum(A[:, :, None] * S[None, :, :], axis=1)
-    return A @ S
 
 
 #
@@ -226,8 +187,9 @@ class Trajectory(NamedTuple):
 
 
 def product_strategy(strategy, n_x, T, itemsize):
-    """The strategy of `linearise_trajectory` and the products (that of the gradient)."""
-    return gradient_strategy(strategy, n_x, T, itemsize)
+    """The strategy of `linearise_trajectory` and the products (that of the gradient, and
+    sequential: the conjugate-gradient solve does not run with `ParallelInTime()`)."""
+    return as_strategy(strategy).resolve(n_x, T, itemsize, sequential=True)
 
 
 def linearise_trajectory(model, theta, x0, u, strategy) -> Trajectory:
@@ -235,11 +197,8 @@ def linearise_trajectory(model, theta, x0, u, strategy) -> Trajectory:
     every J^{x/x}_k (vmapped forward mode, the paper's Remark 1)."""
     xs = rollout(model, theta, x0, u)
     T, n_x = xs.shape
-    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
-        At = stacked_jacobians_T(model.step, theta, xs[:-1], model.step_inputs(u), "x")
-    else:
-        At = jnp.zeros((0, n_x, n_x), xs.dtype)
-    return Trajectory(xs, At)
+    strategy = product_strategy(strategy, n_x, T, xs.dtype.itemsize)
+    return Trajectory(xs, strategy.jacobians_T(model.step, theta, xs, model.step_inputs(u)))
 
 
 def _penalty_values(cost, xs, theta, mask):
@@ -267,23 +226,8 @@ def residual_jvp(model, cost, theta, traj, u, dtheta, dx0, *, scale, strategy, m
     b = jax.vmap(lambda x, u_k: jax.jvp(lambda th: step(x, u_k, th), (theta,), (dtheta,))[1])(
         xs[:-1], us
     )
-    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
-
-        def body(s, inp):
-            At_k, b_k = inp
-            s_next = jnp.einsum("ji,j->i", At_k, s) + b_k
-            return s_next, s_next
-
-        _, ss = jax.lax.scan(body, dx0, (traj.At, b))
-    else:
-
-        def body(s, inp):
-            x_k, u_k, b_k = inp
-            s_next = jax.jvp(lambda x: step(x, u_k, theta), (x_k,), (s,))[1] + b_k
-            return s_next, s_next
-
-        _, ss = jax.lax.scan(body, dx0, (xs[:-1], us, b))
-    ss = jnp.concatenate([dx0[None], ss], axis=0)
+    strategy = product_strategy(strategy, n_x, T, xs.dtype.itemsize)
+    ss = strategy.tangents(model, theta, xs, u, dx0, b, traj.At)
     dy = jax.vmap(
         lambda x, u_k, s: jax.jvp(lambda x, th: model.observe(x, u_k, th), (x, theta), (s, dtheta))[
             1
@@ -308,7 +252,7 @@ def residual_vjp(model, cost, theta, traj, u, w, *, scale, strategy, mask=None):
         J_x0^T w = lam_0.
 
     Its cost does not grow with n_theta beyond the model's own VJP: the theta terms are
-    one reverse-mode VJP of the vmapped step and output map (`_gradient.theta_term_vjp`).
+    one reverse-mode VJP of the vmapped step and output map (`_kernels.theta_term_vjp`).
 
     **Returns:**
 
@@ -338,22 +282,8 @@ def residual_vjp(model, cost, theta, traj, u, w, *, scale, strategy, mask=None):
         cts = (ct_y, jnp.where(rh > 0, cost.penalty_weight * w_h / (2.0 * safe), 0.0))
     Gamma, gamma = jax.vjp(local, xs, theta)[1](cts)
 
-    us = model.step_inputs(u)
-    step = model.step
-    if product_strategy(strategy, n_x, T, xs.dtype.itemsize) == "jacobian":
-
-        def body(lam_next, inp):
-            At_k, Gamma_k = inp
-            return Gamma_k + At_k @ lam_next, lam_next
-
-        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (traj.At, Gamma[:-1]), reverse=True)
-    else:
-
-        def body(lam_next, inp):
-            x_k, u_k, Gamma_k = inp
-            _, vjp_x = jax.vjp(lambda x: step(x, u_k, theta), x_k)
-            return Gamma_k + vjp_x(lam_next)[0], lam_next
-
-        lam0, lam_next = jax.lax.scan(body, Gamma[-1], (xs[:-1], us, Gamma[:-1]), reverse=True)
-    theta_term = theta_term_vjp(step, theta, xs[:-1], us, lam_next)
+    strategy = product_strategy(strategy, n_x, T, xs.dtype.itemsize)
+    lam0, theta_term = strategy.reverse_sweep(
+        model, theta, xs, u, Gamma, At=traj.At, theta_forward=False
+    )
     return jax.tree_util.tree_map(lambda a, c: a + c, gamma, theta_term), lam0

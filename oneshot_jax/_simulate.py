@@ -6,20 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data, check_strategy
-from ._strategy import is_parallel
-
-
-def rollout(model, theta, x0, u):
-    """States x[0..T-1] of eq. (7) for one trajectory: x[0] = x0, x[k+1] = f(x[k], u[k])
-    (f sees `model.step_inputs(u)[k]`, which is u[k] under a zero-order hold)."""
-
-    def body(x, u_k):
-        x_next = model.step(x, u_k, theta)
-        return x_next, x_next
-
-    _, xs = jax.lax.scan(body, x0, model.step_inputs(u))
-    return jnp.concatenate([x0[None], xs], axis=0)
+from ._checks import check_cost, check_data
+from ._kernels import rollout as rollout
+from ._strategy import AbstractStrategy, as_strategy
 
 
 def outputs(model, theta, xs, u):
@@ -41,17 +30,11 @@ def sample_count(u, mask, dtype):
     return jnp.sum(mask.samples).astype(dtype)
 
 
-def states(model, theta, x0, u, strategy="auto", newton=None):
-    """The states of eq. (7) for one trajectory, sequentially or parallel in time (see
-    `oneshot_jax._strategy`)."""
-    if is_parallel(strategy, u.shape[0]):
-        from ._parallel import report
-        from ._parallel import rollout as parallel_rollout
-
-        xs, info = parallel_rollout(model, theta, x0, u, newton)
-        report(info)
-        return xs
-    return rollout(model, theta, x0, u)
+def states(model, theta, x0, u, strategy="auto"):
+    """The states of eq. (7) for one trajectory, sequentially or parallel in time, as the
+    strategy (resolved for this trajectory, `oneshot_jax._strategy`) rolls them out."""
+    strategy = as_strategy(strategy).resolve(x0.shape[0], u.shape[0], x0.dtype.itemsize)
+    return strategy.states(model, theta, x0, u)
 
 
 @eqx.filter_jit
@@ -79,7 +62,7 @@ def simulate(
     x0: Float[ArrayLike, "*N n_x"],
     u: Float[ArrayLike, "*N T n_u"],
     *,
-    strategy: str = "auto",
+    strategy: str | AbstractStrategy = "auto",
 ) -> tuple[Float[Array, "*N T n_x"], Float[Array, "*N T n_z"]]:
     """Simulate the model over the horizon of `u`, eq. (2).
 
@@ -90,11 +73,12 @@ def simulate(
     - `x0`: initial state, shape (n_x,), or (N, n_x) for N trajectories.
     - `u`: inputs, shape (T, n_u), or (N, T, n_u), or a list of N arrays (T_i, n_u) of
         different lengths.
-    - `strategy`: `"parallel"` computes the rollout parallel in time (Newton iterations
-        over the whole record with associative scans, and a sequential fallback, reported
-        by a warning, where they do not converge); any other value is the sequential
-        loop, except that `"auto"` takes the parallel one on a GPU or TPU for long
-        records (see `value_and_grad`).
+    - `strategy`: `ParallelInTime(...)` (`"parallel"`) computes the rollout parallel in
+        time (Newton iterations over the whole record with associative scans, and a
+        sequential fallback, reported by a warning, where they do not converge; its
+        options are those of the Newton iterations); `Jacobian()` and `VJP()` are the
+        sequential loop, and `Auto()` (`"auto"`) takes the parallel one on a GPU or TPU
+        for long records (see `value_and_grad`).
 
     **Returns:**
 
@@ -103,7 +87,7 @@ def simulate(
     several trajectories (lists of arrays for a list `u`).
     """
     data = check_data(model, theta, x0, u)
-    strategy = check_strategy(strategy)
+    strategy = as_strategy(strategy)
     x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
         return [x[i, :n] for i, n in enumerate(data.lengths)], [
@@ -123,7 +107,7 @@ def loss(
     penalty=None,
     penalty_weight: float = 1.0,
     missing: str = "raise",
-    strategy: str = "auto",
+    strategy: str | AbstractStrategy = "auto",
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
@@ -152,7 +136,7 @@ def loss(
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
-    strategy = check_strategy(strategy)
+    strategy = as_strategy(strategy)
     return loss_impl(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
     )

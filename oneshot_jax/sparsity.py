@@ -14,10 +14,13 @@ prox(v)_i = sign(v_i) max(|v_i| - eta lambda, 0), and block soft-thresholding fo
 lasso (Sec. 6.5.4), prox(v)_G = max(1 - eta lambda / ||v_G||_2, 0) v_G. Both give exact
 zeros, and a coordinate at zero stays there while |grad_i C| <= lambda.
 
-Each factory returns a `ProximalTransformation`, built like the projections of
-`oneshot_jax.constraints`: the map `prox(params, step_size)`, the penalty `value(params)`
+Each factory returns a `ProximalTransformation`, the type of the projections of
+`oneshot_jax.constraints` too (a projection is the prox of an indicator; see
+`oneshot_jax._prox`): the map `prox(params, step_size)`, the penalty `value(params)`
 = g(params), and an optax `GradientTransformation` (`init`, `update`) to chain *after* a
 gradient step, whose update is `prox(params + updates, learning_rate) - params`.
+`combine` (the same function as `constraints.combine`) composes regularisers and
+projections in order.
 
 **Step sizes.** The threshold of coordinate i is `step_size_i * strength`; the prox must
 be told the step of the update it follows.
@@ -37,12 +40,12 @@ be told the step of the update it follows.
 - Any other solver calls `prox(params, step)` with the step it took (a scalar, or a
     pytree of per-coordinate steps >= 0; a zero step leaves its coordinate unchanged);
     `learning_rate` may be an optax schedule `count -> eta`.
-- In `oneshot_jax.fit`, pass the regulariser in `constraints=` (next to projections):
-    the fit minimises C + g, `oneshot_jax.Adam` applies the prox with its own
-    per-coordinate steps (as `proximal_adam`) and `oneshot_jax.Optax(transform)` with the
-    regulariser's `learning_rate`. `fixed_zeros(result.theta, where)` then gives the
-    `fixed=` mask of the zeros, to refit the selected terms alone with a least-squares
-    solver (see `oneshot_jax.fit`).
+- In `oneshot_jax.fit`, pass the regulariser as `regulariser=` (a list for several; the
+    projections go in `constraints=`): the fit minimises C + g, `oneshot_jax.Adam`
+    applies the prox with its own per-coordinate steps (as `proximal_adam`) and
+    `oneshot_jax.Optax(transform)` with the regulariser's `learning_rate`.
+    `fixed_zeros(result.theta, where)` then gives the `fixed=` mask of the zeros, to
+    refit the selected terms alone with a least-squares solver (see `oneshot_jax.fit`).
 
 **Weight decay** (an L2 penalty (lambda / 2) ||w||^2 on network weights) is smooth, but
 its prox is exact too, w / (1 + step lambda): `l2(lam, where)` applies it like the others,
@@ -63,15 +66,22 @@ zeros survive `optax.apply_updates`.
 """
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from ._checks import is_concrete
+from ._prox import (
+    ProximalState,
+    ProximalTransformation,
+    check_non_negative_scalar,
+    combine,
+    penalty,
+)
+from ._solver.optax import ProximalAdamState, proximal_adam
 
 __all__ = [
     "ProximalTransformation",
@@ -90,46 +100,6 @@ __all__ = [
 
 # Bisection steps for the group prox with per-coordinate steps (each halves the bracket).
 _BISECTION_STEPS = 80
-
-
-class ProximalTransformation(NamedTuple):
-    """A proximal step for a non-smooth penalty g, and an optax transform that applies it.
-
-    **Fields:**
-
-    - `init`, `update`: the optax interface (chain after a gradient step; `update` needs
-        `params`, and the factory's `learning_rate`).
-    - `prox`: `(params, step_size) -> params`, the proximal map of g with step `step_size`
-        (a scalar, or a pytree of per-coordinate steps >= 0; a zero step holds its
-        coordinate).
-    - `value`: `params -> scalar`, the penalty g(params), to report C + g.
-    - `strength`: the penalty's weight lambda (the largest one for `combine`), or None
-        when it is traced.
-    - `learning_rate`: the step the transform thresholds with after an optimiser (a
-        scalar or an optax schedule), or None when none was given (for `combine`: the
-        terms' common one, None when they differ).
-    """
-
-    init: Callable
-    update: Callable
-    prox: Callable
-    value: Callable
-    strength: float | None = None
-    learning_rate: Any = None
-
-
-class ProximalState(NamedTuple):
-    """The number of updates made, for a `learning_rate` schedule."""
-
-    count: jax.Array
-
-
-class ProximalAdamState(NamedTuple):
-    """Adam's moment estimates (as in `optax.scale_by_adam`) and the update count."""
-
-    count: jax.Array
-    mu: Any
-    nu: Any
 
 
 def soft_threshold(v, threshold):
@@ -291,63 +261,6 @@ def _resolve_where(where, params, entries):
     return out
 
 
-def _check_nonneg_scalar(value, name):
-    try:
-        ok = np.ndim(value) == 0 and (not is_concrete(value) or np.isfinite(float(value)))
-        ok = ok and (not is_concrete(value) or float(value) >= 0)
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"`{name}` must be a finite scalar >= 0, got {value!r}.")
-
-
-def _check_learning_rate(learning_rate, allow_none):
-    if callable(learning_rate) or (learning_rate is None and allow_none):
-        return
-    try:
-        ok = np.ndim(learning_rate) == 0 and (
-            not is_concrete(learning_rate)
-            or (np.isfinite(float(learning_rate)) and float(learning_rate) > 0)
-        )
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(
-            "`learning_rate` must be the step size of the update the prox follows (a "
-            f"finite scalar > 0, or an optax schedule count -> step), got {learning_rate!r}."
-        )
-
-
-def _step_at(learning_rate, count):
-    return learning_rate(count) if callable(learning_rate) else learning_rate
-
-
-def _from_prox(prox, value, learning_rate, name, strength) -> ProximalTransformation:
-    _check_learning_rate(learning_rate, allow_none=True)
-
-    def init(params):
-        del params
-        if learning_rate is None:
-            raise ValueError(
-                f"chaining `{name}` after an optimiser needs its `learning_rate` (the step "
-                f"of that optimiser): {name}(..., learning_rate=eta). For Adam use "
-                f"`proximal_adam(eta, {name}(...))`."
-            )
-        return ProximalState(count=jnp.zeros([], jnp.int32))
-
-    def update(updates, state, params=None):
-        if params is None:
-            raise ValueError(
-                "a proximal transform needs `params` in `update(updates, state, params)`."
-            )
-        new = prox(optax.apply_updates(params, updates), _step_at(learning_rate, state.count))
-        out = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
-        return out, ProximalState(count=optax.safe_increment(state.count))
-
-    strength = float(strength) if is_concrete(strength) else None
-    return ProximalTransformation(init, update, prox, value, strength, learning_rate)
-
-
 def _step_leaves(step, params):
     """A scalar step for every leaf, or the leaves of a pytree of per-coordinate steps."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
@@ -396,7 +309,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     entries at `step_size * strength` (`step_size` a scalar or a pytree of per-coordinate
     steps), and `value(params)` is `strength * sum |w|` over them.
     """
-    _check_nonneg_scalar(strength, "strength")
+    check_non_negative_scalar(strength, "strength")
 
     def prox(params, step_size):
         sel = _resolve_where(where, params, entries=True)
@@ -412,7 +325,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
         return strength * total
 
-    return _from_prox(prox, value, learning_rate, "l1", strength)
+    return penalty(prox, value, strength, learning_rate, "l1")
 
 
 def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
@@ -431,7 +344,7 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
 
     A `ProximalTransformation`.
     """
-    _check_nonneg_scalar(strength, "strength")
+    check_non_negative_scalar(strength, "strength")
 
     def prox(params, step_size):
         sel = _resolve_where(where, params, entries=True)
@@ -445,7 +358,7 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, p * p, 0))
         return 0.5 * strength * total
 
-    return _from_prox(prox, value, learning_rate, "l2", strength)
+    return penalty(prox, value, strength, learning_rate, "l2")
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -472,7 +385,7 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
     `proximal_adam`) it is the exact prox in that diagonal metric, y_G = v_G r / (r +
     lambda steps_G) with r = ||y_G|| found by bisection.
     """
-    _check_nonneg_scalar(strength, "strength")
+    check_non_negative_scalar(strength, "strength")
     if axis is not None and not (
         isinstance(axis, int) or (isinstance(axis, tuple) and all(isinstance(a, int) for a in axis))
     ):
@@ -506,142 +419,4 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
                 total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
         return strength * total
 
-    return _from_prox(prox, value, learning_rate, "group_lasso", strength)
-
-
-def combine(regularisers) -> ProximalTransformation | None:
-    """One proximal transform from None, a `ProximalTransformation` or a sequence of them.
-
-    The proximal maps are applied in order and the penalties add up. The composition is
-    the exact prox of the sum when the terms act on different leaves, and for `l1`
-    followed by `group_lasso` on the same leaves (the sparse group lasso, Friedman,
-    Hastie and Tibshirani, "A note on the group lasso and a sparse group lasso", 2010;
-    this also holds with per-coordinate steps). `update` runs each term's update in turn,
-    like `optax.chain`, each with its own `learning_rate`.
-    """
-    if regularisers is None:
-        return None
-    if isinstance(regularisers, ProximalTransformation):
-        return regularisers
-    if (
-        not isinstance(regularisers, (list, tuple))
-        or not regularisers
-        or not all(isinstance(r, ProximalTransformation) for r in regularisers)
-    ):
-        raise ValueError(
-            "`regularisers` must be a ProximalTransformation from oneshot_jax.sparsity "
-            f"(l1, group_lasso, l2) or a non-empty list of them, got {regularisers!r}."
-        )
-    if len(regularisers) == 1:
-        return regularisers[0]
-    chained = optax.chain(*(optax.GradientTransformation(r.init, r.update) for r in regularisers))
-
-    def prox(params, step_size):
-        for r in regularisers:
-            params = r.prox(params, step_size)
-        return params
-
-    def value(params):
-        return sum(r.value(params) for r in regularisers)
-
-    strengths = [r.strength for r in regularisers]
-    strength = None if None in strengths else max(strengths)
-    rates = [r.learning_rate for r in regularisers]
-    same = all(r is rates[0] or _same_number(r, rates[0]) for r in rates)
-    return ProximalTransformation(
-        chained.init, chained.update, prox, value, strength, rates[0] if same else None
-    )
-
-
-def _same_number(a, b):
-    try:
-        return not callable(a) and not callable(b) and float(a) == float(b)
-    except (TypeError, ValueError):
-        return False
-
-
-def proximal_adam(
-    learning_rate, regulariser, *, b1=0.9, b2=0.999, eps=1e-8, floor=None
-) -> optax.GradientTransformation:
-    """Adam with a proximal step in its own diagonal metric, for C + g with g non-smooth.
-
-    With Adam's bias-corrected moments m_hat, v_hat (Kingma and Ba 2015, Algorithm 1) and
-    the per-coordinate steps
-
-        d_i = eta / (max(sqrt(v_hat_i), floor) + eps),
-
-    the update is theta+ = prox_{g, D}(theta - d * m_hat), D = diag(d): the proximal map
-    of g in the metric D^{-1} (`regulariser.prox(params, d)`: soft-thresholding at
-    d_i lambda for `l1`; the proximal-gradient method with a diagonal preconditioner, as
-    in Yun, Lozano and Yang, "Adaptive proximal gradient methods for structured neural
-    networks", NeurIPS 2021). At a fixed point m_hat = grad C and
-    theta = prox_{g, D}(theta - D grad C), which holds exactly when 0 is in
-    grad C + dg(theta): the fixed points are the stationary points of C + g, whatever the
-    steps d. Coordinates that the regulariser does not select take plain (floored) Adam
-    steps.
-
-    **The floor.** Adam's move d_i m_hat_i is at most about eta, but the threshold
-    d_i lambda is not: with plain Adam steps (`floor=0`) a coordinate whose gradient is far
-    below lambda, as all are near a converged fit, is thresholded by
-    eta lambda / sqrt(v_hat_i) >> eta in one step and lands on zero however large it is.
-    The default floor, the regulariser's `strength` lambda, keeps every move at most about
-    eta (the threshold d_i lambda <= eta) and changes no fixed point; below it the step is
-    gradient descent with step eta / lambda.
-
-    **Arguments:**
-
-    - `learning_rate`: eta > 0, or an optax schedule `count -> eta`.
-    - `regulariser`: a `ProximalTransformation` (`l1`, `group_lasso`, or `combine` of
-        them); its own `learning_rate` is not used.
-    - `b1`, `b2`, `eps`: as for `optax.adam`.
-    - `floor`: the floor on sqrt(v_hat) (>= 0); None takes `regulariser.strength`.
-
-    **Returns:**
-
-    An optax `GradientTransformation`; `update(grads, state, params)` needs `params`.
-    """
-    _check_learning_rate(learning_rate, allow_none=False)
-    if not isinstance(regulariser, ProximalTransformation):
-        raise ValueError(
-            "`regulariser` must be a ProximalTransformation from oneshot_jax.sparsity (l1, "
-            f"group_lasso, combine), got {regulariser!r}."
-        )
-    for name, b in (("b1", b1), ("b2", b2)):
-        if not 0 <= b < 1:
-            raise ValueError(f"`{name}` must be in [0, 1), got {b!r}.")
-    if not eps > 0:
-        raise ValueError(f"`eps` must be > 0, got {eps!r}.")
-    if floor is None:
-        floor = regulariser.strength or 0.0
-    _check_nonneg_scalar(floor, "floor")
-
-    def init(params):
-        zeros = lambda p: jnp.zeros_like(p)  # noqa: E731
-        return ProximalAdamState(
-            count=jnp.zeros([], jnp.int32),
-            mu=jax.tree_util.tree_map(zeros, params),
-            nu=jax.tree_util.tree_map(zeros, params),
-        )
-
-    def update(grads, state, params=None):
-        if params is None:
-            raise ValueError("`proximal_adam` needs `params` in `update(grads, state, params)`.")
-        count = optax.safe_increment(state.count)
-        mu = jax.tree_util.tree_map(lambda m, g: b1 * m + (1 - b1) * g, state.mu, grads)
-        nu = jax.tree_util.tree_map(lambda v, g: b2 * v + (1 - b2) * g * g, state.nu, grads)
-        eta = _step_at(learning_rate, state.count)
-
-        def step(v):  # d_i, in the parameter's dtype
-            v_hat = v / (1 - b2 ** count.astype(v.dtype))
-            root = jnp.maximum(jnp.sqrt(v_hat), jnp.asarray(floor, v.dtype))
-            return jnp.asarray(eta / (root + eps), v.dtype)
-
-        steps = jax.tree_util.tree_map(step, nu)
-        moved = jax.tree_util.tree_map(
-            lambda p, d, m: p - d * (m / (1 - b1 ** count.astype(m.dtype))), params, steps, mu
-        )
-        new = regulariser.prox(moved, steps)
-        updates = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
-        return updates, ProximalAdamState(count=count, mu=mu, nu=nu)
-
-    return optax.GradientTransformation(init, update)
+    return penalty(prox, value, strength, learning_rate, "group_lasso")

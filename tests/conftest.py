@@ -8,17 +8,18 @@ jax.config.update("jax_enable_x64", True)
 import pytest  # noqa: E402
 
 from oneshot_jax import datasets  # noqa: E402
+from oneshot_jax.internal import data_hidden  # noqa: E402
 
 # ONESHOT_JAX_HIDE_DATA=1 runs the tests as on a checkout without the benchmark files:
 # the loaders stop looking in ../shared/data and the user cache, and the folders a
 # developer's shell may name are dropped too, so the tests that need the files skip.
-if datasets._files.data_hidden():
+if data_hidden():
     for name in (datasets.ENV_VAR, datasets.CACHE_ENV_VAR):
         os.environ.pop(name, None)
 
 
 def pytest_report_header(config):
-    if datasets._files.data_hidden():
+    if data_hidden():
         return f"benchmark data: hidden by ${datasets.HIDE_ENV_VAR}; the tests that need it skip"
     roots = ", ".join(map(str, datasets.default_data_dirs()))
     return f"benchmark data: {roots or 'no folder found; the tests that need it skip'}"

@@ -62,7 +62,7 @@ def test_default_solver_reaches_the_0_1_optimum(sat_lm):
 
 
 def test_solver_names_are_aliases_of_default_objects():
-    from oneshot_jax._fit import as_solvers
+    from oneshot_jax.internal import as_solvers
 
     assert as_solvers("gauss_newton") == (oj.GaussNewton(),)
     assert as_solvers("levenberg_marquardt") == (oj.LevenbergMarquardt(),)
@@ -115,6 +115,21 @@ def test_fit_result_is_a_pytree_and_round_trips_through_save_and_load(sat_lm, tm
     # The file is plain NumPy: readable without oneshot_jax or pickle.
     with np.load(path, allow_pickle=False) as npz:
         assert "__meta__" in npz.files and "covariance" in npz.files
+
+
+def test_save_result_is_fit_result_save(sat_lm, tmp_path):
+    """`oj.save_result(r, path)` writes the file `r.save(path)` writes (the suffix added),
+    and `load_result` reads it back equal field by field."""
+    path = oj.save_result(sat_lm, tmp_path / "by_function")
+    assert path == tmp_path / "by_function.npz"
+    loaded = oj.load_result(path, model=SAT_MODEL)
+    assert eqx.tree_equal(loaded, sat_lm) is True
+    assert str(loaded) == str(sat_lm)
+    by_method = sat_lm.save(tmp_path / "by_method.npz")
+    with np.load(path, allow_pickle=False) as a, np.load(by_method, allow_pickle=False) as b:
+        assert a.files == b.files
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key])
 
 
 def test_save_and_load_a_dict_theta_with_starts(tmp_path):

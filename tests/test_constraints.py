@@ -7,6 +7,7 @@ import optax
 import pytest
 
 from oneshot_jax import constraints as oc
+from oneshot_jax import sparsity as sp
 
 
 def leaves(tree):
@@ -225,3 +226,55 @@ def test_invalid_constraints_raise():
         oc.positive(0.0)
     with pytest.raises(ValueError, match="`fn`"):
         oc.project("not callable")
+
+
+#
+# One proximal type: a projection is the prox of its set's indicator.
+#
+
+
+def test_a_projection_is_the_prox_of_an_indicator():
+    assert oc.ProjectionTransformation is oc.ProximalTransformation is sp.ProximalTransformation
+    assert oc.combine is sp.combine
+    x = {"k": jnp.array([-3.0, 0.5, 9.0]), "m": jnp.array(2.0)}
+    for proj in (oc.box(-1.0, 1.0), oc.positive(), oc.project(lambda p: p)):
+        for step in (0.0, 0.1, {"k": jnp.ones(3), "m": jnp.array(5.0)}):
+            for a, b in zip(leaves(proj.prox(x, step)), leaves(proj.project(x))):
+                np.testing.assert_array_equal(a, b)
+        assert proj.value(x) == 0.0 and proj.strength is None and proj.learning_rate is None
+    assert sp.l1(0.1).project is None and sp.l1(0.1).bounds is None
+
+
+def test_combine_of_a_regulariser_and_a_projection_applies_them_in_order():
+    """prox of l1, then the box: for v = 1.2, threshold 0.5 and lower bound 1.0 the
+    soft-threshold gives 0.7 and the clip 1.0; the other order would give 0.7."""
+    reg, lower = sp.l1(1.0, learning_rate=0.5), oc.box(lower=jnp.array([1.0, -1.0, 0.0]))
+    both = oc.combine([reg, lower])
+    v = jnp.array([1.2, -0.3, 0.2])
+    expected = lower.project(reg.prox(v, 0.5))
+    np.testing.assert_array_equal(expected, [1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(both.prox(v, 0.5), expected)
+    assert not np.array_equal(reg.prox(lower.project(v), 0.5), expected)  # order matters
+    # A mixed combination is a regulariser: no projection or bounds, g and lambda of l1.
+    assert both.project is None and both.bounds is None
+    assert both.strength == 1.0 and both.learning_rate == 0.5
+    assert float(both.value(v)) == pytest.approx(1.7)
+    assert both.terms == (reg, lower)
+    # As an optax transform after sgd it is the two chained in that order.
+    grads = jnp.array([0.4, 0.6, -0.1])
+    params = jnp.array([2.0, 0.1, 0.1])
+    tx_a = optax.chain(optax.sgd(0.5), both)
+    tx_b = optax.chain(optax.sgd(0.5), reg, lower)
+    sa, sb = tx_a.init(params), tx_b.init(params)
+    pa = pb = params
+    for _ in range(3):
+        ua, sa = tx_a.update(grads, sa, pa)
+        ub, sb = tx_b.update(grads, sb, pb)
+        pa, pb = optax.apply_updates(pa, ua), optax.apply_updates(pb, ub)
+        np.testing.assert_array_equal(pa, pb)
+    # (1.8, -0.2, 0.15) -> (1.3, 0, 0); (1.1, -0.3, 0.05) -> (0.6, 0, 0) -> (1, 0, 0); ...
+    np.testing.assert_allclose(pa, [1.0, 0.0, 0.0], rtol=0, atol=1e-15)
+    # Projections alone combine into one projection whose update keeps no state.
+    boxes = oc.combine([oc.box(lower=0.0), oc.box(upper=1.0)])
+    assert boxes.project is not None and boxes.bounds is not None
+    assert isinstance(boxes.init(params), optax.EmptyState)

@@ -15,7 +15,7 @@ import pytest
 import scipy.io
 
 from oneshot_jax import datasets as ds
-from oneshot_jax.datasets import _download
+from oneshot_jax.internal import DATASET_SOURCES, sha256
 
 
 class _Handler(http.server.SimpleHTTPRequestHandler):
@@ -71,9 +71,9 @@ def _zip(archive, files, prefix=""):
 
 def _trust(monkeypatch, name, files):
     """Register the synthetic files' SHA-256 as the reference checksums."""
-    src = _download.SOURCES[name]
-    hashes = {f.name: _download.sha256(f) for f in files}
-    monkeypatch.setitem(_download.SOURCES, name, dataclasses.replace(src, files=hashes))
+    src = DATASET_SOURCES[name]
+    hashes = {f.name: sha256(f) for f in files}
+    monkeypatch.setitem(DATASET_SOURCES, name, dataclasses.replace(src, files=hashes))
 
 
 def _nothing_kept(cache, subdir):
@@ -125,7 +125,7 @@ def test_silverbox_download_warns_without_reference_checksum(server, tmp_path):
     scipy.io.savemat(src / "SNLS80mV.mat", {"V1": k[None], "V2": -k[None]})
     _zip(www / "SilverboxFiles.zip", [src / "SNLS80mV.mat"], prefix="SilverboxFiles/")
     cache = tmp_path / "cache"
-    digest = _download.sha256(src / "SNLS80mV.mat")
+    digest = sha256(src / "SNLS80mV.mat")
     with pytest.warns(UserWarning, match=f"no reference SHA-256.*{digest}"):
         d = ds.load_silverbox(tmp_path / "e", download=True, cache_dir=cache, base_url=base + "/")
     assert d.file == cache / "silverbox" / "SilverboxFiles" / "SNLS80mV.mat"

@@ -19,8 +19,7 @@ from helpers import fitted_order
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._cost import Cost
-from oneshot_jax._problem import FitProblem, Params
+from oneshot_jax.internal import Cost, FitProblem, Params
 
 DT = 0.1
 THETA = {"k": jnp.array([4.0, 1.5]), "c": jnp.array(0.3), "b": jnp.array([1.0, -0.4])}

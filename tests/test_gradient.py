@@ -260,3 +260,51 @@ def test_float32_with_python_scalar_penalty_weight():
     assert oj.loss(p.model(), theta, x0, u, z, penalty=pen, penalty_weight=0.5).dtype == (
         jnp.float32
     )
+
+
+#
+# Strategy objects: the strings are aliases of `oj.Auto()`, `oj.Jacobian()`, `oj.VJP()`.
+#
+
+
+@pytest.mark.parametrize(
+    "alias, strategy", [("auto", oj.Auto()), ("jacobian", oj.Jacobian()), ("vjp", oj.VJP())]
+)
+@pytest.mark.parametrize("case", ["energy_penalty", "multi_trajectory"])
+def test_string_aliases_equal_the_strategy_objects_bit_for_bit(case, alias, strategy):
+    p = problem(case)
+    got = oj.value_and_grad(
+        p.model(), p.theta, p.x0, p.u, p.z, strategy=strategy, **p.cost_kwargs()
+    )
+    for a, b in zip(
+        jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(one_shot(case, alias))
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for fn in (oj.simulate, oj.loss):
+        args = (p.model(), p.theta, p.x0, p.u) + ((p.z,) if fn is oj.loss else ())
+        kw = p.cost_kwargs() if fn is oj.loss else {}
+        want = fn(*args, strategy=alias, **kw)
+        have = fn(*args, strategy=strategy, **kw)
+        for a, b in zip(jax.tree_util.tree_leaves(have), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_auto_resolves_by_size():
+    """`Auto.resolve` is the one "auto" rule: small states stack Jacobians, large states
+    and large sensitivity batches are matrix-free, and a CPU never goes parallel."""
+    assert oj.Auto().resolve(3, 10**6, 8) == oj.Jacobian()
+    assert oj.Auto().resolve(17, 100, 8) == oj.VJP()
+    assert oj.Auto().resolve(3, 100, 8, n_traj=64, n_cols=6) == oj.VJP()
+    assert oj.Auto().resolve(3, 100, 8, n_traj=16, n_cols=6) == oj.Jacobian()
+    assert oj.Jacobian().resolve(100, 100, 8) == oj.Jacobian()
+    assert oj.ParallelInTime(chunk_size=8).resolve(3, 100, 8) == oj.ParallelInTime(chunk_size=8)
+
+
+@pytest.mark.parametrize("bad", ["adjoint", None, oj.Jacobian, 3])
+def test_bad_strategy_names_the_argument(bad):
+    with pytest.raises(ValueError, match=r"`strategy` must be 'auto'.*strategy object"):
+        oj.simulate(
+            *(lambda p: (p.model(), p.theta, p.x0, p.u))(problem("satellite")), strategy=bad
+        )
+    with pytest.raises(ValueError, match=r"`GaussNewton\(strategy=...\)` must be"):
+        oj.GaussNewton(strategy=bad)

@@ -11,8 +11,15 @@ import numpy as np
 import pytest
 
 import oneshot_jax as oj
-from oneshot_jax import _checks, _fit, _pytree
-from oneshot_jax._fit_result import FitHistory
+from oneshot_jax import FitHistory
+from oneshot_jax.internal import (
+    CHECK_DATA_STRUCTURES,
+    build,
+    check_data,
+    kept_theta_order,
+    pack,
+    unpack,
+)
 
 T = 40
 
@@ -35,20 +42,20 @@ Z = np.asarray(Z) + 1e-3 * np.random.default_rng(1).standard_normal((T, 1))
 
 def _fresh_data(*args, **kwargs):
     """check_data with its structural results computed anew."""
-    kept = dict(_checks._STRUCTURE)
-    _checks._STRUCTURE.clear()
+    kept = dict(CHECK_DATA_STRUCTURES)
+    CHECK_DATA_STRUCTURES.clear()
     try:
-        return _checks.check_data(*args, **kwargs)
+        return check_data(*args, **kwargs)
     finally:
-        _checks._STRUCTURE.clear()
-        _checks._STRUCTURE.update(kept)
+        CHECK_DATA_STRUCTURES.clear()
+        CHECK_DATA_STRUCTURES.update(kept)
 
 
 def test_kept_structure_gives_the_same_data():
     weight = np.array([2.0])
     fresh = _fresh_data(MODEL, THETA0, X0, U, Z, weight)
-    _checks.check_data(MODEL, THETA0, X0, U, Z, weight)  # keeps the structure
-    kept = _checks.check_data(MODEL, THETA0, X0, U, Z, weight)
+    check_data(MODEL, THETA0, X0, U, Z, weight)  # keeps the structure
+    kept = check_data(MODEL, THETA0, X0, U, Z, weight)
     assert kept.model == fresh.model and kept.n_z == fresh.n_z and kept.batched == fresh.batched
     assert eqx.tree_equal(kept.theta, fresh.theta, typematch=True)
     for a, b in zip(kept[3:7], fresh[3:7]):
@@ -69,17 +76,17 @@ def test_kept_structure_gives_the_same_data():
 )
 def test_every_check_still_runs_once_the_structure_is_kept(change, match):
     args = dict(theta=THETA0, x0=X0, u=U, z=Z, weight=np.array([1.0]))
-    _checks.check_data(MODEL, **args)
-    _checks.check_data(MODEL, **args)  # the structure of these arguments is kept
+    check_data(MODEL, **args)
+    check_data(MODEL, **args)  # the structure of these arguments is kept
     with pytest.raises(ValueError, match=match):
-        _checks.check_data(MODEL, **{**args, **change})
+        check_data(MODEL, **{**args, **change})
 
 
 def test_kept_structure_follows_float64():
-    data = _checks.check_data(MODEL, THETA0, X0, U, Z)
+    data = check_data(MODEL, THETA0, X0, U, Z)
     assert data.x0.dtype == np.float64
     with jax.enable_x64(False):
-        data32 = _checks.check_data(MODEL, THETA0, X0, U, Z)
+        data32 = check_data(MODEL, THETA0, X0, U, Z)
     assert data32.x0.dtype == np.float32
 
 
@@ -99,10 +106,10 @@ def test_repeated_fits_are_identical():
 def test_theta_order_follows_the_written_order():
     a = {"k": np.ones(2), "c": np.ones(3)}
     b = {"c": np.ones(3), "k": np.ones(2)}
-    assert _fit._theta_order(a) == ("k", "c")
-    assert _fit._theta_order(b) == ("c", "k")
-    assert _fit._theta_order({"outer": b, "x": 1.0}) == ("outer.c", "outer.k", "x")
-    assert _fit._theta_order({"outer": a, "x": 1.0}) == ("outer.k", "outer.c", "x")
+    assert kept_theta_order(a) == ("k", "c")
+    assert kept_theta_order(b) == ("c", "k")
+    assert kept_theta_order({"outer": b, "x": 1.0}) == ("outer.c", "outer.k", "x")
+    assert kept_theta_order({"outer": a, "x": 1.0}) == ("outer.k", "outer.c", "x")
 
 
 def test_pack_unpack_round_trip():
@@ -112,9 +119,9 @@ def test_pack_unpack_round_trip():
         "c": None,
         "d": jnp.float64(2.5),
     }
-    buffers, layout = _pytree.pack(tree)
+    buffers, layout = pack(tree)
     assert len(buffers) == 3  # one per dtype
-    out = _pytree.unpack(buffers, layout)
+    out = unpack(buffers, layout)
     assert jax.tree_util.tree_structure(out) == jax.tree_util.tree_structure(tree)
     for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(tree)):
         assert isinstance(x, np.ndarray) and x.dtype == y.dtype and np.array_equal(x, y)
@@ -128,8 +135,8 @@ def test_build_is_the_constructor():
         step=np.arange(3),
         stage=np.zeros(3, np.int32),
     )
-    assert eqx.tree_equal(_pytree.build(FitHistory, **fields), FitHistory(**fields))
+    assert eqx.tree_equal(build(FitHistory, **fields), FitHistory(**fields))
     with pytest.raises(TypeError, match="was not given"):
-        _pytree.build(FitHistory, loss=np.ones(3))
+        build(FitHistory, loss=np.ones(3))
     with pytest.raises(TypeError, match="unknown fields"):
-        _pytree.build(FitHistory, **fields, extra=1)
+        build(FitHistory, **fields, extra=1)

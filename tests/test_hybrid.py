@@ -24,11 +24,17 @@ from helpers import assert_tree_rel_close
 
 import oneshot_jax as oj
 from oneshot_jax import sparsity
-from oneshot_jax._checks import check_data, fixed_mask
-from oneshot_jax._cost import Cost
-from oneshot_jax._linalg import normal_blocks
-from oneshot_jax._problem import FitProblem, Params
-from oneshot_jax._strategy import MATRIX_FREE_MIN_THETA, least_squares_solver
+from oneshot_jax.internal import (
+    MATRIX_FREE_MIN_THETA,
+    Cost,
+    FitProblem,
+    Params,
+    check_data,
+    fixed_mask,
+    is_float_leaf,
+    least_squares_solver,
+    normal_blocks,
+)
 from oneshot_jax.residual import MLP, Dictionary, Features, count_parameters
 
 REPO = Path(__file__).resolve().parent.parent
@@ -423,7 +429,7 @@ def test_prox_with_fixed_entries_uses_a_zero_step():
     flat, unravel = jax.flatten_util.ravel_pytree(data.theta)
     fixed = {"a": np.array([True, False, False]), "b": False}
     reg = sparsity.group_lasso(1.0)
-    from oneshot_jax._problem import Regulariser
+    from oneshot_jax.internal import Regulariser
 
     problem = FitProblem(
         model=data.model,
@@ -515,7 +521,7 @@ def test_matrix_free_normal_equations_match_the_dense_solve():
     Marquardt's D is exact up to DIAG_PROBES free entries and the probe estimate mean
     (J^T w)^2 above; the conjugate-gradient step solves the same damped system (Gauss-
     Newton and Levenberg-Marquardt, with entries held by an active set)."""
-    from oneshot_jax._solver._linearisation import DIAG_PROBES
+    from oneshot_jax.internal import DIAG_PROBES
 
     x0, u, z = short_data(N=2, T=40)
     for theta in (small_dictionary_theta(), mlp_theta(widths=(4,))):
@@ -622,7 +628,7 @@ def test_a_mask_on_a_whole_network_selects_its_arrays_only():
     assert where["a"] is False and where["r"].activation is False
     assert all(b is True for b in jax.tree_util.tree_leaves(where["r"].layers))
     out = sparsity.l2(0.1, where=sparsity.mask(lambda th: th["r"])).prox(
-        theta, jax.tree_util.tree_map(lambda p: 0.5 if sparsity._is_float(p) else p, theta)
+        theta, jax.tree_util.tree_map(lambda p: 0.5 if is_float_leaf(p) else p, theta)
     )
     w0, w1 = net.layers[0].weight, out["r"].layers[0].weight
     np.testing.assert_allclose(w1, w0 / 1.05, rtol=1e-15)
@@ -632,7 +638,7 @@ def test_a_mask_on_a_whole_network_selects_its_arrays_only():
 def test_without_a_covariance_the_errors_are_unknown_not_nan(monkeypatch):
     """Above the covariance limit (lowered here to 2 free entries) fit warns, reports inf
     (unknown) standard errors, never NaN, and still reports its convergence."""
-    from oneshot_jax import _assemble
+    from oneshot_jax.internal import assemble_module as _assemble
 
     monkeypatch.setattr(_assemble, "COVARIANCE_MAX_THETA", 2)
     model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u + th["c"] * x**2)

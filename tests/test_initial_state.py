@@ -228,6 +228,31 @@ def test_fit_result_predict():
     np.testing.assert_allclose(pred.z, z_new, atol=1e-7)
 
 
+def test_lsq_is_the_x0_only_fit():
+    """`estimate_x0` solves x0 below `fit`, with the numbers of the public x0-only fit
+    (every parameter fixed) on the head: a weighted two-output head, Levenberg-Marquardt
+    from zeros. A solve that dropped the weight would land elsewhere."""
+    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    rng = np.random.default_rng(5)
+    u = 0.5 * np.sin(0.3 * np.arange(40))[:, None]
+    _, z = oj.simulate(model, PEND_THETA, np.array([0.8, -0.3]), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((40, 2))
+    weight = np.array([[4.0, 0.5], [0.5, 0.25]])
+    solver = oj.LevenbergMarquardt()
+    est = oj.estimate_x0(
+        model, PEND_THETA, u, z, n=25, x0=np.zeros(2), weight=weight, solver=solver
+    )
+    ref = oj.fit(
+        model, PEND_THETA, np.zeros(2), u[:25], z[:25], fixed=True, weight=weight, solver=solver
+    )
+    np.testing.assert_array_equal(est.x0, ref.x0)
+    np.testing.assert_array_equal(est.covariance, ref.x0_covariance)
+    np.testing.assert_array_equal(est.loss, ref.loss)
+    assert est.stop_reason == ref.stop_reason
+    unweighted = oj.estimate_x0(model, PEND_THETA, u, z, n=25, x0=np.zeros(2), solver=solver)
+    assert np.max(np.abs(unweighted.x0 - est.x0)) > 1e-3
+
+
 #
 # Windows.
 #
@@ -267,6 +292,28 @@ def test_windows_take_given_starting_states_and_name_a_blow_up():
     np.testing.assert_array_equal(r.x0, x0_w)  # not estimated: exactly the given ones
     with pytest.raises(ValueError, match="theta0 makes the model blow up .* within windows"):
         oj.fit(DUFFING, np.array([3.0, -40.0, -30.0]), np.zeros(2), u, z, window=30)
+
+
+def test_window_starts_are_the_x0_only_fit_of_all_windows():
+    """The windows' starting states (partly observed state, missing samples, a weight)
+    are those of one public x0-only fit of all windows together from the record's x0,
+    the first window keeping the given x0: the same numbers, now solved below `fit`."""
+    u, z = duffing_record()
+    z = z.copy()
+    z[::7] = np.nan
+    theta0, x0, win = np.array([3.5, 0.2, 0.8]), np.array([0.4, 0.1]), 30
+    r = oj.fit(
+        DUFFING, theta0, x0, u, z, window=win, missing="mask", weight=np.array([2.0]),
+        estimate_x0=False, solver=oj.GaussNewton(max_steps=1),
+    )  # fmt: skip
+    N = len(u) // win
+    ref = oj.fit(
+        DUFFING, theta0, np.tile(x0, (N, 1)), u.reshape(N, win, 1), z.reshape(N, win, 1),
+        fixed=True, missing="mask", weight=np.array([2.0]), solver=oj.GaussNewton(),
+    )  # fmt: skip
+    np.testing.assert_array_equal(r.x0[0], x0)
+    np.testing.assert_array_equal(r.x0[1:], ref.x0[1:])
+    assert np.max(np.abs(r.x0[1:] - x0)) > 0.1  # estimated, not the guess
 
 
 #

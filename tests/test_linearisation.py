@@ -7,11 +7,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from oneshot_jax._covariance import covariance
-from oneshot_jax._linalg import normal_blocks
-from oneshot_jax._problem import Params
-from oneshot_jax._solver._linearisation import DenseLinearisation
-from oneshot_jax._solver._search import Backtracking, Damping, NielsenDamping
+from oneshot_jax.internal import (
+    Backtracking,
+    Damping,
+    DenseLinearisation,
+    NielsenDamping,
+    Params,
+    covariance,
+    normal_blocks,
+)
 
 
 def _arrow(N=3, R=12, p=4, m=2, seed=0):

@@ -19,23 +19,39 @@ from helpers import assert_tree_rel_close, duffing_rhs, motor_observe, motor_rhs
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._cost import Cost
-from oneshot_jax._parallel import (
+from oneshot_jax.internal import (
+    DAMPED,
+    NEWTON,
+    SEQUENTIAL,
+    Cost,
+    diagonal_elk_increment,
     diagonal_linear_recurrence,
+    elk_increment,
     linear_recurrence,
     matrix_linear_recurrence,
     newton_rollout,
-    parallel_sensitivities,
-    parallel_value_and_grad,
     reverse_diagonal_linear_recurrence,
     reverse_linear_recurrence,
-    sensitivities_of_states,
+    rollout,
+    trajectory_jacobian,
     value_and_grad_of_states,
 )
-from oneshot_jax._parallel._elk import diagonal_elk_increment, elk_increment
-from oneshot_jax._parallel._rollout import DAMPED, NEWTON, SEQUENTIAL
-from oneshot_jax._sensitivity import trajectory_jacobian
-from oneshot_jax._simulate import rollout
+
+
+def parallel_value_and_grad(model, cost, theta, x0, u, z, *, strategy):
+    """The states by the strategy's parallel rollout, then the one-shot recursion by its
+    associative scans; with the rollout's info."""
+    xs, info = strategy.rollout(model, theta, x0, u)
+    return value_and_grad_of_states(model, cost, theta, xs, u, z, strategy), info
+
+
+def parallel_sensitivities(model, cost, theta_of, p_theta, x0_of, p_x0, u, z, *, scale, strategy):
+    """The states by the strategy's parallel rollout, then the sensitivities by its
+    associative scans; with the rollout's info."""
+    xs, info = strategy.rollout(model, theta_of(p_theta), x0_of(p_x0), u)
+    args = (model, cost, theta_of, p_theta, x0_of, p_x0, u, z)
+    return trajectory_jacobian(*args, scale=scale, strategy=strategy, xs=xs), info
+
 
 RTOL = 1e-12
 
@@ -380,15 +396,14 @@ def parallel_vg(model, theta, x0, u, z, weight, penalty, penalty_weight, chunk_s
         x0,
         u,
         z,
-        newton={"chunk_size": chunk_size},
-        with_info=True,
+        strategy=oj.ParallelInTime(chunk_size=chunk_size),
     )
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def vg_of_states(model, theta, xs, u, z, weight, penalty, penalty_weight):
     cost = cost_of(weight, penalty, penalty_weight)
-    return value_and_grad_of_states(model, cost, theta, xs, u, z)
+    return value_and_grad_of_states(model, cost, theta, xs, u, z, oj.ParallelInTime())
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -460,7 +475,9 @@ def test_sensitivities_equal_trajectory_jacobian():
     model, theta, x0, u = case("motor")[:4]
     xs, info = parallel_states(model.step, theta, x0, u)
     want = jax.jit(lambda: trajectory_jacobian(*args, scale=scale, strategy="jacobian"))()
-    got = jax.jit(lambda xs: sensitivities_of_states(*args[:6], xs, *args[6:], scale=scale))(xs)
+    got = jax.jit(
+        lambda xs: trajectory_jacobian(*args, scale=scale, strategy=oj.ParallelInTime(), xs=xs)
+    )(xs)
     for a, b in zip(got[:3], want[:3]):  # r, J_theta, J_x0
         assert a.shape == b.shape
         assert_tree_rel_close(a, b, rtol=RTOL)
@@ -472,7 +489,7 @@ def test_chunked_parallel_sensitivities_equal_trajectory_jacobian():
     want = jax.jit(lambda: trajectory_jacobian(*args, scale=scale, strategy="jacobian"))()
     got, info = jax.jit(
         lambda: parallel_sensitivities(
-            *args, scale=scale, newton={"chunk_size": 64}, with_info=True
+            *args, scale=scale, strategy=oj.ParallelInTime(chunk_size=64)
         )
     )()
     assert int(info.method) == NEWTON and int(info.chunks) == 4
@@ -557,15 +574,78 @@ def test_a_fallback_is_reported():
     assert r.diagnostics["sequential_fallbacks"] >= 1
 
 
+def test_parallel_alias_equals_the_object_bit_for_bit():
+    model, theta, x0, u, z, weight, penalty, pw = case("motor")
+    kw = dict(weight=weight, penalty=penalty, penalty_weight=pw)
+    want = oj.value_and_grad(model, theta, x0, u, z, strategy="parallel", **kw)
+    got = oj.value_and_grad(model, theta, x0, u, z, strategy=oj.ParallelInTime(), **kw)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_parallel_in_time_options_reach_newton_rollout(monkeypatch):
+    """Every option of `ParallelInTime` is passed on to `newton_rollout` (a spy), and one
+    that changes the result does so through the public `simulate`: one iteration without
+    the fallback leaves a non-converged iterate, not the trajectory."""
+    from oneshot_jax.internal import strategy_module as _strategy
+
+    model, theta, x0, u = case("duffing")[:4]
+    options = dict(chunk_size=7, jacobian="diagonal", max_iter=3, rtol=1e-6, damping=2.0)
+    seen = {}
+
+    def spy(step, theta, x0, us, **kwargs):
+        seen.update(kwargs)
+        return newton_rollout(step, theta, x0, us, **kwargs)
+
+    monkeypatch.setattr(_strategy, "newton_rollout", spy)
+    oj.ParallelInTime(**options, fallback=False).rollout(model, theta, x0, u)
+    assert seen == {**options, "fallback": False}
+    monkeypatch.undo()
+    xs, _ = oj.simulate(model, theta, x0, u)
+    xp, _ = oj.simulate(model, theta, x0, u, strategy=oj.ParallelInTime(max_iter=1, fallback=False))
+    assert not np.allclose(np.asarray(xp), np.asarray(xs), rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("chunk_size", 0),
+        ("chunk_size", 2.5),
+        ("jacobian", "dense"),
+        ("max_iter", 0),
+        ("max_iter", "many"),
+        ("rtol", 2.0),
+        ("damping", -1.0),
+        ("damping", float("nan")),
+        ("fallback", "yes"),
+    ],
+)
+def test_bad_parallel_in_time_options_raise_naming_the_option(option, value):
+    with pytest.raises(ValueError, match=f"`{option}"):
+        oj.ParallelInTime(**{option: value})
+
+
+def test_solvers_take_strategy_objects():
+    """A solver's `strategy=` takes the objects as their aliases: `ParallelInTime(...)` is
+    recognised as parallel (no matrix-free products)."""
+    with pytest.raises(ValueError, match="linear_solver='cg'"):
+        oj.GaussNewton(strategy=oj.ParallelInTime(chunk_size=8), linear_solver="cg")
+    with pytest.raises(ValueError, match="linear_solver='cg'"):
+        oj.LevenbergMarquardt(strategy="parallel", linear_solver="cg")
+    assert oj.Adam(strategy=oj.VJP()).strategy == oj.VJP()
+
+
 def test_auto_takes_the_parallel_path_only_on_accelerators(monkeypatch):
     """On a CPU the sequential scan is faster at every size (benchmarks/parallel.py), so
     "auto" never takes the parallel path there; on a GPU or TPU it does for long records."""
-    from oneshot_jax import _strategy
+    from oneshot_jax.internal import PARALLEL_MIN_T, is_parallel
 
     assert jax.default_backend() == "cpu"
-    assert not _strategy.is_parallel("auto", 10**7)
-    assert _strategy.is_parallel("parallel", 2)
-    monkeypatch.setattr(_strategy.jax, "default_backend", lambda: "gpu")
-    assert _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T)
-    assert not _strategy.is_parallel("auto", _strategy.PARALLEL_MIN_T - 1)
-    assert not _strategy.is_parallel("jacobian", 10**7)
+    assert not is_parallel("auto", 10**7)
+    assert is_parallel("parallel", 2)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert is_parallel("auto", PARALLEL_MIN_T)
+    assert not is_parallel("auto", PARALLEL_MIN_T - 1)
+    assert not is_parallel("jacobian", 10**7)
+    assert oj.Auto().resolve(3, PARALLEL_MIN_T, 8) == oj.ParallelInTime()
+    assert oj.Auto().resolve(3, 10**6, 8, sequential=True) == oj.Jacobian()

@@ -19,6 +19,7 @@ import scipy.io
 import oneshot_jax as oj
 from oneshot_jax import constraints as oc
 from oneshot_jax import datasets as ds
+from oneshot_jax.internal import flat_host
 
 T = 100
 TH_TRUE = {"k": 2.0, "c": 0.4}
@@ -64,7 +65,7 @@ def test_unobservable_state_gets_an_infinite_std_and_a_warning(data):
     assert r.success
     _no_nan(r)
     assert np.isinf(r.x0_std[2]) and np.all(np.isfinite(r.x0_std[:2]))
-    assert np.all(np.isfinite(oj._pytree.flat_host(r.std)))
+    assert np.all(np.isfinite(flat_host(r.std)))
 
 
 def test_one_sample_and_one_sample_windows_report_no_nan(data):
@@ -322,7 +323,7 @@ def test_save_and_load_keep_the_diagnostics(saved, tmp_path):
 
 
 def test_loss_validates_and_passes_on_its_strategy(data, monkeypatch):
-    from oneshot_jax import _simulate
+    from oneshot_jax.internal import simulate_module as _simulate
 
     u, z = data
     with pytest.raises(ValueError, match="`strategy` must be"):

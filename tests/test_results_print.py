@@ -173,7 +173,7 @@ def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path
 
 
 def test_nested_dicts_keep_their_written_order():
-    from oneshot_jax._fit_report import theta_order
+    from oneshot_jax.internal import theta_order
 
     theta = {
         "z": {"q": 1.0, "a": 2.0},

@@ -14,9 +14,9 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import oneshot_jax as oj
-from oneshot_jax._cost import Cost
-from oneshot_jax._problem import FitProblem, Params
-from oneshot_jax._solver.optimistix import _Held, _residuals
+from oneshot_jax.internal import Cost, FitProblem, Params
+from oneshot_jax.internal import OptimistixHeld as _Held
+from oneshot_jax.internal import optimistix_residuals as _residuals
 
 
 def make_problem(

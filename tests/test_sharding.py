@@ -29,10 +29,7 @@ SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
 
     import oneshot_jax as oj
-    from oneshot_jax._cost import Cost
-    from oneshot_jax._gradient import value_and_grad_impl
-    from oneshot_jax._linalg import normal_blocks
-    from oneshot_jax._sensitivity import trajectory_jacobian
+    from oneshot_jax.internal import Cost, normal_blocks, trajectory_jacobian, value_and_grad_impl
     from oneshot_jax.sharding import AXIS, fleet_mesh, replicate, shard_fleet
 
     assert len(jax.devices()) == 4, jax.devices()

@@ -1,6 +1,8 @@
 """The proximal steps of `oneshot_jax.sparsity`: closed forms, exact zeros, and ISTA built
 from `optax.sgd` + `l1` converging to the lasso solution computed by coordinate descent."""
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -8,7 +10,9 @@ import numpy as np
 import optax
 import pytest
 
+import oneshot_jax as oj
 import oneshot_jax.sparsity as sp
+from oneshot_jax import constraints as oc
 
 
 def test_soft_threshold_closed_form_and_exact_zeros():
@@ -351,3 +355,63 @@ def test_float32_parameters_stay_float32():
         new = optax.apply_updates(theta, upd)
         assert new["w"].dtype == jnp.float32
         assert np.all(np.asarray(new["w"])[zeros] == 0.0)
+
+
+#
+# One proximal type: fit's `constraints=` (projections) and `regulariser=` keywords.
+#
+
+
+def _lin_step(x, u, theta):
+    return theta["a"] * x + theta["b"] * u[0] + theta["c"] * u[0] ** 3
+
+
+LIN = oj.Model(_lin_step)
+LIN_THETA0 = {"a": np.array([0.5]), "b": np.array(0.3), "c": np.array(0.2)}
+
+
+def _lin_data():
+    u = np.random.default_rng(0).standard_normal((30, 1))
+    z = np.asarray(oj.simulate(LIN, {"a": np.array([0.8]), "b": 0.6, "c": 0.0}, np.ones(1), u)[1])
+    return u, z
+
+
+def _lin_fit(**kw):
+    u, z = _lin_data()
+    return oj.fit(LIN, LIN_THETA0, np.ones(1), u, z, solver=oj.Adam(5e-2, max_steps=60), **kw)
+
+
+def _same(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a.theta), jax.tree_util.tree_leaves(b.theta)):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(a.x0, b.x0)
+    assert float(a.loss) == float(b.loss)
+
+
+def test_fit_takes_regulariser_and_constraints_as_two_keywords():
+    where = {"a": False, "b": False, "c": True}
+    reg, box = sp.l1(0.5, where=where), oc.box(upper={"a": 0.7})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        new = _lin_fit(constraints=box, regulariser=reg)
+        listed = _lin_fit(constraints=[box], regulariser=[reg])
+    assert float(new.theta["c"]) == 0.0 and float(new.theta["a"][0]) == 0.7
+    _same(new, listed)
+    # The mixed form of 0.2 gives the same numbers, with a warning naming the new keyword;
+    # so does a combination of both kinds in `constraints`.
+    with pytest.warns(DeprecationWarning, match="regulariser="):
+        old = _lin_fit(constraints=[reg, box])
+    _same(new, old)
+    with pytest.warns(DeprecationWarning, match="regulariser="):
+        mixed = _lin_fit(constraints=sp.combine([reg, box]))
+    _same(new, mixed)
+
+
+def test_a_projection_given_as_regulariser_names_the_argument():
+    for bad in (oc.positive(), [sp.l1(0.1), oc.box(0.0, 1.0)], sp.combine([sp.l1(0.1), oc.box()])):
+        with pytest.raises(ValueError, match="`regulariser`.*`constraints=`"):
+            _lin_fit(regulariser=bad)
+    with pytest.raises(ValueError, match="`regulariser`"):
+        _lin_fit(regulariser=optax.sgd(0.1))
+    with pytest.raises(ValueError, match="`regulariser`"):
+        _lin_fit(regulariser="l1")

@@ -50,13 +50,13 @@ class AbstractSolver(eqx.Module):
 
     def check_regulariser(self, regulariser) -> None:
         """Raise a ValueError unless this solver can minimise C + g with the non-smooth
-        regulariser g (a `sparsity.ProximalTransformation`) given in `fit(constraints=...)`.
+        regulariser g (a `sparsity.ProximalTransformation`) given in `fit(regulariser=...)`.
         Only the proximal first-order solvers (`Adam`, `Optax`) can."""
         del regulariser
         name = type(self).__name__
         raise ValueError(
             f"`{name}` cannot minimise C + g with a proximal regulariser (l1, group_lasso, "
-            "l2) in `constraints`: it needs a smooth sum of squares or loss. Select the terms "
+            "l2) in `regulariser`: it needs a smooth sum of squares or loss. Select the terms "
             "with a proximal solver: oneshot_jax.Adam (proximal Adam, exact zeros) or "
             "oneshot_jax.Optax(transform) with the regulariser's learning_rate; then refit "
             f"the surviving terms without the regulariser, e.g. with `{name}` and "

@@ -55,7 +55,7 @@ from .._optimality import (
 )
 from .._problem import Params
 from .._results import RESULTS
-from .._strategy import LINEAR_SOLVERS, STRATEGIES, least_squares_solver
+from .._strategy import LINEAR_SOLVERS, ParallelInTime, as_strategy, least_squares_solver
 from ._linearisation import AbstractLinearisation, linearise
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
@@ -91,17 +91,13 @@ class AbstractLeastSquares(AbstractSolver):
             non_negative=("rtol", "atol", "gtol", "cg_rtol"),
             integers=("max_steps", "cg_max_steps"),
         )
-        if self.strategy not in STRATEGIES:
-            raise ValueError(
-                f"`{type(self).__name__}(strategy=...)` must be one of {STRATEGIES}, "
-                f"got {self.strategy!r}."
-            )
+        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(
                 f"`{type(self).__name__}(linear_solver=...)` must be one of {LINEAR_SOLVERS}, "
                 f"got {self.linear_solver!r}."
             )
-        if self.strategy == "parallel" and self.linear_solver == "cg":
+        if isinstance(as_strategy(self.strategy), ParallelInTime) and self.linear_solver == "cg":
             raise ValueError(
                 f"`{type(self).__name__}(linear_solver='cg')` runs its Jacobian-vector "
                 "products by sequential recursions and does not combine with "
@@ -111,7 +107,7 @@ class AbstractLeastSquares(AbstractSolver):
     def _matrix_free(self, params):
         # The parallel-in-time path forms the Jacobian (its sensitivities are associative
         # scans); the matrix-free products are sequential.
-        if self.strategy == "parallel":
+        if isinstance(as_strategy(self.strategy), ParallelInTime):
             return False
         return least_squares_solver(self.linear_solver, params.theta.shape[0]) == "cg"
 

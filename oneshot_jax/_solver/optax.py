@@ -23,10 +23,10 @@ starts afresh when that set changes. A non-finite loss or gradient stops with
 `max_steps` (`max_steps_reached`, not a success).
 
 A proximal regulariser g (`oneshot_jax.sparsity.l1`, `group_lasso`, given in
-`fit(constraints=...)`) turns each step into a proximal-gradient step on C + g: the prox
+`fit(regulariser=...)`) turns each step into a proximal-gradient step on C + g: the prox
 of g with the step's own step sizes, then the projection (Parikh and Boyd, "Proximal
 algorithms", 2014, Sec. 4.2). `Adam` uses its per-coordinate steps
-d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps) (`sparsity.proximal_adam`: the prox
+d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps) (`proximal_adam`: the prox
 in Adam's diagonal metric, whose fixed points are the stationary points of C + g);
 `Optax(transform)` uses the regulariser's `learning_rate` (exact for `optax.sgd` with that
 rate). The loss recorded and returned is then the objective C + g; the gradient norm is
@@ -40,7 +40,6 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from .. import sparsity
 from .._linalg import floor
 from .._optimality import (
     Measures,
@@ -51,8 +50,14 @@ from .._optimality import (
     zero_residual,
 )
 from .._problem import FitProblem, Params
+from .._prox import (
+    ProximalTransformation,
+    check_learning_rate,
+    check_non_negative_scalar,
+    step_at,
+)
 from .._results import RESULTS
-from .._strategy import STRATEGIES
+from .._strategy import as_strategy
 from .base import AbstractSolver, check_options, grad_norm
 
 
@@ -146,11 +151,7 @@ class _AbstractOptax(AbstractSolver):
                 f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
                 f"got {self.tol_loss!r}."
             )
-        if self.strategy not in STRATEGIES:
-            raise ValueError(
-                f"`{type(self).__name__}(strategy=...)` must be one of {STRATEGIES}, "
-                f"got {self.strategy!r}."
-            )
+        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
 
     def init(self, problem, params):
         C, g = problem.value_and_grad(params, self.strategy)
@@ -299,7 +300,7 @@ class Optax(_AbstractOptax):
     `optax.lbfgs`) also get `value`, `grad` and `value_fn`, where `value_fn`'s gradient is
     the closed form too.
 
-    With a regulariser g in `fit(constraints=...)`, each update is followed by the prox of
+    With a regulariser g in `fit(regulariser=...)`, each update is followed by the prox of
     g with step `learning_rate` (the regulariser's, e.g. `l1(lam, where,
     learning_rate=eta)`, or an optax schedule of the update count): with
     `optax.sgd(eta)` this is proximal gradient descent (ISTA) on C + g. For Adam's
@@ -352,16 +353,15 @@ class Optax(_AbstractOptax):
         rate = problem.regulariser.learning_rate if problem.regulariser is not None else None
         if rate is None:
             return p_theta
-        step = rate(count) if callable(rate) else rate
-        return problem.prox(p_theta, step)
+        return problem.prox(p_theta, step_at(rate, count))
 
 
 class Adam(_AbstractOptax):
     """Algorithm 1 of the paper: Adam (eq. 8-9) with separate learning rates for theta
     and x0, on the one-shot closed-form gradient.
 
-    With a regulariser g (`sparsity.l1`, `group_lasso`) in `fit(constraints=...)`, theta
-    takes proximal Adam steps (`sparsity.proximal_adam`): with Adam's bias-corrected
+    With a regulariser g (`sparsity.l1`, `group_lasso`) in `fit(regulariser=...)`, theta
+    takes proximal Adam steps (`proximal_adam`): with Adam's bias-corrected
     moments m_hat, v_hat, theta+ = prox_{g, D}(theta - D m_hat), D = diag(d),
     d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps), lambda the regulariser's
     strength (the largest one of a combination). The prox in this metric soft-thresholds
@@ -405,15 +405,113 @@ class Adam(_AbstractOptax):
                 {"theta": "theta", "x0": "x0"},
             )
         # The regulariser as a prox on the flat free entries (what the transform sees).
-        flat = sparsity.ProximalTransformation(
+        flat = ProximalTransformation(
             init=None,
             update=None,
             prox=problem.prox,
             value=problem.g,
             strength=problem.regulariser.strength,
         )
-        theta_tx = sparsity.proximal_adam(self.lr_theta, flat, b1=self.b1, b2=self.b2, eps=self.eps)
+        theta_tx = proximal_adam(self.lr_theta, flat, b1=self.b1, b2=self.b2, eps=self.eps)
         return _by_part(theta_tx, x0_tx)
+
+
+class ProximalAdamState(NamedTuple):
+    """Adam's moment estimates (as in `optax.scale_by_adam`) and the update count."""
+
+    count: jax.Array
+    mu: Any
+    nu: Any
+
+
+def proximal_adam(
+    learning_rate, regulariser, *, b1=0.9, b2=0.999, eps=1e-8, floor=None
+) -> optax.GradientTransformation:
+    """Adam with a proximal step in its own diagonal metric, for C + g with g non-smooth.
+
+    This is the theta part of `Adam` with a regulariser: the paper's Algorithm 1 (Adam,
+    eq. 8-9) with the prox of g where Section 3.3 puts the projection. With Adam's
+    bias-corrected moments m_hat, v_hat (Kingma and Ba 2015, Algorithm 1) and the
+    per-coordinate steps
+
+        d_i = eta / (max(sqrt(v_hat_i), floor) + eps),
+
+    the update is theta+ = prox_{g, D}(theta - d * m_hat), D = diag(d): the proximal map
+    of g in the metric D^{-1} (`regulariser.prox(params, d)`: soft-thresholding at
+    d_i lambda for `l1`; the proximal-gradient method with a diagonal preconditioner, as
+    in Yun, Lozano and Yang, "Adaptive proximal gradient methods for structured neural
+    networks", NeurIPS 2021). At a fixed point m_hat = grad C and
+    theta = prox_{g, D}(theta - D grad C), which holds exactly when 0 is in
+    grad C + dg(theta): the fixed points are the stationary points of C + g, whatever the
+    steps d. Coordinates that the regulariser does not select take plain (floored) Adam
+    steps.
+
+    **The floor.** Adam's move d_i m_hat_i is at most about eta, but the threshold
+    d_i lambda is not: with plain Adam steps (`floor=0`) a coordinate whose gradient is far
+    below lambda, as all are near a converged fit, is thresholded by
+    eta lambda / sqrt(v_hat_i) >> eta in one step and lands on zero however large it is.
+    The default floor, the regulariser's `strength` lambda, keeps every move at most about
+    eta (the threshold d_i lambda <= eta) and changes no fixed point; below it the step is
+    gradient descent with step eta / lambda.
+
+    **Arguments:**
+
+    - `learning_rate`: eta > 0, or an optax schedule `count -> eta`.
+    - `regulariser`: a `ProximalTransformation` (`l1`, `group_lasso`, `l2`, or `combine`
+        of them; a projection's prox, in a `combine` too, projects whatever the step);
+        its own `learning_rate` is not used.
+    - `b1`, `b2`, `eps`: as for `optax.adam`.
+    - `floor`: the floor on sqrt(v_hat) (>= 0); None takes `regulariser.strength`.
+
+    **Returns:**
+
+    An optax `GradientTransformation`; `update(grads, state, params)` needs `params`.
+    """
+    check_learning_rate(learning_rate, allow_none=False)
+    if not isinstance(regulariser, ProximalTransformation):
+        raise ValueError(
+            "`regulariser` must be a ProximalTransformation from oneshot_jax.sparsity (l1, "
+            f"group_lasso, l2, combine), got {regulariser!r}."
+        )
+    for name, b in (("b1", b1), ("b2", b2)):
+        if not 0 <= b < 1:
+            raise ValueError(f"`{name}` must be in [0, 1), got {b!r}.")
+    if not eps > 0:
+        raise ValueError(f"`eps` must be > 0, got {eps!r}.")
+    if floor is None:
+        floor = regulariser.strength or 0.0
+    check_non_negative_scalar(floor, "floor")
+
+    def init(params):
+        zeros = lambda p: jnp.zeros_like(p)  # noqa: E731
+        return ProximalAdamState(
+            count=jnp.zeros([], jnp.int32),
+            mu=jax.tree_util.tree_map(zeros, params),
+            nu=jax.tree_util.tree_map(zeros, params),
+        )
+
+    def update(grads, state, params=None):
+        if params is None:
+            raise ValueError("`proximal_adam` needs `params` in `update(grads, state, params)`.")
+        count = optax.safe_increment(state.count)
+        mu = jax.tree_util.tree_map(lambda m, g: b1 * m + (1 - b1) * g, state.mu, grads)
+        nu = jax.tree_util.tree_map(lambda v, g: b2 * v + (1 - b2) * g * g, state.nu, grads)
+        eta = step_at(learning_rate, state.count)
+
+        def step(v):  # d_i, in the parameter's dtype
+            v_hat = v / (1 - b2 ** count.astype(v.dtype))
+            root = jnp.maximum(jnp.sqrt(v_hat), jnp.asarray(floor, v.dtype))
+            return jnp.asarray(eta / (root + eps), v.dtype)
+
+        steps = jax.tree_util.tree_map(step, nu)
+        moved = jax.tree_util.tree_map(
+            lambda p, d, m: p - d * (m / (1 - b1 ** count.astype(m.dtype))), params, steps, mu
+        )
+        new = regulariser.prox(moved, steps)
+        updates = jax.tree_util.tree_map(lambda n, p: n - p, new, params)
+        return updates, ProximalAdamState(count=count, mu=mu, nu=nu)
+
+    return optax.GradientTransformation(init, update)
 
 
 class LBFGS(_AbstractOptax):

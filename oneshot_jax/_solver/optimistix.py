@@ -33,7 +33,7 @@ from .._optimality import (
 )
 from .._problem import FitProblem, Params
 from .._results import RESULTS
-from .._strategy import STRATEGIES
+from .._strategy import as_strategy
 from .base import AbstractSolver, check_options, grad_norm
 
 
@@ -152,10 +152,7 @@ class Optimistix(AbstractSolver):
                 f"minimiser (e.g. optx.LevenbergMarquardt(rtol, atol)), got {self.solver!r}."
             )
         check_options(self, integers=("max_steps",), non_negative=("gtol",))
-        if self.strategy not in STRATEGIES:
-            raise ValueError(
-                f"`Optimistix(strategy=...)` must be one of {STRATEGIES}, got {self.strategy!r}."
-            )
+        as_strategy(self.strategy, "`Optimistix(strategy=...)`")
 
     @property
     def _minimise(self):

@@ -21,7 +21,7 @@ import warnings
 import zipfile
 from pathlib import Path
 
-from ._files import DatasetFormatError, DatasetNotFoundError, default_cache_dir
+from ._locations import DatasetFormatError, DatasetNotFoundError, default_cache_dir
 
 URL_ENV_VAR = "ONESHOT_JAX_DATA_URL"
 """Environment variable naming a base URL that replaces the official download URLs."""

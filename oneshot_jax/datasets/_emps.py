@@ -7,14 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import (
-    DatasetFormatError,
-    DatasetNotFoundError,
-    locate,
-    not_found,
-    require_length,
-)
+from ._files import locate, not_found, require_length
 from ._files import read_mat as _read_mat
+from ._locations import DatasetFormatError, DatasetNotFoundError
 from ._record import Record
 
 EMPS_IDIM_LS_REFERENCE = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}

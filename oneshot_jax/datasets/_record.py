@@ -8,6 +8,8 @@ import numbers
 
 import numpy as np
 
+from ..metrics import benchmark_scores
+
 
 def _series(value, name):
     try:
@@ -137,8 +139,6 @@ class Record:
         A `oneshot_jax.metrics.BenchmarkScores` (RMSE, NRMSE, R², FIT per output over
         samples n:).
         """
-        from ..metrics import benchmark_scores
-
         return benchmark_scores(self.y, yhat, self.n)
 
     def atleast_2d(self) -> Record:

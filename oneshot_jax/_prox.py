@@ -1,0 +1,457 @@
+r"""The proximal transformation: one type for the projections of `oneshot_jax.constraints`
+(Section 3.3 of the paper) and the regularisers of `oneshot_jax.sparsity`.
+
+The proximal map of a convex function g with step eta (Parikh and Boyd, "Proximal
+algorithms", 2014, Sec. 1.1),
+
+    prox_{eta g}(v) = argmin_y  g(y) + ||y - v||^2 / (2 eta),
+
+is the Euclidean projection onto a convex set S when g is the indicator of S (0 on S,
++inf outside; Parikh and Boyd, Sec. 1.2), whatever the step. So the paper's "projection
+step immediately after the parameters update" (Section 3.3) and the proximal gradient
+step on C + g (ISTA, Parikh and Boyd, Sec. 4.2),
+
+    theta+ = prox_{eta g}(theta - eta grad C(theta)),
+
+are one operation. A `ProximalTransformation` holds the map `prox(params, step_size)`,
+the value `value(params)` = g(params) (0 for an indicator: its iterates stay in its set),
+for an indicator the projection `project` and, for a box, its `bounds`; and, as an optax
+`GradientTransformation` (`init`, `update`), the adapter that applies the prox after an
+optimiser's update (chain it last, like `optax.keep_params_nonnegative`): the update is
+`prox(params + updates, eta) - params`, with eta the transformation's `learning_rate` at
+the update count (a projection takes no step). `combine` composes any of them in order.
+
+`fit(constraints=..., regulariser=...)` takes them apart (`split`): the projections make
+the feasible set (the least-squares solvers of `fit` use a box's bounds for an exact
+active set), the regularisers the objective C + g. The proximal optimiser that matches
+the prox to Adam's per-coordinate steps is `oneshot_jax._solver.optax.proximal_adam`,
+beside `Adam`.
+"""
+
+import warnings
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ._checks import is_concrete
+
+__all__ = ["ProximalTransformation", "ProximalState", "combine"]
+
+
+class ProximalTransformation(NamedTuple):
+    """A proximal map of a convex function g, and an optax transform that applies it.
+
+    A projection onto a convex set is the proximal map of the set's indicator (0 on the
+    set, +inf outside), whatever the step: the projections of `oneshot_jax.constraints`
+    (`box`, `non_negative`, `positive`, `project`) and the regularisers of
+    `oneshot_jax.sparsity` (`l1`, `l2`, `group_lasso`) are all of this type.
+
+    **Fields:**
+
+    - `init`, `update`: the optax interface: chain it after a gradient step, e.g.
+        `optax.chain(optax.sgd(eta), t)`; `update(updates, state, params)` needs
+        `params` and returns `prox(params + updates, learning_rate) - params` (a
+        regulariser needs its factory's `learning_rate` for this; a projection takes no
+        step).
+    - `prox`: `(params, step_size) -> params`, the proximal map of g with step
+        `step_size` (a scalar, or a pytree of per-coordinate steps >= 0; a zero step
+        holds its coordinate). For a projection it is `project`, whatever the step.
+    - `value`: `params -> scalar`, g(params), to report C + g: 0 for a projection (the
+        indicator on its set, where the iterates stay).
+    - `project`: for a projection (the prox of an indicator), `params -> params`, the
+        Euclidean projection P onto the set; None for a regulariser.
+    - `bounds`: `params -> (lower, upper)` pytrees shaped like `params` (with +-inf where
+        unbounded) for box sets, or None (a general convex set, or a regulariser).
+    - `strength`: a regulariser's weight lambda (the largest one for `combine`), or None
+        for a projection or when it is traced.
+    - `learning_rate`: the step a regulariser's transform thresholds with after an
+        optimiser (a scalar or an optax schedule), or None when none was given (for
+        `combine`: the terms' common one, None when they differ).
+    - `terms`: for `combine`, the transformations combined, in order; empty otherwise.
+    """
+
+    init: Callable
+    update: Callable
+    prox: Callable
+    value: Callable
+    project: Callable | None = None
+    bounds: Callable | None = None
+    strength: float | None = None
+    learning_rate: Any = None
+    terms: tuple = ()
+
+
+class ProximalState(NamedTuple):
+    """The number of updates made, for a `learning_rate` schedule."""
+
+    count: jax.Array
+
+
+# The arguments of the factories, and what `fit` checks of a projection and a
+# regulariser on theta0 before the compiled solve.
+
+
+def check_non_negative_scalar(value, name):
+    """Raise a ValueError unless `value` is a finite scalar >= 0 (or traced)."""
+    try:
+        ok = np.ndim(value) == 0 and (not is_concrete(value) or np.isfinite(float(value)))
+        ok = ok and (not is_concrete(value) or float(value) >= 0)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"`{name}` must be a finite scalar >= 0, got {value!r}.")
+
+
+def check_learning_rate(learning_rate, allow_none):
+    """Raise a ValueError unless `learning_rate` is a step size: a finite scalar > 0 or an
+    optax schedule (or None where `allow_none`)."""
+    if callable(learning_rate) or (learning_rate is None and allow_none):
+        return
+    try:
+        ok = np.ndim(learning_rate) == 0 and (
+            not is_concrete(learning_rate)
+            or (np.isfinite(float(learning_rate)) and float(learning_rate) > 0)
+        )
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(
+            "`learning_rate` must be the step size of the update the prox follows (a "
+            f"finite scalar > 0, or an optax schedule count -> step), got {learning_rate!r}."
+        )
+
+
+def _check_like(out, theta):
+    """Raise a ValueError unless `out` has theta's leaves: the same paths (dict keys,
+    attributes, indices), shapes and dtypes. `fit` reads a projection's output back as a
+    flat vector, so a missing leaf would shift the others into its place."""
+    want = jax.tree_util.tree_flatten_with_path(theta)[0]
+    got = jax.tree_util.tree_flatten_with_path(out)[0]
+    want_paths = [jax.tree_util.keystr(p) for p, _ in want]
+    got_paths = [jax.tree_util.keystr(p) for p, _ in got]
+    if got_paths != want_paths:
+        missing = [p for p in want_paths if p not in got_paths]
+        extra = [p for p in got_paths if p not in want_paths]
+        detail = "; ".join(
+            f"{what} {', '.join(f'theta{p}' for p in paths)}"
+            for what, paths in (("it drops", missing), ("it adds", extra))
+            if paths
+        )
+        raise ValueError(
+            "`constraints`: the projection must return parameters with the structure of "
+            f"theta (leaves {', '.join(want_paths)}), got leaves {', '.join(got_paths) or 'none'}"
+            f"{'; ' + detail if detail else ' (in another order)'}."
+        )
+    for path, (_, a), (_, b) in zip(want_paths, got, want):
+        if jnp.shape(a) != jnp.shape(b):
+            raise ValueError(
+                f"`constraints`: the projection returned shape {jnp.shape(a)} for theta{path} "
+                f"of shape {jnp.shape(b)}; it must keep the structure, shapes and dtypes of theta."
+            )
+        weak = isinstance(a, (int, float)) and not isinstance(a, bool)
+        if not weak and jnp.result_type(a) != jnp.result_type(b):
+            raise ValueError(
+                f"`constraints`: the projection returned dtype {jnp.result_type(a)} for "
+                f"theta{path} of dtype {jnp.result_type(b)}; it must keep the structure, shapes "
+                "and dtypes of theta."
+            )
+
+
+def check_projection(proj, theta, rtol=1e-10):
+    """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
+    (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
+    P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
+    wherever it happens to stop."""
+    once = proj.project(theta)
+    _check_like(once, theta)
+    twice = proj.project(once)
+    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(once)])
+    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(twice)])
+    if a.shape != b.shape or not np.allclose(
+        a, b, rtol=rtol, atol=rtol * max(np.max(np.abs(a), initial=0.0), 1e-300)
+    ):
+        raise ValueError(
+            "`constraints`: the projection is not idempotent (P(P(theta0)) != P(theta0)); "
+            "a projection onto a convex set must map every point of the set to itself."
+        )
+
+
+def check_regulariser(regulariser, theta):
+    """Evaluate the regulariser (a `_problem.Regulariser`) once on theta0 (outside the
+    compiled solve), so that a `where` that does not fit theta is reported here, naming
+    the argument."""
+    value = regulariser.value(theta)
+    if np.ndim(value) != 0 or not np.isfinite(float(value)):
+        raise ValueError(
+            f"`regulariser`: its value g(theta0) must be a finite scalar, got {value!r}."
+        )
+    steps = jax.tree_util.tree_map(jnp.zeros_like, theta)
+    out = regulariser.prox(theta, steps)
+    if jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(theta):
+        raise ValueError("`regulariser`: its prox changed the structure of theta.")
+
+
+def step_at(learning_rate, count):
+    """The step of `learning_rate` (a number or an optax schedule) at update `count`."""
+    return learning_rate(count) if callable(learning_rate) else learning_rate
+
+
+def _moved(prox, params, updates, step):
+    """The optax update that lands on `prox(params + updates, step)`."""
+    if params is None:
+        raise ValueError(
+            "a proximal transform (a projection or a regulariser) needs `params` in "
+            "`update(updates, state, params)`."
+        )
+    new = prox(optax.apply_updates(params, updates), step)
+    return jax.tree_util.tree_map(lambda n, p: n - p, new, params)
+
+
+def _zero(params):
+    del params
+    return 0.0
+
+
+def indicator(project, bounds=None) -> ProximalTransformation:
+    """The proximal transformation of the indicator of a convex set (Section 3.3).
+
+    **Arguments:**
+
+    - `project`: `params -> params`, the Euclidean projection P onto the set.
+    - `bounds`: for a box, `params -> (lower, upper)`; None otherwise.
+
+    **Returns:**
+
+    A `ProximalTransformation` whose `prox(params, step)` is `project(params)` for every
+    step, whose `value` is 0, and whose optax update is `P(params + updates) - params`
+    (no state).
+    """
+
+    def prox(params, step_size):
+        del step_size
+        return project(params)
+
+    def init(params):
+        del params
+        return optax.EmptyState()
+
+    def update(updates, state, params=None):
+        return _moved(prox, params, updates, None), state
+
+    return ProximalTransformation(init, update, prox, _zero, project, bounds)
+
+
+def penalty(prox, value, strength, learning_rate, name) -> ProximalTransformation:
+    """The proximal transformation of a penalty g (Parikh and Boyd 2014, Sec. 4.2).
+
+    **Arguments:**
+
+    - `prox`: `(params, step_size) -> params`, the proximal map of g.
+    - `value`: `params -> scalar`, g(params).
+    - `strength`: the penalty's weight lambda.
+    - `learning_rate`: the step of the optimiser the transform follows (a scalar or an
+        optax schedule of the update count), or None (then `init` names it as missing).
+    - `name`: the factory's name, for that error.
+
+    **Returns:**
+
+    A `ProximalTransformation` whose optax update is
+    `prox(params + updates, learning_rate(count)) - params`.
+    """
+    check_learning_rate(learning_rate, allow_none=True)
+
+    def init(params):
+        del params
+        if learning_rate is None:
+            raise ValueError(
+                f"chaining `{name}` after an optimiser needs its `learning_rate` (the step "
+                f"of that optimiser): {name}(..., learning_rate=eta). For Adam use "
+                f"`proximal_adam(eta, {name}(...))`."
+            )
+        return ProximalState(count=jnp.zeros([], jnp.int32))
+
+    def update(updates, state, params=None):
+        out = _moved(prox, params, updates, step_at(learning_rate, state.count))
+        return out, ProximalState(count=optax.safe_increment(state.count))
+
+    strength = float(strength) if is_concrete(strength) else None
+    return ProximalTransformation(init, update, prox, value, None, None, strength, learning_rate)
+
+
+def _intersect(boxes):
+    """The bounds of the intersection of boxes: the largest lower and smallest upper."""
+
+    def bounds(params):
+        los, his = zip(*(b(params) for b in boxes))
+        lo = jax.tree_util.tree_map(lambda *a: jnp.max(jnp.stack(a), axis=0), *los)
+        hi = jax.tree_util.tree_map(lambda *a: jnp.min(jnp.stack(a), axis=0), *his)
+        return lo, hi
+
+    return bounds
+
+
+def _same_number(a, b):
+    try:
+        return not callable(a) and not callable(b) and float(a) == float(b)
+    except (TypeError, ValueError):
+        return False
+
+
+def combine(transforms) -> ProximalTransformation | None:
+    """One proximal transformation from None, a `ProximalTransformation` or a sequence of
+    them (projections and regularisers alike): their proximal maps applied in order.
+
+    Projections alone make one projection onto the intersection of their sets (exact for
+    boxes, whose bounds are intersected; a sequence with a general `project(fn)` has no
+    bounds). Regularisers add up their penalties; the composition of their proxes is the
+    exact prox of the sum when the terms act on different leaves, and for `l1` followed
+    by `group_lasso` on the same leaves (the sparse group lasso, Friedman, Hastie and
+    Tibshirani, "A note on the group lasso and a sparse group lasso", 2010; this also
+    holds with per-coordinate steps). A regulariser followed by a box projection is the
+    exact prox of g plus the box's indicator for a separable g (`l1`, `l2`: in one
+    dimension the constrained minimiser is the clipped unconstrained one), a feasible
+    approximation of it for a group penalty. With a regulariser, `update` runs each
+    term's update in turn, like `optax.chain`, each with its own `learning_rate`.
+
+    **Arguments:**
+
+    - `transforms`: None, a `ProximalTransformation`, or a non-empty list or tuple of
+        them.
+
+    **Returns:**
+
+    None for None, the transformation itself for one, else a `ProximalTransformation`
+    whose `terms` are the given ones.
+    """
+    if transforms is None:
+        return None
+    # A ProximalTransformation is a NamedTuple (a tuple): one is not a list of them.
+    if isinstance(transforms, ProximalTransformation):
+        return transforms
+    if (
+        not isinstance(transforms, (list, tuple))
+        or not transforms
+        or not all(isinstance(t, ProximalTransformation) for t in transforms)
+    ):
+        raise ValueError(
+            "`combine` takes proximal transformations (the `constraints` or `regularisers` "
+            "to combine): projections from oneshot_jax.constraints (non_negative, positive, "
+            "box, project) and regularisers from oneshot_jax.sparsity (l1, group_lasso, l2), "
+            f"one or a non-empty list of them; got {transforms!r}."
+        )
+    transforms = tuple(transforms)
+    if len(transforms) == 1:
+        return transforms[0]
+
+    def prox(params, step_size):
+        for t in transforms:
+            params = t.prox(params, step_size)
+        return params
+
+    penalties = [t for t in transforms if t.project is None]
+    if not penalties:
+
+        def project(params):
+            for t in transforms:
+                params = t.project(params)
+            return params
+
+        boxes = [t.bounds for t in transforms]
+        bounds = _intersect(boxes) if None not in boxes else None
+        return indicator(project, bounds)._replace(terms=transforms)
+
+    def value(params):
+        return sum(t.value(params) for t in penalties)
+
+    chained = optax.chain(*(optax.GradientTransformation(t.init, t.update) for t in transforms))
+    strengths = [t.strength for t in penalties]
+    strength = None if None in strengths else max(strengths)
+    rates = [t.learning_rate for t in penalties]
+    same = all(r is rates[0] or _same_number(r, rates[0]) for r in rates)
+    return ProximalTransformation(
+        chained.init,
+        chained.update,
+        prox,
+        value,
+        None,
+        None,
+        strength,
+        rates[0] if same else None,
+        transforms,
+    )
+
+
+def _kind(t: ProximalTransformation) -> set:
+    """{True} for a projection, {False} for a regulariser, both for a mixed `combine`."""
+    if not t.terms:
+        return {t.project is not None}
+    return set().union(*(_kind(s) for s in t.terms))
+
+
+def _parts(t: ProximalTransformation) -> list:
+    """`t` alone, or a mixed `combine` taken apart into its projections and regularisers
+    (a combination of one kind stays whole)."""
+    if len(_kind(t)) == 1:
+        return [t]
+    return [p for s in t.terms for p in _parts(s)]
+
+
+def _items(arg, name, what) -> list:
+    """`fit`'s `constraints` or `regulariser` as a list of transformations of one kind
+    each."""
+    if arg is None:
+        return []
+    if isinstance(arg, ProximalTransformation):
+        items = [arg]
+    elif isinstance(arg, (list, tuple)) and all(isinstance(t, ProximalTransformation) for t in arg):
+        items = list(arg)
+    else:
+        raise ValueError(f"`{name}` must be {what}, or a list of them; got {arg!r}.")
+    return [p for t in items for p in _parts(t)]
+
+
+def split(constraints, regulariser):
+    """`fit`'s `constraints` and `regulariser` as (one projection or None, one
+    regulariser or None), each combined from its terms in order.
+
+    A regulariser given in `constraints` (the mixed form of oneshot_jax 0.2) still works,
+    with a DeprecationWarning naming `regulariser=`; it comes before those of
+    `regulariser`. A projection given in `regulariser` is a ValueError naming the
+    argument. A step of `fit` applies the regulariser's prox, then the projection (see
+    `combine`).
+    """
+    given = _items(
+        constraints,
+        "constraints",
+        "a projection from oneshot_jax.constraints (non_negative, positive, box, project)",
+    )
+    extra = _items(
+        regulariser,
+        "regulariser",
+        "a proximal regulariser from oneshot_jax.sparsity (l1, group_lasso, l2)",
+    )
+    moved = [t for t in given if t.project is None]
+    if moved:
+        warnings.warn(
+            "a proximal regulariser (l1, group_lasso, l2) in `fit(constraints=...)` is "
+            "deprecated: pass it as `fit(regulariser=...)`; `constraints=` takes the "
+            "projections (box, non_negative, positive, project).",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+    if any(t.project is not None for t in extra):
+        raise ValueError(
+            "`regulariser` takes proximal regularisers from oneshot_jax.sparsity (l1, "
+            "group_lasso, l2), got a projection (box, non_negative, positive, project): "
+            f"pass it as `constraints=`; got {regulariser!r}."
+        )
+    projections = [t for t in given if t.project is not None]
+    penalties = moved + extra
+    return (
+        combine(projections) if projections else None,
+        combine(penalties) if penalties else None,
+    )

@@ -1,0 +1,186 @@
+"""The initial state by an extended Kalman filter and Rauch-Tung-Striebel smoother.
+
+`estimate_x0(method="smoother")`: the EKF forward and the extended RTS smoother backward
+over the head of a record (Särkkä, *Bayesian Filtering and Smoothing*, Cambridge
+University Press, 2013: Algorithm 5.4 and Chapter 9), each a `lax.scan`, with f and g
+linearised by `jax.jacfwd`; the smoothed mean and covariance at k = 0 are the estimate.
+The noise covariances and the prior default to the scales of the head
+(`_smoother_defaults`).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+
+from ._checks import as_float
+from ._linalg import psd_solve
+from ._simulate import simulate_impl
+
+# Defaults of the smoother, relative to the scales of the head (see `estimate_x0`).
+MEASUREMENT_NOISE_REL = 1e-2
+PROCESS_NOISE_REL = 1e-3
+PRIOR_STD_REL = 1e2
+
+
+class KalmanPath(eqx.Module):
+    """The states over the head from the extended Kalman filter and the RTS smoother.
+
+    **Fields:**
+
+    - `filtered_mean`, `filtered_covariance`: x[k | k] (n, n_x) and P[k | k] (n, n_x, n_x),
+        given z[0..k].
+    - `smoothed_mean`, `smoothed_covariance`: x[k | n-1] and P[k | n-1], given the whole
+        head; `smoothed_mean[0]` is the estimate of x0.
+    """
+
+    filtered_mean: np.ndarray
+    filtered_covariance: np.ndarray
+    smoothed_mean: np.ndarray
+    smoothed_covariance: np.ndarray
+
+
+def _covariance_arg(value, size, name, *, definite):
+    """A covariance from a scalar (times I), a vector (its diagonal) or a matrix (symmetric,
+    positive semi-definite, or definite where `definite`)."""
+    a = np.asarray(as_float(value, name), dtype=np.float64)
+    if a.shape == ():
+        a = np.full(size, float(a))
+    if a.shape == (size,):
+        a = np.diag(a)
+    if a.shape != (size, size):
+        raise ValueError(
+            f"`{name}` must be a scalar, a ({size},) vector of variances or a ({size}, {size}) "
+            f"covariance matrix, got shape {np.shape(value)}."
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"`{name}` contains NaN or inf values.")
+    scale = max(float(np.max(np.abs(a))), 1e-300)
+    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-12 * scale):
+        raise ValueError(f"`{name}` must be a symmetric matrix.")
+    low = float(np.min(np.linalg.eigvalsh(a)))
+    if definite and low <= 0:
+        raise ValueError(f"`{name}` must be positive definite (variances > 0).")
+    if low < -1e-10 * scale:
+        raise ValueError(f"`{name}` must be positive semi-definite (variances >= 0).")
+    return 0.5 * (a + a.T)
+
+
+def _rms(a, axis=0):
+    """Root-mean-square per column, with 1 where it is zero or not finite."""
+    s = np.sqrt(np.mean(np.square(np.asarray(a, np.float64)), axis=axis))
+    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+
+
+@eqx.filter_jit
+def _smooth(model, theta, m0, P0, Qp, R, u, z):
+    """Extended Kalman filter and Rauch-Tung-Striebel smoother over one head.
+
+    Model: x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
+    v_k ~ N(0, R); x[0] ~ N(m0, P0). f and g are linearised by `jax.jacfwd` at the filtered
+    and predicted means (Särkkä 2013, Algorithm 5.4); the backward pass is the extended
+    RTS smoother (ibid., Chapter 9; Theorem 8.2 for the linear case):
+
+        G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
+        P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
+    """
+    eye = jnp.eye(m0.shape[0], dtype=m0.dtype)
+
+    def update(m, P, u_k, z_k):
+        H = jax.jacfwd(model.observe)(m, u_k, theta)
+        S = H @ P @ H.T + R
+        Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
+        m = m + Kt.T @ (z_k - model.observe(m, u_k, theta))
+        A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
+        P = A @ P @ A.T + Kt.T @ R @ Kt
+        return m, 0.5 * (P + P.T)
+
+    def forward(carry, inp):
+        m, P = carry
+        u_k, z_k, u_step = inp
+        mf, Pf = update(m, P, u_k, z_k)
+        F = jax.jacfwd(model.step)(mf, u_step, theta)
+        Pp = F @ Pf @ F.T + Qp
+        mp = model.step(mf, u_step, theta)
+        return (mp, 0.5 * (Pp + Pp.T)), (mf, Pf, mp, Pp, F)
+
+    n = u.shape[0]
+    (m, P), (mf, Pf, mp, Pp, F) = jax.lax.scan(
+        forward, (m0, P0), (u[: n - 1], z[: n - 1], model.step_inputs(u))
+    )
+    m_last, P_last = update(m, P, u[n - 1], z[n - 1])
+
+    def backward(carry, inp):
+        ms, Ps = carry
+        mf, Pf, mp, Pp, F = inp
+        G = psd_solve(Pp, F @ Pf).T  # P[k|k] F^T P[k+1|k]^+ (P symmetric)
+        ms = mf + G @ (ms - mp)
+        Ps = Pf + G @ (Ps - Pp) @ G.T
+        Ps = 0.5 * (Ps + Ps.T)
+        return (ms, Ps), (ms, Ps)
+
+    _, (ms, Ps) = jax.lax.scan(backward, (m_last, P_last), (mf, Pf, mp, Pp, F), reverse=True)
+    filtered = (jnp.concatenate([mf, m_last[None]]), jnp.concatenate([Pf, P_last[None]]))
+    smoothed = (jnp.concatenate([ms, m_last[None]]), jnp.concatenate([Ps, P_last[None]]))
+    return filtered, smoothed
+
+
+def _smoother_defaults(
+    data, observes_state, guess, process_noise, measurement_noise, prior_covariance
+):
+    """The covariances of the smoother, defaults from the scales of the head."""
+    n_x, n_z = guess.shape[0], data.n_z
+    z = np.asarray(data.z)
+    s_z = _rms(z)
+    if observes_state:
+        s_x = s_z
+    else:
+        xs, _ = simulate_impl(data.model, data.theta, jnp.asarray(guess), data.u, False)
+        xs = np.asarray(xs, np.float64)
+        s_x = _rms(xs) if np.all(np.isfinite(xs)) else _rms(guess[None])
+    if measurement_noise is not None:
+        R = _covariance_arg(measurement_noise, n_z, "measurement_noise", definite=True)
+    elif data.weight is not None:
+        w = np.asarray(data.weight, np.float64)
+        ok = np.all(w > 0) if w.ndim == 1 else np.min(np.linalg.eigvalsh(w)) > 0
+        if not ok:
+            raise ValueError(
+                "the smoother reads `weight` as the inverse of the measurement noise "
+                "covariance, which needs a positive definite weight; give "
+                "`measurement_noise` for a singular one."
+            )
+        R = np.diag(1.0 / w) if w.ndim == 1 else np.linalg.inv(w)
+    else:
+        R = np.diag((MEASUREMENT_NOISE_REL * s_z) ** 2)
+    if process_noise is not None:
+        Qp = _covariance_arg(process_noise, n_x, "process_noise", definite=False)
+    else:
+        Qp = np.diag((PROCESS_NOISE_REL * s_x) ** 2)
+    if prior_covariance is not None:
+        P0 = _covariance_arg(prior_covariance, n_x, "prior_covariance", definite=True)
+    else:
+        P0 = np.diag((PRIOR_STD_REL * s_x) ** 2)
+    return P0, Qp, R
+
+
+def kalman_path(
+    data, observes_state, process_noise, measurement_noise, prior_covariance
+) -> KalmanPath:
+    """The filtered and smoothed states over the head of checked data (one trajectory,
+    `_checks.check_data`), from `data.x0` as the prior mean, with the covariances of
+    `_smoother_defaults`."""
+    guess = np.asarray(data.x0)
+    P0, Qp, R = _smoother_defaults(
+        data, observes_state, guess, process_noise, measurement_noise, prior_covariance
+    )
+    dtype = data.x0.dtype
+    (mf, Pf), (ms, Ps) = _smooth(
+        data.model,
+        data.theta,
+        jnp.asarray(guess),
+        *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
+        jnp.asarray(data.u),
+        jnp.asarray(data.z),
+    )
+    return KalmanPath(*(np.asarray(a) for a in (mf, Pf, ms, Ps)))
