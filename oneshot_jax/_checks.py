@@ -591,7 +591,7 @@ def check_fixed_bounds(theta, fixed, lower, upper):
                     f"{float(bound)!r} of `constraints`: a fixed entry keeps its given value "
                     "(it is not projected); free it or move it inside the bounds.",
                     UserWarning,
-                    stacklevel=3,
+                    stacklevel=4,
                 )
 
 

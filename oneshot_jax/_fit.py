@@ -1,8 +1,9 @@
 """`fit`: estimate theta and x0 by minimising the multi-step loss (eq. 5/21).
 
-`fit` only normalises its inputs into a `FitProblem` and starting points, hands them to
-the solvers' loop (`oneshot_jax._iterate`) as one compiled call, and assembles the
-`FitResult` (`oneshot_jax._assemble`).
+`fit` runs in four stages: its inputs checked and normalised, and the `FitProblem` and
+starting points built from them (`oneshot_jax._fit_inputs`); the solve, the solvers'
+loop (`oneshot_jax._iterate`) from every start as one compiled call (`_solve`, `_run`);
+the `FitResult` assembled on the host (`oneshot_jax._assemble`).
 """
 
 import time
@@ -16,55 +17,13 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._assemble import assemble, collect, post
-from ._checks import (
-    _is_ragged,
-    check_cost,
-    check_data,
-    check_fixed_bounds,
-    check_outside_transformations,
-    fixed_mask,
-    x0_mask,
-)
-from ._fit_report import check_units, theta_order
+from ._fit_inputs import build_problem, check_inputs
+from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run
 from ._parallel._report import counting
-from ._problem import FitProblem, Params, Regulariser
-from ._progress import NoProgress, TqdmProgress
-from ._prox import check_projection, check_regulariser, split
-from ._solver.least_squares import AbstractLeastSquares
-from ._solver_arg import as_solvers
-from ._windows import cut
-
-_NO_PROGRESS = NoProgress()
-
-
-def _n_starts(theta0_params, x0, data_x0_ndim):
-    """The number of starts of a multistart fit, from theta0's leading axes and x0's."""
-    sizes = {
-        jnp.shape(leaf)[0] if jnp.ndim(leaf) else None
-        for leaf in jax.tree_util.tree_leaves(theta0_params)
-    }
-    if len(sizes) != 1 or None in sizes:
-        raise ValueError(
-            "with `multistart=True` every parameter leaf of `theta0` needs the same leading "
-            f"axis of starts; got leading sizes {sorted(map(str, sizes))}."
-        )
-    n = sizes.pop()
-    if np.ndim(x0) == data_x0_ndim + 1 and np.shape(x0)[0] != n:
-        raise ValueError(
-            f"with `multistart=True`, `x0` with a leading axis of starts must have {n} "
-            f"starts like `theta0`, got {np.shape(x0)[0]} (shape {np.shape(x0)})."
-        )
-    return n
-
-
-def _host(a):
-    """Data as NumPy arrays (no device transfer until the compiled call), except arrays
-    sharded over several devices (`oneshot_jax.sharding`), which stay where they are."""
-    if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1:
-        return a
-    return np.asarray(a)
+from ._problem import Params
+from ._progress import NoProgress
 
 
 def _written_order(tree):
@@ -118,6 +77,43 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id):
     out = collect(stages, best, moved, post(problem, params, blocks, strategy))
     # One buffer per dtype to the host instead of one per array (`_pytree.pack`).
     return _pytree.pack(out)
+
+
+def _run(solvers, problem, starts, history, meter):
+    """The solve: `_solve` from every start, timed, with the progress bar open around it.
+    Returns its output unpacked (an `Out`), the wall time and the counts of parallel
+    rollouts and their fallbacks, and warns of those fallbacks and of starts projected
+    onto the constraint set."""
+    # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
+    bar = not isinstance(meter, NoProgress)
+    bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
+    try:
+        with counting() as counts:
+            t0 = time.perf_counter()
+            buffers, layout = _solve(
+                solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
+            )
+            jax.block_until_ready(buffers)
+            jax.effects_barrier()
+            wall = time.perf_counter() - t0
+    finally:
+        if bar:
+            meter.close(bar_id)
+    out = _pytree.unpack(buffers, layout)
+    diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
+    if counts["sequential_fallbacks"]:
+        warnings.warn(
+            f"{counts['sequential_fallbacks']} of {counts['parallel_rollouts']} parallel "
+            "rollouts did not converge and fell back to the sequential loop (the results are "
+            "exact; see FitResult.diagnostics).",
+            RuntimeWarning,
+            stacklevel=3,  # `fit`'s caller
+        )
+    if out.moved:
+        warnings.warn(
+            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=3
+        )
+    return out, wall, diagnostics
 
 
 def fit(
@@ -203,174 +199,44 @@ def fit(
 
     A `FitResult`.
     """
-    check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
-    units = check_units(units, theta0)
-    solvers = as_solvers(solver)
-    if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
-        raise ValueError(f"`history` must be an even integer >= 2, got {history!r}.")
-    if progress is True:
-        meter = TqdmProgress()
-    elif progress is False or progress is None:
-        meter = _NO_PROGRESS
-    elif hasattr(progress, "update") and hasattr(progress, "open"):
-        meter = progress
-    else:
-        raise TypeError(f"`progress` must be a bool or a progress object, got {progress!r}.")
-
-    # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
-    u_ndim = 3 if _is_ragged(u) or _is_ragged(z) else np.ndim(u)
-    per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
-    data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
-    if multistart:
-        theta_params, theta_static = _pytree.split(theta0)
-        n_starts = _n_starts(theta_params, x0, data_x0_ndim)
-        theta_first = _pytree.combine(
-            jax.tree_util.tree_map(lambda a: a[0], theta_params), theta_static
-        )
-    else:
-        n_starts, theta_first = None, theta0
-    x0_starts = None
-    if multistart and np.ndim(x0) == data_x0_ndim + 1:
-        x0_starts = np.asarray(x0)
-        x0 = x0_starts[0]
-
-    if window is not None:
-        if u_ndim != 2:
-            raise ValueError(
-                f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u)}."
-            )
-        x0_record = np.asarray(x0)[0] if per_window_x0 else x0
-        data = check_data(model, theta_first, x0_record, u, z, weight, missing)
-        x0_w, u_w, z_w, mask_w = cut(data, window, np.asarray(x0) if per_window_x0 else None)
-        data = check_data(model, theta_first, x0_w, u_w, z_w, weight)._replace(mask=mask_w)
-        if x0_starts is not None:
-            raise ValueError("`window` with per-start x0 is not supported: give one x0.")
-    else:
-        data = check_data(model, theta_first, x0, u, z, weight, missing)
-    cost = check_cost(data, penalty, penalty_weight)
-    if cost.penalty is not None and float(cost.penalty_weight) < 0:
-        if any(isinstance(s, AbstractLeastSquares) for s in solvers):
-            raise ValueError(
-                f"`penalty_weight` must be >= 0 with a least-squares solver, got "
-                f"{float(cost.penalty_weight)}: it minimises a sum of squares that includes "
-                "sqrt(penalty_weight h). Use a first-order solver (Adam, LBFGS) for a "
-                "signed penalty."
-            )
-    batched = data.batched
-    # Host-side (NumPy) views with the trajectory axis: no eager JAX call per array; the
-    # compiled call below takes them as they are.
-    X0, U, Z = (_host(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z))
-    n_x = X0.shape[1]
-
-    flat0, unravel = _pytree.ravel(data.theta)
-    fixed_flat = fixed_mask(fixed, data.theta)
-    theta_free = np.flatnonzero(~fixed_flat)
-    x0_est = x0_mask(estimate_x0, n_x)
-    x0_free = np.flatnonzero(x0_est)
-    if len(theta_free) == 0 and len(x0_free) == 0:
-        raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
-
-    proj, reg = split(constraints, regulariser)
-    on_theta = None  # the regulariser on theta's trainable part
-    if reg is not None:
-        for s in solvers:
-            s.check_regulariser(reg)
-        on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
-        check_regulariser(on_theta, data.theta)
-    lower = upper = None
-    project = None
-    if proj is not None:
-        if proj.bounds is not None:
-            lo, hi = proj.bounds(data.theta)
-            lo, hi = _pytree.flat_host(lo), _pytree.flat_host(hi)
-            check_fixed_bounds(data.theta, fixed_flat, lo, hi)
-            lower, upper = lo[theta_free], hi[theta_free]
-        else:  # a general projection: check that it is one (boxes are by construction)
-            check_projection(proj, data.theta)
-            project = proj.project
-
-    problem = _pytree.build(
-        FitProblem,
-        model=data.model,
-        cost=cost,
-        u=U,
-        z=Z,
-        theta_base=flat0,
-        theta_free=tuple(int(i) for i in theta_free),
-        unravel=unravel,
-        x0_base=X0,
-        x0_free=tuple(int(i) for i in x0_free),
-        project=project,
-        lower=lower,
-        upper=upper,
-        regulariser=on_theta,
-        mask=None
-        if data.mask is None
-        else jax.tree_util.tree_map(
-            lambda a: np.asarray(a) if batched else np.asarray(a)[None], data.mask
-        ),
+    inputs = check_inputs(
+        model,
+        theta0,
+        x0,
+        u,
+        z,
+        solver=solver,
+        weight=weight,
+        penalty=penalty,
+        penalty_weight=penalty_weight,
+        window=window,
+        missing=missing,
+        multistart=multistart,
+        progress=progress,
+        history=history,
+        units=units,
     )
-
-    # Every start as free-variable arrays (built on the host).
-    if multistart:
-        starts_flat = np.stack(
-            [
-                _pytree.flat_host(jax.tree_util.tree_map(lambda a, i=i: a[i], theta_params))
-                for i in range(n_starts)
-            ]
-        ).astype(X0.dtype)
-        if x0_starts is not None:
-            X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)
-        else:
-            X0s = np.broadcast_to(X0, (n_starts, *X0.shape))
-    else:
-        starts_flat, X0s = np.asarray(flat0)[None], X0[None]
-    all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x
-    starts = Params(
-        starts_flat if all_t else starts_flat[:, theta_free],
-        X0s if all_x else X0s[:, :, x0_free],
+    built = build_problem(
+        inputs,
+        fixed=fixed,
+        estimate_x0=estimate_x0,
+        constraints=constraints,
+        regulariser=regulariser,
     )
-
-    # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
-    bar = not isinstance(meter, NoProgress)
-    bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
-    try:
-        with counting() as counts:
-            t0 = time.perf_counter()
-            buffers, layout = _solve(
-                solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
-            )
-            jax.block_until_ready(buffers)
-            jax.effects_barrier()
-            wall = time.perf_counter() - t0
-    finally:
-        if bar:
-            meter.close(bar_id)
-    out = _pytree.unpack(buffers, layout)
-    diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
-    if counts["sequential_fallbacks"]:
-        warnings.warn(
-            f"{counts['sequential_fallbacks']} of {counts['parallel_rollouts']} parallel "
-            "rollouts did not converge and fell back to the sequential loop (the results are "
-            "exact; see FitResult.diagnostics).",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    if out.moved:
-        warnings.warn(
-            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=2
-        )
+    out, wall, diagnostics = _run(
+        inputs.solvers, built.problem, built.starts, history, inputs.meter
+    )
     return assemble(
         model=model,
-        problem=problem,
-        data=data,
+        problem=built.problem,
+        data=inputs.data,
         out=out,
         wall_time=wall,
-        solvers=solvers,
-        fixed=fixed_flat,
-        x0_estimated=x0_est,
+        solvers=inputs.solvers,
+        fixed=built.fixed,
+        x0_estimated=built.x0_estimated,
         multistart=multistart,
         diagnostics=diagnostics,
         theta_order=_theta_order(theta0),
-        units=units,
+        units=inputs.units,
     )

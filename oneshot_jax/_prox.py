@@ -441,7 +441,7 @@ def split(constraints, regulariser):
             "deprecated: pass it as `fit(regulariser=...)`; `constraints=` takes the "
             "projections (box, non_negative, positive, project).",
             DeprecationWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     if any(t.project is not None for t in extra):
         raise ValueError(

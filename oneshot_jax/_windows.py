@@ -53,7 +53,7 @@ def cut(data, window, x0_windows=None):
     N = T // window
     if N * window != T:
         warnings.warn(
-            f"the last {T - N * window} samples do not fill a window and are dropped.", stacklevel=3
+            f"the last {T - N * window} samples do not fill a window and are dropped.", stacklevel=4
         )
     u_w = np.asarray(u[: N * window]).reshape(N, window, -1)
     z_w = np.asarray(z[: N * window]).reshape(N, window, -1)

@@ -5,6 +5,9 @@
   inside a function. `from . import x` and `from .x import y` are resolved to modules (`y`
   may be a submodule or a name), and importing `a.b.c` also runs the packages `a.b` and
   `a` above it.
+- The layer table of docs/architecture.md holds: every module of the package has a row
+  (or its package, named as a folder, has one), and no import goes from a module to one
+  of a higher layer.
 - No function-local import of the package inside the package, except the documented
   ones of `LAZY`, which load something on first use and are left out of the graph.
 - `import oneshot_jax` loads neither the example models nor matplotlib.
@@ -15,6 +18,7 @@
 import ast
 import importlib.util
 import pkgutil
+import re
 import subprocess
 import sys
 import textwrap
@@ -336,6 +340,88 @@ def test_import_loads_neither_the_examples_nor_matplotlib():
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
     ).stdout.splitlines()
     assert out == ["[]", "oneshot_jax.examples.satellite"]
+
+
+# --------------------------------------------------------------------------- the layers
+
+
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
+
+
+def _module_of(cell_name):
+    """The dotted module a file name of the table names (`_fit.py`, `_solver/base.py`,
+    `__init__.py`), or the package a folder names (`datasets/`)."""
+    path = cell_name.removesuffix("/").removesuffix(".py").removesuffix("__init__")
+    return ".".join([PACKAGE, *(p for p in path.split("/") if p)])
+
+
+def layer_table(text):
+    """`(modules, packages)` of the layer table of docs/architecture.md: the layer number
+    of each module of a row (one or several per cell, in backticks), and of each package
+    named as a folder (`datasets/`), which covers its modules not listed themselves."""
+    modules, packages, layer = {}, {}, None
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if not line.startswith("|") or len(cells) != 4 or not cells[1].startswith("`"):
+            continue
+        number = re.match(r"(\d+)\.", cells[0])
+        layer = int(number.group(1)) if number else layer
+        for name in re.findall(r"`([^`]+)`", cells[1]):
+            into = packages if name.endswith("/") else modules
+            into[_module_of(name)] = layer
+    return modules, packages
+
+
+def layer_of(module, modules, packages):
+    """The layer of `module`: its own row, else the row of the nearest package above it
+    named as a folder; None if the table has neither."""
+    if module in modules:
+        return modules[module]
+    name = module
+    while name:
+        if name in packages:
+            return packages[name]
+        name = name.rpartition(".")[0]
+    return None
+
+
+def test_the_layer_table_parser():
+    text = (
+        "| Layer | Module | Role | What it holds |\n"
+        "| --- | --- | --- | --- |\n"
+        "| 1. Base | `a.py` | a | `x`, `y`. |\n"
+        "| | `sub/` | sub | `sub/c.py`. |\n"
+        "| 2. Top | `b.py`, `sub/d.py` | b, d | `z`. |\n"
+        "| | `__init__.py` | api | |\n"
+    )
+    modules, packages = layer_table(text)
+    assert modules == {
+        "oneshot_jax.a": 1,
+        "oneshot_jax.b": 2,
+        "oneshot_jax.sub.d": 2,
+        "oneshot_jax": 2,
+    }
+    assert packages == {"oneshot_jax.sub": 1}
+    assert layer_of("oneshot_jax.sub.c", modules, packages) == 1
+    assert layer_of("oneshot_jax.sub.d", modules, packages) == 2
+    assert layer_of("oneshot_jax.e", modules, packages) is None
+
+
+def test_the_layer_table_holds():
+    """Every module of the package has a row of the table of docs/architecture.md (or
+    its package does), and every import goes to a module of its own layer or below (the
+    lazy import of `LAZY` is no edge of GRAPH)."""
+    modules, packages = layer_table(ARCHITECTURE.read_text())
+    missing = sorted(m for m in GRAPH if layer_of(m, modules, packages) is None)
+    assert not missing, f"modules missing from the layer table of docs/architecture.md: {missing}"
+    upward = [
+        f"{m} (layer {layer_of(m, modules, packages)}) -> {t} "
+        f"(layer {layer_of(t, modules, packages)})"
+        for m in sorted(GRAPH)
+        for t in sorted(GRAPH[m])
+        if layer_of(t, modules, packages) > layer_of(m, modules, packages)
+    ]
+    assert not upward, "imports from a lower layer to a higher one:\n" + "\n".join(upward)
 
 
 # --------------------------------------------------------------------------- the clients

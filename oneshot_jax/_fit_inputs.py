@@ -1,0 +1,266 @@
+"""The first two of `fit`'s four stages (inputs, problem, solve, assemble): its
+arguments checked and normalised (`check_inputs`), then the `FitProblem` its solvers see
+and the starts they run from, built on the host (`build_problem`).
+
+The data's own checks and normalisation (one dtype, ragged trajectories padded and
+masked, the model bound and traced abstractly) are `check_data`'s, in `_checks.py`; a
+constraint's or regulariser's checks on theta0 are `_prox.py`'s. What is here is what
+only `fit` has: its keywords, the starts of a multistart fit, the windows of one record,
+the free entries of theta and x0 and the bounds on them.
+"""
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _pytree
+from ._checks import (
+    Data,
+    _is_ragged,
+    check_cost,
+    check_data,
+    check_fixed_bounds,
+    check_outside_transformations,
+    fixed_mask,
+    x0_mask,
+)
+from ._cost import Cost
+from ._fit_report import check_units
+from ._problem import FitProblem, Params, Regulariser
+from ._progress import NoProgress, TqdmProgress
+from ._prox import check_projection, check_regulariser, split
+from ._solver.least_squares import AbstractLeastSquares
+from ._solver_arg import as_solvers
+from ._windows import cut
+
+_NO_PROGRESS = NoProgress()
+
+
+class FitInputs(NamedTuple):
+    """`fit`'s arguments, checked: what `build_problem` and the solve read."""
+
+    solvers: tuple  # the solver objects, run in order
+    meter: Any  # the progress object (`NoProgress` for none)
+    units: dict | None
+    data: Data  # the data of the first start (per window with `window`)
+    cost: Cost
+    theta_starts: Any  # multistart: theta0's parameter leaves with their axis of starts
+    n_starts: int | None  # multistart: the number of starts
+    x0_starts: np.ndarray | None  # multistart: x0 with its axis of starts, if given
+
+
+class Built(NamedTuple):
+    """What `build_problem` returns: the problem, the starts, and the masks `assemble`
+    reads."""
+
+    problem: FitProblem
+    starts: Params  # (S, ...) free entries of theta and x0 per start
+    fixed: np.ndarray  # (p,) True for the fixed entries of flat theta
+    x0_estimated: np.ndarray  # (n_x,) True for the estimated entries of x0
+
+
+def _n_starts(theta0_params, x0, data_x0_ndim):
+    """The number of starts of a multistart fit, from theta0's leading axes and x0's."""
+    sizes = {
+        jnp.shape(leaf)[0] if jnp.ndim(leaf) else None
+        for leaf in jax.tree_util.tree_leaves(theta0_params)
+    }
+    if len(sizes) != 1 or None in sizes:
+        raise ValueError(
+            "with `multistart=True` every parameter leaf of `theta0` needs the same leading "
+            f"axis of starts; got leading sizes {sorted(map(str, sizes))}."
+        )
+    n = sizes.pop()
+    if np.ndim(x0) == data_x0_ndim + 1 and np.shape(x0)[0] != n:
+        raise ValueError(
+            f"with `multistart=True`, `x0` with a leading axis of starts must have {n} "
+            f"starts like `theta0`, got {np.shape(x0)[0]} (shape {np.shape(x0)})."
+        )
+    return n
+
+
+def _host(a):
+    """Data as NumPy arrays (no device transfer until the compiled call), except arrays
+    sharded over several devices (`oneshot_jax.sharding`), which stay where they are."""
+    if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1:
+        return a
+    return np.asarray(a)
+
+
+def _meter(progress):
+    """`progress=` of `fit` as a progress object."""
+    if progress is True:
+        return TqdmProgress()
+    if progress is False or progress is None:
+        return _NO_PROGRESS
+    if hasattr(progress, "update") and hasattr(progress, "open"):
+        return progress
+    raise TypeError(f"`progress` must be a bool or a progress object, got {progress!r}.")
+
+
+def check_inputs(
+    model,
+    theta0,
+    x0,
+    u,
+    z,
+    *,
+    solver,
+    weight,
+    penalty,
+    penalty_weight,
+    window,
+    missing,
+    multistart,
+    progress,
+    history,
+    units,
+) -> FitInputs:
+    """`fit`'s arguments checked, in the order of its errors: the keywords, then the data
+    (`check_data`: one record cut into windows with `window`; the first start's theta0
+    and x0 with `multistart`), then the cost.
+
+    **Arguments:** those of `fit`.
+
+    **Returns:** a `FitInputs`.
+    """
+    check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
+    units = check_units(units, theta0)
+    solvers = as_solvers(solver)
+    if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
+        raise ValueError(f"`history` must be an even integer >= 2, got {history!r}.")
+    meter = _meter(progress)
+
+    # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
+    u_ndim = 3 if _is_ragged(u) or _is_ragged(z) else np.ndim(u)
+    per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
+    data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
+    if multistart:
+        theta_params, theta_static = _pytree.split(theta0)
+        n_starts = _n_starts(theta_params, x0, data_x0_ndim)
+        theta_first = _pytree.combine(
+            jax.tree_util.tree_map(lambda a: a[0], theta_params), theta_static
+        )
+    else:
+        theta_params, n_starts, theta_first = None, None, theta0
+    x0_starts = None
+    if multistart and np.ndim(x0) == data_x0_ndim + 1:
+        x0_starts = np.asarray(x0)
+        x0 = x0_starts[0]
+
+    if window is not None:
+        if u_ndim != 2:
+            raise ValueError(
+                f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u)}."
+            )
+        x0_record = np.asarray(x0)[0] if per_window_x0 else x0
+        data = check_data(model, theta_first, x0_record, u, z, weight, missing)
+        x0_w, u_w, z_w, mask_w = cut(data, window, np.asarray(x0) if per_window_x0 else None)
+        data = check_data(model, theta_first, x0_w, u_w, z_w, weight)._replace(mask=mask_w)
+        if x0_starts is not None:
+            raise ValueError("`window` with per-start x0 is not supported: give one x0.")
+    else:
+        data = check_data(model, theta_first, x0, u, z, weight, missing)
+    cost = check_cost(data, penalty, penalty_weight)
+    if cost.penalty is not None and float(cost.penalty_weight) < 0:
+        if any(isinstance(s, AbstractLeastSquares) for s in solvers):
+            raise ValueError(
+                f"`penalty_weight` must be >= 0 with a least-squares solver, got "
+                f"{float(cost.penalty_weight)}: it minimises a sum of squares that includes "
+                "sqrt(penalty_weight h). Use a first-order solver (Adam, LBFGS) for a "
+                "signed penalty."
+            )
+    return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts)
+
+
+def build_problem(inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser) -> Built:
+    """The `FitProblem` the solvers see and the starts they run from, on the host: the
+    free entries of theta and x0, the bounds or projection and the regulariser on theta,
+    each checked on theta0.
+
+    **Arguments:**
+
+    - `inputs`: `check_inputs`'s output.
+    - `fixed`, `estimate_x0`, `constraints`, `regulariser`: those of `fit`.
+
+    **Returns:** a `Built`.
+    """
+    data, solvers = inputs.data, inputs.solvers
+    batched = data.batched
+    # Host-side (NumPy) views with the trajectory axis: no eager JAX call per array; the
+    # compiled call takes them as they are.
+    X0, U, Z = (_host(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z))
+    n_x = X0.shape[1]
+
+    flat0, unravel = _pytree.ravel(data.theta)
+    fixed_flat = fixed_mask(fixed, data.theta)
+    theta_free = np.flatnonzero(~fixed_flat)
+    x0_est = x0_mask(estimate_x0, n_x)
+    x0_free = np.flatnonzero(x0_est)
+    if len(theta_free) == 0 and len(x0_free) == 0:
+        raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
+
+    proj, reg = split(constraints, regulariser)
+    on_theta = None  # the regulariser on theta's trainable part
+    if reg is not None:
+        for s in solvers:
+            s.check_regulariser(reg)
+        on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
+        check_regulariser(on_theta, data.theta)
+    lower = upper = None
+    project = None
+    if proj is not None:
+        if proj.bounds is not None:
+            lo, hi = proj.bounds(data.theta)
+            lo, hi = _pytree.flat_host(lo), _pytree.flat_host(hi)
+            check_fixed_bounds(data.theta, fixed_flat, lo, hi)
+            lower, upper = lo[theta_free], hi[theta_free]
+        else:  # a general projection: check that it is one (boxes are by construction)
+            check_projection(proj, data.theta)
+            project = proj.project
+
+    problem = _pytree.build(
+        FitProblem,
+        model=data.model,
+        cost=inputs.cost,
+        u=U,
+        z=Z,
+        theta_base=flat0,
+        theta_free=tuple(int(i) for i in theta_free),
+        unravel=unravel,
+        x0_base=X0,
+        x0_free=tuple(int(i) for i in x0_free),
+        project=project,
+        lower=lower,
+        upper=upper,
+        regulariser=on_theta,
+        mask=None
+        if data.mask is None
+        else jax.tree_util.tree_map(
+            lambda a: np.asarray(a) if batched else np.asarray(a)[None], data.mask
+        ),
+    )
+
+    # Every start as free-variable arrays (built on the host).
+    if inputs.n_starts is not None:  # multistart
+        starts_flat = np.stack(
+            [
+                _pytree.flat_host(jax.tree_util.tree_map(lambda a, i=i: a[i], inputs.theta_starts))
+                for i in range(inputs.n_starts)
+            ]
+        ).astype(X0.dtype)
+        x0_starts = inputs.x0_starts
+        if x0_starts is not None:
+            X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)
+        else:
+            X0s = np.broadcast_to(X0, (inputs.n_starts, *X0.shape))
+    else:
+        starts_flat, X0s = np.asarray(flat0)[None], X0[None]
+    all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x
+    starts = Params(
+        starts_flat if all_t else starts_flat[:, theta_free],
+        X0s if all_x else X0s[:, :, x0_free],
+    )
+    return Built(problem, starts, fixed_flat, x0_est)
