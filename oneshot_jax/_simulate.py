@@ -136,7 +136,7 @@ def loss(
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
-    strategy = as_strategy(strategy)
+    as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
     return loss_impl(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
     )
