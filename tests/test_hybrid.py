@@ -309,7 +309,7 @@ def test_prox_in_fit_gives_exact_zeros_that_stay_zero_and_reports_c_plus_g():
         u,
         z,
         solver=oj.Adam(2e-2, 1e-3, max_steps=300),
-        constraints=reg,
+        regulariser=reg,
         history=302,
     )
     coef = np.asarray(res.theta["r"].coef)
@@ -348,7 +348,7 @@ def test_optax_with_a_prox_is_ista():
         u,
         z,
         solver=oj.Optax(optax.sgd(eta), max_steps=steps),
-        constraints=sparsity.l1(lam, where=where, learning_rate=eta),
+        regulariser=sparsity.l1(lam, where=where, learning_rate=eta),
     )
     params, static = eqx.partition(theta0, lambda a: isinstance(a, (float, jax.Array)))
     x = jnp.asarray(x0)
@@ -387,7 +387,7 @@ def test_solvers_that_need_a_smooth_objective_refuse_a_regulariser(solver):
             u,
             z,
             solver=solver,
-            constraints=sparsity.l1(1e-3, where=duffing.COEF),
+            regulariser=sparsity.l1(1e-3, where=duffing.COEF),
         )
 
 
@@ -402,7 +402,7 @@ def test_regulariser_errors_name_the_argument():
             u,
             z,
             solver=oj.Optax(optax.sgd(0.1)),
-            constraints=sparsity.l1(1e-3),
+            regulariser=sparsity.l1(1e-3),
         )
     with pytest.raises(ValueError, match="`where`"):
         oj.fit(
@@ -412,7 +412,7 @@ def test_regulariser_errors_name_the_argument():
             u,
             z,
             solver=oj.Adam(),
-            constraints=sparsity.l1(1e-3, where={"c": True}),
+            regulariser=sparsity.l1(1e-3, where={"c": True}),
         )
     with pytest.raises(ValueError, match="`constraints`"):
         oj.fit(duffing.MODEL, theta0, x0, u, z, solver=oj.Adam(), constraints=[optax.sgd(1.0)])
