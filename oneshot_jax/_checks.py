@@ -6,7 +6,8 @@ model, which it calls abstractly once so that a wrong shape is reported with the
 argument's name (`check_data`); the penalty and its weight (`check_cost`); `strategy`;
 the fixed entries, bounds and the x0 mask; that `fit` is not called under a JAX
 transformation. What it builds: `Data` (every array promoted to one floating dtype,
-ragged trajectories padded and masked, the model bound to its static arguments), the
+ragged trajectories padded and masked by `_normalise`, the model bound to its static
+arguments), the
 `Cost` bundle, the masks; and it keeps, per model, structure, shapes and dtypes, what
 does not depend on the values (`_STRUCTURE`), while the checks of values run on every
 call.
@@ -32,9 +33,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _cost, _pytree
+from . import _pytree
 from ._cost import Cost
 from ._model import FloatObserve, Model
+from ._normalise import fill_missing, is_ragged, pad, sample_mask
 
 
 def is_concrete(*arrays) -> bool:
@@ -300,19 +302,9 @@ def check_outside_transformations(*args):
         )
 
 
-def _is_ragged(a):
-    """A list or tuple of per-trajectory arrays whose lengths differ."""
-    if not isinstance(a, (list, tuple)) or not a:
-        return False
-    try:
-        lengths = {np.shape(item)[0] for item in a if np.ndim(item) >= 1}
-    except (TypeError, ValueError):
-        return False
-    return len(lengths) > 1
-
-
-def _pad(items, name, dtype, n_traj):
-    """Ragged trajectories (T_i, c) padded to (N, T_max, c) by repeating the last row."""
+def _checked_trajectories(items, name, dtype, n_traj):
+    """Ragged trajectories checked (one per row of x0, each (T_i, c) with T_i >= 1, the
+    same c), as float arrays of `dtype`; `_normalise.pad` stacks them."""
     if len(items) != n_traj:
         raise ValueError(
             f"`{name}` holds {len(items)} trajectories but `x0` has {n_traj} rows (N, n_x)."
@@ -328,14 +320,7 @@ def _pad(items, name, dtype, n_traj):
             raise ValueError(
                 f"`{name}[{i}]` has {a.shape[1]} channels but `{name}[0]` has {arrays[0].shape[1]}."
             )
-    T = max(a.shape[0] for a in arrays)
-    padded = np.stack(
-        [
-            np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:], T - a.shape[0], 0)])
-            for a in arrays
-        ]
-    ).astype(dtype)
-    return padded, tuple(a.shape[0] for a in arrays)
+    return arrays
 
 
 def _check_model(model, theta, x0, u, lead, dtype):
@@ -395,7 +380,7 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
     known = _STRUCTURE.get(key) if key is not None else None
     if known is not None and known[0] is not model:  # an id reused by a new object
         known = None
-    ragged = _is_ragged(u) or (z is not None and _is_ragged(z))
+    ragged = is_ragged(u) or (z is not None and is_ragged(z))
     if known is None:
         rows_u = list(u) if ragged and isinstance(u, (list, tuple)) else [u]
         rows_z = list(z) if ragged and isinstance(z, (list, tuple)) else [z]
@@ -424,9 +409,9 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
                 "trajectories of different lengths: give both `u` and `z` as lists of "
                 "per-trajectory arrays."
             )
-        u, lengths = _pad(u, "u", dtype, x0.shape[0])
+        u, lengths = pad(_checked_trajectories(u, "u", dtype, x0.shape[0]), dtype)
         if z is not None:
-            z_padded, z_lengths = _pad(z, "z", dtype, x0.shape[0])
+            z_padded, z_lengths = pad(_checked_trajectories(z, "z", dtype, x0.shape[0]), dtype)
             for i, (a, b) in enumerate(zip(lengths, z_lengths)):
                 if a != b:
                     raise ValueError(
@@ -467,20 +452,12 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
             zn = np.asarray(z)
             if np.any(np.isinf(zn)):
                 raise ValueError("`z` contains inf values (NaN marks a missing sample).")
-            observed = ~np.isnan(zn)
+            z, observed = fill_missing(zn)
             if not observed.any():
                 raise ValueError("`z` is NaN everywhere: no output sample is measured.")
-            z = np.where(observed, zn, 0.0).astype(zn.dtype)
         else:
             check_finite(z, "z")
-        if lengths is not None or (observed is not None and not observed.all()):
-            samples = np.ones(z.shape[:-1], z.dtype)
-            if lengths is not None:
-                samples = (np.arange(T)[None, :] < np.asarray(lengths)[:, None]).astype(z.dtype)
-            outputs = samples[..., None] * np.ones(z.shape, z.dtype)
-            if observed is not None:
-                outputs = outputs * observed
-            mask = _cost.Mask(outputs.astype(z.dtype), samples)
+        mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)
     if known is None:
         _remember(key, (given, dtype, model, z_hat))

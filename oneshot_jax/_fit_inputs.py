@@ -18,7 +18,6 @@ import numpy as np
 from . import _pytree
 from ._checks import (
     Data,
-    _is_ragged,
     check_cost,
     check_data,
     check_fixed_bounds,
@@ -28,6 +27,7 @@ from ._checks import (
 )
 from ._cost import Cost
 from ._fit_report import check_units
+from ._normalise import is_ragged
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
@@ -134,7 +134,7 @@ def check_inputs(
     meter = _meter(progress)
 
     # Starting points: theta0 (S, ...) and x0 (S, ...) with multistart, else one start.
-    u_ndim = 3 if _is_ragged(u) or _is_ragged(z) else np.ndim(u)
+    u_ndim = 3 if is_ragged(u) or is_ragged(z) else np.ndim(u)
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
     if multistart:

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_data
+from ._checks import check_cost, check_data
 from ._cost import weigh
 from ._linalg import identifiable
 from ._results import RESULTS, is_success
@@ -133,17 +133,10 @@ def _x0_identifiable(model, theta, x0, u, weight):
     return identifiable(J.T @ J)
 
 
-def _sqrt_weight(weight):
-    if weight is None or np.ndim(weight) == 1:
-        return None if weight is None else np.sqrt(weight)
-    vals, vecs = np.linalg.eigh(np.asarray(weight, np.float64))
-    return (vecs * np.sqrt(np.maximum(vals, 0.0))) @ vecs.T
-
-
 def _observable(data):
     """Per x0 entry, whether the head's (weighted) outputs determine it (`_linalg`'s rule,
     the one `fit` uses for its covariance)."""
-    sqrt_q = _sqrt_weight(None if data.weight is None else np.asarray(data.weight))
+    sqrt_q = check_cost(data, None, 1.0).sqrt_weight()
     sqrt_q = None if sqrt_q is None else jnp.asarray(sqrt_q, data.x0.dtype)
     return np.asarray(
         _x0_identifiable(data.model, data.theta, jnp.asarray(data.x0), jnp.asarray(data.u), sqrt_q)
@@ -326,15 +319,9 @@ def _estimate(
             "the head (or the starting guess `x0` is far off). Check theta, or use a "
             "shorter head."
         )
-    if loss is None:
-        w = None if data.weight is None else np.asarray(data.weight, np.float64)
-        if w is None:
-            per_k = np.sum(e * e, axis=1)
-        elif w.ndim == 1:
-            per_k = np.sum(w * e * e, axis=1)
-        else:
-            per_k = np.einsum("ki,ij,kj->k", e, w, e)
-        loss = np.asarray(np.mean(per_k), guess.dtype)
+    if loss is None:  # C of eq. (5) over the head: the mean over k of |Q^{1/2} e_k|^2
+        weighted = weigh(jnp.asarray(e), check_cost(data, None, 1.0).sqrt_weight())
+        loss = np.asarray(np.mean(np.sum(np.square(np.asarray(weighted)), axis=1)), guess.dtype)
 
     data = data._replace(x0=jnp.asarray(x0_hat))
     ok = _observable(data)
