@@ -101,10 +101,13 @@ def stacked_jacobians_T(step, theta, xs, us, wrt):
     return jax.vmap(lambda x, u_j: jax.vmap(lambda e: tangent(x, u_j, e))(basis))(xs, us)
 
 
-def stacked_jacobians(f, xs, us, p):
-    """J^{x/x}_{j+1} (K, n, n) and J^{x/p}_{j+1} (K, n, n_p) of `f(x, u, p)` at every
-    (xs[j], us[j]), by vmapped forward mode (the paper's Remark 1)."""
-    return jax.vmap(jax.jacfwd(f, argnums=(0, 2)), in_axes=(0, 0, None))(xs, us, p)
+def stacked_jacobians(f, xs, us, p, n_cols):
+    """J^{x/x}_{j+1} (K, n, n) and [J^{x/p}_{j+1}, 0] (K, n, n_cols) of `f(x, u, p)` at
+    every (xs[j], us[j]), by vmapped forward mode (the paper's Remark 1): the drive of the
+    sensitivity recursion, with zero columns for the x0 entries after the n_p of p."""
+    A, B = jax.vmap(jax.jacfwd(f, argnums=(0, 2)), in_axes=(0, 0, None))(xs, us, p)
+    B = jnp.concatenate([B, jnp.zeros((*B.shape[:2], n_cols - p.shape[0]), B.dtype)], axis=2)
+    return A, B
 
 
 def theta_term_vjp(step, theta, xs, us, lam):

@@ -215,8 +215,7 @@ class Jacobian(AbstractStrategy):
     def sensitivities(self, model, theta, f, p, x0, S0, E, u, emit, xs=None):
         if xs is None:
             xs = rollout(model, theta, x0, u)
-        A, B = stacked_jacobians(f, xs[:-1], model.step_inputs(u), p)
-        B = jnp.concatenate([B, jnp.zeros((*B.shape[:2], S0.shape[1] - p.shape[0]), B.dtype)], 2)
+        A, B = stacked_jacobians(f, xs[:-1], model.step_inputs(u), p, S0.shape[1])
         return jax.vmap(emit)(xs, u, forward_sweep(S0, A, small_product, B))
 
     def jacobians_T(self, step, theta, xs, us):
@@ -352,18 +351,8 @@ class ParallelInTime(AbstractStrategy):
         return VJP() if sequential else self
 
     def rollout(self, model, theta, x0, u):
-        return newton_rollout(
-            model.step,
-            theta,
-            x0,
-            padded_step_inputs(model, u),
-            rtol=self.rtol,
-            max_iter=self.max_iter,
-            damping=self.damping,
-            jacobian=self.jacobian,
-            fallback=self.fallback,
-            chunk_size=self.chunk_size,
-        )
+        us = padded_step_inputs(model, u)
+        return newton_rollout(model.step, theta, x0, us, **self.options()._asdict())
 
     def reverse_sweep(self, model, theta, xs, u, Gamma, At=None, theta_forward=True):
         T, n_x = xs.shape
@@ -405,13 +394,11 @@ class ParallelInTime(AbstractStrategy):
     def sensitivities(self, model, theta, f, p, x0, S0, E, u, emit, xs=None):
         if xs is None:
             xs = self.states(model, theta, x0, u)
-        n_s = S0.shape[1] - p.shape[0]
 
         # A chunk holds the states x_a..x_b and the steps leaving them; S_a is carried in.
         def chunk(S_first, inp):
             (x_c, us_c, u_c), _ = inp  # rows of the padding are cut off by `chunked_scan`
-            A, B = stacked_jacobians(f, x_c, us_c, p)
-            B = jnp.concatenate([B, jnp.zeros((*B.shape[:2], n_s), B.dtype)], axis=2)
+            A, B = stacked_jacobians(f, x_c, us_c, p, S0.shape[1])
             Ss = forward_sweep(S_first, A, None, B, recurrence=matrix_linear_recurrence)
             return Ss[-1], (jax.vmap(emit)(x_c, u_c, Ss[:-1]), ())
 
