@@ -50,7 +50,44 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     S = elim.schur(A, B)
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype))
     t_ok = identifiable(S)
-    return Covariance(sse, S_inv, elim.covariance(S_inv), t_ok, x_ok)
+    x0_cov = elim.covariance(S_inv)
+    nuisance = np.asarray(problem.nuisance, int)
+    if 0 < nuisance.size < p:
+        S_inv, t_ok = marginal(S, S_inv, t_ok, nuisance)
+    return Covariance(sse, S_inv, x0_cov, t_ok, x_ok)
+
+
+def marginal(S, S_inv, t_ok, nuisance):
+    """The named parameters' covariance with a network's weights as nuisance parameters:
+
+        (S_pp - S_pn S_nn^+ S_np)^+ = (J_p^T (I - P_n) J_p)^+,
+
+    J_p, J_n the columns of the named parameters and of the network (after the x0
+    elimination), P_n the projector onto the range of J_n. A network has directions that
+    leave its output unchanged (its null space): they make S singular, and the
+    Moore-Penrose S^+ then mixes them into every parameter's block. Eliminated through
+    S_nn^+ instead, they drop out, and a named parameter is identifiable exactly when its
+    effect on the outputs is not one the network can produce (then its std is finite).
+    Where S is regular this equals the block of S^{-1} (the block-inverse formula), so
+    the fit's other parameters are reported as before.
+
+    **Arguments:**
+
+    - `S`: (p, p) the Schur complement of the x0 blocks in J^T J (`eliminate_x0`).
+    - `S_inv`, `t_ok`: S^+ and per-entry identifiability from S.
+    - `nuisance`: the positions of the network's entries among the p (host array).
+
+    **Returns:** `(S_inv, t_ok)` with the named parameters' block and flags replaced.
+    """
+    p = S.shape[0]
+    named = np.setdiff1d(np.arange(p), nuisance)
+    S_nn = S[np.ix_(nuisance, nuisance)]
+    S_pn = S[np.ix_(named, nuisance)]
+    S_marginal = S[np.ix_(named, named)] - S_pn @ psd_solve(S_nn, S_pn.T)
+    S_marginal = 0.5 * (S_marginal + S_marginal.T)
+    block = psd_solve(S_marginal, jnp.eye(named.size, dtype=S.dtype))
+    S_inv = S_inv.at[np.ix_(named, named)].set(block)
+    return S_inv, t_ok.at[named].set(identifiable(S_marginal))
 
 
 class Scaled(NamedTuple):

@@ -236,6 +236,9 @@ def build_problem(inputs: FitInputs, *, fixed, estimate_x0, constraints, regular
         lower=lower,
         upper=upper,
         regulariser=on_theta,
+        nuisance=tuple(
+            int(i) for i in np.flatnonzero(_pytree.module_entries(data.theta)[theta_free])
+        ),
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(

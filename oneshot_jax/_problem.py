@@ -85,6 +85,9 @@ class FitProblem(eqx.Module):
     upper: jax.Array | None
     mask: Mask | None = None  # padded or missing samples (N, T, n_z) / (N, T), or None
     regulariser: Regulariser | None = None  # a proximal g of theta (objective C + g), or None
+    # positions among the free entries of theta that belong to a network (equinox module):
+    # nuisance parameters of the named ones' covariance (`_covariance.marginal`)
+    nuisance: tuple = eqx.field(static=True, default=())
 
     @property
     def dtype(self):

@@ -113,6 +113,24 @@ def unflatten_rows(rows, like, squeeze=False):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
+def module_entries(theta) -> np.ndarray:
+    """Per entry of theta's flattened parameters (`ravel` of `split(theta)[0]`): True where
+    it belongs to an equinox module below the root (a neural residual's weights), False for
+    the named (physical) parameters."""
+    params, _ = split(theta)
+
+    def is_module(node):
+        return isinstance(node, eqx.Module) and node is not params
+
+    def mark(node):
+        flag = is_module(node)
+        return jax.tree_util.tree_map(lambda a: np.full(np.shape(a), flag, bool), node)
+
+    marked = jax.tree_util.tree_map(mark, params, is_leaf=is_module)
+    leaves = jax.tree_util.tree_leaves(marked)
+    return np.concatenate([np.ravel(a) for a in leaves]) if leaves else np.zeros(0, bool)
+
+
 def _key(entry) -> str:
     for attr in ("key", "idx", "name"):
         if hasattr(entry, attr):

@@ -1,0 +1,150 @@
+"""Standard errors of the physical parameters of a hybrid model (`_covariance.marginal`).
+
+A network in theta has directions that leave its output (nearly) unchanged. The
+Moore-Penrose inverse of J^T J mixes those numerically null directions into every
+parameter, so a well-determined physical parameter was reported "not identifiable" (std
+inf). With the network's weights as nuisance parameters, the physical parameters'
+covariance is (J_p^T (I - P_n) J_p)^+: checked here against NumPy on the autodiff
+Jacobian, on a regular case (where it is the block of (J^T J)^{-1}), an over-parameterised
+network (finite, and the interval holds the truth) and an exact confounding (inf).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import oneshot_jax as oj
+from oneshot_jax.residual import MLP
+
+DT, T = 0.02, 300
+W0SQ = 9.0
+
+
+def _truth_rhs(x, u, th):
+    a, w = x
+    return jnp.array([w, -th["w0sq"] * jnp.sin(a) - 0.4 * w - 0.5 * jnp.tanh(3 * w) + u[0]])
+
+
+def _observe(x, u, th):
+    return x[:1]
+
+
+def _data(seed=0, noise=0.01):
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.normal(0.0, 3.0, T // 20 + 1), 20)[:T, None]
+    model = oj.Model.from_ode(_truth_rhs, DT, observe=_observe)
+    x0 = np.array([0.3, 0.0])
+    _, z = oj.simulate(model, {"w0sq": W0SQ}, x0, u)
+    return u, np.asarray(z) + noise * rng.normal(size=np.shape(z)), x0
+
+
+def _autodiff_jacobian(model, result, u, z):
+    """Residuals and their Jacobian in (theta's floating leaves, x0), by jax.jacfwd of a
+    plain simulation: the oracle."""
+    params, static = eqx.partition(result.theta, eqx.is_inexact_array)
+    flat, unravel = ravel_pytree(params)
+    n_x = np.size(result.x0)
+
+    def residuals(v):
+        theta = eqx.combine(unravel(v[:-n_x]), static)
+        _, zhat = oj.simulate(model, theta, v[-n_x:], u)
+        return (zhat - z).ravel()
+
+    v = jnp.concatenate([flat, jnp.asarray(result.x0)])
+    return np.asarray(residuals(v)), np.asarray(jax.jacfwd(residuals)(v)), np.asarray(flat)
+
+
+def _index(flat, value):
+    (i,) = np.flatnonzero(flat == value)
+    return int(i)
+
+
+def test_regular_module_std_is_the_block_of_the_inverse():
+    # A module with a regular Jacobian (an affine map of the rate): the marginal
+    # covariance must equal sigma^2 (J^T J)^{-1} of the whole Jacobian, every entry.
+    def rhs(x, u, th):
+        a, w = x
+        return jnp.array([w, -th["w0sq"] * jnp.sin(a) - th["lin"](jnp.array([w]))[0] + u[0]])
+
+    model = oj.Model.from_ode(rhs, DT, observe=_observe)
+    u, z, x0 = _data()
+    lin = eqx.nn.Linear(1, 1, key=jax.random.PRNGKey(0))
+    lin = eqx.tree_at(lambda m: (m.weight, m.bias), lin, (jnp.array([[0.5]]), jnp.array([0.0])))
+    res = oj.fit(model, {"w0sq": 8.0, "lin": lin}, x0, u, z)
+    assert res.success
+    r, J, flat = _autodiff_jacobian(model, res, u, z)
+    s2 = r @ r / (r.size - J.shape[1])
+    cov = s2 * np.linalg.inv(J.T @ J)
+    i = _index(flat, res.theta["w0sq"])
+    np.testing.assert_allclose(res.std["w0sq"], np.sqrt(cov[i, i]), rtol=1e-5)
+    j = _index(flat, float(res.theta["lin"].weight[0, 0]))
+    np.testing.assert_allclose(
+        np.asarray(res.std["lin"].weight)[0, 0], np.sqrt(cov[j, j]), rtol=1e-5
+    )
+
+
+def test_over_parameterised_network_leaves_the_physics_identifiable():
+    # The damping replaced by an MLP of the rate: 97 weights, many of them in numerically
+    # null directions of J^T J.
+    def rhs(x, u, th):
+        a, w = x
+        return jnp.array([w, -th["w0sq"] * jnp.sin(a) - th["net"](jnp.array([w]))[0] + u[0]])
+
+    model = oj.Model.from_ode(rhs, DT, observe=_observe)
+    u, z, x0 = _data()
+    net = MLP(1, 1, widths=(8, 8), key=jax.random.PRNGKey(1))
+    with pytest.warns(UserWarning, match="null space"):  # the network's weights
+        res = oj.fit(
+            model, {"w0sq": 9.5, "net": net}, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=40)
+        )
+    r, J, flat = _autodiff_jacobian(model, res, u, z)
+    i = _index(flat, res.theta["w0sq"])
+
+    # The case is one where the whole matrix's null space touches w0sq: the
+    # Moore-Penrose flags (a null eigenvector with a w0sq component) would say inf.
+    M = J.T @ J
+    d = np.sqrt(np.diag(M))
+    vals, vecs = np.linalg.eigh(M / np.outer(d, d))
+    null = vals <= 1e3 * np.finfo(float).eps * np.max(np.abs(vals))
+    assert null.any() and np.max(np.abs(vecs[i, null])) > 1e-6
+
+    std = res.std["w0sq"]
+    assert np.isfinite(std) and std > 0
+    lo, hi = res.theta["w0sq"] - 1.96 * std, res.theta["w0sq"] + 1.96 * std
+    assert lo < W0SQ < hi
+
+    # NumPy's marginal std: w0sq's column with its projection onto the range of the other
+    # columns (network and x0, Jacobi-scaled, singular values above a cutoff) removed. The
+    # network's singular values decay without a gap, so the cutoff moves it: the reported
+    # value must lie within the range given by cutoffs around the library's
+    # (sqrt(1e3 eps) ~ 5e-7 relative).
+    s2 = r @ r / (r.size - J.shape[1])
+    Jo = np.delete(J, i, axis=1)
+    scale = np.linalg.norm(Jo, axis=0)
+    U, S, _ = np.linalg.svd(Jo / np.where(scale > 0, scale, 1.0), full_matrices=False)
+    refs = []
+    for cutoff in (1e-8, 1e-7, 1e-6, 1e-5):
+        Ur = U[:, S > cutoff * S[0]]
+        perp = J[:, i] - Ur @ (Ur.T @ J[:, i])
+        refs.append(np.sqrt(s2 / (perp @ perp)))
+    assert min(refs) * 0.9 <= std <= max(refs) * 1.1, (std, refs)
+
+
+def test_exact_confounding_stays_not_identifiable():
+    # A physical stiffness k a next to an affine map of the whole state: the map's weight
+    # on a produces exactly what k does, so k is not identifiable and says so.
+    def rhs(x, u, th):
+        a, w = x
+        return jnp.array([w, -th["k"] * a - th["lin"](x)[0] + u[0]])
+
+    model = oj.Model.from_ode(rhs, DT, observe=_observe)
+    u, z, x0 = _data()
+    lin = eqx.nn.Linear(2, 1, key=jax.random.PRNGKey(0))
+    with pytest.warns(UserWarning, match="null space"):
+        res = oj.fit(model, {"k": 8.0, "lin": lin}, x0, u, z)
+    assert np.isinf(res.std["k"])
+    assert np.isinf(np.asarray(res.std["lin"].weight)[0, 0])
+    assert np.isfinite(np.asarray(res.std["lin"].weight)[0, 1])
