@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from .._linalg import floor
@@ -375,6 +376,13 @@ class Adam(_AbstractOptax):
     - `lr_theta`, `lr_x0`: the learning rates eta_theta and eta_x0 (numbers, or optax
         schedules `count -> rate`, e.g. `optax.cosine_decay_schedule(1e-2, 2000)`).
     - `b1`, `b2`, `eps`: Adam's moment decay rates and denominator offset.
+    - `scale`: None (one rate for every entry of theta), or `"theta0"`: the named
+        parameters (theta's entries outside equinox modules) take steps relative to their
+        starting magnitude, d_i = lr_theta |theta0_i| m_hat_i / (sqrt(v_hat_i) + eps)
+        (|theta0_i| = 0 counts as 1), so that lr_theta is a relative rate for them, while
+        a network's weights keep the absolute rate. This is Adam on the parameters
+        theta_i / |theta0_i| (up to eps): physical parameters of scale 0.05 and 15 then
+        move at the same relative pace. Not with a regulariser.
     - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
 
@@ -388,22 +396,30 @@ class Adam(_AbstractOptax):
     tol_grad: float = 0.0
     gtol: float = 1e-8
     strategy: str = "auto"
+    scale: str | None = None
 
     def __check_init__(self):
         rates = tuple(f for f in ("lr_theta", "lr_x0") if not callable(getattr(self, f)))
         check_options(self, non_negative=(*rates, "b1", "b2"), positive=("eps",))
+        if self.scale not in (None, "theta0"):
+            raise ValueError(f"`Adam(scale=...)` must be None or 'theta0', got {self.scale!r}.")
         self._check()
 
     def check_regulariser(self, regulariser):
         del regulariser
+        if self.scale is not None:
+            raise ValueError(
+                "`Adam(scale='theta0')` does not take a regulariser (its prox is written in "
+                "Adam's own metric): use scale=None with `regulariser=`."
+            )
 
     def _transform(self, problem):
         x0_tx = optax.adam(self.lr_x0, self.b1, self.b2, self.eps)
         if problem.regulariser is None:
-            return optax.partition(
-                {"theta": optax.adam(self.lr_theta, self.b1, self.b2, self.eps), "x0": x0_tx},
-                {"theta": "theta", "x0": "x0"},
-            )
+            theta_tx = optax.adam(self.lr_theta, self.b1, self.b2, self.eps)
+            if self.scale == "theta0":
+                theta_tx = optax.chain(theta_tx, _scale_by(relative_scale(problem)))
+            return optax.partition({"theta": theta_tx, "x0": x0_tx}, {"theta": "theta", "x0": "x0"})
         # The regulariser as a prox on the flat free entries (what the transform sees).
         flat = ProximalTransformation(
             init=None,
@@ -557,6 +573,27 @@ class LBFGS(_AbstractOptax):
                 max_linesearch_steps=self.max_linesearch_steps, initial_guess_strategy="one"
             ),
         )
+
+
+def relative_scale(problem: FitProblem):
+    """Per free entry of theta: |theta0_i| (1 where it is 0) for the named parameters, 1
+    for a network's weights (`FitProblem.nuisance`): `Adam(scale="theta0")`'s factors."""
+    start = jnp.abs(jnp.asarray(problem.theta_base)[np.asarray(problem.theta_free, int)])
+    factor = jnp.where(start > 0, start, 1.0)
+    if problem.nuisance:
+        factor = factor.at[np.asarray(problem.nuisance, int)].set(1.0)
+    return factor
+
+
+def _scale_by(factor) -> optax.GradientTransformation:
+    """Multiply the updates (theta's free entries, within `optax.partition`'s masked
+    dict) by a fixed array of factors, elementwise."""
+
+    def update(updates, state, params=None):
+        del params
+        return jax.tree_util.tree_map(lambda a: a * factor, updates), state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
 def _by_part(theta_tx, x0_tx) -> optax.GradientTransformation:
