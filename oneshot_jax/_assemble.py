@@ -29,6 +29,7 @@ class StageOut(NamedTuple):
     final_theta: jax.Array  # (p,) its last iterate, its loss and gradient norm
     final_loss: jax.Array
     final_grad_norm: jax.Array
+    validation: jax.Array | None  # (size,) the validation loss of each row, or None
 
 
 class Out(NamedTuple):
@@ -48,6 +49,7 @@ class Out(NamedTuple):
     first_order: jax.Array  # the measures the best start's stop was tested on
     step: jax.Array
     decrease: jax.Array
+    validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
 def collect(stages, best, moved, posted) -> Out:
@@ -65,6 +67,7 @@ def collect(stages, best, moved, posted) -> Out:
             s.final_theta[best],
             s.final_loss[best],
             s.final_grad_norm[best],
+            None if s.history.validation is None else s.history.validation[:, best],
         )
         for s in stages
     )
@@ -84,6 +87,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.first_order[best],
         m.step[best],
         m.decrease[best],
+        None if final.best is None else final.best.score[best],
     )
 
 
@@ -116,7 +120,7 @@ def post(problem, params, blocks, strategy):
 def _history(problem, stages, like):
     """One `FitHistory` from every stage's bounded buffer (`StageOut`s): the best start's
     rows before its last step, then its last iterate."""
-    losses, gnorms, paths, steps, stage_ids = [], [], [], [], []
+    losses, gnorms, paths, steps, stage_ids, scores = [], [], [], [], [], []
     base = np.asarray(problem.theta_base)
     free = np.asarray(problem.theta_free, int)
     all_free = free.size == base.size  # (then the rows are the free entries themselves)
@@ -137,6 +141,8 @@ def _history(problem, stages, like):
         paths.append(flat)
         steps.append(np.concatenate([h.step[rows], [n]]).astype(np.int32))
         stage_ids.append(np.full(theta.shape[0], i, np.int32))
+        if h.validation is not None:  # (the final iterate's row: NaN, not recorded)
+            scores.append(np.concatenate([h.validation[rows], [np.nan]]))
     one = len(stages) == 1
     return _pytree.build(
         FitHistory,
@@ -145,6 +151,7 @@ def _history(problem, stages, like):
         theta=_pytree.unflatten_rows(paths[0] if one else np.concatenate(paths), like),
         step=steps[0] if one else np.concatenate(steps),
         stage=stage_ids[0] if one else np.concatenate(stage_ids),
+        validation=np.concatenate(scores) if scores else None,
     )
 
 
@@ -305,4 +312,5 @@ def assemble(
         stop_info=stop_info,
         theta_order=tuple(theta_order),
         units=dict(units or {}),
+        validation_loss=None if out.validation_loss is None else float(out.validation_loss),
     )

@@ -68,7 +68,9 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id):
     starts = Params(projected, starts.x0)
     stages = run(solvers, problem, starts, history_size=history_size, meter=meter, bar_id=bar_id)
     final = stages[-1]
-    best = jnp.argmin(jnp.where(jnp.isfinite(final.loss), final.loss, jnp.inf))
+    # The best start: the lowest final loss, or with validation data the lowest score.
+    rank = final.loss if final.best is None else final.best.score
+    best = jnp.argmin(jnp.where(jnp.isfinite(rank), rank, jnp.inf))
     params = jax.tree_util.tree_map(lambda a: a[best], final.params)
     blocks = (
         None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[best], final.blocks)
@@ -133,6 +135,7 @@ def fit(
     estimate_x0=True,
     window: int | None = None,
     missing: str = "raise",
+    validation=None,
     multistart: bool = False,
     progress=False,
     history: int = 1000,
@@ -178,6 +181,12 @@ def fit(
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z
         as missing samples (zero weight in the loss, the gradient and the Jacobian).
         Trajectories of different lengths (lists for `u` and `z`) are masked the same way.
+    - `validation`: an `oneshot_jax.Validation(u, z, n=...)` of held-out records: every
+        iterate of every solver is scored on them (x0 estimated from each record's first
+        n outputs, the loss over the rest), the iterate with the lowest score is
+        returned (stop reason `validation` where it is not the one the solver stopped
+        at) and `Validation(patience=k)` stops a solver after k iterations without
+        improvement. The scores are `result.history.validation`.
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
@@ -222,6 +231,7 @@ def fit(
         estimate_x0=estimate_x0,
         constraints=constraints,
         regulariser=regulariser,
+        validation=validation,
     )
     out, wall, diagnostics = _run(
         inputs.solvers, built.problem, built.starts, history, inputs.meter

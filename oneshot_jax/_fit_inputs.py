@@ -33,6 +33,7 @@ from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
+from ._validation import monitor
 from ._windows import cut
 
 _NO_PROGRESS = NoProgress()
@@ -175,7 +176,9 @@ def check_inputs(
     return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts)
 
 
-def build_problem(inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser) -> Built:
+def build_problem(
+    inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser, validation=None
+) -> Built:
     """The `FitProblem` the solvers see and the starts they run from, on the host: the
     free entries of theta and x0, the bounds or projection and the regulariser on theta,
     each checked on theta0.
@@ -183,7 +186,7 @@ def build_problem(inputs: FitInputs, *, fixed, estimate_x0, constraints, regular
     **Arguments:**
 
     - `inputs`: `check_inputs`'s output.
-    - `fixed`, `estimate_x0`, `constraints`, `regulariser`: those of `fit`.
+    - `fixed`, `estimate_x0`, `constraints`, `regulariser`, `validation`: those of `fit`.
 
     **Returns:** a `Built`.
     """
@@ -236,6 +239,7 @@ def build_problem(inputs: FitInputs, *, fixed, estimate_x0, constraints, regular
         lower=lower,
         upper=upper,
         regulariser=on_theta,
+        validation=monitor(validation, data.model, data.theta, X0, inputs.cost.sqrt_weight()),
         nuisance=tuple(
             int(i) for i in np.flatnonzero(_pytree.module_entries(data.theta)[theta_free])
         ),

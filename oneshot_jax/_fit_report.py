@@ -202,6 +202,8 @@ def report(result) -> str:
         f"loss {float(result.loss):.6e} after {result.num_steps} steps in "
         f"{_seconds(result.wall_time)} s (wall, compilation included)",
     ]
+    if result.validation_loss is not None:
+        out.append(f"validation loss {result.validation_loss:.6e} (held-out records)")
     if result.starts is not None:
         stops = {}
         for r in result.starts.stop_reason:

@@ -58,6 +58,8 @@ class FitHistory(eqx.Module):
     - `theta`: the iterates, theta's parameter pytree with a leading axis of rows.
     - `step`: the step each row was recorded at, counted from the start of its stage.
     - `stage`: which solver of a sequence the row belongs to (0 for a single solver).
+    - `validation`: with `fit(validation=...)`, the validation loss of each row (NaN
+        for a stage's final row), else None.
     """
 
     loss: np.ndarray
@@ -65,6 +67,7 @@ class FitHistory(eqx.Module):
     theta: Any
     step: np.ndarray
     stage: np.ndarray
+    validation: np.ndarray | None = None
 
     def __len__(self):
         return int(np.shape(self.loss)[0])
@@ -136,6 +139,8 @@ class FitResult(eqx.Module):
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
+    - `validation_loss`: with `fit(validation=...)`, the lowest validation loss (that of
+        the returned iterate); else None.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts` and `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result).
@@ -165,6 +170,7 @@ class FitResult(eqx.Module):
     stop_info: dict = eqx.field(default_factory=dict)
     theta_order: tuple = eqx.field(static=True, default=())
     units: dict = eqx.field(default_factory=dict)
+    validation_loss: float | None = None
 
     @property
     def success(self) -> bool:

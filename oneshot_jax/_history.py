@@ -18,18 +18,20 @@ import jax.numpy as jnp
 class History(NamedTuple):
     loss: jax.Array  # (size, S)
     grad_norm: jax.Array  # (size, S)
+    validation: jax.Array | None  # (size, S): the validation loss, None without validation
     theta: jax.Array  # (size, S, p): the free entries of theta
     step: jax.Array  # (size,) int: the step each row was recorded at (-1: unused)
     count: jax.Array  # rows in use
     stride: jax.Array  # rows are recorded every `stride` steps
 
 
-def init(size, n_starts, n_theta, dtype) -> History:
+def init(size, n_starts, n_theta, dtype, validation=False) -> History:
     if size < 2 or size % 2:
         raise ValueError(f"`history` must be an even number of rows >= 2, got {size}.")
     return History(
         loss=jnp.full((size, n_starts), jnp.nan, dtype),
         grad_norm=jnp.full((size, n_starts), jnp.nan, dtype),
+        validation=jnp.full((size, n_starts), jnp.nan, dtype) if validation else None,
         theta=jnp.full((size, n_starts, n_theta), jnp.nan, dtype),
         step=jnp.full((size,), -1, jnp.int32),
         count=jnp.array(0, jnp.int32),
@@ -48,6 +50,7 @@ def _compact(h: History) -> History:
     return History(
         loss=thin(h.loss, jnp.nan),
         grad_norm=thin(h.grad_norm, jnp.nan),
+        validation=None if h.validation is None else thin(h.validation, jnp.nan),
         theta=thin(h.theta, jnp.nan),
         step=thin(h.step, -1),
         count=jnp.array(half, jnp.int32),
@@ -55,10 +58,12 @@ def _compact(h: History) -> History:
     )
 
 
-def first(h: History, loss, grad_norm, theta) -> History:
+def first(h: History, loss, grad_norm, theta, validation=None) -> History:
     """`record` at step 0 of an empty buffer: row 0, no stride test and no thinning to
     trace (a buffer of size >= 2 cannot be full after one row)."""
     i = h.count
+    if validation is not None:
+        h = h._replace(validation=h.validation.at[i].set(validation))
     return h._replace(
         loss=h.loss.at[i].set(loss),
         grad_norm=h.grad_norm.at[i].set(grad_norm),
@@ -68,11 +73,15 @@ def first(h: History, loss, grad_norm, theta) -> History:
     )
 
 
-def record(h: History, step, loss, grad_norm, theta) -> History:
+def record(h: History, step, loss, grad_norm, theta, validation=None) -> History:
     """Record step `step` (shared by the starts) if it falls on the stride, and thin a full
     buffer."""
     due = step % h.stride == 0
     i = jnp.where(due, h.count, h.step.shape[0] - 1)
+    if validation is not None:
+        h = h._replace(
+            validation=h.validation.at[i].set(jnp.where(due, validation, h.validation[i]))
+        )
     h = h._replace(
         loss=h.loss.at[i].set(jnp.where(due, loss, h.loss[i])),
         grad_norm=h.grad_norm.at[i].set(jnp.where(due, grad_norm, h.grad_norm[i])),

@@ -14,11 +14,13 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   booleans, or null for a structure JSON cannot describe), `names`, `stop_reason` (a
   `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
   solver), the metric names, `starts_stop_reason`, `diagnostics` and
-  `stop_info` (JSON objects), `theta_order` (a list of names) and `units` (a JSON object).
+  `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object)
+  and `validation_loss` (a number or null).
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
-  `history/loss`, `history/grad_norm`, `history/step`, `history/stage`,
+  `history/loss`, `history/grad_norm`, `history/step`, `history/stage` (and
+  `history/validation` for a fit with validation data),
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
   `starts/loss`.
 
@@ -145,6 +147,8 @@ def save_result(result, path):
         arrays[f"history/theta/{i}"] = a
     for key in ("loss", "grad_norm", "step", "stage"):
         arrays[f"history/{key}"] = np.asarray(getattr(result.history, key))
+    if result.history.validation is not None:
+        arrays["history/validation"] = np.asarray(result.history.validation)
     for key in ("x0", "x0_std", "x0_covariance", "x0_estimated", "loss", "residuals"):
         arrays[key] = np.asarray(getattr(result, key))
     arrays["fixed"] = np.asarray(result.fixed)
@@ -173,6 +177,7 @@ def save_result(result, path):
         "stop_info": _plain(result.stop_info),
         "theta_order": list(result.theta_order),
         "units": dict(result.units),
+        "validation_loss": result.validation_loss,
     }
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
@@ -297,6 +302,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         theta=build(group("history/theta/")),
         step=arrays["history/step"],
         stage=arrays["history/stage"],
+        validation=arrays["history/validation"] if "history/validation" in arrays else None,
     )
     metrics = {
         k: (float(arrays[f"metrics/{k}"]) if kind == "float" else arrays[f"metrics/{k}"])
@@ -333,4 +339,5 @@ def _fields(arrays, meta, group, build, static) -> dict:
         stop_info=dict(meta.get("stop_info") or {}),
         theta_order=tuple(meta.get("theta_order") or ()),
         units=dict(meta.get("units") or {}),
+        validation_loss=meta.get("validation_loss"),
     )

@@ -5,7 +5,9 @@
 all starts (vmapped) and freezes the ones that have stopped, so the step counter, the
 history's bookkeeping and the progress bar are shared and cost nothing per start. `run`
 chains a sequence of solvers, each starting where the last stopped; `fit` compiles it as
-one call.
+one call. With held-out records (`FitProblem.validation`, `oneshot_jax._validation`) the
+loop scores every iterate on them, keeps the best one across all solvers and stops a
+solver after `patience` scores without improvement.
 """
 
 from typing import Any, NamedTuple
@@ -34,6 +36,19 @@ class Solution(NamedTuple):
     final_theta: jax.Array  # (the last iterate, before `postprocess`)
     blocks: Any  # normal-equation blocks for the covariance, or None
     measures: Measures  # what each start's stop was tested on
+    best: Any  # with validation: the `Best` so far (over this and earlier solvers), else None
+
+
+class Best(NamedTuple):
+    """With validation data: per start, the lowest validation loss so far, its iterate,
+    the records' initial states of the last score (the next one's warm start) and the
+    scores since it improved."""
+
+    score: jax.Array  # (S,)
+    params: Params  # (S, ...)
+    val_x0: jax.Array  # (S, N, n_x)
+    since: jax.Array  # (S,) int
+    here: jax.Array  # (S,) bool: the best iterate is this solver's current one
 
 
 class _Carry(NamedTuple):
@@ -44,6 +59,7 @@ class _Carry(NamedTuple):
     done: jax.Array
     result: RESULTS
     history: _history.History
+    best: Best | None
 
 
 def _where(pred, a, b):
@@ -63,10 +79,35 @@ def _freeze(done, old, new):
     return jax.tree_util.tree_map(pick, old, new)
 
 
-def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter, meter_args):
+def _scores(problem: FitProblem, params: Params, val_x0):
+    """The validation loss of every start's iterate and the records' x0 it used."""
+    mon = problem.validation
+    return jax.vmap(lambda p, g: mon.score(problem.model, problem.theta_of(p), g))(
+        params.theta, val_x0
+    )
+
+
+def _update_best(best: Best, params, score, val_x0, running):
+    """Keep the iterate where its score improves on the best; count the others (a start
+    that has stopped keeps its count)."""
+    better = score < best.score
+    return Best(
+        jnp.where(better, score, best.score),
+        _freeze(better, params, best.params),
+        val_x0,
+        jnp.where(better, 0, best.since + running.astype(best.since.dtype)),
+        better | (best.here & ~running),
+    )
+
+
+def iterate(
+    solver, problem: FitProblem, params: Params, *, history_size, meter, meter_args, best=None
+):
     """Run `solver` from the S starts `params` (leading axis S) until every start has
-    terminated or `solver.max_steps` steps are taken."""
+    terminated or `solver.max_steps` steps are taken. `best`: the previous solver's
+    `Best` (with validation data)."""
     n_starts = params.theta.shape[0]
+    mon = problem.validation
 
     def check(p, s):
         loss, gnorm = solver.summary(s)
@@ -77,8 +118,25 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
     check_all = eqx.filter_vmap(check)
     state = eqx.filter_vmap(lambda p: solver.init(problem, p))(params)
     done, result, loss, gnorm = check_all(params, state)
-    hist = _history.init(history_size, n_starts, params.theta.shape[1], problem.dtype)
-    hist = _history.first(hist, loss, gnorm, params.theta)
+    hist = _history.init(
+        history_size, n_starts, params.theta.shape[1], problem.dtype, mon is not None
+    )
+    score = None
+    if mon is not None:
+        guess = jnp.broadcast_to(mon.x0, (n_starts, *mon.x0.shape)) if best is None else best.val_x0
+        score, val_x0 = _scores(problem, params, guess)
+        if best is None:
+            best = Best(
+                score, params, val_x0, jnp.zeros(n_starts, jnp.int32), jnp.ones(n_starts, bool)
+            )
+        else:  # the starting point is the last solver's final iterate
+            best = _update_best(
+                best._replace(here=jnp.zeros_like(best.here)), params, score, val_x0, ~done
+            )
+            best = best._replace(
+                since=jnp.zeros_like(best.since), here=best.here | (score <= best.score)
+            )
+    hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset = meter_args
     step_all = eqx.filter_vmap(lambda p, s: solver.step(problem, p, s))
@@ -94,7 +152,15 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
         step = c.step + 1
         done, result, loss, gnorm = check_all(params, state)
         result = _where(c.done, c.result, result)
-        hist = _history.record(c.history, step, loss, gnorm, params.theta)
+        score, best = None, c.best
+        if mon is not None:
+            score, val_x0 = _scores(problem, params, c.best.val_x0)
+            best = _update_best(c.best, params, score, val_x0, ~c.done)
+            if mon.patience is not None:
+                patience_out = (best.since >= mon.patience) & ~done
+                done = done | patience_out
+                result = _where(patience_out & ~c.done, RESULTS.validation, result)
+        hist = _history.record(c.history, step, loss, gnorm, params.theta, score)
         meter.update(bar_id, offset, step, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
         dynamic, _ = eqx.partition(state, eqx.is_array)
         return _Carry(
@@ -105,10 +171,11 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
             c.done | done,
             result,
             hist,
+            best,
         )
 
     zero = jnp.array(0, jnp.int32)
-    init = _Carry(params, dynamic, zero, jnp.zeros(n_starts, jnp.int32), done, result, hist)
+    init = _Carry(params, dynamic, zero, jnp.zeros(n_starts, jnp.int32), done, result, hist, best)
     c = jax.lax.while_loop(cond, body, init)
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
@@ -117,6 +184,16 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
     out_params, out_loss, blocks = eqx.filter_vmap(
         lambda p, s, r: solver.postprocess(problem, p, s, r)
     )(c.params, state, result)
+    best = c.best
+    if mon is not None:
+        # The best-scoring iterate replaces the final one where they differ: its loss is
+        # evaluated there, and the covariance then takes a fresh Jacobian (no blocks).
+        moved = ~best.here
+        result = _where(moved, RESULTS.validation, result)
+        out_params = _freeze(moved, best.params, out_params)
+        best_loss = jax.vmap(lambda p: problem.loss(p) + problem.g(p.theta))(best.params)
+        out_loss = jnp.where(moved, best_loss, out_loss)
+        blocks = None
     return Solution(
         out_params,
         out_loss,
@@ -128,6 +205,7 @@ def iterate(solver, problem: FitProblem, params: Params, *, history_size, meter,
         c.params.theta,
         blocks,
         measures,
+        best,
     )
 
 
@@ -136,6 +214,7 @@ def run(solvers, problem: FitProblem, params: Params, *, history_size, meter, ba
     every stage's `Solution` (the last one holds the result)."""
     stages = []
     offset = jnp.array(0, jnp.int32)
+    best = None
     for solver in solvers:
         sol = iterate(
             solver,
@@ -144,7 +223,9 @@ def run(solvers, problem: FitProblem, params: Params, *, history_size, meter, ba
             history_size=history_size,
             meter=meter,
             meter_args=(bar_id, offset),
+            best=best,
         )
+        best = sol.best
         stages.append(sol)
         params = sol.params
         offset = offset + solver.max_steps

@@ -88,6 +88,7 @@ class FitProblem(eqx.Module):
     # positions among the free entries of theta that belong to a network (equinox module):
     # nuisance parameters of the named ones' covariance (`_covariance.marginal`)
     nuisance: tuple = eqx.field(static=True, default=())
+    validation: Any = None  # a `_validation.Monitor` (held-out records scored per iterate), or None
 
     @property
     def dtype(self):

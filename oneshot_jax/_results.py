@@ -43,6 +43,12 @@ class RESULTS(eqx.Enumeration):
         "is returned. Bounds that keep the model stable, windows (multiple shooting) or a "
         "better start help"
     )
+    validation = (
+        "the iterate with the lowest validation loss (held-out data, `fit(validation=...)`), "
+        "returned instead of the point the solver stopped at (or stopped early after "
+        "`patience` iterations without improvement): not a stationary point of the "
+        "training loss"
+    )
     negative_penalty = (
         "lambda h(x, theta) became negative; the least-squares solvers need a non-negative "
         "penalty (they minimise a sum of squares that includes sqrt(lambda h)): use a "

@@ -1,0 +1,169 @@
+"""Held-out data scored inside a fit's loop: the validation curve, the best iterate and
+early stopping.
+
+`fit(validation=Validation(u, z, n=...))` scores every iterate of every solver on records
+the fit does not see: each record's initial state is estimated from its first n outputs
+(Gauss-Newton on the head, warm-started from the last iterate's estimate), the model is
+simulated from it over the whole record, and the score is the loss of eq. (4)/(5) with
+the fit's weight Q over the samples after the head (the benchmark protocol's test error,
+squared). The loop keeps the iterate with the lowest score (`oneshot_jax._iterate`), so
+a run is never split into blocks (Adam's moments are not reset), and stops a solver after
+`patience` scores without improvement.
+"""
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_data, is_concrete
+from ._cost import weigh
+from ._linalg import psd_solve
+from ._simulate import outputs, rollout
+
+
+class Validation(eqx.Module):
+    """Held-out records that `fit` scores at every iterate (validation and early stopping).
+
+    **Arguments:**
+
+    - `u`, `z`: inputs and measured outputs of the held-out records, shaped like `fit`'s
+        (T, n_u) and (T, n_z), or (N, T, .) for N records (of one length; no NaN).
+    - `n`: the head: each record's initial state is estimated from its first `n` outputs
+        (least squares, as `estimate_x0`), and the score counts the samples from n on
+        (the benchmark protocol). None: the initial states are known, given as `x0`, and
+        every sample counts.
+    - `x0`: the records' initial states (n_x,) or (N, n_x): known ones with `n=None`,
+        otherwise the starting guess of their estimate (default zeros).
+    - `patience`: None (run each solver to its own stop), or stop a solver once its
+        score has not improved for this many iterations (early stopping).
+    - `x0_steps`: Gauss-Newton steps of each head estimate per iterate (warm-started from
+        the previous iterate's estimate).
+
+    The fit returns the iterate with the lowest score over all its solvers; where that
+    is not the iterate a solver stopped at, its stop reason is `RESULTS.validation`
+    (not a success: the point is not a stationary point of the training loss).
+    `FitResult.history.validation` holds the score of each recorded row and
+    `FitResult.validation_loss` the best one.
+    """
+
+    u: Any
+    z: Any
+    n: int | None = eqx.field(static=True, default=None)
+    x0: Any = None
+    patience: int | None = eqx.field(static=True, default=None)
+    x0_steps: int = eqx.field(static=True, default=5)
+
+    def __check_init__(self):
+        if self.n is not None and (isinstance(self.n, bool) or int(self.n) != self.n or self.n < 1):
+            raise ValueError(
+                f"`Validation(n=...)` must be None or an integer >= 1, got {self.n!r}."
+            )
+        if self.n is None and self.x0 is None:
+            raise ValueError(
+                "`Validation` needs the records' initial states: `x0` (known), or `n` (the "
+                "number of samples at the head to estimate them from)."
+            )
+        if self.patience is not None and (
+            isinstance(self.patience, bool)
+            or int(self.patience) != self.patience
+            or self.patience < 1
+        ):
+            raise ValueError(
+                "`Validation(patience=...)` must be None or an integer >= 1, got "
+                f"{self.patience!r}."
+            )
+        if (
+            isinstance(self.x0_steps, bool)
+            or int(self.x0_steps) != self.x0_steps
+            or self.x0_steps < 0
+        ):
+            raise ValueError(
+                f"`Validation(x0_steps=...)` must be an integer >= 0, got {self.x0_steps!r}."
+            )
+
+
+class Monitor(eqx.Module):
+    """A `Validation` checked against the fit's model and data (built by `fit`): the
+    records as (N, T, .) arrays, the head and the weight."""
+
+    u: jax.Array  # (N, T, n_u)
+    z: jax.Array  # (N, T, n_z)
+    x0: jax.Array  # (N, n_x): known, or the starting guess
+    sqrt_q: Any  # Q^{1/2} of the fit, or None
+    n: int | None = eqx.field(static=True)
+    patience: int | None = eqx.field(static=True)
+    x0_steps: int = eqx.field(static=True)
+
+    def _head_x0(self, model, theta, x0, u, z):
+        """Gauss-Newton on the head's weighted output error in x0 (a step is kept only if
+        it lowers that error; pseudo-inverse for unobservable directions)."""
+        n = self.n
+
+        def residual(x):
+            xs = rollout(model, theta, x, u[:n])
+            return weigh(outputs(model, theta, xs, u[:n]) - z[:n], self.sqrt_q).ravel()
+
+        def body(_, x):
+            r = residual(x)
+            J = jax.jacfwd(residual)(x)
+            trial = x - psd_solve(J.T @ J, J.T @ r)
+            r_trial = residual(trial)
+            better = jnp.all(jnp.isfinite(r_trial)) & (r_trial @ r_trial < r @ r)
+            return jnp.where(better, trial, x)
+
+        return jax.lax.fori_loop(0, self.x0_steps, body, x0)
+
+    def score(self, model, theta, x0_guess):
+        """The validation loss at `theta` (weighted mean squared output error over the
+        samples after the head, every record) and the records' initial states used."""
+        start = 0 if self.n is None else self.n
+
+        def one(x0, u, z):
+            if self.n is not None:
+                x0 = self._head_x0(model, theta, x0, u, z)
+            xs = rollout(model, theta, x0, u)
+            e = weigh(outputs(model, theta, xs, u) - z, self.sqrt_q)[start:]
+            return jnp.sum(e * e), x0
+
+        sums, x0s = jax.vmap(one)(x0_guess, self.u, self.z)
+        count = self.u.shape[0] * (self.u.shape[1] - start)
+        score = jnp.sum(sums) / count
+        return jnp.where(jnp.isfinite(score), score, jnp.inf), x0s
+
+
+def monitor(validation, model, theta, x0_fit, sqrt_q):
+    """The `Monitor` of `fit(validation=...)`: the records checked against the model like
+    `fit`'s own data (errors name `validation`), or None."""
+    if validation is None:
+        return None
+    if not isinstance(validation, Validation):
+        raise TypeError(
+            "`validation` must be an `oneshot_jax.Validation(u, z, n=...)` or None, got "
+            f"{type(validation).__name__}."
+        )
+    u = validation.u
+    batched = np.ndim(u) == 3
+    n_x = np.shape(x0_fit)[-1]
+    x0 = validation.x0
+    if x0 is None:
+        x0 = np.zeros((np.shape(u)[0], n_x) if batched else (n_x,), np.result_type(x0_fit))
+    try:
+        data = check_data(model, theta, x0, u, validation.z)
+    except (ValueError, TypeError) as err:
+        raise type(err)(f"`validation`: {err}") from None
+    if data.lengths is not None:
+        raise ValueError("`validation`: records of different lengths are not supported.")
+    U, Z, X0 = (
+        jnp.asarray(a) if data.batched else jnp.asarray(a)[None] for a in (data.u, data.z, data.x0)
+    )
+    T = U.shape[1]
+    if validation.n is not None and validation.n >= T:
+        raise ValueError(
+            f"`Validation(n=...)` must be below the records' length {T}, got {validation.n}."
+        )
+    if is_concrete(Z) and not np.all(np.isfinite(np.asarray(Z))):
+        raise ValueError("`validation`: `z` holds NaN or inf; give complete records.")
+    return Monitor(U, Z, X0, sqrt_q, validation.n, validation.patience, validation.x0_steps)
