@@ -43,6 +43,7 @@ from ._strategy import Auto as Auto
 from ._strategy import Jacobian as Jacobian
 from ._strategy import ParallelInTime as ParallelInTime
 from ._validation import Validation as Validation
+from ._windows import Windows as Windows
 from ._x0_smoother import KalmanPath as KalmanPath
 
 __version__ = "0.2.0"

@@ -216,6 +216,7 @@ def assemble(
     diagnostics=None,
     theta_order=(),
     units=None,
+    window_starts=None,
 ) -> FitResult:
     """The `FitResult` of the best start, on the host, from the compiled call's `Out`
     (NumPy arrays)."""
@@ -313,4 +314,5 @@ def assemble(
         theta_order=tuple(theta_order),
         units=dict(units or {}),
         validation_loss=None if out.validation_loss is None else float(out.validation_loss),
+        window_starts=None if window_starts is None else np.asarray(window_starts),
     )

@@ -133,7 +133,7 @@ def fit(
     regulariser=None,
     fixed=None,
     estimate_x0=True,
-    window: int | None = None,
+    window=None,
     missing: str = "raise",
     validation=None,
     multistart: bool = False,
@@ -177,7 +177,10 @@ def fit(
         boolean for a whole subtree): True entries keep their starting value and are
         removed from the variables.
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
-    - `window`: cut one record into windows of this many samples, each with its own x0.
+    - `window`: cut one record into consecutive windows of this many samples, each with
+        its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them
+        (every k-th, a number spread over the record, or given starts).
+        `result.window_starts` says where each row of `result.x0` starts.
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z
         as missing samples (zero weight in the loss, the gradient and the Jacobian).
         Trajectories of different lengths (lists for `u` and `z`) are masked the same way.
@@ -249,4 +252,5 @@ def fit(
         diagnostics=diagnostics,
         theta_order=_theta_order(theta0),
         units=inputs.units,
+        window_starts=inputs.window_starts,
     )

@@ -50,6 +50,7 @@ class FitInputs(NamedTuple):
     theta_starts: Any  # multistart: theta0's parameter leaves with their axis of starts
     n_starts: int | None  # multistart: the number of starts
     x0_starts: np.ndarray | None  # multistart: x0 with its axis of starts, if given
+    window_starts: np.ndarray | None = None  # with `window`: each window's first sample
 
 
 class Built(NamedTuple):
@@ -158,11 +159,14 @@ def check_inputs(
             )
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
         data = check_data(model, theta_first, x0_record, u, z, weight, missing)
-        x0_w, u_w, z_w, mask_w = cut(data, window, np.asarray(x0) if per_window_x0 else None)
+        x0_w, u_w, z_w, mask_w, starts = cut(
+            data, window, np.asarray(x0) if per_window_x0 else None
+        )
         data = check_data(model, theta_first, x0_w, u_w, z_w, weight)._replace(mask=mask_w)
         if x0_starts is not None:
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
+        starts = None
         data = check_data(model, theta_first, x0, u, z, weight, missing)
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
@@ -173,7 +177,7 @@ def check_inputs(
                 "sqrt(penalty_weight h). Use a first-order solver (Adam, LBFGS) for a "
                 "signed penalty."
             )
-    return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts)
+    return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts)
 
 
 def build_problem(

@@ -139,6 +139,8 @@ class FitResult(eqx.Module):
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
+    - `window_starts`: for a fit with `window=`, the first sample of each window (one
+        per row of `x0`); else None.
     - `validation_loss`: with `fit(validation=...)`, the lowest validation loss (that of
         the returned iterate); else None.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
@@ -171,6 +173,7 @@ class FitResult(eqx.Module):
     theta_order: tuple = eqx.field(static=True, default=())
     units: dict = eqx.field(default_factory=dict)
     validation_loss: float | None = None
+    window_starts: np.ndarray | None = None
 
     @property
     def success(self) -> bool:
@@ -199,8 +202,12 @@ class FitResult(eqx.Module):
         return lo, hi
 
     def simulate(self, u, x0=None):
-        """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`
-        (default: the fitted initial state, which needs the shape of the fitted data).
+        """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`.
+
+        By default `x0` is the fitted initial state, which needs the shape of the fitted
+        data; after a fit with `window=`, it is the state of the window that starts at
+        sample 0 (the record's initial state, for a simulation of the whole record), and
+        a ValueError says so where no window starts there.
 
         **Returns:**
 
@@ -211,7 +218,19 @@ class FitResult(eqx.Module):
                 "this result holds no model (it was loaded without one): pass "
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.simulate`."
             )
-        return simulate(self.model, self.theta, self.x0 if x0 is None else x0, u)
+        if x0 is None:
+            x0 = self.x0
+            if self.window_starts is not None and np.ndim(u) == 2:
+                at_zero = np.flatnonzero(np.asarray(self.window_starts) == 0)
+                if not at_zero.size:
+                    raise ValueError(
+                        "this fit's windows start at samples "
+                        f"{list(np.asarray(self.window_starts)[:5])}..., none at 0: give `x0` "
+                        "(a row of `result.x0` is the state at `result.window_starts` of "
+                        "that row), or use `result.predict(u, z_head)`, which estimates it."
+                    )
+                x0 = np.asarray(self.x0)[at_zero[0]]
+        return simulate(self.model, self.theta, x0, u)
 
     def predict(self, u, z_head, **kwargs):
         """Predict a new record from its first measured outputs: estimate its x0 from

@@ -20,7 +20,8 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage` (and
-  `history/validation` for a fit with validation data),
+  `history/validation` for a fit with validation data, `window_starts` for one with
+  windows),
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
   `starts/loss`.
 
@@ -147,6 +148,8 @@ def save_result(result, path):
         arrays[f"history/theta/{i}"] = a
     for key in ("loss", "grad_norm", "step", "stage"):
         arrays[f"history/{key}"] = np.asarray(getattr(result.history, key))
+    if result.window_starts is not None:
+        arrays["window_starts"] = np.asarray(result.window_starts)
     if result.history.validation is not None:
         arrays["history/validation"] = np.asarray(result.history.validation)
     for key in ("x0", "x0_std", "x0_covariance", "x0_estimated", "loss", "residuals"):
@@ -340,4 +343,5 @@ def _fields(arrays, meta, group, build, static) -> dict:
         theta_order=tuple(meta.get("theta_order") or ()),
         units=dict(meta.get("units") or {}),
         validation_loss=meta.get("validation_loss"),
+        window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
     )

@@ -2,16 +2,17 @@
 
 import warnings
 
+import equinox as eqx
 import numpy as np
 
 from ._x0_lsq import solve_x0
 
 
-def window_starts(data, u_w, z_w, mask_w=None):
+def window_starts(data, u_w, z_w, mask_w=None, keep_first=True):
     """Each window's starting state from its own samples with theta0, for `fit(window=)`
     on a partly observed state: x0-only Gauss-Newton on all windows at once (one
     `_x0_lsq.solve_x0` of N trajectories), from the record's x0 as the guess; the first
-    window keeps the given x0."""
+    window keeps the given x0 (with `keep_first`: it starts at sample 0)."""
     N = u_w.shape[0]
     guess = np.broadcast_to(np.asarray(data.x0), (N, np.shape(data.x0)[-1]))
     windows = data._replace(x0=guess, u=u_w, z=z_w, mask=mask_w, batched=True, lengths=None)
@@ -30,50 +31,138 @@ def window_starts(data, u_w, z_w, mask_w=None):
             f"starting state as `x0` of shape ({N}, {guess.shape[1]})."
         )
     x0_w = np.array(r.x0, dtype=np.asarray(data.x0).dtype)
-    x0_w[0] = np.asarray(data.x0)
+    if keep_first:
+        x0_w[0] = np.asarray(data.x0)
     return x0_w
 
 
-def cut(data, window, x0_windows=None):
-    """Consecutive windows of `window` samples from one record, as N trajectories:
-    (x0_w (N, n_x), u_w (N, window, n_u), z_w (N, window, n_z), mask_w (or None)).
+class Windows(eqx.Module):
+    """Windows of one long record for `fit(window=...)` (multiple shooting: each window is
+    simulated from an initial state of its own, estimated with theta), when not all of
+    the consecutive windows of `fit(window=length)` are wanted.
 
-    Each window's starting state is `x0_windows[i]` when given; else it is taken from z
-    where the model observes its whole state (z = x), else estimated from the window's
-    own samples with the starting parameters (`window_starts`); the first window starts
+    **Arguments:**
+
+    - `length`: the samples per window.
+    - `every`: take every k-th of the consecutive windows (0, length, 2 length, ...).
+    - `count`: take this many of them, spread evenly over the record (the first and the
+        last included).
+    - `starts`: the windows' first samples, given (sorted, each window within the
+        record; windows may overlap). Not with `every` or `count`.
+
+    The windows that start at sample 0 starts from `fit`'s `x0`; every other window's
+    starting state is read off z where the model observes its whole state, and
+    otherwise estimated from its own samples with theta0. `FitResult.window_starts`
+    says where each row of `FitResult.x0` starts.
+    """
+
+    length: int = eqx.field(static=True)
+    every: int = eqx.field(static=True, default=1)
+    count: int | None = eqx.field(static=True, default=None)
+    starts: tuple | None = eqx.field(static=True, default=None)
+
+    def __init__(self, length, *, every=1, count=None, starts=None):
+        for name, v, low in (("length", length, 1), ("every", every, 1)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+                raise ValueError(f"`Windows({name}=...)` must be an integer >= {low}, got {v!r}.")
+        if count is not None and (
+            isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1
+        ):
+            raise ValueError(
+                f"`Windows(count=...)` must be None or an integer >= 1, got {count!r}."
+            )
+        if starts is not None:
+            if every != 1 or count is not None:
+                raise ValueError("`Windows(starts=...)` does not combine with `every` or `count`.")
+            arr = np.asarray(starts)
+            if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
+                raise ValueError(
+                    f"`Windows(starts=...)` must be a non-empty 1-D sequence of sample indices, "
+                    f"got {starts!r}."
+                )
+            if np.any(np.diff(arr) <= 0) or arr[0] < 0:
+                raise ValueError("`Windows(starts=...)` must be non-negative and increasing.")
+            starts = tuple(int(s) for s in arr)
+        self.length, self.every, self.count, self.starts = int(length), int(every), count, starts
+
+    def first_samples(self, T) -> np.ndarray:
+        """The windows' first samples in a record of T samples."""
+        if self.length > T:
+            raise ValueError(f"`window` ({self.length}) is longer than the record (T = {T}).")
+        if self.starts is not None:
+            s = np.asarray(self.starts)
+            if s[-1] + self.length > T:
+                raise ValueError(
+                    f"`Windows(starts=...)`: the window at {int(s[-1])} of {self.length} samples "
+                    f"ends after the record (T = {T})."
+                )
+            return s
+        s = np.arange(T // self.length) * self.length
+        if self.count is not None:
+            if self.count > s.size:
+                raise ValueError(
+                    f"`Windows(count={self.count})`: the record (T = {T}) holds only {s.size} "
+                    f"windows of {self.length} samples."
+                )
+            s = s[np.unique(np.round(np.linspace(0, s.size - 1, self.count)).astype(int))]
+        return s[:: self.every]
+
+
+def as_windows(window):
+    """`fit`'s `window=`: a `Windows`, from an integer (consecutive windows) or itself."""
+    if isinstance(window, Windows):
+        return window
+    if isinstance(window, bool) or int(window) != window or window < 1:
+        raise ValueError(
+            f"`window` must be a positive integer or an `oneshot_jax.Windows`, got {window!r}."
+        )
+    return Windows(int(window))
+
+
+def cut(data, window, x0_windows=None):
+    """Windows of one record as N trajectories: (x0_w (N, n_x), u_w (N, length, n_u),
+    z_w (N, length, n_z), mask_w (or None), starts (N,)).
+
+    `window`: an integer (consecutive windows of that many samples) or a `Windows`. Each
+    window's starting state is `x0_windows[i]` when given; else it is taken from z where
+    the model observes its whole state (z = x), else estimated from the window's own
+    samples with the starting parameters (`window_starts`); a window at sample 0 starts
     at the given x0.
     """
     u, z, x0 = data.u, data.z, data.x0
     T = u.shape[0]
-    if isinstance(window, bool) or int(window) != window or window < 1:
-        raise ValueError(f"`window` must be a positive integer, got {window!r}.")
-    window = int(window)
-    if window > T:
-        raise ValueError(f"`window` ({window}) is longer than the record (T = {T}).")
-    N = T // window
-    if N * window != T:
+    consecutive = not isinstance(window, Windows)
+    window = as_windows(window)
+    starts = window.first_samples(T)
+    length = window.length
+    N = starts.size
+    covered = int(starts[-1]) + length
+    if consecutive and covered != T:
         warnings.warn(
-            f"the last {T - N * window} samples do not fill a window and are dropped.", stacklevel=4
+            f"the last {T - covered} samples do not fill a window and are dropped.", stacklevel=4
         )
-    u_w = np.asarray(u[: N * window]).reshape(N, window, -1)
-    z_w = np.asarray(z[: N * window]).reshape(N, window, -1)
+    rows = starts[:, None] + np.arange(length)[None, :]  # (N, length) sample indices
+
+    def take(a):
+        a = np.asarray(a)
+        return a[: N * length].reshape(N, length, *a.shape[1:]) if consecutive else a[rows]
+
+    u_w, z_w = take(u), take(z)
     mask_w = None
     if data.mask is not None:
-        mask_w = type(data.mask)(
-            np.asarray(data.mask.outputs[: N * window]).reshape(N, window, -1),
-            np.asarray(data.mask.samples[: N * window]).reshape(N, window),
-        )
+        mask_w = type(data.mask)(take(data.mask.outputs), take(data.mask.samples))
     if x0_windows is not None:
         x0_w = np.asarray(x0_windows)
         if x0_w.shape != (N, np.shape(x0)[-1]):
             raise ValueError(
                 f"`x0` of shape {x0_w.shape} gives one starting state per window, but the "
-                f"record of T = {T} samples holds {N} windows of {window}: expected shape "
+                f"record of T = {T} samples holds {N} windows of {length}: expected shape "
                 f"({N}, {np.shape(x0)[-1]})."
             )
     elif data.model.observes_state:
         x0_w = np.array(z_w[:, 0, :], dtype=np.asarray(x0).dtype)
-        x0_w[0] = np.asarray(x0)
+        if starts[0] == 0:
+            x0_w[0] = np.asarray(x0)
     else:
-        x0_w = window_starts(data, u_w, z_w, mask_w)
-    return x0_w, u_w, z_w, mask_w
+        x0_w = window_starts(data, u_w, z_w, mask_w, keep_first=bool(starts[0] == 0))
+    return x0_w, u_w, z_w, mask_w, starts

@@ -1,0 +1,88 @@
+"""`fit(window=oj.Windows(...))`: some of a record's windows (every k-th, a number spread
+over the record, given starts), `FitResult.window_starts`, and the whole-record
+simulation of a windowed result from the window at sample 0."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+
+DT, T = 0.05, 400
+
+
+def _rhs(x, u, th):
+    return jnp.array([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]])
+
+
+MODEL = oj.Model.from_ode(_rhs, DT, observe=lambda x, u, th: x[:1])  # position only
+TRUTH = {"k": 4.0, "c": 0.5}
+
+
+def _record():
+    rng = np.random.default_rng(0)
+    u = np.repeat(rng.normal(0.0, 1.0, T // 10), 10)[:, None]
+    x0 = np.array([0.3, -0.2])
+    _, z = oj.simulate(MODEL, TRUTH, x0, u)
+    return u, np.asarray(z) + 0.01 * rng.normal(size=(T, 1)), x0
+
+
+@pytest.mark.parametrize(
+    "windows, expected",
+    [
+        (oj.Windows(50, every=2), [0, 100, 200, 300]),
+        (oj.Windows(50, count=3), [0, 200, 350]),
+        (oj.Windows(60, starts=[0, 40, 170, 340]), [0, 40, 170, 340]),  # overlapping
+    ],
+)
+def test_subsets_of_windows(windows, expected):
+    u, z, x0 = _record()
+    res = oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z, window=windows)
+    assert res.success
+    np.testing.assert_array_equal(res.window_starts, expected)
+    assert res.x0.shape == (len(expected), 2)
+    for k in TRUTH:
+        assert abs(res.theta[k] - TRUTH[k]) < 0.05 * TRUTH[k]
+    # The fitted windows are those samples: the loss over them, sliced by hand.
+    L = windows.length
+    idx = np.asarray(expected)[:, None] + np.arange(L)
+    C = oj.loss(MODEL, res.theta, res.x0, u[idx], z[idx])
+    np.testing.assert_allclose(res.loss, C, rtol=1e-10)
+    # The whole record starts from the window at sample 0.
+    x, _ = res.simulate(u)
+    np.testing.assert_allclose(x[0], res.x0[0], rtol=0, atol=0)
+
+
+def test_an_integer_window_is_consecutive_windows():
+    u, z, x0 = _record()
+    res = oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z, window=100)
+    np.testing.assert_array_equal(res.window_starts, [0, 100, 200, 300])
+    assert oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z).window_starts is None
+
+
+def test_no_window_at_zero_asks_for_x0(tmp_path):
+    u, z, x0 = _record()
+    res = oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z, window=oj.Windows(80, starts=[20, 200]))
+    np.testing.assert_array_equal(res.window_starts, [20, 200])
+    with pytest.raises(ValueError, match="none at 0"):
+        res.simulate(u)
+    x, _ = res.simulate(u[20:], x0=res.x0[0])
+    assert np.all(np.isfinite(x))
+    path = res.save(tmp_path / "w.npz")
+    np.testing.assert_array_equal(oj.load_result(path).window_starts, [20, 200])
+
+
+def test_windows_checks():
+    with pytest.raises(ValueError, match="length"):
+        oj.Windows(0)
+    with pytest.raises(ValueError, match="every"):
+        oj.Windows(10, every=0)
+    with pytest.raises(ValueError, match="combine"):
+        oj.Windows(10, starts=[0, 10], every=2)
+    with pytest.raises(ValueError, match="increasing"):
+        oj.Windows(10, starts=[10, 0])
+    u, z, x0 = _record()
+    with pytest.raises(ValueError, match="ends after"):
+        oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(50, starts=[0, 380]))
+    with pytest.raises(ValueError, match="holds only"):
+        oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(100, count=5))
