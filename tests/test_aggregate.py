@@ -272,7 +272,7 @@ def test_operator_kinds():
     np.testing.assert_allclose(oj.Aggregate(0, [(2, 5)], [0.0], kind="sum").predict(y), [29.0])
 
 
-def test_fit_recovers_parameters_from_aggregates():
+def test_fit_recovers_parameters_from_aggregates(tmp_path):
     """Channel 1 measured only as sums over 5-sample intervals (no point samples); a
     Levenberg-Marquardt fit recovers theta with finite standard errors, the readings
     counted as observations."""
@@ -310,6 +310,9 @@ def test_fit_recovers_parameters_from_aggregates():
     assert res.metrics["rmse"].shape == (2,) and np.isnan(res.metrics["rmse"][1])
     assert np.isfinite(res.metrics["aic"])  # on channel 0's point samples
     assert "x0[1]" in str(res) and "x0[2]" not in str(res)
+    back = oj.load_result(res.save(tmp_path / "agg.npz"), model=MODEL)
+    np.testing.assert_array_equal(back.x0, res.x0)
+    np.testing.assert_array_equal(back.covariance, res.covariance)
 
 
 def test_fit_refuses_window():
