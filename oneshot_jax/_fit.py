@@ -218,6 +218,11 @@ def fit(
     A `FitResult`.
     """
     check_window(aggregate, window)
+    if aggregate is not None and validation is not None:
+        raise ValueError(
+            "`validation` with `aggregate` is not supported: score the held-out records "
+            "after the fit (`oneshot_jax.loss` takes `aggregate=`)."
+        )
     inputs = check_inputs(
         model,
         theta0,
