@@ -24,6 +24,7 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
+from ._stability import stability, warn_if_near_limit
 
 
 def _written_order(tree):
@@ -226,7 +227,7 @@ def fit(
     out, wall, diagnostics = _run(
         inputs.solvers, built.problem, built.starts, history, inputs.meter
     )
-    return assemble(
+    result = assemble(
         model=model,
         problem=built.problem,
         data=inputs.data,
@@ -240,3 +241,7 @@ def fit(
         theta_order=_theta_order(theta0),
         units=inputs.units,
     )
+    # A `Model.from_ode` model near its integrator's stability limit (`_stability`).
+    fitted_u = u if window is None else inputs.data.u
+    warn_if_near_limit(stability(model, result.theta, result.x0, fitted_u), stacklevel=2)
+    return result
