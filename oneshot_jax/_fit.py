@@ -198,7 +198,9 @@ def fit(
 
     **Returns:**
 
-    A `FitResult`.
+    A `FitResult`. After a fit of a `Model.from_ode` model, `fit` warns (RuntimeWarning)
+    when the fitted model runs near its integrator's stability limit (`check_stability`).
+    For a fit that converges with a low FIT, see `check_basin` and `fit_continuation`.
     """
     inputs = check_inputs(
         model,

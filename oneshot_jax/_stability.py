@@ -43,8 +43,8 @@ class Stability(NamedTuple):
         Jacobian d rhs / d x, h = dt / substeps.
     - `limit`: the integrator's limit (2.5 for RK4, 2 for Euler).
     - `eigenvalue`: the lambda of `value`.
-    - `sample`: where it was found: the index of its state among the finite, unpadded
-        states of the trajectories, flattened.
+    - `sample`: where it was found: the index of its state in the trajectories
+        flattened (trajectory i, sample k: i T + k).
     - `method`, `substeps`, `dt`: the model's integrator.
     """
 
@@ -63,9 +63,13 @@ class Stability(NamedTuple):
 
 
 @eqx.filter_jit
-def _jacobians(rhs, theta, xs, us):
-    """d rhs / d x at each state (forward mode: the state is small)."""
-    return jax.vmap(lambda x, u: jax.jacfwd(rhs)(x, u, theta))(xs, us)
+def _jacobians(model, params, x0, u, batched, rhs, theta, idx):
+    """The states of eq. (7) and d rhs / d x at the flattened states `idx` (forward mode:
+    the state is small), in one compiled call."""
+    xs, _ = simulate_impl(model, params, x0, u, batched)
+    xs = xs.reshape(-1, xs.shape[-1])[idx]
+    us = u.reshape(-1, u.shape[-1])[idx]
+    return xs, jax.vmap(lambda x, u: jax.jacfwd(rhs)(x, u, theta))(xs, us)
 
 
 def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
@@ -75,24 +79,22 @@ def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
     if not isinstance(step, _ODEStep):
         return None
     data = check_data(model, theta, x0, u)
-    xs, _ = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched)
-    n_x, n_u = xs.shape[-1], data.u.shape[-1]
-    xs = np.asarray(xs).reshape(-1, n_x)
-    us = np.asarray(data.u).reshape(-1, n_u)
-    if data.mask is not None:  # padded samples of ragged trajectories
-        keep = np.asarray(data.mask.samples).reshape(-1) > 0
-        xs, us = xs[keep], us[keep]
-    keep = np.all(np.isfinite(xs), axis=1)
-    xs, us = xs[keep], us[keep]
-    if xs.shape[0] == 0:
+    samples = np.prod(np.shape(data.u)[:-1])
+    valid = np.arange(samples)
+    if data.mask is not None:  # not the padding of ragged trajectories
+        valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
+    if valid.size == 0:
         return None
-    idx = np.unique(np.linspace(0, xs.shape[0] - 1, min(points, xs.shape[0])).astype(int))
+    idx = valid[np.unique(np.linspace(0, valid.size - 1, min(points, valid.size)).astype(int))]
     # Floating numbers as arrays: traced, so that a new theta does not compile anew.
     theta = jax.tree_util.tree_map(
         lambda a: jnp.asarray(a) if isinstance(a, (float, np.floating)) else a, theta
     )
-    J = np.asarray(_jacobians(step.rhs, theta, jnp.asarray(xs[idx]), jnp.asarray(us[idx])))
-    finite = np.all(np.isfinite(J), axis=(1, 2))
+    xs, J = _jacobians(
+        data.model, data.theta, data.x0, data.u, data.batched, step.rhs, theta, jnp.asarray(idx)
+    )
+    xs, J = np.asarray(xs), np.asarray(J)
+    finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
     if not np.any(finite):
         return None
     eig = np.linalg.eigvals(J[finite])
