@@ -199,7 +199,10 @@ def fit_continuation(
     for w in schedule:
         if result is not None:
             x0_stage = _window_states(model, result, u_np, w_prev, w)
-        result = fit(model, theta, x0_stage, u, z, window=w, **kwargs)
+        with warnings.catch_warnings():
+            # The tail that fills no window is fitted by the last stage, the whole record.
+            warnings.filterwarnings("ignore", message="the last .* do not fill a window")
+            result = fit(model, theta, x0_stage, u, z, window=w, **kwargs)
         stages.append(_stage(w, result))
         theta, w_prev = result.theta, w
     final_x0 = np.asarray(result.x0)[0]
