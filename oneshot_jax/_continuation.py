@@ -180,12 +180,16 @@ def fit_continuation(
     A `Continuation`: `result`, the last stage's `FitResult` (whose `success` is its own),
     and `stages`, each stage's window, loss, FIT%, steps and stop reason.
     """
-    for name in ("window", "multistart"):
-        if name in kwargs:
-            raise ValueError(
-                f"`{name}` is not a keyword of `fit_continuation`: it sets the windows of "
-                "each stage itself (`windows=` or `start=`, `factor=`), from one start."
-            )
+    if "window" in kwargs:
+        raise ValueError(
+            "`window` is not a keyword of `fit_continuation`: it sets each stage's windows "
+            "itself (`windows=`, or `start=` and `factor=`)."
+        )
+    if "multistart" in kwargs:
+        raise ValueError(
+            "`multistart` is not a keyword of `fit_continuation`, which runs from one start: "
+            "run a multistart fit first and continue from its theta."
+        )
     if np.ndim(x0) != 1 or np.ndim(u) != 2 or np.ndim(z) != 2:
         raise ValueError(
             "`fit_continuation` takes one record: `x0` of shape (n_x,), `u` (T, n_u) and `z` "
