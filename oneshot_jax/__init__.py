@@ -12,6 +12,10 @@ from . import sharding as sharding
 from . import sparsity as sparsity
 from ._aggregate import Aggregate as Aggregate
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
+from ._continuation import BasinCheck as BasinCheck
+from ._continuation import Continuation as Continuation
+from ._continuation import check_basin as check_basin
+from ._continuation import fit_continuation as fit_continuation
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult
@@ -38,6 +42,8 @@ from ._solver import GaussNewton as GaussNewton
 from ._solver import LevenbergMarquardt as LevenbergMarquardt
 from ._solver import Optax as Optax
 from ._solver import Optimistix as Optimistix
+from ._stability import Stability as Stability
+from ._stability import check_stability as check_stability
 from ._strategy import VJP as VJP
 from ._strategy import AbstractStrategy as AbstractStrategy
 from ._strategy import Auto as Auto

@@ -25,6 +25,7 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
+from ._stability import stability, warn_if_near_limit
 
 
 def _written_order(tree):
@@ -215,7 +216,9 @@ def fit(
 
     **Returns:**
 
-    A `FitResult`.
+    A `FitResult`. After a fit of a `Model.from_ode` model, `fit` warns (RuntimeWarning)
+    when the fitted model runs near its integrator's stability limit (`check_stability`).
+    For a fit that converges with a low FIT, see `check_basin` and `fit_continuation`.
     """
     check_window(aggregate, window)
     if aggregate is not None and validation is not None:
@@ -286,4 +289,9 @@ def fit(
         units=inputs.units,
         window_starts=inputs.window_starts,
     )
-    return result if aggregate is None else agg.restore(result)
+    if aggregate is not None:
+        result = agg.restore(result)
+    # A `Model.from_ode` model near its integrator's stability limit (`_stability`).
+    fitted_u = u if window is None else inputs.data.u
+    warn_if_near_limit(stability(model, result.theta, result.x0, fitted_u), stacklevel=2)
+    return result

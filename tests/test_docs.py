@@ -105,6 +105,12 @@ def test_getting_started_and_guides_run(tmp_path, monkeypatch):
     assert ns["result"].success and ns["again"].loss == ns["result"].loss
 
 
+def test_minima_guide_runs(tmp_path, monkeypatch):
+    """docs/guides/minima.md runs on its own, and its asserts pin the numbers its text
+    quotes (the bad minimum, the windowed fit, the continuation, the stability value)."""
+    _run(["docs/guides/minima.md"], tmp_path, monkeypatch)
+
+
 @pytest.mark.parametrize("path", DATA_GUIDES)
 def test_guides_on_the_benchmark_files_run(path, tmp_path, monkeypatch):
     """The guides that load a benchmark, after the getting-started page (whose imports

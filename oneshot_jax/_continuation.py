@@ -1,0 +1,317 @@
+"""Bad minima of the simulation error: horizon continuation and the bad-basin check.
+
+The multi-step cost C of eq. (5) over a long record has local minima that a short
+horizon does not: a model whose oscillation drifts out of phase, or whose output shrinks
+to nothing, is a stationary point only because the errors pile up over many periods.
+Cut into short windows, each with its own initial state (multiple shooting: eq. (5) with
+the windows as N trajectories, `fit(window=...)`), the cost is far closer to convex.
+`fit_continuation` starts there and lengthens the windows, each stage warm-started from
+the last, up to the whole record; `check_basin` compares a whole-record fit with a
+short-window fit from the same theta and warns where the first is far worse.
+"""
+
+import warnings
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import ArrayLike, Float, PyTree
+
+from ._fit import fit
+from ._fit_result import FitResult
+from ._simulate import simulate
+
+
+class Stage(eqx.Module):
+    """One stage of `fit_continuation`.
+
+    **Fields:**
+
+    - `window`: the window length in samples; None for the whole record.
+    - `loss`: the stage's final loss (eq. 5 over its windows).
+    - `fit_percent`: FIT% per output over its windows (each from its own x0).
+    - `num_steps`: the solver steps it took.
+    - `status`: its stop reason's name (`"converged"`, `"max_steps_reached"`, ...).
+    - `success`: whether it converged.
+    """
+
+    window: int | None
+    loss: float
+    fit_percent: np.ndarray
+    num_steps: int
+    status: str
+    success: bool
+
+    def __str__(self):
+        w = "whole" if self.window is None else str(self.window)
+        fits = ", ".join(f"{f:.2f}" for f in np.atleast_1d(self.fit_percent))
+        return f"{w:>8}  {self.loss:>12.5g}  {fits:>10}  {self.num_steps:>6}  {self.status}"
+
+
+class Continuation(eqx.Module):
+    """What `fit_continuation` returns.
+
+    **Fields:**
+
+    - `result`: the `FitResult` of the last stage, the fit to the whole record. Its
+        `success`, `status` and `message` are that fit's own: the continuation claims
+        nothing the last fit did not reach.
+    - `stages`: a `Stage` per stage, the whole record last (window, loss, FIT%, steps,
+        stop reason).
+    """
+
+    result: FitResult
+    stages: tuple
+
+    @property
+    def success(self) -> bool:
+        """Whether the last stage, the whole-record fit, converged."""
+        return self.result.success
+
+    def __str__(self):
+        head = f"{'window':>8}  {'loss':>12}  {'FIT %':>10}  {'steps':>6}  stop"
+        rows = "\n".join(str(s) for s in self.stages)
+        return f"Horizon continuation, {len(self.stages)} stages:\n{head}\n{rows}\n\n{self.result}"
+
+    __repr__ = __str__
+
+
+def _stage(window, r):
+    return Stage(
+        window=window,
+        loss=float(r.loss),
+        fit_percent=np.asarray(r.metrics["fit_percent"]),
+        num_steps=int(r.num_steps),
+        status=r.status,
+        success=bool(r.success),
+    )
+
+
+def _is_count(w):
+    return not isinstance(w, bool) and isinstance(w, (int, np.integer)) and w >= 1
+
+
+def _schedule(windows, start, factor, T):
+    """The window lengths, shortest first, each shorter than the record."""
+    if windows is not None:
+        try:
+            windows = list(windows)
+        except TypeError:
+            raise TypeError(
+                f"`windows` must be a sequence of window lengths, got {windows!r}."
+            ) from None
+        if not windows or not all(_is_count(w) for w in windows):
+            raise ValueError(
+                f"`windows` must be a non-empty sequence of positive integers, got {windows!r}."
+            )
+        if any(b <= a for a, b in zip(windows, windows[1:])):
+            raise ValueError(f"`windows` must increase, got {windows!r}.")
+        if windows[-1] >= T:
+            raise ValueError(
+                f"every window of `windows` must be shorter than the record (T = {T}): the "
+                f"last stage fits the whole record; got {windows!r}."
+            )
+        return [int(w) for w in windows]
+    if not _is_count(start):
+        raise ValueError(f"`start` must be a positive integer, got {start!r}.")
+    if start >= T:
+        raise ValueError(
+            f"`start` ({start}) must be shorter than the record (T = {T}): the last stage "
+            "fits the whole record."
+        )
+    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not factor > 1:
+        raise ValueError(f"`factor` must be a number > 1, got {factor!r}.")
+    out = [int(start)]
+    while True:
+        w = max(out[-1] + 1, int(round(out[-1] * factor)))
+        if w >= T:
+            return out
+        out.append(w)
+
+
+def _window_states(model, result, u, w_prev, window):
+    """Each new window's starting state: the last stage's windows (of `w_prev` samples)
+    simulated from their own x0 with its theta, read at the new windows' starts (all
+    inside the last stage's windows, since `window` > `w_prev`)."""
+    x0 = np.asarray(result.x0)
+    N_prev, n_x = x0.shape
+    u_prev = u[: N_prev * w_prev].reshape(N_prev, w_prev, -1)
+    xs, _ = simulate(model, result.theta, x0, u_prev)
+    xs = np.asarray(xs).reshape(N_prev * w_prev, n_x)
+    return xs[np.arange(u.shape[0] // window) * window]
+
+
+def fit_continuation(
+    model,
+    theta0: PyTree,
+    x0: Float[ArrayLike, " n_x"],
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T n_z"],
+    *,
+    windows=None,
+    start: int = 50,
+    factor: float = 2,
+    **kwargs,
+) -> Continuation:
+    """Fit by horizon continuation: short windows first, then longer ones, then the whole
+    record, each stage warm-started from the last.
+
+    Stage 1 is `fit(..., window=windows[0])`: the record cut into windows, each with its
+    own initial state (multiple shooting, eq. (5) with the windows as trajectories), whose
+    cost has far fewer bad minima than the whole record's. Each later stage starts from
+    the last stage's theta, and each of its windows from the last stage's states at its
+    start (the last stage's windows simulated from their own x0). The last stage fits the
+    whole record from the first window's state. Use it where a whole-record fit stops in a
+    bad minimum (`check_basin` warns of one): an oscillation fitted over many periods, a
+    start far from the truth.
+
+    **Arguments:**
+
+    - `model`, `theta0`, `x0`, `u`, `z`: as for `fit`, one record: `x0` (n_x,), `u`
+        (T, n_u), `z` (T, n_z).
+    - `windows`: the window lengths of the stages before the whole record, increasing,
+        each shorter than the record, e.g. `(50, 100, 200)`.
+    - `start`, `factor`: without `windows`, the lengths `start`, `start * factor`, ...
+        while shorter than the record (doubling from 50 by default).
+    - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
+        `constraints`, `estimate_x0`, ...); not `window` or `multistart`.
+
+    **Returns:**
+
+    A `Continuation`: `result`, the last stage's `FitResult` (whose `success` is its own),
+    and `stages`, each stage's window, loss, FIT%, steps and stop reason.
+    """
+    if "window" in kwargs:
+        raise ValueError(
+            "`window` is not a keyword of `fit_continuation`: it sets each stage's windows "
+            "itself (`windows=`, or `start=` and `factor=`)."
+        )
+    if "multistart" in kwargs:
+        raise ValueError(
+            "`multistart` is not a keyword of `fit_continuation`, which runs from one start: "
+            "run a multistart fit first and continue from its theta."
+        )
+    if np.ndim(x0) != 1 or np.ndim(u) != 2 or np.ndim(z) != 2:
+        raise ValueError(
+            "`fit_continuation` takes one record: `x0` of shape (n_x,), `u` (T, n_u) and `z` "
+            f"(T, n_z); got shapes {np.shape(x0)}, {np.shape(u)}, {np.shape(z)}."
+        )
+    u_np = np.asarray(u)
+    T = u_np.shape[0]
+    schedule = _schedule(windows, start, factor, T)
+    stages = []
+    theta, x0_stage, result, w_prev = theta0, x0, None, None
+    for w in schedule:
+        if result is not None:
+            x0_stage = _window_states(model, result, u_np, w_prev, w)
+        with warnings.catch_warnings():
+            # The tail that fills no window is fitted by the last stage, the whole record.
+            warnings.filterwarnings("ignore", message="the last .* do not fill a window")
+            result = fit(model, theta, x0_stage, u, z, window=w, **kwargs)
+        stages.append(_stage(w, result))
+        theta, w_prev = result.theta, w
+    final_x0 = np.asarray(result.x0)[0]
+    final = fit(model, theta, final_x0, u, z, **kwargs)
+    stages.append(_stage(None, final))
+    return Continuation(result=final, stages=tuple(stages))
+
+
+class BasinCheck(eqx.Module):
+    """What `check_basin` found.
+
+    **Fields:**
+
+    - `bad_basin`: whether the whole-record fit is far below the short-window fit.
+    - `fit_percent`: the whole-record fit's FIT% per output.
+    - `window_fit_percent`: the short-window fit's FIT% per output.
+    - `window`: the window length.
+    - `windowed`: the short-window fit's `FitResult` (its theta is a start to refit the
+        whole record from).
+    """
+
+    bad_basin: bool
+    fit_percent: np.ndarray
+    window_fit_percent: np.ndarray
+    window: int
+    windowed: FitResult
+
+
+def check_basin(
+    result: FitResult,
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T n_z"],
+    *,
+    window: int = 50,
+    margin: float = 20.0,
+    **kwargs,
+) -> BasinCheck:
+    """Check a whole-record fit for a bad basin of the simulation error.
+
+    Refits the same model from the result's theta with the record cut into windows of
+    `window` samples, each with its own initial state (multiple shooting, eq. (5) with
+    the windows as trajectories), and compares FIT%. A whole-record fit in the right basin
+    fits about as well as the windows (they only restart the state; with a model error
+    that accumulates they fit somewhat better); one whose FIT is more than `margin`
+    points below theirs sits in a bad minimum, converged or not: then it warns
+    (RuntimeWarning), naming the remedies (refit from the windowed theta,
+    `fit_continuation`, multistart over the physical parameters).
+
+    The check costs one windowed fit (about what the fit itself cost, plus a compilation
+    for the windows' shapes), so `fit` does not run it: call it on a result you doubt.
+
+    **Arguments:**
+
+    - `result`: a `FitResult` of `fit` on one record (its `x0` of shape (n_x,)), holding
+        its model.
+    - `u`, `z`: that record, (T, n_u) and (T, n_z).
+    - `window`: the window length in samples (shorter than the record).
+    - `margin`: how many FIT points below the windowed fit count as a bad basin.
+    - keyword arguments: passed to the windowed `fit` (`solver`, `weight`, `fixed`,
+        ...; use the ones the result was fitted with).
+
+    **Returns:**
+
+    A `BasinCheck`: `bad_basin`, both FIT%s and the windowed fit.
+    """
+    if not isinstance(result, FitResult):
+        raise TypeError(f"`result` must be a FitResult, got {type(result).__name__}.")
+    if result.model is None:
+        raise ValueError("`result` holds no model (loaded without one): load it with `model=`.")
+    if np.ndim(result.x0) != 1 or np.ndim(u) != 2 or np.ndim(z) != 2:
+        raise ValueError(
+            "`check_basin` takes the result of a fit on one record (`x0` of shape (n_x,)) and "
+            f"that record, `u` (T, n_u) and `z` (T, n_z); got x0 {np.shape(result.x0)}, u "
+            f"{np.shape(u)}, z {np.shape(z)}."
+        )
+    if not _is_count(window) or window >= np.shape(u)[0]:
+        raise ValueError(
+            f"`window` must be a positive integer shorter than the record (T = "
+            f"{np.shape(u)[0]}), got {window!r}."
+        )
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin >= 0:
+        raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
+    for name in ("window", "multistart"):
+        if name in kwargs:
+            raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")
+    windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
+    whole = np.asarray(result.metrics["fit_percent"])
+    short = np.asarray(windowed.metrics["fit_percent"])
+    bad = bool(np.any(short - whole > margin))
+    if bad:
+        fmt = lambda a: ", ".join(f"{v:.3g}" for v in a)  # noqa: E731
+        warnings.warn(
+            f"the fit ({result.status}) reaches FIT {fmt(whole)} % on the whole record, but "
+            f"a fit with windows of {window} samples from its theta reaches {fmt(short)} % "
+            "(each window from its own x0): it sits in a bad minimum of the simulation "
+            "error. Refit the whole record from the windowed theta "
+            "(`check.windowed.theta`), use `fit_continuation` (short windows first), or "
+            "multistart over the physical parameters.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return BasinCheck(
+        bad_basin=bad,
+        fit_percent=whole,
+        window_fit_percent=short,
+        window=int(window),
+        windowed=windowed,
+    )

@@ -1,0 +1,181 @@
+"""Bad minima of the simulation error (issue 21): horizon continuation reaches the truth
+where a whole-record fit converges to a bad minimum; the bad-basin check warns there and
+not at the truth; the stability check warns when a `Model.from_ode` model runs beyond its
+integrator's stability limit, and not inside it."""
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+
+DT, T = 0.05, 400
+TRUTH = {"w0sq": 9.0, "b": 0.3}
+START = {"w0sq": 4.0, "b": 0.1}  # far: the whole-record fit converges to a bad minimum
+
+
+def pendulum(x, u, p):
+    return jnp.stack([x[1], -p["w0sq"] * jnp.sin(x[0]) - p["b"] * x[1] + u[0]])
+
+
+MODEL = oj.Model.from_ode(pendulum, DT, observe=lambda x, u, p: x[:1])
+
+
+def _data():
+    """A pendulum driven by three sines (one of them near its resonance, 3 rad/s), its
+    angle measured with noise 0.01 rad."""
+    rng = np.random.default_rng(0)
+    t = DT * np.arange(T)
+    u = sum(np.sin(f * t + rng.uniform(0, 6)) for f in (1.5, 3.0, 6.0))[:, None]
+    _, z = oj.simulate(MODEL, TRUTH, np.zeros(2), u)
+    return u, np.asarray(z) + 0.01 * rng.standard_normal((T, 1))
+
+
+U, Z = _data()
+
+
+def _no_warnings(fn, *args, **kwargs):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return fn(*args, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def plain():
+    return _no_warnings(oj.fit, MODEL, START, np.zeros(2), U, Z)
+
+
+@pytest.fixture(scope="module")
+def continued():
+    return _no_warnings(oj.fit_continuation, MODEL, START, np.zeros(2), U, Z, windows=(50,))
+
+
+def _rel(theta):
+    return {k: abs(float(theta[k]) / v - 1) for k, v in TRUTH.items()}
+
+
+def test_the_whole_record_fit_converges_to_a_bad_minimum(plain):
+    """The case is hard: the plain fit 'converges' far from the truth with a FIT below
+    zero (without this, the tests below could not fail)."""
+    assert plain.success
+    assert plain.metrics["fit_percent"][0] < 0
+    assert _rel(plain.theta)["w0sq"] > 0.3
+
+
+def test_continuation_reaches_the_truth(continued, plain):
+    cont = continued
+    assert cont.success and cont.result.success
+    assert [s.window for s in cont.stages] == [50, None]
+    assert all(e < 0.01 for e in _rel(cont.result.theta).values()), cont.result.theta
+    # at the noise level (0.01 rad), where the plain fit is far from it
+    assert abs(float(cont.result.metrics["rmse"][0]) - 0.01) < 0.001
+    assert float(cont.result.loss) < 1e-3 * float(plain.loss)
+    last = cont.stages[-1]
+    assert last.loss == float(cont.result.loss) and last.status == cont.result.status
+    assert last.num_steps == cont.result.num_steps
+    assert "Horizon continuation, 2 stages" in str(cont)
+
+
+def test_the_basin_check_warns_on_the_bad_minimum_only(plain, continued):
+    with pytest.warns(RuntimeWarning, match="bad minimum.*fit_continuation"):
+        bad = oj.check_basin(plain, U, Z, window=50)
+    assert bad.bad_basin and bad.window_fit_percent[0] > 90
+    # the windowed fit found the basin: its theta is a start for the whole record
+    assert all(e < 0.01 for e in _rel(bad.windowed.theta).values())
+    good = _no_warnings(oj.check_basin, continued.result, U, Z, window=50)
+    assert not good.bad_basin
+    assert abs(good.window_fit_percent[0] - good.fit_percent[0]) < 1
+
+
+def test_doubling_schedule():
+    """start and factor give the windows (50, 150, then the whole record); each stage
+    starts from the last one's theta and states. Windows of 150 leave a tail of 100
+    samples that fills no window: the whole record's stage fits it, so the continuation
+    does not warn of it (`_no_warnings` turns a warning into an error)."""
+    cont = _no_warnings(oj.fit_continuation, MODEL, START, np.zeros(2), U, Z, start=50, factor=3)
+    assert [s.window for s in cont.stages] == [50, 150, None]
+    assert cont.success
+    assert all(e < 0.01 for e in _rel(cont.result.theta).values())
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"windows": (100, 50)}, "increase"),
+        ({"windows": (50, 400)}, "shorter than the record"),
+        ({"windows": ()}, "non-empty"),
+        ({"windows": (2.5,)}, "positive integers"),
+        ({"start": 400}, "shorter than the record"),
+        ({"start": 0}, "positive integer"),
+        ({"factor": 1}, "factor"),
+        ({"window": 50}, "window"),
+        ({"multistart": True}, "multistart"),
+    ],
+)
+def test_continuation_rejects_bad_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        oj.fit_continuation(MODEL, START, np.zeros(2), U, Z, **kwargs)
+
+
+def test_continuation_takes_one_record():
+    with pytest.raises(ValueError, match="one record"):
+        oj.fit_continuation(MODEL, START, np.zeros((2, 2)), U[None], Z[None])
+
+
+def test_basin_check_rejects_bad_arguments(plain):
+    with pytest.raises(TypeError, match="FitResult"):
+        oj.check_basin(START, U, Z)
+    with pytest.raises(ValueError, match="window"):
+        oj.check_basin(plain, U, Z, window=T)
+    with pytest.raises(ValueError, match="margin"):
+        oj.check_basin(plain, U, Z, margin=-1.0)
+
+
+# A first-order lag x' = a (u - x): one real eigenvalue -a.
+def lag(x, u, p):
+    return p["a"] * (u - x)
+
+
+def _lag_data(substeps):
+    model = oj.Model.from_ode(lag, DT, substeps=substeps)
+    u = np.sign(np.sin(0.4 * np.arange(120)))[:, None]
+    _, z = oj.simulate(model, {"a": 52.0}, np.zeros(1), u)
+    return model, u, np.asarray(z)
+
+
+def test_stability_warning_after_a_fit_with_too_few_substeps():
+    """a = 52 with h = dt = 0.05: |lambda| h = 2.6, inside RK4's real-axis limit 2.785
+    (the data simulate fine) but beyond the 2.5 margin: fit warns, naming the value."""
+    model, u, z = _lag_data(1)
+    with pytest.warns(RuntimeWarning, match=r"\|lambda\| h = 2\.6.*substeps=2"):
+        result = oj.fit(model, {"a": 40.0}, np.zeros(1), u, z)
+    assert abs(float(result.theta["a"]) - 52.0) < 1e-6
+
+
+@pytest.mark.parametrize("substeps, warns", [(1, True), (2, False)])
+def test_check_stability(substeps, warns):
+    model, u, _ = _lag_data(substeps)
+    if warns:
+        with pytest.warns(RuntimeWarning, match="stability limit"):
+            report = oj.check_stability(model, {"a": 52.0}, np.zeros(1), u)
+    else:
+        report = _no_warnings(oj.check_stability, model, {"a": 52.0}, np.zeros(1), u)
+    assert report.value == pytest.approx(52.0 * DT / substeps)
+    assert report.near_limit is warns and report.limit == 2.5
+    assert report.eigenvalue == pytest.approx(-52.0)
+
+
+def test_stability_limit_of_euler_and_other_models():
+    u = np.zeros((20, 1))
+    euler = oj.Model.from_ode(lag, DT, method="euler")
+    with pytest.warns(RuntimeWarning, match="EULER: stable up to about 2"):
+        report = oj.check_stability(euler, {"a": 44.0}, np.zeros(1), u)  # 2.2 > 2
+    assert report.limit == 2.0
+    report = _no_warnings(oj.check_stability, euler, {"a": 36.0}, np.zeros(1), u)  # 1.8
+    assert not report.near_limit
+    step = oj.Model(lambda x, u, p: x - p["a"] * DT * x)  # not from_ode: no integrator known
+    assert oj.check_stability(step, {"a": 52.0}, np.zeros(1), u) is None
+    with pytest.raises(ValueError, match="points"):
+        oj.check_stability(euler, {"a": 1.0}, np.zeros(1), u, points=0)
