@@ -24,6 +24,7 @@ from ._iterate import run
 from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
+from ._zero_gradient import flag_zero_gradient
 
 
 def _written_order(tree):
@@ -133,7 +134,7 @@ def fit(
     estimate_x0=True,
     window: int | None = None,
     missing: str = "raise",
-    multistart: bool = False,
+    multistart: bool | dict = False,
     progress=False,
     history: int = 1000,
     units: dict[str, str] | None = None,
@@ -145,8 +146,7 @@ def fit(
     - `model`: a `Model`.
     - `theta0`: the starting parameters, any pytree (it may hold equinox modules: their
         floating arrays are estimated; integer and boolean arrays and other parts are
-        kept). With `multistart=True` every parameter leaf has a leading axis of starts,
-        run in parallel (vmap); the start with the best final loss is returned.
+        kept). With `multistart=True` every parameter leaf has a leading axis of starts.
     - `x0`: the starting initial state (n_x,), or (N, n_x) for N trajectories (with
         `window`, optionally one per window; with `multistart`, optionally with a leading
         axis of starts too).
@@ -178,6 +178,16 @@ def fit(
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z
         as missing samples (zero weight in the loss, the gradient and the Jacobian).
         Trajectories of different lengths (lists for `u` and `z`) are masked the same way.
+    - `multistart`: several starts, run in parallel in the one compiled call (vmap); the
+        start with the least final loss is returned and `result.starts` reports each.
+        `True`: every parameter leaf of `theta0` carries a leading axis of starts. A dict
+        starts some parts of theta only, the rest (an equinox network, say) theta0's own
+        in every start: its keys name theta0's entries (nested as theta0's dicts; an
+        equinox module's field names, a list's indices), each with its starts along a
+        leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
+        Every part given needs the same number S of starts, and a shape (S, *its shape);
+        the starts of fixed entries are refused. `x0` starts by its own leading axis of
+        starts (S, ...) (`multistart={}` for starts over x0 alone).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
@@ -197,7 +207,9 @@ def fit(
 
     **Returns:**
 
-    A `FitResult`.
+    A `FitResult`. Free parameters that never moved from the start because their gradient
+    and Jacobian column are exactly zero there (a coupling started at 0) are named in a
+    warning, and the stop reason is then `zero_gradient` (not a success).
     """
     inputs = check_inputs(
         model,
@@ -226,7 +238,7 @@ def fit(
     out, wall, diagnostics = _run(
         inputs.solvers, built.problem, built.starts, history, inputs.meter
     )
-    return assemble(
+    result = assemble(
         model=model,
         problem=built.problem,
         data=inputs.data,
@@ -235,8 +247,10 @@ def fit(
         solvers=inputs.solvers,
         fixed=built.fixed,
         x0_estimated=built.x0_estimated,
-        multistart=multistart,
+        multistart=inputs.n_starts is not None,
         diagnostics=diagnostics,
         theta_order=_theta_order(theta0),
         units=inputs.units,
     )
+    strategy = getattr(inputs.solvers[-1], "strategy", "auto")
+    return flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)

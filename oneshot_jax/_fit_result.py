@@ -43,6 +43,13 @@ def stop_detail(status: str, info: dict) -> str:
         return "loss at the round-off level of the data" + (f", {vs}" if known else "")
     if status == "diverged":
         return "the simulation diverged" + (f" at step {at}" if at is not None else "")
+    if status == "zero_gradient":
+        names = info.get("zero_gradient", [])
+        listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        return (
+            f"{listed} never moved from the start, where their gradient and Jacobian column "
+            f"are exactly zero (the solver stopped with {info.get('solver_stop', '?')})"
+        )
     if status in ("max_steps_reached", "no_progress") and known:
         return f"{vs} not met"
     return ""
