@@ -139,7 +139,9 @@ class FitResult(eqx.Module):
         `gtol` (the last solver's first-order tolerance), `step` (the last step's scaled
         size relative to the scaled parameters), `decrease` (the decrease of the loss its
         linear model predicted, relative to the loss) and `at_step` (the last solver's
-        step count); NaN where the solver has no such quantity.
+        step count); NaN where the solver has no such quantity. With the stop
+        `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
+        start) and `solver_stop` (the solver's own stop).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
