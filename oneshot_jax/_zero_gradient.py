@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
+from ._fit_result import stop_detail
 from ._problem import Params
 from ._results import RESULTS, name_of
 
@@ -109,18 +110,17 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
     if not entries.size:
         return result
     all_names = _pytree.indexed_names(_pytree.split(result.theta)[0])
-    names = [all_names[free[i]] for i in entries]
-    listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+    stop = name_of(result.stop_reason)
+    info = {
+        **result.stop_info,
+        "zero_gradient": [all_names[free[i]] for i in entries],
+        "solver_stop": stop,
+    }
     warnings.warn(
-        f"{listed} never moved from the start, where their gradient and Jacobian column are "
-        "exactly zero: at the start they have no effect on the outputs (a coupling or gain "
-        "started at 0, say), so they were not estimated. Start them away from that point "
-        "(or fix them in `fixed`).",
+        f"{stop_detail('zero_gradient', info)}; {RESULTS[RESULTS.zero_gradient]}.",
         RuntimeWarning,
         stacklevel=3,  # `fit`'s caller
     )
-    stop = result.stop_reason
-    if name_of(stop) == "diverged":  # the more pressing report: keep it
+    if stop == "diverged":  # the more pressing report: keep it
         return result
-    info = {**result.stop_info, "zero_gradient": names, "solver_stop": name_of(stop)}
     return dataclasses.replace(result, stop_reason=RESULTS.zero_gradient, stop_info=info)
