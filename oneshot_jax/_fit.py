@@ -26,6 +26,7 @@ from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
 from ._stability import stability, warn_if_near_limit
+from ._zero_gradient import flag_zero_gradient
 
 
 def _written_order(tree):
@@ -138,7 +139,7 @@ def fit(
     window=None,
     missing: str = "raise",
     validation=None,
-    multistart: bool = False,
+    multistart: bool | dict = False,
     progress=False,
     history: int = 1000,
     units: dict[str, str] | None = None,
@@ -151,8 +152,7 @@ def fit(
     - `model`: a `Model`.
     - `theta0`: the starting parameters, any pytree (it may hold equinox modules: their
         floating arrays are estimated; integer and boolean arrays and other parts are
-        kept). With `multistart=True` every parameter leaf has a leading axis of starts,
-        run in parallel (vmap); the start with the best final loss is returned.
+        kept). With `multistart=True` every parameter leaf has a leading axis of starts.
     - `x0`: the starting initial state (n_x,), or (N, n_x) for N trajectories (with
         `window`, optionally one per window; with `multistart`, optionally with a leading
         axis of starts too).
@@ -193,6 +193,16 @@ def fit(
         returned (stop reason `validation` where it is not the one the solver stopped
         at) and `Validation(patience=k)` stops a solver after k iterations without
         improvement. The scores are `result.history.validation`.
+    - `multistart`: several starts, run in parallel in the one compiled call (vmap); the
+        start with the least final loss is returned and `result.starts` reports each.
+        `True`: every parameter leaf of `theta0` carries a leading axis of starts. A dict
+        starts some parts of theta only, the rest (an equinox network, say) theta0's own
+        in every start: its keys name theta0's entries (nested as theta0's dicts; an
+        equinox module's field names, a list's indices), each with its starts along a
+        leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
+        Every part given needs the same number S of starts, and a shape (S, *its shape);
+        the starts of fixed entries are refused. `x0` starts by its own leading axis of
+        starts (S, ...) (`multistart={}` for starts over x0 alone).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
@@ -219,6 +229,9 @@ def fit(
     A `FitResult`. After a fit of a `Model.from_ode` model, `fit` warns (RuntimeWarning)
     when the fitted model runs near its integrator's stability limit (`check_stability`).
     For a fit that converges with a low FIT, see `check_basin` and `fit_continuation`.
+    Free parameters that never moved from the start because their gradient
+    and Jacobian column are exactly zero there (a coupling started at 0) are named in a
+    warning, and the stop reason is then `zero_gradient` (not a success).
     """
     check_window(aggregate, window)
     if aggregate is not None and validation is not None:
@@ -283,12 +296,14 @@ def fit(
         solvers=inputs.solvers,
         fixed=built.fixed,
         x0_estimated=built.x0_estimated,
-        multistart=multistart,
+        multistart=inputs.n_starts is not None,
         diagnostics=diagnostics,
         theta_order=_theta_order(theta0),
         units=inputs.units,
         window_starts=inputs.window_starts,
     )
+    strategy = getattr(inputs.solvers[-1], "strategy", "auto")
+    result = flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)
     if aggregate is not None:
         result = agg.restore(result)
     # A `Model.from_ode` model near its integrator's stability limit (`_stability`).

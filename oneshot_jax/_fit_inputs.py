@@ -12,7 +12,6 @@ the free entries of theta and x0 and the bounds on them.
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
@@ -33,6 +32,7 @@ from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
+from ._starts import check_fixed_starts, theta_starts
 from ._validation import monitor
 from ._windows import cut
 
@@ -61,26 +61,6 @@ class Built(NamedTuple):
     starts: Params  # (S, ...) free entries of theta and x0 per start
     fixed: np.ndarray  # (p,) True for the fixed entries of flat theta
     x0_estimated: np.ndarray  # (n_x,) True for the estimated entries of x0
-
-
-def _n_starts(theta0_params, x0, data_x0_ndim):
-    """The number of starts of a multistart fit, from theta0's leading axes and x0's."""
-    sizes = {
-        jnp.shape(leaf)[0] if jnp.ndim(leaf) else None
-        for leaf in jax.tree_util.tree_leaves(theta0_params)
-    }
-    if len(sizes) != 1 or None in sizes:
-        raise ValueError(
-            "with `multistart=True` every parameter leaf of `theta0` needs the same leading "
-            f"axis of starts; got leading sizes {sorted(map(str, sizes))}."
-        )
-    n = sizes.pop()
-    if np.ndim(x0) == data_x0_ndim + 1 and np.shape(x0)[0] != n:
-        raise ValueError(
-            f"with `multistart=True`, `x0` with a leading axis of starts must have {n} "
-            f"starts like `theta0`, got {np.shape(x0)[0]} (shape {np.shape(x0)})."
-        )
-    return n
 
 
 def _host(a):
@@ -139,16 +119,19 @@ def check_inputs(
     u_ndim = 3 if is_ragged(u) or is_ragged(z) else np.ndim(u)
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
-    if multistart:
-        theta_params, theta_static = _pytree.split(theta0)
-        n_starts = _n_starts(theta_params, x0, data_x0_ndim)
+    starting = multistart is not False and multistart is not None
+    x0_axis = starting and np.ndim(x0) == data_x0_ndim + 1
+    if starting:
+        theta_params, n_starts = theta_starts(
+            multistart, theta0, np.shape(x0)[0] if x0_axis else None
+        )
         theta_first = _pytree.combine(
-            jax.tree_util.tree_map(lambda a: a[0], theta_params), theta_static
+            jax.tree_util.tree_map(lambda a: a[0], theta_params), _pytree.split(theta0)[1]
         )
     else:
         theta_params, n_starts, theta_first = None, None, theta0
     x0_starts = None
-    if multistart and np.ndim(x0) == data_x0_ndim + 1:
+    if x0_axis:
         x0_starts = np.asarray(x0)
         x0 = x0_starts[0]
 
@@ -262,6 +245,7 @@ def build_problem(
                 for i in range(inputs.n_starts)
             ]
         ).astype(X0.dtype)
+        check_fixed_starts(starts_flat, fixed_flat, data.theta)
         x0_starts = inputs.x0_starts
         if x0_starts is not None:
             X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)

@@ -43,6 +43,13 @@ def stop_detail(status: str, info: dict) -> str:
         return "loss at the round-off level of the data" + (f", {vs}" if known else "")
     if status == "diverged":
         return "the simulation diverged" + (f" at step {at}" if at is not None else "")
+    if status == "zero_gradient":
+        names = info.get("zero_gradient", [])
+        listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        return (
+            f"{listed} never moved from the start, where their gradient and Jacobian column "
+            f"are exactly zero (the solver stopped with {info.get('solver_stop', '?')})"
+        )
     if status in ("max_steps_reached", "no_progress") and known:
         return f"{vs} not met"
     return ""
@@ -135,7 +142,9 @@ class FitResult(eqx.Module):
         `gtol` (the last solver's first-order tolerance), `step` (the last step's scaled
         size relative to the scaled parameters), `decrease` (the decrease of the loss its
         linear model predicted, relative to the loss) and `at_step` (the last solver's
-        step count); NaN where the solver has no such quantity.
+        step count); NaN where the solver has no such quantity. With the stop
+        `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
+        start) and `solver_stop` (the solver's own stop).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

@@ -206,3 +206,17 @@ def unpack(buffers, layout):
     host = [np.asarray(b) for b in buffers]
     leaves = [host[k][start:stop].reshape(shape) for k, start, stop, shape in items]
     return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def indexed_names(theta) -> tuple[str, ...]:
+    """One name per scalar of theta as a user indexes it (`theta['k12']`,
+    `theta['I'][2]`, `theta['net'].layers[0].weight[1, 3]`): the names of warnings that
+    point at entries of theta. (`leaf_names` gives the short names of `FitResult.names`.)"""
+    names = []
+    for path, leaf in jax.tree_util.tree_flatten_with_path(theta)[0]:
+        base = "theta" + jax.tree_util.keystr(path)
+        if np.ndim(leaf) == 0:
+            names.append(base)
+        else:
+            names.extend(f"{base}[{', '.join(map(str, ix))}]" for ix in np.ndindex(np.shape(leaf)))
+    return tuple(names)

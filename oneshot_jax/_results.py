@@ -54,6 +54,12 @@ class RESULTS(eqx.Enumeration):
         "penalty (they minimise a sum of squares that includes sqrt(lambda h)): use a "
         "non-negative h, or a first-order solver (Adam, LBFGS), which accept any sign"
     )
+    zero_gradient = (
+        "some free parameters had an exactly zero gradient and Jacobian column at the start "
+        "and never moved: the start is a point where they have no effect on the outputs "
+        "(a coupling or gain started at 0, say), so they were not estimated. Start them "
+        "away from that point, or fix them"
+    )
 
 
 SUCCESS = ("converged", "zero_residual", "tol_loss", "tol_grad")

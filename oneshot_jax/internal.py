@@ -60,6 +60,7 @@ from ._solver._search import NielsenDamping as NielsenDamping
 from ._solver.optimistix import _Held as OptimistixHeld  # noqa: F401
 from ._solver.optimistix import _residuals as optimistix_residuals  # noqa: F401
 from ._solver_arg import as_solvers as as_solvers
+from ._starts import theta_starts as theta_starts
 from ._strategy import MATRIX_FREE_MIN_THETA as MATRIX_FREE_MIN_THETA
 from ._strategy import PARALLEL_MIN_T as PARALLEL_MIN_T
 from ._strategy import is_parallel as is_parallel

@@ -1,0 +1,126 @@
+"""Parameters a fit left where they started because they have no effect there.
+
+A parameter whose gradient and Jacobian column are exactly zero at the start (a coupling
+or a gain started at 0 that multiplies another one at 0) gives every solver nothing to
+move it by: the fit returns it unchanged, and a first-order test at the returned point
+passes, although a little away from the start it does act on the outputs.
+`flag_zero_gradient` finds these on the host after the solve, from what the solve
+returned (the entries of the best start that never moved) and, only where some never
+moved, one evaluation of the gradient (eq. 17, 20) and of their Jacobian columns at the
+start and a little away from it; it warns, naming them, and makes the stop reason
+`zero_gradient`. The compiled solve is unchanged. A parameter without effect away from
+the start too, and every parameter of a fit that reproduces the outputs exactly
+(`zero_residual`), is one these data do not determine, which the covariance reports
+(std inf): not a start to move from.
+"""
+
+import dataclasses
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _pytree
+from ._fit_result import stop_detail
+from ._problem import Params
+from ._results import RESULTS, name_of
+
+# How far the entries are moved from the start to see whether they act away from it:
+# relative to their size, at least this much (any nonzero move shows a product of them).
+_AWAY = 1e-3
+
+
+def _columns(problem, params, entries, strategy):
+    """The Jacobian columns of the free entries `entries` of theta at `params` (the
+    forward sensitivity recursion), (k, N * R)."""
+    _, _, traj = problem.linearise(params, strategy)
+    zeros_x = jnp.zeros_like(params.x0)
+
+    def column(i):
+        e = jnp.zeros_like(params.theta).at[i].set(1.0)
+        return problem.jvp(params, traj, e, zeros_x, strategy).reshape(-1)
+
+    return jax.vmap(column)(entries)
+
+
+@eqx.filter_jit
+def _stuck(problem, params, entries, strategy):
+    """Whether each free entry `entries` of theta has an exactly zero gradient (eq. 17, 20)
+    and Jacobian column at `params`, and a Jacobian column that is not zero once they are
+    all moved a little away from it (not zero, or not finite: it acts away from the
+    start)."""
+    _, g = problem.value_and_grad(params, strategy)
+    zero = (g.theta[entries] == 0) & jnp.all(_columns(problem, params, entries, strategy) == 0, 1)
+    values = params.theta[entries]
+    move = jnp.where(zero, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
+    away = params._replace(theta=params.theta.at[entries].add(move))
+    cols = _columns(problem, away, entries, strategy)
+    acts = jnp.any(cols != 0, 1) | ~jnp.all(jnp.isfinite(cols), 1)
+    return zero & acts
+
+
+def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.ndarray:
+    """The free entries of theta (indices into `problem.theta_free`) that never moved from
+    `start`, whose gradient and Jacobian column are exactly zero there, and which act on
+    the outputs a little away from it (a parameter that acts nowhere is one the data do not
+    determine, which the covariance reports).
+
+    **Arguments:**
+
+    - `problem`: the fit's `FitProblem`.
+    - `start`: the best start's free variables (theta (p,), x0 (N, m)).
+    - `final_theta`: the free entries of theta the fit returned (p,).
+    - `strategy`: the strategy of the derivatives.
+
+    **Returns:** the indices, a NumPy integer array (empty for an ordinary fit).
+    """
+    unmoved = np.flatnonzero(np.asarray(final_theta) == np.asarray(start.theta))
+    if not unmoved.size:  # every free entry moved: nothing to evaluate
+        return unmoved
+    params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
+    stuck = np.asarray(_stuck(problem, params, jnp.asarray(unmoved), strategy))
+    return unmoved[stuck]
+
+
+def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
+    """`result`, with the stop reason `zero_gradient` and a warning if some free entries of
+    theta never moved from the best start, where their gradient and Jacobian column are
+    exactly zero though they act away from it (`zero_gradient_entries`); else `result`
+    itself.
+
+    **Arguments:**
+
+    - `result`: the assembled `FitResult`.
+    - `problem`: the fit's `FitProblem`.
+    - `starts`: the starts (S, ...) the fit ran from.
+    - `theta_flat`: the returned theta, flat (fixed entries included).
+    - `strategy`: the strategy of the derivatives.
+
+    **Returns:** a `FitResult`.
+    """
+    if name_of(result.stop_reason) == "zero_residual":
+        # The outputs are reproduced exactly: a parameter without effect there is one the
+        # data do not determine (the covariance reports it), not a start to move from.
+        return result
+    free = np.asarray(problem.theta_free, int)
+    start = Params(starts.theta[result.best], starts.x0[result.best])
+    entries = zero_gradient_entries(problem, start, np.asarray(theta_flat)[free], strategy)
+    if not entries.size:
+        return result
+    all_names = _pytree.indexed_names(_pytree.split(result.theta)[0])
+    stop = name_of(result.stop_reason)
+    info = {
+        **result.stop_info,
+        "zero_gradient": [all_names[free[i]] for i in entries],
+        "solver_stop": stop,
+    }
+    warnings.warn(
+        f"{stop_detail('zero_gradient', info)}; {RESULTS[RESULTS.zero_gradient]}.",
+        RuntimeWarning,
+        stacklevel=3,  # `fit`'s caller
+    )
+    if stop == "diverged":  # the more pressing report: keep it
+        return result
+    return dataclasses.replace(result, stop_reason=RESULTS.zero_gradient, stop_info=info)
