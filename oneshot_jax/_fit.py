@@ -194,7 +194,8 @@ def fit(
         at) and `Validation(patience=k)` stops a solver after k iterations without
         improvement. The scores are `result.history.validation`.
     - `multistart`: several starts, run in parallel in the one compiled call (vmap); the
-        start with the least final loss is returned and `result.starts` reports each.
+        start with the least final loss (with `validation`, the lowest score) is returned
+        and `result.starts` reports each.
         `True`: every parameter leaf of `theta0` carries a leading axis of starts. A dict
         starts some parts of theta only, the rest (an equinox network, say) theta0's own
         in every start: its keys name theta0's entries (nested as theta0's dicts; an
