@@ -10,6 +10,7 @@ from . import plot as plot
 from . import residual as residual
 from . import sharding as sharding
 from . import sparsity as sparsity
+from ._aggregate import Aggregate as Aggregate
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory

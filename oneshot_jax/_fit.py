@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
+from ._aggregate import augment
 from ._assemble import assemble, collect, post
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
@@ -137,6 +138,7 @@ def fit(
     progress=False,
     history: int = 1000,
     units: dict[str, str] | None = None,
+    aggregate=None,
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -184,6 +186,10 @@ def fit(
         evenly (see `FitHistory`).
     - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` for
         a nested one), e.g. `{"I": "kg m^2"}`, shown by `print(result)`.
+    - `aggregate`: aggregated readings of some outputs, as for `loss` (an `Aggregate`,
+        a list of them, or a list per trajectory); not with `window`. The readings count
+        as observations in the covariance; the result's `x0`, `residuals` and `metrics`
+        are those of the model's own states and outputs.
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -216,6 +222,26 @@ def fit(
         history=history,
         units=units,
     )
+    if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
+        agg = augment(inputs.data, aggregate, model, x0, missing, window=window)
+        inputs = check_inputs(
+            agg.model,
+            theta0,
+            agg.x0,
+            agg.u,
+            agg.z,
+            solver=solver,
+            weight=agg.weight,
+            penalty=penalty,
+            penalty_weight=penalty_weight,
+            window=window,
+            missing="mask",
+            multistart=multistart,
+            progress=progress,
+            history=history,
+            units=units,
+        )
+        estimate_x0 = agg.x0_mask(estimate_x0)
     built = build_problem(
         inputs,
         fixed=fixed,
@@ -226,7 +252,7 @@ def fit(
     out, wall, diagnostics = _run(
         inputs.solvers, built.problem, built.starts, history, inputs.meter
     )
-    return assemble(
+    result = assemble(
         model=model,
         problem=built.problem,
         data=inputs.data,
@@ -240,3 +266,4 @@ def fit(
         theta_order=_theta_order(theta0),
         units=inputs.units,
     )
+    return result if aggregate is None else agg.restore(result)

@@ -40,6 +40,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
 from ._kernels import local_terms
 from ._simulate import rollout, sample_count
@@ -101,6 +102,7 @@ def value_and_grad(
     penalty_weight: float = 1.0,
     strategy: str | AbstractStrategy = "auto",
     missing: str = "raise",
+    aggregate: Aggregate | list | None = None,
 ) -> tuple[Float[Array, ""], tuple[PyTree, Float[Array, "*N n_x"]]]:
     """The cost C of eq. (5)/(21) and its one-shot closed-form gradient, eq. (17) and (20).
 
@@ -112,8 +114,9 @@ def value_and_grad(
 
     **Arguments:**
 
-    - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`:
-        as for `loss`.
+    - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`,
+        `aggregate`: as for `loss` (a reading's error flows back through the recursion to
+        every sample it aggregates).
     - `strategy`: `Jacobian()` / `"jacobian"` (stacked J^{x/x}_k by vmap, best for small
         n_x), `VJP()` / `"vjp"` (VJPs inside the reverse scan, memory O(T n_x), for large
         states), `ParallelInTime(...)` / `"parallel"` (parallel in time: the rollout by
@@ -131,11 +134,17 @@ def value_and_grad(
     (N, n_x).
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
+    if aggregate is not None:
+        agg = augment(data, aggregate, model, x0, missing)
+        data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
-    return value_and_grad_impl(
+    C, (g_theta, g_x0) = value_and_grad_impl(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
     )
+    if aggregate is not None:  # the accumulators' initial states are not variables
+        g_x0 = g_x0[..., : agg.n_x]
+    return C, (g_theta, g_x0)
 
 
 def literal_value_and_grad(

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
 from ._kernels import rollout as rollout
 from ._strategy import AbstractStrategy, as_strategy
@@ -108,6 +109,7 @@ def loss(
     penalty_weight: float = 1.0,
     missing: str = "raise",
     strategy: str | AbstractStrategy = "auto",
+    aggregate: Aggregate | list | None = None,
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
@@ -129,12 +131,19 @@ def loss(
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
         missing samples, which contribute nothing to C (nor to its derivatives).
     - `strategy`: how the rollout is computed, as for `simulate`.
+    - `aggregate`: aggregated readings of some outputs, an `Aggregate` or a list of them
+        (for N trajectories, a list of N entries, each an `Aggregate`, a list or None).
+        Each reading i adds w_i (r_i - v_i)^2 to the sum before the division by the
+        number of time points, with r_i its predicted aggregate (`Aggregate`).
 
     **Returns:**
 
     The scalar C.
     """
     data = check_data(model, theta, x0, u, z, weight, missing)
+    if aggregate is not None:
+        agg = augment(data, aggregate, model, x0, missing)
+        data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
     return loss_impl(

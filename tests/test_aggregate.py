@@ -1,0 +1,344 @@
+"""Aggregated observations (`oj.Aggregate`): the loss, the one-shot gradient and the residual
+Jacobian against jax autodiff of a direct implementation of the aggregated loss, written here
+independently (a plain rollout, A @ y_c), through every strategy; a fit that recovers the
+parameters from aggregated readings; the errors on bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+import oneshot_jax as oj
+from oneshot_jax.internal import (
+    FitProblem,
+    Params,
+    aggregate_augment,
+    build,
+    check_cost,
+    check_data,
+)
+
+T = 40
+THETA = {"a": jnp.array(0.6), "b": jnp.array(1.3), "c": jnp.array(0.8)}
+Q = np.array([1.0, 2.5])
+
+
+def step(x, u, th):
+    return x + 0.1 * jnp.stack(
+        [
+            -th["a"] * x[0] + th["b"] * jnp.tanh(x[1]) + u[0],
+            -th["c"] * x[1] - 0.3 * x[0] * x[1] + 0.5 * u[1],
+        ]
+    )
+
+
+def observe(x, u, th):
+    """Channel 0: point samples with gaps; channel 1 (nonlinear in x and theta):
+    aggregated, with a few point samples too."""
+    return jnp.stack([x[0] + 0.2 * th["c"] * u[0], x[1] ** 2 + th["a"] * x[0]])
+
+
+MODEL = oj.Model(step, observe)
+
+
+def rollout(theta, x0, u):
+    def f(x, u_k):
+        return step(x, u_k, theta), x
+
+    _, xs = jax.lax.scan(f, x0, u)
+    return jax.vmap(observe, in_axes=(0, 0, None))(xs, u, theta)
+
+
+def data(seed=0, n=T):
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 2))
+    x0 = np.array([0.4, -0.6])
+    y = np.asarray(rollout(THETA, jnp.asarray(x0), jnp.asarray(u)))
+    z = y + 0.02 * rng.standard_normal(y.shape)
+    z[rng.random(n) < 0.3, 0] = np.nan  # missing samples of the point channel
+    z[rng.random(n) < 0.8, 1] = np.nan  # channel 1 mostly aggregated
+    return x0, u, z, y
+
+
+def rows(form, n=T):
+    """(A, intervals) of channel 1's readings, built here without `Aggregate.operator`."""
+    if form == "overlap":
+        intervals = [(0, 10), (5, 15), (8, 30), (12, 13), (30, 40), (0, 40)]
+    else:
+        intervals = [(0, 7), (7, 19), (19, 20), (22, 35), (35, 40)]
+    A = np.zeros((len(intervals), n))
+    for i, (a, b) in enumerate(intervals):
+        A[i, a:b] = 1.0 if form in ("sum", "overlap") else 1.0 / (b - a)
+    if form == "matrix":  # a general matrix: irregular weights, gaps inside a row
+        rng = np.random.default_rng(5)
+        A = rng.uniform(0.1, 1.0, A.shape) * (A > 0)
+        A[1, 10] = 0.0
+    return A, intervals
+
+
+def aggregate_of(form, values, weight=None):
+    A, intervals = rows(form)
+    if form == "matrix":
+        return oj.Aggregate(1, values=values, matrix=A, weight=weight)
+    kind = "mean" if form == "mean" else "sum"
+    return oj.Aggregate(1, intervals, values, kind=kind, weight=weight)
+
+
+def readings(form, y, seed=1):
+    A, _ = rows(form)
+    v = A @ y[:, 1] + 0.02 * np.random.default_rng(seed).standard_normal(A.shape[0])
+    v[2] = np.nan  # a missing reading
+    return v
+
+
+def direct_loss(theta, x0, u, z, A, v, w):
+    """(sum_k e_k^T Q e_k over measured samples + sum_i w_i (A y_1 - v)_i^2) / T."""
+    y = rollout(theta, x0, u)
+    e = jnp.where(jnp.isnan(z), 0.0, y - jnp.nan_to_num(z))
+    r = jnp.where(jnp.isnan(v), 0.0, A @ y[:, 1] - jnp.nan_to_num(v))
+    return (jnp.sum(Q * e**2) + jnp.sum(w * r**2)) / u.shape[0]
+
+
+THETA_EVAL = {"a": jnp.array(0.5), "b": jnp.array(1.5), "c": jnp.array(0.7)}  # off the truth
+FORMS = ("sum", "mean", "matrix", "overlap")
+STRATEGIES = {
+    "jacobian": oj.Jacobian(),
+    "vjp": oj.VJP(),
+    "parallel": oj.ParallelInTime(),
+}
+
+
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_value_and_grad_equal_autodiff_of_the_direct_loss(form, strategy):
+    x0, u, z, y = data()
+    v = readings(form, y)
+    w = np.linspace(0.5, 3.0, v.size) if form == "matrix" else Q[1]  # per-reading weights
+    agg = aggregate_of(form, v, weight=w if form == "matrix" else None)
+    x0e = jnp.asarray(x0 + 0.1)
+    C, (g_theta, g_x0) = oj.value_and_grad(
+        MODEL,
+        THETA_EVAL,
+        x0e,
+        u,
+        z,
+        weight=Q,
+        missing="mask",
+        aggregate=agg,
+        strategy=STRATEGIES[strategy],
+    )
+    A, _ = rows(form)
+    args = (jnp.asarray(u), jnp.asarray(z), jnp.asarray(A), jnp.asarray(v), jnp.asarray(w))
+    C_ref, (gt_ref, gx_ref) = jax.value_and_grad(direct_loss, argnums=(0, 1))(
+        THETA_EVAL, x0e, *args
+    )
+    # The readings matter: without them the loss and gradient differ.
+    C_pts = oj.loss(MODEL, THETA_EVAL, x0e, u, z, weight=Q, missing="mask")
+    assert abs(float(C_ref) - float(C_pts)) > 1e-3 * float(C_ref)
+    np.testing.assert_allclose(C, C_ref, rtol=1e-12)
+    assert g_x0.shape == (2,)
+    np.testing.assert_allclose(g_x0, gx_ref, rtol=1e-12, atol=1e-14)
+    flat, _ = ravel_pytree(g_theta)
+    flat_ref, _ = ravel_pytree(gt_ref)
+    np.testing.assert_allclose(flat, flat_ref, rtol=1e-12, atol=1e-14)
+    C_loss = oj.loss(
+        MODEL,
+        THETA_EVAL,
+        x0e,
+        u,
+        z,
+        weight=Q,
+        missing="mask",
+        aggregate=agg,
+        strategy=STRATEGIES[strategy],
+    )
+    np.testing.assert_allclose(C_loss, C_ref, rtol=1e-12)
+
+
+def _problem(form, seed=0):
+    """The FitProblem of the aggregated data, built as `fit` builds it (every entry of
+    theta free, the user's x0 entries free, the accumulators' fixed)."""
+    x0, u, z, y = data(seed)
+    v = readings(form, y)
+    agg = aggregate_of(form, v)
+    x0e = x0 + 0.1
+    checked = check_data(MODEL, THETA_EVAL, x0e, u, z, Q, "mask")
+    aug = aggregate_augment(checked, agg, MODEL, x0e, "mask")
+    d = check_data(aug.model, THETA_EVAL, aug.x0, aug.u, aug.z, aug.weight, "mask")
+    flat, unravel = ravel_pytree(d.theta)
+    problem = build(
+        FitProblem,
+        model=d.model,
+        cost=check_cost(d, None, 1.0),
+        u=jnp.asarray(d.u)[None],
+        z=jnp.asarray(d.z)[None],
+        theta_base=flat,
+        theta_free=tuple(range(flat.size)),
+        unravel=unravel,
+        x0_base=jnp.asarray(d.x0)[None],
+        x0_free=(0, 1),
+        project=None,
+        lower=None,
+        upper=None,
+        mask=jax.tree_util.tree_map(lambda a: jnp.asarray(a)[None], d.mask),
+    )
+    A, _ = rows(form)
+    direct = (jnp.asarray(u), jnp.asarray(z), jnp.asarray(A), jnp.asarray(v), Q[1])
+    return problem, flat, jnp.asarray(x0e), direct
+
+
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("strategy", STRATEGIES)
+def test_residual_jacobian_equals_autodiff_of_the_direct_residuals(form, strategy):
+    """The Gauss-Newton quantities J^T J, J^T r and r^T r of the closed-form Jacobian
+    (forward sensitivities through the accumulators) equal those of jax.jacfwd of the
+    direct residuals (sqrt(Q) e_k and sqrt(w) (A y - v), over sqrt(T))."""
+    problem, flat, x0e, (u, z, A, v, w) = _problem(form)
+    pt, px = problem.split(problem.theta_base, problem.x0_base)
+    lin = jax.jit(lambda pt, px: problem.jacobian(Params(pt, px), STRATEGIES[strategy]))(pt, px)
+    J = np.concatenate([lin.Jt[0], lin.Jx[0]], axis=1)
+    r = np.asarray(lin.r[0])
+
+    _, unravel = ravel_pytree(THETA_EVAL)
+
+    def direct(p):
+        theta, x0 = unravel(p[:3]), p[3:]
+        y = rollout(theta, x0, u)
+        e = jnp.where(jnp.isnan(z), 0.0, (y - jnp.nan_to_num(z)) * np.sqrt(Q))
+        rr = jnp.where(jnp.isnan(v), 0.0, (A @ y[:, 1] - jnp.nan_to_num(v)) * np.sqrt(w))
+        return jnp.concatenate([e.reshape(-1), rr]) / np.sqrt(u.shape[0])
+
+    p = jnp.concatenate([flat, x0e])
+    r_ref, J_ref = direct(p), jax.jacfwd(direct)(p)
+    np.testing.assert_allclose(r @ r, r_ref @ r_ref, rtol=1e-12)
+    np.testing.assert_allclose(J.T @ r, J_ref.T @ r_ref, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(J.T @ J, J_ref.T @ J_ref, rtol=1e-12, atol=1e-15)
+    # one nonzero residual per point sample and per reading, the rest zero (masked)
+    assert np.count_nonzero(r) == np.count_nonzero(np.asarray(r_ref))
+
+
+def test_batch_of_records_with_an_aggregate_per_record():
+    """Two records of different lengths (a list), aggregates on the first only: the loss
+    and gradient equal the direct ones summed over records over the total time points."""
+    x0a, ua, za, ya = data(0)
+    x0b, ub, zb, _ = data(3, n=25)
+    v = readings("overlap", ya)
+    agg = aggregate_of("overlap", v)
+    X0 = jnp.asarray(np.stack([x0a, x0b]) + 0.1)
+    C, (g_theta, g_x0) = oj.value_and_grad(
+        MODEL,
+        THETA_EVAL,
+        X0,
+        [ua, ub],
+        [za, zb],
+        weight=Q,
+        missing="mask",
+        aggregate=[agg, None],
+    )
+    A, _ = rows("overlap")
+
+    def ref(theta, X0):
+        one = direct_loss(theta, X0[0], ua, za, A, v, Q[1]) * T
+        two = direct_loss(theta, X0[1], ub, zb, np.zeros((1, 25)), np.zeros(1), 0.0) * 25
+        return (one + two) / (T + 25)
+
+    C_ref, (gt_ref, gx_ref) = jax.value_and_grad(ref, argnums=(0, 1))(THETA_EVAL, X0)
+    np.testing.assert_allclose(C, C_ref, rtol=1e-12)
+    np.testing.assert_allclose(g_x0, gx_ref, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(ravel_pytree(g_theta)[0], ravel_pytree(gt_ref)[0], rtol=1e-12)
+
+
+def test_operator_kinds():
+    """The rows of A for each kind, against hand-computed weights (trapezoid rule)."""
+    t = np.array([0.0, 1.0, 3.0, 3.5, 6.0])
+    agg = oj.Aggregate(0, [(0, 3), (2, 5)], [1.0, 2.0], kind="integral")
+    np.testing.assert_allclose(
+        agg.operator(5, t), [[0.5, 1.5, 1.0, 0, 0], [0, 0, 0.25, 1.5, 1.25]], rtol=1e-15
+    )
+    np.testing.assert_allclose(agg.operator(5), [[0.5, 1, 0.5, 0, 0], [0, 0, 0.5, 1, 0.5]])
+    tm = oj.Aggregate(0, [(0, 3)], [1.0], kind="time_mean").operator(5, t)
+    np.testing.assert_allclose(tm, [[0.5 / 3, 1.5 / 3, 1.0 / 3, 0, 0]], rtol=1e-15)
+    np.testing.assert_allclose(
+        oj.Aggregate(0, [(1, 3)], [1.0], kind="mean").operator(4), [[0, 0.5, 0.5, 0]]
+    )
+    y = np.arange(10.0)[:, None] ** 2
+    np.testing.assert_allclose(oj.Aggregate(0, [(2, 5)], [0.0], kind="sum").predict(y), [29.0])
+
+
+def test_fit_recovers_parameters_from_aggregates():
+    """Channel 1 measured only as sums over 5-sample intervals (no point samples); a
+    Levenberg-Marquardt fit recovers theta with finite standard errors, the readings
+    counted as observations."""
+    x0, u, z, y = data(0, n=60)
+    z[:, 1] = np.nan
+    intervals = [(k, k + 5) for k in range(0, 60, 5)]
+    v = np.array([y[a:b, 1].sum() for a, b in intervals])
+    v += 0.01 * np.random.default_rng(7).standard_normal(v.size)
+    agg = oj.Aggregate(1, intervals, v, kind="sum")
+    theta0 = {"a": jnp.array(0.45), "b": jnp.array(1.6), "c": jnp.array(0.65)}
+    res = oj.fit(MODEL, theta0, x0 + 0.1, u, z, missing="mask", aggregate=agg)
+    assert res.success, res.message
+    assert res.x0.shape == (2,) and res.x0_std.shape == (2,)
+    assert res.residuals.shape == z.shape
+    for k in THETA:
+        assert abs(float(res.theta[k]) - float(THETA[k])) < 4 * float(res.std[k]) + 1e-3, k
+        assert 0 < float(res.std[k]) < 0.1, k
+    n_points = int(np.count_nonzero(np.isfinite(z)))
+    assert n_points < 60  # the readings add observations beyond the point samples
+    assert "a" in str(res)
+
+
+def test_fit_refuses_window():
+    x0, u, z, y = data()
+    agg = aggregate_of("sum", readings("sum", y))
+    with pytest.raises(ValueError, match="window"):
+        oj.fit(MODEL, THETA, x0, u, z, missing="mask", aggregate=agg, window=20)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: oj.Aggregate(-1, [(0, 2)], [1.0]), "channel"),
+        (lambda: oj.Aggregate(0, [(3, 3)], [1.0]), "start < stop"),
+        (lambda: oj.Aggregate(0, [(-1, 3)], [1.0]), "start < stop"),
+        (lambda: oj.Aggregate(0, [(0, 3), (1, 4)], [1.0]), "one reading per interval"),
+        (lambda: oj.Aggregate(0, [(0, 1)], [1.0], kind="integral"), "two samples"),
+        (lambda: oj.Aggregate(0, [(0, 2)], [1.0], kind="median"), "kind"),
+        (lambda: oj.Aggregate(0, values=[1.0], matrix=np.ones(4)), "2-D"),
+        (lambda: oj.Aggregate(0, values=[1.0, 2.0], matrix=np.ones((1, 4))), "one reading per row"),
+        (lambda: oj.Aggregate(0, values=[1.0], matrix=np.zeros((1, 4))), "no nonzero"),
+        (lambda: oj.Aggregate(0, [(0, 2)], [1.0], matrix=np.ones((1, 4))), "exactly one"),
+        (lambda: oj.Aggregate(0, [(0, 2)], [1.0], weight=-1.0), "non-negative"),
+    ],
+)
+def test_bad_aggregate(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+@pytest.mark.parametrize(
+    "agg, match",
+    [
+        (oj.Aggregate(2, [(0, 2)], [1.0]), "out of range"),
+        (oj.Aggregate(1, [(30, 41)], [1.0]), "ends past"),
+        (oj.Aggregate(1, values=[1.0], matrix=np.ones((1, 39))), "one column per sample"),
+        ([oj.Aggregate(1, [(0, 2)], [1.0]), "x"], "Aggregate"),
+        (oj.Aggregate(1, [(0, 2)], [np.nan]), "missing='mask'"),
+    ],
+)
+def test_bad_aggregate_for_the_data(agg, match):
+    x0, u, z, _ = data()
+    z = np.nan_to_num(z)
+    with pytest.raises((ValueError, TypeError), match=match):
+        oj.loss(MODEL, THETA, x0, u, z, aggregate=agg)
+
+
+def test_batch_needs_one_entry_per_record():
+    x0, u, z, y = data()
+    agg = aggregate_of("sum", readings("sum", y))
+    X0, U, Z = np.stack([x0, x0]), np.stack([u, u]), np.stack([z, z])
+    with pytest.raises(ValueError, match="one per trajectory"):
+        oj.loss(MODEL, THETA, X0, U, Z, missing="mask", aggregate=agg)
+    with pytest.raises(ValueError, match="one entry per trajectory"):
+        oj.loss(MODEL, THETA, X0, U, Z, missing="mask", aggregate=[agg])
