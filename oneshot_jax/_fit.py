@@ -137,6 +137,7 @@ def fit(
     progress=False,
     history: int = 1000,
     units: dict[str, str] | None = None,
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -184,6 +185,9 @@ def fit(
         evenly (see `FitHistory`).
     - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` for
         a nested one), e.g. `{"I": "kg m^2"}`, shown by `print(result)`.
+    - `t`: the sample times of a timed model's records (`Model.from_ode(rhs, dt=None)`),
+        as for `simulate`: (T,), (N, T) or a list like `u`. With `window`, each window
+        keeps its own intervals.
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -215,6 +219,7 @@ def fit(
         progress=progress,
         history=history,
         units=units,
+        t=t,
     )
     built = build_problem(
         inputs,

@@ -63,6 +63,7 @@ def simulate(
     u: Float[ArrayLike, "*N T n_u"],
     *,
     strategy: str | AbstractStrategy = "auto",
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> tuple[Float[Array, "*N T n_x"], Float[Array, "*N T n_z"]]:
     """Simulate the model over the horizon of `u`, eq. (2).
 
@@ -79,6 +80,10 @@ def simulate(
         options are those of the Newton iterations); `Jacobian()` and `VJP()` are the
         sequential loop, and `Auto()` (`"auto"`) takes the parallel one on a GPU or TPU
         for long records (see `value_and_grad`).
+    - `t`: the sample times, for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`; required there, refused by any other model):
+        shape (T,), or (N, T), or a list of N arrays (T_i,) like `u`; finite and strictly
+        increasing. Step k integrates over t[k+1] - t[k].
 
     **Returns:**
 
@@ -86,7 +91,7 @@ def simulate(
     and `z[k] = observe(x[k], u[k], theta)` of shape (T, n_z); with a leading N axis for
     several trajectories (lists of arrays for a list `u`).
     """
-    data = check_data(model, theta, x0, u)
+    data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
     x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
@@ -108,6 +113,7 @@ def loss(
     penalty_weight: float = 1.0,
     missing: str = "raise",
     strategy: str | AbstractStrategy = "auto",
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
@@ -129,12 +135,13 @@ def loss(
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
         missing samples, which contribute nothing to C (nor to its derivatives).
     - `strategy`: how the rollout is computed, as for `simulate`.
+    - `t`: the sample times of a timed model's records, as for `simulate`.
 
     **Returns:**
 
     The scalar C.
     """
-    data = check_data(model, theta, x0, u, z, weight, missing)
+    data = check_data(model, theta, x0, u, z, weight, missing, t)
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
     return loss_impl(
