@@ -35,6 +35,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from . import metrics as _metrics
 from ._checks import x0_mask
 from ._model import Model
 
@@ -219,7 +220,9 @@ class Aggregate:
 
 
 class _Step(eqx.Module):
-    """The augmented step: the model's step on x, the accumulators' update on s."""
+    """The augmented model's step f (`observe=False`) or observation g (`observe=True`) of
+    eq. (1) on the state [x, s]: the model's own step of x or its outputs, with the
+    accumulators' update (1 - rho_k) s_k + a_k y_c(x_k, u_k) (the module's docstring)."""
 
     model: Model
     n_x: int = eqx.field(static=True)
@@ -242,6 +245,16 @@ class _Step(eqx.Module):
         if self.observe:
             return jnp.concatenate([y.astype(acc.dtype), acc])
         return jnp.concatenate([self.model.step(x_in, u_step, theta), acc])
+
+
+class _OnStates(eqx.Module):
+    """A penalty h(x, theta) of eq. (21) on the model's own states of the augmented x."""
+
+    penalty: Any
+    n_x: int = eqx.field(static=True)
+
+    def __call__(self, x, theta):
+        return self.penalty(x[: self.n_x], theta)
 
 
 _MODELS: dict = {}
@@ -334,6 +347,10 @@ class Augmented(NamedTuple):
     n_z: int
     n_acc: int
 
+    def penalty(self, penalty):
+        """`penalty=` of the function, applied to the model's own states."""
+        return None if penalty is None else _OnStates(penalty, self.n_x)
+
     def x0_mask(self, estimate_x0):
         """`estimate_x0` of `fit` for the augmented state (accumulators never estimated)."""
         if estimate_x0 is False:
@@ -343,20 +360,32 @@ class Augmented(NamedTuple):
 
     def restore(self, result):
         """A `FitResult` of the augmented problem as one of the user's model: x0 with its
-        n_x entries, residuals and per-output metrics of z's n_z outputs."""
+        n_x entries, residuals and per-output metrics of z's n_z outputs, the AIC on the
+        point samples of the outputs that have any (the covariance, from all residuals,
+        counts the readings as observations)."""
         n_x, n_z = self.n_x, self.n_z
 
         def per_output(v):
             v = np.asarray(v)
             return v[..., :n_z] if v.ndim and v.shape[-1] == n_z + self.n_acc else v
 
+        e = np.asarray(result.residuals)[..., :n_z]
+        metrics = {k: per_output(v) for k, v in result.metrics.items()}
+        seen = np.isfinite(e)
+        sampled = np.any(seen.reshape(-1, n_z), axis=0)  # outputs with point samples
+        if "aic" in metrics and sampled.any():  # on those outputs' point samples
+            n_traj = 1 if e.ndim == 2 else e.shape[0]
+            n_free = int(np.count_nonzero(~np.asarray(result.fixed)))
+            n_free += int(np.count_nonzero(np.asarray(result.x0_estimated)[:n_x])) * n_traj
+            es, ms = np.where(seen, e, 0.0)[..., sampled], seen[..., sampled]
+            metrics["aic"] = float(_metrics.aic(np.zeros_like(es), es, n_free, ms))
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],
             x0_std=np.asarray(result.x0_std)[..., :n_x],
             x0_estimated=np.asarray(result.x0_estimated)[:n_x],
-            residuals=np.asarray(result.residuals)[..., :n_z],
-            metrics={k: per_output(v) for k, v in result.metrics.items()},
+            residuals=e,
+            metrics=metrics,
             model=self.model.step.model,
         )
 
@@ -389,7 +418,16 @@ def _per_record(aggregate, batched, N):
     return [as_list(a) for a in aggregate]
 
 
-def augment(data, aggregate, model, x0, missing, *, window=None, t=None) -> Augmented:
+def check_window(aggregate, window):
+    """`fit`'s `window` is refused with aggregates (checked before the windows are cut)."""
+    if aggregate is not None and window is not None:
+        raise ValueError(
+            "`window` cannot be combined with `aggregate`: an aggregate may span windows. "
+            "Fit the whole record, or several records as a list."
+        )
+
+
+def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     """The aggregated problem as an ordinary one on augmented arrays: the accumulator
     states appended to x (at 0), their reset and weight columns to u, their readings (NaN
     elsewhere) to z, weight 1 to Q (see the module's docstring).
@@ -401,7 +439,6 @@ def augment(data, aggregate, model, x0, missing, *, window=None, t=None) -> Augm
     - `aggregate`: `aggregate=` of the public function.
     - `model`, `x0`: the user's model and x0 (x0 may hold a leading axis of starts).
     - `missing`: the user's `missing` (NaN readings are refused under "raise").
-    - `window`: `fit`'s `window`, refused with aggregates.
     - `t`: time stamps (T,), or one row (or array) per trajectory, for `"integral"` and
         `"time_mean"`.
 
@@ -410,11 +447,6 @@ def augment(data, aggregate, model, x0, missing, *, window=None, t=None) -> Augm
     An `Augmented` whose `model`, `x0`, `u`, `z`, `weight` go to the function's checks
     again (with `missing="mask"`), and which maps the results back.
     """
-    if window is not None:
-        raise ValueError(
-            "`window` cannot be combined with `aggregate`: an aggregate may span windows. "
-            "Fit the whole record, or several records as a list."
-        )
     if data.z is None:
         raise ValueError("`aggregate` needs the measured outputs `z`.")
     dtype = np.dtype(data.u.dtype)

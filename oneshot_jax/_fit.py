@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
-from ._aggregate import augment
+from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
@@ -209,6 +209,7 @@ def fit(
 
     A `FitResult`.
     """
+    check_window(aggregate, window)
     inputs = check_inputs(
         model,
         theta0,
@@ -228,7 +229,7 @@ def fit(
         t=t,
     )
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
-        agg = augment(inputs.data, aggregate, model, x0, missing, window=window, t=t)
+        agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
         inputs = check_inputs(
             agg.model,
             theta0,
@@ -237,7 +238,7 @@ def fit(
             agg.z,
             solver=solver,
             weight=agg.weight,
-            penalty=penalty,
+            penalty=agg.penalty(penalty),
             penalty_weight=penalty_weight,
             window=window,
             missing="mask",

@@ -139,6 +139,7 @@ def value_and_grad(
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
+        penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
     C, (g_theta, g_x0) = value_and_grad_impl(

@@ -151,6 +151,7 @@ def loss(
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
+        penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
     return loss_impl(

@@ -3,6 +3,7 @@ Jacobian against jax autodiff of a direct implementation of the aggregated loss,
 independently (a plain rollout, A @ y_c), through every strategy; a fit that recovers the
 parameters from aggregated readings; the errors on bad input."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -188,6 +189,11 @@ def _problem(form, seed=0):
     return problem, flat, jnp.asarray(x0e), direct
 
 
+@eqx.filter_jit
+def linearise(problem, pt, px, strategy):
+    return problem.jacobian(Params(pt, px), strategy)
+
+
 @pytest.mark.parametrize("form", FORMS)
 @pytest.mark.parametrize("strategy", STRATEGIES)
 def test_residual_jacobian_equals_autodiff_of_the_direct_residuals(form, strategy):
@@ -196,7 +202,7 @@ def test_residual_jacobian_equals_autodiff_of_the_direct_residuals(form, strateg
     direct residuals (sqrt(Q) e_k and sqrt(w) (A y - v), over sqrt(T))."""
     problem, flat, x0e, (u, z, A, v, w) = _problem(form)
     pt, px = problem.split(problem.theta_base, problem.x0_base)
-    lin = jax.jit(lambda pt, px: problem.jacobian(Params(pt, px), STRATEGIES[strategy]))(pt, px)
+    lin = linearise(problem, pt, px, STRATEGIES[strategy])
     J = np.concatenate([lin.Jt[0], lin.Jx[0]], axis=1)
     r = np.asarray(lin.r[0])
 
@@ -266,7 +272,7 @@ def test_operator_kinds():
     np.testing.assert_allclose(oj.Aggregate(0, [(2, 5)], [0.0], kind="sum").predict(y), [29.0])
 
 
-def test_fit_recovers_parameters_from_aggregates():
+def test_fit_recovers_parameters_from_aggregates(tmp_path):
     """Channel 1 measured only as sums over 5-sample intervals (no point samples); a
     Levenberg-Marquardt fit recovers theta with finite standard errors, the readings
     counted as observations."""
@@ -284,9 +290,29 @@ def test_fit_recovers_parameters_from_aggregates():
     for k in THETA:
         assert abs(float(res.theta[k]) - float(THETA[k])) < 4 * float(res.std[k]) + 1e-3, k
         assert 0 < float(res.std[k]) < 0.1, k
-    n_points = int(np.count_nonzero(np.isfinite(z)))
-    assert n_points < 60  # the readings add observations beyond the point samples
-    assert "a" in str(res)
+    # The covariance counts the readings as observations: sigma^2 (J^T J)^-1 of the
+    # direct residuals (point samples and readings) at the estimate.
+    seen = np.isfinite(z[:, 0])
+    A = np.zeros((len(intervals), 60))
+    for i, (a, b) in enumerate(intervals):
+        A[i, a:b] = 1.0
+    _, unravel = ravel_pytree(THETA)
+
+    def direct(p):
+        y = rollout(unravel(p[:3]), p[3:], jnp.asarray(u))
+        return jnp.concatenate([(y[:, 0] - np.nan_to_num(z[:, 0]))[seen], A @ y[:, 1] - v])
+
+    p = jnp.concatenate([ravel_pytree(res.theta)[0], jnp.asarray(res.x0)])
+    r, J = np.asarray(direct(p)), np.asarray(jax.jacfwd(direct)(p))
+    assert r.size == seen.sum() + len(intervals)
+    cov = (r @ r) / (r.size - 5) * np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(res.covariance, cov[:3, :3], rtol=1e-5)
+    assert res.metrics["rmse"].shape == (2,) and np.isnan(res.metrics["rmse"][1])
+    assert np.isfinite(res.metrics["aic"])  # on channel 0's point samples
+    assert "x0[1]" in str(res) and "x0[2]" not in str(res)
+    back = oj.load_result(res.save(tmp_path / "agg.npz"), model=MODEL)
+    np.testing.assert_array_equal(back.x0, res.x0)
+    np.testing.assert_array_equal(back.covariance, res.covariance)
 
 
 def test_fit_refuses_window():
@@ -342,3 +368,32 @@ def test_batch_needs_one_entry_per_record():
         oj.loss(MODEL, THETA, X0, U, Z, missing="mask", aggregate=agg)
     with pytest.raises(ValueError, match="one entry per trajectory"):
         oj.loss(MODEL, THETA, X0, U, Z, missing="mask", aggregate=[agg])
+
+
+def test_penalty_sees_the_model_states_only():
+    """A penalty h(x, theta) of eq. (21) gets the model's own states, not the accumulators
+    (h = sum x^2 would differ), in the loss and in the gradient."""
+    x0, u, z, y = data()
+    v = readings("overlap", y)
+    agg = aggregate_of("overlap", v)
+    A, _ = rows("overlap")
+
+    def h(x, th):
+        return jnp.sum(x**2) + 0.1 * th["a"] ** 2
+
+    def ref(theta, x0):
+        def f(x, u_k):
+            return step(x, u_k, theta), h(x, theta)
+
+        _, hs = jax.lax.scan(f, x0, jnp.asarray(u))
+        base = direct_loss(theta, x0, jnp.asarray(u), jnp.asarray(z), A, v, Q[1])
+        return base + 0.7 * jnp.sum(hs) / T
+
+    x0e = jnp.asarray(x0 + 0.1)
+    kw = dict(weight=Q, missing="mask", aggregate=agg, penalty=h, penalty_weight=0.7)
+    C, (g_theta, g_x0) = oj.value_and_grad(MODEL, THETA_EVAL, x0e, u, z, **kw)
+    C_ref, (gt_ref, gx_ref) = jax.value_and_grad(ref, argnums=(0, 1))(THETA_EVAL, x0e)
+    np.testing.assert_allclose(oj.loss(MODEL, THETA_EVAL, x0e, u, z, **kw), C_ref, rtol=1e-12)
+    np.testing.assert_allclose(C, C_ref, rtol=1e-12)
+    np.testing.assert_allclose(g_x0, gx_ref, rtol=1e-12)
+    np.testing.assert_allclose(ravel_pytree(g_theta)[0], ravel_pytree(gt_ref)[0], rtol=1e-12)
