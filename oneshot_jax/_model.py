@@ -113,7 +113,8 @@ class _ODEStep(eqx.Module):
 
 def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=None, input="zoh"):
     """Advance `dx/dt = rhs(x, u, theta)` over one interval `dt` of a time-stamped record,
-    t[k+1] - t[k], with `dt` a traced value (data, not a parameter).
+    t[k+1] - t[k], with `dt` a traced value (data, not a parameter): the step f of eq. (1)
+    of a model built by `Model.from_ode(rhs, dt=None)`.
 
     The integrator, its stages and the input between the samples are those of `ode_step`
     (classical RK4 or explicit Euler; "zoh" holds u[k], "foh" interpolates linearly to

@@ -321,6 +321,8 @@ def test_estimate_x0_and_predict_take_t():
     model, t, u, x0, z = _fit_data()
     est = oj.estimate_x0(model, TRUE, u, z, n=15, t=t)
     np.testing.assert_allclose(est.x0, x0, atol=1e-3)
+    smoothed = oj.estimate_x0(model, TRUE, u, z, n=15, t=t, method="smoother")
+    np.testing.assert_allclose(smoothed.x0, x0, atol=1e-2)
     pred = oj.predict(model, TRUE, u, z, 15, t=t)
     np.testing.assert_allclose(pred.z, z, atol=1e-3)
     again = _fitted(None).predict(u, z[:15], t=t)
