@@ -113,14 +113,16 @@ class _ODEStep(eqx.Module):
 
 def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=None, input="zoh"):
     """Advance `dx/dt = rhs(x, u, theta)` over one interval `dt` of a time-stamped record,
-    t[k+1] - t[k], with `dt` a traced value (data, not a parameter).
+    t[k+1] - t[k], with `dt` a traced value (data, not a parameter): the step f of eq. (1)
+    of a model built by `Model.from_ode(rhs, dt=None)`.
 
     The integrator, its stages and the input between the samples are those of `ode_step`
     (classical RK4 or explicit Euler; "zoh" holds u[k], "foh" interpolates linearly to
     u[k+1]). Without `max_step` the interval is split into `substeps` equal steps. With
     `max_step`, it is split into n = ceil(dt / max_step) equal steps of h = dt / n <=
-    max_step (`interval_count`): the loop runs to the static bound `substeps` and the
-    steps j >= n leave the state as it is (a `jnp.where`, so the map stays differentiable
+    max_step (`interval_count`): the loop (a `fori_loop`, which compiles much faster than
+    the unrolled masked steps) runs to the static bound `substeps` and the steps j >= n
+    leave the state as it is (a `jnp.where`, so the map stays differentiable
     in x and theta; the caller checks n <= substeps). A zero interval (the padding after
     a record's last sample) leaves the state unchanged.
 
@@ -167,7 +169,7 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
             x_new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         return x_new if max_step is None else jnp.where(j < n, x_new, x)
 
-    if substeps <= 8:
+    if substeps <= 8 and max_step is None:  # unrolled as in `ode_step`; masked: a loop
         for j in range(substeps):
             x = substep(j, x)
         return x
