@@ -357,6 +357,10 @@ def test_models_without_stamps_refuse_t():
         oj.Model.from_ode(rhs, 0.1, max_step=0.01)
     with pytest.raises(ValueError, match="`max_step` must be a finite positive"):
         oj.Model.from_ode(rhs, None, max_step=-1.0)
+    with pytest.raises(ValueError, match="`observe` must be callable"):
+        oj.Model.from_ode(rhs, None, observe=1)
+    with pytest.raises(TypeError, match="`timed` must be a bool"):
+        oj.Model(rhs, timed="yes")
 
 
 def test_timed_model_needs_t():
