@@ -373,6 +373,8 @@ class Model(eqx.Module):
         if dt is None:
             if max_step is not None:
                 max_step = _positive_number(max_step, "max_step", "the largest integrator step")
+            if observe is not None and not callable(observe):
+                raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
             observe = None if observe is None else _WithoutInterval(observe)
             step = _TimedODEStep(rhs, method, int(substeps), max_step, input)
             return cls(step, observe, input=input, timed=True)

@@ -333,6 +333,21 @@ def test_estimate_x0_and_predict_take_t():
         oj.predict(model, TRUE, u, z, 15)
 
 
+def test_compare_simulates_a_timed_fit_at_its_times():
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    model, t, u, x0, z = _fit_data()
+    fig = oj.plot.compare(z, _fitted(None), u=u, t=t)
+    line = fig.axes[0].lines[1]  # the model's output against t
+    np.testing.assert_allclose(line.get_xdata(), t)
+    np.testing.assert_allclose(
+        line.get_ydata(), np.asarray(_fitted(None).simulate(u, t=t)[1])[:, 0]
+    )
+    assert "FIT 99" in line.get_label()
+
+
 #
 # Errors.
 #
@@ -357,6 +372,10 @@ def test_models_without_stamps_refuse_t():
         oj.Model.from_ode(rhs, 0.1, max_step=0.01)
     with pytest.raises(ValueError, match="`max_step` must be a finite positive"):
         oj.Model.from_ode(rhs, None, max_step=-1.0)
+    with pytest.raises(ValueError, match="`observe` must be callable"):
+        oj.Model.from_ode(rhs, None, observe=1)
+    with pytest.raises(TypeError, match="`timed` must be a bool"):
+        oj.Model(rhs, timed="yes")
 
 
 def test_timed_model_needs_t():
