@@ -26,7 +26,10 @@ QUICK_START_OUTPUT = SNIPPETS / "quickstart.txt"
 
 # Pages whose first ```python block prints a result, and the snippet of its output that
 # the page includes (`--8<-- "<name>"` in a ```text block after the code).
-PAGE_OUTPUTS = {"docs/getting-started.md": SNIPPETS / "getting-started.txt"}
+PAGE_OUTPUTS = {
+    "docs/getting-started.md": SNIPPETS / "getting-started.txt",
+    "docs/guides/non-uniform.md": SNIPPETS / "non-uniform.txt",
+}
 
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _WALL = re.compile(r"in [\d.]+ s \(wall")

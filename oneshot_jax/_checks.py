@@ -37,6 +37,7 @@ from . import _pytree
 from ._cost import Cost
 from ._model import FloatObserve, Model
 from ._normalise import fill_missing, is_ragged, pad, sample_mask
+from ._timing import append_intervals, check_times
 
 
 def is_concrete(*arrays) -> bool:
@@ -133,7 +134,10 @@ def bind_model(model, static):
     if static is None:
         return model
     return Model(
-        _pytree.Bound(model.step, static), _pytree.Bound(model.observe, static), input=model.input
+        _pytree.Bound(model.step, static),
+        _pytree.Bound(model.observe, static),
+        input=model.input,
+        timed=model.timed,
     )
 
 
@@ -330,10 +334,13 @@ def _check_model(model, theta, x0, u, lead, dtype):
     the abstract output z."""
     x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
     u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
-    u_step = _step_input_struct(model, u_1)
+    u_seen = u_1  # a timed model's functions see the interval appended (`_timing`)
+    if model.timed:
+        u_seen = jax.ShapeDtypeStruct((u_1.shape[0] + 1,), u_1.dtype)
+    u_step = _step_input_struct(model, u_seen)
     try:
         x_next = _abstract_call(model.step, x_1, u_step, theta)
-        z_hat = _abstract_call(model.observe, x_1, u_1, theta)
+        z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
         raise ValueError(
             f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "
@@ -356,12 +363,14 @@ def _check_model(model, theta, x0, u, lead, dtype):
             f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
         )
     if not jnp.issubdtype(z_hat.dtype, jnp.inexact):  # outputs are real numbers
-        model = Model(model.step, FloatObserve(model.observe, dtype), input=model.input)
+        model = Model(
+            model.step, FloatObserve(model.observe, dtype), input=model.input, timed=model.timed
+        )
         z_hat = jax.ShapeDtypeStruct(z_hat.shape, dtype)
     return model, z_hat
 
 
-def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Data:
+def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None) -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
     Single trajectory: x0 (n_x,), u (T, n_u), z (T, n_z). Several trajectories sharing
@@ -369,7 +378,8 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
     `z` as lists of N arrays of different lengths T_i (padded to the longest and masked).
     Every array is promoted to one floating dtype, as NumPy would promote them.
     `missing="mask"` takes NaN entries of z as missing samples (masked); with "raise"
-    (default) they are an error.
+    (default) they are an error. `t`, the sample times of a timed model's records
+    (`_timing.check_times`), becomes the intervals appended to u as its last column.
     """
     if missing not in ("raise", "mask"):
         raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
@@ -433,10 +443,12 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise") -> Dat
         raise ValueError("`x0` must hold at least one trajectory (N >= 1).")
     check_finite(x0, "x0")
     check_finite(u, "u")
+    intervals = check_times(model, t, u.shape[:-1], lengths, dtype, given.step)
 
     if known is None:
         model, z_hat = _check_model(model, theta, x0, u, lead, dtype)
     n_z = z_hat.shape[0]
+    u = append_intervals(u, intervals)
 
     mask = None
     if z is not None:

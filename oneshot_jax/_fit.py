@@ -144,6 +144,7 @@ def fit(
     history: int = 1000,
     units: dict[str, str] | None = None,
     aggregate=None,
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -214,6 +215,9 @@ def fit(
         a list of them, or a list per trajectory); not with `window`. The readings count
         as observations in the covariance; the result's `x0`, `residuals` and `metrics`
         are those of the model's own states and outputs.
+    - `t`: the sample times of a timed model's records (`Model.from_ode(rhs, dt=None)`),
+        as for `simulate`: (T,), (N, T) or a list like `u`. With `window`, each window
+        keeps its own intervals.
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -256,9 +260,10 @@ def fit(
         progress=progress,
         history=history,
         units=units,
+        t=t,
     )
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
-        agg = augment(inputs.data, aggregate, model, x0, missing)
+        agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
         inputs = check_inputs(
             agg.model,
             theta0,

@@ -33,6 +33,7 @@ from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
 from ._starts import check_fixed_starts, theta_starts
+from ._timing import split_intervals
 from ._validation import monitor
 from ._windows import cut
 
@@ -99,6 +100,7 @@ def check_inputs(
     progress,
     history,
     units,
+    t=None,
 ) -> FitInputs:
     """`fit`'s arguments checked, in the order of its errors: the keywords, then the data
     (`check_data`: one record cut into windows with `window`; the first start's theta0
@@ -141,16 +143,17 @@ def check_inputs(
                 f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u)}."
             )
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
-        data = check_data(model, theta_first, x0_record, u, z, weight, missing)
+        data = check_data(model, theta_first, x0_record, u, z, weight, missing, t)
         x0_w, u_w, z_w, mask_w, starts = cut(
             data, window, np.asarray(x0) if per_window_x0 else None
         )
-        data = check_data(model, theta_first, x0_w, u_w, z_w, weight)._replace(mask=mask_w)
+        u_w, t_w = split_intervals(data.model, u_w)  # each window keeps its intervals
+        data = check_data(model, theta_first, x0_w, u_w, z_w, weight, t=t_w)._replace(mask=mask_w)
         if x0_starts is not None:
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
         starts = None
-        data = check_data(model, theta_first, x0, u, z, weight, missing)
+        data = check_data(model, theta_first, x0, u, z, weight, missing, t)
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
         if any(isinstance(s, AbstractLeastSquares) for s in solvers):

@@ -210,8 +210,9 @@ class FitResult(eqx.Module):
         hi = jax.tree_util.tree_map(lambda v, s: np.asarray(v) + 1.96 * s, params, self.std)
         return lo, hi
 
-    def simulate(self, u, x0=None):
-        """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`.
+    def simulate(self, u, x0=None, *, t=None):
+        """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`,
+        at the sample times `t` for a model of time-stamped records.
 
         By default `x0` is the fitted initial state, which needs the shape of the fitted
         data; after a fit with `window=`, it is the state of the window that starts at
@@ -239,9 +240,9 @@ class FitResult(eqx.Module):
                         "that row), or use `result.predict(u, z_head)`, which estimates it."
                     )
                 x0 = np.asarray(self.x0)[at_zero[0]]
-        return simulate(self.model, self.theta, x0, u)
+        return simulate(self.model, self.theta, x0, u, t=t)
 
-    def predict(self, u, z_head, **kwargs):
+    def predict(self, u, z_head, *, t=None, **kwargs):
         """Predict a new record from its first measured outputs: estimate its x0 from
         `z_head` (the first n outputs, n = len(z_head)) and simulate the whole input `u`
         with the fitted model and theta (see `oneshot_jax.predict`).
@@ -250,6 +251,7 @@ class FitResult(eqx.Module):
 
         - `u`: the new record's inputs (T, n_u).
         - `z_head`: its first n measured outputs (n, n_z).
+        - `t`: the new record's sample times (T,), for a model of time-stamped records.
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, ...). Where the model does not observe
             its whole state, the starting guess defaults to the fitted x0 (the mean over
@@ -271,7 +273,15 @@ class FitResult(eqx.Module):
             x0 = np.asarray(self.x0)
             kwargs["x0"] = x0 if x0.ndim == 1 else x0.mean(axis=0)
         return predict_impl(
-            self.model, self.theta, u, z_head, np.shape(z_head)[0], method, kwargs, stacklevel=3
+            self.model,
+            self.theta,
+            u,
+            z_head,
+            np.shape(z_head)[0],
+            method,
+            kwargs,
+            stacklevel=3,
+            t=t,
         )
 
     def save(self, path):

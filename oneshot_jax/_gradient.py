@@ -103,6 +103,7 @@ def value_and_grad(
     strategy: str | AbstractStrategy = "auto",
     missing: str = "raise",
     aggregate: Aggregate | list | None = None,
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> tuple[Float[Array, ""], tuple[PyTree, Float[Array, "*N n_x"]]]:
     """The cost C of eq. (5)/(21) and its one-shot closed-form gradient, eq. (17) and (20).
 
@@ -115,8 +116,9 @@ def value_and_grad(
     **Arguments:**
 
     - `model`, `theta`, `x0`, `u`, `z`, `weight`, `penalty`, `penalty_weight`, `missing`,
-        `aggregate`: as for `loss` (a reading's error flows back through the recursion to
-        every sample it aggregates).
+        `aggregate`, `t`: as for `loss` (a reading's error flows back through the recursion
+        to every sample it aggregates; `t`: the sample times of a timed model's records;
+        the intervals are data of the steps, so the gradient stays the exact eq. 17/20).
     - `strategy`: `Jacobian()` / `"jacobian"` (stacked J^{x/x}_k by vmap, best for small
         n_x), `VJP()` / `"vjp"` (VJPs inside the reverse scan, memory O(T n_x), for large
         states), `ParallelInTime(...)` / `"parallel"` (parallel in time: the rollout by
@@ -133,9 +135,9 @@ def value_and_grad(
     like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
-    data = check_data(model, theta, x0, u, z, weight, missing)
+    data = check_data(model, theta, x0, u, z, weight, missing, t)
     if aggregate is not None:
-        agg = augment(data, aggregate, model, x0, missing)
+        agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
@@ -159,14 +161,16 @@ def literal_value_and_grad(
     penalty=None,
     penalty_weight: float = 1.0,
     missing: str = "raise",
+    t=None,
 ):
     """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only).
 
     Forms every J^{x/x}_k and J^{x/theta}_k (jacfwd, flattened theta) and every chained
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.
-    Same arguments and returns as `value_and_grad` (one trajectory or N trajectories).
+    Same arguments (`t` included) and returns as `value_and_grad` (one trajectory or N
+    trajectories).
     """
-    data = check_data(model, theta, x0, u, z, weight, missing)
+    data = check_data(model, theta, x0, u, z, weight, missing, t)
     cost = check_cost(data, penalty, penalty_weight)
     model = data.model
     flat, unravel = ravel_pytree(data.theta)

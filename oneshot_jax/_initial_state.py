@@ -25,6 +25,7 @@ from ._cost import weigh
 from ._linalg import identifiable
 from ._results import RESULTS, is_success
 from ._simulate import outputs, rollout, simulate_impl
+from ._timing import head_times
 from ._x0_lsq import solve_x0
 from ._x0_smoother import KalmanPath, kalman_path
 
@@ -162,6 +163,7 @@ def estimate_x0(
     process_noise=None,
     measurement_noise=None,
     prior_covariance=None,
+    t: Float[ArrayLike, " T"] | None = None,
 ) -> X0Estimate:
     """Estimate the initial state x0 of a record from its first n samples (MATLAB's
     `findstates`), with theta known.
@@ -212,6 +214,8 @@ def estimate_x0(
         Q^{-1} when `weight` is given, else (0.01 s_z)^2 (1 % noise); process noise
         (0.001 s_x)^2 per step; prior (100 s_x)^2 (broad). The smoother's covariance
         reflects these assumptions: give `measurement_noise` for calibrated ones.
+    - `t`: the sample times (T,) of the record, for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`); t[:n] is used with the head.
 
     **Returns:**
 
@@ -240,6 +244,7 @@ def estimate_x0(
         measurement_noise=measurement_noise,
         prior_covariance=prior_covariance,
         stacklevel=3,
+        t=t,
     )
 
 
@@ -258,11 +263,13 @@ def _estimate(
     measurement_noise,
     prior_covariance,
     stacklevel,
+    t=None,
 ):
     """`estimate_x0`, with its warnings attributed `stacklevel` frames up."""
     if method not in METHODS:
         raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
     n = _check_head(u, z, n)
+    t = head_times(t, np.shape(u)[0], n)
     u, z = u[:n], z[:n]
     if method == "lsq":
         given = {
@@ -289,7 +296,7 @@ def _estimate(
         x0 = z[0]
     if np.ndim(x0) != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
-    data = check_data(model, theta, x0, u, z, weight)
+    data = check_data(model, theta, x0, u, z, weight, t=t)
     guess = np.asarray(data.x0)
 
     stop_reason, kalman, e = None, None, None
@@ -365,6 +372,7 @@ def predict(
     n: int,
     *,
     method: str = "lsq",
+    t: Float[ArrayLike, " T"] | None = None,
     **kwargs,
 ) -> Prediction:
     """Simulate a record from an initial state estimated from its first n outputs: the
@@ -380,6 +388,8 @@ def predict(
         Silverbox and Wiener-Hammerstein 50 under the protocol).
     - `method` and further keyword arguments: as for `estimate_x0` (`x0=` the starting
         guess, `weight=`, the smoother's noise covariances, ...).
+    - `t`: the record's sample times (T,), for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`).
 
     **Returns:**
 
@@ -394,13 +404,14 @@ def predict(
     scores = oneshot_jax.metrics.benchmark_scores(test.y, pred.z, test.n)
     ```
     """
-    return predict_impl(model, theta, u, z, n, method, kwargs, stacklevel=3)
+    return predict_impl(model, theta, u, z, n, method, kwargs, stacklevel=3, t=t)
 
 
-def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel):
+def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None):
     """`predict`, with its warnings attributed `stacklevel` frames up (`FitResult.predict`
     calls it too)."""
     n = _check_head(u, z, n)
+    head_times(t, np.shape(u)[0], n)  # `t`'s shape checked before the estimate
     options = dict(
         x0=None,
         weight=None,
@@ -417,8 +428,8 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel):
         )
     options.update(kwargs)
     est = _estimate(
-        model, theta, u, z[:n], n=n, method=method, stacklevel=stacklevel + 1, **options
+        model, theta, u, z[:n], n=n, method=method, stacklevel=stacklevel + 1, t=t, **options
     )
-    data = check_data(model, theta, est.x0, u)
+    data = check_data(model, theta, est.x0, u, t=t)
     x, zhat = simulate_impl(data.model, data.theta, data.x0, data.u, False)
     return Prediction(np.asarray(zhat), np.asarray(x), est.x0, est)

@@ -7,6 +7,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 _INPUTS = ("zoh", "foh")
 
@@ -110,6 +111,133 @@ class _ODEStep(eqx.Module):
         )
 
 
+def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=None, input="zoh"):
+    """Advance `dx/dt = rhs(x, u, theta)` over one interval `dt` of a time-stamped record,
+    t[k+1] - t[k], with `dt` a traced value (data, not a parameter): the step f of eq. (1)
+    of a model built by `Model.from_ode(rhs, dt=None)`.
+
+    The integrator, its stages and the input between the samples are those of `ode_step`
+    (classical RK4 or explicit Euler; "zoh" holds u[k], "foh" interpolates linearly to
+    u[k+1]). Without `max_step` the interval is split into `substeps` equal steps. With
+    `max_step`, it is split into n = ceil(dt / max_step) equal steps of h = dt / n <=
+    max_step (`interval_count`): the loop (a `fori_loop`, which compiles much faster than
+    the unrolled masked steps) runs to the static bound `substeps` and the steps j >= n
+    leave the state as it is (a `jnp.where`, so the map stays differentiable
+    in x and theta; the caller checks n <= substeps). A zero interval (the padding after
+    a record's last sample) leaves the state unchanged.
+
+    **Arguments:**
+
+    - `rhs`, `x`, `u`, `theta`, `method`, `input`: as for `ode_step`.
+    - `dt`: the interval t[k+1] - t[k] (>= 0), a scalar array.
+    - `substeps`: the number of steps (without `max_step`), or their upper bound.
+    - `max_step`: the largest integrator step, or None.
+
+    **Returns:**
+
+    The state at t[k+1].
+    """
+    dt = jnp.asarray(dt, x.dtype)
+    if max_step is None:
+        n = substeps
+        h = dt / substeps
+    else:
+        n = interval_count(dt, max_step, jnp)
+        h = dt / jnp.maximum(n, 1.0)
+    if _check_input(input) == "foh":
+        u0, du = u[0], (u[1] - u[0]) / jnp.where(dt > 0, dt, 1.0)
+
+        def u_at(s):
+            return u0 + s * du
+
+    else:
+
+        def u_at(s):
+            del s
+            return u
+
+    def substep(j, x):
+        s = j * h
+        if method == "euler":
+            x_new = x + h * rhs(x, u_at(s), theta)
+        else:
+            u_mid = u_at(s + 0.5 * h)
+            k1 = rhs(x, u_at(s), theta)
+            k2 = rhs(x + 0.5 * h * k1, u_mid, theta)
+            k3 = rhs(x + 0.5 * h * k2, u_mid, theta)
+            k4 = rhs(x + h * k3, u_at(s + h), theta)
+            x_new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return x_new if max_step is None else jnp.where(j < n, x_new, x)
+
+    if substeps <= 8 and max_step is None:  # unrolled as in `ode_step`; masked: a loop
+        for j in range(substeps):
+            x = substep(j, x)
+        return x
+    return jax.lax.fori_loop(0, substeps, substep, x)
+
+
+def interval_count(dt, max_step, xp=np):
+    """The number of integrator steps n = ceil(dt / max_step) an interval `dt` is split
+    into, with a relative tolerance of 1e-6 so that the rounding of time stamps
+    (t = cumsum(intervals), say) does not add a step: h = dt / n exceeds `max_step` by at
+    most that much. `xp` is NumPy (the host's check) or `jax.numpy` (the step)."""
+    dt = xp.asarray(dt)
+    return xp.ceil(dt / xp.asarray(max_step, dt.dtype) * (1.0 - 1e-6))
+
+
+class _TimedODEStep(eqx.Module):
+    """`timed_ode_step` of `rhs` as a step function whose input carries the interval
+    t[k+1] - t[k] as its last entry (`oneshot_jax._timing` appends it): u_step[-1] for
+    "zoh", u_step[0, -1] for "foh"."""
+
+    rhs: Callable
+    method: str = eqx.field(static=True)
+    substeps: int = eqx.field(static=True)
+    max_step: float | None = eqx.field(static=True)
+    input: str = eqx.field(static=True)
+
+    def __call__(self, x, u, theta):
+        if self.input == "foh":
+            dt, u = u[0, -1], u[:, :-1]
+        else:
+            dt, u = u[-1], u[:-1]
+        return timed_ode_step(
+            self.rhs,
+            x,
+            u,
+            theta,
+            dt,
+            method=self.method,
+            substeps=self.substeps,
+            max_step=self.max_step,
+            input=self.input,
+        )
+
+    def check_intervals(self, dt):
+        """Raise where an interval of `dt` (concrete, host) needs more steps of `max_step`
+        than the bound `substeps`."""
+        if self.max_step is None or np.size(dt) == 0:
+            return
+        worst = float(np.max(dt))
+        need = int(np.max(interval_count(dt, self.max_step)))
+        if need > self.substeps:
+            raise ValueError(
+                f"`t`: the longest interval, {worst!r}, needs {need} integrator steps of "
+                f"`max_step` = {self.max_step!r}, more than `substeps` = {self.substeps} "
+                f"(the bound of the loop): build the model with `substeps={need}` or more, "
+                "or a larger `max_step`."
+            )
+
+
+class _WithoutInterval(eqx.Module):
+    """The user's `observe` of a timed model: it sees u[k] without the appended interval."""
+
+    fn: Callable
+
+    def __call__(self, x, u, theta):
+        return self.fn(x, u[:-1], theta)
+
+
 class FloatObserve(eqx.Module):
     """`observe` with its outputs promoted to a floating dtype. Outputs are measurements:
     an observation that returns integers or booleans (a quantised sensor, a threshold) is
@@ -145,20 +273,30 @@ class Model(eqx.Module):
     - `input`: what the step sees of the input record u (T, n_u). `"zoh"` (default):
         `u_step[k] = u[k]`, shape (n_u,). `"foh"`: the pair `(u[k], u[k+1])`, shape
         (2, n_u), for a step that interpolates between the samples (see `ode_step`).
+    - `timed`: False (default) for a fixed sample interval. True for a model of
+        time-stamped records (what `Model.from_ode(rhs, dt=None)` builds): every function
+        that takes data then needs the time stamps `t=`, and the library appends the
+        interval t[k+1] - t[k] to each input sample as its last entry (0 after a record's
+        last sample), so `step` and `observe` see u[k] of shape (n_u + 1,) (for "foh"
+        the interval of step k is `u_step[0, -1]`).
     """
 
     step: Callable[[Any, Any, Any], Any]
     observe: Callable[[Any, Any, Any], Any]
     input: str = eqx.field(static=True)
+    timed: bool = eqx.field(static=True)
 
-    def __init__(self, step, observe=None, *, input="zoh"):
+    def __init__(self, step, observe=None, *, input="zoh", timed=False):
         if not callable(step):
             raise ValueError(f"`step` must be callable (x, u, theta) -> x_next, got {step!r}.")
         if observe is not None and not callable(observe):
             raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
+        if not isinstance(timed, bool):
+            raise TypeError(f"`timed` must be a bool, got {timed!r}.")
         self.step = step
         self.observe = _identity_observe if observe is None else observe
         self.input = _check_input(input)
+        self.timed = timed
 
     @property
     def observes_state(self) -> bool:
@@ -173,43 +311,89 @@ class Model(eqx.Module):
         return u[:-1]
 
     @classmethod
-    def from_ode(cls, rhs, dt, *, method="rk4", substeps=1, observe=None, input="zoh"):
+    def from_ode(
+        cls,
+        rhs,
+        dt=None,
+        *,
+        method="rk4",
+        substeps=1,
+        max_step=None,
+        observe=None,
+        input="zoh",
+    ):
         """Build a `Model` from a continuous-time right-hand side `dx/dt = rhs(x, u, theta)`.
 
         Each sample interval is split into `substeps` equal steps of classical RK4
         (`method="rk4"`, global error O(h^4)) or explicit Euler (`method="euler"`), see
         `ode_step`.
 
+        With `dt=None` the model is for time-stamped records (`Model.timed`): every
+        function that takes data (`simulate`, `loss`, `value_and_grad`, `fit`,
+        `estimate_x0`, `predict`, ...) then needs the sample times `t=`, and step k
+        integrates over its own interval t[k+1] - t[k] (`timed_ode_step`). The interval
+        enters the step as data, so the one-shot gradient (eq. 17, 20) and the residual
+        Jacobian stay exact.
+
         **Arguments:**
 
         - `rhs`: `rhs(x, u, theta) -> dx/dt`, u of shape (n_u,).
-        - `dt`: the sample interval (> 0).
+        - `dt`: the sample interval (> 0), or None for records with time stamps `t`.
         - `method`: `"rk4"` or `"euler"`.
-        - `substeps`: number of integrator steps per sample interval (>= 1).
-        - `observe`: as for `Model`.
-        - `input`: `"zoh"` (default) holds u[k] over [k dt, (k+1) dt); `"foh"`
+        - `substeps`: number of integrator steps per sample interval (>= 1); with
+            `max_step`, their upper bound.
+        - `max_step`: only with `dt=None`: the largest integrator step (> 0). Interval k
+            is then split into n_k = ceil((t[k+1] - t[k]) / max_step) equal steps, at
+            most `substeps` (a record whose longest interval needs more is refused,
+            naming the `substeps` it needs). Without it every interval is split into
+            `substeps` equal steps.
+        - `observe`: as for `Model` (it sees u[k] of shape (n_u,), without the interval).
+        - `input`: `"zoh"` (default) holds u[k] over [t_k, t_{k+1}); `"foh"`
             interpolates linearly between u[k] and u[k+1], which is what a measured,
             band-limited input needs.
 
         **Returns:**
 
         A `Model` whose `step` advances the state by one sample interval.
+
+        **Example:**
+
+        ```python
+        model = oj.Model.from_ode(rhs, dt=None, max_step=0.05, substeps=20)
+        x, z = oj.simulate(model, theta, x0, u, t=t)  # t: (T,) increasing time stamps
+        ```
         """
         if not callable(rhs):
             raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
         if method not in ("rk4", "euler"):
             raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
-        try:
-            if isinstance(dt, (str, bytes, bool)):
-                raise TypeError
-            dt = float(dt)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"`dt` must be a number, the sample interval (> 0), got {dt!r}."
-            ) from None
-        if not (dt > 0 and math.isfinite(dt)):
-            raise ValueError(f"`dt` must be a finite positive number, got {dt}.")
         if int(substeps) != substeps or substeps < 1:
             raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
         input = _check_input(input)
+        if dt is None:
+            if max_step is not None:
+                max_step = _positive_number(max_step, "max_step", "the largest integrator step")
+            if observe is not None and not callable(observe):
+                raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
+            observe = None if observe is None else _WithoutInterval(observe)
+            step = _TimedODEStep(rhs, method, int(substeps), max_step, input)
+            return cls(step, observe, input=input, timed=True)
+        if max_step is not None:
+            raise ValueError(
+                "`max_step` applies to records with time stamps (`dt=None`); with a fixed "
+                "`dt`, set `substeps` instead."
+            )
+        dt = _positive_number(dt, "dt", "the sample interval")
         return cls(_ODEStep(rhs, dt, method, int(substeps), input), observe, input=input)
+
+
+def _positive_number(value, name, what):
+    try:
+        if isinstance(value, (str, bytes, bool)):
+            raise TypeError
+        value = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"`{name}` must be a number, {what} (> 0), got {value!r}.") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"`{name}` must be a finite positive number, got {value}.")
+    return value

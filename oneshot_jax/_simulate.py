@@ -64,6 +64,7 @@ def simulate(
     u: Float[ArrayLike, "*N T n_u"],
     *,
     strategy: str | AbstractStrategy = "auto",
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> tuple[Float[Array, "*N T n_x"], Float[Array, "*N T n_z"]]:
     """Simulate the model over the horizon of `u`, eq. (2).
 
@@ -80,6 +81,10 @@ def simulate(
         options are those of the Newton iterations); `Jacobian()` and `VJP()` are the
         sequential loop, and `Auto()` (`"auto"`) takes the parallel one on a GPU or TPU
         for long records (see `value_and_grad`).
+    - `t`: the sample times, for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`; required there, refused by any other model):
+        shape (T,), or (N, T), or a list of N arrays (T_i,) like `u`; finite and strictly
+        increasing. Step k integrates over t[k+1] - t[k].
 
     **Returns:**
 
@@ -87,7 +92,7 @@ def simulate(
     and `z[k] = observe(x[k], u[k], theta)` of shape (T, n_z); with a leading N axis for
     several trajectories (lists of arrays for a list `u`).
     """
-    data = check_data(model, theta, x0, u)
+    data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
     x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
@@ -110,6 +115,7 @@ def loss(
     missing: str = "raise",
     strategy: str | AbstractStrategy = "auto",
     aggregate: Aggregate | list | None = None,
+    t: Float[ArrayLike, "*N T"] | None = None,
 ) -> Float[Array, ""]:
     """The multi-step cost C of eq. (4), (5) and (21):
 
@@ -135,14 +141,15 @@ def loss(
         (for N trajectories, a list of N entries, each an `Aggregate`, a list or None).
         Each reading i adds w_i (r_i - v_i)^2 to the sum before the division by the
         number of time points, with r_i its predicted aggregate (`Aggregate`).
+    - `t`: the sample times of a timed model's records, as for `simulate`.
 
     **Returns:**
 
     The scalar C.
     """
-    data = check_data(model, theta, x0, u, z, weight, missing)
+    data = check_data(model, theta, x0, u, z, weight, missing, t)
     if aggregate is not None:
-        agg = augment(data, aggregate, model, x0, missing)
+        agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)

@@ -53,14 +53,16 @@ def _axes(ax, count, plt, figsize):
     return axes[0].figure, axes
 
 
-def _model_output(i, model, u, z, n):
+def _model_output(i, model, u, z, n, t=None):
     """The output (T, n_z) of the i-th model: a FitResult's simulation (or its prediction
-    from the first n samples), a Prediction's z, or the array itself."""
+    from the first n samples; at the sample times `t` for a timed model), a Prediction's
+    z, or the array itself."""
     name = f"models[{i}]"
     if isinstance(model, FitResult):
         if u is None:
             raise ValueError(f"`u` is required to simulate {name}, a FitResult.")
-        zhat = model.predict(u, z[:n]).z if n else model.simulate(u)[1]
+        t = t if getattr(model.model, "timed", False) else None
+        zhat = model.predict(u, z[:n], t=t).z if n else model.simulate(u, t=t)[1]
     elif isinstance(model, Prediction):
         zhat = model.z
     else:
@@ -98,7 +100,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
-    - `t`: the time axis (T,); default the sample index (times `Ts` for a record).
+    - `t`: the time axis (T,); default the sample index (times `Ts` for a record). A
+        `FitResult` of a model of time-stamped records (`Model.from_ode(rhs, dt=None)`)
+        is simulated at these sample times.
     - `n`: the protocol's head: the number of first samples used for x0, left out of the
         FIT; 0 <= n <= T - 2. Default: none (the record's `n` for a record).
     - `labels`: one name per model; default `"model"` or `"model 1"`, `"model 2"`, ...
@@ -141,6 +145,7 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     labels = list(labels)
     if len(labels) != len(models):
         raise ValueError(f"`labels` must hold {len(models)} names (one per model), got {labels}.")
+    times = t  # the sample times a timed model's FitResult is simulated at
     if t is None:
         t = np.arange(T) * (1.0 if Ts is None else float(Ts))
         xlabel = "sample" if Ts is None else "time (s)"
@@ -150,7 +155,7 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
             raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
         xlabel = "time"
 
-    outputs = [_model_output(i, m, u, z, n) for i, m in enumerate(models)]
+    outputs = [_model_output(i, m, u, z, n, times) for i, m in enumerate(models)]
     fig, axes = _axes(ax, n_z, plt, (8.0, 0.6 + 2.6 * n_z))
     measured = np.isfinite(z[n:])  # missing samples are left out of the FIT
     fits = [np.asarray(metrics.fit_percent(z[n:], zhat[n:], measured)) for zhat in outputs]

@@ -13,9 +13,14 @@ benchmarks (`benchmarks/`) and the quick start import them from here.
   overflow.
 - `chain`: a chain of masses with a spring and a damper per link (many parameters, a
   known initial state), with a numpy data generator.
+- `cstr`: a continuous stirred-tank reactor with an exothermic reaction (concentration
+  and temperature, the coolant temperature as input), time-stamped at irregular times,
+  the concentration measured only as 8-hour averages; the data generator of the
+  non-uniform observations guide and `benchmarks/cstr_coverage.py`.
 """
 
 from . import cascaded_tanks as cascaded_tanks
 from . import chain as chain
+from . import cstr as cstr
 from . import emps as emps
 from . import satellite as satellite
