@@ -41,6 +41,8 @@ class Validation(eqx.Module):
         score has not improved for this many iterations (early stopping).
     - `x0_steps`: Gauss-Newton steps of each head estimate per iterate (warm-started from
         the previous iterate's estimate).
+    - `t`: the records' sample times, for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`), as `fit`'s `t`.
 
     The fit returns the iterate with the lowest score over all its solvers; where that
     is not the iterate a solver stopped at, its stop reason is `RESULTS.validation`
@@ -55,6 +57,7 @@ class Validation(eqx.Module):
     x0: Any = None
     patience: int | None = eqx.field(static=True, default=None)
     x0_steps: int = eqx.field(static=True, default=5)
+    t: Any = None
 
     def __check_init__(self):
         if self.n is not None and (isinstance(self.n, bool) or int(self.n) != self.n or self.n < 1):
@@ -151,7 +154,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q):
     if x0 is None:
         x0 = np.zeros((np.shape(u)[0], n_x) if batched else (n_x,), np.result_type(x0_fit))
     try:
-        data = check_data(model, theta, x0, u, validation.z)
+        data = check_data(model, theta, x0, u, validation.z, t=validation.t)
     except (ValueError, TypeError) as err:
         raise type(err)(f"`validation`: {err}") from None
     if data.lengths is not None:
