@@ -23,6 +23,28 @@ def _check_input(input):
     return input
 
 
+def _input_at(u, dt, input):
+    """u(t_k + s) over one sample interval of length dt: u[k] held ("zoh"), or the linear
+    interpolant of the pair (u[k], u[k+1]) ("foh")."""
+    if _check_input(input) == "foh":
+        u0, du = u[0], (u[1] - u[0]) / dt
+        return lambda s: u0 + s * du
+    return lambda s: u
+
+
+def _integrator_step(rhs, x, u_at, theta, s, h, method):
+    """One step of size h from t_k + s of classical RK4 (or explicit Euler) for
+    dx/dt = rhs(x, u(t), theta), the discretisation of eq. (1) for an ODE."""
+    if method == "euler":
+        return x + h * rhs(x, u_at(s), theta)
+    u_mid = u_at(s + 0.5 * h)
+    k1 = rhs(x, u_at(s), theta)
+    k2 = rhs(x + 0.5 * h * k1, u_mid, theta)
+    k3 = rhs(x + 0.5 * h * k2, u_mid, theta)
+    k4 = rhs(x + h * k3, u_at(s + h), theta)
+    return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
 def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     """Advance `dx/dt = rhs(x, u, theta)` by one sample interval `dt`.
 
@@ -59,28 +81,10 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     The state at t_{k+1}.
     """
     h = dt / substeps
-    if _check_input(input) == "foh":
-        u0, du = u[0], (u[1] - u[0]) / dt
-
-        def u_at(s):
-            return u0 + s * du
-
-    else:
-
-        def u_at(s):
-            del s
-            return u
+    u_at = _input_at(u, dt, input)
 
     def substep(j, x):
-        s = j * h
-        if method == "euler":
-            return x + h * rhs(x, u_at(s), theta)
-        u_mid = u_at(s + 0.5 * h)
-        k1 = rhs(x, u_at(s), theta)
-        k2 = rhs(x + 0.5 * h * k1, u_mid, theta)
-        k3 = rhs(x + 0.5 * h * k2, u_mid, theta)
-        k4 = rhs(x + h * k3, u_at(s + h), theta)
-        return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return _integrator_step(rhs, x, u_at, theta, j * h, h, method)
 
     if substeps <= 8:  # unrolled: cheaper to differentiate than a loop for a few substeps
         for j in range(substeps):
@@ -144,29 +148,10 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
     else:
         n = interval_count(dt, max_step, jnp)
         h = dt / jnp.maximum(n, 1.0)
-    if _check_input(input) == "foh":
-        u0, du = u[0], (u[1] - u[0]) / jnp.where(dt > 0, dt, 1.0)
-
-        def u_at(s):
-            return u0 + s * du
-
-    else:
-
-        def u_at(s):
-            del s
-            return u
+    u_at = _input_at(u, jnp.where(dt > 0, dt, 1.0), input)  # (dt = 0: no step is taken)
 
     def substep(j, x):
-        s = j * h
-        if method == "euler":
-            x_new = x + h * rhs(x, u_at(s), theta)
-        else:
-            u_mid = u_at(s + 0.5 * h)
-            k1 = rhs(x, u_at(s), theta)
-            k2 = rhs(x + 0.5 * h * k1, u_mid, theta)
-            k3 = rhs(x + 0.5 * h * k2, u_mid, theta)
-            k4 = rhs(x + h * k3, u_at(s + h), theta)
-            x_new = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        x_new = _integrator_step(rhs, x, u_at, theta, j * h, h, method)
         return x_new if max_step is None else jnp.where(j < n, x_new, x)
 
     if substeps <= 8 and max_step is None:  # unrolled as in `ode_step`; masked: a loop
