@@ -156,3 +156,24 @@ def test_validation_checks():
     bad[3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, bad, n=5))
+
+
+def test_known_initial_states_and_time_stamps():
+    # A model of time-stamped records: the held-out record has its own irregular times,
+    # and with known x0 (n=None) the score is the loss of eq. (5) on it, every sample.
+    timed = oj.Model.from_ode(_rhs, dt=None, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.02, 0.08, 120))
+    t_val = np.cumsum(rng.uniform(0.02, 0.08, 90))
+    u = np.sin(t)[:, None]
+    u_val = np.cos(2 * t_val)[:, None]
+    x0, x0_val = np.array([0.2, 0.0]), np.array([-0.1, 0.3])
+    _, z = oj.simulate(timed, TRUTH, x0, u, t=t)
+    _, z_val = oj.simulate(timed, TRUTH, x0_val, u_val, t=t_val)
+    z = np.asarray(z) + 0.01 * rng.normal(size=z.shape)
+    val = oj.Validation(u_val, z_val, x0=x0_val, t=t_val)
+    res = oj.fit(timed, {"k": 3.0, "c": 0.3, "g": 0.8}, x0, u, z, t=t, validation=val)
+    expected = oj.loss(timed, res.theta, x0_val, u_val, z_val, t=t_val)
+    np.testing.assert_allclose(res.validation_loss, expected, rtol=1e-10)
+    with pytest.raises(ValueError, match="`validation`.*t"):
+        oj.fit(timed, TRUTH, x0, u, z, t=t, validation=oj.Validation(u_val, z_val, x0=x0_val))
