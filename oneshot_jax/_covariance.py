@@ -34,7 +34,8 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     """The `Covariance` at `params`.
 
     `blocks`: (SSE, A, B, C_i) of the data residuals at `params` when the solver already
-    holds them (its last linearisation); otherwise the Jacobian is evaluated here.
+    holds them (its last linearisation); otherwise the Jacobian is evaluated here. With
+    `blocks`, `problem` may be None (then no entry is a network's: no `marginal`).
     """
     if blocks is None:
         lin = problem.jacobian(params, strategy, penalty=False)
@@ -51,7 +52,7 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype))
     t_ok = identifiable(S)
     x0_cov = elim.covariance(S_inv)
-    nuisance = np.asarray(problem.nuisance, int)
+    nuisance = np.asarray(() if problem is None else problem.nuisance, int)
     if 0 < nuisance.size < p:
         S_inv, t_ok = marginal(S, S_inv, t_ok, nuisance)
     return Covariance(sse, S_inv, x0_cov, t_ok, x_ok)

@@ -33,6 +33,7 @@ def _record():
         (oj.Windows(50, every=2), [0, 100, 200, 300]),
         (oj.Windows(50, count=3), [0, 200, 350]),
         (oj.Windows(60, starts=[0, 40, 170, 340]), [0, 40, 170, 340]),  # overlapping
+        (100, [0, 100, 200, 300]),  # an integer: consecutive windows
     ],
 )
 def test_subsets_of_windows(windows, expected):
@@ -44,20 +45,13 @@ def test_subsets_of_windows(windows, expected):
     for k in TRUTH:
         assert abs(res.theta[k] - TRUTH[k]) < 0.05 * TRUTH[k]
     # The fitted windows are those samples: the loss over them, sliced by hand.
-    L = windows.length
+    L = windows.length if isinstance(windows, oj.Windows) else windows
     idx = np.asarray(expected)[:, None] + np.arange(L)
     C = oj.loss(MODEL, res.theta, res.x0, u[idx], z[idx])
     np.testing.assert_allclose(res.loss, C, rtol=1e-10)
     # The whole record starts from the window at sample 0.
     x, _ = res.simulate(u)
     np.testing.assert_allclose(x[0], res.x0[0], rtol=0, atol=0)
-
-
-def test_an_integer_window_is_consecutive_windows():
-    u, z, x0 = _record()
-    res = oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z, window=100)
-    np.testing.assert_array_equal(res.window_starts, [0, 100, 200, 300])
-    assert oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z).window_starts is None
 
 
 def test_no_window_at_zero_asks_for_x0(tmp_path):
