@@ -125,7 +125,9 @@ def _stack(trees):
     return eqx.combine(stacked, static)
 
 
-def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, history, reg=None):
+def _fit(
+    model, theta0, x0, u, y, solver, constraints, multistart, progress, history, reg=None, val=None
+):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return oj.fit(
@@ -140,6 +142,7 @@ def _fit(model, theta0, x0, u, y, solver, constraints, multistart, progress, his
             multistart=multistart,
             progress=progress,
             history=history,
+            validation=val,
         )
 
 
@@ -152,11 +155,28 @@ def _stage(res, wall):
     }
 
 
+def split(data, ex) -> tuple[int, int]:
+    """(n, m): the joint stages use the first n estimation samples, train on the first m
+    and validate on the last n - m (`joint.holdout` of them)."""
+    n = len(data.u_est) if ex.n_samples is None else int(ex.n_samples)
+    return n, n - int(round(ex.joint.holdout * n))
+
+
 def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
     """Stages 2 and 3 from the physical estimate (theta_phys, x0). Returns (FitResult,
     model, rhs, stage summaries, the multistart's final Adam losses)."""
-    n = len(data.u_est) if ex.n_samples is None else int(ex.n_samples)
-    u, y = data.u_est[:n, None], data.y_est[:n, None]
+    n, m = split(data, ex)
+    jt = ex.joint
+    u, y = data.u_est[:m, None], data.y_est[:m, None]
+    val = None
+    if m < n:
+        val = oj.Validation(
+            data.u_est[m:n, None],
+            data.y_est[m:n, None],
+            n=data.test.n,
+            x0=np.asarray(x0, float),
+            patience=jt.patience,
+        )
     model, rhs = hybrid_model(data, ex)
     S = ex.residual.n_starts
     nets = [
@@ -164,16 +184,15 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
         for k in jax.random.split(jax.random.PRNGKey(seed), S)
     ]
     box = example.constraints("overflow")
-    jt = ex.joint
     decay = sparsity.l2(jt.weight_decay, where=NETWORK) if jt.weight_decay > 0 else None
     lr = optax.cosine_decay_schedule(jt.lr, jt.adam_steps, alpha=1e-2)
-    adam = oj.Adam(lr, jt.lr_x0, max_steps=jt.adam_steps)
+    adam = oj.Adam(lr, jt.lr_x0, max_steps=jt.adam_steps, scale=jt.scale)
     if S > 1:
         theta0 = {**{k: jnp.full((S,), v) for k, v in theta_phys.items()}, "r": _stack(nets)}
     else:
         theta0 = {**theta_phys, "r": nets[0]}
     t0 = time.perf_counter()
-    res = _fit(model, theta0, x0, u, y, adam, box, S > 1, progress, ex.history, decay)
+    res = _fit(model, theta0, x0, u, y, adam, box, S > 1, progress, ex.history, decay, val)
     stages = {"adam": _stage(res, time.perf_counter() - t0)}
     starts = None if res.starts is None else [float(v) for v in np.asarray(res.starts.loss)]
     if jt.refine != "none":
@@ -190,10 +209,20 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
             False,
             progress,
             ex.history,
+            val=val,
         )
         stages[jt.refine] = _stage(refined, time.perf_counter() - t0)
         res = refined
     return res, model, rhs, stages, starts
+
+
+def _seed_row(scores, stages) -> dict:
+    """One seed's scores (from `evaluate`) and the iterations of its stages."""
+    return {
+        "rmse_estimation_V": scores["rmse_estimation_V"],
+        "rmse_test_V": scores["protocol"]["rmse_V"],
+        "iterations": {k: v["iterations"] for k, v in stages.items()},
+    }
 
 
 def learned_terms(rhs, theta, x, u):
@@ -268,6 +297,14 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
         flush=True,
     )
 
+    # The same training from other seeds (network initialisations), the physics shared.
+    seeds = [{"seed": cfg.seed, **_seed_row(hybrid, stages)}]
+    for seed in ex.extra_seeds:
+        res_s, _, _, stages_s, _ = train_hybrid(data, ex, theta_phys, phys.x0, seed, cfg.progress)
+        row = _seed_row(evaluate(model, res_s.theta, res_s.x0, data), stages_s)
+        seeds.append({"seed": int(seed), **row})
+        print(f"seed {seed}: protocol RMSE {row['rmse_test_V']:.4f} V", flush=True)
+
     figures = []
     if ex.figures:
         from . import cascaded_tanks_hybrid_plots
@@ -285,9 +322,11 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
         "seed": cfg.seed,
         "Ts_s": data.Ts,
         "n_estimation_samples": len(data.u_est) if n is None else int(n),
+        "n_train_samples": split(data, ex)[1],
         "units": example.UNITS,
         "physical": physical,
         "hybrid": hybrid,
+        "seeds": seeds,
         "figures": figures,
         "total_time_s": time.perf_counter() - t_start,
     }

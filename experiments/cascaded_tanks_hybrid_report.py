@@ -17,6 +17,28 @@ def _stages(h) -> str:
     )
 
 
+def _seeds(rows) -> list[str]:
+    """The table of the same training from several seeds (network initialisations)."""
+    if len(rows) < 2:
+        return []
+    mean = sum(r["rmse_test_V"] for r in rows) / len(rows)
+    L = [
+        "",
+        f"The same training from {len(rows)} seeds (the network initialisations; the "
+        "physical stage is deterministic):",
+        "",
+        "| seed | RMSE estimation (V) | RMSE test, protocol (V) | iterations |",
+        "|---|---|---|---|",
+    ]
+    for r in rows:
+        its = ", ".join(
+            f"{REFINE.get(k, 'Adam' if k == 'adam' else k)} {v}" for k, v in r["iterations"].items()
+        )
+        L.append(f"| {r['seed']} | {r['rmse_estimation_V']:.4f} | {r['rmse_test_V']:.4f} | {its} |")
+    L.append(f"| mean | | **{mean:.4f}** | |")
+    return L
+
+
 def markdown(res) -> str:
     p, h, c = res["physical"], res["hybrid"], res["config"]
     solver = res["solver"]
@@ -25,6 +47,7 @@ def markdown(res) -> str:
     inputs = "(x1, x2, u)" if net["inputs"] == "states_and_input" else "(x1, x2)"
     widths = " x ".join(str(w) for w in net["widths"]) or "no hidden layer"
     refine = REFINE.get(jt["refine"])
+    holdout = res["n_estimation_samples"] - res.get("n_train_samples", res["n_estimation_samples"])
     L = [
         "# Cascaded tanks: a hybrid model (overflow physics + neural residual)",
         "",
@@ -53,14 +76,35 @@ def markdown(res) -> str:
         f"{p['stage']['wall_time_s']:.0f} s);",
         f"2. jointly, Adam on the one-shot gradient: {jt['adam_steps']} steps, rate "
         f"{jt['lr']:g} cosine-decayed to 1 % (x0: {jt['lr_x0']:g})"
+        + (
+            ", steps of the physical parameters relative to their magnitude "
+            '(`Adam(scale="theta0")`)'
+            if jt.get("scale") == "theta0"
+            else ""
+        )
         + (f", weight decay {jt['weight_decay']:g} on the network" if jt["weight_decay"] else "")
         + (
-            f", {net['n_starts']} network initialisations in parallel (the lowest final loss kept)"
+            f", {net['n_starts']} network initialisations in parallel (the "
+            + ("best held-out score" if holdout else "lowest final loss")
+            + " kept)"
             if net["n_starts"] > 1
             else ""
         )
         + ";"
-        + (f"\n3. then {refine}, at most {jt['refine_steps']} steps." if refine else ""),
+        + (f"\n3. then {refine}, at most {jt['refine_steps']} steps." if refine else "")
+        + (
+            f"\n\nBoth joint stages train on the first {res['n_train_samples']} estimation "
+            f"samples and score each iterate on the held-out last {holdout} (x0 from its "
+            f"first {h['protocol']['n']} outputs, as the protocol; `fit(validation=...)`"
+            + (
+                f", stopping after {jt['patience']} steps without improvement"
+                if jt.get("patience")
+                else ""
+            )
+            + "); the iterate of the best held-out score is kept."
+            if holdout
+            else ""
+        ),
         "",
         f"Hybrid stages: {_stages(h)}. RK4 with {c['substeps']} steps per sample; twice as "
         f"many change the validation output by at most "
@@ -92,6 +136,7 @@ def markdown(res) -> str:
             + ", ".join(f"{v:.5g}" for v in h["adam_start_losses"])
             + ".",
         ]
+    L += _seeds(res.get("seeds", []))
     L += [
         "",
         "The test column follows Champneys et al. 2024 (*Baseline results for selected "

@@ -411,6 +411,9 @@ class Joint:
     weight_decay: float = 0.0
     refine: str = "levenberg_marquardt"
     refine_steps: int = 30
+    scale: str | None = None  # Adam(scale=...): None, or "theta0" (relative physical steps)
+    holdout: float = 0.0  # fraction of the estimation record held out (its tail) to validate
+    patience: int | None = None  # early stopping on the held-out tail (needs holdout > 0)
 
 
 @dataclass
@@ -422,6 +425,7 @@ class TanksHybridConfig(TanksConfig):
     substeps: int = 2
     residual: Residual = field(default_factory=Residual)
     joint: Joint = field(default_factory=Joint)
+    extra_seeds: list[int] = field(default_factory=list)  # also train from these seeds
 
     def __post_init__(self):
         super().__post_init__()
@@ -437,6 +441,17 @@ class TanksHybridConfig(TanksConfig):
         _number(k + "joint.weight_decay", self.joint.weight_decay, lo=0.0)
         _one_of(k + "joint.refine", self.joint.refine, ("lbfgs", "levenberg_marquardt", "none"))
         _integer(k + "joint.refine_steps", self.joint.refine_steps, 1)
+        for i, seed in enumerate(self.extra_seeds):
+            _integer(f"{k}extra_seeds[{i}]", seed, 0)
+        if self.joint.scale is not None:
+            _one_of(k + "joint.scale", self.joint.scale, ("theta0",))
+            if self.joint.weight_decay > 0:
+                _fail(k + "joint.scale", "null with joint.weight_decay > 0", self.joint.scale)
+        _number(k + "joint.holdout", self.joint.holdout, lo=0.0, hi=0.5)
+        if self.joint.patience is not None:
+            _integer(k + "joint.patience", self.joint.patience, 1)
+            if self.joint.holdout == 0:
+                _fail(k + "joint.patience", "null unless joint.holdout > 0", self.joint.patience)
 
 
 # --------------------------------------------------------------------------- top level

@@ -151,6 +151,22 @@ BAD = [
         ["experiment=cascaded_tanks_hybrid", "experiment.residual.widths=[0]"],
         r"`experiment.residual.widths\[0\]` must be an integer >= 1",
     ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.joint.patience=10"],
+        "`experiment.joint.patience` must be null unless joint.holdout > 0",
+    ),
+    (
+        [
+            "experiment=cascaded_tanks_hybrid",
+            "experiment.joint.scale=theta0",
+            "experiment.joint.weight_decay=0.1",
+        ],
+        "`experiment.joint.scale` must be null with joint.weight_decay > 0",
+    ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.joint.holdout=0.9"],
+        "`experiment.joint.holdout` must be a finite number >= 0",
+    ),
 ]
 
 
@@ -328,6 +344,7 @@ TANKS_HYBRID_SMALL = [
     "experiment.joint.adam_steps=3",
     "experiment.joint.weight_decay=1e-4",
     "experiment.joint.refine=none",
+    "experiment.extra_seeds=[1]",
     "solver.kwargs.max_steps=3",
     "progress=false",
 ]
@@ -355,3 +372,8 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
     # features (x1, x2) -> 3 hidden -> 2 outputs
     assert res["hybrid"]["n_network_parameters"] == 2 * 3 + 3 + 3 * 2 + 2
     assert set(res["hybrid"]["stages"]) == {"adam"}
+    # the seed table: the run's seed, then the extra one, from different initialisations
+    assert [r["seed"] for r in res["seeds"]] == [0, 1]
+    assert res["seeds"][0]["rmse_test_V"] == res["hybrid"]["protocol"]["rmse_V"]
+    assert res["seeds"][0]["rmse_estimation_V"] != res["seeds"][1]["rmse_estimation_V"]
+    assert "| mean |" in (out / "results.md").read_text()
