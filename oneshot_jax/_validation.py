@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_data, is_concrete
+from ._checks import check_data
 from ._cost import weigh
 from ._linalg import psd_solve
 from ._simulate import outputs, rollout
@@ -167,6 +167,4 @@ def monitor(validation, model, theta, x0_fit, sqrt_q):
         raise ValueError(
             f"`Validation(n=...)` must be below the records' length {T}, got {validation.n}."
         )
-    if is_concrete(Z) and not np.all(np.isfinite(np.asarray(Z))):
-        raise ValueError("`validation`: `z` holds NaN or inf; give complete records.")
     return Monitor(U, Z, X0, sqrt_q, validation.n, validation.patience, validation.x0_steps)
