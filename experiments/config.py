@@ -330,6 +330,50 @@ class EMPSHybridConfig:
         _history(k + "history", self.history)
 
 
+@dataclass
+class EMPSFrictionConfig:
+    """The EMPS friction study: physical friction models trained for the open-loop
+    protocol by horizon continuation (`experiments/emps_friction.py`)."""
+
+    name: str = "emps_friction"
+    data_path: str | None = None
+    eps: float = emps_example.EPS
+    substeps: int = 1
+    velocity_halfwidth: int = 5
+    n_samples: int | None = None
+    holdout: float = 0.2
+    windows: list[int] = field(default_factory=lambda: [50, 500, 5000])
+    theta0: dict[str, float] = field(default_factory=lambda: dict(emps_example.THETA0))
+    structures: list[str] = field(default_factory=lambda: ["coulomb_viscous", "asymmetric", "load"])
+    keep: str = "load"
+    solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    SOLVERS = LIBRARY_SOLVERS
+
+    def __post_init__(self):
+        from . import emps_friction
+
+        k = "experiment."
+        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
+        _integer(k + "substeps", self.substeps, 1)
+        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
+        if self.n_samples is not None:
+            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _number(k + "holdout", self.holdout, lo=0.0, hi=0.5, lo_open=True)
+        if not self.windows:
+            _fail(k + "windows", "a non-empty list of increasing window lengths", self.windows)
+        for i, w in enumerate(self.windows):
+            _integer(f"{k}windows[{i}]", w, 2)
+        if any(b <= a for a, b in zip(self.windows, self.windows[1:])):
+            _fail(k + "windows", "increasing", self.windows)
+        _params(k + "theta0", self.theta0, emps_example.PARAMS, positive=("M", "Fv", "Fc"))
+        if not self.structures:
+            _fail(k + "structures", "a non-empty list", self.structures)
+        for i, s in enumerate(self.structures):
+            _one_of(f"{k}structures[{i}]", s, tuple(emps_friction.STRUCTURES))
+        _one_of(k + "keep", self.keep, tuple(self.structures))
+
+
 # --------------------------------------------------------------------------- tanks
 
 
@@ -486,6 +530,7 @@ def register() -> None:
     cs.store(group="schema/experiment", name="satellite", node=SatelliteConfig)
     cs.store(group="schema/experiment", name="emps", node=EMPSConfig)
     cs.store(group="schema/experiment", name="emps_hybrid", node=EMPSHybridConfig)
+    cs.store(group="schema/experiment", name="emps_friction", node=EMPSFrictionConfig)
     cs.store(group="schema/experiment", name="cascaded_tanks", node=TanksConfig)
     cs.store(group="schema/experiment", name="cascaded_tanks_hybrid", node=TanksHybridConfig)
     cs.store(group="schema", name="solver", node=SolverConfig)

@@ -1,0 +1,92 @@
+"""The EMPS friction study (`experiments/emps_friction.py`): its friction terms, its
+configuration checks, and an end-to-end run on a tiny slice of the records."""
+
+import json
+import sys
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import benchmark_or_skip
+from hydra import compose, initialize_config_dir
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from experiments import config, emps_friction, run  # noqa: E402
+from oneshot_jax.examples import emps as example  # noqa: E402
+
+config.register()
+
+
+def _compose(overrides=()):
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return compose(config_name="config", overrides=["experiment=emps_friction", *overrides])
+
+
+def test_friction_terms():
+    """The benchmark's structure is the example's model; dFv and mu add v |v|-type and
+    load terms that differ by direction and grow with |tau|."""
+    base = {"M": 95.0, "Fv": 200.0, "Fc": 20.0, "offset": -3.0}
+    plant = emps_friction.FrictionPlant()
+    x, u = jnp.array([0.1, 0.05]), jnp.array([40.0])
+    np.testing.assert_allclose(plant(x, u, base), example.Plant()(x, u, base), rtol=1e-14)
+    for v in (0.05, -0.05):
+        for tau in (0.0, 150.0):
+            th = {**base, "dFv": 30.0, "mu": 0.1}
+            got = emps_friction.friction(v, tau, th)
+            s = np.tanh(v / example.EPS)
+            want = 200.0 * v + 30.0 * abs(v) + (20.0 + 0.1 * np.hypot(tau, 1.0)) * s - 3.0
+            np.testing.assert_allclose(got, want, rtol=1e-13)
+
+
+@pytest.mark.parametrize(
+    "overrides,message",
+    [
+        (["experiment.windows=[500,50]"], "`experiment.windows` must be increasing"),
+        (["experiment.structures=[stribeck]"], r"`experiment.structures\[0\]` must be one of"),
+        (
+            ["experiment.structures=[coulomb_viscous]", "experiment.keep=load"],
+            "`experiment.keep` must be one of coulomb_viscous",
+        ),
+        (["experiment.holdout=0"], "`experiment.holdout` must be a finite number > 0"),
+    ],
+)
+def test_bad_config(overrides, message):
+    with pytest.raises(config.ConfigError, match=message):
+        config.load(_compose(overrides))
+
+
+def test_end_to_end(tmp_path):
+    """The load-dependent structure on 300 estimation samples: continuation runs (a
+    windowed stage, then the whole training record), the structure has its extra
+    parameters, every score is finite, mu respects its bound, and results.md is written."""
+    from oneshot_jax import datasets
+
+    benchmark_or_skip(datasets.load_emps)
+    cfg = _compose(
+        [
+            "experiment.n_samples=300",
+            "experiment.windows=[50]",
+            "experiment.structures=[load]",
+            "solver.kwargs.max_steps=3",
+            "progress=false",
+        ]
+    )
+    res = run.execute(cfg, tmp_path, command="cmd")
+    assert res["status"] == "ok"
+    assert json.loads((tmp_path / "results.json").read_text())["kept"] == "load"
+    assert res["n_train"] == 240 and res["n_heldout"] == 60
+    rows = {r["structure"]: r for r in res["rows"]}
+    assert set(rows) == {"load"}
+    assert set(rows["load"]["theta"]) == {*example.PARAMS, "dFv", "mu"}
+    assert rows["load"]["theta"]["mu"] >= 0.0
+    for r in rows.values():
+        assert [s["window"] for s in r["stages"]] == [50, None]
+        scores = [r["rmse_train_mm"], r["rmse_heldout_mm"], r["protocol"]["rmse_mm"]]
+        assert all(np.isfinite(scores))
+    md = (tmp_path / "results.md").read_text()
+    assert md.startswith("# EMPS: friction models trained for the open-loop protocol")
+    assert "dynoNet" in md
