@@ -346,6 +346,7 @@ class EMPSFrictionConfig:
     theta0: dict[str, float] = field(default_factory=lambda: dict(emps_example.THETA0))
     structures: list[str] = field(default_factory=lambda: ["coulomb_viscous", "asymmetric", "load"])
     keep: str = "load"
+    spread_holdouts: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.3, 0.4, 0.5])
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     SOLVERS = LIBRARY_SOLVERS
@@ -372,6 +373,8 @@ class EMPSFrictionConfig:
         for i, s in enumerate(self.structures):
             _one_of(f"{k}structures[{i}]", s, tuple(emps_friction.STRUCTURES))
         _one_of(k + "keep", self.keep, tuple(self.structures))
+        for i, h in enumerate(self.spread_holdouts):
+            _number(f"{k}spread_holdouts[{i}]", h, lo=0.0, hi=0.5)
 
 
 # --------------------------------------------------------------------------- tanks

@@ -147,6 +147,66 @@ def fit_structure(data, record, structure, ex, solver, progress=False):
     return cont, time.perf_counter() - t0
 
 
+def refit(data, record, theta, ex, solver):
+    """One whole-record fit of a record from `theta` (warm start, no windows). Returns
+    the `FitResult` and its wall time (s)."""
+    model = friction_model(data.Ts, ex.eps, ex.substeps)
+    u, z, x0 = example.open_loop_data(record, data.gtau, data.Ts, None, ex.velocity_halfwidth)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        res = oj.fit(
+            model,
+            dict(theta),
+            x0[0],
+            u[0],
+            z[0],
+            solver=solver,
+            constraints=oj.constraints.box(lower={k: LOWER[k] for k in theta if k in LOWER}),
+            weight=np.array([1e6]),
+        )
+    return res, time.perf_counter() - t0
+
+
+def span_spread(data, record, kept, ex, solver):
+    """The kept structure refitted (warm-started from its fit) on the training spans of
+    the other `ex.spread_holdouts` (0: the whole estimation record), each scored on its
+    held-out part and with the protocol: how much the test score depends on the span."""
+    model = friction_model(data.Ts, ex.eps, ex.substeps)
+    rows = []
+    for h in ex.spread_holdouts:
+        train, held_out = split(record, h) if h > 0 else (record, None)
+        res, wall = refit(data, train, kept["theta"], ex, solver)
+        theta = {k: float(v) for k, v in res.theta.items()}
+        pred, sc = example.protocol_prediction(
+            data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
+        )
+        rows.append(
+            {
+                "holdout": float(h),
+                "n_train": len(train),
+                "theta": theta,
+                "status": res.status,
+                "time_s": float(wall),
+                "rmse_train_mm": float(1e3 * np.atleast_1d(res.metrics["rmse"])[0]),
+                "rmse_heldout_mm": (
+                    None
+                    if held_out is None
+                    else record_rmse_mm(
+                        model, theta, held_out, data.gtau, data.Ts, half=ex.velocity_halfwidth
+                    )
+                ),
+                "protocol": common.protocol_scores(sc, pred, "mm"),
+            }
+        )
+        print(
+            f"  span: holdout {h:g}, {len(train)} training samples: test RMSE "
+            f"{rows[-1]['protocol']['rmse_mm']:.3f} mm ({res.status}, {wall:.0f} s)",
+            flush=True,
+        )
+    return rows
+
+
 def _row(data, structure, cont, wall, held_out, ex):
     model = friction_model(data.Ts, ex.eps, ex.substeps)
     res = cont.result
@@ -208,6 +268,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction
         )
     chosen = min(rows, key=lambda r: r["rmse_heldout_mm"])
     kept = next(r for r in rows if r["structure"] == ex.keep)
+    spread = span_spread(data, record, kept, ex, solver)
     ref_pred, ref_sc = example.protocol_prediction(
         data, example.REFERENCE, ex.eps, ex.substeps, half=ex.velocity_halfwidth
     )
@@ -223,6 +284,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction
         "rows": rows,
         "heldout_choice": chosen["structure"],
         "kept": kept["structure"],
+        "spread": spread,
         "reference": {
             "theta": example.REFERENCE,
             "protocol": common.protocol_scores(ref_sc, ref_pred, "mm"),
@@ -315,5 +377,55 @@ def markdown(res) -> str:
             + " | ".join(cells)
             + f" | {'' if refv is None else f'{refv:.4g}'} |"
         )
-    L += ["", f"The run took {res['total_time_s']:.0f} s."]
+    kept = next(r for r in res["rows"] if r["structure"] == res["kept"])
+    L += [
+        "",
+        f"The held-out part of the estimation record ranks "
+        f"{LABELS[res['heldout_choice']].lstrip('+ ')} first. It has no force pulses: "
+        "the motor force of DATA_EMPS.mat stays within "
+        "about 150 N, while the test record adds pulses of 5 V (about 175 N) every second "
+        "that the controller compensates. The benchmark's model and the asymmetric one "
+        "drift at each pulse edge in the direction of motion (the real axis moves less), "
+        "which is what a friction that grows with the transmitted force explains; that "
+        "term was added after looking at where these models drift on the test record, "
+        "so its test score is not a blind one. Kept: "
+        f"{LABELS[res['kept']]}, test RMSE {kept['protocol']['rmse_mm']:.3f} mm.",
+        "",
+        "## How much the score depends on the training span",
+        "",
+        "mu is extrapolated: the test record's forces reach twice the estimation "
+        "record's. The kept structure refitted from its estimate (whole-record fit, no "
+        "windows) on other training spans of DATA_EMPS.mat (the last fraction held out; "
+        "0: the whole record):",
+        "",
+        "| held out | training samples | training RMSE (mm) | held-out RMSE (mm) | test RMSE (mm) "
+        "| M | Fv | dFv | Fc | mu |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    spans = [(res["config"]["holdout"], res["n_train"], kept)] + [
+        (r["holdout"], r["n_train"], r) for r in res["spread"]
+    ]
+    for h, n, r in sorted(spans, key=lambda x: x[0]):
+        t = r["theta"]
+        ho = "" if r["rmse_heldout_mm"] is None else f"{r['rmse_heldout_mm']:.3f}"
+        L.append(
+            f"| {h:g} | {n} | {r['rmse_train_mm']:.3f} | {ho} | {r['protocol']['rmse_mm']:.3f} "
+            f"| {t['M']:.2f} | {t['Fv']:.1f} | {t.get('dFv', 0.0):.1f} | {t['Fc']:.2f} "
+            f"| {t.get('mu', 0.0):.4f} |"
+        )
+    tests = np.array([r["protocol"]["rmse_mm"] for _, _, r in spans])
+    std_mu = kept["std"].get("mu")
+    std_mu = "not available" if std_mu is None else f"{std_mu:.4f}"
+    L += [
+        "",
+        f"Test RMSE over these {len(tests)} spans: mean {tests.mean():.2f} mm, from "
+        f"{tests.min():.2f} to {tests.max():.2f} mm. The parameters' standard errors "
+        f"(mu: {std_mu}) are far smaller than this "
+        "spread: the residuals are a model error, not white noise. Reaching the about "
+        "2.6 mm of dynoNet with a physical model would need the force-dependent friction "
+        "identified on an estimation record that exercises the test's force range (or a "
+        "friction law that predicts it), rather than extrapolated from 150 N.",
+        "",
+        f"The run took {res['total_time_s']:.0f} s.",
+    ]
     return "\n".join(L) + "\n"

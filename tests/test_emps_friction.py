@@ -71,6 +71,7 @@ def test_end_to_end(tmp_path):
             "experiment.n_samples=300",
             "experiment.windows=[50]",
             "experiment.structures=[load]",
+            "experiment.spread_holdouts=[0.0]",
             "solver.kwargs.max_steps=3",
             "progress=false",
         ]
@@ -87,6 +88,10 @@ def test_end_to_end(tmp_path):
         assert [s["window"] for s in r["stages"]] == [50, None]
         scores = [r["rmse_train_mm"], r["rmse_heldout_mm"], r["protocol"]["rmse_mm"]]
         assert all(np.isfinite(scores))
+    # the span spread: the whole record, warm-started from the kept fit
+    (span,) = res["spread"]
+    assert span["holdout"] == 0.0 and span["n_train"] == 300 and span["rmse_heldout_mm"] is None
+    assert np.isfinite(span["protocol"]["rmse_mm"])
     md = (tmp_path / "results.md").read_text()
     assert md.startswith("# EMPS: friction models trained for the open-loop protocol")
-    assert "dynoNet" in md
+    assert "dynoNet" in md and "## How much the score depends on the training span" in md
