@@ -42,6 +42,22 @@ def test_friction_terms():
             np.testing.assert_allclose(got, want, rtol=1e-13)
 
 
+def test_edge_drift():
+    """The error's change across the pulse edges, signed by the direction of motion: a
+    1 mm jump after the first of two edges averages to 0.5 mm, and changes sign with the
+    motion."""
+    from types import SimpleNamespace
+
+    pulses = np.r_[np.zeros(200), 5.0 * np.ones(400), np.zeros(400)]
+    t = np.arange(pulses.size) * 1e-3
+    for v, want in ((0.05, 0.5), (-0.05, -0.5)):
+        qm = 0.1 + v * t
+        z = qm + 1e-3 * (np.arange(pulses.size) >= 200)
+        rec = SimpleNamespace(pulses=pulses, qm=qm)
+        got = emps_friction.edge_drift_mm(SimpleNamespace(z=z[:, None]), rec, 1e-3)
+        np.testing.assert_allclose(got, want, rtol=1e-9)
+
+
 @pytest.mark.parametrize(
     "overrides,message",
     [
@@ -80,6 +96,7 @@ def test_end_to_end(tmp_path):
     assert res["status"] == "ok"
     assert json.loads((tmp_path / "results.json").read_text())["kept"] == "load"
     assert res["n_train"] == 240 and res["n_heldout"] == 60
+    assert res["max_force_N"]["test"] > res["max_force_N"]["estimation"] > 0
     rows = {r["structure"]: r for r in res["rows"]}
     assert set(rows) == {"load"}
     assert set(rows["load"]["theta"]) == {*example.PARAMS, "dFv", "mu"}
@@ -87,7 +104,7 @@ def test_end_to_end(tmp_path):
     for r in rows.values():
         assert [s["window"] for s in r["stages"]] == [50, None]
         scores = [r["rmse_train_mm"], r["rmse_heldout_mm"], r["protocol"]["rmse_mm"]]
-        assert all(np.isfinite(scores))
+        assert all(np.isfinite(scores)) and np.isfinite(r["edge_drift_mm"])
     # the span spread: the whole record, warm-started from the kept fit
     (span,) = res["spread"]
     assert span["holdout"] == 0.0 and span["n_train"] == 300 and span["rmse_heldout_mm"] is None
