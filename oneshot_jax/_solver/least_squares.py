@@ -325,11 +325,13 @@ class AbstractLeastSquares(AbstractSolver):
         actual = C_old - C
         n_obs = n_observations(problem)
         n_free = s.theta.size + s.x0.size
-        # With rank 0 (the most degrees of freedom) the size is largest: a rank is only
-        # needed where that bound passes.
+        # With the full rank n_free (the fewest degrees of freedom) both sizes are
+        # smallest: the rank is formed only where they pass.
+        dof_min = jnp.maximum(n_obs - n_free, 0)
+        tiny = jnp.finfo(dtype).tiny
+        se_min = jnp.sqrt(jnp.maximum(pred, 0.0) * dof_min / jnp.maximum(C, tiny))
         candidate = take & (actual > 0) & (actual >= 0.25 * pred)
-        candidate = candidate & (standard_errors(pred, C, n_obs, 0) <= self.stol)
-        candidate = candidate & (fo * jnp.sqrt(n_obs) <= 1.0)
+        candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
         rank = lazy_cond(
             candidate,
             lambda: b.rank().astype(jnp.int32),
