@@ -49,6 +49,7 @@ class Out(NamedTuple):
     first_order: jax.Array  # the measures the best start's stop was tested on
     step: jax.Array
     decrease: jax.Array
+    standard_errors: jax.Array
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
@@ -87,6 +88,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.first_order[best],
         m.step[best],
         m.decrease[best],
+        m.standard_errors[best],
         None if final.best is None else final.best.score[best],
     )
 
@@ -282,6 +284,8 @@ def assemble(
         "gtol": float(getattr(solvers[-1], "gtol", np.nan)),
         "step": float(out.step),
         "decrease": float(out.decrease),
+        "standard_errors": float(out.standard_errors),
+        "stol": float(getattr(solvers[-1], "stol", np.nan)),
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": roundoff_limit(problem.dtype),
     }

@@ -88,7 +88,11 @@ def marginal(S, S_inv, t_ok, nuisance):
     S_marginal = 0.5 * (S_marginal + S_marginal.T)
     block = psd_solve(S_marginal, jnp.eye(named.size, dtype=S.dtype))
     S_inv = S_inv.at[np.ix_(named, named)].set(block)
-    return S_inv, t_ok.at[named].set(identifiable(S_marginal))
+    # Null where the network reproduces a named column up to round-off of the column
+    # itself: S_marginal judged in the scaling of S_pp (its own diagonal would make a
+    # round-off remainder of a 1 x 1 block look regular).
+    S_pp_diag = jnp.diagonal(S)[named]
+    return S_inv, t_ok.at[named].set(identifiable(S_marginal, S_pp_diag))
 
 
 class Scaled(NamedTuple):

@@ -35,6 +35,11 @@ def stop_detail(status: str, info: dict) -> str:
             f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
             f"{_g(gtol)}): no step decreases the loss at round-off"
         )
+    if status == "statistically_converged":
+        se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
+        return (
+            f"last step {_g(se)} standard errors <= stol {_g(stol)} (rank-deficient Jacobian; {vs})"
+        )
     if status == "stalled":
         return f"step {_g(step)} (scaled) with predicted decrease {_g(decrease)}: stalled, " + (
             vs.replace("measure", "measure", 1) + " > gtol" if known else "not stationary"
@@ -141,7 +146,9 @@ class FitResult(eqx.Module):
         `first_order` (the scaled projected gradient, see `oneshot_jax._optimality`),
         `gtol` (the last solver's first-order tolerance), `step` (the last step's scaled
         size relative to the scaled parameters), `decrease` (the decrease of the loss its
-        linear model predicted, relative to the loss) and `at_step` (the last solver's
+        linear model predicted, relative to the loss), `standard_errors` and `stol` (the
+        last step's size in standard errors and the tolerance of the statistical test,
+        see `RESULTS.statistically_converged`) and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
         start) and `solver_stop` (the solver's own stop).
@@ -186,8 +193,8 @@ class FitResult(eqx.Module):
 
     @property
     def success(self) -> bool:
-        """Whether the solver converged (`converged`, `zero_residual`, `tol_loss` or
-        `tol_grad`)."""
+        """Whether the solver converged (`converged`, `statistically_converged`,
+        `zero_residual`, `tol_loss` or `tol_grad`)."""
         return is_success(self.stop_reason)
 
     @property

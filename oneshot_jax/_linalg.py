@@ -25,14 +25,18 @@ def floor(d):
     return jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
 
 
-def scaled_eigh(M):
+def scaled_eigh(M, diag=None):
     """Eigendecomposition of the Jacobi-scaled D^{-1/2} M D^{-1/2} (unit diagonal) and its
     numerically null eigenvalues. Scaling first makes the cutoff detect collinear
-    columns whatever the parameters' units, without dropping small-scale directions."""
-    d = jnp.sqrt(jnp.diagonal(M, axis1=-2, axis2=-1))
+    columns whatever the parameters' units, without dropping small-scale directions.
+    `diag`: the D to scale by, where not M's own diagonal (a Schur complement judged
+    against the matrix it came from)."""
+    d = jnp.sqrt(jnp.diagonal(M, axis1=-2, axis2=-1) if diag is None else diag)
     d = jnp.where(d > 0, d, 1.0)
     vals, vecs = jnp.linalg.eigh(M / (d[..., :, None] * d[..., None, :]))
     top = jnp.max(jnp.abs(vals), axis=-1, keepdims=True, initial=0.0)
+    if diag is not None:  # judged against the reference's unit diagonal too
+        top = jnp.maximum(top, 1.0)
     cut = 1e3 * jnp.finfo(M.dtype).eps * top
     return d, vals, vecs, vals <= cut
 
@@ -51,10 +55,17 @@ def psd_solve(M, b):
     return out[..., 0] if vector else out
 
 
-def identifiable(M):
+def numerical_rank(M):
+    """The numerical rank of a (batched) PSD M: its eigenvalues above the null cutoff of
+    `scaled_eigh`, the cutoff of `psd_solve` and of the covariance's identifiability."""
+    _, _, _, null = scaled_eigh(M)
+    return jnp.sum(~null, axis=-1)
+
+
+def identifiable(M, diag=None):
     """Per variable of a PSD M: False where it has a component in M's numerical null
-    space (the outputs do not determine it)."""
-    _, _, vecs, null = scaled_eigh(M)
+    space (the outputs do not determine it). `diag`: as for `scaled_eigh`."""
+    _, _, vecs, null = scaled_eigh(M, diag)
     return ~jnp.any(null[..., None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
 
 

@@ -7,8 +7,9 @@ import numpy as np
 
 class RESULTS(eqx.Enumeration):
     """Why a fit stopped (`FitResult.stop_reason`). `RESULTS[item]` is the message;
-    `FitResult.success` is True for `converged`, `zero_residual`, `tol_loss` and
-    `tol_grad` only: each is a test of optimality at the returned point.
+    `FitResult.success` is True for `converged`, `statistically_converged`,
+    `zero_residual`, `tol_loss` and `tol_grad` only: each is a test of optimality at the
+    returned point.
     `FitResult.message` adds the values the test fired on."""
 
     converged = (
@@ -60,9 +61,17 @@ class RESULTS(eqx.Enumeration):
         "(a coupling or gain started at 0, say), so they were not estimated. Start them "
         "away from that point, or fix them"
     )
+    statistically_converged = (
+        "statistical convergence, where the Jacobian has a null space (an "
+        "over-parameterised model, such as a network, on which the first-order test "
+        "converges too slowly to be reached): the last accepted least-squares step, its "
+        "predicted decrease confirmed by the actual one, changed the fit by at most the "
+        "solver's stol standard errors, so no quantity the data determine can still "
+        "change significantly (see `oneshot_jax._optimality.standard_errors`)"
+    )
 
 
-SUCCESS = ("converged", "zero_residual", "tol_loss", "tol_grad")
+SUCCESS = ("converged", "statistically_converged", "zero_residual", "tol_loss", "tol_grad")
 
 
 def _index(item) -> int:

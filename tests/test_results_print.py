@@ -186,8 +186,8 @@ def test_nested_dicts_keep_their_written_order():
 def test_solver_reprs_show_every_setting():
     lm = oj.LevenbergMarquardt()
     assert repr(lm) == (
-        "LevenbergMarquardt(rtol=0.0, atol=0.0, gtol=1e-08, max_steps=100, mu0=0.001, "
-        "strategy='auto', linear_solver='auto', cg_rtol=1e-08, cg_max_steps=50)"
+        "LevenbergMarquardt(rtol=0.0, atol=0.0, gtol=1e-08, stol=0.01, max_steps=100, "
+        "mu0=0.001, strategy='auto', linear_solver='auto', cg_rtol=1e-08, cg_max_steps=50)"
     )
     assert repr(oj.Adam()).startswith("Adam(lr_theta=0.001, lr_x0=0.0001, b1=0.9, b2=0.999,")
     namespace = {name: getattr(oj, name) for name in ("LevenbergMarquardt", "GaussNewton")}

@@ -40,7 +40,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._linalg import eliminate_x0, floor, normal_blocks, psd_solve
+from .._linalg import eliminate_x0, floor, normal_blocks, numerical_rank, psd_solve
 from .._optimality import first_order, rademacher_diagonal, x0_columns
 from .._problem import Params
 from .._sensitivity import Trajectory
@@ -88,6 +88,11 @@ class AbstractLinearisation(eqx.Module):
     @abc.abstractmethod
     def covariance_blocks(self, sse):
         """(sse, A, B, C_i) for `_covariance.covariance`, or None where A is not formed."""
+
+    def rank(self):
+        """The numerical rank of J (`_linalg.numerical_rank`, the covariance's cutoff), or
+        None where J^T J is not formed (then the statistical stopping test is off)."""
+        return None
 
     def diag_x(self) -> jax.Array:
         """diag(J_x,i^T J_x,i) (N, m): Marquardt's diagonal of the x0 columns."""
@@ -144,6 +149,17 @@ class DenseLinearisation(AbstractLinearisation):
 
     def covariance_blocks(self, sse):
         return sse, self.A, self.B, self.Cb
+
+    def rank(self):
+        """rank J = sum_i rank C_i + rank S, S the Schur complement of the x0 blocks
+        formed with their pseudo-inverses (`_linalg.eliminate_x0`), as the covariance
+        forms it."""
+        p, m = self.A.shape[0], self.Cb.shape[-1]
+        rank = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
+        if p:
+            S = eliminate_x0(self.B, self.Cb, pseudo_inverse=True).schur(self.A, self.B)
+            rank = rank + numerical_rank(S)
+        return jnp.asarray(rank)
 
 
 class MatrixFreeLinearisation(AbstractLinearisation):

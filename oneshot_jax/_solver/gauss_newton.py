@@ -17,6 +17,15 @@ class GaussNewton(AbstractLeastSquares):
     - `gtol`: the first-order test: the fit converges (succeeds) when the scaled
         projected gradient, the largest cosine between the residual and a Jacobian
         column, is at most `gtol` (see `oneshot_jax._optimality`).
+    - `stol`: the statistical test, on a Jacobian with a null space only (an
+        over-parameterised model such as a network, where the first-order test is not
+        reached): the fit converges (succeeds, `statistically_converged`) when an
+        accepted step, its predicted decrease of the loss confirmed by the actual one,
+        moves the fit by at most `stol` standard errors (predicted decrease at most
+        stol^2 sigma^2, sigma^2 = C / (observations - rank J)) and no parameter alone
+        would move by a standard error (first-order measure at most
+        1 / sqrt(observations - rank J)); see `oneshot_jax._optimality`. 0 turns it
+        off. Not tested with `linear_solver="cg"`, which does not form J^T J.
     - `rtol`, `atol`: an optional step test (off by default): an accepted step of
         scaled size at most rtol ||D p|| + atol that decreased the loss by at most
         rtol C + atol ends the fit, as `converged` if the first-order test holds there
@@ -40,6 +49,7 @@ class GaussNewton(AbstractLeastSquares):
     rtol: float = 0.0
     atol: float = 0.0
     gtol: float = 1e-8
+    stol: float = 1e-2
     max_steps: int = 100
     strategy: str = "auto"
     linear_solver: str = "auto"

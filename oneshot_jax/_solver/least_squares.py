@@ -27,7 +27,11 @@ when no step decreases C at round-off with the measure at most its round-off lim
 10 sqrt(eps) (a loss known to relative precision eps resolves cosines down to about
 sqrt(eps) only, so a slowly converging fit can stop a little above gtol = 1e-8); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
-round-off level of the data. Every other stop is a failure that names its test:
+round-off level of the data. Where J is rank deficient (an over-parameterised model, a
+network in theta), it is `statistically_converged` (success) when an accepted step, its
+predicted decrease confirmed by the actual one, moved the fit by at most `stol` standard
+errors (`_optimality.standard_errors`; the first-order test is not reached there). Every
+other stop is a failure that names its test:
 `stalled` when no step decreases C while the linear model's predicted decrease is at
 round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
 level of the parameters, or when the optional step test fired (rtol, atol: an accepted
@@ -50,7 +54,9 @@ from .._optimality import (
     Measures,
     data_scale,
     lazy_cond,
+    n_observations,
     roundoff_limit,
+    standard_errors,
     zero_residual,
 )
 from .._problem import Params
@@ -79,6 +85,7 @@ class AbstractLeastSquares(AbstractSolver):
     rtol: eqx.AbstractVar[float]
     atol: eqx.AbstractVar[float]
     gtol: eqx.AbstractVar[float]
+    stol: eqx.AbstractVar[float]
     max_steps: eqx.AbstractVar[int]
     strategy: eqx.AbstractVar[str]
     linear_solver: eqx.AbstractVar[str]
@@ -88,7 +95,7 @@ class AbstractLeastSquares(AbstractSolver):
     def _check(self):
         check_options(
             self,
-            non_negative=("rtol", "atol", "gtol", "cg_rtol"),
+            non_negative=("rtol", "atol", "gtol", "stol", "cg_rtol"),
             integers=("max_steps", "cg_max_steps"),
         )
         as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
@@ -148,7 +155,7 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(fo, nan, nan),
+            Measures(fo, nan, nan, nan),
             negative | stationary,
             RESULTS.where(negative, RESULTS.negative_penalty, RESULTS.converged),
         )
@@ -270,15 +277,20 @@ class AbstractLeastSquares(AbstractSolver):
         stalled = small_step | round_off | gave_up
         # At round-off, stationary to the precision of the loss (`_optimality`).
         stationary = (fo <= self.gtol) | (round_off & (fo <= roundoff_limit(dtype)))
+        se, statistical = self._statistical(problem, old, s, b, state.loss, loss, take, fo)
         negative = h_min < 0
-        done = stationary | stalled | negative
+        done = stationary | statistical | stalled | negative
         result = RESULTS.where(
             stationary,
             RESULTS.converged,
             RESULTS.where(
-                zero_residual(loss, state.scale),
-                RESULTS.zero_residual,
-                RESULTS.where(gave_up, RESULTS.no_progress, RESULTS.stalled),
+                statistical,
+                RESULTS.statistically_converged,
+                RESULTS.where(
+                    zero_residual(loss, state.scale),
+                    RESULTS.zero_residual,
+                    RESULTS.where(gave_up, RESULTS.no_progress, RESULTS.stalled),
+                ),
             ),
         )
         result = RESULTS.where(negative, RESULTS.negative_penalty, result)
@@ -287,9 +299,47 @@ class AbstractLeastSquares(AbstractSolver):
             fo,
             step_d / jnp.maximum(size_d, tiny),
             jnp.where(take, pred, jnp.maximum(pred, 0.0)) / jnp.maximum(state.loss, tiny),
+            se,
         )
         state = LSQState(blocks, loss, h_min, search_state, state.scale, measures, done, result)
         return params, state
+
+    def _statistical(self, problem, old, s, b, C_old, C, take, fo):
+        """The statistical convergence test (`_optimality.standard_errors`) of the step
+        `s` taken from `old` (linearisation `b`, loss `C_old`) to a point of loss `C`
+        and first-order measure `fo`: the step's size in standard errors, and whether J
+        is rank deficient, the step, its predicted decrease confirmed by the actual one
+        (at least a quarter of it), is at most `stol` standard errors, and no parameter
+        alone would move by a standard error (fo sqrt(R - rank) <= 1: the cosine times
+        sqrt(R - rank) is a one-parameter Gauss-Newton step in its own standard error).
+        The rank (an eigendecomposition) is formed only where the rest of the test holds.
+        Off (NaN, False) with `stol=0` and where J^T J is not formed
+        (`linear_solver="cg"`)."""
+        dtype = problem.dtype
+        if not self.stol or jax.eval_shape(b.rank) is None:
+            return jnp.array(jnp.nan, dtype), jnp.array(False)
+        pred = -(
+            2.0 * (s.theta @ b.g_t + jnp.sum(s.x0 * b.g_x))
+            + b.curvature(problem, old, s.theta, s.x0)
+        )
+        actual = C_old - C
+        n_obs = n_observations(problem)
+        n_free = s.theta.size + s.x0.size
+        # With the full rank n_free (the fewest degrees of freedom) both sizes are
+        # smallest: the rank is formed only where they pass.
+        dof_min = jnp.maximum(n_obs - n_free, 0)
+        tiny = jnp.finfo(dtype).tiny
+        se_min = jnp.sqrt(jnp.maximum(pred, 0.0) * dof_min / jnp.maximum(C, tiny))
+        candidate = take & (actual > 0) & (actual >= 0.25 * pred)
+        candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
+        rank = lazy_cond(
+            candidate,
+            lambda: b.rank().astype(jnp.int32),
+            jnp.asarray(n_free, jnp.int32),
+        )
+        se = standard_errors(pred, C, n_obs, rank)
+        within = (se <= self.stol) & (fo * jnp.sqrt(n_obs - rank) <= 1.0)
+        return se, candidate & (rank < n_free) & within
 
     def terminate(self, problem, params, state):
         del problem, params
