@@ -9,7 +9,6 @@ the `FitResult` assembled on the host (`oneshot_jax._assemble`).
 import time
 import warnings
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,6 +21,7 @@ from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run
+from ._jit import jit
 from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
@@ -61,7 +61,7 @@ def _theta_order(theta):
     return order
 
 
-@eqx.filter_jit
+@jit
 def _solve(solvers, problem, starts, history_size, meter, bar_id):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
     them at once, pick the best start and post-process it (covariance and metrics).

@@ -12,13 +12,13 @@ integrator's limit; `fit` calls it after every fit of such a model.
 import warnings
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from ._checks import check_data
+from ._jit import jit
 from ._model import _ODEStep
 from ._simulate import simulate_impl
 
@@ -62,7 +62,7 @@ class Stability(NamedTuple):
         return bool(self.value > self.limit)
 
 
-@eqx.filter_jit
+@jit
 def _jacobians(model, params, x0, u, batched, rhs, theta, idx):
     """The states of eq. (7) and d rhs / d x at the flattened states `idx` (forward mode:
     the state is small), in one compiled call."""
