@@ -20,7 +20,7 @@ import jax
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 # Whether this XLA takes `CPU_OPTIONS` (set False on its first refusal).
-_OPTIONS_TAKEN = [True]
+OPTIONS_TAKEN = [True]
 
 
 def jit(fn):
@@ -36,13 +36,13 @@ def jit(fn):
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if _OPTIONS_TAKEN[0] and jax.default_backend() == "cpu":
+        if OPTIONS_TAKEN[0] and jax.default_backend() == "cpu":
             try:
                 return tuned(*args, **kwargs)
             except jax.errors.JaxRuntimeError as e:
                 if "compile option" not in str(e):
                     raise
-                _OPTIONS_TAKEN[0] = False
+                OPTIONS_TAKEN[0] = False
         return plain(*args, **kwargs)
 
     return call

@@ -126,8 +126,8 @@ def test_an_option_xla_refuses_falls_back_to_its_defaults(monkeypatch):
     """A compiler option this XLA does not know (a later version may drop one) costs
     nothing but the option: the call compiles with XLA's defaults from then on."""
     monkeypatch.setattr(jit_module, "CPU_OPTIONS", {"xla_cpu_no_such_option": True})
-    monkeypatch.setattr(jit_module, "_OPTIONS_TAKEN", [True])
+    monkeypatch.setattr(jit_module, "OPTIONS_TAKEN", [True])
     double = jit_module.jit(lambda x: 2.0 * x)
     assert float(double(jnp.asarray(3.0))) == 6.0
-    assert jit_module._OPTIONS_TAKEN == [jax.default_backend() != "cpu"]
+    assert jit_module.OPTIONS_TAKEN == [jax.default_backend() != "cpu"]
     assert float(double(jnp.asarray(4.0))) == 8.0
