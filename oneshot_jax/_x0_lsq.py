@@ -43,7 +43,7 @@ class X0Fit(NamedTuple):
         (inf in the rows and columns of an entry the outputs do not determine, and
         everywhere when n_obs <= N n_x); None when not asked for.
     - `identifiable`: with a `record`, per x0 entry whether the outputs determine it
-        (`identifiable_x0` at the estimate); else None.
+        (`identifiable` of J^T J at the estimate, as `identifiable_x0`); else None.
     - `record`: with a `record`, its states (T, n_x) and outputs (T, n_z) simulated from
         the estimate; else None.
     """
@@ -101,7 +101,11 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
     extra = None
     if record is not None:
         theta = problem.theta_of(params.theta)
-        ok = identifiable_x0(problem.model, theta, X0[0], problem.u[0], problem.cost.sqrt_weight())
+        if cov is None:
+            sqrt_q = problem.cost.sqrt_weight()
+            ok = identifiable_x0(problem.model, theta, X0[0], problem.u[0], sqrt_q)
+        else:  # `identifiable` of the same J^T J (the residuals' x0 block, weighted)
+            ok = cov.x0_identifiable[0]
         extra = (ok, simulate_impl(problem.model, theta, X0[0], record, False))
     return _pytree.pack((X0, final.loss[0], final.result._value[0], e, cov, extra))
 
