@@ -22,7 +22,8 @@ Each problem runs in three fresh processes that share one empty cache folder:
 
 Each process reports: the import of `oneshot_jax`; the first `fit()` and the first
 `predict()` (compilation included), with the time JAX spent tracing the Python code
-(jaxpr), lowering it (MLIR) and in XLA's compiler (from `jax.monitoring`); then, over
+(jaxpr), lowering it (MLIR) and in XLA's compiler, and the number of programs XLA
+compiled (from `jax.monitoring`; with the cache warm, the programs loaded); then, over
 `--repeats` later calls with the same shapes, the median of a `fit()` call, of its
 `FitResult.wall_time` (the compiled solve, covariance and metrics) and of the overhead
 (a call's wall time minus its `wall_time`: the input checks, the setup and the assembly
@@ -72,6 +73,8 @@ EVENTS = {
 def listen(event, seconds, **kwargs):
     if event in EVENTS:
         phases[EVENTS[event]] = phases.get(EVENTS[event], 0.0) + seconds
+    if event == "/jax/core/compile/backend_compile_duration":
+        phases["programs"] = phases.get("programs", 0) + 1
 jax.monitoring.register_event_duration_secs_listener(listen)
 hits = []
 jax.monitoring.register_event_listener(
@@ -187,6 +190,10 @@ def _phases(ph):
     return " / ".join(f"{ph.get(k, 0.0):.2f}" for k in ("trace", "lower", "compile"))
 
 
+def _programs(ph):
+    return str(int(ph.get("programs", 0)))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=50)
@@ -209,14 +216,16 @@ def main():
     print()
     print(
         "| problem | process | import (s) | first fit() (s) | its trace / lower / XLA compile "
-        "(s) | first predict() (s) | its trace / lower / XLA compile (s) | later fit() (ms) "
-        "| FitResult.wall_time (ms) | overhead (ms) | later predict() (ms) | loss |"
+        "(s) | programs | first predict() (s) | its trace / lower / XLA compile (s) | programs "
+        "| later fit() (ms) | FitResult.wall_time (ms) | overhead (ms) | later predict() (ms) "
+        "| loss |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, label, r in rows:
         print(
             f"| {name} | {label} | {r['import']:.2f} | {r['fit']:.2f} | "
-            f"{_phases(r['fit_phases'])} | {r['predict']:.2f} | {_phases(r['predict_phases'])} "
+            f"{_phases(r['fit_phases'])} | {_programs(r['fit_phases'])} | {r['predict']:.2f} | "
+            f"{_phases(r['predict_phases'])} | {_programs(r['predict_phases'])} "
             f"| {1e3 * r['call']:.2f} | {1e3 * r['wall']:.2f} | {1e3 * r['overhead']:.2f} | "
             f"{1e3 * r['predict_call']:.2f} | {r['loss']:.6e} |"
         )

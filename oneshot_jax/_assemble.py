@@ -56,7 +56,7 @@ class Out(NamedTuple):
 def collect(stages, best, moved, posted) -> Out:
     """`Out` from the solvers' `Solution`s and `post`'s output (traced, inside the fit's
     compiled call: indexing only)."""
-    theta, x0, e, cov, met = posted
+    theta, x0, e, cov, met, _ = posted
     final = stages[-1]
     per_stage = tuple(
         StageOut(
@@ -95,10 +95,11 @@ def collect(stages, best, moved, posted) -> Out:
 
 def post(problem, params, blocks, strategy):
     """Everything `FitResult` needs from the solution, traced inside the fit's compiled
-    call: theta (flat), x0, the residuals, the covariance blocks and the metrics."""
+    call: theta (flat), x0, the residuals, the covariance blocks and the metrics; and the
+    simulated states (for `_stability`)."""
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
-    _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
+    xs, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
     # Above COVARIANCE_MAX_THETA free entries of theta the covariance (a dense Jacobian with
     # a column per parameter, and a p x p eigendecomposition) is not computed.
     cov = None
@@ -116,7 +117,7 @@ def post(problem, params, blocks, strategy):
     }
     theta_flat = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(params.theta)
     e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
-    return theta_flat, X0, e, cov, met
+    return theta_flat, X0, e, cov, met, xs
 
 
 def _history(problem, stages, like):

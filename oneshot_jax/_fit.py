@@ -9,7 +9,6 @@ the `FitResult` assembled on the host (`oneshot_jax._assemble`).
 import time
 import warnings
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,10 +21,18 @@ from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run
+from ._jit import jit
 from ._parallel._report import counting
 from ._problem import Params
 from ._progress import NoProgress
-from ._stability import stability, warn_if_near_limit
+from ._stability import (
+    jacobians_at,
+    rhs_of,
+    sample_points,
+    stability,
+    warn_after_fit,
+    warn_if_near_limit,
+)
 from ._zero_gradient import flag_zero_gradient
 
 
@@ -61,11 +68,13 @@ def _theta_order(theta):
     return order
 
 
-@eqx.filter_jit
-def _solve(solvers, problem, starts, history_size, meter, bar_id):
+@jit
+def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=None):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
-    them at once, pick the best start and post-process it (covariance and metrics).
-    Returns what `assemble` reads (an `Out`), packed."""
+    them at once, pick the best start and post-process it (covariance and metrics), and
+    with `stability_at` (a `Model.from_ode` model's right-hand side and the flattened
+    indices of the states to check, `_stability`) the Jacobians there. Returns what
+    `assemble` reads (an `Out`) and those Jacobians (or None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = jnp.any(projected != starts.theta)
     starts = Params(projected, starts.x0)
@@ -79,16 +88,22 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id):
         None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[best], final.blocks)
     )
     strategy = getattr(solvers[-1], "strategy", "auto")
-    out = collect(stages, best, moved, post(problem, params, blocks, strategy))
+    posted = post(problem, params, blocks, strategy)
+    out = collect(stages, best, moved, posted)
+    jacobians = None
+    if stability_at is not None:
+        rhs, idx = stability_at
+        theta = problem.theta_of(params.theta)
+        jacobians = jacobians_at(rhs, theta, posted[-1], problem.u, idx)
     # One buffer per dtype to the host instead of one per array (`_pytree.pack`).
-    return _pytree.pack(out)
+    return _pytree.pack((out, jacobians))
 
 
-def _run(solvers, problem, starts, history, meter):
+def _run(solvers, problem, starts, history, meter, stability_at=None):
     """The solve: `_solve` from every start, timed, with the progress bar open around it.
-    Returns its output unpacked (an `Out`), the wall time and the counts of parallel
-    rollouts and their fallbacks, and warns of those fallbacks and of starts projected
-    onto the constraint set."""
+    Returns its output unpacked (an `Out`), the wall time, the counts of parallel
+    rollouts and their fallbacks and the Jacobians of `stability_at`, and warns of those
+    fallbacks and of starts projected onto the constraint set."""
     # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
     bar = not isinstance(meter, NoProgress)
     bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
@@ -96,7 +111,13 @@ def _run(solvers, problem, starts, history, meter):
         with counting() as counts:
             t0 = time.perf_counter()
             buffers, layout = _solve(
-                solvers, problem, starts, history, meter, np.asarray(bar_id, np.int32)
+                solvers,
+                problem,
+                starts,
+                history,
+                meter,
+                np.asarray(bar_id, np.int32),
+                stability_at,
             )
             jax.block_until_ready(buffers)
             jax.effects_barrier()
@@ -104,7 +125,7 @@ def _run(solvers, problem, starts, history, meter):
     finally:
         if bar:
             meter.close(bar_id)
-    out = _pytree.unpack(buffers, layout)
+    out, jacobians = _pytree.unpack(buffers, layout)
     diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
     if counts["sequential_fallbacks"]:
         warnings.warn(
@@ -118,7 +139,7 @@ def _run(solvers, problem, starts, history, meter):
         warnings.warn(
             "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=3
         )
-    return out, wall, diagnostics
+    return out, wall, diagnostics, jacobians
 
 
 def fit(
@@ -290,8 +311,13 @@ def fit(
         regulariser=regulariser,
         validation=validation,
     )
-    out, wall, diagnostics = _run(
-        inputs.solvers, built.problem, built.starts, history, inputs.meter
+    # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
+    # Jacobians along the fitted trajectory come from the solve's compiled call.
+    rhs = rhs_of(model, inputs.data) if aggregate is None else None
+    idx = None if rhs is None else sample_points(inputs.data)
+    stability_at = None if idx is None else (rhs, idx)
+    out, wall, diagnostics, jacobians = _run(
+        inputs.solvers, built.problem, built.starts, history, inputs.meter, stability_at
     )
     result = assemble(
         model=model,
@@ -312,7 +338,9 @@ def fit(
     result = flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)
     if aggregate is not None:
         result = agg.restore(result)
-    # A `Model.from_ode` model near its integrator's stability limit (`_stability`).
-    fitted_u = u if window is None else inputs.data.u
-    warn_if_near_limit(stability(model, result.theta, result.x0, fitted_u), stacklevel=2)
+    if stability_at is not None:
+        warn_after_fit(model.step, idx, *jacobians, stacklevel=2)
+    elif aggregate is not None:
+        fitted_u = u if window is None else inputs.data.u
+        warn_if_near_limit(stability(model, result.theta, result.x0, fitted_u), stacklevel=2)
     return result

@@ -166,6 +166,25 @@ def check_inputs(
     return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts)
 
 
+_MODULE_ENTRIES: dict = {}
+
+
+def _module_entries(theta):
+    """`_pytree.module_entries(theta)`, kept per structure and shapes of theta."""
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    key = (treedef, tuple(np.shape(a) for a in leaves))
+    try:
+        found = _MODULE_ENTRIES.get(key)
+    except TypeError:  # an unhashable static part
+        return _pytree.module_entries(theta)
+    if found is None:
+        if len(_MODULE_ENTRIES) >= 256:
+            _MODULE_ENTRIES.pop(next(iter(_MODULE_ENTRIES)))
+        found = _MODULE_ENTRIES[key] = _pytree.module_entries(theta)
+        found.setflags(write=False)
+    return found
+
+
 def build_problem(
     inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser, validation=None
 ) -> Built:
@@ -229,10 +248,10 @@ def build_problem(
         lower=lower,
         upper=upper,
         regulariser=on_theta,
-        validation=monitor(validation, data.model, data.theta, X0, inputs.cost.sqrt_weight()),
-        nuisance=tuple(
-            int(i) for i in np.flatnonzero(_pytree.module_entries(data.theta)[theta_free])
-        ),
+        validation=None
+        if validation is None
+        else monitor(validation, data.model, data.theta, X0, inputs.cost.sqrt_weight()),
+        nuisance=tuple(int(i) for i in np.flatnonzero(_module_entries(data.theta)[theta_free])),
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(

@@ -15,18 +15,17 @@ import warnings
 from typing import Any, NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from ._checks import check_cost, check_data
 from ._cost import weigh
-from ._linalg import identifiable
+from ._jit import jit
 from ._results import RESULTS, is_success
-from ._simulate import outputs, rollout, simulate_impl
+from ._simulate import simulate_impl
 from ._timing import head_times
-from ._x0_lsq import solve_x0
+from ._x0_lsq import identifiable_x0, solve_x0
 from ._x0_smoother import KalmanPath, kalman_path
 
 METHODS = ("lsq", "smoother")
@@ -121,17 +120,10 @@ def _check_head(u, z, n):
 #
 
 
-@eqx.filter_jit
+@jit
 def _x0_identifiable(model, theta, x0, u, weight):
-    """Per x0 entry, whether it is identifiable from Q^{1/2} z[0..n-1]: `identifiable` of
-    J^T J, J = Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x) by forward mode (one compiled
-    call)."""
-
-    def weighted_outputs(x0):
-        return weigh(outputs(model, theta, rollout(model, theta, x0, u), u), weight).reshape(-1)
-
-    J = jax.jacfwd(weighted_outputs)(x0)
-    return identifiable(J.T @ J)
+    """`identifiable_x0` in one compiled call."""
+    return identifiable_x0(model, theta, x0, u, weight)
 
 
 def _observable(data):
@@ -245,7 +237,7 @@ def estimate_x0(
         prior_covariance=prior_covariance,
         stacklevel=3,
         t=t,
-    )
+    )[0]
 
 
 def _estimate(
@@ -264,8 +256,11 @@ def _estimate(
     prior_covariance,
     stacklevel,
     t=None,
+    record=None,
 ):
-    """`estimate_x0`, with its warnings attributed `stacklevel` frames up."""
+    """`estimate_x0`, with its warnings attributed `stacklevel` frames up. With `record`
+    (the whole record's `(u, t)`, whose head is `u`), also the record simulated from the
+    estimate, `(x, z)` (for `predict`); else None. Returns (`X0Estimate`, that)."""
     if method not in METHODS:
         raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
     n = _check_head(u, z, n)
@@ -299,9 +294,15 @@ def _estimate(
     data = check_data(model, theta, x0, u, z, weight, t=t)
     guess = np.asarray(data.x0)
 
-    stop_reason, kalman, e = None, None, None
+    stop_reason, kalman, e, ok, sim = None, None, None, None, None
     if method == "lsq":
-        r = solve_x0(data, solver)
+        whole = None
+        if record is not None:  # the whole record, simulated in the x0 solve's call
+            whole = check_data(model, theta, guess, record[0], t=record[1]).u
+            if whole.dtype != data.u.dtype:  # simulated apart, in its own dtype
+                whole = None
+        r = solve_x0(data, solver, record=whole)
+        ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]
         cov = np.asarray(r.covariance[0], np.float64)
         loss = np.asarray(r.loss)
@@ -330,8 +331,8 @@ def _estimate(
         weighted = weigh(jnp.asarray(e), check_cost(data, None, 1.0).sqrt_weight())
         loss = np.asarray(np.mean(np.sum(np.square(np.asarray(weighted)), axis=1)), guess.dtype)
 
-    data = data._replace(x0=jnp.asarray(x0_hat))
-    ok = _observable(data)
+    if ok is None:
+        ok = _observable(data._replace(x0=jnp.asarray(x0_hat)))
     if not np.all(ok):
         bad = [f"x0[{i}]" for i in np.flatnonzero(~ok)]
         then = (
@@ -361,7 +362,7 @@ def _estimate(
         n=n,
         stop_reason=stop_reason,
         kalman=kalman,
-    )
+    ), sim
 
 
 def predict(
@@ -427,9 +428,20 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None):
             f"`estimate_x0`: {', '.join(options)}."
         )
     options.update(kwargs)
-    est = _estimate(
-        model, theta, u, z[:n], n=n, method=method, stacklevel=stacklevel + 1, t=t, **options
+    est, sim = _estimate(
+        model,
+        theta,
+        u,
+        z[:n],
+        n=n,
+        method=method,
+        stacklevel=stacklevel + 1,
+        t=t,
+        record=(u, t),
+        **options,
     )
-    data = check_data(model, theta, est.x0, u, t=t)
-    x, zhat = simulate_impl(data.model, data.theta, data.x0, data.u, False)
+    if sim is None:  # the smoother's estimate
+        data = check_data(model, theta, est.x0, u, t=t)
+        sim = simulate_impl(data.model, data.theta, data.x0, data.u, False)
+    x, zhat = sim
     return Prediction(np.asarray(zhat), np.asarray(x), est.x0, est)

@@ -79,6 +79,22 @@ def _freeze(done, old, new):
     return jax.tree_util.tree_map(pick, old, new)
 
 
+def _over_starts(fn, n_starts):
+    """`eqx.filter_vmap(fn)` over the starts' leading axis. With one start, `fn` on that
+    start itself (the axis taken off and put back): a vmap of size one still batches the
+    predicates of the loops inside (selects on every carry), a larger program to trace
+    and compile for the same numbers."""
+    if n_starts != 1:
+        return eqx.filter_vmap(fn)
+
+    def one(*args):
+        args = jax.tree_util.tree_map(lambda a: a[0] if eqx.is_array(a) else a, args)
+        out = fn(*args)
+        return jax.tree_util.tree_map(lambda a: a[None] if eqx.is_array(a) else a, out)
+
+    return one
+
+
 def _scores(problem: FitProblem, params: Params, val_x0):
     """The validation loss of every start's iterate and the records' x0 it used."""
     mon = problem.validation
@@ -115,8 +131,8 @@ def iterate(
         finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
         return done | ~finite, RESULTS.where(finite, result, RESULTS.diverged), loss, gnorm
 
-    check_all = eqx.filter_vmap(check)
-    state = eqx.filter_vmap(lambda p: solver.init(problem, p))(params)
+    check_all = _over_starts(check, n_starts)
+    state = _over_starts(lambda p: solver.init(problem, p), n_starts)(params)
     done, result, loss, gnorm = check_all(params, state)
     hist = _history.init(
         history_size, n_starts, params.theta.shape[1], problem.dtype, mon is not None
@@ -139,7 +155,7 @@ def iterate(
     hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset = meter_args
-    step_all = eqx.filter_vmap(lambda p, s: solver.step(problem, p, s))
+    step_all = _over_starts(lambda p, s: solver.step(problem, p, s), n_starts)
 
     def cond(c):
         return jnp.any(~c.done) & (c.step < solver.max_steps)
@@ -179,10 +195,10 @@ def iterate(
     c = jax.lax.while_loop(cond, body, init)
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
-    final_loss, final_gnorm = eqx.filter_vmap(solver.summary)(state)
-    measures = eqx.filter_vmap(solver.measures)(state)
-    out_params, out_loss, blocks = eqx.filter_vmap(
-        lambda p, s, r: solver.postprocess(problem, p, s, r)
+    final_loss, final_gnorm = _over_starts(solver.summary, n_starts)(state)
+    measures = _over_starts(solver.measures, n_starts)(state)
+    out_params, out_loss, blocks = _over_starts(
+        lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts
     )(c.params, state, result)
     best = c.best
     if mon is not None:

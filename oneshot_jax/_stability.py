@@ -9,16 +9,17 @@ a few states of the fitted trajectory (eq. 7) and compares max |lambda| h with t
 integrator's limit; `fit` calls it after every fit of such a model.
 """
 
+import functools
 import warnings
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from . import _pytree
 from ._checks import check_data
+from ._jit import jit
 from ._model import _ODEStep
 from ._simulate import simulate_impl
 
@@ -62,37 +63,57 @@ class Stability(NamedTuple):
         return bool(self.value > self.limit)
 
 
-@eqx.filter_jit
-def _jacobians(model, params, x0, u, batched, rhs, theta, idx):
-    """The states of eq. (7) and d rhs / d x at the flattened states `idx` (forward mode:
-    the state is small), in one compiled call."""
-    xs, _ = simulate_impl(model, params, x0, u, batched)
+def rhs_of(model, data):
+    """The right-hand side of a `Model.from_ode` model as the checked data's model sees
+    theta (its trainable part, the static part bound in); None for another model."""
+    step = model.step
+    if not isinstance(step, _ODEStep):
+        return None
+    bound = data.model.step
+    return _pytree.Bound(step.rhs, bound.static) if isinstance(bound, _pytree.Bound) else step.rhs
+
+
+def sample_points(data, points: int = POINTS) -> np.ndarray | None:
+    """The flattened indices (trajectory i, sample k: i T + k) of `points` states evenly
+    spaced over the valid samples of the checked data (not the padding of ragged
+    trajectories); None where there is none."""
+    if data.mask is None:
+        return _evenly(int(np.prod(np.shape(data.u)[:-1])), points)
+    valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
+    if valid.size == 0:
+        return None
+    return valid[_evenly(valid.size, points)]
+
+
+@functools.lru_cache(maxsize=64)
+def _evenly(n: int, points: int) -> np.ndarray:
+    """`points` indices evenly spaced over range(n) (all of them when n <= points)."""
+    idx = np.unique(np.linspace(0, n - 1, min(points, n)).astype(int))
+    idx.setflags(write=False)
+    return idx
+
+
+def jacobians_at(rhs, theta, xs, u, idx):
+    """The states of a trajectory xs (..., T, n_x) at the flattened indices `idx`, and
+    d rhs / d x there with their inputs u (..., T, n_u) (forward mode: the state is
+    small); traced."""
     xs = xs.reshape(-1, xs.shape[-1])[idx]
     us = u.reshape(-1, u.shape[-1])[idx]
     return xs, jax.vmap(lambda x, u: jax.jacfwd(rhs)(x, u, theta))(xs, us)
 
 
-def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
-    """`check_stability` without its checks of the arguments and without the warning;
-    None for a model not built by `Model.from_ode` or without a finite state."""
-    step = model.step
-    if not isinstance(step, _ODEStep):
-        return None
-    data = check_data(model, theta, x0, u)
-    samples = np.prod(np.shape(data.u)[:-1])
-    valid = np.arange(samples)
-    if data.mask is not None:  # not the padding of ragged trajectories
-        valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
-    if valid.size == 0:
-        return None
-    idx = valid[np.unique(np.linspace(0, valid.size - 1, min(points, valid.size)).astype(int))]
-    # Floating numbers as arrays: traced, so that a new theta does not compile anew.
-    theta = jax.tree_util.tree_map(
-        lambda a: jnp.asarray(a) if isinstance(a, (float, np.floating)) else a, theta
-    )
-    xs, J = _jacobians(
-        data.model, data.theta, data.x0, data.u, data.batched, step.rhs, theta, jnp.asarray(idx)
-    )
+@jit
+def _jacobians(model, params, x0, u, batched, rhs, idx):
+    """The states of eq. (7) and d rhs / d x at the flattened states `idx`, in one
+    compiled call."""
+    xs, _ = simulate_impl(model, params, x0, u, batched)
+    return jacobians_at(rhs, params, xs, u, idx)
+
+
+def report(step, idx, xs, J) -> Stability | None:
+    """The `Stability` of the Jacobians `J` at the states `xs` (flattened indices `idx`)
+    of a `Model.from_ode` model's `step`, from their eigenvalues (on the host); None
+    where no state is finite."""
     xs, J = np.asarray(xs), np.asarray(J)
     finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
     if not np.any(finite):
@@ -109,6 +130,34 @@ def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
         substeps=step.substeps,
         dt=step.dt,
     )
+
+
+def warn_after_fit(step, idx, xs, J, stacklevel: int) -> None:
+    """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`).
+    Where max |lambda| h is within the limit by its bound ||J||_inf h (the largest row sum
+    of |J| bounds every eigenvalue's modulus), no eigenvalue is computed."""
+    xs, J = np.asarray(xs), np.asarray(J)
+    finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+    if not np.any(finite):
+        return
+    bound = float(np.max(np.sum(np.abs(J[finite]), axis=2))) * step.dt / step.substeps
+    if bound > LIMITS[step.method]:
+        warn_if_near_limit(report(step, idx, xs, J), stacklevel=stacklevel + 1)
+
+
+def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
+    """`check_stability` without its checks of the arguments and without the warning;
+    None for a model not built by `Model.from_ode` or without a finite state."""
+    if not isinstance(model.step, _ODEStep):
+        return None
+    data = check_data(model, theta, x0, u)
+    idx = sample_points(data, points)
+    if idx is None:
+        return None
+    xs, J = _jacobians(
+        data.model, data.theta, data.x0, data.u, data.batched, rhs_of(model, data), idx
+    )
+    return report(model.step, idx, xs, J)
 
 
 def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:

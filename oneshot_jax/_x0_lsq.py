@@ -12,19 +12,21 @@ are those of `fit(..., fixed=True)` on the same data.
 
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
 from ._checks import Data, check_cost
+from ._cost import weigh
 from ._covariance import covariance, scale
 from ._iterate import run
+from ._jit import jit
+from ._linalg import identifiable
 from ._problem import FitProblem, Params
 from ._progress import NoProgress
 from ._results import RESULTS, from_index
-from ._simulate import simulate_impl
+from ._simulate import outputs, rollout, simulate_impl
 from ._solver_arg import as_solvers
 
 _NO_PROGRESS = NoProgress()
@@ -40,6 +42,10 @@ class X0Fit(NamedTuple):
     - `covariance`: sigma^2 (J^T J)^+ (N, n_x, n_x) with sigma^2 = SSE / (n_obs - N n_x)
         (inf in the rows and columns of an entry the outputs do not determine, and
         everywhere when n_obs <= N n_x); None when not asked for.
+    - `identifiable`: with a `record`, per x0 entry whether the outputs determine it
+        (`identifiable` of J^T J at the estimate, as `identifiable_x0`); else None.
+    - `record`: with a `record`, its states (T, n_x) and outputs (T, n_z) simulated from
+        the estimate; else None.
     """
 
     x0: np.ndarray
@@ -47,12 +53,32 @@ class X0Fit(NamedTuple):
     stop_reason: RESULTS
     residuals: np.ndarray
     covariance: np.ndarray | None
+    identifiable: np.ndarray | None = None
+    record: tuple | None = None
 
 
-@eqx.filter_jit
-def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool):
+def identifiable_x0(model, theta, x0, u, sqrt_q):
+    """Per x0 entry, whether it is identifiable from Q^{1/2} z[0..n-1]: `identifiable` of
+    J^T J, J = Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x) by forward mode (traced).
+
+    **Arguments:** `model`, `theta`; `x0` (n_x,); `u` (n, n_u) the head's inputs;
+    `sqrt_q` Q^{1/2} (`Cost.sqrt_weight`) or None.
+
+    **Returns:** (n_x,) booleans.
+    """
+
+    def weighted_outputs(x0):
+        return weigh(outputs(model, theta, rollout(model, theta, x0, u), u), sqrt_q).reshape(-1)
+
+    J = jax.jacfwd(weighted_outputs)(x0)
+    return identifiable(J.T @ J)
+
+
+@jit
+def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, record=None):
     """The solvers from one start, then the residuals (and the covariance blocks) at the
-    solution: one compiled call, its output packed (`_pytree.pack`)."""
+    solution, and with a `record`'s inputs (one trajectory) the identifiability of x0 and
+    the record simulated from it: one compiled call, its output packed (`_pytree.pack`)."""
     final = run(solvers, problem, start, history_size=2, meter=_NO_PROGRESS, bar_id=0)[-1]
     params = jax.tree_util.tree_map(lambda a: a[0], final.params)
     strategy = getattr(solvers[-1], "strategy", "auto")
@@ -72,10 +98,19 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool):
             None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[0], final.blocks)
         )
         cov = covariance(problem, params, strategy, blocks)
-    return _pytree.pack((X0, final.loss[0], final.result._value[0], e, cov))
+    extra = None
+    if record is not None:
+        theta = problem.theta_of(params.theta)
+        if cov is None:
+            sqrt_q = problem.cost.sqrt_weight()
+            ok = identifiable_x0(problem.model, theta, X0[0], problem.u[0], sqrt_q)
+        else:  # `identifiable` of the same J^T J (the residuals' x0 block, weighted)
+            ok = cov.x0_identifiable[0]
+        extra = (ok, simulate_impl(problem.model, theta, X0[0], record, False))
+    return _pytree.pack((X0, final.loss[0], final.result._value[0], e, cov, extra))
 
 
-def solve_x0(data: Data, solver=None, *, with_covariance: bool = True) -> X0Fit:
+def solve_x0(data: Data, solver=None, *, with_covariance: bool = True, record=None) -> X0Fit:
     """Minimise C of eq. (5) over the initial states alone, theta fixed.
 
     **Arguments:**
@@ -85,6 +120,10 @@ def solve_x0(data: Data, solver=None, *, with_covariance: bool = True) -> X0Fit:
         starting guess.
     - `solver`: as `fit`'s `solver` (default `GaussNewton()`).
     - `with_covariance`: also the covariance of the estimates.
+    - `record`: for one trajectory, the inputs (T, n_u) of a whole record that starts
+        where the data start (checked as `data.u` is): the identifiability of x0
+        (`identifiable_x0`) and the record simulated from the estimate come from the same
+        compiled call (`predict`).
 
     **Returns:**
 
@@ -119,9 +158,10 @@ def solve_x0(data: Data, solver=None, *, with_covariance: bool = True) -> X0Fit:
         mask=mask,
     )
     start = Params(np.zeros((1, 0), flat0.dtype), X0[None])
-    buffers, layout = _solve(solvers, problem, start, with_covariance)
-    x0, loss, result, e, cov = _pytree.unpack(buffers, layout)
+    buffers, layout = _solve(solvers, problem, start, with_covariance, record)
+    x0, loss, result, e, cov, extra = _pytree.unpack(buffers, layout)
     x0_cov = None
     if cov is not None:
         x0_cov = scale(cov, int(np.count_nonzero(np.isfinite(e)))).x0
-    return X0Fit(x0, loss, from_index(int(result)), e, x0_cov)
+    ok, sim = (None, None) if extra is None else extra
+    return X0Fit(x0, loss, from_index(int(result)), e, x0_cov, ok, sim)

@@ -15,6 +15,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from ._checks import as_float
+from ._jit import jit
 from ._linalg import psd_solve
 from ._simulate import simulate_impl
 
@@ -73,7 +74,7 @@ def _rms(a, axis=0):
     return np.where(np.isfinite(s) & (s > 0), s, 1.0)
 
 
-@eqx.filter_jit
+@jit
 def _smooth(model, theta, m0, P0, Qp, R, u, z):
     """Extended Kalman filter and Rauch-Tung-Striebel smoother over one head.
 

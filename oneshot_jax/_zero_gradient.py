@@ -17,13 +17,13 @@ the start too, and every parameter of a fit that reproduces the outputs exactly
 import dataclasses
 import warnings
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
 from ._fit_result import stop_detail
+from ._jit import jit
 from ._problem import Params
 from ._results import RESULTS, name_of
 
@@ -45,7 +45,7 @@ def _columns(problem, params, entries, strategy):
     return jax.vmap(column)(entries)
 
 
-@eqx.filter_jit
+@jit
 def _stuck(problem, params, entries, strategy):
     """Whether each free entry `entries` of theta has an exactly zero gradient (eq. 17, 20)
     and Jacobian column at `params`, and a Jacobian column that is not zero once they are

@@ -1,0 +1,133 @@
+"""A first `fit` and a first `predict` each compile one program (issue 19): the stability
+check of a `Model.from_ode` fit and predict's observability check and simulation run
+inside those calls, with the numbers of the separate functions."""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+from oneshot_jax.internal import jit_module
+
+DT, T = 0.05, 60
+
+
+def cubic(x, u, p):
+    # A state-dependent Jacobian (-3 a x0^2): the stability value depends on which states
+    # are checked.
+    return jnp.array([-p["a"] * x[0] ** 3 + x[1], -p["b"] * x[1] + u[0]])
+
+
+def _data(model, theta, x0, n_traj=1, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1.0, 1.0, (n_traj, T, 1))
+    X0 = np.broadcast_to(x0, (n_traj, 2))
+    _, z = oj.simulate(model, theta, X0, u)
+    return X0, u, np.asarray(z)
+
+
+class _Compiles:
+    """Counts XLA compilations (jax.monitoring) while active."""
+
+    def __init__(self):
+        self.n, self.on = 0, False
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, event, seconds, **kwargs):
+        if self.on and event == "/jax/core/compile/backend_compile_duration":
+            self.n += 1
+
+    def count(self, fn):
+        self.n, self.on = 0, True
+        try:
+            out = fn()
+        finally:
+            self.on = False
+        return out, self.n
+
+
+COMPILES = _Compiles()
+
+
+def _stability_warning(fn):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fn()
+    found = [str(w.message) for w in caught if "stability limit" in str(w.message)]
+    return out, found
+
+
+@pytest.mark.parametrize("n_traj, window", [(2, None), (1, 20)])
+def test_fit_warns_of_the_stability_limit_as_check_stability(n_traj, window):
+    """The fit's stability check (Jacobians from its compiled call) reports the value
+    `check_stability` finds on the fitted theta and x0, with several trajectories and
+    with windows (each row of x0 starting its own window)."""
+    model = oj.Model.from_ode(cubic, DT, observe=lambda x, u, p: x)
+    # |lambda| h = 3 a x0^2 h = 2.59 at the start, past the 2.5 margin, smaller later.
+    theta = {"a": 12.0, "b": 2.0}
+    X0, u, z = _data(model, theta, np.array([1.2, 0.0]), n_traj)
+    if n_traj == 1:
+        X0, u, z = X0[0], u[0], z[0]
+    result, found = _stability_warning(
+        lambda: oj.fit(model, {"a": 10.0, "b": 1.5}, X0, u, z, window=window)
+    )
+    fitted_u = u if window is None else u.reshape(-1, window, 1)
+    with pytest.warns(RuntimeWarning, match="stability limit") as direct:
+        report = oj.check_stability(model, result.theta, result.x0, fitted_u)
+    assert report.near_limit and len(found) == 1
+    assert found[0] == str(direct[0].message)
+    assert f"|lambda| h = {report.value:.3g}" in found[0]
+
+
+def test_first_fit_and_predict_compile_one_program_each():
+    model = oj.Model.from_ode(cubic, DT, observe=lambda x, u, p: x[:1])
+    u = np.random.default_rng(1).uniform(-1.0, 1.0, (T + 7, 1))  # shapes no other test has
+    _, z = oj.simulate(model, {"a": 0.5, "b": 2.0}, np.array([0.8, 0.1]), u)
+    x0 = np.array([0.7, 0.0])
+    result, n_fit = COMPILES.count(lambda: oj.fit(model, {"a": 0.4, "b": 1.5}, x0, u, z))
+    assert n_fit == 1
+    _, n_pred = COMPILES.count(lambda: result.predict(u[:-3], np.asarray(z)[:11]))
+    assert n_pred == 1
+    _, n_again = COMPILES.count(lambda: result.predict(u[:-3], np.asarray(z)[:11]))
+    assert n_again == 0
+
+
+def test_predict_matches_estimate_x0_and_simulate():
+    """predict's x0 estimate, its identifiable entries and the record simulated from it
+    come from one compiled call: the same as `estimate_x0` and `simulate` apart, with an
+    entry that the head does not determine (x1 reaches the output only through the
+    input-free coupling c = 0)."""
+
+    def rhs(x, u, p):
+        return jnp.array([-p["a"] * x[0] + p["c"] * x[1] + u[0], -p["b"] * x[1]])
+
+    model = oj.Model.from_ode(rhs, DT, observe=lambda x, u, p: x[:1])
+    theta = {"a": 1.0, "b": 2.0, "c": 0.0}
+    u = np.random.default_rng(2).uniform(-1, 1, (T, 1))
+    _, z = oj.simulate(model, theta, np.array([0.3, 0.7]), u)
+    guess = np.array([0.0, 0.5])
+    with pytest.warns(UserWarning, match=r"x0\[1\]"):
+        pred = oj.predict(model, theta, u, np.asarray(z), 12, x0=guess)
+    with pytest.warns(UserWarning, match=r"x0\[1\]"):
+        est = oj.estimate_x0(model, theta, u, np.asarray(z), n=12, x0=guess)
+    assert list(pred.estimate.identifiable) == list(est.identifiable) == [True, False]
+    np.testing.assert_array_equal(pred.x0, est.x0)
+    np.testing.assert_array_equal(pred.estimate.covariance, est.covariance)
+    x, zhat = oj.simulate(model, theta, pred.x0, u)
+    np.testing.assert_allclose(pred.x, x, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(pred.z, zhat, rtol=0, atol=1e-14)
+    assert pred.x.shape == (T, 2) and pred.z.shape == (T, 1)
+
+
+def test_an_option_xla_refuses_falls_back_to_its_defaults(monkeypatch):
+    """A compiler option this XLA does not know (a later version may drop one) costs
+    nothing but the option: the call compiles with XLA's defaults from then on."""
+    monkeypatch.setattr(jit_module, "CPU_OPTIONS", {"xla_cpu_no_such_option": True})
+    monkeypatch.setattr(jit_module, "OPTIONS_TAKEN", [True])
+    double = jit_module.jit(lambda x: 2.0 * x)
+    assert float(double(jnp.asarray(3.0))) == 6.0
+    assert jit_module.OPTIONS_TAKEN == [jax.default_backend() != "cpu"]
+    assert float(double(jnp.asarray(4.0))) == 8.0
