@@ -455,7 +455,7 @@ class Joint:
     adam_steps: int = 1000
     lr: float = 3e-3
     lr_x0: float = 1e-3
-    weight_decay: float = 0.0
+    weight_decay: float = 1e-4  # l2 on the network: less overfitting of the estimation record
     refine: str = "levenberg_marquardt"
     refine_steps: int = 30
     scale: str | None = None  # Adam(scale=...): None, or "theta0" (relative physical steps)
