@@ -94,6 +94,15 @@ def _history(key, value):
         _fail(key, "an even integer >= 2", value)
 
 
+def _emps_record(k, cfg):
+    """The checks of the options every EMPS study shares (the model and the record)."""
+    _number(k + "eps", cfg.eps, lo=0.0, lo_open=True)
+    _integer(k + "substeps", cfg.substeps, 1)
+    _integer(k + "velocity_halfwidth", cfg.velocity_halfwidth, 1)
+    if cfg.n_samples is not None:
+        _integer(k + "n_samples", cfg.n_samples, 4 * cfg.velocity_halfwidth)
+
+
 # --------------------------------------------------------------------------- solver
 
 
@@ -253,11 +262,7 @@ class EMPSConfig:
 
     def __post_init__(self):
         k = "experiment."
-        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
-        _integer(k + "substeps", self.substeps, 1)
-        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
-        if self.n_samples is not None:
-            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _emps_record(k, self)
         _params(k + "theta0", self.theta0, emps_example.PARAMS, positive=("M", "Fv", "Fc"))
         _history(k + "history", self.history)
         for fam in ("open_loop", "closed_loop"):
@@ -310,11 +315,7 @@ class EMPSHybridConfig:
 
     def __post_init__(self):
         k = "experiment."
-        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
-        _integer(k + "substeps", self.substeps, 1)
-        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
-        if self.n_samples is not None:
-            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _emps_record(k, self)
         _integer(k + "window", self.window, 2)
         _params(k + "theta0", self.theta0, emps_example.PARAMS, positive=("M", "Fv", "Fc"))
         _one_of(k + "inputs", self.inputs, ("v", "qv"))
@@ -355,11 +356,7 @@ class EMPSFrictionConfig:
         from . import emps_friction
 
         k = "experiment."
-        _number(k + "eps", self.eps, lo=0.0, lo_open=True)
-        _integer(k + "substeps", self.substeps, 1)
-        _integer(k + "velocity_halfwidth", self.velocity_halfwidth, 1)
-        if self.n_samples is not None:
-            _integer(k + "n_samples", self.n_samples, 4 * self.velocity_halfwidth)
+        _emps_record(k, self)
         _number(k + "holdout", self.holdout, lo=0.0, hi=0.5, lo_open=True)
         if not self.windows:
             _fail(k + "windows", "a non-empty list of increasing window lengths", self.windows)
