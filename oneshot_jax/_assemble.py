@@ -180,14 +180,12 @@ def _free_names(params, free):
     """The names of theta's free entries (`_pytree.leaf_names`), kept per structure."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     key = (treedef, tuple(np.shape(a) for a in leaves), tuple(free))
-    names = _NAMES.get(key)
-    if names is None:
+
+    def names():
         all_names = _pytree.leaf_names(params)
-        names = tuple(all_names[i] for i in free)
-        if len(_NAMES) >= 256:
-            _NAMES.pop(next(iter(_NAMES)))
-        _NAMES[key] = names
-    return names
+        return tuple(all_names[i] for i in free)
+
+    return _pytree.kept(_NAMES, key, names)
 
 
 def _warn_identifiability(names, ok, what):

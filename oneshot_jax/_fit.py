@@ -56,16 +56,9 @@ def _theta_order(theta):
     """`theta_order(theta)`, kept per structure and written order of dicts."""
     try:
         key = (jax.tree_util.tree_structure(theta), _written_order(theta))
-        hash(key)
     except TypeError:
         return theta_order(theta)
-    order = _ORDERS.get(key)
-    if order is None:
-        order = theta_order(theta)
-        if len(_ORDERS) >= 256:
-            _ORDERS.pop(next(iter(_ORDERS)))
-        _ORDERS[key] = order
-    return order
+    return _pytree.kept(_ORDERS, key, lambda: theta_order(theta))
 
 
 @jit

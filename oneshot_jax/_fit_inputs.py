@@ -173,16 +173,13 @@ def _module_entries(theta):
     """`_pytree.module_entries(theta)`, kept per structure and shapes of theta."""
     leaves, treedef = jax.tree_util.tree_flatten(theta)
     key = (treedef, tuple(np.shape(a) for a in leaves))
-    try:
-        found = _MODULE_ENTRIES.get(key)
-    except TypeError:  # an unhashable static part
-        return _pytree.module_entries(theta)
-    if found is None:
-        if len(_MODULE_ENTRIES) >= 256:
-            _MODULE_ENTRIES.pop(next(iter(_MODULE_ENTRIES)))
-        found = _MODULE_ENTRIES[key] = _pytree.module_entries(theta)
+
+    def entries():
+        found = _pytree.module_entries(theta)
         found.setflags(write=False)
-    return found
+        return found
+
+    return _pytree.kept(_MODULE_ENTRIES, key, entries)
 
 
 def build_problem(

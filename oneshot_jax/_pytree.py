@@ -131,6 +131,21 @@ def module_entries(theta) -> np.ndarray:
     return np.concatenate([np.ravel(a) for a in leaves]) if leaves else np.zeros(0, bool)
 
 
+def kept(cache: dict, key, make, size: int = 256):
+    """`make()`, kept in `cache` under `key` (what depends only on a structure, kept
+    between calls); the oldest entry is dropped past `size`, and an unhashable `key`
+    keeps nothing."""
+    try:
+        found = cache.get(key)
+    except TypeError:
+        return make()
+    if found is None:
+        if len(cache) >= size:
+            cache.pop(next(iter(cache)))
+        found = cache[key] = make()
+    return found
+
+
 def _key(entry) -> str:
     for attr in ("key", "idx", "name"):
         if hasattr(entry, attr):

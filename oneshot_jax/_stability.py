@@ -114,8 +114,7 @@ def report(step, idx, xs, J) -> Stability | None:
     """The `Stability` of the Jacobians `J` at the states `xs` (flattened indices `idx`)
     of a `Model.from_ode` model's `step`, from their eigenvalues (on the host); None
     where no state is finite."""
-    xs, J = np.asarray(xs), np.asarray(J)
-    finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+    xs, J, finite = _finite(xs, J)
     if not np.any(finite):
         return None
     eig = np.linalg.eigvals(J[finite])
@@ -132,12 +131,17 @@ def report(step, idx, xs, J) -> Stability | None:
     )
 
 
+def _finite(xs, J):
+    """The states and Jacobians on the host, and which of them are finite."""
+    xs, J = np.asarray(xs), np.asarray(J)
+    return xs, J, np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+
+
 def warn_after_fit(step, idx, xs, J, stacklevel: int) -> None:
     """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`).
     Where max |lambda| h is within the limit by its bound ||J||_inf h (the largest row sum
     of |J| bounds every eigenvalue's modulus), no eigenvalue is computed."""
-    xs, J = np.asarray(xs), np.asarray(J)
-    finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
+    xs, J, finite = _finite(xs, J)
     if not np.any(finite):
         return
     bound = float(np.max(np.sum(np.abs(J[finite]), axis=2))) * step.dt / step.substeps
