@@ -288,7 +288,10 @@ def main():
     ap.add_argument("--fit-T", type=int, default=None, help="record length of the fit loop")
     ap.add_argument("--fit-steps", type=int, default=20, help="Adam steps in the fit loop")
     ap.add_argument("--memory", action="store_true", help="add the compiled-memory table")
-    ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH")
+    ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH (after each cell)")
+    ap.add_argument("--nx", type=int, nargs="+", help="state sizes (overrides the grid)")
+    ap.add_argument("--horizons", type=float, nargs="+", help="record lengths T (overrides)")
+    ap.add_argument("--no-fit", action="store_true", help="skip the fit-like loop")
     args = ap.parse_args()
 
     dtype = jnp.float32 if args.float32 else jnp.float64
@@ -298,15 +301,22 @@ def main():
         cells = [(n, T) for n in NX for T in HORIZONS]
     else:
         cells = [(n, T) for n in NX for T in HORIZONS if T * n**3 <= DEFAULT_WORK]
+    if args.nx or args.horizons:
+        nxs = args.nx or sorted({n for n, _ in cells})
+        hs = [int(T) for T in args.horizons] if args.horizons else sorted({T for _, T in cells})
+        cells = [(n, T) for n in nxs for T in hs]
     fit_T = args.fit_T or (10_000 if args.quick else 100_000)
 
     load0 = os.getloadavg()
     t_start = time.perf_counter()
-    rows = []
+    rows, fits, mem = [], [], []
     for n, T in cells:
         rows.append(time_cell(n, T, dtype, args.repeats, args.max_mib))
         print(f"  n_x={n} T={T}: {rows[-1]['wall']:.0f} s", file=sys.stderr, flush=True)
-    fits = [time_fit(2, fit_T, args.fit_steps, dtype, min(args.repeats, 3), args.max_mib)]
+        print(cell_table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
+        write_json(args, dtype, (load0, os.getloadavg()), rows, fits, mem)
+    if not args.no_fit:
+        fits = [time_fit(2, fit_T, args.fit_steps, dtype, min(args.repeats, 3), args.max_mib)]
     mem = memory_rows(dtype) if args.memory else []
     wall = time.perf_counter() - t_start
     load1 = os.getloadavg()
@@ -318,31 +328,38 @@ def main():
         f"{wall:.0f} s in all. {conditions()}\n"
     )
     print(cell_table(rows))
-    print("\nFit-like loop (one jitted loop of Adam steps on theta, n_x = 2):\n")
-    print(fit_table(fits))
+    if fits:
+        print("\nFit-like loop (one jitted loop of Adam steps on theta, n_x = 2):\n")
+        print(fit_table(fits))
     if mem:
         print(
             "\nMemory of one call at n_x = 4 (XLA's compiled memory analysis: temporaries, "
             "arguments and outputs):\n"
         )
         print(memory_table(mem))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(
-                {
-                    "jax": jax.__version__,
-                    "backend": jax.default_backend(),
-                    "conditions": conditions(),
-                    "dtype": jnp.dtype(dtype).name,
-                    "repeats": args.repeats,
-                    "load_average": [load0[0], load1[0]],
-                    "cells": rows,
-                    "fit": fits,
-                    "memory": mem,
-                },
-                f,
-                indent=2,
-            )
+    write_json(args, dtype, (load0, load1), rows, fits, mem)
+
+
+def write_json(args, dtype, loads, rows, fits, mem):
+    """The numbers so far to `args.json` (rewritten after each cell)."""
+    if not args.json:
+        return
+    with open(args.json, "w") as f:
+        json.dump(
+            {
+                "jax": jax.__version__,
+                "backend": jax.default_backend(),
+                "conditions": conditions(),
+                "dtype": jnp.dtype(dtype).name,
+                "repeats": args.repeats,
+                "load_average": [loads[0][0], loads[1][0]],
+                "cells": rows,
+                "fit": fits,
+                "memory": mem,
+            },
+            f,
+            indent=2,
+        )
 
 
 if __name__ == "__main__":
