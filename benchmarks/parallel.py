@@ -35,7 +35,10 @@ chunked, and T = 1e7 chunked.
 
 Run: `python benchmarks/parallel.py` (default grid: the ten cells with T n_x^3 <= 1.1e7);
 `--quick` (T in {1e3, 1e4}, n_x in {2, 8}); `--full` (T up to 1e6 at every n_x, for an
-accelerator); `--json PATH` writes the numbers.
+accelerator); `--nx` / `--horizons` pick the cells; `--json PATH` writes the numbers (after
+each cell); `--render JSON...` prints the tables of earlier runs (the GPU table in
+`docs/benchmarks.md` is `python benchmarks/parallel.py --render benchmarks/gpu/h100_grid.json
+benchmarks/gpu/h100_nx*.json benchmarks/gpu/h100_fit_memory.json`).
 """
 
 import argparse
@@ -241,22 +244,25 @@ def fmt_T(T):
     return f"{T:.0e}".replace("e+0", "e")
 
 
-def cell_table(rows):
+def cell_table(rows, samples=None):
+    """The cells' table; `samples` (one count per row) adds a column of samples per median."""
     lines = [
         "| n_x | T | forward seq | forward par | par/seq | value_and_grad seq "
-        "| value_and_grad par | par/seq | iters | solve | chunk | rel. diff |",
-        "|" + "---|" * 12,
+        "| value_and_grad par | par/seq | iters | solve | chunk | rel. diff |"
+        + (" samples |" if samples else ""),
+        "|" + "---|" * (13 if samples else 12),
     ]
-    for r in rows:
+    for i, r in enumerate(rows):
         its = f"{r['newton_iterations']}" + (
             f"+{r['damped_iterations']}" if r["damped_iterations"] else ""
         )
         lines.append(
             f"| {r['n_x']} | {fmt_T(r['T'])} | {fmt_time(r['seq_forward'])} "
-            f"| {fmt_time(r['par_forward'])} | {r['par_forward'] / r['seq_forward']:.2f} "
+            f"| {fmt_time(r['par_forward'])} | {r['par_forward'] / r['seq_forward']:.3g} "
             f"| {fmt_time(r['seq_vg'])} | {fmt_time(r['par_vg'])} "
-            f"| {r['par_vg'] / r['seq_vg']:.2f} | {its} | {r['method']} "
+            f"| {r['par_vg'] / r['seq_vg']:.3g} | {its} | {r['method']} "
             f"| {r['chunk'] or '-'} | {r['rel_diff']:.1e} |"
+            + (f" {samples[i]} |" if samples else "")
         )
     return "\n".join(lines)
 
@@ -269,7 +275,7 @@ def fit_table(rows):
     for r in rows:
         lines.append(
             f"| {r['n_x']} | {fmt_T(r['T'])} | {r['steps']} | {fmt_time(r['sequential'])} "
-            f"| {fmt_time(r['parallel'])} | {r['parallel'] / r['sequential']:.2f} "
+            f"| {fmt_time(r['parallel'])} | {r['parallel'] / r['sequential']:.3g} "
             f"| {r['rel_diff']:.1e} |"
         )
     return "\n".join(lines)
@@ -292,7 +298,13 @@ def main():
     ap.add_argument("--nx", type=int, nargs="+", help="state sizes (overrides the grid)")
     ap.add_argument("--horizons", type=float, nargs="+", help="record lengths T (overrides)")
     ap.add_argument("--no-fit", action="store_true", help="skip the fit-like loop")
+    ap.add_argument(
+        "--render", metavar="JSON", nargs="+", help="print the tables of earlier --json runs"
+    )
     args = ap.parse_args()
+    if args.render:
+        render(args.render)
+        return
 
     dtype = jnp.float32 if args.float32 else jnp.float64
     if args.quick:
@@ -338,6 +350,33 @@ def main():
         )
         print(memory_table(mem))
     write_json(args, dtype, (load0, load1), rows, fits, mem)
+
+
+def render(paths):
+    """One table of the cells of several `--json` files (sorted by n_x, T), then their
+    fit-like loops and memory rows, after each file's conditions."""
+    cells, fits, mem = [], [], []
+    for path in paths:
+        with open(path) as f:
+            d = json.load(f)
+        print(
+            f"- `{os.path.basename(path)}`: backend {d['backend']}, {d['dtype']}, median of "
+            f"{d['repeats']} samples. {d['conditions']}"
+        )
+        cells += [(r, d["repeats"]) for r in d["cells"]]
+        fits += d["fit"]
+        mem += d["memory"]
+    # One row per cell: the first file that measured it (list the main run first).
+    cells = list({(r["n_x"], r["T"]): (r, k) for r, k in reversed(cells)}.values())
+    cells.sort(key=lambda c: (c[0]["n_x"], c[0]["T"]))
+    print()
+    print(cell_table([r for r, _ in cells], samples=[k for _, k in cells]))
+    if fits:
+        print("\nFit-like loop (one jitted loop of Adam steps on theta, n_x = 2):\n")
+        print(fit_table(fits))
+    if mem:
+        print("\nMemory of one call at n_x = 4 (XLA's compiled memory analysis):\n")
+        print(memory_table(mem))
 
 
 def write_json(args, dtype, loads, rows, fits, mem):
