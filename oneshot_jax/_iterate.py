@@ -30,7 +30,7 @@ class Solution(NamedTuple):
     loss: jax.Array
     result: RESULTS
     num_steps: jax.Array
-    history: _history.History
+    history: _history.History | None  # None with history_size=0
     final_loss: jax.Array  # the loss and gradient norm at each start's last iterate
     final_grad_norm: jax.Array
     final_theta: jax.Array  # (the last iterate, before `postprocess`)
@@ -58,7 +58,7 @@ class _Carry(NamedTuple):
     num_steps: jax.Array  # per start: the steps it took before stopping
     done: jax.Array
     result: RESULTS
-    history: _history.History
+    history: _history.History | None  # None with history_size=0
     best: Best | None
 
 
@@ -133,10 +133,21 @@ def iterate(
 
     check_all = _over_starts(check, n_starts)
     state = _over_starts(lambda p: solver.init(problem, p), n_starts)(params)
-    done, result, loss, gnorm = check_all(params, state)
-    hist = _history.init(
-        history_size, n_starts, params.theta.shape[1], problem.dtype, mon is not None
-    )
+    # A solver that `primes_in_step` evaluates the start in its first step (step 0 of
+    # the loop below, recorded as the start); otherwise it is tested here.
+    primes = solver.primes_in_step
+    if primes:
+        done = jnp.zeros(n_starts, bool)
+        result = _over_starts(lambda p, s: solver.terminate(problem, p, s)[1], n_starts)(
+            params, state
+        )
+    else:
+        done, result, loss, gnorm = check_all(params, state)
+    hist = None  # (`history_size=0`: no history, nothing of it traced)
+    if history_size:
+        hist = _history.init(
+            history_size, n_starts, params.theta.shape[1], problem.dtype, mon is not None
+        )
     score = None
     if mon is not None:
         guess = jnp.broadcast_to(mon.x0, (n_starts, *mon.x0.shape)) if best is None else best.val_x0
@@ -152,7 +163,8 @@ def iterate(
             best = best._replace(
                 since=jnp.zeros_like(best.since), here=best.here | (score <= best.score)
             )
-    hist = _history.first(hist, loss, gnorm, params.theta, score)
+    if hist is not None and not primes:
+        hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset = meter_args
     step_all = _over_starts(lambda p, s: solver.step(problem, p, s), n_starts)
@@ -172,11 +184,15 @@ def iterate(
         if mon is not None:
             score, val_x0 = _scores(problem, params, c.best.val_x0)
             best = _update_best(c.best, params, score, val_x0, ~c.done)
+            if primes:  # (the start's score is in `best` already)
+                best = _where(step == 0, c.best, best)
             if mon.patience is not None:
                 patience_out = (best.since >= mon.patience) & ~done
                 done = done | patience_out
                 result = _where(patience_out & ~c.done, RESULTS.validation, result)
-        hist = _history.record(c.history, step, loss, gnorm, params.theta, score)
+        hist = c.history
+        if hist is not None:
+            hist = _history.record(hist, step, loss, gnorm, params.theta, score)
         meter.update(bar_id, offset, step, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
         dynamic, _ = eqx.partition(state, eqx.is_array)
         return _Carry(
@@ -190,8 +206,9 @@ def iterate(
             best,
         )
 
-    zero = jnp.array(0, jnp.int32)
-    init = _Carry(params, dynamic, zero, jnp.zeros(n_starts, jnp.int32), done, result, hist, best)
+    first = jnp.array(-1 if primes else 0, jnp.int32)  # (the priming step is step 0)
+    num_steps = jnp.full(n_starts, first, jnp.int32)
+    init = _Carry(params, dynamic, first, num_steps, done, result, hist, best)
     c = jax.lax.while_loop(cond, body, init)
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)

@@ -1,7 +1,7 @@
-"""`jit`: `equinox.filter_jit` with the library's options for XLA's compiler, for the
-compiled calls that the public functions make at the top level (`fit`'s solve,
-`predict`'s x0 solve, ...; never one that also runs inside another compiled function:
-JAX takes compiler options on the outermost call only).
+"""`jit`: compiled calls with `equinox.filter_jit`'s semantics and the library's options
+for XLA's compiler, for the compiled calls that the public functions make at the top
+level (`fit`'s solve, `predict`'s x0 solve, ...; never one that also runs inside another
+compiled function: JAX takes compiler options on the outermost call only).
 
 On a CPU, a first call spends most of its time in XLA generating machine code for each
 fused kernel of the program. XLA's elemental emitter (`xla_cpu_use_fusion_emitters`
@@ -10,39 +10,105 @@ kernels and the same numbers (`benchmarks/first_call.py` shows the first calls).
 options go to each compiled call (`jax.jit(compiler_options=...)`): the library never
 changes JAX's global configuration. On another backend, or an XLA that no longer has the
 option, the call compiles with XLA's defaults.
+
+A later call of a small problem is dominated by the dispatch around the program, so the
+arguments are split once per call, without `equinox.filter_jit`'s per-call signature
+binding, filtering and logging set-up: the arrays (JAX or NumPy) are the traced
+arguments of one `jax.jit` per structure of the rest, which is static (hashed, as
+`filter_jit` hashes it). Outputs come back the same way, their non-array leaves in the
+treedef (`_Static`). Arguments whose static part cannot be hashed take
+`equinox.filter_jit` itself.
 """
 
 import functools
 
 import equinox as eqx
 import jax
+import numpy as np
 
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 # Whether this XLA takes `CPU_OPTIONS` (set False on its first refusal).
 OPTIONS_TAKEN = [True]
 
+_ARRAYS = (jax.Array, np.ndarray, np.generic)
+
+# The compiled functions of each static structure, per `jit`; bounded.
+_KEPT = 32
+
+
+class _Static:
+    """A value carried in a pytree's structure (no leaves): the non-array outputs."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+
+jax.tree_util.register_pytree_node(_Static, lambda s: ((), s.value), lambda v, _: _Static(v))
+
+
+def _split(tree):
+    """(arrays, (treedef, the other leaves with None at the arrays))."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    arrays = [a for a in leaves if isinstance(a, _ARRAYS)]
+    static = tuple(None if isinstance(a, _ARRAYS) else a for a in leaves)
+    return arrays, (treedef, static)
+
+
+def _merge(arrays, structure):
+    treedef, static = structure
+    it = iter(arrays)
+    return jax.tree_util.tree_unflatten(treedef, [next(it) if s is None else s for s in static])
+
 
 def jit(fn):
-    """`equinox.filter_jit(fn)`, compiled with `CPU_OPTIONS` on the CPU backend.
+    """`fn` compiled as `equinox.filter_jit(fn)` would (arrays traced, everything else
+    static), with `CPU_OPTIONS` on the CPU backend.
 
-    **Arguments:** `fn`, the function to compile (arrays traced, everything else static,
-    as `equinox.filter_jit`).
+    **Arguments:** `fn`, the function to compile.
 
     **Returns:** the compiled function.
     """
     plain = eqx.filter_jit(fn)
     tuned = eqx.filter_jit(fn, compiler_options=CPU_OPTIONS)
+    compiled = {}  # (structure, options?) -> jax.jit of the arrays
+
+    def traced(structure, arrays):
+        args, kwargs = _merge(arrays, structure)
+        out_arrays, out_structure = _split(fn(*args, **kwargs))
+        return out_arrays, _Static(out_structure)
+
+    def fast(structure, arrays, options):
+        key = (structure, options)
+        f = compiled.get(key)
+        if f is None:
+            if len(compiled) >= _KEPT:
+                compiled.pop(next(iter(compiled)))
+            kw = {"compiler_options": CPU_OPTIONS} if options else {}
+            f = compiled[key] = jax.jit(functools.partial(traced, structure), **kw)
+        out_arrays, out_structure = f(arrays)
+        return _merge(out_arrays, out_structure.value)
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if OPTIONS_TAKEN[0] and jax.default_backend() == "cpu":
-            try:
-                return tuned(*args, **kwargs)
-            except jax.errors.JaxRuntimeError as e:
-                if "compile option" not in str(e):
-                    raise
-                OPTIONS_TAKEN[0] = False
+        options = OPTIONS_TAKEN[0] and jax.default_backend() == "cpu"
+        arrays, structure = _split((args, kwargs))
+        try:
+            hash(structure)
+        except TypeError:  # an unhashable static leaf: equinox's own handling
+            structure = None
+        try:
+            if structure is not None:
+                return fast(structure, arrays, options)
+            return (tuned if options else plain)(*args, **kwargs)
+        except jax.errors.JaxRuntimeError as e:
+            if not options or "compile option" not in str(e):
+                raise
+            OPTIONS_TAKEN[0] = False
+        if structure is not None:
+            return fast(structure, arrays, False)
         return plain(*args, **kwargs)
 
     return call

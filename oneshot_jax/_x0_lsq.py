@@ -79,7 +79,7 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
     """The solvers from one start, then the residuals (and the covariance blocks) at the
     solution, and with a `record`'s inputs (one trajectory) the identifiability of x0 and
     the record simulated from it: one compiled call, its output packed (`_pytree.pack`)."""
-    final = run(solvers, problem, start, history_size=2, meter=_NO_PROGRESS, bar_id=0)[-1]
+    final = run(solvers, problem, start, history_size=0, meter=_NO_PROGRESS, bar_id=0)[-1]
     params = jax.tree_util.tree_map(lambda a: a[0], final.params)
     strategy = getattr(solvers[-1], "strategy", "auto")
     X0 = problem.x0_of(params.x0)

@@ -56,13 +56,17 @@ prox of its set's indicator): `project` is the projection P, `bounds` a box's bo
 for a general convex set). The name of oneshot_jax 0.2, kept."""
 
 
+def _dtype(p):
+    """A leaf's dtype: its own where it has one (no JAX dtype promotion on the host)."""
+    dtype = getattr(p, "dtype", None)
+    return jnp.result_type(p) if dtype is None else dtype
+
+
 def _fill_like(bound, params, fill, name):
     """Broadcast a bound (scalar, pytree like params, or a partial dict) onto params."""
     # Bounds are constants: NumPy builds them without a JAX dispatch per leaf.
     if bound is None:
-        return jax.tree_util.tree_map(
-            lambda p: np.full(jnp.shape(p), fill, jnp.result_type(p)), params
-        )
+        return jax.tree_util.tree_map(lambda p: np.full(np.shape(p), fill, _dtype(p)), params)
     if isinstance(params, dict) and isinstance(bound, dict):
         unknown = set(bound) - set(params)
         if unknown:
@@ -79,7 +83,7 @@ def _fill_like(bound, params, fill, name):
         out = []
         for p in leaves:
             try:
-                out.append(xp.broadcast_to(b, jnp.shape(p)).astype(jnp.result_type(p)))
+                out.append(xp.broadcast_to(b, np.shape(p)).astype(_dtype(p)))
             except ValueError as err:
                 raise ValueError(
                     f"`{name}` of shape {b.shape} does not fit a parameter of shape {jnp.shape(p)}."

@@ -131,3 +131,23 @@ def test_an_option_xla_refuses_falls_back_to_its_defaults(monkeypatch):
     assert float(double(jnp.asarray(3.0))) == 6.0
     assert jit_module.OPTIONS_TAKEN == [jax.default_backend() != "cpu"]
     assert float(double(jnp.asarray(4.0))) == 8.0
+
+
+def test_compiled_calls_return_the_static_outputs_of_their_own_shapes():
+    """The library's compiled calls trace once per structure and shapes of their
+    arguments; the non-array outputs (here the length) are those of the call's own
+    shapes, also when a shape seen earlier comes back after another one."""
+    calls = []
+
+    def f(x, scale):
+        calls.append(x.shape)
+        return {"y": scale * x, "n": x.shape[0], "name": "f"}
+
+    g = jit_module.jit(f)
+    for n in (3, 5, 3, 5):
+        out = g(np.arange(n, dtype=float), 2.0)
+        assert out["n"] == n and out["name"] == "f"
+        np.testing.assert_array_equal(out["y"], 2.0 * np.arange(n))
+    assert calls == [(3,), (5,)]  # traced once per shape
+    assert g(np.arange(3, dtype=float), 3.0)["y"][1] == 3.0  # a new static value: traced again
+    assert len(calls) == 3

@@ -16,7 +16,7 @@ implements these methods, plus a test.
 import abc
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -32,9 +32,16 @@ class AbstractSolver(eqx.Module):
 
     max_steps: eqx.AbstractVar[int]
 
+    # Whether `init` leaves the evaluation at the starting point to the first `step`
+    # (a priming step that keeps params): the loop (`oneshot_jax._iterate`) then runs
+    # that step before it tests or counts anything, and the compiled program holds one
+    # copy of the evaluation (the linearisation of the least-squares solvers), not two.
+    primes_in_step: ClassVar[bool] = False
+
     @abc.abstractmethod
     def init(self, problem: FitProblem, params: Params) -> Any:
-        """The solver's state at the starting point (evaluating whatever it needs there)."""
+        """The solver's state at the starting point (evaluating whatever it needs there,
+        or with `primes_in_step` a placeholder that the first `step` fills in)."""
 
     @abc.abstractmethod
     def step(self, problem: FitProblem, params: Params, state) -> tuple[Params, Any]:

@@ -76,6 +76,19 @@ class LSQState(NamedTuple):
     measures: Measures  # the first-order measure here, the last step and its prediction
     done: jax.Array
     result: RESULTS
+    primed: jax.Array  # whether `blocks` hold the linearisation (after the first step)
+
+
+class _Move(NamedTuple):
+    """A step's move before the linearisation at its end (`AbstractLeastSquares._move`)."""
+
+    params: Params  # the next iterate (the current one where nothing was taken)
+    loss: jax.Array  # C there
+    take: jax.Array  # whether the iterate moved (a linearisation is due there)
+    h: Params  # the descent step
+    pred: jax.Array  # the decrease the linear model predicts for the projected step
+    gave_up: jax.Array  # the search gave up and the gradient step failed too
+    search: Any  # the search's next state
 
 
 class AbstractLeastSquares(AbstractSolver):
@@ -142,22 +155,27 @@ class AbstractLeastSquares(AbstractSolver):
             return jnp.zeros(p_theta.shape, bool)
         return ((p_theta <= problem.lower) & (g_t > 0)) | ((p_theta >= problem.upper) & (g_t < 0))
 
+    primes_in_step = True
+
     def init(self, problem, params):
-        blocks, h_min = self._linearise(problem, params)
+        # A placeholder linearisation (zeros of its shapes): the first `step` forms it
+        # at `params` (`primes_in_step`), so that the compiled loop holds one copy.
+        blocks, h_min = jax.tree_util.tree_map(
+            lambda a: jnp.zeros(a.shape, a.dtype),
+            jax.eval_shape(lambda: self._linearise(problem, params)),
+        )
         dtype = problem.dtype
-        fo = blocks.first_order(problem, params)
         nan = jnp.array(jnp.nan, dtype)
-        negative = h_min < 0
-        stationary = fo <= self.gtol
         return LSQState(
             blocks,
-            blocks.C,
+            jnp.array(jnp.inf, dtype),
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(fo, nan, nan, nan),
-            negative | stationary,
-            RESULTS.where(negative, RESULTS.negative_penalty, RESULTS.converged),
+            Measures(nan, nan, nan, nan),
+            jnp.array(False),
+            RESULTS.converged,
+            jnp.array(False),
         )
 
     def trial(self, problem, params, step, alpha):
@@ -213,12 +231,13 @@ class AbstractLeastSquares(AbstractSolver):
         _, new, Cn, ok, _ = jax.lax.while_loop(cond, body, init)
         return new, Cn, ok
 
-    def step(self, problem, params, state):
+    def _move(self, problem, params, state) -> _Move:
+        """The descent step from `params` (linearisation `state.blocks`), its search and
+        the projected-gradient fallback: where the step ends, before the linearisation
+        there."""
         b = state.blocks
         search = self._search()
         mu = search.damping(state.search)
-        dtype = problem.dtype
-        eps = jnp.finfo(dtype).eps
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, mu, act)
         full = self.trial(problem, params, h, 1.0)
@@ -253,16 +272,33 @@ class AbstractLeastSquares(AbstractSolver):
         take = t.accept | arc[2]
         new = jax.tree_util.tree_map(lambda a, c: jnp.where(t.accept, a, c), t.params, arc[0])
         new_loss = jnp.where(t.accept, t.loss, arc[1])
-        old = params
         params = jax.tree_util.tree_map(lambda a, c: jnp.where(take, a, c), new, params)
         loss = jnp.where(take, new_loss, state.loss)
+        return _Move(params, loss, take, h, pred, t.gave_up & ~take, search_state)
+
+    def step(self, problem, params, state):
+        """One iteration: `_move`, then the linearisation where the iterate moved and the
+        stopping tests there. The first step (`state.primed` False) only forms the
+        linearisation at the starting point and tests it (the first-order test and a
+        negative penalty)."""
+        b = state.blocks
+        dtype = problem.dtype
+        eps = jnp.finfo(dtype).eps
+        primed = state.primed
+        zeros = Params(jnp.zeros_like(params.theta), jnp.zeros_like(params.x0))
+        false = jnp.array(False)
+        prime = _Move(params, state.loss, ~false, zeros, jnp.zeros((), dtype), false, state.search)
+        mv = lazy_cond(primed, lambda: self._move(problem, params, state), prime)
+        old = params
+        params, take, h, pred = mv.params, mv.take, mv.h, mv.pred
         blocks, h_min = lazy_cond(take, lambda: self._linearise(problem, params), (b, state.h_min))
+        loss = jnp.where(primed, mv.loss, blocks.C)
         fo = blocks.first_order(problem, params)
 
         s = Params(params.theta - old.theta, params.x0 - old.x0)
         size_d = b.scaled_norm(old)
         step_d = b.scaled_norm(s)
-        small_step = take & (step_d <= self.rtol * size_d + self.atol)
+        small_step = primed & take & (step_d <= self.rtol * size_d + self.atol)
         small_step = small_step & (state.loss - loss <= self.rtol * state.loss + self.atol)
         # Nothing left to gain at this precision: nothing decreased C and the predicted
         # decrease is at round-off (MINPACK's ftol test at machine epsilon), or the step
@@ -273,11 +309,11 @@ class AbstractLeastSquares(AbstractSolver):
             (pred <= 8 * eps * state.loss)
             | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
         )
-        gave_up = t.gave_up & ~take
+        gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
         # At round-off, stationary to the precision of the loss (`_optimality`).
         stationary = (fo <= self.gtol) | (round_off & (fo <= roundoff_limit(dtype)))
-        se, statistical = self._statistical(problem, old, s, b, state.loss, loss, take, fo)
+        se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
         negative = h_min < 0
         done = stationary | statistical | stalled | negative
         result = RESULTS.where(
@@ -295,13 +331,20 @@ class AbstractLeastSquares(AbstractSolver):
         )
         result = RESULTS.where(negative, RESULTS.negative_penalty, result)
         tiny = jnp.finfo(dtype).tiny
+        nan = jnp.array(jnp.nan, dtype)
         measures = Measures(
             fo,
-            step_d / jnp.maximum(size_d, tiny),
-            jnp.where(take, pred, jnp.maximum(pred, 0.0)) / jnp.maximum(state.loss, tiny),
+            jnp.where(primed, step_d / jnp.maximum(size_d, tiny), nan),
+            jnp.where(
+                primed,
+                jnp.where(take, pred, jnp.maximum(pred, 0.0)) / jnp.maximum(state.loss, tiny),
+                nan,
+            ),
             se,
         )
-        state = LSQState(blocks, loss, h_min, search_state, state.scale, measures, done, result)
+        state = LSQState(
+            blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false
+        )
         return params, state
 
     def _statistical(self, problem, old, s, b, C_old, C, take, fo):
