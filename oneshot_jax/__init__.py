@@ -30,6 +30,8 @@ from ._initial_state import predict as predict
 from ._io import save_result as save_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step
+from ._physics_first import PhysicsFirst as PhysicsFirst
+from ._physics_first import fit_physics_first as fit_physics_first
 from ._progress import NoProgress as NoProgress
 from ._progress import TqdmProgress as TqdmProgress
 from ._results import RESULTS as RESULTS
