@@ -1,21 +1,24 @@
-"""A network fed the whole state absorbs part of the physics; `fit_physics_first` does not.
+"""A network fed the whole state absorbs part of the physics; `fit_orthogonal` and
+`fit_physics_first` do not.
 
 A pendulum, q'' = -w0sq sin q - (0.1 q' + 0.3 tanh(4 q')) + g u (w0sq = 9, g = 1), driven
 by a multisine away from its resonance, its angle measured with noise 0.01 rad (RK4,
 dt = 0.05 s). The hybrid model keeps a linear damping b q' and adds an MLP(8) r(q, q')
 fed the WHOLE state: q'' = -w0sq sin q - b q' + r(q, q') + g u. A term of r in q trades
 with w0sq sin q, and the data cannot tell them apart. For each network seed it prints
-w0sq (truth 9) and the RMSE from three fits, all Levenberg-Marquardt with its defaults:
+w0sq (truth 9), its standard error and the RMSE from four fits, all Levenberg-Marquardt
+with its defaults, from w0sq = 8, b = 0.2, g = 1 and the network at zero output:
 
-- `joint`: `oj.fit` of everything from the start (w0sq = 8, b = 0.2, g = 1, the network
-  at zero output);
+- `joint`: `oj.fit` of everything;
 - `physics, then joint`: the physics alone (the network held at zero), then everything
   jointly from there (the recipe of the hybrid guide's neural residual);
 - `physics first`: `oj.fit_physics_first(..., learned="r")`, the physics alone, then
-  the network with the physics held.
+  the network with the physics held;
+- `orthogonal`: `oj.fit_orthogonal(..., learned="r")` (strength 100, rounds until the
+  physics moves by less than 0.1 standard errors).
 
-docs/snippets/hybrid_physics_first.txt, the table of docs/guides/minima.md ("When the
-network must see everything"), is the output of `python benchmarks/hybrid_physics_first.py`
+docs/snippets/hybrid_identifiable.txt, the tables of docs/guides/minima.md ("When the
+network must see everything"), is the output of `python benchmarks/hybrid_identifiable.py`
 (T = 300, network seeds 0, 1, 2), run from the repository root.
 """
 
@@ -71,14 +74,9 @@ def main():
     model = oj.Model.from_ode(hybrid_rhs, DT, observe=observe)
     u, z, x = record(args.T)
     # The fits with a free network warn that its weights are not identifiable (a known
-    # null space); the table is about w0sq.
+    # null space); the tables are about w0sq.
     warnings.filterwarnings("ignore", message="the Jacobian is rank-deficient")
-    print(f"Pendulum with a whole-state MLP(8), T = {args.T}, noise 0.01 rad; true w0sq = {W0SQ}.")
-    print(conditions())
-    print()
-    print("w0sq +- its standard error (relative error), then the RMSE in rad, per network seed")
-    head = ("joint", "physics, then joint", "physics first")
-    print(f"{'seed':>4}  " + "  ".join(f"{h:>32}" for h in head))
+    rows = []
     for seed in args.seeds:
         net = MLP(
             2, 1, (8,), key=jax.random.PRNGKey(seed), input_offset=x.mean(0), input_scale=x.std(0)
@@ -87,19 +85,40 @@ def main():
         joint = oj.fit(model, theta0, np.zeros(2), u, z)
         first = oj.fit_physics_first(model, theta0, np.zeros(2), u, z, learned="r")
         then = oj.fit(model, {**first.physics.theta, "r": net}, first.physics.x0, u, z)
+        orth = oj.fit_orthogonal(model, theta0, np.zeros(2), u, z, learned="r")
+        # (w0sq, its standard error, the RMSE) per method; physics first: the standard
+        # error of stage 1 (stage 2 holds w0sq); orthogonal: that of the last round's fit.
+        rows.append(
+            (
+                seed,
+                [
+                    (joint.theta["w0sq"], joint.std["w0sq"], joint.loss),
+                    (then.theta["w0sq"], then.std["w0sq"], then.loss),
+                    (first.result.theta["w0sq"], first.physics.std["w0sq"], first.result.loss),
+                    (orth.theta["w0sq"], orth.result.std["w0sq"], orth.loss),
+                ],
+                f"{len(orth.rounds)} ({'converged' if orth.converged else 'not converged'})",
+            )
+        )
 
-        def cell(r, se_from=None):
-            # physics first: the standard error is stage 1's (stage 2 holds w0sq)
-            w, se = float(r.theta["w0sq"]), float((se_from or r).std["w0sq"])
-            rel = 100 * (w / W0SQ - 1)
-            return f"{w:6.3f} +- {se:5.3f} ({rel:+5.1f} %)  {np.sqrt(float(r.loss)):.4f}"
-
-        cells = (cell(joint), cell(then), cell(first.result, first.physics))
-        row = "  ".join(f"{c:>32}" for c in cells)
-        print(f"{seed:>4}  {row}")
+    print(f"Pendulum with a whole-state MLP(8), T = {args.T}, noise 0.01 rad; true w0sq = {W0SQ}.")
+    print(conditions())
+    head = f"{'seed':>4}" + "".join(
+        f"  {h:>20}" for h in ("joint", "physics, then joint", "physics first", "orthogonal")
+    )
+    tables = (
+        ("w0sq (relative error)", lambda w, se, c: f"{w:.3f} ({100 * (w / W0SQ - 1):+.1f} %)"),
+        ("standard error of w0sq", lambda w, se, c: f"{se:.3g}"),
+        ("RMSE (rad)", lambda w, se, c: f"{np.sqrt(c):.4f}"),
+    )
+    for title, fmt in tables:
+        print(f"\n{title}\n{head}")
+        for seed, cells, _ in rows:
+            vals = (fmt(float(w), float(se), float(c)) for w, se, c in cells)
+            print(f"{seed:>4}" + "".join(f"  {v:>20}" for v in vals))
+    print("\northogonal rounds: " + ", ".join(f"seed {s}: {n}" for s, _, n in rows))
     print(
-        f"physics alone (stage 1): w0sq {float(first.physics.theta['w0sq']):.3f} +- "
-        f"{float(first.physics.std['w0sq']):.3f}, RMSE {np.sqrt(float(first.physics.loss)):.4f}"
+        f"physics alone (stage 1 of physics first): RMSE {np.sqrt(float(first.physics.loss)):.4f}"
     )
 
 
