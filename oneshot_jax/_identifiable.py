@@ -331,10 +331,10 @@ def _free_physics(theta, keys, held):
     return [k for k in theta if k not in keys and held.get(k, False) is not True]
 
 
-def _basis(model, theta, x0, u, observed, names, root):
+def _basis(model, theta, x0, u, names, root):
     """M_k = W^{1/2} Q_k (T, n_z, p): Q an orthonormal basis of the weighted output
-    sensitivities W^{1/2} d yhat_k / d theta_phys over the observed samples (forward-mode
-    autodiff of `simulate`); columns beyond the sensitivities' rank are zero."""
+    sensitivities W^{1/2} d yhat_k / d theta_phys over the record (forward-mode autodiff of
+    `simulate`); columns beyond the sensitivities' rank are zero."""
     phys = {k: theta[k] for k in names}
     dyn, static = eqx.partition(phys, eqx.is_inexact_array)
 
@@ -344,7 +344,7 @@ def _basis(model, theta, x0, u, observed, names, root):
     jac = jax.jacfwd(outputs)(dyn)
     T, n_z = np.shape(u)[0], root.shape[0]
     cols = [np.asarray(j).reshape(T, n_z, -1) for j in jax.tree_util.tree_leaves(jac)]
-    S = np.concatenate(cols, axis=2) * observed[:, :, None]
+    S = np.concatenate(cols, axis=2)
     Sw = np.einsum("ji,tjp->tip", root, S).reshape(T * n_z, -1)
     q, r = np.linalg.qr(Sw)
     diag = np.abs(np.diag(r))
@@ -487,14 +487,18 @@ def fit_orthogonal(
     w_aug = np.zeros((n_z + p, n_z + p))
     w_aug[:n_z, :n_z] = w
     w_aug[n_z:, n_z:] = strength * np.eye(p)
-    est = np.broadcast_to(np.asarray(estimate_x0, dtype=bool), (n_x,))
+    est = np.asarray(estimate_x0)
+    if est.dtype != bool or est.shape not in ((), (n_x,)):
+        raise ValueError(
+            f"`estimate_x0` must be a boolean or an ({n_x},) boolean mask, got {estimate_x0!r}."
+        )
+    est = np.broadcast_to(est, (n_x,))
     est_aug = np.concatenate([est, np.zeros(n_x + p, bool)])
-    observed = np.ones((T, n_z))
 
     history, result, converged = [], None, False
     for _ in range(int(rounds)):
         before = _flat(eqx.filter({k: theta[k] for k in names}, eqx.is_inexact_array))
-        m = _basis(model, theta, x0, u, observed, names, root)
+        m = _basis(model, theta, x0, u, names, root)
         u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
         x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
         result = fit(

@@ -149,7 +149,7 @@ def test_orthogonal_penalty_and_its_gradient():
     vals, vecs = np.linalg.eigh(W)
     root = vecs @ np.diag(np.sqrt(vals)) @ vecs.T
     names = ["w0sq", "b", "g"]
-    m = internal.orthogonal_basis(model, theta, x0, u, np.ones((T, 2)), names, root)
+    m = internal.orthogonal_basis(model, theta, x0, u, names, root)
     assert m.shape == (T, 2, 3)
     # Q = W^{-1/2} M is orthonormal and spans the weighted sensitivities.
     q = np.einsum("ij,tjp->tip", np.linalg.inv(root), m).reshape(2 * T, 3)
@@ -230,5 +230,7 @@ def test_fit_orthogonal_rejects_bad_arguments(case):
         oj.fit_orthogonal(model, theta0, x0, u, np.where(np.arange(T)[:, None] == 3, np.nan, z))
     with pytest.raises(ValueError, match=r"`weight` must have shape \(1,\)"):
         oj.fit_orthogonal(model, theta0, x0, u, z, weight=np.ones(3))
+    with pytest.raises(ValueError, match="`estimate_x0` must be a boolean"):
+        oj.fit_orthogonal(model, theta0, x0, u, z, estimate_x0=np.ones(3, bool))
     with pytest.raises(ValueError, match="`fixed` holds every physical parameter"):
         oj.fit_orthogonal(model, theta0, x0, u, z, fixed={"w0sq": True, "b": True, "g": True})
