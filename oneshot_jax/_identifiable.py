@@ -397,9 +397,10 @@ def fit_orthogonal(
     path) and fits C_orth with Q held fixed; the next round starts there. The penalty is
     exact inside a round: the fit is one of an augmented `Model` (the model, its copy
     with the learned terms off, an accumulator of Q_k^T W^{1/2} d_k), so its gradient
-    and residual Jacobian are the one-shot closed form of eq. (17)/(20). Rounds stop when
-    no physical parameter moved by more than `stol` of its standard errors in one (or by
-    more than `rtol`, relative), or after `rounds`.
+    and residual Jacobian are the one-shot closed form of eq. (17)/(20); the copy
+    doubles the state, so a round costs about two plain fits. Rounds stop after one in
+    which no physical parameter moved by more than `stol` of its standard errors (or
+    none by more than `rtol`, relative), or after `rounds`.
 
     **Arguments:**
 
