@@ -23,6 +23,10 @@ from ._fit_result import Starts as Starts
 from ._fit_result import load_result as load_result
 from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
+from ._identifiable import Orthogonal as Orthogonal
+from ._identifiable import PhysicsFirst as PhysicsFirst
+from ._identifiable import fit_orthogonal as fit_orthogonal
+from ._identifiable import fit_physics_first as fit_physics_first
 from ._initial_state import Prediction as Prediction
 from ._initial_state import X0Estimate as X0Estimate
 from ._initial_state import estimate_x0 as estimate_x0

@@ -29,6 +29,8 @@ from ._fit import _theta_order as kept_theta_order  # noqa: F401
 from ._fit_report import theta_order as theta_order
 from ._gradient import value_and_grad_impl as value_and_grad_impl
 from ._gradient import value_and_grad_of_states as value_and_grad_of_states
+from ._identifiable import _augmented as orthogonal_model  # noqa: F401
+from ._identifiable import _basis as orthogonal_basis  # noqa: F401
 from ._linalg import normal_blocks as normal_blocks
 from ._parallel import METHOD_NAMES as METHOD_NAMES
 from ._parallel import diagonal_linear_recurrence as diagonal_linear_recurrence
