@@ -28,6 +28,7 @@ from ._progress import NoProgress
 from ._stability import (
     jacobians_at,
     rhs_of,
+    row_bound,
     sample_points,
     stability,
     warn_after_fit,
@@ -87,7 +88,8 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=N
     if stability_at is not None:
         rhs, idx = stability_at
         theta = problem.theta_of(params.theta)
-        jacobians = jacobians_at(rhs, theta, posted[-1], problem.u, idx)
+        xs, J = jacobians_at(rhs, theta, posted[-1], problem.u, idx)
+        jacobians = (xs, J, row_bound(xs, J))
     # One buffer per dtype to the host instead of one per array (`_pytree.pack`).
     return _pytree.pack((out, jacobians))
 

@@ -182,6 +182,28 @@ def _module_entries(theta):
     return _pytree.kept(_MODULE_ENTRIES, key, entries)
 
 
+_BOUNDS: dict = {}
+
+
+def _bounds(proj, theta):
+    """A box's flat bounds on theta (`proj.bounds`, constants of the box), kept per
+    projection object (immutable) and structure, shapes and dtypes of theta."""
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    key = (id(proj), treedef, tuple((np.shape(a), np.result_type(a)) for a in leaves))
+
+    def make():
+        lo, hi = proj.bounds(theta)
+        lo, hi = _pytree.flat_host(lo), _pytree.flat_host(hi)
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        return proj, lo, hi  # (the object kept: its id is not reused while here)
+
+    kept_proj, lo, hi = _pytree.kept(_BOUNDS, key, make, size=64)
+    if kept_proj is not proj:  # (cannot happen while the entry holds it; defensive)
+        _, lo, hi = make()
+    return lo, hi
+
+
 def build_problem(
     inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser, validation=None
 ) -> Built:
@@ -222,8 +244,7 @@ def build_problem(
     project = None
     if proj is not None:
         if proj.bounds is not None:
-            lo, hi = proj.bounds(data.theta)
-            lo, hi = _pytree.flat_host(lo), _pytree.flat_host(hi)
+            lo, hi = _bounds(proj, data.theta)
             check_fixed_bounds(data.theta, fixed_flat, lo, hi)
             lower, upper = lo[theta_free], hi[theta_free]
         else:  # a general projection: check that it is one (boxes are by construction)

@@ -14,6 +14,7 @@ import warnings
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
@@ -102,6 +103,15 @@ def jacobians_at(rhs, theta, xs, u, idx):
     return xs, jax.vmap(lambda x, u: jax.jacfwd(rhs)(x, u, theta))(xs, us)
 
 
+def row_bound(xs, J):
+    """max over the finite states of ||J||_inf (the largest row sum of |J|, a bound on
+    every eigenvalue's modulus); -inf where no state is finite. Traced, so that `fit`
+    brings one number to the host (`warn_after_fit`)."""
+    finite = jnp.all(jnp.isfinite(xs), axis=1) & jnp.all(jnp.isfinite(J), axis=(1, 2))
+    rows = jnp.max(jnp.sum(jnp.abs(J), axis=2), axis=1)
+    return jnp.max(jnp.where(finite, rows, -jnp.inf), initial=-jnp.inf)
+
+
 @jit
 def _jacobians(model, params, x0, u, batched, rhs, idx):
     """The states of eq. (7) and d rhs / d x at the flattened states `idx`, in one
@@ -137,16 +147,13 @@ def _finite(xs, J):
     return xs, J, np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
 
 
-def warn_after_fit(step, idx, xs, J, stacklevel: int) -> None:
-    """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`).
-    Where max |lambda| h is within the limit by its bound ||J||_inf h (the largest row sum
-    of |J| bounds every eigenvalue's modulus), no eigenvalue is computed."""
-    xs, J, finite = _finite(xs, J)
-    if not np.any(finite):
-        return
-    bound = float(np.max(np.sum(np.abs(J[finite]), axis=2))) * step.dt / step.substeps
-    if bound > LIMITS[step.method]:
-        warn_if_near_limit(report(step, idx, xs, J), stacklevel=stacklevel + 1)
+def warn_after_fit(step, idx, xs, J, bound, stacklevel: int) -> None:
+    """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`)
+    and their `row_bound`. Where max |lambda| h is within the limit by that bound times
+    h, no eigenvalue is computed."""
+    if not float(bound) * step.dt / step.substeps > LIMITS[step.method]:
+        return  # (within the limit, or no finite state: -inf)
+    warn_if_near_limit(report(step, idx, xs, J), stacklevel=stacklevel + 1)
 
 
 def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
