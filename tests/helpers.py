@@ -638,3 +638,16 @@ PROBLEMS = {
 def cast(tree, dtype):
     """Every floating leaf of `tree` cast to `dtype` (None leaves stay None)."""
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=dtype), tree)
+
+
+def observe_angle(x, u, p):
+    """The pendulums' output: the angle."""
+    return x[:1]
+
+
+def pendulum_nonlinear_damping(x, u, p):
+    """A driven pendulum with the damping 0.1 q' + 0.3 tanh(4 q') (not linear in q'):
+    the truth of the hybrid tests, whose damping term a network learns."""
+    q, v = x
+    damping = 0.1 * v + 0.3 * jnp.tanh(4.0 * v)
+    return jnp.stack([v, -p["w0sq"] * jnp.sin(q) - damping + p["g"] * u[0]])

@@ -19,22 +19,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import observe_angle, pendulum_nonlinear_damping
 
 import oneshot_jax as oj
 from oneshot_jax.residual import MLP
 
 DT = 0.05
 W0SQ, GAIN = 9.0, 1.0
-
-
-def _observe(x, u, p):
-    return x[:1]
-
-
-def _truth(x, u, p):
-    q, v = x
-    damping = 0.1 * v + 0.3 * jnp.tanh(4.0 * v)
-    return jnp.stack([v, -p["w0sq"] * jnp.sin(q) - damping + p["g"] * u[0]])
 
 
 def _hybrid(x, u, th):
@@ -49,7 +40,7 @@ def _record(T, seed=0, noise=0.01):
     rng = np.random.default_rng(seed)
     t = DT * np.arange(T)
     u = sum(np.sin(f * t + rng.uniform(0, 6)) for f in (1.0, 2.0, 4.5, 6.0))[:, None]
-    model = oj.Model.from_ode(_truth, DT, observe=_observe)
+    model = oj.Model.from_ode(pendulum_nonlinear_damping, DT, observe=observe_angle)
     x, z = oj.simulate(model, {"w0sq": W0SQ, "g": GAIN}, np.zeros(2), u)
     z = np.asarray(z) + noise * rng.standard_normal(np.shape(z))
     return u, z, float(np.std(np.asarray(x)[:, 1]))
@@ -59,7 +50,7 @@ def test_hybrid_pendulum_from_a_far_start_to_identified_physics():
     # Seed 0 of the data and PRNGKey(0) of the network (a fixed case; the asserts are
     # on what the fits reach, not on pinned values).
     u, z, rate_std = _record(400)
-    model = oj.Model.from_ode(_hybrid, DT, observe=_observe)
+    model = oj.Model.from_ode(_hybrid, DT, observe=observe_angle)
     net = MLP(1, 1, (8,), key=jax.random.PRNGKey(0), input_scale=rate_std)
     held = {"w0sq": False, "g": False, "r": True}  # stage 1: the physics, network held
     start = {"w0sq": 4.0, "g": 0.5, "r": net}
@@ -111,7 +102,7 @@ def _pendulum_data(T=200, seed=1):
     rng = np.random.default_rng(seed)
     t = DT * np.arange(T)
     u = sum(np.sin(f * t + rng.uniform(0, 6)) for f in (1.0, 2.5, 5.0))[:, None]
-    model = oj.Model.from_ode(_regular, DT, observe=_observe)
+    model = oj.Model.from_ode(_regular, DT, observe=observe_angle)
     _, z = oj.simulate(model, {"w0sq": W0SQ, "c": 0.5}, np.zeros(2), u)
     return u, np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
 
@@ -122,7 +113,7 @@ def test_a_small_step_far_from_the_optimum_is_not_convergence():
     # the optimum. The first-order guard (no parameter alone moves by a standard error)
     # holds it back.
     u, z = _pendulum_data()
-    model = oj.Model.from_ode(_split, DT, observe=_observe)
+    model = oj.Model.from_ode(_split, DT, observe=observe_angle)
     solver = oj.LevenbergMarquardt(mu0=1e8, max_steps=3)
     r = oj.fit(model, {"a": 3.0, "b": 3.5, "c": 0.3}, np.zeros(2), u, z, solver=solver)
     assert r.stop_info["standard_errors"] <= r.stop_info["stol"]  # the step is tiny
@@ -136,7 +127,7 @@ def test_regular_jacobians_stop_as_before():
     # of a converging fit are tiny in standard errors: without the rank condition the
     # statistical test could end it a step early, as a different stop.)
     u, z = _pendulum_data()
-    model = oj.Model.from_ode(_regular, DT, observe=_observe)
+    model = oj.Model.from_ode(_regular, DT, observe=observe_angle)
     theta0 = {"w0sq": 8.0, "c": 0.3}
     on = oj.fit(model, theta0, np.zeros(2), u, z, solver=oj.LevenbergMarquardt())
     off = oj.fit(model, theta0, np.zeros(2), u, z, solver=oj.LevenbergMarquardt(stol=0.0))
@@ -150,12 +141,12 @@ def test_statistical_convergence_with_active_bounds():
     # Both halves of the stiffness held at their upper bounds (a + b = 6 < 9): the
     # constrained optimum has c at the regular model's optimum with w0sq fixed at 6.
     u, z = _pendulum_data()
-    model = oj.Model.from_ode(_split, DT, observe=_observe)
+    model = oj.Model.from_ode(_split, DT, observe=observe_angle)
     box = oj.constraints.box(upper={"a": 3.0, "b": 3.0, "c": np.inf})
     r = oj.fit(model, {"a": 2.0, "b": 2.5, "c": 0.3}, np.zeros(2), u, z, constraints=box)
     assert r.success, r.message
     assert float(r.theta["a"]) == 3.0 and float(r.theta["b"]) == 3.0
-    regular = oj.Model.from_ode(_regular, DT, observe=_observe)
+    regular = oj.Model.from_ode(_regular, DT, observe=observe_angle)
     ref = oj.fit(
         regular, {"w0sq": 6.0, "c": 0.3}, np.zeros(2), u, z, fixed={"w0sq": True, "c": False}
     )

@@ -16,22 +16,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import observe_angle, pendulum_nonlinear_damping
 
 import oneshot_jax as oj
 from oneshot_jax import internal
 from oneshot_jax.residual import MLP
 
 DT, T, W0SQ = 0.05, 300, 9.0
-
-
-def _observe(x, u, p):
-    return x[:1]
-
-
-def _truth(x, u, p):
-    q, v = x
-    damping = 0.1 * v + 0.3 * jnp.tanh(4.0 * v)
-    return jnp.stack([v, -p["w0sq"] * jnp.sin(q) - damping + p["g"] * u[0]])
 
 
 def _hybrid(x, u, p):
@@ -50,12 +41,12 @@ def case():
     rng = np.random.default_rng(0)
     t = DT * np.arange(T)
     u = sum(np.sin(f * t + rng.uniform(0, 6)) for f in (1.0, 2.0, 4.5, 6.0))[:, None]
-    truth = oj.Model.from_ode(_truth, DT, observe=_observe)
+    truth = oj.Model.from_ode(pendulum_nonlinear_damping, DT, observe=observe_angle)
     x, z = oj.simulate(truth, {"w0sq": W0SQ, "g": 1.0}, np.zeros(2), u)
     z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
     x = np.asarray(x)
     net = MLP(2, 1, (8,), key=jax.random.PRNGKey(0), input_offset=x.mean(0), input_scale=x.std(0))
-    model = oj.Model.from_ode(_hybrid, DT, observe=_observe)
+    model = oj.Model.from_ode(_hybrid, DT, observe=observe_angle)
     return model, {"w0sq": 8.0, "b": 0.2, "g": 1.0, "r": net}, u, z
 
 
@@ -72,7 +63,7 @@ def test_physics_first_keeps_the_physics_only_estimates(case):
     r = oj.fit_physics_first(model, theta0, np.zeros(2), u, z, learned="r")
     # The physical estimates equal those of the physical model written without a network.
     alone = oj.fit(
-        oj.Model.from_ode(_physics, DT, observe=_observe),
+        oj.Model.from_ode(_physics, DT, observe=observe_angle),
         {k: theta0[k] for k in ("w0sq", "b", "g")},
         np.zeros(2),
         u,
@@ -219,7 +210,7 @@ def test_fit_orthogonal_rejects_bad_arguments(case):
         oj.fit_orthogonal(model, theta0, x0, u, z, window=50)
     with pytest.raises(TypeError, match="`model` must be a `Model`"):
         oj.fit_orthogonal(_hybrid, theta0, x0, u, z)
-    timed = oj.Model.from_ode(_hybrid, None, observe=_observe)
+    timed = oj.Model.from_ode(_hybrid, None, observe=observe_angle)
     with pytest.raises(ValueError, match="`model` is timed"):
         oj.fit_orthogonal(timed, theta0, x0, u, z)
     with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):
