@@ -56,6 +56,8 @@ from ._sensitivity import trajectory_jacobian as trajectory_jacobian
 from ._simulate import rollout as rollout
 from ._solver._linearisation import DIAG_PROBES as DIAG_PROBES
 from ._solver._linearisation import DenseLinearisation as DenseLinearisation
+from ._solver._linearisation import linearise as linearise
+from ._solver._linearisation import placeholder as placeholder
 from ._solver._search import Backtracking as Backtracking
 from ._solver._search import Damping as Damping
 from ._solver._search import NielsenDamping as NielsenDamping

@@ -7,14 +7,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import oneshot_jax as oj
 from oneshot_jax.internal import (
     Backtracking,
+    Cost,
     Damping,
     DenseLinearisation,
+    FitProblem,
     NielsenDamping,
     Params,
     covariance,
+    linearise,
     normal_blocks,
+    placeholder,
 )
 
 
@@ -121,3 +126,44 @@ def test_the_searches_own_their_state():
     t, state = search.search(trial, C, step, full, jnp.array(0.5), Damping(jnp.array(0.3), 4.0))
     assert not bool(t.accept) and float(state.mu) == pytest.approx(1.2) and float(state.nu) == 8.0
     assert bool(search.fallback(jnp.array(True), 1.0)) and not bool(search.fallback(False, 1.0))
+
+
+@pytest.mark.parametrize("matrix_free", [False, True])
+@pytest.mark.parametrize("N, x0_free", [(1, (0, 1)), (3, (1,)), (2, ())])
+def test_the_placeholder_has_the_structure_of_the_linearisation(matrix_free, N, x0_free):
+    """A least-squares solver's state holds zeros of the linearisation's structure until
+    its first step forms it: the same pytree, shapes and dtypes as `linearise` gives (a
+    wrong one would fail in the solver loop's carry), for one and several trajectories,
+    some or none of x0 free, dense and matrix-free."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * jnp.sin(x[0]) - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.1, observe=lambda x, u, th: x[:1])
+    T = 20
+    u = np.sin(0.3 * np.arange(N * T)).reshape(N, T, 1)
+    z = np.cos(0.2 * np.arange(N * T)).reshape(N, T, 1)
+    x0 = np.tile([0.3, 0.0], (N, 1))
+    flat = jnp.array([2.0, 0.4])
+    problem = FitProblem(
+        model=model,
+        cost=Cost(None, None, jnp.zeros((), flat.dtype)),
+        u=u,
+        z=z,
+        theta_base=flat,
+        theta_free=(0, 1),
+        unravel=lambda v: {"c": v[0], "k": v[1]},
+        x0_base=x0,
+        x0_free=x0_free,
+        project=None,
+        lower=None,
+        upper=None,
+    )
+    params = Params(flat, jnp.asarray(x0)[:, list(x0_free)])
+    args = (problem, params, "jacobian", matrix_free, 1e-6, 50)
+    made = placeholder(*args)
+    ref = jax.eval_shape(lambda: linearise(*args))
+    assert jax.tree_util.tree_structure(made) == jax.tree_util.tree_structure(ref)
+    for a, b in zip(jax.tree_util.tree_leaves(made), jax.tree_util.tree_leaves(ref)):
+        assert (a.shape, a.dtype) == (b.shape, b.dtype)
+        assert not np.any(np.asarray(a))

@@ -225,6 +225,30 @@ class MatrixFreeLinearisation(AbstractLinearisation):
         return None
 
 
+def placeholder(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps):
+    """Zeros with the structure of `linearise`'s output at `params` (a solver state's
+    slot before its first linearisation). The dense blocks are built from their shapes;
+    a matrix-free linearisation (whose trajectory's structure depends on the model) from
+    `jax.eval_shape`, which traces `linearise` once more."""
+    dtype = problem.dtype
+    if not matrix_free:
+        p, (N, m) = params.theta.shape[0], params.x0.shape
+        zero = jnp.zeros((), dtype)
+        blocks = DenseLinearisation(
+            zero,
+            jnp.zeros((p, p), dtype),
+            jnp.zeros((N, p, m), dtype),
+            jnp.zeros((N, m, m), dtype),
+            jnp.zeros((p,), dtype),
+            jnp.zeros((N, m), dtype),
+        )
+        return blocks, zero
+    shapes = jax.eval_shape(
+        lambda: linearise(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps)
+    )
+    return jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)
+
+
 def linearise(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps):
     """The linearisation at `params` and the smallest lambda h(x_k) there.
 

@@ -62,7 +62,7 @@ from .._optimality import (
 from .._problem import Params
 from .._results import RESULTS
 from .._strategy import LINEAR_SOLVERS, ParallelInTime, as_strategy, least_squares_solver
-from ._linearisation import AbstractLinearisation, linearise
+from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
 
@@ -160,9 +160,13 @@ class AbstractLeastSquares(AbstractSolver):
     def init(self, problem, params):
         # A placeholder linearisation (zeros of its shapes): the first `step` forms it
         # at `params` (`primes_in_step`), so that the compiled loop holds one copy.
-        blocks, h_min = jax.tree_util.tree_map(
-            lambda a: jnp.zeros(a.shape, a.dtype),
-            jax.eval_shape(lambda: self._linearise(problem, params)),
+        blocks, h_min = placeholder(
+            problem,
+            params,
+            self.strategy,
+            self._matrix_free(params),
+            self.cg_rtol,
+            self.cg_max_steps,
         )
         dtype = problem.dtype
         nan = jnp.array(jnp.nan, dtype)
