@@ -80,6 +80,8 @@ def jit(fn):
         out_arrays, out_structure = _split(fn(*args, **kwargs))
         return out_arrays, _Static(out_structure)
 
+    traced.__name__, traced.__qualname__ = fn.__name__, fn.__qualname__  # (XLA's names)
+
     def fast(structure, arrays, options):
         key = (structure, options)
         f = compiled.get(key)

@@ -83,9 +83,12 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
     params = jax.tree_util.tree_map(lambda a: a[0], final.params)
     strategy = getattr(solvers[-1], "strategy", "auto")
     X0 = problem.x0_of(params.x0)
-    _, zhat = simulate_impl(
-        problem.model, problem.theta_of(params.theta), X0, problem.u, True, strategy
-    )
+    theta = problem.theta_of(params.theta)
+    if record is None:
+        _, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
+    else:  # the record starts where the data start: its head is the data's simulation
+        sim = simulate_impl(problem.model, theta, X0[0], record, False)
+        zhat = sim[1][None, : problem.u.shape[1]]
     zs = problem.z
     e = (
         zhat - zs
@@ -100,13 +103,12 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
         cov = covariance(problem, params, strategy, blocks)
     extra = None
     if record is not None:
-        theta = problem.theta_of(params.theta)
         if cov is None:
             sqrt_q = problem.cost.sqrt_weight()
             ok = identifiable_x0(problem.model, theta, X0[0], problem.u[0], sqrt_q)
         else:  # `identifiable` of the same J^T J (the residuals' x0 block, weighted)
             ok = cov.x0_identifiable[0]
-        extra = (ok, simulate_impl(problem.model, theta, X0[0], record, False))
+        extra = (ok, sim)
     return _pytree.pack((X0, final.loss[0], final.result._value[0], e, cov, extra))
 
 
