@@ -16,7 +16,7 @@ implements these methods, plus a test.
 import abc
 import dataclasses
 import math
-from typing import Any, ClassVar
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -36,7 +36,7 @@ class AbstractSolver(eqx.Module):
     # (a priming step that keeps params): the loop (`oneshot_jax._iterate`) then runs
     # that step before it tests or counts anything, and the compiled program holds one
     # copy of the evaluation (the linearisation of the least-squares solvers), not two.
-    primes_in_step: ClassVar[bool] = False
+    primes_in_step = False  # (a class constant: no annotation, so not a field)
 
     @abc.abstractmethod
     def init(self, problem: FitProblem, params: Params) -> Any:
