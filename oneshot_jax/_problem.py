@@ -99,12 +99,16 @@ class FitProblem(eqx.Module):
         return self.u.shape[0]
 
     def theta_of(self, p_theta):
-        return self.unravel(
-            jnp.asarray(self.theta_base).at[np.asarray(self.theta_free, int)].set(p_theta)
-        )
+        base = jnp.asarray(self.theta_base)
+        if self.theta_free == tuple(range(base.shape[0])):  # all free: no scatter to trace
+            return self.unravel(p_theta.astype(base.dtype))
+        return self.unravel(base.at[np.asarray(self.theta_free, int)].set(p_theta))
 
     def x0_of(self, p_x0):
-        return jnp.asarray(self.x0_base).at[:, np.asarray(self.x0_free, int)].set(p_x0)
+        base = jnp.asarray(self.x0_base)
+        if self.x0_free == tuple(range(base.shape[-1])):  # all free: no scatter to trace
+            return p_x0.astype(base.dtype)
+        return base.at[:, np.asarray(self.x0_free, int)].set(p_x0)
 
     def split(self, theta_flat, x0) -> Params:
         """The free variables of a flat theta and an (N, n_x) x0."""
