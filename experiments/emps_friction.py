@@ -231,15 +231,47 @@ def cross_validation_mm(fits, holdouts) -> float:
 
 
 def averaged_model(data, fits, ex) -> dict:
-    """The model whose parameters are the mean of one structure's span fits (a bagged
-    estimate), scored on the test record."""
+    """The model whose parameters are the mean of one structure's span fits (an
+    aggregate over training spans: each fit's span-dependent error partly cancels),
+    scored on the test record; and, for its spread, the models that leave one of the fits
+    out of the mean."""
     names = list(fits[0]["theta"])
-    theta = {k: float(np.mean([f["theta"][k] for f in fits])) for k in names}
     model = friction_model(data.Ts, ex.eps, ex.substeps, ex.stribeck_velocity)
-    pred, sc = example.protocol_prediction(
-        data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
-    )
-    return {"theta": theta, "protocol": common.protocol_scores(sc, pred, "mm")}
+
+    def scored(group):
+        theta = {k: float(np.mean([f["theta"][k] for f in group])) for k in names}
+        pred, sc = example.protocol_prediction(
+            data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
+        )
+        return theta, common.protocol_scores(sc, pred, "mm")
+
+    theta, protocol = scored(fits)
+    loo = [scored(fits[:i] + fits[i + 1 :])[1]["rmse_mm"] for i in range(len(fits))]
+    return {
+        "theta": theta,
+        "protocol": protocol,
+        "leave_one_out_mm": loo if len(fits) > 1 else [],
+    }
+
+
+def aggregation_check(data, record, fits, holdouts, ex) -> dict:
+    """Whether averaging parameters over training spans helps out of sample, on the
+    estimation record only: for each fold but the one that holds out most, the held-out
+    RMSE (mm) of the fold's own fit and of the model with the mean parameters of the fits
+    that did not see that held-out part (those of this fold and of the folds holding out
+    more). `fits` maps a holdout to its `fit_span` row."""
+    model = friction_model(data.Ts, ex.eps, ex.substeps, ex.stribeck_velocity)
+    folds = sorted(float(h) for h in set(holdouts))
+    single, mean = [], []
+    for h in folds[:-1]:
+        _, held_out = split(record, h)
+        group = [fits[g]["theta"] for g in folds if g >= h]
+        theta = {k: float(np.mean([t[k] for t in group])) for k in group[0]}
+        single.append(fits[h]["rmse_heldout_mm"])
+        mean.append(
+            record_rmse_mm(model, theta, held_out, data.gtau, data.Ts, half=ex.velocity_halfwidth)
+        )
+    return {"holdouts": folds[:-1], "single_mm": single, "mean_mm": mean}
 
 
 def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction") -> dict:
@@ -283,6 +315,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction
             "test_min_mm": float(np.min(tests)),
             "test_max_mm": float(np.max(tests)),
             "averaged": averaged_model(data, list(fits.values()), ex),
+            "aggregation_check": aggregation_check(data, record, fits, ex.cv_holdouts, ex),
         }
     selected = min(ex.structures, key=lambda s: summary[s]["cv_mm"])
     ref_pred, ref_sc = example.protocol_prediction(
@@ -327,6 +360,14 @@ PUBLISHED = (
     ("dynoNet", "about 2.6"),
 )
 """Published protocol RMSEs (mm) on DATA_EMPS_PULSES (Champneys et al. 2024, Tables 3-4)."""
+
+
+def _spread(summary) -> str:
+    """'mean (min-max)' of the leave-one-out mean-parameter models' test RMSEs (mm)."""
+    loo = summary["averaged"]["leave_one_out_mm"]
+    if not loo:
+        return ""
+    return f"{np.mean(loo):.2f} ({np.min(loo):.2f}-{np.max(loo):.2f})"
 
 
 def markdown(res) -> str:
@@ -384,8 +425,36 @@ def markdown(res) -> str:
         )
     L += [
         "",
-        f"Selected: {LABELS[sel]}. The selected structure is then fitted on the whole "
-        "estimation record, from the same far start.",
+        f"Selected: {LABELS[sel]}.",
+        "",
+    ]
+    checks = {s: summary[s]["aggregation_check"] for s in structures}
+    check_folds = checks[structures[0]]["holdouts"]
+    if check_folds:
+        L += [
+            "Averaging parameters over training spans, checked on the estimation record "
+            "alone: for each fold, the held-out RMSE (mm) of the fold's own fit, then of "
+            "the model whose parameters are the mean of the fits that did not see that "
+            "held-out part (the fold's and those of the folds holding out more):",
+            "",
+            "| model | " + " | ".join(f"{h:g}" for h in check_folds) + " | mean |",
+            "|---|" + "---|" * (len(check_folds) + 1),
+        ]
+        for s in structures:
+            c = checks[s]
+            L.append(
+                f"| {LABELS[s]} | "
+                + " | ".join(f"{a:.3f} / {b:.3f}" for a, b in zip(c["single_mm"], c["mean_mm"]))
+                + f" | {np.mean(c['single_mm']):.3f} / {np.mean(c['mean_mm']):.3f} |"
+            )
+        L.append("")
+    L += [
+        "Each structure is also fitted on the whole estimation "
+        "record, from the same far start. The procedure's model is the selected "
+        "structure with the mean of its parameters over these fits (the whole record and "
+        "the folds' training spans): a single physical model whose parameters aggregate "
+        "fits on different spans, so that the span-dependent error of each fit partly "
+        "cancels.",
         "",
         "## Test scores",
         "",
@@ -393,13 +462,15 @@ def markdown(res) -> str:
         "with u = vir and y = qm, x0 = (q, q') estimated from the first "
         f"{rows[0]['protocol']['n']} test outputs only, RMSE of q in mm on the "
         "rest). The test record is used for these scores only. Each structure's fit on "
-        "the whole estimation record, each of its fold fits, and the model whose "
-        "parameters are the mean of these fits:",
+        "the whole estimation record, each of its fold fits, the model whose "
+        "parameters are the mean of these fits, and the models that leave one fit out "
+        "of that mean:",
         "",
         "| model | whole record | "
         + " | ".join(f"held out {h:g}" for h in folds)
-        + " | mean (min-max) | mean parameters | whole-record fit time (s) |",
-        "|---|---|" + "---|" * (len(folds) + 3),
+        + " | mean (min-max) | mean parameters | leaving one fit out: mean (min-max) "
+        "| whole-record fit time (s) |",
+        "|---|---|" + "---|" * (len(folds) + 4),
     ]
     for s in structures:
         m = summary[s]
@@ -407,7 +478,8 @@ def markdown(res) -> str:
             f"| {LABELS[s]} | {m['test_whole_mm']:.3f} | "
             + " | ".join(f"{fit(s, h)['protocol']['rmse_mm']:.3f}" for h in folds)
             + f" | {m['test_mean_mm']:.2f} ({m['test_min_mm']:.2f}-{m['test_max_mm']:.2f}) "
-            f"| {m['averaged']['protocol']['rmse_mm']:.3f} | {fit(s, 0.0)['time_s']:.0f} |"
+            f"| {m['averaged']['protocol']['rmse_mm']:.3f} | {_spread(m)} "
+            f"| {fit(s, 0.0)['time_s']:.0f} |"
         )
     ref = res["reference"]["protocol"]
     L += [
@@ -438,34 +510,58 @@ def markdown(res) -> str:
     force = res["max_force_N"]
     pulse_N = res["pulse_V"] * res["gtau_N_per_V"]
     m = summary[sel]
+    drift = {s: fit(s, 0.0)["edge_drift_mm"] for s in structures}
+    with_mu = [s for s in structures if "mu" in fit(s, 0.0)["theta"]]
+    without_mu = [s for s in structures if s not in with_mu]
+    load_text = ""
+    if with_mu and without_mu:
+        d_with = float(np.mean([drift[s] for s in with_mu]))
+        d_without = float(np.mean([drift[s] for s in without_mu]))
+        load_text = (
+            " A friction that grows with the transmitted force would slow the axis there; "
+            f"the structures with the load term drift {d_with:+.3f} mm per edge on average, "
+            f"those without it {d_without:+.3f} mm."
+        )
+        if sel not in with_mu:
+            load_text += (
+                " Within the estimation record's forces the load term is small, and the "
+                "folds do not select it: choosing it for the test record would take "
+                "knowledge that the estimation record does not hold (where the models "
+                "drift on the test record, or a prior on the drive's friction), so the "
+                "test scores of the structures with it are not a blind result."
+            )
     L += [
         "",
-        "## What the estimation record cannot tell",
+        "## What the estimation record can and cannot tell",
         "",
-        f"The selected structure, {short(sel)}, fitted on the whole estimation record, "
-        f"scores {m['test_whole_mm']:.3f} mm on the test record; over its "
-        f"{len(folds) + 1} fits, {m['test_mean_mm']:.2f} mm on average. The estimation "
-        f"record has no force pulses: its motor force stays within {force['estimation']:.0f} "
-        f"N, while the test record adds pulses of {res['pulse_V']:g} V (about "
-        f"{pulse_N:.0f} N) every second that the controller compensates (its force "
-        f"reaches {force['test']:.0f} N, in steps of up to 180 N within one sample). "
-        f"Across each pulse edge (from {EDGE_SPAN[0]} samples before to {EDGE_SPAN[1]} "
-        "after), the simulation error of the whole-record fits changes on average by "
-        + ", ".join(f"{fit(s, 0.0)['edge_drift_mm']:+.3f} mm ({short(s)})" for s in structures)
-        + " in the direction of motion: the models run ahead of the axis after the pulses "
-        "switch, less with the load term, as a friction that grows with the transmitted "
-        "force would make them. Within the estimation record's forces that term is small, "
-        "and the held-out folds do not rank it first: choosing it for the test record "
-        "takes knowledge that the estimation record does not hold (where the models drift "
-        "on the test record, or a prior on the drive's friction), so its test scores "
-        "are not blind ones.",
+        f"The procedure's model, {short(sel)} with the mean parameters of its "
+        f"{len(folds) + 1} fits, scores {m['averaged']['protocol']['rmse_mm']:.3f} mm on "
+        f"the test record ({_spread(m)} mm when one of the fits is left out of the "
+        f"mean). Its single fits score {m['test_mean_mm']:.2f} mm on average, from "
+        f"{m['test_min_mm']:.2f} to {m['test_max_mm']:.2f} mm ({m['test_whole_mm']:.3f} "
+        "mm for the fit on the whole record). The test record chose nothing in this "
+        "procedure; the Stribeck velocity and the fold fractions were set once, before "
+        "any test score was seen.",
         "",
-        "A test RMSE of a few mm over 25 s is the integral of a force error of a few "
-        "hundredths of a newton: refitting on a slightly different span moves it by "
-        "millimetres, far more than the parameters' standard errors suggest (the "
-        "residuals are a model error, not white noise). Reaching the about 2.6 mm of "
-        "dynoNet with a physical model would need the force-dependent friction identified "
-        "on an estimation record that exercises the test's force range (or a friction "
+        "The estimation record has no force pulses: its motor force stays within "
+        f"{force['estimation']:.0f} N, while the test record adds pulses of "
+        f"{res['pulse_V']:g} V (about {pulse_N:.0f} N) every second that the controller "
+        f"compensates (its force reaches {force['test']:.0f} N). Across each pulse edge "
+        f"(from {EDGE_SPAN[0]} samples before to {EDGE_SPAN[1]} after), the simulation "
+        "error of the whole-record fits changes on average by "
+        + ", ".join(f"{drift[s]:+.3f} mm ({short(s)})" for s in structures)
+        + " in the direction of motion (> 0: the model runs ahead of the axis after the "
+        "pulses switch)." + load_text,
+        "",
+        "The open-loop simulation integrates force errors: a constant error of 0.1 N "
+        f"makes the simulated axis drift by {1e2 / fit(sel, 0.0)['theta']['Fv']:.2f} mm/s "
+        "(0.1 N / Fv of the selected fit), so a test RMSE of a few mm needs the friction "
+        "right to a few hundredths of a newton on average over the record. Refitting on "
+        "a slightly different span moves the test score by millimetres, far more than "
+        "the parameters' standard errors suggest (the residuals are a model error, not "
+        "white noise). Reaching the about 2.6 mm of dynoNet with a physical model would "
+        "need the force-dependent friction identified on an estimation record that "
+        "exercises the test's force range (or a friction "
         f"law that predicts it), rather than extrapolated from {force['estimation']:.0f} N.",
         "",
         f"The run took {res['total_time_s']:.0f} s.",

@@ -124,7 +124,48 @@ def test_end_to_end(tmp_path):
         assert m["test_whole_mm"] == fits[s, 0.0]["protocol"]["rmse_mm"]
         assert m["test_min_mm"] <= m["test_mean_mm"] <= m["test_max_mm"]
         assert np.isfinite(m["averaged"]["protocol"]["rmse_mm"])
+        # leaving one of the two fits out of the mean leaves the other fit itself
+        loo = sorted(m["averaged"]["leave_one_out_mm"])
+        own = sorted(fits[s, h]["protocol"]["rmse_mm"] for h in (0.0, 0.2))
+        np.testing.assert_allclose(loo, own, rtol=1e-6)
+        assert m["aggregation_check"]["holdouts"] == []  # one fold: nothing to aggregate
     assert res["max_force_N"]["test"] > res["max_force_N"]["estimation"] > 0
     md = (tmp_path / "results.md").read_text()
     assert md.startswith("# EMPS: friction models trained for the open-loop protocol")
     assert "dynoNet" in md and "## Selection on the estimation record" in md
+
+
+def test_aggregation_check():
+    """The held-out part of each fold is scored with the mean parameters of the fits that
+    did not see it: with identical fits the mean is that fit, and a fit that saw the
+    held-out part (holdout 0.1 for the 0.2 fold) is left out of it."""
+    from types import SimpleNamespace
+
+    from oneshot_jax import datasets
+
+    benchmark_or_skip(datasets.load_emps)
+    data = datasets.load_emps(None)
+    record = example.trim(data.estimation, 400)
+    ex = SimpleNamespace(eps=example.EPS, substeps=1, stribeck_velocity=0.01, velocity_halfwidth=5)
+    good = dict(example.REFERENCE)
+    bad = {**good, "offset": 30.0}
+    model = emps_friction.friction_model(data.Ts)
+
+    def row(theta, h):
+        _, held = emps_friction.split(record, h)
+        return {
+            "theta": theta,
+            "rmse_heldout_mm": emps_friction.record_rmse_mm(model, theta, held, data.gtau, data.Ts),
+        }
+
+    fits = {0.1: row(bad, 0.1), 0.2: row(good, 0.2), 0.3: row(good, 0.3)}
+    c = emps_friction.aggregation_check(data, record, fits, [0.3, 0.1, 0.2], ex)
+    assert c["holdouts"] == [0.1, 0.2]
+    # fold 0.2: the mean of the 0.2 and 0.3 fits (both good) is the good fit itself
+    np.testing.assert_allclose(c["mean_mm"][1], fits[0.2]["rmse_heldout_mm"], rtol=1e-9)
+    # fold 0.1: the bad fit is averaged with the good ones, a different model
+    _, held = emps_friction.split(record, 0.1)
+    mean = {k: (bad[k] + 2 * good[k]) / 3 for k in good}
+    want = emps_friction.record_rmse_mm(model, mean, held, data.gtau, data.Ts)
+    np.testing.assert_allclose(c["mean_mm"][0], want, rtol=1e-9)
+    assert c["single_mm"] == [fits[0.1]["rmse_heldout_mm"], fits[0.2]["rmse_heldout_mm"]]
