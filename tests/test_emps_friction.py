@@ -86,6 +86,15 @@ def test_cross_validation_score():
     assert emps_friction.cross_validation_mm(fits, [0.3]) == 4.0
 
 
+def test_final_model():
+    """The mean parameters become the model only where they score better on the held-out
+    parts on average; with no check (one fold) the whole-record fit stays."""
+    check = {"holdouts": [0.1, 0.2], "single_mm": [1.0, 3.0], "mean_mm": [1.5, 2.0]}
+    assert emps_friction.final_model(check) == "mean"
+    assert emps_friction.final_model({**check, "mean_mm": [1.5, 2.6]}) == "whole"
+    assert emps_friction.final_model({"holdouts": [], "single_mm": [], "mean_mm": []}) == "whole"
+
+
 def test_end_to_end(tmp_path):
     """Two structures on 300 estimation samples, one rolling-origin fold: continuation
     runs (a windowed stage, then the whole span) on the whole record and on the fold's
@@ -129,6 +138,7 @@ def test_end_to_end(tmp_path):
         own = sorted(fits[s, h]["protocol"]["rmse_mm"] for h in (0.0, 0.2))
         np.testing.assert_allclose(loo, own, rtol=1e-6)
         assert m["aggregation_check"]["holdouts"] == []  # one fold: nothing to aggregate
+    assert res["final"] == "whole"
     assert res["max_force_N"]["test"] > res["max_force_N"]["estimation"] > 0
     md = (tmp_path / "results.md").read_text()
     assert md.startswith("# EMPS: friction models trained for the open-loop protocol")
