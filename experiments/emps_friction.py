@@ -569,6 +569,25 @@ def markdown(res) -> str:
             else "."
         ),
         "",
+    ]
+    richest = max(structures, key=lambda s: len(STRUCTURES[s]))
+    if richest != sel:
+        r = summary[richest]
+        rank = sorted(structures, key=lambda s: summary[s]["cv_mm"]).index(richest) + 1
+        train_richest = fit(richest, 0.0)["rmse_train_mm"]
+        train_sel = fit(sel, 0.0)["rmse_train_mm"]
+        L += [
+            f"The structure with every term, {short(richest)}, fits the whole estimation "
+            f"record {'better' if train_richest < train_sel else 'no better'} than the "
+            f"selected one ({train_richest:.3f} mm against {train_sel:.3f} mm) and ranks "
+            f"{rank} of {len(structures)} on the folds ({r['cv_mm']:.3f} mm). Fitted on "
+            f"the whole record it scores {r['test_whole_mm']:.3f} mm on the test record, "
+            f"and its {len(folds) + 1} fits {r['test_mean_mm']:.2f} mm on average (from "
+            f"{r['test_min_mm']:.2f} to {r['test_max_mm']:.2f} mm): a choice that the "
+            "estimation record's held-out parts do not make.",
+            "",
+        ]
+    L += [
         "The estimation record has no force pulses: its motor force stays within "
         f"{force['estimation']:.0f} N, while the test record adds pulses of "
         f"{res['pulse_V']:g} V (about {pulse_N:.0f} N) every second that the controller "
