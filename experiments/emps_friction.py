@@ -540,8 +540,8 @@ def markdown(res) -> str:
         )
         if sel not in with_mu:
             load_text += (
-                " Within the estimation record's forces the load term is small, and the "
-                "folds do not select it: choosing it for the test record would take "
+                " The folds do not select a structure with the load term: choosing one "
+                "for the test record would take "
                 "knowledge that the estimation record does not hold (where the models "
                 "drift on the test record, or a prior on the drive's friction), so the "
                 "test scores of the structures with it are not a blind result."
