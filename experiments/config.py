@@ -342,12 +342,19 @@ class EMPSFrictionConfig:
     substeps: int = 1
     velocity_halfwidth: int = 5
     n_samples: int | None = None
-    holdout: float = 0.2
     windows: list[int] = field(default_factory=lambda: [50, 500, 5000])
     theta0: dict[str, float] = field(default_factory=lambda: dict(emps_example.THETA0))
-    structures: list[str] = field(default_factory=lambda: ["coulomb_viscous", "asymmetric", "load"])
-    keep: str = "load"
-    spread_holdouts: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.3, 0.4, 0.5])
+    structures: list[str] = field(
+        default_factory=lambda: [
+            "coulomb_viscous",
+            "asymmetric",
+            "load",
+            "stribeck",
+            "load_stribeck",
+        ]
+    )
+    cv_holdouts: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3, 0.4, 0.5])
+    stribeck_velocity: float = 0.01
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     SOLVERS = LIBRARY_SOLVERS
@@ -357,7 +364,6 @@ class EMPSFrictionConfig:
 
         k = "experiment."
         _emps_record(k, self)
-        _number(k + "holdout", self.holdout, lo=0.0, hi=0.5, lo_open=True)
         if not self.windows:
             _fail(k + "windows", "a non-empty list of increasing window lengths", self.windows)
         for i, w in enumerate(self.windows):
@@ -369,9 +375,11 @@ class EMPSFrictionConfig:
             _fail(k + "structures", "a non-empty list", self.structures)
         for i, s in enumerate(self.structures):
             _one_of(f"{k}structures[{i}]", s, tuple(emps_friction.STRUCTURES))
-        _one_of(k + "keep", self.keep, tuple(self.structures))
-        for i, h in enumerate(self.spread_holdouts):
-            _number(f"{k}spread_holdouts[{i}]", h, lo=0.0, hi=0.5)
+        _number(k + "stribeck_velocity", self.stribeck_velocity, lo=0.0, lo_open=True)
+        if not self.cv_holdouts:
+            _fail(k + "cv_holdouts", "a non-empty list of held-out fractions", self.cv_holdouts)
+        for i, h in enumerate(self.cv_holdouts):
+            _number(f"{k}cv_holdouts[{i}]", h, lo=0.0, hi=0.9, lo_open=True)
 
 
 # --------------------------------------------------------------------------- tanks

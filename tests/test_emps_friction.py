@@ -35,10 +35,12 @@ def test_friction_terms():
     np.testing.assert_allclose(plant(x, u, base), example.Plant()(x, u, base), rtol=1e-14)
     for v in (0.05, -0.05):
         for tau in (0.0, 150.0):
-            th = {**base, "dFv": 30.0, "mu": 0.1}
-            got = emps_friction.friction(v, tau, th)
+            th = {**base, "dFv": 30.0, "mu": 0.1, "Fs": 5.0}
+            got = emps_friction.friction(v, tau, th, vs=0.02)
             s = np.tanh(v / example.EPS)
-            want = 200.0 * v + 30.0 * abs(v) + (20.0 + 0.1 * np.hypot(tau, 1.0)) * s - 3.0
+            stribeck = 5.0 * np.exp(-((v / 0.02) ** 2))
+            want = 200.0 * v + 30.0 * abs(v) + (20.0 + 0.1 * np.hypot(tau, 1.0) + stribeck) * s
+            want -= 3.0
             np.testing.assert_allclose(got, want, rtol=1e-13)
 
 
@@ -62,12 +64,12 @@ def test_edge_drift():
     "overrides,message",
     [
         (["experiment.windows=[500,50]"], "`experiment.windows` must be increasing"),
-        (["experiment.structures=[stribeck]"], r"`experiment.structures\[0\]` must be one of"),
+        (["experiment.structures=[lugre]"], r"`experiment.structures\[0\]` must be one of"),
+        (["experiment.cv_holdouts=[]"], "`experiment.cv_holdouts` must be a non-empty list"),
         (
-            ["experiment.structures=[coulomb_viscous]", "experiment.keep=load"],
-            "`experiment.keep` must be one of coulomb_viscous",
+            ["experiment.cv_holdouts=[0.2,0]"],
+            r"`experiment.cv_holdouts\[1\]` must be a finite number > 0",
         ),
-        (["experiment.holdout=0"], "`experiment.holdout` must be a finite number > 0"),
     ],
 )
 def test_bad_config(overrides, message):
@@ -75,10 +77,29 @@ def test_bad_config(overrides, message):
         config.load(_compose(overrides))
 
 
+def test_cross_validation_score():
+    """The selection score is the mean held-out RMSE over the configured folds only (the
+    whole-record fit, which holds nothing out, is not one of them)."""
+    fits = {0.0: {"rmse_heldout_mm": None}, 0.1: {"rmse_heldout_mm": 1.0}}
+    fits[0.3] = {"rmse_heldout_mm": 4.0}
+    assert emps_friction.cross_validation_mm(fits, [0.1, 0.3]) == 2.5
+    assert emps_friction.cross_validation_mm(fits, [0.3]) == 4.0
+
+
+def test_final_model():
+    """The mean parameters become the model only where they score better on the held-out
+    parts on average; with no check (one fold) the whole-record fit stays."""
+    check = {"holdouts": [0.1, 0.2], "single_mm": [1.0, 3.0], "mean_mm": [1.5, 2.0]}
+    assert emps_friction.final_model(check) == "mean"
+    assert emps_friction.final_model({**check, "mean_mm": [1.5, 2.6]}) == "whole"
+    assert emps_friction.final_model({"holdouts": [], "single_mm": [], "mean_mm": []}) == "whole"
+
+
 def test_end_to_end(tmp_path):
-    """The load-dependent structure on 300 estimation samples: continuation runs (a
-    windowed stage, then the whole training record), the structure has its extra
-    parameters, every score is finite, mu respects its bound, and results.md is written."""
+    """Two structures on 300 estimation samples, one rolling-origin fold: continuation
+    runs (a windowed stage, then the whole span) on the whole record and on the fold's
+    training span, the fold's held-out RMSE selects, every score is finite, mu respects
+    its bound, and results.md is written."""
     from oneshot_jax import datasets
 
     benchmark_or_skip(datasets.load_emps)
@@ -86,29 +107,75 @@ def test_end_to_end(tmp_path):
         [
             "experiment.n_samples=300",
             "experiment.windows=[50]",
-            "experiment.structures=[load]",
-            "experiment.spread_holdouts=[0.0]",
+            "experiment.structures=[coulomb_viscous,load]",
+            "experiment.cv_holdouts=[0.2]",
             "solver.kwargs.max_steps=3",
             "progress=false",
         ]
     )
     res = run.execute(cfg, tmp_path, command="cmd")
     assert res["status"] == "ok"
-    assert json.loads((tmp_path / "results.json").read_text())["kept"] == "load"
-    assert res["n_train"] == 240 and res["n_heldout"] == 60
-    assert res["max_force_N"]["test"] > res["max_force_N"]["estimation"] > 0
-    rows = {r["structure"]: r for r in res["rows"]}
-    assert set(rows) == {"load"}
-    assert set(rows["load"]["theta"]) == {*example.PARAMS, "dFv", "mu"}
-    assert rows["load"]["theta"]["mu"] >= 0.0
-    for r in rows.values():
+    assert res["spans"] == [0.0, 0.2]
+    fits = {(r["structure"], r["holdout"]): r for r in res["rows"]}
+    assert set(fits) == {(s, h) for s in ("coulomb_viscous", "load") for h in (0.0, 0.2)}
+    assert fits["load", 0.0]["n_train"] == 300 and fits["load", 0.2]["n_train"] == 240
+    assert fits["load", 0.0]["rmse_heldout_mm"] is None
+    assert set(fits["load", 0.0]["theta"]) == {*example.PARAMS, "dFv", "mu"}
+    assert fits["load", 0.0]["theta"]["mu"] >= 0.0 and fits["load", 0.2]["theta"]["mu"] >= 0.0
+    for r in fits.values():
         assert [s["window"] for s in r["stages"]] == [50, None]
-        scores = [r["rmse_train_mm"], r["rmse_heldout_mm"], r["protocol"]["rmse_mm"]]
-        assert all(np.isfinite(scores)) and np.isfinite(r["edge_drift_mm"])
-    # the span spread: the whole record, warm-started from the kept fit
-    (span,) = res["spread"]
-    assert span["holdout"] == 0.0 and span["n_train"] == 300 and span["rmse_heldout_mm"] is None
-    assert np.isfinite(span["protocol"]["rmse_mm"])
+        assert np.isfinite(r["protocol"]["rmse_mm"]) and np.isfinite(r["edge_drift_mm"])
+    cv = {s: fits[s, 0.2]["rmse_heldout_mm"] for s in ("coulomb_viscous", "load")}
+    assert res["selected"] == min(cv, key=cv.get)
+    assert json.loads((tmp_path / "results.json").read_text())["selected"] == res["selected"]
+    for s, m in res["summary"].items():
+        assert m["cv_mm"] == cv[s]
+        assert m["test_whole_mm"] == fits[s, 0.0]["protocol"]["rmse_mm"]
+        assert m["test_min_mm"] <= m["test_mean_mm"] <= m["test_max_mm"]
+        assert np.isfinite(m["averaged"]["protocol"]["rmse_mm"])
+        # leaving one of the two fits out of the mean leaves the other fit itself
+        loo = sorted(m["averaged"]["leave_one_out_mm"])
+        own = sorted(fits[s, h]["protocol"]["rmse_mm"] for h in (0.0, 0.2))
+        np.testing.assert_allclose(loo, own, rtol=1e-6)
+        assert m["aggregation_check"]["holdouts"] == []  # one fold: nothing to aggregate
+    assert res["final"] == "whole"
+    assert res["max_force_N"]["test"] > res["max_force_N"]["estimation"] > 0
     md = (tmp_path / "results.md").read_text()
     assert md.startswith("# EMPS: friction models trained for the open-loop protocol")
-    assert "dynoNet" in md and "## How much the score depends on the training span" in md
+    assert "dynoNet" in md and "## Selection on the estimation record" in md
+
+
+def test_aggregation_check():
+    """The held-out part of each fold is scored with the mean parameters of the fits that
+    did not see it: with identical fits the mean is that fit, and a fit that saw the
+    held-out part (holdout 0.1 for the 0.2 fold) is left out of it."""
+    from types import SimpleNamespace
+
+    from oneshot_jax import datasets
+
+    benchmark_or_skip(datasets.load_emps)
+    data = datasets.load_emps(None)
+    record = example.trim(data.estimation, 400)
+    ex = SimpleNamespace(eps=example.EPS, substeps=1, stribeck_velocity=0.01, velocity_halfwidth=5)
+    good = dict(example.REFERENCE)
+    bad = {**good, "offset": 30.0}
+    model = emps_friction.friction_model(data.Ts)
+
+    def row(theta, h):
+        _, held = emps_friction.split(record, h)
+        return {
+            "theta": theta,
+            "rmse_heldout_mm": emps_friction.record_rmse_mm(model, theta, held, data.gtau, data.Ts),
+        }
+
+    fits = {0.1: row(bad, 0.1), 0.2: row(good, 0.2), 0.3: row(good, 0.3)}
+    c = emps_friction.aggregation_check(data, record, fits, [0.3, 0.1, 0.2], ex)
+    assert c["holdouts"] == [0.1, 0.2]
+    # fold 0.2: the mean of the 0.2 and 0.3 fits (both good) is the good fit itself
+    np.testing.assert_allclose(c["mean_mm"][1], fits[0.2]["rmse_heldout_mm"], rtol=1e-9)
+    # fold 0.1: the bad fit is averaged with the good ones, a different model
+    _, held = emps_friction.split(record, 0.1)
+    mean = {k: (bad[k] + 2 * good[k]) / 3 for k in good}
+    want = emps_friction.record_rmse_mm(model, mean, held, data.gtau, data.Ts)
+    np.testing.assert_allclose(c["mean_mm"][0], want, rtol=1e-9)
+    assert c["single_mm"] == [fits[0.1]["rmse_heldout_mm"], fits[0.2]["rmse_heldout_mm"]]
