@@ -40,6 +40,7 @@ import time
 import warnings
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -305,6 +306,10 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction
         for h in spans:
             row = fit_span(data, record, structure, h, ex, solver, cfg.progress)
             rows.append(row)
+            # Every span compiles programs of its own shapes, and XLA keeps each compiled
+            # program's machine code mapped: some hundred of them exhaust Linux's limit
+            # of memory maps per process (vm.max_map_count). Drop them between spans.
+            jax.clear_caches()
             ho = row["rmse_heldout_mm"]
             print(
                 f"  {structure:<16} holdout {h:<4g} {row['time_s']:6.1f} s {row['status']:<17} | "
