@@ -135,9 +135,11 @@ class AbstractLeastSquares(AbstractSolver):
     def _search(self) -> AbstractSearch:
         """The globalisation of the step."""
 
-    def _linearise(self, problem, params):
-        """The linearisation at params (`_linearisation.linearise`) and h_min."""
-        return linearise(
+    def _linearise(self, problem, params, placeholder_only=False):
+        """The linearisation at params (`_linearisation.linearise`) and h_min; with
+        `placeholder_only`, zeros of their structure (`_linearisation.placeholder`)."""
+        make = placeholder if placeholder_only else linearise
+        return make(
             problem,
             params,
             self.strategy,
@@ -160,14 +162,7 @@ class AbstractLeastSquares(AbstractSolver):
     def init(self, problem, params):
         # A placeholder linearisation (zeros of its shapes): the first `step` forms it
         # at `params` (`primes_in_step`), so that the compiled loop holds one copy.
-        blocks, h_min = placeholder(
-            problem,
-            params,
-            self.strategy,
-            self._matrix_free(params),
-            self.cg_rtol,
-            self.cg_max_steps,
-        )
+        blocks, h_min = self._linearise(problem, params, placeholder_only=True)
         dtype = problem.dtype
         nan = jnp.array(jnp.nan, dtype)
         return LSQState(
