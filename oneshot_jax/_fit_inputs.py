@@ -198,9 +198,7 @@ def _bounds(proj, theta):
         hi.setflags(write=False)
         return proj, lo, hi  # (the object kept: its id is not reused while here)
 
-    kept_proj, lo, hi = _pytree.kept(_BOUNDS, key, make, size=64)
-    if kept_proj is not proj:  # (cannot happen while the entry holds it; defensive)
-        _, lo, hi = make()
+    _, lo, hi = _pytree.kept(_BOUNDS, key, make, size=64)
     return lo, hi
 
 

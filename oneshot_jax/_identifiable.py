@@ -127,9 +127,10 @@ def _fixed(theta0, fixed):
 
 def _switched_off(term):
     """The learned term with every floating array at zero (its output zero for `MLP` and
-    `Dictionary`, whose output is linear in the last layer or the coefficients)."""
+    `Dictionary`, whose output is linear in the last layer or the coefficients);
+    traceable."""
     return jax.tree_util.tree_map(
-        lambda a: np.zeros_like(a) if eqx.is_inexact_array(a) else a, term
+        lambda a: jnp.zeros_like(a) if eqx.is_inexact_array(a) else a, term
     )
 
 
@@ -187,7 +188,7 @@ def fit_physics_first(
     """
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
-    theta_phys = {k: (_switched_off(theta0[k]) if k in keys else theta0[k]) for k in theta0}
+    theta_phys = _off(theta0, keys)
     if multistart is not False and isinstance(multistart, Mapping):
         wrong = [k for k in multistart if k in keys]
         if wrong:
@@ -288,15 +289,8 @@ class Orthogonal(eqx.Module):
 
 
 def _off(theta, keys):
-    """theta with the learned terms switched off, traceable (inside the model)."""
-    return {
-        k: (
-            jax.tree_util.tree_map(lambda a: jnp.zeros_like(a) if eqx.is_inexact_array(a) else a, v)
-            if k in keys
-            else v
-        )
-        for k, v in theta.items()
-    }
+    """theta with the learned terms switched off (`_switched_off`)."""
+    return {k: (_switched_off(v) if k in keys else v) for k, v in theta.items()}
 
 
 def _augmented(model, keys, n_x, n_u, n_z, p):
@@ -352,7 +346,9 @@ def _basis(model, theta, x0, u, names, root):
     return np.einsum("ij,tjp->tip", root, q.reshape(T, n_z, -1))
 
 
-def _flat(phys):
+def _flat(theta, names):
+    """The floating entries of theta's `names` as one vector."""
+    phys = eqx.filter({k: theta[k] for k in names}, eqx.is_inexact_array)
     leaves = [np.ravel(np.asarray(a, float)) for a in jax.tree_util.tree_leaves(phys)]
     return np.concatenate(leaves) if leaves else np.zeros(0)
 
@@ -498,7 +494,7 @@ def fit_orthogonal(
 
     history, result, converged = [], None, False
     for _ in range(int(rounds)):
-        before = _flat(eqx.filter({k: theta[k] for k in names}, eqx.is_inexact_array))
+        before = _flat(theta, names)
         m = _basis(model, theta, x0, u, names, root)
         u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
         x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
@@ -516,10 +512,10 @@ def fit_orthogonal(
             **kwargs,
         )
         theta, x0 = result.theta, np.asarray(result.x0)[:n_x]
-        after = _flat(eqx.filter({k: theta[k] for k in names}, eqx.is_inexact_array))
+        after = _flat(theta, names)
         step = np.abs(after - before)
         change = float(np.max(step / np.maximum(np.abs(before), 1e-12)))
-        std = _flat(eqx.filter({k: result.std[k] for k in names}, eqx.is_inexact_array))
+        std = _flat(result.std, names)
         ok = np.isfinite(std) & (std > 0)
         moved = float(np.max(np.where(ok, step / np.where(ok, std, 1.0), np.inf)))
         _, y = simulate(model, theta, x0, u)

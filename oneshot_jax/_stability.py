@@ -124,7 +124,8 @@ def report(step, idx, xs, J) -> Stability | None:
     """The `Stability` of the Jacobians `J` at the states `xs` (flattened indices `idx`)
     of a `Model.from_ode` model's `step`, from their eigenvalues (on the host); None
     where no state is finite."""
-    xs, J, finite = _finite(xs, J)
+    xs, J = np.asarray(xs), np.asarray(J)
+    finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
     if not np.any(finite):
         return None
     eig = np.linalg.eigvals(J[finite])
@@ -139,12 +140,6 @@ def report(step, idx, xs, J) -> Stability | None:
         substeps=step.substeps,
         dt=step.dt,
     )
-
-
-def _finite(xs, J):
-    """The states and Jacobians on the host, and which of them are finite."""
-    xs, J = np.asarray(xs), np.asarray(J)
-    return xs, J, np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
 
 
 def warn_after_fit(step, idx, xs, J, bound, stacklevel: int) -> None:

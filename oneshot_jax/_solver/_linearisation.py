@@ -89,9 +89,13 @@ class AbstractLinearisation(eqx.Module):
     def covariance_blocks(self, sse):
         """(sse, A, B, C_i) for `_covariance.covariance`, or None where A is not formed."""
 
+    # Whether J^T J is formed (`rank` is available; else the statistical stopping test
+    # is off). A class constant: no annotation, so not a field.
+    forms_normal_matrix = False
+
     def rank(self):
         """The numerical rank of J (`_linalg.numerical_rank`, the covariance's cutoff), or
-        None where J^T J is not formed (then the statistical stopping test is off)."""
+        None where J^T J is not formed (`forms_normal_matrix` False)."""
         return None
 
     def diag_x(self) -> jax.Array:
@@ -149,6 +153,8 @@ class DenseLinearisation(AbstractLinearisation):
 
     def covariance_blocks(self, sse):
         return sse, self.A, self.B, self.Cb
+
+    forms_normal_matrix = True
 
     def rank(self):
         """rank J = sum_i rank C_i + rank S, S the Schur complement of the x0 blocks

@@ -358,7 +358,7 @@ class AbstractLeastSquares(AbstractSolver):
         Off (NaN, False) with `stol=0` and where J^T J is not formed
         (`linear_solver="cg"`)."""
         dtype = problem.dtype
-        if not self.stol or jax.eval_shape(b.rank) is None:
+        if not self.stol or not b.forms_normal_matrix:
             return jnp.array(jnp.nan, dtype), jnp.array(False)
         pred = -(
             2.0 * (s.theta @ b.g_t + jnp.sum(s.x0 * b.g_x))
