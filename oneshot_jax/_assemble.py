@@ -19,17 +19,17 @@ from ._strategy import COVARIANCE_MAX_THETA
 
 
 class StageOut(NamedTuple):
-    """What `assemble` reads of one solver's `Solution`, for the best start."""
+    """What `assemble` reads of one solver's `Solution`, for the best start: its history
+    rows with the last iterate written after them (row `rows`), so that the host slices
+    `[: rows + 1]` and copies nothing."""
 
-    step: jax.Array  # (size,) the step of each history row (-1: unused)
-    loss: jax.Array  # (size,)
-    grad_norm: jax.Array  # (size,)
-    theta: jax.Array  # (size, p)
+    step: jax.Array  # (size + 1,) the step of each history row (-1: unused)
+    loss: jax.Array  # (size + 1,)
+    grad_norm: jax.Array  # (size + 1,)
+    theta: jax.Array  # (size + 1, p)
+    rows: jax.Array  # the rows recorded before the last iterate (steps 0 .. num_steps - 1)
     num_steps: jax.Array
-    final_theta: jax.Array  # (p,) its last iterate, its loss and gradient norm
-    final_loss: jax.Array
-    final_grad_norm: jax.Array
-    validation: jax.Array | None  # (size,) the validation loss of each row, or None
+    validation: jax.Array | None  # (size + 1,) the validation loss of each row, or None
 
 
 class Out(NamedTuple):
@@ -40,7 +40,7 @@ class Out(NamedTuple):
     theta: jax.Array  # (n,) flat theta of the best start
     x0: jax.Array  # (N, n_x)
     residuals: jax.Array
-    covariance: Any  # a `Covariance`, or None above COVARIANCE_MAX_THETA
+    covariance: Any  # a `Scaled` covariance, or None above COVARIANCE_MAX_THETA
     metrics: dict
     stages: tuple  # a `StageOut` per solver
     results: jax.Array  # (S,) the last solver's RESULTS index per start
@@ -53,25 +53,35 @@ class Out(NamedTuple):
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
+def _stage_out(s, best) -> StageOut:
+    """The best start's rows of one solver's bounded history (`_history`: a prefix of the
+    buffer, steps increasing), its last iterate written after the rows before its last step
+    (the final iterate's validation loss: NaN, not recorded)."""
+    n = s.num_steps[best]
+    step = s.history.step
+    rows = jnp.sum((step >= 0) & (step < n), dtype=jnp.int32)
+
+    def after(a, last):
+        return jnp.concatenate([a, last[None]]).at[rows].set(last)
+
+    val = s.history.validation
+    return StageOut(
+        after(step, n.astype(step.dtype)),
+        after(s.history.loss[:, best], s.final_loss[best]),
+        after(s.history.grad_norm[:, best], s.final_grad_norm[best]),
+        after(s.history.theta[:, best], s.final_theta[best]),
+        rows,
+        n,
+        None if val is None else after(val[:, best], jnp.full((), jnp.nan, val.dtype)),
+    )
+
+
 def collect(stages, best, moved, posted) -> Out:
     """`Out` from the solvers' `Solution`s and `post`'s output (traced, inside the fit's
     compiled call: indexing only)."""
     theta, x0, e, cov, met, _ = posted
     final = stages[-1]
-    per_stage = tuple(
-        StageOut(
-            s.history.step,
-            s.history.loss[:, best],
-            s.history.grad_norm[:, best],
-            s.history.theta[:, best],
-            s.num_steps[best],
-            s.final_theta[best],
-            s.final_loss[best],
-            s.final_grad_norm[best],
-            None if s.history.validation is None else s.history.validation[:, best],
-        )
-        for s in stages
-    )
+    per_stage = tuple(_stage_out(s, best) for s in stages)
     m = final.measures
     return Out(
         moved,
@@ -102,11 +112,12 @@ def post(problem, params, blocks, strategy):
     xs, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
     # Above COVARIANCE_MAX_THETA free entries of theta the covariance (a dense Jacobian with
     # a column per parameter, and a p x p eigendecomposition) is not computed.
-    cov = None
-    if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
-        cov = covariance(problem, params, strategy, blocks)
     zs = problem.z
     m = None if problem.mask is None else problem.mask.outputs
+    e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
+    cov = None
+    if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
+        cov = scale(covariance(problem, params, strategy, blocks), e)
     n_free = params.theta.shape[0] + params.x0.size
     met = {
         "rmse": _metrics.rmse(zs, zhat, m),
@@ -116,45 +127,51 @@ def post(problem, params, blocks, strategy):
         "aic": _metrics.aic(zs, zhat, n_free, m),
     }
     theta_flat = problem.theta_base.at[np.asarray(problem.theta_free, int)].set(params.theta)
-    e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
     return theta_flat, X0, e, cov, met, xs
 
 
-def _history(problem, stages, like):
+def _history(problem, stages, layout):
     """One `FitHistory` from every stage's bounded buffer (`StageOut`s): the best start's
     rows before its last step, then its last iterate."""
+    base = problem.theta_base
+    free = problem.theta_free
     losses, gnorms, paths, steps, stage_ids, scores = [], [], [], [], [], []
-    base = np.asarray(problem.theta_base)
-    free = np.asarray(problem.theta_free, int)
-    all_free = free.size == base.size  # (then the rows are the free entries themselves)
     for i, h in enumerate(stages):
-        n = int(h.num_steps)
-        rows = np.flatnonzero((h.step >= 0) & (h.step < n))
-        if not rows.size or rows[-1] == rows.size - 1:  # the usual prefix: slices, no gathers
-            rows = slice(0, rows.size)
-        theta = np.concatenate([h.theta[rows], h.final_theta[None]])
-        if all_free and theta.dtype == base.dtype:
-            flat = theta
-        else:
-            flat = np.empty((theta.shape[0], base.shape[0]), base.dtype)
+        k = int(h.rows) + 1
+        theta = h.theta[:k]
+        if len(free) != base.shape[0] or theta.dtype != base.dtype:
+            flat = np.empty((k, base.shape[0]), base.dtype)
             flat[:] = base
-            flat[:, free] = theta
-        losses.append(np.concatenate([h.loss[rows], h.final_loss[None]]))
-        gnorms.append(np.concatenate([h.grad_norm[rows], h.final_grad_norm[None]]))
-        paths.append(flat)
-        steps.append(np.concatenate([h.step[rows], [n]]).astype(np.int32))
-        stage_ids.append(np.full(theta.shape[0], i, np.int32))
-        if h.validation is not None:  # (the final iterate's row: NaN, not recorded)
-            scores.append(np.concatenate([h.validation[rows], [np.nan]]))
-    one = len(stages) == 1
+            flat[:, list(free)] = theta
+            theta = flat
+        losses.append(h.loss[:k])
+        gnorms.append(h.grad_norm[:k])
+        paths.append(theta)
+        steps.append(h.step[:k])
+        stage = np.empty(k, np.int32)
+        stage.fill(i)
+        stage_ids.append(stage)
+        if h.validation is not None:
+            scores.append(h.validation[:k])
+    if len(stages) == 1:
+        loss, grad_norm, path, step, stage = losses[0], gnorms[0], paths[0], steps[0], stage_ids[0]
+        validation = scores[0] if scores else None
+    else:
+        loss, grad_norm, path = (
+            np.concatenate(losses),
+            np.concatenate(gnorms),
+            np.concatenate(paths),
+        )
+        step, stage = np.concatenate(steps), np.concatenate(stage_ids)
+        validation = np.concatenate(scores) if scores else None
     return _pytree.build(
         FitHistory,
-        loss=losses[0] if one else np.concatenate(losses),
-        grad_norm=gnorms[0] if one else np.concatenate(gnorms),
-        theta=_pytree.unflatten_rows(paths[0] if one else np.concatenate(paths), like),
-        step=steps[0] if one else np.concatenate(steps),
-        stage=stage_ids[0] if one else np.concatenate(stage_ids),
-        validation=np.concatenate(scores) if scores else None,
+        loss=loss,
+        grad_norm=grad_norm,
+        theta=layout.rows(path),
+        step=step,
+        stage=stage,
+        validation=validation,
     )
 
 
@@ -171,21 +188,6 @@ def _settings(solver) -> dict:
             _SETTINGS.pop(next(iter(_SETTINGS)))
         _SETTINGS[id(solver)] = kept
     return dict(kept[1])
-
-
-_NAMES: dict = {}
-
-
-def _free_names(params, free):
-    """The names of theta's free entries (`_pytree.leaf_names`), kept per structure."""
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    key = (treedef, tuple(np.shape(a) for a in leaves), tuple(free))
-
-    def names():
-        all_names = _pytree.leaf_names(params)
-        return tuple(all_names[i] for i in free)
-
-    return _pytree.kept(_NAMES, key, names)
 
 
 def _warn_identifiability(names, ok, what):
@@ -223,27 +225,25 @@ def assemble(
     (NumPy arrays)."""
     theta_flat, X0, e, cov, met = out.theta, out.x0, out.residuals, out.covariance, out.metrics
     best = int(out.best)
-    like = jax.tree_util.tree_map(np.asarray, data.theta)
-    params = _pytree.unflatten_rows(theta_flat[None], like, squeeze=True)
-    free = np.asarray(problem.theta_free, int)
-    names = _free_names(params, problem.theta_free)
-
-    x0_free = np.asarray(problem.x0_free, int)
+    layout = _pytree.layout(data.theta)
+    params = layout.one(theta_flat)
+    free = problem.theta_free
+    names = layout.names(free)
+    x0_free = problem.x0_free
     flat_std = np.zeros(theta_flat.shape)
     x0_std = np.zeros(X0.shape)
     if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
         warnings.warn(
             f"the covariance of the estimates is not computed above {COVARIANCE_MAX_THETA} "
-            f"free entries of theta ({free.size} here): std and x0_std are inf (unknown).",
+            f"free entries of theta ({len(free)} here): std and x0_std are inf (unknown).",
             stacklevel=3,
         )
         theta_cov = np.zeros((0, 0))
-        flat_std[free] = np.inf
-        x0_std[:, x0_free] = np.inf
-        x0_cov = np.full((X0.shape[0], x0_free.size, x0_free.size), np.inf)
+        flat_std[list(free)] = np.inf
+        x0_std[:, list(x0_free)] = np.inf
+        x0_cov = np.full((X0.shape[0], len(x0_free), len(x0_free)), np.inf)
     else:
-        n_obs = int(np.count_nonzero(np.isfinite(e)))
-        scaled = scale(cov, n_obs)
+        scaled = cov  # sigma^2 (J^T J)^+ and its standard errors (`scale`, in the solve)
         _warn_identifiability(names, scaled.theta_identifiable, "parameters")
         if not scaled.x0_identifiable.all():
             x0_names = [
@@ -253,27 +253,25 @@ def assemble(
             ]
             _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
         theta_cov = scaled.theta
-        if free.size == flat_std.size:  # every entry free: no scatter
-            flat_std = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0))
-        elif free.size:
-            flat_std[free] = np.sqrt(np.maximum(np.diag(scaled.theta), 0.0))
-        if x0_free.size:
-            diag = np.sqrt(np.maximum(np.diagonal(scaled.x0, axis1=1, axis2=2), 0.0))
-            if x0_free.size == x0_std.shape[1]:
-                x0_std = diag
-            else:
-                x0_std[:, x0_free] = diag
+        if len(free) == flat_std.size:  # every entry free: no scatter
+            flat_std = scaled.theta_std
+        elif free:
+            flat_std[list(free)] = scaled.theta_std
+        if len(x0_free) == x0_std.shape[1]:
+            x0_std = scaled.x0_std
+        elif x0_free:
+            x0_std[:, list(x0_free)] = scaled.x0_std
         x0_cov = scaled.x0
-    std = _pytree.unflatten_rows(flat_std[None], like, squeeze=True)
+    std = layout.one(flat_std)
 
     results, losses = out.results, out.losses
     starts = None
     if multistart:
         rows = np.broadcast_to(np.asarray(problem.theta_base), (losses.shape[0], theta_flat.size))
         rows = rows.copy()
-        rows[:, free] = out.start_theta
+        rows[:, list(free)] = out.start_theta
         starts = Starts(
-            theta=_pytree.unflatten_rows(rows, like),
+            theta=layout.rows(rows),
             loss=losses,
             stop_reason=tuple(name_of(from_index(int(c))) for c in results),
         )
@@ -298,15 +296,15 @@ def assemble(
         stop_reason=from_index(int(results[best])),
         num_steps=int(sum(int(s.num_steps) for s in out.stages)),
         wall_time=float(wall_time),
-        history=_history(problem, out.stages, like),
+        history=_history(problem, out.stages, layout),
         residuals=e,
         names=names,
-        fixed=np.asarray(fixed, bool),
+        fixed=np.array(fixed, bool),
         covariance=theta_cov,
         std=std,
         x0_covariance=x0_cov,
         x0_std=x0_std,
-        x0_estimated=np.asarray(x0_estimated, bool),
+        x0_estimated=np.array(x0_estimated, bool),
         metrics=metrics,
         starts=starts,
         best=best,

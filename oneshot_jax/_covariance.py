@@ -96,34 +96,34 @@ def marginal(S, S_inv, t_ok, nuisance):
 
 
 class Scaled(NamedTuple):
-    """sigma^2 (J^T J)^+ on the host, with inf where a variable is not identifiable."""
+    """sigma^2 (J^T J)^+, with inf where a variable is not identifiable, and the standard
+    errors (the square roots of its diagonal)."""
 
-    theta: np.ndarray  # (p, p) covariance of theta's free entries
-    x0: np.ndarray  # (N, m, m) covariance of each trajectory's free x0 entries
-    sigma2: float  # the residual variance, SSE / (n_obs - n_free)
-    theta_identifiable: np.ndarray
-    x0_identifiable: np.ndarray
+    theta: jax.Array  # (p, p) covariance of theta's free entries
+    x0: jax.Array  # (N, m, m) covariance of each trajectory's free x0 entries
+    sigma2: jax.Array  # the residual variance, SSE / (n_obs - n_free)
+    theta_identifiable: jax.Array
+    x0_identifiable: jax.Array
+    theta_std: jax.Array  # (p,)
+    x0_std: jax.Array  # (N, m)
 
 
-def scale(cov: Covariance, n_obs: int) -> Scaled:
-    """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free), on the host.
+def scale(cov: Covariance, e) -> Scaled:
+    """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the finite entries of
+    the residuals `e`); traced, inside the compiled call that made `cov`.
 
     With J = Q^{1/2} J_e / sqrt(N T), sigma^2 (J_e^T Q J_e)^{-1} = (SSE_r / dof) (J^T J)^{-1}.
     A variable outside the identifiable set gets an infinite variance, and so does every
     variable when there are no more observations than free variables (dof <= 0).
     """
-    t_ok = np.asarray(cov.theta_identifiable, bool)
-    x_ok = np.asarray(cov.x0_identifiable, bool)
-    n_free = t_ok.size + x_ok.size
-    dof = n_obs - n_free
-    s2 = float(cov.sse) / dof if dof > 0 else float("inf")
-    theta = np.array(cov.theta, dtype=float) * s2 if dof > 0 else np.full(cov.theta.shape, np.inf)
-    x0 = np.array(cov.x0, dtype=float) * s2 if dof > 0 else np.full(cov.x0.shape, np.inf)
-    if not t_ok.all():
-        theta[~t_ok, :] = np.inf
-        theta[:, ~t_ok] = np.inf
-    if not x_ok.all():
-        for i in range(x0.shape[0]):
-            x0[i][~x_ok[i], :] = np.inf
-            x0[i][:, ~x_ok[i]] = np.inf
-    return Scaled(theta, x0, s2, t_ok, x_ok)
+    t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
+    dof = jnp.sum(jnp.isfinite(e)) - (t_ok.size + x_ok.size)
+    known = dof > 0
+    s2 = jnp.where(known, cov.sse / jnp.where(known, dof, 1).astype(cov.sse.dtype), jnp.inf)
+    theta = jnp.where(known & t_ok[:, None] & t_ok[None, :], cov.theta * s2, jnp.inf)
+    x0 = jnp.where(known & x_ok[:, :, None] & x_ok[:, None, :], cov.x0 * s2, jnp.inf)
+
+    def std(c):
+        return jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
+
+    return Scaled(theta, x0, s2, t_ok, x_ok, std(theta), std(x0))

@@ -187,9 +187,15 @@ _BOUNDS: dict = {}
 
 def _bounds(proj, theta):
     """A box's flat bounds on theta (`proj.bounds`, constants of the box), kept per
-    projection object (immutable) and structure, shapes and dtypes of theta."""
+    projection (by its bounds' `key` where it has one: a box of scalar bounds, by value;
+    else the object, immutable) and structure, shapes and dtypes of theta."""
     leaves, treedef = jax.tree_util.tree_flatten(theta)
-    key = (id(proj), treedef, tuple((np.shape(a), np.result_type(a)) for a in leaves))
+    named = getattr(proj.bounds, "key", None)
+    key = (
+        id(proj) if named is None else named,
+        treedef,
+        tuple((np.shape(a), np.result_type(a)) for a in leaves),
+    )
 
     def make():
         lo, hi = proj.bounds(theta)
@@ -200,6 +206,71 @@ def _bounds(proj, theta):
 
     _, lo, hi = _pytree.kept(_BOUNDS, key, make, size=64)
     return lo, hi
+
+
+class _Free(NamedTuple):
+    """What `build_problem` derives from theta's structure and the masks alone (`_free`)."""
+
+    unravel: Any  # flat theta -> theta (`_pytree.ravel`'s inverse)
+    fixed: np.ndarray  # flat mask of the fixed entries of theta
+    any_fixed: bool
+    theta: np.ndarray  # indices of the free entries of theta
+    theta_tuple: tuple
+    x0_mask: np.ndarray  # (n_x,) the estimated entries of x0
+    x0: np.ndarray  # their indices
+    x0_tuple: tuple
+    nuisance: tuple  # positions of a module's (network's) entries among the free ones
+    lower: np.ndarray | None  # a box's bounds on the free entries, or None
+    upper: np.ndarray | None
+
+
+_FREE: dict = {}
+
+
+def _free(theta, dtype, fixed, estimate_x0, n_x, proj) -> _Free:
+    """The free entries of theta and x0, the network's entries among them and a box's
+    bounds on them: checked and derived once per structure of theta, masks and box where
+    the masks are None or booleans (`fixed`, `estimate_x0`) and the box is named by its
+    values (`constraints.box`), else anew."""
+
+    def make():
+        leaves, treedef = jax.tree_util.tree_flatten(theta)
+        unravel = _pytree.unravel_for(treedef, tuple(np.shape(a) for a in leaves), dtype)
+        fixed_flat = fixed_mask(fixed, theta)
+        theta_free = np.flatnonzero(~fixed_flat)
+        x0_est = x0_mask(estimate_x0, n_x)
+        x0_free = np.flatnonzero(x0_est)
+        if len(theta_free) == 0 and len(x0_free) == 0:
+            raise ValueError(
+                "nothing to estimate: every parameter is fixed and estimate_x0 is False."
+            )
+        lower = upper = None
+        if proj is not None and proj.bounds is not None:
+            lo, hi = _bounds(proj, theta)
+            lower, upper = lo[theta_free], hi[theta_free]
+        for a in (fixed_flat, theta_free, x0_est, x0_free):
+            a.setflags(write=False)
+        return _Free(
+            unravel,
+            fixed_flat,
+            bool(fixed_flat.any()),
+            theta_free,
+            tuple(int(i) for i in theta_free),
+            x0_est,
+            x0_free,
+            tuple(int(i) for i in x0_free),
+            tuple(int(i) for i in np.flatnonzero(_module_entries(theta)[theta_free])),
+            lower,
+            upper,
+        )
+
+    box = None if proj is None or proj.bounds is None else getattr(proj.bounds, "key", False)
+    simple = (fixed is None or isinstance(fixed, bool)) and isinstance(estimate_x0, bool)
+    if not simple or box is False:  # a mask of entries, or a box not named by its values
+        return make()
+    lay = _pytree.layout(theta)
+    key = (lay.treedef, lay.shapes, dtype, fixed, estimate_x0, n_x, box)
+    return _pytree.kept(_FREE, key, make, size=64)
 
 
 def build_problem(
@@ -223,28 +294,21 @@ def build_problem(
     X0, U, Z = (_host(a) if batched else np.asarray(a)[None] for a in (data.x0, data.u, data.z))
     n_x = X0.shape[1]
 
-    flat0, unravel = _pytree.ravel(data.theta)
-    fixed_flat = fixed_mask(fixed, data.theta)
-    theta_free = np.flatnonzero(~fixed_flat)
-    x0_est = x0_mask(estimate_x0, n_x)
-    x0_free = np.flatnonzero(x0_est)
-    if len(theta_free) == 0 and len(x0_free) == 0:
-        raise ValueError("nothing to estimate: every parameter is fixed and estimate_x0 is False.")
-
+    flat0 = _pytree.flat_host(data.theta)
     proj, reg = split(constraints, regulariser)
+    free = _free(data.theta, flat0.dtype, fixed, estimate_x0, n_x, proj)
+    fixed_flat, theta_free, x0_est, x0_free = free.fixed, free.theta, free.x0_mask, free.x0
     on_theta = None  # the regulariser on theta's trainable part
     if reg is not None:
         for s in solvers:
             s.check_regulariser(reg)
         on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
         check_regulariser(on_theta, data.theta)
-    lower = upper = None
     project = None
     if proj is not None:
         if proj.bounds is not None:
-            lo, hi = _bounds(proj, data.theta)
-            check_fixed_bounds(data.theta, fixed_flat, lo, hi)
-            lower, upper = lo[theta_free], hi[theta_free]
+            if free.any_fixed:
+                check_fixed_bounds(data.theta, fixed_flat, *_bounds(proj, data.theta))
         else:  # a general projection: check that it is one (boxes are by construction)
             check_projection(proj, data.theta)
             project = proj.project
@@ -256,18 +320,18 @@ def build_problem(
         u=U,
         z=Z,
         theta_base=flat0,
-        theta_free=tuple(int(i) for i in theta_free),
-        unravel=unravel,
+        theta_free=free.theta_tuple,
+        unravel=free.unravel,
         x0_base=X0,
-        x0_free=tuple(int(i) for i in x0_free),
+        x0_free=free.x0_tuple,
         project=project,
-        lower=lower,
-        upper=upper,
+        lower=free.lower,
+        upper=free.upper,
         regulariser=on_theta,
         validation=None
         if validation is None
         else monitor(validation, data.model, data.theta, X0, inputs.cost.sqrt_weight()),
-        nuisance=tuple(int(i) for i in np.flatnonzero(_module_entries(data.theta)[theta_free])),
+        nuisance=free.nuisance,
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(

@@ -66,6 +66,7 @@ where 3000 steps take it; the default 0.01 stopped at step 2494, 0.01 standard e
 from it).
 """
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -82,6 +83,7 @@ from ._problem import FitProblem, Params
 ZERO_RESIDUAL_RTOL = 1.0
 
 
+@functools.cache
 def roundoff_limit(dtype):
     """The first-order measure below which a point is stationary to the precision of its
     loss: 10 sqrt(eps) (1.5e-7 in float64, 3.5e-3 in float32). A loss C known to a

@@ -77,7 +77,7 @@ def flat_host(tree) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=256)
-def _unravel_for(treedef, shapes, dtype):
+def unravel_for(treedef, shapes, dtype):
     # Traced on abstract values: the inverse holds only the structure, shapes and dtype,
     # and nothing is computed (or compiled) to make it.
     out = []
@@ -95,7 +95,7 @@ def ravel(tree):
     one structure, shapes and dtype."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     flat = flat_host(leaves) if leaves else np.zeros(0, jnp.result_type(float))
-    unravel = _unravel_for(treedef, tuple(np.shape(a) for a in leaves), flat.dtype)
+    unravel = unravel_for(treedef, tuple(np.shape(a) for a in leaves), flat.dtype)
     return flat, unravel
 
 
@@ -111,6 +111,58 @@ def unflatten_rows(rows, like, squeeze=False):
         out.append(block[0] if squeeze else block)
         start += size
     return jax.tree_util.tree_unflatten(treedef, out)
+
+
+class Layout:
+    """The structure and shapes of a parameter pytree, kept per structure (`layout`): the
+    NumPy inverse of `flat_host` for one flat vector or rows of them, and the entries'
+    names (`leaf_names`), without flattening the tree again."""
+
+    __slots__ = ("treedef", "shapes", "bounds", "_names", "_free")
+
+    def __init__(self, treedef, shapes):
+        self.treedef, self.shapes = treedef, shapes
+        ends = np.cumsum([int(np.prod(shape, dtype=int)) for shape in shapes]).tolist()
+        self.bounds = tuple(zip([0, *ends[:-1]], ends))
+        self._names = None
+        self._free = {}
+
+    def one(self, flat):
+        """A flat vector (n,) as the pytree."""
+        flat = np.asarray(flat)
+        leaves = [flat[a:b].reshape(shape) for (a, b), shape in zip(self.bounds, self.shapes)]
+        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+
+    def rows(self, rows):
+        """Rows (E, n) as the pytree with a leading axis E."""
+        rows = np.asarray(rows)
+        E = rows.shape[0]
+        leaves = [
+            rows[:, a:b].reshape(E, *shape) for (a, b), shape in zip(self.bounds, self.shapes)
+        ]
+        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+
+    def names(self, free=None) -> tuple[str, ...]:
+        """`leaf_names` of the tree, of the entries `free` only where given."""
+        if self._names is None:
+            like = jax.tree_util.tree_unflatten(
+                self.treedef, [np.zeros(shape) for shape in self.shapes]
+            )
+            self._names = leaf_names(like)
+        if free is None or len(free) == len(self._names):
+            return self._names
+        names = self._free
+        return kept(names, tuple(free), lambda: tuple(self._names[i] for i in free), size=8)
+
+
+_LAYOUTS: dict = {}
+
+
+def layout(tree) -> Layout:
+    """The `Layout` of `tree` (its structure and leaf shapes), kept between calls."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    shapes = tuple(np.shape(a) for a in leaves)
+    return kept(_LAYOUTS, (treedef, shapes), lambda: Layout(treedef, shapes))
 
 
 def module_entries(theta) -> np.ndarray:
@@ -170,7 +222,19 @@ def leaf_names(theta) -> tuple[str, ...]:
 
 @functools.cache
 def _fields(cls):
-    return tuple((f.name, f.default, f.default_factory) for f in dataclasses.fields(cls))
+    """(the field names, the defaults of the fields that have one: a value, or a factory
+    marked by `_FACTORY`)."""
+    names, defaults = [], {}
+    for f in dataclasses.fields(cls):
+        names.append(f.name)
+        if f.default_factory is not dataclasses.MISSING:
+            defaults[f.name] = (_FACTORY, f.default_factory)
+        elif f.default is not dataclasses.MISSING:
+            defaults[f.name] = (None, f.default)
+    return frozenset(names), defaults
+
+
+_FACTORY = object()
 
 
 def build(cls, **fields):
@@ -179,19 +243,19 @@ def build(cls, **fields):
     the fields are set as equinox's own unflattening sets them (defaults filled in),
     without `Module.__init__`'s walk over every leaf of every argument (the model and
     theta included), which costs more than the rest of a fit's host-side work."""
+    names, defaults = _fields(cls)
+    if not names.issuperset(fields):
+        raise TypeError(f"{cls.__name__}: unknown fields {sorted(set(fields) - names)}.")
+    if len(fields) < len(names):
+        for name, (kind, value) in defaults.items():
+            if name not in fields:
+                fields[name] = value() if kind is _FACTORY else value
+        if len(fields) < len(names):
+            raise TypeError(
+                f"{cls.__name__}: field(s) {sorted(names - set(fields))} was not given."
+            )
     self = object.__new__(cls)
-    for name, default, factory in _fields(cls):
-        if name in fields:
-            value = fields.pop(name)
-        elif factory is not dataclasses.MISSING:
-            value = factory()
-        elif default is not dataclasses.MISSING:
-            value = default
-        else:
-            raise TypeError(f"{cls.__name__}: field {name!r} was not given.")
-        object.__setattr__(self, name, value)
-    if fields:
-        raise TypeError(f"{cls.__name__}: unknown fields {sorted(fields)}.")
+    object.__getattribute__(self, "__dict__").update(fields)
     return self
 
 

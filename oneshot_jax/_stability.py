@@ -10,6 +10,7 @@ integrator's limit; `fit` calls it after every fit of such a model.
 """
 
 import functools
+import math
 import warnings
 from typing import NamedTuple
 
@@ -79,7 +80,7 @@ def sample_points(data, points: int = POINTS) -> np.ndarray | None:
     spaced over the valid samples of the checked data (not the padding of ragged
     trajectories); None where there is none."""
     if data.mask is None:
-        return _evenly(int(np.prod(np.shape(data.u)[:-1])), points)
+        return _evenly(math.prod(np.shape(data.u)[:-1]), points)
     valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
     if valid.size == 0:
         return None

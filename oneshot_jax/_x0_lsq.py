@@ -100,7 +100,7 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
         blocks = (
             None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[0], final.blocks)
         )
-        cov = covariance(problem, params, strategy, blocks)
+        cov = scale(covariance(problem, params, strategy, blocks), e)
     extra = None
     if record is not None:
         if cov is None:
@@ -162,8 +162,6 @@ def solve_x0(data: Data, solver=None, *, with_covariance: bool = True, record=No
     start = Params(np.zeros((1, 0), flat0.dtype), X0[None])
     buffers, layout = _solve(solvers, problem, start, with_covariance, record)
     x0, loss, result, e, cov, extra = _pytree.unpack(buffers, layout)
-    x0_cov = None
-    if cov is not None:
-        x0_cov = scale(cov, int(np.count_nonzero(np.isfinite(e)))).x0
+    x0_cov = None if cov is None else cov.x0
     ok, sim = (None, None) if extra is None else extra
     return X0Fit(x0, loss, from_index(int(result)), e, x0_cov, ok, sim)

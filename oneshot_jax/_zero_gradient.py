@@ -100,16 +100,22 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
 
     **Returns:** a `FitResult`.
     """
+    free = problem.theta_free
+    final = np.asarray(theta_flat)
+    final = final if len(free) == final.size else final[list(free)]
+    best = result.best
+    if not (final == starts.theta[best]).any():  # every free entry moved (an ordinary fit)
+        return result
+    start = Params(starts.theta[best], starts.x0[best])
     if name_of(result.stop_reason) == "zero_residual":
         # The outputs are reproduced exactly: a parameter without effect there is one the
         # data do not determine (the covariance reports it), not a start to move from.
         return result
-    free = np.asarray(problem.theta_free, int)
-    start = Params(starts.theta[result.best], starts.x0[result.best])
-    entries = zero_gradient_entries(problem, start, np.asarray(theta_flat)[free], strategy)
+    entries = zero_gradient_entries(problem, start, final, strategy)
     if not entries.size:
         return result
     all_names = _pytree.indexed_names(_pytree.split(result.theta)[0])
+    free = np.asarray(free, int)
     stop = name_of(result.stop_reason)
     info = {
         **result.stop_info,

@@ -119,7 +119,26 @@ def box(lower=None, upper=None) -> ProximalTransformation:
         lo, hi = bounds(params)
         return jax.tree_util.tree_map(lambda p, a, b: jnp.clip(p, a, b), params, lo, hi)
 
+    # Bounds of scalars (or dicts of them) name the box by value: `fit` keeps what it
+    # derives from equal boxes (a `positive()` made anew on every call) between calls.
+    key = (_value_key(lower), _value_key(upper))
+    if None not in key:
+        bounds.key = ("box", *key)
     return indicator(proj, bounds)
+
+
+def _value_key(bound):
+    """A hashable stand-in for a bound made of Python or NumPy scalars (None, a scalar, or
+    a dict of these), or None for any other bound."""
+    if bound is None:
+        return ("none",)
+    if isinstance(bound, (int, float, np.number)) and not isinstance(bound, bool):
+        return ("scalar", bound)
+    if isinstance(bound, dict) and all(isinstance(k, str) for k in bound):
+        items = tuple((k, _value_key(v)) for k, v in sorted(bound.items()))
+        if all(v is not None for _, v in items):
+            return ("dict", items)
+    return None
 
 
 def non_negative() -> ProximalTransformation:

@@ -140,3 +140,26 @@ def test_build_is_the_constructor():
         build(FitHistory, loss=np.ones(3))
     with pytest.raises(TypeError, match="unknown fields"):
         build(FitHistory, **fields, extra=1)
+
+
+def test_boxes_named_by_value_are_kept_apart():
+    # A box made anew on every call is kept by its bounds' values: equal boxes share what
+    # `fit` derives from them, different ones (an upper bound changed) never do.
+    loose = [oj.fit(MODEL, THETA0, X0, U, Z, constraints=oj.constraints.box(upper={"k": 5.0}))]
+    loose.append(oj.fit(MODEL, THETA0, X0, U, Z, constraints=oj.constraints.box(upper={"k": 5.0})))
+    tight = oj.fit(MODEL, THETA0, X0, U, Z, constraints=oj.constraints.box(upper={"k": 1.8}))
+    assert eqx.tree_equal(loose[0].theta, loose[1].theta)
+    assert float(loose[0].theta["k"]) > 1.9  # the truth is 2.0
+    assert float(tight.theta["k"]) == 1.8  # at its own bound, not the other box's
+    array = oj.constraints.box(upper={"k": np.array(1.8)})  # not named by value
+    assert float(oj.fit(MODEL, THETA0, X0, U, Z, constraints=array).theta["k"]) == 1.8
+
+
+def test_fixed_and_estimated_masks_are_not_confused():
+    free = oj.fit(MODEL, THETA0, X0, U, Z)
+    held = oj.fit(MODEL, THETA0, X0, U, Z, fixed={"k": True, "c": False})
+    none_x0 = oj.fit(MODEL, THETA0, X0, U, Z, estimate_x0=False)
+    assert float(held.theta["k"]) == THETA0["k"] and float(free.theta["k"]) != THETA0["k"]
+    assert np.array_equal(none_x0.x0, X0) and not np.array_equal(free.x0, X0)
+    again = oj.fit(MODEL, THETA0, X0, U, Z)
+    assert eqx.tree_equal(again.theta, free.theta) and again.fixed.flags.writeable

@@ -29,6 +29,7 @@ class Trial(NamedTuple):
     loss: jax.Array
     accept: jax.Array
     gave_up: jax.Array
+    at_full: jax.Array  # whether the point is the full step's (`full`), accepted
 
 
 class AbstractSearch(eqx.Module):
@@ -84,9 +85,9 @@ class Backtracking(AbstractSearch):
             alpha = c[0] / 2
             return alpha, *trial(alpha)
 
-        _, new, Cn = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), *full))
+        alpha, new, Cn = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), *full))
         accept = Cn < C
-        return Trial(new, Cn, accept, ~accept), state
+        return Trial(new, Cn, accept, ~accept, accept & (alpha == 1.0)), state
 
     def fallback(self, clipped, pred):
         del clipped, pred
@@ -121,7 +122,7 @@ class NielsenDamping(AbstractSearch):
         accept = (Cn < C) & (rho > 0)
         mu_new = jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), mu * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
-        return Trial(new, Cn, accept, mu_new > 1e20), Damping(mu_new, nu_new)
+        return Trial(new, Cn, accept, mu_new > 1e20, accept), Damping(mu_new, nu_new)
 
     def fallback(self, clipped, pred):
         # A step that the projection clipped can have a model decrease <= 0 at any

@@ -14,6 +14,13 @@ of theta; the x0 blocks of each trajectory eliminated by a Schur complement,
 (`_search`) owns its state: `Backtracking` (Gauss-Newton) or `NielsenDamping` (LM: mu,
 nu). The loop below, shared by both, handles bounds and the stopping tests.
 
+Where the Jacobian has few columns per trajectory (at most `TRIAL_COLUMNS` free entries of
+theta and of one x0, formed densely), forming it costs about what simulating the model
+costs: a step then linearises at its trial point, whose loss is that linearisation's C,
+and an accepted full step keeps it as the next iterate's linearisation, so a step costs
+one pass over the records instead of two (the iterates are the same in exact
+arithmetic).
+
 Bounds and projections: each iterate is projected (a box is clipped), and entries at a
 bound whose gradient points outwards are held for the step (an active set). A step that
 the projection clipped can predict no decrease (or fail) at any damping; it is then
@@ -66,6 +73,10 @@ from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
 
+# The most Jacobian columns per trajectory (free entries of theta and of one x0) for which
+# a step linearises at its trial point (`AbstractLeastSquares._linearises_trials`).
+TRIAL_COLUMNS = 16
+
 
 class LSQState(NamedTuple):
     blocks: AbstractLinearisation  # the linearisation at the current iterate
@@ -89,6 +100,7 @@ class _Move(NamedTuple):
     pred: jax.Array  # the decrease the linear model predicts for the projected step
     gave_up: jax.Array  # the search gave up and the gradient step failed too
     search: Any  # the search's next state
+    at_full: jax.Array  # whether the iterate moved to the full step's point
 
 
 class AbstractLeastSquares(AbstractSolver):
@@ -230,28 +242,39 @@ class AbstractLeastSquares(AbstractSolver):
         _, new, Cn, ok, _ = jax.lax.while_loop(cond, body, init)
         return new, Cn, ok
 
-    def _move(self, problem, params, state) -> _Move:
-        """The descent step from `params` (linearisation `state.blocks`), its search and
-        the projected-gradient fallback: where the step ends, before the linearisation
-        there."""
+    def _point(self, problem, params, step, alpha):
+        """The projected point params + alpha step."""
+        return Params(
+            problem.feasible(params.theta + alpha * step.theta), params.x0 + alpha * step.x0
+        )
+
+    def _descent(self, problem, params, state):
+        """The descent step from `params` (linearisation `state.blocks`) and its projected
+        full point. Entries that the projection leaves where they are although the step
+        moves them (at a bound, pushed outwards by the coupling with the other entries, or
+        held by a general projection) are held too and the step solved again, so that the
+        other entries take the step of the reduced problem."""
         b = state.blocks
-        search = self._search()
-        mu = search.damping(state.search)
+        mu = self._search().damping(state.search)
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, mu, act)
-        full = self.trial(problem, params, h, 1.0)
+        point = self._point(problem, params, h, 1.0)
         if problem.lower is not None or problem.project is not None:
-            # Entries that the projection leaves where they are although the step moves
-            # them (at a bound, pushed outwards by the coupling with the other entries,
-            # or held by a general projection): hold them too and solve again, so that
-            # the other entries take the step of the reduced problem.
-            blocked = (full[0].theta == params.theta) & (h.theta != 0) & ~act
+            blocked = (point.theta == params.theta) & (h.theta != 0) & ~act
 
             def again():
                 h2 = self._solve(problem, params, b, mu, act | blocked)
-                return h2, self.trial(problem, params, h2, 1.0)
+                return h2, self._point(problem, params, h2, 1.0)
 
-            h, full = lazy_cond(jnp.any(blocked), again, (h, full))
+            h, point = lazy_cond(jnp.any(blocked), again, (h, point))
+        return h, point
+
+    def _move(self, problem, params, state, h, full) -> _Move:
+        """The search along the descent step `h` (`full`: its projected full point and
+        that point's loss) and the projected-gradient fallback: where the step ends,
+        before the linearisation there."""
+        b = state.blocks
+        search = self._search()
         # The decrease of C the linear model predicts for the full projected step:
         # -(2 s^T J^T r + ||J s||^2).
         st, sx = full[0].theta - params.theta, full[0].x0 - params.x0
@@ -273,24 +296,83 @@ class AbstractLeastSquares(AbstractSolver):
         new_loss = jnp.where(t.accept, t.loss, arc[1])
         params = jax.tree_util.tree_map(lambda a, c: jnp.where(take, a, c), new, params)
         loss = jnp.where(take, new_loss, state.loss)
-        return _Move(params, loss, take, h, pred, t.gave_up & ~take, search_state)
+        return _Move(params, loss, take, h, pred, t.gave_up & ~take, search_state, t.at_full)
+
+    def _linearises_trials(self, params) -> bool:
+        """Whether a step linearises at its trial point (its loss is the linearisation's
+        C, and an accepted full step keeps that linearisation), rather than simulating the
+        trial for its loss and linearising where the step ends: where the Jacobian is
+        formed with at most `TRIAL_COLUMNS` columns per trajectory, the sensitivities cost
+        about what the simulation costs, and this saves one simulation per step."""
+        columns = params.theta.shape[0] + params.x0.shape[-1]
+        return not self._matrix_free(params) and columns <= TRIAL_COLUMNS
 
     def step(self, problem, params, state):
-        """One iteration: `_move`, then the linearisation where the iterate moved and the
-        stopping tests there. The first step (`state.primed` False) only forms the
-        linearisation at the starting point and tests it (the first-order test and a
-        negative penalty)."""
+        """One iteration: the descent and its search (`_move`), the linearisation where the
+        iterate moved and the stopping tests there. The first step (`state.primed` False)
+        only forms the linearisation at the starting point and tests it (the first-order
+        test and a negative penalty)."""
+        b = state.blocks
+        primed = state.primed
+        zeros = Params(jnp.zeros_like(params.theta), jnp.zeros_like(params.x0))
+        false = jnp.array(False)
+        # The first step's move: none (its linearisation is at the start).
+        nil = jnp.zeros((), problem.dtype)
+        prime = _Move(params, state.loss, ~false, zeros, nil, false, state.search, ~false)
+        if self._linearises_trials(params):
+            h, point = lazy_cond(
+                primed, lambda: self._descent(problem, params, state), (zeros, params)
+            )
+
+            # One linearisation traced: at the trial point (the start, when priming), then
+            # where the step ended if that is elsewhere (a shortened step, the gradient
+            # arc): a loop of one or two passes.
+            def linearise_and_search(c):
+                phase, at, _, mv = c
+                lin = self._linearise(problem, at)
+                C = lin[0].C
+                full = (at, jnp.where(jnp.isfinite(C), C, jnp.inf))
+
+                def search():
+                    return lazy_cond(
+                        primed,
+                        lambda: self._move(problem, params, state, h, full),
+                        prime._replace(loss=C),
+                    )
+
+                mv = lazy_cond(phase == 0, search, mv)
+                again = (phase == 0) & mv.take & ~mv.at_full
+                return jnp.where(again, 1, 2), mv.params, lin, mv
+
+            _, _, lin, mv = jax.lax.while_loop(
+                lambda c: c[0] < 2,
+                linearise_and_search,
+                (jnp.array(0), point, (b, state.h_min), prime),
+            )
+            blocks, h_min = jax.tree_util.tree_map(
+                lambda a, c: jnp.where(mv.take, a, c), lin, (b, state.h_min)
+            )
+        else:
+
+            def descend_and_move():
+                h, point = self._descent(problem, params, state)
+                return self._move(problem, params, state, h, (point, self._loss(problem, point)))
+
+            mv = lazy_cond(primed, descend_and_move, prime)
+            blocks, h_min = lazy_cond(
+                mv.take, lambda: self._linearise(problem, mv.params), (b, state.h_min)
+            )
+        return self._conclude(problem, params, state, mv, blocks, h_min)
+
+    def _conclude(self, problem, old, state, mv, blocks, h_min):
+        """The stopping tests at the new iterate `mv.params` (linearisation `blocks`), and
+        the next state."""
         b = state.blocks
         dtype = problem.dtype
         eps = jnp.finfo(dtype).eps
         primed = state.primed
-        zeros = Params(jnp.zeros_like(params.theta), jnp.zeros_like(params.x0))
         false = jnp.array(False)
-        prime = _Move(params, state.loss, ~false, zeros, jnp.zeros((), dtype), false, state.search)
-        mv = lazy_cond(primed, lambda: self._move(problem, params, state), prime)
-        old = params
         params, take, h, pred = mv.params, mv.take, mv.h, mv.pred
-        blocks, h_min = lazy_cond(take, lambda: self._linearise(problem, params), (b, state.h_min))
         loss = jnp.where(primed, mv.loss, blocks.C)
         fo = blocks.first_order(problem, params)
 
