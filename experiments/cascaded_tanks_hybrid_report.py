@@ -208,7 +208,10 @@ def markdown(res) -> str:
         "input and only its first 5 outputs (x0 estimated from them by Gauss-Newton), and "
         "is scored on the rest. Published results under this protocol: best grey-box "
         "0.18 V (Rogers et al. 2017), CT-SUBNET 0.217 V at its best seed. The physical "
-        "model alone is the [cascaded-tanks study](cascaded_tanks.md). The learned-term "
+        "model alone is the [cascaded-tanks study](cascaded_tanks.md). The configuration "
+        "(the network, its weight decay, single or committee) was chosen on the estimation "
+        "record alone, by the protocol's score on its held-out tail: "
+        "[choosing the configuration](cascaded_tanks_hybrid_selection.md). The learned-term "
         "figure shows s r and f_overflow along the "
         + ("single " if cm is not None else "")
         + f"hybrid's test trajectory. The run took "
