@@ -21,6 +21,13 @@ Training, in stages that each start where the last stopped (all through `oneshot
    on the network, `sparsity.l2`), with a multistart over the network's initialisation;
 3. a refinement by L-BFGS or Levenberg-Marquardt (or none).
 
+With `residual.combine = "mean"` every start of the multistart is kept and refined: a
+committee whose output is the mean of its members' outputs, each member simulating from
+its own x0 (under the protocol: estimated from the first 5 test outputs with its own
+parameters). Averaging models trained from different initialisations reduces the
+variance of the prediction; the single start of the lowest final Adam loss is reported
+beside it.
+
 The physical bounds hold throughout. Evaluation follows the community protocol
 (Champneys et al. 2024): train on the estimation record, simulate the validation record
 from an x0 estimated from its first 5 outputs only, and score the RMS error on the rest.
@@ -117,6 +124,38 @@ def evaluate(model, theta, x0, data):
     }
 
 
+def evaluate_committee(model, members, data):
+    """The scores of `evaluate` for a committee: the mean of the members' outputs, each
+    member (theta, x0) simulated from its own estimation x0, and under the protocol from
+    its own x0 estimated from the first 5 validation outputs only."""
+    z_est = np.mean([cascaded_tanks.simulate(model, t, x, data.u_est) for t, x in members], 0)
+    z_val = np.mean([cascaded_tanks.simulate(model, t, x, data.u_val) for t, x in members], 0)
+    preds = [cascaded_tanks.protocol_prediction(model, t, data, x) for t, x in members]
+    test = data.test
+    z = np.mean([np.asarray(p.z) for p, _ in preds], 0)
+    sc = oj.metrics.benchmark_scores(np.asarray(test.y)[:, None], z, test.n)
+    return {
+        "rmse_estimation_V": float(oj.metrics.rmse(data.y_est, z_est)[0]),
+        "rmse_validation_V": float(oj.metrics.rmse(data.y_val, z_val)[0]),
+        "protocol": {
+            "n": int(sc.n),
+            "rmse_V": float(sc.rmse[0]),
+            "nrmse": float(sc.nrmse[0]),
+            "r2": float(sc.r2[0]),
+            "fit_percent": float(sc.fit_percent[0]),
+            "members_rmse_V": [q["rmse_V"] for _, q in preds],
+        },
+        "_pred": {"z": z[:, 0]},
+    }
+
+
+def member(starts, like, k):
+    """Start k of a multistart's parameters `starts` (`Starts.theta`: every array leaf
+    with a leading axis of starts), its other parts (the activation) from `like`."""
+    arrays = jax.tree_util.tree_map(lambda a: a[k], eqx.filter(starts, eqx.is_array))
+    return eqx.combine(arrays, eqx.filter(like, eqx.is_array, inverse=True))
+
+
 def _stack(trees):
     """One pytree whose array leaves carry a leading axis of starts (other parts shared)."""
     params = [eqx.filter(t, eqx.is_array) for t in trees]
@@ -163,8 +202,12 @@ def split(data, ex) -> tuple[int, int]:
 
 
 def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
-    """Stages 2 and 3 from the physical estimate (theta_phys, x0). Returns (FitResult,
-    model, rhs, stage summaries, the multistart's final Adam losses)."""
+    """Stages 2 and 3 from the physical estimate (theta_phys, x0). Returns (FitResult of
+    the start of the lowest final Adam loss, model, rhs, stage summaries, the
+    multistart's final Adam losses, the committee): the committee (`residual.combine =
+    "mean"`) is a list of every start's (theta, x0, final loss), each refined as the kept
+    one, a start other than the kept one from its own x0 (Gauss-Newton on the training
+    record with its parameters fixed, `oneshot_jax.predict`); None for "best"."""
     n, m = split(data, ex)
     jt = ex.joint
     u, y = data.u_est[:m, None], data.y_est[:m, None]
@@ -195,34 +238,83 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
     res = _fit(model, theta0, x0, u, y, adam, box, S > 1, progress, ex.history, decay, val)
     stages = {"adam": _stage(res, time.perf_counter() - t0)}
     starts = None if res.starts is None else [float(v) for v in np.asarray(res.starts.loss)]
+    adam_res = res
     if jt.refine != "none":
         cls = {"lbfgs": oj.LBFGS, "levenberg_marquardt": oj.LevenbergMarquardt}[jt.refine]
+
+        def refine(theta, x0_k):
+            return _fit(
+                model,
+                theta,
+                x0_k,
+                u,
+                y,
+                cls(max_steps=jt.refine_steps),
+                box,
+                False,
+                progress,
+                ex.history,
+                val=val,
+            )
+
         t0 = time.perf_counter()
-        refined = _fit(
-            model,
-            res.theta,
-            res.x0,
-            u,
-            y,
-            cls(max_steps=jt.refine_steps),
-            box,
-            False,
-            progress,
-            ex.history,
-            val=val,
-        )
-        stages[jt.refine] = _stage(refined, time.perf_counter() - t0)
-        res = refined
-    return res, model, rhs, stages, starts
+        res = refine(res.theta, res.x0)
+        stages[jt.refine] = _stage(res, time.perf_counter() - t0)
+    committee = None
+    if ex.residual.combine == "mean":
+        committee = []
+        for k in range(S):
+            if k == adam_res.best:
+                committee.append((res.theta, res.x0, float(res.loss)))
+                continue
+            theta_k = member(adam_res.starts.theta, adam_res.theta, k)
+            x0_k = oj.predict(model, theta_k, u, y, m, x0=np.asarray(adam_res.x0)).x0
+            loss_k = float(adam_res.starts.loss[k])
+            if jt.refine != "none":
+                fit_k = refine(theta_k, x0_k)
+                theta_k, x0_k, loss_k = fit_k.theta, fit_k.x0, float(fit_k.loss)
+            committee.append((theta_k, x0_k, loss_k))
+    return res, model, rhs, stages, starts, committee
 
 
-def _seed_row(scores, stages) -> dict:
-    """One seed's scores (from `evaluate`) and the iterations of its stages."""
-    return {
+def fit_physics(data, ex, solver, progress=False):
+    """Stage 1 on the first `ex.n_samples` estimation samples: the basic model from
+    `ex.basic.theta0`, then the overflow model from it, multistart over h1. Returns the
+    overflow model's (FitResult, Model)."""
+    n = ex.n_samples
+    res, _ = cascaded_tanks.fit_model(
+        "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=progress
+    )
+    base = {**{k: float(v) for k, v in res.theta.items()}, **dict(ex.overflow.theta0)}
+    h1s = [float(h) for h in ex.overflow.h1_starts]
+    starts = {k: jnp.full((len(h1s),), v) for k, v in base.items()}
+    starts["h1"] = jnp.asarray(h1s)
+    return cascaded_tanks.fit_model(
+        "overflow", data, ex, starts, res.x0, solver, n, multistart=True, progress=progress
+    )
+
+
+def _seed_row(scores, stages, committee=None) -> dict:
+    """One seed's scores (from `evaluate`, and `evaluate_committee` for a committee) and
+    the iterations of its stages."""
+    row = {
         "rmse_estimation_V": scores["rmse_estimation_V"],
         "rmse_test_V": scores["protocol"]["rmse_V"],
         "iterations": {k: v["iterations"] for k, v in stages.items()},
     }
+    if committee is not None:
+        row["committee_rmse_estimation_V"] = committee["rmse_estimation_V"]
+        row["committee_rmse_test_V"] = committee["protocol"]["rmse_V"]
+    return row
+
+
+def _committee(model, members, data):
+    """`evaluate_committee` of `train_hybrid`'s committee (None for none), with the
+    members' final losses."""
+    if members is None:
+        return None
+    out = evaluate_committee(model, [(t, x) for t, x, _ in members], data)
+    return {**out, "member_losses": [loss for _, _, loss in members]}
 
 
 def learned_terms(rhs, theta, x, u):
@@ -249,16 +341,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
 
     # 1. physics alone: basic, then overflow (multistart over h1); the residual is zero.
     t0 = time.perf_counter()
-    res, _ = cascaded_tanks.fit_model(
-        "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=cfg.progress
-    )
-    base = {**{k: float(v) for k, v in res.theta.items()}, **dict(ex.overflow.theta0)}
-    h1s = [float(h) for h in ex.overflow.h1_starts]
-    starts = {k: jnp.full((len(h1s),), v) for k, v in base.items()}
-    starts["h1"] = jnp.asarray(h1s)
-    phys, phys_model = cascaded_tanks.fit_model(
-        "overflow", data, ex, starts, res.x0, solver, n, multistart=True, progress=cfg.progress
-    )
+    phys, phys_model = fit_physics(data, ex, solver, cfg.progress)
     theta_phys = {k: float(v) for k, v in phys.theta.items()}
     physical = {
         "theta": theta_phys,
@@ -272,7 +355,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
     )
 
     # 2, 3. jointly: Adam (multistart over the network's initialisation), then refined.
-    hyb, model, rhs, stages, adam_starts = train_hybrid(
+    hyb, model, rhs, stages, adam_starts, members = train_hybrid(
         data, ex, theta_phys, phys.x0, cfg.seed, cfg.progress
     )
     hybrid = {
@@ -291,19 +374,31 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
     _, z_fine = oj.simulate(fine, hyb.theta, np.asarray(hyb.x0), data.u_val[:, None])
     _, z_val = oj.simulate(model, hyb.theta, np.asarray(hyb.x0), data.u_val[:, None])
     hybrid["integration_check_max_abs_V"] = float(np.max(np.abs(np.asarray(z_fine - z_val))))
+    committee = _committee(model, members, data)
     print(
         f"hybrid model: estimation RMSE {hybrid['rmse_estimation_V']:.4f} V, protocol RMSE "
-        f"{hybrid['protocol']['rmse_V']:.4f} V",
+        f"{hybrid['protocol']['rmse_V']:.4f} V"
+        + ("" if committee is None else f"; committee {committee['protocol']['rmse_V']:.4f} V"),
         flush=True,
     )
 
     # The same training from other seeds (network initialisations), the physics shared.
-    seeds = [{"seed": cfg.seed, **_seed_row(hybrid, stages)}]
+    seeds = [{"seed": cfg.seed, **_seed_row(hybrid, stages, committee)}]
     for seed in ex.extra_seeds:
-        res_s, _, _, stages_s, _ = train_hybrid(data, ex, theta_phys, phys.x0, seed, cfg.progress)
-        row = _seed_row(evaluate(model, res_s.theta, res_s.x0, data), stages_s)
+        res_s, _, _, stages_s, _, members_s = train_hybrid(
+            data, ex, theta_phys, phys.x0, seed, cfg.progress
+        )
+        row = _seed_row(
+            evaluate(model, res_s.theta, res_s.x0, data),
+            stages_s,
+            _committee(model, members_s, data),
+        )
         seeds.append({"seed": int(seed), **row})
-        print(f"seed {seed}: protocol RMSE {row['rmse_test_V']:.4f} V", flush=True)
+        print(
+            f"seed {seed}: protocol RMSE {row['rmse_test_V']:.4f} V"
+            + (f"; committee {row['committee_rmse_test_V']:.4f} V" if members_s else ""),
+            flush=True,
+        )
 
     figures = []
     if ex.figures:
@@ -311,9 +406,11 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
 
         x = hybrid["_pred"]["x"][: len(data.u_val)]
         f, r = learned_terms(rhs, hyb.theta, x, data.u_val[: len(x)])
-        figures = cascaded_tanks_hybrid_plots.figures(data, physical, hybrid, f, r, outdir)
-    for row in (physical, hybrid):
-        row.pop("_pred")
+        figures = cascaded_tanks_hybrid_plots.figures(
+            data, physical, hybrid, f, r, outdir, committee
+        )
+    for row in (physical, hybrid, committee or {}):
+        row.pop("_pred", None)
     out = {
         "benchmark": "cascaded_tanks",
         "command": command,
@@ -326,6 +423,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
         "units": example.UNITS,
         "physical": physical,
         "hybrid": hybrid,
+        "committee": committee,
         "seeds": seeds,
         "figures": figures,
         "total_time_s": time.perf_counter() - t_start,

@@ -11,14 +11,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 DPI = 130
-COLORS = {"physical": "C1", "hybrid": "C0"}
+COLORS = {"physical": "C1", "hybrid": "C0", "committee": "C2"}
+LABELS = {
+    "physical": "physical (overflow) model",
+    "hybrid": "hybrid model",
+    "committee": "hybrid committee (mean output)",
+}
 
 
-def figures(data, physical, hybrid, f, r, outdir) -> list[str]:
-    """The protocol comparison on the validation record (measured, physical, hybrid) and
-    the learned term against the physical one along the hybrid's validation trajectory
-    (`f`, `r`: (T, 2) physical derivative and residual, V/s); returns the file names
-    written into `outdir`."""
+def figures(data, physical, hybrid, f, r, outdir, committee=None) -> list[str]:
+    """The protocol comparison on the validation record (measured, physical, hybrid and,
+    given, the hybrid committee) and the learned term against the physical one along the
+    hybrid's validation trajectory (`f`, `r`: (T, 2) physical derivative and residual,
+    V/s); returns the file names written into `outdir`."""
     outdir = Path(outdir)
     t = data.t
     n = physical["protocol"]["n"]
@@ -26,9 +31,11 @@ def figures(data, physical, hybrid, f, r, outdir) -> list[str]:
         2, 1, figsize=(9, 5.5), sharex=True, gridspec_kw={"height_ratios": [2, 1]}
     )
     a0.plot(t, data.y_val, "k", lw=1.3, label="measured")
-    for name, row in (("physical", physical), ("hybrid", hybrid)):
+    rows = [("physical", physical), ("hybrid", hybrid)]
+    rows += [] if committee is None else [("committee", committee)]
+    for name, row in rows:
         z = row["_pred"]["z"]
-        label = "physical (overflow) model" if name == "physical" else "hybrid model"
+        label = LABELS[name]
         a0.plot(
             t,
             z,

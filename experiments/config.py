@@ -450,6 +450,9 @@ class Residual:
     widths: list[int] = field(default_factory=lambda: [16, 16])
     inputs: str = "states"  # the features: (x1, x2), or "states_and_input": (x1, x2, u)
     n_starts: int = 3  # network initialisations (keys split from `seed`), in parallel
+    # "best": the start of the lowest final Adam loss; "mean": a committee of all starts,
+    # each refined, their protocol outputs averaged (needs n_starts > 1)
+    combine: str = "mean"
 
 
 @dataclass
@@ -487,6 +490,9 @@ class TanksHybridConfig(TanksConfig):
             _integer(f"{k}residual.widths[{i}]", w, 1)
         _one_of(k + "residual.inputs", self.residual.inputs, ("states_and_input", "states"))
         _integer(k + "residual.n_starts", self.residual.n_starts, 1)
+        _one_of(k + "residual.combine", self.residual.combine, ("best", "mean"))
+        if self.residual.combine == "mean" and self.residual.n_starts < 2:
+            _fail(k + "residual.combine", "best with residual.n_starts = 1", "mean")
         _integer(k + "joint.adam_steps", self.joint.adam_steps, 1)
         _number(k + "joint.lr", self.joint.lr, lo=0.0, lo_open=True)
         _number(k + "joint.lr_x0", self.joint.lr_x0, lo=0.0)

@@ -167,6 +167,14 @@ BAD = [
         ["experiment=cascaded_tanks_hybrid", "experiment.joint.holdout=0.9"],
         "`experiment.joint.holdout` must be a finite number >= 0",
     ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.residual.combine=median"],
+        "`experiment.residual.combine` must be one of best, mean",
+    ),
+    (
+        ["experiment=cascaded_tanks_hybrid", "experiment.residual.n_starts=1"],
+        "`experiment.residual.combine` must be best with residual.n_starts = 1",
+    ),
 ]
 
 
@@ -377,3 +385,12 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
     assert res["seeds"][0]["rmse_test_V"] == res["hybrid"]["protocol"]["rmse_V"]
     assert res["seeds"][0]["rmse_estimation_V"] != res["seeds"][1]["rmse_estimation_V"]
     assert "| mean |" in (out / "results.md").read_text()
+    # the committee of both starts (residual.combine = mean, the default)
+    committee = res["committee"]
+    assert len(committee["member_losses"]) == 2
+    assert len(committee["protocol"]["members_rmse_V"]) == 2
+    assert res["hybrid"]["protocol"]["rmse_V"] in committee["protocol"]["members_rmse_V"]
+    assert np.isfinite(committee["protocol"]["rmse_V"])
+    assert res["seeds"][0]["committee_rmse_test_V"] == committee["protocol"]["rmse_V"]
+    assert all(np.isfinite(r["committee_rmse_test_V"]) for r in res["seeds"])
+    assert "committee of 2 (mean output)" in (out / "results.md").read_text()

@@ -1,0 +1,154 @@
+"""The committee of the hybrid cascaded-tanks study (`residual.combine = "mean"`): a start
+is taken out of a multistart's parameters whole, and the committee's scores are those of
+the mean of its members' outputs, each member from its own initial state."""
+
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import benchmark_or_skip
+
+from oneshot_jax import datasets, metrics
+from oneshot_jax.residual import MLP
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from experiments import cascaded_tanks, config  # noqa: E402
+from experiments import cascaded_tanks_hybrid as hybrid  # noqa: E402
+
+PHYS = {"k1": 0.046, "k3": 0.052, "k4": 0.053, "c": -1.84, "h1": 14.7, "h2": 11.7, "k5": 0.75}
+
+
+def _theta(key, k1=PHYS["k1"]):
+    net = MLP(
+        2,
+        2,
+        (3,),
+        key=key,
+        scale=0.03,
+        zero_last=False,
+        input_offset=np.array([6.0, 5.0]),
+        input_scale=np.array([2.0, 2.0]),
+    )
+    return {**{k: jnp.asarray(v) for k, v in {**PHYS, "k1": k1}.items()}, "r": net}
+
+
+def test_member_takes_one_start_whole():
+    """Start k of stacked parameters whose non-array parts were dropped (as in
+    `Starts.theta`) is that start's tree, the activation restored from `like`."""
+    a = _theta(jax.random.PRNGKey(0), k1=0.04)
+    b = _theta(jax.random.PRNGKey(1), k1=0.05)
+    stacked = hybrid._stack([a, b])
+    arrays_only = eqx.filter(stacked, eqx.is_array)
+    assert arrays_only["r"].activation is None
+    for k, want in enumerate((a, b)):
+        got = hybrid.member(arrays_only, a, k)
+        assert eqx.tree_equal(
+            eqx.filter(got, eqx.is_array), eqx.filter(want, eqx.is_array), typematch=True
+        )
+        x = np.array([5.0, 4.0])
+        np.testing.assert_array_equal(got["r"](x), want["r"](x))
+    assert float(hybrid.member(arrays_only, a, 1)["k1"]) == 0.05
+
+
+@pytest.fixture(scope="module")
+def setup():
+    data = benchmark_or_skip(datasets.load_cascaded_tanks)
+    ex = config.TanksHybridConfig(substeps=1, residual=config.Residual(widths=[3]))
+    model, _ = hybrid.hybrid_model(data, ex)
+    a = (_theta(jax.random.PRNGKey(0)), np.array([9.0, 7.0]))
+    b = (_theta(jax.random.PRNGKey(1), k1=0.044), np.array([8.0, 7.5]))
+    return data, model, a, b
+
+
+def test_committee_of_one_model_is_that_model(setup):
+    """Two copies of one member score as the member alone (`evaluate`)."""
+    data, model, a, _ = setup
+    one = hybrid.evaluate(model, *a, data)
+    two = hybrid.evaluate_committee(model, [a, a], data)
+    for key in ("rmse_estimation_V", "rmse_validation_V"):
+        np.testing.assert_allclose(two[key], one[key], rtol=1e-12)
+    np.testing.assert_allclose(two["protocol"]["rmse_V"], one["protocol"]["rmse_V"], rtol=1e-12)
+    assert two["protocol"]["members_rmse_V"] == [one["protocol"]["rmse_V"]] * 2
+
+
+def test_committee_averages_the_members_outputs(setup):
+    """Two different members: the scores are those of the mean output, each member
+    simulated from its own x0 (estimation) or its own head estimate (protocol)."""
+    data, model, a, b = setup
+    singles = [hybrid.evaluate(model, *m, data) for m in (a, b)]
+    out = hybrid.evaluate_committee(model, [a, b], data)
+    z_est = [cascaded_tanks.simulate(model, *m, data.u_est) for m in (a, b)]
+    want_est = metrics.rmse(data.y_est, (z_est[0] + z_est[1]) / 2)[0]
+    np.testing.assert_allclose(out["rmse_estimation_V"], want_est, rtol=1e-12)
+    z = (singles[0]["_pred"]["z"] + singles[1]["_pred"]["z"]) / 2
+    np.testing.assert_allclose(out["_pred"]["z"], z, rtol=1e-12)
+    n = data.test.n
+    want = np.sqrt(np.mean((z[n:] - np.asarray(data.test.y)[n:]) ** 2))
+    np.testing.assert_allclose(out["protocol"]["rmse_V"], want, rtol=1e-10)
+    members = [s["protocol"]["rmse_V"] for s in singles]
+    assert out["protocol"]["members_rmse_V"] == members
+    assert min(abs(out["protocol"]["rmse_V"] - v) for v in members) > 1e-3
+
+
+def test_seed_table_with_and_without_committee():
+    """The seeds' table has the committee's columns and mean when every row has them,
+    and the single model's columns alone otherwise (`residual.combine = "best"`)."""
+    from experiments import cascaded_tanks_hybrid_report as report
+
+    rows = [
+        {"seed": 0, "rmse_estimation_V": 0.08, "rmse_test_V": 0.2, "iterations": {"adam": 5}},
+        {"seed": 1, "rmse_estimation_V": 0.09, "rmse_test_V": 0.3, "iterations": {"adam": 5}},
+    ]
+    single = "\n".join(report._seeds(rows))
+    assert "committee" not in single
+    assert "| mean | | **0.2500** | |" in single
+    both = [
+        {**r, "committee_rmse_estimation_V": 0.07, "committee_rmse_test_V": v}
+        for r, v in zip(rows, (0.1, 0.2))
+    ]
+    table = "\n".join(report._seeds(both))
+    assert "| 1 | 0.0900 | 0.3000 | 0.0700 | 0.2000 | Adam 5 |" in table
+    assert "| mean | | **0.2500** | | **0.1500** | |" in table
+    assert report._committee({}, None, {"refine": "none"}) == []
+
+
+def test_selection_scores_the_tail_from_its_own_head(setup):
+    """The held-out score of `cascaded_tanks_hybrid_select` reads the tail's head only
+    for x0: outputs elsewhere in the record leave the prediction unchanged, the head's
+    change it."""
+    import dataclasses
+
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    data, model, a, _ = setup
+    m, n = 1024 - 64, 5
+    z = select.tail_prediction(model, *a, data, m, n)
+    assert z.shape == (64,)
+    y = np.array(data.y_est)
+    y[:m] += 0.5
+    y[m + n :] -= 0.5
+    moved = dataclasses.replace(data, y_est=y)
+    np.testing.assert_allclose(select.tail_prediction(model, *a, moved, m, n), z, atol=1e-10)
+    y = np.array(data.y_est)
+    y[m : m + n] += 0.5
+    head = dataclasses.replace(data, y_est=y)
+    assert np.max(np.abs(select.tail_prediction(model, *a, head, m, n) - z)) > 1e-3
+    want = np.sqrt(np.mean((z[n:] - data.y_est[m + n :]) ** 2))
+    assert select.tail_rmse(z, data, m, n) == pytest.approx(want, rel=1e-12)
+
+
+def test_selection_page_marks_the_lowest_mean():
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    scores = {"a": {"single": [0.3, 0.1], "committee": [0.2, 0.25]}, "b": {"single": [0.2, 0.3]}}
+    md = select.markdown(scores, 768, 5, 256, [0, 1], "python x.py", 1.0)
+    assert "| a | single | 0.3000 | 0.1000 | **0.2000** |" in md
+    assert "| a | committee | 0.2000 | 0.2500 | 0.2250 |" in md
+    assert "Lowest mean held-out RMSE: a, single (0.2000 V)" in md
