@@ -205,30 +205,58 @@ def _warn_identifiability(names, ok, what):
         )
 
 
+class Prepared(NamedTuple):
+    """What `assemble` reads that does not depend on the solve's output (`prepare`)."""
+
+    layout: _pytree.Layout  # of theta's trainable part
+    names: tuple  # of theta's free entries
+    solver: tuple  # each solver's settings
+    fixed: np.ndarray
+    x0_estimated: np.ndarray
+    theta_order: tuple
+    units: dict
+    gtol: float  # the last solver's tolerances (NaN where it has none)
+    stol: float
+    roundoff_limit: float
+
+
+def prepare(*, data, problem, solvers, fixed, x0_estimated, theta_order=(), units=None):
+    """The host-side part of the `FitResult` that does not need the solve's output: `fit`
+    forms it while the compiled call runs (asynchronous dispatch)."""
+    layout = _pytree.layout(data.theta)
+    return Prepared(
+        layout,
+        layout.names(problem.theta_free),
+        tuple(_settings(s) for s in solvers),
+        np.array(fixed, bool),
+        np.array(x0_estimated, bool),
+        tuple(theta_order),
+        dict(units or {}),
+        float(getattr(solvers[-1], "gtol", np.nan)),
+        float(getattr(solvers[-1], "stol", np.nan)),
+        roundoff_limit(problem.dtype),
+    )
+
+
 def assemble(
     *,
+    prepared: Prepared,
     model,
     problem,
     data,
     out: Out,
     wall_time,
-    solvers,
-    fixed,
-    x0_estimated,
     multistart,
     diagnostics=None,
-    theta_order=(),
-    units=None,
     window_starts=None,
 ) -> FitResult:
     """The `FitResult` of the best start, on the host, from the compiled call's `Out`
-    (NumPy arrays)."""
+    (NumPy arrays) and what `prepare` formed."""
     theta_flat, X0, e, cov, met = out.theta, out.x0, out.residuals, out.covariance, out.metrics
     best = int(out.best)
-    layout = _pytree.layout(data.theta)
+    layout, names = prepared.layout, prepared.names
     params = layout.one(theta_flat)
     free = problem.theta_free
-    names = layout.names(free)
     x0_free = problem.x0_free
     flat_std = np.zeros(theta_flat.shape)
     x0_std = np.zeros(X0.shape)
@@ -278,13 +306,13 @@ def assemble(
     metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
     stop_info = {
         "first_order": float(out.first_order),
-        "gtol": float(getattr(solvers[-1], "gtol", np.nan)),
+        "gtol": prepared.gtol,
         "step": float(out.step),
         "decrease": float(out.decrease),
         "standard_errors": float(out.standard_errors),
-        "stol": float(getattr(solvers[-1], "stol", np.nan)),
+        "stol": prepared.stol,
         "at_step": int(out.stages[-1].num_steps),
-        "roundoff_limit": roundoff_limit(problem.dtype),
+        "roundoff_limit": prepared.roundoff_limit,
     }
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
@@ -299,21 +327,21 @@ def assemble(
         history=_history(problem, out.stages, layout),
         residuals=e,
         names=names,
-        fixed=np.array(fixed, bool),
+        fixed=prepared.fixed,
         covariance=theta_cov,
         std=std,
         x0_covariance=x0_cov,
         x0_std=x0_std,
-        x0_estimated=np.array(x0_estimated, bool),
+        x0_estimated=prepared.x0_estimated,
         metrics=metrics,
         starts=starts,
         best=best,
-        solver=tuple(_settings(s) for s in solvers),
+        solver=prepared.solver,
         model=model,
         diagnostics=dict(diagnostics or {}),
         stop_info=stop_info,
-        theta_order=tuple(theta_order),
-        units=dict(units or {}),
+        theta_order=prepared.theta_order,
+        units=prepared.units,
         validation_loss=None if out.validation_loss is None else float(out.validation_loss),
         window_starts=None if window_starts is None else np.asarray(window_starts),
     )

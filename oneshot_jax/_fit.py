@@ -16,7 +16,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._aggregate import augment, check_window
-from ._assemble import assemble, collect, post
+from ._assemble import assemble, collect, post, prepare
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
@@ -94,11 +94,12 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=N
     return _pytree.pack((out, jacobians))
 
 
-def _run(solvers, problem, starts, history, meter, stability_at=None):
+def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=None):
     """The solve: `_solve` from every start, timed, with the progress bar open around it.
     Returns its output unpacked (an `Out`), the wall time, the counts of parallel
-    rollouts and their fallbacks and the Jacobians of `stability_at`, and warns of those
-    fallbacks and of starts projected onto the constraint set."""
+    rollouts and their fallbacks, the Jacobians of `stability_at` and what `meanwhile()`
+    returned (host work that does not need the output, done while the compiled call runs),
+    and warns of those fallbacks and of starts projected onto the constraint set."""
     # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
     bar = not isinstance(meter, NoProgress)
     bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
@@ -114,6 +115,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None):
                 np.asarray(bar_id, np.int32),
                 stability_at,
             )
+            during = None if meanwhile is None else meanwhile()
             jax.block_until_ready(buffers)
             jax.effects_barrier()
             wall = time.perf_counter() - t0
@@ -134,7 +136,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None):
         warnings.warn(
             "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=3
         )
-    return out, wall, diagnostics, jacobians
+    return out, wall, diagnostics, jacobians, during
 
 
 def fit(
@@ -311,22 +313,32 @@ def fit(
     rhs = rhs_of(model, inputs.data) if aggregate is None else None
     idx = None if rhs is None else sample_points(inputs.data)
     stability_at = None if idx is None else (rhs, idx)
-    out, wall, diagnostics, jacobians = _run(
-        inputs.solvers, built.problem, built.starts, history, inputs.meter, stability_at
+    out, wall, diagnostics, jacobians, prepared = _run(
+        inputs.solvers,
+        built.problem,
+        built.starts,
+        history,
+        inputs.meter,
+        stability_at,
+        meanwhile=lambda: prepare(
+            data=inputs.data,
+            problem=built.problem,
+            solvers=inputs.solvers,
+            fixed=built.fixed,
+            x0_estimated=built.x0_estimated,
+            theta_order=_theta_order(theta0),
+            units=inputs.units,
+        ),
     )
     result = assemble(
+        prepared=prepared,
         model=model,
         problem=built.problem,
         data=inputs.data,
         out=out,
         wall_time=wall,
-        solvers=inputs.solvers,
-        fixed=built.fixed,
-        x0_estimated=built.x0_estimated,
         multistart=inputs.n_starts is not None,
         diagnostics=diagnostics,
-        theta_order=_theta_order(theta0),
-        units=inputs.units,
         window_starts=inputs.window_starts,
     )
     strategy = getattr(inputs.solvers[-1], "strategy", "auto")
