@@ -101,7 +101,6 @@ class Scaled(NamedTuple):
 
     theta: jax.Array  # (p, p) covariance of theta's free entries
     x0: jax.Array  # (N, m, m) covariance of each trajectory's free x0 entries
-    sigma2: jax.Array  # the residual variance, SSE / (n_obs - n_free)
     theta_identifiable: jax.Array
     x0_identifiable: jax.Array
     theta_std: jax.Array  # (p,)
@@ -126,4 +125,4 @@ def scale(cov: Covariance, e) -> Scaled:
     def std(c):
         return jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
 
-    return Scaled(theta, x0, s2, t_ok, x_ok, std(theta), std(x0))
+    return Scaled(theta, x0, t_ok, x_ok, std(theta), std(x0))

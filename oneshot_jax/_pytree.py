@@ -101,16 +101,10 @@ def ravel(tree):
 
 def unflatten_rows(rows, like, squeeze=False):
     """Rows of flattened parameters (E, n) as the pytree `like` with a leading axis E
-    (dropped with `squeeze`): the NumPy inverse of `flat_host`."""
-    rows = np.asarray(rows)
-    leaves, treedef = jax.tree_util.tree_flatten(like)
-    out, start = [], 0
-    for leaf in leaves:
-        size = int(np.size(leaf))
-        block = rows[:, start : start + size].reshape(rows.shape[0], *np.shape(leaf))
-        out.append(block[0] if squeeze else block)
-        start += size
-    return jax.tree_util.tree_unflatten(treedef, out)
+    (the first row without it, with `squeeze`): the NumPy inverse of `flat_host`
+    (`Layout`)."""
+    lay = layout(like)
+    return lay.one(np.asarray(rows)[0]) if squeeze else lay.rows(rows)
 
 
 class Layout:

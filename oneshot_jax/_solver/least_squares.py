@@ -190,10 +190,9 @@ class AbstractLeastSquares(AbstractSolver):
         )
 
     def trial(self, problem, params, step, alpha):
-        """The projected point params + alpha step and its loss (inf where not finite)."""
-        new = Params(
-            problem.feasible(params.theta + alpha * step.theta), params.x0 + alpha * step.x0
-        )
+        """The projected point params + alpha step (`_point`) and its loss (inf where not
+        finite)."""
+        new = self._point(problem, params, step, alpha)
         return new, self._loss(problem, new)
 
     def _loss(self, problem, params):
