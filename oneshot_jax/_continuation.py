@@ -32,6 +32,10 @@ class Stage(eqx.Module):
     - `num_steps`: the solver steps it took.
     - `status`: its stop reason's name (`"converged"`, `"max_steps_reached"`, ...).
     - `success`: whether it converged.
+    - `theta`: the stage's fitted theta. Besides a start for the next stage, a model of
+        its own: where a model error accumulates over a long record, a fit over windows
+        of it (each with its own initial state) can simulate new data better than the
+        whole-record fit; compare the stages on held-out data.
     """
 
     window: int | None
@@ -40,6 +44,7 @@ class Stage(eqx.Module):
     num_steps: int
     status: str
     success: bool
+    theta: PyTree = None
 
     def __str__(self):
         w = "whole" if self.window is None else str(self.window)
@@ -83,6 +88,7 @@ def _stage(window, r):
         num_steps=int(r.num_steps),
         status=r.status,
         success=bool(r.success),
+        theta=r.theta,
     )
 
 

@@ -78,6 +78,17 @@ def test_continuation_reaches_the_truth(continued, plain):
     assert "Horizon continuation, 2 stages" in str(cont)
 
 
+def test_each_stage_keeps_its_theta(continued):
+    """Stage 1's theta is the windowed fit from the start (a fit of its own, not the
+    last stage's theta), the last stage's the result's."""
+    first, last = continued.stages
+    windowed = _no_warnings(oj.fit, MODEL, START, np.zeros(2), U, Z, window=50)
+    for k in TRUTH:
+        assert float(first.theta[k]) == pytest.approx(float(windowed.theta[k]), rel=1e-12)
+        assert float(last.theta[k]) == float(continued.result.theta[k])
+    assert float(first.theta["w0sq"]) != float(last.theta["w0sq"])
+
+
 def test_the_basin_check_warns_on_the_bad_minimum_only(plain, continued):
     with pytest.warns(RuntimeWarning, match="bad minimum.*fit_continuation"):
         bad = oj.check_basin(plain, U, Z, window=50)
