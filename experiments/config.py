@@ -351,10 +351,14 @@ class EMPSFrictionConfig:
             "load",
             "stribeck",
             "load_stribeck",
+            "position",
+            "position_stribeck",
+            "position_load_stribeck",
         ]
     )
     cv_holdouts: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3, 0.4, 0.5])
     stribeck_velocity: float = 0.01
+    position_knots: int = 8  # knots of the position-dependent Coulomb friction and force
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     SOLVERS = LIBRARY_SOLVERS
@@ -376,6 +380,7 @@ class EMPSFrictionConfig:
         for i, s in enumerate(self.structures):
             _one_of(f"{k}structures[{i}]", s, tuple(emps_friction.STRUCTURES))
         _number(k + "stribeck_velocity", self.stribeck_velocity, lo=0.0, lo_open=True)
+        _integer(k + "position_knots", self.position_knots, 2)
         if not self.cv_holdouts:
             _fail(k + "cv_holdouts", "a non-empty list of held-out fractions", self.cv_holdouts)
         for i, h in enumerate(self.cv_holdouts):

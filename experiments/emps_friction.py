@@ -8,7 +8,14 @@ is extended by physical friction effects, each a parameter that starts at zero:
 - **load-dependent Coulomb friction**: (Fc + mu |tau|) sign(q'), the friction of a
   screw drive growing with the force it transmits (mu is dimensionless);
 - **Stribeck friction**: Fs exp(-(q'/vs)^2) sign(q'), an extra friction at low speed
-  (vs fixed, `stribeck_velocity`).
+  (vs fixed, `stribeck_velocity`);
+- **position-dependent Coulomb friction and force**: Fc and offset become functions of
+  the position q, piecewise linear between `position_knots` knots spread evenly over the
+  travel (`TRAVEL`): the vectors Fcq and Fq of their values at the knots (a screw
+  drive's friction varies along the screw; a cable carrier pulls with a force that
+  depends on where the carriage is). They replace Fc and offset (the knots' hat
+  functions sum to one, so a constant Fc or offset beside them would be the same
+  direction twice).
 
 sign(q') is tanh(q'/eps) and |q'| is q' tanh(q'/eps), |tau| is sqrt(tau^2 + 1 N^2) (smooth
 stand-ins, so that the closed-form Jacobians exist). The structures compared are named in
@@ -56,30 +63,60 @@ STRUCTURES = {
     "load": ("dFv", "mu"),
     "stribeck": ("dFv", "Fs"),
     "load_stribeck": ("dFv", "mu", "Fs"),
+    "position": ("dFv", "Fcq", "Fq"),
+    "position_stribeck": ("dFv", "Fs", "Fcq", "Fq"),
+    "position_load_stribeck": ("dFv", "mu", "Fs", "Fcq", "Fq"),
 }
-"""Each structure's parameters beyond M, Fv, Fc, offset (each starts at zero)."""
-UNITS = {**example.UNITS, "dFv": "N/(m/s)", "mu": "-", "Fs": "N"}
+"""Each structure's parameters beyond M, Fv, Fc, offset (each starts at zero); Fcq and Fq
+replace Fc and offset (they start at them, at every knot)."""
+POSITION = {"Fcq": "Fc", "Fq": "offset"}
+"""The position-dependent parameters and the constant ones each replaces."""
+UNITS = {**example.UNITS, "dFv": "N/(m/s)", "mu": "-", "Fs": "N", "Fcq": "N", "Fq": "N"}
 LABELS = {
     "coulomb_viscous": "Coulomb + viscous (the benchmark's model)",
     "asymmetric": "+ asymmetric viscous",
     "load": "+ asymmetric viscous + load-dependent Coulomb",
     "stribeck": "+ asymmetric viscous + Stribeck",
     "load_stribeck": "+ asymmetric viscous + load-dependent Coulomb + Stribeck",
+    "position": "+ asymmetric viscous + position-dependent Coulomb and force",
+    "position_stribeck": "+ asymmetric viscous + Stribeck + position-dependent Coulomb and force",
+    "position_load_stribeck": (
+        "+ asymmetric viscous + load-dependent Coulomb + Stribeck + position-dependent "
+        "Coulomb and force"
+    ),
 }
-LOWER = {**example.LOWER, "mu": 0.0, "Fs": 0.0}
-"""M, Fv, Fc > 0 and mu, Fs >= 0 (`oneshot_jax.constraints.box`)."""
+LOWER = {**example.LOWER, "mu": 0.0, "Fs": 0.0, "Fcq": example.LOWER["Fc"]}
+"""M, Fv, Fc > 0 (Fcq > 0 at every knot, as Fc) and mu, Fs >= 0
+(`oneshot_jax.constraints.box`)."""
+TRAVEL = (0.0, 0.25)
+"""m: the span of the position knots (the axis moves within 0 and 0.247 m in both records)."""
 TAU_SMOOTH = 1.0
 """N: |tau| is sqrt(tau^2 + TAU_SMOOTH^2)."""
 STRIBECK_VELOCITY = 0.01
 """m/s: the default Stribeck velocity vs (the extra friction at rest decays as exp(-(v/vs)^2))."""
 
 
-def friction(v, tau, theta, eps=example.EPS, vs=STRIBECK_VELOCITY):
-    """The friction force (N) at velocity v (m/s) and motor force tau (N):
+def knot_weights(q, n_knots):
+    """The hat functions of `n_knots` knots spread evenly over `TRAVEL` at position q
+    (m): piecewise linear, one at their own knot, zero at the others, summing to one
+    (constant beyond the end knots)."""
+    knots = jnp.linspace(*TRAVEL, n_knots)
+    q = jnp.clip(q, *TRAVEL)
+    return jnp.clip(1.0 - jnp.abs(q - knots) / (knots[1] - knots[0]), 0.0, 1.0)
+
+
+def friction(v, tau, theta, eps=example.EPS, vs=STRIBECK_VELOCITY, q=None):
+    """The friction force (N) at velocity v (m/s), motor force tau (N) and position q (m):
     Fv v + dFv |v| + (Fc + mu |tau| + Fs exp(-(v/vs)^2)) sign(v) + offset, the terms of
-    theta only."""
+    theta only; with Fcq and Fq, Fc and offset are their values interpolated at q
+    (`knot_weights`)."""
     s = jnp.tanh(v / eps)
-    f = theta["Fv"] * v + theta["Fc"] * s + theta["offset"]
+    if "Fcq" in theta or "Fq" in theta:
+        if q is None:
+            raise ValueError("`q` is needed for the position-dependent terms Fcq and Fq.")
+    fc = knot_weights(q, theta["Fcq"].shape[0]) @ theta["Fcq"] if "Fcq" in theta else theta["Fc"]
+    off = knot_weights(q, theta["Fq"].shape[0]) @ theta["Fq"] if "Fq" in theta else theta["offset"]
+    f = theta["Fv"] * v + fc * s + off
     if "dFv" in theta:
         f = f + theta["dFv"] * v * s
     if "mu" in theta:
@@ -96,7 +133,7 @@ class FrictionPlant(eqx.Module):
     vs: float = eqx.field(static=True, default=STRIBECK_VELOCITY)
 
     def __call__(self, x, u, theta):
-        f = friction(x[1], u[0], theta, self.eps, self.vs)
+        f = friction(x[1], u[0], theta, self.eps, self.vs, q=x[0])
         return jnp.stack([x[1], (u[0] - f) / theta["M"]])
 
 
@@ -114,8 +151,37 @@ def friction_model(Ts, eps=example.EPS, substeps=1, vs=STRIBECK_VELOCITY) -> oj.
 
 
 def theta_start(ex, structure) -> dict:
-    """The configured start of M, Fv, Fc, offset, and zero for the structure's extras."""
-    return {**dict(ex.theta0), **{k: 0.0 for k in STRUCTURES[structure]}}
+    """The configured start of M, Fv, Fc, offset, and zero for the structure's extras;
+    Fcq and Fq (`ex.position_knots` values each) start at Fc and offset, which they
+    replace."""
+    theta = {**dict(ex.theta0), **{k: 0.0 for k in STRUCTURES[structure]}}
+    for k, constant in POSITION.items():
+        if k in theta:
+            theta[k] = np.full(int(ex.position_knots), float(theta.pop(constant)))
+    return theta
+
+
+def as_arrays(theta) -> dict:
+    """theta with its vector parameters (Fcq, Fq) as arrays (a row's theta holds lists)."""
+    return {k: np.asarray(v, dtype=float) if np.ndim(v) else float(v) for k, v in theta.items()}
+
+
+def as_plain(theta) -> dict:
+    """theta as JSON-ready numbers: floats, and lists for the vector parameters."""
+    return {k: np.asarray(v, dtype=float).tolist() for k, v in theta.items()}
+
+
+def mean_theta(thetas) -> dict:
+    """The mean of several thetas of one structure, parameter by parameter."""
+    return {k: np.mean([np.asarray(t[k], dtype=float) for t in thetas], axis=0) for k in thetas[0]}
+
+
+def fmt(v) -> str:
+    """A parameter's value for tables and logs: a scalar to 4 digits, a vector (values at
+    the knots) as [a, b, ...] to 3."""
+    if np.ndim(v):
+        return "[" + ", ".join(f"{x:.3g}" for x in np.asarray(v)) + "]"
+    return f"{v:.4g}"
 
 
 def split(record, holdout):
@@ -134,7 +200,7 @@ def record_rmse_mm(model, theta, record, gtau, Ts, n=20, half=5):
     u = gtau * np.asarray(record.vir).reshape(-1, 1)
     y = np.asarray(record.qm).reshape(-1, 1)
     v0 = example.velocity_estimate(y[: max(n, 2 * half + 1), 0], Ts, half)[0]
-    pred = oj.predict(model, dict(theta), u, y, n, x0=np.array([y[0, 0], v0]))
+    pred = oj.predict(model, as_arrays(theta), u, y, n, x0=np.array([y[0, 0], v0]))
     return float(1e3 * np.sqrt(np.mean((np.asarray(pred.z)[n:, 0] - y[n:, 0]) ** 2)))
 
 
@@ -197,7 +263,7 @@ def fit_span(data, record, structure, holdout, ex, solver, progress=False) -> di
     cont, wall = fit_structure(data, train, structure, ex, solver, progress)
     model = friction_model(data.Ts, ex.eps, ex.substeps, ex.stribeck_velocity)
     res = cont.result
-    theta = {k: float(v) for k, v in res.theta.items()}
+    theta = as_arrays(res.theta)
     pred, sc = example.protocol_prediction(
         data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
     )
@@ -205,8 +271,8 @@ def fit_span(data, record, structure, holdout, ex, solver, progress=False) -> di
         "structure": structure,
         "holdout": float(holdout),
         "n_train": len(train),
-        "theta": theta,
-        "std": {k: float(v) for k, v in res.std.items()},
+        "theta": as_plain(theta),
+        "std": as_plain(res.std),
         "stages": [
             {"window": s.window, "loss": s.loss, "steps": s.num_steps, "status": s.status}
             for s in cont.stages
@@ -236,11 +302,10 @@ def averaged_model(data, fits, ex) -> dict:
     aggregate over training spans: each fit's span-dependent error partly cancels),
     scored on the test record; and, for its spread, the models that leave one of the fits
     out of the mean."""
-    names = list(fits[0]["theta"])
     model = friction_model(data.Ts, ex.eps, ex.substeps, ex.stribeck_velocity)
 
     def scored(group):
-        theta = {k: float(np.mean([f["theta"][k] for f in group])) for k in names}
+        theta = mean_theta([f["theta"] for f in group])
         pred, sc = example.protocol_prediction(
             data, theta, ex.eps, ex.substeps, half=ex.velocity_halfwidth, model=model
         )
@@ -249,7 +314,7 @@ def averaged_model(data, fits, ex) -> dict:
     theta, protocol = scored(fits)
     loo = [scored(fits[:i] + fits[i + 1 :])[1]["rmse_mm"] for i in range(len(fits))]
     return {
-        "theta": theta,
+        "theta": as_plain(theta),
         "protocol": protocol,
         "leave_one_out_mm": loo if len(fits) > 1 else [],
     }
@@ -267,7 +332,7 @@ def aggregation_check(data, record, fits, holdouts, ex) -> dict:
     for h in folds[:-1]:
         _, held_out = split(record, h)
         group = [fits[g]["theta"] for g in folds if g >= h]
-        theta = {k: float(np.mean([t[k] for t in group])) for k in group[0]}
+        theta = mean_theta(group)
         single.append(fits[h]["rmse_heldout_mm"])
         mean.append(
             record_rmse_mm(model, theta, held_out, data.gtau, data.Ts, half=ex.velocity_halfwidth)
@@ -313,7 +378,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps_friction
             ho = row["rmse_heldout_mm"]
             print(
                 f"  {structure:<16} holdout {h:<4g} {row['time_s']:6.1f} s {row['status']:<17} | "
-                + " ".join(f"{k} {v:.4g}" for k, v in row["theta"].items())
+                + " ".join(f"{k} {fmt(v)}" for k, v in row["theta"].items())
                 + f" | RMSE (mm) train {row['rmse_train_mm']:.3f} held-out "
                 + ("-" if ho is None else f"{ho:.3f}")
                 + f" test {row['protocol']['rmse_mm']:.3f}",
@@ -412,7 +477,12 @@ def markdown(res) -> str:
         "a Coulomb friction that grows with the force the drive transmits "
         "((Fc + mu |tau|) sign(q'), as in a screw drive), and a Stribeck friction, an extra "
         "friction at low speed (Fs exp(-(q'/vs)^2) sign(q'), "
-        f"vs = {cfg['stribeck_velocity']:g} m/s). sign(q') is tanh(q'/eps), "
+        f"vs = {cfg['stribeck_velocity']:g} m/s), and a Coulomb friction and a force "
+        "that vary along the travel (Fcq and Fq: their values at "
+        f"{cfg['position_knots']} knots spread evenly over {TRAVEL[0]:g} to {TRAVEL[1]:g} m, "
+        "linear between them; they replace Fc and offset, from which they start; as in a "
+        "screw whose friction varies along it, or a cable carrier whose pull depends on "
+        "where the carriage is). sign(q') is tanh(q'/eps), "
         f"eps = {cfg['eps']:g} m/s.",
         "",
         "Every structure is fitted for the protocol that scores it, the open-loop "
@@ -519,8 +589,7 @@ def markdown(res) -> str:
         names += [k for k in fit(s, 0.0)["theta"] if k not in names]
     for k in names:
         cells = [
-            f"{fit(s, 0.0)['theta'][k]:.4g}" if k in fit(s, 0.0)["theta"] else ""
-            for s in structures
+            fmt(fit(s, 0.0)["theta"][k]) if k in fit(s, 0.0)["theta"] else "" for s in structures
         ]
         refv = res["reference"]["theta"].get(k)
         L.append(
@@ -575,21 +644,30 @@ def markdown(res) -> str:
         ),
         "",
     ]
-    richest = max(structures, key=lambda s: len(STRUCTURES[s]))
+
+    def n_params(structure):
+        return sum(np.size(v) for v in fit(structure, 0.0)["theta"].values())
+
+    richest = max(structures, key=n_params)
     if richest != sel:
         r = summary[richest]
         rank = sorted(structures, key=lambda s: summary[s]["cv_mm"]).index(richest) + 1
         train_richest = fit(richest, 0.0)["rmse_train_mm"]
         train_sel = fit(sel, 0.0)["rmse_train_mm"]
         L += [
-            f"The structure with every term, {short(richest)}, fits the whole estimation "
+            f"The structure with the most parameters, {short(richest)}, fits the whole estimation "
             f"record {'better' if train_richest < train_sel else 'no better'} than the "
             f"selected one ({train_richest:.3f} mm against {train_sel:.3f} mm) and ranks "
             f"{rank} of {len(structures)} on the folds ({r['cv_mm']:.3f} mm). Fitted on "
             f"the whole record it scores {r['test_whole_mm']:.3f} mm on the test record, "
             f"and its {len(folds) + 1} fits {r['test_mean_mm']:.2f} mm on average (from "
-            f"{r['test_min_mm']:.2f} to {r['test_max_mm']:.2f} mm): a choice that the "
-            "estimation record's held-out parts do not make.",
+            f"{r['test_min_mm']:.2f} to {r['test_max_mm']:.2f} mm)"
+            + (
+                ": better on the test record, a choice that the estimation record's "
+                "held-out parts do not make."
+                if r["test_whole_mm"] < summary[sel]["test_whole_mm"]
+                else ", no better on the test record than the selected structure."
+            ),
             "",
         ]
     L += [

@@ -44,6 +44,60 @@ def test_friction_terms():
             np.testing.assert_allclose(got, want, rtol=1e-13)
 
 
+def test_position_dependent_terms():
+    """Fcq and Fq interpolate Fc and offset linearly between knots spread over the
+    travel: equal knot values give the constant model; between two knots the value is
+    their linear blend; the hat functions sum to one, also beyond the travel."""
+    K = 6
+    knots = np.linspace(*emps_friction.TRAVEL, K)
+    for q in (-0.01, 0.0, 0.013, knots[2], 0.2, 0.3):
+        w = np.asarray(emps_friction.knot_weights(q, K))
+        np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-14)
+        assert np.all(w >= 0)
+    base = {"M": 95.0, "Fv": 200.0, "Fc": 20.0, "offset": -3.0, "dFv": 30.0}
+    const = {**base, "Fcq": np.full(K, 20.0), "Fq": np.full(K, -3.0)}
+    del const["Fc"], const["offset"]
+    for v, q in ((0.05, 0.07), (-0.02, 0.21)):
+        np.testing.assert_allclose(
+            emps_friction.friction(v, 10.0, const, q=q),
+            emps_friction.friction(v, 10.0, base),
+            rtol=1e-13,
+        )
+    fcq, fq = np.arange(K) + 10.0, 2.0 * np.arange(K) - 4.0
+    th = {**const, "Fcq": fcq, "Fq": fq}
+    q = 0.25 * knots[1] + 0.75 * knots[2]  # 3/4 of the way from knot 1 to knot 2
+    v = 0.05
+    s = np.tanh(v / example.EPS)
+    want = 200.0 * v + 30.0 * v * s + (0.25 * fcq[1] + 0.75 * fcq[2]) * s
+    want += 0.25 * fq[1] + 0.75 * fq[2]
+    np.testing.assert_allclose(emps_friction.friction(v, 0.0, th, q=q), want, rtol=1e-13)
+    with pytest.raises(ValueError, match="`q` is needed"):
+        emps_friction.friction(v, 0.0, th)
+
+
+def test_position_start_and_rows():
+    """A position structure starts Fcq and Fq at Fc and offset at every knot (and has no
+    Fc or offset); its rows keep them as lists, turned back into arrays for the model,
+    and the mean of several fits is taken knot by knot."""
+    from types import SimpleNamespace
+
+    ex = SimpleNamespace(theta0={"M": 50.0, "Fv": 100.0, "Fc": 10.0, "offset": -1.0})
+    ex.position_knots = 5
+    th = emps_friction.theta_start(ex, "position_stribeck")
+    assert set(th) == {"M", "Fv", "dFv", "Fs", "Fcq", "Fq"}
+    np.testing.assert_array_equal(th["Fcq"], np.full(5, 10.0))
+    np.testing.assert_array_equal(th["Fq"], np.full(5, -1.0))
+    plain = emps_friction.as_plain(th)
+    assert plain["Fcq"] == [10.0] * 5 and plain["M"] == 50.0
+    back = emps_friction.as_arrays(plain)
+    assert back["Fq"].shape == (5,) and isinstance(back["M"], float)
+    other = {**plain, "Fcq": [12.0] * 5, "M": 60.0}
+    mean = emps_friction.mean_theta([plain, other])
+    np.testing.assert_allclose(mean["Fcq"], np.full(5, 11.0))
+    assert float(mean["M"]) == 55.0
+    assert emps_friction.fmt([1.0, 2.5]) == "[1, 2.5]" and emps_friction.fmt(95.1089) == "95.11"
+
+
 def test_edge_drift():
     """The error's change across the pulse edges, signed by the direction of motion: a
     1 mm jump after the first of two edges averages to 0.5 mm, and changes sign with the
