@@ -35,7 +35,15 @@ import oneshot_jax as oj  # noqa: E402
 from experiments import cascaded_tanks_hybrid as hybrid  # noqa: E402
 from experiments import common, config  # noqa: E402
 
-# name: Hydra overrides of experiment=cascaded_tanks_hybrid
+# The settings the candidates vary, pinned to the first candidate's values, so that a
+# candidate stays what its name says when the experiment's defaults change.
+BASE = {
+    "experiment.residual.widths": "[16,16]",
+    "experiment.residual.inputs": "states",
+    "experiment.joint.weight_decay": "1e-4",
+    "experiment.joint.refine_steps": "30",
+}
+# name: Hydra overrides of experiment=cascaded_tanks_hybrid (over BASE)
 CANDIDATES = {
     "widths 16 x 16, weight decay 1e-4": [],
     "widths 8 x 8, weight decay 1e-4": ["experiment.residual.widths=[8,8]"],
@@ -87,7 +95,14 @@ def select(tail, seeds, names=None, progress=False):
     for name, overrides in CANDIDATES.items():
         if names is not None and name not in names:
             continue
-        conf = load([*overrides, f"experiment.n_samples={m}", "experiment.residual.combine=mean"])
+        settings = {**BASE, **dict(o.split("=", 1) for o in overrides)}
+        conf = load(
+            [
+                *(f"{k}={v}" for k, v in settings.items()),
+                f"experiment.n_samples={m}",
+                "experiment.residual.combine=mean",
+            ]
+        )
         ex = conf.experiment
         if phys is None:  # the physical stage does not depend on the candidates
             solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
@@ -131,6 +146,16 @@ def merge(store, scores, m, n, tail, seeds, command, wall):
     store["runs"].append({"command": command, "wall_s": round(wall), "candidates": list(scores)})
     for name, row in scores.items():
         store["scores"][name] = {**row, "run": len(store["runs"])}
+    return prune(store)
+
+
+def prune(store):
+    """The store without the runs whose rows were all replaced, the runs renumbered."""
+    used = sorted({row["run"] for row in store["scores"].values()})
+    new = {old: i for i, old in enumerate(used, 1)}
+    store["runs"] = [store["runs"][old - 1] for old in used]
+    for row in store["scores"].values():
+        row["run"] = new[row["run"]]
     return store
 
 

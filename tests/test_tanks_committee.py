@@ -169,5 +169,9 @@ def test_selection_merge_replaces_a_rerun_candidate_and_keeps_the_others():
     assert "| b | single | 0.2000 | 0.3000 | **0.2500** | 1 |" in md
     assert "| a | converged (12) | not recorded |" in md
     assert "2. `python x.py --only a` (3 s): 'a'." in md
+    rerun_b = {"b": {"single": [0.5, 0.5]}}
+    store = select.merge(store, rerun_b, 768, 5, 256, [0, 1], "python x.py --only b", 2.0)
+    assert [r["command"] for r in store["runs"]] == ["python x.py --only a", "python x.py --only b"]
+    assert (store["scores"]["a"]["run"], store["scores"]["b"]["run"]) == (1, 2)
     with pytest.raises(ValueError, match="tail 256 and seeds"):
         select.merge(store, rerun, 768, 5, 256, [0, 1, 2], "python x.py", 1.0)
