@@ -10,12 +10,16 @@ lowest final Adam loss) and the committee of all starts are scored. The validati
 (test) record is not used.
 
 Run: `python experiments/cascaded_tanks_hybrid_select.py [--tail 256] [--seeds 0 1 2]
-[--publish]`; `--publish` writes docs/case-studies/cascaded_tanks_hybrid_selection.md.
+[--only NAME ...] [--publish]`. `--only` trains the named candidates alone; `--publish`
+merges this run's rows into experiments/cascaded_tanks_hybrid_selection.json (each row
+with the command and wall time of the run that produced it; rows of other candidates are
+kept) and writes docs/case-studies/cascaded_tanks_hybrid_selection.md from it.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -31,13 +35,28 @@ import oneshot_jax as oj  # noqa: E402
 from experiments import cascaded_tanks_hybrid as hybrid  # noqa: E402
 from experiments import common, config  # noqa: E402
 
-# name: Hydra overrides of experiment=cascaded_tanks_hybrid
+# The settings the candidates vary, pinned to the first candidate's values, so that a
+# candidate stays what its name says when the experiment's defaults change.
+BASE = {
+    "experiment.residual.widths": "[16,16]",
+    "experiment.residual.inputs": "states",
+    "experiment.joint.weight_decay": "1e-4",
+    "experiment.joint.refine_steps": "30",
+}
+# name: Hydra overrides of experiment=cascaded_tanks_hybrid (over BASE)
 CANDIDATES = {
     "widths 16 x 16, weight decay 1e-4": [],
     "widths 8 x 8, weight decay 1e-4": ["experiment.residual.widths=[8,8]"],
     "widths 16 x 16, weight decay 3e-4": ["experiment.joint.weight_decay=3e-4"],
+    "refine to convergence (LM up to 300 steps)": ["experiment.joint.refine_steps=300"],
+    "features (x1, x2, u)": ["experiment.residual.inputs=states_and_input"],
+    "features (x1, x2, u), LM up to 300 steps": [
+        "experiment.residual.inputs=states_and_input",
+        "experiment.joint.refine_steps=300",
+    ],
 }
 PAGE = REPO / "docs" / "case-studies" / "cascaded_tanks_hybrid_selection.md"
+STORE = REPO / "experiments" / "cascaded_tanks_hybrid_selection.json"
 
 
 def load(overrides):
@@ -65,48 +84,97 @@ def tail_rmse(z, data, m, n):
     return float(np.sqrt(np.mean((z[n:] - data.y_est[m + n :]) ** 2)))
 
 
-def select(tail, seeds, progress=False):
-    """The held-out scores {candidate: {"single": [per seed], "committee": [per seed]}}."""
+def select(tail, seeds, names=None, progress=False):
+    """The held-out scores {candidate: {"single": [per seed], "committee": [per seed],
+    "refine": [per seed: the kept start's refinement stop reason and step count]}} of
+    the candidates `names` (None: all)."""
     data = oj.datasets.load_cascaded_tanks()
     T = len(data.u_est)
     m, n = T - tail, data.test.n
     out, phys = {}, None
     for name, overrides in CANDIDATES.items():
-        conf = load([*overrides, f"experiment.n_samples={m}", "experiment.residual.combine=mean"])
+        if names is not None and name not in names:
+            continue
+        settings = {**BASE, **dict(o.split("=", 1) for o in overrides)}
+        conf = load(
+            [
+                *(f"{k}={v}" for k, v in settings.items()),
+                f"experiment.n_samples={m}",
+                "experiment.residual.combine=mean",
+            ]
+        )
         ex = conf.experiment
         if phys is None:  # the physical stage does not depend on the candidates
             solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
             phys, _ = hybrid.fit_physics(data, ex, solver, progress)
             theta_phys = {k: float(v) for k, v in phys.theta.items()}
-        row = {"single": [], "committee": []}
+        row = {"single": [], "committee": [], "refine": []}
         for seed in seeds:
             t0 = time.perf_counter()
-            res, model, _, _, _, members = hybrid.train_hybrid(
+            res, model, _, stages, _, members = hybrid.train_hybrid(
                 data, ex, theta_phys, phys.x0, seed, progress
             )
+            stage = stages.get(ex.joint.refine)
             z_single = tail_prediction(model, res.theta, res.x0, data, m, n)
             zs = [tail_prediction(model, t, x, data, m, n) for t, x, _ in members]
             row["single"].append(tail_rmse(z_single, data, m, n))
             row["committee"].append(tail_rmse(np.mean(zs, 0), data, m, n))
+            row["refine"].append(
+                None if stage is None else f"{stage['stop_reason']} ({stage['iterations']})"
+            )
             print(
                 f"{name}, seed {seed}: held-out RMSE single {row['single'][-1]:.4f} V, "
-                f"committee {row['committee'][-1]:.4f} V ({time.perf_counter() - t0:.0f} s)",
+                f"committee {row['committee'][-1]:.4f} V, refinement of the kept start "
+                f"{row['refine'][-1]} ({time.perf_counter() - t0:.0f} s)",
                 flush=True,
             )
         out[name] = row
     return out, m, n
 
 
-def markdown(scores, m, n, tail, seeds, command, wall) -> str:
-    """The selection page: the held-out scores of every candidate and the choice."""
+def merge(store, scores, m, n, tail, seeds, command, wall):
+    """The store (dict, or None for none yet) with this run's rows put in: a candidate's
+    earlier row is replaced, the others are kept. Rows of different tails or seeds are
+    not comparable: a ValueError then."""
+    if store is None:
+        store = {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
+    if (store["m"], store["n"], store["tail"], store["seeds"]) != (m, n, tail, list(seeds)):
+        raise ValueError(
+            f"{STORE.name} holds rows of tail {store['tail']} and seeds {store['seeds']}; "
+            f"this run has tail {tail} and seeds {list(seeds)}: rerun every candidate"
+        )
+    store["runs"].append({"command": command, "wall_s": round(wall), "candidates": list(scores)})
+    for name, row in scores.items():
+        store["scores"][name] = {**row, "run": len(store["runs"])}
+    return prune(store)
+
+
+def prune(store):
+    """The store without the runs whose rows were all replaced, the runs renumbered."""
+    used = sorted({row["run"] for row in store["scores"].values()})
+    new = {old: i for i, old in enumerate(used, 1)}
+    store["runs"] = [store["runs"][old - 1] for old in used]
+    for row in store["scores"].values():
+        row["run"] = new[row["run"]]
+    return store
+
+
+def markdown(store) -> str:
+    """The selection page: the held-out scores of every stored candidate and the choice."""
+    m, n, tail, seeds = store["m"], store["n"], store["tail"], store["seeds"]
+    order = list(CANDIDATES)
+    names = sorted(store["scores"], key=lambda k: order.index(k) if k in order else len(order))
+    scores = {k: store["scores"][k] for k in names}  # in the order of CANDIDATES
+    kinds = [k for k in ("single", "committee") if any(k in row for row in scores.values())]
     means = {
-        (name, kind): float(np.mean(v)) for name, row in scores.items() for kind, v in row.items()
+        (name, kind): float(np.mean(row[kind]))
+        for name, row in scores.items()
+        for kind in kinds
+        if kind in row
     }
     best = min(means, key=means.get)
     L = [
         "# Cascaded tanks hybrid: choosing the configuration on the estimation record",
-        "",
-        f"Command: `{command}` (seeds {', '.join(map(str, seeds))}).",
         "",
         "The [hybrid cascaded-tanks model](cascaded_tanks_hybrid.md) is trained, for each "
         f"candidate below, on the first {m} samples of the estimation record only (the "
@@ -115,22 +183,45 @@ def markdown(scores, m, n, tail, seeds, command, wall) -> str:
         f"record: x0 estimated from their first {n} outputs, then simulated, the RMS error "
         f"on the remaining {tail - n}. The test record is not used. 'single' is the start "
         "of the lowest final Adam loss, 'committee' the mean output of all starts (each "
-        "from its own x0).",
+        "from its own x0). Each candidate changes the "
+        "[experiment's configuration](cascaded_tanks_hybrid.md) as its name says "
+        "(`CANDIDATES` in `experiments/cascaded_tanks_hybrid_select.py`).",
         "",
-        "| candidate | combine | " + " | ".join(f"seed {s} (V)" for s in seeds) + " | mean (V) |",
-        "|---|---|" + "---|" * (len(seeds) + 1),
+        "| candidate | combine | "
+        + " | ".join(f"seed {s} (V)" for s in seeds)
+        + " | mean (V) | run |",
+        "|---|---|" + "---|" * (len(seeds) + 2),
     ]
     for name, row in scores.items():
-        for kind, v in row.items():
+        for kind in [k for k in kinds if k in row]:
             mean = means[(name, kind)]
             cell = f"**{mean:.4f}**" if (name, kind) == best else f"{mean:.4f}"
-            L.append(f"| {name} | {kind} | " + " | ".join(f"{x:.4f}" for x in v) + f" | {cell} |")
+            L.append(
+                f"| {name} | {kind} | "
+                + " | ".join(f"{x:.4f}" for x in row[kind])
+                + f" | {cell} | {row['run']} |"
+            )
     L += [
         "",
-        f"Lowest mean held-out RMSE: {best[0]}, {best[1]} ({means[best]:.4f} V). The run "
-        f"took {wall:.0f} s.",
+        f"Lowest mean held-out RMSE: {best[0]}, {best[1]} ({means[best]:.4f} V).",
         "",
+        "The refinement of the kept start (stop reason and steps; for the committee's other "
+        "members it is not recorded):",
+        "",
+        "| candidate | " + " | ".join(f"seed {s}" for s in seeds) + " |",
+        "|---|" + "---|" * len(seeds),
     ]
+    for name, row in scores.items():
+        refine = row.get("refine") or [None] * len(seeds)
+        L.append(f"| {name} | " + " | ".join(r or "not recorded" for r in refine) + " |")
+    L += ["", "The runs (seeds " + ", ".join(map(str, seeds)) + "):", ""]
+    for i, run in enumerate(store["runs"], 1):
+        L.append(
+            f"{i}. `{run['command']}` ({run['wall_s']} s): "
+            + "; ".join(f"'{c}'" for c in run["candidates"])
+            + "."
+        )
+    L.append("")
     return "\n".join(L)
 
 
@@ -138,21 +229,32 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tail", type=int, default=256, help="held-out samples (the tail)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--only", action="append", metavar="NAME", help="train this candidate (repeatable)"
+    )
     parser.add_argument("--publish", action="store_true", help=f"write {PAGE.name}")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     if args.tail < 6:
         parser.error(f"--tail must be an integer >= 6, got {args.tail}")
+    for name in args.only or []:
+        if name not in CANDIDATES:
+            parser.error(f"--only must name a candidate of {list(CANDIDATES)}, got {name!r}")
     t0 = time.perf_counter()
-    scores, m, n = select(args.tail, args.seeds)
+    scores, m, n = select(args.tail, args.seeds, args.only)
     command = "python experiments/cascaded_tanks_hybrid_select.py " + " ".join(
-        argv if argv is not None else sys.argv[1:]
+        repr(a) if " " in a else a for a in (argv if argv is not None else sys.argv[1:])
     )
-    md = markdown(scores, m, n, args.tail, args.seeds, command.strip(), time.perf_counter() - t0)
-    print(md)
+    wall = time.perf_counter() - t0
+    print(json.dumps(scores, indent=1))
+    this = merge(None, scores, m, n, args.tail, args.seeds, command.strip(), wall)
+    print(markdown(this))
     if args.publish:
-        PAGE.write_text(md)
-        print(f"published {PAGE.relative_to(REPO)}")
+        store = json.loads(STORE.read_text()) if STORE.exists() else None
+        store = merge(store, scores, m, n, args.tail, args.seeds, command.strip(), wall)
+        STORE.write_text(json.dumps(store, indent=1) + "\n")
+        PAGE.write_text(markdown(store))
+        print(f"published {PAGE.relative_to(REPO)} and {STORE.relative_to(REPO)}")
 
 
 if __name__ == "__main__":

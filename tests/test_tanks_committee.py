@@ -148,7 +148,30 @@ def test_selection_page_marks_the_lowest_mean():
     from experiments import cascaded_tanks_hybrid_select as select
 
     scores = {"a": {"single": [0.3, 0.1], "committee": [0.2, 0.25]}, "b": {"single": [0.2, 0.3]}}
-    md = select.markdown(scores, 768, 5, 256, [0, 1], "python x.py", 1.0)
-    assert "| a | single | 0.3000 | 0.1000 | **0.2000** |" in md
-    assert "| a | committee | 0.2000 | 0.2500 | 0.2250 |" in md
+    store = select.merge(None, scores, 768, 5, 256, [0, 1], "python x.py", 1.0)
+    md = select.markdown(store)
+    assert "| a | single | 0.3000 | 0.1000 | **0.2000** | 1 |" in md
+    assert "| a | committee | 0.2000 | 0.2500 | 0.2250 | 1 |" in md
     assert "Lowest mean held-out RMSE: a, single (0.2000 V)" in md
+
+
+def test_selection_merge_replaces_a_rerun_candidate_and_keeps_the_others():
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    first = {"a": {"single": [0.3, 0.1]}, "b": {"single": [0.2, 0.3]}}
+    store = select.merge(None, first, 768, 5, 256, [0, 1], "python x.py", 10.0)
+    rerun = {"a": {"single": [0.4, 0.4], "refine": ["converged (12)", None]}}
+    store = select.merge(store, rerun, 768, 5, 256, [0, 1], "python x.py --only a", 3.0)
+    assert store["scores"]["a"] == {**rerun["a"], "run": 2}
+    assert store["scores"]["b"] == {**first["b"], "run": 1}
+    md = select.markdown(store)
+    assert "| a | single | 0.4000 | 0.4000 | 0.4000 | 2 |" in md
+    assert "| b | single | 0.2000 | 0.3000 | **0.2500** | 1 |" in md
+    assert "| a | converged (12) | not recorded |" in md
+    assert "2. `python x.py --only a` (3 s): 'a'." in md
+    rerun_b = {"b": {"single": [0.5, 0.5]}}
+    store = select.merge(store, rerun_b, 768, 5, 256, [0, 1], "python x.py --only b", 2.0)
+    assert [r["command"] for r in store["runs"]] == ["python x.py --only a", "python x.py --only b"]
+    assert (store["scores"]["a"]["run"], store["scores"]["b"]["run"]) == (1, 2)
+    with pytest.raises(ValueError, match="tail 256 and seeds"):
+        select.merge(store, rerun, 768, 5, 256, [0, 1, 2], "python x.py", 1.0)
