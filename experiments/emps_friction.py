@@ -111,11 +111,13 @@ def friction(v, tau, theta, eps=example.EPS, vs=STRIBECK_VELOCITY, q=None):
     theta only; with Fcq and Fq, Fc and offset are their values interpolated at q
     (`knot_weights`)."""
     s = jnp.tanh(v / eps)
-    if "Fcq" in theta or "Fq" in theta:
-        if q is None:
-            raise ValueError("`q` is needed for the position-dependent terms Fcq and Fq.")
-    fc = knot_weights(q, theta["Fcq"].shape[0]) @ theta["Fcq"] if "Fcq" in theta else theta["Fc"]
-    off = knot_weights(q, theta["Fq"].shape[0]) @ theta["Fq"] if "Fq" in theta else theta["offset"]
+    if q is None and any(k in theta for k in POSITION):
+        raise ValueError("`q` is needed for the position-dependent terms Fcq and Fq.")
+    # Fc and offset, or their position-dependent replacements at q (POSITION's order)
+    fc, off = (
+        knot_weights(q, theta[k].shape[0]) @ theta[k] if k in theta else theta[constant]
+        for k, constant in POSITION.items()
+    )
     f = theta["Fv"] * v + fc * s + off
     if "dFv" in theta:
         f = f + theta["dFv"] * v * s
