@@ -109,8 +109,9 @@ def _summary(res, model, data, kind, wall):
 
 
 def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tanks") -> dict:
-    """Fit the basic and the overflow model, score them on validation, write figures and
-    results.md into `outdir`; `cfg` is the validated `config.Config`."""
+    """Fit the basic and the overflow model (and, with `ex.sensor`, the overflow model
+    with the quadratic sensor), score them on validation, write figures and results.md
+    into `outdir`; `cfg` is the validated `config.Config`."""
     ex = cfg.experiment
     solver, outdir, t_start = common.start(cfg, outdir, "cascaded-tanks")
     data = oj.datasets.load_cascaded_tanks(ex.data_path)
@@ -148,6 +149,21 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
     )
     rows["overflow"] = _summary(res, model, data, "overflow", time.perf_counter() - t0)
     rows["overflow"]["h1_starts"] = h1s
+
+    # 3. the overflow model with the quadratic sensor, c2 from zero beside its estimate.
+    if ex.sensor:
+        t0 = time.perf_counter()
+        res_s, model_s = fit_model(
+            "overflow",
+            data,
+            ex,
+            {**rows["overflow"]["theta"], "c2": 0.0},
+            rows["overflow"]["x0"],
+            solver,
+            n,
+            progress=cfg.progress,
+        )
+        rows["sensor"] = _summary(res_s, model_s, data, "sensor", time.perf_counter() - t0)
 
     # Integration check: the same parameters with twice the RK4 substeps.
     fine = make_model("overflow", data, ex, 2 * ex.overflow.substeps)

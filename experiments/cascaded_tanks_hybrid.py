@@ -55,7 +55,7 @@ from oneshot_jax.residual import MLP, count_parameters
 from . import cascaded_tanks, common
 from .config import as_dict
 
-PHYSICAL = ("k1", "k3", "k4", "c", "h1", "h2", "k5")
+PHYSICAL = ("k1", "k3", "k4", "c", "h1", "h2", "k5", "c2")
 # The network's weights and biases (its activation is a function leaf, not a parameter).
 NETWORK = sparsity.mask(lambda theta: theta["r"].layers)
 
@@ -279,8 +279,9 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
 
 def fit_physics(data, ex, solver, progress=False):
     """Stage 1 on the first `ex.n_samples` estimation samples: the basic model from
-    `ex.basic.theta0`, then the overflow model from it, multistart over h1. Returns the
-    overflow model's (FitResult, Model)."""
+    `ex.basic.theta0`, then the overflow model from it, multistart over h1, then (with
+    `ex.sensor`) the quadratic sensor's c2 from zero beside the overflow model's estimate.
+    Returns the last model's (FitResult, Model)."""
     n = ex.n_samples
     res, _ = cascaded_tanks.fit_model(
         "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=progress
@@ -289,8 +290,14 @@ def fit_physics(data, ex, solver, progress=False):
     h1s = [float(h) for h in ex.overflow.h1_starts]
     starts = {k: jnp.full((len(h1s),), v) for k, v in base.items()}
     starts["h1"] = jnp.asarray(h1s)
-    return cascaded_tanks.fit_model(
+    res, model = cascaded_tanks.fit_model(
         "overflow", data, ex, starts, res.x0, solver, n, multistart=True, progress=progress
+    )
+    if not ex.sensor:
+        return res, model
+    theta = {**{k: float(v) for k, v in res.theta.items()}, "c2": 0.0}
+    return cascaded_tanks.fit_model(
+        "overflow", data, ex, theta, res.x0, solver, n, progress=progress
     )
 
 
@@ -350,7 +357,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
         **evaluate(phys_model, phys.theta, phys.x0, data),
     }
     print(
-        f"physical (overflow) model: protocol RMSE {physical['protocol']['rmse_V']:.4f} V",
+        f"physical model: protocol RMSE {physical['protocol']['rmse_V']:.4f} V",
         flush=True,
     )
 
@@ -359,7 +366,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
         data, ex, theta_phys, phys.x0, cfg.seed, cfg.progress
     )
     hybrid = {
-        "theta": {k: float(hyb.theta[k]) for k in PHYSICAL},
+        "theta": {k: float(v) for k, v in hyb.theta.items() if k in PHYSICAL},
         "x0": [float(v) for v in np.asarray(hyb.x0)],
         "n_network_parameters": count_parameters(hyb.theta["r"]),
         "network_scale_V_per_s": float(hyb.theta["r"].scale),

@@ -36,6 +36,8 @@ def figures(data, physical, hybrid, f, r, outdir, committee=None) -> list[str]:
     for name, row in rows:
         z = row["_pred"]["z"]
         label = LABELS[name]
+        if name == "physical" and "c2" in row["theta"]:
+            label = "physical (overflow + sensor) model"
         a0.plot(
             t,
             z,

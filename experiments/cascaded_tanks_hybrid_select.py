@@ -42,6 +42,7 @@ BASE = {
     "experiment.residual.inputs": "states",
     "experiment.joint.weight_decay": "1e-4",
     "experiment.joint.refine_steps": "30",
+    "experiment.sensor": "false",  # the physics of the rows: the overflow model alone
 }
 # name: Hydra overrides of experiment=cascaded_tanks_hybrid (over BASE)
 CANDIDATES = {
@@ -178,7 +179,9 @@ def markdown(store) -> str:
         "",
         "The [hybrid cascaded-tanks model](cascaded_tanks_hybrid.md) is trained, for each "
         f"candidate below, on the first {m} samples of the estimation record only (the "
-        "physical stage and the joint stages as the experiment runs them) and scored on "
+        "physical stage and the joint stages as the experiment runs them, with the "
+        "overflow model alone as the physics: `experiment.sensor=false` in `BASE`) and "
+        "scored on "
         f"the held-out last {tail} samples as the benchmark's protocol scores the test "
         f"record: x0 estimated from their first {n} outputs, then simulated, the RMS error "
         f"on the remaining {tail - n}. The test record is not used. 'single' is the start "

@@ -10,8 +10,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .cascaded_tanks_report import LABELS  # noqa: E402
+
 DPI = 130
-COLORS = {"basic": "C1", "overflow": "C0"}
+COLORS = {"basic": "C1", "overflow": "C0", "sensor": "C2"}
 
 
 def figures(data, rows, outdir) -> list[str]:
@@ -32,9 +34,9 @@ def figures(data, rows, outdir) -> list[str]:
             color=COLORS[kind],
             lw=1.0,
             ls="--" if kind == "basic" else "-",
-            label=f"{kind} model (RMSE {r['rmse_validation_V']:.3f} V)",
+            label=f"{LABELS[kind]} model (RMSE {r['rmse_validation_V']:.3f} V)",
         )
-        a1.plot(t, yv - data.y_val, color=COLORS[kind], lw=0.9, label=kind)
+        a1.plot(t, yv - data.y_val, color=COLORS[kind], lw=0.9, label=LABELS[kind])
     a0.set_ylabel("lower-tank level y (V)")
     a0.set_title("Cascaded tanks, validation record: simulation from the estimated x0")
     a0.legend(fontsize=8, loc="lower right")
@@ -56,7 +58,7 @@ def figures(data, rows, outdir) -> list[str]:
             bins=bins,
             alpha=0.55,
             color=COLORS[kind],
-            label=f"{kind} (RMS {rows[kind]['rmse_validation_V']:.3f} V)",
+            label=f"{LABELS[kind]} (RMS {rows[kind]['rmse_validation_V']:.3f} V)",
         )
     ax.set_xlabel("simulation error on validation (V)")
     ax.set_ylabel("samples")

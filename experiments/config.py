@@ -417,6 +417,8 @@ class TanksConfig:
     overflow: OverflowModel = field(
         default_factory=lambda: OverflowModel(4, {"h2": 10.0, "k5": 0.5}, [5.0, 10.0, 15.0])
     )
+    # then the quadratic sensor (c2, from 0) beside the overflow model's estimate
+    sensor: bool = True
     figures: bool = True
     history: int = 1000
     solver_defaults: dict[str, dict[str, Any]] = field(default_factory=dict)

@@ -1,6 +1,7 @@
 """The example systems (`oneshot_jax.examples`): each model agrees with the independent
 data generator of its module, and the data preparation does what its docstring says."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -114,5 +115,10 @@ def test_tanks_models():
         cascaded_tanks.OverflowRHS()(x, u, over), cascaded_tanks.basic_rhs(x, u, th), atol=1e-12
     )
     np.testing.assert_allclose(cascaded_tanks.observe(x, u, th), [8.0])
+    # The quadratic sensor: + c2 (x2 - 5)^2, slope one at 5 V.
+    sensor = {**th, "c2": 0.1}
+    np.testing.assert_allclose(cascaded_tanks.observe(x, u, sensor), [8.0 + 0.1 * 16.0])
+    slope = jax.grad(lambda v: cascaded_tanks.observe(jnp.array([4.0, v]), u, sensor)[0])
+    np.testing.assert_allclose(slope(cascaded_tanks.SENSOR_LEVEL), 1.0)
     with pytest.raises(ValueError, match="kind"):
         cascaded_tanks.model("triple", 4.0)

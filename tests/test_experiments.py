@@ -373,6 +373,8 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
     assert res["figures"] == ["compare.png", "learned_terms.png"]
     for fig in res["figures"]:
         assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
+    # the physics ends with the quadratic sensor (experiment.sensor, on by default)
+    assert "c2" in res["physical"]["theta"] and "c2" in res["hybrid"]["theta"]
     for row in (res["physical"], res["hybrid"]):
         scores = [row["rmse_estimation_V"], row["rmse_validation_V"], row["protocol"]["rmse_V"]]
         assert all(v is not None and np.isfinite(v) for v in scores)

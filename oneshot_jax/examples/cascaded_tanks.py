@@ -20,6 +20,15 @@ at x2 = h2:
 with the logistic gate sigma and the relu smoothed (gate width w = 0.05 V, relu by a
 softplus of width 1e-3 V/s) so that the closed-form Jacobians exist.
 
+**sensor**: the level sensors are not calibrated and "can introduce an extra source of
+nonlinear behavior" (benchmark description, Sec. 3). With the parameter c2 in theta
+(either model), the output is quadratic in the level:
+
+    y = x2 + c + c2 (x2 - SENSOR_LEVEL)^2,
+
+with slope one at x2 = SENSOR_LEVEL, so that x2 keeps the sensor's volts there (c2 in
+1/V; without c2, y = x2 + c).
+
 Units and scaling: the sensor is not calibrated, so levels are in sensor volts. x1 is the
 upper tank's water volume divided by the lower tank's cross-section, so the flow that
 leaves the upper tank enters the lower one with the same coefficient (k2 = k1: this
@@ -39,11 +48,22 @@ import jax.numpy as jnp
 import oneshot_jax as oj
 
 KINDS = ("basic", "overflow")
-UNITS = {"k1": "V^0.5/s", "k3": "V^0.5/s", "k4": "1/s", "c": "V", "h1": "V", "h2": "V", "k5": "-"}
+UNITS = {
+    "k1": "V^0.5/s",
+    "k3": "V^0.5/s",
+    "k4": "1/s",
+    "c": "V",
+    "h1": "V",
+    "h2": "V",
+    "k5": "-",
+    "c2": "1/V",
+}
 GATE_WIDTH = 0.05
 """V: width of the logistic "tank is full" gates."""
 RELU_WIDTH = 1e-3
 """V/s: softplus width of the smoothed relu of the spilled flow."""
+SENSOR_LEVEL = 5.0
+"""V: the level at which the quadratic sensor's slope is one (mid-range of the records)."""
 PUBLISHED = {
     "BLA (best linear approximation)": 0.7574,
     "Volterra, 3rd degree, transient removal": 0.54,
@@ -88,9 +108,13 @@ class OverflowRHS(eqx.Module):
 
 
 def observe(x, u, theta):
-    """y = x2 + c."""
+    """y = x2 + c, plus c2 (x2 - SENSOR_LEVEL)^2 where theta has c2 (the sensor's
+    curvature)."""
     del u
-    return x[1:2] + theta["c"]
+    y = x[1:2] + theta["c"]
+    if "c2" in theta:
+        y = y + theta["c2"] * (x[1:2] - SENSOR_LEVEL) ** 2
+    return y
 
 
 def model(kind, Ts, substeps=1, gate_width=GATE_WIDTH, relu_width=RELU_WIDTH) -> oj.Model:
@@ -107,7 +131,7 @@ def model(kind, Ts, substeps=1, gate_width=GATE_WIDTH, relu_width=RELU_WIDTH) ->
     **Returns:**
 
     An `oneshot_jax.Model` with theta = {k1, k3, k4, c} (basic) or {k1, k3, k4, c, h1,
-    h2, k5} (overflow).
+    h2, k5} (overflow), each optionally with c2 (the quadratic sensor, `observe`).
     """
     if kind not in KINDS:
         raise ValueError(f"`kind` must be one of {KINDS}, got {kind!r}.")
