@@ -205,9 +205,10 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
     """Stages 2 and 3 from the physical estimate (theta_phys, x0). Returns (FitResult of
     the start of the lowest final Adam loss, model, rhs, stage summaries, the
     multistart's final Adam losses, the committee): the committee (`residual.combine =
-    "mean"`) is a list of every start's (theta, x0, final loss), each refined as the kept
-    one, a start other than the kept one from its own x0 (Gauss-Newton on the training
-    record with its parameters fixed, `oneshot_jax.predict`); None for "best"."""
+    "mean"`) is a list of every start's (theta, x0, final loss, stop reason of its last
+    stage), each refined as the kept one, a start other than the kept one from its own
+    x0 (Gauss-Newton on the training record with its parameters fixed,
+    `oneshot_jax.predict`); None for "best"."""
     n, m = split(data, ex)
     jt = ex.joint
     u, y = data.u_est[:m, None], data.y_est[:m, None]
@@ -265,15 +266,20 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
         committee = []
         for k in range(S):
             if k == adam_res.best:
-                committee.append((res.theta, res.x0, float(res.loss)))
+                committee.append((res.theta, res.x0, float(res.loss), res.status))
                 continue
             theta_k = member(adam_res.starts.theta, adam_res.theta, k)
             x0_k = oj.predict(model, theta_k, u, y, m, x0=np.asarray(adam_res.x0)).x0
-            loss_k = float(adam_res.starts.loss[k])
+            loss_k, stop_k = float(adam_res.starts.loss[k]), adam_res.status
             if jt.refine != "none":
                 fit_k = refine(theta_k, x0_k)
-                theta_k, x0_k, loss_k = fit_k.theta, fit_k.x0, float(fit_k.loss)
-            committee.append((theta_k, x0_k, loss_k))
+                theta_k, x0_k, loss_k, stop_k = (
+                    fit_k.theta,
+                    fit_k.x0,
+                    float(fit_k.loss),
+                    fit_k.status,
+                )
+            committee.append((theta_k, x0_k, loss_k, stop_k))
     return res, model, rhs, stages, starts, committee
 
 
@@ -317,11 +323,15 @@ def _seed_row(scores, stages, committee=None) -> dict:
 
 def _committee(model, members, data):
     """`evaluate_committee` of `train_hybrid`'s committee (None for none), with the
-    members' final losses."""
+    members' final losses and stop reasons."""
     if members is None:
         return None
-    out = evaluate_committee(model, [(t, x) for t, x, _ in members], data)
-    return {**out, "member_losses": [loss for _, _, loss in members]}
+    out = evaluate_committee(model, [(t, x) for t, x, *_ in members], data)
+    return {
+        **out,
+        "member_losses": [loss for _, _, loss, _ in members],
+        "member_stops": [stop for *_, stop in members],
+    }
 
 
 def learned_terms(rhs, theta, x, u):

@@ -84,6 +84,7 @@ def _committee(h, cm, jt) -> list[str]:
         "The single model, the start of the lowest final Adam loss, is scored beside it. "
         "Final losses of the members: "
         + ", ".join(f"{v:.5g}" for v in cm["member_losses"])
+        + ("; their stops: " + ", ".join(cm["member_stops"]) if cm.get("member_stops") else "")
         + "; their protocol test RMSEs alone: "
         + ", ".join(f"{v:.4f}" for v in cm["protocol"]["members_rmse_V"])
         + " V.",

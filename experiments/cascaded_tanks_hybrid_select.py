@@ -117,7 +117,7 @@ def select(tail, seeds, names=None, progress=False):
             )
             stage = stages.get(ex.joint.refine)
             z_single = tail_prediction(model, res.theta, res.x0, data, m, n)
-            zs = [tail_prediction(model, t, x, data, m, n) for t, x, _ in members]
+            zs = [tail_prediction(model, t, x, data, m, n) for t, x, *_ in members]
             row["single"].append(tail_rmse(z_single, data, m, n))
             row["committee"].append(tail_rmse(np.mean(zs, 0), data, m, n))
             row["refine"].append(

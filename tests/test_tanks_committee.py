@@ -119,6 +119,21 @@ def test_seed_table_with_and_without_committee():
     assert report._committee({}, None, {"refine": "none"}) == []
 
 
+def test_committee_paragraph_names_every_members_stop():
+    """The committee's paragraph gives each member's final loss, stop reason and test
+    RMSE, in the members' order."""
+    from experiments import cascaded_tanks_hybrid_report as report
+
+    cm = {
+        "member_losses": [0.01, 0.02],
+        "member_stops": ["converged", "max_steps_reached"],
+        "protocol": {"n": 5, "members_rmse_V": [0.2, 0.3]},
+    }
+    text = "\n".join(report._committee({}, cm, {"refine": "levenberg_marquardt"}))
+    assert "Final losses of the members: 0.01, 0.02; their stops: converged, " in text
+    assert "max_steps_reached; their protocol test RMSEs alone: 0.2000, 0.3000 V" in text
+
+
 def test_selection_scores_the_tail_from_its_own_head(setup):
     """The held-out score of `cascaded_tanks_hybrid_select` reads the tail's head only
     for x0: outputs elsewhere in the record leave the prediction unchanged, the head's
