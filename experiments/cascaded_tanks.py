@@ -1,12 +1,14 @@
 """Cascaded tanks benchmark: Torricelli grey-box models with and without overflow.
 
-The models (basic and overflow), their bounds and the published results are
-`oneshot_jax.examples.cascaded_tanks`. Both records start from the same unknown state
-(benchmark description, Sec. 3): x0 is estimated on the estimation record and reused,
-unchanged, to simulate the validation record. The figure of merit is the RMS simulation
-error on validation (eq. 4). The basic model is fitted from a rough physical guess; the
-overflow model starts from the basic estimate, with a multistart over the overflow level
-h1. The solver is the configured one (Levenberg-Marquardt by default).
+The models (basic and overflow, and the quadratic sensor), their bounds and the
+published results are `oneshot_jax.examples.cascaded_tanks`. Both records start from the
+same unknown state (benchmark description, Sec. 3): x0 is estimated on the estimation
+record and reused, unchanged, to simulate the validation record. The figure of merit is
+the RMS simulation error on validation (eq. 4). The basic model is fitted from a rough
+physical guess; the overflow model starts from the basic estimate, with a multistart over
+the overflow level h1; with `sensor`, the overflow model with the quadratic sensor (c2)
+starts from the overflow estimate and c2 = 0. The solver is the configured one
+(Levenberg-Marquardt by default).
 
 Run: `python experiments/run.py experiment=cascaded_tanks`; figures in
 `cascaded_tanks_plots.py`, the tables in `cascaded_tanks_report.py`.

@@ -3,20 +3,22 @@
 The physical part is the overflow model of `oneshot_jax.examples.cascaded_tanks`; an
 `oneshot_jax.residual.MLP` r adds a correction to both level derivatives:
 
-    x' = f_overflow(x, u; k1, k3, k4, h1, h2, k5) + s r(features; w),     y = x2 + c,
+    x' = f_overflow(x, u; k1, k3, k4, h1, h2, k5) + s r(features; w),
+    y = x2 + c + c2 (x2 - 5 V)^2     (the quadratic sensor; y = x2 + c with `sensor` off),
 
 with the features the levels (x1, x2) (by default: the pump flow already enters the
 physics, and a network of the levels alone stays closer to a correction of the outflows
 and spills) or (x1, x2, u), centred and scaled by their mean and standard deviation on
 the physical model's estimation trajectory, and the constant s the RMS of f_overflow
 there (so that the network's outputs are of order one). The last layer starts at zero:
-the hybrid starts as the physical model. theta = {k1, k3, k4, c, h1, h2, k5, "r": MLP}.
+the hybrid starts as the physical model. theta = {k1, k3, k4, c, h1, h2, k5, c2, "r":
+MLP}.
 
 Training, in stages that each start where the last stopped (all through `oneshot_jax.fit`):
 
 1. physics alone (the residual is zero): the basic model from a rough guess, then the
-   overflow model from it with a multistart over h1 (as `experiments/cascaded_tanks.py`,
-   with the configured solver);
+   overflow model from it with a multistart over h1, then the sensor's c2 from zero (as
+   `experiments/cascaded_tanks.py`, with the configured solver);
 2. jointly: Adam on the one-shot gradient (cosine-decayed rate, optionally weight decay
    on the network, `sparsity.l2`), with a multistart over the network's initialisation;
 3. a refinement by L-BFGS or Levenberg-Marquardt (or none).
@@ -55,7 +57,7 @@ from oneshot_jax.residual import MLP, count_parameters
 from . import cascaded_tanks, common
 from .config import as_dict
 
-PHYSICAL = ("k1", "k3", "k4", "c", "h1", "h2", "k5", "c2")
+PHYSICAL = tuple(example.UNITS)  # the physical parameters (the sensor's c2 included)
 # The network's weights and biases (its activation is a function leaf, not a parameter).
 NETWORK = sparsity.mask(lambda theta: theta["r"].layers)
 

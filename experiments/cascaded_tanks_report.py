@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from oneshot_jax.examples.cascaded_tanks import UNITS
 
-KEYS = ("k1", "k3", "k4", "c", "h1", "h2", "k5", "c2")
+KEYS = tuple(UNITS)  # the physical parameters, in the tables' order
 LABELS = {"basic": "basic", "overflow": "overflow", "sensor": "overflow + sensor"}
 
 
