@@ -33,7 +33,8 @@ def stop_detail(status: str, info: dict) -> str:
         limit = info.get("roundoff_limit", np.nan)
         return (
             f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
-            f"{_g(gtol)}): no step decreases the loss at round-off"
+            f"{_g(gtol)}), where the fit stopped for lack of progress (no step decreases "
+            "the loss at round-off, or the step test rtol/atol fired)"
         )
     if status == "statistically_converged":
         se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)

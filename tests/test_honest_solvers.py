@@ -368,6 +368,29 @@ def test_the_step_test_ends_a_fit_as_stalled_unless_first_order_holds():
     assert r.message.startswith("step ") and "> gtol" in r.message
 
 
+@pytest.mark.parametrize("solver", [oj.LevenbergMarquardt, oj.GaussNewton])
+def test_the_step_test_at_the_round_off_limit_is_a_success(solver):
+    """A step test that fires where the first-order measure is below its round-off limit
+    (10 sqrt(eps)) but above a gtol no loss in float64 resolves ends the fit as
+    `converged`: the decrease left is at round-off. The measure, computed here from
+    autodiff's Jacobian, is below the limit; with gtol = 1e-14 alone it would be
+    `stalled`."""
+    problem = PROBLEMS["oscillator"]
+    r = oj.fit(
+        problem.model,
+        problem.theta0,
+        problem.x0,
+        problem.u,
+        problem.z,
+        solver=solver(rtol=1e-9, gtol=1e-14),
+    )
+    assert r.status == "converged" and r.success, r.message
+    assert "its round-off limit" in r.message and "step test" in r.message
+    q = np.r_[problem.vector(r.theta), np.asarray(r.x0)]
+    m = _measure(problem, q, problem.z, np.full(4, -np.inf), np.full(4, np.inf))
+    assert 1e-14 < m <= 1.5e-7, m
+
+
 #
 # Property: whatever the solver returns, success implies the first-order measure (computed
 # here from autodiff's Jacobian) is below its tolerance and the loss equals oj.loss.

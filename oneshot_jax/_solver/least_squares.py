@@ -30,9 +30,10 @@ point that is not stationary. So a bound never stops the fit short of a solution
 
 Stopping (`oneshot_jax._optimality`): the fit converges (succeeds) when the first-order
 measure at the current iterate, the scaled projected gradient, is at most `gtol`, or
-when no step decreases C at round-off with the measure at most its round-off limit
-10 sqrt(eps) (a loss known to relative precision eps resolves cosines down to about
-sqrt(eps) only, so a slowly converging fit can stop a little above gtol = 1e-8); it
+when it stops for lack of progress (no step decreases C at round-off, or the optional
+step test fired) with the measure at most its round-off limit 10 sqrt(eps) (a loss known
+to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
+converging fit can stop a little above gtol = 1e-8); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
 round-off level of the data. Where J is rank deficient (an over-parameterised model, a
 network in theta), it is `statistically_converged` (success) when an accepted step, its
@@ -43,8 +44,9 @@ other stop is a failure that names its test:
 round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
 level of the parameters, or when the optional step test fired (rtol, atol: an accepted
 step with ||D s|| <= rtol ||D p|| + atol and a decrease <= rtol C + atol, D =
-sqrt(diag(J^T J))) before the first-order test; `no_progress` when LM's damping passes
-1e20 or GN's backtracking 2^-30 and the gradient step fails too; `max_steps_reached`.
+sqrt(diag(J^T J))) with the measure above its round-off limit; `no_progress` when LM's
+damping passes 1e20 or GN's backtracking 2^-30 and the gradient step fails too;
+`max_steps_reached`.
 A penalty enters as residuals sqrt(lambda h / T): lambda h must be non-negative, and the
 solver stops with `RESULTS.negative_penalty` (reporting the true loss) when it is not.
 """
@@ -391,8 +393,10 @@ class AbstractLeastSquares(AbstractSolver):
         )
         gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
-        # At round-off, stationary to the precision of the loss (`_optimality`).
-        stationary = (fo <= self.gtol) | (round_off & (fo <= roundoff_limit(dtype)))
+        # Where the fit stops for lack of progress (round-off, or the step test fired), a
+        # measure below its round-off limit is stationary to the precision of the loss
+        # (`_optimality`): the decrease left, about fo^2 C, is at round-off.
+        stationary = (fo <= self.gtol) | ((round_off | small_step) & (fo <= roundoff_limit(dtype)))
         se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
         negative = h_min < 0
         done = stationary | statistical | stalled | negative
