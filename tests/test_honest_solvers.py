@@ -181,6 +181,14 @@ def _problems():
 
 PROBLEMS = _problems()
 
+
+def _fit(problem, solver, **kwargs):
+    """`oj.fit` of a problem from its own start, on its noisy data."""
+    return oj.fit(
+        problem.model, problem.theta0, problem.x0, problem.u, problem.z, solver=solver, **kwargs
+    )
+
+
 # For each problem, a lower bound on its second parameter that excludes the
 # unconstrained optimum: active at the constrained one.
 ACTIVE = {
@@ -318,15 +326,7 @@ def test_a_clipped_step_no_longer_converges_at_the_start():
     problem = PROBLEMS["oscillator"]
     for solver in (oj.LevenbergMarquardt(), oj.GaussNewton()):
         for c in (oj.constraints.positive(), oj.constraints.box(0.01, 100.0)):
-            r = oj.fit(
-                problem.model,
-                problem.theta0,
-                problem.x0,
-                problem.u,
-                problem.z,
-                solver=solver,
-                constraints=c,
-            )
+            r = _fit(problem, solver, constraints=c)
             assert r.success and r.status == "converged", r.message
             assert r.theta["k"] == pytest.approx(4.0, rel=0.02)
 
@@ -341,28 +341,14 @@ def test_noise_free_data_end_as_a_zero_residual_success():
 
 def test_max_steps_is_not_a_success_and_says_the_measure():
     problem = PROBLEMS["pendulum"]
-    r = oj.fit(
-        problem.model,
-        problem.theta0,
-        problem.x0,
-        problem.u,
-        problem.z,
-        solver=oj.Adam(max_steps=20),
-    )
+    r = _fit(problem, oj.Adam(max_steps=20))
     assert not r.success and r.status == "max_steps_reached"
     assert "first-order measure" in r.message and "not met" in r.message
 
 
 def test_the_step_test_ends_a_fit_as_stalled_unless_first_order_holds():
     problem = PROBLEMS["pendulum"]
-    r = oj.fit(
-        problem.model,
-        problem.theta0,
-        problem.x0,
-        problem.u,
-        problem.z,
-        solver=oj.LevenbergMarquardt(rtol=1e-2),
-    )
+    r = _fit(problem, oj.LevenbergMarquardt(rtol=1e-2))
     # A step of 1 % of the scaled parameters ends the fit long before the optimum.
     assert r.status == "stalled" and not r.success, r.message
     assert r.message.startswith("step ") and "> gtol" in r.message
@@ -376,14 +362,7 @@ def test_the_step_test_at_the_round_off_limit_is_a_success(solver):
     autodiff's Jacobian, is below the limit; with gtol = 1e-14 alone it would be
     `stalled`."""
     problem = PROBLEMS["oscillator"]
-    r = oj.fit(
-        problem.model,
-        problem.theta0,
-        problem.x0,
-        problem.u,
-        problem.z,
-        solver=solver(rtol=1e-9, gtol=1e-14),
-    )
+    r = _fit(problem, solver(rtol=1e-9, gtol=1e-14))
     assert r.status == "converged" and r.success, r.message
     assert "its round-off limit" in r.message and "step test" in r.message
     q = np.r_[problem.vector(r.theta), np.asarray(r.x0)]
