@@ -58,6 +58,13 @@ def fit_model(kind, data, ex, theta0, x0, solver, n=None, multistart=False, prog
     return res, model
 
 
+def fit_sensor(data, ex, theta, x0, solver, n=None, progress=False):
+    """The overflow model with the quadratic sensor, fitted from an overflow estimate
+    (theta, x0) and c2 = 0 (`fit_model`)."""
+    start = {**{k: float(v) for k, v in theta.items()}, "c2": 0.0}
+    return fit_model("overflow", data, ex, start, x0, solver, n, progress=progress)
+
+
 def simulate(model, theta, x0, u):
     """The model output (T,) for a pump-voltage record u (T,)."""
     _, z = oj.simulate(model, theta, np.asarray(x0), np.asarray(u)[:, None])
@@ -155,15 +162,8 @@ def run(cfg, outdir, command="python experiments/run.py experiment=cascaded_tank
     # 3. the overflow model with the quadratic sensor, c2 from zero beside its estimate.
     if ex.sensor:
         t0 = time.perf_counter()
-        res_s, model_s = fit_model(
-            "overflow",
-            data,
-            ex,
-            {**rows["overflow"]["theta"], "c2": 0.0},
-            rows["overflow"]["x0"],
-            solver,
-            n,
-            progress=cfg.progress,
+        res_s, model_s = fit_sensor(
+            data, ex, rows["overflow"]["theta"], rows["overflow"]["x0"], solver, n, cfg.progress
         )
         rows["sensor"] = _summary(res_s, model_s, data, "sensor", time.perf_counter() - t0)
 

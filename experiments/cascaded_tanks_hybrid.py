@@ -303,10 +303,7 @@ def fit_physics(data, ex, solver, progress=False):
     )
     if not ex.sensor:
         return res, model
-    theta = {**{k: float(v) for k, v in res.theta.items()}, "c2": 0.0}
-    return cascaded_tanks.fit_model(
-        "overflow", data, ex, theta, res.x0, solver, n, progress=progress
-    )
+    return cascaded_tanks.fit_sensor(data, ex, res.theta, res.x0, solver, n, progress)
 
 
 def _seed_row(scores, stages, committee=None) -> dict:

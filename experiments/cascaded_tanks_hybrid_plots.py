@@ -10,10 +10,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .cascaded_tanks_hybrid_report import physical_label  # noqa: E402
+
 DPI = 130
 COLORS = {"physical": "C1", "hybrid": "C0", "committee": "C2"}
 LABELS = {
-    "physical": "physical (overflow) model",
     "hybrid": "hybrid model",
     "committee": "hybrid committee (mean output)",
 }
@@ -35,9 +36,7 @@ def figures(data, physical, hybrid, f, r, outdir, committee=None) -> list[str]:
     rows += [] if committee is None else [("committee", committee)]
     for name, row in rows:
         z = row["_pred"]["z"]
-        label = LABELS[name]
-        if name == "physical" and "c2" in row["theta"]:
-            label = "physical (overflow + sensor) model"
+        label = f"{physical_label(row['theta'])} model" if name == "physical" else LABELS[name]
         a0.plot(
             t,
             z,

@@ -10,6 +10,11 @@ from .cascaded_tanks_report import KEYS
 REFINE = {"lbfgs": "L-BFGS", "levenberg_marquardt": "Levenberg-Marquardt"}
 
 
+def physical_label(theta) -> str:
+    """The physical model's name: with the quadratic sensor where theta has c2."""
+    return "physical (overflow + sensor)" if "c2" in theta else "physical (overflow)"
+
+
 def _stages(h) -> str:
     return "; ".join(
         f"{REFINE.get(k, 'Adam' if k == 'adam' else k)}: {s['iterations']} steps, "
@@ -177,7 +182,7 @@ def markdown(res) -> str:
         "| RMSE test, protocol: x0 from 5 samples (V) | fit (%) | R² |",
         "|---|---|---|---|---|---|",
     ]
-    physical = "physical (overflow + sensor)" if "c2" in p["theta"] else "physical (overflow)"
+    physical = physical_label(p["theta"])
     rows = [(physical, p), ("hybrid", h)]
     cm = res.get("committee")
     if cm is not None:
