@@ -17,7 +17,8 @@ MLP}.
 Training, in stages that each start where the last stopped (all through `oneshot_jax.fit`):
 
 1. physics alone (the residual is zero): the basic model from a rough guess, then the
-   overflow model from it with a multistart over h1, then the sensor's c2 from zero (as
+   overflow model from it and from the rough guess with a multistart over h1, then the
+   sensor's c2 from zero (as
    `experiments/cascaded_tanks.py`, with the configured solver);
 2. jointly: Adam on the one-shot gradient (cosine-decayed rate, optionally weight decay
    on the network, `sparsity.l2`), with a multistart over the network's initialisation;
@@ -287,20 +288,15 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
 
 def fit_physics(data, ex, solver, progress=False):
     """Stage 1 on the first `ex.n_samples` estimation samples: the basic model from
-    `ex.basic.theta0`, then the overflow model from it, multistart over h1, then (with
+    `ex.basic.theta0`, then the overflow model from it and from the rough guess,
+    multistart over h1 (`cascaded_tanks.fit_overflow`), then (with
     `ex.sensor`) the quadratic sensor's c2 from zero beside the overflow model's estimate.
     Returns the last model's (FitResult, Model)."""
     n = ex.n_samples
     res, _ = cascaded_tanks.fit_model(
         "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=progress
     )
-    base = {**{k: float(v) for k, v in res.theta.items()}, **dict(ex.overflow.theta0)}
-    h1s = [float(h) for h in ex.overflow.h1_starts]
-    starts = {k: jnp.full((len(h1s),), v) for k, v in base.items()}
-    starts["h1"] = jnp.asarray(h1s)
-    res, model = cascaded_tanks.fit_model(
-        "overflow", data, ex, starts, res.x0, solver, n, multistart=True, progress=progress
-    )
+    res, model = cascaded_tanks.fit_overflow(data, ex, res.theta, res.x0, solver, n, progress)
     if not ex.sensor:
         return res, model
     return cascaded_tanks.fit_sensor(data, ex, res.theta, res.x0, solver, n, progress)

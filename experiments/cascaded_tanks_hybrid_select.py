@@ -10,7 +10,8 @@ lowest final Adam loss) and the committee of all starts are scored. The validati
 (test) record is not used.
 
 Run: `python experiments/cascaded_tanks_hybrid_select.py [--tail 256] [--seeds 0 1 2]
-[--only NAME ...] [--publish]`. `--only` trains the named candidates alone; `--publish`
+[--only NAME ...] [--physical] [--publish]`. `--only` trains the named candidates alone;
+`--physical` scores the physical stage alone (the candidates' baseline); `--publish`
 merges this run's rows into experiments/cascaded_tanks_hybrid_selection.json (each row
 with the command and wall time of the run that produced it; rows of other candidates are
 kept) and writes docs/case-studies/cascaded_tanks_hybrid_selection.md from it.
@@ -42,7 +43,6 @@ BASE = {
     "experiment.residual.inputs": "states",
     "experiment.joint.weight_decay": "1e-4",
     "experiment.joint.refine_steps": "30",
-    "experiment.sensor": "false",  # the physics of the rows: the overflow model alone
 }
 # name: Hydra overrides of experiment=cascaded_tanks_hybrid (over BASE)
 CANDIDATES = {
@@ -83,6 +83,18 @@ def tail_prediction(model, theta, x0, data, m, n):
 def tail_rmse(z, data, m, n):
     """RMS error of z (T - m,) against the tail's outputs from sample m + n on."""
     return float(np.sqrt(np.mean((z[n:] - data.y_est[m + n :]) ** 2)))
+
+
+def physical_score(tail, progress=False):
+    """The held-out RMSE of the physical stage alone (`cascaded_tanks_hybrid.fit_physics`
+    on the first T - tail samples), scored as the candidates are: the hybrids' baseline."""
+    data = oj.datasets.load_cascaded_tanks()
+    m, n = len(data.u_est) - tail, data.test.n
+    conf = load([f"experiment.n_samples={m}"])
+    solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
+    phys, model = hybrid.fit_physics(data, conf.experiment, solver, progress)
+    z = tail_prediction(model, phys.theta, phys.x0, data, m, n)
+    return tail_rmse(z, data, m, n), m, n
 
 
 def select(tail, seeds, names=None, progress=False):
@@ -150,6 +162,19 @@ def merge(store, scores, m, n, tail, seeds, command, wall):
     return prune(store)
 
 
+def merge_physical(store, row, m, n, tail, seeds):
+    """The store (dict, or None for none yet) with the physical stage's row
+    {"rmse", "command", "wall_s"} put in, replacing an earlier one; a store of another
+    tail: a ValueError."""
+    if store is None:
+        store = {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
+    if (store["m"], store["n"], store["tail"]) != (m, n, tail):
+        raise ValueError(
+            f"{STORE.name} holds rows of tail {store['tail']}; this run has tail {tail}"
+        )
+    return {**store, "physical": row}
+
+
 def prune(store):
     """The store without the runs whose rows were all replaced, the runs renumbered."""
     used = sorted({row["run"] for row in store["scores"].values()})
@@ -173,15 +198,14 @@ def markdown(store) -> str:
         for kind in kinds
         if kind in row
     }
-    best = min(means, key=means.get)
+    best = min(means, key=means.get) if means else None
     L = [
         "# Cascaded tanks hybrid: choosing the configuration on the estimation record",
         "",
         "The [hybrid cascaded-tanks model](cascaded_tanks_hybrid.md) is trained, for each "
         f"candidate below, on the first {m} samples of the estimation record only (the "
-        "physical stage and the joint stages as the experiment runs them, with the "
-        "overflow model alone as the physics: `experiment.sensor=false` in `BASE`) and "
-        "scored on "
+        "physical stage, the overflow model with the quadratic sensor, and the joint "
+        "stages as the experiment runs them) and scored on "
         f"the held-out last {tail} samples as the benchmark's protocol scores the test "
         f"record: x0 estimated from their first {n} outputs, then simulated, the RMS error "
         f"on the remaining {tail - n}. The test record is not used. 'single' is the start "
@@ -204,10 +228,25 @@ def markdown(store) -> str:
                 + " | ".join(f"{x:.4f}" for x in row[kind])
                 + f" | {cell} | {row['run']} |"
             )
+    L.append("")
+    if best is not None:
+        L += [f"Lowest mean held-out RMSE: {best[0]}, {best[1]} ({means[best]:.4f} V).", ""]
+    phys = store.get("physical")
+    if phys is not None:
+        below = [k for k, v in means.items() if v < phys["rmse"]]
+        verdict = (
+            f"; {len(below)} of the {len(means)} rows score lower"
+            if below
+            else "; no row scores lower: on this held-out tail the network does not "
+            "improve on the physics"
+        )
+        L += [
+            "The physical stage alone (the overflow model with the quadratic sensor, no "
+            f"network), trained and scored the same way: {phys['rmse']:.4f} V"
+            f"{verdict if means else ''} (`{phys['command']}`, {phys['wall_s']} s).",
+            "",
+        ]
     L += [
-        "",
-        f"Lowest mean held-out RMSE: {best[0]}, {best[1]} ({means[best]:.4f} V).",
-        "",
         "The refinement of the kept start (stop reason and steps; for the committee's other "
         "members it is not recorded):",
         "",
@@ -235,6 +274,11 @@ def main(argv=None):
     parser.add_argument(
         "--only", action="append", metavar="NAME", help="train this candidate (repeatable)"
     )
+    parser.add_argument(
+        "--physical",
+        action="store_true",
+        help="score the physical stage alone (the candidates' baseline), no candidate",
+    )
     parser.add_argument("--publish", action="store_true", help=f"write {PAGE.name}")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
@@ -243,18 +287,29 @@ def main(argv=None):
     for name in args.only or []:
         if name not in CANDIDATES:
             parser.error(f"--only must name a candidate of {list(CANDIDATES)}, got {name!r}")
+    if args.physical and args.only:
+        parser.error("--physical scores the physical stage alone: drop --only")
     t0 = time.perf_counter()
-    scores, m, n = select(args.tail, args.seeds, args.only)
     command = "python experiments/cascaded_tanks_hybrid_select.py " + " ".join(
         repr(a) if " " in a else a for a in (argv if argv is not None else sys.argv[1:])
     )
-    wall = time.perf_counter() - t0
-    print(json.dumps(scores, indent=1))
-    this = merge(None, scores, m, n, args.tail, args.seeds, command.strip(), wall)
-    print(markdown(this))
+    if args.physical:
+        rmse, m, n = physical_score(args.tail)
+        wall = time.perf_counter() - t0
+        print(f"physical stage alone: held-out RMSE {rmse:.4f} V ({wall:.0f} s)")
+        row = {"rmse": rmse, "command": command.strip(), "wall_s": round(wall)}
+        update = lambda store: merge_physical(store, row, m, n, args.tail, args.seeds)  # noqa: E731
+    else:
+        scores, m, n = select(args.tail, args.seeds, args.only)
+        wall = time.perf_counter() - t0
+        print(json.dumps(scores, indent=1))
+        this = merge(None, scores, m, n, args.tail, args.seeds, command.strip(), wall)
+        print(markdown(this))
+        update = lambda store: merge(  # noqa: E731
+            store, scores, m, n, args.tail, args.seeds, command.strip(), wall
+        )
     if args.publish:
-        store = json.loads(STORE.read_text()) if STORE.exists() else None
-        store = merge(store, scores, m, n, args.tail, args.seeds, command.strip(), wall)
+        store = update(json.loads(STORE.read_text()) if STORE.exists() else None)
         STORE.write_text(json.dumps(store, indent=1) + "\n")
         PAGE.write_text(markdown(store))
         print(f"published {PAGE.relative_to(REPO)} and {STORE.relative_to(REPO)}")

@@ -69,7 +69,8 @@ def markdown(res) -> str:
         "",
         "Overflow model, multistart over h1 = "
         + ", ".join(f"{h:g}" for h in ov["h1_starts"])
-        + " V: final losses "
+        + " V, from the basic estimate and from the rough guess (k1, k3, k4, c, x0 as the "
+        "basic model's start): final losses "
         + ", ".join(f"{v:.5g}" for v in ov["starts"]["loss"])
         + f" (start {ov['starts']['best'] + 1} kept). The same parameters simulated with twice "
         f"the RK4 substeps change the validation output by at most "

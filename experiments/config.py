@@ -454,7 +454,7 @@ class TanksConfig:
 class Residual:
     """The neural residual of the hybrid tanks model (`oneshot_jax.residual.MLP`)."""
 
-    widths: list[int] = field(default_factory=lambda: [8, 8])
+    widths: list[int] = field(default_factory=lambda: [16, 16])
     inputs: str = "states"  # the features: (x1, x2), or "states_and_input": (x1, x2, u)
     n_starts: int = 3  # network initialisations (keys split from `seed`), in parallel
     # "best": the start of the lowest final Adam loss; "mean": a committee of all starts,

@@ -104,6 +104,27 @@ def test_tanks_overflow_on_first_600_samples():
     assert float(oj.metrics.rmse(data.y_val, y_val)[0]) < 0.40
 
 
+def test_tanks_overflow_starts_from_the_rough_guess_too():
+    """On the first 768 samples the basic model's estimate lies outside the overflow
+    model's basin (its upper tank starts near 54 V): the overflow fit from it ends with
+    an estimation RMSE near 0.6 V. `fit_overflow` also starts from the rough guess
+    (`basic.theta0`, `x0`), which reaches about 0.23 V, and keeps that start."""
+    data = _load(ds.load_cascaded_tanks)
+    ex = config.TanksConfig(n_samples=768)
+    ex.overflow.h1_starts = [10.0]
+    solver = oj.LevenbergMarquardt(max_steps=300)
+    basic, _ = cascaded_tanks.fit_model(
+        "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, 768
+    )
+    assert float(basic.x0[0]) > 30.0  # the trap this test is about
+    res, model = cascaded_tanks.fit_overflow(data, ex, basic.theta, basic.x0, solver, 768)
+    losses = np.asarray(res.starts.loss)
+    assert losses.shape == (2,) and res.best == 1, losses
+    assert losses[1] < 0.2 * losses[0], losses
+    y = cascaded_tanks.simulate(model, res.theta, res.x0, data.u_est[:768])
+    assert float(oj.metrics.rmse(data.y_est[:768], y)[0]) < 0.3
+
+
 def test_tanks_quadratic_sensor_lowers_the_estimation_error():
     """The quadratic sensor (c2) beside the overflow model's estimate, from c2 = 0 on the
     whole estimation record: the fit curves the sensor (c2 > 0) and lowers the

@@ -190,3 +190,27 @@ def test_selection_merge_replaces_a_rerun_candidate_and_keeps_the_others():
     assert (store["scores"]["a"]["run"], store["scores"]["b"]["run"]) == (1, 2)
     with pytest.raises(ValueError, match="tail 256 and seeds"):
         select.merge(store, rerun, 768, 5, 256, [0, 1, 2], "python x.py", 1.0)
+
+
+def test_selection_page_compares_the_rows_with_the_physics_alone():
+    """The physical stage's held-out score is the candidates' baseline: the page counts
+    the rows below it, or says that none is; a later physical row replaces the earlier,
+    and a store of another tail is refused."""
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    scores = {"a": {"single": [0.3, 0.1], "committee": [0.2, 0.25]}, "b": {"single": [0.2, 0.3]}}
+    store = select.merge(None, scores, 768, 5, 256, [0, 1], "python x.py", 1.0)
+    assert "physical stage alone" not in select.markdown(store)
+    row = {"rmse": 0.21, "command": "python x.py --physical", "wall_s": 9}
+    store = select.merge_physical(store, row, 768, 5, 256, [0, 1])
+    md = select.markdown(store)
+    assert "trained and scored the same way: 0.2100 V; 1 of the 3 rows score lower" in md
+    assert "(`python x.py --physical`, 9 s)" in md
+    store = select.merge_physical(store, {**row, "rmse": 0.15}, 768, 5, 256, [0, 1])
+    assert "0.1500 V; no row scores lower: on this held-out tail the network" in (
+        select.markdown(store)
+    )
+    alone = select.merge_physical(None, row, 768, 5, 256, [0, 1])
+    assert "0.2100 V (`python x.py --physical`" in select.markdown(alone)
+    with pytest.raises(ValueError, match="tail 256"):
+        select.merge_physical(store, row, 700, 5, 324, [0, 1])
