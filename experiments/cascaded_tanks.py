@@ -64,7 +64,7 @@ def fit_overflow(data, ex, basic_theta, basic_x0, solver, n=None, progress=False
     basic_x0) and the rough guess (`ex.basic.theta0`, `ex.x0`); the start of the least
     loss is kept (`fit_model`). The basic model has no overflow: on a record where the
     tanks overflow often, its estimate can lie far from the overflow model's basin (on
-    the first 768 samples, an upper-tank level of 54 V at the start)."""
+    the first 768 samples, an upper-tank level above 30 V at the start)."""
     h1s = [float(h) for h in ex.overflow.h1_starts]
     origins = [
         ({k: float(v) for k, v in basic_theta.items()}, [float(v) for v in basic_x0]),

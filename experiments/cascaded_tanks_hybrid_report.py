@@ -229,15 +229,15 @@ def markdown(res) -> str:
         "single or committee) was chosen on the estimation "
         "record alone, by the protocol's score on its held-out tail: "
         "[choosing the configuration](cascaded_tanks_hybrid_selection.md), with the "
-        "physical stage as here (that page also scores the physical stage alone on the "
-        "held-out tail: the baseline the candidates are to beat)"
+        "physical stage as here; that page also scores the physical stage alone on the "
+        "held-out tail, the baseline the candidates are to beat."
         + (
-            " (the quadratic sensor itself was chosen for the physical model's lower RMSE "
-            "on the estimation record: cascaded-tanks study)"
+            " The quadratic sensor itself was chosen for the physical model's lower RMSE "
+            "on the estimation record (cascaded-tanks study)."
             if "c2" in p["theta"]
             else ""
         )
-        + ". The learned-term "
+        + " The learned-term "
         "figure shows s r and f_overflow along the "
         + ("single " if cm is not None else "")
         + f"hybrid's test trajectory. The run took "
