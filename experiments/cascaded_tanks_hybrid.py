@@ -18,8 +18,8 @@ Training, in stages that each start where the last stopped (all through `oneshot
 
 1. physics alone (the residual is zero): the basic model from a rough guess, then the
    overflow model from it and from the rough guess with a multistart over h1, then the
-   sensor's c2 from zero (as
-   `experiments/cascaded_tanks.py`, with the configured solver);
+   sensor's c2 from zero (as `experiments/cascaded_tanks.py`, with the configured
+   solver);
 2. jointly: Adam on the one-shot gradient (cosine-decayed rate, optionally weight decay
    on the network, `sparsity.l2`), with a multistart over the network's initialisation;
 3. a refinement by L-BFGS or Levenberg-Marquardt (or none).
@@ -289,9 +289,9 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
 def fit_physics(data, ex, solver, progress=False):
     """Stage 1 on the first `ex.n_samples` estimation samples: the basic model from
     `ex.basic.theta0`, then the overflow model from it and from the rough guess,
-    multistart over h1 (`cascaded_tanks.fit_overflow`), then (with
-    `ex.sensor`) the quadratic sensor's c2 from zero beside the overflow model's estimate.
-    Returns the last model's (FitResult, Model)."""
+    multistart over h1 (`cascaded_tanks.fit_overflow`), then (with `ex.sensor`) the
+    quadratic sensor's c2 from zero beside the overflow model's estimate. Returns the
+    last model's (FitResult, Model)."""
     n = ex.n_samples
     res, _ = cascaded_tanks.fit_model(
         "basic", data, ex, dict(ex.basic.theta0), ex.x0, solver, n, progress=progress

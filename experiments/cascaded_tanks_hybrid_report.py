@@ -3,7 +3,7 @@ its results dict)."""
 
 from __future__ import annotations
 
-from oneshot_jax.examples.cascaded_tanks import UNITS
+from oneshot_jax.examples.cascaded_tanks import SENSOR_LEVEL, UNITS
 
 from .cascaded_tanks_report import KEYS
 
@@ -117,7 +117,7 @@ def markdown(res) -> str:
         "overflow model (`oneshot_jax.examples.cascaded_tanks`):",
         "",
         "    x' = f_overflow(x, u) + s r(features),     y = "
-        + ("x2 + c + c2 (x2 - 5 V)^2," if "c2" in p["theta"] else "x2 + c,"),
+        + (f"x2 + c + c2 (x2 - {SENSOR_LEVEL:g} V)^2," if "c2" in p["theta"] else "x2 + c,"),
         "",
         f"where r is an MLP (`oneshot_jax.residual.MLP`, tanh, hidden widths {widths}, "
         f"{h['n_network_parameters']} parameters) of the features {inputs}, normalised on "

@@ -85,14 +85,19 @@ def tail_rmse(z, data, m, n):
     return float(np.sqrt(np.mean((z[n:] - data.y_est[m + n :]) ** 2)))
 
 
+def fit_physics(data, conf, progress=False):
+    """The physical stage (`cascaded_tanks_hybrid.fit_physics`) of the configuration
+    `conf` with its solver: (FitResult, Model)."""
+    solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
+    return hybrid.fit_physics(data, conf.experiment, solver, progress)
+
+
 def physical_score(tail, progress=False):
     """The held-out RMSE of the physical stage alone (`cascaded_tanks_hybrid.fit_physics`
     on the first T - tail samples), scored as the candidates are: the hybrids' baseline."""
     data = oj.datasets.load_cascaded_tanks()
     m, n = len(data.u_est) - tail, data.test.n
-    conf = load([f"experiment.n_samples={m}"])
-    solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
-    phys, model = hybrid.fit_physics(data, conf.experiment, solver, progress)
+    phys, model = fit_physics(data, load([f"experiment.n_samples={m}"]), progress)
     z = tail_prediction(model, phys.theta, phys.x0, data, m, n)
     return tail_rmse(z, data, m, n), m, n
 
@@ -118,8 +123,7 @@ def select(tail, seeds, names=None, progress=False):
         )
         ex = conf.experiment
         if phys is None:  # the physical stage does not depend on the candidates
-            solver = common.make_solver(conf.solver.name, conf.solver.kwargs)
-            phys, _ = hybrid.fit_physics(data, ex, solver, progress)
+            phys, _ = fit_physics(data, conf, progress)
             theta_phys = {k: float(v) for k, v in phys.theta.items()}
         row = {"single": [], "committee": [], "refine": []}
         for seed in seeds:
@@ -145,12 +149,16 @@ def select(tail, seeds, names=None, progress=False):
     return out, m, n
 
 
+def _empty(m, n, tail, seeds):
+    """A store with no rows yet."""
+    return {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
+
+
 def merge(store, scores, m, n, tail, seeds, command, wall):
     """The store (dict, or None for none yet) with this run's rows put in: a candidate's
     earlier row is replaced, the others are kept. Rows of different tails or seeds are
     not comparable: a ValueError then."""
-    if store is None:
-        store = {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
+    store = _empty(m, n, tail, seeds) if store is None else store
     if (store["m"], store["n"], store["tail"], store["seeds"]) != (m, n, tail, list(seeds)):
         raise ValueError(
             f"{STORE.name} holds rows of tail {store['tail']} and seeds {store['seeds']}; "
@@ -166,8 +174,7 @@ def merge_physical(store, row, m, n, tail, seeds):
     """The store (dict, or None for none yet) with the physical stage's row
     {"rmse", "command", "wall_s"} put in, replacing an earlier one; a store of another
     tail: a ValueError."""
-    if store is None:
-        store = {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
+    store = _empty(m, n, tail, seeds) if store is None else store
     if (store["m"], store["n"], store["tail"]) != (m, n, tail):
         raise ValueError(
             f"{STORE.name} holds rows of tail {store['tail']}; this run has tail {tail}"

@@ -3,7 +3,7 @@ results dict)."""
 
 from __future__ import annotations
 
-from oneshot_jax.examples.cascaded_tanks import UNITS
+from oneshot_jax.examples.cascaded_tanks import SENSOR_LEVEL, UNITS
 
 KEYS = tuple(UNITS)  # the physical parameters, in the tables' order
 LABELS = {"basic": "basic", "overflow": "overflow", "sensor": "overflow + sensor"}
@@ -80,7 +80,8 @@ def markdown(res) -> str:
     if "sensor" in m:
         L += [
             "The overflow + sensor model is the overflow model's estimate with a quadratic "
-            "sensor, y = x2 + c + c2 (x2 - 5 V)^2 (the benchmark description: the level "
+            f"sensor, y = x2 + c + c2 (x2 - {SENSOR_LEVEL:g} V)^2 (the benchmark description: "
+            "the level "
             "sensors are not calibrated and can be nonlinear), fitted from c2 = 0; one "
             "parameter more lowers the estimation RMSE from "
             f"{m['overflow']['rmse_estimation_V']:.4f} to "
