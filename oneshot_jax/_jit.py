@@ -9,7 +9,8 @@ off) does so in about 40 % less time than its default MLIR fusion emitters, for 
 kernels and the same numbers (`benchmarks/first_call.py` shows the first calls). The
 options go to each compiled call (`jax.jit(compiler_options=...)`): the library never
 changes JAX's global configuration. On another backend, or an XLA that no longer has the
-option, the call compiles with XLA's defaults.
+option (jaxlib 0.11 dropped it), the call compiles with XLA's defaults: the first
+compiled call on a CPU asks once per process (`compiler_options`).
 
 A later call of a small problem is dominated by the dispatch around the program, so the
 arguments are split once per call, without `equinox.filter_jit`'s per-call signature
@@ -28,8 +29,8 @@ import numpy as np
 
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
-# Whether this XLA takes `CPU_OPTIONS` (set False on its first refusal).
-OPTIONS_TAKEN = [True]
+# Whether this XLA takes `CPU_OPTIONS`: None until `compiler_options` first asks.
+OPTIONS_TAKEN = [None]
 
 _ARRAYS = (jax.Array, np.ndarray, np.generic)
 
@@ -61,6 +62,28 @@ def _merge(arrays, structure):
     treedef, static = structure
     it = iter(arrays)
     return jax.tree_util.tree_unflatten(treedef, [next(it) if s is None else s for s in static])
+
+
+def compiler_options():
+    """The compiler options of a compiled call on the default backend: `CPU_OPTIONS` on a
+    CPU whose XLA takes them, else none.
+
+    Whether XLA takes them is asked once per process, by compiling a one-element program
+    with them (an XLA that does not know an option refuses the compilation): a later call
+    never compiles twice, and never traces its function twice, to find out.
+
+    **Returns:** a dict of options, possibly empty.
+    """
+    if jax.default_backend() != "cpu":
+        return {}
+    if OPTIONS_TAKEN[0] is None:
+        probe = jax.jit(lambda x: x + 1, compiler_options=CPU_OPTIONS)
+        try:
+            probe.lower(np.zeros((), np.float32)).compile()
+            OPTIONS_TAKEN[0] = True
+        except Exception:  # any refusal of a one-element program means: not these options
+            OPTIONS_TAKEN[0] = False
+    return CPU_OPTIONS if OPTIONS_TAKEN[0] else {}
 
 
 def jit(fn):
@@ -95,22 +118,12 @@ def jit(fn):
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        options = OPTIONS_TAKEN[0] and jax.default_backend() == "cpu"
+        options = bool(compiler_options())
         arrays, structure = _split((args, kwargs))
         try:
             hash(structure)
         except TypeError:  # an unhashable static leaf: equinox's own handling
-            structure = None
-        try:
-            if structure is not None:
-                return fast(structure, arrays, options)
             return (tuned if options else plain)(*args, **kwargs)
-        except jax.errors.JaxRuntimeError as e:
-            if not options or "compile option" not in str(e):
-                raise
-            OPTIONS_TAKEN[0] = False
-        if structure is not None:
-            return fast(structure, arrays, False)
-        return plain(*args, **kwargs)
+        return fast(structure, arrays, options)
 
     return call

@@ -1,13 +1,37 @@
 import os
+import subprocess
+import sys
 
 # XLA's elemental emitter compiles a CPU kernel in about 40 % less time than its default
 # fusion emitters, for the same kernels (`oneshot_jax._jit` passes it to the library's
 # top-level compiled calls); the suite is dominated by compilation, so the tests (and the
-# experiment runs they start) use it for every compiled call. Set before JAX starts.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
-    ).strip()
+# experiment runs they start) use it for every compiled call. Set before JAX starts, and
+# only where this XLA knows the flag: an XLA without it (jaxlib 0.11) aborts the process
+# on an unknown flag in XLA_FLAGS. One probe in a child process; the answer is kept in the
+# environment for the pytest-xdist workers and the runs the tests start.
+FUSION_FLAG = "--xla_cpu_use_fusion_emitters=false"
+PROBED = "ONESHOT_JAX_TESTS_XLA_PROBED"
+
+
+def _xla_takes(flag):
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip())
+    probe = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", probe], env=env, capture_output=True, timeout=120
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return done.returncode == 0
+
+
+if (
+    "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")
+    and PROBED not in os.environ
+):
+    os.environ[PROBED] = "1"
+    if _xla_takes(FUSION_FLAG):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FUSION_FLAG}".strip()
 
 import jax  # noqa: E402
 

@@ -2,6 +2,7 @@
 check of a `Model.from_ode` fit and predict's observability check and simulation run
 inside those calls, with the numbers of the separate functions."""
 
+import os
 import warnings
 
 import jax
@@ -87,6 +88,7 @@ def test_first_fit_and_predict_compile_one_program_each():
     u = np.random.default_rng(1).uniform(-1.0, 1.0, (T + 7, 1))  # shapes no other test has
     _, z = oj.simulate(model, {"a": 0.5, "b": 2.0}, np.array([0.8, 0.1]), u)
     x0 = np.array([0.7, 0.0])
+    jit_module.compiler_options()  # the process's one question to XLA, not the fit's
     result, n_fit = COMPILES.count(lambda: oj.fit(model, {"a": 0.4, "b": 1.5}, x0, u, z))
     assert n_fit == 1
     _, n_pred = COMPILES.count(lambda: result.predict(u[:-3], np.asarray(z)[:11]))
@@ -123,14 +125,30 @@ def test_predict_matches_estimate_x0_and_simulate():
 
 
 def test_an_option_xla_refuses_falls_back_to_its_defaults(monkeypatch):
-    """A compiler option this XLA does not know (a later version may drop one) costs
-    nothing but the option: the call compiles with XLA's defaults from then on."""
-    monkeypatch.setattr(jit_module, "CPU_OPTIONS", {"xla_cpu_no_such_option": True})
-    monkeypatch.setattr(jit_module, "OPTIONS_TAKEN", [True])
-    double = jit_module.jit(lambda x: 2.0 * x)
-    assert float(double(jnp.asarray(3.0))) == 6.0
-    assert jit_module.OPTIONS_TAKEN == [jax.default_backend() != "cpu"]
-    assert float(double(jnp.asarray(4.0))) == 8.0
+    """A compiler option this XLA does not know (jaxlib 0.11 dropped the elemental
+    emitter's) costs nothing but the option: the first call on a CPU asks once, by a
+    one-element program, and every call compiles with XLA's defaults from then on; the
+    function is traced once, never twice."""
+    on_cpu = jax.default_backend() == "cpu"
+    traces = []
+
+    def double(x):
+        traces.append(x.shape)
+        return 2.0 * x
+
+    real = jit_module.CPU_OPTIONS
+    # conftest.py set the same option as a flag where this XLA knows it.
+    known = "xla_cpu_use_fusion_emitters" in os.environ.get("XLA_FLAGS", "")
+    for options, taken in (({"xla_cpu_no_such_option": True}, False), (real, known)):
+        monkeypatch.setattr(jit_module, "CPU_OPTIONS", options)
+        monkeypatch.setattr(jit_module, "OPTIONS_TAKEN", [None])
+        traces.clear()
+        f = jit_module.jit(double)
+        assert float(f(jnp.asarray(3.0))) == 6.0
+        assert float(f(jnp.asarray(4.0))) == 8.0
+        assert traces == [()]
+        assert jit_module.OPTIONS_TAKEN == [taken if on_cpu else None]
+        assert jit_module.compiler_options() == (options if on_cpu and taken else {})
 
 
 def test_compiled_calls_return_the_static_outputs_of_their_own_shapes():
