@@ -241,7 +241,11 @@ def memory_table(rows):
 
 
 def fmt_T(T):
-    return f"{T:.0e}".replace("e+0", "e")
+    """1e4 for a power of ten from 1000 on, else the number itself (64, 512, 1500)."""
+    T = int(T)
+    if T >= 1000 and f"{T:.0e}".startswith("1e"):
+        return f"{T:.0e}".replace("e+0", "e")
+    return str(T)
 
 
 def cell_table(rows, samples=None):
