@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from parallel import chain_problem, fmt_T, rel_diff  # noqa: E402
-from timing import conditions, fmt_time, timed  # noqa: E402
+from timing import conditions, fmt_time, runs, timed  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
 
@@ -93,13 +93,7 @@ def table(rows):
 def render(paths):
     """The table of earlier `--json` runs, after each run's conditions."""
     rows = []
-    for path in paths:
-        with open(path) as f:
-            d = json.load(f)
-        print(
-            f"- `{os.path.basename(path)}`: backend {d['backend']}, median of "
-            f"{d['repeats']} warm calls. {d['conditions']}"
-        )
+    for d in runs(paths, lambda d: f"backend {d['backend']}, median of {d['repeats']} warm calls"):
         rows += d["cells"]
     print()
     print(table(sorted(rows, key=lambda r: (r["n_x"], r["T"]))))

@@ -55,7 +55,7 @@ import optax
 jax.config.update("jax_enable_x64", True)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from timing import conditions, fmt_time, interleaved  # noqa: E402
+from timing import conditions, fmt_time, interleaved, runs  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
 from oneshot_jax.internal import (  # noqa: E402
@@ -360,13 +360,9 @@ def render(paths):
     """One table of the cells of several `--json` files (sorted by n_x, T), then their
     fit-like loops and memory rows, after each file's conditions."""
     cells, fits, mem = [], [], []
-    for path in paths:
-        with open(path) as f:
-            d = json.load(f)
-        print(
-            f"- `{os.path.basename(path)}`: backend {d['backend']}, {d['dtype']}, median of "
-            f"{d['repeats']} samples. {d['conditions']}"
-        )
+    for d in runs(
+        paths, lambda d: f"backend {d['backend']}, {d['dtype']}, median of {d['repeats']} samples"
+    ):
         cells += [(r, d["repeats"]) for r in d["cells"]]
         fits += d["fit"]
         mem += d["memory"]

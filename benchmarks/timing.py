@@ -6,10 +6,13 @@
   order rotating each round, so that a change of machine load hits all of them alike.
 - `conditions()`: the hardware, the software versions and the command, for the header of
   every table.
+- `runs(paths, describe)`: the runs that scripts wrote with `--json`, each announced by
+  its file's name and conditions (the `--render` of a script).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
@@ -117,3 +120,13 @@ def conditions(extra_versions=(), argv=None) -> str:
     hw = f"{cpu_name()}, {os.cpu_count()} CPU cores" if dev.platform == "cpu" else dev.device_kind
     vers = ", ".join(f"{k} {v}" for k, v in versions(extra_versions).items())
     return f"Hardware: {hw} ({dev.platform}), float64. Versions: {vers}. Command: `{cmd}`."
+
+
+def runs(paths, describe):
+    """The `--json` runs in `paths` (dicts with a "conditions" entry), in order, each after
+    a printed line: its file's name, `describe(run)` and its conditions."""
+    for path in paths:
+        with open(path) as f:
+            run = json.load(f)
+        print(f"- `{os.path.basename(path)}`: {describe(run)}. {run['conditions']}")
+        yield run
