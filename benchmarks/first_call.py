@@ -23,7 +23,9 @@ Each problem runs in three fresh processes that share one empty cache folder:
 Each process reports: the import of `oneshot_jax`; the first `fit()` and the first
 `predict()` (compilation included), with the time JAX spent tracing the Python code
 (jaxpr), lowering it (MLIR) and in XLA's compiler, and the number of programs XLA
-compiled (from `jax.monitoring`; with the cache warm, the programs loaded); then, over
+compiled (from `jax.monitoring`; with the cache warm, the programs loaded; on a CPU the
+first fit's count includes the one-element program by which the library asks, once per
+process, whether XLA takes its compiler options); then, over
 `--repeats` later calls with the same shapes, the median of a `fit()` call, of its
 `FitResult.wall_time` (the compiled solve, covariance and metrics) and of the overhead
 (a call's wall time minus its `wall_time`: the input checks, the setup and the assembly
