@@ -88,7 +88,7 @@ def compiler_options():
 
 def jit(fn):
     """`fn` compiled as `equinox.filter_jit(fn)` would (arrays traced, everything else
-    static), with `CPU_OPTIONS` on the CPU backend.
+    static), with `CPU_OPTIONS` on a CPU whose XLA takes them (`compiler_options`).
 
     **Arguments:** `fn`, the function to compile.
 
