@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from oneshot_jax.examples import cascaded_tanks as tanks_example
@@ -574,7 +574,24 @@ def load(cfg) -> Config:
             "the configuration does not follow the schema of experiments/config.py "
             "(compose it from configs/config.yaml)."
         )
+    _refuse_unknown_keys(cfg, out, "")
     return out
+
+
+def _refuse_unknown_keys(node, obj, where):
+    """A key that Hydra added (`+experiment.foo=1`) but the dataclass has no field for
+    would be ignored: refuse it, naming it."""
+    if not dataclasses.is_dataclass(obj) or not isinstance(node, DictConfig):
+        return
+    fields = {f.name for f in dataclasses.fields(obj)}
+    unknown = sorted(str(k) for k in node.keys() if k not in fields)
+    if unknown:
+        raise ConfigError(
+            f"unknown key(s) {', '.join(where + k for k in unknown)}: "
+            f"{type(obj).__name__} has {', '.join(sorted(fields))}."
+        )
+    for name in fields & set(node.keys()):
+        _refuse_unknown_keys(node[name], getattr(obj, name), f"{where}{name}.")
 
 
 def as_dict(obj) -> Any:

@@ -37,7 +37,7 @@ import numpy as np
 
 from . import metrics as _metrics
 from ._checks import x0_mask
-from ._model import Model
+from ._model import ODE_STEPS, Model
 
 KINDS = ("sum", "mean", "integral", "time_mean")
 
@@ -56,7 +56,8 @@ class Aggregate:
         (the samples start, ..., stop - 1); intervals may overlap. The reading is
         `kind` of y_c over those samples: `"sum"` (sum_k y_c[k]), `"mean"` (the sum over
         stop - start), `"integral"` (the trapezoid rule over the samples' time stamps
-        t[start], ..., t[stop - 1] of a time-stamped record, over unit spacing otherwise)
+        t[start], ..., t[stop - 1] of a time-stamped record, over t_k = k dt for a
+        `Model.from_ode` with a fixed dt, over unit spacing for a discrete-time model)
         or `"time_mean"` (the integral over its duration t[stop - 1] - t[start]). The two
         last need at least two samples per interval.
     - `matrix`: an (m, T) array whose row i holds the weights A_ik of reading i,
@@ -440,7 +441,8 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     - `model`, `x0`: the user's model and x0 (x0 may hold a leading axis of starts).
     - `missing`: the user's `missing` (NaN readings are refused under "raise").
     - `t`: time stamps (T,), or one row (or array) per trajectory, for `"integral"` and
-        `"time_mean"`.
+        `"time_mean"`; None: k dt for a `Model.from_ode` with a fixed dt, else the
+        sample index.
 
     **Returns:**
 
@@ -463,6 +465,9 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     records = _per_record(aggregate, data.batched, N)
     if t is not None and not data.batched:
         t = [t]
+    if t is None and isinstance(model.step, ODE_STEPS) and getattr(model.step, "dt", None):
+        # A continuous-time model with a fixed dt: an integral is over time, t_k = k dt.
+        t = [model.step.dt * np.arange(n) for n in lengths]
     per_record = []
     for i, aggs in enumerate(records):
         where = f"[{i}]" if data.batched else ""

@@ -314,6 +314,14 @@ def assemble(
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
     }
+    if name_of(from_index(int(results[best]))) == "diverged":
+        # Which was not finite where the solver stopped: the loss, or only its gradient
+        # (a model not differentiable there, sqrt(c) at a bound c = 0, say). A loss
+        # beyond sqrt(max) is a simulation that blows up: its gradient overflows first.
+        last = out.stages[-1]
+        C = last.loss[int(last.rows)]
+        big = np.sqrt(np.finfo(np.asarray(C).dtype).max)
+        stop_info["nonfinite"] = "gradient" if np.isfinite(C) and abs(C) < big else "loss"
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
     return _pytree.build(

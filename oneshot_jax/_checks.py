@@ -35,7 +35,7 @@ import numpy as np
 
 from . import _pytree
 from ._cost import Cost
-from ._model import FloatObserve, Model
+from ._model import ODE_STEPS, FloatObserve, Model
 from ._normalise import fill_missing, is_ragged, pad, sample_mask
 from ._timing import append_intervals, check_times
 
@@ -77,10 +77,10 @@ def as_float(a, name, dtype=None):
     return a
 
 
-def check_finite(a, name):
+def check_finite(a, name, hint=""):
     if isinstance(a, np.ndarray) or is_concrete(a):
         if not np.isfinite(np.asarray(a)).all():
-            raise ValueError(f"`{name}` contains NaN or inf values.")
+            raise ValueError(f"`{name}` contains NaN or inf values{hint}.")
 
 
 def common_dtype(*trees):
@@ -327,6 +327,29 @@ def _checked_trajectories(items, name, dtype, n_traj):
     return arrays
 
 
+def _check_rhs(rhs, x_1, u_1, theta, x0, u):
+    """`Model.from_ode`'s `rhs` traced once on abstract values: it must return dx/dt of
+    the state's shape."""
+    try:
+        dx = _abstract_call(rhs, x_1, u_1, theta)
+    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
+        raise ValueError(
+            f"calling the model's `rhs` (`Model.from_ode`) on a state of shape {x_1.shape} "
+            f"(from `x0` of shape {x0.shape}) and an input of shape {u_1.shape} (from `u` of "
+            f"shape {u.shape}) failed: {type(err).__name__}: {err}"
+        ) from err
+    if not isinstance(dx, jax.ShapeDtypeStruct) or dx.shape != x_1.shape:
+        if isinstance(dx, (list, tuple)):
+            got = f"a {type(dx).__name__} (build dx/dt with jnp.stack or jnp.array)"
+        else:
+            got = getattr(dx, "shape", type(dx).__name__)
+        raise ValueError(
+            f"the model's `rhs` (`Model.from_ode`) must return dx/dt as an array of shape "
+            f"{x_1.shape} (the shape of x0), got {got}: `rhs` and `x0` (of shape "
+            f"{x0.shape}) must agree on the number of states."
+        )
+
+
 def _check_model(model, theta, x0, u, lead, dtype):
     """Trace the user's functions once on abstract values, so that a step that changes the
     state's shape or dtype is reported here and not as an error deep inside a scan.
@@ -338,6 +361,10 @@ def _check_model(model, theta, x0, u, lead, dtype):
     if model.timed:
         u_seen = jax.ShapeDtypeStruct((u_1.shape[0] + 1,), u_1.dtype)
     u_step = _step_input_struct(model, u_seen)
+    if isinstance(model.step, ODE_STEPS):
+        # RK4 broadcasts dx/dt against x: a right-hand side of the wrong shape would give
+        # a state of the right shape and a wrong model.
+        _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u)
     try:
         x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
@@ -436,7 +463,7 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
         raise ValueError(
             f"`u` must have shape {want} to match `x0` of shape {x0.shape}, got shape {u.shape}."
         )
-    T = u.shape[-2]
+    T, u_shape = u.shape[-2], u.shape
     if T < 1:
         raise ValueError(f"`u` must hold at least one sample (T >= 1), got shape {u.shape}.")
     if batched and x0.shape[0] < 1:
@@ -455,9 +482,16 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
         z = as_float(z, "z", z_hat.dtype)
         want = (*lead, T, n_z)
         if z.shape != want:
+            # A record given as (n_u, T) reads as n_u samples of T inputs: say so.
+            hint = ""
+            if z.ndim >= 2 and z.shape[-2] == u_shape[-1] != T:
+                hint = (
+                    f"; `u` of shape {u_shape} holds T = {T} samples of {u_shape[-1]} "
+                    "inputs: is it transposed? (u is (T, n_u))"
+                )
             raise ValueError(
                 f"`z` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
-                f"`model.observe`), got shape {z.shape}."
+                f"`model.observe`), got shape {z.shape}{hint}."
             )
         observed = None
         if missing == "mask" and is_concrete(z):
@@ -468,7 +502,12 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
             if not observed.any():
                 raise ValueError("`z` is NaN everywhere: no output sample is measured.")
         else:
-            check_finite(z, "z")
+            check_finite(
+                z,
+                "z",
+                ' (`fit`, `loss` and `value_and_grad` take `missing="mask"`, which '
+                "treats NaN as a missing sample)",
+            )
         mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)
     if known is None:
@@ -512,18 +551,33 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
     return Cost(data.weight, penalty, pw)
 
 
+def _named_free(fixed, theta):
+    """`fixed` with the keys of theta's dicts that it does not name set to False (free)."""
+    if not (isinstance(fixed, dict) and isinstance(theta, dict)):
+        return fixed
+    unknown = sorted(set(fixed) - set(theta), key=str)
+    if unknown:
+        raise ValueError(
+            f"`fixed` names parameters that are not in theta0: {unknown}; theta0 has "
+            f"{sorted(theta, key=str)}."
+        )
+    return {k: _named_free(fixed[k], v) if k in fixed else False for k, v in theta.items()}
+
+
 def fixed_mask(fixed, theta) -> np.ndarray:
     """Flat boolean mask of the fixed entries of theta's parameters (leaf order).
 
     `fixed` is a pytree of booleans with the structure of theta, or a prefix of it: a
     boolean where theta has a subtree (an equinox module, a dict) fixes or frees the whole
-    subtree; an array of booleans where theta has an array leaf fixes it per entry.
+    subtree; an array of booleans where theta has an array leaf fixes it per entry. Where
+    theta has a dict, `fixed` may name some of its keys: the others are free.
     """
     n = sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(theta))
     if fixed is None:
         return np.zeros(n, bool)
     if isinstance(fixed, (bool, np.bool_)):
         return np.full(n, bool(fixed))
+    fixed = _named_free(fixed, theta)
     leaves, treedef = jax.tree_util.tree_flatten(fixed)
     try:
         subtrees = treedef.flatten_up_to(theta)

@@ -13,6 +13,7 @@ short-window fit from the same theta and warns where the first is far worse.
 import warnings
 
 import equinox as eqx
+import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
@@ -134,14 +135,16 @@ def _schedule(windows, start, factor, T):
         out.append(w)
 
 
-def _window_states(model, result, u, w_prev, window):
+def _window_states(model, result, u, w_prev, window, t=None):
     """Each new window's starting state: the last stage's windows (of `w_prev` samples)
     simulated from their own x0 with its theta, read at the new windows' starts (all
-    inside the last stage's windows, since `window` > `w_prev`)."""
+    inside the last stage's windows, since `window` > `w_prev`). `t`: the record's sample
+    times, for a model of time-stamped records."""
     x0 = np.asarray(result.x0)
     N_prev, n_x = x0.shape
     u_prev = u[: N_prev * w_prev].reshape(N_prev, w_prev, -1)
-    xs, _ = simulate(model, result.theta, x0, u_prev)
+    t_prev = None if t is None else np.asarray(t)[: N_prev * w_prev].reshape(N_prev, w_prev)
+    xs, _ = simulate(model, result.theta, x0, u_prev, t=t_prev)
     xs = np.asarray(xs).reshape(N_prev * w_prev, n_x)
     return xs[np.arange(u.shape[0] // window) * window]
 
@@ -208,7 +211,7 @@ def fit_continuation(
     theta, x0_stage, result, w_prev = theta0, x0, None, None
     for w in schedule:
         if result is not None:
-            x0_stage = _window_states(model, result, u_np, w_prev, w)
+            x0_stage = _window_states(model, result, u_np, w_prev, w, kwargs.get("t"))
         with warnings.catch_warnings():
             # The tail that fills no window is fitted by the last stage, the whole record.
             warnings.filterwarnings("ignore", message="the last .* do not fill a window")
@@ -239,6 +242,28 @@ class BasinCheck(eqx.Module):
     window_fit_percent: np.ndarray
     window: int
     windowed: FitResult
+
+
+def _held(result):
+    """`fit`'s `fixed` for what the result held (`FitResult.fixed`), per key of a dict
+    theta: True or False for a key held or free as a whole, a mask for an array; None
+    where nothing was held (or theta is not a dict)."""
+    mask = np.asarray(result.fixed, bool)
+    if not mask.any() or not isinstance(result.theta, dict):
+        return None
+    out, at = {}, 0
+    for k in sorted(result.theta):  # the order JAX flattens a dict in
+        leaves = jax.tree_util.tree_leaves(eqx.filter(result.theta[k], eqx.is_inexact_array))
+        n = sum(int(np.size(a)) for a in leaves)
+        part = mask[at : at + n]
+        at += n
+        if part.all() or not part.any():
+            out[k] = bool(part.all())
+        elif len(leaves) == 1:
+            out[k] = part.reshape(np.shape(leaves[0]))
+        else:  # entries of a module held in part: not expressible per key
+            return None
+    return out if at == mask.size else None
 
 
 def check_basin(
@@ -272,7 +297,9 @@ def check_basin(
     - `window`: the window length in samples (shorter than the record).
     - `margin`: how many FIT points below the windowed fit count as a bad basin.
     - keyword arguments: passed to the windowed `fit` (`solver`, `weight`, `fixed`,
-        ...; use the ones the result was fitted with).
+        ...; use the ones the result was fitted with). `fixed` defaults to what the
+        result held (`FitResult.fixed`, per key of a dict theta): a network held in the
+        fit and freed in the windows would fit them better for that alone.
 
     **Returns:**
 
@@ -298,6 +325,14 @@ def check_basin(
     for name in ("window", "multistart"):
         if name in kwargs:
             raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")
+    fitted = np.shape(result.residuals)
+    if np.shape(z) != fitted or np.shape(u)[0] != fitted[0]:
+        raise ValueError(
+            f"`u` and `z` must be the record the result was fitted on (its residuals have "
+            f"shape {fitted}); got u {np.shape(u)}, z {np.shape(z)}."
+        )
+    if "fixed" not in kwargs:
+        kwargs["fixed"] = _held(result)
     windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])
     short = np.asarray(windowed.metrics["fit_percent"])

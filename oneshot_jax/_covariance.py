@@ -4,10 +4,11 @@ J is the Jacobian of the weighted, scaled data residuals r = Q^{1/2} e / sqrt(N 
 free variables (theta's free entries, and each trajectory's free x0 entries), taken from
 the solver's last linearisation when it holds one, else evaluated here (closed form,
 forward sensitivities). J^T J is an arrow matrix; its inverse is formed blockwise through
-the Schur complement S = A - sum_i B_i C_i^+ B_i^T (`_linalg.eliminate_x0`, the elimination
-the least-squares step uses, here with the pseudo-inverses C_i^+ formed), so a parameter or
-an initial state that does not change the outputs is flagged as not identifiable instead
-of producing NaN.
+the Schur complement S = A - sum_i B_i C_i^+ B_i^T, formed from the Jacobian
+(`_linalg.schur_complement`: the subtraction would cancel where x0 is poorly determined)
+and judged against diag(A), and the pseudo-inverses C_i^+ (`_linalg.eliminate_x0`, the
+elimination the least-squares step uses), so a parameter or an initial state that does not
+change the outputs is flagged as not identifiable instead of producing NaN.
 """
 
 from typing import NamedTuple
@@ -16,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve
+from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve, schur_complement
 from ._problem import FitProblem, Params
 
 
@@ -33,24 +34,25 @@ class Covariance(NamedTuple):
 def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Covariance:
     """The `Covariance` at `params`.
 
-    `blocks`: (SSE, A, B, C_i) of the data residuals at `params` when the solver already
-    holds them (its last linearisation); otherwise the Jacobian is evaluated here. With
-    `blocks`, `problem` may be None (then no entry is a network's: no `marginal`).
+    `blocks`: (SSE, A, B, C_i, S) of the data residuals at `params` when the solver
+    already holds them (its last linearisation; S from `_linalg.schur_complement`);
+    otherwise the Jacobian is evaluated here. With `blocks`, `problem` may be None (then
+    no entry is a network's: no `marginal`).
     """
     if blocks is None:
         lin = problem.jacobian(params, strategy, penalty=False)
         A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
+        S = schur_complement(lin.Jt, lin.Jx) if lin.Jx.shape[-1] else A
         sse = jnp.sum(lin.r**2)
     else:
-        sse, A, B, Cb = blocks
+        sse, A, B, Cb, S = blocks
     p, m = A.shape[0], Cb.shape[-1]
     elim = eliminate_x0(B, Cb, pseudo_inverse=True)
     x_ok = identifiable(Cb) if m else jnp.ones(Cb.shape[:2], bool)
     if p == 0:
         return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok)
-    S = elim.schur(A, B)
-    S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype))
-    t_ok = identifiable(S)
+    S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A))
+    t_ok = identifiable(S, jnp.diag(A))
     x0_cov = elim.covariance(S_inv)
     nuisance = np.asarray(() if problem is None else problem.nuisance, int)
     if 0 < nuisance.size < p:

@@ -197,7 +197,8 @@ def fit(
         ValueError. Each update applies the prox, then the projection.
     - `fixed`: a pytree of booleans shaped like theta0 (per leaf, per element, or one
         boolean for a whole subtree): True entries keep their starting value and are
-        removed from the variables.
+        removed from the variables. Where theta0 is a dict, `fixed` may name some of its
+        keys (`fixed={"b": True}`): the others are free.
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
     - `window`: cut one record into consecutive windows of this many samples, each with
         its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them

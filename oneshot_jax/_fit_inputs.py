@@ -194,7 +194,8 @@ def _bounds(proj, theta):
     key = (
         id(proj) if named is None else named,
         treedef,
-        tuple((np.shape(a), np.result_type(a)) for a in leaves),
+        # (a leaf's own dtype: np.result_type of a JAX array is deprecated in JAX)
+        tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a)) for a in leaves),
     )
 
     def make():
@@ -298,6 +299,15 @@ def build_problem(
     proj, reg = split(constraints, regulariser)
     free = _free(data.theta, flat0.dtype, fixed, estimate_x0, n_x, proj)
     fixed_flat, theta_free, x0_est, x0_free = free.fixed, free.theta, free.x0_mask, free.x0
+    n_est = int(np.sum(x0_est))
+    if inputs.window_starts is not None and len(theta_free) and Z.shape[1] * Z.shape[2] <= n_est:
+        raise ValueError(
+            f"`window` of {Z.shape[1]} samples holds {Z.shape[1] * Z.shape[2]} output values "
+            f"per window, no more than the {n_est} entries of its own x0 that are estimated: "
+            "each window's x0 alone fits its samples and theta is not determined. Use windows "
+            f"of more than {n_est // Z.shape[2]} samples (several times more: the windows "
+            "must show the dynamics), or estimate fewer x0 entries (`estimate_x0`)."
+        )
     on_theta = None  # the regulariser on theta's trainable part
     if reg is not None:
         for s in solvers:

@@ -21,7 +21,9 @@ def _g(x):
 
 
 def stop_detail(status: str, info: dict) -> str:
-    """The test that fired and its values, in one line (empty where unknown)."""
+    """The test that fired and its values, in one line without a semicolon (empty where
+    unknown): `FitResult.message` appends to it after one, and `print(result)` shows it up
+    to there."""
     fo, gtol = info.get("first_order", np.nan), info.get("gtol", np.nan)
     step, decrease = info.get("step", np.nan), info.get("decrease", np.nan)
     at = info.get("at_step")
@@ -38,17 +40,26 @@ def stop_detail(status: str, info: dict) -> str:
         )
     if status == "statistically_converged":
         se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
-        return (
-            f"last step {_g(se)} standard errors <= stol {_g(stol)} (rank-deficient Jacobian; {vs})"
-        )
+        return f"last step {_g(se)} standard errors <= stol {_g(stol)} (theta rank-deficient, {vs})"
     if status == "stalled":
-        return f"step {_g(step)} (scaled) with predicted decrease {_g(decrease)}: stalled, " + (
-            vs.replace("measure", "measure", 1) + " > gtol" if known else "not stationary"
-        )
+        # (A first-order solver has no scaled step or linear model: NaN, not shown.)
+        tail = vs + " > gtol" if known else "not stationary"
+        if np.isfinite(step) and np.isfinite(decrease):
+            return (
+                f"step {_g(step)} (scaled) with predicted decrease {_g(decrease)}: stalled, {tail}"
+            )
+        return f"no step decreases the loss, {tail}"
     if status == "zero_residual":
         return "loss at the round-off level of the data" + (f", {vs}" if known else "")
     if status == "diverged":
-        return "the simulation diverged" + (f" at step {at}" if at is not None else "")
+        at_step = f" at step {at}" if at is not None else ""
+        if info.get("nonfinite") == "gradient":
+            return (
+                f"the loss stayed finite but its gradient did not{at_step}: the model is not "
+                "differentiable there (a parameter at a bound where it is not, such as "
+                "sqrt(c) at c = 0: keep it off that point, e.g. with constraints.positive())"
+            )
+        return "the simulation diverged" + at_step
     if status == "zero_gradient":
         names = info.get("zero_gradient", [])
         listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
@@ -143,8 +154,12 @@ class FitResult(eqx.Module):
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
-    - `stop_info`: the values the stop was tested on, at the returned point:
-        `first_order` (the scaled projected gradient, see `oneshot_jax._optimality`),
+    - `stop_info`: the values the stop was tested on, at the last solver's last iterate
+        (the returned point, except after a validation stop, which returns the best
+        iterate): `first_order` (the scaled projected gradient, see
+        `oneshot_jax._optimality`; a first-order solver scales it by the Jacobian's
+        column norms, which it forms anew only where the measure may pass gtol or the
+        fit stalls, so after another stop it is an estimate with older norms),
         `gtol` (the last solver's first-order tolerance), `step` (the last step's scaled
         size relative to the scaled parameters), `decrease` (the decrease of the loss its
         linear model predicted, relative to the loss), `standard_errors` and `stol` (the
@@ -152,7 +167,9 @@ class FitResult(eqx.Module):
         see `RESULTS.statistically_converged`) and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
-        start) and `solver_stop` (the solver's own stop).
+        start) and `solver_stop` (the solver's own stop); with the stop `diverged`,
+        `nonfinite` ("loss", or "gradient" where the loss stayed finite, below sqrt of
+        the largest float).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

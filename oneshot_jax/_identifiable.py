@@ -77,6 +77,11 @@ class PhysicsFirst(eqx.Module):
     __repr__ = __str__
 
 
+def _python_number(a) -> bool:
+    """A Python float or int (not a bool): a parameter to `fit`, as a float array is."""
+    return isinstance(a, (int, float)) and not isinstance(a, bool)
+
+
 def _learned_keys(theta0, learned):
     if not isinstance(theta0, Mapping):
         raise TypeError(
@@ -100,7 +105,7 @@ def _learned_keys(theta0, learned):
             raise ValueError(f"`learned` names {k!r}, which holds no floating array to fit.")
     physical = [k for k in theta0 if k not in keys]
     if not any(
-        eqx.is_inexact_array(a) or isinstance(a, float)
+        eqx.is_inexact_array(a) or _python_number(a)
         for k in physical
         for a in jax.tree_util.tree_leaves(theta0[k])
     ):
@@ -188,6 +193,14 @@ def fit_physics_first(
     """
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
+    if multistart is True:
+        # The physical leaves carry the starts, the learned terms (switched off in stage
+        # 1) none: the dict form of `fit`, with each physical entry's first start in theta.
+        multistart = {k: theta0[k] for k in theta0 if k not in keys}
+        theta0 = {
+            k: v if k in keys else jax.tree_util.tree_map(lambda a: np.asarray(a)[0], v)
+            for k, v in theta0.items()
+        }
     theta_phys = _off(theta0, keys)
     if multistart is not False and isinstance(multistart, Mapping):
         wrong = [k for k in multistart if k in keys]
@@ -468,9 +481,10 @@ def fit_orthogonal(
     vals, vecs = np.linalg.eigh((w + w.T) / 2)
     root = vecs @ np.diag(np.sqrt(np.clip(vals, 0, None))) @ vecs.T  # W^{1/2}, symmetric
 
-    # Python floats as arrays, so that the sensitivities see them as parameters.
+    # Python numbers as float arrays, so that the sensitivities see them as parameters
+    # (`fit` estimates a Python int as it does a float).
     theta = jax.tree_util.tree_map(
-        lambda a: np.asarray(a, float) if isinstance(a, float) else a, dict(theta0)
+        lambda a: np.asarray(a, float) if _python_number(a) else a, dict(theta0)
     )
     p = sum(
         np.size(a)

@@ -236,6 +236,8 @@ def read_result(path, *, like=None) -> dict:
     `history` and `starts` as dicts of the fields of a `FitHistory` and a `Starts` (or
     None), and without the model. `like` as for `load_result`."""
     path = Path(path)
+    if not path.is_file() and Path(f"{path}.npz").is_file():  # as `save` names it
+        path = Path(f"{path}.npz")
     if not path.is_file():
         raise FileNotFoundError(f"`path`: no saved result at {path}.")
     arrays = _read_arrays(path)
@@ -272,6 +274,29 @@ def read_result(path, *, like=None) -> dict:
             raise ValueError(
                 f"`like` has {treedef.num_leaves} parameter leaves, the saved theta {n_saved}."
             )
+        # The same leaves: each of the saved shape, and the free entries of the same names
+        # (a `like` with other keys or sizes would rename the parameters or refit none).
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(like_params)):
+            saved = np.shape(arrays[f"theta/{i}"])
+            if np.shape(leaf) != saved:
+                raise ValueError(
+                    f"`like`: its parameter leaf {i} has shape {np.shape(leaf)}, the saved "
+                    f"theta's {saved}: pass a theta of the fitted structure (e.g. theta0)."
+                )
+        if "fixed" in arrays:
+            all_names = _pytree.leaf_names(like_params)
+            free = [n for n, f in zip(all_names, np.asarray(arrays["fixed"], bool)) if not f]
+            if len(all_names) == np.size(arrays["fixed"]) and free != list(meta["names"]):
+                diff = next(
+                    (a, b)
+                    for a, b in zip(free + [None] * 9, list(meta["names"]) + [None] * 9)
+                    if a != b
+                )
+                raise ValueError(
+                    f"`like` names the parameters differently from the saved theta (first "
+                    f"difference: {diff[0]!r} in `like`, {diff[1]!r} saved): pass a theta of "
+                    "the fitted structure (e.g. theta0)."
+                )
 
         def build(leaves, whole=False):
             return jax.tree_util.tree_unflatten(treedef, leaves)

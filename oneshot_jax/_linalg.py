@@ -1,7 +1,9 @@
 """Symmetric positive semi-definite solves shared by the least-squares solvers and the
 covariance: the normal equations J^T J of a fit are singular when a parameter or an
-initial state has no effect on the outputs, and both then need a pseudo-inverse; and the
-one elimination of the per-trajectory x0 blocks of the arrow matrix J^T J (`eliminate_x0`)."""
+initial state has no effect on the outputs, and both then need a pseudo-inverse; the
+one elimination of the per-trajectory x0 blocks of the arrow matrix J^T J (`eliminate_x0`);
+and the Schur complement of those blocks formed from the Jacobian itself, where it decides
+what the data determine (`schur_complement`)."""
 
 from typing import NamedTuple
 
@@ -18,6 +20,43 @@ def normal_blocks(Jt, Jx, r):
     g_t = jnp.einsum("nrp,nr->p", Jt, r)
     g_x = jnp.einsum("nrm,nr->nm", Jx, r)
     return A, B, Cb, g_t, g_x
+
+
+def schur_complement(Jt, Jx):
+    """The Schur complement S = A - sum_i B_i C_i^+ B_i^T of the x0 blocks of J^T J (the
+    blocks of `normal_blocks`), formed from the Jacobian:
+
+        S = sum_i (P_i J_t,i)^T (P_i J_t,i),   P_i = I - U_i U_i^T,
+
+    U_i an orthonormal basis of the range of trajectory i's x0 columns J_x,i (a QR of the
+    Jacobi-scaled J_x,i, then an SVD of its triangular factor), without the directions
+    that the cut of `scaled_eigh` deems null in C_i (C_i^+ ignores them too). This is the
+    x0-eliminated normal matrix of eq. (17)/(20)'s sensitivities: what the data determine
+    of theta once every x0 is fitted. Formed from A, B_i and C_i instead, the subtraction
+    cancels: its round-off is about cond(C_i) eps ||A|| (a partly observed oscillator
+    whose C_i has a condition number of 1e11 gave an indefinite S and flagged every
+    parameter as not identifiable); here it is about eps ||A||. Judge it against diag(A)
+    (`identifiable(S, jnp.diag(A))`): a theta column that the x0 columns reproduce leaves
+    a remainder of round-off, which its own diagonal would make look regular.
+
+    **Arguments:** `Jt` (N, R, p), `Jx` (N, R, m) as for `normal_blocks`.
+
+    **Returns:** S (p, p).
+    """
+    if not Jx.shape[-1] or not Jt.shape[-1]:
+        return jnp.einsum("nrp,nrq->pq", Jt, Jt)
+    eps = jnp.finfo(Jx.dtype).eps
+
+    def projected(jt, jx):
+        d = jnp.sqrt(jnp.sum(jx**2, axis=0))
+        q, t = jnp.linalg.qr(jx / jnp.where(d > 0, d, 1.0)[None, :])
+        u, s, _ = jnp.linalg.svd(t, full_matrices=False)
+        vals = s**2
+        U = (q @ u) * (vals > 1e3 * eps * jnp.max(vals, initial=0.0))[None, :]
+        return jt - U @ (U.T @ jt)
+
+    P = jax.vmap(projected)(Jt, Jx)
+    return jnp.einsum("nrp,nrq->pq", P, P)
 
 
 def floor(d):
@@ -41,12 +80,13 @@ def scaled_eigh(M, diag=None):
     return d, vals, vecs, vals <= cut
 
 
-def psd_solve(M, b):
+def psd_solve(M, b, diag=None):
     """M^+ b for symmetric PSD M (batched; b a vector or a matrix per M).
 
     A direction in the null space of M gets a zero step instead of NaN or a huge one.
+    `diag`: as for `scaled_eigh`.
     """
-    d, vals, vecs, null = scaled_eigh(M)
+    d, vals, vecs, null = scaled_eigh(M, diag)
     inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
     vector = b.ndim == M.ndim - 1
     b = b[..., None] if vector else b
@@ -55,10 +95,11 @@ def psd_solve(M, b):
     return out[..., 0] if vector else out
 
 
-def numerical_rank(M):
+def numerical_rank(M, diag=None):
     """The numerical rank of a (batched) PSD M: its eigenvalues above the null cutoff of
-    `scaled_eigh`, the cutoff of `psd_solve` and of the covariance's identifiability."""
-    _, _, _, null = scaled_eigh(M)
+    `scaled_eigh`, the cutoff of `psd_solve` and of the covariance's identifiability.
+    `diag`: as for `scaled_eigh`."""
+    _, _, _, null = scaled_eigh(M, diag)
     return jnp.sum(~null, axis=-1)
 
 

@@ -372,6 +372,10 @@ class Model(eqx.Module):
         return cls(_ODEStep(rhs, dt, method, int(substeps), input), observe, input=input)
 
 
+ODE_STEPS = (_ODEStep, _TimedODEStep)
+"""The step classes of `Model.from_ode` (their `rhs` is checked with the data)."""
+
+
 def _positive_number(value, name, what):
     try:
         if isinstance(value, (str, bytes, bool)):

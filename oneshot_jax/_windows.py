@@ -46,7 +46,7 @@ class Windows(eqx.Module):
     - `length`: the samples per window.
     - `every`: take every k-th of the consecutive windows (0, length, 2 length, ...).
     - `count`: take this many of them, spread evenly over the record (the first and the
-        last included).
+        last included). Not with `every`.
     - `starts`: the windows' first samples, given (sorted, each window within the
         record; windows may overlap). Not with `every` or `count`.
 
@@ -70,6 +70,11 @@ class Windows(eqx.Module):
         ):
             raise ValueError(
                 f"`Windows(count=...)` must be None or an integer >= 1, got {count!r}."
+            )
+        if count is not None and every != 1:
+            raise ValueError(
+                "`Windows(count=...)` does not combine with `every`: `count` spreads its "
+                "windows over the record, `every` takes every k-th; pick one."
             )
         if starts is not None:
             if every != 1 or count is not None:

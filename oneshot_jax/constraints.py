@@ -113,6 +113,17 @@ def box(lower=None, upper=None) -> ProximalTransformation:
         bad = jax.tree_util.tree_map(lambda a, b: a > b, lo, hi)
         if is_concrete(bad) and any(bool(np.any(b)) for b in jax.tree_util.tree_leaves(bad)):
             raise ValueError("`box` needs lower <= upper for every parameter.")
+        for name, bound, wrong, what in (
+            ("lower", lo, np.inf, "+inf (use None or -inf for no lower bound)"),
+            ("upper", hi, -np.inf, "-inf (use None or +inf for no upper bound)"),
+        ):
+            for leaf in jax.tree_util.tree_leaves(bound):
+                if not is_concrete(leaf):
+                    continue
+                if np.any(np.isnan(leaf)):
+                    raise ValueError(f"`box`: `{name}` holds NaN: a bound must be a number.")
+                if np.any(leaf == wrong):
+                    raise ValueError(f"`box`: `{name}` holds {what}: no value satisfies it.")
         return lo, hi
 
     def proj(params):

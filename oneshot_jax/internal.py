@@ -31,7 +31,10 @@ from ._gradient import value_and_grad_impl as value_and_grad_impl
 from ._gradient import value_and_grad_of_states as value_and_grad_of_states
 from ._identifiable import _augmented as orthogonal_model  # noqa: F401
 from ._identifiable import _basis as orthogonal_basis  # noqa: F401
+from ._linalg import eliminate_x0 as eliminate_x0
+from ._linalg import identifiable as identifiable
 from ._linalg import normal_blocks as normal_blocks
+from ._linalg import schur_complement as schur_complement
 from ._parallel import METHOD_NAMES as METHOD_NAMES
 from ._parallel import diagonal_linear_recurrence as diagonal_linear_recurrence
 from ._parallel import linear_recurrence as linear_recurrence
@@ -52,6 +55,7 @@ from ._pytree import flat_host as flat_host
 from ._pytree import pack as pack
 from ._pytree import unflatten_rows as unflatten_rows
 from ._pytree import unpack as unpack
+from ._results import _BY_NAME as RESULTS_BY_NAME  # noqa: F401
 from ._sensitivity import trajectory_jacobian as trajectory_jacobian
 from ._simulate import rollout as rollout
 from ._solver._linearisation import DIAG_PROBES as DIAG_PROBES

@@ -10,6 +10,7 @@ figure shows in a notebook or a window as usual, and return it (`fig.savefig(...
 from __future__ import annotations
 
 import numbers
+import warnings
 
 import numpy as np
 
@@ -53,6 +54,28 @@ def _axes(ax, count, plt, figsize):
     return axes[0].figure, axes
 
 
+def _warn_other_record(name, result, zhat, z):
+    """Warn where a one-record `FitResult` is simulated from its fitted x0 on a record
+    that is not the one it was fitted on (zhat - residuals is that record's z): MATLAB's
+    `compare` estimates the initial state, and a user who expects it reads a FIT% of
+    the wrong initial state."""
+    e = np.asarray(result.residuals)
+    if np.ndim(result.x0) != 1:  # windows or several records: no one record to tell
+        return
+    if e.shape == z.shape:
+        fitted = zhat.reshape(z.shape) - e
+        both = np.isfinite(fitted) & np.isfinite(z)
+        scale = max(1.0, float(np.nanmax(np.abs(z)))) if both.any() else 1.0
+        if both.any() and np.allclose(fitted[both], z[both], rtol=1e-5, atol=1e-5 * scale):
+            return
+    warnings.warn(
+        f"`{name}` is simulated from the x0 fitted on its own data, which is not this "
+        "record: pass `n` (e.g. n=20) to estimate x0 from the first n samples of `z`, as "
+        "the benchmark protocol and MATLAB's compare do.",
+        stacklevel=4,
+    )
+
+
 def _model_output(i, model, u, z, n, t=None):
     """The output (T, n_z) of the i-th model: a FitResult's simulation (or its prediction
     from the first n samples; at the sample times `t` for a timed model), a Prediction's
@@ -63,6 +86,8 @@ def _model_output(i, model, u, z, n, t=None):
             raise ValueError(f"`u` is required to simulate {name}, a FitResult.")
         t = t if getattr(model.model, "timed", False) else None
         zhat = model.predict(u, z[:n], t=t).z if n else model.simulate(u, t=t)[1]
+        if not n:
+            _warn_other_record(name, model, np.asarray(zhat), z)
     elif isinstance(model, Prediction):
         zhat = model.z
     else:
@@ -95,8 +120,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         with `u`, `y` (a `oneshot_jax.datasets.Record`): then `u`, `n` and the time axis
         (from `Ts`) default to the record's.
     - `models`: one or several of: a `FitResult`, simulated on `u` from its fitted x0
-        (the data it was fitted on, or a record from the same initial state), or, with
-        `n`, predicted from the first n samples of `z` (`FitResult.predict`); a
+        (the data it was fitted on, or a record from the same initial state; on another
+        record it warns), or, with `n`, predicted from the first n samples of `z`
+        (`FitResult.predict`, as MATLAB's `compare` estimates the initial state); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.

@@ -154,6 +154,24 @@ def test_save_and_load_a_dict_theta_with_starts(tmp_path):
         loaded.simulate(u)
 
 
+def test_load_finds_the_suffix_and_checks_like(tmp_path):
+    """`save("b")` writes b.npz (NumPy's suffix): `load_result("b")` finds it. A `like`
+    with other names or sizes is refused: it would have renamed the parameters."""
+    rng = np.random.default_rng(0)
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x)
+    u = rng.standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 0.8, "b": np.array([0.5])}, np.array([1.0]), u)
+    theta0 = {"a": 0.5, "b": np.array([0.3])}
+    r = oj.fit(model, theta0, np.array([1.0]), u, np.asarray(z), estimate_x0=False)
+    r.save(tmp_path / "b")
+    loaded = oj.load_result(tmp_path / "b", like=theta0)
+    assert loaded.names == r.names == ("a", "b[0]")
+    with pytest.raises(ValueError, match=r"`like` names the parameters differently .*'p' in"):
+        oj.load_result(tmp_path / "b", like={"p": 0.5, "q": np.array([0.3])})
+    with pytest.raises(ValueError, match=r"`like`: its parameter leaf 1 has shape \(2,\)"):
+        oj.load_result(tmp_path / "b", like={"a": 0.5, "b": np.zeros(2)})
+
+
 def test_load_refuses_a_foreign_file(tmp_path):
     path = tmp_path / "other.npz"
     np.savez(path, a=np.ones(3))

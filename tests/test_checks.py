@@ -145,7 +145,10 @@ def test_nan_or_inf(case, entry):
     name, overrides = VALUE_CASES[case]
     if entry == "simulate" and name in ("z", "weight"):
         pytest.skip("simulate takes no z or weight")
-    with pytest.raises(ValueError, match=rf"`{name}` contains NaN or inf"):
+    hint = (
+        r' values \(`fit`, `loss` and `value_and_grad` take `missing="mask"`' if name == "z" else ""
+    )
+    with pytest.raises(ValueError, match=rf"`{name}` contains NaN or inf{hint}"):
         call(entry, **overrides)
 
 
@@ -200,6 +203,29 @@ BAD_MODELS = {
         oj.Model(lambda x, u, th: th["missing"] * x, observe),
         r"calling the model on a state of shape \(3,\) \(from `x0`",
     ),
+    # RK4 broadcasts dx/dt against x: these gave a state of the right shape (a wrong
+    # model, fitted to "converged"), a deep error, or one about the step.
+    "rhs returns one entry": (
+        oj.Model.from_ode(lambda x, u, th: th["a"] * x[:1] + u[0], 0.1, observe=observe),
+        r"the model's `rhs` \(`Model.from_ode`\) must return dx/dt as an array of shape "
+        r"\(3,\) \(the shape of x0\), got \(1,\)",
+    ),
+    "rhs returns a scalar": (
+        oj.Model.from_ode(lambda x, u, th: th["a"] * x[0], 0.1, observe=observe),
+        r"`rhs` \(`Model.from_ode`\) must return dx/dt as an array of shape \(3,\).*got \(\)",
+    ),
+    "rhs returns a column": (
+        oj.Model.from_ode(lambda x, u, th: th["a"] * x[:, None], 0.1, observe=observe),
+        r"`rhs` \(`Model.from_ode`\) must return dx/dt .*got \(3, 1\)",
+    ),
+    "rhs returns a list": (
+        oj.Model.from_ode(lambda x, u, th: [x[1], x[2], -x[0]], 0.1, observe=observe),
+        r"`rhs` \(`Model.from_ode`\) must return dx/dt .*got a list \(build dx/dt with jnp.stack",
+    ),
+    "rhs fails": (
+        oj.Model.from_ode(lambda x, u, th: th["missing"] * x, 0.1, observe=observe),
+        r"calling the model's `rhs` \(`Model.from_ode`\) on a state of shape \(3,\)",
+    ),
     "observe returns a scalar": (
         oj.Model(step, lambda x, u, th: x[0]),
         r"`model.observe` must return a 1-D output",
@@ -225,6 +251,23 @@ def test_bad_model(case, entry):
         )
     with pytest.raises(ValueError, match=match):
         call(entry, model=model, **kwargs)
+
+
+def test_a_transposed_input_is_named():
+    with pytest.raises(
+        ValueError, match=r"`u` of shape \(2, 6\) holds T = 2 samples of 6 inputs: "
+    ):
+        model = oj.Model(lambda x, u, th: th["a"] * x + u[0], observe)  # any number of inputs
+        oj.loss(model, THETA, X0, U.T, jnp.ones((6, N_Z)))
+
+
+def test_the_rhs_of_a_timed_model_is_checked():
+    model = oj.Model.from_ode(lambda x, u, th: th["a"] * x[:1], observe=observe)
+    t = 0.1 * jnp.arange(T)
+    with pytest.raises(ValueError, match=r"`rhs` \(`Model.from_ode`\) must return .*got \(1,\)"):
+        oj.simulate(model, THETA, X0, U, t=t)
+    with pytest.raises(ValueError, match=r"`rhs` \(`Model.from_ode`\) must return .*got \(1,\)"):
+        oj.fit(model, THETA, X0, U, Z, t=t)
 
 
 WEIGHT_VALUES = {

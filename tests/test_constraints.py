@@ -1,11 +1,14 @@
 """Projections onto convex parameter sets (Section 3.3) as optax transforms."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import oneshot_jax as oj
 from oneshot_jax import constraints as oc
 from oneshot_jax import sparsity as sp
 
@@ -209,7 +212,69 @@ def test_combine():
         oc.combine([b, lambda p: p])
 
 
+def _sum_at_most_4(th):
+    """The projection onto k + c + b <= 4."""
+    e = jnp.maximum(th["k"] + th["c"] + th["b"] - 4.0, 0.0)
+    return {n: v - e / 3 for n, v in th.items()}
+
+
+@pytest.mark.parametrize("order", [1, -1])
+def test_a_box_and_a_general_set_project_onto_their_intersection(order):
+    """The composition of the two maps (4, 1, -1) to (3.67, 0.67, -0.33), outside the box
+    (either order leaves one set); the projection onto the intersection is (3.5, 0.5, 0)
+    (KKT: multipliers 0.5 for the sum, 1.5 for b >= 0)."""
+    both = oc.combine([oc.non_negative(), oc.project(_sum_at_most_4)][::order])
+    assert both.bounds is None and both.project is not None
+    out = both.project({"k": jnp.array(4.0), "c": jnp.array(1.0), "b": jnp.array(-1.0)})
+    np.testing.assert_allclose([out["k"], out["c"], out["b"]], [3.5, 0.5, 0.0], atol=1e-12)
+    assert float(out["b"]) >= 0.0  # exactly inside the box (it goes last)
+    inside = {"k": jnp.array(1.0), "c": jnp.array(2.0), "b": jnp.array(0.5)}
+    assert both.project(inside) == inside  # a point of the intersection stays
+
+
+def test_a_fit_with_a_box_and_a_general_set_stays_in_both():
+    rng = np.random.default_rng(0)
+    dt = 0.05
+
+    def step(x, u, th):
+        a = -th["k"] * x[0] - th["c"] * x[1] + th["b"] * u[0]
+        return jnp.array([x[0] + dt * x[1], x[1] + dt * a])
+
+    model = oj.Model(step, lambda x, u, th: x[:1])
+    u = rng.standard_normal((400, 1))
+    _, z = oj.simulate(model, {"k": 4.0, "c": 0.5, "b": 1.0}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 1e-2 * rng.standard_normal(np.shape(z))
+    cons = [oc.positive(), oc.project(_sum_at_most_4)]
+    losses = []
+    for solver in (oj.LevenbergMarquardt(), oj.LBFGS()):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = oj.fit(
+                model,
+                {"k": 3.0, "c": 0.2, "b": 0.5},
+                np.array([1.0, 0.0]),
+                u,
+                z,
+                solver=solver,
+                constraints=cons,
+            )
+        th = {n: float(v) for n, v in r.theta.items()}
+        assert min(th.values()) > 0.0 and sum(th.values()) <= 4.0 + 1e-12, (solver, th)
+        losses.append(float(r.loss))
+        if isinstance(solver, oj.LevenbergMarquardt):
+            assert r.success, r.message  # the constrained optimum: b at 0, the sum at 4
+            np.testing.assert_allclose([th["b"], sum(th.values())], [0.0, 4.0], atol=1e-9)
+    np.testing.assert_allclose(losses[1], losses[0], rtol=1e-6)
+
+
 def test_invalid_constraints_raise():
+    # These made the parameter NaN or infinite and the fit "diverged at step 0".
+    with pytest.raises(ValueError, match="`lower` holds NaN"):
+        oc.box(lower={"c": np.nan}).bounds({"c": jnp.zeros(()), "k": jnp.zeros(())})
+    with pytest.raises(ValueError, match=r"`upper` holds -inf \(use None or \+inf"):
+        oc.box(upper=-np.inf).bounds(jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"`lower` holds \+inf"):
+        oc.box(lower=np.inf).project(jnp.zeros(2))
     with pytest.raises(ValueError, match="lower <= upper"):
         oc.box(lower=1.0, upper=0.0).bounds(jnp.zeros(2))
     with pytest.raises(ValueError, match="lower <= upper"):

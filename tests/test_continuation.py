@@ -100,6 +100,20 @@ def test_the_basin_check_warns_on_the_bad_minimum_only(plain, continued):
     assert abs(good.window_fit_percent[0] - good.fit_percent[0]) < 1
 
 
+def test_continuation_of_a_time_stamped_record():
+    """With `t=`, every stage's windows start from states simulated at their own sample
+    times (stage 2 raised "pass the sample times as t=" before)."""
+    timed = oj.Model.from_ode(pendulum, observe=lambda x, u, p: x[:1], max_step=0.05, substeps=4)
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.choice([0.03, 0.05, 0.08], size=T))
+    u = (np.sin(1.3 * t) + np.sin(3.4 * t + 1))[:, None]
+    _, z = oj.simulate(timed, TRUTH, np.zeros(2), u, t=t)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((T, 1))
+    c = oj.fit_continuation(timed, START, np.zeros(2), u, z, windows=(50, 100), t=t)
+    assert [s.window for s in c.stages] == [50, 100, None]
+    assert c.result.success and max(_rel(c.result.theta).values()) < 0.01
+
+
 def test_doubling_schedule():
     """start and factor give the windows (50, 150, then the whole record); each stage
     starts from the last one's theta and states. Windows of 150 leave a tail of 100
@@ -142,6 +156,19 @@ def test_basin_check_rejects_bad_arguments(plain):
         oj.check_basin(plain, U, Z, window=T)
     with pytest.raises(ValueError, match="margin"):
         oj.check_basin(plain, U, Z, margin=-1.0)
+    with pytest.raises(ValueError, match=r"must be the record the result was fitted on"):
+        oj.check_basin(plain, U[:300], Z[:300])
+
+
+def test_basin_check_holds_what_the_fit_held():
+    """A parameter held in the fit stays held in the windows (freed, it would let them fit
+    better for that alone: a false alarm); `fixed=` still overrides."""
+    held = oj.fit(MODEL, TRUTH, np.zeros(2), U, Z, fixed={"w0sq": True, "b": False})
+    check = oj.check_basin(held, U, Z, window=100)
+    assert float(check.windowed.theta["w0sq"]) == TRUTH["w0sq"]
+    assert check.windowed.names == ("b",)
+    free = oj.check_basin(held, U, Z, window=100, fixed=None)
+    assert free.windowed.names == ("b", "w0sq")
 
 
 # A first-order lag x' = a (u - x): one real eigenvalue -a.

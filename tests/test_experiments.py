@@ -73,6 +73,16 @@ def test_default_config():
     assert cfg.experiment.theta_true == list(example.THETA_TRUE)
 
 
+@pytest.mark.parametrize("experiment", GROUPS["experiment"])
+def test_a_key_added_with_plus_that_the_schema_lacks_is_refused(experiment):
+    """`+experiment.foo=1` composes (Hydra adds the key); it was then ignored silently."""
+    cfg = _compose([f"experiment={experiment}", "+experiment.foo=1"])
+    with pytest.raises(config.ConfigError, match=r"unknown key\(s\) experiment.foo: "):
+        config.load(cfg)
+    with pytest.raises(config.ConfigError, match=r"unknown key\(s\) bar: Config has "):
+        config.load(_compose(["+bar=2"]))
+
+
 @pytest.mark.parametrize("group,option", OPTIONS)
 def test_every_option_composes(group, option):
     cfg = _compose([f"{group}={option}"])

@@ -630,6 +630,20 @@ def test_fixed_elements_and_x0_mask_keep_their_values_and_the_rest_is_recovered(
     assert r.covariance.shape == (2, 2)
 
 
+def test_fixed_may_name_some_keys_of_a_dict(tiny):
+    """As in MATLAB's nlgreyest, the parameters `fixed` does not name are free."""
+    theta0 = {"a": np.array([0.6, 0.4]), "b": np.array(0.3)}
+    args = (TINY, theta0, np.array([1.0, -0.5]), tiny["u"], tiny["z_clean"])
+    r = oj.fit(*args, solver="gauss_newton", fixed={"b": True})
+    assert r.names == ("a[0]", "a[1]") and float(r.theta["b"]) == 0.3
+    full = oj.fit(*args, solver="gauss_newton", fixed={"a": False, "b": True})
+    np.testing.assert_array_equal(r.theta["a"], full.theta["a"])
+    with pytest.raises(
+        ValueError, match=r"`fixed` names parameters that are not in theta0: \['c'\]"
+    ):
+        oj.fit(*args, fixed={"c": True})
+
+
 #
 # Windows, batches and multi-start.
 #
@@ -785,8 +799,8 @@ def test_bad_arguments_raise_value_errors_naming_them(tiny):
         oj.fit(TINY, TINY_THETA0, TINY_X00, u, z, window=0)
     with pytest.raises(ValueError, match="`fixed`"):  # a list where theta has a dict
         oj.fit(TINY, TINY_THETA0, TINY_X00, u, z, fixed=[True, False])
-    with pytest.raises(ValueError, match="`fixed`"):  # missing leaf
-        oj.fit(TINY, TINY_THETA0, TINY_X00, u, z, fixed={"a": False})
+    with pytest.raises(ValueError, match="`fixed` names parameters that are not in"):
+        oj.fit(TINY, TINY_THETA0, TINY_X00, u, z, fixed={"a": False, "c": True})
     with pytest.raises(ValueError, match="`fixed`"):  # wrong shape inside a leaf
         oj.fit(
             TINY,

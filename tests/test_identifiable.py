@@ -83,6 +83,35 @@ def test_physics_first_keeps_the_physics_only_estimates(case):
     assert "Physics first" in str(r)
 
 
+def test_physics_first_with_starts_on_every_physical_leaf(case):
+    """`multistart=True` as documented: a leading axis of starts on every physical leaf
+    (the network has none). It was refused: the network's leaves had no starts axis."""
+    model, theta0, u, z = case
+    starts = {**theta0, "w0sq": np.array([2.0, 8.0]), "b": np.array([0.2, 0.2])}
+    starts["g"] = np.array([1.0, 1.0])
+    r = oj.fit_physics_first(
+        model,
+        starts,
+        np.zeros(2),
+        u,
+        z,
+        learned="r",
+        multistart=True,
+        network_solver=oj.LevenbergMarquardt(max_steps=2),
+    )
+    assert r.physics.starts is not None and len(r.physics.starts.loss) == 2
+    one = oj.fit_physics_first(
+        model,
+        {**theta0, "w0sq": 8.0},
+        np.zeros(2),
+        u,
+        z,
+        learned="r",
+        network_solver=oj.LevenbergMarquardt(max_steps=2),
+    )
+    assert float(r.physics.loss) <= float(one.physics.loss) * (1 + 1e-9)
+
+
 def test_physics_first_rejects_bad_arguments(case):
     model, theta0, u, z = case
     x0 = np.zeros(2)
@@ -121,6 +150,17 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     assert r.rounds[-1].moved <= 0.1
     assert r.x0.shape == (2,)
     assert "Orthogonal augmentation" in str(r)
+
+
+def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case):
+    """A physical start written as an int (g = 1): round 2 crashed reshaping the basis,
+    which round 1 had built without g."""
+    model, theta0, u, z = case
+    short = dict(learned="r", rounds=2, solver=oj.LevenbergMarquardt(max_steps=3))
+    as_int = oj.fit_orthogonal(model, {**theta0, "g": 1}, np.zeros(2), u, z, **short)
+    as_float = oj.fit_orthogonal(model, {**theta0, "g": 1.0}, np.zeros(2), u, z, **short)
+    assert len(as_int.rounds) == 2
+    assert float(as_int.theta["g"]) == float(as_float.theta["g"]) != 1.0
 
 
 def test_orthogonal_penalty_and_its_gradient():

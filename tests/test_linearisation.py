@@ -17,9 +17,12 @@ from oneshot_jax.internal import (
     NielsenDamping,
     Params,
     covariance,
+    eliminate_x0,
+    identifiable,
     linearise,
     normal_blocks,
     placeholder,
+    schur_complement,
 )
 
 
@@ -38,8 +41,9 @@ def _arrow(N=3, R=12, p=4, m=2, seed=0):
 
 
 def _linearisation(Jt, Jx, r):
-    blocks = normal_blocks(jnp.asarray(Jt), jnp.asarray(Jx), jnp.asarray(r))
-    return DenseLinearisation(jnp.sum(jnp.asarray(r) ** 2), *blocks)
+    Jt, Jx, r = jnp.asarray(Jt), jnp.asarray(Jx), jnp.asarray(r)
+    blocks = normal_blocks(Jt, Jx, r)
+    return DenseLinearisation(jnp.sum(r**2), *blocks, schur_complement(Jt, Jx))
 
 
 def _floor(d):
@@ -98,6 +102,55 @@ def test_an_x0_entry_without_effect_gets_no_step_and_is_not_identifiable():
     assert step.x0[1, 0] == 0.0 and np.all(np.isfinite(step.x0))
     cov = covariance(None, None, None, blocks=lin.covariance_blocks(lin.C))
     assert not cov.x0_identifiable[1, 0] and cov.x0_identifiable[0].all()
+
+
+def _ill_conditioned_x0(seed=0, R=300, p=3, m=2, kappa=1e6, rel=1e-4):
+    """One trajectory whose x0 columns have a condition number `kappa` (C = J_x^T J_x:
+    kappa^2) and whose theta columns lie in their range up to a part of relative size
+    `rel` orthogonal to it (a partly observed oscillator near a poor x0): Jt, Jx and the
+    exact Schur complement N^T N."""
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.standard_normal((R, m + p)))
+    Q1, Q2 = Q[:, :m], Q[:, m:]
+    V, _ = np.linalg.qr(rng.standard_normal((m, m)))
+    Jx = Q1 @ np.diag(np.logspace(0, -np.log10(kappa), m)) @ V.T
+    N_ = rel * rng.standard_normal((p, p))
+    Jt = Q1 @ rng.standard_normal((m, p)) + Q2 @ N_
+    return Jt[None], Jx[None], N_.T @ N_
+
+
+def test_the_schur_complement_is_formed_without_the_normal_equations_cancellation():
+    """S = A - B C^+ B^T from the blocks loses about cond(C) eps ||A||: here (cond(C) =
+    1e12, theta's columns in the x0 columns' range up to 1e-4) it comes out indefinite and
+    every parameter looks not identifiable; from the Jacobian it is exact to 1e-6 and all
+    three are identifiable."""
+    Jt, Jx, exact = _ill_conditioned_x0()
+    A, B, Cb, _, _ = normal_blocks(jnp.asarray(Jt), jnp.asarray(Jx), jnp.zeros(Jt.shape[:2]))
+    from_blocks = eliminate_x0(B, Cb, pseudo_inverse=True).schur(A, B)
+    S = schur_complement(jnp.asarray(Jt), jnp.asarray(Jx))
+    scale = np.linalg.norm(exact)
+    assert np.linalg.norm(from_blocks - exact) > 10 * scale  # the old way: cancellation
+    np.testing.assert_allclose(S, exact, atol=1e-6 * scale)
+    assert not np.all(identifiable(from_blocks, jnp.diag(A)))
+    assert np.all(identifiable(S, jnp.diag(A)))
+    lin = _linearisation(Jt, Jx, np.zeros(Jt.shape[:2]))
+    assert [int(r) for r in lin.rank()] == [Jt.shape[-1] + Jx.shape[-1], Jt.shape[-1]]
+    cov = covariance(None, None, None, blocks=lin.covariance_blocks(jnp.array(1.0)))
+    np.testing.assert_allclose(cov.theta, np.linalg.inv(exact), rtol=1e-5)
+    assert np.all(cov.theta_identifiable)
+
+
+def test_a_parameter_that_x0_reproduces_is_not_identifiable():
+    """A theta column in the range of the x0 columns (rel = 0) leaves a remainder of
+    round-off after the elimination: judged against diag(A) it is null, as the
+    parameter is (its own diagonal would make it look regular)."""
+    Jt, Jx, _ = _ill_conditioned_x0(kappa=10.0, rel=0.0, p=1)
+    lin = _linearisation(Jt, Jx, np.zeros(Jt.shape[:2]))
+    assert not np.any(identifiable(lin.S, jnp.diag(lin.A)))
+    assert np.all(identifiable(lin.S))  # the round-off remainder on its own scale
+    assert [int(r) for r in lin.rank()] == [Jx.shape[-1], 0]
+    cov = covariance(None, None, None, blocks=lin.covariance_blocks(jnp.array(1.0)))
+    assert not np.any(cov.theta_identifiable)
 
 
 def test_the_searches_own_their_state():

@@ -3,6 +3,7 @@ and the figures of `oneshot_jax.plot` (Agg backend)."""
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -214,6 +215,23 @@ def test_compare_figure(fitted):
     fig = oj.plot.compare(record, result, pred, ax=ax)
     assert fig is ax.figure and len(_legend_texts(ax)) == 4
     assert ax.get_xlabel() == "time (s)"
+
+
+def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
+    """Without `n` a FitResult starts from its fitted x0: on its own data silently, on a
+    new record with a warning that names `n` (MATLAB's compare estimates x0)."""
+    model, u, z, result = fitted
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.plot.compare(z, result, u=u)  # the fitted data: no warning
+        oj.plot.compare(z, result, u=u, n=20)
+    rng = np.random.default_rng(7)
+    u2 = rng.standard_normal((150, 1))
+    _, z2 = oj.simulate(model, result.theta, np.array([2.0]), u2)
+    with pytest.warns(UserWarning, match=r"pass `n` \(e.g. n=20\) to estimate x0"):
+        oj.plot.compare(np.asarray(z2), result, u=u2)
+    with pytest.warns(UserWarning, match="not this record"):  # same length, other data
+        oj.plot.compare(z[::-1], result, u=u[::-1])
 
 
 def test_resid_figure(fitted):

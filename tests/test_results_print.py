@@ -14,6 +14,7 @@ import optimistix as optx
 import pytest
 
 import oneshot_jax as oj
+from oneshot_jax.internal import RESULTS_BY_NAME
 from oneshot_jax.residual import MLP, count_parameters
 
 DT = 0.05
@@ -98,6 +99,29 @@ def test_every_stop_prints_without_the_results_repr():
         assert "RESULTS<" not in str(result)
         assert status.startswith("status: max_steps_reached (") and "\n" not in status
     assert "before the first-order test held" in str(bare)
+
+
+def test_the_status_line_shows_the_whole_test_that_fired(fitted):
+    """The report cuts `message` at its first semicolon: no stop's detail holds one (a
+    statistical stop printed "(rank-deficient Jacobian" and lost the first-order measure)."""
+    info = dict(fitted.stop_info, standard_errors=0.008, stol=0.01, first_order=1e-5)
+    info.update(zero_gradient=["k"], solver_stop="converged")
+    for name, item in RESULTS_BY_NAME.items():
+        result = eqx.tree_at(lambda r: (r.stop_reason, r.stop_info), fitted, (item, info))
+        words = oj.RESULTS[result.stop_reason]
+        if result.message == words:  # no values to show: the reason's words, cut
+            continue
+        assert result.message.endswith(f"; {words}")
+        detail = result.message[: -len(words) - 2]
+        assert ";" not in detail, (name, detail)
+        (status,) = [ln for ln in str(result).splitlines() if ln.startswith("status: ")]
+        assert status == f"status: {name} ({detail})"
+    stat = eqx.tree_at(
+        lambda r: (r.stop_reason, r.stop_info),
+        fitted,
+        (oj.RESULTS.statistically_converged, info),
+    )
+    assert "first-order measure 1e-05 (gtol" in str(stat)
 
 
 def test_x0_rows_show_their_standard_errors(fitted):

@@ -73,6 +73,8 @@ def test_windows_checks():
         oj.Windows(10, every=0)
     with pytest.raises(ValueError, match="combine"):
         oj.Windows(10, starts=[0, 10], every=2)
+    with pytest.raises(ValueError, match=r"`Windows\(count=...\)` does not combine with `every`"):
+        oj.Windows(50, every=2, count=6)  # gave 3 windows, not 6
     with pytest.raises(ValueError, match="increasing"):
         oj.Windows(10, starts=[10, 0])
     u, z, x0 = _record()
@@ -80,3 +82,15 @@ def test_windows_checks():
         oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(50, starts=[0, 380]))
     with pytest.raises(ValueError, match="holds only"):
         oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(100, count=5))
+
+
+@pytest.mark.parametrize("length", [1, 2])
+def test_windows_no_longer_than_their_x0_are_refused(length):
+    """A window of 2 position samples is fitted exactly by its own (position, velocity):
+    such a fit returned `zero_residual` (success) with theta at its start."""
+    u, z, x0 = _record()
+    with pytest.raises(ValueError, match=r"`window` of \d samples holds \d output values per "):
+        oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u, z, window=length)
+    # Fewer x0 entries estimated, or longer windows: theta is determined.
+    oj.fit(MODEL, TRUTH, x0, u, z, window=2, estimate_x0=np.array([True, False]))
+    oj.fit(MODEL, TRUTH, x0, u, z, window=3)

@@ -40,7 +40,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._linalg import eliminate_x0, floor, normal_blocks, numerical_rank, psd_solve
+from .._linalg import (
+    eliminate_x0,
+    floor,
+    normal_blocks,
+    numerical_rank,
+    psd_solve,
+    schur_complement,
+)
 from .._optimality import first_order, rademacher_diagonal, x0_columns
 from .._problem import Params
 from .._sensitivity import Trajectory
@@ -94,8 +101,9 @@ class AbstractLinearisation(eqx.Module):
     forms_normal_matrix = False
 
     def rank(self):
-        """The numerical rank of J (`_linalg.numerical_rank`, the covariance's cutoff), or
-        None where J^T J is not formed (`forms_normal_matrix` False)."""
+        """The numerical ranks of J and of its theta columns once the x0 columns are
+        eliminated (`_linalg.numerical_rank`, the covariance's cutoff), or None where
+        J^T J is not formed (`forms_normal_matrix` False)."""
         return None
 
     def diag_x(self) -> jax.Array:
@@ -116,7 +124,8 @@ class AbstractLinearisation(eqx.Module):
 
 class DenseLinearisation(AbstractLinearisation):
     """The Jacobian formed: the blocks A = J_t^T J_t, B_i, C_i, g_t, g_i
-    (`_linalg.normal_blocks`)."""
+    (`_linalg.normal_blocks`), and the Schur complement S of the x0 blocks formed from the
+    Jacobian (`_linalg.schur_complement`: the rank and the covariance)."""
 
     C: jax.Array
     A: jax.Array  # (p, p)
@@ -124,6 +133,7 @@ class DenseLinearisation(AbstractLinearisation):
     Cb: jax.Array
     g_t: jax.Array
     g_x: jax.Array
+    S: jax.Array  # (p, p)
 
     def diag_t(self):
         return jnp.diag(self.A)
@@ -152,20 +162,18 @@ class DenseLinearisation(AbstractLinearisation):
         )
 
     def covariance_blocks(self, sse):
-        return sse, self.A, self.B, self.Cb
+        return sse, self.A, self.B, self.Cb, self.S
 
     forms_normal_matrix = True
 
     def rank(self):
-        """rank J = sum_i rank C_i + rank S, S the Schur complement of the x0 blocks
-        formed with their pseudo-inverses (`_linalg.eliminate_x0`), as the covariance
-        forms it."""
+        """(rank J, rank S): rank J = sum_i rank C_i + rank S, S the Schur complement of
+        the x0 blocks (`_linalg.schur_complement`) judged against diag(A), as the
+        covariance judges it."""
         p, m = self.A.shape[0], self.Cb.shape[-1]
-        rank = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
-        if p:
-            S = eliminate_x0(self.B, self.Cb, pseudo_inverse=True).schur(self.A, self.B)
-            rank = rank + numerical_rank(S)
-        return jnp.asarray(rank)
+        rank_x = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
+        rank_t = numerical_rank(self.S, jnp.diag(self.A)) if p else 0
+        return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t)
 
 
 class MatrixFreeLinearisation(AbstractLinearisation):
@@ -247,6 +255,7 @@ def placeholder(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps):
             jnp.zeros((N, m, m), dtype),
             jnp.zeros((p,), dtype),
             jnp.zeros((N, m), dtype),
+            jnp.zeros((p, p), dtype),
         )
         return blocks, zero
     shapes = jax.eval_shape(
@@ -267,7 +276,9 @@ def linearise(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps):
     if not matrix_free:
         lin = problem.jacobian(params, strategy)
         C = jnp.sum(lin.r**2)
-        return DenseLinearisation(C, *normal_blocks(lin.Jt, lin.Jx, lin.r)), lin.h_min
+        blocks = normal_blocks(lin.Jt, lin.Jx, lin.r)
+        S = schur_complement(lin.Jt, lin.Jx) if lin.Jx.shape[-1] else blocks[0]  # (no x0: A)
+        return DenseLinearisation(C, *blocks, S), lin.h_min
     r, h_min, traj = problem.linearise(params, strategy)
     p, (N, m) = params.theta.shape[0], params.x0.shape
     dtype = problem.dtype

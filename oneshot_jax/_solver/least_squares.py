@@ -35,10 +35,11 @@ step test fired) with the measure at most its round-off limit 10 sqrt(eps) (a lo
 to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
 converging fit can stop a little above gtol = 1e-8); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
-round-off level of the data. Where J is rank deficient (an over-parameterised model, a
-network in theta), it is `statistically_converged` (success) when an accepted step, its
-predicted decrease confirmed by the actual one, moved the fit by at most `stol` standard
-errors (`_optimality.standard_errors`; the first-order test is not reached there). Every
+round-off level of the data. Where theta's columns of J, with the x0 columns eliminated, are
+rank deficient (an over-parameterised model, a network in theta), it is
+`statistically_converged` (success) when an accepted step, its predicted decrease confirmed
+by the actual one, moved the fit by at most `stol` standard errors
+(`_optimality.standard_errors`; the first-order test is not reached there). Every
 other stop is a failure that names its test:
 `stalled` when no step decreases C while the linear model's predicted decrease is at
 round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
@@ -434,11 +435,12 @@ class AbstractLeastSquares(AbstractSolver):
     def _statistical(self, problem, old, s, b, C_old, C, take, fo):
         """The statistical convergence test (`_optimality.standard_errors`) of the step
         `s` taken from `old` (linearisation `b`, loss `C_old`) to a point of loss `C`
-        and first-order measure `fo`: the step's size in standard errors, and whether J
-        is rank deficient, the step, its predicted decrease confirmed by the actual one
-        (at least a quarter of it), is at most `stol` standard errors, and no parameter
-        alone would move by a standard error (fo sqrt(R - rank) <= 1: the cosine times
-        sqrt(R - rank) is a one-parameter Gauss-Newton step in its own standard error).
+        and first-order measure `fo`: the step's size in standard errors, and whether theta's
+        columns of J (the x0 columns eliminated) are rank deficient, the step, its
+        predicted decrease confirmed by the actual one (at least a quarter of it), is at
+        most `stol` standard errors, and no parameter alone would move by a standard
+        error (fo sqrt(R - rank) <= 1: the cosine times sqrt(R - rank) is a
+        one-parameter Gauss-Newton step in its own standard error).
         The rank (an eigendecomposition) is formed only where the rest of the test holds.
         Off (NaN, False) with `stol=0` and where J^T J is not formed
         (`linear_solver="cg"`)."""
@@ -459,14 +461,18 @@ class AbstractLeastSquares(AbstractSolver):
         se_min = jnp.sqrt(jnp.maximum(pred, 0.0) * dof_min / jnp.maximum(C, tiny))
         candidate = take & (actual > 0) & (actual >= 0.25 * pred)
         candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
-        rank = lazy_cond(
+        p = s.theta.size
+        rank, rank_t = lazy_cond(
             candidate,
-            lambda: b.rank().astype(jnp.int32),
-            jnp.asarray(n_free, jnp.int32),
+            lambda: tuple(r.astype(jnp.int32) for r in b.rank()),
+            (jnp.asarray(n_free, jnp.int32), jnp.asarray(p, jnp.int32)),
         )
         se = standard_errors(pred, C, n_obs, rank)
         within = (se <= self.stol) & (fo * jnp.sqrt(n_obs - rank) <= 1.0)
-        return se, candidate & (rank < n_free) & within
+        # Over-parameterised theta only: a null space of the initial states alone (an
+        # unobservable state, or x0 columns nearly parallel at a poor point) does not
+        # make the steps creep, and the first-order test decides there.
+        return se, candidate & (rank_t < p) & within
 
     def terminate(self, problem, params, state):
         del problem, params

@@ -22,8 +22,9 @@ class LevenbergMarquardt(AbstractLeastSquares):
     - `gtol`: the first-order test: the fit converges (succeeds) when the scaled
         projected gradient, the largest cosine between the residual and a Jacobian
         column, is at most `gtol` (see `oneshot_jax._optimality`).
-    - `stol`: the statistical test, on a Jacobian with a null space only (an
-        over-parameterised model such as a network, where the first-order test is not
+    - `stol`: the statistical test, only where theta's columns of the Jacobian have a
+        null space once the initial states are fitted (an over-parameterised model such
+        as a network, where the first-order test is not
         reached): the fit converges (succeeds, `statistically_converged`) when an
         accepted step, its predicted decrease of the loss confirmed by the actual one,
         moves the fit by at most `stol` standard errors (predicted decrease at most

@@ -7,7 +7,9 @@ The solver's own `init`/`step`/`terminate` run inside `fit`'s compiled loop, so 
 one compiled call, multistart runs under vmap, and every step is recorded.
 
 Box constraints: optimistix has no bounds, so the bridge keeps an active set. The model is
-only ever simulated at the projected point P(y). When the inner solve stops, every free
+only ever simulated at the projected point P(y), and for LM and the minimisers the
+derivatives are those of C(P(y)): zero along an entry that the box clips (`_flat`). When
+the inner solve stops, every free
 entry at a bound whose gradient points outwards is held at the bound (extra residuals
 y_i - bound_i, zero at the solution, keep the Jacobian's rank) and the solver starts again
 from there, until no bound is violated: the returned point is feasible and satisfies the
@@ -47,15 +49,27 @@ def _point(problem: FitProblem, y, held: _Held) -> Params:
     return Params(theta, y[1])
 
 
+def _flat(problem: FitProblem, y, held: _Held, beyond: bool):
+    """Entries of theta whose tangent is zero: those held at a bound, and with `beyond`
+    those that the box clips (beyond it, C(P(y)) does not change along them). The
+    Jacobian of the unclipped model there sent optimistix's LM after a decrease that the
+    clipped function does not have (it crept along an active bound). Only for solvers
+    that damp their step (LM, the minimisers): the linear solves of Gauss-Newton and
+    Dogleg fail on the zero columns."""
+    if problem.lower is None or not beyond:
+        return held.mask
+    return held.mask | (y[0] < problem.lower) | (y[0] > problem.upper)
+
+
 @eqx.filter_custom_jvp
-def _residuals(y, *, problem, held, strategy):
+def _residuals(y, *, problem, held, strategy, beyond):
     r, _ = problem.residuals(_point(problem, y, held), strategy=strategy)
     extra = jnp.where(held.mask, y[0] - held.values, 0.0)
     return jnp.concatenate([r.reshape(-1), extra])
 
 
 @_residuals.def_jvp
-def _residuals_jvp(primals, tangents, *, problem, held, strategy):
+def _residuals_jvp(primals, tangents, *, problem, held, strategy, beyond):
     """The closed-form Jacobian (forward sensitivities) applied to the tangent."""
     (y,) = primals
     (dy,) = tangents
@@ -66,7 +80,8 @@ def _residuals_jvp(primals, tangents, *, problem, held, strategy):
     dr = jnp.zeros(lin.r.shape, lin.r.dtype)
     d_extra = jnp.zeros(extra.shape, extra.dtype)
     if d_theta is not None:
-        dr = dr + jnp.einsum("nrp,p->nr", lin.Jt, jnp.where(held.mask, 0.0, d_theta))
+        flat = _flat(problem, y, held, beyond)
+        dr = dr + jnp.einsum("nrp,p->nr", lin.Jt, jnp.where(flat, 0.0, d_theta))
         d_extra = jnp.where(held.mask, d_theta, 0.0)
     if d_x0 is not None:
         dr = dr + jnp.einsum("nrm,nm->nr", lin.Jx, d_x0)
@@ -74,13 +89,13 @@ def _residuals_jvp(primals, tangents, *, problem, held, strategy):
 
 
 @eqx.filter_custom_jvp
-def _loss(y, *, problem, held, strategy):
+def _loss(y, *, problem, held, strategy, beyond):
     C = problem.loss(_point(problem, y, held), strategy)
     return C + jnp.sum(jnp.where(held.mask, y[0] - held.values, 0.0) ** 2)
 
 
 @_loss.def_jvp
-def _loss_jvp(primals, tangents, *, problem, held, strategy):
+def _loss_jvp(primals, tangents, *, problem, held, strategy, beyond):
     """The one-shot gradient (eq. 17, 20) applied to the tangent."""
     (y,) = primals
     (dy,) = tangents
@@ -89,7 +104,8 @@ def _loss_jvp(primals, tangents, *, problem, held, strategy):
     d_theta, d_x0 = dy
     dC = jnp.zeros((), C.dtype)
     if d_theta is not None:
-        dC = dC + jnp.sum(jnp.where(held.mask, 2.0 * extra, g.theta) * d_theta)
+        slope = jnp.where(_flat(problem, y, held, beyond), 0.0, g.theta)
+        dC = dC + jnp.sum(jnp.where(held.mask, 2.0 * extra, slope) * d_theta)
     if d_x0 is not None:
         dC = dC + jnp.sum(g.x0 * d_x0)
     return C + jnp.sum(extra**2), dC
@@ -100,11 +116,13 @@ class _Fn(eqx.Module):
 
     minimise: bool = eqx.field(static=True)
     strategy: str = eqx.field(static=True)
+    beyond: bool = eqx.field(static=True)  # zero tangents beyond the box (`_flat`)
 
     def __call__(self, y, args):
         problem, held = args
         fn = _loss if self.minimise else _residuals
-        return fn(y, problem=problem, held=held, strategy=self.strategy), None
+        out = fn(y, problem=problem, held=held, strategy=self.strategy, beyond=self.beyond)
+        return out, None
 
 
 class _OptxState(NamedTuple):
@@ -159,7 +177,8 @@ class Optimistix(AbstractSolver):
         return isinstance(self.solver, optx.AbstractMinimiser)
 
     def _fn(self):
-        return _Fn(self._minimise, self.strategy)
+        damped = self._minimise or isinstance(self.solver, optx.LevenbergMarquardt)
+        return _Fn(self._minimise, self.strategy, damped)
 
     def _inner_init(self, problem, y, held):
         fn = self._fn()
