@@ -25,6 +25,7 @@ argument of the wrong kind) that name the argument and the shape or range that w
 expected, so that nothing reaches a tracing error.
 """
 
+import contextlib
 import functools
 import warnings
 from typing import Any, NamedTuple
@@ -327,17 +328,24 @@ def _checked_trajectories(items, name, dtype, n_traj):
     return arrays
 
 
+@contextlib.contextmanager
+def _naming_shapes(what, x_1, u_1, x0, u):
+    """Re-raise an error of tracing `what` as a ValueError with the arguments' shapes."""
+    try:
+        yield
+    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
+        raise ValueError(
+            f"calling {what} on a state of shape {x_1.shape} (from `x0` of shape {x0.shape}) "
+            f"and an input of shape {u_1.shape} (from `u` of shape {u.shape}) failed: "
+            f"{type(err).__name__}: {err}"
+        ) from err
+
+
 def _check_rhs(rhs, x_1, u_1, theta, x0, u):
     """`Model.from_ode`'s `rhs` traced once on abstract values: it must return dx/dt of
     the state's shape."""
-    try:
+    with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u):
         dx = _abstract_call(rhs, x_1, u_1, theta)
-    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
-        raise ValueError(
-            f"calling the model's `rhs` (`Model.from_ode`) on a state of shape {x_1.shape} "
-            f"(from `x0` of shape {x0.shape}) and an input of shape {u_1.shape} (from `u` of "
-            f"shape {u.shape}) failed: {type(err).__name__}: {err}"
-        ) from err
     if not isinstance(dx, jax.ShapeDtypeStruct) or dx.shape != x_1.shape:
         if isinstance(dx, (list, tuple)):
             got = f"a {type(dx).__name__} (build dx/dt with jnp.stack or jnp.array)"
@@ -365,15 +373,9 @@ def _check_model(model, theta, x0, u, lead, dtype):
         # RK4 broadcasts dx/dt against x: a right-hand side of the wrong shape would give
         # a state of the right shape and a wrong model.
         _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u)
-    try:
+    with _naming_shapes("the model", x_1, u_1, x0, u):
         x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
-    except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
-        raise ValueError(
-            f"calling the model on a state of shape {x_1.shape} (from `x0` of shape "
-            f"{x0.shape}) and an input of shape {u_1.shape} (from `u` of shape {u.shape}) "
-            f"failed: {type(err).__name__}: {err}"
-        ) from err
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
         shape = getattr(x_next, "shape", type(x_next).__name__)
         raise ValueError(

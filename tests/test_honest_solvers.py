@@ -290,22 +290,33 @@ def test_success_means_a_constrained_stationary_point(name, solver, kind):
         assert r.message.startswith("first-order measure "), r.message
 
 
+def _euler_oscillator(c, noise, damping=lambda c, v: c * v, observe=lambda x: x[:1]):
+    """An oscillator stepped by explicit Euler (dt = 0.05), driven by 400 normal inputs, x0
+    = (1, 0); the truth k = 4, b = 1 and `c`, the damping force `damping(c, v)`, the
+    output `observe(x)` plus `noise` times normal noise: (model, x0, u, z)."""
+    dt = 0.05
+
+    def step(x, u, th):
+        a = -th["k"] * x[0] - damping(th["c"], x[1]) + th["b"] * u[0]
+        return jnp.array([x[0] + dt * x[1], x[1] + dt * a])
+
+    model = oj.Model(step, lambda x, u, th: observe(x))
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((400, 1))
+    x0 = np.array([1.0, 0.0])
+    _, z = oj.simulate(model, {"k": 4.0, "c": c, "b": 1.0}, x0, u)
+    return model, x0, u, np.asarray(z) + noise * rng.standard_normal(np.shape(z))
+
+
+def _root_damping(c, v):
+    return jnp.sqrt(c) * v
+
+
 def test_optimistix_stops_along_an_active_bound():
     """Optimistix's LM sees C(P(y)), constant in an entry beyond the box: fed the unclipped
     model's Jacobian there, it crept along the bound c <= 0.3 and ended
     `max_steps_reached` after 256 steps, 15 % above the optimum (399 steps reached it)."""
-    dt = 0.05
-
-    def step(x, u, th):
-        a = -th["k"] * x[0] - th["c"] * x[1] + th["b"] * u[0]
-        return jnp.array([x[0] + dt * x[1], x[1] + dt * a])
-
-    model = oj.Model(step, lambda x, u, th: x[:1])
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((400, 1))
-    x0 = np.array([1.0, 0.0])
-    _, z = oj.simulate(model, {"k": 4.0, "c": 0.5, "b": 1.0}, x0, u)
-    z = np.asarray(z) + 1e-2 * rng.standard_normal(np.shape(z))
+    model, x0, u, z = _euler_oscillator(0.5, 1e-2)
     theta0 = {"k": 3.0, "c": 0.2, "b": 0.8}
     box = oj.constraints.box(upper={"c": 0.3})
     lm = oj.fit(model, theta0, x0, u, z, constraints=box)
@@ -350,18 +361,7 @@ def test_a_gradient_that_is_not_finite_at_a_bound_is_named(tmp_path):
     """Damping sqrt(c) with c >= 0: a step clipped to c = 0 has a finite loss and an
     infinite derivative. The stop is `diverged`, and its message says that the gradient,
     not the simulation, stopped being finite, and what to do."""
-    dt = 0.05
-
-    def step(x, u, th):
-        a = -th["k"] * x[0] - jnp.sqrt(th["c"]) * x[1] + th["b"] * u[0]
-        return jnp.array([x[0] + dt * x[1], x[1] + dt * a])
-
-    model = oj.Model(step, lambda x, u, th: x[:1])
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((400, 1))
-    x0 = np.array([1.0, 0.0])
-    _, z = oj.simulate(model, {"k": 4.0, "c": 0.0, "b": 1.0}, x0, u)
-    z = np.asarray(z) + 3e-2 * rng.standard_normal(np.shape(z))
+    model, x0, u, z = _euler_oscillator(0.0, 3e-2, damping=_root_damping)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         r = oj.fit(
@@ -406,18 +406,9 @@ def test_noise_free_data_end_as_a_zero_residual_success():
 def _kelvin_model():
     """A lightly damped oscillator measured as a temperature in kelvin (300 + 0.05 x) and
     in float32: its outputs' offset is 10^4 times their variation."""
-    dt = 0.05
-
-    def step(x, u, th):
-        a = -th["k"] * x[0] - jnp.sqrt(th["c"]) * x[1] + th["b"] * u[0]
-        return jnp.array([x[0] + dt * x[1], x[1] + dt * a])
-
-    model = oj.Model(step, lambda x, u, th: 300.0 + 0.05 * x[:1])
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((400, 1))
-    x0 = np.array([1.0, 0.0])
-    _, z = oj.simulate(model, {"k": 4.0, "c": 0.0025, "b": 1.0}, x0, u)
-    z = np.asarray(z) + 5e-4 * rng.standard_normal(np.shape(z))
+    model, x0, u, z = _euler_oscillator(
+        0.0025, 5e-4, damping=_root_damping, observe=lambda x: 300.0 + 0.05 * x[:1]
+    )
     return model, x0.astype(np.float32), u.astype(np.float32), z.astype(np.float32)
 
 
