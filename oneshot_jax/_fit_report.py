@@ -212,6 +212,11 @@ def report(result) -> str:
             f"multistart: the best of {len(result.starts.stop_reason)} starts (index "
             f"{result.best}); stops: {', '.join(f'{k} {n}' for k, n in stops.items())}"
         )
+    if not result.success:
+        out.append(
+            "  (not a solution: the standard errors and intervals below are those of the "
+            "linearisation at the returned point)"
+        )
     out.append(line(header))
     out.extend(line(r, k in modules) for k, r in enumerate(table))
     out.append(line(x0_header))

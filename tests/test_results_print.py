@@ -85,6 +85,7 @@ def test_the_stop_is_one_readable_line_never_the_results_repr(fitted):
     assert " steps in " in text and "s (wall" in text
     assert "FIT% [" in text and "RMSE [" in text and "AIC " in text
     assert repr(fitted) == text
+    assert fitted.success and "not a solution" not in text
 
 
 def test_every_stop_prints_without_the_results_repr():
@@ -99,6 +100,8 @@ def test_every_stop_prints_without_the_results_repr():
         assert "RESULTS<" not in str(result)
         assert status.startswith("status: max_steps_reached (") and "\n" not in status
     assert "before the first-order test held" in str(bare)
+    # The intervals of a point that is not a solution say so; a solution's do not.
+    assert "  (not a solution: the standard errors and intervals" in str(r)
 
 
 def test_the_status_line_shows_the_whole_test_that_fired(fitted):
