@@ -97,7 +97,8 @@ def bridge(problem, pt, px, strategy):
     n = pt.shape[0]
 
     def f(pt, px):
-        return _residuals((pt, px), problem=problem, held=held, strategy=strategy)[: -n or None]
+        out = _residuals((pt, px), problem=problem, held=held, strategy=strategy, beyond=True)
+        return out[: -n or None]
 
     return f(pt, px), jax.jacfwd(f, argnums=(0, 1))(pt, px)
 
