@@ -507,8 +507,8 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
             check_finite(
                 z,
                 "z",
-                ' (`fit`, `loss` and `value_and_grad` take `missing="mask"`, which '
-                "treats NaN as a missing sample)",
+                " (`fit`, `loss`, `value_and_grad`, `estimate_x0` and `predict` take "
+                '`missing="mask"`, which treats NaN as a missing sample)',
             )
         mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)

@@ -156,6 +156,7 @@ def estimate_x0(
     measurement_noise=None,
     prior_covariance=None,
     t: Float[ArrayLike, " T"] | None = None,
+    missing: str = "raise",
 ) -> X0Estimate:
     """Estimate the initial state x0 of a record from its first n samples (MATLAB's
     `findstates`), with theta known.
@@ -208,6 +209,9 @@ def estimate_x0(
         reflects these assumptions: give `measurement_noise` for calibrated ones.
     - `t`: the sample times (T,) of the record, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`); t[:n] is used with the head.
+    - `missing`: `"mask"` takes NaN entries of the head's z as missing samples, left out
+        of the cost (`"lsq"` only; then `x0` is needed where z[0] has one); `"raise"`
+        (default) refuses them.
 
     **Returns:**
 
@@ -237,6 +241,7 @@ def estimate_x0(
         prior_covariance=prior_covariance,
         stacklevel=3,
         t=t,
+        missing=missing,
     )[0]
 
 
@@ -257,6 +262,7 @@ def _estimate(
     stacklevel,
     t=None,
     record=None,
+    missing="raise",
 ):
     """`estimate_x0`, with its warnings attributed `stacklevel` frames up. With `record`
     (the whole record's `(u, t)`, whose head is `u`), also the record simulated from the
@@ -280,6 +286,10 @@ def _estimate(
             )
     elif solver is not None:
         raise ValueError("`solver` only applies to method='lsq'.")
+    if missing == "mask" and method != "lsq":
+        raise ValueError(
+            "`missing=\"mask\"` applies to method='lsq' (the smoother needs every sample)."
+        )
     if x0 is None:
         if not model.observes_state:
             raise ValueError(
@@ -289,9 +299,14 @@ def _estimate(
                 "training data, say) is better where the model is singular at zero."
             )
         x0 = z[0]
+        if not np.all(np.isfinite(np.asarray(x0, float))):
+            raise ValueError(
+                "`x0` (the starting guess, shape (n_x,)) is needed: z[0], the default where "
+                "the model observes its whole state, has a missing sample."
+            )
     if np.ndim(x0) != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
-    data = check_data(model, theta, x0, u, z, weight, t=t)
+    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
     guess = np.asarray(data.x0)
 
     stop_reason, kalman, e, ok, sim = None, None, None, None, None
@@ -320,7 +335,8 @@ def _estimate(
     if e is None:
         _, zhat = simulate_impl(data.model, data.theta, jnp.asarray(x0_hat), data.u, False)
         e = np.asarray(zhat, np.float64) - np.asarray(data.z, np.float64)
-    if not (np.all(np.isfinite(x0_hat)) and np.all(np.isfinite(e))):
+    measured = np.isfinite(np.asarray(z, np.float64))  # (e is NaN at a missing sample)
+    if not (np.all(np.isfinite(x0_hat)) and np.all(np.isfinite(e)[measured])):
         raise ValueError(
             f"simulating the model over the first n = {n} samples from the estimated x0 "
             f"({x0_hat}) gives NaN or inf: with these parameters the model blows up over "
@@ -420,6 +436,7 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None):
         process_noise=None,
         measurement_noise=None,
         prior_covariance=None,
+        missing="raise",
     )
     unknown = sorted(set(kwargs) - set(options))
     if unknown:

@@ -146,7 +146,9 @@ def test_nan_or_inf(case, entry):
     if entry == "simulate" and name in ("z", "weight"):
         pytest.skip("simulate takes no z or weight")
     hint = (
-        r' values \(`fit`, `loss` and `value_and_grad` take `missing="mask"`' if name == "z" else ""
+        r" values \(`fit`, `loss`, `value_and_grad`, `estimate_x0` and `predict` take"
+        if name == "z"
+        else ""
     )
     with pytest.raises(ValueError, match=rf"`{name}` contains NaN or inf{hint}"):
         call(entry, **overrides)

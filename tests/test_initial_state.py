@@ -253,6 +253,43 @@ def test_lsq_is_the_x0_only_fit():
     assert np.max(np.abs(unweighted.x0 - est.x0)) > 1e-3
 
 
+def test_lsq_with_missing_head_samples_is_the_masked_x0_only_fit():
+    """`missing="mask"`: NaN samples of the head leave the cost, as in `fit`; the two
+    solves agree to the last digit, and differ from one that took the NaN as 0. Needs a
+    guess where z[0] is missing, and the smoother refuses it."""
+    model = oj.Model.from_ode(pendulum_rhs, DT)  # z = x
+    rng = np.random.default_rng(5)
+    u = 0.5 * np.sin(0.3 * np.arange(40))[:, None]
+    _, z = oj.simulate(model, PEND_THETA, np.array([0.8, -0.3]), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((40, 2))
+    z[[3, 11], 0] = np.nan
+    z[7, 1] = np.nan
+    kw = dict(x0=np.zeros(2), solver=oj.LevenbergMarquardt())
+    est = oj.estimate_x0(model, PEND_THETA, u, z, n=25, missing="mask", **kw)
+    ref = oj.fit(
+        model,
+        PEND_THETA,
+        np.zeros(2),
+        u[:25],
+        z[:25],
+        fixed=True,
+        missing="mask",
+        solver=kw["solver"],
+    )
+    np.testing.assert_array_equal(est.x0, ref.x0)
+    zero = oj.estimate_x0(model, PEND_THETA, u, np.nan_to_num(z), n=25, **kw)
+    assert np.max(np.abs(zero.x0 - est.x0)) > 1e-3
+    pred = oj.predict(model, PEND_THETA, u, z, 25, missing="mask", **kw)
+    np.testing.assert_array_equal(pred.x0, est.x0)
+    with pytest.raises(ValueError, match=r"`z` contains NaN .*`estimate_x0` and `predict` take"):
+        oj.estimate_x0(model, PEND_THETA, u, z, n=25, **kw)
+    with pytest.raises(ValueError, match="applies to method='lsq'"):
+        oj.estimate_x0(model, PEND_THETA, u, z, n=25, method="smoother", missing="mask")
+    z[0, 1] = np.nan
+    with pytest.raises(ValueError, match=r"`x0` .* is needed: z\[0\]"):
+        oj.estimate_x0(model, PEND_THETA, u, z, n=25, missing="mask")
+
+
 #
 # Windows.
 #
