@@ -45,7 +45,7 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(arrays))
 
 
-def _is_weak(a) -> bool:
+def is_weak(a) -> bool:
     """Python scalars take the dtype of the arrays they meet, as in NumPy and JAX."""
     return isinstance(a, (int, float)) and not isinstance(a, bool)
 
@@ -90,7 +90,7 @@ def common_dtype(*trees):
     x64 is off)."""
     dtypes = []
     for leaf in jax.tree_util.tree_leaves(trees):
-        if _is_weak(leaf) or leaf is None:
+        if is_weak(leaf) or leaf is None:
             continue
         dt = getattr(leaf, "dtype", None)
         if dt is None:
@@ -202,7 +202,7 @@ def _theta_signature(theta):
                 sig.append((np.generic, leaf.dtype))
             else:
                 sig.append(_array_signature(leaf))
-        elif _is_weak(leaf):
+        elif is_weak(leaf):
             sig.append(type(leaf))
         else:
             try:

@@ -42,7 +42,7 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     if blocks is None:
         lin = problem.jacobian(params, strategy, penalty=False)
         A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
-        S = schur_complement(lin.Jt, lin.Jx) if lin.Jx.shape[-1] else A
+        S = schur_complement(lin.Jt, lin.Jx, A)
         sse = jnp.sum(lin.r**2)
     else:
         sse, A, B, Cb, S = blocks

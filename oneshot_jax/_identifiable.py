@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from ._checks import is_weak
 from ._fit import fit
 from ._fit_result import FitResult
 from ._model import Model
@@ -77,11 +78,6 @@ class PhysicsFirst(eqx.Module):
     __repr__ = __str__
 
 
-def _python_number(a) -> bool:
-    """A Python float or int (not a bool): a parameter to `fit`, as a float array is."""
-    return isinstance(a, (int, float)) and not isinstance(a, bool)
-
-
 def _learned_keys(theta0, learned):
     if not isinstance(theta0, Mapping):
         raise TypeError(
@@ -105,7 +101,7 @@ def _learned_keys(theta0, learned):
             raise ValueError(f"`learned` names {k!r}, which holds no floating array to fit.")
     physical = [k for k in theta0 if k not in keys]
     if not any(
-        eqx.is_inexact_array(a) or _python_number(a)
+        eqx.is_inexact_array(a) or is_weak(a)
         for k in physical
         for a in jax.tree_util.tree_leaves(theta0[k])
     ):
@@ -484,7 +480,7 @@ def fit_orthogonal(
     # Python numbers as float arrays, so that the sensitivities see them as parameters
     # (`fit` estimates a Python int as it does a float).
     theta = jax.tree_util.tree_map(
-        lambda a: np.asarray(a, float) if _python_number(a) else a, dict(theta0)
+        lambda a: np.asarray(a, float) if is_weak(a) else a, dict(theta0)
     )
     p = sum(
         np.size(a)

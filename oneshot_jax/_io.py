@@ -35,6 +35,7 @@ short, edited, or another program's archive) is refused with one ValueError nami
 import json
 import zipfile
 import zlib
+from itertools import zip_longest
 from pathlib import Path
 
 import jax
@@ -287,11 +288,7 @@ def read_result(path, *, like=None) -> dict:
             all_names = _pytree.leaf_names(like_params)
             free = [n for n, f in zip(all_names, np.asarray(arrays["fixed"], bool)) if not f]
             if len(all_names) == np.size(arrays["fixed"]) and free != list(meta["names"]):
-                diff = next(
-                    (a, b)
-                    for a, b in zip(free + [None] * 9, list(meta["names"]) + [None] * 9)
-                    if a != b
-                )
+                diff = next((a, b) for a, b in zip_longest(free, meta["names"]) if a != b)
                 raise ValueError(
                     f"`like` names the parameters differently from the saved theta (first "
                     f"difference: {diff[0]!r} in `like`, {diff[1]!r} saved): pass a theta of "

@@ -22,7 +22,7 @@ def normal_blocks(Jt, Jx, r):
     return A, B, Cb, g_t, g_x
 
 
-def schur_complement(Jt, Jx):
+def schur_complement(Jt, Jx, A):
     """The Schur complement S = A - sum_i B_i C_i^+ B_i^T of the x0 blocks of J^T J (the
     blocks of `normal_blocks`), formed from the Jacobian:
 
@@ -39,12 +39,13 @@ def schur_complement(Jt, Jx):
     (`identifiable(S, jnp.diag(A))`): a theta column that the x0 columns reproduce leaves
     a remainder of round-off, which its own diagonal would make look regular.
 
-    **Arguments:** `Jt` (N, R, p), `Jx` (N, R, m) as for `normal_blocks`.
+    **Arguments:** `Jt` (N, R, p), `Jx` (N, R, m) and `A` = J_t^T J_t as for
+    `normal_blocks` (S is A itself without x0 columns).
 
     **Returns:** S (p, p).
     """
     if not Jx.shape[-1] or not Jt.shape[-1]:
-        return jnp.einsum("nrp,nrq->pq", Jt, Jt)
+        return A
     eps = jnp.finfo(Jx.dtype).eps
 
     def projected(jt, jx):

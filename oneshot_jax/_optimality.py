@@ -115,14 +115,18 @@ def no_measures(dtype) -> Measures:
     return Measures(nan, nan, nan, nan)
 
 
+def _measured(problem: FitProblem):
+    """The mask of the measured output samples, the shape of z (None without a mask)."""
+    if problem.mask is None:
+        return None
+    out = problem.mask.outputs
+    return jnp.broadcast_to(out if out.ndim == problem.z.ndim else out[..., None], problem.z.shape)
+
+
 def n_observations(problem: FitProblem):
     """The number R of measured output samples (the data residuals the loss counts)."""
-    if problem.mask is None:
-        return problem.z.size
-    out = problem.mask.outputs
-    return jnp.sum(
-        jnp.broadcast_to(out if out.ndim == problem.z.ndim else out[..., None], problem.z.shape)
-    )
+    m = _measured(problem)
+    return problem.z.size if m is None else jnp.sum(m)
 
 
 def standard_errors(pred, C, n_obs, rank):
@@ -196,15 +200,12 @@ def data_scale(problem: FitProblem):
     of the outputs themselves: an RMS residual of 10 eps |z|). The variation and not |z|
     itself: an output with a large offset (a temperature in kelvin, 300 + 0.05 x) made
     a fit stalled at FIT 8 % look exact."""
-    z = problem.z
+    z, m = problem.z, _measured(problem)
     sqrt_q, s = problem.cost.sqrt_weight(), problem._scale()
-    if problem.mask is None:
-        zbar = jnp.mean(z, axis=tuple(range(z.ndim - 1)))
-        dev = z - zbar
+    axes = tuple(range(z.ndim - 1))
+    if m is None:
+        dev = z - jnp.mean(z, axis=axes)
     else:
-        out = problem.mask.outputs
-        m = jnp.broadcast_to(out if out.ndim == z.ndim else out[..., None], z.shape)
-        axes = tuple(range(z.ndim - 1))
         zbar = jnp.sum(z * m, axis=axes) / jnp.maximum(jnp.sum(m, axis=axes), 1)
         z, dev = z * m, (z - zbar) * m
     w, v = weigh(dev, sqrt_q) * s, weigh(z, sqrt_q) * s

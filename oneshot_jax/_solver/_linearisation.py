@@ -277,7 +277,7 @@ def linearise(problem, params, strategy, matrix_free, cg_rtol, cg_max_steps):
         lin = problem.jacobian(params, strategy)
         C = jnp.sum(lin.r**2)
         blocks = normal_blocks(lin.Jt, lin.Jx, lin.r)
-        S = schur_complement(lin.Jt, lin.Jx) if lin.Jx.shape[-1] else blocks[0]  # (no x0: A)
+        S = schur_complement(lin.Jt, lin.Jx, blocks[0])
         return DenseLinearisation(C, *blocks, S), lin.h_min
     r, h_min, traj = problem.linearise(params, strategy)
     p, (N, m) = params.theta.shape[0], params.x0.shape
