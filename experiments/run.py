@@ -15,6 +15,8 @@ stops the run before anything is computed, exit status 2), writes `resolved_conf
 atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error. With
 `publish=true` the run's `results.md` is copied to `docs/case-studies/<name>.md` (figure
 links rewritten to `../figures/`) and its figures to `docs/figures/<name>_<figure>`.
+Benchmark files that are not found end the run with exit status 2 and a message that names
+`experiment.data_path`.
 """
 
 from __future__ import annotations
@@ -176,10 +178,21 @@ def task(cfg: DictConfig) -> None:
     """The Hydra task: run the configured experiment into Hydra's output folder."""
     from hydra.core.hydra_config import HydraConfig
 
+    from oneshot_jax.datasets import DatasetNotFoundError
+
     try:
         execute(cfg, Path(HydraConfig.get().runtime.output_dir))
     except config.ConfigError as err:
         print(f"invalid configuration: {err}", file=sys.stderr)
+        sys.exit(2)
+    except DatasetNotFoundError as err:
+        # The loader's message speaks of its own argument, path=; a run sets it as
+        # experiment.data_path.
+        print(
+            f"missing data: {err}\nIn an experiment, give the folder as "
+            f"experiment.data_path=<folder> (or set $ONESHOT_JAX_DATA).",
+            file=sys.stderr,
+        )
         sys.exit(2)
 
 

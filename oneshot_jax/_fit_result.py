@@ -334,7 +334,10 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     - `model`: the `Model`, for `FitResult.simulate` (models are not saved).
     - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
         equinox modules or other nodes that the file's JSON cannot describe; its
-        non-numeric parts are put back around the loaded arrays.
+        non-numeric parts are put back around the loaded arrays. It must match the saved
+        theta in its leaves' shapes, the parameters' names, and what the file records
+        of the rest in words (an activation function's name, a module's static fields):
+        a ValueError names the first difference.
 
     **Returns:**
 

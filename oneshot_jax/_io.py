@@ -14,8 +14,10 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   booleans, or null for a structure JSON cannot describe), `names`, `stop_reason` (a
   `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
   solver), the metric names, `starts_stop_reason`, `diagnostics` and
-  `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object)
-  and `validation_loss` (a number or null).
+  `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object),
+  `validation_loss` (a number or null) and `static_signature` (what `load_result(like=)`
+  compares beyond shapes and names: the static fields of theta's equinox modules and its
+  non-parameter leaves such as an activation function, each in words).
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
@@ -27,17 +29,20 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
 
 Values round-trip exactly (same dtypes and bits). Functions cannot be saved: a theta that
 holds equinox modules (a neural residual) is saved by its arrays, and `load_result`
-needs `like=` (a theta of the same structure, e.g. theta0) to rebuild it; the model is
+needs `like=` (a theta of the same structure, e.g. theta0) to rebuild it, and refuses a
+`like` whose activation function or module sizes differ from the saved ones; the model is
 never saved (pass `model=` to `load_result` to simulate). A file that is damaged (cut
 short, edited, or another program's archive) is refused with one ValueError naming it.
 """
 
+import dataclasses
 import json
 import zipfile
 import zlib
 from itertools import zip_longest
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -116,6 +121,50 @@ def _plain(value):
     return value
 
 
+def _describe(obj) -> str:
+    """A non-parameter part of theta (an activation function, a size, a flag) in words that
+    do not change between processes or JAX versions: a function by its name, a number or a
+    string by its value, an array by its shape and dtype, anything else by its type."""
+    fn = getattr(obj, "fun", None) or getattr(obj, "__wrapped__", None) or obj  # custom_jvp, jit
+    if callable(fn) and hasattr(fn, "__qualname__") and not isinstance(fn, type):
+        return f"function {fn.__qualname__}"
+    if obj is None or isinstance(obj, (bool, int, float, complex, str)):
+        return repr(obj)
+    if isinstance(obj, (tuple, list)):
+        return f"({', '.join(map(_describe, obj))})"
+    if isinstance(obj, np.ndarray) or hasattr(obj, "dtype"):
+        return f"array{np.shape(obj)} {np.asarray(obj).dtype}"
+    return type(obj).__qualname__
+
+
+def _static_signature(theta) -> list:
+    """What `load_result(like=)` compares beyond the parameters' shapes and names, none of
+    which the file holds: the static fields of theta's equinox modules (sizes, flags,
+    scales) and its non-parameter leaves (e.g. an activation function), each in words."""
+    out = []
+
+    def walk(node, where):
+        if isinstance(node, eqx.Module):
+            for f in dataclasses.fields(node):
+                value = getattr(node, f.name, None)
+                name = f"{where}.{f.name}"
+                if f.metadata.get("static", False):
+                    out.append(f"{name} = {_describe(value)}")
+                else:
+                    walk(value, name)
+        elif isinstance(node, dict):
+            for k in sorted(node, key=str):
+                walk(node[k], f"{where}[{k!r}]")
+        elif isinstance(node, (list, tuple)):
+            for i, v in enumerate(node):
+                walk(v, f"{where}[{i}]")
+        elif node is not None and not _pytree.is_parameter(node):
+            out.append(f"{where} = {_describe(node)}")
+
+    walk(theta, "theta")
+    return out
+
+
 def _leaves(tree):
     return [np.asarray(a) for a in jax.tree_util.tree_leaves(tree)]
 
@@ -182,6 +231,7 @@ def save_result(result, path):
         "theta_order": list(result.theta_order),
         "units": dict(result.units),
         "validation_loss": result.validation_loss,
+        "static_signature": _static_signature(result.theta),
     }
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
@@ -294,6 +344,17 @@ def read_result(path, *, like=None) -> dict:
                     f"difference: {diff[0]!r} in `like`, {diff[1]!r} saved): pass a theta of "
                     "the fitted structure (e.g. theta0)."
                 )
+
+        # What the file does not hold (files of earlier versions have no signature).
+        saved_sig, like_sig = meta.get("static_signature"), _static_signature(like)
+        if saved_sig is not None and saved_sig != like_sig:
+            diff = next((a, b) for a, b in zip_longest(like_sig, saved_sig) if a != b)
+            raise ValueError(
+                f"`like` differs from the saved theta in what the file does not hold (an "
+                f"activation function, a module's static fields): `like` has {diff[0]}, "
+                f"the file {diff[1]}. Pass a theta of the fitted structure (e.g. "
+                f"theta0)."
+            )
 
         def build(leaves, whole=False):
             return jax.tree_util.tree_unflatten(treedef, leaves)

@@ -66,6 +66,7 @@ from ._solver._search import Backtracking as Backtracking
 from ._solver._search import Damping as Damping
 from ._solver._search import NielsenDamping as NielsenDamping
 from ._solver.optimistix import _Held as OptimistixHeld  # noqa: F401
+from ._solver.optimistix import _loss as optimistix_loss  # noqa: F401
 from ._solver.optimistix import _residuals as optimistix_residuals  # noqa: F401
 from ._solver_arg import as_solvers as as_solvers
 from ._starts import theta_starts as theta_starts

@@ -172,6 +172,41 @@ def test_load_finds_the_suffix_and_checks_like(tmp_path):
         oj.load_result(tmp_path / "b", like={"a": 0.5, "b": np.zeros(2)})
 
 
+@pytest.mark.filterwarnings("ignore:the Jacobian is rank-deficient")
+def test_load_refuses_a_like_whose_activation_or_static_fields_differ(tmp_path):
+    """A module theta's activation and static fields are not in the file: a `like` with the
+    same shapes and names but another activation (or another static scale) would rebuild a
+    different model silently; it is refused, naming the difference."""
+
+    class Scaled(eqx.Module):
+        net: eqx.nn.MLP
+        scale: float = eqx.field(static=True)
+
+    def step(x, u, th):
+        return x + 0.1 * (u - th["c"] * x + th["r"].scale * th["r"].net(x)[0])
+
+    def make(activation, scale):
+        net = eqx.nn.MLP(1, 1, 3, 1, activation=activation, key=jax.random.PRNGKey(0))
+        return {"c": 0.5, "r": Scaled(net, scale)}
+
+    model = oj.Model(step, lambda x, u, th: x)
+    theta0 = make(jax.nn.tanh, 0.1)
+    u = np.sin(0.3 * np.arange(30.0))[:, None]
+    _, z = oj.simulate(model, theta0, np.array([0.2]), u)
+    r = oj.fit(model, theta0, np.array([0.2]), u, np.asarray(z), solver=oj.Adam(max_steps=2))
+    path = r.save(tmp_path / "net")
+    back = oj.load_result(path, like=make(jax.nn.tanh, 0.1), model=model)
+    np.testing.assert_array_equal(back.simulate(u)[1], r.simulate(u)[1])
+    with pytest.raises(
+        ValueError, match=r"has theta\['r'\]\.net\.activation = function relu, the file "
+    ):
+        oj.load_result(path, like=make(jax.nn.relu, 0.1))
+    with pytest.raises(
+        ValueError, match=r"has theta\['r'\]\.scale = 2\.0, the file theta\['r'\]\.scale = 0\.1\."
+    ):
+        oj.load_result(path, like=make(jax.nn.tanh, 2.0))
+
+
 def test_load_refuses_a_foreign_file(tmp_path):
     path = tmp_path / "other.npz"
     np.savez(path, a=np.ones(3))

@@ -138,8 +138,13 @@ def test_missing_files_say_where_to_get_them(tmp_path):
     assert isinstance(e.value, FileNotFoundError)
     with pytest.raises(
         ds.DatasetNotFoundError, match=r"(?s)dataBenchmark\.csv.*nonlinearbenchmark\.org"
-    ):
+    ) as e:
         ds.load_cascaded_tanks(tmp_path / "nowhere")
+    # A path that does not exist is named first (a typo), not searched silently as a folder.
+    assert str(e.value).startswith(f"path={str(tmp_path / 'nowhere')!r} does not exist.")
+    with pytest.raises(ds.DatasetNotFoundError) as e:
+        ds.load_emps(tmp_path)
+    assert "does not exist" not in str(e.value)
 
 
 def test_emps_half_a_data_set(tmp_path):
@@ -174,6 +179,11 @@ def test_emps_validation_without_pulses(tmp_path):
         (lambda d: d.update(vir=np.ones((50, 2))), r"'vir' must be a vector"),
         (lambda d: d.update(t=d["t"][::-1]), r"'t' .* strictly increasing"),
         (lambda d: d["qm"].__setitem__((3, 0), np.nan), r"'qm' contains NaN"),
+        (
+            lambda d: d.update(t=np.concatenate([d["t"][:20], d["t"][20:] + 0.5])),
+            r"'t' .* not uniformly sampled: t\[20\] - t\[19\] = 0\.501 s against a median "
+            r"spacing of 0\.001 s",
+        ),
     ],
 )
 def test_emps_malformed_variables(tmp_path, change, pattern):

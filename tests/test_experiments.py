@@ -226,6 +226,22 @@ def test_cli_refuses_a_bad_value_before_running(tmp_path):
     assert not list(out.glob("*.png"))
 
 
+def test_cli_names_experiment_data_path_when_the_benchmark_files_are_missing(tmp_path):
+    """A real-data run without its files stops with exit status 2 and says how a run is
+    given them (`experiment.data_path`), not only the loader's own `path=`."""
+    out = tmp_path / "run"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = _cli(
+        [f"hydra.run.dir={out}", "experiment=emps", f"experiment.data_path={empty}"], cwd=tmp_path
+    )
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "missing data: EMPS benchmark: could not find DATA_EMPS.mat" in proc.stderr
+    assert "experiment.data_path=<folder>" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert json.loads((out / "results.json").read_text())["status"] == "failed"
+
+
 def test_python_m_experiments_composes(tmp_path):
     proc = _cli(["--cfg", "job", "solver=gauss_newton", "experiment.T=100", "seed=3"], REPO, True)
     assert proc.returncode == 0, proc.stderr[-3000:]

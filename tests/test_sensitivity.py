@@ -16,6 +16,7 @@ from jax.flatten_util import ravel_pytree
 import oneshot_jax as oj
 from oneshot_jax.internal import Cost, FitProblem, Params
 from oneshot_jax.internal import OptimistixHeld as _Held
+from oneshot_jax.internal import optimistix_loss as _loss
 from oneshot_jax.internal import optimistix_residuals as _residuals
 
 
@@ -270,6 +271,54 @@ def test_optimistix_bridge_jvp_is_the_closed_form_jacobian(case):
     assert_columns_close(Jt, Jt_cf.reshape(N * R, -1), rtol=1e-12)
     for i in range(N):
         assert_columns_close(Jx.reshape(N, R, N, -1)[i, :, i, :], Jx_cf[i], rtol=1e-12)
+
+
+def test_optimistix_bridge_beyond_the_box_is_the_derivative_of_the_clipped_problem(case):
+    """With bounds, LM and the minimisers get the derivatives of C(P(y)): jax.jacfwd of
+    the residuals and jax.grad of the loss at the clipped point, where some entries of y
+    lie below the box, some above and the rest inside (the clipped ones have zero
+    columns; the unclipped model's Jacobian, which the bridge gave before, has none)."""
+    problem, pt, px, strategy = case
+    p = pt.shape[0]
+    side = np.arange(p) % 3  # 0: below the box, 1: above it, 2: inside
+    width = 0.1 * (1.0 + np.abs(np.asarray(pt)))
+    lower = jnp.asarray(np.where(side == 0, pt + width, pt - width))
+    upper = jnp.asarray(np.where(side == 1, pt - width, pt + width))
+    boxed = eqx.tree_at(
+        lambda q: (q.lower, q.upper), problem, (lower, upper), is_leaf=lambda x: x is None
+    )
+    held = _Held(jnp.zeros(p, bool), pt)
+
+    def clipped(pt, px):
+        return boxed.residuals(Params(jnp.clip(pt, lower, upper), px))[0].reshape(-1)
+
+    @eqx.filter_jit
+    def both(pt, px):
+        def f(pt, px):
+            out = _residuals((pt, px), problem=boxed, held=held, strategy=strategy, beyond=True)
+            return out[:-p]
+
+        def c(pt, px):
+            return _loss((pt, px), problem=boxed, held=held, strategy=strategy, beyond=True)
+
+        def c_ref(pt, px):
+            return boxed.loss(Params(jnp.clip(pt, lower, upper), px))
+
+        return (
+            jax.jacfwd(f, argnums=(0, 1))(pt, px),
+            jax.jacfwd(clipped, argnums=(0, 1))(pt, px),
+            jax.jacfwd(c, argnums=(0, 1))(pt, px),
+            jax.grad(c_ref, argnums=(0, 1))(pt, px),
+        )
+
+    (Jt, Jx), (Jt_ref, Jx_ref), (gt, gx), (gt_ref, gx_ref) = both(pt, px)
+    inside = side == 2
+    assert np.all(np.asarray(Jt)[:, ~inside] == 0.0) and np.all(np.asarray(gt)[~inside] == 0)
+    assert_columns_close(np.asarray(Jt)[:, inside], np.asarray(Jt_ref)[:, inside], rtol=1e-12)
+    Jx, Jx_ref = np.asarray(Jx).reshape(Jx.shape[0], -1), np.asarray(Jx_ref)
+    assert_columns_close(Jx, Jx_ref.reshape(Jx_ref.shape[0], -1), rtol=1e-12)
+    np.testing.assert_allclose(gt, gt_ref, rtol=1e-11, atol=1e-13 * np.abs(gt_ref).max())
+    np.testing.assert_allclose(gx, gx_ref, rtol=1e-11, atol=1e-13 * np.abs(gx_ref).max())
 
 
 def test_inactive_penalty_rows_are_zero_and_active_rows_match():

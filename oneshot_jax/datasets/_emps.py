@@ -104,8 +104,17 @@ def _record(file: Path, with_pulses: bool):
         )
     if with_pulses:  # the test view keeps EMPS_N_INIT outputs for the initial state
         require_length(file, "the record t, qm, qg, vir", d["t"].shape[0], EMPS_N_INIT + 1, 24841)
-    if not np.all(np.diff(d["t"]) > 0):
+    dt = np.diff(d["t"])
+    if not np.all(dt > 0):
         raise DatasetFormatError(f"{file}: variable 't' (time, s) must be strictly increasing.")
+    # The models step at one sampling time: a gap in t would be simulated as one sample.
+    k = int(np.argmax(np.abs(dt - np.median(dt))))
+    if abs(dt[k] - np.median(dt)) > 0.01 * np.median(dt):
+        raise DatasetFormatError(
+            f"{file}: variable 't' (time, s) is not uniformly sampled: t[{k + 1}] - t[{k}] = "
+            f"{dt[k]:.6g} s against a median spacing of {np.median(dt):.6g} s; the EMPS "
+            f"models expect one sampling time."
+        )
     pulses = d.get("pulses_N", np.zeros_like(d["t"]))
     rec = EMPSRecord(t=d["t"], qm=d["qm"], qg=d["qg"], vir=d["vir"], pulses=pulses, file=file)
     return rec, {k: d[k] for k in _SCALARS}

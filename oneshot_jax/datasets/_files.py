@@ -51,7 +51,10 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
     if folder is not None:
         return folder, names
     if not download:
-        raise on_missing(dirs)
+        err = on_missing(dirs)
+        if path is not None and not Path(path).expanduser().exists():
+            err = DatasetNotFoundError(f"path={str(path)!r} does not exist. {err}")
+        raise err
     target = fetch(name, cache_dir=cache_dir, base_url=base_url)
     # The archive may keep the files in a subfolder (e.g. SilverboxFiles/).
     folders = sorted(
