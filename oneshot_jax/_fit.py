@@ -9,6 +9,7 @@ the `FitResult` assembled on the host (`oneshot_jax._assemble`).
 import time
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -70,7 +71,7 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=N
     indices of the states to check, `_stability`) the Jacobians there. Returns what
     `assemble` reads (an `Out`) and those Jacobians (or None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
-    moved = jnp.any(projected != starts.theta)
+    moved = jnp.any(projected != starts.theta, axis=0)  # (p,) entries some start had outside
     starts = Params(projected, starts.x0)
     stages = run(solvers, problem, starts, history_size=history_size, meter=meter, bar_id=bar_id)
     final = stages[-1]
@@ -99,7 +100,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     Returns its output unpacked (an `Out`), the wall time, the counts of parallel
     rollouts and their fallbacks, the Jacobians of `stability_at` and what `meanwhile()`
     returned (host work that does not need the output, done while the compiled call runs),
-    and warns of those fallbacks and of starts projected onto the constraint set."""
+    and warns of those fallbacks."""
     # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
     bar = not isinstance(meter, NoProgress)
     bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
@@ -132,11 +133,36 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
             RuntimeWarning,
             stacklevel=3,  # `fit`'s caller
         )
-    if out.moved:
-        warnings.warn(
-            "theta0 lies outside the constraint set; it was projected onto it.", stacklevel=3
-        )
     return out, wall, diagnostics, jacobians, during
+
+
+def _warn_projected(moved, names, theta0):
+    """Warn that theta0 (a start) lay outside the constraint set, naming the parameters the
+    projection moved; where theta holds a network, say that a scalar bound applies to its
+    weights too."""
+    moved = np.asarray(moved, bool)
+    if not moved.any():
+        return
+    counts = {}
+    for name, m in zip(names, moved):
+        if m:
+            leaf = name.split("[")[0]
+            counts[leaf] = counts.get(leaf, 0) + 1
+    listed = ", ".join(f"{k} ({n})" if n > 1 else k for k, n in list(counts.items())[:6])
+    if len(counts) > 6:
+        listed += f" and {len(counts) - 6} more"
+    msg = (
+        f"theta0 lies outside the constraint set; it was projected onto it: "
+        f"{int(moved.sum())} entries moved, in {listed}."
+    )
+    is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
+    if any(is_module(a) for a in jax.tree_util.tree_leaves(theta0, is_leaf=is_module)):
+        msg += (
+            " A bound given for every parameter (positive(), box(lower=0)) holds a "
+            "network's weights too; bound the physical parameters by name, e.g. "
+            "box(lower={'k': 0.0})."
+        )
+    warnings.warn(msg, stacklevel=3)
 
 
 def fit(
@@ -331,6 +357,7 @@ def fit(
             units=inputs.units,
         ),
     )
+    _warn_projected(out.moved, prepared.names, theta0)
     result = assemble(
         prepared=prepared,
         model=model,

@@ -416,7 +416,9 @@ def test_active_bound_reaches_the_constrained_optimum(tiny, upper_ref, seen, nam
 
 def test_theta0_outside_the_box_is_projected_with_a_warning(tiny, upper_ref, seen):
     theta0 = {"a": np.array([0.5, -0.2]), "b": np.array(0.9)}
-    with pytest.warns(UserWarning, match="outside the constraint set"):
+    with pytest.warns(
+        UserWarning, match=r"outside the constraint set.*2 entries moved, in a, b\.$"
+    ):
         r = oj.fit(
             TINY_REC,
             theta0,

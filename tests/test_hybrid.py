@@ -295,6 +295,30 @@ def sparse_start(u):
     return {**duffing.PHYSICAL_START, "r": Dictionary(feats, 1, scale=rms)}
 
 
+def test_a_bound_for_every_parameter_on_a_hybrid_names_the_network_weights_it_moved():
+    """positive() holds every parameter, a network's weights too: the start's negative
+    weights are clipped. The warning names the leaves the projection moved and says how
+    to bound the physical parameters alone (a plain theta gets no such advice)."""
+    x0, u, z = short_data(N=1, T=40)
+    theta0 = mlp_theta(widths=(4,), perturb=False)
+    with pytest.warns(UserWarning) as record:
+        oj.fit(
+            duffing.MODEL,
+            theta0,
+            x0,
+            u,
+            z,
+            solver=oj.LevenbergMarquardt(max_steps=2),
+            constraints=oj.constraints.positive(),
+        )
+    (msg,) = [str(w.message) for w in record if "outside the constraint set" in str(w.message)]
+    weights = np.concatenate(
+        [np.ravel(a) for a in jax.tree_util.tree_leaves(eqx.filter(theta0["r"], eqx.is_array))]
+    )
+    assert f"{int(np.sum(weights <= 0))} entries moved, in r." in msg
+    assert "box(lower={'k': 0.0})" in msg
+
+
 def test_prox_in_fit_gives_exact_zeros_that_stay_zero_and_reports_c_plus_g():
     u, z, x0, _ = duffing.make_data(0, 200)
     lam = 3e-3
