@@ -200,8 +200,7 @@ def report(result) -> str:
         f"and {states} estimated",
         f"status: {result.status} ({stop})",
         f"loss {float(result.loss):.6e} after {result.num_steps} steps in "
-        f"{_seconds(result.wall_time)} s (wall, compilation included on a configuration's "
-        f"first call)",
+        f"{_seconds(result.wall_time)} s (wall; a first call includes compiling)",
     ]
     if result.validation_loss is not None:
         out.append(f"validation loss {result.validation_loss:.6e} (held-out records)")
