@@ -50,6 +50,7 @@ class Out(NamedTuple):
     step: jax.Array
     decrease: jax.Array
     standard_errors: jax.Array
+    step_test: jax.Array  # whether the optional step test (rtol, atol) fired
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
@@ -99,6 +100,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.step[best],
         m.decrease[best],
         m.standard_errors[best],
+        m.step_test[best],
         None if final.best is None else final.best.score[best],
     )
 
@@ -314,7 +316,16 @@ def assemble(
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
     }
-    if name_of(from_index(int(results[best]))) == "diverged":
+    status = name_of(from_index(int(results[best])))
+    last_solver = prepared.solver[-1] if prepared.solver else {}
+    if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
+        stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
+    if status in ("tol_loss", "tol_grad"):
+        last = out.stages[-1]
+        stop_info[status] = last_solver.get(status)
+        stop_info["loss_at_stop"] = float(last.loss[int(last.rows)])
+        stop_info["grad_norm"] = float(last.grad_norm[int(last.rows)])
+    if status == "diverged":
         # Which was not finite where the solver stopped: the loss, or only its gradient
         # (a model not differentiable there, sqrt(c) at a bound c = 0, say). A loss
         # beyond sqrt(max) is a simulation that blows up: its gradient overflows first.

@@ -17,7 +17,7 @@ from ._simulate import simulate
 
 
 def _g(x):
-    return f"{x:.3g}"
+    return "?" if x is None else f"{x:.3g}"
 
 
 def stop_detail(status: str, info: dict) -> str:
@@ -29,21 +29,39 @@ def stop_detail(status: str, info: dict) -> str:
     at = info.get("at_step")
     known = np.isfinite(fo)
     vs = f"first-order measure {_g(fo)}" + (f" (gtol {_g(gtol)})" if np.isfinite(gtol) else "")
+    step_test = (
+        f"the step test fired (step {_g(step)} relative to the scaled parameters, rtol "
+        f"{_g(info.get('rtol'))}, atol {_g(info.get('atol'))})"
+        if info.get("step_test")
+        else ""
+    )
     if status == "converged" and known:
         if not fo > gtol:
             return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}"
         limit = info.get("roundoff_limit", np.nan)
+        why = step_test or "no step decreases the loss at round-off"
         return (
             f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
-            f"{_g(gtol)}), where the fit stopped for lack of progress (no step decreases "
-            "the loss at round-off, or the step test rtol/atol fired)"
+            f"{_g(gtol)}), where the fit stopped for lack of progress ({why})"
         )
+    if status in ("tol_loss", "tol_grad"):
+        what, value = (
+            ("loss", info.get("loss_at_stop", np.nan))
+            if status == "tol_loss"
+            else ("gradient norm", info.get("grad_norm", np.nan))
+        )
+        out = f"{what} {_g(value)} < {status} {_g(info.get(status, np.nan))}"
+        if known and fo > gtol:
+            out += f", {vs} > gtol: not a stationary point"
+        return out
     if status == "statistically_converged":
         se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
         return f"last step {_g(se)} standard errors <= stol {_g(stol)} (theta rank-deficient, {vs})"
     if status == "stalled":
         # (A first-order solver has no scaled step or linear model: NaN, not shown.)
         tail = vs + " > gtol" if known else "not stationary"
+        if step_test:
+            return f"{step_test}: stalled, {tail}"
         if np.isfinite(step) and np.isfinite(decrease):
             return (
                 f"step {_g(step)} (scaled) with predicted decrease {_g(decrease)}: stalled, {tail}"

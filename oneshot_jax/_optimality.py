@@ -101,18 +101,19 @@ class Measures(NamedTuple):
     """The quantities a stop is tested on, at the returned point (NaN where a solver has no
     such test): the first-order measure, the last step's scaled size (relative to the
     scaled parameters), the decrease of the loss the last step's linear model predicted
-    (relative to the loss), and the last step's size in standard errors
-    (`standard_errors`)."""
+    (relative to the loss), the last step's size in standard errors
+    (`standard_errors`), and whether the optional step test (rtol, atol) fired."""
 
     first_order: jax.Array
     step: jax.Array
     decrease: jax.Array
     standard_errors: jax.Array
+    step_test: jax.Array
 
 
 def no_measures(dtype) -> Measures:
     nan = jnp.array(jnp.nan, dtype)
-    return Measures(nan, nan, nan, nan)
+    return Measures(nan, nan, nan, nan, jnp.array(False))
 
 
 def _measured(problem: FitProblem):

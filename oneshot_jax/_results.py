@@ -29,8 +29,9 @@ class RESULTS(eqx.Enumeration):
         "solver where this one stopped"
     )
     stalled = (
-        "stalled: the step or the predicted decrease reached round-off, but the point is "
-        "not stationary (the first-order measure is above gtol); this is not a solution. "
+        "stalled: the step or the predicted decrease reached round-off (or the optional "
+        "step test rtol/atol fired), but the point is not stationary (the first-order "
+        "measure is above gtol); this is not a solution. "
         "Check the scaling of the problem; bounds that keep the model stable, windows "
         "(multiple shooting) or a better start help"
     )

@@ -109,6 +109,18 @@ def test_the_status_line_shows_the_whole_test_that_fired(fitted):
     statistical stop printed "(rank-deficient Jacobian" and lost the first-order measure)."""
     info = dict(fitted.stop_info, standard_errors=0.008, stol=0.01, first_order=1e-5)
     info.update(zero_gradient=["k"], solver_stop="converged")
+    info.update(tol_loss=1.0, tol_grad=2.0, loss_at_stop=0.5, grad_norm=0.1)
+    for step_test in (False, True):
+        _check_status_lines(fitted, dict(info, step_test=step_test, rtol=0.01, atol=0.0))
+    stat = eqx.tree_at(
+        lambda r: (r.stop_reason, r.stop_info),
+        fitted,
+        (oj.RESULTS.statistically_converged, info),
+    )
+    assert "first-order measure 1e-05 (gtol" in str(stat)
+
+
+def _check_status_lines(fitted, info):
     for name, item in RESULTS_BY_NAME.items():
         result = eqx.tree_at(lambda r: (r.stop_reason, r.stop_info), fitted, (item, info))
         words = oj.RESULTS[result.stop_reason]
@@ -119,12 +131,29 @@ def test_the_status_line_shows_the_whole_test_that_fired(fitted):
         assert ";" not in detail, (name, detail)
         (status,) = [ln for ln in str(result).splitlines() if ln.startswith("status: ")]
         assert status == f"status: {name} ({detail})"
-    stat = eqx.tree_at(
-        lambda r: (r.stop_reason, r.stop_info),
-        fitted,
-        (oj.RESULTS.statistically_converged, info),
-    )
-    assert "first-order measure 1e-05 (gtol" in str(stat)
+
+
+def test_user_thresholds_name_their_test_and_values():
+    """tol_loss / tol_grad (Algorithm 1's epsilon and delta, a success by the user's
+    threshold) show the value, the threshold and, away from a stationary point, the
+    first-order measure; a stop of the optional step test names rtol, not round-off."""
+    x0, u, z = data()
+    start = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    for solver, test in ((oj.Adam(tol_loss=10.0), "tol_loss"), (oj.Adam(tol_grad=1e3), "tol_grad")):
+        r = oj.fit(MODEL, start, x0, u, z, solver=solver)
+        assert r.status == test and r.success and r.num_steps == 0
+        value = r.stop_info["loss_at_stop"] if test == "tol_loss" else r.stop_info["grad_norm"]
+        tol = solver.tol_loss if test == "tol_loss" else solver.tol_grad
+        assert r.stop_info[test] == tol and value < tol
+        what = "loss" if test == "tol_loss" else "gradient norm"
+        (status,) = [ln for ln in str(r).splitlines() if ln.startswith("status: ")]
+        assert status.startswith(f"status: {test} ({what} {value:.3g} < {test} ")
+        assert status.endswith("> gtol: not a stationary point)")
+    r = oj.fit(MODEL, start, x0, u, z, solver=oj.LevenbergMarquardt(rtol=0.05))
+    assert r.status == "stalled" and r.stop_info["step_test"] and r.stop_info["rtol"] == 0.05
+    assert "the step test fired (step " in r.message and "rtol 0.05, atol 0)" in r.message
+    plain = oj.fit(MODEL, start, x0, u, z)
+    assert plain.status == "converged" and "step_test" not in plain.stop_info
 
 
 def test_x0_rows_show_their_standard_errors(fitted):

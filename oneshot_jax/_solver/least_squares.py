@@ -186,7 +186,7 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(nan, nan, nan, nan),
+            Measures(nan, nan, nan, nan, jnp.array(False)),
             jnp.array(False),
             RESULTS.converged,
             jnp.array(False),
@@ -426,6 +426,7 @@ class AbstractLeastSquares(AbstractSolver):
                 nan,
             ),
             se,
+            small_step,
         )
         state = LSQState(
             blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false

@@ -283,7 +283,7 @@ class _AbstractOptax(AbstractSolver):
 
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
-        return Measures(state.first_order, nan, nan, nan)
+        return Measures(state.first_order, nan, nan, nan, jnp.array(False))
 
     def postprocess(self, problem, params, state, result):
         del problem

@@ -271,4 +271,4 @@ class Optimistix(AbstractSolver):
 
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
-        return Measures(state.first_order, nan, nan, nan)
+        return Measures(state.first_order, nan, nan, nan, jnp.array(False))
