@@ -169,8 +169,14 @@ class Aggregate:
         return f"Aggregate(channel={self.channel}, {form}, {len(self.values)} readings)"
 
     def operator(self, T, t=None):
-        """The (m, T) aggregation matrix A of the readings over a record of T samples (time
-        stamps `t` (T,) for `"integral"`/`"time_mean"`, unit spacing without).
+        """The (m, T) aggregation matrix A of the readings over a record of T samples.
+
+        **Arguments:**
+
+        - `T`: the record's number of samples.
+        - `t`: its sample times (T,), needed for `"integral"` and `"time_mean"` (as `fit`
+            integrates them: the record's time stamps, `dt * np.arange(T)` for a
+            `Model.from_ode` with a fixed dt, `np.arange(T)` for a discrete-time model).
 
         **Returns:**
 
@@ -185,6 +191,12 @@ class Aggregate:
                     f"({self.matrix.shape[0]}, {T}), got {self.matrix.shape}."
                 )
             return self.matrix.copy()
+        if t is None and self.kind in ("integral", "time_mean"):
+            raise ValueError(
+                f"`t` is needed for kind={self.kind!r}: the sample times (T,) the fit "
+                "integrates over (the record's time stamps, dt * np.arange(T) for a "
+                "Model.from_ode with a fixed dt, np.arange(T) for a discrete-time model)."
+            )
         ts = np.arange(T, dtype=float) if t is None else np.asarray(t, dtype=float)
         if ts.shape != (T,):
             raise ValueError(f"`t` must have shape ({T},), got {ts.shape}.")
@@ -210,7 +222,8 @@ class Aggregate:
         return A
 
     def predict(self, z, t=None):
-        """The readings predicted from outputs `z` (T, n_z): A @ z[:, channel].
+        """The readings predicted from outputs `z` (T, n_z): A @ z[:, channel], with the
+        sample times `t` (T,) for `"integral"` and `"time_mean"` (see `operator`).
 
         **Returns:**
 
@@ -463,11 +476,13 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     lengths = [T_max] * N if data.lengths is None else list(data.lengths)
     Q = None if data.weight is None else np.asarray(data.weight)
     records = _per_record(aggregate, data.batched, N)
-    if t is not None and not data.batched:
-        t = [t]
-    if t is None and isinstance(model.step, ODE_STEPS) and getattr(model.step, "dt", None):
-        # A continuous-time model with a fixed dt: an integral is over time, t_k = k dt.
-        t = [model.step.dt * np.arange(n) for n in lengths]
+    if t is not None and (not data.batched or (not isinstance(t, list) and np.ndim(t) == 1)):
+        t = [t] * N  # one record, or N records sharing one (T,) time axis
+    if t is None:
+        # A continuous-time model with a fixed dt integrates over t_k = k dt; a discrete
+        # model over unit spacing.
+        dt = getattr(model.step, "dt", None) if isinstance(model.step, ODE_STEPS) else None
+        t = [(dt or 1.0) * np.arange(n) for n in lengths]
     per_record = []
     for i, aggs in enumerate(records):
         where = f"[{i}]" if data.batched else ""

@@ -399,7 +399,9 @@ def _check_model(model, theta, x0, u, lead, dtype):
     return model, z_hat
 
 
-def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None) -> Data:
+def check_data(
+    model, theta, x0, u, z=None, weight=None, missing="raise", t=None, readings=False
+) -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
     Single trajectory: x0 (n_x,), u (T, n_u), z (T, n_z). Several trajectories sharing
@@ -409,6 +411,8 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
     `missing="mask"` takes NaN entries of z as missing samples (masked); with "raise"
     (default) they are an error. `t`, the sample times of a timed model's records
     (`_timing.check_times`), becomes the intervals appended to u as its last column.
+    `readings`: aggregated readings (`_aggregate`) come with z, so a z without any point
+    sample is not refused here (the augmented data are checked again).
     """
     if missing not in ("raise", "mask"):
         raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
@@ -501,7 +505,7 @@ def check_data(model, theta, x0, u, z=None, weight=None, missing="raise", t=None
             if np.any(np.isinf(zn)):
                 raise ValueError("`z` contains inf values (NaN marks a missing sample).")
             z, observed = fill_missing(zn)
-            if not observed.any():
+            if not observed.any() and not readings:  # (readings: aggregates measure it)
                 raise ValueError("`z` is NaN everywhere: no output sample is measured.")
         else:
             check_finite(

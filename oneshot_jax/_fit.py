@@ -306,6 +306,7 @@ def fit(
         history=history,
         units=units,
         t=t,
+        readings=aggregate is not None,
     )
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
         agg = augment(inputs.data, aggregate, model, x0, missing, t=t)

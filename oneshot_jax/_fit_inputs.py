@@ -101,6 +101,7 @@ def check_inputs(
     history,
     units,
     t=None,
+    readings=False,
 ) -> FitInputs:
     """`fit`'s arguments checked, in the order of its errors: the keywords, then the data
     (`check_data`: one record cut into windows with `window`; the first start's theta0
@@ -153,7 +154,7 @@ def check_inputs(
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
         starts = None
-        data = check_data(model, theta_first, x0, u, z, weight, missing, t)
+        data = check_data(model, theta_first, x0, u, z, weight, missing, t, readings)
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
         if any(isinstance(s, AbstractLeastSquares) for s in solvers):

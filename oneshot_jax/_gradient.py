@@ -135,7 +135,7 @@ def value_and_grad(
     like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
-    data = check_data(model, theta, x0, u, z, weight, missing, t)
+    data = check_data(model, theta, x0, u, z, weight, missing, t, aggregate is not None)
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")

@@ -147,7 +147,7 @@ def loss(
 
     The scalar C.
     """
-    data = check_data(model, theta, x0, u, z, weight, missing, t)
+    data = check_data(model, theta, x0, u, z, weight, missing, t, aggregate is not None)
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")

@@ -262,7 +262,9 @@ def test_operator_kinds():
     np.testing.assert_allclose(
         agg.operator(5, t), [[0.5, 1.5, 1.0, 0, 0], [0, 0, 0.25, 1.5, 1.25]], rtol=1e-15
     )
-    np.testing.assert_allclose(agg.operator(5), [[0.5, 1, 0.5, 0, 0], [0, 0, 0.5, 1, 0.5]])
+    np.testing.assert_allclose(
+        agg.operator(5, np.arange(5)), [[0.5, 1, 0.5, 0, 0], [0, 0, 0.5, 1, 0.5]]
+    )
     tm = oj.Aggregate(0, [(0, 3)], [1.0], kind="time_mean").operator(5, t)
     np.testing.assert_allclose(tm, [[0.5 / 3, 1.5 / 3, 1.0 / 3, 0, 0]], rtol=1e-15)
     np.testing.assert_allclose(
@@ -287,8 +289,56 @@ def test_an_integral_of_a_fixed_dt_ode_model_is_over_time():
     agg = oj.Aggregate(1, [(0, 11)], [reading], kind="integral")
     C = oj.loss(model, truth, x0, u, z, missing="mask", aggregate=agg)
     assert float(C) < 1e-25
-    # Stand-alone, `predict` takes the time stamps (unit spacing without).
+    # Stand-alone, `predict` takes the time stamps; without them it cannot know dt (over
+    # unit spacing it gave 10 times the reading): refused, naming t.
     np.testing.assert_allclose(agg.predict(np.asarray(xs), 0.1 * np.arange(30)), [reading])
+    for kind in ("integral", "time_mean"):
+        with pytest.raises(ValueError, match=rf"`t` is needed for kind='{kind}'"):
+            oj.Aggregate(1, [(0, 11)], [reading], kind=kind).predict(np.asarray(xs))
+    assert oj.Aggregate(1, [(0, 11)], [reading], kind="mean").predict(np.asarray(xs)).shape == (1,)
+
+
+def _timed_first_order():
+    rhs = lambda x, u, th: -th["a"] * x + th["b"] * u  # noqa: E731
+    T = 60
+    t = np.cumsum(np.r_[0.0, np.random.default_rng(0).uniform(0.05, 1.0, T - 1)])
+    u = (np.sin(0.5 * t) > 0).astype(float)[:, None]
+    return oj.Model.from_ode(rhs, dt=None), {"a": 0.5, "b": 2.0}, t, u
+
+
+def test_an_output_measured_only_in_aggregate_is_identified():
+    """A meter read once per period: z all NaN, the output known only through its
+    time-mean readings. Accepted (it was refused as "NaN everywhere") and identified; with
+    neither samples nor readings the augmented data are still refused."""
+    model, truth, t, u = _timed_first_order()
+    _, y = oj.simulate(model, truth, np.array([1.0]), u, t=t)
+    spans = [(a, a + 6) for a in range(0, 60, 6)]
+    values = oj.Aggregate(0, spans, np.zeros(10), kind="time_mean").predict(y, t)
+    agg = oj.Aggregate(0, spans, np.asarray(values), kind="time_mean")
+    z = np.full((60, 1), np.nan)
+    kw = dict(t=t, missing="mask", aggregate=agg)
+    assert float(oj.loss(model, truth, np.array([1.0]), u, z, **kw)) < 1e-25
+    r = oj.fit(model, {"a": 0.6, "b": 1.5}, np.array([1.0]), u, z, estimate_x0=False, **kw)
+    assert r.success
+    np.testing.assert_allclose([r.theta["a"], r.theta["b"]], [0.5, 2.0], rtol=1e-8)
+    empty = oj.Aggregate(0, spans, np.full(10, np.nan), kind="time_mean")
+    with pytest.raises(ValueError, match="NaN everywhere"):
+        oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask", aggregate=empty)
+    with pytest.raises(ValueError, match="NaN everywhere"):
+        oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask")
+
+
+def test_records_sharing_one_time_axis_take_aggregates():
+    """N records with one (T,) time axis, as without aggregates (it raised an IndexError):
+    the same loss as the axis given per record."""
+    model, truth, t, u = _timed_first_order()
+    x0, U = np.array([[0.0], [0.5]]), np.stack([u, 1 - u])
+    _, z = oj.simulate(model, truth, x0, U, t=t)
+    agg = oj.Aggregate(0, [(0, 10), (20, 35)], [1.0, 2.0], kind="time_mean")
+    kw = dict(missing="mask", aggregate=[agg, agg])
+    shared = oj.loss(model, truth, x0, U, np.asarray(z), t=t, **kw)
+    each = oj.loss(model, truth, x0, U, np.asarray(z), t=np.stack([t, t]), **kw)
+    assert float(shared) == float(each) > 0
 
 
 def test_fit_recovers_parameters_from_aggregates(tmp_path):
