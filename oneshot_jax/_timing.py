@@ -31,7 +31,7 @@ def _is_tracer(a) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(a))
 
 
-def _as_times(a, name):
+def as_times(a, name):
     """One record's time stamps as a 1-D float64 NumPy array (or a traced array)."""
     if _is_tracer(a):
         return a
@@ -55,7 +55,7 @@ def _as_times(a, name):
 
 def _intervals(t, name, T):
     """t[k+1] - t[k] of one record of T samples, with 0 appended: (T,)."""
-    t = _as_times(t, name)
+    t = as_times(t, name)
     if t.ndim != 1 or t.shape[0] != T:
         raise ValueError(
             f"`{name}` must have shape ({T},): one time stamp per sample of `u` (T = {T}), "
@@ -69,8 +69,8 @@ def _intervals(t, name, T):
     if np.any(dt <= 0):
         k = int(np.flatnonzero(dt <= 0)[0])
         raise ValueError(
-            f"`{name}` must be strictly increasing: {name}[{k + 1}] = {t[k + 1]!r} does not "
-            f"come after {name}[{k}] = {t[k]!r}."
+            f"`{name}` must be strictly increasing: {name}[{k + 1}] = {float(t[k + 1])!r} "
+            f"does not come after {name}[{k}] = {float(t[k])!r}."
         )
     return np.concatenate([dt, np.zeros(1)])
 
@@ -129,7 +129,7 @@ def check_times(model, t, shape, lengths, dtype, step=None):
                 )
             parts = [_intervals(t_i, f"t[{i}]", T) for i, t_i in enumerate(t)]
         else:
-            arr = _as_times(t, "t")
+            arr = as_times(t, "t")
             if arr.ndim == 1:  # the same time stamps for every trajectory
                 parts = [_intervals(arr, "t", T)] * shape[0]
             elif arr.shape[0] != shape[0] or arr.ndim != 2:
@@ -165,13 +165,10 @@ def split_intervals(model, u):
 
 def head_times(t, T, n):
     """The first n of one record's time stamps `t` (T,) (`estimate_x0` uses the head of a
-    record), after checking that `t` has one stamp per sample of u; None stays None."""
+    record), after checking all of `t` as `predict` does (one stamp per sample of u,
+    finite, strictly increasing); None stays None."""
     if t is None:
         return None
-    arr = _as_times(t, "t")
-    if arr.ndim != 1 or arr.shape[0] != T:
-        raise ValueError(
-            f"`t` must have shape ({T},): one time stamp per sample of `u` (T = {T}), "
-            f"got shape {arr.shape}."
-        )
+    arr = as_times(t, "t")
+    _intervals(arr, "t", T)
     return arr[:n]

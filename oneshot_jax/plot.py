@@ -17,6 +17,7 @@ import numpy as np
 from . import metrics
 from ._fit_result import FitResult
 from ._initial_state import Prediction
+from ._timing import as_times as _as_times
 
 __all__ = ["compare", "resid"]
 
@@ -85,7 +86,9 @@ def _model_output(i, model, u, z, n, t=None):
         if u is None:
             raise ValueError(f"`u` is required to simulate {name}, a FitResult.")
         t = t if getattr(model.model, "timed", False) else None
-        zhat = model.predict(u, z[:n], t=t).z if n else model.simulate(u, t=t)[1]
+        # Missing samples of the head (NaN) are left out of x0's fit, as of the FIT.
+        gaps = {"missing": "mask"} if n and np.isnan(z[:n]).any() else {}
+        zhat = model.predict(u, z[:n], t=t, **gaps).z if n else model.simulate(u, t=t)[1]
         if not n:
             _warn_other_record(name, model, np.asarray(zhat), z)
     elif isinstance(model, Prediction):
@@ -176,7 +179,7 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         t = np.arange(T) * (1.0 if Ts is None else float(Ts))
         xlabel = "sample" if Ts is None else "time (s)"
     else:
-        t = np.asarray(t, dtype=np.float64)
+        t = _as_times(t, "t")
         if t.shape != (T,):
             raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
         xlabel = "time"

@@ -403,6 +403,33 @@ def test_noise_free_data_end_as_a_zero_residual_success():
     assert r.theta["k"] == pytest.approx(4.0, rel=1e-9)
 
 
+@pytest.mark.parametrize("gap", [False, True])
+def test_a_zero_residual_ends_when_its_steps_reach_round_off(gap):
+    """Noise-free data of a state starting at 0 (x0[1] = 0): at a zero residual the loss
+    kept falling by round-off (1e-33 to 1e-36) with accepted steps of 1e-21 of the
+    scaled parameters, and LM ran to max_steps_reached (a failure). A step below
+    round-off of the parameters ends the fit, as a zero_residual success; with a masked
+    sample as without."""
+    rhs = lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] - 0.3 * x[1] + u[0]])  # noqa: E731
+    model = oj.Model.from_ode(rhs, dt=0.3)
+    u = np.sin(0.3 * np.arange(60))[:, None]
+    _, z = oj.simulate(model, {"k": 2.0}, np.array([0.5, 0.0]), u)
+    z = np.asarray(z).copy()
+    if gap:
+        z[3, 0] = np.nan
+    r = oj.fit(
+        model,
+        {"k": 1.8},
+        np.array([0.5, 0.0]),
+        u,
+        z,
+        missing="mask",
+        solver=oj.LevenbergMarquardt(max_steps=40),
+    )
+    assert r.status == "zero_residual" and r.num_steps < 20, r.message
+    assert r.theta["k"] == pytest.approx(2.0, rel=1e-13)
+
+
 def _kelvin_model():
     """A lightly damped oscillator measured as a temperature in kelvin (300 + 0.05 x) and
     in float32: its outputs' offset is 10^4 times their variation."""
@@ -472,7 +499,8 @@ def test_the_step_test_ends_a_fit_as_stalled_unless_first_order_holds():
     r = _fit(problem, oj.LevenbergMarquardt(rtol=1e-2))
     # A step of 1 % of the scaled parameters ends the fit long before the optimum.
     assert r.status == "stalled" and not r.success, r.message
-    assert r.message.startswith("step ") and "> gtol" in r.message
+    assert r.message.startswith("the step test fired (step ") and "> gtol" in r.message
+    assert r.stop_info["step_test"] and r.stop_info["rtol"] == 1e-2
 
 
 @pytest.mark.parametrize("solver", [oj.LevenbergMarquardt, oj.GaussNewton])

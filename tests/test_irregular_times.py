@@ -408,6 +408,22 @@ def test_bad_t_names_t(bad, error, match):
         oj.simulate(timed_model("zoh", None, 2), THETA, x0, u, t=bad(t))
 
 
+def test_estimate_x0_checks_the_whole_t_as_predict_does():
+    """estimate_x0 uses the head of t but checks all of it, as predict does (it accepted a
+    t that predict refused); the message shows plain numbers, not NumPy reprs."""
+    t, u, x0, z = record()
+    model = timed_model("zoh", None, 2)
+    bad = t.copy()
+    bad[8] = bad[6]
+    msg = rf"`t` must be strictly increasing: t\[8\] = {float(bad[8])!r} does not come after"
+    for call in (
+        lambda: oj.estimate_x0(model, THETA, u, z, n=4, t=bad),
+        lambda: oj.predict(model, THETA, u, z, 4, t=bad),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            call()
+
+
 def test_bad_batched_t():
     t, u, x0, _ = record(N=2)
     model = timed_model("zoh", None, 2)

@@ -217,6 +217,22 @@ def test_compare_figure(fitted):
     assert ax.get_xlabel() == "time (s)"
 
 
+def test_compare_predicts_from_a_head_with_missing_samples(fitted):
+    """A NaN (a lost sample) in the first n outputs is left out of x0's fit, as of the FIT
+    (compare told the user to pass missing="mask", which it does not take); its FIT is
+    that of `predict(..., missing="mask")`."""
+    model, u, z, result = fitted
+    gappy = z.copy()
+    gappy[[3, 11]] = np.nan
+    n = 20
+    fig = oj.plot.compare(gappy, result, u=u, n=n)
+    pred = result.predict(u, gappy[:n], missing="mask")
+    fit = 100 * (1 - np.linalg.norm(pred.z[n:] - z[n:]) / np.linalg.norm(z[n:] - z[n:].mean()))
+    assert f"model: FIT {fit:.2f} %" in _legend_texts(fig.axes[0])
+    with pytest.raises(TypeError, match="`t` must be an array of sample times"):
+        oj.plot.compare(z, result, u=u, t="abc")
+
+
 def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
     """Without `n` a FitResult starts from its fitted x0: on its own data silently, on a
     new record with a warning that names `n` (MATLAB's compare estimates x0)."""
