@@ -23,7 +23,7 @@ from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run
 from ._jit import jit
-from ._parallel._report import counting
+from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
 from ._stability import (
@@ -132,6 +132,13 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
             "exact; see FitResult.diagnostics).",
             RuntimeWarning,
             stacklevel=3,  # `fit`'s caller
+        )
+    if counts["unconverged_rollouts"]:
+        warnings.warn(
+            f"{counts['unconverged_rollouts']} of {counts['parallel_rollouts']} parallel "
+            f"rollouts: {UNCONVERGED} The fit's result is not reliable.",
+            RuntimeWarning,
+            stacklevel=3,
         )
     return out, wall, diagnostics, jacobians, during
 

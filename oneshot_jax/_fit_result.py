@@ -196,8 +196,10 @@ class FitResult(eqx.Module):
     - `validation_loss`: with `fit(validation=...)`, the lowest validation loss (that of
         the returned iterate); else None.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
-        strategy, `parallel_rollouts` and `sequential_fallbacks` (rollouts that did not
-        converge in parallel and were computed sequentially, with the same result).
+        strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not
+        converge in parallel and were computed sequentially, with the same result) and
+        `unconverged_rollouts` (with `ParallelInTime(fallback=False)`: rollouts that kept
+        Newton's best iterate, not the model's states; `fit` warns).
     """
 
     theta: Any

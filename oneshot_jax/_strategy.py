@@ -299,7 +299,8 @@ class ParallelInTime(AbstractStrategy):
     - `rtol`: convergence tolerance on max|increment| / max|x| (None: 256 eps).
     - `damping`: ELK's initial Levenberg-Marquardt lambda (larger: shorter, safer steps).
     - `fallback`: roll out sequentially where the parallel iterations do not converge
-        (default). With False such a chunk holds its best iterate.
+        (default). With False such a chunk holds its best iterate, whose states (and the
+        loss and gradient from them) are not the model's: a RuntimeWarning says so.
 
     The matrix-free products of the least-squares solvers' conjugate-gradient solve stay
     sequential (`VJP()`).

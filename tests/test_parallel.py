@@ -578,6 +578,24 @@ def test_a_fallback_is_reported():
     assert r.diagnostics["sequential_fallbacks"] >= 1
 
 
+def test_a_rollout_kept_without_fallback_is_reported():
+    """With fallback=False a chaotic map's rollout keeps Newton's best iterate, whose loss
+    is not the model's (0.38 against 0.18 in an audit): a warning outside fit, a count and
+    a warning inside it (it was silent)."""
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    model = oj.Model(step)
+    u = jnp.zeros((T, 1))
+    z = np.asarray(oj.simulate(model, theta, x0, u)[1])
+    kept = oj.ParallelInTime(fallback=False)
+    with pytest.warns(RuntimeWarning, match=r"kept Newton's best iterate"):
+        C = oj.loss(model, theta, x0, u, z, strategy=kept)
+    assert float(C) > 1e-3  # not the model's loss, which is 0 on its own outputs
+    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+        r = oj.fit(model, theta, x0, u, z, fixed=True, solver=oj.Adam(max_steps=2, strategy=kept))
+    assert r.diagnostics["unconverged_rollouts"] >= 1
+    assert r.diagnostics["sequential_fallbacks"] == 0
+
+
 def test_parallel_alias_equals_the_object_bit_for_bit():
     model, theta, x0, u, z, weight, penalty, pw = case("motor")
     kw = dict(weight=weight, penalty=penalty, penalty_weight=pw)

@@ -1,9 +1,11 @@
 """Reporting the sequential fallback of a parallel rollout to the host.
 
 A parallel rollout that does not converge falls back to the sequential loop: the states
-are the same, only slower. The compiled code reports each rollout (and whether it fell
-back) by a host callback. Outside `fit` a fallback is a warning; `fit` counts them over
-its run and reports the counts in `FitResult.diagnostics`.
+are the same, only slower. With `ParallelInTime(fallback=False)` it keeps Newton's best
+iterate instead, whose states, loss and gradient are not the model's. The compiled code
+reports each rollout (whether it fell back, whether it converged) by a host callback.
+Outside `fit` each is a warning; `fit` counts them over its run, reports the counts in
+`FitResult.diagnostics` and warns.
 """
 
 import threading
@@ -22,7 +24,7 @@ class counting:
     warning (`fit` wraps its compiled call in it)."""
 
     def __enter__(self):
-        self.counts = {"parallel_rollouts": 0, "sequential_fallbacks": 0}
+        self.counts = {"parallel_rollouts": 0, "sequential_fallbacks": 0, "unconverged_rollouts": 0}
         with _LOCK:
             _STACK.append(self.counts)
         return self.counts
@@ -34,13 +36,25 @@ class counting:
         return False
 
 
-def _host(fallback):
+UNCONVERGED = (
+    "the parallel rollout did not converge and `ParallelInTime(fallback=False)` kept "
+    "Newton's best iterate: its states, and the loss and gradient computed from them, are "
+    "not those of the model. Use the default fallback=True (the sequential loop), or the "
+    "sequential strategy, for these dynamics."
+)
+
+
+def _host(fallback, converged):
     fallback = np.asarray(fallback).reshape(-1)
+    kept = ~np.asarray(converged).reshape(-1) & ~fallback  # the best iterate, not the model's
     with _LOCK:
         if _STACK:
             _STACK[-1]["parallel_rollouts"] += int(fallback.size)
             _STACK[-1]["sequential_fallbacks"] += int(np.sum(fallback))
+            _STACK[-1]["unconverged_rollouts"] += int(np.sum(kept))
             return
+    if np.any(kept):
+        warnings.warn(UNCONVERGED, RuntimeWarning, stacklevel=2)
     if np.any(fallback):
         warnings.warn(
             "the parallel rollout did not converge (unstable or chaotic dynamics, or a "
@@ -52,5 +66,6 @@ def _host(fallback):
 
 
 def report(info):
-    """Send a `RolloutInfo`'s fallback flag to the host (inside compiled code)."""
-    jax.debug.callback(_host, info.fallback)
+    """Send a `RolloutInfo`'s fallback and convergence flags to the host (inside compiled
+    code)."""
+    jax.debug.callback(_host, info.fallback, info.converged)
