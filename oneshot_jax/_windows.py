@@ -48,7 +48,8 @@ class Windows(eqx.Module):
     - `count`: take this many of them, spread evenly over the record (the first and the
         last included). Not with `every`.
     - `starts`: the windows' first samples, given (sorted, each window within the
-        record; windows may overlap). Not with `every` or `count`.
+        record; windows may overlap, but the standard errors then count a sample once per
+        window it lies in and are too small: `fit` warns). Not with `every` or `count`.
 
     The windows that start at sample 0 starts from `fit`'s `x0`; every other window's
     starting state is read off z where the model observes its whole state, and
@@ -147,6 +148,17 @@ def cut(data, window, x0_windows=None):
             f"the last {T - covered} samples do not fill a window and are dropped.", stacklevel=4
         )
     rows = starts[:, None] + np.arange(length)[None, :]  # (N, length) sample indices
+    copies = np.bincount(rows.ravel(), minlength=T)
+    if copies.max() > 1:
+        mean = float(copies.sum() / np.count_nonzero(copies))
+        warnings.warn(
+            f"the windows overlap: a sample lies in up to {int(copies.max())} windows "
+            f"({mean:.3g} on average). The covariance counts each copy as an independent "
+            f"observation, so the standard errors are too small, by about a factor "
+            f"sqrt({mean:.3g}) = {np.sqrt(mean):.3g}; windows that do not overlap give "
+            "honest ones.",
+            stacklevel=4,
+        )
 
     def take(a):
         a = np.asarray(a)
