@@ -316,6 +316,12 @@ def assemble(
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
     }
+    if problem.lower is not None and free:  # entries the box holds (`FitResult.__str__`)
+        p = np.asarray(theta_flat)[list(free)]
+        lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
+        at = ((p <= lo) & np.isfinite(lo)) | ((p >= hi) & np.isfinite(hi))
+        if at.any():
+            stop_info["at_bound"] = [n for n, a in zip(names, at) if a]
     status = name_of(from_index(int(results[best])))
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances

@@ -143,6 +143,33 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     return out, wall, diagnostics, jacobians, during
 
 
+def _warn_unequal_noise(residuals, weight, std):
+    """Warn where the weighted residuals of the outputs differ in variance by more than a
+    factor of 10: the covariance pools one noise level sigma^2 over all outputs, which is
+    the Cramer-Rao bound only for a weight Q proportional to the inverse noise variance."""
+    e = np.asarray(residuals, dtype=np.float64)
+    n_z = e.shape[-1]
+    finite = [np.isfinite(s).any() for s in jax.tree_util.tree_leaves(std)]
+    if n_z < 2 or not any(finite):
+        return
+    e = e.reshape(-1, n_z)
+    q = np.ones(n_z) if weight is None else np.asarray(weight, dtype=np.float64)
+    q = np.diag(q) if q.ndim == 2 else q
+    with np.errstate(all="ignore"):
+        var = np.array([np.nanmean(e[:, j] ** 2) * q[j] for j in range(n_z)])
+    var = var[np.isfinite(var) & (q > 0)]
+    if var.size < 2 or var.min() <= 0 or var.max() <= 10 * var.min():
+        return
+    warnings.warn(
+        f"the weighted residuals of the outputs differ in variance by a factor "
+        f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
+        "outputs, so they hold only where `weight` is about 1 / (each output's noise "
+        "variance); refit with such a weight, e.g. weight=1 / "
+        "np.nanmean(result.residuals**2, axis=0) for one record (see the uncertainty guide).",
+        stacklevel=3,
+    )
+
+
 def _warn_projected(moved, names, theta0):
     """Warn that theta0 (a start) lay outside the constraint set, naming the parameters the
     projection moved; where theta holds a network, say that a scalar bound applies to its
@@ -381,6 +408,7 @@ def fit(
     result = flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)
     if aggregate is not None:
         result = agg.restore(result)
+    _warn_unequal_noise(result.residuals, weight, result.std)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, stacklevel=2)
     elif aggregate is not None:

@@ -228,4 +228,20 @@ def report(result) -> str:
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
     out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {float(result.metrics['aic']):.4g}")
+    at_bound = (result.stop_info or {}).get("at_bound")
+    if at_bound:
+        listed = ", ".join(at_bound[:8]) + (
+            f" and {len(at_bound) - 8} more" if len(at_bound) > 8 else ""
+        )
+        out.append(
+            f"  at a bound: {listed} (the intervals ignore the bound, which cuts the "
+            "estimate's distribution)"
+        )
+    if result.window_starts is not None:
+        # Multiple shooting restarts every window from its own fitted x0: the model's own
+        # open-loop fit of the record can be far lower.
+        out.append(
+            f"  (over the {len(result.window_starts)} windows, each from its own fitted x0: "
+            "not a simulation of the whole record; see result.simulate or result.predict)"
+        )
     return "\n".join(out)

@@ -154,7 +154,8 @@ class FitResult(eqx.Module):
         (compilation included on the first call of a configuration), without the input
         checks.
     - `history`: a `FitHistory` of the iterates.
-    - `residuals`: e = zhat - z, the shape of `z`.
+    - `residuals`: e = zhat - z, the shape of `z`; (n_windows, window, n_z) for a fit
+        with `window=` (each window simulated from its own fitted x0).
     - `names`: a name per free parameter (`"k"`, `"I[2]"`, `"net.layers.0.weight[1, 3]"`).
     - `fixed`: a flat boolean mask over theta's parameter entries (True where fixed).
     - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta (J the data-residual
@@ -168,7 +169,11 @@ class FitResult(eqx.Module):
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
     - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries.
-    - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, on the fitted data.
+    - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, on the fitted data:
+        pooled over all its records (MATLAB's `compare` reports one per experiment), over
+        the windows of a fit with `window=` (each from its own fitted x0, so not the
+        model's open-loop fit of the whole record: `simulate` or `predict` that). The
+        AIC counts the estimated x0 entries as parameters.
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
