@@ -9,6 +9,7 @@ library's `simulate`, and optimality is checked against costs written here.
 """
 
 import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
