@@ -338,8 +338,8 @@ def main():
     load1 = os.getloadavg()
 
     print(
-        f"Chain of damped Duffing oscillators (RK4, dt = 0.05), {jnp.dtype(dtype).name} "
-        f"(the header's float64 aside), backend {jax.default_backend()}. Median of "
+        f"Chain of damped Duffing oscillators (RK4, dt = 0.05), computed in "
+        f"{jnp.dtype(dtype).name}, backend {jax.default_backend()}. Median of "
         f"{args.repeats} interleaved samples; load average {load0[0]:.1f} -> {load1[0]:.1f}; "
         f"{wall:.0f} s in all. {conditions()}\n"
     )

@@ -15,7 +15,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import re
 import statistics
+import subprocess
 import sys
 import time
 from importlib.metadata import PackageNotFoundError, version
@@ -111,15 +113,44 @@ def versions(extra=()) -> dict:
     return out
 
 
+def commit() -> str:
+    """The checkout's commit (short hash, "+changes" where the library or the benchmarks
+    differ from it), or "" outside a git checkout."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "oneshot_jax", "benchmarks"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return ""
+    if head.returncode:
+        return ""
+    return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
+def _shown(cmd: str) -> str:
+    """The command as the docs show it: without `--json PATH` (a file of the run)."""
+    return re.sub(r"\s--json\s+\S+", "", cmd)
+
+
 def conditions(extra_versions=(), argv=None) -> str:
-    """One paragraph: hardware, float64, software versions and the command line."""
+    """One paragraph: hardware, float64, software versions with the commit, and the
+    command line (without its `--json` output path)."""
     argv = sys.argv if argv is None else argv
     script = os.path.relpath(os.path.abspath(argv[0]), os.getcwd()) if argv else "?"
-    cmd = " ".join(["python", script, *argv[1:]])
+    cmd = _shown(" ".join(["python", script, *argv[1:]]))
     dev = jax.devices()[0]
     hw = f"{cpu_name()}, {os.cpu_count()} CPU cores" if dev.platform == "cpu" else dev.device_kind
     vers = ", ".join(f"{k} {v}" for k, v in versions(extra_versions).items())
-    return f"Hardware: {hw} ({dev.platform}), float64. Versions: {vers}. Command: `{cmd}`."
+    at = commit()
+    at = f" (commit {at})" if at else ""
+    return f"Hardware: {hw} ({dev.platform}), float64. Versions: {vers}{at}. Command: `{cmd}`."
 
 
 def runs(paths, describe):
@@ -128,5 +159,8 @@ def runs(paths, describe):
     for path in paths:
         with open(path) as f:
             run = json.load(f)
-        print(f"- `{os.path.basename(path)}`: {describe(run)}. {run['conditions']}")
+        shown = _shown(run["conditions"]).replace(
+            "oneshot_jax not installed", "oneshot_jax from its source tree (version not recorded)"
+        )
+        print(f"- `{os.path.basename(path)}`: {describe(run)}. {shown}")
         yield run

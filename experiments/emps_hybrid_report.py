@@ -98,11 +98,9 @@ def markdown(res) -> str:
         "friction curves below.",
         "",
         "The joint Levenberg-Marquardt stage ends at its step budget on a network whose "
-        "Jacobian is ill-conditioned, and where it ends depends on round-off: recent "
-        "versions of the library gave this configuration test RMSEs from 6.2 to 10.0 mm, "
-        "and a change of XLA's code generation alone (the same steps to the last digits) "
-        "moved it from 7.9 to 10.0 mm. The [friction models fitted for the open-loop "
-        "protocol](emps_friction.md) score better with physics alone.",
+        "Jacobian is ill-conditioned, so where it ends, and the test RMSE, depend on "
+        "round-off (the machine, the versions of JAX and XLA). The [friction models fitted "
+        "for the open-loop protocol](emps_friction.md) score better with physics alone.",
         "",
         f"The run took {res['total_time_s']:.0f} s.",
         "",
