@@ -251,6 +251,7 @@ def assemble(
     multistart,
     diagnostics=None,
     window_starts=None,
+    n_u=None,
 ) -> FitResult:
     """The `FitResult` of the best start, on the host, from the compiled call's `Out`
     (NumPy arrays) and what `prepare` formed."""
@@ -369,4 +370,5 @@ def assemble(
         units=prepared.units,
         validation_loss=None if out.validation_loss is None else float(out.validation_loss),
         window_starts=None if window_starts is None else np.asarray(window_starts),
+        n_u=n_u,
     )

@@ -403,6 +403,7 @@ def fit(
         multistart=inputs.n_starts is not None,
         diagnostics=diagnostics,
         window_starts=inputs.window_starts,
+        n_u=int(np.shape(u[0] if isinstance(u, (list, tuple)) else u)[-1]),
     )
     strategy = getattr(inputs.solvers[-1], "strategy", "auto")
     result = flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)

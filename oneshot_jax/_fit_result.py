@@ -233,6 +233,23 @@ class FitResult(eqx.Module):
     units: dict = eqx.field(default_factory=dict)
     validation_loss: float | None = None
     window_starts: np.ndarray | None = None
+    n_u: int | None = eqx.field(static=True, default=None)
+
+    def _check_u(self, u):
+        """Refuse inputs with another number of columns than the fitted data's."""
+        if self.n_u is None or not np.ndim(u) or isinstance(u, (list, tuple)):
+            return
+        shape = np.shape(u)
+        if shape[-1] != self.n_u:
+            hint = (
+                " (is it transposed? u is (T, n_u))"
+                if len(shape) >= 2 and shape[-2] == self.n_u
+                else ""
+            )
+            raise ValueError(
+                f"`u` must have n_u = {self.n_u} input columns, as the fitted data had; got "
+                f"shape {shape}{hint}."
+            )
 
     @property
     def success(self) -> bool:
@@ -278,6 +295,7 @@ class FitResult(eqx.Module):
                 "this result holds no model (it was loaded without one): pass "
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.simulate`."
             )
+        self._check_u(u)
         if x0 is None:
             x0 = self.x0
             if self.window_starts is not None and np.ndim(u) == 2:
@@ -317,6 +335,7 @@ class FitResult(eqx.Module):
                 "this result holds no model (it was loaded without one): pass "
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
             )
+        self._check_u(u)
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
         if kwargs.get("x0") is None and not self.model.observes_state:
@@ -356,19 +375,24 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     **Arguments:**
 
     - `path`: the `.npz` file.
-    - `model`: the `Model`, for `FitResult.simulate` (models are not saved).
+    - `model`: the `Model`, for `FitResult.simulate` (models are not saved). It must match
+        what the file records of the fitted one (a `Model.from_ode`'s dt, method,
+        substeps and input): a ValueError names a difference.
     - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
         equinox modules or other nodes that the file's JSON cannot describe; its
         non-numeric parts are put back around the loaded arrays. It must match the saved
         theta in its leaves' shapes, the parameters' names, and what the file records
-        of the rest in words (an activation function's name, a module's static fields):
-        a ValueError names the first difference.
+        of the rest in words (an activation function's name, a `functools.partial`'s
+        arguments, a module's static fields, integer arrays' values): a ValueError names
+        the first difference. A function is compared by its name only, not its body (two
+        lambdas look alike).
 
     **Returns:**
 
     The `FitResult`, equal to the saved one field by field.
     """
     fields = _io.read_result(path, like=like)
+    _io.check_model(path, model)
     history = FitHistory(**fields.pop("history"))
     starts = fields.pop("starts")
     return FitResult(

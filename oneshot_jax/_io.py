@@ -17,7 +17,9 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object),
   `validation_loss` (a number or null) and `static_signature` (what `load_result(like=)`
   compares beyond shapes and names: the static fields of theta's equinox modules and its
-  non-parameter leaves such as an activation function, each in words).
+  non-parameter leaves such as an activation function, each in words), `n_u` (the
+  fitted data's input columns, which `FitResult.simulate`/`predict` check) and
+  `model_signature` (the model's static settings, which `load_result(model=)` checks).
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
@@ -36,6 +38,8 @@ short, edited, or another program's archive) is refused with one ValueError nami
 """
 
 import dataclasses
+import functools
+import hashlib
 import json
 import zipfile
 import zlib
@@ -123,21 +127,31 @@ def _plain(value):
 
 def _describe(obj) -> str:
     """A non-parameter part of theta (an activation function, a size, a flag) in words that
-    do not change between processes or JAX versions: a function by its name, a number or a
-    string by its value, an array by its shape and dtype, anything else by its type."""
+    do not change between processes or JAX versions: a function by its name (a
+    `functools.partial` with its arguments; a function's body is not compared), a number
+    or a string by its value, an integer or boolean array by its values (a digest above 16
+    entries), anything else by its type."""
+    if isinstance(obj, functools.partial):
+        args = [_describe(a) for a in obj.args]
+        args += [f"{k}={_describe(v)}" for k, v in sorted(obj.keywords.items())]
+        return f"partial({_describe(obj.func)}, {', '.join(args)})"
     fn = getattr(obj, "fun", None) or getattr(obj, "__wrapped__", None) or obj  # custom_jvp, jit
     if callable(fn) and hasattr(fn, "__qualname__") and not isinstance(fn, type):
-        return f"function {fn.__qualname__}"
+        return f"function {getattr(fn, '__name__', fn.__qualname__)}"
     if obj is None or isinstance(obj, (bool, int, float, complex, str)):
         return repr(obj)
     if isinstance(obj, (tuple, list)):
         return f"({', '.join(map(_describe, obj))})"
     if isinstance(obj, np.ndarray) or hasattr(obj, "dtype"):
-        return f"array{np.shape(obj)} {np.asarray(obj).dtype}"
+        a = np.asarray(obj)
+        if a.size <= 16:  # an exponent, an index, a mask: by its values
+            return f"array{a.shape} {a.dtype} {a.ravel().tolist()}"
+        digest = hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:12]
+        return f"array{a.shape} {a.dtype} sha256 {digest}"
     return type(obj).__qualname__
 
 
-def _static_signature(theta) -> list:
+def _static_signature(theta, root="theta") -> list:
     """What `load_result(like=)` compares beyond the parameters' shapes and names, none of
     which the file holds: the static fields of theta's equinox modules (sizes, flags,
     scales) and its non-parameter leaves (e.g. an activation function), each in words."""
@@ -161,7 +175,7 @@ def _static_signature(theta) -> list:
         elif node is not None and not _pytree.is_parameter(node):
             out.append(f"{where} = {_describe(node)}")
 
-    walk(theta, "theta")
+    walk(theta, root)
     return out
 
 
@@ -232,6 +246,8 @@ def save_result(result, path):
         "units": dict(result.units),
         "validation_loss": result.validation_loss,
         "static_signature": _static_signature(result.theta),
+        "n_u": result.n_u,
+        "model_signature": None if result.model is None else _model_signature(result.model),
     }
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
@@ -350,8 +366,8 @@ def read_result(path, *, like=None) -> dict:
         if saved_sig is not None and saved_sig != like_sig:
             diff = next((a, b) for a, b in zip_longest(like_sig, saved_sig) if a != b)
             raise ValueError(
-                f"`like` differs from the saved theta in what the file does not hold (an "
-                f"activation function, a module's static fields): `like` has {diff[0]}, "
+                f"`like` differs from the saved theta outside its parameters (an activation "
+                f"function, a module's static fields, an integer array): `like` has {diff[0]}, "
                 f"the file {diff[1]}. Pass a theta of the fitted structure (e.g. "
                 f"theta0)."
             )
@@ -427,4 +443,31 @@ def _fields(arrays, meta, group, build, static) -> dict:
         units=dict(meta.get("units") or {}),
         validation_loss=meta.get("validation_loss"),
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
+        n_u=meta.get("n_u"),
     )
+
+
+def _model_signature(model) -> list:
+    """What the file records of the model: its static settings (a `Model.from_ode`'s dt,
+    method, substeps, input; whether it is timed), not its functions, whose names a
+    script that loads the result may choose differently."""
+    return [s for s in _static_signature(model, "model") if " = function " not in s]
+
+
+def check_model(path, model):
+    """Refuse a `model` for `load_result` that differs from the saved result's in what the
+    file records of it (`_model_signature`); files without that record (earlier versions)
+    pass."""
+    if model is None:
+        return
+    path = Path(path) if Path(path).is_file() else Path(f"{path}.npz")
+    saved = json.loads(str(_read_arrays(path)["__meta__"])).get("model_signature")
+    if saved is None:
+        return
+    given = _model_signature(model)
+    if saved != given:
+        diff = next((a, b) for a, b in zip_longest(given, saved) if a != b)
+        raise ValueError(
+            f"`model` differs from the model the result was fitted with: `model` has {diff[0]}, "
+            f"the file {diff[1]}. Pass the fitted model (its dt, method, substeps, input)."
+        )

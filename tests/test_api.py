@@ -4,6 +4,7 @@ bar, and a library that does not import its experiments.
 
 The satellite here is the same problem as in test_fit.py (seeds 0 and 1)."""
 
+import functools
 import subprocess
 import sys
 
@@ -205,6 +206,42 @@ def test_load_refuses_a_like_whose_activation_or_static_fields_differ(tmp_path):
         ValueError, match=r"has theta\['r'\]\.scale = 2\.0, the file theta\['r'\]\.scale = 0\.1\."
     ):
         oj.load_result(path, like=make(jax.nn.tanh, 2.0))
+    # An integer array of a dict theta (an exponent) and a partial's arguments.
+    model2 = oj.Model(lambda x, u, th: th["k"] * x ** th["p"][0] + u, lambda x, u, th: x)
+    theta2 = {"k": 0.5, "p": np.array([1])}
+    _, z2 = oj.simulate(model2, theta2, np.array([0.2]), u)
+    r2 = oj.fit(model2, theta2, np.array([0.2]), u, np.asarray(z2), solver=oj.Adam(max_steps=2))
+    path2 = r2.save(tmp_path / "int")
+    with pytest.raises(ValueError, match=r"has theta\['p'\] = array\(1,\) int64 \[3\], the file"):
+        oj.load_result(path2, like={"k": 0.5, "p": np.array([3])})
+    leaky = functools.partial(jax.nn.leaky_relu, negative_slope=0.5)
+    r3 = oj.fit(
+        model, make(leaky, 0.1), np.array([0.2]), u, np.asarray(z), solver=oj.Adam(max_steps=2)
+    )
+    path3 = r3.save(tmp_path / "leaky")
+    other = functools.partial(jax.nn.leaky_relu, negative_slope=0.01)
+    with pytest.raises(ValueError, match=r"partial\(function leaky_relu, negative_slope=0\.01\)"):
+        oj.load_result(path3, like=make(other, 0.1))
+    oj.load_result(path3, like=make(leaky, 0.1))
+
+
+def test_a_result_refuses_inputs_and_models_other_than_the_fitted_ones(sat_lm, tmp_path):
+    """`simulate`/`predict` of a result check u's columns against the fitted data's (a
+    transposed u simulated one sample; an extra column was ignored), and `load_result`
+    checks the model against what the file records of it (a dt of 0.05 for 0.1 loaded
+    and simulated with FIT -51 % in an audit)."""
+    r = sat_lm
+    M = np.zeros((20, 3))
+    for bad, hint in ((M.T, "is it transposed?"), (np.zeros((20, 4)), "got shape (20, 4)")):
+        for call in (lambda: r.simulate(bad), lambda: r.predict(bad, np.zeros((5, 3)))):
+            with pytest.raises(ValueError, match=r"`u` must have n_u = 3 input columns") as e:
+                call()
+            assert hint in str(e.value)
+    path = r.save(tmp_path / "sat")
+    other = oj.Model.from_ode(satellite_rhs, SAT_MODEL.step.dt * 2)
+    with pytest.raises(ValueError, match=r"`model` has model\.step\.dt = .*, the file model"):
+        oj.load_result(path, model=other)
+    assert oj.load_result(path, model=SAT_MODEL).n_u == 3
 
 
 def test_load_refuses_a_foreign_file(tmp_path):
