@@ -214,7 +214,7 @@ class SatelliteConfig:
         _integer(k + "n_seeds", self.n_seeds, 1)
         for i, h in enumerate(self.horizons):
             _integer(f"{k}horizons[{i}]", h, 2)
-        _integer(k + "horizon_seeds", self.horizon_seeds, 0)
+        _integer(k + "horizon_seeds", self.horizon_seeds, 0, hi=self.n_seeds)
         _number(k + "simulate_time", self.simulate_time, lo=self.dt)
         _history(k + "history", self.history)
         pair = list(self.fig2.pair)

@@ -393,7 +393,9 @@ def predict(
     **kwargs,
 ) -> Prediction:
     """Simulate a record from an initial state estimated from its first n outputs: the
-    benchmark protocol's prediction (the model may use the whole input and z[:n]).
+    benchmark protocol's prediction (the model may use the whole input and z[:n]). This
+    is an open-loop simulation (MATLAB's `compare` with an estimated initial state), not
+    MATLAB's K-step-ahead `predict`, which has no counterpart here.
 
     **Arguments:**
 

@@ -133,7 +133,9 @@ def loss(
     - `weight`: Q of eq. (4), a (n_z,) vector (diagonal) or an (n_z, n_z) PSD matrix;
         identity by default.
     - `penalty`: h(x, theta) -> scalar of eq. (21), or None.
-    - `penalty_weight`: the multiplier lambda of eq. (21).
+    - `penalty_weight`: the multiplier lambda of eq. (21), applied with the 1/T of the
+        error (the paper's eq. (21) adds lambda h to the sum of the L_k without it: its
+        lambda is `penalty_weight / T`).
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
         missing samples, which contribute nothing to C (nor to its derivatives).
     - `strategy`: how the rollout is computed, as for `simulate`.

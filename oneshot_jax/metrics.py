@@ -386,7 +386,12 @@ def residual_correlations(
     if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral):
         raise ValueError(f"`max_lag` must be an integer, got {max_lag!r}.")
     if not 1 <= max_lag <= T - 1:
-        raise ValueError(f"`max_lag` must satisfy 1 <= max_lag <= T - 1 = {T - 1}, got {max_lag}.")
+        hint = ""
+        if T <= max_lag < n_z:  # more channels than samples: a residual given as (n_z, T)
+            hint = f" (`e` holds T = {T} samples of {n_z} outputs: is it transposed?)"
+        raise ValueError(
+            f"`max_lag` must satisfy 1 <= max_lag <= T - 1 = {T - 1}, got {max_lag}{hint}."
+        )
     max_lag = int(max_lag)
     if not (isinstance(confidence, numbers.Real) and 0.0 < confidence < 1.0):
         raise ValueError(f"`confidence` must be a number in (0, 1), got {confidence!r}.")

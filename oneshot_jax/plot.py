@@ -161,7 +161,12 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     if u is not None:
         u = _columns(u, "u")
         if u.shape[0] != T:
-            raise ValueError(f"`u` must have the T = {T} samples of `z`, got {u.shape[0]}.")
+            hint = (
+                f" (`z` holds T = {T} samples of {n_z} outputs: is it transposed?)"
+                if n_z == u.shape[0]
+                else ""
+            )
+            raise ValueError(f"`u` must have the T = {T} samples of `z`, got {u.shape[0]}{hint}.")
     if n is not None:
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 0 <= n <= T - 2:
             raise ValueError(f"`n` must be an integer with 0 <= n <= T - 2 = {T - 2}, got {n!r}.")
@@ -236,11 +241,23 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     `residual_correlations`.
     """
     plt = _pyplot()
+    windows = None
     if isinstance(e, FitResult):
+        windows = e.window_starts
         e = e.residuals
-    rc = metrics.residual_correlations(
-        e, u, max_lag, confidence=confidence, tolerance=tolerance, demean=demean
-    )
+    try:
+        rc = metrics.residual_correlations(
+            e, u, max_lag, confidence=confidence, tolerance=tolerance, demean=demean
+        )
+    except ValueError as err:
+        if windows is None or u is None:
+            raise
+        # A windowed fit's residuals are per window: the record's u does not match them.
+        raise ValueError(
+            f"{err} The result's residuals are per window ({len(windows)} windows, starting "
+            "at `result.window_starts`): pass u cut the same way, or the residuals of "
+            "`result.simulate` on the whole record."
+        ) from err
     n_z = rc.auto.shape[1]
     n_u = 0 if rc.cross is None else rc.cross.shape[2]
     fig, axes = plt.subplots(

@@ -148,6 +148,10 @@ BAD = [
     (["+solver.kwargs.foo=1"], r"unknown kwargs \['foo'\]"),
     (["experiment=emps", "solver=slsqp"], "experiment=emps runs the library's solvers only"),
     (["experiment=emps", "experiment.eps=0"], "`experiment.eps` must be a finite number > 0"),
+    (
+        ["experiment.horizon_seeds=50"],
+        r"`experiment.horizon_seeds` must be an integer >= 0 and <= 20",
+    ),
     (["experiment=emps", "experiment.open_loop.windows=[1]"], r"open_loop.windows\[0\]"),
     (["experiment=emps_hybrid", "experiment.inputs=x"], "`experiment.inputs` must be one of"),
     (["experiment=emps_hybrid", "experiment.window=1"], "`experiment.window` must be an int"),

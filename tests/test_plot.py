@@ -233,6 +233,24 @@ def test_compare_predicts_from_a_head_with_missing_samples(fitted):
         oj.plot.compare(z, result, u=u, t="abc")
 
 
+def test_transposed_records_and_windowed_residuals_get_a_hint(fitted):
+    """A record given as (n, T) is named as possibly transposed (the messages spoke of
+    max_lag, or blamed u); a windowed fit's residuals with the record's u say why."""
+    model, u, z, result = fitted
+    e = np.asarray(result.residuals)
+    with pytest.raises(
+        ValueError, match=r"`e` holds T = 1 samples of \d+ outputs: is it transposed"
+    ):
+        metrics.residual_correlations(e.reshape(1, -1), u)
+    with pytest.raises(
+        ValueError, match=r"`z` holds T = 1 samples of \d+ outputs: is it transposed"
+    ):
+        oj.plot.compare(z.reshape(1, -1), result, u=u, n=20)
+    windowed = oj.fit(model, result.theta, result.x0, u[:100], z[:100], window=50)
+    with pytest.raises(ValueError, match=r"residuals are per window \(2 windows"):
+        oj.plot.resid(windowed, u[:100])
+
+
 def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
     """Without `n` a FitResult starts from its fitted x0: on its own data silently, on a
     new record with a warning that names `n` (MATLAB's compare estimates x0)."""
