@@ -233,7 +233,8 @@ def fit(
         floating arrays are estimated; integer and boolean arrays, static fields and other
         parts are kept). Python numbers, int or float, are parameters wherever they are
         (`{"k": 2}`), in a module's fields too: make a module's exponent or count a
-        static field (`eqx.field(static=True)`) or a NumPy integer to keep it. With `multistart=True` every parameter leaf has a leading axis of starts.
+        static field (`eqx.field(static=True)`) or a NumPy integer to keep it. With
+        `multistart=True` every parameter leaf has a leading axis of starts.
     - `x0`: the starting initial state (n_x,), or (N, n_x) for N trajectories (with
         `window`, optionally one per window; with `multistart`, optionally with a leading
         axis of starts too).
