@@ -112,6 +112,34 @@ def publish(name: str, outdir: Path, figures) -> list[Path]:
     return written
 
 
+def conditions() -> str:
+    """The machine and the versions a run's numbers come from: the CPU (or the JAX
+    device), its cores, and the versions of Python, oneshot_jax, JAX and jaxlib."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        cpu = platform.processor() or platform.machine()
+        try:
+            with open("/proc/cpuinfo") as f:
+                cpu = next(
+                    (ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu
+                )
+        except OSError:
+            pass
+        hw = f"{cpu}, {os.cpu_count()} CPU cores"
+    else:
+        hw = dev.device_kind
+    vers = []
+    for pkg in ("oneshot_jax", "jax", "jaxlib"):
+        try:
+            vers.append(f"{pkg} {version(pkg)}")
+        except PackageNotFoundError:
+            vers.append(f"{pkg} (not installed)")
+    return f"{hw}; Python {platform.python_version()}, {', '.join(vers)}."
+
+
 def command_line() -> str:
     """The command line of this run, from Hydra's overrides when run through Hydra."""
     try:
@@ -166,6 +194,10 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
         raise
     results = {"status": "ok", **results}
     results.setdefault("wall_time_s", time.perf_counter() - t0)
+    results.setdefault("conditions", conditions())
+    md = outdir / "results.md"
+    if md.exists():  # the results' conditions, under the report
+        md.write_text(md.read_text().rstrip("\n") + f"\n\nConditions: {results['conditions']}\n")
     write_json(outdir / "results.json", results)
     if conf.publish:
         for path in publish(name, outdir, results.get("figures")):
