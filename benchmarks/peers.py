@@ -46,7 +46,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from timing import cpu_name, fmt_time  # noqa: E402
+from timing import commit, cpu_name, fmt_time  # noqa: E402
 
 DEFAULT_TOOLS = (
     "oneshot_lm",
@@ -692,28 +692,6 @@ NOTES = """## Notes on the method
 # -------------------------------------------------------------------------------- main
 
 
-def _commit():
-    """The repository's commit (with '+changes' when the working tree differs from it)."""
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=HERE,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=HERE,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout
-        return (head + ("+changes" if dirty.strip() else "")) or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -824,7 +802,7 @@ def main():
     problems = [p for p in problems if p != HYBRID]
     tools = args.tools.split(",") if args.tools else list(DEFAULT_TOOLS)
     t0 = time.perf_counter()
-    args.commit = _commit()
+    args.commit = commit() or None
     results = []
     for prob in problems:
         results += run_problem(

@@ -115,7 +115,8 @@ def versions(extra=()) -> dict:
 
 def commit() -> str:
     """The checkout's commit (short hash, "+changes" where the library or the benchmarks
-    differ from it), or "" outside a git checkout."""
+    differ from it: tracked or not; a changed figure of the docs does not count), or ""
+    outside a git checkout."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
         head = subprocess.run(
