@@ -114,16 +114,16 @@ def versions(extra=()) -> dict:
 
 
 def commit() -> str:
-    """The checkout's commit (short hash, "+changes" where the library or the benchmarks
-    differ from it: tracked or not; a changed figure of the docs does not count), or ""
-    outside a git checkout."""
+    """The checkout's commit (short hash, "+changes" where the library's or the benchmarks'
+    Python files differ from it, tracked or not; their outputs, JSON files and figures,
+    do not count), or "" outside a git checkout."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
         )
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "oneshot_jax", "benchmarks"],
+            ["git", "status", "--porcelain", "--", "oneshot_jax", "benchmarks/*.py"],
             cwd=root,
             capture_output=True,
             text=True,

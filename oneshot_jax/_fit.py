@@ -155,7 +155,8 @@ def _warn_unequal_noise(residuals, weight, std):
     e = e.reshape(-1, n_z)
     q = np.ones(n_z) if weight is None else np.asarray(weight, dtype=np.float64)
     q = np.diag(q) if q.ndim == 2 else q
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an output with no sample: NaN
         var = np.array([np.nanmean(e[:, j] ** 2) * q[j] for j in range(n_z)])
     var = var[np.isfinite(var) & (q > 0)]
     if var.size < 2 or var.min() <= 0 or var.max() <= 10 * var.min():
