@@ -30,22 +30,21 @@ point that is not stationary. So a bound never stops the fit short of a solution
 
 Stopping (`oneshot_jax._optimality`): the fit converges (succeeds) when the first-order
 measure at the current iterate, the scaled projected gradient, is at most `gtol`, or
-when it stops for lack of progress (no step decreases C at round-off, an accepted step is
-below round-off of the scaled parameters, ||D s|| <= eps ||D p||, or the optional step
+when it stops for lack of progress (no step decreases C at round-off, or the optional step
 test fired) with the measure at most its round-off limit 10 sqrt(eps) (a loss known
 to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
 converging fit can stop a little above gtol = 1e-8); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
-round-off level of the data. Where theta's columns of J, with the x0 columns eliminated, are
-rank deficient (an over-parameterised model, a network in theta), it is
+round-off level of the data (also after an accepted step below round-off of the scaled
+parameters, ||D s|| <= eps ||D p||, where the loss keeps falling by round-off). Where
+theta's columns of J, with the x0 columns eliminated, are rank deficient (an over-parameterised model, a network in theta), it is
 `statistically_converged` (success) when an accepted step, its predicted decrease confirmed
 by the actual one, moved the fit by at most `stol` standard errors
 (`_optimality.standard_errors`; the first-order test is not reached there). Every
 other stop is a failure that names its test:
 `stalled` when no step decreases C while the linear model's predicted decrease is at
 round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
-level of the parameters, or when an accepted step is at that level too (a zero residual
-keeps decreasing by round-off), or when the optional step test fired (rtol, atol: an accepted
+level of the parameters, or when the optional step test fired (rtol, atol: an accepted
 step with ||D s|| <= rtol ||D p|| + atol and a decrease <= rtol C + atol, D =
 sqrt(diag(J^T J))) with the measure above its round-off limit; `no_progress` when LM's
 damping passes 1e20 or GN's backtracking 2^-30 and the gradient step fails too;
@@ -394,9 +393,12 @@ class AbstractLeastSquares(AbstractSolver):
             (pred <= 8 * eps * state.loss)
             | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
         )
-        # An accepted step below round-off of the scaled parameters (at a zero residual the
-        # loss keeps falling by round-off, 1e-36 and below, with steps of 1e-21).
-        round_off = round_off | (primed & take & (step_d <= eps * size_d))
+        # At a zero residual the loss keeps falling by round-off (1e-36 and below) with
+        # accepted steps of 1e-21: a step below round-off of the scaled parameters ends the
+        # fit there. (Only there: on an ill-conditioned J, ||D p|| can be far above the
+        # outputs, and such steps still move the fit.)
+        tiny = primed & take & (step_d <= eps * size_d)
+        round_off = round_off | (tiny & zero_residual(loss, state.scale))
         gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
         # Where the fit stops for lack of progress (round-off, or the step test fired), a
