@@ -37,7 +37,8 @@ converging fit can stop a little above gtol = 1e-8); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
 round-off level of the data (also after an accepted step below round-off of the scaled
 parameters, ||D s|| <= eps ||D p||, where the loss keeps falling by round-off). Where
-theta's columns of J, with the x0 columns eliminated, are rank deficient (an over-parameterised model, a network in theta), it is
+theta's columns of J, with the x0 columns eliminated, are rank deficient (an
+over-parameterised model, a network in theta), it is
 `statistically_converged` (success) when an accepted step, its predicted decrease confirmed
 by the actual one, moved the fit by at most `stol` standard errors
 (`_optimality.standard_errors`; the first-order test is not reached there). Every
