@@ -391,8 +391,7 @@ def load_result(path, *, model=None, like=None) -> FitResult:
 
     The `FitResult`, equal to the saved one field by field.
     """
-    fields = _io.read_result(path, like=like)
-    _io.check_model(path, model)
+    fields = _io.read_result(path, like=like, model=model)
     history = FitHistory(**fields.pop("history"))
     starts = fields.pop("starts")
     return FitResult(

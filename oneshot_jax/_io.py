@@ -298,10 +298,11 @@ def _read_arrays(path):
     return arrays
 
 
-def read_result(path, *, like=None) -> dict:
+def read_result(path, *, like=None, model=None) -> dict:
     """The fields of the `FitResult` saved at `path` (`load_result` builds it), with
     `history` and `starts` as dicts of the fields of a `FitHistory` and a `Starts` (or
-    None), and without the model. `like` as for `load_result`."""
+    None), and without the model. `like` and `model` as for `load_result` (the model is
+    checked against the file's record of it, `check_model`, not returned)."""
     path = Path(path)
     if not path.is_file() and Path(f"{path}.npz").is_file():  # as `save` names it
         path = Path(f"{path}.npz")
@@ -326,6 +327,7 @@ def read_result(path, *, like=None) -> dict:
     missing = [k for k in _META_KEYS if k not in meta]
     if missing:
         raise _damaged(path, f"its __meta__ lacks {', '.join(missing)}")
+    check_model(meta, model)
 
     def group(prefix):
         n = sum(1 for k in arrays if k.startswith(prefix) and k[len(prefix) :].isdigit())
@@ -454,14 +456,13 @@ def _model_signature(model) -> list:
     return [s for s in _static_signature(model, "model") if " = function " not in s]
 
 
-def check_model(path, model):
+def check_model(meta, model):
     """Refuse a `model` for `load_result` that differs from the saved result's in what the
-    file records of it (`_model_signature`); files without that record (earlier versions)
-    pass."""
+    file's `meta` records of it (`_model_signature`); files without that record (earlier
+    versions) pass."""
     if model is None:
         return
-    path = Path(path) if Path(path).is_file() else Path(f"{path}.npz")
-    saved = json.loads(str(_read_arrays(path)["__meta__"])).get("model_signature")
+    saved = meta.get("model_signature")
     if saved is None:
         return
     given = _model_signature(model)

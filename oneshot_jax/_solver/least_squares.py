@@ -398,8 +398,9 @@ class AbstractLeastSquares(AbstractSolver):
         # accepted steps of 1e-21: a step below round-off of the scaled parameters ends the
         # fit there. (Only there: on an ill-conditioned J, ||D p|| can be far above the
         # outputs, and such steps still move the fit.)
+        zero = zero_residual(loss, state.scale)
         tiny = primed & take & (step_d <= eps * size_d)
-        round_off = round_off | (tiny & zero_residual(loss, state.scale))
+        round_off = round_off | (tiny & zero)
         gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
         # Where the fit stops for lack of progress (round-off, or the step test fired), a
@@ -416,7 +417,7 @@ class AbstractLeastSquares(AbstractSolver):
                 statistical,
                 RESULTS.statistically_converged,
                 RESULTS.where(
-                    zero_residual(loss, state.scale),
+                    zero,
                     RESULTS.zero_residual,
                     RESULTS.where(gave_up, RESULTS.no_progress, RESULTS.stalled),
                 ),
