@@ -377,7 +377,7 @@ def fit(
     # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
     # Jacobians along the fitted trajectory come from the solve's compiled call.
     rhs = rhs_of(model, inputs.data) if aggregate is None else None
-    idx = None if rhs is None else sample_points(inputs.data)
+    idx = None if rhs is None else sample_points(inputs.data, timed=model.timed)
     stability_at = None if idx is None else (rhs, idx)
     out, wall, diagnostics, jacobians, prepared = _run(
         inputs.solvers,
@@ -415,8 +415,11 @@ def fit(
         result = agg.restore(result)
     _warn_unequal_noise(result.residuals, weight, result.std)
     if stability_at is not None:
-        warn_after_fit(model.step, idx, *jacobians, stacklevel=2)
-    elif aggregate is not None:
-        fitted_u = u if window is None else inputs.data.u
-        warn_if_near_limit(stability(model, result.theta, result.x0, fitted_u), stacklevel=2)
+        warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
+    elif aggregate is not None and (window is None or not model.timed):
+        # (with windows, the windows' records: for a timed model they carry their
+        # intervals already, which `stability` would take for an input)
+        fitted_u, fitted_t = (u, t) if window is None else (inputs.data.u, None)
+        report = stability(model, result.theta, result.x0, fitted_u, t=fitted_t)
+        warn_if_near_limit(report, stacklevel=2)
     return result

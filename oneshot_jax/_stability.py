@@ -6,7 +6,10 @@ knows nothing of that region: it can move a stiff mode (a friction, a fast pole)
 where the discrete step f of eq. (1) is no longer the ODE's flow, and the estimates then
 depend on `substeps`. `check_stability` evaluates the Jacobian of the right-hand side at
 a few states of the fitted trajectory (eq. 7) and compares max |lambda| h with the
-integrator's limit; `fit` calls it after every fit of such a model.
+integrator's limit; `fit` calls it after every fit of such a model. A model of
+time-stamped records (`Model.from_ode(rhs, dt=None)`) takes each step's own h, its
+interval over its number of integrator steps, and is checked also before its longest
+interval.
 """
 
 import functools
@@ -22,7 +25,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._checks import check_data
 from ._jit import jit
-from ._model import _ODEStep
+from ._model import _ODEStep, _TimedODEStep, _WithoutInterval, interval_count
 from ._simulate import simulate_impl
 
 # The largest |lambda| h taken as safe. RK4's stability region reaches 2.785 on the
@@ -48,7 +51,10 @@ class Stability(NamedTuple):
     - `eigenvalue`: the lambda of `value`.
     - `sample`: where it was found: the index of its state in the trajectories
         flattened (trajectory i, sample k: i T + k).
-    - `method`, `substeps`, `dt`: the model's integrator.
+    - `method`, `substeps`, `dt`: the model's integrator: `dt` the interval of the step
+        at `sample` (a time-stamped model's t[k+1] - t[k]) and `substeps` the number of
+        integrator steps it is split into there.
+    - `max_step`: a time-stamped model's largest integrator step, or None.
     """
 
     value: float
@@ -58,6 +64,7 @@ class Stability(NamedTuple):
     method: str
     substeps: int
     dt: float
+    max_step: float | None = None
 
     @property
     def near_limit(self) -> bool:
@@ -65,26 +72,60 @@ class Stability(NamedTuple):
         return bool(self.value > self.limit)
 
 
+def is_ode(step) -> bool:
+    """Whether `step` is an explicit integrator of `Model.from_ode` (a fixed `dt`, or a
+    time-stamped model's own intervals)."""
+    return isinstance(step, (_ODEStep, _TimedODEStep))
+
+
 def rhs_of(model, data):
     """The right-hand side of a `Model.from_ode` model as the checked data's model sees
-    theta (its trainable part, the static part bound in); None for another model."""
+    theta (its trainable part, the static part bound in) and u (a time-stamped model's
+    without the interval appended to it, `_timing`); None for another model."""
     step = model.step
-    if not isinstance(step, _ODEStep):
+    if not is_ode(step):
         return None
     bound = data.model.step
-    return _pytree.Bound(step.rhs, bound.static) if isinstance(bound, _pytree.Bound) else step.rhs
+    rhs = _pytree.Bound(step.rhs, bound.static) if isinstance(bound, _pytree.Bound) else step.rhs
+    return _WithoutInterval(rhs) if isinstance(step, _TimedODEStep) else rhs
 
 
-def sample_points(data, points: int = POINTS) -> np.ndarray | None:
+def step_sizes(step, u, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The interval, the number of integrator steps and h, the integrator's step, of the
+    steps from the flattened states `idx` (host): dt, substeps and dt / substeps for a
+    fixed sample interval; for a time-stamped model its intervals, the last column of
+    the checked data's `u` (0 after a record's last sample: no step, h = 0), split into
+    `substeps` steps or, with `max_step`, into ceil(dt / max_step) (`timed_ode_step`)."""
+    idx = np.asarray(idx)
+    if isinstance(step, _ODEStep):
+        dt = np.full(idx.shape, float(step.dt))
+        n = np.full(idx.shape, step.substeps)
+    else:
+        u = np.asarray(u)
+        dt = u.reshape(-1, u.shape[-1])[idx, -1].astype(float)
+        if step.max_step is None:
+            n = np.full(idx.shape, step.substeps)
+        else:
+            n = np.maximum(interval_count(dt, step.max_step), 1).astype(int)
+    return dt, n, dt / n
+
+
+def sample_points(data, points: int = POINTS, timed: bool = False) -> np.ndarray | None:
     """The flattened indices (trajectory i, sample k: i T + k) of `points` states evenly
     spaced over the valid samples of the checked data (not the padding of ragged
-    trajectories); None where there is none."""
+    trajectories); None where there is none. For a time-stamped model (`timed`), also
+    the state before the longest interval (its step has the largest h)."""
     if data.mask is None:
-        return _evenly(math.prod(np.shape(data.u)[:-1]), points)
-    valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
-    if valid.size == 0:
-        return None
-    return valid[_evenly(valid.size, points)]
+        idx = _evenly(math.prod(np.shape(data.u)[:-1]), points)
+    else:
+        valid = np.flatnonzero(np.asarray(data.mask.samples).reshape(-1) > 0)
+        if valid.size == 0:
+            return None
+        idx = valid[_evenly(valid.size, points)]
+    if timed:
+        intervals = np.asarray(data.u)[..., -1].reshape(-1)
+        idx = np.union1d(idx, [int(np.argmax(intervals))])
+    return idx
 
 
 @functools.lru_cache(maxsize=64)
@@ -121,50 +162,53 @@ def _jacobians(model, params, x0, u, batched, rhs, idx):
     return jacobians_at(rhs, params, xs, u, idx)
 
 
-def report(step, idx, xs, J) -> Stability | None:
-    """The `Stability` of the Jacobians `J` at the states `xs` (flattened indices `idx`)
-    of a `Model.from_ode` model's `step`, from their eigenvalues (on the host); None
-    where no state is finite."""
+def report(step, idx, xs, J, u) -> Stability | None:
+    """The `Stability` of the Jacobians `J` at the states `xs` (flattened indices `idx`,
+    their inputs in the checked data's `u`) of a `Model.from_ode` model's `step`, from
+    their eigenvalues times each step's h (on the host); None where no state is finite."""
     xs, J = np.asarray(xs), np.asarray(J)
     finite = np.all(np.isfinite(xs), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
     if not np.any(finite):
         return None
+    dt, n, h = (a[finite] for a in step_sizes(step, u, idx))
     eig = np.linalg.eigvals(J[finite])
-    h = step.dt / step.substeps
-    i, j = np.unravel_index(np.argmax(np.abs(eig)), eig.shape)
+    scaled = np.abs(eig) * h[:, None]
+    i, j = np.unravel_index(np.argmax(scaled), eig.shape)
     return Stability(
-        value=float(np.abs(eig[i, j]) * h),
+        value=float(scaled[i, j]),
         limit=LIMITS[step.method],
         eigenvalue=complex(eig[i, j]),
-        sample=int(idx[finite][i]),
+        sample=int(np.asarray(idx)[finite][i]),
         method=step.method,
-        substeps=step.substeps,
-        dt=step.dt,
+        substeps=int(n[i]),
+        dt=float(dt[i]),
+        max_step=getattr(step, "max_step", None),
     )
 
 
-def warn_after_fit(step, idx, xs, J, bound, stacklevel: int) -> None:
+def warn_after_fit(step, idx, xs, J, bound, u, stacklevel: int) -> None:
     """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`)
-    and their `row_bound`. Where max |lambda| h is within the limit by that bound times
-    h, no eigenvalue is computed."""
-    if not float(bound) * step.dt / step.substeps > LIMITS[step.method]:
+    and their `row_bound`, the inputs in the checked data's `u`. Where max |lambda| h is
+    within the limit by that bound times the largest h, no eigenvalue is computed."""
+    h = step_sizes(step, u, idx)[2]
+    if not float(bound) * float(np.max(h, initial=0.0)) > LIMITS[step.method]:
         return  # (within the limit, or no finite state: -inf)
-    warn_if_near_limit(report(step, idx, xs, J), stacklevel=stacklevel + 1)
+    warn_if_near_limit(report(step, idx, xs, J, u), stacklevel=stacklevel + 1)
 
 
-def stability(model, theta, x0, u, *, points: int = POINTS) -> Stability | None:
+def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability | None:
     """`check_stability` without its checks of the arguments and without the warning;
     None for a model not built by `Model.from_ode` or without a finite state."""
-    if not isinstance(model.step, _ODEStep):
+    if not is_ode(model.step):
         return None
-    data = check_data(model, theta, x0, u)
-    idx = sample_points(data, points)
+    data = check_data(model, theta, x0, u, t=t)
+    idx = sample_points(data, points, timed=isinstance(model.step, _TimedODEStep))
     if idx is None:
         return None
     xs, J = _jacobians(
         data.model, data.theta, data.x0, data.u, data.batched, rhs_of(model, data), idx
     )
-    return report(model.step, idx, xs, J)
+    return report(model.step, idx, xs, J, data.u)
 
 
 def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
@@ -172,15 +216,25 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
     if report is None or not report.near_limit:
         return
     lam = report.eigenvalue
-    need = int(np.ceil(report.value * report.substeps / report.limit))
+    h = report.dt / report.substeps
+    if report.max_step is None:
+        need = int(np.ceil(report.value * report.substeps / report.limit))
+        remedy = (
+            f"more substeps (`Model.from_ode(..., substeps={max(need, 2 * report.substeps)})` "
+            "or more)"
+        )
+    else:
+        remedy = (
+            f"a smaller `max_step` (`Model.from_ode(..., max_step={h / 2:.3g})` or less, "
+            "with `substeps` enough for the longest interval)"
+        )
     warnings.warn(
         f"the fitted model runs near its integrator's stability limit: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
         f"|lambda| h = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
         f"{report.substeps} ({report.method.upper()}: stable up to about {report.limit:g}). "
-        "The estimates may depend on the discretisation rather than on the ODE: refit with "
-        f"more substeps (`Model.from_ode(..., substeps={max(need, 2 * report.substeps)})` "
-        "or more), and compare.",
+        f"The estimates may depend on the discretisation rather than on the ODE: refit with "
+        f"{remedy}, and compare.",
         RuntimeWarning,
         stacklevel=stacklevel + 1,
     )
@@ -192,6 +246,7 @@ def check_stability(
     x0: Float[ArrayLike, "*N n_x"],
     u: Float[ArrayLike, "*N T n_u"],
     *,
+    t: Float[ArrayLike, "*N T"] | None = None,
     points: int = POINTS,
 ) -> Stability | None:
     """Check that a `Model.from_ode` model runs inside its integrator's stability region.
@@ -209,6 +264,10 @@ def check_stability(
     - `model`: a `Model` built by `Model.from_ode` (for any other model the check
         returns None: its step is not a known integrator).
     - `theta`, `x0`, `u`: as for `oneshot_jax.simulate`.
+    - `t`: the sample times, for a model of time-stamped records
+        (`Model.from_ode(rhs, dt=None)`): h is then each step's own, its interval over
+        the number of integrator steps it takes (`substeps`, or with `max_step`
+        ceil(interval / max_step)).
     - `points`: how many states to evaluate the Jacobian at.
 
     **Returns:**
@@ -218,6 +277,6 @@ def check_stability(
     """
     if isinstance(points, bool) or int(points) != points or points < 1:
         raise ValueError(f"`points` must be a positive integer, got {points!r}.")
-    report = stability(model, theta, x0, u, points=int(points))
+    report = stability(model, theta, x0, u, t=t, points=int(points))
     warn_if_near_limit(report, stacklevel=2)
     return report

@@ -3,7 +3,11 @@
 `rmse`, `nrmse`, `fit_percent`, `r2` and `aic` take arrays of shape (..., n_z) (time and
 trajectory axes in front) and return one value per output channel (shape (n_z,)), except
 `aic`, which is a scalar. The definitions are those of MATLAB's System Identification
-Toolbox (`compare`, `fpe`/`aic`). They are JAX functions (jittable).
+Toolbox (`compare`, `fpe`/`aic`). They are JAX functions (jittable). Where an output
+channel is constant over the samples scored, `nrmse`, `fit_percent` and `r2` divide by
+its zero deviation from its mean: inf, -inf and -inf for a model that misses it, NaN
+(0 / 0) for one that reproduces it exactly; `aic` is -inf where the errors are exactly
+zero (log det 0). `benchmark_scores` refuses a constant channel instead.
 
 `benchmark_scores` scores a simulation under the community's benchmark protocol (the
 first n samples are left out) with the definitions of `nonlinear_benchmarks.error_metrics`;

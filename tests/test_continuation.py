@@ -205,6 +205,42 @@ def test_check_stability(substeps, warns):
     assert report.eigenvalue == pytest.approx(-52.0)
 
 
+def _timed_lag_data():
+    """The lag sampled every 0.04 except one interval of 0.052, away from the states
+    `check_stability` spaces evenly: a = 52 gives |lambda| h = 2.08 on the others and
+    2.704 on that step alone."""
+    intervals = np.full(119, 0.04)
+    intervals[77] = 0.052
+    t = np.concatenate([[0.0], np.cumsum(intervals)])
+    u = np.sign(np.sin(0.4 * np.arange(120)))[:, None]
+    return t, u
+
+
+def test_stability_of_a_time_stamped_model_takes_each_step_its_own_h():
+    """A model of time-stamped records (`dt=None`): h is each interval over its number of
+    integrator steps, and the longest interval is checked even where the evenly spaced
+    states miss it. Fit warns as `check_stability` does; with `max_step` the remedy
+    names it."""
+    t, u = _timed_lag_data()
+    model = oj.Model.from_ode(lag, None)
+    with pytest.warns(RuntimeWarning, match=r"h = 2\.7 with h = dt / substeps = 0\.052 / 1"):
+        report = oj.check_stability(model, {"a": 52.0}, np.zeros(1), u, t=t)
+    assert report.value == pytest.approx(52.0 * 0.052) and report.sample == 77
+    assert (report.dt, report.substeps) == (pytest.approx(0.052), 1)
+    _, z = oj.simulate(model, {"a": 52.0}, np.zeros(1), u, t=t)
+    with pytest.warns(RuntimeWarning, match=r"\|lambda\| h = 2\.7.*substeps=2"):
+        oj.fit(model, {"a": 40.0}, np.zeros(1), u, np.asarray(z), t=t)
+    # max_step 0.03: the long interval takes 2 steps of 0.026, the others 2 of 0.02
+    split = oj.Model.from_ode(lag, None, max_step=0.03, substeps=2)
+    report = _no_warnings(oj.check_stability, split, {"a": 52.0}, np.zeros(1), u, t=t)
+    assert report.value == pytest.approx(52.0 * 0.026) and report.substeps == 2
+    # a = 65 with max_step 0.045: 0.04 in one step (2.6), the long interval in two (1.69)
+    coarse = oj.Model.from_ode(lag, None, max_step=0.045, substeps=2)
+    with pytest.warns(RuntimeWarning, match=r"h = 2\.6 .*max_step=0\.02\)"):
+        report = oj.check_stability(coarse, {"a": 65.0}, np.zeros(1), u, t=t)
+    assert report.value == pytest.approx(65.0 * 0.04) and report.max_step == 0.045
+
+
 def test_stability_limit_of_euler_and_other_models():
     u = np.zeros((20, 1))
     euler = oj.Model.from_ode(lag, DT, method="euler")
