@@ -356,6 +356,13 @@ def _check_rhs(rhs, x_1, u_1, theta, x0, u):
             f"{x_1.shape} (the shape of x0), got {got}: `rhs` and `x0` (of shape "
             f"{x0.shape}) must agree on the number of states."
         )
+    if dx.dtype != x_1.dtype:
+        raise ValueError(
+            f"the model's `rhs` (`Model.from_ode`) must return dx/dt in the state's dtype "
+            f"{x_1.dtype} (the dtype of the data), got {dx.dtype}: an array or constant of "
+            "another dtype inside `rhs` (jnp.float32(...), dtype=...) changes it; the "
+            "integrator would carry the state in the wrong precision."
+        )
 
 
 def _check_model(model, theta, x0, u, lead, dtype):
@@ -396,6 +403,14 @@ def _check_model(model, theta, x0, u, lead, dtype):
             model.step, FloatObserve(model.observe, dtype), input=model.input, timed=model.timed
         )
         z_hat = jax.ShapeDtypeStruct(z_hat.shape, dtype)
+    elif z_hat.dtype != dtype:
+        # z is compared in z_hat's dtype: another precision than the data's would round
+        # the measurements (float32) or mix precisions (float64 outputs of float32 data).
+        raise ValueError(
+            f"`model.observe` must return z in the data's dtype {dtype}, got {z_hat.dtype}: "
+            "an array or constant of another dtype inside `observe` (jnp.float32(...), "
+            "dtype=...) changes it."
+        )
     return model, z_hat
 
 
@@ -462,12 +477,25 @@ def check_data(
                         "needs one output sample per input sample."
                     )
             z = z_padded
+    if u is None:
+        raise ValueError(
+            "`u` is required, the inputs (T, n_u); a model without inputs takes "
+            "np.zeros((T, 0)), which gives the record its length T."
+        )
     u = as_float(u, "u", dtype)
     lead = x0.shape[:1] if batched else ()
     if u.ndim != len(lead) + 2 or u.shape[: len(lead)] != lead:
         want = f"({x0.shape[0]}, T, n_u)" if batched else "(T, n_u)"
+        hint = ""
+        if batched and x0.shape[1] == 1 and u.ndim == 2:
+            hint = (
+                f": `x0` of shape {x0.shape} is read as {x0.shape[0]} trajectories of one "
+                f"state; for one trajectory of {x0.shape[0]} states give x0 of shape "
+                f"({x0.shape[0]},) (np.ravel(x0))"
+            )
         raise ValueError(
-            f"`u` must have shape {want} to match `x0` of shape {x0.shape}, got shape {u.shape}."
+            f"`u` must have shape {want} to match `x0` of shape {x0.shape}, got shape "
+            f"{u.shape}{hint}."
         )
     T, u_shape = u.shape[-2], u.shape
     if T < 1:
@@ -475,7 +503,14 @@ def check_data(
     if batched and x0.shape[0] < 1:
         raise ValueError("`x0` must hold at least one trajectory (N >= 1).")
     check_finite(x0, "x0")
-    check_finite(u, "u")
+    check_finite(
+        u,
+        "u",
+        ""
+        if missing == "raise"
+        else " (`missing='mask'` applies to z: the inputs drive "
+        "the model at every sample; fill the gaps of u, e.g. by interpolation)",
+    )
     intervals = check_times(model, t, u.shape[:-1], lengths, dtype, given.step)
 
     if known is None:

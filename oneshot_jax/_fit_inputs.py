@@ -9,8 +9,10 @@ only `fit` has: its keywords, the starts of a multistart fit, the windows of one
 the free entries of theta and x0 and the bounds on them.
 """
 
+import warnings
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -112,6 +114,7 @@ def check_inputs(
     **Returns:** a `FitInputs`.
     """
     check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
+    _warn_integer_entries(theta0)
     units = check_units(units, theta0)
     solvers = as_solvers(solver)
     if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
@@ -165,6 +168,30 @@ def check_inputs(
                 "signed penalty."
             )
     return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts)
+
+
+def _warn_integer_entries(theta0) -> None:
+    """Warn where theta0 holds an integer scalar of NumPy or JAX outside an equinox
+    module (`{"k": np.int64(1)}`, a value taken from an integer array): it is carried as
+    data, not estimated (`_pytree.is_parameter`), which a user rarely means there. A
+    module's integer fields (an exponent, an index) and Python ints are not named."""
+    is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
+    named = []
+    for path, leaf in jax.tree_util.tree_flatten_with_path(theta0, is_leaf=is_module)[0]:
+        if is_module(leaf) or isinstance(leaf, (bool, int, float, np.bool_)):
+            continue
+        dtype = getattr(leaf, "dtype", None)
+        if dtype is not None and np.ndim(leaf) == 0 and np.issubdtype(dtype, np.integer):
+            named.append(f"theta0{jax.tree_util.keystr(path)} ({dtype})")
+    if named:
+        warnings.warn(
+            f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: an integer "
+            "scalar of NumPy or JAX is held fixed as data, not estimated (right for an "
+            "exponent or an index). To estimate it, give a float (1.0, float(value)); "
+            "`fixed=` holds a parameter fixed.",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 _MODULE_ENTRIES: dict = {}

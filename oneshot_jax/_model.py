@@ -32,13 +32,28 @@ def _input_at(u, dt, input):
     return lambda s: u
 
 
+def _derivative(rhs, x, u, theta):
+    """rhs(x, u, theta), which must be dx/dt of the state's shape and dtype: the stages'
+    sums would broadcast another shape into a state of the right shape and a wrong model,
+    and promote another dtype silently."""
+    dx = rhs(x, u, theta)
+    shape, dtype = getattr(dx, "shape", None), getattr(dx, "dtype", None)
+    if shape != jnp.shape(x) or dtype != x.dtype:
+        got = f"shape {shape} and dtype {dtype}" if shape is not None else type(dx).__name__
+        raise ValueError(
+            f"`rhs` must return dx/dt as an array of the state's shape {jnp.shape(x)} and "
+            f"dtype {x.dtype}, got {got}."
+        )
+    return dx
+
+
 def _integrator_step(rhs, x, u_at, theta, s, h, method):
     """One step of size h from t_k + s of classical RK4 (or explicit Euler) for
     dx/dt = rhs(x, u(t), theta), the discretisation of eq. (1) for an ODE."""
+    k1 = _derivative(rhs, x, u_at(s), theta)
     if method == "euler":
-        return x + h * rhs(x, u_at(s), theta)
+        return x + h * k1
     u_mid = u_at(s + 0.5 * h)
-    k1 = rhs(x, u_at(s), theta)
     k2 = rhs(x + 0.5 * h * k1, u_mid, theta)
     k3 = rhs(x + 0.5 * h * k2, u_mid, theta)
     k4 = rhs(x + h * k3, u_at(s + h), theta)
@@ -242,7 +257,8 @@ class Model(eqx.Module):
 
     `theta` is any pytree (a dict of named physical parameters is the normal case; it may
     hold equinox modules such as a neural-network residual, see `oneshot_jax.residual`);
-    `x` is a 1-D state array, `u[k]` a 1-D input array. Both functions must be pure and
+    `x` is a 1-D state array, `u[k]` a 1-D input array (a model without inputs takes u of
+    shape (T, 0), which gives a record its length). Both functions must be pure and
     traceable by JAX. The model is immutable and hashable: pass it to a function under
     `eqx.filter_jit` (as the library does), as a static argument of `jax.jit`, or close
     over it; plain `jax.jit` cannot take it as a traced argument because it holds
@@ -254,7 +270,8 @@ class Model(eqx.Module):
         array of the same shape and dtype as `x`.
     - `observe`: `observe(x, u, theta) -> z`, the map g of eq. (1), with u = u[k] of
         shape (n_u,). Defaults to `z = x`. Integer or boolean outputs are promoted to the
-        data's floating dtype.
+        data's floating dtype; floating outputs must be in it (a float32 z of float64
+        data would round the measurements, and is refused).
     - `input`: what the step sees of the input record u (T, n_u). `"zoh"` (default):
         `u_step[k] = u[k]`, shape (n_u,). `"foh"`: the pair `(u[k], u[k+1])`, shape
         (2, n_u), for a step that interpolates between the samples (see `ode_step`).
@@ -275,7 +292,15 @@ class Model(eqx.Module):
         if not callable(step):
             raise ValueError(f"`step` must be callable (x, u, theta) -> x_next, got {step!r}.")
         if observe is not None and not callable(observe):
-            raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
+            hint = ""
+            if isinstance(observe, (int, float)) and not isinstance(observe, bool):
+                hint = (
+                    " (for a continuous-time right-hand side and its sample interval, "
+                    f"use Model.from_ode(rhs, dt={observe!r}))"
+                )
+            raise ValueError(
+                f"`observe` must be callable (x, u, theta) -> z, got {observe!r}{hint}."
+            )
         if not isinstance(timed, bool):
             raise TypeError(f"`timed` must be a bool, got {timed!r}.")
         self.step = step
@@ -322,7 +347,8 @@ class Model(eqx.Module):
 
         **Arguments:**
 
-        - `rhs`: `rhs(x, u, theta) -> dx/dt`, u of shape (n_u,).
+        - `rhs`: `rhs(x, u, theta) -> dx/dt`, u of shape (n_u,); dx/dt of the state's
+            shape and dtype.
         - `dt`: the sample interval (> 0), or None for records with time stamps `t`.
         - `method`: `"rk4"` or `"euler"`.
         - `substeps`: number of integrator steps per sample interval (>= 1); with
@@ -352,7 +378,7 @@ class Model(eqx.Module):
             raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
         if method not in ("rk4", "euler"):
             raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
-        if int(substeps) != substeps or substeps < 1:
+        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
             raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
         input = _check_input(input)
         if dt is None:

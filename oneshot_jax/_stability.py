@@ -101,8 +101,7 @@ def step_sizes(step, u, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         dt = np.full(idx.shape, float(step.dt))
         n = np.full(idx.shape, step.substeps)
     else:
-        u = np.asarray(u)
-        dt = u.reshape(-1, u.shape[-1])[idx, -1].astype(float)
+        dt = np.asarray(u)[..., -1].reshape(-1)[idx].astype(float)
         if step.max_step is None:
             n = np.full(idx.shape, step.substeps)
         else:
@@ -140,8 +139,9 @@ def jacobians_at(rhs, theta, xs, u, idx):
     """The states of a trajectory xs (..., T, n_x) at the flattened indices `idx`, and
     d rhs / d x there with their inputs u (..., T, n_u) (forward mode: the state is
     small); traced."""
-    xs = xs.reshape(-1, xs.shape[-1])[idx]
-    us = u.reshape(-1, u.shape[-1])[idx]
+    rows = math.prod(xs.shape[:-1])  # (not -1: an input of n_u = 0 has no elements)
+    xs = xs.reshape(rows, xs.shape[-1])[idx]
+    us = u.reshape(rows, u.shape[-1])[idx]
     return xs, jax.vmap(lambda x, u: jax.jacfwd(rhs)(x, u, theta))(xs, us)
 
 

@@ -1,6 +1,8 @@
 """Bad input is a ValueError that names the argument, before any tracing error, and never
 a silent broadcast."""
 
+import warnings
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -380,3 +382,73 @@ def test_float64_host_data_run_in_float32_without_x64():
         C, (g, gx) = oj.value_and_grad(model, {"k": np.array(2.0)}, x0, u, z)
         assert C.dtype == jnp.float32 and g["k"].dtype == jnp.float32
         assert float(C) < 1e-10
+
+
+def _osc(x, u, p):
+    return jnp.stack([x[1], -p["k"] * x[0] - p["c"] * x[1]])
+
+
+OSC = {"k": 2.0, "c": 0.3}
+
+
+def test_a_right_hand_side_or_observation_in_another_dtype_is_refused():
+    """float32 from `rhs` with float64 data used to pass (RK4 promoted the stages back) and
+    float32 from `observe` rounded the measurements to float32, silently."""
+    u = np.zeros((20, 1), np.float64)
+    rhs32 = oj.Model.from_ode(lambda x, u, p: _osc(x, u, p).astype(jnp.float32), 0.1)
+    with pytest.raises(ValueError, match=r"`rhs`.*dtype float64.*got float32"):
+        oj.simulate(rhs32, OSC, np.array([1.0, 0.0]), u)
+    obs32 = oj.Model.from_ode(_osc, 0.1, observe=lambda x, u, p: x[:1].astype(jnp.float32))
+    with pytest.raises(ValueError, match=r"`model.observe`.*dtype float64, got float32"):
+        oj.loss(obs32, OSC, np.array([1.0, 0.0]), u, np.zeros((20, 1)))
+
+
+def test_ode_step_in_a_handwritten_step_refuses_a_wrong_shaped_rhs():
+    """`ode_step` broadcast dx/dt of shape () against a state of 2: a wrong model."""
+
+    def step(x, u, p):
+        return oj.ode_step(lambda x, u, p: -p["a"] * x[0], x, u, p, 0.1)
+
+    with pytest.raises(ValueError, match=r"`rhs` must return dx/dt.*shape \(2,\).*got shape \(\)"):
+        oj.simulate(oj.Model(step), {"a": 1.0}, np.array([1.0, 0.0]), np.zeros((10, 1)))
+
+
+def test_a_model_without_inputs_fits_on_u_with_no_columns():
+    """n_u = 0: `fit` (whose stability check reshaped u with -1) works as `simulate` does;
+    u=None names what to give."""
+    model = oj.Model.from_ode(_osc, 0.1, observe=lambda x, u, p: x[:1])
+    u = np.zeros((200, 0))
+    _, z = oj.simulate(model, OSC, np.array([1.0, 0.0]), u)
+    noisy = np.asarray(z) + 1e-3 * np.random.default_rng(0).standard_normal(z.shape)
+    r = oj.fit(model, {"k": 1.5, "c": 0.2}, np.array([1.0, 0.0]), u, noisy)
+    assert r.success and abs(float(r.theta["k"]) - 2.0) < 3 * float(r.std["k"]) + 1e-3
+    with pytest.raises(ValueError, match=r"`u` is required.*np.zeros\(\(T, 0\)\)"):
+        oj.fit(model, {"k": 1.5, "c": 0.2}, np.array([1.0, 0.0]), None, noisy)
+
+
+def test_natural_mistakes_get_a_hint():
+    with pytest.raises(ValueError, match=r"Model.from_ode\(rhs, dt=0.1\)"):
+        oj.Model(_osc, 0.1)
+    with pytest.raises(ValueError, match="`substeps`"):
+        oj.Model.from_ode(_osc, 0.1, substeps=True)
+    model = oj.Model.from_ode(_osc, 0.1)
+    with pytest.raises(ValueError, match=r"read as 2 trajectories.*shape \(2,\)"):
+        oj.simulate(model, OSC, np.array([[1.0], [0.0]]), np.zeros((10, 1)))
+    u = np.zeros((10, 1))
+    u[3] = np.nan
+    with pytest.raises(ValueError, match=r"`u` contains NaN.*`missing='mask'` applies to z"):
+        oj.fit(model, OSC, np.zeros(2), u, np.zeros((10, 2)), missing="mask")
+
+
+def test_an_integer_scalar_of_numpy_in_theta0_warns_that_it_is_held():
+    """{"k": np.int64(1)} is carried as data (as a module's exponent would be): fit says
+    so, naming the entry; a Python int is a parameter and is not named."""
+    model = oj.Model.from_ode(lambda x, u, p: _osc(x, u, p) + jnp.stack([0.0, u[0]]), 0.1)
+    u = np.random.default_rng(1).standard_normal((100, 1))
+    _, z = oj.simulate(model, OSC, np.array([1.0, 0.0]), u)
+    with pytest.warns(UserWarning, match=r"theta0\['k'\] \(int64\).*held fixed as data"):
+        r = oj.fit(model, {"k": np.int64(2), "c": 0.2}, np.array([1.0, 0.0]), u, z)
+    assert r.names == ("c",) and float(r.theta["c"]) == pytest.approx(0.3, abs=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.fit(model, {"k": 2, "c": 0.2}, np.array([1.0, 0.0]), u, z)

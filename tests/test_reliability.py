@@ -259,7 +259,8 @@ def test_integer_leaves_of_theta_are_not_parameters(data, tmp_path):
 
     model = oj.Model.from_ode(rhs_p, 0.1, observe=observe)
     th0 = {**TH0, "p": np.array(1), "on": np.array([True])}
-    r = oj.fit(model, th0, X0, u, z)
+    with pytest.warns(UserWarning, match=r"theta0\['p'\] \(int64\).*held fixed as data"):
+        r = oj.fit(model, th0, X0, u, z)
     assert r.success and r.names == ("c", "k")
     assert r.theta["p"] is th0["p"] and r.theta["on"] is th0["on"]
     assert abs(float(r.theta["k"]) - 2.0) < 0.05
