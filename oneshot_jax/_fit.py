@@ -108,7 +108,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
         with counting() as counts:
             t0 = time.perf_counter()
             buffers, layout = _solve(
-                solvers,
+                tuple(s.traced_options(problem.dtype) for s in solvers),
                 problem,
                 starts,
                 history,
@@ -287,7 +287,11 @@ def fit(
         leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
         Every part given needs the same number S of starts, and a shape (S, *its shape);
         the starts of fixed entries are refused. `x0` starts by its own leading axis of
-        starts (S, ...) (`multistart={}` for starts over x0 alone).
+        starts (S, ...) (`multistart={}` for starts over x0 alone). The starts step
+        together until the last one stops, each step evaluating every branch of the
+        solver's tests for all of them: on a CPU, starts that need very different
+        numbers of steps may cost more than a loop of single fits (which compiles once
+        for all starts of the same shapes).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned

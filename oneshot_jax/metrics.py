@@ -3,7 +3,7 @@
 `rmse`, `nrmse`, `fit_percent`, `r2` and `aic` take arrays of shape (..., n_z) (time and
 trajectory axes in front) and return one value per output channel (shape (n_z,)), except
 `aic`, which is a scalar. The definitions are those of MATLAB's System Identification
-Toolbox (`compare`, `fpe`/`aic`). They are JAX functions (jittable). Where an output
+Toolbox (`compare`, `fpe`/`aic`). They are compiled JAX functions (and jittable). Where an output
 channel is constant over the samples scored, `nrmse`, `fit_percent` and `r2` divide by
 its zero deviation from its mean: inf, -inf and -inf for a model that misses it, NaN
 (0 / 0) for one that reproduces it exactly; `aic` is -inf where the errors are exactly
@@ -23,6 +23,7 @@ from __future__ import annotations
 import numbers
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import special
@@ -65,6 +66,7 @@ def _mean(a, w):
     return jnp.sum(w * a, axis=0) / jnp.sum(w, axis=0)
 
 
+@jax.jit  # (one compiled call per shape, not one per operation)
 def rmse(z, zhat, mask=None):
     """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2), over the samples
     where `mask` (shaped like z, optional) is true."""
@@ -72,6 +74,7 @@ def rmse(z, zhat, mask=None):
     return jnp.sqrt(_mean((zhat - z) ** 2, w))
 
 
+@jax.jit  # (one compiled call per shape, not one per operation)
 def nrmse(z, zhat, mask=None):
     """RMSE divided by the standard deviation of the measured output, per output."""
     z, zhat, w = _flat(z, zhat, mask)
@@ -79,6 +82,7 @@ def nrmse(z, zhat, mask=None):
     return jnp.sqrt(_mean((zhat - z) ** 2, w)) / std
 
 
+@jax.jit  # (one compiled call per shape, not one per operation)
 def fit_percent(z, zhat, mask=None):
     """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`)."""
     z, zhat, w = _flat(z, zhat, mask)
@@ -87,6 +91,7 @@ def fit_percent(z, zhat, mask=None):
     return 100.0 * (1.0 - num / den)
 
 
+@jax.jit  # (one compiled call per shape, not one per operation)
 def r2(z, zhat, mask=None):
     """Coefficient of determination R^2 = 1 - SSE / SST per output."""
     z, zhat, w = _flat(z, zhat, mask)
@@ -113,6 +118,11 @@ def aic(z, zhat, n_params, mask=None):
         )
     if isinstance(n_params, numbers.Integral) and n_params < 0:
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
+    return _aic(z, zhat, n_params, mask)
+
+
+@jax.jit
+def _aic(z, zhat, n_params, mask):
     z, zhat, w = _flat(z, zhat, mask)
     full = jnp.all(w > 0, axis=1).astype(z.dtype)
     e = (zhat - z) * full[:, None]

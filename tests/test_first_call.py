@@ -169,3 +169,30 @@ def test_compiled_calls_return_the_static_outputs_of_their_own_shapes():
     assert calls == [(3,), (5,)]  # traced once per shape
     assert g(np.arange(3, dtype=float), 3.0)["y"][1] == 3.0  # a new static value: traced again
     assert len(calls) == 3
+
+
+@pytest.mark.parametrize(
+    "first, then",
+    [
+        (oj.LevenbergMarquardt(), oj.LevenbergMarquardt(gtol=1e-2, mu0=1e-2, rtol=1e-9)),
+        (oj.GaussNewton(), oj.GaussNewton(gtol=1e-2, atol=1e-14)),
+        (oj.Adam(1e-2, max_steps=50), oj.Adam(2e-2, 1e-3, b1=0.8, eps=1e-7, max_steps=50)),
+        (oj.LBFGS(), oj.LBFGS(tol_grad=1e-2, gtol=1e-2)),
+    ],
+)
+def test_a_new_tolerance_or_learning_rate_reuses_the_compiled_fit(first, then):
+    """The numeric options (tolerances, damping, learning rates, Adam's b1, b2, eps) enter
+    the compiled fit as traced numbers: a sweep over them compiles once, and the new
+    values act (a looser tolerance stops earlier, another rate takes another path)."""
+    model = oj.Model.from_ode(cubic, DT)
+    x0, u, z = _data(model, {"a": 0.5, "b": 2.0}, np.array([0.3, -0.2]))
+    z = z + 1e-3 * np.random.default_rng(5).standard_normal(z.shape)
+    fit = lambda s: oj.fit(model, {"a": 0.4, "b": 1.5}, x0[0], u[0], z[0], solver=s)  # noqa: E731
+    a, _ = COMPILES.count(lambda: fit(first))
+    b, n = COMPILES.count(lambda: fit(then))
+    assert n == 0
+    if isinstance(first, oj.Adam):
+        assert len(a.history.loss) == len(b.history.loss)
+        assert not np.allclose(a.history.loss, b.history.loss)
+    else:
+        assert len(b.history.loss) < len(a.history.loss)

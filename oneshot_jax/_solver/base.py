@@ -38,6 +38,29 @@ class AbstractSolver(eqx.Module):
     # copy of the evaluation (the linearisation of the least-squares solvers), not two.
     primes_in_step = False  # (a class constant: no annotation, so not a field)
 
+    # The options that enter the compiled solve as numbers only (no Python branch, no
+    # static field depends on them): `traced_options` passes them as arrays, so that a
+    # new tolerance or learning rate reuses the compiled fit instead of compiling again.
+    TRACED_OPTIONS = ()  # (a class constant: no annotation, so not a field)
+
+    def traced_options(self, dtype) -> "AbstractSolver":
+        """This solver with the `TRACED_OPTIONS` that hold Python numbers as 0-d arrays of
+        `dtype` (the data's: what a Python number would have become in the arithmetic),
+        which the compiled call takes as traced arguments rather than as part of its
+        static key."""
+        names = [
+            n
+            for n in self.TRACED_OPTIONS
+            if isinstance(getattr(self, n), (int, float)) and not isinstance(getattr(self, n), bool)
+        ]
+        if not names:
+            return self
+        return eqx.tree_at(
+            lambda s: [getattr(s, n) for n in names],
+            self,
+            [np.asarray(getattr(self, n), dtype) for n in names],
+        )
+
     @abc.abstractmethod
     def init(self, problem: FitProblem, params: Params) -> Any:
         """The solver's state at the starting point (evaluating whatever it needs there,

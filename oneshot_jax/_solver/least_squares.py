@@ -112,6 +112,8 @@ class AbstractLeastSquares(AbstractSolver):
     """The structured least-squares loop: the descent is the linearisation's step
     (`_linearisation`), the search (`_search`) is what a subclass supplies."""
 
+    TRACED_OPTIONS = ("rtol", "atol", "gtol")
+
     rtol: eqx.AbstractVar[float]
     atol: eqx.AbstractVar[float]
     gtol: eqx.AbstractVar[float]

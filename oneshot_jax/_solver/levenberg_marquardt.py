@@ -53,6 +53,8 @@ class LevenbergMarquardt(AbstractLeastSquares):
         iteration budget per step (with `"cg"`).
     """
 
+    TRACED_OPTIONS = ("rtol", "atol", "gtol", "mu0")
+
     rtol: float = 0.0
     atol: float = 0.0
     gtol: float = 1e-8

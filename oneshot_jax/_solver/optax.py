@@ -132,6 +132,8 @@ class _AbstractOptax(AbstractSolver):
     gtol: eqx.AbstractVar[float]
     strategy: eqx.AbstractVar[str]
 
+    TRACED_OPTIONS = ("tol_loss", "tol_grad", "gtol")
+
     # A monotone method (LBFGS's line search) rejects a step that does not decrease the
     # objective and stops there (a stall); Adam's steps may go up and down.
     _monotone = False
@@ -385,6 +387,8 @@ class Adam(_AbstractOptax):
         move at the same relative pace. Not with a regulariser.
     - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
+
+    TRACED_OPTIONS = ("lr_theta", "lr_x0", "b1", "b2", "eps", "tol_loss", "tol_grad", "gtol")
 
     lr_theta: Any = 1e-3
     lr_x0: Any = 1e-4
