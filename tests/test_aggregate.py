@@ -267,6 +267,9 @@ def test_operator_kinds():
     )
     tm = oj.Aggregate(0, [(0, 3)], [1.0], kind="time_mean").operator(5, t)
     np.testing.assert_allclose(tm, [[0.5 / 3, 1.5 / 3, 1.0 / 3, 0, 0]], rtol=1e-15)
+    # over samples 1..3 the duration (2.5) and the number of samples (3) differ
+    tm = oj.Aggregate(0, [(1, 4)], [1.0], kind="time_mean").operator(5, t)
+    np.testing.assert_allclose(tm, [[0, 1.0 / 2.5, 1.25 / 2.5, 0.25 / 2.5, 0]], rtol=1e-15)
     np.testing.assert_allclose(
         oj.Aggregate(0, [(1, 3)], [1.0], kind="mean").operator(4), [[0, 0.5, 0.5, 0]]
     )

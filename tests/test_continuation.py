@@ -253,3 +253,27 @@ def test_stability_limit_of_euler_and_other_models():
     assert oj.check_stability(step, {"a": 52.0}, np.zeros(1), u) is None
     with pytest.raises(ValueError, match="points"):
         oj.check_stability(euler, {"a": 1.0}, np.zeros(1), u, points=0)
+
+
+def test_each_new_window_starts_from_the_last_stage_state_at_its_start():
+    """Stage k + 1's windows start from stage k's trajectories (each simulated from its
+    own window's x0) read at the new starts: for windows of 50 then 120, the new windows
+    at 0, 120, 240 start from window 0's x0, window 2's state 20 samples in and window
+    4's state 40 samples in."""
+    from types import SimpleNamespace
+
+    from oneshot_jax._continuation import _window_states
+
+    model = oj.Model(lambda x, u, p: p["a"] * x + u)
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal((360, 1))  # 7 windows of 50, then 3 of 120
+    last = SimpleNamespace(theta={"a": 0.9}, x0=rng.standard_normal((7, 1)))
+    got = _window_states(model, last, u, 50, 120)
+    want = []
+    for window, k in ((0, 0), (2, 20), (4, 40)):
+        xs, _ = oj.simulate(
+            model, last.theta, last.x0[window], u[50 * window : 50 * window + k + 1]
+        )
+        want.append(np.asarray(xs)[k])
+    np.testing.assert_allclose(got, np.array(want), rtol=1e-14)
+    np.testing.assert_array_equal(got[0], last.x0[0])

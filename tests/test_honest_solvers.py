@@ -10,6 +10,7 @@ autodiff's, independent of the library's simulation and sensitivities.
 
 import warnings
 
+import equinox as eqx
 import hypothesis.strategies as st
 import jax
 import jax.numpy as jnp
@@ -581,3 +582,124 @@ def test_property_success_implies_first_order(k, c, k0, c0, lower_c, upper_k, se
         hi = np.array([upper_k, np.inf, np.inf, np.inf])
         m = _measure(problem, q, z, lo, hi)
         assert m <= max(r.stop_info["gtol"], 1.5e-7) * 1.01 + 1e-12, (r.message, m)
+
+
+#
+# The measures themselves, on a hand-built problem (`oneshot_jax.internal`).
+#
+
+
+def _unit_problem(z, project=None, lower=None, upper=None):
+    """A damped pendulum (theta = c, k; x0 free) as the `FitProblem` fit builds."""
+    from oneshot_jax.internal import Cost, FitProblem
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * jnp.sin(x[0]) - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.1, observe=lambda x, u, th: x[:1])
+    u = np.sin(0.3 * np.arange(60)).reshape(1, 60, 1)
+    flat = jnp.array([0.4, 2.0])
+    problem = FitProblem(
+        model=model,
+        cost=Cost(None, None, jnp.zeros((), flat.dtype)),
+        u=u,
+        z=np.reshape(z, (1, 60, 1)),
+        theta_base=flat,
+        theta_free=(0, 1),
+        unravel=lambda v: {"c": v[0], "k": v[1]},
+        x0_base=jnp.array([[0.3, 0.0]]),
+        x0_free=(0, 1),
+        project=project,
+        lower=lower,
+        upper=upper,
+    )
+    return model, u[0], problem
+
+
+def test_the_measure_with_a_general_projection_takes_the_stiffest_columns_step():
+    """With a general projection the trial step is common to all entries: the smallest
+    of 1 / (2 d_i), so that no entry overshoots its bound. A stiff entry (d = 1e6) a
+    distance 1e-2 below its bound, with the cosine 0.5, reaches it only under the soft
+    entry's step (0.5): the measure is then 1e-5 instead of 0.5. With the common small
+    step the measure is the plain cosine, as a box gives it."""
+    from oneshot_jax._optimality import first_order
+    from oneshot_jax.internal import Params
+
+    z = np.zeros(60)
+    theta = jnp.array([0.0, 0.0])
+    g = Params(jnp.array([-500.0, -0.1]), jnp.zeros((1, 2)))  # half the gradient, J^T r
+    d_t, d_x = jnp.array([1e6, 1.0]), jnp.ones((1, 2))
+    clip = lambda th: {"c": jnp.minimum(th["c"], 1e-2), "k": th["k"]}  # noqa: E731
+    _, _, projected = _unit_problem(z, project=clip)
+    _, _, boxed = _unit_problem(
+        z, lower=jnp.array([-jnp.inf, -jnp.inf]), upper=jnp.array([1e-2, jnp.inf])
+    )
+    params = Params(theta, jnp.zeros((1, 2)))
+    for problem in (projected, boxed):
+        m = float(first_order(problem, params, 1.0, g, d_t, d_x))
+        assert m == pytest.approx(0.5, rel=1e-12), m
+
+
+def test_a_first_order_solvers_stall_is_stationary_only_below_the_round_off_limit():
+    """LBFGS's stall (a failed line search) counts as stationary only where the measure
+    is below its round-off limit: not at a far start, but at the optimum."""
+    from oneshot_jax._optimality import check_first_order, scaling
+    from oneshot_jax.internal import Params
+
+    truth = {"c": 0.3, "k": 2.0}
+    model, u, _ = _unit_problem(np.zeros(60))
+    _, clean = oj.simulate(model, truth, np.array([0.3, 0.0]), u)
+    z = np.asarray(clean)[:, 0] + 0.01 * np.random.default_rng(0).standard_normal(60)
+    _, _, problem = _unit_problem(z)
+    stall = jnp.array(True)
+
+    def test_at(theta, x0):
+        params = Params(jnp.asarray(theta), jnp.asarray(x0)[None])
+        C, g = problem.value_and_grad(params, "auto")
+        scale = scaling(problem, params, "auto")
+        fo, stationary, _ = check_first_order(problem, params, C, g, scale, stall, 1e-8, "auto")
+        return float(fo), bool(stationary)
+
+    fo, stationary = test_at([0.4, 2.0], [0.3, 0.0])
+    assert fo > 1e-3 and not stationary
+    r = oj.fit(
+        model,
+        {"c": 0.4, "k": 2.0},
+        np.array([0.3, 0.0]),
+        u,
+        z[:, None],
+        solver=oj.GaussNewton(gtol=1e-12),
+    )
+    fo, stationary = test_at([float(r.theta["c"]), float(r.theta["k"])], r.x0)
+    assert fo <= 1.5e-7 and stationary
+
+
+def test_the_step_size_in_standard_errors_counts_the_rank():
+    """sqrt(pred (R - rank) / C): the degrees of freedom are the observations less the
+    numerical rank of J."""
+    from oneshot_jax._optimality import standard_errors
+
+    assert float(standard_errors(1.0, 2.0, 10, 4)) == pytest.approx(np.sqrt(3.0), rel=1e-15)
+    assert float(standard_errors(1.0, 2.0, 4, 4)) == np.inf
+
+
+def test_the_zero_residual_scale_of_data_with_gaps_is_their_own_variation():
+    """`data_scale` with missing samples: the measured samples' deviation from their own
+    mean (not a mean over every sample), plus 100 eps |z|^2, over the T time points."""
+    from oneshot_jax._cost import Mask
+    from oneshot_jax._optimality import data_scale
+
+    rng = np.random.default_rng(4)
+    z = 300.0 + 0.05 * rng.standard_normal(60)
+    measured = rng.random(60) > 0.1
+    _, _, problem = _unit_problem(np.where(measured, z, 0.0))
+    masked = eqx.tree_at(
+        lambda p: p.mask,
+        problem,
+        Mask(jnp.asarray(measured, float).reshape(1, 60, 1), jnp.ones((1, 60))),
+        is_leaf=lambda x: x is None,
+    )
+    zm = z[measured]
+    eps = np.finfo(float).eps
+    want = (np.sum((zm - zm.mean()) ** 2) + 100 * eps * np.sum(zm**2)) / 60
+    assert float(data_scale(masked)) == pytest.approx(want, rel=1e-10)

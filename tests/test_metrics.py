@@ -40,6 +40,27 @@ def test_metrics_match_numpy(shape):
     assert float(aic) == pytest.approx(ref["aic"], rel=1e-12)
 
 
+def test_masked_metrics_match_numpy_on_the_measured_samples():
+    """With a mask (missing samples, as a masked fit's metrics have them), each channel's
+    metrics are those of its measured samples alone (its own mean, not the unmasked one)
+    and AIC takes the rows where every channel is measured."""
+    rng = np.random.default_rng(7)
+    z = rng.standard_normal((60, 2)) * [1.0, 3.0] + 2.0
+    zhat = z + 0.3 * rng.standard_normal((60, 2))
+    mask = rng.random((60, 2)) > 0.25  # different gaps in each channel
+    z = np.where(mask, z, np.nan)
+    for c in range(2):
+        m = mask[:, c]
+        ref = np_metrics(z[m, c : c + 1], zhat[m, c : c + 1], n_params=3)
+        for name in ("rmse", "nrmse", "fit_percent", "r2"):
+            got = np.asarray(getattr(metrics, name)(z, zhat, mask))[c]
+            np.testing.assert_allclose(got, ref[name][0], rtol=1e-12, err_msg=(name, c))
+    rows = mask.all(axis=1)
+    assert 0 < rows.sum() < 60 and rows.sum() < mask.any(axis=1).sum()
+    ref = np_metrics(z[rows], zhat[rows], n_params=3)["aic"]
+    assert float(metrics.aic(z, zhat, 3, mask)) == pytest.approx(ref, rel=1e-12)
+
+
 def test_metrics_of_a_perfect_and_of_a_mean_model():
     rng = np.random.default_rng(0)
     z = rng.standard_normal((30, 2))

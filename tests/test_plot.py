@@ -120,6 +120,15 @@ def test_whiteness_verdict():
     white = metrics.residual_correlations(rng.standard_normal(T))
     assert white.white.tolist() == [True]
     assert white.auto_outside[0] <= 0.05
+    # the fraction is over the lags 1..max_lag: lag 0 (r = 1, always outside) is not one
+    lags = white.lags >= 1
+    expect = np.mean(np.abs(white.auto[lags]) > white.bound, axis=0)
+    np.testing.assert_array_equal(white.auto_outside, expect)
+    # a white residual with no lag 1..25 outside the band is white even with tolerance 0
+    strict = metrics.residual_correlations(
+        np.random.default_rng(0).standard_normal(T), tolerance=0.0
+    )
+    assert strict.auto_outside.tolist() == [0.0] and strict.white.tolist() == [True]
     coloured = metrics.residual_correlations(ar1(rng, T, 0.5))
     assert coloured.white.tolist() == [False]
     # Independent input, white residual: independent; 0 tolerance is the strict reading.
