@@ -258,8 +258,10 @@ class Model(eqx.Module):
     `theta` is any pytree (a dict of named physical parameters is the normal case; it may
     hold equinox modules such as a neural-network residual, see `oneshot_jax.residual`);
     `x` is a 1-D state array, `u[k]` a 1-D input array (a model without inputs takes u of
-    shape (T, 0), which gives a record its length). Both functions must be pure and
-    traceable by JAX. The model is immutable and hashable: pass it to a function under
+    shape (T, 0), which gives a record its length). JAX clamps an index beyond an array's
+    end instead of raising (`u[1]` with n_u = 1 reads u[0]), so the checks cannot see
+    such a slip: index the state and the input within their sizes. Both functions must be
+    pure and traceable by JAX. The model is immutable and hashable: pass it to a function under
     `eqx.filter_jit` (as the library does), as a static argument of `jax.jit`, or close
     over it; plain `jax.jit` cannot take it as a traced argument because it holds
     functions.
