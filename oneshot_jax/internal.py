@@ -23,7 +23,9 @@ from ._checks import _STRUCTURE as CHECK_DATA_STRUCTURES  # noqa: F401
 from ._checks import check_cost as check_cost
 from ._checks import check_data as check_data
 from ._checks import fixed_mask as fixed_mask
+from ._continuation import _window_states as continuation_window_states  # noqa: F401
 from ._cost import Cost as Cost
+from ._cost import Mask as Mask
 from ._covariance import covariance as covariance
 from ._fit import _theta_order as kept_theta_order  # noqa: F401
 from ._fit_report import theta_order as theta_order
@@ -35,6 +37,11 @@ from ._linalg import eliminate_x0 as eliminate_x0
 from ._linalg import identifiable as identifiable
 from ._linalg import normal_blocks as normal_blocks
 from ._linalg import schur_complement as schur_complement
+from ._optimality import check_first_order as check_first_order
+from ._optimality import data_scale as data_scale
+from ._optimality import first_order as first_order
+from ._optimality import scaling as scaling
+from ._optimality import standard_errors as standard_errors
 from ._parallel import METHOD_NAMES as METHOD_NAMES
 from ._parallel import diagonal_linear_recurrence as diagonal_linear_recurrence
 from ._parallel import linear_recurrence as linear_recurrence

@@ -262,7 +262,7 @@ def test_each_new_window_starts_from_the_last_stage_state_at_its_start():
     4's state 40 samples in."""
     from types import SimpleNamespace
 
-    from oneshot_jax._continuation import _window_states
+    from oneshot_jax.internal import continuation_window_states as _window_states
 
     model = oj.Model(lambda x, u, p: p["a"] * x + u)
     rng = np.random.default_rng(3)

@@ -622,8 +622,7 @@ def test_the_measure_with_a_general_projection_takes_the_stiffest_columns_step()
     distance 1e-2 below its bound, with the cosine 0.5, reaches it only under the soft
     entry's step (0.5): the measure is then 1e-5 instead of 0.5. With the common small
     step the measure is the plain cosine, as a box gives it."""
-    from oneshot_jax._optimality import first_order
-    from oneshot_jax.internal import Params
+    from oneshot_jax.internal import Params, first_order
 
     z = np.zeros(60)
     theta = jnp.array([0.0, 0.0])
@@ -643,8 +642,7 @@ def test_the_measure_with_a_general_projection_takes_the_stiffest_columns_step()
 def test_a_first_order_solvers_stall_is_stationary_only_below_the_round_off_limit():
     """LBFGS's stall (a failed line search) counts as stationary only where the measure
     is below its round-off limit: not at a far start, but at the optimum."""
-    from oneshot_jax._optimality import check_first_order, scaling
-    from oneshot_jax.internal import Params
+    from oneshot_jax.internal import Params, check_first_order, scaling
 
     truth = {"c": 0.3, "k": 2.0}
     model, u, _ = _unit_problem(np.zeros(60))
@@ -677,7 +675,7 @@ def test_a_first_order_solvers_stall_is_stationary_only_below_the_round_off_limi
 def test_the_step_size_in_standard_errors_counts_the_rank():
     """sqrt(pred (R - rank) / C): the degrees of freedom are the observations less the
     numerical rank of J."""
-    from oneshot_jax._optimality import standard_errors
+    from oneshot_jax.internal import standard_errors
 
     assert float(standard_errors(1.0, 2.0, 10, 4)) == pytest.approx(np.sqrt(3.0), rel=1e-15)
     assert float(standard_errors(1.0, 2.0, 4, 4)) == np.inf
@@ -686,8 +684,7 @@ def test_the_step_size_in_standard_errors_counts_the_rank():
 def test_the_zero_residual_scale_of_data_with_gaps_is_their_own_variation():
     """`data_scale` with missing samples: the measured samples' deviation from their own
     mean (not a mean over every sample), plus 100 eps |z|^2, over the T time points."""
-    from oneshot_jax._cost import Mask
-    from oneshot_jax._optimality import data_scale
+    from oneshot_jax.internal import Mask, data_scale
 
     rng = np.random.default_rng(4)
     z = 300.0 + 0.05 * rng.standard_normal(60)
