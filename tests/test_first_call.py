@@ -176,14 +176,14 @@ def test_compiled_calls_return_the_static_outputs_of_their_own_shapes():
     [
         (oj.LevenbergMarquardt(), oj.LevenbergMarquardt(gtol=1e-2, mu0=1e-2, rtol=1e-9)),
         (oj.GaussNewton(), oj.GaussNewton(gtol=1e-2, atol=1e-14)),
-        (oj.Adam(1e-2, max_steps=50), oj.Adam(2e-2, 1e-3, b1=0.8, eps=1e-7, max_steps=50)),
+        (oj.Adam(1e-2, max_steps=400), oj.Adam(1e-2, max_steps=400, tol_grad=1e-2, gtol=1e-2)),
         (oj.LBFGS(), oj.LBFGS(tol_grad=1e-2, gtol=1e-2)),
     ],
 )
-def test_a_new_tolerance_or_learning_rate_reuses_the_compiled_fit(first, then):
-    """The numeric options (tolerances, damping, learning rates, Adam's b1, b2, eps) enter
-    the compiled fit as traced numbers: a sweep over them compiles once, and the new
-    values act (a looser tolerance stops earlier, another rate takes another path)."""
+def test_a_new_tolerance_reuses_the_compiled_fit(first, then):
+    """The tolerances and LM's starting damping enter the compiled fit as traced numbers:
+    a sweep over them compiles once, and the new values act (a looser tolerance stops
+    earlier)."""
     model = oj.Model.from_ode(cubic, DT)
     x0, u, z = _data(model, {"a": 0.5, "b": 2.0}, np.array([0.3, -0.2]))
     z = z + 1e-3 * np.random.default_rng(5).standard_normal(z.shape)
@@ -191,8 +191,4 @@ def test_a_new_tolerance_or_learning_rate_reuses_the_compiled_fit(first, then):
     a, _ = COMPILES.count(lambda: fit(first))
     b, n = COMPILES.count(lambda: fit(then))
     assert n == 0
-    if isinstance(first, oj.Adam):
-        assert len(a.history.loss) == len(b.history.loss)
-        assert not np.allclose(a.history.loss, b.history.loss)
-    else:
-        assert len(b.history.loss) < len(a.history.loss)
+    assert len(b.history.loss) < len(a.history.loss)

@@ -38,9 +38,12 @@ class AbstractSolver(eqx.Module):
     # copy of the evaluation (the linearisation of the least-squares solvers), not two.
     primes_in_step = False  # (a class constant: no annotation, so not a field)
 
-    # The options that enter the compiled solve as numbers only (no Python branch, no
-    # static field depends on them): `traced_options` passes them as arrays, so that a
-    # new tolerance or learning rate reuses the compiled fit instead of compiling again.
+    # The options that enter the compiled solve only in comparisons and as the starting
+    # value of a state (no Python branch, no static field and no arithmetic of the
+    # iterates depends on them, so the iterates are the same to the last bit):
+    # `traced_options` passes them as arrays, so that a new tolerance reuses the compiled
+    # fit instead of compiling again. (A learning rate enters the arithmetic, where a
+    # traced value rounds differently from a constant: it stays static.)
     TRACED_OPTIONS = ()  # (a class constant: no annotation, so not a field)
 
     def traced_options(self, dtype) -> "AbstractSolver":

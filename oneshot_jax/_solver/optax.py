@@ -389,8 +389,6 @@ class Adam(_AbstractOptax):
     - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
 
-    TRACED_OPTIONS = ("lr_theta", "lr_x0", "b1", "b2", "eps", "tol_loss", "tol_grad", "gtol")
-
     lr_theta: Any = 1e-3
     lr_x0: Any = 1e-4
     b1: float = 0.9
