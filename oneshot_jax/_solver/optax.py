@@ -41,7 +41,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._checks import is_concrete
 from .._linalg import floor
 from .._optimality import (
     Measures,
@@ -492,11 +491,10 @@ def proximal_adam(
             "`regulariser` must be a ProximalTransformation from oneshot_jax.sparsity (l1, "
             f"group_lasso, l2, combine), got {regulariser!r}."
         )
-    # (Checked where they are numbers; `fit` passes its solver's as traced arrays.)
     for name, b in (("b1", b1), ("b2", b2)):
-        if is_concrete(b) and not 0 <= b < 1:
+        if not 0 <= b < 1:
             raise ValueError(f"`{name}` must be in [0, 1), got {b!r}.")
-    if is_concrete(eps) and not eps > 0:
+    if not eps > 0:
         raise ValueError(f"`eps` must be > 0, got {eps!r}.")
     if floor is None:
         floor = regulariser.strength or 0.0
