@@ -17,12 +17,18 @@ widths)` on the state in theta; the widths set n_theta. Three tables:
 3. **Fits.** `LevenbergMarquardt(max_steps=K)` with `linear_solver="dense"` and `"cg"` from
    the same start (the physical fit, then 200 Adam steps): final loss and wall time
    (compilation excluded: each configuration is run twice and the second run timed).
+4. **The sensitivities' strategy** (only with `--tables 4`). Seconds per dense residual
+   Jacobian (the forward sensitivities of one least-squares iteration) with the
+   "jacobian" strategy (per-step Jacobians formed after the forward pass) and the "vjp"
+   one (column tangents pushed through the scan), for one-layer residuals of growing
+   width, and the strategy "auto" takes for that size (`Auto.resolve`).
 
 Every time is the median of `--repeats` calls after a warm-up call (compilation
 excluded), blocked with `block_until_ready`. Run:
 
     python benchmarks/hybrid.py                 # all three tables
     python benchmarks/hybrid.py --quick         # small sizes only
+    python benchmarks/hybrid.py --tables 4      # the sensitivities' strategy
 """
 
 import argparse
@@ -37,6 +43,8 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from timing import interleaved  # noqa: E402
+
 import oneshot_jax as oj  # noqa: E402
 from experiments import duffing_hybrid as duffing  # noqa: E402
 from oneshot_jax.internal import FitProblem, check_cost, check_data  # noqa: E402
@@ -44,6 +52,7 @@ from oneshot_jax.residual import MLP, count_parameters  # noqa: E402
 
 WIDTHS = ((4,), (16, 16), (32, 32), (64, 64), (128, 128))
 QUICK_WIDTHS = ((4,), (16, 16))
+STRATEGY_WIDTHS = ((1,), (3,), (6,), (12,), (24,), (48,))
 
 
 def median_time(fn, repeats):
@@ -131,6 +140,29 @@ def iteration_table(u, z, x0, widths, repeats, dense_max):
         )
 
 
+def strategy_table(u, z, x0, widths, repeats):
+    print(f"\n4. the sensitivities' strategy: one dense residual Jacobian, T = {u.shape[0]}")
+    print(
+        f"  {'n_theta':>8} {'columns':>8} {'jacobian [ms]':>14} {'vjp [ms]':>9} "
+        f"{'jacobian/vjp':>13} {'auto takes':>11}"
+    )
+    for w in widths:
+        problem = lsq_problem(theta_for(w), x0, u, z)
+        params = problem.split(problem.theta_base, problem.x0_base)
+        p, n_x = params.theta.shape[0], problem.x0_base.shape[-1]
+        cols = p + params.x0.shape[-1]
+        calls = {}
+        for name in ("jacobian", "vjp"):
+            jac = eqx.filter_jit(lambda problem, params, name=name: problem.jacobian(params, name))
+            calls[name] = lambda jac=jac: jac(problem, params).Jt
+        t = interleaved(calls, repeats=repeats)
+        auto = oj.Auto().resolve(n_x, u.shape[0], 8, 1, cols).name
+        print(
+            f"  {p:>8d} {cols:>8d} {1e3 * t['jacobian']:>14.2f} {1e3 * t['vjp']:>9.2f} "
+            f"{t['jacobian'] / t['vjp']:>13.2f} {auto:>11}"
+        )
+
+
 def fit_table(u, z, x0, widths, steps):
     print(f"\n3. LevenbergMarquardt(max_steps={steps}) from the same start, T = {u.shape[0]}")
     print(f"  {'n_theta':>8} {'solver':>7} {'start loss':>11} {'final loss':>11} {'wall [s]':>9}")
@@ -159,7 +191,9 @@ def main():
     parser.add_argument(
         "--dense-max", type=int, default=5000, help="largest n_theta for the dense solve"
     )
-    parser.add_argument("--tables", default="123", help="which tables to print (e.g. 12)")
+    parser.add_argument(
+        "--tables", default="123", help="which tables to print (e.g. 12; 4 only when named)"
+    )
     args = parser.parse_args()
     widths = QUICK_WIDTHS if args.quick else WIDTHS
     u, z, x0, _ = duffing.make_data(0, args.T)
@@ -170,6 +204,8 @@ def main():
         iteration_table(u, z, x0, widths[:4], args.repeats, args.dense_max)
     if "3" in args.tables:
         fit_table(u, z, x0, widths[:3], args.steps)
+    if "4" in args.tables:
+        strategy_table(u, z, x0, STRATEGY_WIDTHS, args.repeats)
 
 
 if __name__ == "__main__":
