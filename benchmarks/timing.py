@@ -110,13 +110,18 @@ def versions(extra=()) -> dict:
             out[name] = version(name)
         except PackageNotFoundError:
             out[name] = "not installed"
+    if out["oneshot_jax"] == "not installed" and "oneshot_jax" in sys.modules:
+        out["oneshot_jax"] = f"{sys.modules['oneshot_jax'].__version__} (source tree)"
     return out
 
 
 def commit() -> str:
     """The checkout's commit (short hash, "+changes" where the library's or the benchmarks'
     Python files differ from it, tracked or not; their outputs, JSON files and figures,
-    do not count), or "" outside a git checkout."""
+    do not count). Outside a git checkout (a copy of a clean tree on another machine), the
+    environment variable `ONESHOT_JAX_COMMIT` if set, marked as given; else ""."""
+    given = os.environ.get("ONESHOT_JAX_COMMIT", "")
+    given = f"{given}, given by ONESHOT_JAX_COMMIT" if given else ""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
         head = subprocess.run(
@@ -129,9 +134,9 @@ def commit() -> str:
             text=True,
         )
     except OSError:
-        return ""
+        return given
     if head.returncode:
-        return ""
+        return given
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
