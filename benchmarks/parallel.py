@@ -38,7 +38,7 @@ Run: `python benchmarks/parallel.py` (default grid: the ten cells with T n_x^3 <
 accelerator); `--nx` / `--horizons` pick the cells; `--json PATH` writes the numbers (after
 each cell); `--render JSON...` prints the tables of earlier runs (the GPU table in
 `docs/benchmarks.md` is `python benchmarks/parallel.py --render benchmarks/gpu/h100_grid.json
-benchmarks/gpu/h100_nx*.json benchmarks/gpu/h100_fit_memory.json`).
+benchmarks/gpu/h100_nx16.json`; the runs on a GPU are `benchmarks/gpu/h100.sh`).
 """
 
 import argparse

@@ -70,8 +70,8 @@ STRATEGIES = ("auto", "jacobian", "vjp", "parallel")
 ACCELERATORS = ("gpu", "tpu", "cuda", "rocm")
 # On an accelerator a sequential scan costs one or more kernel launches per step (about
 # 10 microseconds), a parallel solve a few dozen launches in all: from a few hundred
-# steps on, parallel wins there (on an H200 at T = 512 in every case of
-# `benchmarks/parallel.py`, at T = 64 mostly not: `benchmarks/gpu/h200_short.json`).
+# steps on, parallel wins there (on an H100 at T = 512 in every case of
+# `benchmarks/parallel.py`, at T = 64 mostly not: `benchmarks/gpu/h100_short.json`).
 PARALLEL_MIN_T = 512
 
 LINEAR_SOLVERS = ("auto", "dense", "cg")
