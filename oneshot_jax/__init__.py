@@ -16,6 +16,7 @@ from ._continuation import BasinCheck as BasinCheck
 from ._continuation import Continuation as Continuation
 from ._continuation import check_basin as check_basin
 from ._continuation import fit_continuation as fit_continuation
+from ._covariance import NeweyWest as NeweyWest
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult

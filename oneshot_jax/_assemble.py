@@ -10,7 +10,7 @@ import numpy as np
 
 from . import _pytree
 from . import metrics as _metrics
-from ._covariance import covariance, scale
+from ._covariance import covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
 from ._optimality import roundoff_limit
 from ._results import from_index, name_of
@@ -105,10 +105,11 @@ def collect(stages, best, moved, posted) -> Out:
     )
 
 
-def post(problem, params, blocks, strategy):
+def post(problem, params, blocks, strategy, lags=None):
     """Everything `FitResult` needs from the solution, traced inside the fit's compiled
     call: theta (flat), x0, the residuals, the covariance blocks and the metrics; and the
-    simulated states (for `_stability`)."""
+    simulated states (for `_stability`). `lags`: the Newey-West sandwich's L (the
+    covariance is then `sandwich`), or None."""
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
     xs, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
@@ -119,7 +120,10 @@ def post(problem, params, blocks, strategy):
     e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
     cov = None
     if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
-        cov = scale(covariance(problem, params, strategy, blocks), e)
+        if lags is None:
+            cov = scale(covariance(problem, params, strategy, blocks), e)
+        else:
+            cov = scale(sandwich(problem, params, strategy, lags), e, robust=True)
     n_free = params.theta.shape[0] + params.x0.size
     met = {
         "rmse": _metrics.rmse(zs, zhat, m),

@@ -182,7 +182,8 @@ def fit_continuation(
     - `start`, `factor`: without `windows`, the lengths `start`, `start * factor`, ...
         while shorter than the record (doubling from 50 by default).
     - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
-        `constraints`, `estimate_x0`, ...); not `window` or `multistart`.
+        `constraints`, `estimate_x0`, ...); not `window` or `multistart`. `covariance`
+        goes to the last stage only (the windowed stages keep the classical one).
 
     **Returns:**
 
@@ -204,6 +205,7 @@ def fit_continuation(
             "`fit_continuation` takes one record: `x0` of shape (n_x,), `u` (T, n_u) and `z` "
             f"(T, n_z); got shapes {np.shape(x0)}, {np.shape(u)}, {np.shape(z)}."
         )
+    covariance = kwargs.pop("covariance", "classical")
     u_np = np.asarray(u)
     T = u_np.shape[0]
     schedule = _schedule(windows, start, factor, T)
@@ -219,7 +221,7 @@ def fit_continuation(
         stages.append(_stage(w, result))
         theta, w_prev = result.theta, w
     final_x0 = np.asarray(result.x0)[0]
-    final = fit(model, theta, final_x0, u, z, **kwargs)
+    final = fit(model, theta, final_x0, u, z, covariance=covariance, **kwargs)
     stages.append(_stage(None, final))
     return Continuation(result=final, stages=tuple(stages))
 

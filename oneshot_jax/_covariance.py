@@ -9,10 +9,14 @@ the Schur complement S = A - sum_i B_i C_i^+ B_i^T, formed from the Jacobian
 and judged against diag(A), and the pseudo-inverses C_i^+ (`_linalg.eliminate_x0`, the
 elimination the least-squares step uses), so a parameter or an initial state that does not
 change the outputs is flagged as not identifiable instead of producing NaN.
+
+`NeweyWest` replaces sigma^2 (J^T J)^+ by a sandwich that holds when the residuals are
+correlated in time (a model error, coloured noise): `sandwich`.
 """
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,16 +35,74 @@ class Covariance(NamedTuple):
     x0_identifiable: jax.Array  # (N, m)
 
 
-def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Covariance:
+class NeweyWest(eqx.Module):
+    """Standard errors that allow for residuals correlated in time: `fit(covariance=
+    NeweyWest(lags))` reports the Newey-West (Bartlett kernel) sandwich covariance of the
+    estimates instead of sigma^2 (J^T J)^+.
+
+    sigma^2 (J^T J)^+ assumes white residuals. Where they are not (a model error that
+    persists over many samples, coloured measurement noise), it understates how much the
+    estimates would change with another record: the sandwich estimates that variation
+    from the residuals' own autocovariance up to `lags` samples (see `sandwich`).
+
+    **Arguments:**
+
+    - `lags`: the largest lag L of the residuals' autocovariance that counts (weights
+        1 - l / (L + 1), l = 0..L), at most a trajectory's length less one. None: Newey
+        and West's (1994) rule floor(4 (T / 100)^(2/9)) for trajectories of T samples,
+        which suits short correlations only: choose L where the residuals'
+        autocorrelation has died out (`oneshot_jax.metrics.residual_correlations`).
+
+    Trajectories (records, or windows of a `window=` fit) count as independent of each
+    other. Not for a theta that holds a network (its weights' null space leaves the
+    sandwich undefined), nor with `penalty` (the penalty rows are not observations).
+    """
+
+    lags: int | None = None
+
+    def __check_init__(self):
+        lags = self.lags
+        if lags is not None and (
+            isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 0
+        ):
+            raise ValueError(f"`NeweyWest(lags=)` must be None or an integer >= 0; got {lags!r}.")
+
+    def resolved(self, T: int) -> int:
+        """L for trajectories of T samples."""
+        if self.lags is None:
+            return int(np.floor(4 * (T / 100) ** (2 / 9)))
+        if self.lags > T - 1:
+            raise ValueError(
+                f"`NeweyWest(lags={self.lags})` exceeds a trajectory's length less one "
+                f"({T - 1} for trajectories of T = {T} samples)."
+            )
+        return int(self.lags)
+
+
+def as_covariance(value):
+    """`fit`'s `covariance` argument as None (sigma^2 (J^T J)^+) or a `NeweyWest`."""
+    if isinstance(value, NeweyWest):
+        return value
+    if isinstance(value, str) and value in ("classical", "newey_west"):
+        return None if value == "classical" else NeweyWest()
+    raise ValueError(
+        '`covariance` must be "classical", "newey_west" or a `oneshot_jax.NeweyWest(lags)`; '
+        f"got {value!r}."
+    )
+
+
+def covariance(problem: FitProblem, params: Params, strategy, blocks=None, lin=None) -> Covariance:
     """The `Covariance` at `params`.
 
     `blocks`: (SSE, A, B, C_i, S) of the data residuals at `params` when the solver
     already holds them (its last linearisation; S from `_linalg.schur_complement`);
-    otherwise the Jacobian is evaluated here. With `blocks`, `problem` may be None (then
+    otherwise the Jacobian is evaluated here, or taken from `lin` (the `Linearisation`
+    of the data residuals at `params`). With `blocks`, `problem` may be None (then
     no entry is a network's: no `marginal`).
     """
     if blocks is None:
-        lin = problem.jacobian(params, strategy, penalty=False)
+        if lin is None:
+            lin = problem.jacobian(params, strategy, penalty=False)
         A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
         S = schur_complement(lin.Jt, lin.Jx, A)
         sse = jnp.sum(lin.r**2)
@@ -58,6 +120,62 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     if 0 < nuisance.size < p:
         S_inv, t_ok = marginal(S, S_inv, t_ok, nuisance)
     return Covariance(sse, S_inv, x0_cov, t_ok, x_ok)
+
+
+def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covariance:
+    """The Newey-West sandwich covariance of theta and each trajectory's x0 (`NeweyWest`),
+    unscaled (`scale(..., robust=True)` applies the degrees of freedom).
+
+    The least-squares estimate moves, to first order, by (J^T J)^+ J^T dr when the data
+    residuals r of eq. (5)/(21) move by dr. With x0_i eliminated as in `eliminate_x0`
+    (S = sum_i Jt~_i^T Jt~_i, Jt~_i = Jt_i - Jx_i W_i, W_i = C_i^+ B_i^T), sample k of
+    trajectory i moves the estimates by
+
+        psi_k = S^+ Jt~_k^T r_k                 (theta)
+        chi_k = C_i^+ Jx_k^T r_k - W_i psi_k     (x0_i),
+
+    r_k the residual rows of sample k (its n_z outputs). With v_k = (psi_k, chi_k) and
+    the Bartlett weights w_l = 1 - l / (L + 1),
+
+        Omega_i = sum_{l=-L..L} w_|l| sum_k v_k v_{k-l}^T,
+
+    the covariance of theta is sum_i Omega_i[theta, theta], that of x0_i is
+    Omega_i[x0, x0] + W_i (sum_{j != i} Omega_j[theta, theta]) W_i^T (other trajectories
+    reach x0_i through theta only). With white residuals of variance sigma^2 and L = 0
+    its expectation is sigma^2 (J^T J)^+ (Newey and West, Econometrica 55, 1987; the
+    influence form of Wooldridge's nonlinear least squares).
+
+    The identifiability flags are those of `covariance`. `lags`: L (static).
+    """
+    lin = problem.jacobian(params, strategy, penalty=False)
+    cov = covariance(problem, params, strategy, None, lin)
+    N, R, p = lin.Jt.shape
+    m = lin.Jx.shape[-1]
+    T = problem.u.shape[1]
+    n_z = R // T
+    _, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
+    elim = eliminate_x0(B, Cb, pseudo_inverse=True)
+    W = elim.CinvBt  # (N, m, p)
+    Jt_elim = lin.Jt - jnp.einsum("nrm,nmp->nrp", lin.Jx, W)
+    r = lin.r.reshape(N, T, n_z)
+    psi = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r) @ cov.theta
+    chi = jnp.einsum("ntom,nto->ntm", lin.Jx.reshape(N, T, n_z, m), r)
+    chi = jnp.einsum("ntm,nml->ntl", chi, elim.Cinv) - jnp.einsum("ntp,nmp->ntm", psi, W)
+    v = jnp.concatenate([psi, chi], axis=-1)  # (N, T, p + m)
+    k = jnp.arange(T)
+
+    def lag(lg, omega):
+        shifted = jnp.where((k >= lg)[None, :, None], jnp.roll(v, lg, axis=1), 0.0)
+        gamma = jnp.einsum("nta,ntb->nab", v, shifted)
+        w = 1.0 - lg / (lags + 1.0)
+        return omega + w * (gamma + jnp.swapaxes(gamma, 1, 2))
+
+    omega = jnp.einsum("nta,ntb->nab", v, v)
+    omega = jax.lax.fori_loop(1, lags + 1, lag, omega)
+    theta = jnp.sum(omega[:, :p, :p], axis=0)
+    others = theta[None] - omega[:, :p, :p]
+    x0 = omega[:, p:, p:] + jnp.einsum("nmp,npq,nlq->nml", W, others, W)
+    return cov._replace(theta=theta, x0=x0)
 
 
 def marginal(S, S_inv, t_ok, nuisance):
@@ -109,18 +227,21 @@ class Scaled(NamedTuple):
     x0_std: jax.Array  # (N, m)
 
 
-def scale(cov: Covariance, e) -> Scaled:
+def scale(cov: Covariance, e, robust: bool = False) -> Scaled:
     """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the finite entries of
-    the residuals `e`); traced, inside the compiled call that made `cov`.
+    the residuals `e`), or for a `sandwich` (`robust`) by n_obs / dof (the small-sample
+    factor of the sandwich); traced, inside the compiled call that made `cov`.
 
     With J = Q^{1/2} J_e / sqrt(N T), sigma^2 (J_e^T Q J_e)^{-1} = (SSE_r / dof) (J^T J)^{-1}.
     A variable outside the identifiable set gets an infinite variance, and so does every
     variable when there are no more observations than free variables (dof <= 0).
     """
     t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
-    dof = jnp.sum(jnp.isfinite(e)) - (t_ok.size + x_ok.size)
+    n_obs = jnp.sum(jnp.isfinite(e))
+    dof = n_obs - (t_ok.size + x_ok.size)
     known = dof > 0
-    s2 = jnp.where(known, cov.sse / jnp.where(known, dof, 1).astype(cov.sse.dtype), jnp.inf)
+    top = n_obs.astype(cov.sse.dtype) if robust else cov.sse
+    s2 = jnp.where(known, top / jnp.where(known, dof, 1).astype(cov.sse.dtype), jnp.inf)
     theta = jnp.where(known & t_ok[:, None] & t_ok[None, :], cov.theta * s2, jnp.inf)
     x0 = jnp.where(known & x_ok[:, :, None] & x_ok[:, None, :], cov.x0 * s2, jnp.inf)
 

@@ -18,6 +18,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post, prepare
+from ._covariance import as_covariance
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
@@ -64,11 +65,12 @@ def _theta_order(theta):
 
 
 @jit
-def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=None):
+def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=None, lags=None):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
-    them at once, pick the best start and post-process it (covariance and metrics), and
-    with `stability_at` (a `Model.from_ode` model's right-hand side and the flattened
-    indices of the states to check, `_stability`) the Jacobians there. Returns what
+    them at once, pick the best start and post-process it (covariance and metrics; with
+    `lags`, the Newey-West sandwich of that many lags), and with `stability_at` (a
+    `Model.from_ode` model's right-hand side and the flattened indices of the states to
+    check, `_stability`) the Jacobians there. Returns what
     `assemble` reads (an `Out`) and those Jacobians (or None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = jnp.any(projected != starts.theta, axis=0)  # (p,) entries some start had outside
@@ -83,7 +85,7 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=N
         None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[best], final.blocks)
     )
     strategy = getattr(solvers[-1], "strategy", "auto")
-    posted = post(problem, params, blocks, strategy)
+    posted = post(problem, params, blocks, strategy, lags)
     out = collect(stages, best, moved, posted)
     jacobians = None
     if stability_at is not None:
@@ -95,7 +97,7 @@ def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=N
     return _pytree.pack((out, jacobians))
 
 
-def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=None):
+def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=None, lags=None):
     """The solve: `_solve` from every start, timed, with the progress bar open around it.
     Returns its output unpacked (an `Out`), the wall time, the counts of parallel
     rollouts and their fallbacks, the Jacobians of `stability_at` and what `meanwhile()`
@@ -115,6 +117,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
                 meter,
                 np.asarray(bar_id, np.int32),
                 stability_at,
+                lags,
             )
             during = None if meanwhile is None else meanwhile()
             jax.block_until_ready(buffers)
@@ -224,6 +227,7 @@ def fit(
     units: dict[str, str] | None = None,
     aggregate=None,
     t: Float[ArrayLike, "*N T"] | None = None,
+    covariance="classical",
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -305,6 +309,11 @@ def fit(
     - `t`: the sample times of a timed model's records (`Model.from_ode(rhs, dt=None)`),
         as for `simulate`: (T,), (N, T) or a list like `u`. With `window`, each window
         keeps its own intervals.
+    - `covariance`: how `covariance` and the standard errors are computed:
+        `"classical"`, sigma^2 (J^T J)^+ (white residuals), or `NeweyWest(lags)`
+        (`"newey_west"`: its default lags), a sandwich that holds when the residuals are
+        correlated in time (a model error); the result's `diagnostics["covariance"]`
+        names it.
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -326,6 +335,12 @@ def fit(
     warning, and the stop reason is then `zero_gradient` (not a success).
     """
     check_window(aggregate, window)
+    robust = as_covariance(covariance)
+    if robust is not None and penalty is not None:
+        raise ValueError(
+            "`covariance=NeweyWest(...)` is not available with `penalty`: the penalty's "
+            'rows are not observations; use covariance="classical".'
+        )
     if aggregate is not None and validation is not None:
         raise ValueError(
             "`validation` with `aggregate` is not supported: score the held-out records "
@@ -378,6 +393,15 @@ def fit(
         regulariser=regulariser,
         validation=validation,
     )
+    lags = None
+    if robust is not None:
+        if built.problem.nuisance:
+            raise ValueError(
+                "`covariance=NeweyWest(...)` is not available for a theta that holds a "
+                "network (an equinox module): its weights' null space leaves the sandwich "
+                'undefined; use covariance="classical".'
+            )
+        lags = robust.resolved(int(built.problem.u.shape[1]))
     # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
     # Jacobians along the fitted trajectory come from the solve's compiled call.
     rhs = rhs_of(model, inputs.data) if aggregate is None else None
@@ -399,7 +423,10 @@ def fit(
             theta_order=_theta_order(theta0),
             units=inputs.units,
         ),
+        lags=lags,
     )
+    if lags is not None:
+        diagnostics = {**diagnostics, "covariance": "newey_west", "covariance_lags": lags}
     _warn_projected(out.moved, prepared.names, theta0)
     result = assemble(
         prepared=prepared,

@@ -217,6 +217,12 @@ def report(result) -> str:
             "  (not a solution: the standard errors and intervals below are those of the "
             "linearisation at the returned point)"
         )
+    lags = (result.diagnostics or {}).get("covariance_lags")
+    if lags is not None:
+        out.append(
+            f"  (standard errors: Newey-West sandwich over {lags} lags, for residuals "
+            "correlated in time)"
+        )
     out.append(line(header))
     out.extend(line(r, k in modules) for k, r in enumerate(table))
     out.append(line(x0_header))
