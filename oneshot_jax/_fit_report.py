@@ -98,6 +98,12 @@ def _interval(value, std, fixed, computed) -> str:
     return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
 
 
+def _computed(result) -> bool:
+    """Whether the covariance was computed: an empty one stands for "not computed" (above
+    the size limit) only where some entry of theta is free."""
+    return np.shape(result.covariance) != (0, 0) or bool(np.all(result.fixed))
+
+
 def _entry_names(name, shape):
     if not shape:
         return [name]
@@ -125,7 +131,7 @@ def _parameter_table(result):
     params, _ = _pytree.split(result.theta)
     flat, std = _pytree.flat_host(params), _pytree.flat_host(result.std)
     fixed = np.asarray(result.fixed, bool)
-    computed = np.shape(result.covariance) != (0, 0)
+    computed = _computed(result)
     order = {name: i for i, name in enumerate(result.theta_order)}
     rows = sorted(_rows(result.theta), key=lambda row: order.get(row[0], len(order)))
     table, modules = [], set()
@@ -148,7 +154,7 @@ def _x0_table(result, shown_max=3):
     estimated = np.asarray(result.x0_estimated, bool)
     batched = x0.ndim == 2
     X0, S0 = (x0, x0_std) if batched else (x0[None], x0_std[None])
-    computed = np.shape(result.covariance) != (0, 0)
+    computed = _computed(result)
     n_traj, n_x = X0.shape
     shown = n_traj if n_traj <= shown_max else 2
     if batched and not estimated.any():

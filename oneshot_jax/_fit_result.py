@@ -237,7 +237,7 @@ class FitResult(eqx.Module):
 
     def _check_u(self, u):
         """Refuse inputs with another number of columns than the fitted data's."""
-        if self.n_u is None or not np.ndim(u) or isinstance(u, (list, tuple)):
+        if self.n_u is None or isinstance(u, (list, tuple)) or not np.ndim(u):
             return
         shape = np.shape(u)
         if shape[-1] != self.n_u:

@@ -67,9 +67,11 @@ def _encode_tree(tree):
         if node is None:
             return {"none": None}
         if isinstance(node, dict):
-            if not all(isinstance(k, str) for k in node):
+            # JAX flattens a dict in sorted key order (the order of the saved leaves);
+            # another mapping (an OrderedDict keeps its own order) is saved with `like=`.
+            if type(node) is not dict or not all(isinstance(k, str) for k in node):
                 raise TypeError
-            return {"dict": {k: enc(v) for k, v in node.items()}}
+            return {"dict": {k: enc(node[k]) for k in sorted(node)}}
         if isinstance(node, list):
             return {"list": [enc(v) for v in node]}
         if type(node) is tuple:

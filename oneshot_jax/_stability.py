@@ -35,6 +35,21 @@ from ._simulate import simulate_impl
 # no point of the imaginary axis: an undamped mode grows under Euler at any h).
 LIMITS = {"rk4": 2.5, "euler": 2.0}
 
+
+def scaled_eigenvalues(eig, h, method):
+    """Each eigenvalue's measure against `LIMITS[method]`, linear in h: |lambda| h for
+    RK4; for Euler h |lambda|^2 / (-Re lambda) where Re lambda < 0, which is <= 2 exactly
+    inside the disc |1 + lambda h| <= 1 (|1 + lambda h|^2 = 1 + 2 h Re lambda +
+    h^2 |lambda|^2), and |lambda| h where Re lambda >= 0 (the ODE's own mode does not
+    decay: its growth is not the discretisation's)."""
+    size = np.abs(eig) * h
+    if method != "euler":
+        return size
+    damped = eig.real < 0
+    disc = np.abs(eig) ** 2 * h / np.where(damped, -eig.real, 1.0)
+    return np.where(damped, disc, size)
+
+
 # The states the Jacobian is evaluated at: this many, evenly spaced over all samples of
 # all trajectories (a few small Jacobians: cheap next to the fit).
 POINTS = 32
@@ -46,7 +61,9 @@ class Stability(NamedTuple):
     **Fields:**
 
     - `value`: max |lambda| h over the states checked, lambda an eigenvalue of the
-        Jacobian d rhs / d x, h = dt / substeps.
+        Jacobian d rhs / d x, h = dt / substeps; for Euler, max h |lambda|^2 /
+        (-Re lambda) over the decaying modes (<= 2 exactly inside Euler's stability
+        disc |1 + lambda h| <= 1), |lambda| h over the others.
     - `limit`: the integrator's limit (2.5 for RK4, 2 for Euler).
     - `eigenvalue`: the lambda of `value`.
     - `sample`: where it was found: the index of its state in the trajectories
@@ -172,7 +189,7 @@ def report(step, idx, xs, J, u) -> Stability | None:
         return None
     dt, n, h = (a[finite] for a in step_sizes(step, u, idx))
     eig = np.linalg.eigvals(J[finite])
-    scaled = np.abs(eig) * h[:, None]
+    scaled = scaled_eigenvalues(eig, h[:, None], step.method)
     i, j = np.unravel_index(np.argmax(scaled), eig.shape)
     return Stability(
         value=float(scaled[i, j]),
@@ -191,8 +208,11 @@ def warn_after_fit(step, idx, xs, J, bound, u, stacklevel: int) -> None:
     and their `row_bound`, the inputs in the checked data's `u`. Where max |lambda| h is
     within the limit by that bound times the largest h, no eigenvalue is computed."""
     h = step_sizes(step, u, idx)[2]
-    if not float(bound) * float(np.max(h, initial=0.0)) > LIMITS[step.method]:
-        return  # (within the limit, or no finite state: -inf)
+    # (|lambda| <= bound: within the limit, or no finite state: -inf. Euler's measure
+    # exceeds |lambda| h for a lightly damped mode: always computed.)
+    top = bound * float(np.max(h, initial=0.0))
+    if step.method != "euler" and not top > LIMITS[step.method]:
+        return
     warn_if_near_limit(report(step, idx, xs, J, u), stacklevel=stacklevel + 1)
 
 
@@ -228,11 +248,19 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
             f"a smaller `max_step` (`Model.from_ode(..., max_step={h / 2:.3g})` or less, "
             "with `substeps` enough for the longest interval)"
         )
+    measure = (
+        "h |lambda|^2 / (-Re lambda)" if report.method == "euler" and lam.real < 0 else "|lambda| h"
+    )
+    region = (
+        "stable inside |1 + lambda h| <= 1, where this measure is <= 2"
+        if report.method == "euler"
+        else f"stable up to about {report.limit:g}"
+    )
     warnings.warn(
         f"the fitted model runs near its integrator's stability limit: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
-        f"|lambda| h = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
-        f"{report.substeps} ({report.method.upper()}: stable up to about {report.limit:g}). "
+        f"{measure} = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
+        f"{report.substeps} ({report.method.upper()}: {region}). "
         f"The estimates may depend on the discretisation rather than on the ODE: refit with "
         f"{remedy}, and compare.",
         RuntimeWarning,
@@ -255,7 +283,8 @@ def check_stability(
     at `points` states evenly spaced along the trajectory (with their inputs) and returns
     the largest |lambda| h, h = dt / substeps, over their eigenvalues lambda. Above about
     2.5 for RK4 (its stability region reaches 2.785 on the negative real axis, 2.828 on
-    the imaginary one) or 2 for Euler it warns (RuntimeWarning), naming the eigenvalue
+    the imaginary one), or outside Euler's disc |1 + lambda h| <= 1 (`Stability.value`),
+    it warns (RuntimeWarning), naming the eigenvalue
     and how many substeps would bring it back inside. `fit` runs this check on the
     fitted theta and x0 after every fit of a `Model.from_ode` model.
 
@@ -275,7 +304,13 @@ def check_stability(
     A `Stability` (`value`, `limit`, `eigenvalue`, ...), or None for a model not built by
     `Model.from_ode` or one whose trajectory has no finite state.
     """
-    if isinstance(points, bool) or int(points) != points or points < 1:
+    if (
+        isinstance(points, bool)
+        or not isinstance(points, (int, float, np.integer, np.floating))
+        or not np.isfinite(points)
+        or int(points) != points
+        or points < 1
+    ):
         raise ValueError(f"`points` must be a positive integer, got {points!r}.")
     report = stability(model, theta, x0, u, t=t, points=int(points))
     warn_if_near_limit(report, stacklevel=2)

@@ -205,6 +205,29 @@ def test_check_stability(substeps, warns):
     assert report.eigenvalue == pytest.approx(-52.0)
 
 
+@pytest.mark.parametrize("substeps, warns", [(2, True), (10, False)])
+def test_euler_stability_is_its_disc_not_a_radius(substeps, warns):
+    """k = 900, c = 10: lambda = -5 +- 29.6j, |lambda| = 30. Under Euler with h = 0.05
+    (|lambda| h = 1.5 < 2) the mode lies outside the disc |1 + lambda h| <= 1 (1.66) and
+    the simulation grows while the ODE decays: the measure h |lambda|^2 / (-Re lambda)
+    is 9, a warning. With h = 0.01 it is 1.8 and |1 + lambda h| = 0.95: no warning."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.1, method="euler", substeps=substeps)
+    theta, x0, u = {"k": 900.0, "c": 10.0}, np.array([1.0, 0.0]), np.zeros((100, 1))
+    if warns:
+        with pytest.warns(RuntimeWarning, match=r"h \|lambda\|\^2 / \(-Re lambda\) = 9"):
+            report = oj.check_stability(model, theta, x0, u)
+    else:
+        report = _no_warnings(oj.check_stability, model, theta, x0, u)
+    h = 0.1 / substeps
+    assert report.value == pytest.approx(900.0 * h / 5.0)
+    assert report.near_limit is warns
+    assert (abs(1 + report.eigenvalue * h) > 1) is warns
+
+
 def _timed_lag_data():
     """The lag sampled every 0.04 except one interval of 0.052, away from the states
     `check_stability` spaces evenly: a = 52 gives |lambda| h = 2.08 on the others and
@@ -244,7 +267,7 @@ def test_stability_of_a_time_stamped_model_takes_each_step_its_own_h():
 def test_stability_limit_of_euler_and_other_models():
     u = np.zeros((20, 1))
     euler = oj.Model.from_ode(lag, DT, method="euler")
-    with pytest.warns(RuntimeWarning, match="EULER: stable up to about 2"):
+    with pytest.warns(RuntimeWarning, match=r"EULER: stable inside \|1 \+ lambda h\| <= 1"):
         report = oj.check_stability(euler, {"a": 44.0}, np.zeros(1), u)  # 2.2 > 2
     assert report.limit == 2.0
     report = _no_warnings(oj.check_stability, euler, {"a": 36.0}, np.zeros(1), u)  # 1.8

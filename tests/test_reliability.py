@@ -389,3 +389,19 @@ def test_aic_names_a_bad_n_params(data, n_params):
     _, z = data
     with pytest.raises((TypeError, ValueError), match="`n_params`"):
         oj.metrics.aic(z, z + 0.1, n_params=n_params)
+
+
+def test_a_theta_dict_not_in_sorted_order_saves_and_loads_by_name(saved, tmp_path):
+    """A result whose theta (and std) a user rebuilt with keys in another order ("k"
+    before "c"): the file names each value by its key, so nothing is swapped."""
+    r, _ = saved
+    mine = dataclasses.replace(
+        r,
+        theta={"k": r.theta["k"], "c": r.theta["c"]},
+        std={"k": r.std["k"], "c": r.std["c"]},
+    )
+    back = oj.load_result(mine.save(tmp_path / "mine.npz"), model=M)
+    for name in ("k", "c"):
+        assert float(back.theta[name]) == float(r.theta[name])
+        assert float(back.std[name]) == float(r.std[name])
+    assert float(r.theta["k"]) != float(r.theta["c"])

@@ -279,3 +279,29 @@ def test_solver_reprs_show_every_setting():
     )
     schedule = repr(oj.Adam(lr_theta=optax.cosine_decay_schedule(1e-2, 10)))
     assert "lr_theta=<function cosine_decay_schedule>" in schedule
+
+
+def test_intervals_of_x0_print_when_every_parameter_is_fixed():
+    """With theta wholly fixed the covariance of theta is empty, but x0's is computed:
+    its intervals print (an empty covariance means "not computed" only with free
+    entries of theta)."""
+    x0, u, z = data()
+    res = oj.fit(MODEL, TRUTH, x0 * 0.9, u, z, fixed=True)
+    assert np.shape(res.covariance) == (0, 0) and np.all(np.isfinite(res.x0_std))
+    text = str(res)
+    assert "(not computed)" not in text
+    lo, hi = res.x0[0] - 1.96 * res.x0_std[0], res.x0[0] + 1.96 * res.x0_std[0]
+    assert f"[{lo:.6g}, {hi:.6g}]" in _row(text, "x0[0]")
+
+
+def test_simulate_takes_the_ragged_records_the_result_was_fitted_on():
+    rng = np.random.default_rng(0)
+    us = [rng.standard_normal((T, 1)) for T in (100, 80, 60)]
+    x0 = np.tile([1.0, 0.0], (3, 1))
+    _, zs = oj.simulate(MODEL, TRUTH, x0, us)
+    res = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, us, zs)
+    _, again = res.simulate(us)
+    _, direct = oj.simulate(MODEL, res.theta, res.x0, us)
+    assert [np.shape(a) for a in again] == [(100, 1), (80, 1), (60, 1)]
+    for a, b in zip(again, direct):
+        np.testing.assert_array_equal(a, b)
