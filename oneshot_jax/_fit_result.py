@@ -130,6 +130,16 @@ class Starts(eqx.Module):
     stop_reason: tuple = eqx.field(static=True)
 
 
+def _first_row_missing(z_head) -> bool:
+    """Whether the first row of a record's head (n, n_z) has a NaN (False where it is not
+    a numeric array: `predict` names that)."""
+    try:
+        first = np.asarray(z_head, dtype=float)[:1]
+    except (TypeError, ValueError):
+        return False
+    return first.ndim == 2 and bool(np.isnan(first).any())
+
+
 class FitResult(eqx.Module):
     """The estimate, why the solver stopped, its uncertainty and its fit to the data.
 
@@ -322,8 +332,9 @@ class FitResult(eqx.Module):
         - `t`: the new record's sample times (T,), for a model of time-stamped records.
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, ...). Where the model does not observe
-            its whole state, the starting guess defaults to the fitted x0 (the mean over
-            trajectories of a multi-trajectory fit): a typical state of the system.
+            its whole state, or `z_head`'s first row has a missing (NaN) sample, the
+            starting guess defaults to the fitted x0 (the mean over trajectories of a
+            multi-trajectory fit): a typical state of the system.
 
         **Returns:**
 
@@ -338,7 +349,9 @@ class FitResult(eqx.Module):
         self._check_u(u)
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
-        if kwargs.get("x0") is None and not self.model.observes_state:
+        if kwargs.get("x0") is None and (
+            not self.model.observes_state or _first_row_missing(z_head)
+        ):
             x0 = np.asarray(self.x0)
             kwargs["x0"] = x0 if x0.ndim == 1 else x0.mean(axis=0)
         return predict_impl(

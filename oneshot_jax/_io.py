@@ -198,6 +198,10 @@ def save_result(result, path):
 
     The path written.
     """
+    if not all(hasattr(result, a) for a in ("theta", "std", "history", "stop_reason")):
+        raise TypeError(
+            f"`result` must be a `FitResult` (what `fit` returns), got {type(result).__name__}."
+        )
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")

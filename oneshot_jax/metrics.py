@@ -50,6 +50,11 @@ def _flat(z, zhat, mask=None):
         )
     if mask is not None and jnp.shape(mask) != z.shape:
         raise ValueError(f"`mask` must have the shape of `z` {z.shape}, got {jnp.shape(mask)}.")
+    if z.ndim == 0:
+        raise ValueError(
+            "`z` and `zhat` must be records of outputs, (T,) or (T, n_z) (or (N, T, n_z)); "
+            "got scalars."
+        )
     if z.ndim == 1:
         z, zhat = z[:, None], zhat[:, None]
         mask = None if mask is None else jnp.asarray(mask)[:, None]
@@ -116,7 +121,7 @@ def aic(z, zhat, n_params, mask=None):
         raise TypeError(
             f"`n_params` must be an integer, the number of estimated parameters, got {n_params!r}."
         )
-    if isinstance(n_params, numbers.Integral) and n_params < 0:
+    if not isinstance(n_params, jax.core.Tracer) and int(n_params) < 0:
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
     return _aic(z, zhat, n_params, mask)
 

@@ -5,6 +5,7 @@ import subprocess
 import sys
 import warnings
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -240,6 +241,33 @@ def test_compare_predicts_from_a_head_with_missing_samples(fitted):
     assert f"model: FIT {fit:.2f} %" in _legend_texts(fig.axes[0])
     with pytest.raises(TypeError, match="`t` must be an array of sample times"):
         oj.plot.compare(z, result, u=u, t="abc")
+
+
+def test_compare_and_predict_with_a_missing_first_sample_of_a_full_state_model():
+    """A model that observes its whole state starts x0's fit at z[0]; with a NaN there the
+    start is the fitted x0 instead (compare cannot pass `x0=`, and raised)."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((150, 1))
+    _, z = oj.simulate(model, {"k": 4.0, "c": 0.3}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 0.02 * rng.standard_normal(z.shape)
+    res = oj.fit(model, {"k": 3.0, "c": 0.5}, z[0], u, z)
+    gappy = z.copy()
+    gappy[0, 1] = np.nan
+    pred = res.predict(u, gappy[:10], missing="mask")
+    given = res.predict(u, gappy[:10], missing="mask", x0=res.x0)
+    np.testing.assert_allclose(pred.x0, given.x0, rtol=1e-10)
+    fig = oj.plot.compare(gappy, res, u=u, n=10)
+    fit = 100 * (
+        1
+        - np.linalg.norm(pred.z[10:] - z[10:], axis=0)
+        / np.linalg.norm(z[10:] - z[10:].mean(0), axis=0)
+    )
+    assert f"model: FIT {fit[0]:.2f} %" in _legend_texts(fig.axes[0])
 
 
 def test_transposed_records_and_windowed_residuals_get_a_hint(fitted):

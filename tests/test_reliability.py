@@ -405,3 +405,18 @@ def test_a_theta_dict_not_in_sorted_order_saves_and_loads_by_name(saved, tmp_pat
         assert float(back.theta[name]) == float(r.theta[name])
         assert float(back.std[name]) == float(r.std[name])
     assert float(r.theta["k"]) != float(r.theta["c"])
+
+
+def test_small_argument_checks_name_the_argument():
+    z = np.zeros((5, 1))
+    with pytest.raises(ValueError, match="n_params"):
+        oj.metrics.aic(z, z + 0.1, jnp.array(-1))
+    with pytest.raises(ValueError, match="records of outputs"):
+        oj.metrics.rmse(1.0, 2.0)
+    with pytest.raises(TypeError, match="`result` must be a `FitResult`"):
+        oj.save_result({}, "unused.npz")
+    for points in (None, float("inf"), "3"):
+        with pytest.raises(ValueError, match="points"):
+            oj.check_stability(
+                oj.Model.from_ode(lambda x, u, p: -x, 0.1), {}, np.zeros(1), z, points=points
+            )
