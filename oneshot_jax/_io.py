@@ -473,8 +473,27 @@ def check_model(meta, model):
         return
     given = _model_signature(model)
     if saved != given:
-        diff = next((a, b) for a, b in zip_longest(given, saved) if a != b)
+        # Entry by entry, by name ("model.step.dt = 0.05"): a model of another kind lacks
+        # some of the saved entries, so a pairing by position would compare unrelated ones.
+        def named(sig):
+            return dict(e.split(" = ", 1) if " = " in e else (e, "") for e in sig)
+
+        mine, theirs = named(given), named(saved)
+        # An entry both have with different values says most ("model.timed"), then
+        # one that only one of them has.
+        both = [k for k in theirs if k in mine and mine[k] != theirs[k]]
+        one = [k for k in [*theirs, *mine] if (k in mine) != (k in theirs)]
+        key = (both + one or [None])[0]
+        if key is None:
+            diff = next((a, b) for a, b in zip_longest(given, saved) if a != b)
+            what = f"`model` has {diff[0]}, the file {diff[1]}"
+        else:
+
+            def shown(sig):
+                return f"{key} = {sig[key]}" if key in sig else f"no {key}"
+
+            what = f"`model` has {shown(mine)}, the file {shown(theirs)}"
         raise ValueError(
-            f"`model` differs from the model the result was fitted with: `model` has {diff[0]}, "
-            f"the file {diff[1]}. Pass the fitted model (its dt, method, substeps, input)."
+            f"`model` differs from the model the result was fitted with: {what}. Pass the "
+            "fitted model (its dt, method, substeps, input)."
         )

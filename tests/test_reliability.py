@@ -420,3 +420,26 @@ def test_small_argument_checks_name_the_argument():
             oj.check_stability(
                 oj.Model.from_ode(lambda x, u, p: -x, 0.1), {}, np.zeros(1), z, points=points
             )
+
+
+def test_load_result_names_the_model_setting_that_differs(tmp_path):
+    """The message pairs entries by name (by position it compared a fixed-dt model's
+    dt with a time-stamped model's method)."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] + u[0]])
+
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.03, 0.07, 40))
+    u = rng.standard_normal((40, 1))
+    timed = oj.Model.from_ode(rhs, dt=None, observe=lambda x, u, th: x[:1])
+    _, z = oj.simulate(timed, {"k": 4.0}, np.array([1.0, 0.0]), u, t=t)
+    path = oj.fit(timed, {"k": 3.0}, np.array([1.0, 0.0]), u, np.asarray(z), t=t).save(
+        tmp_path / "timed.npz"
+    )
+    fixed_dt = oj.Model.from_ode(rhs, dt=0.05, observe=lambda x, u, th: x[:1])
+    with pytest.raises(ValueError, match=r"has model.timed = False, the file model.timed = True"):
+        oj.load_result(path, model=fixed_dt)
+    coarse = oj.Model.from_ode(rhs, dt=None, substeps=2, observe=lambda x, u, th: x[:1])
+    with pytest.raises(ValueError, match=r"substeps = 2, the file model.step.substeps = 1"):
+        oj.load_result(path, model=coarse)
