@@ -88,6 +88,12 @@ def _model_output(i, model, u, z, n, t=None):
         t = t if getattr(model.model, "timed", False) else None
         # Missing samples of the head (NaN) are left out of x0's fit, as of the FIT.
         gaps = {"missing": "mask"} if n and np.isnan(z[:n]).any() else {}
+        if not n and np.ndim(model.x0) == 2 and np.ndim(u) == 2:
+            raise ValueError(
+                f"`{name}` was fitted on {np.shape(model.x0)[0]} trajectories, each from its "
+                "own x0: to compare it with one record, pass `n` (its initial state is then "
+                "estimated from the record's first n outputs)."
+            )
         zhat = model.predict(u, z[:n], t=t, **gaps).z if n else model.simulate(u, t=t)[1]
         if not n:
             _warn_other_record(name, model, np.asarray(zhat), z)

@@ -270,6 +270,21 @@ def test_compare_and_predict_with_a_missing_first_sample_of_a_full_state_model()
     assert f"model: FIT {fit[0]:.2f} %" in _legend_texts(fig.axes[0])
 
 
+def test_compare_of_a_multi_record_result_without_n_says_to_pass_n():
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u, x0 = rng.standard_normal((2, 60, 1)), rng.standard_normal((2, 2))
+    _, z = oj.simulate(model, {"k": 4.0}, x0, u)
+    res = oj.fit(model, {"k": 3.0}, x0, u, np.asarray(z))
+    with pytest.raises(ValueError, match=r"fitted on 2 trajectories.*pass `n`"):
+        oj.plot.compare(np.asarray(z[0]), res, u=u[0])
+    fig = oj.plot.compare(np.asarray(z[0]), res, u=u[0], n=10)
+    assert "FIT" in " ".join(_legend_texts(fig.axes[0]))
+
+
 def test_transposed_records_and_windowed_residuals_get_a_hint(fitted):
     """A record given as (n, T) is named as possibly transposed (the messages spoke of
     max_lag, or blamed u); a windowed fit's residuals with the record's u say why."""
