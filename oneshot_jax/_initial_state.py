@@ -206,7 +206,10 @@ def estimate_x0(
         else over a simulation of the head from `x0`, 1 where zero): measurement noise
         Q^{-1} when `weight` is given, else (0.01 s_z)^2 (1 % noise); process noise
         (0.001 s_x)^2 per step; prior (100 s_x)^2 (broad). The smoother's covariance
-        reflects these assumptions: give `measurement_noise` for calibrated ones.
+        reflects these assumptions: give `measurement_noise` for calibrated ones. In
+        float32 the defaults' range (1e8 between the prior's and the noise's variances)
+        costs the smoother digits: its x0 can miss float64's by a few standard errors;
+        give covariances closer in scale, or use `"lsq"` (accurate to float32 there).
     - `t`: the sample times (T,) of the record, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`); t[:n] is used with the head.
     - `missing`: `"mask"` takes NaN entries of the head's z as missing samples, left out
