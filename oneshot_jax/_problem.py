@@ -36,6 +36,11 @@ from ._sensitivity import (
 from ._simulate import loss_impl, sample_count
 from ._strategy import as_strategy
 
+# Rounds of Dykstra's projections where a general projection meets fixed entries
+# (`FitProblem.feasible`): a halfspace that weights a fixed entry like the free ones
+# leaves 3^-60 of the excess after 60 rounds.
+DYKSTRA_STEPS = 60
+
 
 class Params(NamedTuple):
     """The free variables of a fit: theta's free entries (p,) and x0's free entries (N, m)."""
@@ -117,12 +122,43 @@ class FitProblem(eqx.Module):
         )
 
     def feasible(self, p_theta):
-        """Project p_theta onto the constraint set (exactly: the result is inside)."""
+        """Project p_theta onto the constraint set.
+
+        A box alone is exact. A general projection P_C acts on the whole theta; with
+        fixed entries the set is C intersected with {the fixed entries at their values}
+        (A), and P_C followed by restoring the fixed entries leaves C wherever P_C moves
+        a fixed entry (a constraint on a sum that includes one). Dykstra's alternating
+        projections onto C and A (Boyle and Dykstra, 1986), `DYKSTRA_STEPS` rounds,
+        converge to the projection onto the intersection: inside A exactly, and inside C
+        up to the rate of the rounds (geometric for a halfspace)."""
         if self.lower is not None:
             p_theta = jnp.clip(p_theta, self.lower, self.upper)
         if self.project is not None:
-            flat, _ = ravel_pytree(self.project(self.theta_of(p_theta)))
-            p_theta = flat[np.asarray(self.theta_free, int)]
+            free = np.asarray(self.theta_free, int)
+
+            def P_C(theta_flat):
+                flat, _ = ravel_pytree(self.project(self.unravel(theta_flat)))
+                return flat.astype(theta_flat.dtype)
+
+            def P_A(theta_flat):
+                return self.theta_base.at[free].set(theta_flat[free])
+
+            if len(free) == self.theta_base.shape[0]:
+                flat, _ = ravel_pytree(self.project(self.theta_of(p_theta)))
+                p_theta = flat[free]
+            else:
+
+                def round_(_, carry):
+                    x, p, q = carry
+                    y = P_C(x + p)
+                    p = x + p - y
+                    x_new = P_A(y + q)
+                    return x_new, p, y + q - x_new
+
+                x = jnp.asarray(self.theta_base).at[free].set(p_theta)
+                zero = jnp.zeros_like(x)
+                x, _, _ = jax.lax.fori_loop(0, DYKSTRA_STEPS, round_, (x, zero, zero))
+                p_theta = x[free]
             if self.lower is not None:
                 p_theta = jnp.clip(p_theta, self.lower, self.upper)
         return p_theta
