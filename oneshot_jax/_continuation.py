@@ -182,8 +182,11 @@ def fit_continuation(
     - `start`, `factor`: without `windows`, the lengths `start`, `start * factor`, ...
         while shorter than the record (doubling from 50 by default).
     - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
-        `constraints`, `estimate_x0`, ...); not `window` or `multistart`. `covariance`
-        goes to the last stage only (the windowed stages keep the classical one).
+        `constraints`, ...); not `window` or `multistart`. `covariance` and
+        `estimate_x0` go to the last stage only: the windowed stages keep the classical
+        covariance and estimate every entry of every window's x0 (the states where a
+        window after the first starts come from the last stage's fit, not from data,
+        so holding some of them would hold guesses).
 
     **Returns:**
 
@@ -206,6 +209,7 @@ def fit_continuation(
             f"(T, n_z); got shapes {np.shape(x0)}, {np.shape(u)}, {np.shape(z)}."
         )
     covariance = kwargs.pop("covariance", "classical")
+    estimate_x0 = kwargs.pop("estimate_x0", True)
     u_np = np.asarray(u)
     T = u_np.shape[0]
     schedule = _schedule(windows, start, factor, T)
@@ -221,7 +225,12 @@ def fit_continuation(
         stages.append(_stage(w, result))
         theta, w_prev = result.theta, w
     final_x0 = np.asarray(result.x0)[0]
-    final = fit(model, theta, final_x0, u, z, covariance=covariance, **kwargs)
+    if estimate_x0 is not True:  # the entries the last stage holds keep the given values
+        held = ~np.broadcast_to(np.asarray(estimate_x0, bool), final_x0.shape)
+        final_x0 = np.where(held, np.asarray(x0, final_x0.dtype), final_x0)
+    final = fit(
+        model, theta, final_x0, u, z, covariance=covariance, estimate_x0=estimate_x0, **kwargs
+    )
     stages.append(_stage(None, final))
     return Continuation(result=final, stages=tuple(stages))
 

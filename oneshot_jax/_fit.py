@@ -64,6 +64,28 @@ def _theta_order(theta):
     return _pytree.kept(_ORDERS, key, lambda: theta_order(theta))
 
 
+def _warn_held_window_states(window, x0, estimate_x0, window_starts):
+    """Warn where `estimate_x0` holds x0 entries of windows after the first that no data
+    gave: with one x0 (n_x,) for a windowed record, those windows start from a simulation
+    with theta0, and a held entry keeps that value (biased where theta0 is wrong)."""
+    if window is None or window_starts is None or len(window_starts) < 2:
+        return
+    if np.ndim(x0) != 1 or estimate_x0 is True:
+        return
+    held = ~np.broadcast_to(np.asarray(estimate_x0, bool), np.shape(x0))
+    if not held.any():
+        return
+    warnings.warn(
+        f"`estimate_x0` holds x0 entries {np.flatnonzero(held).tolist()} of every window, and "
+        f"the {len(window_starts) - 1} windows after the first start from a simulation with "
+        "theta0, not from data: those held states are theta0's, and the estimates are biased "
+        "where theta0 is wrong. Pass estimate_x0=True for a windowed fit, or one x0 per "
+        "window (n_windows, n_x) holding known values.",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 @jit
 def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=None, lags=None):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
@@ -365,6 +387,7 @@ def fit(
         t=t,
         readings=aggregate is not None,
     )
+    _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts)
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
         agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
         inputs = check_inputs(

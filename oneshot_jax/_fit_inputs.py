@@ -143,9 +143,12 @@ def check_inputs(
 
     if window is not None:
         if u_ndim != 2:
-            raise ValueError(
-                f"`window` needs one record: `u` of shape (T, n_u), got {np.shape(u)}."
+            given = (
+                f"a list of {len(u)} records"
+                if isinstance(u, (list, tuple))
+                else f"shape {np.shape(u)}"
             )
+            raise ValueError(f"`window` needs one record: `u` of shape (T, n_u), got {given}.")
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
         data = check_data(model, theta_first, x0_record, u, z, weight, missing, t)
         x0_w, u_w, z_w, mask_w, starts = cut(

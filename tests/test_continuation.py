@@ -300,3 +300,22 @@ def test_each_new_window_starts_from_the_last_stage_state_at_its_start():
         want.append(np.asarray(xs)[k])
     np.testing.assert_allclose(got, np.array(want), rtol=1e-14)
     np.testing.assert_array_equal(got[0], last.x0[0])
+
+
+def test_held_x0_entries_of_windows_after_the_first_are_named():
+    """window= with estimate_x0=[True, False] and one x0: the windows after the first
+    start from a simulation with theta0, and their held velocities are theta0's: fit
+    warns. fit_continuation's windowed stages estimate every window's x0 and pass
+    the mask to the last stage only, which ends at the whole-record fit from the truth."""
+    mask = np.array([True, False])
+    with pytest.warns(UserWarning, match=r"holds x0 entries \[1\] of every window"):
+        oj.fit(MODEL, START, np.zeros(2), U, Z, window=100, estimate_x0=mask)
+    _no_warnings(oj.fit, MODEL, START, np.zeros(2), U, Z, window=100)
+    cont = _no_warnings(
+        oj.fit_continuation, MODEL, START, np.zeros(2), U, Z, windows=(50,), estimate_x0=mask
+    )
+    assert not cont.result.x0_estimated[1] and cont.result.x0[1] == 0.0  # as given
+    truth = oj.fit(MODEL, TRUTH, np.zeros(2), U, Z, estimate_x0=mask)
+    assert cont.result.success and truth.success
+    for name in TRUTH:
+        assert abs(float(cont.result.theta[name]) - float(truth.theta[name])) < 1e-6
