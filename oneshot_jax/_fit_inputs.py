@@ -371,7 +371,14 @@ def build_problem(
         regulariser=on_theta,
         validation=None
         if validation is None
-        else monitor(validation, data.model, data.theta, X0, inputs.cost.sqrt_weight()),
+        else monitor(
+            validation,
+            data.model,
+            data.theta,
+            X0,
+            inputs.cost.sqrt_weight(),
+            n_u=np.shape(data.u)[-1],
+        ),
         nuisance=free.nuisance,
         mask=None
         if data.mask is None

@@ -137,9 +137,10 @@ class Monitor(eqx.Module):
         return jnp.where(jnp.isfinite(score), score, jnp.inf), x0s
 
 
-def monitor(validation, model, theta, x0_fit, sqrt_q):
+def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     """The `Monitor` of `fit(validation=...)`: the records checked against the model like
-    `fit`'s own data (errors name `validation`), or None."""
+    `fit`'s own data (errors name `validation`; `n_u` the fitted data's input columns),
+    in the fit's dtype (that of `x0_fit`), or None."""
     if validation is None:
         return None
     if not isinstance(validation, Validation):
@@ -159,8 +160,15 @@ def monitor(validation, model, theta, x0_fit, sqrt_q):
         raise type(err)(f"`validation`: {err}") from None
     if data.lengths is not None:
         raise ValueError("`validation`: records of different lengths are not supported.")
+    if n_u is not None and np.shape(data.u)[-1] != n_u:
+        raise ValueError(
+            f"`validation`: `u` must have n_u = {n_u} input columns, as the fitted data "
+            f"has; got shape {np.shape(validation.u)}."
+        )
+    dtype = np.result_type(x0_fit)
     U, Z, X0 = (
-        jnp.asarray(a) if data.batched else jnp.asarray(a)[None] for a in (data.u, data.z, data.x0)
+        jnp.asarray(a, dtype) if data.batched else jnp.asarray(a, dtype)[None]
+        for a in (data.u, data.z, data.x0)
     )
     T = U.shape[1]
     if validation.n is not None and validation.n >= T:

@@ -7,6 +7,8 @@ history records; the returned iterate is the recorded one with the lowest score,
 is not the training optimum on an over-fitting problem.
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -177,3 +179,27 @@ def test_known_initial_states_and_time_stamps():
     np.testing.assert_allclose(res.validation_loss, expected, rtol=1e-10)
     with pytest.raises(ValueError, match="`validation`.*t"):
         oj.fit(timed, TRUTH, x0, u, z, t=t, validation=oj.Validation(u_val, z_val, x0=x0_val))
+
+
+def test_validation_inputs_are_checked_against_the_fitted_data_and_cast():
+    """Held-out inputs with another number of columns than the training data were
+    scored from the wrong column; float64 held-out data with a float32 fit made JAX warn
+    of an unsafe cast in the history."""
+    u, z, _ = _record(0, 120, 0.01)
+    uv, zv, _ = _record(1, 80, 0.01)
+    wide = np.concatenate([uv, uv], axis=1)
+    with pytest.raises(ValueError, match=r"`validation`: `u` must have n_u = 1"):
+        oj.fit(MODEL, TRUTH, np.zeros(2), u, z, validation=oj.Validation(wide, zv, n=10))
+    f32 = {k: np.float32(v) for k, v in TRUTH.items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = oj.fit(
+            MODEL,
+            f32,
+            np.zeros(2, np.float32),
+            u.astype(np.float32),
+            z.astype(np.float32),
+            validation=oj.Validation(uv, zv, n=10),
+            solver=oj.LevenbergMarquardt(max_steps=3),
+        )
+    assert np.asarray(res.theta["k"]).dtype == np.float32
