@@ -77,6 +77,13 @@ def _fill_like(bound, params, fill, name):
             raise ValueError(f"`{name}` must have one entry per parameter leaf ({len(params)}).")
         return type(params)(_fill_like(b, p, fill, name) for b, p in zip(bound, params))
     leaves, treedef = jax.tree_util.tree_flatten(params)
+    # A pytree of theta's own structure (an equinox module of bounds, say; None leaves
+    # unbounded), leaf by leaf.
+    b_leaves, b_def = jax.tree_util.tree_flatten(bound, is_leaf=lambda b: b is None)
+    if len(leaves) > 1 and b_def == treedef:
+        return jax.tree_util.tree_unflatten(
+            treedef, [_fill_like(b, p, fill, name) for b, p in zip(b_leaves, leaves)]
+        )
     if jnp.ndim(bound) == 0 or len(leaves) == 1:
         xp = np if is_concrete(bound) else jnp
         b = xp.asarray(bound)

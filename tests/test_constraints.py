@@ -1,7 +1,9 @@
 """Projections onto convex parameter sets (Section 3.3) as optax transforms."""
 
 import warnings
+from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -397,3 +399,31 @@ def test_a_general_projection_with_a_fixed_entry_stays_in_the_set():
     assert held.success and direct.success
     for name in ("k", "c"):
         assert abs(float(held.theta[name]) - float(direct.theta[name])) < 1e-6
+
+
+class _Phys(eqx.Module):
+    k: Any
+    c: Any
+
+
+def test_box_takes_bounds_written_as_thetas_own_module():
+    """A Module theta bounded by a Module of bounds (None: unbounded): c >= 0.35 holds
+    it above its true 0.3, k is free (the bounds were read as one scalar and raised)."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th.k * x[0] - th.c * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, _Phys(jnp.array(4.0), jnp.array(0.3)), np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    res = oj.fit(
+        model,
+        _Phys(jnp.array(3.0), jnp.array(0.5)),
+        np.array([1.0, 0.0]),
+        u,
+        z,
+        constraints=oc.box(lower=_Phys(None, 0.35)),
+    )
+    assert float(res.theta.c) == 0.35 and abs(float(res.theta.k) - 4.0) < 0.2
