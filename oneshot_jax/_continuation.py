@@ -308,9 +308,12 @@ def check_basin(
     - `window`: the window length in samples (shorter than the record).
     - `margin`: how many FIT points below the windowed fit count as a bad basin.
     - keyword arguments: passed to the windowed `fit` (`solver`, `weight`, `fixed`,
-        ...; use the ones the result was fitted with). `fixed` defaults to what the
-        result held (`FitResult.fixed`, per key of a dict theta): a network held in the
-        fit and freed in the windows would fit them better for that alone.
+        `constraints`, ...; use the ones the result was fitted with: a result does not
+        record its constraints, and a windowed fit without the fit's bounds can reach a
+        FIT the bounds forbid). `fixed` defaults to what the result held
+        (`FitResult.fixed`, per key of a dict theta; for another theta with held
+        entries, pass `fixed`: the check warns): a network held in the fit and freed in
+        the windows would fit them better for that alone.
 
     **Returns:**
 
@@ -344,6 +347,14 @@ def check_basin(
         )
     if "fixed" not in kwargs:
         kwargs["fixed"] = _held(result)
+        if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():
+            warnings.warn(
+                "`check_basin` cannot carry the result's fixed entries to the windowed fit "
+                "for this theta (not a dict of arrays): they are free there. Pass `fixed` "
+                "as for the fit.",
+                UserWarning,
+                stacklevel=2,
+            )
     windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])
     short = np.asarray(windowed.metrics["fit_percent"])
