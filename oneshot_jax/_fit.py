@@ -264,7 +264,7 @@ def fit(
         `multistart=True` every parameter leaf has a leading axis of starts.
     - `x0`: the starting initial state (n_x,), or (N, n_x) for N trajectories (with
         `window`, optionally one per window; with `multistart`, optionally with a leading
-        axis of starts too).
+        axis of starts too, except with `window`).
     - `u`, `z`: inputs (T, n_u) and measured outputs (T, n_z), or (N, T, .) for N
         trajectories sharing theta, each with its own x0.
     - `solver`: a solver object (`LevenbergMarquardt()` by default, `GaussNewton`,

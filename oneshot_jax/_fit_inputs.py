@@ -126,6 +126,11 @@ def check_inputs(
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
     starting = multistart is not False and multistart is not None
+    if window is not None and starting and np.ndim(x0) == 3:
+        raise ValueError(
+            "`window` with per-start x0 is not supported: give one x0 (n_x,), or one per "
+            "window (n_windows, n_x), shared by the starts of theta."
+        )
     x0_axis = starting and np.ndim(x0) == data_x0_ndim + 1
     if starting:
         theta_params, n_starts = theta_starts(

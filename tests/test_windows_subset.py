@@ -99,3 +99,22 @@ def test_windows_no_longer_than_their_x0_are_refused(length):
     # Fewer x0 entries estimated, or longer windows: theta is determined.
     oj.fit(MODEL, TRUTH, x0, u, z, window=2, estimate_x0=np.array([True, False]))
     oj.fit(MODEL, TRUTH, x0, u, z, window=3)
+
+
+def test_window_with_an_x0_per_start_is_refused_by_name():
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    u = np.zeros((100, 1))
+    z = np.zeros((100, 1))
+    with pytest.raises(ValueError, match="`window` with per-start x0 is not supported"):
+        oj.fit(
+            model,
+            {"k": np.array([1.0, 2.0])},
+            np.zeros((2, 2, 2)),
+            u,
+            z,
+            multistart=True,
+            window=50,
+        )
