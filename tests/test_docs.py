@@ -100,9 +100,21 @@ def test_pages_show_what_their_code_prints(page, tmp_path, monkeypatch):
     )
 
 
+# The hybrid guide is the longest: run after the getting-started page in a test of its own
+# (in parallel with the others under pytest-xdist).
+LONG_GUIDES = ["docs/guides/hybrid.md"]
+
+
 def test_getting_started_and_guides_run(tmp_path, monkeypatch):
-    ns = _run([g for g in GUIDES if g not in DATA_GUIDES], tmp_path, monkeypatch)
+    pages = [g for g in GUIDES if g not in DATA_GUIDES and g not in LONG_GUIDES]
+    ns = _run(pages, tmp_path, monkeypatch)
     assert ns["result"].success and ns["again"].loss == ns["result"].loss
+
+
+@pytest.mark.parametrize("path", [g for g in LONG_GUIDES if g not in DATA_GUIDES])
+def test_long_guides_run(path, tmp_path, monkeypatch):
+    """A long guide after the getting-started page (whose names it may use)."""
+    _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
 
 
 def test_minima_guide_runs(tmp_path, monkeypatch):
