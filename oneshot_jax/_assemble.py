@@ -279,8 +279,12 @@ def assemble(
         x0_cov = np.full((X0.shape[0], len(x0_free), len(x0_free)), np.inf)
     else:
         scaled = cov  # sigma^2 (J^T J)^+ and its standard errors (`scale`, in the solve)
-        _warn_identifiability(names, scaled.theta_identifiable, "parameters")
-        if not scaled.x0_identifiable.all():
+        # (After a diverged simulation the linearisation says nothing of identifiability:
+        # the stop reason speaks.)
+        diverged = name_of(from_index(int(out.results[best]))) == "diverged"
+        if not diverged:
+            _warn_identifiability(names, scaled.theta_identifiable, "parameters")
+        if not diverged and not scaled.x0_identifiable.all():
             x0_names = [
                 f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
                 for i in range(X0.shape[0])

@@ -220,7 +220,8 @@ def _warn_projected(moved, names, theta0):
         msg += (
             " A bound given for every parameter (positive(), box(lower=0)) holds a "
             "network's weights too; bound the physical parameters by name, e.g. "
-            "box(lower={'k': 0.0})."
+            "box(lower={'k': 0.0}) for a dict theta, or with a pytree of theta's own "
+            "structure holding None where unbounded (a module of bounds)."
         )
     warnings.warn(msg, stacklevel=3)
 

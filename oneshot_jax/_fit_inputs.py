@@ -145,6 +145,11 @@ def check_inputs(
     if x0_axis:
         x0_starts = np.asarray(x0)
         x0 = x0_starts[0]
+        if np.issubdtype(x0_starts.dtype, np.number) and not np.all(np.isfinite(x0_starts)):
+            bad = np.unique(np.argwhere(~np.isfinite(x0_starts))[:, 0]).tolist()
+            raise ValueError(
+                f"`x0` must be finite; the starts {bad} (first axis) have a NaN or inf entry."
+            )
 
     if window is not None:
         if u_ndim != 2:

@@ -89,8 +89,12 @@ def check_units(units, theta) -> dict:
 
 
 def _interval(value, std, fixed, computed) -> str:
+    """`computed`: whether the covariance was computed, or "diverged" (the fit's stop:
+    the linearisation at a diverged simulation says nothing of identifiability)."""
     if fixed:
         return "(fixed)"
+    if computed == "diverged":
+        return "(undefined: diverged)"
     if not computed:
         return "(not computed)"
     if not np.isfinite(std):
@@ -98,9 +102,11 @@ def _interval(value, std, fixed, computed) -> str:
     return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
 
 
-def _computed(result) -> bool:
+def _computed(result):
     """Whether the covariance was computed: an empty one stands for "not computed" (above
-    the size limit) only where some entry of theta is free."""
+    the size limit) only where some entry of theta is free; "diverged" after that stop."""
+    if result.status == "diverged":
+        return "diverged"
     return np.shape(result.covariance) != (0, 0) or bool(np.all(result.fixed))
 
 

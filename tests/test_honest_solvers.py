@@ -351,11 +351,16 @@ def test_the_issue_pendulum_with_an_inactive_bound_reaches_the_optimum():
 
 def test_a_start_where_the_simulation_diverges_is_a_failure_with_a_reason():
     problem = PROBLEMS["oscillator"]
-    r = oj.fit(problem.model, {"k": -50.0, "c": -20.0}, problem.x0, problem.u, problem.z)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = oj.fit(problem.model, {"k": -50.0, "c": -20.0}, problem.x0, problem.u, problem.z)
     assert not r.success
     assert r.status in ("diverged", "stalled", "no_progress", "max_steps_reached")
     if r.status == "diverged":
         assert "diverged at step" in r.message and r.stop_info["nonfinite"] == "loss"
+        # The linearisation of a diverged simulation says nothing of identifiability.
+        assert "(undefined: diverged)" in str(r) and "(not identifiable)" not in str(r)
+        assert not any("not identifiable" in str(w.message) for w in caught)
 
 
 def test_a_gradient_that_is_not_finite_at_a_bound_is_named(tmp_path):

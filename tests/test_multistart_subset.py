@@ -196,3 +196,17 @@ def test_x0_starts_must_match_the_theta_starts(data, theta0):
     x0, u, z = data
     with pytest.raises(ValueError, match="`x0` with a leading axis of starts must have 4"):
         oj.fit(MODEL, theta0, np.stack([x0, x0]), u, z, multistart={"phys": {"w": W_STARTS}})
+
+
+def test_a_start_of_x0_that_is_not_finite_is_refused():
+    model = oj.Model(lambda x, u, p: p["a"] * x + u)
+    u = np.ones((20, 1))
+    with pytest.raises(ValueError, match=r"the starts \[1\] \(first axis\) have a NaN"):
+        oj.fit(
+            model,
+            {"a": np.array([0.5, 0.6])},
+            np.array([[0.0], [np.nan]]),
+            u,
+            u,
+            multistart=True,
+        )
