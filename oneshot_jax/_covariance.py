@@ -91,18 +91,16 @@ def as_covariance(value):
     )
 
 
-def covariance(problem: FitProblem, params: Params, strategy, blocks=None, lin=None) -> Covariance:
+def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Covariance:
     """The `Covariance` at `params`.
 
     `blocks`: (SSE, A, B, C_i, S) of the data residuals at `params` when the solver
     already holds them (its last linearisation; S from `_linalg.schur_complement`);
-    otherwise the Jacobian is evaluated here, or taken from `lin` (the `Linearisation`
-    of the data residuals at `params`). With `blocks`, `problem` may be None (then
+    otherwise the Jacobian is evaluated here. With `blocks`, `problem` may be None (then
     no entry is a network's: no `marginal`).
     """
     if blocks is None:
-        if lin is None:
-            lin = problem.jacobian(params, strategy, penalty=False)
+        lin = problem.jacobian(params, strategy, penalty=False)
         A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
         S = schur_complement(lin.Jt, lin.Jx, A)
         sse = jnp.sum(lin.r**2)
@@ -148,12 +146,13 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
     lin = problem.jacobian(params, strategy, penalty=False)
-    cov = covariance(problem, params, strategy, None, lin)
+    A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
+    blocks = (jnp.sum(lin.r**2), A, B, Cb, schur_complement(lin.Jt, lin.Jx, A))
+    cov = covariance(problem, params, strategy, blocks)
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]
     T = problem.u.shape[1]
     n_z = R // T
-    _, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
     elim = eliminate_x0(B, Cb, pseudo_inverse=True)
     W = elim.CinvBt  # (N, m, p)
     Jt_elim = lin.Jt - jnp.einsum("nrm,nmp->nrp", lin.Jx, W)
