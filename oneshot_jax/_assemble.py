@@ -60,6 +60,8 @@ def _stage_out(s, best) -> StageOut:
     (the final iterate's validation loss: NaN, not recorded)."""
     n = s.num_steps[best]
     step = s.history.step
+    if step.ndim == 2:  # (starts taken in turn: each start's own steps)
+        step = step[best]
     rows = jnp.sum((step >= 0) & (step < n), dtype=jnp.int32)
 
     def after(a, last):

@@ -22,7 +22,7 @@ from ._covariance import as_covariance
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
-from ._iterate import run
+from ._iterate import run, starts_in_turn
 from ._jit import jit
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
@@ -87,17 +87,36 @@ def _warn_held_window_states(window, x0, estimate_x0, window_starts):
 
 
 @jit
-def _solve(solvers, problem, starts, history_size, meter, bar_id, stability_at=None, lags=None):
+def _solve(
+    solvers,
+    problem,
+    starts,
+    history_size,
+    meter,
+    bar_id,
+    stability_at=None,
+    lags=None,
+    in_turn=False,
+):
     """The whole fit as one compiled call: project the starts, run the solvers from all of
-    them at once, pick the best start and post-process it (covariance and metrics; with
-    `lags`, the Newey-West sandwich of that many lags), and with `stability_at` (a
-    `Model.from_ode` model's right-hand side and the flattened indices of the states to
-    check, `_stability`) the Jacobians there. Returns what
-    `assemble` reads (an `Out`) and those Jacobians (or None), packed."""
+    them (side by side, or with `in_turn` one after another: `_iterate.run`), pick the best
+    start and post-process it (covariance and metrics; with `lags`, the Newey-West
+    sandwich of that many lags), and with `stability_at` (a `Model.from_ode` model's
+    right-hand side and the flattened indices of the states to check, `_stability`) the
+    Jacobians there. Returns what `assemble` reads (an `Out`) and those Jacobians (or
+    None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = jnp.any(projected != starts.theta, axis=0)  # (p,) entries some start had outside
     starts = Params(projected, starts.x0)
-    stages = run(solvers, problem, starts, history_size=history_size, meter=meter, bar_id=bar_id)
+    stages = run(
+        solvers,
+        problem,
+        starts,
+        history_size=history_size,
+        meter=meter,
+        bar_id=bar_id,
+        in_turn=in_turn,
+    )
     final = stages[-1]
     # The best start: the lowest final loss, or with validation data the lowest score.
     rank = final.loss if final.best is None else final.best.score
@@ -127,7 +146,10 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     and warns of those fallbacks."""
     # (No bar: no calls of the meter's methods, which equinox wraps anew on each access.)
     bar = not isinstance(meter, NoProgress)
-    bar_id = meter.open(sum(s.max_steps for s in solvers)) if bar else 0
+    n_starts = starts.theta.shape[0]
+    in_turn = n_starts > 1 and starts_in_turn()
+    steps = sum(s.max_steps for s in solvers) * (n_starts if in_turn else 1)
+    bar_id = meter.open(steps) if bar else 0
     try:
         with counting() as counts:
             t0 = time.perf_counter()
@@ -140,6 +162,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
                 np.asarray(bar_id, np.int32),
                 stability_at,
                 lags,
+                in_turn,
             )
             during = None if meanwhile is None else meanwhile()
             jax.block_until_ready(buffers)
@@ -304,9 +327,9 @@ def fit(
         returned (stop reason `validation` where it is not the one the solver stopped
         at) and `Validation(patience=k)` stops a solver after k iterations without
         improvement. The scores are `result.history.validation`.
-    - `multistart`: several starts, run in parallel in the one compiled call (vmap); the
-        start with the least final loss (with `validation`, the lowest score) is returned
-        and `result.starts` reports each.
+    - `multistart`: several starts, run in the one compiled call; the start with the
+        least final loss (with `validation`, the lowest score) is returned and
+        `result.starts` reports each.
         `True`: every parameter leaf of `theta0` carries a leading axis of starts. A dict
         starts some parts of theta only, the rest (an equinox network, say) theta0's own
         in every start: its keys name theta0's entries (nested as theta0's dicts; an
@@ -314,11 +337,10 @@ def fit(
         leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
         Every part given needs the same number S of starts, and a shape (S, *its shape);
         the starts of fixed entries are refused. `x0` starts by its own leading axis of
-        starts (S, ...) (`multistart={}` for starts over x0 alone). The starts step
-        together until the last one stops, each step evaluating every branch of the
-        solver's tests for all of them: on a CPU, starts that need very different
-        numbers of steps may cost more than a loop of single fits (which compiles once
-        for all starts of the same shapes).
+        starts (S, ...) (`multistart={}` for starts over x0 alone). On a CPU the starts
+        run in turn, each stopping on its own tests (`lax.map`); on an accelerator side
+        by side (vmapped: a batch costs little more than one start), every start
+        stepping until the last one stops (`benchmarks/multistart.py`).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned

@@ -349,6 +349,8 @@ def build_problem(
             f"of more than {n_est // Z.shape[2]} samples (several times more: the windows "
             "must show the dynamics), or estimate fewer x0 entries (`estimate_x0`)."
         )
+    for s in solvers:
+        s.check_dtype(flat0.dtype)
     on_theta = None  # the regulariser on theta's trainable part
     if reg is not None:
         for s in solvers:

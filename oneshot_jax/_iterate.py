@@ -5,9 +5,15 @@
 all starts (vmapped) and freezes the ones that have stopped, so the step counter, the
 history's bookkeeping and the progress bar are shared and cost nothing per start. `run`
 chains a sequence of solvers, each starting where the last stopped; `fit` compiles it as
-one call. With held-out records (`FitProblem.validation`, `oneshot_jax._validation`) the
-loop scores every iterate on them, keeps the best one across all solvers and stops a
-solver after `patience` scores without improvement.
+one call. Side by side (vmapped), every start steps until the last one stops and every
+branch of a solver's tests runs for all of them: on a CPU, where a batch of starts saves
+little over the starts one by one, `run` takes the starts in turn instead (`lax.map` of
+the whole sequence of solvers, one start each: each stops on its own tests;
+`starts_in_turn`; `benchmarks/multistart.py` times both).
+
+With held-out records (`FitProblem.validation`, `oneshot_jax._validation`) the loop
+scores every iterate on them, keeps the best one across all solvers and stops a solver
+after `patience` scores without improvement.
 """
 
 from typing import Any, NamedTuple
@@ -242,11 +248,70 @@ def iterate(
     )
 
 
-def run(solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id):
-    """The solvers in order, each from where the last stopped; S starts at once. Returns
-    every stage's `Solution` (the last one holds the result)."""
+# Whether `fit` takes the starts of a multistart in turn (True) or side by side (False);
+# None: in turn on a CPU, side by side on an accelerator, where a batch of starts costs
+# little more than one start. Read on the host by `starts_in_turn` at each fit.
+STARTS_IN_TURN: bool | None = None
+
+
+def starts_in_turn() -> bool:
+    """Whether a multistart's starts run in turn (`STARTS_IN_TURN`, by default on a CPU)."""
+    if STARTS_IN_TURN is not None:
+        return bool(STARTS_IN_TURN)
+    return jax.default_backend() == "cpu"
+
+
+def _one_start(params: Params, i) -> Params:
+    return jax.tree_util.tree_map(lambda a: a[i][None], params)
+
+
+def _unstack(sol: Solution) -> Solution:
+    """A `Solution` of `lax.map` over starts (every leaf (S, 1, ...)) as the side-by-side
+    one (leaves (S, ...)), but for the history: its rows (size, S, ...) and the steps,
+    row count and stride of each start (S, ...), no longer shared."""
+    drop = lambda a: a[:, 0]  # noqa: E731
+    h = sol.history
+    if h is not None:
+        rows = lambda a: None if a is None else jnp.moveaxis(a[:, :, 0], 0, 1)  # noqa: E731
+        h = h._replace(
+            loss=rows(h.loss),
+            grad_norm=rows(h.grad_norm),
+            validation=rows(h.validation),
+            theta=rows(h.theta),
+        )
+    rest = jax.tree_util.tree_map(drop, sol._replace(history=None))
+    return rest._replace(history=h)
+
+
+def run(
+    solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id, in_turn=False
+):
+    """The solvers in order, each from where the last stopped; S starts at once (or, with
+    `in_turn`, one after another). Returns every stage's `Solution` (the last one holds
+    the result)."""
+    n_starts = params.theta.shape[0]
+    if in_turn and n_starts > 1:
+        total = sum(s.max_steps for s in solvers)
+
+        def one(i):
+            return _run(
+                solvers,
+                problem,
+                _one_start(params, i),
+                history_size=history_size,
+                meter=meter,
+                bar_id=bar_id,
+                offset=i * total,
+            )
+
+        stages = jax.lax.map(one, jnp.arange(n_starts, dtype=jnp.int32))
+        return [_unstack(s) for s in stages]
+    return _run(solvers, problem, params, history_size=history_size, meter=meter, bar_id=bar_id)
+
+
+def _run(solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id, offset=0):
     stages = []
-    offset = jnp.array(0, jnp.int32)
+    offset = jnp.asarray(offset, jnp.int32)
     best = None
     for solver in solvers:
         sol = iterate(

@@ -384,6 +384,39 @@ def test_float64_host_data_run_in_float32_without_x64():
         assert float(C) < 1e-10
 
 
+def test_optimistix_trust_region_on_float32_with_x64_is_refused_by_name():
+    """optimistix's trust-region solvers (LevenbergMarquardt, IndirectLevenbergMarquardt,
+    Dogleg) fail deep inside lineax or `lax.cond` on float32 data with x64 on (optimistix
+    0.1.0): `fit` names `solver` and the ways out instead. The same float32 data fit with
+    those solvers with x64 off, and with optimistix's GaussNewton and BFGS with x64 on
+    (the refusal is no broader than the failure)."""
+    import jax
+    import optimistix as optx
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1)).astype(np.float32)
+    x0 = np.array([1.0, 0.0], np.float32)
+    _, z = oj.simulate(model, {"k": np.float32(2.0)}, x0, u)
+    args = (model, {"k": np.float32(1.5)}, x0, u, np.asarray(z))
+    kw = {"rtol": 1e-5, "atol": 1e-7}
+    trust = [optx.LevenbergMarquardt(**kw), optx.IndirectLevenbergMarquardt(**kw)]
+    trust.append(optx.Dogleg(**kw))
+    for solver in trust:
+        name = type(solver).__name__
+        with pytest.raises(ValueError, match=rf"`solver`: .*Optimistix\({name}\).*float32"):
+            oj.fit(*args, solver=oj.Optimistix(solver))
+    with jax.enable_x64(False):
+        r = oj.fit(*args, solver=oj.Optimistix(optx.LevenbergMarquardt(**kw)))
+        assert r.theta["k"].dtype == np.float32 and abs(float(r.theta["k"]) - 2.0) < 1e-3
+    for solver in (optx.GaussNewton(**kw), optx.BFGS(**kw)):
+        r = oj.fit(*args, solver=oj.Optimistix(solver))
+        assert r.theta["k"].dtype == np.float32 and abs(float(r.theta["k"]) - 2.0) < 1e-3
+
+
 def _osc(x, u, p):
     return jnp.stack([x[1], -p["k"] * x[0] - p["c"] * x[1]])
 

@@ -96,6 +96,12 @@ class AbstractSolver(eqx.Module):
             "fixed=oneshot_jax.sparsity.fixed_zeros(result.theta, where)."
         )
 
+    def check_dtype(self, dtype) -> None:
+        """Raise a ValueError if this solver cannot run on data of `dtype` (the problem's
+        floating dtype) under JAX's present configuration. The library's solvers run in
+        float32 and float64 alike."""
+        del dtype
+
     def measures(self, state) -> Measures:
         """The quantities the last stop was tested on (`oneshot_jax._optimality.Measures`):
         the first-order measure at the current iterate, the last step's scaled size and

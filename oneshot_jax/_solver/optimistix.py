@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from .._optimality import (
@@ -171,6 +172,26 @@ class Optimistix(AbstractSolver):
             )
         check_options(self, integers=("max_steps",), non_negative=("gtol",))
         as_strategy(self.strategy, "`Optimistix(strategy=...)`")
+
+    def check_dtype(self, dtype):
+        """optimistix's trust-region search (`ClassicalTrustRegion`: `LevenbergMarquardt`,
+        `IndirectLevenbergMarquardt`, `Dogleg`) carries float64 scalars into a float32
+        solve when `jax_enable_x64` is on, and fails inside lineax or `lax.cond` (optimistix
+        0.1.0): refused here, with the ways out."""
+        search = getattr(self.solver, "search", None)
+        if (
+            np.dtype(dtype) == np.float32
+            and jax.config.read("jax_enable_x64")
+            and isinstance(search, optx.ClassicalTrustRegion)
+        ):
+            raise ValueError(
+                f"`solver`: oneshot_jax.Optimistix({type(self.solver).__name__}) cannot fit "
+                "float32 data while jax_enable_x64 is on: optimistix's trust-region search "
+                "mixes float64 into the float32 solve and fails inside it. Pass float64 "
+                "data, x0 and theta0 (identification wants them), turn jax_enable_x64 off "
+                "for a float32 fit, or use oneshot_jax.LevenbergMarquardt, which runs in "
+                "float32 either way."
+            )
 
     @property
     def _minimise(self):
