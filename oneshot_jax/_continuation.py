@@ -17,6 +17,7 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from ._checks import x0_mask
 from ._fit import fit
 from ._fit_result import FitResult
 from ._simulate import simulate
@@ -210,6 +211,9 @@ def fit_continuation(
         )
     covariance = kwargs.pop("covariance", "classical")
     estimate_x0 = kwargs.pop("estimate_x0", True)
+    # (checked here, not after the windowed stages; the entries the last stage holds
+    # keep the given values)
+    held = None if estimate_x0 is True else ~x0_mask(estimate_x0, np.shape(x0)[0])
     u_np = np.asarray(u)
     T = u_np.shape[0]
     schedule = _schedule(windows, start, factor, T)
@@ -225,8 +229,7 @@ def fit_continuation(
         stages.append(_stage(w, result))
         theta, w_prev = result.theta, w
     final_x0 = np.asarray(result.x0)[0]
-    if estimate_x0 is not True:  # the entries the last stage holds keep the given values
-        held = ~np.broadcast_to(np.asarray(estimate_x0, bool), final_x0.shape)
+    if held is not None:
         final_x0 = np.where(held, np.asarray(x0, final_x0.dtype), final_x0)
     final = fit(
         model, theta, final_x0, u, z, covariance=covariance, estimate_x0=estimate_x0, **kwargs

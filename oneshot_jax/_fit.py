@@ -18,6 +18,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post, prepare
+from ._checks import x0_mask
 from ._covariance import as_covariance
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
@@ -72,7 +73,7 @@ def _warn_held_window_states(window, x0, estimate_x0, window_starts):
         return
     if np.ndim(x0) != 1 or estimate_x0 is True:
         return
-    held = ~np.broadcast_to(np.asarray(estimate_x0, bool), np.shape(x0))
+    held = ~x0_mask(estimate_x0, np.shape(x0)[0])
     if not held.any():
         return
     warnings.warn(
