@@ -8,7 +8,7 @@ Marquardt, Gauss-Newton, 300 steps of Adam), the time of:
 
 - `one start`: `fit` from one start (the first);
 - `loop`: a Python loop of S `fit` calls, one per start (one compiled program for all);
-- `in turn`: `fit(multistart=...)` with the starts in turn (`lax.map` over the starts
+- `in turn`: `fit(multistart=...)` with the starts in turn (`lax.scan` over the starts
   inside the one compiled call, each start stopping on its own tests), the default on a
   CPU;
 - `side by side`: the same with the starts side by side (vmapped: every start steps

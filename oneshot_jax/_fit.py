@@ -338,10 +338,11 @@ def fit(
         leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
         Every part given needs the same number S of starts, and a shape (S, *its shape);
         the starts of fixed entries are refused. `x0` starts by its own leading axis of
-        starts (S, ...) (`multistart={}` for starts over x0 alone). On a CPU the starts
-        run in turn, each stopping on its own tests (`lax.map`); on an accelerator side
-        by side (vmapped: a batch costs little more than one start), every start
-        stepping until the last one stops (`benchmarks/multistart.py`).
+        starts (S, ...) (`multistart={}` for starts over x0 alone; starts that differ in
+        an entry `estimate_x0` holds are refused). On a CPU the starts run in turn, each
+        stopping on its own tests (`lax.scan`); on an accelerator side by side
+        (vmapped), every start stepping until the last one stops
+        (`benchmarks/multistart.py`).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned

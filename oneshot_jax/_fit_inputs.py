@@ -34,7 +34,7 @@ from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
-from ._starts import check_fixed_starts, theta_starts
+from ._starts import check_fixed_starts, check_held_x0_starts, theta_starts
 from ._timing import split_intervals
 from ._validation import monitor
 from ._windows import cut
@@ -411,6 +411,7 @@ def build_problem(
         x0_starts = inputs.x0_starts
         if x0_starts is not None:
             X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)
+            check_held_x0_starts(X0s, x0_est)
         else:
             X0s = np.broadcast_to(X0, (inputs.n_starts, *X0.shape))
     else:

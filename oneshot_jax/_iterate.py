@@ -7,7 +7,7 @@ history's bookkeeping and the progress bar are shared and cost nothing per start
 chains a sequence of solvers, each starting where the last stopped; `fit` compiles it as
 one call. Side by side (vmapped), every start steps until the last one stops and every
 branch of a solver's tests runs for all of them: on a CPU, where a batch of starts saves
-little over the starts one by one, `run` takes the starts in turn instead (`lax.map` of
+little over the starts one by one, `run` takes the starts in turn instead (`lax.scan` of
 the whole sequence of solvers, one start each: each stops on its own tests;
 `starts_in_turn`; `benchmarks/multistart.py` times both).
 
@@ -172,7 +172,7 @@ def iterate(
     if hist is not None and not primes:
         hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
-    bar_id, offset = meter_args
+    bar_id, offset, done_low = meter_args
     step_all = _over_starts(lambda p, s: solver.step(problem, p, s), n_starts)
 
     def cond(c):
@@ -199,7 +199,8 @@ def iterate(
         hist = c.history
         if hist is not None:
             hist = _history.record(hist, step, loss, gnorm, params.theta, score)
-        meter.update(bar_id, offset, step, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
+        shown = jnp.minimum(done_low, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
+        meter.update(bar_id, offset, step, shown)
         dynamic, _ = eqx.partition(state, eqx.is_array)
         return _Carry(
             params,
@@ -266,7 +267,7 @@ def _one_start(params: Params, i) -> Params:
 
 
 def _unstack(sol: Solution) -> Solution:
-    """A `Solution` of `lax.map` over starts (every leaf (S, 1, ...)) as the side-by-side
+    """A `Solution` of `lax.scan` over starts (every leaf (S, 1, ...)) as the side-by-side
     one (leaves (S, ...)), but for the history: its rows (size, S, ...) and the steps,
     row count and stride of each start (S, ...), no longer shared."""
     drop = lambda a: a[:, 0]  # noqa: E731
@@ -290,11 +291,13 @@ def run(
     `in_turn`, one after another). Returns every stage's `Solution` (the last one holds
     the result)."""
     n_starts = params.theta.shape[0]
+    inf = jnp.array(jnp.inf, problem.dtype)
     if in_turn and n_starts > 1:
         total = sum(s.max_steps for s in solvers)
 
-        def one(i):
-            return _run(
+        def one(low, i):
+            # `low`: the least final loss of the starts done, for the progress bar.
+            stages = _run(
                 solvers,
                 problem,
                 _one_start(params, i),
@@ -302,14 +305,27 @@ def run(
                 meter=meter,
                 bar_id=bar_id,
                 offset=i * total,
+                done_low=low,
             )
+            last = stages[-1].loss
+            return jnp.minimum(low, jnp.min(jnp.where(jnp.isnan(last), inf, last))), stages
 
-        stages = jax.lax.map(one, jnp.arange(n_starts, dtype=jnp.int32))
+        _, stages = jax.lax.scan(one, inf, jnp.arange(n_starts, dtype=jnp.int32))
         return [_unstack(s) for s in stages]
-    return _run(solvers, problem, params, history_size=history_size, meter=meter, bar_id=bar_id)
+    return _run(
+        solvers,
+        problem,
+        params,
+        history_size=history_size,
+        meter=meter,
+        bar_id=bar_id,
+        done_low=inf,
+    )
 
 
-def _run(solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id, offset=0):
+def _run(
+    solvers, problem: FitProblem, params: Params, *, history_size, meter, bar_id, done_low, offset=0
+):
     stages = []
     offset = jnp.asarray(offset, jnp.int32)
     best = None
@@ -320,7 +336,7 @@ def _run(solvers, problem: FitProblem, params: Params, *, history_size, meter, b
             params,
             history_size=history_size,
             meter=meter,
-            meter_args=(bar_id, offset),
+            meter_args=(bar_id, offset, done_low),
             best=best,
         )
         best = sol.best

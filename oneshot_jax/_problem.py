@@ -103,6 +103,11 @@ class FitProblem(eqx.Module):
     def n_traj(self):
         return self.u.shape[0]
 
+    @property
+    def constrained(self) -> bool:
+        """Whether theta has bounds or a projection (static: known when tracing)."""
+        return self.lower is not None or self.project is not None
+
     def theta_of(self, p_theta):
         base = jnp.asarray(self.theta_base)
         if self.theta_free == tuple(range(base.shape[0])):  # all free: no scatter to trace

@@ -44,7 +44,8 @@ class TqdmProgress(eqx.Module):
     def update(self, bar_id, offset, step, loss):
         """Called inside the loop with the step shared by the starts: every
         `refresh_steps` steps, move the bar to `offset + step` and show `loss` (the
-        smallest over the starts)."""
+        smallest over the starts: those running, and with the starts in turn the final
+        losses of those done)."""
 
         def show(bar_id, n, loss):
             with _LOCK:

@@ -197,3 +197,16 @@ def check_fixed_starts(starts_flat, fixed_flat, theta):
             f"({', '.join(listed)}): a fixed entry keeps one value. Start only free entries, "
             "or free them in `fixed`."
         )
+
+
+def check_held_x0_starts(x0_starts, x0_est):
+    """A ValueError if the x0 starts (S, N, n_x) of a multistart fit differ in an entry
+    that `estimate_x0` holds (`x0_est`, (n_x,) False there): a held entry keeps one value,
+    so its starts would be silently dropped."""
+    differ = ~np.asarray(x0_est) & np.any(x0_starts != x0_starts[:1], axis=(0, 1))
+    if differ.any():
+        raise ValueError(
+            "`x0` gives different starts for initial-state entries that `estimate_x0` holds "
+            f"(entries {np.flatnonzero(differ).tolist()}): a held entry keeps one value. "
+            "Start only estimated entries, or estimate them (`estimate_x0`)."
+        )

@@ -14,6 +14,7 @@ side-by-side one. A wrong stacking of the in-turn outputs (the history's rows an
 starts swapped, a start's steps or history taken from another) changes one of them.
 """
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -100,3 +101,58 @@ def test_starts_in_turn_equal_starts_side_by_side(monkeypatch, validation):
         np.testing.assert_allclose(h_turn.validation[rows], h_side.validation, rtol=1e-7)
     else:
         assert h_turn.validation is None and h_side.validation is None
+
+
+def test_side_by_side_levenberg_marquardt_takes_a_single_fits_steps(monkeypatch):
+    """Without bounds, Levenberg-Marquardt follows a rejected step with a larger damping
+    only. Side by side it used to take a projected-gradient step instead: its test of
+    whether the projection clipped the step compared (theta + h) - theta with h, which
+    vmapped arithmetic made unequal by round-off. Two identical starts side by side then
+    took other steps than a single fit (here from the second step on, on a hybrid whose
+    first steps are rejected); now both paths take the single fit's steps."""
+    from oneshot_jax.residual import MLP
+
+    def hybrid(x, u, theta):
+        return step(x, u, theta["phys"]) + 0.1 * theta["r"](jnp.concatenate([x, u]))
+
+    model = oj.Model(hybrid)
+    x0, u, z = _data(0)
+    net = MLP(3, 2, (6,), key=jax.random.PRNGKey(0))
+    theta0 = {"phys": {"w": -1.5, "rho": 0.9}, "r": net}
+    warm = oj.fit(model, theta0, x0, u, z, solver=oj.Adam(1e-2, max_steps=20, gtol=0.0))
+    lm = oj.LevenbergMarquardt(max_steps=6)
+    single = oj.fit(model, warm.theta, warm.x0, u, z, solver=lm)
+    # (the case: steps rejected before the first accepted one)
+    assert single.history.loss[1] == single.history.loss[0]
+    for in_turn in (False, True):
+        monkeypatch.setattr(iterate_module, "STARTS_IN_TURN", in_turn)
+        both = oj.fit(
+            model, warm.theta, np.stack([warm.x0, warm.x0]), u, z, solver=lm, multistart={}
+        )
+        np.testing.assert_array_equal(both.history.step, single.history.step)
+        np.testing.assert_allclose(both.history.loss, single.history.loss, rtol=1e-9)
+
+
+@pytest.mark.parametrize("in_turn", [True, False], ids=["in turn", "side by side"])
+def test_progress_bar_ends_at_the_least_loss_over_the_starts(monkeypatch, capsys, in_turn):
+    """The progress bar shows the least loss over the starts. In turn, the start running
+    last is not the best one here: the bar used to end on that start's loss. Its total:
+    every start's steps in turn, the shared steps side by side."""
+    monkeypatch.setattr(iterate_module, "STARTS_IN_TURN", in_turn)
+    x0, u, z = _data(0)
+    starts = np.array([0.25, -1.5, 1.2])
+    r = oj.fit(
+        MODEL,
+        {"w": 0.25, "rho": 0.9},
+        x0,
+        u,
+        z,
+        solver=oj.Adam(1e-2, max_steps=30, gtol=0.0),
+        multistart={"w": starts},
+        progress=oj.TqdmProgress(1),
+    )
+    assert r.best == 0 and r.starts.loss[-1] > 10 * r.loss  # (the last start is not the best)
+    err = capsys.readouterr().err
+    assert f"/{30 * (3 if in_turn else 1)}" in err
+    shown = err.rsplit("loss ", 1)[1].split()[0].rstrip("]")
+    assert shown == f"{float(np.min(r.starts.loss)):.6e}", err[-300:]

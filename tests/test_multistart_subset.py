@@ -126,6 +126,24 @@ def test_starts_over_x0_with_theta_shared(data, theta0):
     np.testing.assert_allclose(r.x0, x0, atol=1e-10)
 
 
+def test_x0_starts_of_held_entries_are_refused(data, theta0):
+    """x0 starts that differ in an entry `estimate_x0` holds used to run every start from
+    the first one's value there (the other starts silently dropped): refused, as the
+    starts of a fixed theta entry are. Starts that agree there are taken."""
+    x0, u, z = data
+    theta = {**theta0, "phys": {"w": W_TRUE, "rho": RHO_TRUE}}
+    X0s = np.array([[0.5, 0.0], [1.0, 0.0], [-1.0, 0.3]])
+    held = {**HELD, "net": True}  # (w free: something to estimate)
+    for est, entries in ((False, r"\[0, 1\]"), (np.array([True, False]), r"\[1\]")):
+        with pytest.raises(ValueError, match=rf"`x0` gives different starts .*{entries}"):
+            oj.fit(MODEL, theta, X0s, u, z, fixed=held, estimate_x0=est, multistart={})
+    agree = X0s[:2]  # (the held entry 1 is 0.0 in both)
+    r = oj.fit(
+        MODEL, theta, agree, u, z, fixed=True, estimate_x0=np.array([True, False]), multistart={}
+    )
+    np.testing.assert_allclose(r.x0, x0, atol=1e-10)
+
+
 def test_starts_given_as_a_list_of_integers_are_floats(theta0):
     params, n = theta_starts({"phys": {"w": [2, 1, 0]}}, theta0, 3)
     assert n == 3 and params["phys"]["w"].dtype == np.float64

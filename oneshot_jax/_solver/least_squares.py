@@ -95,6 +95,18 @@ class LSQState(NamedTuple):
     primed: jax.Array  # whether `blocks` hold the linearisation (after the first step)
 
 
+def _at_round_off(params: Params, h: Params, pred, loss):
+    """Whether the step `h` from `params` is at round-off: the decrease it predicts
+    (MINPACK's ftol test at machine epsilon), or its size against the parameters' (which
+    matters in float32)."""
+    dtype = params.theta.dtype
+    eps = jnp.finfo(dtype).eps
+    size = jnp.sqrt(jnp.sum(params.theta**2) + jnp.sum(params.x0**2))
+    hsize = jnp.sqrt(jnp.sum(h.theta**2) + jnp.sum(h.x0**2))
+    tiny = jnp.finfo(dtype).tiny
+    return (pred <= 8 * eps * loss) | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, tiny))
+
+
 class _Move(NamedTuple):
     """A step's move before the linearisation at its end (`AbstractLeastSquares._move`)."""
 
@@ -265,7 +277,7 @@ class AbstractLeastSquares(AbstractSolver):
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, mu, act)
         point = self._point(problem, params, h, 1.0)
-        if problem.lower is not None or problem.project is not None:
+        if problem.constrained:
             blocked = (point.theta == params.theta) & (h.theta != 0) & ~act
 
             def again():
@@ -291,9 +303,17 @@ class AbstractLeastSquares(AbstractSolver):
         )
         # A step that the projection clipped (or whose model predicts no decrease) and
         # that failed: a projected-gradient step instead, which decreases C unless
-        # theta is stationary.
-        clipped = jnp.any(st != h.theta)
-        need = ~t.accept & search.fallback(clipped, pred)
+        # theta is stationary. (Clipped: the projection moved the full point; not
+        # st != h, which (theta + h) - theta can make true by round-off.)
+        clipped = jnp.array(False)
+        if problem.constrained:
+            clipped = jnp.any(full[0].theta != params.theta + h.theta)
+        # So is a failed step at round-off where the point is not stationary (the fit
+        # would stop `stalled` there; in float32 the round-off level of a step is coarse).
+        stuck = _at_round_off(params, h, pred, state.loss) & (
+            state.measures.first_order > roundoff_limit(problem.dtype)
+        )
+        need = ~t.accept & (search.fallback(clipped, pred) | stuck)
         arc = lazy_cond(
             need, lambda: self._gradient_arc(problem, params, b), (params, b.C, jnp.array(False))
         )
@@ -387,15 +407,10 @@ class AbstractLeastSquares(AbstractSolver):
         step_d = b.scaled_norm(s)
         small_step = primed & take & (step_d <= self.rtol * size_d + self.atol)
         small_step = small_step & (state.loss - loss <= self.rtol * state.loss + self.atol)
-        # Nothing left to gain at this precision: nothing decreased C and the predicted
-        # decrease is at round-off (MINPACK's ftol test at machine epsilon), or the step
-        # is at the round-off level of the parameters (matters in float32).
-        size = jnp.sqrt(jnp.sum(old.theta**2) + jnp.sum(old.x0**2))
-        hsize = jnp.sqrt(jnp.sum(h.theta**2) + jnp.sum(h.x0**2))
-        round_off = ~take & (
-            (pred <= 8 * eps * state.loss)
-            | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
-        )
+        # Nothing left to gain at this precision: nothing decreased C (not even the
+        # gradient step that `_move` tries first where the point is not stationary) and
+        # the step is at round-off.
+        round_off = ~take & _at_round_off(old, h, pred, state.loss)
         # At a zero residual the loss keeps falling by round-off (1e-36 and below) with
         # accepted steps of 1e-21: a step below round-off of the scaled parameters ends the
         # fit there. (Only there: on an ill-conditioned J, ||D p|| can be far above the

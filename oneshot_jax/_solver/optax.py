@@ -187,7 +187,7 @@ class _AbstractOptax(AbstractSolver):
         """Entries of theta that the constraints hold where they are: a projected
         diagonal-Newton step P(theta - grad C / (2 d^2)) leaves them in place although
         their gradient is not zero (at a bound that the gradient pushes against)."""
-        if problem.lower is None and problem.project is None:
+        if not problem.constrained:
             return jnp.zeros(params.theta.shape, bool)
         eps = jnp.finfo(problem.dtype).eps
         t = 0.5 / floor(scale.d_t)
