@@ -6,9 +6,9 @@ the step of the linearisation is taken, and owns its state.
 - `NielsenDamping` (`LevenbergMarquardt`): a trust region by the damping mu of the step
   (J^T J + mu D) h = -J^T r, adapted by Nielsen's rule; its state is (mu, nu).
 
-A search answers `damping(state)` (the mu of the next step), `search(...)` (the outcome,
-`Trial`, and its next state) and `fallback(clipped, pred)` (whether a rejected step is
-followed by the projected-gradient step of `least_squares`).
+A search answers `damping(state)` (the mu of the next step) and `search(...)` (the
+outcome, `Trial`, and its next state). A rejected step is followed by the
+projected-gradient step of `least_squares`, whatever the search.
 """
 
 import abc
@@ -59,11 +59,6 @@ class AbstractSearch(eqx.Module):
         **Returns:** the `Trial` and the search's next state.
         """
 
-    @abc.abstractmethod
-    def fallback(self, clipped, pred) -> jax.Array:
-        """Whether a rejected step is followed by a projected-gradient step (`clipped`:
-        the projection changed the full step; `pred`: its predicted decrease)."""
-
 
 class Backtracking(AbstractSearch):
     """Halve alpha = 1, 1/2, ... down to 2^-30 until the loss decreases (a non-finite
@@ -88,10 +83,6 @@ class Backtracking(AbstractSearch):
         alpha, new, Cn = jax.lax.while_loop(cond, body, (jnp.array(1.0, C.dtype), *full))
         accept = Cn < C
         return Trial(new, Cn, accept, ~accept, accept & (alpha == 1.0)), state
-
-    def fallback(self, clipped, pred):
-        del clipped, pred
-        return jnp.array(True)
 
 
 class Damping(NamedTuple):
@@ -123,8 +114,3 @@ class NielsenDamping(AbstractSearch):
         mu_new = jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), mu * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         return Trial(new, Cn, accept, mu_new > 1e20, accept), Damping(mu_new, nu_new)
-
-    def fallback(self, clipped, pred):
-        # A step that the projection clipped can have a model decrease <= 0 at any
-        # damping: take a projected-gradient step then. Otherwise a larger damping will do.
-        return clipped | (pred <= 0)

@@ -9,9 +9,10 @@ from .least_squares import AbstractLeastSquares
 class LevenbergMarquardt(AbstractLeastSquares):
     """Levenberg-Marquardt on the closed-form residual Jacobian (forward sensitivities),
     with Marquardt's scaling D = diag(J^T J), the x0 blocks of each trajectory eliminated
-    by a Schur complement and an exact active set for box bounds. A step that a bound or
-    a projection clipped and that fails is replaced by a projected-gradient step with an
-    Armijo search along the projection arc (Kanzow, Yamashita and Fukushima 2004). The
+    by a Schur complement and an exact active set for box bounds. A step that fails (one
+    that a bound or a projection clipped can predict no decrease at any damping) is
+    followed by a projected-gradient step with an Armijo search along the projection arc
+    (Kanzow, Yamashita and Fukushima 2004). The
     damping mu follows Nielsen's rule: on an accepted step mu *= max(1/3, 1 - (2 rho - 1)^3),
     on a rejected
     one mu *= nu, nu *= 2 (rho = actual / predicted decrease). A non-finite trial loss is
