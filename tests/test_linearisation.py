@@ -178,7 +178,6 @@ def test_the_searches_own_their_state():
     full = (step, jnp.array(1.5))
     t, state = search.search(trial, C, step, full, jnp.array(0.5), Damping(jnp.array(0.3), 4.0))
     assert not bool(t.accept) and float(state.mu) == pytest.approx(1.2) and float(state.nu) == 8.0
-    assert bool(search.fallback(jnp.array(True), 1.0)) and not bool(search.fallback(False, 1.0))
 
 
 @pytest.mark.parametrize("matrix_free", [False, True])

@@ -67,9 +67,12 @@ def test_trial_linearisation_takes_the_same_iterates(case, monkeypatch):
     assert fast.success
     if "bound" in case:
         assert float(fast.theta["c"]) == 0.2  # the bound is active at the solution
-    if case == "lm_far_start":  # rejected steps: rows where the iterate stayed
+    if case == "lm_far_start":
+        # Its rejected steps are each followed by the projected-gradient step, which ends
+        # elsewhere than the step's trial point (the second linearisation of a step): the
+        # iterate moves at every row.
         k = fast.history.theta["k"][:-1]  # (the last row repeats the final iterate)
-        assert np.sum(np.diff(k) == 0) >= 2
+        assert np.all(np.diff(k) != 0)
 
 
 def test_the_trial_is_linearised_for_few_columns_only():
