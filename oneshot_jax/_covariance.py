@@ -91,6 +91,12 @@ def as_covariance(value):
     )
 
 
+def _blocks(lin):
+    """(SSE, A, B, C_i, S) of the data residuals from their `Linearisation` `lin`."""
+    A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
+    return jnp.sum(lin.r**2), A, B, Cb, schur_complement(lin.Jt, lin.Jx, A)
+
+
 def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Covariance:
     """The `Covariance` at `params`.
 
@@ -100,12 +106,8 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     no entry is a network's: no `marginal`).
     """
     if blocks is None:
-        lin = problem.jacobian(params, strategy, penalty=False)
-        A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
-        S = schur_complement(lin.Jt, lin.Jx, A)
-        sse = jnp.sum(lin.r**2)
-    else:
-        sse, A, B, Cb, S = blocks
+        blocks = _blocks(problem.jacobian(params, strategy, penalty=False))
+    sse, A, B, Cb, S = blocks
     p, m = A.shape[0], Cb.shape[-1]
     elim = eliminate_x0(B, Cb, pseudo_inverse=True)
     x_ok = identifiable(Cb) if m else jnp.ones(Cb.shape[:2], bool)
@@ -146,9 +148,9 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
     lin = problem.jacobian(params, strategy, penalty=False)
-    A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
-    blocks = (jnp.sum(lin.r**2), A, B, Cb, schur_complement(lin.Jt, lin.Jx, A))
+    blocks = _blocks(lin)
     cov = covariance(problem, params, strategy, blocks)
+    _, _, B, Cb, _ = blocks
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]
     T = problem.u.shape[1]

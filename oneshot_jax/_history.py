@@ -3,9 +3,10 @@
 The buffer holds at most `size` rows whatever the step budget. Rows are written every
 `stride` steps, starting at step 0; when the buffer fills, every other row is dropped and
 the stride doubles. So a run of any length keeps its whole path at an even spacing of at
-most 2 (steps / size). The step counter is shared by all starting points (they advance
-together, a finished one frozen), so the decisions to write and to thin are plain
-conditionals, taken only when due; each row holds every start's values. The final
+most 2 (steps / size). The step counter is shared by all starting points run side by
+side (they advance together, a finished one frozen), so the decisions to write and to
+thin are plain conditionals, taken only when due; each row holds every start's values.
+(Starts run in turn each keep a buffer of their own: `_iterate._unstack`.) The final
 iterate of each start is kept apart (`FitHistory` puts it last).
 """
 

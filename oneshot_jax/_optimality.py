@@ -179,9 +179,7 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     theta = params.theta
     if not theta.size:
         return jnp.max(c_x, initial=0.0)
-    constrained = (
-        problem.lower is not None or problem.project is not None or problem.regulariser is not None
-    )
+    constrained = problem.constrained or problem.regulariser is not None
     if not constrained:
         c_t = jnp.abs(g.theta) / (jnp.sqrt(dt2) * norm)
         return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))

@@ -95,18 +95,6 @@ class LSQState(NamedTuple):
     primed: jax.Array  # whether `blocks` hold the linearisation (after the first step)
 
 
-def _at_round_off(params: Params, h: Params, pred, loss):
-    """Whether the step `h` from `params` is at round-off: the decrease it predicts
-    (MINPACK's ftol test at machine epsilon), or its size against the parameters' (which
-    matters in float32)."""
-    dtype = params.theta.dtype
-    eps = jnp.finfo(dtype).eps
-    size = jnp.sqrt(jnp.sum(params.theta**2) + jnp.sum(params.x0**2))
-    hsize = jnp.sqrt(jnp.sum(h.theta**2) + jnp.sum(h.x0**2))
-    tiny = jnp.finfo(dtype).tiny
-    return (pred <= 8 * eps * loss) | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, tiny))
-
-
 class _Move(NamedTuple):
     """A step's move before the linearisation at its end (`AbstractLeastSquares._move`)."""
 
@@ -401,8 +389,15 @@ class AbstractLeastSquares(AbstractSolver):
         small_step = primed & take & (step_d <= self.rtol * size_d + self.atol)
         small_step = small_step & (state.loss - loss <= self.rtol * state.loss + self.atol)
         # Nothing left to gain at this precision: nothing decreased C (nor the
-        # projected-gradient step after a failed one) and the step is at round-off.
-        round_off = ~take & _at_round_off(old, h, pred, state.loss)
+        # projected-gradient step after a failed one) and the predicted decrease is at
+        # round-off (MINPACK's ftol test at machine epsilon), or the step is at the
+        # round-off level of the parameters (matters in float32).
+        size = jnp.sqrt(jnp.sum(old.theta**2) + jnp.sum(old.x0**2))
+        hsize = jnp.sqrt(jnp.sum(h.theta**2) + jnp.sum(h.x0**2))
+        round_off = ~take & (
+            (pred <= 8 * eps * state.loss)
+            | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
+        )
         # At a zero residual the loss keeps falling by round-off (1e-36 and below) with
         # accepted steps of 1e-21: a step below round-off of the scaled parameters ends the
         # fit there. (Only there: on an ill-conditioned J, ||D p|| can be far above the

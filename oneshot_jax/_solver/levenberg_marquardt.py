@@ -12,11 +12,10 @@ class LevenbergMarquardt(AbstractLeastSquares):
     by a Schur complement and an exact active set for box bounds. A step that fails (one
     that a bound or a projection clipped can predict no decrease at any damping) is
     followed by a projected-gradient step with an Armijo search along the projection arc
-    (Kanzow, Yamashita and Fukushima 2004). The
-    damping mu follows Nielsen's rule: on an accepted step mu *= max(1/3, 1 - (2 rho - 1)^3),
-    on a rejected
-    one mu *= nu, nu *= 2 (rho = actual / predicted decrease). A non-finite trial loss is
-    a rejected step.
+    (Kanzow, Yamashita and Fukushima 2004). The damping mu follows Nielsen's rule: on an
+    accepted step mu *= max(1/3, 1 - (2 rho - 1)^3), on a rejected one mu *= nu,
+    nu *= 2 (rho = actual / predicted decrease). A non-finite trial loss is a rejected
+    step.
 
     **Arguments:**
 
