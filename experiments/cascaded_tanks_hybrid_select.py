@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -154,7 +155,16 @@ def _empty(m, n, tail, seeds):
     return {"m": m, "n": n, "tail": tail, "seeds": list(seeds), "runs": [], "scores": {}}
 
 
-def merge(store, scores, m, n, tail, seeds, command, wall):
+def run_conditions() -> str:
+    """The run's conditions: the machine and versions (`experiments.run.conditions`) and
+    the CPU cores this process may use (a run pinned to one core by `taskset` says so)."""
+    from experiments import run
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"{run.conditions()[:-1]}; the run may use {cores} of them."
+
+
+def merge(store, scores, m, n, tail, seeds, command, wall, conditions=None):
     """The store (dict, or None for none yet) with this run's rows put in: a candidate's
     earlier row is replaced, the others are kept. Rows of different tails or seeds are
     not comparable: a ValueError then."""
@@ -164,7 +174,14 @@ def merge(store, scores, m, n, tail, seeds, command, wall):
             f"{STORE.name} holds rows of tail {store['tail']} and seeds {store['seeds']}; "
             f"this run has tail {tail} and seeds {list(seeds)}: rerun every candidate"
         )
-    store["runs"].append({"command": command, "wall_s": round(wall), "candidates": list(scores)})
+    store["runs"].append(
+        {
+            "command": command,
+            "wall_s": round(wall),
+            "candidates": list(scores),
+            "conditions": conditions,
+        }
+    )
     for name, row in scores.items():
         store["scores"][name] = {**row, "run": len(store["runs"])}
     return prune(store)
@@ -250,7 +267,9 @@ def markdown(store) -> str:
         L += [
             "The physical stage alone (the overflow model with the quadratic sensor, no "
             f"network), trained and scored the same way: {phys['rmse']:.4f} V"
-            f"{verdict if means else ''} (`{phys['command']}`, {phys['wall_s']} s).",
+            f"{verdict if means else ''} (`{phys['command']}`, {phys['wall_s']} s"
+            + (f"; {phys['conditions'].rstrip('.')}" if phys.get("conditions") else "")
+            + ").",
             "",
         ]
     L += [
@@ -265,10 +284,12 @@ def markdown(store) -> str:
         L.append(f"| {name} | " + " | ".join(r or "not recorded" for r in refine) + " |")
     L += ["", "The runs (seeds " + ", ".join(map(str, seeds)) + "):", ""]
     for i, run in enumerate(store["runs"], 1):
+        where = f" Conditions: {run['conditions']}" if run.get("conditions") else ""
         L.append(
             f"{i}. `{run['command']}` ({run['wall_s']} s): "
             + "; ".join(f"'{c}'" for c in run["candidates"])
             + "."
+            + where
         )
     L.append("")
     return "\n".join(L)
@@ -304,16 +325,22 @@ def main(argv=None):
         rmse, m, n = physical_score(args.tail)
         wall = time.perf_counter() - t0
         print(f"physical stage alone: held-out RMSE {rmse:.4f} V ({wall:.0f} s)")
-        row = {"rmse": rmse, "command": command.strip(), "wall_s": round(wall)}
+        row = {
+            "rmse": rmse,
+            "command": command.strip(),
+            "wall_s": round(wall),
+            "conditions": run_conditions(),
+        }
         update = lambda store: merge_physical(store, row, m, n, args.tail, args.seeds)  # noqa: E731
     else:
         scores, m, n = select(args.tail, args.seeds, args.only)
         wall = time.perf_counter() - t0
         print(json.dumps(scores, indent=1))
-        this = merge(None, scores, m, n, args.tail, args.seeds, command.strip(), wall)
+        where = run_conditions()
+        this = merge(None, scores, m, n, args.tail, args.seeds, command.strip(), wall, where)
         print(markdown(this))
         update = lambda store: merge(  # noqa: E731
-            store, scores, m, n, args.tail, args.seeds, command.strip(), wall
+            store, scores, m, n, args.tail, args.seeds, command.strip(), wall, where
         )
     if args.publish:
         store = update(json.loads(STORE.read_text()) if STORE.exists() else None)

@@ -214,3 +214,20 @@ def test_selection_page_compares_the_rows_with_the_physics_alone():
     assert "0.2100 V (`python x.py --physical`" in select.markdown(alone)
     with pytest.raises(ValueError, match="tail 256"):
         select.merge_physical(store, row, 700, 5, 324, [0, 1])
+
+
+def test_selection_page_states_each_runs_conditions():
+    """A run's conditions (machine, versions, the cores the process may use) are kept with
+    its rows and printed under it; a run stored without them prints none."""
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    where = select.run_conditions()
+    assert "CPU cores" in where and "jax " in where and "the run may use" in where
+    store = select.merge(None, {"a": {"single": [0.3, 0.1]}}, 768, 5, 256, [0, 1], "x", 1.0)
+    store = select.merge(store, {"b": {"single": [0.2, 0.3]}}, 768, 5, 256, [0, 1], "y", 2.0, where)
+    md = select.markdown(store)
+    assert "1. `x` (1 s): 'a'.\n" in md
+    assert f"2. `y` (2 s): 'b'. Conditions: {where}\n" in md
+    row = {"rmse": 0.21, "command": "z", "wall_s": 9, "conditions": "machine M."}
+    md = select.markdown(select.merge_physical(store, row, 768, 5, 256, [0, 1]))
+    assert "(`z`, 9 s; machine M)." in md
