@@ -54,8 +54,11 @@ class NeweyWest(eqx.Module):
         autocorrelation has died out (`oneshot_jax.metrics.residual_correlations`).
 
     Trajectories (records, or windows of a `window=` fit) count as independent of each
-    other. Not for a theta that holds a network (its weights' null space leaves the
-    sandwich undefined), nor with `penalty` (the penalty rows are not observations).
+    other. For a theta that holds a network (an equinox module), the named parameters'
+    block is their sandwich with the network's weights as nuisance parameters (the
+    network's columns projected out, as for the classical covariance; its null space
+    would otherwise leave the sandwich undefined). Not with `penalty` (the penalty rows
+    are not observations).
     """
 
     lags: int | None = None
@@ -145,12 +148,16 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     its expectation is sigma^2 (J^T J)^+ (Newey and West, Econometrica 55, 1987; the
     influence form of Wooldridge's nonlinear least squares).
 
+    Where theta holds a network (`problem.nuisance`), the named parameters' block is
+    their sandwich with the network's weights as nuisance parameters
+    (`_marginal_sandwich`), as `covariance` reports their marginal block.
+
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
     lin = problem.jacobian(params, strategy, penalty=False)
     blocks = _blocks(lin)
     cov = covariance(problem, params, strategy, blocks)
-    _, _, B, Cb, _ = blocks
+    _, A, B, Cb, S = blocks
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]
     T = problem.u.shape[1]
@@ -159,10 +166,28 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     W = elim.CinvBt  # (N, m, p)
     Jt_elim = lin.Jt - jnp.einsum("nrm,nmp->nrp", lin.Jx, W)
     r = lin.r.reshape(N, T, n_z)
-    psi = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r) @ cov.theta
+    g = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r)  # (N, T, p)
+    nuisance = np.asarray(problem.nuisance, int)
+    hybrid = 0 < nuisance.size < p
+    # S^+ itself: `cov.theta` holds the named parameters' marginal block where theta has a
+    # network (their influence is formed below, with the network's columns projected out)
+    S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A)) if hybrid else cov.theta
+    psi = g @ S_inv
     chi = jnp.einsum("ntom,nto->ntm", lin.Jx.reshape(N, T, n_z, m), r)
     chi = jnp.einsum("ntm,nml->ntl", chi, elim.Cinv) - jnp.einsum("ntp,nmp->ntm", psi, W)
-    v = jnp.concatenate([psi, chi], axis=-1)  # (N, T, p + m)
+    omega = _bartlett(jnp.concatenate([psi, chi], axis=-1), lags)  # (N, p + m, p + m)
+    theta = jnp.sum(omega[:, :p, :p], axis=0)
+    others = theta[None] - omega[:, :p, :p]
+    x0 = omega[:, p:, p:] + jnp.einsum("nmp,npq,nlq->nml", W, others, W)
+    if hybrid:
+        theta = _marginal_sandwich(theta, g, S, cov.theta, nuisance, lags)
+    return cov._replace(theta=theta, x0=x0)
+
+
+def _bartlett(v, lags: int):
+    """Omega_i = sum_{l=-L..L} (1 - |l| / (L + 1)) sum_k v_k v_{k-l}^T per trajectory i
+    (`v`: (N, T, a); L = `lags`, static): the Newey-West long-run covariance of `sandwich`."""
+    T = v.shape[1]
     k = jnp.arange(T)
 
     def lag(lg, omega):
@@ -172,11 +197,32 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
         return omega + w * (gamma + jnp.swapaxes(gamma, 1, 2))
 
     omega = jnp.einsum("nta,ntb->nab", v, v)
-    omega = jax.lax.fori_loop(1, lags + 1, lag, omega)
-    theta = jnp.sum(omega[:, :p, :p], axis=0)
-    others = theta[None] - omega[:, :p, :p]
-    x0 = omega[:, p:, p:] + jnp.einsum("nmp,npq,nlq->nml", W, others, W)
-    return cov._replace(theta=theta, x0=x0)
+    return jax.lax.fori_loop(1, lags + 1, lag, omega)
+
+
+def _marginal_sandwich(theta, g, S, marginal_inv, nuisance, lags: int):
+    """`theta` (the sandwich of S^+) with the named parameters' block replaced by their
+    sandwich with a network's weights as nuisance parameters, the robust twin of
+    `marginal`: sample k moves the named parameters by
+
+        psi_k = (S_pp - S_pn S_nn^+ S_np)^+ (g_pk - S_pn S_nn^+ g_nk),
+
+    g_k = Jt~_k^T r_k (the x0-eliminated Jacobian's rows of sample k times its
+    residuals; p: named, n: the network's entries), i.e. the influence of the named
+    columns with the network's range projected out (J_p^T (I - P_n) dr, as in
+    `marginal`). Where S is regular this equals the named rows of S^{-1} g_k (the
+    block-inverse formula), so the block is the full sandwich's; where the network has a
+    null space, it is formed with the projection that `marginal` uses for the classical
+    block (the network's null space judged within S_nn, not through S^+'s eigenvectors of
+    the whole S), so that both covariances of a hybrid use one projection.
+    `marginal_inv`: `covariance`'s theta block (the marginal inverse in the named rows)."""
+    p = S.shape[0]
+    named = np.setdiff1d(np.arange(p), nuisance)
+    G = psd_solve(S[np.ix_(nuisance, nuisance)], S[np.ix_(nuisance, named)])  # S_nn^+ S_np
+    g_named = g[..., named] - g[..., nuisance] @ G
+    psi = g_named @ marginal_inv[np.ix_(named, named)]
+    block = jnp.sum(_bartlett(psi, lags), axis=0)
+    return theta.at[np.ix_(named, named)].set(block)
 
 
 def marginal(S, S_inv, t_ok, nuisance):

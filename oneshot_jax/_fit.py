@@ -443,12 +443,6 @@ def fit(
     )
     lags = None
     if robust is not None:
-        if built.problem.nuisance:
-            raise ValueError(
-                "`covariance=NeweyWest(...)` is not available for a theta that holds a "
-                "network (an equinox module): its weights' null space leaves the sandwich "
-                'undefined; use covariance="classical".'
-            )
         lags = robust.resolved(int(built.problem.u.shape[1]))
     # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
     # Jacobians along the fitted trajectory come from the solve's compiled call.

@@ -158,17 +158,90 @@ def test_bad_covariance_arguments_are_refused(records):
             penalty=lambda x, th: 1.0 - x[0] ** 2,
             covariance="newey_west",
         )
-    net = eqx.nn.MLP(1, 1, 4, 1, key=jax.random.PRNGKey(0))
-    with pytest.raises(ValueError, match="network"):
-        oj.fit(
-            oj.Model.from_ode(
-                lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] + th["r"](x[1:])[0] + u[0]]),
-                0.1,
-                observe=lambda x, u, th: x[:1],
-            ),
-            {"k": 1.5, "r": net},
-            X0,
-            u,
-            z,
-            covariance="newey_west",
-        )
+
+
+class _Damping(eqx.Module):
+    """sum_h w2_h tanh(w1_h v + b1_h): with identical units, the differences between
+    them leave the output unchanged (an exact null space of the network's weights)."""
+
+    w1: jax.Array
+    b1: jax.Array
+    w2: jax.Array
+
+    def __call__(self, v):
+        return jnp.sum(self.w2 * jnp.tanh(self.w1 * v + self.b1))
+
+
+def _hybrid_rhs(x, u, th):
+    return jnp.stack([x[1], -th["k"] * x[0] - th["r"](x[1]) + u[0]])
+
+
+HYBRID = oj.Model.from_ode(_hybrid_rhs, 0.1, observe=lambda x, u, th: x[:1])
+
+
+def dense_marginal_sandwich(theta, x0, u, z, lags, free_x0):
+    """The named parameter k's sandwich with the network's weights and the free x0
+    entries as nuisance, written out from the dense Jacobian of all residuals: the
+    influence of k's column with the nuisance columns' range projected out (an SVD
+    basis), its Bartlett-weighted long-run variance, times n / (n - q)."""
+    N, T, n_z = z.shape
+    r_net = theta["r"]
+    H = r_net.w1.shape[0]
+    m = len(free_x0)
+
+    def residuals(v):
+        net = _Damping(v[1 : 1 + H], v[1 + H : 1 + 2 * H], v[1 + 2 * H : 1 + 3 * H])
+        th = {"k": v[0], "r": net}
+        X0 = jnp.asarray(x0).at[:, free_x0].set(v[1 + 3 * H :].reshape(N, m))
+        _, zhat = jax.vmap(lambda a, b: oj.simulate(HYBRID, th, a, b))(X0, u)
+        return (zhat - z).reshape(N * T * n_z)
+
+    v = jnp.concatenate(
+        [jnp.atleast_1d(theta["k"]), r_net.w1, r_net.b1, r_net.w2, x0[:, free_x0].ravel()]
+    )
+    e = np.asarray(residuals(v))
+    J = np.asarray(jax.jacfwd(residuals)(v))
+    U, s, _ = np.linalg.svd(J[:, 1:], full_matrices=False)
+    # the near-duplicate units' difference (about 1e-9 of the largest singular value, the
+    # next one above 1e-4) is null, as the library judges it
+    Q = U[:, s > 1e-6 * s[0]]
+    jp = J[:, 0] - Q @ (Q.T @ J[:, 0])  # k's column, the nuisance range projected out
+    psi = (jp * e).reshape(N, T * n_z) / (jp @ jp)
+    omega = np.sum(psi * psi)
+    for lag in range(1, lags + 1):
+        omega += 2 * (1 - lag / (lags + 1)) * np.sum(psi[:, lag:] * psi[:, :-lag])
+    n, q = e.size, J.shape[1]
+    return omega * n / (n - q)
+
+
+def test_hybrid_sandwich_projects_the_network_out():
+    """A theta with a network of two alike units (a null space of its weights) under
+    AR(1) noise: the fit reports a sandwich (it used to refuse one for a network); k's
+    Newey-West variance equals the dense computation with the network's and x0's columns
+    projected out (the projection of the classical marginal covariance), it is finite
+    while the network's weights are not identifiable, and it differs from the classical
+    variance (the residuals are correlated)."""
+    u, z, X0 = records_of(np.random.default_rng(5))
+    net = _Damping(jnp.array([1.0, 1.0]), jnp.array([0.0, 0.0]), jnp.array([0.2, 0.2]))
+    theta0 = {"k": 1.5, "r": net}
+    estimate = np.array([False, True])
+    kw = dict(estimate_x0=estimate, solver=oj.LevenbergMarquardt(max_steps=20))
+    res = oj.fit(HYBRID, theta0, X0, u, z, covariance=oj.NeweyWest(lags=7), **kw)
+    r = res.theta["r"]
+    np.testing.assert_allclose(r.w1[0], r.w1[1], rtol=1e-5)  # the units stayed alike
+    var_k = dense_marginal_sandwich(res.theta, res.x0, u, z, 7, [1])
+    np.testing.assert_allclose(res.std["k"] ** 2, var_k, rtol=1e-6)
+    assert np.all(np.isinf(res.std["r"].w1))
+    classical = oj.fit(HYBRID, theta0, X0, u, z, **kw)
+    assert np.isfinite(classical.std["k"])
+    assert not np.isclose(classical.std["k"], res.std["k"], rtol=0.1)
+    assert "Newey-West sandwich over 7 lags" in str(res)
+
+
+def records_of(rng):
+    N, T = 2, 150
+    u = rng.standard_normal((N, T, 1))
+    X0 = np.array([[0.5, 0.0], [-0.3, 0.4]])
+    th = {"k": jnp.array(2.0), "c": jnp.array(0.4)}
+    _, z = jax.vmap(lambda a, b: oj.simulate(OSC, th, a, b))(jnp.asarray(X0), jnp.asarray(u))
+    return u, np.asarray(z) + ar1(rng, z.shape, 0.8, 0.02), X0
