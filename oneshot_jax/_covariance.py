@@ -121,7 +121,7 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     x0_cov = elim.covariance(S_inv)
     nuisance = np.asarray(() if problem is None else problem.nuisance, int)
     if 0 < nuisance.size < p:
-        S_inv, t_ok = marginal(S, S_inv, t_ok, nuisance)
+        S_inv, t_ok, _ = marginal(S, S_inv, t_ok, nuisance)
     return Covariance(sse, S_inv, x0_cov, t_ok, x_ok)
 
 
@@ -156,8 +156,8 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     """
     lin = problem.jacobian(params, strategy, penalty=False)
     blocks = _blocks(lin)
-    cov = covariance(problem, params, strategy, blocks)
-    _, A, B, Cb, S = blocks
+    _, _, B, Cb, S = blocks
+    cov = covariance(None, params, strategy, blocks)  # S^+ itself: no marginal block yet
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]
     T = problem.u.shape[1]
@@ -167,20 +167,18 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     Jt_elim = lin.Jt - jnp.einsum("nrm,nmp->nrp", lin.Jx, W)
     r = lin.r.reshape(N, T, n_z)
     g = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r)  # (N, T, p)
-    nuisance = np.asarray(problem.nuisance, int)
-    hybrid = 0 < nuisance.size < p
-    # S^+ itself: `cov.theta` holds the named parameters' marginal block where theta has a
-    # network (their influence is formed below, with the network's columns projected out)
-    S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A)) if hybrid else cov.theta
-    psi = g @ S_inv
+    psi = g @ cov.theta
     chi = jnp.einsum("ntom,nto->ntm", lin.Jx.reshape(N, T, n_z, m), r)
     chi = jnp.einsum("ntm,nml->ntl", chi, elim.Cinv) - jnp.einsum("ntp,nmp->ntm", psi, W)
     omega = _bartlett(jnp.concatenate([psi, chi], axis=-1), lags)  # (N, p + m, p + m)
     theta = jnp.sum(omega[:, :p, :p], axis=0)
     others = theta[None] - omega[:, :p, :p]
     x0 = omega[:, p:, p:] + jnp.einsum("nmp,npq,nlq->nml", W, others, W)
-    if hybrid:
-        theta = _marginal_sandwich(theta, g, S, cov.theta, nuisance, lags)
+    nuisance = np.asarray(problem.nuisance, int)
+    if 0 < nuisance.size < p:  # a network in theta: the named parameters' marginal block
+        named_inv, t_ok, G = marginal(S, cov.theta, cov.theta_identifiable, nuisance)
+        theta = _marginal_sandwich(theta, g, G, named_inv, nuisance, lags)
+        cov = cov._replace(theta_identifiable=t_ok)
     return cov._replace(theta=theta, x0=x0)
 
 
@@ -200,7 +198,7 @@ def _bartlett(v, lags: int):
     return jax.lax.fori_loop(1, lags + 1, lag, omega)
 
 
-def _marginal_sandwich(theta, g, S, marginal_inv, nuisance, lags: int):
+def _marginal_sandwich(theta, g, G, marginal_inv, nuisance, lags: int):
     """`theta` (the sandwich of S^+) with the named parameters' block replaced by their
     sandwich with a network's weights as nuisance parameters, the robust twin of
     `marginal`: sample k moves the named parameters by
@@ -215,10 +213,9 @@ def _marginal_sandwich(theta, g, S, marginal_inv, nuisance, lags: int):
     null space, it is formed with the projection that `marginal` uses for the classical
     block (the network's null space judged within S_nn, not through S^+'s eigenvectors of
     the whole S), so that both covariances of a hybrid use one projection.
-    `marginal_inv`: `covariance`'s theta block (the marginal inverse in the named rows)."""
-    p = S.shape[0]
-    named = np.setdiff1d(np.arange(p), nuisance)
-    G = psd_solve(S[np.ix_(nuisance, nuisance)], S[np.ix_(nuisance, named)])  # S_nn^+ S_np
+    `G`: S_nn^+ S_np; `marginal_inv`: S^+ with the named block the marginal inverse (both
+    from `marginal`)."""
+    named = np.setdiff1d(np.arange(theta.shape[0]), nuisance)
     g_named = g[..., named] - g[..., nuisance] @ G
     psi = g_named @ marginal_inv[np.ix_(named, named)]
     block = jnp.sum(_bartlett(psi, lags), axis=0)
@@ -245,13 +242,16 @@ def marginal(S, S_inv, t_ok, nuisance):
     - `S_inv`, `t_ok`: S^+ and per-entry identifiability from S.
     - `nuisance`: the positions of the network's entries among the p (host array).
 
-    **Returns:** `(S_inv, t_ok)` with the named parameters' block and flags replaced.
+    **Returns:** `(S_inv, t_ok, G)`: S^+ and the flags with the named parameters' block
+    and flags replaced, and G = S_nn^+ S_np (the network's least-squares response to the
+    named parameters, for `_marginal_sandwich`).
     """
     p = S.shape[0]
     named = np.setdiff1d(np.arange(p), nuisance)
     S_nn = S[np.ix_(nuisance, nuisance)]
     S_pn = S[np.ix_(named, nuisance)]
-    S_marginal = S[np.ix_(named, named)] - S_pn @ psd_solve(S_nn, S_pn.T)
+    G = psd_solve(S_nn, S_pn.T)  # S_nn^+ S_np
+    S_marginal = S[np.ix_(named, named)] - S_pn @ G
     S_marginal = 0.5 * (S_marginal + S_marginal.T)
     block = psd_solve(S_marginal, jnp.eye(named.size, dtype=S.dtype))
     S_inv = S_inv.at[np.ix_(named, named)].set(block)
@@ -259,7 +259,7 @@ def marginal(S, S_inv, t_ok, nuisance):
     # itself: S_marginal judged in the scaling of S_pp (its own diagonal would make a
     # round-off remainder of a 1 x 1 block look regular).
     S_pp_diag = jnp.diagonal(S)[named]
-    return S_inv, t_ok.at[named].set(identifiable(S_marginal, S_pp_diag))
+    return S_inv, t_ok.at[named].set(identifiable(S_marginal, S_pp_diag)), G
 
 
 class Scaled(NamedTuple):
