@@ -17,8 +17,8 @@ Marquardt, Gauss-Newton, 300 steps of Adam), the time of:
 Times are medians of interleaved rounds after warm-up (`timing.interleaved`; compilation
 excluded). The best loss of each path is printed too: the paths reach the same optimum.
 
-Run: `python benchmarks/multistart.py` (`--T`, `--starts S`, `--repeats`; `--quick`:
-T = 500 only, 3 rounds).
+Run: `python benchmarks/multistart.py` (`--T`, `--starts S`, `--repeats`, `--solvers`;
+`--quick`: T = 500 only, 3 rounds).
 """
 
 import argparse
@@ -62,6 +62,13 @@ def make_data(T, seed=0):
     return u, z, np.array([0.45, 0.05])
 
 
+SOLVERS = {
+    "LevenbergMarquardt": ("LevenbergMarquardt", lambda: oj.LevenbergMarquardt()),
+    "GaussNewton": ("GaussNewton", lambda: oj.GaussNewton()),
+    "Adam": ("Adam, 300 steps", lambda: oj.Adam(1e-2, max_steps=300, gtol=0.0)),
+}
+
+
 def calls(T, S, solver):
     u, z, x0 = make_data(T)
     ks = np.geomspace(0.3, 3.0, S)
@@ -100,15 +107,16 @@ def main():
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--quick", action="store_true", help="T = 500, 3 rounds")
+    parser.add_argument(
+        "--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS), help="(default: all)"
+    )
     args = parser.parse_args()
     if args.quick:
         args.T, args.repeats = [500], 3
-    solvers = {
-        "LevenbergMarquardt": oj.LevenbergMarquardt(),
-        "GaussNewton": oj.GaussNewton(),
-        "Adam, 300 steps": oj.Adam(1e-2, max_steps=300, gtol=0.0),
-    }
+    solvers = {SOLVERS[name][0]: SOLVERS[name][1]() for name in args.solvers}
     S = args.starts
+    # The conditions first: a run stopped by a time limit keeps them with its rows.
+    print(conditions(), "\n")
     print(f"Multistart over k, S = {S} starts; median time per fit (best loss reached).\n")
     print(
         "| T | solver | one start | loop of S fits | in turn | side by side | "
@@ -123,8 +131,6 @@ def main():
             cells = [f"{fmt_time(t[k])} ({loss[k]:.4g})" for k in fns]
             ratio = t["side by side"] / t["in turn"]
             print(f"| {T} | {name} | " + " | ".join(cells) + f" | {ratio:.2f} |", flush=True)
-    print()
-    print(conditions())
 
 
 if __name__ == "__main__":
