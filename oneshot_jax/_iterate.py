@@ -250,8 +250,10 @@ def iterate(
 
 
 # Whether `fit` takes the starts of a multistart in turn (True) or side by side (False);
-# None: in turn on a CPU, side by side on an accelerator, where a batch of starts costs
-# little more than one start. Read on the host by `starts_in_turn` at each fit.
+# None: in turn on a CPU, side by side on an accelerator, where a batch of starts shares the
+# kernel launches of a step (on an H100, `benchmarks/gpu/h100_multistart_*.txt`: faster
+# than in turn with LM and Adam at T = 500, slower with GN and on the parallel path at
+# T = 2000). Read on the host by `starts_in_turn` at each fit.
 STARTS_IN_TURN: bool | None = None
 
 
