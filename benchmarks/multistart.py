@@ -63,8 +63,8 @@ def make_data(T, seed=0):
 
 
 SOLVERS = {
-    "LevenbergMarquardt": ("LevenbergMarquardt", lambda: oj.LevenbergMarquardt()),
-    "GaussNewton": ("GaussNewton", lambda: oj.GaussNewton()),
+    "LevenbergMarquardt": ("LevenbergMarquardt", oj.LevenbergMarquardt),
+    "GaussNewton": ("GaussNewton", oj.GaussNewton),
     "Adam": ("Adam, 300 steps", lambda: oj.Adam(1e-2, max_steps=300, gtol=0.0)),
 }
 

@@ -4,17 +4,18 @@ The parallel path (`strategy="parallel"`, `oneshot_jax.ParallelInTime`) rolls a 
 by DEER Newton iterations from the constant guess x_k = x_0, then a damped (ELK) stage,
 then the sequential loop where neither converges (`oneshot_jax._parallel._rollout`). On
 the chain of `parallel.py` Newton converges in about 7 iterations. Here the Duffing
-oscillator of `multistart.py` (q'' = u - c q' - k q - eps q^3, RK4, dt = 0.05, a
-multisine of amplitude 1.5 std, |q| up to about 4), at the multistart's starts of theta:
-(c, eps) = (0.25, 0.7) and k from 0.3 to 3. For each start and chunk size (None: the whole
-record as one solve), the rollout's method (the last resort any chunk needed: `newton`,
-`damped`, or `sequential`, the fallback), its Newton and damped iterations summed over
-the chunks, and the largest difference from the sequential rollout (relative to max|x|).
+oscillator of `multistart.py` (q'' = u - c q' - k q - eps q^3, RK4, dt = 0.05, a multisine
+scaled to a standard deviation of 1.5, |q| up to about 4), at the multistart's starts of
+theta: (c, eps) = (0.25, 0.7) and k from 0.3 to 3. For each start and chunk size (`none`:
+the whole record as one solve), the rollout's method (the last resort any chunk needed:
+`newton`, `damped`, or `sequential`, the fallback), its Newton and damped iterations
+summed over the chunks, and the largest difference from the sequential rollout (relative
+to max|x|).
 Newton stops early where its iterate overflows (it diverges), after 5 iterations without
 a smaller residual, or at `max_iter` = 50; the damped stage at 50 iterations.
 
-The iteration counts do not depend on the backend (up to round-off); a GPU pays per
-iteration a few dozen kernel launches, and a sequential chunk solve per chunk.
+The iteration counts do not depend on the backend (up to round-off); on a GPU an
+iteration costs a few dozen kernel launches, and the chunks are solved one after another.
 
 Run: `python benchmarks/rollout_convergence.py` (`--T`, `--chunks`, `--starts S`).
 """
