@@ -110,19 +110,27 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     """
     if blocks is None:
         blocks = _blocks(problem.jacobian(params, strategy, penalty=False))
+    cov, _ = _pseudo_inverse(blocks)
+    p = cov.theta.shape[0]
+    nuisance = np.asarray(() if problem is None else problem.nuisance, int)
+    if 0 < nuisance.size < p:
+        S_inv, t_ok, _ = marginal(blocks[4], cov.theta, cov.theta_identifiable, nuisance)
+        cov = cov._replace(theta=S_inv, theta_identifiable=t_ok)
+    return cov
+
+
+def _pseudo_inverse(blocks):
+    """The `Covariance` of (J^T J)^+ from `blocks` = (SSE, A, B, C_i, S) (no marginal
+    block), and the x0 elimination (`eliminate_x0`, with C_i^+) it used."""
     sse, A, B, Cb, S = blocks
     p, m = A.shape[0], Cb.shape[-1]
     elim = eliminate_x0(B, Cb, pseudo_inverse=True)
     x_ok = identifiable(Cb) if m else jnp.ones(Cb.shape[:2], bool)
     if p == 0:
-        return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok)
+        return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok), elim
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A))
     t_ok = identifiable(S, jnp.diag(A))
-    x0_cov = elim.covariance(S_inv)
-    nuisance = np.asarray(() if problem is None else problem.nuisance, int)
-    if 0 < nuisance.size < p:
-        S_inv, t_ok, _ = marginal(S, S_inv, t_ok, nuisance)
-    return Covariance(sse, S_inv, x0_cov, t_ok, x_ok)
+    return Covariance(sse, S_inv, elim.covariance(S_inv), t_ok, x_ok), elim
 
 
 def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covariance:
@@ -155,14 +163,12 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
     lin = problem.jacobian(params, strategy, penalty=False)
-    blocks = _blocks(lin)
-    _, _, B, Cb, S = blocks
-    cov = covariance(None, params, strategy, blocks)  # S^+ itself: no marginal block yet
+    S = (blocks := _blocks(lin))[4]
+    cov, elim = _pseudo_inverse(blocks)  # S^+ itself: no marginal block yet
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]
     T = problem.u.shape[1]
     n_z = R // T
-    elim = eliminate_x0(B, Cb, pseudo_inverse=True)
     W = elim.CinvBt  # (N, m, p)
     Jt_elim = lin.Jt - jnp.einsum("nrm,nmp->nrp", lin.Jx, W)
     r = lin.r.reshape(N, T, n_z)
