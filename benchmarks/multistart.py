@@ -17,8 +17,12 @@ Marquardt, Gauss-Newton, 300 steps of Adam), the time of:
 Times are medians of interleaved rounds after warm-up (`timing.interleaved`; compilation
 excluded). The best loss of each path is printed too: the paths reach the same optimum.
 
-Run: `python benchmarks/multistart.py` (`--T`, `--starts S`, `--repeats`, `--solvers`;
-`--quick`: T = 500 only, 3 rounds).
+`--same` puts every start at the rough guess (k = 1.15): the starts then take the same
+steps, so that side by side against in turn measures what batching costs or saves by
+itself, without the wait for the slowest start.
+
+Run: `python benchmarks/multistart.py` (`--T`, `--starts S`, `--repeats`, `--solvers`,
+`--same`; `--quick`: T = 500 only, 3 rounds).
 """
 
 import argparse
@@ -69,9 +73,9 @@ SOLVERS = {
 }
 
 
-def calls(T, S, solver):
+def calls(T, S, solver, same=False):
     u, z, x0 = make_data(T)
-    ks = np.geomspace(0.3, 3.0, S)
+    ks = np.full(S, THETA0["k"]) if same else np.geomspace(0.3, 3.0, S)
     theta0 = {**THETA0, "k": ks[0]}
 
     def one():
@@ -108,6 +112,9 @@ def main():
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--quick", action="store_true", help="T = 500, 3 rounds")
     parser.add_argument(
+        "--same", action="store_true", help="every start at the rough guess (k = 1.15)"
+    )
+    parser.add_argument(
         "--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS), help="(default: all)"
     )
     args = parser.parse_args()
@@ -117,7 +124,8 @@ def main():
     S = args.starts
     # The conditions first: a run stopped by a time limit keeps them with its rows.
     print(conditions(), "\n")
-    print(f"Multistart over k, S = {S} starts; median time per fit (best loss reached).\n")
+    starts = "all at k = 1.15" if args.same else "k from 0.3 to 3"
+    print(f"Multistart over k, S = {S} starts ({starts}); median time per fit (best loss).\n")
     print(
         "| T | solver | one start | loop of S fits | in turn | side by side | "
         "side by side / in turn |"
@@ -125,7 +133,7 @@ def main():
     print("|---|---|---|---|---|---|---|")
     for T in args.T:
         for name, solver in solvers.items():
-            fns = calls(T, S, solver)
+            fns = calls(T, S, solver, args.same)
             loss = {k: float(fn().loss) for k, fn in fns.items()}
             t = interleaved(fns, repeats=args.repeats, min_sample_s=0.0, warmup=1)
             cells = [f"{fmt_time(t[k])} ({loss[k]:.4g})" for k in fns]
