@@ -289,20 +289,24 @@ def scaling(problem: FitProblem, params: Params, strategy) -> Scaling:
     return Scaling(*column_norms(problem, params, strategy))
 
 
-def check_first_order(problem, params, C, grad: Params, scale: Scaling, stall, gtol, strategy):
+def check_first_order(
+    problem, params, C, grad: Params, scale: Scaling, stall, gtol, strategy, fresh=False
+):
     """The first-order test of a solver that has the gradient of C only.
 
     With the kept `scale`, the measure is estimated from `grad` (the gradient of C, twice
     J^T r); where the estimate is at most `gtol` or the solver `stall`s, the diagonal is
-    refreshed at `params` (a Jacobian) and the measure recomputed. Returns the measure,
-    whether `params` is stationary (the measure at most `gtol`, or at a stall at most
-    `roundoff_limit`) and the scaling to keep.
+    refreshed at `params` (a Jacobian) and the measure recomputed. `fresh=True` (static):
+    `scale` was formed at `params`, so the measure is exact as it is (no Jacobian is
+    traced). Returns the measure, whether `params` is stationary (the measure at most
+    `gtol`, or at a stall at most `roundoff_limit`) and the scaling to keep.
     """
     half = Params(0.5 * grad.theta, 0.5 * grad.x0)
     fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
-    refresh = (fo <= gtol) | stall
-    scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy), scale)
-    fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
+    if not fresh:
+        refresh = (fo <= gtol) | stall
+        scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy), scale)
+        fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     stationary = (fo <= gtol) | (stall & (fo <= roundoff_limit(problem.dtype)))
     return fo, stationary, scale
 

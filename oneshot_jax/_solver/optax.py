@@ -163,7 +163,7 @@ class _AbstractOptax(AbstractSolver):
         scale = scaling(problem, params, self.strategy)
         no = jnp.array(False)
         fo, stationary, scale = check_first_order(
-            problem, params, C, g, scale, no, self.gtol, self.strategy
+            problem, params, C, g, scale, no, self.gtol, self.strategy, fresh=True
         )
         zero = jnp.array(0, jnp.int32)
         held = jnp.zeros(params.theta.shape, bool)
