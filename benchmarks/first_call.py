@@ -2,7 +2,7 @@
 compilation cache (`oneshot_jax.enable_compilation_cache`), and the per-call overhead of
 a compiled `fit()`.
 
-Two problems:
+Three problems:
 
 - `pendulum`: a damped pendulum driven by a motor torque, dx/dt = (x1, -w0sq sin(x0) -
   c x1 + b u0), RK4 at dt = 0.02 s, the angle measured (1 % noise), T = 1500 samples of
@@ -12,6 +12,11 @@ Two problems:
   its first 20 outputs, then the whole record simulated);
 - `satellite`: the paper's satellite (`oneshot_jax.examples.satellite`), T = 50,
   Gauss-Newton with `constraints=positive()`, and `result.predict(u, z[:10])`.
+- `hybrid`: a Duffing oscillator (q'' = u - c q' - k q - eps q^3, RK4 at dt = 0.05 s, the
+  position measured with 1 % noise, T = 600 samples of a multisine) fitted as a hybrid
+  whose cubic spring is an MLP r(q, q') (`oneshot_jax.residual.MLP`, one hidden layer of
+  8, 33 weights): `fit` with 300 steps of `Adam(1e-2)` from c = 0.2, k = 0.8 and the
+  network at its start, then `result.predict(u, z[:20])`.
 
 Each problem runs in three fresh processes that share one empty cache folder:
 
@@ -31,7 +36,8 @@ process, whether XLA takes its compiler options); then, over
 (a call's wall time minus its `wall_time`: the input checks, the setup and the assembly
 of the `FitResult`), and the median of a later `predict()`.
 
-Run: `python benchmarks/first_call.py` (`--repeats N`, `--problems pendulum satellite`)
+Run: `python benchmarks/first_call.py` (`--repeats N`, `--problems pendulum satellite
+hybrid`)
 """
 
 import argparse
@@ -172,6 +178,41 @@ def problem(name):
             ),
             lambda r: r.predict(M, z[:10]),
         )
+    if name == "hybrid":
+        import jax
+        import jax.numpy as jnp
+
+        from oneshot_jax.residual import MLP
+
+        dt, T = 0.05, 600
+
+        def rhs_np(x, u, c=0.3, k=1.0, eps=0.8):
+            return np.array([x[1], u[0] - c * x[1] - k * x[0] - eps * x[0] ** 3])
+
+        def hybrid(x, u, th):
+            return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0] + th["r"](x)[0]])
+
+        rng = np.random.default_rng(0)
+        t = dt * np.arange(T)
+        w = 2 * np.pi * np.linspace(0.05, 0.6, 12)
+        u = np.sum(np.sin(np.outer(t, w) + rng.uniform(0, 2 * np.pi, 12)), axis=1)[:, None]
+        u = 1.5 * u / u.std()
+        x = np.zeros((T, 2))
+        x[0] = (0.5, 0.0)
+        for i in range(T - 1):  # RK4, the input held over the interval
+            k1 = rhs_np(x[i], u[i])
+            k2 = rhs_np(x[i] + 0.5 * dt * k1, u[i])
+            k3 = rhs_np(x[i] + 0.5 * dt * k2, u[i])
+            k4 = rhs_np(x[i] + dt * k3, u[i])
+            x[i + 1] = x[i] + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        z = x[:, :1] + 0.01 * np.std(x[:, 0]) * rng.standard_normal((T, 1))
+        model = oj.Model.from_ode(hybrid, dt, observe=lambda x, u, th: x[:1])
+        theta0 = {"c": 0.2, "k": 0.8, "r": MLP(2, 1, (8,), key=jax.random.PRNGKey(0))}
+        x0 = np.array([0.5, 0.0])
+        return (
+            lambda: oj.fit(model, theta0, x0, u, z, solver=oj.Adam(1e-2, max_steps=300)),
+            lambda r: r.predict(u, z[:20]),
+        )
     raise ValueError(f"unknown problem {name!r}")
 
 
@@ -199,7 +240,7 @@ def _programs(ph):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=50)
-    ap.add_argument("--problems", nargs="+", default=["pendulum", "satellite"])
+    ap.add_argument("--problems", nargs="+", default=["pendulum", "satellite", "hybrid"])
     args = ap.parse_args()
     rows = []
     for name in args.problems:
