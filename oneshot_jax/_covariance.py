@@ -163,7 +163,8 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
     lin = problem.jacobian(params, strategy, penalty=False)
-    S = (blocks := _blocks(lin))[4]
+    blocks = _blocks(lin)
+    S = blocks[4]
     cov, elim = _pseudo_inverse(blocks)  # S^+ itself: no marginal block yet
     N, R, p = lin.Jt.shape
     m = lin.Jx.shape[-1]

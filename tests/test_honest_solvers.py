@@ -250,9 +250,9 @@ def _optimum(problem, kind, lo, hi):
     return _OPTIMA[key]
 
 
-# Each (problem, solver) pair on one pytest-xdist worker (`--dist loadgroup`): its five
-# constraint sets share compiled programs (bounds are traced), so one worker compiles them
-# once.
+# Each (problem, solver) pair on one pytest-xdist worker (`--dist loadgroup`): bounds are
+# traced, so its three sets of bounds (inactive, active, positive) share one compiled
+# program, which one worker then compiles once.
 @pytest.mark.parametrize("kind", CONSTRAINTS)
 @pytest.mark.parametrize(
     "name, solver",
