@@ -250,18 +250,9 @@ def _optimum(problem, kind, lo, hi):
     return _OPTIMA[key]
 
 
-# Each (problem, solver) pair on one pytest-xdist worker (`--dist loadgroup`): bounds are
-# traced, so its three sets of bounds (inactive, active, positive) share one compiled
-# program, which one worker then compiles once.
 @pytest.mark.parametrize("kind", CONSTRAINTS)
-@pytest.mark.parametrize(
-    "name, solver",
-    [
-        pytest.param(name, solver, marks=pytest.mark.xdist_group(f"honest-{name}-{solver}"))
-        for name in PROBLEMS
-        for solver in SOLVERS
-    ],
-)
+@pytest.mark.parametrize("solver", list(SOLVERS))
+@pytest.mark.parametrize("name", list(PROBLEMS))
 def test_success_means_a_constrained_stationary_point(name, solver, kind):
     problem = PROBLEMS[name]
     constraints, lo, hi = _constraint(kind, problem)
