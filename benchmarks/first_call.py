@@ -119,6 +119,22 @@ print(json.dumps({
 """
 
 
+def _rk4(rhs_np, x0, u, dt):
+    """States (T, n) of dx/dt = rhs_np(x, u) from x0 by RK4 in NumPy (nothing compiled),
+    the input u (T, n_u) held over each interval."""
+    import numpy as np
+
+    x = np.zeros((u.shape[0], len(x0)))
+    x[0] = x0
+    for k in range(u.shape[0] - 1):
+        k1 = rhs_np(x[k], u[k])
+        k2 = rhs_np(x[k] + 0.5 * dt * k1, u[k])
+        k3 = rhs_np(x[k] + 0.5 * dt * k2, u[k])
+        k4 = rhs_np(x[k] + dt * k3, u[k])
+        x[k + 1] = x[k] + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
 def problem(name):
     """`(fit, predict)` for a problem: `fit()` returns a `FitResult`, `predict(result)` a
     `Prediction`. Data are made in NumPy (nothing compiled before the timed calls)."""
@@ -142,14 +158,7 @@ def problem(name):
         freqs = np.array([0.1, 0.3, 0.7, 1.3, 2.1])
         phase = rng.uniform(0, 2 * np.pi, freqs.size)
         u = np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phase), axis=1)[:, None]
-        x = np.zeros((T, 2))
-        x[0] = (0.2, 0.0)
-        for k in range(T - 1):  # RK4, the input held over the interval
-            k1 = rhs_np(x[k], u[k])
-            k2 = rhs_np(x[k] + 0.5 * dt * k1, u[k])
-            k3 = rhs_np(x[k] + 0.5 * dt * k2, u[k])
-            k4 = rhs_np(x[k] + dt * k3, u[k])
-            x[k + 1] = x[k] + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = _rk4(rhs_np, (0.2, 0.0), u, dt)
         z = x[:, :1] + 0.01 * np.std(x[:, 0]) * rng.standard_normal((T, 1))
         model = oj.Model.from_ode(rhs, dt, observe=lambda x, u, th: x[:1])
         theta0 = {"w0sq": 5.0, "c": 1.0, "b": 1.0}
@@ -197,14 +206,7 @@ def problem(name):
         w = 2 * np.pi * np.linspace(0.05, 0.6, 12)
         u = np.sum(np.sin(np.outer(t, w) + rng.uniform(0, 2 * np.pi, 12)), axis=1)[:, None]
         u = 1.5 * u / u.std()
-        x = np.zeros((T, 2))
-        x[0] = (0.5, 0.0)
-        for i in range(T - 1):  # RK4, the input held over the interval
-            k1 = rhs_np(x[i], u[i])
-            k2 = rhs_np(x[i] + 0.5 * dt * k1, u[i])
-            k3 = rhs_np(x[i] + 0.5 * dt * k2, u[i])
-            k4 = rhs_np(x[i] + dt * k3, u[i])
-            x[i + 1] = x[i] + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = _rk4(rhs_np, (0.5, 0.0), u, dt)
         z = x[:, :1] + 0.01 * np.std(x[:, 0]) * rng.standard_normal((T, 1))
         model = oj.Model.from_ode(hybrid, dt, observe=lambda x, u, th: x[:1])
         theta0 = {"c": 0.2, "k": 0.8, "r": MLP(2, 1, (8,), key=jax.random.PRNGKey(0))}
