@@ -27,6 +27,8 @@ expected, so that nothing reaches a tracing error.
 
 import contextlib
 import functools
+import math
+import numbers
 import warnings
 from typing import Any, NamedTuple
 
@@ -43,6 +45,18 @@ from ._timing import append_intervals, check_times
 
 def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(arrays))
+
+
+def is_count(value, least) -> bool:
+    """Whether `value` is an integer >= `least`: an int, a NumPy integer or an integral
+    float, not a bool."""
+    return (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, (bool, np.bool_))
+        and math.isfinite(value)
+        and int(value) == value
+        and value >= least
+    )
 
 
 def is_weak(a) -> bool:
@@ -549,11 +563,25 @@ def check_data(
                 " (`fit`, `loss`, `value_and_grad`, `estimate_x0` and `predict` take "
                 '`missing="mask"`, which treats NaN as a missing sample)',
             )
+        if is_concrete(z) and z.size:
+            _check_magnitude(np.asarray(z))
         mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)
     if known is None:
         _remember(key, (given, dtype, model, z_hat))
     return Data(model, theta, static, x0, u, z, weight, batched, n_z, mask, lengths)
+
+
+def _check_magnitude(z: np.ndarray) -> None:
+    """Refuse outputs whose squares underflow in their dtype: the loss would be exactly
+    zero (a fit then ends at its start, `zero_residual`)."""
+    largest = np.max(np.abs(z))
+    if 0 < largest and np.square(largest) < np.finfo(z.dtype).tiny:
+        raise ValueError(
+            f"`z`: its largest magnitude {largest:.3g} squares to below the smallest normal "
+            f"{z.dtype} number ({np.finfo(z.dtype).tiny:.3g}), so the loss cannot see the "
+            "outputs: rescale them (to units where they are of order 1)."
+        )
 
 
 def check_cost(data: Data, penalty, penalty_weight) -> Cost:
@@ -587,6 +615,11 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
     if getattr(out, "shape", None) != ():
         raise ValueError(
             f"`penalty` must return a scalar h(x, theta), got shape {getattr(out, 'shape', out)}."
+        )
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        raise ValueError(
+            f"`penalty` must return a floating scalar h(x, theta) (differentiable in x and "
+            f"theta), got dtype {out.dtype}."
         )
     pw = jnp.asarray(pw, dtype) if not is_concrete(pw) else np.asarray(pw, dtype)
     return Cost(data.weight, penalty, pw)

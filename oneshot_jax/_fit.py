@@ -151,6 +151,10 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     in_turn = n_starts > 1 and starts_in_turn()
     steps = sum(s.max_steps for s in solvers) * (n_starts if in_turn else 1)
     bar_id = meter.open(steps) if bar else 0
+    # No more rows than a start can have iterates (above the default, whose program is
+    # shared by every step budget): `history=10**9` must not allocate 10**9 rows.
+    most = sum(s.max_steps for s in solvers) + len(solvers) + 1
+    history = min(history, max(1000, most + most % 2))
     try:
         with counting() as counts:
             t0 = time.perf_counter()

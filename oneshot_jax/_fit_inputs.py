@@ -113,6 +113,8 @@ def check_inputs(
 
     **Returns:** a `FitInputs`.
     """
+    if z is None:
+        raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")
     check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
     _warn_integer_entries(theta0)
     units = check_units(units, theta0)

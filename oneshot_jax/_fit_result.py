@@ -12,6 +12,7 @@ import numpy as np
 from . import _io, _pytree
 from ._fit_report import report
 from ._initial_state import predict_impl
+from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate
 
@@ -246,20 +247,25 @@ class FitResult(eqx.Module):
     n_u: int | None = eqx.field(static=True, default=None)
 
     def _check_u(self, u):
-        """Refuse inputs with another number of columns than the fitted data's."""
-        if self.n_u is None or isinstance(u, (list, tuple)) or not np.ndim(u):
+        """Refuse inputs with another number of columns than the fitted data's (each
+        record of a ragged list alike)."""
+        if self.n_u is None:
             return
-        shape = np.shape(u)
-        if shape[-1] != self.n_u:
-            hint = (
-                " (is it transposed? u is (T, n_u))"
-                if len(shape) >= 2 and shape[-2] == self.n_u
-                else ""
-            )
-            raise ValueError(
-                f"`u` must have n_u = {self.n_u} input columns, as the fitted data had; got "
-                f"shape {shape}{hint}."
-            )
+        for record in list(u) if is_ragged(u) else [u]:
+            try:
+                shape = np.shape(record)
+            except ValueError:  # a list that is no array: `simulate`'s checks name it
+                continue
+            if shape and shape[-1] != self.n_u:
+                hint = (
+                    " (is it transposed? u is (T, n_u))"
+                    if len(shape) >= 2 and shape[-2] == self.n_u
+                    else ""
+                )
+                raise ValueError(
+                    f"`u` must have n_u = {self.n_u} input columns, as the fitted data had; "
+                    f"got shape {shape}{hint}."
+                )
 
     @property
     def success(self) -> bool:
@@ -359,11 +365,12 @@ class FitResult(eqx.Module):
             self.theta,
             u,
             z_head,
-            np.shape(z_head)[0],
+            None,
             method,
             kwargs,
             stacklevel=3,
             t=t,
+            z_name="z_head",
         )
 
     def save(self, path):

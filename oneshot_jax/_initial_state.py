@@ -94,12 +94,15 @@ class Prediction(NamedTuple):
 #
 
 
-def _check_head(u, z, n):
-    """u (T, n_u), z (T_z, n_z) and 1 <= n <= min(T, T_z), as the number of samples used."""
+def _check_head(u, z, n, z_name="z"):
+    """u (T, n_u), z (T_z, n_z) and 1 <= n <= min(T, T_z), as the number of samples used
+    (`z_name`: the caller's name of z)."""
     if np.ndim(u) != 2:
         raise ValueError(f"`u` must have shape (T, n_u) (one record), got shape {np.shape(u)}.")
     if np.ndim(z) != 2:
-        raise ValueError(f"`z` must have shape (T, n_z) (one record), got shape {np.shape(z)}.")
+        raise ValueError(
+            f"`{z_name}` must have shape (T, n_z) (one record), got shape {np.shape(z)}."
+        )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
     if n is None:
         n = T_z
@@ -429,10 +432,10 @@ def predict(
     return predict_impl(model, theta, u, z, n, method, kwargs, stacklevel=3, t=t)
 
 
-def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None):
+def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None, z_name="z"):
     """`predict`, with its warnings attributed `stacklevel` frames up (`FitResult.predict`
-    calls it too)."""
-    n = _check_head(u, z, n)
+    calls it too, its `z` named `z_name`)."""
+    n = _check_head(u, z, n, z_name)
     head_times(t, np.shape(u)[0], n)  # `t`'s shape checked before the estimate
     options = dict(
         x0=None,

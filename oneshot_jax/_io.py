@@ -41,6 +41,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import os
 import zipfile
 import zlib
 from itertools import zip_longest
@@ -51,6 +52,7 @@ import jax
 import numpy as np
 
 from . import _pytree
+from ._model import Model
 from ._results import from_name, name_of
 
 FORMAT = "oneshot_jax.FitResult"
@@ -202,7 +204,7 @@ def save_result(result, path):
         raise TypeError(
             f"`result` must be a `FitResult` (what `fit` returns), got {type(result).__name__}."
         )
-    path = Path(path)
+    path = _as_path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
     params, _ = _pytree.split(result.theta)
@@ -261,6 +263,14 @@ def save_result(result, path):
     return path
 
 
+def _as_path(path) -> Path:
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(
+            f"`path` must be a file path (str or os.PathLike), got {type(path).__name__}."
+        )
+    return Path(path)
+
+
 def _damaged(path, what):
     return ValueError(f"`path`: {path} is damaged or was not written by FitResult.save: {what}.")
 
@@ -309,7 +319,7 @@ def read_result(path, *, like=None, model=None) -> dict:
     `history` and `starts` as dicts of the fields of a `FitHistory` and a `Starts` (or
     None), and without the model. `like` and `model` as for `load_result` (the model is
     checked against the file's record of it, `check_model`, not returned)."""
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file() and Path(f"{path}.npz").is_file():  # as `save` names it
         path = Path(f"{path}.npz")
     if not path.is_file():
@@ -466,6 +476,10 @@ def check_model(meta, model):
     """Refuse a `model` for `load_result` that differs from the saved result's in what the
     file's `meta` records of it (`_model_signature`); files without that record (earlier
     versions) pass."""
+    if model is not None and not isinstance(model, Model):
+        raise TypeError(
+            f"`model` must be a oneshot_jax.Model (or None), got {type(model).__name__}."
+        )
     if model is None:
         return
     saved = meta.get("model_signature")

@@ -1,6 +1,7 @@
 """The grey-box model of eq. (1): a discrete step f and an observation g."""
 
 import math
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,24 @@ def _check_input(input):
     if input not in _INPUTS:
         raise ValueError(f"`input` must be 'zoh' or 'foh', got {input!r}.")
     return input
+
+
+def _check_integrator(rhs, method, substeps) -> int:
+    """The checks of `ode_step`'s and `Model.from_ode`'s static arguments; the number of
+    substeps as an int."""
+    if not callable(rhs):
+        raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
+    if method not in ("rk4", "euler"):
+        raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
+    if (
+        isinstance(substeps, bool)
+        or not isinstance(substeps, numbers.Real)
+        or not math.isfinite(substeps)
+        or int(substeps) != substeps
+        or substeps < 1
+    ):
+        raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
+    return int(substeps)
 
 
 def _input_at(u, dt, input):
@@ -95,6 +114,16 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
 
     The state at t_{k+1}.
     """
+    substeps = _check_integrator(rhs, method, substeps)
+    if _check_input(input) == "foh" and (jnp.ndim(u) != 2 or jnp.shape(u)[0] != 2):
+        raise ValueError(
+            f'`u` must be the pair (u[k], u[k+1]) of shape (2, n_u) for input="foh", got '
+            f"shape {jnp.shape(u)}."
+        )
+    if not isinstance(dt, jax.core.Tracer):
+        dt = _positive_number(dt, "dt", "the sample interval")
+    if isinstance(x, (list, tuple)):
+        x = jnp.asarray(x)
     h = dt / substeps
     u_at = _input_at(u, dt, input)
 
@@ -376,12 +405,7 @@ class Model(eqx.Module):
         x, z = oj.simulate(model, theta, x0, u, t=t)  # t: (T,) increasing time stamps
         ```
         """
-        if not callable(rhs):
-            raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
-        if method not in ("rk4", "euler"):
-            raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
-        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
-            raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
+        substeps = _check_integrator(rhs, method, substeps)
         input = _check_input(input)
         if dt is None:
             if max_step is not None:
@@ -389,7 +413,7 @@ class Model(eqx.Module):
             if observe is not None and not callable(observe):
                 raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
             observe = None if observe is None else _WithoutInterval(observe)
-            step = _TimedODEStep(rhs, method, int(substeps), max_step, input)
+            step = _TimedODEStep(rhs, method, substeps, max_step, input)
             return cls(step, observe, input=input, timed=True)
         if max_step is not None:
             raise ValueError(
@@ -397,7 +421,7 @@ class Model(eqx.Module):
                 "`dt`, set `substeps` instead."
             )
         dt = _positive_number(dt, "dt", "the sample interval")
-        return cls(_ODEStep(rhs, dt, method, int(substeps), input), observe, input=input)
+        return cls(_ODEStep(rhs, dt, method, substeps, input), observe, input=input)
 
 
 ODE_STEPS = (_ODEStep, _TimedODEStep)

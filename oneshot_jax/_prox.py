@@ -106,10 +106,36 @@ def check_non_negative_scalar(value, name):
         raise ValueError(f"`{name}` must be a finite scalar >= 0, got {value!r}.")
 
 
-def check_learning_rate(learning_rate, allow_none):
+def check_schedule(schedule, name):
+    """Raise a TypeError unless the callable `schedule` maps a step count to a learning
+    rate (a finite real scalar >= 0: a warm-up may start at 0), tried at count 0."""
+    try:
+        rate = schedule(jnp.asarray(0, jnp.int32))
+        detail = f"returned {rate!r}"
+        rate = jnp.asarray(rate)
+        ok = (
+            rate.ndim == 0
+            and (
+                jnp.issubdtype(rate.dtype, jnp.integer) or jnp.issubdtype(rate.dtype, jnp.floating)
+            )
+            and (not is_concrete(rate) or (np.isfinite(float(rate)) and float(rate) >= 0))
+        )
+    except Exception as err:  # (a user's function: whatever it raises)
+        ok, detail = False, f"raised {type(err).__name__}: {err}"
+    if not ok:
+        raise TypeError(
+            f"{name} must be a learning rate (a finite number > 0) or an optax schedule "
+            f"mapping the step count to one; called with the count 0 it {detail}."
+        )
+
+
+def check_learning_rate(learning_rate, allow_none, name="`learning_rate`"):
     """Raise a ValueError unless `learning_rate` is a step size: a finite scalar > 0 or an
     optax schedule (or None where `allow_none`)."""
-    if callable(learning_rate) or (learning_rate is None and allow_none):
+    if learning_rate is None and allow_none:
+        return
+    if callable(learning_rate):
+        check_schedule(learning_rate, name)
         return
     try:
         ok = np.ndim(learning_rate) == 0 and (
@@ -289,6 +315,18 @@ def _intersect(boxes):
         los, his = zip(*(b(params) for b in boxes))
         lo = jax.tree_util.tree_map(lambda *a: jnp.max(jnp.stack(a), axis=0), *los)
         hi = jax.tree_util.tree_map(lambda *a: jnp.min(jnp.stack(a), axis=0), *his)
+        if is_concrete(lo, hi):
+            flat_lo = jax.tree_util.tree_leaves_with_path(lo)
+            empty = [
+                jax.tree_util.keystr(path)
+                for (path, a), b in zip(flat_lo, jax.tree_util.tree_leaves(hi))
+                if np.any(np.asarray(a) > np.asarray(b))
+            ]
+            if empty:
+                raise ValueError(
+                    "`constraints`: the boxes' intersection is empty (a lower bound above "
+                    f"an upper bound) for theta{', theta'.join(empty)}."
+                )
         return lo, hi
 
     return bounds

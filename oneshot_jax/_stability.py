@@ -25,7 +25,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._checks import check_data
 from ._jit import jit
-from ._model import _ODEStep, _TimedODEStep, _WithoutInterval, interval_count
+from ._model import Model, _ODEStep, _TimedODEStep, _WithoutInterval, interval_count
 from ._simulate import simulate_impl
 
 # The largest |lambda| h taken as safe. RK4's stability region reaches 2.785 on the
@@ -304,6 +304,9 @@ def check_stability(
     A `Stability` (`value`, `limit`, `eigenvalue`, ...), or None for a model not built by
     `Model.from_ode` or one whose trajectory has no finite state.
     """
+    if not isinstance(model, Model):
+        hint = " (a FitResult's is `result.model`)" if hasattr(model, "stop_reason") else ""
+        raise TypeError(f"`model` must be a oneshot_jax.Model, got {type(model).__name__}{hint}.")
     if (
         isinstance(points, bool)
         or not isinstance(points, (int, float, np.integer, np.floating))

@@ -181,6 +181,16 @@ def theta_starts(multistart, theta0, n_x0_starts):
             f"with `multistart`, `x0` with a leading axis of starts must have {n} starts like "
             f"`theta0`, got {n_x0_starts}."
         )
+    if n < 1:
+        raise ValueError("`multistart` needs at least one start; the leading axis has size 0.")
+    for path, leaf in jax.tree_util.tree_leaves_with_path(stacked):
+        a = np.asarray(leaf)
+        if np.issubdtype(a.dtype, np.number) and not np.all(np.isfinite(a)):
+            bad = np.unique(np.argwhere(~np.isfinite(a))[:, 0]).tolist()
+            raise ValueError(
+                f"`theta0{jax.tree_util.keystr(path)}` must be finite; the starts {bad} (first "
+                "axis) have a NaN or inf entry."
+            )
     return stacked, n
 
 

@@ -18,9 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_data
+from ._checks import check_data, is_count
 from ._cost import weigh
 from ._linalg import psd_solve
+from ._normalise import is_ragged
 from ._simulate import outputs, rollout
 
 
@@ -60,7 +61,9 @@ class Validation(eqx.Module):
     t: Any = None
 
     def __check_init__(self):
-        if self.n is not None and (isinstance(self.n, bool) or int(self.n) != self.n or self.n < 1):
+        if self.z is None:
+            raise ValueError("`Validation` needs `z`, the held-out records' measured outputs.")
+        if self.n is not None and not is_count(self.n, 1):
             raise ValueError(
                 f"`Validation(n=...)` must be None or an integer >= 1, got {self.n!r}."
             )
@@ -69,20 +72,12 @@ class Validation(eqx.Module):
                 "`Validation` needs the records' initial states: `x0` (known), or `n` (the "
                 "number of samples at the head to estimate them from)."
             )
-        if self.patience is not None and (
-            isinstance(self.patience, bool)
-            or int(self.patience) != self.patience
-            or self.patience < 1
-        ):
+        if self.patience is not None and not is_count(self.patience, 1):
             raise ValueError(
                 "`Validation(patience=...)` must be None or an integer >= 1, got "
                 f"{self.patience!r}."
             )
-        if (
-            isinstance(self.x0_steps, bool)
-            or int(self.x0_steps) != self.x0_steps
-            or self.x0_steps < 0
-        ):
+        if not is_count(self.x0_steps, 0):
             raise ValueError(
                 f"`Validation(x0_steps=...)` must be an integer >= 0, got {self.x0_steps!r}."
             )
@@ -149,6 +144,8 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
             f"{type(validation).__name__}."
         )
     u = validation.u
+    if is_ragged(u) or is_ragged(validation.z):
+        raise ValueError("`validation`: records of different lengths are not supported.")
     batched = np.ndim(u) == 3
     n_x = np.shape(x0_fit)[-1]
     x0 = validation.x0

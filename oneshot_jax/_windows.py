@@ -5,6 +5,7 @@ import warnings
 import equinox as eqx
 import numpy as np
 
+from ._checks import is_count
 from ._x0_lsq import solve_x0
 
 
@@ -118,9 +119,15 @@ def as_windows(window):
     """`fit`'s `window=`: a `Windows`, from an integer (consecutive windows) or itself."""
     if isinstance(window, Windows):
         return window
-    if isinstance(window, bool) or int(window) != window or window < 1:
+    if not is_count(window, 1):
+        schedule = (
+            " (a schedule of window lengths is `oneshot_jax.fit_continuation(windows=...)`)"
+            if isinstance(window, (list, tuple))
+            else ""
+        )
         raise ValueError(
-            f"`window` must be a positive integer or an `oneshot_jax.Windows`, got {window!r}."
+            f"`window` must be a positive integer or an `oneshot_jax.Windows`, got "
+            f"{window!r}{schedule}."
         )
     return Windows(int(window))
 

@@ -41,6 +41,41 @@ __all__ = [
 ]
 
 
+def _check(z, zhat, mask):
+    """Refuse what is not a record of numbers, and, on concrete values (not under a
+    transformation), an empty record and a mask that is negative or selects no sample of
+    an output."""
+    named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
+    for name, a in named:
+        if isinstance(a, jax.Array):
+            continue
+        try:
+            kind = np.asarray(a).dtype.kind
+        except (TypeError, ValueError) as err:
+            raise TypeError(
+                f"`{name}` must be a numeric array (T,) or (T, n_z), got {type(a).__name__} "
+                f"({err})."
+            ) from err
+        if kind not in "biuf":
+            raise TypeError(
+                f"`{name}` must be a numeric array (T,) or (T, n_z), got {type(a).__name__}"
+                + (f" of dtype {np.asarray(a).dtype}" if kind != "O" else "")
+                + "."
+            )
+    if any(isinstance(a, jax.core.Tracer) for _, a in named):
+        return
+    if np.size(z) == 0:
+        raise ValueError(f"`z` holds no samples (shape {np.shape(z)}).")
+    if mask is not None and np.shape(mask) == np.shape(z):
+        m = np.asarray(mask, dtype=float)
+        if np.any(m < 0) or not np.all(np.isfinite(m)):
+            raise ValueError("`mask` must be true where a sample is scored, false elsewhere.")
+        per_output = m.reshape(-1, m.shape[-1]).sum(axis=0) if m.ndim > 1 else m.sum()[None]
+        if not np.all(per_output > 0):
+            empty = np.flatnonzero(per_output <= 0).tolist()
+            raise ValueError(f"`mask` selects no sample of output(s) {empty}.")
+
+
 def _flat(z, zhat, mask=None):
     """(n, n_z) views of z, zhat and the weights of the samples (1, or the mask)."""
     z, zhat = jnp.asarray(z), jnp.asarray(zhat)
@@ -71,34 +106,54 @@ def _mean(a, w):
     return jnp.sum(w * a, axis=0) / jnp.sum(w, axis=0)
 
 
-@jax.jit  # (one compiled call per shape, not one per operation)
 def rmse(z, zhat, mask=None):
     """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2), over the samples
     where `mask` (shaped like z, optional) is true."""
+    _check(z, zhat, mask)
+    return _rmse(z, zhat, mask)
+
+
+@jax.jit  # (one compiled call per shape, not one per operation)
+def _rmse(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     return jnp.sqrt(_mean((zhat - z) ** 2, w))
 
 
-@jax.jit  # (one compiled call per shape, not one per operation)
 def nrmse(z, zhat, mask=None):
     """RMSE divided by the standard deviation of the measured output, per output."""
+    _check(z, zhat, mask)
+    return _nrmse(z, zhat, mask)
+
+
+@jax.jit  # (one compiled call per shape, not one per operation)
+def _nrmse(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     std = jnp.sqrt(_mean((z - _mean(z, w)) ** 2, w))
     return jnp.sqrt(_mean((zhat - z) ** 2, w)) / std
 
 
-@jax.jit  # (one compiled call per shape, not one per operation)
 def fit_percent(z, zhat, mask=None):
     """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`)."""
+    _check(z, zhat, mask)
+    return _fit_percent(z, zhat, mask)
+
+
+@jax.jit  # (one compiled call per shape, not one per operation)
+def _fit_percent(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     num = jnp.sqrt(jnp.sum(w * (zhat - z) ** 2, axis=0))
     den = jnp.sqrt(jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0))
     return 100.0 * (1.0 - num / den)
 
 
-@jax.jit  # (one compiled call per shape, not one per operation)
 def r2(z, zhat, mask=None):
     """Coefficient of determination R^2 = 1 - SSE / SST per output."""
+    _check(z, zhat, mask)
+    return _r2(z, zhat, mask)
+
+
+@jax.jit  # (one compiled call per shape, not one per operation)
+def _r2(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     sse = jnp.sum(w * (zhat - z) ** 2, axis=0)
     sst = jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0)
@@ -123,6 +178,7 @@ def aic(z, zhat, n_params, mask=None):
         )
     if not isinstance(n_params, jax.core.Tracer) and int(n_params) < 0:
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
+    _check(z, zhat, mask)
     return _aic(z, zhat, n_params, mask)
 
 

@@ -182,6 +182,11 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         labels = ["model"] if len(models) == 1 else [f"model {i + 1}" for i in range(len(models))]
     elif isinstance(labels, str):
         labels = [labels]
+    if not isinstance(labels, (list, tuple)) or not all(isinstance(s, str) for s in labels):
+        raise TypeError(
+            f"`labels` must be a string or a sequence of {len(models)} strings (one per "
+            f"model), got {labels!r}."
+        )
     labels = list(labels)
     if len(labels) != len(models):
         raise ValueError(f"`labels` must hold {len(models)} names (one per model), got {labels}.")

@@ -485,3 +485,185 @@ def test_an_integer_scalar_of_numpy_in_theta0_warns_that_it_is_held():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         oj.fit(model, {"k": 2, "c": 0.2}, np.array([1.0, 0.0]), u, z)
+
+
+# ------------------------------------------------------------- fit's rarer arguments
+# Each case was a raw NumPy, JAX or Python error, or a silent acceptance, before.
+
+LIN = oj.Model(
+    lambda x, u, th: jnp.stack([th["a"] * x[0] + th["b"] * u[0]]),
+    lambda x, u, th: x,
+)
+_U1 = np.random.default_rng(1).standard_normal((30, 1))
+_Z1 = np.asarray(oj.simulate(LIN, {"a": 0.8, "b": 1.0}, jnp.zeros(1), _U1)[1])
+LIN_THETA = {"a": 0.5, "b": 1.0}
+
+FIT_CASES = {
+    "z None": (dict(z=None), ValueError, r"`z` is required"),
+    "no starts": (
+        dict(theta0={"a": np.zeros(0), "b": np.zeros(0)}, multistart=True),
+        ValueError,
+        r"`multistart` needs at least one start",
+    ),
+    "NaN start": (
+        dict(theta0={"a": np.array([0.5, np.nan]), "b": np.ones(2)}, multistart=True),
+        ValueError,
+        r"`theta0\['a'\]` must be finite; the starts \[1\]",
+    ),
+    "inf start of a dict": (
+        dict(multistart={"a": np.array([0.5, np.inf])}),
+        ValueError,
+        r"`theta0\['a'\]` must be finite; the starts \[1\]",
+    ),
+    "integer penalty": (
+        dict(penalty=lambda x, th: jnp.sum(x > 0)),
+        ValueError,
+        r"`penalty` must return a floating scalar",
+    ),
+    "empty intersection of boxes": (
+        dict(
+            constraints=[
+                oj.constraints.box(lower={"a": 1.0}),
+                oj.constraints.box(upper={"a": 0.5}),
+            ]
+        ),
+        ValueError,
+        r"intersection is empty .* theta\['a'\]",
+    ),
+    "outputs whose squares underflow": (
+        dict(z=_Z1 * 1e-170, u=_U1 * 1e-170),
+        ValueError,
+        r"`z`: its largest magnitude .* rescale",
+    ),
+    "a list of windows": (
+        dict(window=[10, 20]),
+        ValueError,
+        r"`window` must be a positive integer .*fit_continuation\(windows=",
+    ),
+    "validation of different lengths": (
+        dict(validation=oj.Validation([_U1, _U1[:20]], [_Z1, _Z1[:20]], n=2)),
+        ValueError,
+        r"`validation`: records of different lengths",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", FIT_CASES)
+def test_fit_refuses_bad_rare_arguments(case):
+    overrides, error, match = FIT_CASES[case]
+    args = dict(theta0=LIN_THETA, x0=np.zeros(1), u=_U1, z=_Z1) | overrides
+    theta0, x0, u, z = (args.pop(k) for k in ("theta0", "x0", "u", "z"))
+    with pytest.raises(error, match=match):
+        oj.fit(LIN, theta0, x0, u, z, **args)
+
+
+def test_the_intersection_of_boxes_that_meet_is_kept():
+    # (the baseline of the empty intersection above: overlapping boxes fit as before)
+    boxes = [oj.constraints.box(lower={"a": 0.1}), oj.constraints.box(upper={"a": 0.7})]
+    result = oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, constraints=boxes)
+    assert float(result.theta["a"]) == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize(
+    "make,error,match",
+    [
+        (lambda: oj.Adam(b1=1.0), ValueError, r"`Adam\(b1=...\)` must be a number in \[0, 1\)"),
+        (lambda: oj.Adam(b2=1.5), ValueError, r"`Adam\(b2=...\)` must be a number in \[0, 1\)"),
+        (lambda: oj.Adam(lr_theta=lambda: 1e-3), TypeError, r"`Adam\(lr_theta=...\)` must be"),
+        (lambda: oj.Adam(lr_x0=lambda c: jnp.ones(3)), TypeError, r"`Adam\(lr_x0=...\)`"),
+        (lambda: oj.Adam(lr_theta=lambda c: jnp.nan), TypeError, r"returned nan"),
+        (lambda: oj.LevenbergMarquardt(gtol=1.0), ValueError, r"`LevenbergMarquardt\(gtol"),
+        (lambda: oj.Adam(gtol=2.0), ValueError, r"`Adam\(gtol=...\)` must be a number in"),
+        (lambda: oj.Validation(_U1, None, n=2), ValueError, r"`Validation` needs `z`"),
+        (lambda: oj.Validation(_U1, _Z1, n="all"), ValueError, r"`Validation\(n=...\)`"),
+        (lambda: oj.Validation(_U1, _Z1, n=2, x0_steps="5"), ValueError, r"x0_steps"),
+    ],
+)
+def test_options_are_checked_where_they_are_made(make, error, match):
+    with pytest.raises(error, match=match):
+        make()
+
+
+def test_options_take_numpy_integers_and_schedules_that_start_at_zero():
+    import optax
+
+    solver = oj.LevenbergMarquardt(max_steps=np.int64(20))
+    assert oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, solver=solver).success
+    oj.Adam(lr_theta=optax.linear_schedule(0.0, 1e-2, 100))  # a warm-up starts at 0
+
+
+def test_fit_continuation_refuses_an_infinite_factor():
+    with pytest.raises(ValueError, match=r"`factor` must be a finite number > 1, got inf"):
+        oj.fit_continuation(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, start=5, factor=np.inf)
+
+
+# ----------------------------------------------------------------- after a fit
+
+
+@pytest.fixture(scope="module")
+def lin_result():
+    return oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1)
+
+
+def test_a_result_checks_inputs_given_as_lists(lin_result):
+    two = np.hstack([_U1, _U1])
+    with pytest.raises(ValueError, match=r"`u` must have n_u = 1 input columns"):
+        lin_result.simulate(two.tolist())
+    with pytest.raises(ValueError, match=r"`u` must have n_u = 1 input columns"):
+        lin_result.simulate([two, two[:20]])  # ragged records, each checked
+    with pytest.raises(ValueError, match=r"`u` must have n_u = 1 input columns"):
+        lin_result.predict(two.tolist(), _Z1[:5])
+    with pytest.raises(ValueError, match=r"`u` must have n_u = 1 input columns"):
+        oj.check_basin(lin_result, two, _Z1, window=10)
+    # (the baseline: lists of the right width run)
+    _, z = lin_result.simulate(_U1.tolist())
+    assert np.shape(z) == _Z1.shape
+
+
+@pytest.mark.parametrize("z_head", [None, 0.3, np.ones(5)])
+def test_predict_names_z_head(lin_result, z_head):
+    with pytest.raises(ValueError, match=r"`z_head` must have shape \(T, n_z\)"):
+        lin_result.predict(_U1, z_head)
+
+
+def test_functions_of_a_model_refuse_a_result(lin_result):
+    with pytest.raises(TypeError, match=r"`model` must be a oneshot_jax.Model.*result.model"):
+        oj.check_stability(lin_result, lin_result.theta, lin_result.x0, _U1)
+
+
+def test_save_and_load_name_their_arguments(lin_result, tmp_path):
+    with pytest.raises(TypeError, match=r"`path` must be a file path"):
+        oj.load_result(123)
+    with pytest.raises(TypeError, match=r"`path` must be a file path"):
+        lin_result.save(None)
+    path = lin_result.save(tmp_path / "r")
+    with pytest.raises(TypeError, match=r"`model` must be a oneshot_jax.Model \(or None\)"):
+        oj.load_result(path, model="abc")
+    assert oj.load_result(path, model=LIN).model is LIN  # (the baseline)
+
+
+def test_ode_step_checks_its_arguments():
+    def rhs(x, u, theta):
+        return jnp.stack([x[1], -theta * x[0] + u[0]])
+
+    x, u = jnp.array([1.0, 0.0]), jnp.array([0.1])
+    cases = [
+        (dict(substeps=0), r"`substeps` must be an integer >= 1"),
+        (dict(substeps=2.5), r"`substeps` must be an integer >= 1"),
+        (dict(substeps=None), r"`substeps` must be an integer >= 1"),
+        (dict(method="rk45"), r"`method` must be 'rk4' or 'euler'"),
+        (dict(dt=0.0), r"`dt` must be a finite positive number"),
+        (dict(input="foh"), r"`u` must be the pair \(u\[k\], u\[k\+1\]\) of shape \(2, n_u\)"),
+        (dict(rhs=3), r"`rhs` must be callable"),
+    ]
+    for overrides, match in cases:
+        args = dict(rhs=rhs, dt=0.1) | overrides
+        f, dt = args.pop("rhs"), args.pop("dt")
+        with pytest.raises(ValueError, match=match):
+            oj.ode_step(f, x, u, 2.0, dt, **args)
+    with pytest.raises(ValueError, match=r"`substeps` must be an integer >= 1, got None"):
+        oj.Model.from_ode(rhs, dt=0.1, substeps=None)
+    # a list state is taken as an array (it was an AttributeError)
+    np.testing.assert_array_equal(
+        oj.ode_step(rhs, [1.0, 0.0], u, 2.0, 0.1), oj.ode_step(rhs, x, u, 2.0, 0.1)
+    )

@@ -227,3 +227,21 @@ def test_benchmark_scores_refuses_diverged_output_and_constant_data():
     z[:, 0] = np.arange(50)
     with pytest.raises(ValueError, match=r"constant in output channel\(s\) \[1\]"):
         metrics.benchmark_scores(z, z + 0.1, 5)
+
+
+@pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2"])
+def test_metrics_refuse_what_is_no_record_of_numbers(name):
+    fn = getattr(metrics, name)
+    z = np.ones((10, 2))
+    with pytest.raises(TypeError, match=r"`z` must be a numeric array"):
+        fn("abc", "abd")
+    with pytest.raises(TypeError, match=r"`z` must be a numeric array"):
+        fn(None, z)
+    with pytest.raises(TypeError, match=r"`zhat` must be a numeric array"):
+        fn(z, [["a", "b"]] * 10)
+    with pytest.raises(ValueError, match=r"`z` holds no samples"):
+        fn(np.zeros((0, 1)), np.zeros((0, 1)))
+    with pytest.raises(ValueError, match=r"`mask` selects no sample of output\(s\) \[1\]"):
+        fn(z, z + 1, np.array([[True, False]] * 10))
+    with pytest.raises(ValueError, match=r"`mask` must be true where"):
+        fn(z, z + 1, -np.ones_like(z))

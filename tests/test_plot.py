@@ -370,3 +370,9 @@ def test_missing_matplotlib_names_the_extra(monkeypatch):
 def test_import_does_not_import_matplotlib():
     code = "import sys, oneshot_jax; assert 'matplotlib' not in sys.modules, 'matplotlib'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_compare_names_bad_labels():
+    z = np.ones((20, 1))
+    with pytest.raises(TypeError, match=r"`labels` must be a string or a sequence of 1"):
+        oj.plot.compare(z, z, labels=5)

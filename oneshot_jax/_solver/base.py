@@ -138,13 +138,19 @@ def grad_norm(g: Params):
     return jnp.sqrt(jnp.sum(g.theta**2) + jnp.sum(g.x0**2))
 
 
-def check_options(solver, *, positive=(), non_negative=(), integers=()):
-    """ValueErrors naming the option, for a solver's __check_init__."""
+def check_options(solver, *, positive=(), non_negative=(), integers=(), fractions=()):
+    """ValueErrors naming the option, for a solver's __check_init__ (`fractions`: in
+    [0, 1), as Adam's decay rates and `gtol`, a bound on a cosine that 1 would meet at the
+    start)."""
     name = type(solver).__name__
     for field in integers:
         v = getattr(solver, field)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:
             raise ValueError(f"`{name}({field}=...)` must be a non-negative integer, got {v!r}.")
+    for field in fractions:
+        v = getattr(solver, field)
+        if not _is_real(v) or not 0 <= v < 1:
+            raise ValueError(f"`{name}({field}=...)` must be a number in [0, 1), got {v!r}.")
     for field in positive:
         v = getattr(solver, field)
         if not _is_real(v) or not v > 0:

@@ -127,7 +127,8 @@ class AbstractLeastSquares(AbstractSolver):
     def _check(self):
         check_options(
             self,
-            non_negative=("rtol", "atol", "gtol", "stol", "cg_rtol"),
+            non_negative=("rtol", "atol", "stol", "cg_rtol"),
+            fractions=("gtol",),
             integers=("max_steps", "cg_max_steps"),
         )
         as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")

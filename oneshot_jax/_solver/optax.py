@@ -55,6 +55,7 @@ from .._prox import (
     ProximalTransformation,
     check_learning_rate,
     check_non_negative_scalar,
+    check_schedule,
     step_at,
 )
 from .._results import RESULTS
@@ -148,7 +149,9 @@ class _AbstractOptax(AbstractSolver):
         return p_theta
 
     def _check(self):
-        check_options(self, non_negative=("tol_grad", "gtol"), integers=("max_steps",))
+        check_options(
+            self, non_negative=("tol_grad",), fractions=("gtol",), integers=("max_steps",)
+        )
         if self.tol_loss is not None and not isinstance(self.tol_loss, (int, float)):
             raise ValueError(
                 f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
@@ -402,7 +405,10 @@ class Adam(_AbstractOptax):
 
     def __check_init__(self):
         rates = tuple(f for f in ("lr_theta", "lr_x0") if not callable(getattr(self, f)))
-        check_options(self, non_negative=(*rates, "b1", "b2"), positive=("eps",))
+        for f in ("lr_theta", "lr_x0"):
+            if callable(getattr(self, f)):
+                check_schedule(getattr(self, f), f"`Adam({f}=...)`")
+        check_options(self, non_negative=rates, positive=("eps",), fractions=("b1", "b2"))
         if self.scale not in (None, "theta0"):
             raise ValueError(f"`Adam(scale=...)` must be None or 'theta0', got {self.scale!r}.")
         self._check()

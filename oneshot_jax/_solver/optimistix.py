@@ -170,7 +170,7 @@ class Optimistix(AbstractSolver):
                 "`Optimistix(solver=...)` must be an optimistix least-squares solver or "
                 f"minimiser (e.g. optx.LevenbergMarquardt(rtol, atol)), got {self.solver!r}."
             )
-        check_options(self, integers=("max_steps",), non_negative=("gtol",))
+        check_options(self, integers=("max_steps",), fractions=("gtol",))
         as_strategy(self.strategy, "`Optimistix(strategy=...)`")
 
     def check_dtype(self, dtype):
