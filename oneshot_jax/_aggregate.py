@@ -38,12 +38,25 @@ import numpy as np
 from . import metrics as _metrics
 from ._checks import x0_mask
 from ._model import ODE_STEPS, Model
+from ._timing import _intervals
 
 KINDS = ("sum", "mean", "integral", "time_mean")
 
 
 def _is_int(v):
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _reals(a, name, what):
+    """`a` as a float64 NumPy array, or a ValueError naming `name` (`what`: its form)."""
+    try:
+        arr = np.asarray(a)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.dtype.kind not in "biuf":
+        got = type(a).__name__ if arr is None else f"{type(a).__name__} of dtype {arr.dtype}"
+        raise ValueError(f"`{name}` must hold real numbers ({what}), got {got}.")
+    return arr.astype(float)
 
 
 class Aggregate:
@@ -89,9 +102,11 @@ class Aggregate:
             )
         if (intervals is None) == (matrix is None):
             raise ValueError("give exactly one of `intervals` (with `kind`) and `matrix`.")
+        if not isinstance(kind, str) or kind not in KINDS:
+            raise ValueError(f"`kind` must be one of {KINDS}, got {kind!r}.")
         if values is None:
             raise ValueError("`values` must hold the measured aggregates, one per reading.")
-        vals = np.asarray(values, dtype=float)
+        vals = _reals(values, "values", "the measured aggregates, one per reading")
         if vals.ndim != 1:
             raise ValueError(
                 f"`values` must be a 1-D sequence of readings, got shape {vals.shape}."
@@ -99,7 +114,7 @@ class Aggregate:
         if np.any(np.isinf(vals)):
             raise ValueError("`values` must be finite (NaN marks a missing reading).")
         if matrix is not None:
-            A = np.asarray(matrix, dtype=float)
+            A = _reals(matrix, "matrix", "the (m, T) aggregation weights")
             if A.ndim != 2:
                 raise ValueError(f"`matrix` must be a 2-D (m, T) array, got shape {A.shape}.")
             if not np.all(np.isfinite(A)):
@@ -114,8 +129,6 @@ class Aggregate:
                 raise ValueError(f"row {int(empty[0])} of `matrix` has no nonzero entry.")
             kind, pairs = None, None
         else:
-            if kind not in KINDS:
-                raise ValueError(f"`kind` must be one of {KINDS}, got {kind!r}.")
             try:
                 pairs = [tuple(p) for p in intervals]
             except TypeError:
@@ -146,7 +159,7 @@ class Aggregate:
         if vals.shape[0] == 0:
             raise ValueError("an `Aggregate` needs at least one reading.")
         if weight is not None:
-            w = np.asarray(weight, dtype=float)
+            w = _reals(weight, "weight", "a scalar or one per reading")
             if w.shape not in ((), vals.shape):
                 raise ValueError(
                     f"`weight` must be a scalar or one per reading ({vals.shape[0]},), got "
@@ -197,9 +210,11 @@ class Aggregate:
                 "integrates over (the record's time stamps, dt * np.arange(T) for a "
                 "Model.from_ode with a fixed dt, np.arange(T) for a discrete-time model)."
             )
-        ts = np.arange(T, dtype=float) if t is None else np.asarray(t, dtype=float)
-        if ts.shape != (T,):
-            raise ValueError(f"`t` must have shape ({T},), got {ts.shape}.")
+        if t is None:
+            ts = np.arange(T, dtype=float)
+        else:
+            _intervals(t, "t", T)  # (T,), finite and strictly increasing
+            ts = np.asarray(t, dtype=float)
         A = np.zeros((len(self.intervals), T))
         for i, (start, stop) in enumerate(self.intervals):
             if stop > T:
@@ -230,6 +245,13 @@ class Aggregate:
         An (m,) array.
         """
         z = jnp.asarray(z)
+        if z.ndim != 2:
+            raise ValueError(f"`z` must have shape (T, n_z), the outputs, got shape {z.shape}.")
+        if self.channel >= z.shape[1]:
+            raise ValueError(
+                f"`Aggregate.channel` = {self.channel} is out of range: `z` has {z.shape[1]} "
+                f"outputs (channel < {z.shape[1]})."
+            )
         return jnp.asarray(self.operator(z.shape[0], t), z.dtype) @ z[:, self.channel]
 
 

@@ -10,6 +10,7 @@ the last, up to the whole record; `check_basin` compares a whole-record fit with
 short-window fit from the same theta and warns where the first is far worse.
 """
 
+import math
 import warnings
 
 import equinox as eqx
@@ -126,8 +127,13 @@ def _schedule(windows, start, factor, T):
             f"`start` ({start}) must be shorter than the record (T = {T}): the last stage "
             "fits the whole record."
         )
-    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not factor > 1:
-        raise ValueError(f"`factor` must be a number > 1, got {factor!r}.")
+    if (
+        isinstance(factor, bool)
+        or not isinstance(factor, (int, float))
+        or not factor > 1
+        or not math.isfinite(factor)
+    ):
+        raise ValueError(f"`factor` must be a finite number > 1, got {factor!r}.")
     out = [int(start)]
     while True:
         w = max(out[-1] + 1, int(round(out[-1] * factor)))
@@ -183,8 +189,8 @@ def fit_continuation(
     - `start`, `factor`: without `windows`, the lengths `start`, `start * factor`, ...
         while shorter than the record (doubling from 50 by default).
     - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
-        `constraints`, ...); not `window` or `multistart`. `covariance` and
-        `estimate_x0` go to the last stage only: the windowed stages keep the classical
+        `constraints`, ...); not `window`, `multistart` or `aggregate`. `covariance`
+        and `estimate_x0` go to the last stage only: the windowed stages keep the classical
         covariance and estimate every entry of every window's x0 (the states where a
         window after the first starts come from the last stage's fit, not from data,
         so holding some of them would hold guesses).
@@ -203,6 +209,13 @@ def fit_continuation(
         raise ValueError(
             "`multistart` is not a keyword of `fit_continuation`, which runs from one start: "
             "run a multistart fit first and continue from its theta."
+        )
+    if kwargs.get("aggregate") is not None:
+        # (its stages are windowed fits, and a reading may span windows)
+        raise ValueError(
+            "`aggregate` is not a keyword of `fit_continuation`: an aggregated reading may "
+            "span the windows of its stages. Fit the whole record with `fit(..., "
+            "aggregate=...)`."
         )
     if np.ndim(x0) != 1 or np.ndim(u) != 2 or np.ndim(z) != 2:
         raise ValueError(
@@ -342,6 +355,7 @@ def check_basin(
     for name in ("window", "multistart"):
         if name in kwargs:
             raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")
+    result._check_u(u)
     fitted = np.shape(result.residuals)
     if np.shape(z) != fitted or np.shape(u)[0] != fitted[0]:
         raise ValueError(

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import is_weak
+from ._checks import as_float, check_data, is_weak
 from ._fit import fit
 from ._fit_result import FitResult
 from ._model import Model
@@ -193,6 +193,14 @@ def fit_physics_first(
         # The physical leaves carry the starts, the learned terms (switched off in stage
         # 1) none: the dict form of `fit`, with each physical entry's first start in theta.
         multistart = {k: theta0[k] for k in theta0 if k not in keys}
+        for path, leaf in jax.tree_util.tree_flatten_with_path(multistart)[0]:
+            if np.ndim(leaf) == 0:
+                raise ValueError(
+                    "with `multistart=True` every physical leaf of `theta0` needs a leading "
+                    f"axis of starts (the learned terms none); theta0"
+                    f"{jax.tree_util.keystr(path)} is a scalar. To start some physical "
+                    'parameters only, pass them as `multistart={"name": starts, ...}`.'
+                )
         theta0 = {
             k: v if k in keys else jax.tree_util.tree_map(lambda a: np.asarray(a)[0], v)
             for k, v in theta0.items()
@@ -455,8 +463,9 @@ def fit_orthogonal(
         raise TypeError(f"`model` must be a `Model`, got {type(model).__name__}.")
     if model.timed:
         raise ValueError("`model` is timed (dt=None): `fit_orthogonal` needs a fixed dt.")
-    x0 = np.asarray(x0, dtype=float)
-    u, z = np.asarray(u, dtype=float), np.asarray(z, dtype=float)
+    x0, u, z = (
+        np.asarray(as_float(a, name), dtype=float) for a, name in ((x0, "x0"), (u, "u"), (z, "z"))
+    )
     if x0.ndim != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {x0.shape}.")
     if u.ndim != 2 or z.ndim != 2 or u.shape[0] != z.shape[0]:
@@ -466,6 +475,9 @@ def fit_orthogonal(
         )
     if not np.all(np.isfinite(z)):
         raise ValueError("`z` has missing (NaN) or infinite samples; `fit_orthogonal` needs all.")
+    # The checks of `fit` (z's columns against the model's outputs, u's and weight's values),
+    # before the data are laid out for the augmented model.
+    check_data(model, theta0, x0, u, z, weight)
     names = _free_physics(theta0, keys, held)
     if not names:
         raise ValueError("`fixed` holds every physical parameter: nothing to keep orthogonal.")

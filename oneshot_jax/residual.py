@@ -49,6 +49,35 @@ def _positive_int(value, name, minimum=1):
     return int(value)
 
 
+def _float_dtype(dtype):
+    """`dtype` of a residual's parameters: None (JAX's default floating dtype) or floating."""
+    if dtype is None:
+        return jnp.result_type(float)
+    try:
+        floating = jnp.issubdtype(dtype, jnp.floating)
+    except TypeError:
+        floating = False
+    if not floating:
+        raise ValueError(
+            f"`dtype` must be a floating dtype (jnp.float32, jnp.float64), got {dtype!r}."
+        )
+    return dtype
+
+
+def _split_key(key, n):
+    """`n` keys from `key`, or a TypeError that says what a key is."""
+    try:
+        return jax.random.split(key, n)
+    except (TypeError, ValueError) as err:
+        got = repr(key)
+        if hasattr(key, "shape") and hasattr(key, "dtype"):
+            got = f"an array of shape {key.shape} and dtype {key.dtype}"
+        raise TypeError(
+            "`key` must be a JAX PRNG key, jax.random.key(0) or jax.random.PRNGKey(0) (one "
+            f"key, not a batch), got {got}."
+        ) from err
+
+
 def _float_tuple(value, size, name, positive=False):
     """An optional per-entry constant as a tuple of Python floats (static, hashable)."""
     if value is None:
@@ -137,8 +166,9 @@ class MLP(eqx.Module):
             raise ValueError(f"`bound` must be None or a finite number > 0, got {bound!r}.")
         input_offset = _float_tuple(input_offset, in_size, "input_offset")
         input_scale = _float_tuple(input_scale, in_size, "input_scale", positive=True)
+        dtype = _float_dtype(dtype)
         sizes = (in_size, *widths, out_size)
-        keys = jax.random.split(key, len(sizes) - 1)
+        keys = _split_key(key, len(sizes) - 1)
         layers = [
             eqx.nn.Linear(a, b, dtype=dtype, key=k) for a, b, k in zip(sizes[:-1], sizes[1:], keys)
         ]
@@ -401,7 +431,7 @@ class Dictionary(eqx.Module):
         n_out = _positive_int(n_out, "n_out")
         n = len(features)
         shape = (n, n_out)
-        dtype = jnp.result_type(float) if dtype is None else dtype
+        dtype = _float_dtype(dtype)
         if coef is None:
             coef = jnp.zeros(shape, dtype)
         else:
@@ -440,7 +470,12 @@ class Dictionary(eqx.Module):
         """The learned terms as equations, one line per output, exact zeros left out.
 
         E.g. `dx1 = -0.98 x0^3 + 0.1 x1*u0`; an output with no non-zero term reads `= 0`.
+        `precision`: the significant digits of each coefficient (an integer >= 0).
         """
+        if isinstance(precision, bool) or not isinstance(precision, numbers.Integral):
+            raise ValueError(f"`precision` must be an integer >= 0, got {precision!r}.")
+        if precision < 0:
+            raise ValueError(f"`precision` must be an integer >= 0, got {precision!r}.")
         c = np.asarray(self.coefficients)
         lines = []
         for k, lhs in enumerate(self.out_names):

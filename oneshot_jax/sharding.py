@@ -62,13 +62,31 @@ def fleet_mesh(devices=None):
     return Mesh(np.asarray(devices), (AXIS,))
 
 
+def _check_mesh(mesh, fleet=True):
+    """A TypeError unless `mesh` is a `Mesh` (with `fleet`: 1-D with axis name `AXIS`)."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(
+            f"`mesh` must be a {'1-D ' if fleet else ''}jax.sharding.Mesh (as from "
+            f"`fleet_mesh`), got {type(mesh).__name__}."
+        )
+    if fleet and mesh.axis_names != (AXIS,):
+        raise ValueError(f"`mesh` must be 1-D with axis name {AXIS!r} (see `fleet_mesh`).")
+
+
 def fleet_sharding(mesh, ndim):
     """`NamedSharding` splitting the leading (trajectory) axis of an `ndim`-D array."""
+    _check_mesh(mesh)
+    if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)) or ndim < 1:
+        raise ValueError(
+            f"`ndim` must be an integer >= 1 (the array's number of axes, the first the "
+            f"trajectories), got {ndim!r}."
+        )
     return NamedSharding(mesh, PartitionSpec(AXIS, *([None] * (ndim - 1))))
 
 
 def replicate(tree, mesh):
     """Every array leaf of `tree` (theta, a weight) placed whole on every device of `mesh`."""
+    _check_mesh(mesh, fleet=False)  # (any mesh: a replicated array has no split axis)
     sharding = NamedSharding(mesh, PartitionSpec())
     return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
 
@@ -92,8 +110,7 @@ def shard_fleet(x0, u, z=None, *, mesh=None):
     devices in `mesh` (see the module docstring for why nothing is padded).
     """
     mesh = fleet_mesh() if mesh is None else mesh
-    if mesh.axis_names != (AXIS,):
-        raise ValueError(f"`mesh` must be 1-D with axis name {AXIS!r} (see `fleet_mesh`).")
+    _check_mesh(mesh)
     arrays = {"x0": x0, "u": u} if z is None else {"x0": x0, "u": u, "z": z}
     ndims = {"x0": 2, "u": 3, "z": 3}
     N = np.shape(x0)[0] if np.ndim(x0) == 2 else None

@@ -231,7 +231,17 @@ def _resolve_where(where, params, entries):
     leaves, treedef = jax.tree_util.tree_flatten(params)
     if where is None:
         return [_is_float(p) for p in leaves]
-    m = where(params) if callable(where) else where
+    if callable(where):
+        try:
+            m = where(params)
+        except Exception as err:  # noqa: BLE001 - re-raised naming the argument
+            raise ValueError(
+                "`where` must pick nodes of the parameter pytree (a callable `where` returns "
+                "a pytree of bools of its structure; `sparsity.mask(select)` builds one): "
+                f"{type(err).__name__}: {err}"
+            ) from err
+    else:
+        m = where
     m_leaves, m_def = jax.tree_util.tree_flatten(m)
     if m_def != treedef:
         raise ValueError(

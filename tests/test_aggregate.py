@@ -432,6 +432,49 @@ def test_bad_aggregate_for_the_data(agg, match):
         oj.loss(MODEL, THETA, x0, u, z, aggregate=agg)
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        # They were NumPy's "could not convert string to float" and float()'s TypeError.
+        ({"values": ["a", "b"]}, "`values` must hold real numbers"),
+        ({"values": {"a": 1}}, "`values` must hold real numbers"),
+        ({"values": [1.0, 2.0], "weight": "heavy"}, "`weight` must hold real numbers"),
+    ],
+)
+def test_aggregate_names_values_and_weight_that_are_not_numbers(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        oj.Aggregate(0, [(0, 2), (2, 4)], **kwargs)
+
+
+@pytest.mark.parametrize("z", [np.zeros(4), np.zeros((4, 1, 1))])
+def test_predict_needs_z_of_shape_t_by_n_z(z):
+    """A 1-D z was an IndexError."""
+    with pytest.raises(ValueError, match=r"`z` must have shape \(T, n_z\)"):
+        oj.Aggregate(0, [(0, 2)], [1.0]).predict(z)
+
+
+@pytest.mark.parametrize(
+    "t, match",
+    [
+        (-np.arange(6.0), "strictly increasing"),  # it built a matrix of negative intervals
+        (np.array([0.0, 1.0, 1.0, 2.0, 3.0, 4.0]), "strictly increasing"),
+        (np.array([0.0, 1.0, np.nan, 3.0, 4.0, 5.0]), "NaN or inf"),
+        (np.arange(5.0), r"shape \(6,\)"),
+    ],
+)
+def test_operator_checks_the_sample_times(t, match):
+    agg = oj.Aggregate(0, [(0, 3), (3, 6)], [1.0, 2.0], kind="time_mean")
+    with pytest.raises(ValueError, match=f"`t`.*{match}|{match}.*`t`"):
+        agg.operator(6, t=t)
+
+
+@pytest.mark.parametrize("kind", ["bogus", None])
+def test_kind_is_checked_with_a_matrix_too(kind):
+    """`kind` was ignored when `matrix` was given."""
+    with pytest.raises(ValueError, match="`kind` must be one of"):
+        oj.Aggregate(0, matrix=np.ones((1, 4)) / 4, values=[0.1], kind=kind)
+
+
 def test_batch_needs_one_entry_per_record():
     x0, u, z, y = data()
     agg = aggregate_of("sum", readings("sum", y))

@@ -137,6 +137,11 @@ def test_doubling_schedule():
         ({"factor": 1}, "factor"),
         ({"window": 50}, "window"),
         ({"multistart": True}, "multistart"),
+        # It said "`window` cannot be combined with `aggregate`", a `window` never passed.
+        (
+            {"aggregate": oj.Aggregate(0, [(0, 30)], [0.1])},
+            "`aggregate` is not a keyword of `fit_continuation`",
+        ),
     ],
 )
 def test_continuation_rejects_bad_arguments(kwargs, match):

@@ -249,6 +249,36 @@ def test_tanks_malformed_csv(tmp_path, text, pattern):
     assert "dataBenchmark.csv" in str(e.value)
 
 
+@pytest.mark.parametrize("suffix", ["mat", "csv"])
+def test_tanks_refuses_complex_variables_and_duplicate_columns(tmp_path, suffix):
+    """A complex .mat variable loaded with NumPy's ComplexWarning (the imaginary part
+    dropped); a CSV column named twice loaded silently (the first one read)."""
+    if suffix == "mat":
+        col = np.arange(6.0)[:, None]
+        mat = {k: col for k in ("uVal", "yEst", "yVal")} | {"Ts": np.array([[4.0]])}
+        mat["uEst"] = col + 1j
+        file = tmp_path / "dataBenchmark.mat"
+        scipy.io.savemat(file, mat)
+        pattern = r"dataBenchmark\.mat: variable 'uEst' must be real"
+    else:
+        text = "uEst,uEst,uVal,yEst,yVal,Ts\n" + "".join(f"{k},{k},1,2,3,4\n" for k in range(6))
+        file = _write_csv(tmp_path / "dataBenchmark.csv", text)
+        pattern = r"dataBenchmark\.csv: column\(s\) uEst appear more than once"
+    with pytest.raises(ds.DatasetFormatError, match=pattern):
+        ds.load_cascaded_tanks(file)
+
+
+@pytest.mark.parametrize(
+    "load",
+    [ds.load_cascaded_tanks, ds.load_emps, ds.load_silverbox, ds.load_wiener_hammerstein],
+)
+@pytest.mark.parametrize("argument", ["path", "cache_dir"])
+def test_loaders_name_a_path_of_the_wrong_type(load, argument):
+    """`path=123` was `Path`'s TypeError, which names no argument."""
+    with pytest.raises(TypeError, match=f"`{argument}` must be a str or os.PathLike"):
+        load(**{argument: 123})
+
+
 # ----------------------------------------------------------------------- protocol views
 
 
@@ -364,6 +394,21 @@ def test_record_bad_input(kwargs, error, pattern):
     args = dict(u=np.zeros(5), y=np.zeros(5), Ts=1.0, n=0, name="")
     args.update(kwargs)
     with pytest.raises(error, match=pattern):
+        ds.Record(**args)
+
+
+@pytest.mark.parametrize(
+    "kwargs, pattern",
+    [
+        (dict(y=np.r_[np.ones(4), np.nan]), r"`y` must be finite .* at sample 4"),
+        (dict(u=np.r_[np.inf, np.ones(4)]), r"`u` must be finite .* at sample 0"),
+        (dict(y=np.c_[np.ones(5), np.r_[1.0, np.nan, 1, 1, 1]]), "`y` must be finite"),
+    ],
+)
+def test_record_refuses_non_finite_samples(kwargs, pattern):
+    """A Record of NaN outputs was accepted (the loaders refuse them in the files)."""
+    args = dict(u=np.zeros(5), y=np.zeros(5), Ts=1.0) | kwargs
+    with pytest.raises(ValueError, match=pattern):
         ds.Record(**args)
 
 

@@ -265,3 +265,43 @@ def test_fit_orthogonal_rejects_bad_arguments(case):
         oj.fit_orthogonal(model, theta0, x0, u, z, estimate_x0=np.ones(3, bool))
     with pytest.raises(ValueError, match="`fixed` holds every physical parameter"):
         oj.fit_orthogonal(model, theta0, x0, u, z, fixed={"w0sq": True, "b": True, "g": True})
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A hybrid oscillator on T = 120 samples, for the argument checks."""
+
+    def hybrid(x, u, p):
+        return jnp.stack([x[1], -p["k"] * x[0] - p["c"] * x[1] + p["r"](x)[0] + u[0]])
+
+    model = oj.Model.from_ode(hybrid, DT, observe=lambda x, u, p: x[:1])
+    u = np.sin(np.arange(120) * DT)[:, None]
+    theta0 = {"k": 3.0, "c": 0.2, "r": MLP(2, 1, (4,), key=jax.random.PRNGKey(0))}
+    return model, theta0, u, np.zeros((120, 1))
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        # z with more columns than the model's outputs: it was a NumPy reshape error.
+        ({"z": np.zeros((120, 2))}, r"`z` must have shape \(120, 1\)"),
+        # A NaN weight: it was reported as NaN in `u` (the augmented inputs).
+        ({"weight": np.array([np.nan])}, "`weight` contains NaN"),
+        # Strings: it was NumPy's "could not convert string to float".
+        ({"u": np.full((120, 1), "a")}, "`u` must hold real numbers"),
+    ],
+)
+def test_fit_orthogonal_checks_the_data_as_fit_does(small, change, match):
+    model, theta0, u, z = small
+    args = {"u": u, "z": z, **change}
+    weight = args.pop("weight", None)
+    with pytest.raises(ValueError, match=match):
+        oj.fit_orthogonal(model, theta0, np.zeros(2), args["u"], args["z"], weight=weight)
+
+
+def test_physics_first_multistart_true_names_a_scalar_physical_leaf(small):
+    """It was an IndexError (a scalar indexed for its first start)."""
+    model, theta0, u, z = small
+    starts = {**theta0, "k": np.array([2.0, 3.0])}
+    with pytest.raises(ValueError, match=r"leading axis of starts.*theta0\['c'\] is a scalar"):
+        oj.fit_physics_first(model, starts, np.zeros(2), u, z, multistart=True)

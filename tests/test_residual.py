@@ -178,6 +178,21 @@ def test_mlp_bad_arguments(kwargs, match):
         MLP(**kwargs, key=jax.random.PRNGKey(0))
 
 
+@pytest.mark.parametrize(
+    "key, dtype, error, match",
+    [
+        # JAX's "invalid PRNG key data" (an int) and "split accepts a single key".
+        (0, None, TypeError, "`key` must be a JAX PRNG key"),
+        (jax.random.split(jax.random.PRNGKey(0), 3), None, TypeError, "`key` must be a JAX"),
+        # JAX's "dtype argument to `uniform` must be a float dtype".
+        (jax.random.PRNGKey(0), jnp.int32, ValueError, "`dtype` must be a floating dtype"),
+    ],
+)
+def test_mlp_names_a_bad_key_or_dtype(key, dtype, error, match):
+    with pytest.raises(error, match=match):
+        MLP(2, 1, (4,), key=key, dtype=dtype)
+
+
 def test_mlp_wrong_feature_shape():
     mlp = MLP(3, 1, widths=(4,), key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="`features`"):
@@ -279,6 +294,20 @@ def test_dictionary_call_equations_and_scaling():
 def test_dictionary_bad_arguments(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+@pytest.mark.parametrize("precision", [-1, 2.5, True])
+def test_equations_precision_is_an_integer(precision):
+    """A negative precision was a format error of Python's."""
+    dictionary = Dictionary(Features(2, 1), 1, coef=np.ones((3, 1)))
+    with pytest.raises(ValueError, match="`precision` must be an integer >= 0"):
+        dictionary.equations(precision=precision)
+
+
+def test_dictionary_dtype_is_floating():
+    """An integer `dtype` gave integer coefficients, which are no parameters of a fit."""
+    with pytest.raises(ValueError, match="`dtype` must be a floating dtype"):
+        Dictionary(Features(2, 1), 1, dtype=jnp.int32)
 
 
 def test_dictionary_wrong_state_shape():

@@ -20,6 +20,11 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
+import pytest
+
+from oneshot_jax import sharding
+
 SCRIPT = textwrap.dedent(
     """
     import jax
@@ -128,3 +133,23 @@ def test_sharded_fleet_equals_unsharded():
     )
     assert out.returncode == 0, out.stdout + out.stderr
     assert "SHARDING OK" in out.stdout
+
+
+@pytest.mark.parametrize(
+    "call, error, match",
+    [
+        # An AttributeError, a pybind TypeError, and a sharding of a 0-d array accepted.
+        (
+            lambda: sharding.shard_fleet(np.zeros((1, 2)), np.zeros((1, 5, 1)), mesh="cpu"),
+            TypeError,
+            "`mesh` must be a 1-D jax.sharding.Mesh",
+        ),
+        (lambda: sharding.replicate({"k": 1.0}, None), TypeError, "`mesh` must be a"),
+        (lambda: sharding.fleet_sharding(None, 2), TypeError, "`mesh` must be a 1-D"),
+        (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 0), ValueError, "`ndim`"),
+        (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 1.0), ValueError, "`ndim`"),
+    ],
+)
+def test_bad_mesh_and_ndim_are_named(call, error, match):
+    with pytest.raises(error, match=match):
+        call()

@@ -415,3 +415,17 @@ def test_a_projection_given_as_regulariser_names_the_argument():
         _lin_fit(regulariser=optax.sgd(0.1))
     with pytest.raises(ValueError, match="`regulariser`"):
         _lin_fit(regulariser="l1")
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda where: _lin_fit(regulariser=sp.l1(0.1, where=where)),
+        lambda where: sp.fixed_zeros(LIN_THETA0, where=where),
+    ],
+    ids=["l1-in-a-fit", "fixed_zeros"],
+)
+def test_a_where_that_fails_on_the_parameters_is_named(call):
+    """A callable `where` that raises on theta (a wrong key) was a bare KeyError."""
+    with pytest.raises(ValueError, match=r"`where` must pick nodes.*KeyError: 'zz'"):
+        call(lambda theta: theta["zz"])

@@ -7,7 +7,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import locate, not_found, positive_scalar, read_csv, read_mat, require_length
+from ._files import (
+    check_path,
+    locate,
+    not_found,
+    positive_scalar,
+    read_csv,
+    read_mat,
+    require_length,
+)
 from ._record import Record
 
 TANKS_N_INIT = 5
@@ -110,6 +118,8 @@ def load_cascaded_tanks(path=None, *, download=False, cache_dir=None, base_url=N
     2016. Protocol: Champneys et al., "Baseline results for selected nonlinear system
     identification benchmarks", arXiv:2405.10779, 2024.
     """
+    check_path(path)
+    check_path(cache_dir, "cache_dir")
     if path is not None and Path(path).expanduser().is_file():
         return _read(Path(path).expanduser())
     found, names = locate(

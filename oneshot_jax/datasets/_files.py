@@ -6,6 +6,7 @@ what was expected. Where the files are looked for, and the error types, are in
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,15 @@ from ._locations import (
     default_cache_dir,
     find_folder,
 )
+
+
+def check_path(path, name="path"):
+    """A TypeError unless `path` is None, a str or an `os.PathLike`."""
+    if path is not None and not isinstance(path, (str, os.PathLike)):
+        raise TypeError(
+            f"`{name}` must be a str or os.PathLike (a file or folder) or None, got "
+            f"{type(path).__name__}."
+        )
 
 
 def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, on_missing):
@@ -133,6 +143,8 @@ def read_mat(file: Path, required_series, required_scalars=(), optional=()) -> d
                 f"{file}: variable '{k}' must be numeric, got {type(a).__name__}"
                 f" of dtype {getattr(a, 'dtype', None)}."
             )
+        if np.iscomplexobj(a):
+            raise DatasetFormatError(f"{file}: variable '{k}' must be real, got dtype {a.dtype}.")
         if a.ndim > 2 or (a.ndim == 2 and min(a.shape) != 1) or a.size < 2:
             raise DatasetFormatError(
                 f"{file}: variable '{k}' must be a vector (n x 1), got shape {a.shape}."
@@ -150,7 +162,11 @@ def read_mat(file: Path, required_series, required_scalars=(), optional=()) -> d
         out[k] = a
     for k in required_scalars:
         a = raw[k]
-        if not (isinstance(a, np.ndarray) and np.issubdtype(a.dtype, np.number)) or a.size != 1:
+        if (
+            not (isinstance(a, np.ndarray) and np.issubdtype(a.dtype, np.number))
+            or np.iscomplexobj(a)
+            or a.size != 1
+        ):
             raise DatasetFormatError(
                 f"{file}: variable '{k}' must be a numeric scalar, got "
                 f"{getattr(a, 'shape', type(a).__name__)}."
@@ -195,6 +211,12 @@ def read_csv(file: Path, series, scalars=(), scalar_meaning="") -> dict:
     if not rows:
         raise DatasetFormatError(f"{file}: empty file; expected {expected}.")
     header = [c.strip().strip('"') for c in rows[0]]
+    twice = sorted({c for c in (*series, *scalars) if header.count(c) > 1})
+    if twice:
+        raise DatasetFormatError(
+            f"{file}: column(s) {', '.join(twice)} appear more than once in the header "
+            f"{header}; expected {expected}."
+        )
     missing = [c for c in (*series, *scalars) if c not in header]
     if missing:
         raise DatasetFormatError(

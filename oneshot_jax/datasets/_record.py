@@ -21,6 +21,12 @@ def _series(value, name):
         ) from err
     if a.ndim not in (1, 2):
         raise ValueError(f"`{name}` must have shape (T,) or (T, channels), got shape {a.shape}.")
+    if not np.all(np.isfinite(a)):
+        k = int(np.flatnonzero(~np.isfinite(a).reshape(a.shape[0], -1).all(axis=1))[0])
+        raise ValueError(
+            f"`{name}` must be finite (measured samples), got {a[k]} at sample {k}; fill the "
+            "gaps of a record with missing samples before building a `Record`."
+        )
     return a
 
 

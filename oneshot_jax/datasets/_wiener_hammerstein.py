@@ -5,7 +5,15 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from ._files import locate, not_found, positive_scalar, read_csv, read_mat, require_length
+from ._files import (
+    check_path,
+    locate,
+    not_found,
+    positive_scalar,
+    read_csv,
+    read_mat,
+    require_length,
+)
 from ._record import Record, split_record
 
 WH_N_INIT = 50
@@ -95,6 +103,8 @@ def load_wiener_hammerstein(path=None, *, download=False, cache_dir=None, base_u
     Champneys et al., "Baseline results for selected nonlinear system identification
     benchmarks", arXiv:2405.10779, 2024, and `nonlinear_benchmarks`.
     """
+    check_path(path)
+    check_path(cache_dir, "cache_dir")
     if path is not None and Path(path).expanduser().is_file():
         return _read(Path(path).expanduser())
     found, names = locate(
