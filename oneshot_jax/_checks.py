@@ -555,7 +555,16 @@ def check_data(
                 raise ValueError("`z` contains inf values (NaN marks a missing sample).")
             z, observed = fill_missing(zn)
             if not observed.any() and not readings:  # (readings: aggregates measure it)
-                raise ValueError("`z` is NaN everywhere: no output sample is measured.")
+                raise ValueError(
+                    "`z` is NaN everywhere (in every sample given): no output sample is measured."
+                )
+            if batched and not readings:
+                empty = np.flatnonzero(~observed.reshape(observed.shape[0], -1).any(axis=1))
+                if empty.size:
+                    raise ValueError(
+                        f"`z`: trajectory {empty.tolist()} (first axis) has no measured "
+                        "sample (NaN everywhere): leave it out."
+                    )
         else:
             check_finite(
                 z,
@@ -673,13 +682,15 @@ def fixed_mask(fixed, theta) -> np.ndarray:
                 f"{len(sub_leaves)} leaves; use one boolean for a whole subtree."
             )
         for t in sub_leaves:
-            try:
-                parts.append(np.broadcast_to(f, np.shape(t)).reshape(-1))
-            except ValueError as err:
+            # One boolean for the whole leaf, or one per entry: a mask of another shape
+            # would broadcast ((1,) fixing both entries of a (2,) leaf) silently.
+            if f.ndim and f.shape != np.shape(t):
                 raise ValueError(
                     f"`fixed` entry of shape {f.shape} does not fit a parameter of shape "
-                    f"{np.shape(t)}."
-                ) from err
+                    f"{np.shape(t)}: give one boolean for the whole parameter, or a mask of "
+                    f"shape {np.shape(t)}."
+                )
+            parts.append(np.broadcast_to(f, np.shape(t)).reshape(-1))
     return np.concatenate(parts) if parts else np.zeros(0, bool)
 
 

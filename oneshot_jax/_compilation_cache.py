@@ -7,6 +7,7 @@ compilation (tracing the model still runs). The library never changes JAX's
 configuration by itself; `enable_compilation_cache` is the one call that does.
 """
 
+import os
 from pathlib import Path
 
 import jax
@@ -56,19 +57,35 @@ def enable_compilation_cache(
     result = oj.fit(model, theta0, x0, u, z)  # compiled once, loaded in later processes
     ```
     """
-    folder = Path(default_cache_dir() / "jax" if path is None else path).expanduser()
-    folder = folder.resolve()
+    if path is not None and (not isinstance(path, (str, os.PathLike)) or path == ""):
+        raise TypeError(
+            f"`path` must be a folder path (a non-empty str or os.PathLike), got {path!r}."
+        )
+    try:
+        folder = Path(default_cache_dir() / "jax" if path is None else path).expanduser()
+        folder = folder.resolve()
+    except (TypeError, ValueError, OSError) as err:
+        raise ValueError(f"`path`: {path!r} is not a usable folder path ({err}).") from None
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"`path` must be a folder, got the file {str(folder)!r}.")
     try:
-        seconds = float(min_compile_time_secs)
+        seconds = (
+            float("nan")
+            if isinstance(min_compile_time_secs, bool)
+            else float(min_compile_time_secs)
+        )
     except (TypeError, ValueError):
         seconds = float("nan")
     if not seconds >= 0.0 or seconds == float("inf"):
         raise ValueError(
             f"`min_compile_time_secs` must be a finite number >= 0, got {min_compile_time_secs!r}."
         )
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(
+            f"`path`: cannot create the cache folder {str(folder)!r} ({err})."
+        ) from None
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", seconds)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -70,14 +70,17 @@ class NeweyWest(eqx.Module):
         ):
             raise ValueError(f"`NeweyWest(lags=)` must be None or an integer >= 0; got {lags!r}.")
 
-    def resolved(self, T: int) -> int:
-        """L for trajectories of T samples."""
+    def resolved(self, T: int, shortest: int | None = None) -> int:
+        """L for trajectories of T samples (the shortest of `shortest` samples, where they
+        differ: a given L must fit in every one)."""
         if self.lags is None:
             return int(np.floor(4 * (T / 100) ** (2 / 9)))
-        if self.lags > T - 1:
+        shortest = T if shortest is None else shortest
+        if self.lags > shortest - 1:
+            which = f"T = {T}" if shortest == T else f"the shortest, T = {shortest}"
             raise ValueError(
                 f"`NeweyWest(lags={self.lags})` exceeds a trajectory's length less one "
-                f"({T - 1} for trajectories of T = {T} samples)."
+                f"({shortest - 1} for trajectories of {which} samples)."
             )
         return int(self.lags)
 

@@ -447,7 +447,10 @@ def fit(
     )
     lags = None
     if robust is not None:
-        lags = robust.resolved(int(built.problem.u.shape[1]))
+        lengths = inputs.data.lengths
+        lags = robust.resolved(
+            int(built.problem.u.shape[1]), None if lengths is None else int(min(lengths))
+        )
     # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
     # Jacobians along the fitted trajectory come from the solve's compiled call.
     rhs = rhs_of(model, inputs.data) if aggregate is None else None

@@ -80,9 +80,17 @@ def _meter(progress):
         return TqdmProgress()
     if progress is False or progress is None:
         return _NO_PROGRESS
-    if hasattr(progress, "update") and hasattr(progress, "open"):
+    if isinstance(progress, type):
+        raise TypeError(
+            f"`progress` got the class {progress.__name__}: pass an instance, "
+            f"{progress.__name__}()."
+        )
+    if all(callable(getattr(progress, m, None)) for m in ("open", "update", "close")):
         return progress
-    raise TypeError(f"`progress` must be a bool or a progress object, got {progress!r}.")
+    raise TypeError(
+        "`progress` must be a bool or a progress object with methods open, update and close "
+        f"(as oneshot_jax.TqdmProgress), got {progress!r}."
+    )
 
 
 def check_inputs(

@@ -224,7 +224,12 @@ def report(result) -> str:
             f"multistart: the best of {len(result.starts.stop_reason)} starts (index "
             f"{result.best}); stops: {', '.join(f'{k} {n}' for k, n in stops.items())}"
         )
-    if not result.success:
+    if result.status == "diverged":
+        out.append(
+            "  (not a solution: the fit diverged; the returned point is its last finite "
+            "iterate, without standard errors)"
+        )
+    elif not result.success:
         out.append(
             "  (not a solution: the standard errors and intervals below are those of the "
             "linearisation at the returned point)"

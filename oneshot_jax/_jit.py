@@ -113,7 +113,18 @@ def jit(fn):
                 compiled.pop(next(iter(compiled)))
             kw = {"compiler_options": CPU_OPTIONS} if options else {}
             f = compiled[key] = jax.jit(functools.partial(traced, structure), **kw)
-        out_arrays, out_structure = f(arrays)
+        try:
+            out_arrays, out_structure = f(arrays)
+        except ValueError as err:
+            if "top-level" not in str(err):
+                raise
+            # (JAX refuses compiler options on a nested jit: this call is inside a trace)
+            raise ValueError(
+                f"oneshot_jax's host-side solve ({fn.__name__}) was called inside a JAX "
+                "transformation (jax.jit, vmap, grad), through its arguments or through what "
+                "the model closes over: `fit`, `estimate_x0` and `predict` run on the host; "
+                "call them outside the transformation."
+            ) from None
         return _merge(out_arrays, out_structure.value)
 
     @functools.wraps(fn)

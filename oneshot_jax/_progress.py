@@ -7,6 +7,7 @@ import threading
 
 import equinox as eqx
 import jax
+import numpy as np
 
 _BARS: dict[int, object] = {}
 _LOCK = threading.Lock()
@@ -23,6 +24,13 @@ class TqdmProgress(eqx.Module):
     """
 
     refresh_steps: int = 10
+
+    def __check_init__(self):
+        r = self.refresh_steps
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+            raise ValueError(
+                f"`TqdmProgress(refresh_steps=...)` must be an integer >= 1, got {r!r}."
+            )
 
     def open(self, total: int, description: str = "fit") -> int:
         """Create the bar on the host; returns its id, passed into the compiled loop."""

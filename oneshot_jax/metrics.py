@@ -241,6 +241,8 @@ def _outputs(value, name):
     if hasattr(value, "y") and hasattr(value, "u"):
         value = value.y
     try:
+        if np.iscomplexobj(value):
+            raise TypeError(f"it holds complex numbers ({np.asarray(value).dtype})")
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise TypeError(
@@ -307,6 +309,11 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
         )
     y, yhat = (a if a.ndim == 2 else a[:, None] for a in (y, yhat))
     T = y.shape[0]
+    if T < 2 and y.shape[1] >= 2:
+        raise ValueError(
+            f"`z` holds T = {T} sample of {y.shape[1]} outputs: is it transposed? (z is "
+            "(T, n_z), time first)"
+        )
     if not 0 <= n <= T - 2:
         raise ValueError(
             f"`n` must satisfy 0 <= n <= T - 2 = {T - 2} (at least two samples scored), got {n}."
@@ -376,10 +383,14 @@ class ResidualCorrelations(NamedTuple):
 
 def _trajectories(a, name, shape=None):
     """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have."""
+    if np.iscomplexobj(a):
+        raise ValueError(f"`{name}` must hold real numbers, got dtype {np.asarray(a).dtype}.")
     try:
         a = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must be a numeric array, got {type(a).__name__}.") from err
+    if np.any(np.isinf(a)):
+        raise ValueError(f"`{name}` contains inf values (NaN marks a missing sample).")
     if a.ndim not in (1, 2, 3):
         raise ValueError(
             f"`{name}` must have shape (T,), (T, n) or (N, T, n) (time before channels), "
@@ -472,6 +483,8 @@ def residual_correlations(
         raise ValueError(f"`confidence` must be a number in (0, 1), got {confidence!r}.")
     if not (isinstance(tolerance, numbers.Real) and 0.0 <= tolerance < 1.0):
         raise ValueError(f"`tolerance` must be a number in [0, 1), got {tolerance!r}.")
+    if not isinstance(demean, (bool, np.bool_)):
+        raise TypeError(f"`demean` must be True or False, got {demean!r}.")
 
     measured = np.isfinite(e)
     n = measured.sum(axis=(0, 1))

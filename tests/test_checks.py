@@ -667,3 +667,116 @@ def test_ode_step_checks_its_arguments():
     np.testing.assert_array_equal(
         oj.ode_step(rhs, [1.0, 0.0], u, 2.0, 0.1), oj.ode_step(rhs, x, u, 2.0, 0.1)
     )
+
+
+# ------------------------------------------------------- a second round of probes
+
+
+def test_progress_objects_are_checked():
+    with pytest.raises(ValueError, match=r"`TqdmProgress\(refresh_steps=...\)` must be an"):
+        oj.TqdmProgress(refresh_steps=0)
+    with pytest.raises(ValueError, match=r"refresh_steps"):
+        oj.TqdmProgress(refresh_steps="10")
+    with pytest.raises(TypeError, match=r"`progress` got the class TqdmProgress"):
+        oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, progress=oj.TqdmProgress)
+
+    class NoClose:
+        def open(self, total, description="fit"):
+            return 0
+
+        def update(self, *args):
+            pass
+
+    with pytest.raises(TypeError, match=r"open, update and close"):
+        oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, progress=NoClose())
+
+
+def test_a_fixed_mask_must_have_its_parameters_shape():
+    model = oj.Model(
+        lambda x, u, th: jnp.stack([th["k"][0] * x[0] + th["k"][1] * u[0]]), lambda x, u, th: x
+    )
+    theta0 = {"k": np.array([0.5, 1.0])}
+    with pytest.raises(ValueError, match=r"`fixed` entry of shape \(1,\) does not fit"):
+        oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([True])})
+    r = oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([False, True])})
+    assert float(r.theta["k"][1]) == 1.0  # (the baseline: a mask of the leaf's shape)
+
+
+def test_newey_west_lags_must_fit_the_shortest_record():
+    with pytest.raises(ValueError, match=r"NeweyWest\(lags=15\)` exceeds .* the shortest, T = 10"):
+        oj.fit(
+            LIN,
+            LIN_THETA,
+            np.zeros((2, 1)),
+            [_U1, _U1[:10]],
+            [_Z1, _Z1[:10]],
+            covariance=oj.NeweyWest(15),
+        )
+
+
+def test_a_host_solve_inside_a_transformation_says_so():
+    import jax
+
+    def inside(a):
+        model = oj.Model(lambda x, u, th: th["a"] * a * x + u, lambda x, u, th: x)
+        return oj.fit(model, {"a": 0.5}, np.zeros(1), _U1, _Z1).loss
+
+    if not oj.internal.jit_module.compiler_options():
+        pytest.skip("the message comes from JAX's refusal of compiler options (CPU)")
+    with pytest.raises(ValueError, match=r"called inside a JAX transformation"):
+        jax.jit(inside)(1.0)
+
+
+@pytest.mark.parametrize(
+    "path,error",
+    [(3, TypeError), ("", TypeError), ("/a\0b", ValueError)],
+)
+def test_compilation_cache_names_a_bad_path(path, error):
+    with pytest.raises(error, match=r"`path`"):
+        oj.enable_compilation_cache(path)
+
+
+def test_compilation_cache_refuses_a_folder_it_cannot_create(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match=r"`path`"):
+        oj.enable_compilation_cache(tmp_path / "file" / "sub")
+
+
+def test_scores_and_residual_analysis_name_bad_records():
+    z = np.random.default_rng(0).standard_normal((60, 1))
+    with pytest.raises(ValueError, match=r"is it transposed"):
+        oj.metrics.benchmark_scores(z.T, z.T, n=0)
+    with pytest.raises(TypeError, match=r"complex"):
+        oj.metrics.benchmark_scores(z + 1j, z, n=5)
+    with pytest.raises(ValueError, match=r"`e` must hold real numbers"):
+        oj.metrics.residual_correlations(z + 1j, None, 5)
+    e = z.copy()
+    e[3] = np.inf
+    with pytest.raises(ValueError, match=r"`e` contains inf values"):
+        oj.metrics.residual_correlations(e, None, 5)
+    with pytest.raises(TypeError, match=r"`demean` must be True or False"):
+        oj.metrics.residual_correlations(z, None, 5, demean="no")
+
+
+def test_head_and_noise_arguments_of_a_prediction_are_named(lin_result):
+    with pytest.raises(ValueError, match=r"`z_head` must have 1 to 10 rows"):
+        lin_result.predict(_U1[:10], _Z1[:20])
+    with pytest.raises(ValueError, match=r"`z_head` must have 1 to 30 rows"):
+        lin_result.predict(_U1, _Z1[:0])
+    with pytest.raises(TypeError, match=r"`measurement_noise` must be a variance"):
+        oj.estimate_x0(
+            LIN,
+            lin_result.theta,
+            _U1,
+            _Z1[:10],
+            x0=np.zeros(1),
+            method="smoother",
+            measurement_noise=True,
+        )
+
+
+def test_a_record_without_a_measured_sample_is_named():
+    z = np.stack([_Z1, np.full_like(_Z1, np.nan)])
+    u = np.stack([_U1, _U1])
+    with pytest.raises(ValueError, match=r"trajectory \[1\] \(first axis\) has no measured"):
+        oj.loss(LIN, LIN_THETA, np.zeros((2, 1)), u, z, missing="mask")

@@ -360,6 +360,8 @@ def test_a_start_where_the_simulation_diverges_is_a_failure_with_a_reason():
         assert "diverged at step" in r.message and r.stop_info["nonfinite"] == "loss"
         # The linearisation of a diverged simulation says nothing of identifiability.
         assert "(undefined: diverged)" in str(r) and "(not identifiable)" not in str(r)
+        assert "the fit diverged; the returned point is its last finite" in str(r)
+        assert "those of the linearisation" not in str(r)
         assert not any("not identifiable" in str(w.message) for w in caught)
 
 
