@@ -12,7 +12,7 @@ from . import _pytree
 from . import metrics as _metrics
 from ._covariance import covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
-from ._optimality import roundoff_limit
+from ._optimality import resolution, roundoff_limit
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
 from ._strategy import COVARIANCE_MAX_THETA
@@ -226,6 +226,7 @@ class Prepared(NamedTuple):
     gtol: float  # the last solver's tolerances (NaN where it has none)
     stol: float
     roundoff_limit: float
+    resolution: float  # (NaN where the last solver does not raise gtol to it)
 
 
 def prepare(*, data, problem, solvers, fixed, x0_estimated, theta_order=(), units=None):
@@ -243,6 +244,9 @@ def prepare(*, data, problem, solvers, fixed, x0_estimated, theta_order=(), unit
         float(getattr(solvers[-1], "gtol", np.nan)),
         float(getattr(solvers[-1], "stol", np.nan)),
         roundoff_limit(problem.dtype),
+        resolution(problem.dtype)
+        if getattr(solvers[-1], "GTOL_AT_LEAST_RESOLUTION", False)
+        else np.nan,
     )
 
 
@@ -326,6 +330,7 @@ def assemble(
         "stol": prepared.stol,
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
+        "resolution": prepared.resolution,
     }
     if problem.lower is not None and free:  # entries the box holds (`FitResult.__str__`)
         p = np.asarray(theta_flat)[list(free)]

@@ -39,6 +39,12 @@ def stop_detail(status: str, info: dict) -> str:
     if status == "converged" and known:
         if not fo > gtol:
             return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}"
+        floor = info.get("resolution", np.nan)
+        if gtol > 0 and fo <= floor:  # (False where NaN: a solver without that test)
+            return (
+                f"first-order measure {_g(fo)} <= {_g(floor)}, the resolution of the measure "
+                f"in this precision (gtol {_g(gtol)} is below it)"
+            )
         limit = info.get("roundoff_limit", np.nan)
         why = step_test or "no step decreases the loss at round-off"
         return (

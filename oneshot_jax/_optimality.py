@@ -97,6 +97,15 @@ def roundoff_limit(dtype):
     return 10.0 * float(np.sqrt(np.finfo(dtype).eps))
 
 
+def resolution(dtype):
+    """The smallest first-order measure the arithmetic resolves: 0.5 sqrt(eps) (7.5e-9 in
+    float64, 1.7e-4 in float32). At a measure below it the decrease left, about fo^2 C,
+    is under eps C / 4, the round-off of the loss itself, so a positive `gtol` below it
+    (the default 1e-8 is, in float32) is met there: a first-order solver, which has no
+    stall to wait for, could not meet it otherwise."""
+    return 0.5 * float(np.sqrt(np.finfo(dtype).eps))
+
+
 class Measures(NamedTuple):
     """The quantities a stop is tested on, at the returned point (NaN where a solver has no
     such test): the first-order measure, the last step's scaled size (relative to the
@@ -171,7 +180,9 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     """
     dtype = problem.dtype
     eps = jnp.finfo(dtype).eps
-    norm = jnp.sqrt(jnp.maximum(C, jnp.finfo(dtype).tiny))
+    # (|C|: a first-order solver's C with a signed penalty may be negative; C >= 0 for
+    # least squares)
+    norm = jnp.sqrt(jnp.maximum(jnp.abs(C), jnp.finfo(dtype).tiny))
     dt2 = floor(d_t) if d_t.size else d_t
     dx2 = floor(d_x) if d_x.size else d_x
     # x0 is never constrained: its cosines.
@@ -213,10 +224,11 @@ def data_scale(problem: FitProblem):
 
 
 def zero_residual(C, scale):
-    """Whether C is at the round-off level of the data: C <= eps `data_scale` (a
-    relative RMS residual of sqrt(eps) of the outputs' variation)."""
+    """Whether C is at the round-off level of the data: 0 <= C <= eps `data_scale` (a
+    relative RMS residual of sqrt(eps) of the outputs' variation). Not where C < 0 (a
+    signed penalty of a first-order solver): that says nothing of the residuals."""
     eps = jnp.finfo(jnp.result_type(C)).eps
-    return C <= ZERO_RESIDUAL_RTOL * eps * scale
+    return (C >= 0) & (C <= ZERO_RESIDUAL_RTOL * eps * scale)
 
 
 def column_norms(problem: FitProblem, params: Params, strategy, *, dense_max=256, probes=16):
@@ -290,21 +302,33 @@ def scaling(problem: FitProblem, params: Params, strategy) -> Scaling:
 
 
 def check_first_order(
-    problem, params, C, grad: Params, scale: Scaling, stall, gtol, strategy, fresh=False
+    problem,
+    params,
+    C,
+    grad: Params,
+    scale: Scaling,
+    stall,
+    gtol,
+    strategy,
+    fresh=False,
+    final=False,
 ):
     """The first-order test of a solver that has the gradient of C only.
 
     With the kept `scale`, the measure is estimated from `grad` (the gradient of C, twice
-    J^T r); where the estimate is at most `gtol` or the solver `stall`s, the diagonal is
-    refreshed at `params` (a Jacobian) and the measure recomputed. `fresh=True` (static):
-    `scale` was formed at `params`, so the measure is exact as it is (no Jacobian is
-    traced). Returns the measure, whether `params` is stationary (the measure at most
-    `gtol`, or at a stall at most `roundoff_limit`) and the scaling to keep.
+    J^T r); where the estimate is at most `gtol`, the solver `stall`s or the step is its
+    `final` one (the measure it reports), the diagonal is refreshed at `params` (a
+    Jacobian) and the measure recomputed. `fresh=True` (static): `scale` was formed at
+    `params`, so the measure is exact as it is (no Jacobian is traced). A positive `gtol`
+    counts as at least the `resolution` of the dtype. Returns the measure, whether
+    `params` is stationary (the measure at most that `gtol`, or at a stall at most
+    `roundoff_limit`) and the scaling to keep.
     """
+    gtol = jnp.where(gtol > 0, jnp.maximum(gtol, resolution(problem.dtype)), gtol)
     half = Params(0.5 * grad.theta, 0.5 * grad.x0)
     fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     if not fresh:
-        refresh = (fo <= gtol) | stall
+        refresh = (fo <= gtol) | stall | final
         scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy), scale)
         fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     stationary = (fo <= gtol) | (stall & (fo <= roundoff_limit(problem.dtype)))

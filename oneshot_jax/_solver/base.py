@@ -45,6 +45,9 @@ class AbstractSolver(eqx.Module):
     # fit instead of compiling again. (A learning rate enters the arithmetic, where a
     # traced value rounds differently from a constant: it stays static.)
     TRACED_OPTIONS = ()  # (a class constant: no annotation, so not a field)
+    # Whether a positive gtol counts as at least `_optimality.resolution` (the first-order
+    # solvers: they have no stall after which the round-off limit would apply).
+    GTOL_AT_LEAST_RESOLUTION = False
 
     def traced_options(self, dtype) -> "AbstractSolver":
         """This solver with the `TRACED_OPTIONS` that hold Python numbers as 0-d arrays of

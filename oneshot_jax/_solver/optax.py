@@ -134,6 +134,7 @@ class _AbstractOptax(AbstractSolver):
     strategy: eqx.AbstractVar[str]
 
     TRACED_OPTIONS = ("tol_loss", "tol_grad", "gtol")
+    GTOL_AT_LEAST_RESOLUTION = True
 
     # A monotone method (LBFGS's line search) rejects a step that does not decrease the
     # objective and stops there (a stall); Adam's steps may go up and down.
@@ -247,8 +248,13 @@ class _AbstractOptax(AbstractSolver):
         last = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, state.last)
         last_loss = jnp.where(finite, obj, state.last_loss)
         count = optax.safe_increment(state.count)
+        # The last step's measure is exact (the one reported): at max_steps, and where
+        # tol_loss or tol_grad stop the fit.
+        final = (count >= self.max_steps) | (grad_norm(g_new) < self.tol_grad)
+        if self.tol_loss is not None:
+            final = final | (obj < self.tol_loss)
         fo, stationary, scale = check_first_order(
-            problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy
+            problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy, final=final
         )
         return new, _OptaxState(
             opt_state,
