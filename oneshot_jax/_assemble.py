@@ -330,8 +330,9 @@ def assemble(
         "stol": prepared.stol,
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
-        "resolution": prepared.resolution,
     }
+    if np.isfinite(prepared.resolution):  # (a first-order solver's floor under gtol)
+        stop_info["resolution"] = prepared.resolution
     if problem.lower is not None and free:  # entries the box holds (`FitResult.__str__`)
         p = np.asarray(theta_flat)[list(free)]
         lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
