@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import metrics as _metrics
-from ._checks import x0_mask
+from ._checks import as_float, x0_mask
 from ._model import ODE_STEPS, Model
 from ._timing import _intervals
 
@@ -45,18 +45,6 @@ KINDS = ("sum", "mean", "integral", "time_mean")
 
 def _is_int(v):
     return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-
-def _reals(a, name, what):
-    """`a` as a float64 NumPy array, or a ValueError naming `name` (`what`: its form)."""
-    try:
-        arr = np.asarray(a)
-    except (TypeError, ValueError):
-        arr = None
-    if arr is None or arr.dtype.kind not in "biuf":
-        got = type(a).__name__ if arr is None else f"{type(a).__name__} of dtype {arr.dtype}"
-        raise ValueError(f"`{name}` must hold real numbers ({what}), got {got}.")
-    return arr.astype(float)
 
 
 class Aggregate:
@@ -106,7 +94,7 @@ class Aggregate:
             raise ValueError(f"`kind` must be one of {KINDS}, got {kind!r}.")
         if values is None:
             raise ValueError("`values` must hold the measured aggregates, one per reading.")
-        vals = _reals(values, "values", "the measured aggregates, one per reading")
+        vals = np.asarray(as_float(values, "values"), float)
         if vals.ndim != 1:
             raise ValueError(
                 f"`values` must be a 1-D sequence of readings, got shape {vals.shape}."
@@ -114,7 +102,7 @@ class Aggregate:
         if np.any(np.isinf(vals)):
             raise ValueError("`values` must be finite (NaN marks a missing reading).")
         if matrix is not None:
-            A = _reals(matrix, "matrix", "the (m, T) aggregation weights")
+            A = np.asarray(as_float(matrix, "matrix"), float)
             if A.ndim != 2:
                 raise ValueError(f"`matrix` must be a 2-D (m, T) array, got shape {A.shape}.")
             if not np.all(np.isfinite(A)):
@@ -159,7 +147,7 @@ class Aggregate:
         if vals.shape[0] == 0:
             raise ValueError("an `Aggregate` needs at least one reading.")
         if weight is not None:
-            w = _reals(weight, "weight", "a scalar or one per reading")
+            w = np.asarray(as_float(weight, "weight"), float)
             if w.shape not in ((), vals.shape):
                 raise ValueError(
                     f"`weight` must be a scalar or one per reading ({vals.shape[0]},), got "

@@ -29,6 +29,7 @@ import contextlib
 import functools
 import math
 import numbers
+import os
 import warnings
 from typing import Any, NamedTuple
 
@@ -57,6 +58,18 @@ def is_count(value, least) -> bool:
         and int(value) == value
         and value >= least
     )
+
+
+def check_path(path, name="path", what="a file or folder", optional=True):
+    """A TypeError unless `path` is a non-empty str or an `os.PathLike` (or None, where
+    `optional`)."""
+    if path is None and optional:
+        return
+    if not isinstance(path, (str, os.PathLike)) or path == "":
+        raise TypeError(
+            f"`{name}` must be a str or os.PathLike ({what}){' or None' if optional else ''}, "
+            f"got {path!r}."
+        )
 
 
 def is_weak(a) -> bool:

@@ -7,11 +7,11 @@ compilation (tracing the model still runs). The library never changes JAX's
 configuration by itself; `enable_compilation_cache` is the one call that does.
 """
 
-import os
 from pathlib import Path
 
 import jax
 
+from ._checks import check_path
 from .datasets._locations import default_cache_dir
 
 
@@ -57,10 +57,7 @@ def enable_compilation_cache(
     result = oj.fit(model, theta0, x0, u, z)  # compiled once, loaded in later processes
     ```
     """
-    if path is not None and (not isinstance(path, (str, os.PathLike)) or path == ""):
-        raise TypeError(
-            f"`path` must be a folder path (a non-empty str or os.PathLike), got {path!r}."
-        )
+    check_path(path, what="the cache folder")
     try:
         folder = Path(default_cache_dir() / "jax" if path is None else path).expanduser()
         folder = folder.resolve()

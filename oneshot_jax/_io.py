@@ -41,7 +41,6 @@ import dataclasses
 import functools
 import hashlib
 import json
-import os
 import zipfile
 import zlib
 from itertools import zip_longest
@@ -52,6 +51,7 @@ import jax
 import numpy as np
 
 from . import _pytree
+from ._checks import check_path
 from ._model import Model
 from ._results import from_name, name_of
 
@@ -264,10 +264,7 @@ def save_result(result, path):
 
 
 def _as_path(path) -> Path:
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(
-            f"`path` must be a file path (str or os.PathLike), got {type(path).__name__}."
-        )
+    check_path(path, what="the result's file", optional=False)
     return Path(path)
 
 

@@ -632,9 +632,9 @@ def test_functions_of_a_model_refuse_a_result(lin_result):
 
 
 def test_save_and_load_name_their_arguments(lin_result, tmp_path):
-    with pytest.raises(TypeError, match=r"`path` must be a file path"):
+    with pytest.raises(TypeError, match=r"`path` must be a str or os.PathLike"):
         oj.load_result(123)
-    with pytest.raises(TypeError, match=r"`path` must be a file path"):
+    with pytest.raises(TypeError, match=r"`path` must be a str or os.PathLike"):
         lin_result.save(None)
     path = lin_result.save(tmp_path / "r")
     with pytest.raises(TypeError, match=r"`model` must be a oneshot_jax.Model \(or None\)"):

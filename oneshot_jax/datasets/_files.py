@@ -6,11 +6,11 @@ what was expected. Where the files are looked for, and the error types, are in
 from __future__ import annotations
 
 import csv
-import os
 from pathlib import Path
 
 import numpy as np
 
+from .._checks import check_path as check_path
 from ._download import fetch
 from ._locations import (
     CACHE_ENV_VAR,
@@ -23,15 +23,6 @@ from ._locations import (
     default_cache_dir,
     find_folder,
 )
-
-
-def check_path(path, name="path"):
-    """A TypeError unless `path` is None, a str or an `os.PathLike`."""
-    if path is not None and not isinstance(path, (str, os.PathLike)):
-        raise TypeError(
-            f"`{name}` must be a str or os.PathLike (a file or folder) or None, got "
-            f"{type(path).__name__}."
-        )
 
 
 def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, on_missing):
