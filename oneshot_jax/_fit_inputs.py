@@ -34,7 +34,7 @@ from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
-from ._starts import check_fixed_starts, check_held_x0_starts, theta_starts
+from ._starts import check_finite_starts, check_fixed_starts, check_held_x0_starts, theta_starts
 from ._timing import split_intervals
 from ._validation import monitor
 from ._windows import cut
@@ -155,11 +155,7 @@ def check_inputs(
     if x0_axis:
         x0_starts = np.asarray(x0)
         x0 = x0_starts[0]
-        if np.issubdtype(x0_starts.dtype, np.number) and not np.all(np.isfinite(x0_starts)):
-            bad = np.unique(np.argwhere(~np.isfinite(x0_starts))[:, 0]).tolist()
-            raise ValueError(
-                f"`x0` must be finite; the starts {bad} (first axis) have a NaN or inf entry."
-            )
+        check_finite_starts(x0_starts, "x0")
 
     if window is not None:
         if u_ndim != 2:

@@ -104,13 +104,12 @@ def _check_head(u, z, n, z_name="z"):
             f"`{z_name}` must have shape (T, n_z) (one record), got shape {np.shape(z)}."
         )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
-    if n is None and z_name != "z":  # (n is the head's length: name the head)
+    if n is None:  # (n is z's length: name z)
         if not 1 <= T_z <= T:
             raise ValueError(
                 f"`{z_name}` must have 1 to {T} rows (the first outputs of the record of `u`), "
                 f"got {T_z}."
             )
-    if n is None:
         n = T_z
     if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
         raise TypeError(f"`n` (the number of head samples) must be an integer, got {n!r}.")

@@ -129,13 +129,13 @@ def check_schedule(schedule, name):
         )
 
 
-def check_learning_rate(learning_rate, allow_none, name="`learning_rate`"):
+def check_learning_rate(learning_rate, allow_none):
     """Raise a ValueError unless `learning_rate` is a step size: a finite scalar > 0 or an
     optax schedule (or None where `allow_none`)."""
     if learning_rate is None and allow_none:
         return
     if callable(learning_rate):
-        check_schedule(learning_rate, name)
+        check_schedule(learning_rate, "`learning_rate`")
         return
     try:
         ok = np.ndim(learning_rate) == 0 and (

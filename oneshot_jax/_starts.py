@@ -184,14 +184,18 @@ def theta_starts(multistart, theta0, n_x0_starts):
     if n < 1:
         raise ValueError("`multistart` needs at least one start; the leading axis has size 0.")
     for path, leaf in jax.tree_util.tree_leaves_with_path(stacked):
-        a = np.asarray(leaf)
-        if np.issubdtype(a.dtype, np.number) and not np.all(np.isfinite(a)):
-            bad = np.unique(np.argwhere(~np.isfinite(a))[:, 0]).tolist()
-            raise ValueError(
-                f"`theta0{jax.tree_util.keystr(path)}` must be finite; the starts {bad} (first "
-                "axis) have a NaN or inf entry."
-            )
+        check_finite_starts(leaf, f"theta0{jax.tree_util.keystr(path)}")
     return stacked, n
+
+
+def check_finite_starts(starts, name):
+    """A ValueError naming the starts (first axis) of `starts` that have a NaN or inf."""
+    a = np.asarray(starts)
+    if np.issubdtype(a.dtype, np.number) and not np.all(np.isfinite(a)):
+        bad = np.unique(np.argwhere(~np.isfinite(a))[:, 0]).tolist()
+        raise ValueError(
+            f"`{name}` must be finite; the starts {bad} (first axis) have a NaN or inf entry."
+        )
 
 
 def check_fixed_starts(starts_flat, fixed_flat, theta):
