@@ -515,6 +515,11 @@ FIT_CASES = {
         ValueError,
         r"`theta0\['a'\]` must be finite; the starts \[1\]",
     ),
+    "NaN start of x0": (
+        dict(x0=np.array([[0.0], [np.nan]]), multistart={"a": np.array([0.5, 0.6])}),
+        ValueError,
+        r"`x0` must be finite; the starts \[1\]",
+    ),
     "integer penalty": (
         dict(penalty=lambda x, th: jnp.sum(x > 0)),
         ValueError,
