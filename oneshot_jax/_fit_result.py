@@ -30,12 +30,15 @@ def stop_detail(status: str, info: dict) -> str:
     at = info.get("at_step")
     known = np.isfinite(fo)
     vs = f"first-order measure {_g(fo)}" + (f" (gtol {_g(gtol)})" if np.isfinite(gtol) else "")
-    step_test = (
-        f"the step test fired (step {_g(step)} relative to the scaled parameters, rtol "
-        f"{_g(info.get('rtol'))}, atol {_g(info.get('atol'))})"
-        if info.get("step_test")
-        else ""
-    )
+    tolerances = f"rtol {_g(info.get('rtol'))}, atol {_g(info.get('atol'))}"
+    step_test = ""
+    if info.get("step_test"):
+        step_test = (
+            f"the step test fired (step {_g(step)} relative to the scaled parameters, {tolerances})"
+            if np.isfinite(step)
+            # (A wrapped solver's own test, such as optimistix's on the step and the loss.)
+            else f"the solver's own test on its step and loss fired ({tolerances})"
+        )
     if status == "converged" and known:
         if not fo > gtol:
             return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}"

@@ -156,6 +156,28 @@ def test_user_thresholds_name_their_test_and_values():
     assert plain.status == "converged" and "step_test" not in plain.stop_info
 
 
+def test_an_optimistix_solver_stop_names_its_own_tolerances():
+    """optimistix stops on its own test (changes of the step and the loss within rtol,
+    atol): with a loose rtol it stops away from the solution, and the stop names that
+    test and its tolerances, not "no step decreases the loss"; a stop at a solution
+    names the first-order test."""
+    x0, u, z = data()
+    start = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    loose = oj.Optimistix(optx.LevenbergMarquardt(rtol=0.05, atol=1e-12))
+    r = oj.fit(MODEL, start, x0, u, z, solver=loose)
+    assert r.status == "stalled" and not r.success
+    assert r.stop_info["step_test"] and r.stop_info["rtol"] == 0.05
+    assert r.solver[0]["rtol"] == 0.05 and r.solver[0]["atol"] == 1e-12
+    assert r.message.startswith(
+        "the solver's own test on its step and loss fired (rtol 0.05, atol 1e-12): stalled, "
+        "first-order measure "
+    )
+    assert "no step decreases the loss" not in r.message
+    tight = oj.Optimistix(optx.GaussNewton(rtol=1e-10, atol=1e-14))
+    ok = oj.fit(MODEL, start, x0, u, z, solver=tight)
+    assert ok.status == "converged" and ok.message.startswith("first-order measure ")
+
+
 def test_x0_rows_show_their_standard_errors(fitted):
     text = str(fitted)
     x0, std = fitted.x0, fitted.x0_std

@@ -291,5 +291,17 @@ class Optimistix(AbstractSolver):
         return state.loss, state.gnorm
 
     def measures(self, state):
+        # optimistix's own termination test (its rtol/atol on the step and the loss) is
+        # this solver's step test: it fired wherever the inner solver stopped successfully.
         nan = jnp.full_like(state.loss, jnp.nan)
-        return Measures(state.first_order, nan, nan, nan, jnp.array(False))
+        failed = (state.result == RESULTS.no_progress) | (state.result == RESULTS.diverged)
+        return Measures(state.first_order, nan, nan, nan, state.done & ~failed)
+
+    def settings(self) -> dict:
+        """The options, with the optimistix solver's own rtol and atol (its step test)."""
+        out = super().settings()
+        for name in ("rtol", "atol"):
+            value = getattr(self.solver, name, None)
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                out[name] = float(value)
+        return out
