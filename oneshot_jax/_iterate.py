@@ -111,14 +111,16 @@ def _scores(problem: FitProblem, params: Params, val_x0):
 
 def _update_best(best: Best, params, score, val_x0, running):
     """Keep the iterate where its score improves on the best; count the others (a start
-    that has stopped keeps its count)."""
+    that has stopped keeps its count). The current iterate is the best one (`here`) where
+    it improves on it or ties with it: a step that a solver rejects leaves the iterate,
+    and its score, as they were, and the point the solver stops at is then still the best."""
     better = score < best.score
     return Best(
         jnp.where(better, score, best.score),
         _freeze(better, params, best.params),
         val_x0,
         jnp.where(better, 0, best.since + running.astype(best.since.dtype)),
-        better | (best.here & ~running),
+        (score <= best.score) | (best.here & ~running),
     )
 
 

@@ -89,3 +89,16 @@ def test_scale_checks():
             solver=oj.Adam(scale="theta0"),
             regulariser=sparsity.l1(1e-3),
         )
+
+
+def test_each_start_of_a_multistart_takes_its_own_magnitude():
+    """With starts over k, every start steps relative to its own |k|: each start ends
+    where a single fit from it ends (all of them took the first start's magnitude)."""
+    model, u, z, x0 = _data()
+    solver = oj.Adam(scale="theta0", lr_theta=1e-2, max_steps=30)
+    ks = np.array([2.0, 12.0, 30.0])
+    multi = oj.fit(model, {"k": 12.0, "c": 0.1}, x0, u, z, solver=solver, multistart={"k": ks})
+    for i, k in enumerate(ks):
+        single = oj.fit(model, {"k": k, "c": 0.1}, x0, u, z, solver=solver)
+        np.testing.assert_allclose(multi.starts.theta["k"][i], single.theta["k"], rtol=1e-9)
+        np.testing.assert_allclose(multi.starts.loss[i], single.loss, rtol=1e-9)

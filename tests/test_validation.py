@@ -124,6 +124,26 @@ def test_keeps_the_best_across_solvers_and_says_so(tmp_path):
     np.testing.assert_array_equal(back.history.validation, res.history.validation)
 
 
+def test_a_solution_that_is_also_the_best_scored_iterate_keeps_its_status():
+    """Validation on the training record itself (x0 known and held): the score is the
+    training loss, so the point the solver stops at is the best-scored iterate. A solver
+    that stops after a step it rejects (the round-off test: the iterate and its score as
+    they were) reports the solution as such, not as a `validation` stop at another
+    point (it did, because the rejected step's tie did not count as the best)."""
+    u, z, x0 = _record(4, 200, 0.05)
+    start = {"k": 3.0, "c": 0.2, "g": 0.8}
+    val = oj.Validation(u, z, n=None, x0=x0)
+    for solver in (oj.LevenbergMarquardt(gtol=1e-14), oj.GaussNewton(gtol=1e-14)):
+        plain = oj.fit(MODEL, start, x0, u, z, estimate_x0=False, solver=solver)
+        # (The round-off test, after a rejected step, is the case where they differed.)
+        assert plain.status == "converged" and plain.stop_info["first_order"] > 1e-14
+        res = oj.fit(MODEL, start, x0, u, z, estimate_x0=False, solver=solver, validation=val)
+        assert res.status == "converged" and res.success, res.message
+        for k in TRUTH:
+            assert res.theta[k] == plain.theta[k]
+        np.testing.assert_allclose(res.validation_loss, res.loss, rtol=1e-10)
+
+
 def test_patience_stops_early():
     u, z, x0 = _record(2, 60, 0.3)
     uv, zv, _ = _record(3, 300, 0.01)

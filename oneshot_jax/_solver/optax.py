@@ -393,7 +393,9 @@ class Adam(_AbstractOptax):
         (|theta0_i| = 0 counts as 1), so that lr_theta is a relative rate for them, while
         a network's weights keep the absolute rate. This is Adam on the parameters
         theta_i / |theta0_i| (up to eps): physical parameters of scale 0.05 and 15 then
-        move at the same relative pace. Not with a regulariser.
+        move at the same relative pace. theta0 is where this solver starts: each start of
+        a multistart its own, and after another solver of a sequence, where that one
+        stopped. Not with a regulariser.
     - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
 
@@ -432,7 +434,7 @@ class Adam(_AbstractOptax):
         if problem.regulariser is None:
             theta_tx = optax.adam(self.lr_theta, self.b1, self.b2, self.eps)
             if self.scale == "theta0":
-                theta_tx = optax.chain(theta_tx, _scale_by(relative_scale(problem)))
+                theta_tx = optax.chain(theta_tx, _scale_by_start(problem.nuisance))
             return optax.partition({"theta": theta_tx, "x0": x0_tx}, {"theta": "theta", "x0": "x0"})
         # The regulariser as a prox on the flat free entries (what the transform sees).
         flat = ProximalTransformation(
@@ -589,25 +591,31 @@ class LBFGS(_AbstractOptax):
         )
 
 
-def relative_scale(problem: FitProblem):
-    """Per free entry of theta: |theta0_i| (1 where it is 0) for the named parameters, 1
-    for a network's weights (`FitProblem.nuisance`): `Adam(scale="theta0")`'s factors."""
-    start = jnp.abs(jnp.asarray(problem.theta_base)[np.asarray(problem.theta_free, int)])
-    factor = jnp.where(start > 0, start, 1.0)
-    if problem.nuisance:
-        factor = factor.at[np.asarray(problem.nuisance, int)].set(1.0)
-    return factor
+class _StartScale(NamedTuple):
+    factor: Any  # |theta_i| at the start (1 where it is 0, and for a network's weights)
 
 
-def _scale_by(factor) -> optax.GradientTransformation:
-    """Multiply the updates (theta's free entries, within `optax.partition`'s masked
-    dict) by a fixed array of factors, elementwise."""
+def _scale_by_start(nuisance) -> optax.GradientTransformation:
+    """`Adam(scale="theta0")`'s factors: multiply the updates of theta's free entries
+    (within `optax.partition`'s masked dict) by their magnitude at the start of the run,
+    |theta_i| (1 where it is 0), and those of a network's weights (`nuisance`) by 1. The
+    factors are taken from the parameters `init` is given: each start of a multistart
+    its own."""
+    nuisance = np.asarray(nuisance, int)
+
+    def factor(start):
+        start = jnp.abs(start)
+        out = jnp.where(start > 0, start, jnp.ones_like(start))
+        return out.at[nuisance].set(1.0) if nuisance.size else out
+
+    def init(params):
+        return _StartScale(jax.tree_util.tree_map(factor, params))
 
     def update(updates, state, params=None):
         del params
-        return jax.tree_util.tree_map(lambda a: a * factor, updates), state
+        return jax.tree_util.tree_map(lambda a, f: a * f, updates, state.factor), state
 
-    return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
+    return optax.GradientTransformation(init, update)
 
 
 def _by_part(theta_tx, x0_tx) -> optax.GradientTransformation:
