@@ -1,6 +1,6 @@
 """`python -m experiments ...`: the same as `python experiments/run.py ...`."""
 
-from experiments.run import main
+from experiments.run import cli
 
 if __name__ == "__main__":
-    main()
+    cli()

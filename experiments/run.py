@@ -232,5 +232,24 @@ def task(cfg: DictConfig) -> None:
 main = hydra.main(version_base="1.3", config_path=str(REPO / "configs"), config_name="config")(task)
 
 
-if __name__ == "__main__":
+def check_groups(argv) -> str | None:
+    """The message for a config group set to null on the command line (`experiment=null`,
+    `solver=~`), which Hydra answers with a traceback of its own; None if there is none."""
+    for arg in argv:
+        group, sep, value = arg.lstrip("+~").partition("=")
+        if sep and group in ("experiment", "solver") and value.strip().lower() in ("null", "~", ""):
+            options = sorted(p.stem for p in (REPO / "configs" / group).glob("*.yaml"))
+            return f"`{group}` must name one of {', '.join(options)}, got {arg!r}."
+    return None
+
+
+def cli() -> None:
+    """The command line: Hydra's `main`, after `check_groups`."""
+    if (message := check_groups(sys.argv[1:])) is not None:
+        print(f"invalid configuration: {message}", file=sys.stderr)
+        sys.exit(2)
     main()
+
+
+if __name__ == "__main__":
+    cli()

@@ -230,6 +230,18 @@ def test_cli_refuses_a_bad_value_before_running(tmp_path):
     assert not list(out.glob("*.png"))
 
 
+def test_cli_refuses_a_group_set_to_null(tmp_path):
+    """`experiment=null` (or `solver=~`) stops with exit status 2 and the options of the
+    group, not Hydra's traceback ("Config group override must be a string")."""
+    for args, module in ((["experiment=null"], False), (["solver=~"], True)):
+        proc = _cli([f"hydra.run.dir={tmp_path / 'run'}", *args], cwd=REPO, module=module)
+        assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+        group = args[0].split("=")[0]
+        assert f"invalid configuration: `{group}` must name one of " in proc.stderr
+        assert "levenberg_marquardt" in proc.stderr or "satellite" in proc.stderr
+        assert "Traceback" not in proc.stderr
+
+
 def test_cli_names_experiment_data_path_when_the_benchmark_files_are_missing(tmp_path):
     """A real-data run without its files stops with exit status 2 and says how a run is
     given them (`experiment.data_path`), not only the loader's own `path=`."""
