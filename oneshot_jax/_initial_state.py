@@ -38,9 +38,10 @@ class X0Estimate(eqx.Module):
 
     - `x0`: the estimate, shape (n_x,).
     - `covariance`: its (n_x, n_x) covariance; `std` the standard deviations. For
-        `"lsq"`, sigma^2 (J^T Q J)^+ with sigma^2 = SSE / (n n_z - n_x) estimated from the
-        residuals (inf in the rows of an entry the head does not determine, and everywhere
-        when n n_z <= n_x); for `"smoother"`, the smoothed posterior covariance P[0 | n-1]
+        `"lsq"`, sigma^2 (J^T Q J)^+ with sigma^2 = SSE / (m - n_x) estimated from the
+        residuals, m the measured output entries of the head (n n_z without missing
+        samples; inf in the rows of an entry the head does not determine, and everywhere
+        when m <= n_x); for `"smoother"`, the smoothed posterior covariance P[0 | n-1]
         under the given noise covariances and prior.
     - `identifiable`: (n_x,) booleans, False for an entry the head's outputs do not
         determine (a numerically null direction of J^T Q J, J = d z[0..n-1] / d x0).

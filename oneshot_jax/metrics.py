@@ -7,7 +7,10 @@ Toolbox (`compare`, `fpe`/`aic`). They are compiled JAX functions (and jittable)
 channel is constant over the samples scored, `nrmse`, `fit_percent` and `r2` divide by
 its zero deviation from its mean: inf, -inf and -inf for a model that misses it, NaN
 (0 / 0) for one that reproduces it exactly; `aic` is -inf where the errors are exactly
-zero (log det 0). `benchmark_scores` refuses a constant channel instead.
+zero (log det 0). `benchmark_scores` refuses a constant channel instead. A NaN sample (a
+missing one) counts only through `mask`: without one, a NaN in z or zhat makes that
+output's value NaN; pass `mask=~np.isnan(z)` to leave missing samples out, as
+`FitResult.metrics` does.
 
 `benchmark_scores` scores a simulation under the community's benchmark protocol (the
 first n samples are left out) with the definitions of `nonlinear_benchmarks.error_metrics`;
