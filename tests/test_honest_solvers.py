@@ -328,6 +328,58 @@ def test_optimistix_stops_along_an_active_bound():
     assert float(r.loss) == pytest.approx(float(lm.loss), rel=1e-9)
 
 
+def _oscillator_data(T=120, seed=0):
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["w0sq"] * x[0] - th["c"] * x[1] + th["b"] * u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((T, 1))
+    x0 = np.array([1.0, 0.0])
+    _, z = oj.simulate(model, {"w0sq": 4.0, "c": 0.3, "b": 1.0}, x0, u)
+    return model, x0, u, np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+
+
+@pytest.mark.parametrize(
+    "inner, lower, upper, theta0, estimate_x0",
+    [
+        # Gauss-Newton walked out of the box (the unclipped Jacobian) until every entry
+        # was clipped, held all three at the vertex and ran to max_steps there; b is
+        # interior at the optimum.
+        (
+            "GaussNewton",
+            {"w0sq": 4.5, "c": 0.4, "b": 1.2},
+            None,
+            {"w0sq": 5.0, "c": 0.5, "b": 1.5},
+            True,
+        ),
+        # Indirect LM from a corner of the box: every step was rejected at the bounds and
+        # the fit returned the start at max_steps; c leaves its bound at the optimum.
+        ("IndirectLevenbergMarquardt", {"c": 0.35}, {"w0sq": 3.5}, None, False),
+        # LM held c at its lower bound and never let it go (`stalled`, measure 0.06).
+        ("LevenbergMarquardt", {"c": 0.35}, {"w0sq": 3.5}, None, False),
+    ],
+)
+def test_optimistix_active_set_holds_and_releases_bounds(inner, lower, upper, theta0, estimate_x0):
+    """The optimistix bridge's active set reaches the box-constrained optimum that
+    Levenberg-Marquardt (the library's, bounds inside) finds: entries to hold are held as
+    soon as a solver fed the unclipped Jacobian meets them, and a held entry whose
+    gradient points into the box is released."""
+    model, x0, u, z = _oscillator_data()
+    theta0 = theta0 or {"w0sq": 3.5, "c": 0.35, "b": 1.0}  # (a corner of the box)
+    box = oj.constraints.box(lower=lower, upper=upper)
+    kw = dict(constraints=box, estimate_x0=estimate_x0)
+    ref = oj.fit(model, theta0, x0, u, z, **kw)
+    solver = oj.Optimistix(getattr(optx, inner)(rtol=1e-8, atol=1e-8), max_steps=400)
+    r = oj.fit(model, theta0, x0, u, z, solver=solver, **kw)
+    assert ref.success and r.success, r.message
+    assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-8)
+    for k in theta0:
+        assert float(r.theta[k]) == pytest.approx(float(ref.theta[k]), rel=1e-5, abs=1e-8)
+    on_bound = [k for k in theta0 if float(ref.theta[k]) in (lower.get(k), (upper or {}).get(k))]
+    assert sorted(r.stop_info.get("at_bound", [])) == sorted(on_bound)
+
+
 def test_the_issue_pendulum_with_an_inactive_bound_reaches_the_optimum():
     """The reported case: a bound c >= 0, inactive at the optimum, made LM and GN report
     'converged' after 2 steps at FIT 20 % (c = 3.56)."""

@@ -9,12 +9,14 @@ one compiled call, multistart runs under vmap, and every step is recorded.
 Box constraints: optimistix has no bounds, so the bridge keeps an active set. The model is
 only ever simulated at the projected point P(y), and for LM and the minimisers the
 derivatives are those of C(P(y)): zero along an entry that the box clips (`_flat`). When
-the inner solve stops, every free
-entry at a bound whose gradient points outwards is held at the bound (extra residuals
-y_i - bound_i, zero at the solution, keep the Jacobian's rank) and the solver starts again
-from there, until no bound is violated: the returned point is feasible and satisfies the
-optimality conditions on the box. A general projection (`constraints.project`) is applied
-as P(y) without an active set.
+the inner solve stops, every free entry at a bound whose gradient points outwards is held
+at the bound (extra residuals y_i - bound_i, zero at the solution, keep the Jacobian's
+rank), every held entry whose gradient points into the box is released, and the solver
+starts again from there (the solvers that see the unclipped Jacobian, such as
+Gauss-Newton and Dogleg, as soon as an entry is to be held), for at most 4 (p + 1)
+rounds. The returned point is feasible; whether it satisfies the optimality conditions on
+the box is the first-order test's to say (`converged`, or `stalled` where it does not). A
+general projection (`constraints.project`) is applied as P(y) without an active set.
 """
 
 from typing import Any, NamedTuple
@@ -233,17 +235,28 @@ class Optimistix(AbstractSolver):
         loss, g = problem.value_and_grad(params, self.strategy)
         gnorm = grad_norm(g)
 
-        # Active set: free entries at a bound whose gradient points outwards get held.
+        # Active set: free entries at a bound whose gradient points outwards get held;
+        # where the inner solve has stopped, held entries whose gradient points into the
+        # box are released. A solver fed the unclipped Jacobian (`_flat`: Gauss-Newton,
+        # Dogleg, IndirectLevenbergMarquardt) is restarted as soon as an entry is to be
+        # held: it would otherwise walk on outside the box, where C(P(y)) no longer
+        # changes, or have every step rejected at a bound.
+        stop = inner_done
         if problem.lower is not None:
             at_lo = params.theta <= problem.lower
             at_hi = params.theta >= problem.upper
             push = (at_lo & (g.theta > 0)) | (at_hi & (g.theta < 0))
-            new_mask = state.held.mask | (push & ~state.held.mask)
+            inward = (at_lo & (g.theta < 0)) | (at_hi & (g.theta > 0))
+            release = state.held.mask & inward & (problem.lower < problem.upper)
+            new_mask = state.held.mask | push
+            new_mask = jnp.where(inner_done, new_mask & ~release, new_mask)
+            if not self._fn().beyond:
+                stop = stop | jnp.any(push & ~state.held.mask)
         else:
             new_mask = state.held.mask
         changed = jnp.any(new_mask != state.held.mask)
-        n_rounds = params.theta.shape[0] + 1
-        restart = inner_done & changed & (state.rounds < n_rounds)
+        n_rounds = 4 * (params.theta.shape[0] + 1)
+        restart = stop & changed & (state.rounds < n_rounds)
         held = _Held(
             new_mask, jnp.where(new_mask & ~state.held.mask, params.theta, state.held.values)
         )
