@@ -250,9 +250,8 @@ class _AbstractOptax(AbstractSolver):
         count = optax.safe_increment(state.count)
         # The last step's measure is exact (the one reported): at max_steps, and where
         # tol_loss or tol_grad stop the fit.
-        final = (count >= self.max_steps) | (grad_norm(g_new) < self.tol_grad)
-        if self.tol_loss is not None:
-            final = final | (obj < self.tol_loss)
+        small_loss, small_grad = self._thresholds(obj, grad_norm(g_new))
+        final = (count >= self.max_steps) | small_loss | small_grad
         fo, stationary, scale = check_first_order(
             problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy, final=final
         )
@@ -272,12 +271,17 @@ class _AbstractOptax(AbstractSolver):
             held,
         )
 
+    def _thresholds(self, loss, gnorm):
+        """Whether the user's thresholds hold (Algorithm 1's epsilon and delta): the
+        objective below `tol_loss`, the gradient norm below `tol_grad`."""
+        small_loss = jnp.array(False) if self.tol_loss is None else loss < self.tol_loss
+        return small_loss, gnorm < self.tol_grad
+
     def terminate(self, problem, params, state):
         del problem, params
         gnorm = grad_norm(state.grad)
         finite = jnp.isfinite(state.loss) & jnp.isfinite(gnorm)
-        small_loss = jnp.array(False) if self.tol_loss is None else state.loss < self.tol_loss
-        small_grad = gnorm < self.tol_grad
+        small_loss, small_grad = self._thresholds(state.loss, gnorm)
         stalled = (state.stalls >= 2) & ~state.stationary
         result = RESULTS.where(
             zero_residual(state.smooth, state.data), RESULTS.zero_residual, RESULTS.stalled
@@ -412,10 +416,12 @@ class Adam(_AbstractOptax):
     scale: str | None = None
 
     def __check_init__(self):
-        rates = tuple(f for f in ("lr_theta", "lr_x0") if not callable(getattr(self, f)))
+        rates = []  # (the numbers among them; a schedule is checked as one)
         for f in ("lr_theta", "lr_x0"):
             if callable(getattr(self, f)):
                 check_schedule(getattr(self, f), f"`Adam({f}=...)`")
+            else:
+                rates.append(f)
         check_options(self, non_negative=rates, positive=("eps",), fractions=("b1", "b2"))
         if self.scale not in (None, "theta0"):
             raise ValueError(f"`Adam(scale=...)` must be None or 'theta0', got {self.scale!r}.")

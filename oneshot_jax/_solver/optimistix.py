@@ -199,9 +199,13 @@ class Optimistix(AbstractSolver):
     def _minimise(self):
         return isinstance(self.solver, optx.AbstractMinimiser)
 
+    @property
+    def _damped(self):
+        """Whether the solver damps its step, so that it sees C(P(y)) (`_flat`)."""
+        return self._minimise or isinstance(self.solver, optx.LevenbergMarquardt)
+
     def _fn(self):
-        damped = self._minimise or isinstance(self.solver, optx.LevenbergMarquardt)
-        return _Fn(self._minimise, self.strategy, damped)
+        return _Fn(self._minimise, self.strategy, self._damped)
 
     def _inner_init(self, problem, y, held):
         fn = self._fn()
@@ -250,7 +254,7 @@ class Optimistix(AbstractSolver):
             release = state.held.mask & inward & (problem.lower < problem.upper)
             new_mask = state.held.mask | push
             new_mask = jnp.where(inner_done, new_mask & ~release, new_mask)
-            if not self._fn().beyond:
+            if not self._damped:
                 stop = stop | jnp.any(push & ~state.held.mask)
         else:
             new_mask = state.held.mask
