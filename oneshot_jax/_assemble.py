@@ -51,6 +51,7 @@ class Out(NamedTuple):
     decrease: jax.Array
     standard_errors: jax.Array
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
+    vanished: jax.Array  # whether first_order is a stall's with vanished columns
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
@@ -103,6 +104,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.decrease[best],
         m.standard_errors[best],
         m.step_test[best],
+        m.vanished[best],
         None if final.best is None else final.best.score[best],
     )
 
@@ -343,6 +345,8 @@ def assemble(
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
         stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
+    if bool(out.vanished):  # (`_optimality.stall_test`: a degenerate minimum)
+        stop_info["vanished"] = True
     if status in ("tol_loss", "tol_grad"):
         last = out.stages[-1]
         stop_info[status] = last_solver.get(status)
@@ -356,6 +360,9 @@ def assemble(
         C = last.loss[int(last.rows)]
         big = np.sqrt(np.finfo(np.asarray(C).dtype).max)
         stop_info["nonfinite"] = "gradient" if np.isfinite(C) and abs(C) < big else "loss"
+    if status == "validation":  # the score that chose the point, and the patience
+        stop_info["validation_loss"] = float(out.validation_loss)
+        stop_info["patience"] = problem.validation.patience
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
     return _pytree.build(

@@ -50,9 +50,15 @@ def stop_detail(status: str, info: dict) -> str:
             )
         limit = info.get("roundoff_limit", np.nan)
         why = step_test or "no step decreases the loss at round-off"
+        vanished = (
+            ", with the Jacobian columns that vanished along the fit measured at the largest "
+            "norm they had (a degenerate minimum, such as c at 0 for a term c**2 u)"
+            if info.get("vanished")
+            else ""
+        )
         return (
             f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
-            f"{_g(gtol)}), where the fit stopped for lack of progress ({why})"
+            f"{_g(gtol)}){vanished}, where the fit stopped for lack of progress ({why})"
         )
     if status in ("tol_loss", "tol_grad"):
         what, value = (
@@ -94,6 +100,11 @@ def stop_detail(status: str, info: dict) -> str:
         return (
             f"{listed} never moved from the start, where their gradient and Jacobian column "
             f"are exactly zero (the solver stopped with {info.get('solver_stop', '?')})"
+        )
+    if status == "validation":
+        patience = info.get("patience")
+        return f"lowest validation loss {_g(info.get('validation_loss'))}" + (
+            f" (patience {patience})" if patience is not None else ""
         )
     if status in ("max_steps_reached", "no_progress") and known:
         return f"{vs} not met"

@@ -28,6 +28,16 @@ A loss evaluated in floating point resolves the measure down to about sqrt(eps) 
 (`roundoff_limit`): where no step decreases C any more, a measure below 10 sqrt(eps)
 also counts as stationary.
 
+At a degenerate minimum a column of J vanishes with the gradient (a parameter c entering
+as c^2 u, the minimum at c = 0: J e_c = 2 c u and g_c = 2 c u^T r), and its cosine stays
+at |u^T r| / (||u|| ||r||), however close to the minimum: the measure is then no test of
+stationarity. Where no step decreases C any more (a stall), a column whose squared norm
+has fallen below sqrt(eps) times the largest it had along the fit is measured at that
+largest norm instead (More's running scaling, "The Levenberg-Marquardt algorithm:
+implementation and theory", 1978, eq. (6.3); `stall_test`): the gradient is then tested
+in the scaling the parameter had before its column vanished, and the fit converges there
+where that measure is below the round-off limit (`Measures.vanished` says so).
+
 Where the data determine the outputs exactly (a zero-residual fit, noise-free data), r
 is round-off at the solution and the cosine is meaningless; `zero_residual` tests the
 loss against the round-off level of the data instead.
@@ -111,18 +121,21 @@ class Measures(NamedTuple):
     such test): the first-order measure, the last step's scaled size (relative to the
     scaled parameters), the decrease of the loss the last step's linear model predicted
     (relative to the loss), the last step's size in standard errors
-    (`standard_errors`), and whether the optional step test (rtol, atol) fired."""
+    (`standard_errors`), whether the optional step test (rtol, atol) fired, and whether
+    the first-order measure is that of a stall with vanished Jacobian columns measured
+    at their largest norm along the fit (`stall_test`)."""
 
     first_order: jax.Array
     step: jax.Array
     decrease: jax.Array
     standard_errors: jax.Array
     step_test: jax.Array
+    vanished: jax.Array
 
 
 def no_measures(dtype) -> Measures:
     nan = jnp.array(jnp.nan, dtype)
-    return Measures(nan, nan, nan, nan, jnp.array(False))
+    return Measures(nan, nan, nan, nan, jnp.array(False), jnp.array(False))
 
 
 def _measured(problem: FitProblem):
@@ -201,6 +214,37 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     moved = jnp.maximum(jnp.abs(trial - theta) - 4 * eps * jnp.abs(theta), 0.0)
     c_t = moved / (2.0 * t * jnp.sqrt(dt2) * norm)
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
+
+
+def vanished(d, top):
+    """Marquardt's diagonal with the columns that vanished along the fit (`stall_test`)
+    at the largest value `top` they had: d_i where d_i > sqrt(eps) top_i, else top_i."""
+    cut = jnp.sqrt(jnp.finfo(jnp.result_type(d)).eps)
+    return jnp.where(d <= cut * top, top, d)
+
+
+def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x):
+    """The first-order test where no step decreases C any more (a stall; see the module
+    docstring): the measure `first_order`, stationary at most `roundoff_limit`; and, where
+    that fails, the measure with the columns that vanished along the fit at the largest
+    norm they had (`vanished`; More 1978, eq. (6.3)), stationary at most the same limit.
+
+    **Arguments:**
+
+    - `problem`, `params`, `C`, `g`, `d_t`, `d_x`: as for `first_order`.
+    - `top_t`, `top_x`: the largest diag(J^T J) of each column along the fit (the shapes
+        of `d_t` and `d_x`).
+
+    **Returns:**
+
+    The measure the stall is tested on, whether it is stationary, and whether that
+    measure is the one with the vanished columns (a degenerate minimum).
+    """
+    limit = roundoff_limit(problem.dtype)
+    fo = first_order(problem, params, C, g, d_t, d_x)
+    kept = first_order(problem, params, C, g, vanished(d_t, top_t), vanished(d_x, top_x))
+    degenerate = (fo > limit) & (kept <= limit)
+    return jnp.where(degenerate, kept, fo), (fo <= limit) | degenerate, degenerate
 
 
 def data_scale(problem: FitProblem):
@@ -291,14 +335,22 @@ def rademacher_diagonal(problem: FitProblem, params: Params, traj, r, strategy, 
 class Scaling(NamedTuple):
     """Marquardt's diagonal kept by a solver that has no Jacobian at hand (the first-order
     solvers), to estimate the first-order measure at every step from the gradient alone;
-    refreshed where the estimate says the test may hold."""
+    refreshed where the estimate says the test may hold. `top_t`, `top_x`: the largest
+    diagonal of each column at the points it was formed at (the start and the refreshes),
+    for the test of a stall (`stall_test`)."""
 
     d_t: jax.Array
     d_x: jax.Array
+    top_t: jax.Array
+    top_x: jax.Array
 
 
-def scaling(problem: FitProblem, params: Params, strategy) -> Scaling:
-    return Scaling(*column_norms(problem, params, strategy))
+def scaling(problem: FitProblem, params: Params, strategy, kept: Scaling | None = None):
+    """The `Scaling` at `params`; with `kept`, the largest diagonals carried over."""
+    d_t, d_x = column_norms(problem, params, strategy)
+    if kept is None:
+        return Scaling(d_t, d_x, d_t, d_x)
+    return Scaling(d_t, d_x, jnp.maximum(kept.top_t, d_t), jnp.maximum(kept.top_x, d_x))
 
 
 def check_first_order(
@@ -321,18 +373,24 @@ def check_first_order(
     Jacobian) and the measure recomputed. `fresh=True` (static): `scale` was formed at
     `params`, so the measure is exact as it is (no Jacobian is traced). A positive `gtol`
     counts as at least the `resolution` of the dtype. Returns the measure, whether
-    `params` is stationary (the measure at most that `gtol`, or at a stall at most
-    `roundoff_limit`) and the scaling to keep.
+    `params` is stationary (the measure at most that `gtol`, or at a stall the test of
+    `stall_test`), the scaling to keep, and whether the measure is that of a stall with
+    vanished columns.
     """
     gtol = jnp.where(gtol > 0, jnp.maximum(gtol, resolution(problem.dtype)), gtol)
     half = Params(0.5 * grad.theta, 0.5 * grad.x0)
     fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     if not fresh:
         refresh = (fo <= gtol) | stall | final
-        scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy), scale)
+        scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy, scale), scale)
         fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
-    stationary = (fo <= gtol) | (stall & (fo <= roundoff_limit(problem.dtype)))
-    return fo, stationary, scale
+    met = fo <= gtol
+    at_stall, still, degenerate = stall_test(
+        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x
+    )
+    degenerate = stall & ~met & degenerate
+    fo = jnp.where(degenerate, at_stall, fo)
+    return fo, met | (stall & still), scale, degenerate
 
 
 def lazy_cond(pred, true_fn, false_value):

@@ -41,6 +41,7 @@ from ._optimality import check_first_order as check_first_order
 from ._optimality import data_scale as data_scale
 from ._optimality import first_order as first_order
 from ._optimality import scaling as scaling
+from ._optimality import stall_test as stall_test
 from ._optimality import standard_errors as standard_errors
 from ._parallel import METHOD_NAMES as METHOD_NAMES
 from ._parallel import diagonal_linear_recurrence as diagonal_linear_recurrence

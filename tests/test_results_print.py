@@ -178,6 +178,27 @@ def test_an_optimistix_solver_stop_names_its_own_tolerances():
     assert ok.status == "converged" and ok.message.startswith("first-order measure ")
 
 
+def test_max_steps_of_an_optimistix_solver_and_a_validation_stop_give_their_numbers():
+    """Every stop names its test with numbers: an optimistix solver at max_steps gave no
+    first-order measure (it was formed only where the inner solver stopped), and a
+    validation stop neither the score that chose the point nor the patience."""
+    x0, u, z = data()
+    start = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    short = oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), max_steps=8)
+    r = oj.fit(MODEL, start, x0, u, z, solver=short)
+    assert r.status == "max_steps_reached" and np.isfinite(r.stop_info["first_order"])
+    assert r.message.startswith(f"first-order measure {r.stop_info['first_order']:.3g} (gtol")
+    fresh = oj.fit(MODEL, r.theta, r.x0, u, z, solver=oj.Adam(max_steps=0), estimate_x0=True)
+    assert r.stop_info["first_order"] == pytest.approx(fresh.stop_info["first_order"], rel=1e-6)
+    x0v, uv, zv = data(seed=5)
+    val = oj.Validation(uv, zv, n=10, patience=2)
+    adam = oj.Adam(lr_theta=0.05, lr_x0=0.05, max_steps=400)
+    v = oj.fit(MODEL, start, x0, u, z, validation=val, solver=adam)
+    assert v.status == "validation"
+    assert v.stop_info["validation_loss"] == v.validation_loss and v.stop_info["patience"] == 2
+    assert v.message.startswith(f"lowest validation loss {v.validation_loss:.3g} (patience 2)")
+
+
 def test_x0_rows_show_their_standard_errors(fitted):
     text = str(fitted)
     x0, std = fitted.x0, fitted.x0_std

@@ -48,7 +48,7 @@ from .._linalg import (
     psd_solve,
     schur_complement,
 )
-from .._optimality import first_order, rademacher_diagonal, x0_columns
+from .._optimality import first_order, rademacher_diagonal, stall_test, x0_columns
 from .._problem import Params
 from .._sensitivity import Trajectory
 
@@ -112,8 +112,19 @@ class AbstractLinearisation(eqx.Module):
 
     def first_order(self, problem, params: Params):
         """The first-order measure at the linearisation point (`_optimality.first_order`)."""
-        d_x = self.diag_x() if params.x0.size else params.x0
-        return first_order(problem, params, self.C, Params(self.g_t, self.g_x), self.diag_t(), d_x)
+        d_t, d_x = self.diagonals(params)
+        return first_order(problem, params, self.C, Params(self.g_t, self.g_x), d_t, d_x)
+
+    def diagonals(self, params: Params):
+        """(diag_t, diag_x): Marquardt's diagonal of the theta and of the x0 columns."""
+        return self.diag_t(), (self.diag_x() if params.x0.size else params.x0)
+
+    def stall_test(self, problem, params: Params, top_t, top_x):
+        """The first-order test of a stall at the linearisation point, with the largest
+        diagonals `top_t`, `top_x` of the columns along the fit (`_optimality.stall_test`)."""
+        d_t, d_x = self.diagonals(params)
+        g = Params(self.g_t, self.g_x)
+        return stall_test(problem, params, self.C, g, d_t, d_x, top_t, top_x)
 
     def scaled_norm(self, p: Params):
         """||D p|| with D = sqrt(diag(J^T J)) (floored), which does not depend on units."""

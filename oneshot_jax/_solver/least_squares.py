@@ -33,7 +33,9 @@ measure at the current iterate, the scaled projected gradient, is at most `gtol`
 when it stops for lack of progress (no step decreases C at round-off, or the optional step
 test fired) with the measure at most its round-off limit 10 sqrt(eps) (a loss known
 to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
-converging fit can stop a little above gtol = 1e-8); it
+converging fit can stop a little above gtol = 1e-8; a column that vanished along the
+fit, at a degenerate minimum, is measured there at the largest norm it had:
+`_optimality.stall_test`); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
 round-off level of the data (also after an accepted step below round-off of the scaled
 parameters, ||D s|| <= eps ||D p||, where the loss keeps falling by round-off). Where
@@ -55,6 +57,7 @@ solver stops with `RESULTS.negative_penalty` (reporting the true loss) when it i
 """
 
 import abc
+import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -67,7 +70,6 @@ from .._optimality import (
     data_scale,
     lazy_cond,
     n_observations,
-    roundoff_limit,
     standard_errors,
     zero_residual,
 )
@@ -93,6 +95,7 @@ class LSQState(NamedTuple):
     done: jax.Array
     result: RESULTS
     primed: jax.Array  # whether `blocks` hold the linearisation (after the first step)
+    top: Params  # the largest diag(J^T J) of each column so far (`_optimality.stall_test`)
 
 
 class _Move(NamedTuple):
@@ -191,10 +194,11 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(nan, nan, nan, nan, jnp.array(False)),
+            Measures(nan, nan, nan, nan, jnp.array(False), jnp.array(False)),
             jnp.array(False),
             RESULTS.converged,
             jnp.array(False),
+            Params(*blocks.diagonals(params)),
         )
 
     def trial(self, problem, params, step, alpha):
@@ -411,7 +415,19 @@ class AbstractLeastSquares(AbstractSolver):
         # Where the fit stops for lack of progress (round-off, or the step test fired), a
         # measure below its round-off limit is stationary to the precision of the loss
         # (`_optimality`): the decrease left, about fo^2 C, is at round-off.
-        stationary = (fo <= self.gtol) | ((round_off | small_step) & (fo <= roundoff_limit(dtype)))
+        # (the columns that vanished along the fit measured at their largest norm: a
+        # degenerate minimum, `_optimality.stall_test`)
+        top = jax.tree_util.tree_map(
+            lambda *a: functools.reduce(jnp.maximum, a),
+            state.top,
+            Params(*b.diagonals(old)),
+            Params(*blocks.diagonals(params)),
+        )
+        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0)
+        met = fo <= self.gtol
+        degenerate = (round_off | small_step) & ~met & degenerate
+        stationary = met | ((round_off | small_step) & still)
+        fo = jnp.where(degenerate, at_stall, fo)
         se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
         negative = h_min < 0
         done = stationary | statistical | stalled | negative
@@ -441,9 +457,10 @@ class AbstractLeastSquares(AbstractSolver):
             ),
             se,
             small_step,
+            degenerate,
         )
         state = LSQState(
-            blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false
+            blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false, top
         )
         return params, state
 

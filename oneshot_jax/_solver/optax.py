@@ -15,7 +15,9 @@ computed at the start (one Jacobian, or a 16-probe estimate above 256 free entri
 again wherever the estimate from the kept diagonal passes the test, so the test that
 ends a fit is exact at the returned point. `LBFGS` is monotone: a step that does not
 decrease the loss is not taken; it tries once more from a fresh memory and then stops
-(`stalled`, or converged where the measure is below its round-off limit). With
+(`stalled`, or converged where the measure is below its round-off limit, with the
+columns that vanished along the fit measured at their largest norm:
+`_optimality.stall_test`). With
 constraints its quasi-Newton model covers the free entries only: the entries that a
 projected diagonal-Newton step leaves at their bound get a zero gradient, and the memory
 starts afresh when that set changes. A non-finite loss or gradient stops with
@@ -75,6 +77,7 @@ class _OptaxState(NamedTuple):
     data: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
     first_order: jax.Array  # the first-order measure at the current iterate
     stationary: jax.Array
+    vanished: jax.Array  # whether that measure is a stall's with vanished columns
     stalls: jax.Array  # (LBFGS) consecutive steps that did not decrease the loss
     held: jax.Array  # (LBFGS) entries of theta held by the constraints at the last step
 
@@ -166,7 +169,7 @@ class _AbstractOptax(AbstractSolver):
         obj = C + problem.g(params.theta)
         scale = scaling(problem, params, self.strategy)
         no = jnp.array(False)
-        fo, stationary, scale = check_first_order(
+        fo, stationary, scale, vanished = check_first_order(
             problem, params, C, g, scale, no, self.gtol, self.strategy, fresh=True
         )
         zero = jnp.array(0, jnp.int32)
@@ -183,6 +186,7 @@ class _AbstractOptax(AbstractSolver):
             data_scale(problem),
             fo,
             stationary,
+            vanished,
             zero,
             held,
         )
@@ -252,7 +256,7 @@ class _AbstractOptax(AbstractSolver):
         # tol_loss or tol_grad stop the fit.
         small_loss, small_grad = self._thresholds(obj, grad_norm(g_new))
         final = (count >= self.max_steps) | small_loss | small_grad
-        fo, stationary, scale = check_first_order(
+        fo, stationary, scale, vanished = check_first_order(
             problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy, final=final
         )
         return new, _OptaxState(
@@ -267,6 +271,7 @@ class _AbstractOptax(AbstractSolver):
             state.data,
             fo,
             stationary,
+            vanished,
             stalls,
             held,
         )
@@ -298,7 +303,7 @@ class _AbstractOptax(AbstractSolver):
 
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
-        return Measures(state.first_order, nan, nan, nan, jnp.array(False))
+        return Measures(state.first_order, nan, nan, nan, jnp.array(False), state.vanished)
 
     def postprocess(self, problem, params, state, result):
         del problem

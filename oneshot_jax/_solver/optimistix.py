@@ -14,9 +14,12 @@ at the bound (extra residuals y_i - bound_i, zero at the solution, keep the Jaco
 rank), every held entry whose gradient points into the box is released, and the solver
 starts again from there (the solvers that see the unclipped Jacobian, such as
 Gauss-Newton and Dogleg, as soon as an entry is to be held), for at most 4 (p + 1)
-rounds. The returned point is feasible; whether it satisfies the optimality conditions on
-the box is the first-order test's to say (`converged`, or `stalled` where it does not). A
-general projection (`constraints.project`) is applied as P(y) without an active set.
+rounds; where the inner solve stops with an entry beyond a bound (clipped) whose
+gradient points into the box, it starts again from the bound. The returned point is
+feasible (a diverged fit returns its last finite iterate); whether it satisfies the
+optimality conditions on the box is the first-order test's to say (`converged`, or
+`stalled` where it does not). A general projection (`constraints.project`) is applied as
+P(y) without an active set.
 """
 
 from typing import Any, NamedTuple
@@ -138,6 +141,9 @@ class _OptxState(NamedTuple):
     result: RESULTS
     rounds: jax.Array
     first_order: jax.Array  # the first-order measure where the inner solver stopped
+    count: jax.Array  # the steps taken (the measure is also formed at the last one)
+    last: Params  # the last iterate with a finite loss and gradient, and its loss
+    last_loss: jax.Array
 
 
 class Optimistix(AbstractSolver):
@@ -227,6 +233,9 @@ class Optimistix(AbstractSolver):
             RESULTS.converged,
             jnp.array(0),
             jnp.array(jnp.nan, loss.dtype),
+            jnp.array(0),
+            params,
+            loss,
         )
 
     def step(self, problem, params, state):
@@ -241,11 +250,15 @@ class Optimistix(AbstractSolver):
 
         # Active set: free entries at a bound whose gradient points outwards get held;
         # where the inner solve has stopped, held entries whose gradient points into the
-        # box are released. A solver fed the unclipped Jacobian (`_flat`: Gauss-Newton,
-        # Dogleg, IndirectLevenbergMarquardt) is restarted as soon as an entry is to be
-        # held: it would otherwise walk on outside the box, where C(P(y)) no longer
-        # changes, or have every step rejected at a bound.
+        # box are released, and so are entries that the iterate left beyond a bound
+        # (clipped, with a zero tangent for a damped solver: `_flat`) although their
+        # gradient points into the box: the restart puts them back on the bound. A
+        # solver fed the unclipped Jacobian (`_flat`: Gauss-Newton, Dogleg,
+        # IndirectLevenbergMarquardt) is restarted as soon as an entry is to be held: it
+        # would otherwise walk on outside the box, where C(P(y)) no longer changes, or
+        # have every step rejected at a bound.
         stop = inner_done
+        stuck = jnp.array(False)
         if problem.lower is not None:
             at_lo = params.theta <= problem.lower
             at_hi = params.theta >= problem.upper
@@ -254,11 +267,13 @@ class Optimistix(AbstractSolver):
             release = state.held.mask & inward & (problem.lower < problem.upper)
             new_mask = state.held.mask | push
             new_mask = jnp.where(inner_done, new_mask & ~release, new_mask)
+            beyond = (y[0] < problem.lower) | (y[0] > problem.upper)
+            stuck = inner_done & jnp.any(beyond & inward & ~new_mask)
             if not self._damped:
                 stop = stop | jnp.any(push & ~state.held.mask)
         else:
             new_mask = state.held.mask
-        changed = jnp.any(new_mask != state.held.mask)
+        changed = jnp.any(new_mask != state.held.mask) | stuck
         n_rounds = 4 * (params.theta.shape[0] + 1)
         restart = stop & changed & (state.rounds < n_rounds)
         held = _Held(
@@ -278,9 +293,11 @@ class Optimistix(AbstractSolver):
         nonfinite = (inner_result == optx.RESULTS.nonfinite) | ~jnp.isfinite(loss)
         # optimistix stops on its step and loss tests: certify the point by the
         # first-order test (its stop counts as a stall: the round-off limit applies).
+        # (formed at the last step too: the measure a max_steps stop reports)
+        count = state.count + 1
         half = Params(0.5 * g.theta, 0.5 * g.x0)
         fo = lazy_cond(
-            done,
+            done | (count >= self.max_steps),
             lambda: first_order(
                 problem, params, loss, half, *column_norms(problem, params, self.strategy)
             ),
@@ -296,8 +313,23 @@ class Optimistix(AbstractSolver):
         result = RESULTS.where(
             ok, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
         )
+        finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
+        last, last_loss = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(finite, a, b), (params, loss), (state.last, state.last_loss)
+        )
         return params, _OptxState(
-            y, inner, held, loss, gnorm, done, result, state.rounds + restart, fo
+            y,
+            inner,
+            held,
+            loss,
+            gnorm,
+            done,
+            result,
+            state.rounds + restart,
+            fo,
+            count,
+            last,
+            last_loss,
         )
 
     def terminate(self, problem, params, state):
@@ -312,7 +344,14 @@ class Optimistix(AbstractSolver):
         # this solver's step test: it fired wherever the inner solver stopped successfully.
         nan = jnp.full_like(state.loss, jnp.nan)
         failed = (state.result == RESULTS.no_progress) | (state.result == RESULTS.diverged)
-        return Measures(state.first_order, nan, nan, nan, state.done & ~failed)
+        return Measures(state.first_order, nan, nan, nan, state.done & ~failed, jnp.array(False))
+
+    def postprocess(self, problem, params, state, result):
+        """A diverged fit returns its last finite iterate (as the library's solvers do)."""
+        del problem
+        diverged = result == RESULTS.diverged
+        params = jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, a, b), state.last, params)
+        return params, jnp.where(diverged, state.last_loss, state.loss), None
 
     def settings(self) -> dict:
         """The options, with the optimistix solver's own rtol and atol (its step test)."""
