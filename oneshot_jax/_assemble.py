@@ -51,7 +51,8 @@ class Out(NamedTuple):
     decrease: jax.Array
     standard_errors: jax.Array
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
-    vanished: jax.Array  # whether first_order is a stall's with vanished columns
+    degenerate: jax.Array  # whether first_order is a stall's with vanished columns
+    vanished: jax.Array  # the theta columns that vanished along the fit (or False)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
 
 
@@ -104,6 +105,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.decrease[best],
         m.standard_errors[best],
         m.step_test[best],
+        m.degenerate[best],
         m.vanished[best],
         None if final.best is None else final.best.score[best],
     )
@@ -345,8 +347,11 @@ def assemble(
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
         stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
-    if bool(out.vanished):  # (`_optimality.stall_test`: a degenerate minimum)
-        stop_info["vanished"] = True
+    if bool(out.degenerate):  # (`_optimality.stall_test`: a degenerate minimum)
+        stop_info["degenerate"] = True
+    gone = np.broadcast_to(np.asarray(out.vanished), (len(free),))
+    if gone.any():  # (`_optimality.vanished_columns`)
+        stop_info["vanished"] = [n for n, g in zip(names, gone) if g]
     if status in ("tol_loss", "tol_grad"):
         last = out.stages[-1]
         stop_info[status] = last_solver.get(status)

@@ -180,6 +180,16 @@ def _seconds(t: float) -> str:
     return f"{t:.3g}" if t < 1000 else f"{t:.0f}"
 
 
+def vanished_note(names) -> str:
+    """What the columns that vanished along the fit mean (`stop_info["vanished"]`)."""
+    listed = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+    return (
+        f"The Jacobian columns of {listed} vanished along the fit (below 1e-4 of the largest "
+        "norm they had): a term that switched itself off (a gain at 0, a closed gate, a "
+        "dead unit), at a minimum or on a plateau; if it should act, start it elsewhere"
+    )
+
+
 def report(result) -> str:
     """What `print(result)` shows (see `FitResult`)."""
     table, modules = _parameter_table(result)
@@ -260,6 +270,9 @@ def report(result) -> str:
             f"  at a bound: {listed} (the intervals ignore the bound, which cuts the "
             "estimate's distribution)"
         )
+    gone = (result.stop_info or {}).get("vanished")
+    if gone:
+        out.append(f"  ({vanished_note(gone)})")
     if result.window_starts is not None:
         # Multiple shooting restarts every window from its own fitted x0: the model's own
         # open-loop fit of the record can be far lower.

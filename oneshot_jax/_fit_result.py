@@ -10,7 +10,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._fit_report import report
+from ._fit_report import report, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
@@ -53,7 +53,7 @@ def stop_detail(status: str, info: dict) -> str:
         vanished = (
             ", with the Jacobian columns that vanished along the fit measured at the largest "
             "norm they had (a degenerate minimum, such as c at 0 for a term c**2 u)"
-            if info.get("vanished")
+            if info.get("degenerate")
             else ""
         )
         return (
@@ -298,7 +298,11 @@ class FitResult(eqx.Module):
         """Why the solver stopped, in words: the test that fired with its values, then
         the reason's explanation (`RESULTS`)."""
         detail = stop_detail(self.status, self.stop_info)
-        return f"{detail}; {RESULTS[self.stop_reason]}" if detail else RESULTS[self.stop_reason]
+        out = f"{detail}; {RESULTS[self.stop_reason]}" if detail else RESULTS[self.stop_reason]
+        gone = self.stop_info.get("vanished")
+        if gone:
+            out += f". {vanished_note(gone)}"
+        return out
 
     @property
     def status(self) -> str:

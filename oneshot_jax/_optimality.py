@@ -36,7 +36,9 @@ has fallen below sqrt(eps) times the largest it had along the fit is measured at
 largest norm instead (More's running scaling, "The Levenberg-Marquardt algorithm:
 implementation and theory", 1978, eq. (6.3); `stall_test`): the gradient is then tested
 in the scaling the parameter had before its column vanished, and the fit converges there
-where that measure is below the round-off limit (`Measures.vanished` says so).
+where that measure is below the round-off limit (`Measures.degenerate` says so). Whatever
+the stop, `Measures.vanished` names the columns that vanished along the fit: a term that
+switched itself off (a gain at 0, a closed gate), at a minimum or on a plateau.
 
 Where the data determine the outputs exactly (a zero-residual fit, noise-free data), r
 is round-off at the solution and the cosine is meaningless; `zero_residual` tests the
@@ -121,21 +123,24 @@ class Measures(NamedTuple):
     such test): the first-order measure, the last step's scaled size (relative to the
     scaled parameters), the decrease of the loss the last step's linear model predicted
     (relative to the loss), the last step's size in standard errors
-    (`standard_errors`), whether the optional step test (rtol, atol) fired, and whether
-    the first-order measure is that of a stall with vanished Jacobian columns measured
-    at their largest norm along the fit (`stall_test`)."""
+    (`standard_errors`), whether the optional step test (rtol, atol) fired, whether the
+    first-order measure is that of a stall with vanished Jacobian columns measured at
+    their largest norm along the fit (`stall_test`), and which theta columns vanished
+    along the fit (`vanished_columns`; a scalar False where a solver keeps no record)."""
 
     first_order: jax.Array
     step: jax.Array
     decrease: jax.Array
     standard_errors: jax.Array
     step_test: jax.Array
+    degenerate: jax.Array
     vanished: jax.Array
 
 
 def no_measures(dtype) -> Measures:
     nan = jnp.array(jnp.nan, dtype)
-    return Measures(nan, nan, nan, nan, jnp.array(False), jnp.array(False))
+    false = jnp.array(False)
+    return Measures(nan, nan, nan, nan, false, false, false)
 
 
 def _measured(problem: FitProblem):
@@ -221,6 +226,12 @@ def vanished(d, top):
     at the largest value `top` they had: d_i where d_i > sqrt(eps) top_i, else top_i."""
     cut = jnp.sqrt(jnp.finfo(jnp.result_type(d)).eps)
     return jnp.where(d <= cut * top, top, d)
+
+
+def vanished_columns(d, top):
+    """The columns that vanished along the fit: d_i <= sqrt(eps) top_i with top_i > 0."""
+    cut = jnp.sqrt(jnp.finfo(jnp.result_type(d)).eps)
+    return (top > 0) & (d <= cut * top)
 
 
 def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x):

@@ -71,6 +71,7 @@ from .._optimality import (
     lazy_cond,
     n_observations,
     standard_errors,
+    vanished_columns,
     zero_residual,
 )
 from .._problem import Params
@@ -194,7 +195,9 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(nan, nan, nan, nan, jnp.array(False), jnp.array(False)),
+            Measures(
+                nan, nan, nan, nan, *(jnp.array(False),) * 2, jnp.zeros(params.theta.shape, bool)
+            ),
             jnp.array(False),
             RESULTS.converged,
             jnp.array(False),
@@ -427,8 +430,8 @@ class AbstractLeastSquares(AbstractSolver):
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
-        fo = jnp.where(degenerate, at_stall, fo)
         se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
+        fo = jnp.where(degenerate, at_stall, fo)  # (the measure the stop was tested on)
         negative = h_min < 0
         done = stationary | statistical | stalled | negative
         result = RESULTS.where(
@@ -458,6 +461,7 @@ class AbstractLeastSquares(AbstractSolver):
             se,
             small_step,
             degenerate,
+            vanished_columns(blocks.diag_t(), top.theta),
         )
         state = LSQState(
             blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false, top

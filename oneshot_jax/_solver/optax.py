@@ -50,6 +50,7 @@ from .._optimality import (
     check_first_order,
     data_scale,
     scaling,
+    vanished_columns,
     zero_residual,
 )
 from .._problem import FitProblem, Params
@@ -77,7 +78,7 @@ class _OptaxState(NamedTuple):
     data: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
     first_order: jax.Array  # the first-order measure at the current iterate
     stationary: jax.Array
-    vanished: jax.Array  # whether that measure is a stall's with vanished columns
+    degenerate: jax.Array  # whether that measure is a stall's with vanished columns
     stalls: jax.Array  # (LBFGS) consecutive steps that did not decrease the loss
     held: jax.Array  # (LBFGS) entries of theta held by the constraints at the last step
 
@@ -169,7 +170,7 @@ class _AbstractOptax(AbstractSolver):
         obj = C + problem.g(params.theta)
         scale = scaling(problem, params, self.strategy)
         no = jnp.array(False)
-        fo, stationary, scale, vanished = check_first_order(
+        fo, stationary, scale, degenerate = check_first_order(
             problem, params, C, g, scale, no, self.gtol, self.strategy, fresh=True
         )
         zero = jnp.array(0, jnp.int32)
@@ -186,7 +187,7 @@ class _AbstractOptax(AbstractSolver):
             data_scale(problem),
             fo,
             stationary,
-            vanished,
+            degenerate,
             zero,
             held,
         )
@@ -256,7 +257,7 @@ class _AbstractOptax(AbstractSolver):
         # tol_loss or tol_grad stop the fit.
         small_loss, small_grad = self._thresholds(obj, grad_norm(g_new))
         final = (count >= self.max_steps) | small_loss | small_grad
-        fo, stationary, scale, vanished = check_first_order(
+        fo, stationary, scale, degenerate = check_first_order(
             problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy, final=final
         )
         return new, _OptaxState(
@@ -271,7 +272,7 @@ class _AbstractOptax(AbstractSolver):
             state.data,
             fo,
             stationary,
-            vanished,
+            degenerate,
             stalls,
             held,
         )
@@ -303,7 +304,8 @@ class _AbstractOptax(AbstractSolver):
 
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
-        return Measures(state.first_order, nan, nan, nan, jnp.array(False), state.vanished)
+        gone = vanished_columns(state.scale.d_t, state.scale.top_t)
+        return Measures(state.first_order, nan, nan, nan, jnp.array(False), state.degenerate, gone)
 
     def postprocess(self, problem, params, state, result):
         del problem

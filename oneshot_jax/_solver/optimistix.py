@@ -344,7 +344,8 @@ class Optimistix(AbstractSolver):
         # this solver's step test: it fired wherever the inner solver stopped successfully.
         nan = jnp.full_like(state.loss, jnp.nan)
         failed = (state.result == RESULTS.no_progress) | (state.result == RESULTS.diverged)
-        return Measures(state.first_order, nan, nan, nan, state.done & ~failed, jnp.array(False))
+        false = jnp.array(False)
+        return Measures(state.first_order, nan, nan, nan, state.done & ~failed, false, false)
 
     def postprocess(self, problem, params, state, result):
         """A diverged fit returns its last finite iterate (as the library's solvers do)."""
