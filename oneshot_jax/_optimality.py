@@ -32,7 +32,7 @@ At a degenerate minimum a column of J vanishes with the gradient (a parameter c 
 as c^2 u, the minimum at c = 0: J e_c = 2 c u and g_c = 2 c u^T r), and its cosine stays
 at |u^T r| / (||u|| ||r||), however close to the minimum: the measure is then no test of
 stationarity. Where no step decreases C any more (a stall), a column whose squared norm
-has fallen below sqrt(eps) times the largest it had along the fit is measured at that
+has fallen below 1e-8 times the largest it had along the fit is measured at that
 largest norm instead (More's running scaling, "The Levenberg-Marquardt algorithm:
 implementation and theory", 1978, eq. (6.3); `stall_test`): the gradient is then tested
 in the scaling the parameter had before its column vanished, and the fit converges there
@@ -92,6 +92,10 @@ import numpy as np
 from ._cost import weigh
 from ._linalg import floor
 from ._problem import FitProblem, Params
+
+# A column of J has vanished along the fit where its squared norm is at most this fraction
+# of the largest it had (a norm below 1e-4 of it), in every precision (`stall_test`).
+VANISHED = 1e-8
 
 # The loss of a zero-residual fit, relative to `data_scale` (about the loss of predicting
 # each output's mean), at which the residuals count as round-off: eps in float64 (a
@@ -223,15 +227,13 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
 
 def vanished(d, top):
     """Marquardt's diagonal with the columns that vanished along the fit (`stall_test`)
-    at the largest value `top` they had: d_i where d_i > sqrt(eps) top_i, else top_i."""
-    cut = jnp.sqrt(jnp.finfo(jnp.result_type(d)).eps)
-    return jnp.where(d <= cut * top, top, d)
+    at the largest value `top` they had: top_i where d_i <= VANISHED top_i, else d_i."""
+    return jnp.where(d <= VANISHED * top, top, d)
 
 
 def vanished_columns(d, top):
-    """The columns that vanished along the fit: d_i <= sqrt(eps) top_i with top_i > 0."""
-    cut = jnp.sqrt(jnp.finfo(jnp.result_type(d)).eps)
-    return (top > 0) & (d <= cut * top)
+    """The columns that vanished along the fit: d_i <= VANISHED top_i with top_i > 0."""
+    return (top > 0) & (d <= VANISHED * top)
 
 
 def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x):

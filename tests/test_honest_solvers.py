@@ -781,10 +781,10 @@ def test_a_first_order_solvers_stall_is_stationary_only_below_the_round_off_limi
 
 
 def test_a_stall_measures_vanished_columns_at_their_largest_norm():
-    """At a stall a column whose squared norm fell below sqrt(eps) of its largest along
+    """At a stall a column whose squared norm fell below 1e-8 of its largest along
     the fit is measured at that largest norm (More's running scaling): a gradient of
     1e-4 on a unit column is not stationary, on a column that had 1e10 it is (1e-9);
-    a column that shrank by 1e6 only keeps its own norm, and a vanished column does not
+    a column whose squared norm shrank by 1e6 keeps its own, and a vanished column does not
     excuse another column's gradient."""
     from oneshot_jax.internal import Params, stall_test
 
