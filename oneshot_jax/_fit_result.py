@@ -40,8 +40,14 @@ def stop_detail(status: str, info: dict) -> str:
             else f"the solver's own test on its step and loss fired ({tolerances})"
         )
     if status == "converged" and known:
+        degenerate = (
+            ", with the Jacobian columns that vanished along the fit measured at the largest "
+            "norm they had (a degenerate minimum, such as c at 0 for a term c**2 u)"
+            if info.get("degenerate")
+            else ""
+        )
         if not fo > gtol:
-            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}"
+            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}{degenerate}"
         floor = info.get("resolution", np.nan)
         if gtol > 0 and fo <= floor:  # (False where NaN: a solver without that test)
             return (
@@ -50,15 +56,9 @@ def stop_detail(status: str, info: dict) -> str:
             )
         limit = info.get("roundoff_limit", np.nan)
         why = step_test or "no step decreases the loss at round-off"
-        vanished = (
-            ", with the Jacobian columns that vanished along the fit measured at the largest "
-            "norm they had (a degenerate minimum, such as c at 0 for a term c**2 u)"
-            if info.get("degenerate")
-            else ""
-        )
         return (
             f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
-            f"{_g(gtol)}){vanished}, where the fit stopped for lack of progress ({why})"
+            f"{_g(gtol)}){degenerate}, where the fit stopped for lack of progress ({why})"
         )
     if status in ("tol_loss", "tol_grad"):
         what, value = (

@@ -855,6 +855,23 @@ def test_a_degenerate_minimum_converges_where_the_fit_stalls():
         assert float(b.loss) == pytest.approx(float(r.loss), rel=1e-10)
 
 
+def test_a_degenerate_stop_says_so_on_its_status_line():
+    """Where the measure with the vanished column at its largest norm is below gtol itself
+    (2.4e-10 here), the status line read as an ordinary gtol stop."""
+    gain = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u[:1] + p["g"] * u[1:])
+    square = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u[:1] + p["c"] ** 2 * u[1:])
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal((200, 2))
+    _, z = oj.simulate(gain, {"a": 0.7, "b": 1.0, "g": -0.05}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((200, 1))
+    r = oj.fit(square, {"a": 0.5, "b": 0.5, "c": 0.5}, np.zeros(1), u, z, solver="lbfgs")
+    assert r.status == "converged" and r.stop_info.get("degenerate")
+    assert r.stop_info["first_order"] <= r.stop_info["gtol"]
+    line = str(r).splitlines()[1]
+    assert line.startswith("status: converged (first-order measure")
+    assert "vanished along the fit measured at the largest norm" in line, line
+
+
 def test_columns_that_vanished_are_named_at_a_plateau_and_at_a_limit():
     """y = a u0 + sigmoid(s) w u1 (data 1.0 u0 + 0.5 u1): from w = -10 L-BFGS closes the
     gate (s to -34), a plateau where every gradient is ~1e-15 and the first-order test
