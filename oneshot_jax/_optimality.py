@@ -225,18 +225,18 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
 
 
-def vanished(d, top):
-    """Marquardt's diagonal with the columns that vanished along the fit (`stall_test`)
-    at the largest value `top` they had: top_i where d_i <= VANISHED top_i, else d_i."""
-    return jnp.where(d <= VANISHED * top, top, d)
-
-
 def vanished_columns(d, top):
     """The columns that vanished along the fit: d_i <= VANISHED top_i with top_i > 0."""
     return (top > 0) & (d <= VANISHED * top)
 
 
-def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x):
+def vanished(d, top):
+    """Marquardt's diagonal with the columns that vanished along the fit (`stall_test`)
+    at the largest value `top` they had."""
+    return jnp.where(vanished_columns(d, top), top, d)
+
+
+def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None):
     """The first-order test where no step decreases C any more (a stall; see the module
     docstring): the measure `first_order`, stationary at most `roundoff_limit`; and, where
     that fails, the measure with the columns that vanished along the fit at the largest
@@ -247,6 +247,7 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
     - `problem`, `params`, `C`, `g`, `d_t`, `d_x`: as for `first_order`.
     - `top_t`, `top_x`: the largest diag(J^T J) of each column along the fit (the shapes
         of `d_t` and `d_x`).
+    - `fo`: `first_order` at `params` where the caller has it (else computed here).
 
     **Returns:**
 
@@ -254,7 +255,8 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
     measure is the one with the vanished columns (a degenerate minimum).
     """
     limit = roundoff_limit(problem.dtype)
-    fo = first_order(problem, params, C, g, d_t, d_x)
+    if fo is None:
+        fo = first_order(problem, params, C, g, d_t, d_x)
     kept = first_order(problem, params, C, g, vanished(d_t, top_t), vanished(d_x, top_x))
     degenerate = (fo > limit) & (kept <= limit)
     return jnp.where(degenerate, kept, fo), (fo <= limit) | degenerate, degenerate
@@ -399,7 +401,7 @@ def check_first_order(
         fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     met = fo <= gtol
     at_stall, still, degenerate = stall_test(
-        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x
+        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x, fo
     )
     degenerate = stall & ~met & degenerate
     fo = jnp.where(degenerate, at_stall, fo)

@@ -57,7 +57,6 @@ solver stops with `RESULTS.negative_penalty` (reporting the true loss) when it i
 """
 
 import abc
-import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -189,15 +188,14 @@ class AbstractLeastSquares(AbstractSolver):
         blocks, h_min = self._linearise(problem, params, placeholder_only=True)
         dtype = problem.dtype
         nan = jnp.array(jnp.nan, dtype)
+        false = jnp.array(False)
         return LSQState(
             blocks,
             jnp.array(jnp.inf, dtype),
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(
-                nan, nan, nan, nan, *(jnp.array(False),) * 2, jnp.zeros(params.theta.shape, bool)
-            ),
+            Measures(nan, nan, nan, nan, false, false, jnp.zeros(params.theta.shape, bool)),
             jnp.array(False),
             RESULTS.converged,
             jnp.array(False),
@@ -420,13 +418,9 @@ class AbstractLeastSquares(AbstractSolver):
         # (`_optimality`): the decrease left, about fo^2 C, is at round-off.
         # (the columns that vanished along the fit measured at their largest norm: a
         # degenerate minimum, `_optimality.stall_test`)
-        top = jax.tree_util.tree_map(
-            lambda *a: functools.reduce(jnp.maximum, a),
-            state.top,
-            Params(*b.diagonals(old)),
-            Params(*blocks.diagonals(params)),
-        )
-        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0)
+        # (`state.top` holds the linearisations before this one, the start's included)
+        top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
+        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
