@@ -409,6 +409,23 @@ def test_optimistix_lm_comes_back_from_beyond_a_bound():
     assert "at_bound" not in r.stop_info and float(r.theta["a1"]) > 1.46
 
 
+def test_optimistix_at_its_last_step_converges_where_the_first_order_test_holds():
+    """Optimistix's LM with tolerances that had not fired yet reached the optimum (measure
+    5e-12) at its last step allowed, and the fit said max_steps_reached. The first-order
+    test at that point makes it `converged`; 4 steps earlier it is still max_steps."""
+    model, u, z = _ar2({"a1": 1.5, "a2": -0.7}, 250, 9)
+    start = {"a1": 1.4, "a2": -0.6}
+    ref = oj.fit(model, start, np.zeros(2), u, z)
+    inner = optx.LevenbergMarquardt(rtol=1e-30, atol=1e-30)
+    r = oj.fit(model, start, np.zeros(2), u, z, solver=oj.Optimistix(inner, max_steps=12))
+    assert r.status == "converged" and r.num_steps == 12, r.message
+    assert r.stop_info["first_order"] <= 1e-8
+    assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-10)
+    short = oj.fit(model, start, np.zeros(2), u, z, solver=oj.Optimistix(inner, max_steps=8))
+    assert short.status == "max_steps_reached" and short.stop_info["first_order"] > 1e-8
+    assert str(r).startswith("oneshot_jax fit by Optimistix(optx.LevenbergMarquardt(rtol=1e-30")
+
+
 def test_optimistix_divergence_returns_the_last_finite_iterate():
     """Gauss-Newton through the bridge stepped to a point where the cubic term blows the
     simulation up (step 4): the fit returned that point with the loss inf. It returns the

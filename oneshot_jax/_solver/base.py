@@ -122,7 +122,7 @@ class AbstractSolver(eqx.Module):
         # Every option with its value (equinox's repr hides those left at their defaults),
         # on one line; a wrapped transform, solver or schedule is named briefly.
         options = ", ".join(
-            f"{f.name}={_brief(getattr(self, f.name))}" for f in dataclasses.fields(self) if f.repr
+            f"{f.name}={brief(getattr(self, f.name))}" for f in dataclasses.fields(self) if f.repr
         )
         return f"{type(self).__name__}({options})"
 
@@ -169,7 +169,7 @@ def _is_real(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def _brief(value) -> str:
+def brief(value) -> str:
     """A solver option in a few characters: numbers and strings as Python writes them, an
     optimistix solver by its name and numeric options, an optax transform by its type, a
     function (a learning-rate schedule) by its name."""

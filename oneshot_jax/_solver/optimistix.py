@@ -42,7 +42,7 @@ from .._optimality import (
 from .._problem import FitProblem, Params
 from .._results import RESULTS
 from .._strategy import as_strategy
-from .base import AbstractSolver, check_options, grad_norm
+from .base import AbstractSolver, brief, check_options, grad_norm
 
 
 class _Held(NamedTuple):
@@ -142,6 +142,7 @@ class _OptxState(NamedTuple):
     rounds: jax.Array
     first_order: jax.Array  # the first-order measure where the inner solver stopped
     count: jax.Array  # the steps taken (the measure is also formed at the last one)
+    own_test: jax.Array  # the optimistix solver's own test stopped the fit
     last: Params  # the last iterate with a finite loss and gradient, and its loss
     last_loss: jax.Array
 
@@ -234,6 +235,7 @@ class Optimistix(AbstractSolver):
             jnp.array(0),
             jnp.array(jnp.nan, loss.dtype),
             jnp.array(0),
+            jnp.array(False),
             params,
             loss,
         )
@@ -304,6 +306,14 @@ class Optimistix(AbstractSolver):
             jnp.array(jnp.nan, loss.dtype),
         )
         stationary = (fo <= self.gtol) | (fo <= roundoff_limit(problem.dtype))
+        finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
+        # At the last step allowed, a point that meets the first-order test (on the box)
+        # is a solution: the fit reported max_steps_reached at a measure of 5e-12 where
+        # optimistix's own tolerances had not fired yet.
+        at_limit = ~done & (count >= self.max_steps) & (fo <= self.gtol) & finite
+        at_limit = at_limit & (inner_result == optx.RESULTS.successful)
+        own_test = done
+        done = done | at_limit
         zero = zero_residual(loss, data_scale(problem))
         result = RESULTS.where(
             stationary,
@@ -313,7 +323,6 @@ class Optimistix(AbstractSolver):
         result = RESULTS.where(
             ok, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
         )
-        finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
         last, last_loss = jax.tree_util.tree_map(
             lambda a, b: jnp.where(finite, a, b), (params, loss), (state.last, state.last_loss)
         )
@@ -328,6 +337,7 @@ class Optimistix(AbstractSolver):
             state.rounds + restart,
             fo,
             count,
+            own_test,
             last,
             last_loss,
         )
@@ -345,7 +355,7 @@ class Optimistix(AbstractSolver):
         nan = jnp.full_like(state.loss, jnp.nan)
         failed = (state.result == RESULTS.no_progress) | (state.result == RESULTS.diverged)
         false = jnp.array(False)
-        return Measures(state.first_order, nan, nan, nan, state.done & ~failed, false, false)
+        return Measures(state.first_order, nan, nan, nan, state.own_test & ~failed, false, false)
 
     def postprocess(self, problem, params, state, result):
         """A diverged fit returns its last finite iterate (as the library's solvers do)."""
@@ -355,8 +365,10 @@ class Optimistix(AbstractSolver):
         return params, jnp.where(diverged, state.last_loss, state.loss), None
 
     def settings(self) -> dict:
-        """The options, with the optimistix solver's own rtol and atol (its step test)."""
+        """The options, with the optimistix solver's own rtol and atol (its step test). The
+        name says which optimistix solver ran, on one line (its repr spans several)."""
         out = super().settings()
+        out["solver"] = f"Optimistix({brief(self.solver)})"
         for name in ("rtol", "atol"):
             value = getattr(self.solver, name, None)
             if isinstance(value, (int, float)) and not isinstance(value, bool):
