@@ -442,7 +442,18 @@ def _check_model(model, theta, x0, u, lead, dtype):
 
 
 def check_data(
-    model, theta, x0, u, z=None, weight=None, missing="raise", t=None, readings=False
+    model,
+    theta,
+    x0,
+    u,
+    z=None,
+    weight=None,
+    missing="raise",
+    t=None,
+    readings=False,
+    *,
+    theta_name="theta",
+    z_name="z",
 ) -> Data:
     """Validate (theta, x0, u, z, weight) for `model` and return them canonicalised.
 
@@ -454,7 +465,8 @@ def check_data(
     (default) they are an error. `t`, the sample times of a timed model's records
     (`_timing.check_times`), becomes the intervals appended to u as its last column.
     `readings`: aggregated readings (`_aggregate`) come with z, so a z without any point
-    sample is not refused here (the augmented data are checked again).
+    sample is not refused here (the augmented data are checked again). `theta_name`,
+    `z_name`: the caller's names of theta and z, for the errors (`theta0`, `z_head`).
     """
     if missing not in ("raise", "mask"):
         raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
@@ -472,7 +484,7 @@ def check_data(
         dtype = common_dtype(_pytree.split(theta)[0], x0, *rows_u, *rows_z)
     else:
         _, dtype, bound, z_hat = known
-    theta, static = check_theta(theta, dtype)
+    theta, static = check_theta(theta, dtype, theta_name)
     given = model
     model = bind_model(model, static) if known is None else bound
     x0 = as_float(x0, "x0", dtype)
@@ -496,7 +508,7 @@ def check_data(
             )
         u, lengths = pad(_checked_trajectories(u, "u", dtype, x0.shape[0]), dtype)
         if z is not None:
-            z_padded, z_lengths = pad(_checked_trajectories(z, "z", dtype, x0.shape[0]), dtype)
+            z_padded, z_lengths = pad(_checked_trajectories(z, z_name, dtype, x0.shape[0]), dtype)
             for i, (a, b) in enumerate(zip(lengths, z_lengths)):
                 if a != b:
                     raise ValueError(
@@ -547,7 +559,7 @@ def check_data(
 
     mask = None
     if z is not None:
-        z = as_float(z, "z", z_hat.dtype)
+        z = as_float(z, z_name, z_hat.dtype)
         want = (*lead, T, n_z)
         if z.shape != want:
             # A record given as (n_u, T) reads as n_u samples of T inputs: say so.
@@ -558,35 +570,36 @@ def check_data(
                     "inputs: is it transposed? (u is (T, n_u))"
                 )
             raise ValueError(
-                f"`z` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
+                f"`{z_name}` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
                 f"`model.observe`), got shape {z.shape}{hint}."
             )
         observed = None
         if missing == "mask" and is_concrete(z):
             zn = np.asarray(z)
             if np.any(np.isinf(zn)):
-                raise ValueError("`z` contains inf values (NaN marks a missing sample).")
+                raise ValueError(f"`{z_name}` contains inf values (NaN marks a missing sample).")
             z, observed = fill_missing(zn)
             if not observed.any() and not readings:  # (readings: aggregates measure it)
                 raise ValueError(
-                    "`z` is NaN everywhere (in every sample given): no output sample is measured."
+                    f"`{z_name}` is NaN everywhere (in every sample given): no output sample "
+                    "is measured."
                 )
             if batched and not readings:
                 empty = np.flatnonzero(~observed.reshape(observed.shape[0], -1).any(axis=1))
                 if empty.size:
                     raise ValueError(
-                        f"`z`: trajectory {empty.tolist()} (first axis) has no measured "
+                        f"`{z_name}`: trajectory {empty.tolist()} (first axis) has no measured "
                         "sample (NaN everywhere): leave it out."
                     )
         else:
             check_finite(
                 z,
-                "z",
+                z_name,
                 " (`fit`, `loss`, `value_and_grad`, `estimate_x0` and `predict` take "
                 '`missing="mask"`, which treats NaN as a missing sample)',
             )
         if is_concrete(z) and z.size:
-            _check_magnitude(np.asarray(z))
+            _check_magnitude(np.asarray(z), z_name)
         mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)
     if known is None:
@@ -594,13 +607,13 @@ def check_data(
     return Data(model, theta, static, x0, u, z, weight, batched, n_z, mask, lengths)
 
 
-def _check_magnitude(z: np.ndarray) -> None:
+def _check_magnitude(z: np.ndarray, name: str = "z") -> None:
     """Refuse outputs whose squares underflow in their dtype: the loss would be exactly
     zero (a fit then ends at its start, `zero_residual`)."""
     largest = np.max(np.abs(z))
     if 0 < largest and np.square(largest) < np.finfo(z.dtype).tiny:
         raise ValueError(
-            f"`z`: its largest magnitude {largest:.3g} squares to below the smallest normal "
+            f"`{name}`: its largest magnitude {largest:.3g} squares to below the smallest normal "
             f"{z.dtype} number ({np.finfo(z.dtype).tiny:.3g}), so the loss cannot see the "
             "outputs: rescale them (to units where they are of order 1)."
         )
@@ -651,6 +664,7 @@ def _named_free(fixed, theta):
     """`fixed` with the keys of theta's dicts that it does not name set to False (free)."""
     if not (isinstance(fixed, dict) and isinstance(theta, dict)):
         return fixed
+    fixed = _pytree.nest_dotted(fixed, theta, "fixed")
     unknown = sorted(set(fixed) - set(theta), key=str)
     if unknown:
         raise ValueError(

@@ -317,7 +317,8 @@ def fit(
     - `fixed`: a pytree of booleans shaped like theta0 (per leaf, per element, or one
         boolean for a whole subtree): True entries keep their starting value and are
         removed from the variables. Where theta0 is a dict, `fixed` may name some of its
-        keys (`fixed={"b": True}`): the others are free.
+        keys (`fixed={"b": True}`; a nested one as `{"phys": {"c": True}}` or
+        `{"phys.c": True}`): the others are free.
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
     - `window`: cut one record into consecutive windows of this many samples, each with
         its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them
@@ -351,8 +352,9 @@ def fit(
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
         evenly (see `FitHistory`).
-    - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` for
-        a nested one), e.g. `{"I": "kg m^2"}`, shown by `print(result)`.
+    - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` or
+        `{"phys": {"c": ...}}` for a nested one), e.g. `{"I": "kg m^2"}`, shown by
+        `print(result)`.
     - `aggregate`: aggregated readings of some outputs, as for `loss` (an `Aggregate`,
         a list of them, or a list per trajectory); not with `window`. The readings count
         as observations in the covariance; the result's `x0`, `residuals` and `metrics`

@@ -166,17 +166,23 @@ def check_inputs(
             )
             raise ValueError(f"`window` needs one record: `u` of shape (T, n_u), got {given}.")
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
-        data = check_data(model, theta_first, x0_record, u, z, weight, missing, t)
+        data = check_data(
+            model, theta_first, x0_record, u, z, weight, missing, t, theta_name="theta0"
+        )
         x0_w, u_w, z_w, mask_w, starts = cut(
             data, window, np.asarray(x0) if per_window_x0 else None
         )
         u_w, t_w = split_intervals(data.model, u_w)  # each window keeps its intervals
-        data = check_data(model, theta_first, x0_w, u_w, z_w, weight, t=t_w)._replace(mask=mask_w)
+        data = check_data(
+            model, theta_first, x0_w, u_w, z_w, weight, t=t_w, theta_name="theta0"
+        )._replace(mask=mask_w)
         if x0_starts is not None:
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
         starts = None
-        data = check_data(model, theta_first, x0, u, z, weight, missing, t, readings)
+        data = check_data(
+            model, theta_first, x0, u, z, weight, missing, t, readings, theta_name="theta0"
+        )
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
         if any(isinstance(s, AbstractLeastSquares) for s in solvers):

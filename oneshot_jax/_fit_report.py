@@ -67,8 +67,20 @@ def theta_order(theta) -> tuple[str, ...]:
     return tuple(row[0] for row in sorted(_rows(theta), key=lambda row: rank(row[1])))
 
 
+def _dotted(units: dict) -> dict:
+    """Nested dicts of units ({"phys": {"k": "N/m"}}) as the rows' dotted names."""
+    out = {}
+    for key, value in units.items():
+        if isinstance(value, dict):
+            out.update({f"{key}.{k}": v for k, v in _dotted(value).items()})
+        else:
+            out[key] = value
+    return out
+
+
 def check_units(units, theta) -> dict:
-    """`fit(units=...)` as a dict of strings, checked against theta's row names."""
+    """`fit(units=...)` as a dict of strings, checked against theta's row names (nested dicts
+    read as dotted names)."""
     if units is None:
         return {}
     if not isinstance(units, dict):
@@ -77,6 +89,7 @@ def check_units(units, theta) -> dict:
             f"{{'k': 'N/m'}}; got {type(units).__name__}."
         )
     valid = theta_order(theta)
+    units = _dotted(units)
     for name, unit in units.items():
         if name not in valid:
             raise ValueError(

@@ -477,7 +477,7 @@ def fit_orthogonal(
         raise ValueError("`z` has missing (NaN) or infinite samples; `fit_orthogonal` needs all.")
     # The checks of `fit` (z's columns against the model's outputs, u's and weight's values),
     # before the data are laid out for the augmented model.
-    check_data(model, theta0, x0, u, z, weight)
+    check_data(model, theta0, x0, u, z, weight, theta_name="theta0")
     names = _free_physics(theta0, keys, held)
     if not names:
         raise ValueError("`fixed` holds every physical parameter: nothing to keep orthogonal.")

@@ -275,13 +275,15 @@ def _estimate(
     t=None,
     record=None,
     missing="raise",
+    z_name="z",
 ):
     """`estimate_x0`, with its warnings attributed `stacklevel` frames up. With `record`
     (the whole record's `(u, t)`, whose head is `u`), also the record simulated from the
-    estimate, `(x, z)` (for `predict`); else None. Returns (`X0Estimate`, that)."""
+    estimate, `(x, z)` (for `predict`); else None. Returns (`X0Estimate`, that).
+    `z_name`: the caller's name of z, for the errors."""
     if method not in METHODS:
         raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
-    n = _check_head(u, z, n)
+    n = _check_head(u, z, n, z_name)
     t = head_times(t, np.shape(u)[0], n)
     u, z = u[:n], z[:n]
     if method == "lsq":
@@ -318,7 +320,7 @@ def _estimate(
             )
     if np.ndim(x0) != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
-    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
+    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t, z_name=z_name)
     guess = np.asarray(data.x0)
 
     stop_reason, kalman, e, ok, sim = None, None, None, None, None
@@ -469,6 +471,7 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None, z
         stacklevel=stacklevel + 1,
         t=t,
         record=(u, t),
+        z_name=z_name,
         **options,
     )
     if sim is None:  # the smoother's estimate

@@ -199,6 +199,30 @@ def _key(entry) -> str:
     return str(entry)
 
 
+def nest_dotted(named, theta, name):
+    """A dict over theta's dict keys, with dotted names ("phys.k", as the printout and
+    `units` name a nested parameter) turned into nested dicts ({"phys": {"k": ...}}), so
+    that `fixed=` and the bounds take either spelling. A key of theta that holds a dot
+    is kept as it is; naming one parameter both ways is an error (`name`: the argument)."""
+    if not (isinstance(named, dict) and isinstance(theta, dict)):
+        return named
+    out = {}
+    for key, value in named.items():
+        head, _, rest = str(key).partition(".")
+        if key in theta or not rest or not isinstance(theta.get(head), dict):
+            parts = [(key, value)]
+        else:
+            parts = [(head, {rest: value})]
+        for k, v in parts:
+            if k in out:
+                both = isinstance(out[k], dict) and isinstance(v, dict)
+                if not both or set(out[k]) & set(v):
+                    raise ValueError(f"`{name}` names a parameter twice (dotted and nested).")
+                v = {**out[k], **v}
+            out[k] = v
+    return {k: nest_dotted(v, theta[k], name) if k in theta else v for k, v in out.items()}
+
+
 def leaf_names(theta) -> tuple[str, ...]:
     """One name per scalar of theta: the path of its leaf (dict keys, indices, attribute
     names joined by '.') with [i] or [i, j] for array entries."""

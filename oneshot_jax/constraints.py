@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _pytree
 from ._checks import is_concrete
 from ._prox import ProximalTransformation, combine, indicator
 
@@ -68,9 +69,13 @@ def _fill_like(bound, params, fill, name):
     if bound is None:
         return jax.tree_util.tree_map(lambda p: np.full(np.shape(p), fill, _dtype(p)), params)
     if isinstance(params, dict) and isinstance(bound, dict):
+        bound = _pytree.nest_dotted(bound, params, name)
         unknown = set(bound) - set(params)
         if unknown:
-            raise ValueError(f"`{name}` names parameters that are not in theta: {sorted(unknown)}.")
+            raise ValueError(
+                f"`{name}` names parameters that are not in theta: {sorted(unknown, key=str)}; "
+                f"theta has {sorted(params, key=str)}."
+            )
         return {k: _fill_like(bound.get(k), v, fill, name) for k, v in params.items()}
     if isinstance(bound, (list, tuple)) and isinstance(params, (list, tuple)):
         if len(bound) != len(params):
@@ -106,7 +111,8 @@ def box(lower=None, upper=None) -> ProximalTransformation:
 
     - `lower`, `upper`: a scalar (every element), a pytree with the parameters' structure
         (leaves broadcast to each parameter's shape), or for dict parameters a dict naming
-        some of them; missing entries and None mean unbounded (-inf / +inf).
+        some of them (a nested one as `{"phys": {"c": 0.0}}` or `{"phys.c": 0.0}`);
+        missing entries and None mean unbounded (-inf / +inf).
 
     **Returns:**
 

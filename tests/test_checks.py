@@ -785,3 +785,59 @@ def test_a_record_without_a_measured_sample_is_named():
     u = np.stack([_U1, _U1])
     with pytest.raises(ValueError, match=r"trajectory \[1\] \(first axis\) has no measured"):
         oj.loss(LIN, LIN_THETA, np.zeros((2, 1)), u, z, missing="mask")
+
+
+def test_errors_name_the_argument_the_caller_passed():
+    """`FitResult.predict(u, z_head)` reported a head of the wrong width or with NaN as
+    "`z` ...", and `fit` a NaN in theta0 as "`theta` ...": arguments the caller does not
+    have."""
+    r = oj.fit(MODEL, THETA, X0, U, Z, solver=oj.GaussNewton(max_steps=2))
+    with pytest.raises(ValueError, match=r"^`z_head` must have shape \(3, 2\)"):
+        r.predict(U, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"^`z_head` contains NaN"):
+        r.predict(U, np.where(np.arange(3)[:, None] == 1, np.nan, np.asarray(Z)[:3]))
+    with pytest.raises(ValueError, match=r"^`theta0` contains NaN"):
+        oj.fit(MODEL, {**THETA, "a": np.nan}, X0, U, Z)
+    with pytest.raises(ValueError, match=r"^`theta0` contains NaN"):
+        oj.fit(MODEL, {**THETA, "a": np.nan}, X0, U, Z, window=3)
+
+
+def test_a_nested_parameter_takes_its_dotted_name_and_its_nested_dict_alike():
+    """`units` took only the dotted name of a nested parameter ("phys.a", as the printout
+    shows it), `fixed` and the bounds only the nested dict: each refused the other's."""
+
+    def nested_step(x, u, theta):
+        return theta["phys"]["a"] * jnp.tanh(x) + theta["B"] @ u
+
+    model = oj.Model(nested_step, observe)
+    theta = {"phys": {"a": jnp.asarray(0.9), "c": jnp.asarray(0.0)}, "B": THETA["B"]}
+    solver = oj.GaussNewton(max_steps=3)
+    kw = dict(solver=solver, estimate_x0=False)
+    fits = [
+        oj.fit(
+            model,
+            theta,
+            X0,
+            U,
+            Z,
+            fixed=fixed,
+            constraints=oj.constraints.box(upper=upper),
+            units=units,
+            **kw,
+        )
+        for fixed, upper, units in (
+            ({"phys": {"c": True}}, {"phys": {"a": 0.5}}, {"phys": {"a": "1/s"}}),
+            ({"phys.c": True}, {"phys.a": 0.5}, {"phys.a": "1/s"}),
+        )
+    ]
+    for r in fits:
+        assert float(r.theta["phys"]["a"]) == 0.5 and float(r.theta["phys"]["c"]) == 0.0
+        assert "1/s" in str(r)
+    assert np.array_equal(np.asarray(fits[0].fixed), np.asarray(fits[1].fixed))
+    assert str(fits[0]).split("\n")[3:] == str(fits[1]).split("\n")[3:]
+    with pytest.raises(ValueError, match="`fixed` names a parameter twice"):
+        oj.fit(model, theta, X0, U, Z, fixed={"phys.c": True, "phys": {"c": False}}, **kw)
+    with pytest.raises(
+        ValueError, match=r"`lower` names parameters .*\['x'\]; theta has \['a', 'c'\]"
+    ):
+        oj.constraints.box(lower={"phys.x": 0.0}).bounds(theta)
