@@ -39,6 +39,7 @@ import numpy as np
 
 from . import _pytree
 from ._cost import Cost
+from ._indices import out_of_range
 from ._model import ODE_STEPS, FloatObserve, Model
 from ._normalise import fill_missing, is_ragged, pad, sample_mask
 from ._timing import append_intervals, check_times
@@ -392,6 +393,29 @@ def _check_rhs(rhs, x_1, u_1, theta, x0, u):
         )
 
 
+def _check_indices(model, theta, x_1, u_step, u_seen, n_u):
+    """A model that indexes past the end of an array (u[1] of a single input, x[2] of a
+    two-state x0, an entry beyond a parameter's shape) runs without an error in JAX,
+    which clamps the index (u[1] reads u[0]): the fit would run on a wrong model. The
+    constant indices of the step and the observation are checked on their jaxpr
+    (`_indices.out_of_range`: no program compiled)."""
+
+    def both(x, us, ue, th):
+        return model.step(x, us, th), model.observe(x, ue, th)
+
+    found = out_of_range(both, x_1, u_step, u_seen, theta)
+    if found:
+        shape, axis, index = found[0]
+        raise ValueError(
+            f"the model indexes past the end of an array: index {index} on axis {axis} of "
+            f"an array of shape {shape}. JAX clamps such an index instead of raising (u[1] "
+            "of a single input reads u[0]), so the model would run wrong silently. Check "
+            f"the columns of `u` (n_u = {n_u}), the size of the state (n_x = "
+            f"{x_1.shape[0]}, from `x0`) and the shapes of theta's parameters against what "
+            "the model reads."
+        )
+
+
 def _check_model(model, theta, x0, u, lead, dtype):
     """Trace the user's functions once on abstract values, so that a step that changes the
     state's shape or dtype is reported here and not as an error deep inside a scan.
@@ -410,6 +434,7 @@ def _check_model(model, theta, x0, u, lead, dtype):
     with _naming_shapes("the model", x_1, u_1, x0, u):
         x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
+    _check_indices(model, theta, x_1, u_step, u_seen, u_1.shape[0])
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
         shape = getattr(x_next, "shape", type(x_next).__name__)
         raise ValueError(

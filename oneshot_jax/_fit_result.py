@@ -47,7 +47,8 @@ def stop_detail(status: str, info: dict) -> str:
             else ""
         )
         if not fo > gtol:
-            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}{degenerate}"
+            where = f", where {step_test}" if step_test else ""
+            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}{degenerate}{where}"
         floor = info.get("resolution", np.nan)
         if gtol > 0 and fo <= floor:  # (False where NaN: a solver without that test)
             return (

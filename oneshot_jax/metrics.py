@@ -31,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
+from ._normalise import is_ragged
+
 __all__ = [
     "rmse",
     "nrmse",
@@ -408,6 +410,27 @@ def _trajectories(a, name, shape=None):
     return a
 
 
+def _inputs(u, N, T):
+    """`u` as (N, T, n_u) and where it is known (N, T): the records of a list of
+    different lengths (as `fit` takes them) end where theirs do, and their residuals
+    (`FitResult.residuals`, NaN past each record's end) with them."""
+    if not is_ragged(u):
+        return _trajectories(u, "u", (N, T)), np.ones((N, T), bool)
+    if len(u) != N:
+        raise ValueError(f"`u` must hold the N = {N} records of `e`, got {len(u)}.")
+    rows = [_trajectories(r, f"u[{i}]")[0] for i, r in enumerate(u)]
+    if len({r.shape[1] for r in rows}) > 1 or max(r.shape[0] for r in rows) > T:
+        raise ValueError(
+            f"`u`: records of at most T = {T} samples (that of `e`) and the same inputs each, "
+            f"got shapes {[r.shape for r in rows]}."
+        )
+    out = np.full((N, T, rows[0].shape[1]), np.nan)
+    known = np.zeros((N, T), bool)
+    for i, r in enumerate(rows):
+        out[i, : r.shape[0]], known[i, : r.shape[0]] = r, True
+    return out, known
+
+
 def residual_correlations(
     e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
 ) -> ResidualCorrelations:
@@ -442,8 +465,10 @@ def residual_correlations(
         the sums run over each trajectory, never across two, and n counts all of them).
         NaN marks a missing sample (as in `FitResult.residuals`): the products with it
         are left out and it is not counted in n.
-    - `u`: the inputs, shape (T,), (T, n_u) or (N, T, n_u) with the N and T of `e`;
-        finite. None: autocorrelation only.
+    - `u`: the inputs, shape (T,), (T, n_u) or (N, T, n_u) with the N and T of `e`, or
+        a list of N records (T_i, n_u) of different lengths, as `fit` takes them (`e`
+        then NaN past each record's end, as `FitResult.residuals` is); finite. None:
+        autocorrelation only.
     - `max_lag`: the largest lag, an integer, 1 <= max_lag <= T - 1 (MATLAB's default 25).
     - `confidence`: the level of the band, 0 < confidence < 1 (z = 2.576 for 0.99).
     - `tolerance`: the fraction of lags allowed outside the band in a verdict,
@@ -513,12 +538,14 @@ def residual_correlations(
 
     cross = independent = cross_outside = None
     if u is not None:
-        u = _trajectories(u, "u", (N, T))
-        if not np.all(np.isfinite(u)):
+        u, known = _inputs(u, N, T)
+        if not np.all(np.isfinite(u[known])):
             raise ValueError("`u` contains NaN or inf values: the inputs must be known.")
+        count = known.sum()
+        u = np.where(known[..., None], u, 0.0)  # past a record's end: adds nothing
         if demean:
-            u = u - u.mean(axis=(0, 1))
-        ru0 = np.mean(u**2, axis=(0, 1))
+            u = np.where(known[..., None], u - u.sum(axis=(0, 1)) / count, 0.0)
+        ru0 = np.sum(u**2, axis=(0, 1)) / count
         if np.any(ru0 <= 0):
             raise ValueError(f"`u` is zero in input(s) {np.flatnonzero(ru0 <= 0).tolist()}.")
 

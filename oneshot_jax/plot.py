@@ -57,11 +57,16 @@ def _axes(ax, count, plt, figsize):
 
 def _warn_other_record(name, result, zhat, z):
     """Warn where a one-record `FitResult` is simulated from its fitted x0 on a record
-    that is not the one it was fitted on (zhat - residuals is that record's z): MATLAB's
+    that is not the one it was fitted on (zhat - residuals is that record's z; after a
+    `window=` fit, over its window at sample 0): MATLAB's
     `compare` estimates the initial state, and a user who expects it reads a FIT% of
     the wrong initial state."""
     e = np.asarray(result.residuals)
-    if np.ndim(result.x0) != 1:  # windows or several records: no one record to tell
+    starts = result.window_starts
+    if starts is not None:  # a `window=` fit, simulated from its window at sample 0
+        first = e[int(np.flatnonzero(np.asarray(starts) == 0)[0])]
+        e, zhat, z = first, zhat[: first.shape[0]], z[: first.shape[0]]
+    elif np.ndim(result.x0) != 1:  # several records: no one record to tell
         return
     if e.shape == z.shape:
         fitted = zhat.reshape(z.shape) - e
@@ -88,7 +93,9 @@ def _model_output(i, model, u, z, n, t=None):
         t = t if getattr(model.model, "timed", False) else None
         # Missing samples of the head (NaN) are left out of x0's fit, as of the FIT.
         gaps = {"missing": "mask"} if n and np.isnan(z[:n]).any() else {}
-        if not n and np.ndim(model.x0) == 2 and np.ndim(u) == 2:
+        # (a `window=` fit simulates from its window at sample 0: `FitResult.simulate`)
+        several = np.ndim(model.x0) == 2 and model.window_starts is None
+        if not n and several and np.ndim(u) == 2:
             raise ValueError(
                 f"`{name}` was fitted on {np.shape(model.x0)[0]} trajectories, each from its "
                 "own x0: to compare it with one record, pass `n` (its initial state is then "
@@ -130,7 +137,8 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         (from `Ts`) default to the record's.
     - `models`: one or several of: a `FitResult`, simulated on `u` from its fitted x0
         (the data it was fitted on, or a record from the same initial state; on another
-        record it warns), or, with `n`, predicted from the first n samples of `z`
+        record it warns; after a `window=` fit, from the state of its window at sample
+        0, as `FitResult.simulate`), or, with `n`, predicted from the first n samples of `z`
         (`FitResult.predict`, as MATLAB's `compare` estimates the initial state); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.

@@ -841,3 +841,48 @@ def test_a_nested_parameter_takes_its_dotted_name_and_its_nested_dict_alike():
         ValueError, match=r"`lower` names parameters .*\['x'\]; theta has \['a', 'c'\]"
     ):
         oj.constraints.box(lower={"phys.x": 0.0}).bounds(theta)
+
+
+def test_a_model_that_indexes_past_the_end_of_an_array_is_refused():
+    """A model reading u[1] of a record with one input column ran without an error (JAX
+    clamps the index: u[1] read u[0]) and the fit 'converged' on a wrong model. Constant
+    indices past the end of u, x or a parameter are refused, in every entry point;
+    indices computed from the data, and those in range, are not."""
+
+    def reads(index_u=0, index_x=1, index_b=0):
+        def step(x, u, th):
+            return jnp.stack([x[index_x], -th["k"] * x[0] + th["b"][index_b] * u[index_u]])
+
+        return oj.Model(step, lambda x, u, th: x[:1])
+
+    theta = {"k": 0.5, "b": jnp.ones(2)}
+    x0, u = np.zeros(2), np.ones((5, 1))
+    z = np.zeros((5, 1))
+    oj.simulate(reads(), theta, x0, u)  # in range
+    for model, what in (
+        (reads(index_u=1), r"index 1 on axis 0 of an array of shape \(1,\)"),
+        (reads(index_u=-2), r"index -1 on axis 0 of an array of shape \(1,\)"),
+        (reads(index_x=2), r"index 2 on axis 0 of an array of shape \(2,\)"),
+        (reads(index_b=2), r"index 2 on axis 0 of an array of shape \(2,\)"),
+    ):
+        for call in (
+            lambda: oj.simulate(model, theta, x0, u),
+            lambda: oj.fit(model, theta, x0, u, z),
+            lambda: oj.loss(model, theta, x0, u, z),
+        ):
+            with pytest.raises(ValueError, match="indexes past the end of an array: " + what):
+                call()
+    two = reads(index_u=1)
+    _, z2 = oj.simulate(two, theta, x0, np.ones((5, 2)))  # two columns: in range
+    ode = oj.Model.from_ode(
+        lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] + u[1]]), 0.1, observe=lambda x, u, th: x
+    )
+    with pytest.raises(ValueError, match="indexes past the end"):
+        oj.simulate(ode, {"k": 1.0}, x0, u)
+
+    def by_state(x, u, th):  # an index computed from the state: not a constant
+        table = th["table"]
+        i = jnp.clip(jnp.floor(x[0]).astype(int), 0, 2)
+        return jnp.stack([x[1], table[i] + u[0]])
+
+    oj.simulate(oj.Model(by_state, lambda x, u, th: x), {"table": jnp.ones(3)}, x0, u)

@@ -424,6 +424,11 @@ def test_optimistix_at_its_last_step_converges_where_the_first_order_test_holds(
     short = oj.fit(model, start, np.zeros(2), u, z, solver=oj.Optimistix(inner, max_steps=8))
     assert short.status == "max_steps_reached" and short.stop_info["first_order"] > 1e-8
     assert str(r).startswith("oneshot_jax fit by Optimistix(optx.LevenbergMarquardt(rtol=1e-30")
+    # Where optimistix's own test stops it, the status line names that test too.
+    inner = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
+    own = oj.fit(model, start, np.zeros(2), u, z, solver=oj.Optimistix(inner))
+    assert own.status == "converged" and own.stop_info["step_test"], own.message
+    assert "where the solver's own test on its step and loss fired" in str(own).split("\n")[1]
 
 
 def test_optimistix_divergence_returns_the_last_finite_iterate():

@@ -115,6 +115,32 @@ def test_missing_samples_and_trajectories_are_pooled():
     assert not np.allclose(glued.auto, rc.auto)
 
 
+def test_records_of_different_lengths_pool_within_each_record():
+    """Residuals of a fit on records of different lengths (NaN past each one's end) with
+    their inputs as a list: refused with NumPy's "inhomogeneous shape" error, and a
+    padded u counted its padding in u's mean and R_u(0) (lag-0 cross 0.032 with pad 0,
+    0.066 with pad 3). Each record's inputs count over its own samples only."""
+    rng = np.random.default_rng(4)
+    M, lengths = 5, (120, 40)
+    u = [3.0 + rng.standard_normal((T, 1)) for T in lengths]
+    e = np.full((2, 120, 1), np.nan)
+    for k, T in enumerate(lengths):
+        e[k, :T, 0] = ar1(rng, T, 0.4) + 0.5 * u[k][:, 0]
+    n = sum(lengths)
+    e0 = [e[k, :T, 0] - np.nanmean(e) for k, T in enumerate(lengths)]
+    u_mean = np.mean(np.concatenate(u))
+    u0 = [r[:, 0] - u_mean for r in u]
+    seu = sum(np_corr(a, b, M) for a, b in zip(e0, u0))
+    r0 = sum(np.sum(a**2) for a in e0) / n
+    ru0 = sum(np.sum(b**2) for b in u0) / n
+    rc = metrics.residual_correlations(e, u, max_lag=M)
+    np.testing.assert_allclose(rc.cross[:, 0, 0], seu / n / np.sqrt(r0 * ru0), rtol=1e-12)
+    assert rc.n[0] == n
+    oj.plot.resid(e, u, max_lag=M)
+    with pytest.raises(ValueError, match=r"`u` must hold the N = 2 records of `e`, got 3"):
+        metrics.residual_correlations(e, [*u, u[1][:10]], max_lag=M)
+
+
 def test_whiteness_verdict():
     rng = np.random.default_rng(3)
     T = 2000
@@ -283,6 +309,31 @@ def test_compare_of_a_multi_record_result_without_n_says_to_pass_n():
         oj.plot.compare(np.asarray(z[0]), res, u=u[0])
     fig = oj.plot.compare(np.asarray(z[0]), res, u=u[0], n=10)
     assert "FIT" in " ".join(_legend_texts(fig.axes[0]))
+
+
+def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
+    """A `window=` fit was refused without `n` ("fitted on 4 trajectories"), though
+    `FitResult.simulate` starts it from its window at sample 0: compare does the same, and
+    warns on another record as for a one-record fit."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u, u2 = rng.standard_normal((2, 200, 1))
+    truth, x0 = {"k": 4.0, "c": 0.6}, np.array([0.5, -0.2])
+    z = np.asarray(oj.simulate(model, truth, x0, u)[1]) + 0.01 * rng.standard_normal((200, 1))
+    res = oj.fit(model, {"k": 3.0, "c": 1.0}, np.zeros(2), u, z, window=50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fig = oj.plot.compare(z, res, u=u)
+    zhat = np.asarray(res.simulate(u)[1])
+    fit = 100 * (1 - np.linalg.norm(zhat - z) / np.linalg.norm(z - z.mean()))
+    assert f"model: FIT {fit:.2f} %" in _legend_texts(fig.axes[0])
+    z2 = np.asarray(oj.simulate(model, truth, x0, u2)[1])
+    with pytest.warns(UserWarning, match="pass `n`"):
+        oj.plot.compare(z2, res, u=u2)
 
 
 def test_transposed_records_and_windowed_residuals_get_a_hint(fitted):
