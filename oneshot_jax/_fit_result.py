@@ -90,9 +90,11 @@ def stop_detail(status: str, info: dict) -> str:
         at_step = f" at step {at}" if at is not None else ""
         if info.get("nonfinite") == "gradient":
             return (
-                f"the loss stayed finite but its gradient did not{at_step}: the model is not "
-                "differentiable there (a parameter at a bound where it is not, such as "
-                "sqrt(c) at c = 0: keep it off that point, e.g. with constraints.positive())"
+                f"the loss stayed finite but its gradient did not{at_step}: the gradient "
+                "overflowed (a simulation growing without bound: keep the parameters where "
+                "the model is stable, e.g. with bounds) or the model is not differentiable "
+                "there (a parameter at a bound where it is not, such as sqrt(c) at c = 0: "
+                "keep it off that point, e.g. with constraints.positive())"
             )
         return "the simulation diverged" + at_step
     if status == "zero_gradient":
@@ -108,7 +110,7 @@ def stop_detail(status: str, info: dict) -> str:
             f" (patience {patience})" if patience is not None else ""
         )
     if status in ("max_steps_reached", "no_progress") and known:
-        return f"{vs} not met"
+        return f"{vs} not met" if fo > gtol else f"{vs} met, after the solver failed"
     return ""
 
 
