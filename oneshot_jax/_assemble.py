@@ -45,7 +45,7 @@ class Out(NamedTuple):
     stages: tuple  # a `StageOut` per solver
     results: jax.Array  # (S,) the last solver's RESULTS index per start
     losses: jax.Array  # (S,)
-    start_theta: jax.Array  # (S, p) the free entries of theta per start
+    start_theta: jax.Array  # (S, p) the free entries of theta each start ended at
     first_order: jax.Array  # the measures the best start's stop was tested on
     step: jax.Array
     decrease: jax.Array

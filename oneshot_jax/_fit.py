@@ -350,8 +350,9 @@ def fit(
         (`benchmarks/multistart.py`).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
-    - `history`: the most rows of iterates kept (even, >= 2); longer runs are thinned
-        evenly (see `FitHistory`).
+    - `history`: the most rows of iterates each solver keeps (even, >= 2), besides its
+        final iterate (a sequence of solvers keeps that many per solver); longer runs are
+        thinned evenly (see `FitHistory`).
     - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` or
         `{"phys": {"c": ...}}` for a nested one), e.g. `{"I": "kg m^2"}`, shown by
         `print(result)`.
@@ -492,7 +493,9 @@ def fit(
         n_u=int(np.shape(u[0] if isinstance(u, (list, tuple)) else u)[-1]),
     )
     strategy = getattr(inputs.solvers[-1], "strategy", "auto")
-    result = flag_zero_gradient(result, built.problem, built.starts, out.theta, strategy)
+    result = flag_zero_gradient(
+        result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
+    )
     if aggregate is not None:
         result = agg.restore(result)
     _warn_unequal_noise(result.residuals, weight, result.std)

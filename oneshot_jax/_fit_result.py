@@ -301,7 +301,10 @@ class FitResult(eqx.Module):
         """Why the solver stopped, in words: the test that fired with its values, then
         the reason's explanation (`RESULTS`)."""
         detail = stop_detail(self.status, self.stop_info)
-        out = f"{detail}; {RESULTS[self.stop_reason]}" if detail else RESULTS[self.stop_reason]
+        why = RESULTS[self.stop_reason]
+        if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
+            why = why.replace("the last finite iterate is returned", "the start is returned")
+        out = f"{detail}; {why}" if detail else why
         gone = self.stop_info.get("vanished")
         if gone:
             out += f". {vanished_note(gone)}"

@@ -33,6 +33,7 @@ solver's path ends. Two remedies, both on the public `fit`:
 
 import math
 import numbers
+import warnings
 from collections.abc import Mapping
 
 import equinox as eqx
@@ -520,19 +521,23 @@ def fit_orthogonal(
         m = _basis(model, theta, x0, u, names, root)
         u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
         x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
-        result = fit(
-            aug,
-            theta,
-            x0_aug,
-            u_aug,
-            z_aug,
-            solver=solver,
-            weight=w_aug,
-            fixed=None if fixed is None else {k: held.get(k, False) for k in theta0},
-            estimate_x0=est_aug,
-            missing="mask",
-            **kwargs,
-        )
+        with warnings.catch_warnings():
+            # (The augmented outputs are the penalty's rows, one sample each: `fit`'s
+            # advice to weigh the outputs by their noise is not the user's to act on.)
+            warnings.filterwarnings("ignore", "the weighted residuals of the outputs differ")
+            result = fit(
+                aug,
+                theta,
+                x0_aug,
+                u_aug,
+                z_aug,
+                solver=solver,
+                weight=w_aug,
+                fixed=None if fixed is None else {k: held.get(k, False) for k in theta0},
+                estimate_x0=est_aug,
+                missing="mask",
+                **kwargs,
+            )
         theta, x0 = result.theta, np.asarray(result.x0)[:n_x]
         after = _flat(theta, names)
         step = np.abs(after - before)

@@ -40,14 +40,22 @@ def scaled_eigenvalues(eig, h, method):
     """Each eigenvalue's measure against `LIMITS[method]`, linear in h: |lambda| h for
     RK4; for Euler h |lambda|^2 / (-Re lambda) where Re lambda < 0, which is <= 2 exactly
     inside the disc |1 + lambda h| <= 1 (|1 + lambda h|^2 = 1 + 2 h Re lambda +
-    h^2 |lambda|^2), and |lambda| h where Re lambda >= 0 (the ODE's own mode does not
-    decay: its growth is not the discretisation's)."""
+    h^2 |lambda|^2); inf for an undamped mode (Re lambda = 0 up to round-off, lambda != 0:
+    Euler grows it at any h, by sqrt(1 + |lambda h|^2) a step); and |lambda| h where
+    Re lambda > 0 (the ODE's own mode grows: its growth is not the discretisation's)."""
     size = np.abs(eig) * h
     if method != "euler":
         return size
-    damped = eig.real < 0
-    disc = np.abs(eig) ** 2 * h / np.where(damped, -eig.real, 1.0)
+    damped = _decays(eig)
+    with np.errstate(divide="ignore"):
+        disc = np.abs(eig) ** 2 * h / np.where(damped, np.maximum(-eig.real, 0.0), 1.0)
     return np.where(damped, disc, size)
+
+
+def _decays(eig):
+    """The modes that decay, or do not grow (Re lambda <= 1e-12 |lambda|, lambda != 0):
+    Euler's measure applies to them."""
+    return (eig.real <= 1e-12 * np.abs(eig)) & (np.abs(eig) > 0)
 
 
 # The states the Jacobian is evaluated at: this many, evenly spaced over all samples of
@@ -237,7 +245,12 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
         return
     lam = report.eigenvalue
     h = report.dt / report.substeps
-    if report.max_step is None:
+    if not np.isfinite(report.value):  # an undamped mode: Euler grows it at any h
+        remedy = (
+            'RK4 (`Model.from_ode(..., method="rk4")`): explicit Euler grows an undamped '
+            "mode at any step"
+        )
+    elif report.max_step is None:
         need = int(np.ceil(report.value * report.substeps / report.limit))
         remedy = (
             f"more substeps (`Model.from_ode(..., substeps={max(need, 2 * report.substeps)})` "
@@ -249,7 +262,9 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
             "with `substeps` enough for the longest interval)"
         )
     measure = (
-        "h |lambda|^2 / (-Re lambda)" if report.method == "euler" and lam.real < 0 else "|lambda| h"
+        "h |lambda|^2 / (-Re lambda)"
+        if report.method == "euler" and _decays(np.asarray(lam))
+        else "|lambda| h"
     )
     region = (
         "stable inside |1 + lambda h| <= 1, where this measure is <= 2"

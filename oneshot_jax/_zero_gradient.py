@@ -25,7 +25,7 @@ from . import _pytree
 from ._fit_result import stop_detail
 from ._jit import jit
 from ._problem import Params
-from ._results import RESULTS, name_of
+from ._results import RESULTS, SUCCESS, name_of
 
 # How far the entries are moved from the start to see whether they act away from it:
 # relative to their size, at least this much (any nonzero move shows a product of them).
@@ -49,15 +49,22 @@ def _columns(problem, params, entries, strategy):
 def _stuck(problem, params, entries, strategy):
     """Whether each free entry `entries` of theta has an exactly zero gradient (eq. 17, 20)
     and Jacobian column at `params`, and a Jacobian column that is not zero once they are
-    all moved a little away from it (not zero, or not finite: it acts away from the
-    start)."""
+    all moved a little away from it, up or down within the box (not zero, or not finite:
+    it acts away from the start)."""
     _, g = problem.value_and_grad(params, strategy)
     zero = (g.theta[entries] == 0) & jnp.all(_columns(problem, params, entries, strategy) == 0, 1)
     values = params.theta[entries]
     move = jnp.where(zero, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
-    away = params._replace(theta=params.theta.at[entries].add(move))
-    cols = _columns(problem, away, entries, strategy)
-    acts = jnp.any(cols != 0, 1) | ~jnp.all(jnp.isfinite(cols), 1)
+    acts = jnp.zeros(values.shape, bool)
+    # Both ways (relu(-k) acts below a start at 0 only), each within the box.
+    for sign in (1.0, -1.0):
+        moved = values + sign * move
+        inside = jnp.ones(values.shape, bool)
+        if problem.lower is not None:
+            inside = (moved >= problem.lower[entries]) & (moved <= problem.upper[entries])
+        away = params._replace(theta=params.theta.at[entries].set(moved))
+        cols = _columns(problem, away, entries, strategy)
+        acts = acts | (inside & (jnp.any(cols != 0, 1) | ~jnp.all(jnp.isfinite(cols), 1)))
     return zero & acts
 
 
@@ -84,11 +91,37 @@ def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.n
     return unmoved[stuck]
 
 
-def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
+def _starts_flagged(result, problem, starts: Params, finals, strategy):
+    """`result` with `zero_gradient` as the stop of each start other than the best that
+    reported a success while some free entries never moved from where their gradient and
+    Jacobian column are exactly zero (`zero_gradient_entries`): a multistart listed such
+    a start as `statistically_converged` where a fit from it alone says `zero_gradient`."""
+    if result.starts is None or finals is None:
+        return result
+    reasons = list(result.starts.stop_reason)
+    finals = np.asarray(finals)
+    for s, reason in enumerate(reasons):
+        if s == result.best or reason not in SUCCESS:
+            continue
+        if not (finals[s] == np.asarray(starts.theta[s])).any():
+            continue
+        start = Params(starts.theta[s], starts.x0[s])
+        if zero_gradient_entries(problem, start, finals[s], strategy).size:
+            reasons[s] = "zero_gradient"
+    if reasons == list(result.starts.stop_reason):
+        return result
+    return dataclasses.replace(
+        result, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+    )
+
+
+def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, finals=None):
     """`result`, with the stop reason `zero_gradient` and a warning if some free entries of
     theta never moved from the best start, where their gradient and Jacobian column are
     exactly zero though they act away from it (`zero_gradient_entries`); else `result`
-    itself.
+    itself. With several starts, each other start that reported a success is checked
+    the same way (its stop in `result.starts` becomes `zero_gradient`, without a
+    warning).
 
     **Arguments:**
 
@@ -97,9 +130,11 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
     - `starts`: the starts (S, ...) the fit ran from.
     - `theta_flat`: the returned theta, flat (fixed entries included).
     - `strategy`: the strategy of the derivatives.
+    - `finals`: the free entries of theta each start ended at (S, p), or None.
 
     **Returns:** a `FitResult`.
     """
+    result = _starts_flagged(result, problem, starts, finals, strategy)
     free = problem.theta_free
     final = np.asarray(theta_flat)
     final = final if len(free) == final.size else final[list(free)]
@@ -129,4 +164,11 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy):
     )
     if stop == "diverged":  # the more pressing report: keep it
         return result
-    return dataclasses.replace(result, stop_reason=RESULTS.zero_gradient, stop_info=info)
+    out = dataclasses.replace(result, stop_reason=RESULTS.zero_gradient, stop_info=info)
+    if result.starts is not None:  # (the best start's own stop, as the status line's)
+        reasons = list(result.starts.stop_reason)
+        reasons[best] = "zero_gradient"
+        out = dataclasses.replace(
+            out, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+        )
+    return out

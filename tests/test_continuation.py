@@ -233,6 +233,30 @@ def test_euler_stability_is_its_disc_not_a_radius(substeps, warns):
     assert (abs(1 + report.eigenvalue * h) > 1) is warns
 
 
+def test_euler_warns_of_an_undamped_mode_at_any_step():
+    """k = 38**2, c = 0: lambda = +-38j. Euler grows the mode by |1 + lambda h| = 2.15 a
+    step at h = 0.05 (6e10 in 30 steps), but its measure fell back to |lambda| h = 1.9 < 2:
+    no warning, while c = 1e-3 gave 1.4e5 and a warning. An undamped mode is outside
+    Euler's disc at any h: inf, and the remedy is RK4."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1]])
+
+    model = oj.Model.from_ode(rhs, 0.05, method="euler")
+    x0, u = np.array([1.0, 0.0]), np.zeros((100, 1))
+    for c in (0.0, 1e-3):
+        with pytest.warns(RuntimeWarning, match="EULER") as rec:
+            report = oj.check_stability(model, {"k": 38.0**2, "c": c}, x0, u)
+        assert report.near_limit and abs(1 + report.eigenvalue * 0.05) > 2
+    assert report.value == pytest.approx(38.0**2 * 0.05 / 5e-4, rel=1e-6)
+    with pytest.warns(RuntimeWarning, match=r"= inf .*method=\"rk4\"") as rec:
+        report = oj.check_stability(model, {"k": 38.0**2, "c": 0.0}, x0, u)
+    assert report.value == np.inf and len(rec) == 1
+    integrator = oj.Model.from_ode(lambda x, u, th: th["g"] * u[:1], 0.05, method="euler")
+    report = _no_warnings(oj.check_stability, integrator, {"g": 1.0}, np.zeros(1), u)
+    assert not report.near_limit  # lambda = 0: neither grows nor decays
+
+
 def _timed_lag_data():
     """The lag sampled every 0.04 except one interval of 0.052, away from the states
     `check_stability` spaces evenly: a = 52 gives |lambda| h = 2.08 on the others and

@@ -477,6 +477,20 @@ def test_optimistix_divergence_returns_the_last_finite_iterate():
     assert float(r.loss) == pytest.approx(float(r.history.loss[finite][-1]), rel=1e-12)
 
 
+def test_a_start_that_diverges_is_returned_and_the_message_says_so():
+    """From a start whose simulation overflows there is no finite iterate: the message
+    said "the last finite iterate is returned" with the loss inf."""
+    model = oj.Model.from_ode(lambda x, u, p: -p["a"] * x + p["g"] * u[:1], 0.05)
+    u = np.sin(0.3 * np.arange(300))[:, None]
+    _, z = oj.simulate(model, {"a": 1.0, "g": 0.5}, np.zeros(1), u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(model, {"a": -100.0, "g": 0.1}, np.zeros(1), u, np.asarray(z))
+    assert r.status == "diverged" and not np.isfinite(float(r.loss))
+    assert "the start is returned" in r.message and "last finite" not in r.message
+    assert float(r.theta["a"]) == -100.0
+
+
 def test_the_issue_pendulum_with_an_inactive_bound_reaches_the_optimum():
     """The reported case: a bound c >= 0, inactive at the optimum, made LM and GN report
     'converged' after 2 steps at FIT 20 % (c = 3.56)."""

@@ -162,6 +162,24 @@ def test_patience_stops_early():
     assert res.num_steps == res.history.step[i] + 25  # stopped after 25 without a better score
 
 
+def test_counts_given_as_whole_floats_count():
+    """Validation(n=10.0) was accepted and then failed inside JAX ("'float' object cannot
+    be interpreted as an integer", naming no argument); x0_steps=2.0 in fori_loop. Whole
+    floats are the counts they stand for, and score as the integers do."""
+    u, z, x0 = _record(2, 60, 0.3)
+    uv, zv, _ = _record(3, 100, 0.01)
+    solver = oj.Adam(lr_theta=5e-2, lr_x0=1e-2, max_steps=20)
+    scores = []
+    for n, steps, patience in ((10, 2, 5), (10.0, 2.0, 5.0)):
+        v = oj.Validation(uv, zv, n=n, x0_steps=steps, patience=patience)
+        assert (type(v.n), type(v.x0_steps), type(v.patience)) == (int, int, int)
+        res = oj.fit(MODEL, {"k": 3.0, "c": 0.3, "g": 0.8}, x0, u, z, solver=solver, validation=v)
+        scores.append(res.validation_loss)
+    assert scores[0] == scores[1]
+    with pytest.raises(ValueError, match=r"Validation\(n=...\)"):
+        oj.Validation(uv, zv, n=10.5)
+
+
 def test_validation_checks():
     u, z, x0 = _record(0, 50, 0.0)
     with pytest.raises(ValueError, match="n"):

@@ -10,6 +10,7 @@ everywhere: the covariance reports it as not identifiable.
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -84,3 +85,64 @@ def test_no_report_for_ordinary_fits(data, theta0):
     assert r.success and r.status != "zero_gradient" and "zero_gradient" not in r.stop_info
     np.testing.assert_allclose(r.theta["a"], TRUTH["a"], rtol=1e-8)
     np.testing.assert_allclose(r.theta["k12"] * r.theta["g"], 0.8, rtol=1e-8)
+
+
+def _relu_model(sign):
+    def rhs(x, u, p):
+        return jnp.stack([-p["a"] * x[0] + jax.nn.relu(sign * p["k"]) * u[0]])
+
+    return oj.Model.from_ode(rhs, 0.05)
+
+
+def _relu_data(sign):
+    k = np.arange(200)
+    u = (np.sin(0.3 * k) + 0.5 * np.sin(1.1 * k))[:, None]
+    _, z = oj.simulate(_relu_model(sign), {"a": 1.0, "k": sign * 0.5}, np.zeros(1), u)
+    return u, np.asarray(z) + 1e-3 * np.random.default_rng(0).standard_normal(np.shape(z))
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_a_parameter_that_acts_on_one_side_of_its_start_is_reported(sign):
+    """relu(-k) u started at k = 0 acts only below the start: the check moved k upwards
+    only, and the fit reported statistically_converged (success) at a loss 3800 times that
+    of a refit from k = -0.1. Moved both ways, it is zero_gradient as relu(+k) is; within
+    a box that allows only the side where it does not act, it is not flagged."""
+    u, z = _relu_data(sign)
+    with pytest.warns(RuntimeWarning, match=r"theta\['k'\] never moved"):
+        r = oj.fit(_relu_model(sign), {"a": 0.5, "k": 0.0}, np.zeros(1), u, z)
+    assert r.status == "zero_gradient" and not r.success
+    away = oj.fit(_relu_model(sign), {**r.theta, "k": sign * 0.1}, r.x0, u, z)
+    assert away.success and float(away.loss) < 1e-3 * float(r.loss)
+    box = oj.constraints.box(**({"upper": {"k": 0.0}} if sign > 0 else {"lower": {"k": 0.0}}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        held = oj.fit(_relu_model(sign), {"a": 0.5, "k": 0.0}, np.zeros(1), u, z, constraints=box)
+    assert held.status != "zero_gradient"
+
+
+def test_each_start_of_a_multistart_that_stays_at_a_zero_gradient_is_reported():
+    """A multistart listed a start left at k1 = k2 = 0 (a product with a zero gradient
+    there) as statistically_converged, a success, where a fit from it alone says
+    zero_gradient; with every start there, the status line said zero_gradient and the
+    starts' line 'statistically_converged 2'."""
+
+    def rhs(x, u, p):
+        return jnp.stack([-p["a"] * x[0] + p["k1"] * p["k2"] * u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05)
+    k = np.arange(200)
+    u = (np.sin(0.3 * k) + 0.5 * np.sin(1.1 * k))[:, None]
+    _, z = oj.simulate(model, {"a": 1.0, "k1": 1.0, "k2": 2.0}, np.zeros(1), u)
+    z = np.asarray(z) + 1e-3 * np.random.default_rng(0).standard_normal(np.shape(z))
+    theta0 = {"a": 0.5, "k1": 0.0, "k2": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        both = oj.fit(
+            model, theta0, np.zeros(1), u, z, multistart={"k1": [0.0, 1.0], "k2": [0.0, 1.0]}
+        )
+        stuck = oj.fit(model, theta0, np.zeros(1), u, z, multistart={"a": [0.5, 2.0]})
+    assert both.success and both.starts.stop_reason[0] == "zero_gradient"
+    assert both.starts.stop_reason[1] != "zero_gradient"
+    assert stuck.status == "zero_gradient"
+    assert stuck.starts.stop_reason == ("zero_gradient", "zero_gradient")
+    assert "stops: zero_gradient 2" in str(stuck)
