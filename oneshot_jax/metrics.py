@@ -31,8 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
-from ._normalise import is_ragged
-
 __all__ = [
     "rmse",
     "nrmse",
@@ -410,11 +408,22 @@ def _trajectories(a, name, shape=None):
     return a
 
 
+def _ragged(u) -> bool:
+    """A list of records that NumPy cannot stack (of different lengths)."""
+    if not isinstance(u, (list, tuple)):
+        return False
+    try:
+        np.asarray(u, dtype=np.float64)
+    except (TypeError, ValueError):
+        return all(np.ndim(r) >= 1 for r in u)
+    return False
+
+
 def _inputs(u, N, T):
     """`u` as (N, T, n_u) and where it is known (N, T): the records of a list of
     different lengths (as `fit` takes them) end where theirs do, and their residuals
     (`FitResult.residuals`, NaN past each record's end) with them."""
-    if not is_ragged(u):
+    if not _ragged(u):
         return _trajectories(u, "u", (N, T)), np.ones((N, T), bool)
     if len(u) != N:
         raise ValueError(f"`u` must hold the N = {N} records of `e`, got {len(u)}.")
