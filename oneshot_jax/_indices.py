@@ -13,6 +13,7 @@ left alone; a gather that fills (`jnp.take`'s default mode) gives NaN, not a sil
 
 import jax
 import numpy as np
+from jax.extend.core import Literal
 
 _ELEMENTWISE = {
     "add": np.add,
@@ -83,7 +84,7 @@ def _check(jaxpr, known_in, found):
     known = {}
 
     def value(v):
-        if isinstance(v, jax.extend.core.Literal):
+        if isinstance(v, Literal):
             return np.asarray(v.val)
         return known.get(v)
 

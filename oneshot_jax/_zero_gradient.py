@@ -101,7 +101,8 @@ def _starts_flagged(result, problem, starts: Params, finals, strategy):
     reasons = list(result.starts.stop_reason)
     finals = np.asarray(finals)
     for s, reason in enumerate(reasons):
-        if s == result.best or reason not in SUCCESS:
+        # (zero_residual: the outputs reproduced exactly, as for the best start below)
+        if s == result.best or reason not in SUCCESS or reason == "zero_residual":
             continue
         if not (finals[s] == np.asarray(starts.theta[s])).any():
             continue
