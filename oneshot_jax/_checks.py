@@ -651,15 +651,6 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
         raise ValueError(f"`penalty` must be callable h(x, theta) -> scalar, got {penalty!r}.")
     dtype = data.x0.dtype
     if penalty is None:
-        try:  # (its default, 1, or a traced value: nothing to tell)
-            default = not is_concrete(penalty_weight) or float(penalty_weight) == 1.0
-        except (TypeError, ValueError):
-            default = False
-        if not default:
-            raise ValueError(
-                f"`penalty_weight` ({penalty_weight!r}) is the multiplier of a `penalty`, and "
-                "none is given: pass `penalty=h(x, theta)` with it, or leave it out."
-            )
         return _pytree.build(
             Cost, weight=data.weight, penalty=None, penalty_weight=np.zeros((), dtype)
         )

@@ -135,7 +135,8 @@ def loss(
     - `penalty`: h(x, theta) -> scalar of eq. (21), or None.
     - `penalty_weight`: the multiplier lambda of eq. (21), applied with the 1/T of the
         error (the paper's eq. (21) adds lambda h to the sum of the L_k without it: its
-        lambda is `penalty_weight / T`).
+        lambda is `penalty_weight / T`). Without a `penalty` it multiplies nothing (so a
+        sweep may pass `penalty=None` and a weight alike).
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
         missing samples, which contribute nothing to C (nor to its derivatives).
     - `strategy`: how the rollout is computed, as for `simulate`.

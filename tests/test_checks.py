@@ -886,17 +886,3 @@ def test_a_model_that_indexes_past_the_end_of_an_array_is_refused():
         return jnp.stack([x[1], table[i] + u[0]])
 
     oj.simulate(oj.Model(by_state, lambda x, u, th: x), {"table": jnp.ones(3)}, x0, u)
-
-
-def test_a_penalty_weight_without_a_penalty_is_refused():
-    """`penalty_weight` given without a `penalty` was ignored silently (the loss the same
-    for 1, 5 and -5)."""
-    with pytest.raises(ValueError, match=r"`penalty_weight` \(5.0\) is the multiplier"):
-        oj.loss(MODEL, THETA, X0, U, Z, penalty_weight=5.0)
-    with pytest.raises(ValueError, match="`penalty_weight`"):
-        oj.fit(MODEL, THETA, X0, U, Z, penalty_weight=-5.0)
-    with pytest.raises(ValueError, match="`penalty_weight`"):
-        oj.value_and_grad(MODEL, THETA, X0, U, Z, penalty_weight=2.0)
-    assert float(oj.loss(MODEL, THETA, X0, U, Z, penalty_weight=1.0)) == float(
-        oj.loss(MODEL, THETA, X0, U, Z)
-    )
