@@ -457,6 +457,31 @@ def test_optimistix_failing_at_a_solution_converges_and_says_which_test_held():
         assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-9)
 
 
+def test_optimistix_in_float32_at_its_last_step_counts_gtol_as_the_resolution():
+    """float32: GN through the bridge with tolerances that cannot fire ends at max_steps at
+    the optimum (measure about 1e-6) and said "not a stationary point yet": gtol 1e-8 is
+    below the float32 resolution 1.7e-4, which the first-order solvers count it as."""
+    model = oj.Model(
+        lambda x, u, p: jnp.stack([p["a1"] * x[0] + p["a2"] * x[1] + p["b"] * u[0], x[0]]),
+        lambda x, u, p: x[:1],
+    )
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((150, 1)).astype(np.float32)
+    x0 = np.array([0.5, 0.0], np.float32)
+    truth = {k: np.float32(v) for k, v in {"a1": 1.2, "a2": -0.5, "b": 0.3}.items()}
+    _, z = oj.simulate(model, truth, x0, u)
+    z = (np.asarray(z) + 0.05 * rng.standard_normal(np.shape(z))).astype(np.float32)
+    start = {k: np.float32(v) for k, v in {"a1": 1.0, "a2": -0.3, "b": 0.1}.items()}
+    inner = optx.GaussNewton(rtol=1e-30, atol=1e-30)
+    r = oj.fit(model, start, x0, u, z, solver=oj.Optimistix(inner, max_steps=60))
+    floor = r.stop_info["resolution"]
+    assert floor == pytest.approx(0.5 * np.sqrt(np.finfo(np.float32).eps))
+    assert r.status == "converged" and r.stop_info["first_order"] <= floor, r.message
+    assert "the resolution of the measure in this precision" in r.message
+    ref = oj.fit(model, start, x0, u, z)
+    assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-5)
+
+
 def test_optimistix_divergence_returns_the_last_finite_iterate():
     """Gauss-Newton through the bridge stepped to a point where the cubic term blows the
     simulation up (step 4): the fit returned that point with the loss inf. It returns the

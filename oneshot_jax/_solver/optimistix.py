@@ -36,6 +36,7 @@ from .._optimality import (
     data_scale,
     first_order,
     lazy_cond,
+    resolution,
     roundoff_limit,
     zero_residual,
 )
@@ -167,6 +168,8 @@ class Optimistix(AbstractSolver):
         `stalled`.
     - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`).
     """
+
+    GTOL_AT_LEAST_RESOLUTION = True  # (at its last step and after a failure: no stall)
 
     solver: Any
     max_steps: int = 256
@@ -307,10 +310,16 @@ class Optimistix(AbstractSolver):
         )
         stationary = (fo <= self.gtol) | (fo <= roundoff_limit(problem.dtype))
         finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
+        # Without a stall (below), a positive gtol counts as at least the measure's
+        # resolution, as for the first-order solvers: in float32 a fit at 1e-6 said "not
+        # a stationary point yet" with gtol 1e-8, below the resolution 1.7e-4.
+        gtol = jnp.where(
+            self.gtol > 0, jnp.maximum(self.gtol, resolution(problem.dtype)), self.gtol
+        )
         # At the last step allowed, a point that meets the first-order test (on the box)
         # is a solution: the fit reported max_steps_reached at a measure of 5e-12 where
         # optimistix's own tolerances had not fired yet.
-        at_limit = ~done & (count >= self.max_steps) & (fo <= self.gtol) & finite
+        at_limit = ~done & (count >= self.max_steps) & (fo <= gtol) & finite
         own_test = done & ok  # (not a failure of the optimistix solver)
         done = done | at_limit
         zero = zero_residual(loss, data_scale(problem))
@@ -322,7 +331,7 @@ class Optimistix(AbstractSolver):
         # A failure of the optimistix solver (its linear solve, say) at a point that meets
         # the first-order test leaves a solution: LM with a capped conjugate-gradient
         # solve reported no_progress at a measure of 9.7e-9 (gtol 1e-8), at the optimum.
-        solved = (fo <= self.gtol) & finite
+        solved = (fo <= gtol) & finite
         result = RESULTS.where(
             ok | solved, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
         )
