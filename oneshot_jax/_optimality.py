@@ -122,6 +122,12 @@ def resolution(dtype):
     return 0.5 * float(np.sqrt(np.finfo(dtype).eps))
 
 
+def gtol_at_least_resolution(gtol, dtype):
+    """A positive `gtol` counted as at least the `resolution` of `dtype` (0 stays 0): the
+    tolerance of a first-order test that has no stall to wait for."""
+    return jnp.where(gtol > 0, jnp.maximum(gtol, resolution(dtype)), gtol)
+
+
 class Measures(NamedTuple):
     """The quantities a stop is tested on, at the returned point (NaN where a solver has no
     such test): the first-order measure, the last step's scaled size (relative to the
@@ -392,7 +398,7 @@ def check_first_order(
     `stall_test`), the scaling to keep, and whether the measure is that of a stall with
     vanished columns.
     """
-    gtol = jnp.where(gtol > 0, jnp.maximum(gtol, resolution(problem.dtype)), gtol)
+    gtol = gtol_at_least_resolution(gtol, problem.dtype)
     half = Params(0.5 * grad.theta, 0.5 * grad.x0)
     fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     if not fresh:

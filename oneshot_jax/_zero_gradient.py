@@ -111,6 +111,11 @@ def _starts_flagged(result, problem, starts: Params, finals, strategy):
             reasons[s] = "zero_gradient"
     if reasons == list(result.starts.stop_reason):
         return result
+    return _with_stops(result, reasons)
+
+
+def _with_stops(result, reasons):
+    """`result` with the starts' stop reasons `reasons`."""
     return dataclasses.replace(
         result, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
     )
@@ -169,7 +174,5 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, fi
     if result.starts is not None:  # (the best start's own stop, as the status line's)
         reasons = list(result.starts.stop_reason)
         reasons[best] = "zero_gradient"
-        out = dataclasses.replace(
-            out, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
-        )
+        out = _with_stops(out, reasons)
     return out

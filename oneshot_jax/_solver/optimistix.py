@@ -35,8 +35,8 @@ from .._optimality import (
     column_norms,
     data_scale,
     first_order,
+    gtol_at_least_resolution,
     lazy_cond,
-    resolution,
     roundoff_limit,
     zero_residual,
 )
@@ -313,9 +313,7 @@ class Optimistix(AbstractSolver):
         # Without a stall (below), a positive gtol counts as at least the measure's
         # resolution, as for the first-order solvers: in float32 a fit at 1e-6 said "not
         # a stationary point yet" with gtol 1e-8, below the resolution 1.7e-4.
-        gtol = jnp.where(
-            self.gtol > 0, jnp.maximum(self.gtol, resolution(problem.dtype)), self.gtol
-        )
+        gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
         # At the last step allowed, a point that meets the first-order test (on the box)
         # is a solution: the fit reported max_steps_reached at a measure of 5e-12 where
         # optimistix's own tolerances had not fired yet.
