@@ -163,7 +163,36 @@ def _parameter_table(result):
         for i, entry in enumerate(_entry_names(name, shape), start=a):
             v, s = flat[i], std[i]
             table.append((entry, unit, f"{v:.6g}", f"{s:.3g}", _interval(v, s, fixed[i], computed)))
+    table.extend(_data_rows(result))
     return table, modules
+
+
+def _data_rows(result, listed_max=12):
+    """Rows for the numbers of theta that are data, not parameters (an integer scalar
+    such as an exponent or an index, a boolean): their values, "(data, not estimated)".
+    Those inside an equinox module (its activation, its sizes) are the module's own."""
+    _, static = _pytree.split(result.theta)
+    if static is None:
+        return []
+    rows = []
+    for path, leaf in jax.tree_util.tree_flatten_with_path(static)[0]:
+        if not isinstance(leaf, (int, np.integer, np.bool_, np.ndarray, jax.Array)):
+            continue
+        if np.size(leaf) > listed_max or np.asarray(leaf).dtype.kind not in "biu":
+            continue
+        node = result.theta
+        for entry in path[:-1]:
+            node = _child(node, entry)
+            if isinstance(node, eqx.Module):
+                break
+        if isinstance(node, eqx.Module):
+            continue
+        name = ".".join(_pytree._key(p) for p in path) or "theta"
+        unit = result.units.get(name, "")
+        values = np.ravel(np.asarray(leaf))
+        for entry, v in zip(_entry_names(name, np.shape(leaf)), values, strict=True):
+            rows.append((entry, unit, f"{v}", "", "(data, not estimated)"))
+    return rows
 
 
 def _x0_table(result, shown_max=3):

@@ -170,9 +170,10 @@ class FitResult(eqx.Module):
     `print(result)` reports it in the manner of MATLAB's nlgreyest: the solver, the stop
     (`status` and the test that fired), the loss, steps and wall time; the parameters in
     theta0's order with their units, standard errors and 95 % intervals (an equinox
-    module, such as a neural residual, as one row with its number of weights); the
-    initial states with their standard errors (the first trajectories of several); FIT%
-    and RMSE per output, and the AIC.
+    module, such as a neural residual, as one row with its number of weights; an integer
+    of theta, which is data, with its value as "(data, not estimated)"); the initial
+    states with their standard errors (the first trajectories of several); FIT% and RMSE
+    per output, and the AIC.
 
     **Fields:**
 

@@ -252,6 +252,29 @@ def test_a_neural_residual_is_one_row():
     assert _row(str(fixed), "r").endswith(f"MLP, {n} weights (fixed)")
 
 
+def test_integer_data_of_theta_print_as_data_rows():
+    """An integer scalar of NumPy is data (an exponent here), not a parameter: it prints
+    with its value as "(data, not estimated)"; a module's own static fields do not."""
+
+    def powered(x, u, theta):
+        r = theta["r"](x)[0]
+        acc = -theta["w0sq"] * x[0] ** theta["p"] - theta["c"] * x[1] + theta["b"] * u[0]
+        return jnp.stack([x[1], acc + r])
+
+    model = oj.Model.from_ode(powered, DT, observe=lambda x, u, theta: x[:1])
+    x0, u, z = data(T=60)
+    net = MLP(2, 1, (4,), key=jax.random.PRNGKey(0))
+    theta0 = {"w0sq": 3.0, "p": np.int64(1), "c": 0.2, "b": 1.0, "r": net}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the integer leaf's warning; the weights
+        r = oj.fit(model, theta0, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=2))
+    text = str(r)
+    assert _row(text, "p").split() == ["p", "1", "(data,", "not", "estimated)"]
+    assert text.count("(data, not estimated)") == 1
+    n = 3 + count_parameters(net)
+    assert f"{n} of {n} parameters" in text  # p is not one
+
+
 def test_a_windowed_fit_says_its_fit_is_over_the_windows(fitted):
     """Multiple shooting restarts each window from its own x0: its FIT% is not the model's
     simulation of the record (93 % against -40 % in an audit), and the printout says so."""
