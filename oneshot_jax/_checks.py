@@ -61,6 +61,15 @@ def is_count(value, least) -> bool:
     )
 
 
+def integral(value):
+    """A count given as an integral float (10.0, as a configuration file may write it) as
+    the int it is; anything else as given, for the caller's check to accept or refuse by
+    name. The converter of the count options of solvers and `Validation`."""
+    if is_count(value, 0):
+        return int(value)
+    return value
+
+
 def check_path(path, name="path", what="a file or folder", optional=True):
     """A TypeError unless `path` is a non-empty str or an `os.PathLike` (or None, where
     `optional`)."""

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import x0_mask
+from ._checks import is_count, x0_mask
 from ._fit import fit
 from ._fit_result import FitResult
 from ._simulate import simulate
@@ -95,10 +95,6 @@ def _stage(window, r):
     )
 
 
-def _is_count(w):
-    return not isinstance(w, bool) and isinstance(w, (int, np.integer)) and w >= 1
-
-
 def _schedule(windows, start, factor, T):
     """The window lengths, shortest first, each shorter than the record."""
     if windows is not None:
@@ -108,7 +104,7 @@ def _schedule(windows, start, factor, T):
             raise TypeError(
                 f"`windows` must be a sequence of window lengths, got {windows!r}."
             ) from None
-        if not windows or not all(_is_count(w) for w in windows):
+        if not windows or not all(is_count(w, 1) for w in windows):
             raise ValueError(
                 f"`windows` must be a non-empty sequence of positive integers, got {windows!r}."
             )
@@ -120,7 +116,7 @@ def _schedule(windows, start, factor, T):
                 f"last stage fits the whole record; got {windows!r}."
             )
         return [int(w) for w in windows]
-    if not _is_count(start):
+    if not is_count(start, 1):
         raise ValueError(f"`start` must be a positive integer, got {start!r}.")
     if start >= T:
         raise ValueError(
@@ -345,11 +341,12 @@ def check_basin(
             f"that record, `u` (T, n_u) and `z` (T, n_z); got x0 {np.shape(result.x0)}, u "
             f"{np.shape(u)}, z {np.shape(z)}."
         )
-    if not _is_count(window) or window >= np.shape(u)[0]:
+    if not is_count(window, 1) or window >= np.shape(u)[0]:
         raise ValueError(
             f"`window` must be a positive integer shorter than the record (T = "
             f"{np.shape(u)[0]}), got {window!r}."
         )
+    window = int(window)
     if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin >= 0:
         raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
     for name in ("window", "multistart"):

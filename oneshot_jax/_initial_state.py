@@ -11,6 +11,7 @@ model may use the test input and the first n test outputs, and is scored on the 
 functions, their checks and results, and the observability check of an estimate.
 """
 
+import math
 import warnings
 from typing import Any, NamedTuple
 
@@ -19,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data
+from ._checks import check_cost, check_data, is_count
 from ._cost import weigh
 from ._jit import jit
 from ._results import RESULTS, is_success
@@ -112,7 +113,7 @@ def _check_head(u, z, n, z_name="z"):
                 f"got {T_z}."
             )
         n = T_z
-    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+    if not is_count(n, -math.inf):
         raise TypeError(f"`n` (the number of head samples) must be an integer, got {n!r}.")
     n = int(n)
     if n < 1:

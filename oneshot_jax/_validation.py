@@ -18,20 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_data, is_count
+from ._checks import check_data, integral, is_count
 from ._cost import weigh
 from ._linalg import psd_solve
 from ._normalise import is_ragged
 from ._simulate import outputs, rollout
-
-
-def _integral(value):
-    """A count given as an integral float (10.0) as the int it is (it reached JAX's loops
-    as a float: "'float' object cannot be interpreted as an integer"); anything else as
-    given, for `__check_init__` to accept or refuse by name."""
-    if is_count(value, 0):
-        return int(value)
-    return value
 
 
 class Validation(eqx.Module):
@@ -63,10 +54,10 @@ class Validation(eqx.Module):
 
     u: Any
     z: Any
-    n: int | None = eqx.field(static=True, default=None, converter=_integral)
+    n: int | None = eqx.field(static=True, default=None, converter=integral)
     x0: Any = None
-    patience: int | None = eqx.field(static=True, default=None, converter=_integral)
-    x0_steps: int = eqx.field(static=True, default=5, converter=_integral)
+    patience: int | None = eqx.field(static=True, default=None, converter=integral)
+    x0_steps: int = eqx.field(static=True, default=5, converter=integral)
     t: Any = None
 
     def __check_init__(self):

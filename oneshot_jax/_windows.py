@@ -65,14 +65,14 @@ class Windows(eqx.Module):
 
     def __init__(self, length, *, every=1, count=None, starts=None):
         for name, v, low in (("length", length, 1), ("every", every, 1)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            if not is_count(v, low):
                 raise ValueError(f"`Windows({name}=...)` must be an integer >= {low}, got {v!r}.")
-        if count is not None and (
-            isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1
-        ):
+        if count is not None and not is_count(count, 1):
             raise ValueError(
                 f"`Windows(count=...)` must be None or an integer >= 1, got {count!r}."
             )
+        length, every = int(length), int(every)
+        count = None if count is None else int(count)
         if count is not None and every != 1:
             raise ValueError(
                 "`Windows(count=...)` does not combine with `every`: `count` spreads its "

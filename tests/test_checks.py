@@ -5,6 +5,7 @@ import warnings
 
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import oneshot_jax as oj
@@ -391,7 +392,6 @@ def test_optimistix_trust_region_on_float32_with_x64_is_refused_by_name():
     those solvers with x64 off, and with optimistix's GaussNewton and BFGS with x64 on
     (the refusal is no broader than the failure)."""
     import jax
-    import optimistix as optx
 
     def step(x, u, th):
         return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
@@ -595,6 +595,38 @@ def test_options_take_numpy_integers_and_schedules_that_start_at_zero():
     solver = oj.LevenbergMarquardt(max_steps=np.int64(20))
     assert oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, solver=solver).success
     oj.Adam(lr_theta=optax.linear_schedule(0.0, 1e-2, 100))  # a warm-up starts at 0
+
+
+@pytest.mark.parametrize(
+    "make,field",
+    [
+        (lambda v: oj.LevenbergMarquardt(max_steps=v), "max_steps"),
+        (lambda v: oj.GaussNewton(cg_max_steps=v), "cg_max_steps"),
+        (lambda v: oj.Adam(max_steps=v), "max_steps"),
+        (lambda v: oj.LBFGS(memory_size=v), "memory_size"),
+        (lambda v: oj.Optimistix(optx.LevenbergMarquardt(1e-8, 1e-8), max_steps=v), "max_steps"),
+        (lambda v: oj.Windows(v), "length"),
+        (lambda v: oj.Windows(10, every=v), "every"),
+        (lambda v: oj.Windows(10, count=v), "count"),
+    ],
+)
+def test_counts_are_integers_or_whole_floats_everywhere(make, field):
+    """A count written 20.0 (as a configuration file may) is the integer 20 for every
+    option that counts; 20.5 is refused by name."""
+    made = make(20.0)
+    assert getattr(made, field) == 20 and type(getattr(made, field)) is int
+    assert type(getattr(make(np.int32(20)), field)) is int
+    with pytest.raises(ValueError, match=rf"{field}=\.\.\.\)` must be"):
+        make(20.5)
+
+
+def test_the_head_length_of_predict_may_be_a_whole_float(lin_result):
+    theta, x0 = lin_result.theta, np.zeros(1)
+    z = _Z1 + 0.1 * np.random.default_rng(2).standard_normal(_Z1.shape)  # heads differ
+    a, b, c = (oj.predict(LIN, theta, _U1, z, n, x0=x0).z for n in (5.0, 5, 1))
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    with pytest.raises(TypeError, match=r"`n` \(the number of head samples\) must be an int"):
+        oj.predict(LIN, theta, _U1, z, 4.5, x0=x0)
 
 
 def test_fit_continuation_refuses_an_infinite_factor():

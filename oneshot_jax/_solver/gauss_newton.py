@@ -1,6 +1,9 @@
 """Gauss-Newton: the linearisation's undamped step (`_linearisation`) with backtracking
 (`_search.Backtracking`) in the loop of `least_squares`."""
 
+import equinox as eqx
+
+from .._checks import integral
 from ._search import Backtracking
 from .least_squares import AbstractLeastSquares
 
@@ -52,11 +55,11 @@ class GaussNewton(AbstractLeastSquares):
     atol: float = 0.0
     gtol: float = 1e-8
     stol: float = 1e-2
-    max_steps: int = 100
+    max_steps: int = eqx.field(default=100, converter=integral)
     strategy: str = "auto"
     linear_solver: str = "auto"
     cg_rtol: float = 1e-8
-    cg_max_steps: int = 50
+    cg_max_steps: int = eqx.field(default=50, converter=integral)
 
     def __check_init__(self):
         self._check()

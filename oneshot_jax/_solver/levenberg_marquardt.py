@@ -1,6 +1,9 @@
 """Levenberg-Marquardt: the linearisation's damped step (`_linearisation`) with Nielsen's
 damping update (`_search.NielsenDamping`) in the loop of `least_squares`."""
 
+import equinox as eqx
+
+from .._checks import integral
 from ._search import NielsenDamping
 from .base import check_options
 from .least_squares import AbstractLeastSquares
@@ -59,12 +62,12 @@ class LevenbergMarquardt(AbstractLeastSquares):
     atol: float = 0.0
     gtol: float = 1e-8
     stol: float = 1e-2
-    max_steps: int = 100
+    max_steps: int = eqx.field(default=100, converter=integral)
     mu0: float = 1e-3
     strategy: str = "auto"
     linear_solver: str = "auto"
     cg_rtol: float = 1e-8
-    cg_max_steps: int = 50
+    cg_max_steps: int = eqx.field(default=50, converter=integral)
 
     def __check_init__(self):
         check_options(self, positive=("mu0",))

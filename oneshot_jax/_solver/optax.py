@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._checks import integral
 from .._linalg import floor
 from .._optimality import (
     Measures,
@@ -344,7 +345,7 @@ class Optax(_AbstractOptax):
     """
 
     transform: optax.GradientTransformation
-    max_steps: int = 1000
+    max_steps: int = eqx.field(default=1000, converter=integral)
     tol_loss: float | None = None
     tol_grad: float = 0.0
     gtol: float = 1e-8
@@ -415,7 +416,7 @@ class Adam(_AbstractOptax):
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8
-    max_steps: int = 5000
+    max_steps: int = eqx.field(default=5000, converter=integral)
     tol_loss: float | None = None
     tol_grad: float = 0.0
     gtol: float = 1e-8
@@ -575,9 +576,9 @@ class LBFGS(_AbstractOptax):
         its round-off limit, stalled otherwise.
     """
 
-    memory_size: int = 10
-    max_linesearch_steps: int = 20
-    max_steps: int = 500
+    memory_size: int = eqx.field(default=10, converter=integral)
+    max_linesearch_steps: int = eqx.field(default=20, converter=integral)
+    max_steps: int = eqx.field(default=500, converter=integral)
     tol_loss: float | None = None
     tol_grad: float = 0.0
     gtol: float = 1e-8

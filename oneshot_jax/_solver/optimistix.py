@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._checks import integral
 from .._optimality import (
     Measures,
     column_norms,
@@ -172,7 +173,7 @@ class Optimistix(AbstractSolver):
     GTOL_AT_LEAST_RESOLUTION = True  # (at its last step and after a failure: no stall)
 
     solver: Any
-    max_steps: int = 256
+    max_steps: int = eqx.field(default=256, converter=integral)
     gtol: float = 1e-8
     strategy: str = "auto"
 
