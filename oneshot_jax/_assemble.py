@@ -126,10 +126,11 @@ def post(problem, params, blocks, strategy, lags=None):
     e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
     cov = None
     if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
+        seen = problem.cost.observed()
         if lags is None:
-            cov = scale(covariance(problem, params, strategy, blocks), e)
+            cov = scale(covariance(problem, params, strategy, blocks), e, seen)
         else:
-            cov = scale(sandwich(problem, params, strategy, lags), e, robust=True)
+            cov = scale(sandwich(problem, params, strategy, lags), e, seen, robust=True)
     n_free = params.theta.shape[0] + params.x0.size
     met = {
         "rmse": _metrics.rmse(zs, zhat, m),

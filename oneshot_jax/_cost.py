@@ -54,6 +54,16 @@ class Cost(eqx.Module):
             out = out + (h if mask is None else mask.samples * h)
         return out
 
+    def observed(self):
+        """The outputs the loss sees, (n_z,) booleans, or None where it sees all (Q = I):
+        an output of zero weight (a zero diagonal entry, a zero row of a matrix Q) is not
+        observed, and its residuals are no observations for sigma^2's degrees of freedom
+        (`_covariance.scale`) or the least-squares stopping test (`_optimality`)."""
+        w = self.weight
+        if w is None:
+            return None
+        return w > 0 if w.ndim == 1 else jnp.any(w != 0, axis=-1)
+
     def sqrt_weight(self):
         """Q^{1/2} (a vector for a diagonal Q, the symmetric root of a matrix Q), or None."""
         w = self.weight

@@ -284,9 +284,10 @@ class Scaled(NamedTuple):
     x0_std: jax.Array  # (N, m)
 
 
-def scale(cov: Covariance, e, robust: bool = False) -> Scaled:
+def scale(cov: Covariance, e, observed=None, robust: bool = False) -> Scaled:
     """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the finite entries of
-    the residuals `e`), or for a `sandwich` (`robust`) by n_obs / dof (the small-sample
+    the residuals `e` in the outputs `observed`, `Cost.observed`: an output of zero weight
+    adds no observations), or for a `sandwich` (`robust`) by n_obs / dof (the small-sample
     factor of the sandwich); traced, inside the compiled call that made `cov`.
 
     With J = Q^{1/2} J_e / sqrt(N T), sigma^2 (J_e^T Q J_e)^{-1} = (SSE_r / dof) (J^T J)^{-1}.
@@ -294,7 +295,8 @@ def scale(cov: Covariance, e, robust: bool = False) -> Scaled:
     variable when there are no more observations than free variables (dof <= 0).
     """
     t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
-    n_obs = jnp.sum(jnp.isfinite(e))
+    seen = jnp.isfinite(e)
+    n_obs = jnp.sum(seen if observed is None else seen & observed)
     dof = n_obs - (t_ok.size + x_ok.size)
     known = dof > 0
     top = n_obs.astype(cov.sse.dtype) if robust else cov.sse

@@ -194,7 +194,8 @@ class FitResult(eqx.Module):
     - `names`: a name per free parameter (`"k"`, `"I[2]"`, `"net.layers.0.weight[1, 3]"`).
     - `fixed`: a flat boolean mask over theta's parameter entries (True where fixed).
     - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta (J the data-residual
-        Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free)); inf in the
+        Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free), n_obs the
+        measured samples of the outputs of non-zero weight); inf in the
         rows and columns of a parameter the data do not determine. The least-squares
         solvers take J from their last linearisation, at the returned point or one
         converged step (of scaled size <= rtol) before it. Not computed above 1024 free

@@ -162,9 +162,13 @@ def _measured(problem: FitProblem):
 
 
 def n_observations(problem: FitProblem):
-    """The number R of measured output samples (the data residuals the loss counts)."""
-    m = _measured(problem)
-    return problem.z.size if m is None else jnp.sum(m)
+    """The number R of measured output samples (the data residuals the loss counts; an
+    output of zero weight counts none, `Cost.observed`)."""
+    m, seen = _measured(problem), problem.cost.observed()
+    if seen is None:
+        return problem.z.size if m is None else jnp.sum(m)
+    m = jnp.ones(problem.z.shape, bool) if m is None else m > 0
+    return jnp.sum(m & seen)
 
 
 def standard_errors(pred, C, n_obs, rank):
