@@ -365,23 +365,34 @@ def _checked_trajectories(items, name, dtype, n_traj):
     return arrays
 
 
+def _theta_summary(theta, limit=200):
+    """A short description of theta's structure: its type, and its leaves' shapes."""
+    try:
+        shapes = jax.tree_util.tree_map(lambda a: getattr(a, "shape", type(a).__name__), theta)
+        text = f"a {type(theta).__name__}, leaf shapes {shapes}"
+    except Exception:  # noqa: BLE001 - a description only
+        text = f"a {type(theta).__name__}"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 @contextlib.contextmanager
-def _naming_shapes(what, x_1, u_1, x0, u):
+def _naming_shapes(what, x_1, u_1, x0, u, theta, theta_name):
     """Re-raise an error of tracing `what` as a ValueError with the arguments' shapes."""
     try:
         yield
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
         raise ValueError(
-            f"calling {what} on a state of shape {x_1.shape} (from `x0` of shape {x0.shape}) "
-            f"and an input of shape {u_1.shape} (from `u` of shape {u.shape}) failed: "
+            f"calling {what} on a state of shape {x_1.shape} (from `x0` of shape {x0.shape}), "
+            f"an input of shape {u_1.shape} (from `u` of shape {u.shape}) and the "
+            f"parameters `{theta_name}` ({_theta_summary(theta)}) failed: "
             f"{type(err).__name__}: {err}"
         ) from err
 
 
-def _check_rhs(rhs, x_1, u_1, theta, x0, u):
+def _check_rhs(rhs, x_1, u_1, theta, x0, u, theta_name):
     """`Model.from_ode`'s `rhs` traced once on abstract values: it must return dx/dt of
     the state's shape."""
-    with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u):
+    with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u, theta, theta_name):
         dx = _abstract_call(rhs, x_1, u_1, theta)
     if not isinstance(dx, jax.ShapeDtypeStruct) or dx.shape != x_1.shape:
         if isinstance(dx, (list, tuple)):
@@ -425,7 +436,7 @@ def _check_indices(model, theta, x_1, u_step, u_seen, n_u):
         )
 
 
-def _check_model(model, theta, x0, u, lead, dtype):
+def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
     """Trace the user's functions once on abstract values, so that a step that changes the
     state's shape or dtype is reported here and not as an error deep inside a scan.
     Returns the model (its observation promoted to `dtype` where it returns integers) and
@@ -439,13 +450,15 @@ def _check_model(model, theta, x0, u, lead, dtype):
     if isinstance(model.step, ODE_STEPS):
         # RK4 broadcasts dx/dt against x: a right-hand side of the wrong shape would give
         # a state of the right shape and a wrong model.
-        _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u)
-    with _naming_shapes("the model", x_1, u_1, x0, u):
+        _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u, theta_name)
+    with _naming_shapes("the model", x_1, u_1, x0, u, theta, theta_name):
         x_next = _abstract_call(model.step, x_1, u_step, theta)
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
     _check_indices(model, theta, x_1, u_step, u_seen, u_1.shape[0])
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
         shape = getattr(x_next, "shape", type(x_next).__name__)
+        if isinstance(x_next, (list, tuple)):
+            shape += " (build the state with jnp.stack or jnp.array)"
         raise ValueError(
             f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), got {shape}."
         )
@@ -456,6 +469,8 @@ def _check_model(model, theta, x0, u, lead, dtype):
         )
     if not isinstance(z_hat, jax.ShapeDtypeStruct) or z_hat.ndim != 1:
         shape = getattr(z_hat, "shape", type(z_hat).__name__)
+        if isinstance(z_hat, (list, tuple)):
+            shape += " (build z with jnp.stack or jnp.array)"
         raise ValueError(
             f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
         )
@@ -587,7 +602,7 @@ def check_data(
     intervals = check_times(model, t, u.shape[:-1], lengths, dtype, given.step)
 
     if known is None:
-        model, z_hat = _check_model(model, theta, x0, u, lead, dtype)
+        model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name)
     n_z = z_hat.shape[0]
     u = append_intervals(u, intervals)
 

@@ -15,7 +15,8 @@ class RESULTS(eqx.Enumeration):
     converged = (
         "first-order optimality: the scaled projected gradient (the largest cosine between "
         "the residual and a Jacobian column, 0 at a constrained stationary point) is at "
-        "most the solver's gtol"
+        "most the solver's gtol, or at most its round-off limit where no step can decrease "
+        "the loss any further (float32, or a tight gtol)"
     )
     zero_residual = (
         "zero residual: the loss is at the round-off level of the data (the model "

@@ -206,7 +206,12 @@ BAD_MODELS = {
     ),
     "step fails": (
         oj.Model(lambda x, u, th: th["missing"] * x, observe),
-        r"calling the model on a state of shape \(3,\) \(from `x0`",
+        r"calling the model on a state of shape \(3,\) \(from `x0`.* and the parameters "
+        r"`theta0?` \(a dict, leaf shapes \{'B': \(3, 2\), 'a': \(\)\}\) failed: KeyError",
+    ),
+    "step returns a list": (
+        oj.Model(lambda x, u, th: [x[0], x[1], x[2]], observe),
+        r"`model.step` must return a state of shape \(3,\) .*got list \(build the state with",
     ),
     # RK4 broadcasts dx/dt against x: these gave a state of the right shape (a wrong
     # model, fitted to "converged"), a deep error, or one about the step.
@@ -234,6 +239,10 @@ BAD_MODELS = {
     "observe returns a scalar": (
         oj.Model(step, lambda x, u, th: x[0]),
         r"`model.observe` must return a 1-D output",
+    ),
+    "observe returns a list": (
+        oj.Model(step, lambda x, u, th: [x[0], x[1]]),
+        r"`model.observe` must return a 1-D output .*got list \(build z with jnp.stack",
     ),
     "observe returns a matrix": (
         oj.Model(step, lambda x, u, th: jnp.outer(x, x)),
