@@ -35,7 +35,7 @@ class StageOut(NamedTuple):
 class Out(NamedTuple):
     """Everything `assemble` reads from a fit's compiled call (`collect`)."""
 
-    moved: jax.Array  # whether a start was projected onto the constraint set
+    moved: jax.Array  # (S, p): the entries each start had outside the constraint set
     best: jax.Array
     theta: jax.Array  # (n,) flat theta of the best start
     x0: jax.Array  # (N, n_x)

@@ -307,7 +307,9 @@ def check_basin(
     that accumulates they fit somewhat better); one whose FIT is more than `margin`
     points below theirs sits in a bad minimum, converged or not: then it warns
     (RuntimeWarning), naming the remedies (refit from the windowed theta,
-    `fit_continuation`, multistart over the physical parameters).
+    `fit_continuation`, multistart over the physical parameters). Where the windowed fit
+    itself does not converge and no bad basin shows, it warns that the check is
+    inconclusive (`bad_basin` False is then no all-clear).
 
     The check costs one windowed fit (about what the fit itself cost, plus a compilation
     for the windows' shapes), so `fit` does not run it: call it on a result you doubt.
@@ -382,6 +384,16 @@ def check_basin(
             "error. Refit the whole record from the windowed theta "
             "(`check.windowed.theta`), use `fit_continuation` (short windows first), or "
             "multistart over the physical parameters.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    elif not windowed.success:
+        warnings.warn(
+            f"check_basin is inconclusive: its windowed fit did not converge "
+            f"({windowed.status}: {windowed.message}), so its FIT "
+            f"{', '.join(f'{v:.3g}' for v in short)} % need not be what the windows can reach, "
+            "and `bad_basin=False` is no all-clear. Rerun it with a solver that converges "
+            "on the windows (more `max_steps`, say).",
             RuntimeWarning,
             stacklevel=2,
         )

@@ -107,7 +107,7 @@ def _solve(
     Jacobians there. Returns what `assemble` reads (an `Out`) and those Jacobians (or
     None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
-    moved = jnp.any(projected != starts.theta, axis=0)  # (p,) entries some start had outside
+    moved = projected != starts.theta  # (S, p): the entries each start had outside
     starts = Params(projected, starts.x0)
     stages = run(
         solvers,
@@ -228,7 +228,8 @@ def _warn_projected(moved, names, theta0):
     """Warn that theta0 (a start) lay outside the constraint set, naming the parameters the
     projection moved; where theta holds a network, say that a scalar bound applies to its
     weights too."""
-    moved = np.asarray(moved, bool)
+    per_start = np.atleast_2d(np.asarray(moved, bool))  # (S, p)
+    moved = per_start.any(axis=0)
     if not moved.any():
         return
     counts = {}
@@ -239,10 +240,21 @@ def _warn_projected(moved, names, theta0):
     listed = ", ".join(f"{k} ({n})" if n > 1 else k for k, n in list(counts.items())[:6])
     if len(counts) > 6:
         listed += f" and {len(counts) - 6} more"
-    msg = (
-        f"theta0 lies outside the constraint set; it was projected onto it: "
-        f"{int(moved.sum())} entries moved, in {listed}."
-    )
+    if per_start.shape[0] > 1:  # a multistart fit: name the starts
+        out = np.flatnonzero(per_start.any(axis=1)).tolist()
+        shown = ", ".join(map(str, out[:10])) + (
+            f", ... ({len(out)} in all)" if len(out) > 10 else ""
+        )
+        msg = (
+            f"{len(out)} of the {per_start.shape[0]} starts (starts {shown}) lie outside the "
+            f"constraint set; they were projected onto it (starts projected onto the same "
+            f"point run the same fit): entries moved in {listed}."
+        )
+    else:
+        msg = (
+            f"theta0 lies outside the constraint set; it was projected onto it: "
+            f"{int(moved.sum())} entries moved, in {listed}."
+        )
     is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
     if any(is_module(a) for a in jax.tree_util.tree_leaves(theta0, is_leaf=is_module)):
         msg += (

@@ -367,14 +367,16 @@ def _estimate(
     if not np.all(ok):
         bad = [f"x0[{i}]" for i in np.flatnonzero(~ok)]
         then = (
-            "they keep their starting value (from zeros: the minimum-norm solution) and "
-            "their std is inf"
+            "along that direction the estimate keeps its starting value (from zeros: the "
+            "minimum-norm solution) and their std is inf"
             if method == "lsq"
-            else "the smoother leaves them at the prior (mean `x0`, `prior_covariance`)"
+            else "along that direction the smoother leaves the estimate at the prior (mean `x0`, "
+            "`prior_covariance`)"
         )
         warnings.warn(
-            f"initial state entries {bad} do not change the first n = {n} outputs with "
-            f"these parameters (not observable from this head): {then}.",
+            f"initial state entries {bad} are not determined by the first n = {n} outputs "
+            "with these parameters (not observable from this head: a change of them, alone "
+            f"or together, leaves those outputs unchanged): {then}.",
             stacklevel=stacklevel,
         )
     if stop_reason is not None and not is_success(stop_reason):

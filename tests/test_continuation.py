@@ -348,3 +348,13 @@ def test_held_x0_entries_of_windows_after_the_first_are_named():
     assert cont.result.success and truth.success
     for name in TRUTH:
         assert abs(float(cont.result.theta[name]) - float(truth.theta[name])) < 1e-6
+
+
+def test_basin_check_says_inconclusive_when_its_windowed_fit_fails(plain):
+    """A windowed fit that did not converge bounds nothing: no bad basin shown is then no
+    all-clear, and the check says so rather than answering False in silence."""
+    with pytest.warns(RuntimeWarning, match="inconclusive.*max_steps_reached"):
+        check = oj.check_basin(
+            plain, U, Z, window=50, margin=1e4, solver=oj.LevenbergMarquardt(max_steps=2)
+        )
+    assert not check.bad_basin and not check.windowed.success

@@ -138,7 +138,7 @@ def linear_record():
 def test_unobservable_entry_lsq_gives_the_minimum_norm_solution_and_warns():
     u, z = linear_record()
     n = 12
-    with pytest.warns(UserWarning, match=r"\['x0\[2\]'\] do not change the first n = 12"):
+    with pytest.warns(UserWarning, match=r"\['x0\[2\]'\] are not determined by the first n = 12"):
         est = oj.estimate_x0(LINEAR, 1.0, u, z, n=n, x0=np.zeros(3))
     # The outputs are affine in x0: z_hat = c + J x0; lstsq gives the minimum-norm solution.
     c = np.asarray(oj.simulate(LINEAR, 1.0, np.zeros(3), u[:n])[1]).ravel()
@@ -156,7 +156,7 @@ def test_unobservable_entry_lsq_gives_the_minimum_norm_solution_and_warns():
 def test_unobservable_entry_smoother_keeps_the_prior_and_warns():
     u, z = linear_record()
     prior = np.array([4.0, 4.0, 9.0])
-    with pytest.warns(UserWarning, match=r"x0\[2\].*leaves them at the prior"):
+    with pytest.warns(UserWarning, match=r"x0\[2\].*leaves the estimate at the prior"):
         est = oj.estimate_x0(
             LINEAR,
             1.0,
@@ -397,3 +397,16 @@ def test_bad_input_errors():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             oj.estimate_x0(LINEAR, 1e40, u, z, n=12, x0=np.ones(3))
+
+
+def test_unobservable_combination_warning_names_a_direction_not_a_held_entry():
+    # z = x[0] + x[1], both decaying alike: only the sum is observable; the entries move.
+    m = oj.Model(lambda x, u, p: p * x + u[0], lambda x, u, p: x[:1] + x[1:])
+    u = np.random.default_rng(0).standard_normal((30, 1))
+    _, z = oj.simulate(m, 0.8, np.array([1.0, 2.0]), u)
+    with pytest.warns(
+        UserWarning, match=r"alone or together.*along that direction the estimate keeps"
+    ):
+        est = oj.estimate_x0(m, 0.8, u, z, n=10, x0=np.array([5.0, 0.0]))
+    np.testing.assert_allclose(est.x0, [4.0, -1.0], atol=1e-9)  # the sum fitted, (5, 0) + t(1, -1)
+    assert not est.identifiable.any()

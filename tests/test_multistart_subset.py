@@ -228,3 +228,22 @@ def test_a_start_of_x0_that_is_not_finite_is_refused():
             u,
             multistart=True,
         )
+
+
+def test_starts_outside_the_bounds_are_named_in_the_projection_warning():
+    """theta0 itself is inside the box; three of the four starts are not: the warning names
+    those starts (it said "theta0 lies outside", and not which starts collapsed)."""
+    model = oj.Model(lambda x, u, p: p["a"] * x + u)
+    u = np.random.default_rng(0).standard_normal((20, 1))
+    _, z = oj.simulate(model, {"a": 0.5}, np.zeros(1), u)
+    with pytest.warns(UserWarning, match=r"3 of the 4 starts \(starts 0, 2, 3\) lie outside"):
+        r = oj.fit(
+            model,
+            {"a": 0.4},
+            np.zeros(1),
+            u,
+            np.asarray(z),
+            multistart={"a": np.array([-2.0, 0.4, 2.0, 3.0])},
+            constraints=oj.constraints.box(lower=-0.9, upper=0.9),
+        )
+    assert abs(float(r.theta["a"]) - 0.5) < 1e-8
