@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import integral
 from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve, schur_complement
 from ._problem import FitProblem, Params
 
@@ -43,7 +44,9 @@ class NeweyWest(eqx.Module):
     sigma^2 (J^T J)^+ assumes white residuals. Where they are not (a model error that
     persists over many samples, coloured measurement noise), it understates how much the
     estimates would change with another record: the sandwich estimates that variation
-    from the residuals' own autocovariance up to `lags` samples (see `sandwich`).
+    from the residuals' own autocovariance up to `lags` samples (see `sandwich`; an
+    initial state's own part from that autocovariance pooled over the record, as the head
+    that determines it has too few samples).
 
     **Arguments:**
 
@@ -61,7 +64,7 @@ class NeweyWest(eqx.Module):
     are not observations).
     """
 
-    lags: int | None = None
+    lags: int | None = eqx.field(default=None, converter=integral)
 
     def __check_init__(self):
         lags = self.lags
@@ -143,21 +146,33 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     The least-squares estimate moves, to first order, by (J^T J)^+ J^T dr when the data
     residuals r of eq. (5)/(21) move by dr. With x0_i eliminated as in `eliminate_x0`
     (S = sum_i Jt~_i^T Jt~_i, Jt~_i = Jt_i - Jx_i W_i, W_i = C_i^+ B_i^T), sample k of
-    trajectory i moves the estimates by
+    trajectory i moves theta by
 
-        psi_k = S^+ Jt~_k^T r_k                 (theta)
-        chi_k = C_i^+ Jx_k^T r_k - W_i psi_k     (x0_i),
+        psi_k = S^+ Jt~_k^T r_k,
 
-    r_k the residual rows of sample k (its n_z outputs). With v_k = (psi_k, chi_k) and
-    the Bartlett weights w_l = 1 - l / (L + 1),
+    r_k the residual rows of sample k (its n_z outputs). With the Bartlett weights
+    w_l = 1 - l / (L + 1),
 
-        Omega_i = sum_{l=-L..L} w_|l| sum_k v_k v_{k-l}^T,
+        Omega_i = sum_{l=-L..L} w_|l| sum_k psi_k psi_{k-l}^T,
 
-    the covariance of theta is sum_i Omega_i[theta, theta], that of x0_i is
-    Omega_i[x0, x0] + W_i (sum_{j != i} Omega_j[theta, theta]) W_i^T (other trajectories
-    reach x0_i through theta only). With white residuals of variance sigma^2 and L = 0
-    its expectation is sigma^2 (J^T J)^+ (Newey and West, Econometrica 55, 1987; the
-    influence form of Wooldridge's nonlinear least squares).
+    the covariance of theta is Sigma_theta = sum_i Omega_i (Newey and West, Econometrica
+    55, 1987; the influence form of Wooldridge's nonlinear least squares).
+
+    x0_i moves by C_i^+ Jx_i^T dr_i - W_i dtheta. Its own part is determined by the few
+    samples at the head of the trajectory, too few for products of their influences to
+    estimate a variance (and their residuals are those the fit of x0 shrinks most: such
+    a sandwich understates x0's spread even with white residuals). It is therefore taken
+    with the
+    residuals' autocovariance pooled over all samples and trajectories,
+    Gamma_l = sum_k r_k r_{k-l}^T / (samples) (stationary residuals), Bartlett-weighted:
+
+        K(A, B) = sum_{l=-L..L} w_|l| sum_k A_k^T Gamma_l B_{k-l}   (Gamma_{-l} = Gamma_l^T),
+        cov(x0_i) = C_i^+ K(Jx, Jx) C_i^+ - C_i^+ K(Jx, Jt~) S^+ W_i^T
+                    - W_i S^+ K(Jt~, Jx) C_i^+ + W_i Sigma_theta W_i^T,
+
+    Jx, Jt~ the rows of trajectory i (x0_i moves with its own residuals and, through
+    theta, with every trajectory's). With white residuals and L = 0 the expectation of
+    every block is that of sigma^2 (J^T J)^+.
 
     Where theta holds a network (`problem.nuisance`), the named parameters' block is
     their sandwich with the network's weights as nuisance parameters
@@ -170,7 +185,6 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     S = blocks[4]
     cov, elim = _pseudo_inverse(blocks)  # S^+ itself: no marginal block yet
     N, R, p = lin.Jt.shape
-    m = lin.Jx.shape[-1]
     T = problem.u.shape[1]
     n_z = R // T
     W = elim.CinvBt  # (N, m, p)
@@ -178,18 +192,59 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     r = lin.r.reshape(N, T, n_z)
     g = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r)  # (N, T, p)
     psi = g @ cov.theta
-    chi = jnp.einsum("ntom,nto->ntm", lin.Jx.reshape(N, T, n_z, m), r)
-    chi = jnp.einsum("ntm,nml->ntl", chi, elim.Cinv) - jnp.einsum("ntp,nmp->ntm", psi, W)
-    omega = _bartlett(jnp.concatenate([psi, chi], axis=-1), lags)  # (N, p + m, p + m)
-    theta = jnp.sum(omega[:, :p, :p], axis=0)
-    others = theta[None] - omega[:, :p, :p]
-    x0 = omega[:, p:, p:] + jnp.einsum("nmp,npq,nlq->nml", W, others, W)
+    theta = jnp.sum(_bartlett(psi, lags), axis=0)
+    x0 = _x0_block(problem, lin, Jt_elim, cov.theta, elim.Cinv, W, theta, lags)
     nuisance = np.asarray(problem.nuisance, int)
     if 0 < nuisance.size < p:  # a network in theta: the named parameters' marginal block
         named_inv, t_ok, G = marginal(S, cov.theta, cov.theta_identifiable, nuisance)
         theta = _marginal_sandwich(theta, g, G, named_inv, nuisance, lags)
         cov = cov._replace(theta_identifiable=t_ok)
     return cov._replace(theta=theta, x0=x0)
+
+
+def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int):
+    """cov(x0_i) of `sandwich`: x0_i's own part with the residuals' autocovariance pooled
+    over the record (Gamma_l), its part through theta with the sandwich of theta."""
+    N, R, m = lin.Jx.shape
+    T = problem.u.shape[1]
+    n_z = R // T
+    r = lin.r.reshape(N, T, n_z)
+    A = lin.Jx.reshape(N, T, n_z, m)
+    B = Jt_elim.reshape(N, T, n_z, -1)
+    # The samples behind Gamma: the measured output entries the loss sees, per output.
+    seen = jnp.ones((N, T, n_z), bool)
+    if problem.mask is not None:
+        out = problem.mask.outputs
+        seen = jnp.broadcast_to(out if out.ndim == 3 else out[..., None], seen.shape) > 0
+    observed = problem.cost.observed()
+    n_out = n_z if observed is None else jnp.maximum(jnp.sum(observed), 1)
+    if observed is not None:
+        seen = seen & observed
+    samples = jnp.maximum(jnp.sum(seen) / n_out, 1.0)
+    k = jnp.arange(T)
+
+    def shift(a, lg):  # a_{k-l}, zero before the start
+        mask = (k >= lg).reshape((1, T) + (1,) * (a.ndim - 2))
+        return jnp.where(mask, jnp.roll(a, lg, axis=1), 0.0)
+
+    def K(lg, gamma, X, Y):  # sum_k X_k^T Gamma_l Y_{k-l} + (its transpose pair)
+        out = jnp.einsum("ntoa,op,ntpb->nab", X, gamma, shift(Y, lg))
+        return out + jnp.einsum("ntoa,op,ntpb->nab", shift(X, lg), gamma.T, Y)
+
+    def lag(lg, acc):
+        gamma = jnp.einsum("nto,ntp->op", r, shift(r, lg)) / samples
+        w = 1.0 - lg / (lags + 1.0)
+        return acc[0] + w * K(lg, gamma, A, A), acc[1] + w * K(lg, gamma, A, B)
+
+    gamma0 = jnp.einsum("nto,ntp->op", r, r) / samples
+    own = jnp.einsum("ntoa,op,ntpb->nab", A, gamma0, A)
+    cross = jnp.einsum("ntoa,op,ntpb->nab", A, gamma0, B)
+    own, cross = jax.lax.fori_loop(1, lags + 1, lag, (own, cross))
+    own = C_inv @ own @ C_inv
+    mix = C_inv @ cross @ S_inv @ jnp.swapaxes(W, 1, 2)  # C^+ K(Jx, Jt~) S^+ W^T
+    through = jnp.einsum("nmp,pq,nlq->nml", W, theta, W)
+    x0 = own - mix - jnp.swapaxes(mix, 1, 2) + through
+    return 0.5 * (x0 + jnp.swapaxes(x0, 1, 2))
 
 
 def _bartlett(v, lags: int):

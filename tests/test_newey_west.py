@@ -57,10 +57,28 @@ def dense_sandwich(model, theta, x0, u, z, lags, free_x0):
     Hinv = jnp.linalg.inv(H)
     n = N * T * n_z
     cov = Hinv @ omega @ Hinv * n / (n - q)
-    x0_cov = jnp.stack(
-        [cov[2 + i * m : 2 + (i + 1) * m, 2 + i * m : 2 + (i + 1) * m] for i in range(N)]
-    )
-    return cov[:2, :2], x0_cov
+    # x0_i: its own part with the residuals' autocovariance pooled over every sample,
+    # Gamma_l = sum e_k e_{k-l}^T / (N T), as a dense block-Toeplitz Sigma per trajectory;
+    # its part through theta with theta's sandwich.
+    ek = e.reshape(N, T, n_z)
+    sigma = jnp.zeros((T * n_z, T * n_z))
+    for lag in range(lags + 1):
+        gamma = jnp.einsum("nto,ntp->op", ek[:, lag:], ek[:, : T - lag]) / (N * T)
+        w = 1 - lag / (lags + 1)
+        for k in range(lag, T):
+            rows, cols = slice(k * n_z, (k + 1) * n_z), slice((k - lag) * n_z, (k - lag + 1) * n_z)
+            sigma = sigma.at[rows, cols].set(w * gamma)
+            sigma = sigma.at[cols, rows].set(w * gamma.T)
+    x0_cov = []
+    for i in range(N):
+        rows = slice(2 + i * m, 2 + (i + 1) * m)
+        W = -Hinv[rows, :2] @ jnp.linalg.inv(Hinv[:2, :2])  # C_i^+ B_i^T
+        own = Hinv[rows] @ J[i].T  # x0_i's move per residual of trajectory i
+        b = W @ (Hinv[:2] @ J[i].T)  # the part of it through theta
+        a = own + b
+        pooled = a @ sigma @ a.T - a @ sigma @ b.T - b @ sigma @ a.T
+        x0_cov.append(pooled * n / (n - q) + W @ cov[:2, :2] @ W.T)
+    return cov[:2, :2], jnp.stack(x0_cov)
 
 
 @pytest.fixture(scope="module")
@@ -105,8 +123,10 @@ def test_sandwich_equals_the_dense_computation(records):
 
 def test_sandwich_matches_the_spread_over_noise_draws():
     """x[k+1] = a x + b u with AR(1) noise (phi = 0.9) on the output: over 150 draws the
-    classical standard error of a is less than half the estimates' spread; the sandwich's
-    (30 lags) is within 25 % of it."""
+    classical standard errors of a and of x0 are less than half the estimates' spread;
+    the sandwich's (30 lags) are within 25 % of it (x0's from the residuals'
+    autocovariance pooled over the record: the sandwich of the head's few samples alone
+    was far too small)."""
 
     def f(x, u, th):
         return jnp.stack([th["a"] * x[0] + th["b"] * u[0]])
@@ -117,19 +137,23 @@ def test_sandwich_matches_the_spread_over_noise_draws():
     u = rng.standard_normal((T, 1))
     _, z = oj.simulate(model, {"a": jnp.array(0.8), "b": jnp.array(0.5)}, jnp.ones(1), u)
     noise = ar1(rng, (draws, T, 1), 0.9, 0.02)
-    a, se_classical, se_nw = [], [], []
+    a, se_classical, se_nw, x0, x0_se_classical, x0_se_nw = [], [], [], [], [], []
     for d in range(draws):
         zd = np.asarray(z) + noise[d]
         r = oj.fit(model, {"a": 0.8, "b": 0.5}, np.ones(1), u, zd)
         a.append(float(r.theta["a"]))
         se_classical.append(float(r.std["a"]))
+        x0.append(float(r.x0[0]))
+        x0_se_classical.append(float(r.x0_std[0]))
         r_nw = oj.fit(
             model, {"a": 0.8, "b": 0.5}, np.ones(1), u, zd, covariance=oj.NeweyWest(lags=30)
         )
         se_nw.append(float(r_nw.std["a"]))
-    spread = np.std(a, ddof=1)
-    assert np.mean(se_classical) < 0.5 * spread
-    assert abs(np.sqrt(np.mean(np.square(se_nw))) / spread - 1) < 0.25
+        x0_se_nw.append(float(r_nw.x0_std[0]))
+    for est, classical, nw in ((a, se_classical, se_nw), (x0, x0_se_classical, x0_se_nw)):
+        spread = np.std(est, ddof=1)
+        assert np.mean(classical) < 0.5 * spread
+        assert abs(np.sqrt(np.mean(np.square(nw))) / spread - 1) < 0.25
 
 
 def test_default_lags_follow_the_newey_west_rule():
