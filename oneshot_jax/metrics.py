@@ -1,16 +1,16 @@
 """Goodness-of-fit metrics for measured outputs `z` and model outputs `zhat`.
 
-`rmse`, `nrmse`, `fit_percent`, `r2` and `aic` take arrays of shape (..., n_z) (time and
-trajectory axes in front) and return one value per output channel (shape (n_z,)), except
-`aic`, which is a scalar. The definitions are those of MATLAB's System Identification
-Toolbox (`compare`, `fpe`/`aic`). They are compiled JAX functions (and jittable). Where an output
-channel is constant over the samples scored, `nrmse`, `fit_percent` and `r2` divide by
-its zero deviation from its mean: inf, -inf and -inf for a model that misses it, NaN
-(0 / 0) for one that reproduces it exactly; `aic` is -inf where the errors are exactly
-zero (log det 0). `benchmark_scores` refuses a constant channel instead. A NaN sample (a
-missing one) counts only through `mask`: without one, a NaN in z or zhat makes that
-output's value NaN; pass `mask=~np.isnan(z)` to leave missing samples out, as
-`FitResult.metrics` does.
+`rmse`, `nrmse`, `fit_percent`, `r2`, `aic` and `fpe` take arrays of shape (..., n_z)
+(time and trajectory axes in front) and return one value per output channel (shape
+(n_z,)), except `aic` and `fpe`, which are scalars. The definitions are those of
+MATLAB's System Identification Toolbox (`compare`, `aic`, `fpe`). They are compiled JAX
+functions (and jittable). Where an output channel is constant over the samples scored,
+`nrmse`, `fit_percent` and `r2` divide by its zero deviation from its mean: inf, -inf
+and -inf for a model that misses it, NaN (0 / 0) for one that reproduces it exactly;
+`aic` is -inf and `fpe` 0 where the errors are exactly zero (det 0). `benchmark_scores`
+refuses a constant channel instead. A NaN sample (a missing one) counts only through
+`mask`: without one, a NaN in z or zhat makes that output's value NaN; pass
+`mask=~np.isnan(z)` to leave missing samples out, as `FitResult.metrics` does.
 
 `benchmark_scores` scores a simulation under the community's benchmark protocol (the
 first n samples are left out) with the definitions of `nonlinear_benchmarks.error_metrics`;
@@ -171,6 +171,25 @@ def aic(z, zhat, n_params, mask=None):
     n n_z (log 2 pi + 1)). Lower is better; only differences between models on the same
     data mean anything.
     """
+    _check_n_params(n_params)
+    _check(z, zhat, mask)
+    return _aic(z, zhat, n_params, mask)
+
+
+def fpe(z, zhat, n_params, mask=None):
+    """Akaike's final prediction error, FPE = det(E^T E / n) (1 + d / n) / (1 - d / n),
+    d = `n_params` (MATLAB's `fpe`).
+
+    E is the (n, n_z) matrix of errors over the n samples (those where every output is
+    measured, when a `mask` is given), as for `aic`. Lower is better; inf where
+    d >= n (no samples left to judge the parameters by).
+    """
+    _check_n_params(n_params)
+    _check(z, zhat, mask)
+    return _fpe(z, zhat, n_params, mask)
+
+
+def _check_n_params(n_params):
     dtype = getattr(n_params, "dtype", None)
     if isinstance(n_params, (bool, np.bool_)) or not (
         isinstance(n_params, numbers.Integral)
@@ -181,8 +200,6 @@ def aic(z, zhat, n_params, mask=None):
         )
     if not isinstance(n_params, jax.core.Tracer) and int(n_params) < 0:
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
-    _check(z, zhat, mask)
-    return _aic(z, zhat, n_params, mask)
 
 
 @jax.jit
@@ -193,6 +210,17 @@ def _aic(z, zhat, n_params, mask):
     n = jnp.sum(full)
     _, logdet = jnp.linalg.slogdet(e.T @ e / n)
     return n * logdet + 2.0 * n_params
+
+
+@jax.jit
+def _fpe(z, zhat, n_params, mask):
+    z, zhat, w = _flat(z, zhat, mask)
+    full = jnp.all(w > 0, axis=1).astype(z.dtype)
+    e = (zhat - z) * full[:, None]
+    n = jnp.sum(full)
+    ratio = n_params / n
+    factor = jnp.where(ratio < 1, (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0), jnp.inf)
+    return jnp.linalg.det(e.T @ e / n) * factor
 
 
 # --------------------------------------------------------------------------- protocol

@@ -19,6 +19,7 @@ def np_metrics(z, zhat, n_params):
         "fit_percent": 100 * (1 - np.linalg.norm(e, axis=0) / np.linalg.norm(dev, axis=0)),
         "r2": 1 - (e**2).sum(axis=0) / (dev**2).sum(axis=0),
         "aic": n * np.log(np.linalg.det(e.T @ e / n)) + 2 * n_params,
+        "fpe": np.linalg.det(e.T @ e / n) * (1 + n_params / n) / (1 - n_params / n),
     }
 
 
@@ -38,6 +39,10 @@ def test_metrics_match_numpy(shape):
     aic = metrics.aic(z, zhat, 5)
     assert np.shape(aic) == ()
     assert float(aic) == pytest.approx(ref["aic"], rel=1e-12)
+    fpe = metrics.fpe(z, zhat, 5)
+    assert np.shape(fpe) == () and float(fpe) == pytest.approx(ref["fpe"], rel=1e-12)
+    few = z.reshape(-1, n_z)[:5], zhat.reshape(-1, n_z)[:5]
+    assert float(metrics.fpe(*few, 5)) == np.inf  # as many parameters as samples
 
 
 def test_masked_metrics_match_numpy_on_the_measured_samples():
@@ -57,8 +62,9 @@ def test_masked_metrics_match_numpy_on_the_measured_samples():
             np.testing.assert_allclose(got, ref[name][0], rtol=1e-12, err_msg=(name, c))
     rows = mask.all(axis=1)
     assert 0 < rows.sum() < 60 and rows.sum() < mask.any(axis=1).sum()
-    ref = np_metrics(z[rows], zhat[rows], n_params=3)["aic"]
-    assert float(metrics.aic(z, zhat, 3, mask)) == pytest.approx(ref, rel=1e-12)
+    ref = np_metrics(z[rows], zhat[rows], n_params=3)
+    assert float(metrics.aic(z, zhat, 3, mask)) == pytest.approx(ref["aic"], rel=1e-12)
+    assert float(metrics.fpe(z, zhat, 3, mask)) == pytest.approx(ref["fpe"], rel=1e-12)
 
 
 def test_metrics_of_a_perfect_and_of_a_mean_model():
