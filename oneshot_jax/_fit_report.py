@@ -88,7 +88,7 @@ def check_units(units, theta) -> dict:
             "`units` must be a dict from parameter names to unit strings, e.g. "
             f"{{'k': 'N/m'}}; got {type(units).__name__}."
         )
-    valid = theta_order(theta)
+    valid = (*theta_order(theta), *(name for name, _ in _data(theta)))
     units = _dotted(units)
     for name, unit in units.items():
         if name not in valid:
@@ -167,27 +167,33 @@ def _parameter_table(result):
     return table, modules
 
 
-def _data_rows(result, listed_max=12):
-    """Rows for the numbers of theta that are data, not parameters (an integer scalar
-    such as an exponent or an index, a boolean): their values, "(data, not estimated)".
+def _data(theta, listed_max=12):
+    """`(name, leaf)` for the numbers of theta that are data, not parameters (an integer
+    such as an exponent or an index, a boolean; at most `listed_max` entries each).
     Those inside an equinox module (its activation, its sizes) are the module's own."""
-    _, static = _pytree.split(result.theta)
+    _, static = _pytree.split(theta)
     if static is None:
         return []
-    rows = []
+    out = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(static)[0]:
         if not isinstance(leaf, (int, np.integer, np.bool_, np.ndarray, jax.Array)):
             continue
         if np.size(leaf) > listed_max or np.asarray(leaf).dtype.kind not in "biu":
             continue
-        node = result.theta
+        node = theta
         for entry in path[:-1]:
             node = _child(node, entry)
             if isinstance(node, eqx.Module):
                 break
-        if isinstance(node, eqx.Module):
-            continue
-        name = ".".join(_pytree._key(p) for p in path) or "theta"
+        if not isinstance(node, eqx.Module):
+            out.append((".".join(_pytree._key(p) for p in path) or "theta", leaf))
+    return out
+
+
+def _data_rows(result):
+    """The rows of theta's data (`_data`): their values, "(data, not estimated)"."""
+    rows = []
+    for name, leaf in _data(result.theta):
         unit = result.units.get(name, "")
         values = np.ravel(np.asarray(leaf))
         for entry, v in zip(_entry_names(name, np.shape(leaf)), values, strict=True):

@@ -267,9 +267,11 @@ def test_integer_data_of_theta_print_as_data_rows():
     theta0 = {"w0sq": 3.0, "p": np.int64(1), "c": 0.2, "b": 1.0, "r": net}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the integer leaf's warning; the weights
-        r = oj.fit(model, theta0, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=2))
+        r = oj.fit(
+            model, theta0, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=2), units={"p": "-"}
+        )
     text = str(r)
-    assert _row(text, "p").split() == ["p", "1", "(data,", "not", "estimated)"]
+    assert _row(text, "p").split() == ["p", "-", "1", "(data,", "not", "estimated)"]
     assert text.count("(data, not estimated)") == 1
     n = 3 + count_parameters(net)
     assert f"{n} of {n} parameters" in text  # p is not one
