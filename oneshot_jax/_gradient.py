@@ -124,9 +124,9 @@ def value_and_grad(
         states), `ParallelInTime(...)` / `"parallel"` (parallel in time: the rollout by
         Newton iterations with associative scans and the recursion as an associative
         scan, for GPUs and TPUs; a rollout that does not converge falls back to the
-        sequential loop, with a warning) or `Auto()` / `"auto"` (parallel on a GPU or TPU
-        for T >= 512, else jacobian for n_x <= 16 when the stacked Jacobians fit in
-        256 MiB, else vjp).
+        sequential loop, with a warning) or `Auto()` / `"auto"` (for n_x <= 16 when the
+        stacked Jacobians fit in 256 MiB: parallel on a GPU or TPU for T >= 512, else
+        jacobian; vjp for larger states).
 
     **Returns:**
 

@@ -419,7 +419,9 @@ class Auto(AbstractStrategy):
     """Pick the strategy from the problem's size and the backend (`resolve`):
 
     - `ParallelInTime()` on a GPU or TPU for records of at least `PARALLEL_MIN_T` = 512
-      samples: there a sequential scan costs one or more kernel launches per step (about
+      samples and small states (those `Jacobian()` takes, below: the parallel path stacks
+      the per-step Jacobians too, and more; a state of thousands would need gigabytes):
+      there a sequential scan costs one or more kernel launches per step (about
       10 microseconds), a parallel solve a few dozen launches in all, so from a few hundred
       steps on parallel wins. On a CPU the sequential scan is faster at every size
       (`benchmarks/parallel.py`), so never there.
@@ -438,11 +440,14 @@ class Auto(AbstractStrategy):
         """The concrete strategy for n_x states, T samples of `itemsize` bytes, `n_traj`
         trajectories (vmapped) and `n_cols` sensitivity columns (0 for the gradient);
         `sequential=True` never takes `ParallelInTime()`."""
-        if not sequential and T >= PARALLEL_MIN_T and jax.default_backend() in ACCELERATORS:
+        # The parallel path stacks the per-step Jacobians too (and more): only for the
+        # states `Jacobian()` would take.
+        small = n_x <= JACOBIAN_MAX_NX and T * n_x * n_x * itemsize <= JACOBIAN_BYTES
+        accelerator = jax.default_backend() in ACCELERATORS
+        if not sequential and small and T >= PARALLEL_MIN_T and accelerator:
             return ParallelInTime()
         if n_traj * n_x * n_cols > JACOBIAN_MAX_BATCH_WORK:
             return VJP()
-        small = n_x <= JACOBIAN_MAX_NX and T * n_x * n_x * itemsize <= JACOBIAN_BYTES
         return Jacobian() if small else VJP()
 
     def _concrete(self):

@@ -671,3 +671,7 @@ def test_auto_takes_the_parallel_path_only_on_accelerators(monkeypatch):
     assert not is_parallel("jacobian", 10**7)
     assert oj.Auto().resolve(3, PARALLEL_MIN_T, 8) == oj.ParallelInTime()
     assert oj.Auto().resolve(3, 10**6, 8, sequential=True) == oj.Jacobian()
+    # A large state stays matrix-free: the parallel path stacks T n_x^2 Jacobians (64 GiB
+    # at n_x = 4096, T = 512).
+    assert oj.Auto().resolve(64, PARALLEL_MIN_T, 8) == oj.VJP()
+    assert oj.Auto().resolve(4096, PARALLEL_MIN_T, 8) == oj.VJP()
