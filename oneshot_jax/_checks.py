@@ -27,8 +27,6 @@ expected, so that nothing reaches a tracing error.
 
 import contextlib
 import functools
-import math
-import numbers
 import os
 import warnings
 from typing import Any, NamedTuple
@@ -47,27 +45,6 @@ from ._timing import append_intervals, check_times
 
 def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(arrays))
-
-
-def is_count(value, least) -> bool:
-    """Whether `value` is an integer >= `least`: an int, a NumPy integer or an integral
-    float, not a bool."""
-    return (
-        isinstance(value, numbers.Real)
-        and not isinstance(value, (bool, np.bool_))
-        and math.isfinite(value)
-        and int(value) == value
-        and value >= least
-    )
-
-
-def integral(value):
-    """A count given as an integral float (10.0, as a configuration file may write it) as
-    the int it is; anything else as given, for the caller's check to accept or refuse by
-    name. The converter of the count options of solvers and `Validation`."""
-    if is_count(value, 0):
-        return int(value)
-    return value
 
 
 def check_path(path, name="path", what="a file or folder", optional=True):

@@ -18,7 +18,8 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import is_count, x0_mask
+from ._checks import x0_mask
+from ._counts import is_count
 from ._fit import fit
 from ._fit_result import FitResult
 from ._simulate import simulate

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import integral
+from ._counts import integral
 from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve, schur_complement
 from ._problem import FitProblem, Params
 

@@ -6,6 +6,7 @@ loop (`oneshot_jax._iterate`) from every start as one compiled call (`_solve`, `
 the `FitResult` assembled on the host (`oneshot_jax._assemble`).
 """
 
+import dataclasses
 import time
 import warnings
 
@@ -28,6 +29,7 @@ from ._jit import jit
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
+from ._results import RESULTS, name_of
 from ._stability import (
     jacobians_at,
     rhs_of,
@@ -194,6 +196,35 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
             stacklevel=3,
         )
     return out, wall, diagnostics, jacobians, during
+
+
+def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy):
+    """`result` with the stop reason `unconverged_rollout` where it reported a success
+    while the parallel rollout of the returned point keeps Newton's unconverged iterate
+    (`ParallelInTime(fallback=False)`; `_run` has warned of every such rollout of the
+    fit): the values its stop was judged on are not the model's. Where only rollouts of
+    other points (trial steps) did not converge, the stop stands."""
+    counts = result.diagnostics or {}
+    if not counts.get("unconverged_rollouts") or not result.success:
+        return result
+    params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
+    with counting() as again:  # the returned point's rollout, once more
+        jax.block_until_ready(jax.jit(lambda p: problem.loss(p, strategy))(params))
+    if not again["unconverged_rollouts"]:
+        return result
+    info = {
+        **result.stop_info,
+        "solver_stop": name_of(result.stop_reason),
+        "unconverged_rollouts": counts["unconverged_rollouts"],
+        "parallel_rollouts": counts["parallel_rollouts"],
+    }
+    out = dataclasses.replace(result, stop_reason=RESULTS.unconverged_rollout, stop_info=info)
+    if result.starts is not None:  # (the best start's own stop, as the status line's)
+        reasons = list(result.starts.stop_reason)
+        reasons[result.best] = "unconverged_rollout"
+        starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+        out = dataclasses.replace(out, starts=starts)
+    return out
 
 
 def _warn_unequal_noise(residuals, weight, std):
@@ -508,6 +539,7 @@ def fit(
     result = flag_zero_gradient(
         result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
     )
+    result = _flag_unconverged_rollouts(result, built.problem, out.theta, out.x0, strategy)
     if aggregate is not None:
         result = agg.restore(result)
     _warn_unequal_noise(result.residuals, weight, result.std)

@@ -104,6 +104,12 @@ def stop_detail(status: str, info: dict) -> str:
             f"{listed} never moved from the start, where their gradient and Jacobian column "
             f"are exactly zero (the solver stopped with {info.get('solver_stop', '?')})"
         )
+    if status == "unconverged_rollout":
+        return (
+            f"{info.get('unconverged_rollouts', '?')} of {info.get('parallel_rollouts', '?')} "
+            "parallel rollouts kept Newton's unconverged iterate (the solver stopped with "
+            f"{info.get('solver_stop', '?')})"
+        )
     if status == "validation":
         patience = info.get("patience")
         return f"lowest validation loss {_g(info.get('validation_loss'))}" + (

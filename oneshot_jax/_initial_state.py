@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data, is_count
+from ._checks import check_cost, check_data
 from ._cost import weigh
+from ._counts import is_count
 from ._jit import jit
 from ._results import RESULTS, is_success
 from ._simulate import simulate_impl

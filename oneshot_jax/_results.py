@@ -72,6 +72,13 @@ class RESULTS(eqx.Enumeration):
         "solver's stol standard errors, so no quantity the data determine can still "
         "change significantly (see `oneshot_jax._optimality.standard_errors`)"
     )
+    unconverged_rollout = (
+        "parallel rollouts of the fit did not converge and `ParallelInTime(fallback=False)` "
+        "kept Newton's best iterate: the loss, gradients and stop were computed from "
+        "states that are not the model's, so the solver's own stop is no evidence of a "
+        "solution. Use the default fallback=True (the sequential loop where a rollout does "
+        "not converge), or a sequential strategy"
+    )
 
 
 SUCCESS = ("converged", "statistically_converged", "zero_residual", "tol_loss", "tol_grad")

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from ._counts import integral
 from ._kernels import (
     forward_sweep,
     push,
@@ -307,9 +308,9 @@ class ParallelInTime(AbstractStrategy):
     """
 
     name: ClassVar[str] = "parallel"
-    chunk_size: int | None = eqx.field(default=None, static=True)
+    chunk_size: int | None = eqx.field(default=None, static=True, converter=integral)
     jacobian: str = eqx.field(default="full", static=True)
-    max_iter: int = eqx.field(default=50, static=True)
+    max_iter: int = eqx.field(default=50, static=True, converter=integral)
     rtol: float | None = eqx.field(default=None, static=True)
     damping: float = eqx.field(default=1.0, static=True)
     fallback: bool = eqx.field(default=True, static=True)

@@ -18,8 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_data, integral, is_count
+from ._checks import check_data
 from ._cost import weigh
+from ._counts import integral, is_count
 from ._linalg import psd_solve
 from ._normalise import is_ragged
 from ._simulate import outputs, rollout

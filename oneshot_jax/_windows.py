@@ -5,7 +5,7 @@ import warnings
 import equinox as eqx
 import numpy as np
 
-from ._checks import is_count
+from ._counts import is_count
 from ._x0_lsq import solve_x0
 
 

@@ -594,6 +594,35 @@ def test_a_rollout_kept_without_fallback_is_reported():
         r = oj.fit(model, theta, x0, u, z, fixed=True, solver=oj.Adam(max_steps=2, strategy=kept))
     assert r.diagnostics["unconverged_rollouts"] >= 1
     assert r.diagnostics["sequential_fallbacks"] == 0
+    # A test that would pass on those values (a loss threshold) is no success there: the
+    # returned point's own rollout did not converge (40 samples: over 300 the gradient of
+    # the chaotic map overflows).
+    loose = oj.Adam(max_steps=2, tol_loss=1e9, strategy=kept)
+    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+        r = oj.fit(model, theta, x0, u[:40], z[:40], fixed=True, solver=loose)
+    assert r.status == "unconverged_rollout" and not r.success
+    assert r.stop_info["solver_stop"] == "tol_loss"
+    assert "parallel rollouts kept Newton's unconverged iterate" in r.message
+
+    # Where the returned point's own rollout converges, the stop stands (its values are
+    # the model's), though rollouts of trial steps did not: a Duffing oscillator with 3
+    # Newton iterations per rollout.
+    def duffing(x, u, th):
+        acc = th["k"] * x[0] + th["d"] * x[1] + th["e"] * x[0] ** 3
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * acc + 0.1 * u[0]])
+
+    model = oj.Model(duffing, lambda x, u, th: x[:1])
+    rng = np.random.default_rng(2)
+    us, x0 = 0.5 * rng.standard_normal((41, 1)), np.array([1.0, 0.0])
+    zs = oj.simulate(model, {"k": 1.0, "d": 0.3, "e": 0.5}, x0, us)[1]
+    zs = np.asarray(zs) + 0.02 * rng.standard_normal(zs.shape)
+    start = {"k": 0.8, "d": 0.2, "e": 0.6}
+    few = oj.LevenbergMarquardt(strategy=oj.ParallelInTime(fallback=False, max_iter=3))
+    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+        r = oj.fit(model, start, x0, us, zs, solver=few)
+    assert r.diagnostics["unconverged_rollouts"] >= 1 and r.success
+    sequential = oj.fit(model, start, x0, us, zs, solver=oj.LevenbergMarquardt())
+    np.testing.assert_allclose(float(r.loss), float(sequential.loss), rtol=1e-9)
 
 
 def test_parallel_alias_equals_the_object_bit_for_bit():

@@ -3,7 +3,7 @@
 
 import equinox as eqx
 
-from .._checks import integral
+from .._counts import integral
 from ._search import Backtracking
 from .least_squares import AbstractLeastSquares
 

@@ -3,7 +3,7 @@ damping update (`_search.NielsenDamping`) in the loop of `least_squares`."""
 
 import equinox as eqx
 
-from .._checks import integral
+from .._counts import integral
 from ._search import NielsenDamping
 from .base import check_options
 from .least_squares import AbstractLeastSquares

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._checks import integral
+from .._counts import integral
 from .._linalg import floor
 from .._optimality import (
     Measures,

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._checks import integral
+from .._counts import integral
 from .._optimality import (
     Measures,
     column_norms,
