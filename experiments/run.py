@@ -210,7 +210,7 @@ def task(cfg: DictConfig) -> None:
     """The Hydra task: run the configured experiment into Hydra's output folder."""
     from hydra.core.hydra_config import HydraConfig
 
-    from oneshot_jax.datasets import DatasetNotFoundError
+    from oneshot_jax.datasets import DatasetFormatError, DatasetNotFoundError
 
     try:
         execute(cfg, Path(HydraConfig.get().runtime.output_dir))
@@ -225,6 +225,9 @@ def task(cfg: DictConfig) -> None:
             f"experiment.data_path=<folder> (or set $ONESHOT_JAX_DATA).",
             file=sys.stderr,
         )
+        sys.exit(2)
+    except DatasetFormatError as err:
+        print(f"malformed data: {err}", file=sys.stderr)
         sys.exit(2)
 
 

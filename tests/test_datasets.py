@@ -126,6 +126,27 @@ def test_emps_from_env_var(tmp_path, monkeypatch):
     assert len(d.validation) == 50 and d.Ts == pytest.approx(1e-3)
 
 
+def test_an_env_var_that_names_no_folder_is_an_error(tmp_path, monkeypatch):
+    """A mistyped $ONESHOT_JAX_DATA was skipped in silence (the files came from elsewhere)."""
+    _write_emps(tmp_path / "emps")
+    monkeypatch.setenv(ds.ENV_VAR, str(tmp_path / "typo"))
+    with pytest.raises(
+        ds.DatasetNotFoundError, match=r"\$ONESHOT_JAX_DATA=.*typo.* is not a folder"
+    ):
+        ds.load_emps()
+    assert ds.load_emps(tmp_path).Ts == pytest.approx(1e-3)  # path= is searched first
+
+
+def test_emps_records_at_different_sampling_times_are_refused(tmp_path):
+    val = _emps_dict(pulses=True)
+    val["t"] = val["t"] * 2  # every 2 ms
+    _write_emps(tmp_path / "emps", val=val)
+    with pytest.raises(
+        ds.DatasetFormatError, match=r"DATA_EMPS_PULSES\.mat: sampled every 0\.002 s but"
+    ):
+        ds.load_emps(tmp_path)
+
+
 # ----------------------------------------------------------------------- bad input
 
 

@@ -31,6 +31,13 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
             self.end_headers()
             self.wfile.write(body)
             return
+        if self.path.startswith("/half/"):  # no Content-Length, then the connection drops
+            data = (self.server.www / self.path.removeprefix("/half/")).read_bytes()
+            self.send_response(200)
+            self.end_headers()
+            self.wfile.write(data[: len(data) // 2])
+            self.close_connection = True
+            return
         super().do_GET()
 
 
@@ -43,6 +50,7 @@ def server(tmp_path):
         ("127.0.0.1", 0), functools.partial(_Handler, directory=str(www))
     )
     httpd.requests = []
+    httpd.www = www
     thread = threading.Thread(target=httpd.serve_forever, args=(0.05,), daemon=True)
     thread.start()
     try:
@@ -191,3 +199,45 @@ def test_bad_archives(server, tmp_path, member, pattern):
         ds.load_cascaded_tanks(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
     assert _nothing_kept(cache, "cascaded_tanks")
     assert not (tmp_path / "escape.csv").exists()
+
+
+def test_a_truncated_file_without_checksum_is_not_kept(server, tmp_path, monkeypatch):
+    """Half of the Wiener-Hammerstein .mat, sent without a length: with no reference
+    checksum nothing could tell, and the cache kept the half file for good (every later
+    call trusted it and failed to read it). It is read before it is kept."""
+    base, www, _ = server
+    k = np.arange(188_000, dtype=float)
+    scipy.io.savemat(
+        www / "WienerHammerBenchMark.mat",
+        {"uBenchMark": k[:, None], "yBenchMark": -k[:, None], "fs": 51200.0},
+    )
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetFormatError, match=r"truncated or damaged\. Nothing was kept"):
+        ds.load_wiener_hammerstein(
+            tmp_path / "e", download=True, cache_dir=cache, base_url=base + "/half"
+        )
+    assert _nothing_kept(cache, "wiener_hammerstein")
+    # (the whole file, without a checksum, is kept with a warning)
+    with pytest.warns(UserWarning, match="no reference SHA-256"):
+        d = ds.load_wiener_hammerstein(
+            tmp_path / "e", download=True, cache_dir=cache, base_url=base
+        )
+    assert d.test.u[0] == 105_200
+
+
+def test_an_archive_member_failing_its_crc_is_a_format_error(server, tmp_path):
+    base, www, _ = server
+    archive = www / "CascadedTanksFiles.zip"
+    csv = "uEst,uVal,yEst,yVal,Ts\n" + "".join(f"{i},{i},{i},{i},4\n" for i in range(40))
+    with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as zf:
+        zf.writestr("CascadedTanksFiles/dataBenchmark.csv", csv)
+    data = bytearray(archive.read_bytes())
+    at = data.index(b"uEst")
+    data[at] ^= 1  # one bit of the member's data: its CRC-32 fails
+    archive.write_bytes(bytes(data))
+    cache = tmp_path / "cache"
+    with pytest.raises(
+        ds.DatasetFormatError, match=r"CascadedTanksFiles\.zip: the archive is corrupt"
+    ):
+        ds.load_cascaded_tanks(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "cascaded_tanks")

@@ -258,6 +258,25 @@ def test_cli_names_experiment_data_path_when_the_benchmark_files_are_missing(tmp
     assert json.loads((out / "results.json").read_text())["status"] == "failed"
 
 
+def test_cli_reports_a_malformed_benchmark_file_in_one_line(tmp_path):
+    """A benchmark file that loads as malformed (NaN in a column) stops with exit status 2
+    and the loader's message, not a traceback (a missing file did; this did not)."""
+    data = tmp_path / "data"
+    data.mkdir()
+    rows = "".join(
+        f"{k},{k},{'nan' if k == 3 else k},{k},{4 if k == 0 else ''}\n" for k in range(20)
+    )
+    (data / "dataBenchmark.csv").write_text("uEst,uVal,yEst,yVal,Ts\n" + rows)
+    out = tmp_path / "run"
+    proc = _cli(
+        [f"hydra.run.dir={out}", "experiment=cascaded_tanks", f"experiment.data_path={data}"],
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "malformed data:" in proc.stderr and "yEst" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_python_m_experiments_composes(tmp_path):
     proc = _cli(["--cfg", "job", "solver=gauss_newton", "experiment.T=100", "seed=3"], REPO, True)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -8,7 +8,8 @@ The loaders read the benchmarks' own files from, in order:
 
 1. the `path` argument (the file itself, the benchmark's folder, or its parent);
 2. the environment variable `ONESHOT_JAX_DATA` (a folder holding `emps/`,
-   `cascaded_tanks/`, `silverbox/`, `wiener_hammerstein/`, or the files themselves);
+   `cascaded_tanks/`, `silverbox/`, `wiener_hammerstein/`, or the files themselves; set
+   to anything but a folder, it is an error, not skipped);
 3. `shared/data` next to the repository (`<repository>/../shared/data`), then
    `../shared/data` relative to the current working directory, when they exist;
 4. the download cache (`default_cache_dir()`: `$ONESHOT_JAX_CACHE`, else the user cache

@@ -19,6 +19,7 @@ import tempfile
 import urllib.request
 import warnings
 import zipfile
+import zlib
 from pathlib import Path
 
 from ._locations import DatasetFormatError, DatasetNotFoundError, default_cache_dir
@@ -146,7 +147,13 @@ def _unzip(archive: Path, into: Path, url):
             p = Path(m)
             if p.is_absolute() or ".." in p.parts:
                 raise DatasetFormatError(f"{url}: archive member {m!r} leaves the folder.")
-        zf.extractall(into)
+        try:
+            zf.extractall(into)
+        except (zipfile.BadZipFile, EOFError, OSError, zlib.error) as err:
+            raise DatasetFormatError(
+                f"{url}: the archive is corrupt ({type(err).__name__}: {err}); the download "
+                f"was damaged. Nothing was kept."
+            ) from err
 
 
 def fetch(name, *, cache_dir=None, base_url=None) -> Path:
@@ -211,6 +218,17 @@ def fetch(name, *, cache_dir=None, base_url=None) -> Path:
         for f, paths in found.items():
             for p in paths:
                 got = sha256(p)
+                if src.files[f] is None and p.suffix.lower() == ".mat":
+                    import scipy.io
+
+                    try:  # no checksum: at least refuse a truncated or damaged file
+                        scipy.io.loadmat(p)
+                    except Exception as err:  # noqa: BLE001
+                        raise DatasetFormatError(
+                            f"{f} from {url}: not a readable MATLAB file ({type(err).__name__}: "
+                            f"{err}); the download is truncated or damaged. Nothing was kept. "
+                            f"Download it by hand from {src.page}."
+                        ) from err
                 if src.files[f] is None:
                     warnings.warn(
                         f"{f} from {url}: no reference SHA-256 is known for this file, so it "

@@ -187,6 +187,12 @@ def load_emps(path=None, *, download=False, cache_dir=None, base_url=None) -> EM
                 f"{_FILES['validation']} ({c_val[k]}); expected the same controller."
             )
     Ts = float(np.median(np.diff(est.t)))
+    Ts_val = float(np.median(np.diff(val.t)))
+    if not np.isclose(Ts_val, Ts, rtol=1e-3):
+        raise DatasetFormatError(
+            f"{val.file}: sampled every {Ts_val:.6g} s but {_FILES['estimation']} every "
+            f"{Ts:.6g} s; expected both records at one sampling time (1 ms)."
+        )
     return EMPS(
         estimation=est,
         validation=val,

@@ -6,6 +6,7 @@ what was expected. Where the files are looked for, and the error types, are in
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,12 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
     """
     if path is not None and Path(path).expanduser().is_file():
         path = Path(path).expanduser().parent
+    env = os.environ.get(ENV_VAR)
+    if path is None and env and not Path(env).expanduser().is_dir():
+        raise DatasetNotFoundError(
+            f"${ENV_VAR}={env!r} is not a folder; set it to the folder that holds the "
+            f"benchmark files (or their subfolders such as '{subdirs[0]}/'), or unset it."
+        )
     dirs = candidates(path, subdirs)
     if cache_dir is not None or download:
         dirs += candidates(cache_dir if cache_dir is not None else default_cache_dir(), subdirs)
