@@ -125,6 +125,7 @@ def check_inputs(
         raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")
     check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
     _warn_integer_entries(theta0)
+    _warn_module_python_ints(theta0)
     units = check_units(units, theta0)
     solvers = as_solvers(solver)
     if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
@@ -214,6 +215,32 @@ def _warn_integer_entries(theta0) -> None:
             "scalar of NumPy or JAX is held fixed as data, not estimated (right for an "
             "exponent or an index). To estimate it, give a float (1.0, float(value)); "
             "`fixed=` holds a parameter fixed.",
+            UserWarning,
+            stacklevel=4,
+        )
+
+
+def _warn_module_python_ints(theta0) -> None:
+    """Warn where an equinox module of theta0 holds a Python int field (`power: int = 1`)
+    that is not static: it is a parameter like `{"k": 2}` (`_pytree.is_parameter`), fitted
+    as a float, where equinox's own convention (`eqx.is_inexact_array`) leaves it alone;
+    used as a size or an index it then fails to trace, used as an exponent its derivative
+    is estimated."""
+    is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
+    named = []
+    for path, leaf in jax.tree_util.tree_flatten_with_path(theta0, is_leaf=is_module)[0]:
+        if not is_module(leaf):
+            continue
+        for inner, value in jax.tree_util.tree_flatten_with_path(leaf)[0]:
+            if isinstance(value, int) and not isinstance(value, bool):
+                named.append(f"theta0{jax.tree_util.keystr(path)}{jax.tree_util.keystr(inner)}")
+    if named:
+        warnings.warn(
+            f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: a Python int "
+            "field of an equinox module is a parameter here, estimated as a float (as "
+            "{'k': 2} is). To keep it an integer, declare the field "
+            "`eqx.field(static=True)` or give a NumPy integer (np.int64(1)), held as data; "
+            "to estimate it, give a float.",
             UserWarning,
             stacklevel=4,
         )

@@ -88,17 +88,41 @@ def stacked_jacobians_T(step, theta, xs, us, wrt):
     (J^{x/theta}_{j+1})^T). Building the transposes directly saves the moveaxis copies of
     `jax.jacfwd`, and they are what the reverse recursion multiplies with anyway (the
     paper's Remark 1: every Jacobian at once after the forward pass).
+
+    The rows of theta never mix the derivatives of different entries: a tangent that is an
+    explicit zero would still multiply a non-finite derivative (that of x**n with respect
+    to n at x < 0, a held exponent) into every row. Where theta has more entries than x,
+    they come by reverse mode (one VJP per state, cheaper there), else leaf by leaf by
+    forward mode with the other leaves held as constants.
     """
     if wrt == "x":
         basis = jnp.eye(xs.shape[-1], dtype=xs.dtype)
         tangent = lambda x, u_j, e: jax.jvp(lambda x: step(x, u_j, theta), (x,), (e,))[1]  # noqa: E731
-    else:
-        flat, unravel = ravel_pytree(theta)
-        basis = jnp.eye(flat.shape[0], dtype=flat.dtype)
-        tangent = lambda x, u_j, e: jax.jvp(  # noqa: E731
-            lambda th: step(x, u_j, th), (theta,), (unravel(e),)
-        )[1]
-    return jax.vmap(lambda x, u_j: jax.vmap(lambda e: tangent(x, u_j, e))(basis))(xs, us)
+        return jax.vmap(lambda x, u_j: jax.vmap(lambda e: tangent(x, u_j, e))(basis))(xs, us)
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    n_x, n_theta = xs.shape[-1], sum(int(jnp.size(leaf)) for leaf in leaves)
+    if not leaves:
+        return jnp.zeros((xs.shape[0], 0, n_x), xs.dtype)
+    if n_theta > n_x:
+
+        def reverse(x, u_j):
+            out, pull = jax.vjp(lambda th: step(x, u_j, th), theta)
+            basis = jnp.eye(n_x, dtype=out.dtype)
+            return jax.vmap(lambda e: ravel_pytree(pull(e)[0])[0], out_axes=1)(basis)
+
+        return jax.vmap(reverse)(xs, us)
+
+    def rows(i):
+        leaf = jnp.asarray(leaves[i])
+
+        def f(x, u_j, value):
+            return step(x, u_j, treedef.unflatten([*leaves[:i], value, *leaves[i + 1 :]]))
+
+        basis = jnp.eye(leaf.size, dtype=leaf.dtype).reshape(leaf.size, *leaf.shape)
+        one = lambda x, u_j, e: jax.jvp(lambda v: f(x, u_j, v), (leaf,), (e,))[1]  # noqa: E731
+        return jax.vmap(lambda x, u_j: jax.vmap(lambda e: one(x, u_j, e))(basis))(xs, us)
+
+    return jnp.concatenate([rows(i) for i in range(len(leaves))], axis=1)
 
 
 def stacked_jacobians(f, xs, us, p, n_cols):

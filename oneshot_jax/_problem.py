@@ -109,10 +109,27 @@ class FitProblem(eqx.Module):
         return self.lower is not None or self.project is not None
 
     def theta_of(self, p_theta):
+        """theta (the parameters' pytree) with the free entries `p_theta`. A leaf whose
+        entries are all held is the constant of `theta_base`: derivatives with respect to
+        p_theta then never pass through it (an explicit zero tangent would still multiply
+        a non-finite derivative, that of x**n with respect to a held n at x < 0)."""
         base = jnp.asarray(self.theta_base)
         if self.theta_free == tuple(range(base.shape[0])):  # all free: no scatter to trace
             return self.unravel(p_theta.astype(base.dtype))
-        return self.unravel(base.at[np.asarray(self.theta_free, int)].set(p_theta))
+        theta = self.unravel(base.at[np.asarray(self.theta_free, int)].set(p_theta))
+        leaves, treedef = jax.tree_util.tree_flatten(theta)
+        held = self._held_leaves(leaves)
+        if not any(held):
+            return theta
+        constant = jax.tree_util.tree_leaves(self.unravel(base))
+        return treedef.unflatten([c if h else v for v, c, h in zip(leaves, constant, held)])
+
+    def _held_leaves(self, leaves):
+        """Per leaf of theta (in `ravel_pytree`'s order), whether every entry is held."""
+        free = np.zeros(self.theta_base.shape[0], bool)
+        free[np.asarray(self.theta_free, int)] = True
+        sizes = np.cumsum([0, *(int(np.size(leaf)) for leaf in leaves)])
+        return [not free[a:b].any() for a, b in zip(sizes[:-1], sizes[1:])]
 
     def x0_of(self, p_x0):
         base = jnp.asarray(self.x0_base)

@@ -31,16 +31,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._pytree import is_parameter
+
 __all__ = ["MLP", "Features", "Dictionary", "count_parameters"]
 
 
 def count_parameters(tree) -> int:
-    """The number of trained scalars in `tree`: the total size of its floating array leaves.
+    """The number of trained scalars in `tree`: the total size of its parameter leaves
+    (floating arrays and Python numbers, as `fit` takes them).
 
     These are the entries that a fit updates (and that an L1 or group-lasso penalty may
-    select); static fields of equinox modules (sizes, activations, names) do not count.
+    select); static fields of equinox modules (sizes, activations, names) and integer
+    arrays do not count.
     """
-    return int(sum(np.size(a) for a in jax.tree_util.tree_leaves(tree) if eqx.is_inexact_array(a)))
+    return int(sum(np.size(a) for a in jax.tree_util.tree_leaves(tree) if is_parameter(a)))
 
 
 def _positive_int(value, name, minimum=1):
@@ -211,6 +215,8 @@ class MLP(eqx.Module):
 def _names(names, default_prefix, n, name):
     if names is None:
         return tuple(f"{default_prefix}{i}" for i in range(n))
+    if isinstance(names, str):  # (a string is a sequence of its letters)
+        raise TypeError(f"`{name}` must be a sequence of {n} strings, got the string {names!r}.")
     names = tuple(names)
     if len(names) != n or not all(isinstance(s, str) and s for s in names):
         raise ValueError(f"`{name}` must be {n} non-empty strings, got {names!r}.")
@@ -318,6 +324,11 @@ class Features(eqx.Module):
             raise ValueError(
                 f"`functions` names must differ from each other and from the "
                 f"monomials; repeated: {dup}."
+            )
+        if isinstance(exclude, str):
+            raise TypeError(
+                f"`exclude` must be a sequence of term names, got the string {exclude!r} "
+                f"(one term: exclude=({exclude!r},))."
             )
         exclude = tuple(exclude)
         unknown = sorted(set(exclude) - set(names))

@@ -3,6 +3,7 @@ a silent broadcast."""
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -494,6 +495,37 @@ def test_an_integer_scalar_of_numpy_in_theta0_warns_that_it_is_held():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         oj.fit(model, {"k": 2, "c": 0.2}, np.array([1.0, 0.0]), u, z)
+
+
+def test_a_python_int_field_of_a_module_warns_that_it_is_estimated():
+    """An equinox module's `power: int = 1` (not static) is a parameter, fitted as a float
+    where equinox's convention leaves it alone: fit says so, with the remedies; a static
+    field or a NumPy integer is not named."""
+    import equinox as eqx
+
+    class Power(eqx.Module):
+        w: jax.Array
+        power: int
+
+        def __call__(self, x):
+            return self.w * x[0] ** self.power
+
+    class StaticPower(eqx.Module):
+        w: jax.Array
+        power: int = eqx.field(static=True)
+
+        def __call__(self, x):
+            return self.w * x[0] ** self.power
+
+    def step(x, u, th):
+        return jnp.stack([th["a"] * x[0] + th["r"](x) + u[0]])
+
+    model = oj.Model(step, lambda x, u, th: x)
+    with pytest.warns(UserWarning, match=r"theta0\['r'\]\.power: a Python int field .*static"):
+        oj.fit(model, {"a": 0.5, "r": Power(jnp.zeros(()), 3)}, np.zeros(1), _U1, _Z1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.fit(model, {"a": 0.5, "r": StaticPower(jnp.zeros(()), 3)}, np.zeros(1), _U1, _Z1)
 
 
 # ------------------------------------------------------------- fit's rarer arguments

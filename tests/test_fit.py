@@ -905,3 +905,39 @@ def test_an_output_of_zero_weight_is_not_counted_as_observations():
     e1 = oj.estimate_x0(one, r1.theta, u, z[:, :1], x0=x0)
     e2 = oj.estimate_x0(two, r1.theta, u, z, x0=x0, weight=np.array([1.0, 0.0]))
     np.testing.assert_allclose(e2.std[0], e1.std[0], rtol=1e-6)
+
+
+def test_a_held_exponent_at_negative_states_leaves_the_other_derivatives_finite():
+    """x**n with n held at 3.0 and x < 0 along the record: d/dn is NaN (log of a negative
+    number), and an explicit zero tangent of n multiplied it into every derivative (the
+    fit diverged at step 0 with every strategy). The held n is a constant now; the other
+    derivatives equal autodiff's."""
+
+    def rhs(x, u, th):
+        force = th["k"] * x[0] + th["c"] * x[0] ** th["n"] + 0.3 * x[1]
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * force + 0.1 * u[0]])
+
+    model = oj.Model(rhs, lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((150, 1))
+    x0 = np.array([1.0, 0.0])
+    truth = {"k": 2.0, "c": 0.5, "n": 3.0}
+    xs, z = oj.simulate(model, truth, x0, u)
+    assert np.min(xs[:, 0]) < 0
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    start = {"k": 1.5, "c": 0.3, "n": 3.0}
+
+    # The gradient with respect to k and c by every strategy, against autodiff's.
+    def plain(th):
+        return oj.loss(model, {**th, "n": 3.0}, x0, u, z, strategy="vjp")
+
+    want = jax.grad(plain)({"k": 1.5, "c": 0.3})
+    for strategy in ("jacobian", "vjp"):
+        _, (g, _) = oj.value_and_grad(model, start, x0, u, z, strategy=strategy)
+        for name in ("k", "c"):
+            np.testing.assert_allclose(g[name], want[name], rtol=1e-12)
+    for solver in (oj.LevenbergMarquardt(), oj.Adam(max_steps=3, strategy="jacobian")):
+        r = oj.fit(model, start, x0, u, z, fixed={"n": True}, solver=solver)
+        assert r.status != "diverged" and np.isfinite(float(r.loss))
+        if isinstance(solver, oj.LevenbergMarquardt):
+            assert r.success and abs(float(r.theta["k"]) - 2.0) < 0.05

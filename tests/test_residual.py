@@ -296,6 +296,20 @@ def test_dictionary_bad_arguments(make, match):
         make()
 
 
+@pytest.mark.parametrize("kwargs", [dict(exclude="x0"), dict(x_names="ab"), dict(u_names="F")])
+def test_a_string_for_a_sequence_of_names_is_refused(kwargs):
+    """A string is a sequence of its letters: `exclude="x0"` asked for terms 'x' and '0'."""
+    name = next(iter(kwargs))
+    with pytest.raises(TypeError, match=rf"`{name}` must be a sequence .* got the string"):
+        Features(2, 1, degree=2, **kwargs)
+
+
+def test_count_parameters_counts_what_fit_updates():
+    """Python numbers are parameters of theta (`{"k": 2.0}`), integer arrays are data."""
+    theta = {"k": 2.0, "n": np.int64(3), "idx": np.arange(4), "w": np.ones((2, 3))}
+    assert count_parameters(theta) == 1 + 6
+
+
 @pytest.mark.parametrize("precision", [-1, 2.5, True])
 def test_equations_precision_is_an_integer(precision):
     """A negative precision was a format error of Python's."""
