@@ -404,7 +404,11 @@ def fit_orthogonal(
     sensitivities W^{1/2} d yhat_k / d theta_phys of the physical parameters (every free
     entry of theta0 outside `learned`). At the optimum of a large `strength` the learned
     contribution has no component that a physical parameter could explain, so the
-    physics cannot be absorbed by a network that sees the whole state.
+    physics cannot be absorbed by a network that sees the whole state. The converse
+    holds too: the part of a missing effect that lies along the physical sensitivities
+    goes to the physics, which is then biased (a model without a damping term, its
+    damping left to the network), beyond what its standard errors measure (see the
+    guide on bad minima and identifiable hybrids).
 
     Each round computes Q at the current estimate (forward-mode autodiff of `simulate`,
     one column per physical parameter; these sensitivities are not on the closed-form
