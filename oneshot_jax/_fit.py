@@ -536,9 +536,10 @@ def fit(
         n_u=int(np.shape(u[0] if isinstance(u, (list, tuple)) else u)[-1]),
     )
     strategy = getattr(inputs.solvers[-1], "strategy", "auto")
-    result = flag_zero_gradient(
-        result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
-    )
+    with counting():  # (its rollouts are the check's, not the fit's: no second warning)
+        result = flag_zero_gradient(
+            result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
+        )
     result = _flag_unconverged_rollouts(result, built.problem, out.theta, out.x0, strategy)
     if aggregate is not None:
         result = agg.restore(result)
