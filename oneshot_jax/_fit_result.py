@@ -298,6 +298,21 @@ class FitResult(eqx.Module):
                     f"got shape {shape}{hint}."
                 )
 
+    def _check_z_head(self, z_head):
+        """Refuse a head with another number of output columns than the fitted data's (for a
+        model that observes its whole state, z_head[0] is x0's default guess, so a wrong
+        count would otherwise surface as a wrong state size deep in the model)."""
+        n_z = np.shape(self.residuals)[-1] if np.ndim(self.residuals) else None
+        try:
+            shape = np.shape(z_head)
+        except ValueError:  # not an array: `predict`'s checks name it
+            return
+        if n_z is not None and len(shape) == 2 and shape[-1] != n_z:
+            raise ValueError(
+                f"`z_head` must have n_z = {n_z} output columns, as the fitted data had; "
+                f"got shape {shape}."
+            )
+
     @property
     def success(self) -> bool:
         """Whether the solver converged (`converged`, `statistically_converged`,
@@ -355,9 +370,10 @@ class FitResult(eqx.Module):
             if self.window_starts is not None and np.ndim(u) == 2:
                 at_zero = np.flatnonzero(np.asarray(self.window_starts) == 0)
                 if not at_zero.size:
+                    starts = [int(s) for s in np.asarray(self.window_starts)]
+                    shown = f"{starts[:5]}"[:-1] + (", ...]" if len(starts) > 5 else "]")
                     raise ValueError(
-                        "this fit's windows start at samples "
-                        f"{list(np.asarray(self.window_starts)[:5])}..., none at 0: give `x0` "
+                        f"this fit's windows start at samples {shown}, none at 0: give `x0` "
                         "(a row of `result.x0` is the state at `result.window_starts` of "
                         "that row), or use `result.predict(u, z_head)`, which estimates it."
                     )
@@ -391,6 +407,7 @@ class FitResult(eqx.Module):
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
             )
         self._check_u(u)
+        self._check_z_head(z_head)
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
         if kwargs.get("x0") is None and (

@@ -306,6 +306,7 @@ def _estimate(
         raise ValueError(
             "`missing=\"mask\"` applies to method='lsq' (the smoother needs every sample)."
         )
+    defaulted = x0 is None
     if x0 is None:
         if not model.observes_state:
             raise ValueError(
@@ -322,7 +323,18 @@ def _estimate(
             )
     if np.ndim(x0) != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
-    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t, z_name=z_name)
+    try:
+        data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t, z_name=z_name)
+    except ValueError as err:
+        if not defaulted:
+            raise
+        # The state's size came from z's columns: a wrong column count surfaces as a
+        # wrong state size deep in the model.
+        raise ValueError(
+            f"{err}\n(`x0` was not given: its guess is the first row of `{z_name}`, so the "
+            f"state's size is `{z_name}`'s number of columns, {np.shape(z)[-1]}; check that "
+            f"`{z_name}` has the model's outputs as columns, or give `x0`.)"
+        ) from err
     guess = np.asarray(data.x0)
 
     stop_reason, kalman, e, ok, sim = None, None, None, None, None

@@ -423,6 +423,49 @@ def test_import_does_not_import_matplotlib():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_compare_of_a_fit_with_an_output_measured_only_in_aggregate():
+    """Output 1 read only as 10-sample means (`Aggregate`, its column all NaN): compare
+    drew nothing ("`mask` selects no sample of output(s) [1]", an argument never passed);
+    it draws the model's output with FIT NaN, as the result's metrics have it."""
+
+    def step(x, u, th):
+        return jnp.stack([th["a"] * x[0] + th["b"] * u[0], th["c"] * x[1] + 0.5 * x[0]])
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))
+    _, z = oj.simulate(model, {"a": 0.8, "b": 0.5, "c": 0.7}, np.array([0.3, -0.2]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((60, 2))
+    spans = [(k, k + 10) for k in range(0, 60, 10)]
+    agg = oj.Aggregate(1, spans, [float(np.mean(z[a:b, 1])) for a, b in spans], kind="mean")
+    za = z.copy()
+    za[:, 1] = np.nan
+    r = oj.fit(model, {"a": 0.6, "b": 0.3, "c": 0.5}, z[0], u, za, missing="mask", aggregate=agg)
+    assert np.isnan(r.metrics["fit_percent"][1])
+    fig = oj.plot.compare(za, r, u=u)
+    legends = [a.get_legend().get_texts()[1].get_text() for a in fig.axes]
+    assert "nan" in legends[1] and "nan" not in legends[0]
+    plt.close(fig)
+
+
+def test_predict_names_a_head_with_the_wrong_number_of_outputs():
+    """z_head's columns are the state's guess for a model that observes it: a wrong count
+    surfaced as a wrong state size deep in the model."""
+
+    def step(x, u, th):
+        return jnp.stack([th["a"] * x[0] + u[0], 0.7 * x[1] + 0.5 * x[0]])
+
+    model = oj.Model(step)
+    u = np.random.default_rng(0).standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 0.8}, np.array([0.3, -0.2]), u)
+    r = oj.fit(model, {"a": 0.6}, np.asarray(z[0]), u, np.asarray(z))
+    for head in (np.asarray(z[:5, :1]), np.hstack([z[:5], z[:5, :1]])):
+        with pytest.raises(ValueError, match=r"`z_head` must have n_z = 2 output columns"):
+            r.predict(u, head)
+    with pytest.raises(ValueError, match=r"`x0` was not given: its guess is the first row of `z`"):
+        oj.predict(model, r.theta, u, np.asarray(z[:, :1]), 5)
+
+
 def test_compare_names_bad_labels():
     z = np.ones((20, 1))
     with pytest.raises(TypeError, match=r"`labels` must be a string or a sequence of 1"):
