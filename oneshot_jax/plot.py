@@ -265,7 +265,9 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     **Arguments:**
 
     - `e`: the residuals (T,), (T, n_z) or (N, T, n_z), NaN where missing, or a
-        `FitResult` (its `residuals`, zhat - z on the fitted data).
+        `FitResult` (its `residuals`, zhat - z on the fitted data; an output without
+        residual samples, one measured only in aggregate, is left out, as the title
+        says).
     - `u`: the inputs of the same record(s), (T,), (T, n_u) or (N, T, n_u); None: the
         autocorrelation only.
     - `max_lag`, `confidence`, `tolerance`, `demean`: as for `residual_correlations`.
@@ -280,10 +282,17 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     `residual_correlations`.
     """
     plt = _pyplot()
-    windows = None
+    windows, skipped, names = None, [], None
     if isinstance(e, FitResult):
         windows = e.window_starts
-        e = e.residuals
+        e = np.asarray(e.residuals)
+        # An output never sampled at an instant (one measured only in aggregate) has no
+        # residual series: left out, and said so in the title.
+        seen = np.sum(np.isfinite(e.reshape(-1, e.shape[-1])), axis=0) >= 2
+        if seen.any() and not seen.all():
+            skipped = [int(k) for k in np.flatnonzero(~seen)]
+            names = [int(k) for k in np.flatnonzero(seen)]
+            e = e[..., seen]
     try:
         rc = metrics.residual_correlations(
             e, u, max_lag, confidence=confidence, tolerance=tolerance, demean=demean
@@ -298,6 +307,7 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
             "`result.simulate` on the whole record."
         ) from err
     n_z = rc.auto.shape[1]
+    names = list(range(n_z)) if names is None else names
     n_u = 0 if rc.cross is None else rc.cross.shape[2]
     fig, axes = plt.subplots(
         n_z, 1 + n_u, squeeze=False, figsize=(4.2 * (1 + n_u), 0.9 + 2.4 * n_z)
@@ -317,16 +327,16 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     for i in range(n_z):
         lags = rc.lags[max_lag:]
         stems(axes[i, 0], lags, rc.auto[max_lag:, i], rc.bound[i], auto=True)
-        axes[i, 0].set_title(f"autocorrelation of e[{i}]", fontsize=9)
+        axes[i, 0].set_title(f"autocorrelation of e[{names[i]}]", fontsize=9)
         axes[i, 0].legend(fontsize=7, loc="upper right")
         text = (
-            f"e[{i}]: {'white' if rc.white[i] else 'not white'} "
+            f"e[{names[i]}]: {'white' if rc.white[i] else 'not white'} "
             f"({100 * rc.auto_outside[i]:.0f} % of lags outside)"
         )
         for j in range(n_u):
             stems(axes[i, j + 1], rc.lags, rc.cross[:, i, j], rc.bound[i])
             axes[i, j + 1].axvline(0.0, color="0.5", lw=0.6, ls=":")
-            axes[i, j + 1].set_title(f"cross-correlation of e[{i}] and u[{j}]", fontsize=9)
+            axes[i, j + 1].set_title(f"cross-correlation of e[{names[i]}] and u[{j}]", fontsize=9)
         if n_u:
             worst = 100 * float(np.max(rc.cross_outside[i]))
             text += (
@@ -337,6 +347,8 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
         verdicts.append(text)
     counts = np.unique(rc.n)
     samples = str(int(counts[0])) if len(counts) == 1 else "/".join(str(int(c)) for c in rc.n)
+    if skipped:
+        verdicts.append(f"e{skipped}: no residual samples (measured only in aggregate)")
     fig.suptitle(
         f"Residual analysis ({pct} bounds, n = {samples} samples)\n" + "\n".join(verdicts),
         fontsize=10,

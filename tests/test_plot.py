@@ -446,6 +446,11 @@ def test_compare_of_a_fit_with_an_output_measured_only_in_aggregate():
     legends = [a.get_legend().get_texts()[1].get_text() for a in fig.axes]
     assert "nan" in legends[1] and "nan" not in legends[0]
     plt.close(fig)
+    # resid: the output without residual samples is left out, and the title says so.
+    fig = oj.plot.resid(r, u)
+    assert len(fig.axes) == 2  # e[0]: its autocorrelation and its cross-correlation with u
+    assert "e[1]: no residual samples" in fig._suptitle.get_text()
+    plt.close(fig)
 
 
 def test_predict_names_a_head_with_the_wrong_number_of_outputs():
