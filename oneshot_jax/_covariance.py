@@ -163,8 +163,10 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     estimate a variance (and their residuals are those the fit of x0 shrinks most: such
     a sandwich understates x0's spread even with white residuals). It is therefore taken
     with the
-    residuals' autocovariance pooled over all samples and trajectories,
-    Gamma_l = sum_k r_k r_{k-l}^T / (samples) (stationary residuals), Bartlett-weighted:
+    residuals' autocovariance pooled over all samples and trajectories (stationary
+    residuals): entry (o, p) of Gamma_l is sum_k r_{k,o} r_{k-l,p} over the pairs of
+    samples where both outputs are measured, scaled to the record's pairs at lag l over
+    its samples (an output with missing samples is not shrunk), Bartlett-weighted:
 
         K(A, B) = sum_{l=-L..L} w_|l| sum_k A_k^T Gamma_l B_{k-l}   (Gamma_{-l} = Gamma_l^T),
         cov(x0_i) = C_i^+ K(Jx, Jx) C_i^+ - C_i^+ K(Jx, Jt~) S^+ W_i^T
@@ -217,26 +219,35 @@ def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int):
         out = problem.mask.outputs
         seen = jnp.broadcast_to(out if out.ndim == 3 else out[..., None], seen.shape) > 0
     observed = problem.cost.observed()
-    n_out = n_z if observed is None else jnp.maximum(jnp.sum(observed), 1)
     if observed is not None:
         seen = seen & observed
-    samples = jnp.maximum(jnp.sum(seen) / n_out, 1.0)
     k = jnp.arange(T)
+    present = jnp.ones((N, T), r.dtype) if problem.mask is None else problem.mask.samples
+    present = jnp.broadcast_to(present, (N, T)).astype(r.dtype)
+    s = seen.astype(r.dtype)
 
     def shift(a, lg):  # a_{k-l}, zero before the start
         mask = (k >= lg).reshape((1, T) + (1,) * (a.ndim - 2))
         return jnp.where(mask, jnp.roll(a, lg, axis=1), 0.0)
+
+    def autocov(lg):  # Gamma_l: each pair of outputs over the pairs of samples it has
+        # (a missing sample is no zero residual), scaled as the complete record's
+        # sum / its samples: (pairs in the records) / (pairs seen) / (samples)
+        num = jnp.einsum("nto,ntp->op", r, shift(r, lg))
+        seen_pairs = jnp.einsum("nto,ntp->op", s, shift(s, lg))
+        pairs = jnp.sum(present * shift(present, lg))
+        return num * pairs / jnp.maximum(seen_pairs, 1.0) / jnp.maximum(jnp.sum(present), 1.0)
 
     def K(lg, gamma, X, Y):  # sum_k X_k^T Gamma_l Y_{k-l} + (its transpose pair)
         out = jnp.einsum("ntoa,op,ntpb->nab", X, gamma, shift(Y, lg))
         return out + jnp.einsum("ntoa,op,ntpb->nab", shift(X, lg), gamma.T, Y)
 
     def lag(lg, acc):
-        gamma = jnp.einsum("nto,ntp->op", r, shift(r, lg)) / samples
+        gamma = autocov(lg)
         w = 1.0 - lg / (lags + 1.0)
         return acc[0] + w * K(lg, gamma, A, A), acc[1] + w * K(lg, gamma, A, B)
 
-    gamma0 = jnp.einsum("nto,ntp->op", r, r) / samples
+    gamma0 = autocov(0)
     own = jnp.einsum("ntoa,op,ntpb->nab", A, gamma0, A)
     cross = jnp.einsum("ntoa,op,ntpb->nab", A, gamma0, B)
     own, cross = jax.lax.fori_loop(1, lags + 1, lag, (own, cross))

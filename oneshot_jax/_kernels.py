@@ -91,9 +91,9 @@ def stacked_jacobians_T(step, theta, xs, us, wrt):
 
     The rows of theta never mix the derivatives of different entries: a tangent that is an
     explicit zero would still multiply a non-finite derivative (that of x**n with respect
-    to n at x < 0, a held exponent) into every row. Where theta has more entries than x,
-    they come by reverse mode (one VJP per state, cheaper there), else leaf by leaf by
-    forward mode with the other leaves held as constants.
+    to n at x < 0, a held exponent) into every row. Where theta has more entries than x or
+    a leaf has more than one entry, they come by reverse mode (one VJP per state), else
+    (scalar leaves) leaf by leaf by forward mode with the other leaves held as constants.
     """
     if wrt == "x":
         basis = jnp.eye(xs.shape[-1], dtype=xs.dtype)
@@ -103,7 +103,8 @@ def stacked_jacobians_T(step, theta, xs, us, wrt):
     n_x, n_theta = xs.shape[-1], sum(int(jnp.size(leaf)) for leaf in leaves)
     if not leaves:
         return jnp.zeros((xs.shape[0], 0, n_x), xs.dtype)
-    if n_theta > n_x:
+    if n_theta > n_x or any(jnp.size(leaf) > 1 for leaf in leaves):
+        # (forward mode by leaf would mix a leaf's entries: one tangent per entry of it)
 
         def reverse(x, u_j):
             out, pull = jax.vjp(lambda th: step(x, u_j, th), theta)

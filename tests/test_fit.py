@@ -941,3 +941,20 @@ def test_a_held_exponent_at_negative_states_leaves_the_other_derivatives_finite(
         assert r.status != "diverged" and np.isfinite(float(r.loss))
         if isinstance(solver, oj.LevenbergMarquardt):
             assert r.success and abs(float(r.theta["k"]) - 2.0) < 0.05
+    # One leaf holding both, {"p": [k, n]}: the gradient's k entry by the Jacobian strategy
+    # equals the VJP strategy's and autodiff's (forward mode by leaf mixed them).
+
+    def packed(x, u, th):
+        return jnp.stack([0.8 * x[0] + th["p"][0] * u[0], 0.5 * x[1] + 0.1 * x[0] ** th["p"][1]])
+
+    model = oj.Model(packed)
+    u = rng.normal(size=(40, 1))
+    x0 = np.array([-1.0, 0.2])
+    z = np.asarray(oj.simulate(model, {"p": np.array([0.5, 2.0])}, x0, u)[1])
+    theta = {"p": np.array([0.3, 2.0])}
+    want = jax.grad(lambda k: oj.loss(model, {"p": jnp.stack([k, 2.0])}, x0, u, z, strategy="vjp"))(
+        0.3
+    )
+    for strategy in ("jacobian", "vjp"):
+        g = oj.value_and_grad(model, theta, x0, u, z, strategy=strategy)[1][0]["p"]
+        np.testing.assert_allclose(g[0], want, rtol=1e-12)
