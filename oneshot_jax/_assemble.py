@@ -276,8 +276,8 @@ def assemble(
     params = layout.one(theta_flat)
     free = problem.theta_free
     x0_free = problem.x0_free
-    flat_std = np.zeros(theta_flat.shape)
-    x0_std = np.zeros(X0.shape)
+    flat_std = np.zeros(theta_flat.shape, theta_flat.dtype)  # (the data's dtype, float32 too)
+    x0_std = np.zeros(X0.shape, X0.dtype)
     if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
         warnings.warn(
             f"the covariance of the estimates is not computed above {COVARIANCE_MAX_THETA} "

@@ -219,7 +219,8 @@ def estimate_x0(
         (0.001 s_x)^2 per step; prior (100 s_x)^2 (broad). The smoother's covariance
         reflects these assumptions: give `measurement_noise` for calibrated ones. In
         float32 the defaults' range (1e8 between the prior's and the noise's variances)
-        costs the smoother digits: its x0 can miss float64's by a few standard errors;
+        costs the smoother digits: its x0 can miss float64's by a few of float64's
+        standard errors, and its covariance comes out inflated (larger than float64's);
         give covariances closer in scale, or use `"lsq"` (accurate to float32 there).
     - `t`: the sample times (T,) of the record, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`); t[:n] is used with the head.
@@ -347,7 +348,7 @@ def _estimate(
         r = solve_x0(data, solver, record=whole)
         ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]
-        cov = np.asarray(r.covariance[0], np.float64)
+        cov = np.asarray(r.covariance[0], guess.dtype)
         loss = np.asarray(r.loss)
         stop_reason = r.stop_reason
         e = r.residuals[0]  # the head simulated from x0_hat, minus z
@@ -356,7 +357,7 @@ def _estimate(
             data, model.observes_state, process_noise, measurement_noise, prior_covariance
         )
         x0_hat = kalman.smoothed_mean[0]
-        cov = np.asarray(kalman.smoothed_covariance[0], np.float64)
+        cov = np.asarray(kalman.smoothed_covariance[0], guess.dtype)
         loss = None
 
     x0_hat = x0_hat.astype(guess.dtype)

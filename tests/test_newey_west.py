@@ -295,3 +295,25 @@ def records_of(rng):
     th = {"k": jnp.array(2.0), "c": jnp.array(0.4)}
     _, z = jax.vmap(lambda a, b: oj.simulate(OSC, th, a, b))(jnp.asarray(X0), jnp.asarray(u))
     return u, np.asarray(z) + ar1(rng, z.shape, 0.8, 0.02), X0
+
+
+def test_float32_data_give_float32_standard_errors():
+    """float32 data (x64 on) give float32 standard errors and covariances: with a fixed
+    entry of theta or x0, `assemble` scattered them into np.zeros (float64 by default);
+    estimate_x0's covariance was float64 always."""
+    f = np.float32
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((80, 1)).astype(f)
+    _, z = oj.simulate(OSC, {"k": f(2.0), "c": f(0.5)}, np.array([1.0, 0.0], f), u)
+    z = np.asarray(z) + f(0.01) * rng.standard_normal(z.shape).astype(f)
+    th0, x0 = {"k": f(1.5), "c": f(0.8)}, np.array([0.8, 0.0], f)
+    runs = [
+        oj.fit(OSC, th0, x0, u, z, covariance="newey_west"),
+        oj.fit(OSC, th0, x0, u, z, fixed={"c": True}),
+        oj.fit(OSC, th0, np.array([1.0, 0.0], f), u, z, estimate_x0=[True, False]),
+    ]
+    for r in runs:
+        arrays = [*r.std.values(), r.covariance, r.x0_std, r.x0_covariance]
+        assert all(np.asarray(a).dtype == np.float32 for a in arrays), [a.dtype for a in arrays]
+    est = oj.estimate_x0(OSC, runs[0].theta, u, z, n=20, x0=x0)
+    assert est.std.dtype == np.float32 and est.covariance.dtype == np.float32
