@@ -202,25 +202,28 @@ def _check_n_params(n_params):
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
 
 
-@jax.jit
-def _aic(z, zhat, n_params, mask):
+def _error_covariance(z, zhat, mask):
+    """E^T E / n over the n samples where every output is measured, and n (`aic`, `fpe`)."""
     z, zhat, w = _flat(z, zhat, mask)
     full = jnp.all(w > 0, axis=1).astype(z.dtype)
     e = (zhat - z) * full[:, None]
     n = jnp.sum(full)
-    _, logdet = jnp.linalg.slogdet(e.T @ e / n)
+    return e.T @ e / n, n
+
+
+@jax.jit
+def _aic(z, zhat, n_params, mask):
+    cov, n = _error_covariance(z, zhat, mask)
+    _, logdet = jnp.linalg.slogdet(cov)
     return n * logdet + 2.0 * n_params
 
 
 @jax.jit
 def _fpe(z, zhat, n_params, mask):
-    z, zhat, w = _flat(z, zhat, mask)
-    full = jnp.all(w > 0, axis=1).astype(z.dtype)
-    e = (zhat - z) * full[:, None]
-    n = jnp.sum(full)
+    cov, n = _error_covariance(z, zhat, mask)
     ratio = n_params / n
     factor = jnp.where(ratio < 1, (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0), jnp.inf)
-    return jnp.linalg.det(e.T @ e / n) * factor
+    return jnp.linalg.det(cov) * factor
 
 
 # --------------------------------------------------------------------------- protocol
