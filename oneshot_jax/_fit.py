@@ -209,7 +209,8 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy):
         return result
     params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
     with counting() as again:  # the returned point's rollout, once more
-        jax.block_until_ready(jax.jit(lambda p: problem.loss(p, strategy))(params))
+        loss = eqx.filter_jit(lambda prob, p: prob.loss(p, strategy))  # (data as arguments)
+        jax.block_until_ready(loss(problem, params))
     if not again["unconverged_rollouts"]:
         return result
     info = {
