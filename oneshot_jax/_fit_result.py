@@ -309,8 +309,8 @@ class FitResult(eqx.Module):
             return
         if n_z is not None and len(shape) == 2 and shape[-1] != n_z:
             raise ValueError(
-                f"`z_head` must have n_z = {n_z} output columns, as the fitted data had; "
-                f"got shape {shape}."
+                f"`z_head` must have shape ({shape[0]}, {n_z}) (its first samples of the "
+                f"n_z = {n_z} outputs the fitted data had), got shape {shape}."
             )
 
     @property

@@ -465,7 +465,7 @@ def test_predict_names_a_head_with_the_wrong_number_of_outputs():
     _, z = oj.simulate(model, {"a": 0.8}, np.array([0.3, -0.2]), u)
     r = oj.fit(model, {"a": 0.6}, np.asarray(z[0]), u, np.asarray(z))
     for head in (np.asarray(z[:5, :1]), np.hstack([z[:5], z[:5, :1]])):
-        with pytest.raises(ValueError, match=r"`z_head` must have n_z = 2 output columns"):
+        with pytest.raises(ValueError, match=r"`z_head` must have shape \(5, 2\) \(its first"):
             r.predict(u, head)
     with pytest.raises(ValueError, match=r"`x0` was not given: its guess is the first row of `z`"):
         oj.predict(model, r.theta, u, np.asarray(z[:, :1]), 5)
