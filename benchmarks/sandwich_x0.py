@@ -25,6 +25,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from hybrid_sandwich import ar1  # noqa: E402
 from timing import conditions  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
@@ -35,16 +36,6 @@ CASES = ((0.0, 3), (0.8, 20))  # (AR(1) coefficient, the sandwich's lags)
 
 def step(x, u, th):
     return th["a"] * x + th["b"] * u
-
-
-def ar1(rng, n, phi, sigma):
-    """Stationary AR(1) noise of n samples, one output."""
-    w = rng.standard_normal(n) * sigma
-    e = np.empty(n)
-    e[0] = w[0] / np.sqrt(1 - phi**2)
-    for i in range(1, n):
-        e[i] = phi * e[i - 1] + w[i]
-    return e[:, None]
 
 
 def study(draws, phi, lags):
