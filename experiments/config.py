@@ -537,9 +537,10 @@ class Config:
         _integer("seed", self.seed, 0)
         allowed = type(self.experiment).SOLVERS
         if self.solver.name not in allowed:
+            label = f" ({self.solver.label})" if self.solver.label else ""
             raise ConfigError(
                 f"experiment={self.experiment.name} runs the library's solvers only "
-                f"({', '.join(allowed)}); solver {self.solver.name!r} is not supported. "
+                f"({', '.join(allowed)}); solver {self.solver.name!r}{label} is not supported. "
                 f"Pick one of these, e.g. solver=levenberg_marquardt."
             )
 

@@ -324,7 +324,12 @@ def _readings(aggregates, T, n_z, Q, t, where):
                 f"`Aggregate.channel` = {agg.channel} is out of range: the model has {n_z} "
                 f"outputs (channel < {n_z})."
             )
-        A = agg.operator(T, t)
+        try:
+            A = agg.operator(T, t)
+        except ValueError as err:
+            if not where:
+                raise
+            raise ValueError(f"`aggregate`{where} (trajectory {where[1:-1]}): {err}") from None
         if agg.weight is not None:
             w = agg.weight
         else:
@@ -486,7 +491,9 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     lengths = [T_max] * N if data.lengths is None else list(data.lengths)
     Q = None if data.weight is None else np.asarray(data.weight)
     records = _per_record(aggregate, data.batched, N)
-    if t is not None and (not data.batched or (not isinstance(t, list) and np.ndim(t) == 1)):
+    if t is not None and (
+        not data.batched or (not isinstance(t, (list, tuple)) and np.ndim(t) == 1)
+    ):
         t = [t] * N  # one record, or N records sharing one (T,) time axis
     if t is None:
         # A continuous-time model with a fixed dt integrates over t_k = k dt; a discrete
@@ -519,7 +526,8 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
                 for r in groups[g] if g < len(groups) else []:
                     drive[i, r.start, 2 * j] = 1.0
                     drive[i, r.start : r.stop, 2 * j + 1] = r.row
-                    extra[i, r.stop - 1, j] = r.value
+                    # a reading of weight 0 is no observation (as an output of weight 0)
+                    extra[i, r.stop - 1, j] = r.value if np.any(r.row) else np.nan
                 j += 1
     U_aug = np.concatenate([U, drive], axis=-1)
     Z_aug = np.concatenate([Z, extra], axis=-1)

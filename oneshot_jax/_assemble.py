@@ -46,6 +46,7 @@ class Out(NamedTuple):
     results: jax.Array  # (S,) the last solver's RESULTS index per start
     losses: jax.Array  # (S,)
     start_theta: jax.Array  # (S, p) the free entries of theta each start ended at
+    start_x0: jax.Array  # (S, ...) the free x0 each start ended at
     first_order: jax.Array  # the measures the best start's stop was tested on
     step: jax.Array
     decrease: jax.Array
@@ -54,6 +55,7 @@ class Out(NamedTuple):
     degenerate: jax.Array  # whether first_order is a stall's with vanished columns
     vanished: jax.Array  # the theta columns that vanished along the fit (or False)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
+    solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
 
 
 def _stage_out(s, best) -> StageOut:
@@ -100,6 +102,7 @@ def collect(stages, best, moved, posted) -> Out:
         final.result._value,
         final.loss,
         final.params.theta,
+        final.params.x0,
         m.first_order[best],
         m.step[best],
         m.decrease[best],
@@ -108,6 +111,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.degenerate[best],
         m.vanished[best],
         None if final.best is None else final.best.score[best],
+        final.solver_result._value,
     )
 
 
@@ -358,7 +362,12 @@ def assemble(
         stop_info[status] = last_solver.get(status)
         stop_info["loss_at_stop"] = float(last.loss[int(last.rows)])
         stop_info["grad_norm"] = float(last.grad_norm[int(last.rows)])
-    if status == "diverged":
+    solver_stop = name_of(from_index(int(out.solver_results[best])))
+    if status == "validation" and solver_stop != "validation":
+        # (the solver's own stop, which the best-scoring iterate replaced: a divergence
+        # must not vanish behind it)
+        stop_info["solver_stop"] = solver_stop
+    if "diverged" in (status, solver_stop):
         # Which was not finite where the solver stopped: the loss, or only its gradient
         # (a model not differentiable there, sqrt(c) at a bound c = 0, say). A loss
         # beyond sqrt(max) is a simulation that blows up: its gradient overflows first.

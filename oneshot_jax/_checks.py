@@ -433,9 +433,14 @@ def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
     _check_indices(model, theta, x_1, u_step, u_seen, u_1.shape[0])
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
-        shape = getattr(x_next, "shape", type(x_next).__name__)
+        shape = str(getattr(x_next, "shape", type(x_next).__name__))
         if isinstance(x_next, (list, tuple)):
             shape += " (build the state with jnp.stack or jnp.array)"
+        if u.shape[-1] > u.shape[-2]:  # more inputs than samples: (n_u, T) given
+            shape += (
+                f"; `u` of shape {u.shape} holds T = {u.shape[-2]} samples of {u.shape[-1]} "
+                "inputs: is it transposed? (u is (T, n_u))"
+            )
         raise ValueError(
             f"`model.step` must return a state of shape {x_1.shape} (the shape of x0), got {shape}."
         )
@@ -465,6 +470,28 @@ def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
             "dtype=...) changes it."
         )
     return model, z_hat
+
+
+def _transposed_hint(z_shape, u_shape, T, n_z, z_name):
+    """Which of a record's arrays looks given as (columns, T) rather than (T, columns)."""
+    if len(z_shape) < 2:
+        return ""
+    # u given as (n_u, T): its T samples read as inputs, more of them than samples
+    u_flipped = u_shape[-1] > T and u_shape[-1] in z_shape[-2:]
+    z_flipped = z_shape[-1] == (u_shape[-1] if u_flipped else T) and z_shape[-1] != z_shape[-2]
+    if u_flipped and z_flipped:
+        return (
+            f"; `u` of shape {u_shape} and `{z_name}` hold {u_shape[-1]} along their last "
+            f"axis: are both transposed? (u is (T, n_u), {z_name} is (T, n_z))"
+        )
+    if u_flipped or (n_z is not None and z_shape[-2] == u_shape[-1] != T and z_shape[-1] == n_z):
+        return (
+            f"; `u` of shape {u_shape} holds T = {T} samples of {u_shape[-1]} "
+            "inputs: is it transposed? (u is (T, n_u))"
+        )
+    if z_flipped:
+        return f": is `{z_name}` transposed? ({z_name} is (T, n_z))"
+    return ""
 
 
 def check_data(
@@ -578,6 +605,19 @@ def check_data(
     )
     intervals = check_times(model, t, u.shape[:-1], lengths, dtype, given.step)
 
+    if z is not None and not ragged:
+        # The samples of z must match u's before the model is traced: a record given
+        # transposed, (n_u, T), would otherwise surface as a wrong state shape in the
+        # model (a step that broadcasts b * u), not as the data error it is.
+        z_shape = np.shape(z)
+        hint = ""
+        if len(z_shape) == len(lead) + 2 and z_shape[:-1] != (*lead, T):
+            hint = _transposed_hint(z_shape, u_shape, T, None, z_name)
+        if hint:
+            raise ValueError(
+                f"`{z_name}` must have shape ({', '.join(map(str, (*lead, T)))}, n_z) (the "
+                f"leading axes of `u`: T = {T} samples), got shape {z_shape}{hint}."
+            )
     if known is None:
         model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name)
     n_z = z_hat.shape[0]
@@ -588,16 +628,10 @@ def check_data(
         z = as_float(z, z_name, z_hat.dtype)
         want = (*lead, T, n_z)
         if z.shape != want:
-            # A record given as (n_u, T) reads as n_u samples of T inputs: say so.
-            hint = ""
-            if z.ndim >= 2 and z.shape[-2] == u_shape[-1] != T:
-                hint = (
-                    f"; `u` of shape {u_shape} holds T = {T} samples of {u_shape[-1]} "
-                    "inputs: is it transposed? (u is (T, n_u))"
-                )
             raise ValueError(
                 f"`{z_name}` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
-                f"`model.observe`), got shape {z.shape}{hint}."
+                f"`model.observe`), got shape {z.shape}"
+                f"{_transposed_hint(z.shape, u_shape, T, n_z, z_name)}."
             )
         observed = None
         if missing == "mask" and is_concrete(z):

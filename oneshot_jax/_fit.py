@@ -29,7 +29,7 @@ from ._jit import jit
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
-from ._results import RESULTS, name_of
+from ._results import RESULTS, SUCCESS, name_of
 from ._stability import (
     jacobians_at,
     rhs_of,
@@ -198,31 +198,42 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     return out, wall, diagnostics, jacobians, during
 
 
-def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy):
+def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals=None):
     """`result` with the stop reason `unconverged_rollout` where it reported a success
     while the parallel rollout of the returned point keeps Newton's unconverged iterate
     (`ParallelInTime(fallback=False)`; `_run` has warned of every such rollout of the
     fit): the values its stop was judged on are not the model's. Where only rollouts of
-    other points (trial steps) did not converge, the stop stands."""
+    other points (trial steps) did not converge, the stop stands. With several starts,
+    `finals` (the free variables each start ended at, a `Params` (S, ...)): each other
+    start that reported a success is checked the same way (its stop in `result.starts`)."""
     counts = result.diagnostics or {}
-    if not counts.get("unconverged_rollouts") or not result.success:
+    if not counts.get("unconverged_rollouts"):
         return result
-    params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
-    with counting() as again:  # the returned point's rollout, once more
-        loss = eqx.filter_jit(lambda prob, p: prob.loss(p, strategy))  # (data as arguments)
-        jax.block_until_ready(loss(problem, params))
-    if not again["unconverged_rollouts"]:
-        return result
-    info = {
-        **result.stop_info,
-        "solver_stop": name_of(result.stop_reason),
-        "unconverged_rollouts": counts["unconverged_rollouts"],
-        "parallel_rollouts": counts["parallel_rollouts"],
-    }
-    out = dataclasses.replace(result, stop_reason=RESULTS.unconverged_rollout, stop_info=info)
-    if result.starts is not None:  # (the best start's own stop, as the status line's)
-        reasons = list(result.starts.stop_reason)
-        reasons[result.best] = "unconverged_rollout"
+    loss = eqx.filter_jit(lambda prob, p: prob.loss(p, strategy))  # (data as arguments)
+
+    def unconverged(params):
+        with counting() as again:  # the point's rollout, once more
+            jax.block_until_ready(loss(problem, params))
+        return bool(again["unconverged_rollouts"])
+
+    reasons = None if result.starts is None else list(result.starts.stop_reason)
+    if reasons is not None and finals is not None:
+        for s, reason in enumerate(reasons):
+            if s != result.best and reason in SUCCESS:
+                if unconverged(Params(finals.theta[s], finals.x0[s])):
+                    reasons[s] = "unconverged_rollout"
+    out = result
+    if result.success and unconverged(problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))):
+        info = {
+            **result.stop_info,
+            "solver_stop": name_of(result.stop_reason),
+            "unconverged_rollouts": counts["unconverged_rollouts"],
+            "parallel_rollouts": counts["parallel_rollouts"],
+        }
+        out = dataclasses.replace(result, stop_reason=RESULTS.unconverged_rollout, stop_info=info)
+        if reasons is not None:  # (the best start's own stop, as the status line's)
+            reasons[result.best] = "unconverged_rollout"
+    if reasons is not None and reasons != list(result.starts.stop_reason):
         starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
         out = dataclasses.replace(out, starts=starts)
     return out
@@ -544,9 +555,18 @@ def fit(
         result = flag_zero_gradient(
             result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
         )
-    result = _flag_unconverged_rollouts(result, built.problem, out.theta, out.x0, strategy)
+    result = _flag_unconverged_rollouts(
+        result,
+        built.problem,
+        out.theta,
+        out.x0,
+        strategy,
+        finals=Params(out.start_theta, out.start_x0),
+    )
     if aggregate is not None:
         result = agg.restore(result)
+    if weight is not None:  # (the default of `result.predict`'s x0 estimate)
+        result = dataclasses.replace(result, weight=np.asarray(weight, result.x0.dtype))
     _warn_unequal_noise(result.residuals, weight, result.std)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)

@@ -115,6 +115,11 @@ def _interval(value, std, fixed, computed) -> str:
     return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
 
 
+def _std(std, computed) -> str:
+    """A standard error as printed: none after a diverged fit (its linearisation)."""
+    return "-" if computed == "diverged" else f"{std:.3g}"
+
+
 def _computed(result):
     """Whether the covariance was computed: an empty one stands for "not computed" (above
     the size limit) only where some entry of theta is free; "diverged" after that stop."""
@@ -162,7 +167,9 @@ def _parameter_table(result):
             continue
         for i, entry in enumerate(_entry_names(name, shape), start=a):
             v, s = flat[i], std[i]
-            table.append((entry, unit, f"{v:.6g}", f"{s:.3g}", _interval(v, s, fixed[i], computed)))
+            table.append(
+                (entry, unit, f"{v:.6g}", _std(s, computed), _interval(v, s, fixed[i], computed))
+            )
     table.extend(_data_rows(result))
     return table, modules
 
@@ -219,7 +226,13 @@ def _x0_table(result, shown_max=3):
             entry = f"x0[{i}, {j}]" if batched else f"x0[{j}]"
             v, s = X0[i, j], S0[i, j]
             table.append(
-                (entry, "", f"{v:.6g}", f"{s:.3g}", _interval(v, s, not estimated[j], computed))
+                (
+                    entry,
+                    "",
+                    f"{v:.6g}",
+                    _std(s, computed),
+                    _interval(v, s, not estimated[j], computed),
+                )
             )
     return table, n_traj - shown
 
@@ -283,9 +296,13 @@ def report(result) -> str:
             f"{result.best}); stops: {', '.join(f'{k} {n}' for k, n in stops.items())}"
         )
     if result.status == "diverged":
+        # (Where no iterate had a finite loss, the start is returned: `FitResult.message`.)
+        which = (
+            "last finite iterate" if np.isfinite(result.loss) else "start (no iterate was finite)"
+        )
         out.append(
-            "  (not a solution: the fit diverged; the returned point is its last finite "
-            "iterate, without standard errors)"
+            f"  (not a solution: the fit diverged; the returned point is its {which}, "
+            "without standard errors)"
         )
     elif not result.success:
         out.append(
@@ -308,7 +325,9 @@ def report(result) -> str:
         out.append(f"  ... and {left_out} more trajectories (result.x0, result.x0_std)")
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
-    out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {float(result.metrics['aic']):.4g}")
+    aic = float(result.metrics["aic"])
+    aic = f"{aic:.4g}" if not np.isnan(aic) else "nan (no sample measures every output)"
+    out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}")
     at_bound = (result.stop_info or {}).get("at_bound")
     if at_bound:
         listed = ", ".join(at_bound[:8]) + (

@@ -96,7 +96,7 @@ def stop_detail(status: str, info: dict) -> str:
                 "there (a parameter at a bound where it is not, such as sqrt(c) at c = 0: "
                 "keep it off that point, e.g. with constraints.positive())"
             )
-        return "the simulation diverged" + at_step
+        return "the loss became non-finite" + at_step
     if status == "zero_gradient":
         names = info.get("zero_gradient", [])
         listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
@@ -112,8 +112,11 @@ def stop_detail(status: str, info: dict) -> str:
         )
     if status == "validation":
         patience = info.get("patience")
-        return f"lowest validation loss {_g(info.get('validation_loss'))}" + (
-            f" (patience {patience})" if patience is not None else ""
+        solver = info.get("solver_stop")
+        return (
+            f"lowest validation loss {_g(info.get('validation_loss'))}"
+            + (f" (patience {patience})" if patience is not None else "")
+            + (f", the solver itself stopped with {solver}" if solver else "")
         )
     if status in ("max_steps_reached", "no_progress") and known:
         return f"{vs} not met" if fo > gtol else f"{vs} met, after the solver failed"
@@ -215,7 +218,10 @@ class FitResult(eqx.Module):
         pooled over all its records (MATLAB's `compare` reports one per experiment), over
         the windows of a fit with `window=` (each from its own fitted x0, so not the
         model's open-loop fit of the whole record: `simulate` or `predict` that). The
-        AIC counts the estimated x0 entries as parameters.
+        AIC counts the estimated x0 entries as parameters; it is computed on the samples
+        where every output that is ever measured is measured (an output never measured
+        is left out), and is NaN where there is no such sample (outputs sampled at
+        different times).
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).
@@ -232,7 +238,10 @@ class FitResult(eqx.Module):
         see `RESULTS.statistically_converged`) and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
-        start) and `solver_stop` (the solver's own stop); with the stop `diverged`,
+        start) and `solver_stop` (the solver's own stop); with the stop `validation`,
+        `validation_loss`, `patience` and, where the last solver stopped on a test of its
+        own (`diverged`, `converged`, ...), `solver_stop`; with the stop `diverged`
+        (or a `solver_stop` `diverged`),
         `nonfinite` ("loss", or "gradient" where the loss stayed finite, below sqrt of
         the largest float).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
@@ -242,6 +251,8 @@ class FitResult(eqx.Module):
         per row of `x0`); else None.
     - `validation_loss`: with `fit(validation=...)`, the lowest validation loss (that of
         the returned iterate); else None.
+    - `weight`: `fit(weight=...)`, the output weight Q (None for the identity), which
+        `predict` uses by default to estimate a new record's x0.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result) and
@@ -276,6 +287,7 @@ class FitResult(eqx.Module):
     validation_loss: float | None = None
     window_starts: np.ndarray | None = None
     n_u: int | None = eqx.field(static=True, default=None)
+    weight: np.ndarray | None = None
 
     def _check_u(self, u):
         """Refuse inputs with another number of columns than the fitted data's (each
@@ -308,9 +320,12 @@ class FitResult(eqx.Module):
         except ValueError:  # not an array: `predict`'s checks name it
             return
         if n_z is not None and len(shape) == 2 and shape[-1] != n_z:
+            n, hint = shape[0], ""
+            if shape[0] == n_z and shape[1] > n_z:  # (n_z, n) given: n samples as columns
+                n, hint = shape[1], " (is it transposed? z_head is (n, n_z))"
             raise ValueError(
-                f"`z_head` must have shape ({shape[0]}, {n_z}) (its first samples of the "
-                f"n_z = {n_z} outputs the fitted data had), got shape {shape}."
+                f"`z_head` must have shape ({n}, {n_z}) (its first samples of the "
+                f"n_z = {n_z} outputs the fitted data had), got shape {shape}{hint}."
             )
 
     @property
@@ -391,10 +406,10 @@ class FitResult(eqx.Module):
         - `z_head`: its first n measured outputs (n, n_z).
         - `t`: the new record's sample times (T,), for a model of time-stamped records.
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
-            `"smoother"`, `x0=` the starting guess, ...). Where the model does not observe
-            its whole state, or `z_head`'s first row has a missing (NaN) sample, the
-            starting guess defaults to the fitted x0 (the mean over trajectories of a
-            multi-trajectory fit): a typical state of the system.
+            `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
+            Where the model does not observe its whole state, or `z_head`'s first row has
+            a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
+            over trajectories of a multi-trajectory fit): a typical state of the system.
 
         **Returns:**
 
@@ -410,6 +425,8 @@ class FitResult(eqx.Module):
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
+        if kwargs.get("weight") is None and self.weight is not None:
+            kwargs["weight"] = self.weight  # the fit's Q: an output it ignored stays ignored
         if kwargs.get("x0") is None and (
             not self.model.observes_state or _first_row_missing(z_head)
         ):

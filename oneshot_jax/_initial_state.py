@@ -202,7 +202,8 @@ def estimate_x0(
     - `n`: the number of head samples, 1 <= n <= min(T, T_z); default T_z.
     - `method`: `"lsq"` or `"smoother"`.
     - `x0`: the starting guess (lsq) or the prior mean (smoother), shape (n_x,). Default
-        z[0] where the model observes its whole state (z = x); otherwise it is required,
+        z[0] where the model has the default `observe` (z = x, `Model(step)` without
+        one); otherwise it is required,
         since the state's size is known only from it (zeros are the usual neutral guess,
         a typical state of the system a better one where f or g are singular at 0).
     - `weight`: Q of eq. (4), as for `loss`. The smoother reads it as the inverse of the
@@ -311,8 +312,9 @@ def _estimate(
     if x0 is None:
         if not model.observes_state:
             raise ValueError(
-                "`x0` (the starting guess, shape (n_x,)) is needed: the model does not "
-                "observe its whole state, so the state's size is known only from x0. Zeros "
+                "`x0` (the starting guess, shape (n_x,)) is needed: the model has an "
+                "`observe` of its own (not the default z = x of `Model(step)`), so the "
+                "state's size is known only from x0. Zeros "
                 "are the neutral guess; a typical state of the system (the fitted x0 of the "
                 "training data, say) is better where the model is singular at zero."
             )
@@ -327,8 +329,8 @@ def _estimate(
     try:
         data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t, z_name=z_name)
     except ValueError as err:
-        if not defaulted:
-            raise
+        if not defaulted or (getattr(model, "timed", False) and t is None):
+            raise  # (a time-stamped model without its times: not the guess's fault)
         # The state's size came from z's columns: a wrong column count surfaces as a
         # wrong state size deep in the model.
         raise ValueError(

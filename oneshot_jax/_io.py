@@ -25,7 +25,7 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage` (and
   `history/validation` for a fit with validation data, `window_starts` for one with
-  windows),
+  windows, `weight` for one with `weight=`),
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
   `starts/loss`.
 
@@ -222,6 +222,8 @@ def save_result(result, path):
         arrays[f"history/{key}"] = np.asarray(getattr(result.history, key))
     if result.window_starts is not None:
         arrays["window_starts"] = np.asarray(result.window_starts)
+    if getattr(result, "weight", None) is not None:
+        arrays["weight"] = np.asarray(result.weight)
     if result.history.validation is not None:
         arrays["history/validation"] = np.asarray(result.history.validation)
     for key in ("x0", "x0_std", "x0_covariance", "x0_estimated", "loss", "residuals"):
@@ -459,6 +461,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         validation_loss=meta.get("validation_loss"),
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
         n_u=meta.get("n_u"),
+        weight=arrays.get("weight"),
     )
 
 

@@ -43,6 +43,7 @@ class Solution(NamedTuple):
     blocks: Any  # normal-equation blocks for the covariance, or None
     measures: Measures  # what each start's stop was tested on
     best: Any  # with validation: the `Best` so far (over this and earlier solvers), else None
+    solver_result: RESULTS  # each start's own stop, before a validation stop replaced it
 
 
 class Best(NamedTuple):
@@ -227,6 +228,7 @@ def iterate(
         lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts
     )(c.params, state, result)
     best = c.best
+    solver_result = result
     if mon is not None:
         # The best-scoring iterate replaces the final one where they differ: its loss is
         # evaluated there, and the covariance then takes a fresh Jacobian (no blocks).
@@ -248,6 +250,7 @@ def iterate(
         blocks,
         measures,
         best,
+        solver_result,
     )
 
 

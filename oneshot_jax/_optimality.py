@@ -208,7 +208,9 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
 
     **Returns:**
 
-    A scalar in [0, 1] (up to round-off): 0 at a constrained stationary point.
+    A non-negative scalar, 0 at a constrained stationary point: at most 1 (up to
+    round-off) without a projection or with box bounds; a general projection, which
+    may move coordinates the gradient does not, can give more.
     """
     dtype = problem.dtype
     eps = jnp.finfo(dtype).eps
@@ -236,8 +238,9 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
 
 
 def vanished_columns(d, top):
-    """The columns that vanished along the fit: d_i <= VANISHED top_i with top_i > 0."""
-    return (top > 0) & (d <= VANISHED * top)
+    """The columns that vanished along the fit: d_i <= VANISHED top_i with 0 < top_i < inf."""
+    # (Not where top is inf: a column that overflowed, inf <= VANISHED * inf, did not vanish.)
+    return (top > 0) & jnp.isfinite(top) & (d <= VANISHED * top)
 
 
 def vanished(d, top):

@@ -39,7 +39,9 @@ def as_solvers(solver) -> tuple:
     if isinstance(solver, (list, tuple)):
         if not solver:
             raise ValueError("`solver` is an empty sequence; give at least one solver.")
-        return tuple(as_solvers(s)[0] for s in solver)
+        # (a nested sequence is flattened: `[Adam(), [LBFGS(), LevenbergMarquardt()]]` runs
+        # all three, it does not drop the inner sequence's later solvers)
+        return tuple(one for s in solver for one in as_solvers(s))
     if isinstance(solver, str):
         if solver not in SOLVER_ALIASES:
             raise ValueError(

@@ -30,9 +30,10 @@ from ._simulate import simulate_impl
 
 # The largest |lambda| h taken as safe. RK4's stability region reaches 2.785 on the
 # negative real axis and 2.828 on the imaginary axis, and is narrower in between (about
-# 2.6 at 135 degrees): 2.5 leaves a margin in every direction. Explicit Euler's region is
-# the disc |1 + lambda h| <= 1, which reaches 2 on the negative real axis (and contains
-# no point of the imaginary axis: an undamped mode grows under Euler at any h).
+# 2.62 near 120 degrees, 2.70 at 135): 2.5 leaves a margin in every direction. Explicit
+# Euler's region is the disc |1 + lambda h| <= 1, which reaches 2 on the negative real
+# axis (and contains no point of the imaginary axis: an undamped mode grows under Euler
+# at any h).
 LIMITS = {"rk4": 2.5, "euler": 2.0}
 
 

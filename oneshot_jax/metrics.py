@@ -37,6 +37,7 @@ __all__ = [
     "fit_percent",
     "r2",
     "aic",
+    "fpe",
     "benchmark_scores",
     "BenchmarkScores",
     "residual_correlations",
@@ -71,8 +72,11 @@ def _check(z, zhat, mask):
         raise ValueError(f"`z` holds no samples (shape {np.shape(z)}).")
     if mask is not None and np.shape(mask) == np.shape(z):
         m = np.asarray(mask, dtype=float)
-        if np.any(m < 0) or not np.all(np.isfinite(m)):
-            raise ValueError("`mask` must be true where a sample is scored, false elsewhere.")
+        if not np.all((m == 0) | (m == 1)):
+            raise ValueError(
+                "`mask` must be true where a sample is scored and false elsewhere, 1 or 0 "
+                "(it selects samples; it does not weight them)."
+            )
         per_output = m.reshape(-1, m.shape[-1]).sum(axis=0) if m.ndim > 1 else m.sum()[None]
         if not np.all(per_output > 0):
             empty = np.flatnonzero(per_output <= 0).tolist()
@@ -97,7 +101,7 @@ def _flat(z, zhat, mask=None):
         z, zhat = z[:, None], zhat[:, None]
         mask = None if mask is None else jnp.asarray(mask)[:, None]
     n_z = z.shape[-1]
-    w = jnp.ones(z.shape, z.dtype) if mask is None else jnp.asarray(mask, z.dtype)
+    w = jnp.ones(z.shape, z.dtype) if mask is None else (jnp.asarray(mask) > 0).astype(z.dtype)
     w = w.reshape(-1, n_z)
     # Missing samples may hold anything (NaN): they must not reach the sums.
     z = jnp.where(w > 0, z.reshape(-1, n_z), 0.0)
@@ -169,10 +173,12 @@ def aic(z, zhat, n_params, mask=None):
     E is the (n, n_z) matrix of errors over the n samples (those where every output is
     measured, when a `mask` is given) (MATLAB's raw AIC without the constant
     n n_z (log 2 pi + 1)). Lower is better; only differences between models on the same
-    data mean anything.
+    data mean anything. `ValueError` where `mask` leaves no sample with every output
+    measured (outputs sampled at different times).
     """
     _check_n_params(n_params)
     _check(z, zhat, mask)
+    _check_full_rows(z, mask)
     return _aic(z, zhat, n_params, mask)
 
 
@@ -186,6 +192,7 @@ def fpe(z, zhat, n_params, mask=None):
     """
     _check_n_params(n_params)
     _check(z, zhat, mask)
+    _check_full_rows(z, mask)
     return _fpe(z, zhat, n_params, mask)
 
 
@@ -202,13 +209,35 @@ def _check_n_params(n_params):
         raise ValueError(f"`n_params` must be >= 0, got {n_params}.")
 
 
+def _check_full_rows(z, mask):
+    """Refuse (on concrete values) a mask under which no sample measures every output:
+    E^T E / n of `aic` and `fpe` would have n = 0."""
+    if mask is None or isinstance(mask, jax.core.Tracer) or np.shape(mask) != np.shape(z):
+        return
+    m = np.asarray(mask, dtype=float)
+    m = m.reshape(-1, m.shape[-1]) if m.ndim > 1 else m[:, None]
+    if not np.any(np.all(m > 0, axis=1)):
+        raise ValueError(
+            "`mask` leaves no sample where every output is measured: the AIC and FPE use "
+            "the error covariance E^T E / n over such samples (n = 0 here). Score the "
+            "outputs one at a time, or on the samples they share."
+        )
+
+
 def _error_covariance(z, zhat, mask):
-    """E^T E / n over the n samples where every output is measured, and n (`aic`, `fpe`)."""
+    """E^T E / n over the n samples where every output is measured, and n (`aic`, `fpe`).
+    An output with no measured sample (possible only inside `fit`, traced: a zero-weight
+    output that is never measured) is left out (its row and column of E^T E / n are
+    those of the identity)."""
     z, zhat, w = _flat(z, zhat, mask)
-    full = jnp.all(w > 0, axis=1).astype(z.dtype)
+    seen = w > 0
+    used = jnp.any(seen, axis=0)
+    full = jnp.all(seen | ~used, axis=1).astype(z.dtype)
     e = (zhat - z) * full[:, None]
     n = jnp.sum(full)
-    return e.T @ e / n, n
+    cov = e.T @ e / n
+    keep = used[:, None] & used[None, :]
+    return jnp.where(keep, cov, jnp.eye(cov.shape[0], dtype=cov.dtype)), n
 
 
 @jax.jit

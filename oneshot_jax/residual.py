@@ -199,7 +199,9 @@ class MLP(eqx.Module):
                 f"`features` must have shape ({self.in_size},) (this MLP's in_size), got "
                 f"{jnp.shape(features)}."
             )
-        h = features
+        h = jnp.asarray(features)
+        if not jnp.issubdtype(h.dtype, jnp.inexact):  # (an integer offset would truncate)
+            h = h.astype(self.layers[0].weight.dtype)
         if self.input_offset is not None:
             h = h - jnp.asarray(self.input_offset, jnp.result_type(h))
         if self.input_scale is not None:
@@ -352,7 +354,8 @@ class Features(eqx.Module):
             raise ValueError(f"`x` must have shape ({self.n_x},), got {jnp.shape(x)}.")
         if jnp.shape(u) != (self.n_u,):
             raise ValueError(f"`u` must have shape ({self.n_u},), got {jnp.shape(u)}.")
-        v = jnp.concatenate([x, u]) if self.n_u else jnp.asarray(x)
+        x, u = jnp.asarray(x), jnp.asarray(u)
+        v = jnp.concatenate([x, u]) if self.n_u else x
         # `products` is ordered by degree (see __init__): one gather per degree.
         cols = []
         for d, group in itertools.groupby(self.products, key=len):
@@ -386,7 +389,8 @@ class Features(eqx.Module):
                 f"`x` and `u` must have shapes (..., {self.n_x}) and (..., {self.n_u}) with the "
                 f"same leading axes, got {x.shape} and {u.shape}."
             )
-        theta = jax.vmap(self)(x.reshape(-1, self.n_x), u.reshape(-1, self.n_u))
+        n = math.prod(x.shape[:-1])  # (reshape(-1, 0) is ambiguous for n_u = 0)
+        theta = jax.vmap(self)(x.reshape(n, self.n_x), u.reshape(n, self.n_u))
         return np.sqrt(np.mean(np.asarray(theta, np.float64) ** 2, axis=0))
 
 

@@ -331,6 +331,36 @@ def test_an_output_measured_only_in_aggregate_is_identified():
         oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask")
 
 
+def test_readings_of_weight_zero_add_no_observations():
+    """Readings of weight 0 leave the loss and the standard errors as without them (they
+    counted as observations: std smaller by sqrt(57 / 37) with 20 such readings next to
+    40 samples)."""
+    model, truth, t, u = _timed_first_order()
+    _, z = oj.simulate(model, truth, np.array([1.0]), u, t=t)
+    z = np.asarray(z) + 0.05 * np.random.default_rng(3).standard_normal(z.shape)
+    spans = [(a, a + 3) for a in range(0, 60, 3)]
+    idle = oj.Aggregate(0, spans, np.zeros(len(spans)), kind="mean", weight=0.0)
+    start, kw = {"a": 0.6, "b": 1.5}, dict(t=t, missing="mask")
+    plain = oj.fit(model, start, np.array([1.0]), u, z, **kw)
+    with_idle = oj.fit(model, start, np.array([1.0]), u, z, aggregate=idle, **kw)
+    assert float(with_idle.loss) == pytest.approx(float(plain.loss), rel=1e-10)
+    for k in ("a", "b"):
+        assert float(with_idle.std[k]) == pytest.approx(float(plain.std[k]), rel=1e-8)
+
+
+def test_records_of_their_own_lengths_take_their_times_as_a_tuple():
+    """Times of records of different lengths as a tuple, as a list (a tuple raised a NumPy
+    error with an aggregate, though accepted without one)."""
+    model, truth, t, u = _timed_first_order()
+    us, zs = [u, u[:30]], [np.full((60, 1), 0.5), np.full((30, 1), 0.5)]
+    agg = oj.Aggregate(0, [(0, 5)], [1.0], kind="time_mean")
+    kw = dict(missing="mask", aggregate=[agg, agg])
+    x0 = np.zeros((2, 1))
+    as_list = oj.loss(model, truth, x0, us, zs, t=[t, t[:30]], **kw)
+    as_tuple = oj.loss(model, truth, x0, us, zs, t=(t, t[:30]), **kw)
+    assert float(as_tuple) == float(as_list) > 0
+
+
 def test_records_sharing_one_time_axis_take_aggregates():
     """N records with one (T,) time axis, as without aggregates (it raised an IndexError):
     the same loss as the axis given per record."""

@@ -85,11 +85,34 @@ def test_solver_names_are_aliases_of_default_objects():
         (lambda: oj.Adam(strategy="magic"), r"Adam\(strategy=...\)"),
         (lambda: oj.LBFGS(memory_size=-1), r"LBFGS\(memory_size=...\)"),
         (lambda: oj.Adam(tol_loss="small"), r"Adam\(tol_loss=...\)"),
+        (lambda: oj.Adam(tol_loss=float("nan")), r"Adam\(tol_loss=...\)"),
+        (lambda: oj.LBFGS(tol_loss=float("inf")), r"LBFGS\(tol_loss=...\)"),
+        (lambda: oj.Optax(optax.sgd(1e-3), tol_loss=True), r"Optax\(tol_loss=...\)"),
     ],
 )
 def test_solver_options_are_checked_when_the_object_is_made(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_numpy_scalar_options_are_numbers():
+    s = oj.LevenbergMarquardt(gtol=np.float32(1e-6), rtol=np.float64(1e-9))
+    assert s.settings()["gtol"] == pytest.approx(1e-6) and oj.Adam(tol_grad=np.float32(1e-9))
+
+
+def test_a_nested_sequence_runs_every_solver():
+    from oneshot_jax.internal import as_solvers
+
+    seq = as_solvers([oj.Adam(), [oj.LBFGS(max_steps=7), "gauss_newton"]])
+    assert seq == (oj.Adam(), oj.LBFGS(max_steps=7), oj.GaussNewton())
+
+
+def test_optimistix_without_steps_tests_its_start(sat, sat_lm):
+    fit = functools.partial(oj.fit, SAT_MODEL, sat_lm.theta, sat_lm.x0, sat["M"], sat["z"])
+    bfgs = optx.BFGS(rtol=1e-8, atol=1e-12)
+    at_opt = fit(solver=oj.Optimistix(bfgs, max_steps=0), constraints=oc.positive())
+    assert at_opt.status == "converged" and at_opt.num_steps == 0
+    assert at_opt.stop_info["first_order"] <= 1e-8
 
 
 def test_solver_objects_of_the_wrong_kind_are_type_errors():

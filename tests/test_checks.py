@@ -959,3 +959,21 @@ def test_a_model_that_indexes_past_the_end_of_an_array_is_refused():
         return jnp.stack([x[1], table[i] + u[0]])
 
     oj.simulate(oj.Model(by_state, lambda x, u, th: x), {"table": jnp.ones(3)}, x0, u)
+
+
+def test_a_transposed_siso_record_names_the_array_that_is_transposed():
+    """A SISO z given as (1, T) was blamed on u ("`u` ... is it transposed?"); a u given
+    as (1, T) to a step that broadcasts b * u was reported as a wrong state shape of
+    `model.step`; both transposed had no hint; a head (1, n) asked for shape (1, 1)."""
+    model = oj.Model(lambda x, u, th: th["a"] * x[:1] + th["a"] * u, lambda x, u, th: x)
+    u, z = np.ones((6, 1)), np.ones((6, 1))
+    th, x0 = {"a": 0.5}, np.zeros(1)
+    with pytest.raises(ValueError, match=r"is `z` transposed\?"):
+        oj.loss(model, th, x0, u, z.T)
+    with pytest.raises(ValueError, match=r"`u` of shape \(1, 6\) holds T = 1 samples"):
+        oj.loss(model, th, x0, u.T, z)
+    with pytest.raises(ValueError, match=r"`u` of shape \(1, 6\) holds T = 1 samples"):
+        oj.simulate(model, th, x0, u.T)
+    r = oj.fit(model, th, x0, u, z, solver=oj.GaussNewton(max_steps=2))
+    with pytest.raises(ValueError, match=r"`z_head` must have shape \(4, 1\).*transposed"):
+        r.predict(u, z[:4].T)

@@ -902,6 +902,13 @@ def test_an_output_of_zero_weight_is_not_counted_as_observations():
         r2 = oj.fit(two, th0, x0, u, z, weight=weight, estimate_x0=est)
         np.testing.assert_allclose(r2.std["a"], r1.std["a"], rtol=1e-6)
         np.testing.assert_allclose(r2.x0_std[0], r1.x0_std[0], rtol=1e-6)
+    # An output of weight 0 that is never measured leaves the AIC to the others (NaN: the
+    # fully measured samples were none).
+    never = np.where([True, False], z, np.nan)
+    r3 = oj.fit(
+        two, th0, x0, u, never, weight=np.array([1.0, 0.0]), estimate_x0=est, missing="mask"
+    )
+    np.testing.assert_allclose(r3.metrics["aic"], r1.metrics["aic"], rtol=1e-9)
     e1 = oj.estimate_x0(one, r1.theta, u, z[:, :1], x0=x0)
     e2 = oj.estimate_x0(two, r1.theta, u, z, x0=x0, weight=np.array([1.0, 0.0]))
     np.testing.assert_allclose(e2.std[0], e1.std[0], rtol=1e-6)

@@ -514,6 +514,12 @@ def test_a_start_that_diverges_is_returned_and_the_message_says_so():
     assert r.status == "diverged" and not np.isfinite(float(r.loss))
     assert "the start is returned" in r.message and "last finite" not in r.message
     assert float(r.theta["a"]) == -100.0
+    # The printout says the same, and a column that overflowed (inf <= 1e-8 inf) is not
+    # one that vanished along the fit.
+    printed = str(r)
+    assert "returned point is its start (no iterate was finite)" in printed
+    assert "last finite" not in printed and "vanished" not in printed
+    assert "vanished" not in r.stop_info and "vanished" not in r.message
 
 
 def test_the_issue_pendulum_with_an_inactive_bound_reaches_the_optimum():
@@ -545,7 +551,9 @@ def test_a_start_where_the_simulation_diverges_is_a_failure_with_a_reason():
     assert not r.success
     assert r.status in ("diverged", "stalled", "no_progress", "max_steps_reached")
     if r.status == "diverged":
-        assert "diverged at step" in r.message and r.stop_info["nonfinite"] == "loss"
+        assert (
+            "the loss became non-finite at step" in r.message and r.stop_info["nonfinite"] == "loss"
+        )
         # The linearisation of a diverged simulation says nothing of identifiability.
         assert "(undefined: diverged)" in str(r) and "(not identifiable)" not in str(r)
         assert "the fit diverged; the returned point is its last finite" in str(r)

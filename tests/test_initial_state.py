@@ -228,6 +228,28 @@ def test_fit_result_predict():
     np.testing.assert_allclose(pred.z, z_new, atol=1e-7)
 
 
+def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
+    """An output the fit ignored (weight 0: a sensor with an offset of 5) stays ignored when
+    `predict` estimates a new record's x0, also after save and load; it used the identity
+    weight (FIT -118 % in a probe)."""
+    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    q = np.diag([1.0, 0.0])
+
+    def record(T, seed, x0):
+        u = 0.5 * np.sin(0.3 * np.arange(T) + seed)[:, None]
+        return u, np.asarray(oj.simulate(model, PEND_THETA, np.asarray(x0), u)[1]) + [0, 5]
+
+    u, z = record(60, 1, (0.8, -0.3))
+    r = oj.fit(model, np.array([9.0, 0.5]), np.array([0.7, -0.2]), u, z, weight=q)
+    u_new, z_new = record(80, 2, (-0.5, 0.9))
+    ref = oj.predict(model, r.theta, u_new, z_new, N_HEAD, x0=r.x0, weight=q)
+    np.testing.assert_allclose(ref.x0, [-0.5, 0.9], rtol=1e-6)
+    r.save(tmp_path / "r.npz")
+    for result in (r, oj.load_result(tmp_path / "r.npz", model=model)):
+        pred = result.predict(u_new, z_new[:N_HEAD])
+        np.testing.assert_array_equal(pred.x0, ref.x0)
+
+
 def test_lsq_is_the_x0_only_fit():
     """`estimate_x0` solves x0 below `fit`, with the numbers of the public x0-only fit
     (every parameter fixed) on the head: a weighted two-output head, Levenberg-Marquardt

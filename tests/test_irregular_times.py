@@ -388,6 +388,12 @@ def test_timed_model_needs_t():
     ):
         with pytest.raises(ValueError, match="pass the sample times as `t=`"):
             call()
+    # x0 guessed from z (a model that observes its state): the error is the missing
+    # times alone, without the hint about the guess's columns (it added one)
+    whole = oj.Model.from_ode(rhs, None)
+    with pytest.raises(ValueError, match="pass the sample times as `t=`") as err:
+        oj.estimate_x0(whole, THETA, u, np.zeros((12, 3)))
+    assert "was not given" not in str(err.value)
 
 
 @pytest.mark.parametrize(

@@ -251,3 +251,26 @@ def test_metrics_refuse_what_is_no_record_of_numbers(name):
         fn(z, z + 1, np.array([[True, False]] * 10))
     with pytest.raises(ValueError, match=r"`mask` must be true where"):
         fn(z, z + 1, -np.ones_like(z))
+
+
+def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((40, 2))
+    zhat = z + 0.1 * rng.standard_normal((40, 2))
+    mask = np.zeros((40, 2), bool)
+    mask[::2, 0] = mask[1::2, 1] = True  # outputs measured at alternate samples
+    for fn in (metrics.aic, metrics.fpe):
+        with pytest.raises(ValueError, match="no sample where every output is measured"):
+            fn(z, zhat, 3, mask)
+    assert "fpe" in metrics.__all__
+
+
+@pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2"])
+def test_mask_selects_and_does_not_weight(name):
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((30, 1))
+    zhat = z + 0.1 * rng.standard_normal((30, 1))
+    mask = np.ones((30, 1))
+    mask[:5] = 3.0
+    with pytest.raises(ValueError, match="does not weight"):
+        getattr(metrics, name)(z, zhat, mask)

@@ -603,6 +603,11 @@ def test_a_rollout_kept_without_fallback_is_reported():
     assert r.status == "unconverged_rollout" and not r.success
     assert r.stop_info["solver_stop"] == "tol_loss"
     assert "parallel rollouts kept Newton's unconverged iterate" in r.message
+    # With several starts every start's success is checked, not the best start's alone
+    # (the other start was listed as `tol_loss`).
+    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+        r = oj.fit(model, jnp.array([3.9, 3.85]), x0, u[:40], z[:40], solver=loose, multistart=True)
+    assert r.starts.stop_reason == ("unconverged_rollout", "unconverged_rollout")
 
     # Where the returned point's own rollout converges, the stop stands (its values are
     # the model's), though rollouts of trial steps did not: a Duffing oscillator with 3

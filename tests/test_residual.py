@@ -199,6 +199,18 @@ def test_mlp_wrong_feature_shape():
         mlp(jnp.ones(4))
 
 
+def test_mlp_takes_integer_and_list_features_as_floats():
+    """Integer features with an input offset and scale: the constants were cast to the
+    features' integer dtype (0.5 -> 0, 0.25 -> 0), a wrong output without an error; a
+    list failed inside the matrix product."""
+    mlp = MLP(
+        1, 1, (4,), key=jax.random.PRNGKey(0), zero_last=False, input_offset=0.5, input_scale=0.25
+    )
+    want = np.asarray(mlp(jnp.array([1.0])))
+    np.testing.assert_array_equal(np.asarray(mlp(jnp.array([1]))), want)
+    np.testing.assert_array_equal(np.asarray(mlp([1.0])), want)
+
+
 #
 # Dictionary
 #
@@ -241,6 +253,11 @@ def test_feature_values():
     # Derivatives at zero are exact (products, not powers).
     g = jax.jacfwd(lambda x: f(x, u))(jnp.zeros(2))
     assert np.all(np.isfinite(np.asarray(g)))
+    # lists, as arrays
+    np.testing.assert_array_equal(np.asarray(f([0.7, -1.3], [2.0])), np.asarray(f(x, u)))
+    # the columns' rms of an autonomous system's features (n_u = 0: it failed in reshape)
+    auto = Features(2, 0, degree=2)
+    np.testing.assert_allclose(auto.rms(np.ones((5, 2)), np.ones((5, 0))), np.ones(5))
 
 
 def test_dictionary_call_equations_and_scaling():

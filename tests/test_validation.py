@@ -162,6 +162,35 @@ def test_patience_stops_early():
     assert res.num_steps == res.history.step[i] + 25  # stopped after 25 without a better score
 
 
+def test_a_divergence_behind_the_best_scored_iterate_is_named():
+    """Adam with a learning rate that blows the simulation up: the best-scored iterate is
+    returned (`validation`), and the solver's own stop, `diverged`, is named with it
+    (nothing said so)."""
+    u, z, x0 = _record(2, 60, 0.01)
+    uv, zv, _ = _record(3, 60, 0.01)
+    solver = oj.Adam(lr_theta=100.0, lr_x0=5.0, max_steps=40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = oj.fit(
+            MODEL,
+            {"k": 3.0, "c": 0.3, "g": 0.8},
+            x0,
+            u,
+            z,
+            solver=solver,
+            validation=oj.Validation(uv, zv, n=20),
+        )
+    assert res.status == "validation" and not res.success
+    assert res.stop_info["solver_stop"] == "diverged" and res.stop_info["nonfinite"] == "loss"
+    assert "the solver itself stopped with diverged" in res.message
+    # Without validation the stop is `diverged`, and its first-order measure is NaN (it
+    # read 0, a stationary point's value, from the division by an infinite ||r||).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = oj.fit(MODEL, {"k": 3.0, "c": 0.3, "g": 0.8}, x0, u, z, solver=solver)
+    assert res.status == "diverged" and np.isnan(res.stop_info["first_order"])
+
+
 def test_counts_given_as_whole_floats_count():
     """Validation(n=10.0) was accepted and then failed inside JAX ("'float' object cannot
     be interpreted as an integer", naming no argument); x0_steps=2.0 in fori_loop. Whole

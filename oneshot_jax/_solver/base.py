@@ -57,7 +57,8 @@ class AbstractSolver(eqx.Module):
         names = [
             n
             for n in self.TRACED_OPTIONS
-            if isinstance(getattr(self, n), (int, float)) and not isinstance(getattr(self, n), bool)
+            if isinstance(getattr(self, n), (int, float, np.integer, np.floating))
+            and not isinstance(getattr(self, n), (bool, np.bool_))
         ]
         if not names:
             return self
@@ -130,6 +131,8 @@ class AbstractSolver(eqx.Module):
         """The options, for `FitResult.solver` and saved results (JSON-friendly)."""
         out = {"solver": type(self).__name__}
         for name, value in ((f.name, getattr(self, f.name)) for f in dataclasses.fields(self)):
+            if isinstance(value, np.generic):  # (a NumPy scalar option, np.float32(1e-6))
+                value = value.item()
             if isinstance(value, (bool, int, float, str)) or value is None:
                 out[name] = value
             else:
@@ -152,21 +155,25 @@ def check_options(solver, *, positive=(), non_negative=(), integers=(), fraction
             raise ValueError(f"`{name}({field}=...)` must be a non-negative integer, got {v!r}.")
     for field in fractions:
         v = getattr(solver, field)
-        if not _is_real(v) or not 0 <= v < 1:
+        if not is_real(v) or not 0 <= v < 1:
             raise ValueError(f"`{name}({field}=...)` must be a number in [0, 1), got {v!r}.")
     for field in positive:
         v = getattr(solver, field)
-        if not _is_real(v) or not v > 0:
+        if not is_real(v) or not v > 0:
             raise ValueError(f"`{name}({field}=...)` must be a positive finite number, got {v!r}.")
     for field in non_negative:
         v = getattr(solver, field)
-        if not _is_real(v) or not v >= 0:
+        if not is_real(v) or not v >= 0:
             raise ValueError(f"`{name}({field}=...)` must be a finite number >= 0, got {v!r}.")
 
 
-def _is_real(v):
-    """A finite real number (not a bool, NaN or inf)."""
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+def is_real(v):
+    """A finite real number (not a bool, NaN or inf): a Python or NumPy scalar."""
+    return (
+        isinstance(v, (int, float, np.integer, np.floating))
+        and not isinstance(v, (bool, np.bool_))
+        and math.isfinite(v)
+    )
 
 
 def brief(value) -> str:

@@ -64,7 +64,7 @@ from .._prox import (
 )
 from .._results import RESULTS
 from .._strategy import as_strategy
-from .base import AbstractSolver, check_options, grad_norm
+from .base import AbstractSolver, check_options, grad_norm, is_real
 
 
 class _OptaxState(NamedTuple):
@@ -158,9 +158,9 @@ class _AbstractOptax(AbstractSolver):
         check_options(
             self, non_negative=("tol_grad",), fractions=("gtol",), integers=("max_steps",)
         )
-        if self.tol_loss is not None and not isinstance(self.tol_loss, (int, float)):
+        if self.tol_loss is not None and not is_real(self.tol_loss):
             raise ValueError(
-                f"`{type(self).__name__}(tol_loss=...)` must be a number or None (off), "
+                f"`{type(self).__name__}(tol_loss=...)` must be a finite number or None (off), "
                 f"got {self.tol_loss!r}."
             )
         as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
@@ -306,7 +306,11 @@ class _AbstractOptax(AbstractSolver):
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
         gone = vanished_columns(state.scale.d_t, state.scale.top_t)
-        return Measures(state.first_order, nan, nan, nan, jnp.array(False), state.degenerate, gone)
+        # At a non-finite loss or gradient (a diverged fit) the measure divides by an
+        # infinite ||r|| and reads 0: it measures nothing there, report NaN.
+        finite = jnp.isfinite(state.loss) & jnp.isfinite(grad_norm(state.grad))
+        fo = jnp.where(finite, state.first_order, nan)
+        return Measures(fo, nan, nan, nan, jnp.array(False), state.degenerate, gone)
 
     def postprocess(self, problem, params, state, result):
         del problem

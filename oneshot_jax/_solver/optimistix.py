@@ -228,16 +228,27 @@ class Optimistix(AbstractSolver):
         held = _Held(jnp.zeros(params.theta.shape, bool), params.theta)
         y = (params.theta, params.x0)
         loss, g = problem.value_and_grad(params, self.strategy)
+        fo = jnp.array(jnp.nan, loss.dtype)
+        done = jnp.array(False)
+        if self.max_steps == 0:
+            # No step allowed: the start is its last step, tested as `step` tests one
+            # (the other solvers test their start: converged there at an optimum).
+            half = Params(0.5 * g.theta, 0.5 * g.x0)
+            fo = first_order(
+                problem, params, loss, half, *column_norms(problem, params, self.strategy)
+            )
+            gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
+            done = (fo <= gtol) & jnp.isfinite(loss) & jnp.isfinite(grad_norm(g))
         return _OptxState(
             y,
             self._inner_init(problem, y, held),
             held,
             loss,
             grad_norm(g),
-            jnp.array(False),
+            done,
             RESULTS.converged,
             jnp.array(0),
-            jnp.array(jnp.nan, loss.dtype),
+            fo,
             jnp.array(0),
             jnp.array(False),
             params,
