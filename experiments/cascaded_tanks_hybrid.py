@@ -41,6 +41,7 @@ Run: `python experiments/run.py experiment=cascaded_tanks_hybrid`; figures in
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 
@@ -197,6 +198,20 @@ def _stage(res, wall):
     }
 
 
+@functools.lru_cache
+def _cosine(lr, steps):
+    """Adam's rate, lr cosine-decayed to 1 % over `steps`: one schedule object per setting,
+    so that another seed's fit reuses the compiled program (a schedule created anew is a
+    new function, and `fit` compiles again)."""
+    return optax.cosine_decay_schedule(lr, steps, alpha=1e-2)
+
+
+@functools.lru_cache
+def _decay(weight):
+    """The network's weight decay: one object per weight, as `_cosine`."""
+    return sparsity.l2(weight, where=NETWORK)
+
+
 def split(data, ex) -> tuple[int, int]:
     """(n, m): the joint stages use the first n estimation samples, train on the first m
     and validate on the last n - m (`joint.holdout` of them)."""
@@ -231,8 +246,8 @@ def train_hybrid(data, ex, theta_phys, x0, seed, progress=False):
         for k in jax.random.split(jax.random.PRNGKey(seed), S)
     ]
     box = example.constraints("overflow")
-    decay = sparsity.l2(jt.weight_decay, where=NETWORK) if jt.weight_decay > 0 else None
-    lr = optax.cosine_decay_schedule(jt.lr, jt.adam_steps, alpha=1e-2)
+    decay = _decay(float(jt.weight_decay)) if jt.weight_decay > 0 else None
+    lr = _cosine(float(jt.lr), int(jt.adam_steps))
     adam = oj.Adam(lr, jt.lr_x0, max_steps=jt.adam_steps, scale=jt.scale)
     if S > 1:
         theta0 = {**{k: jnp.full((S,), v) for k, v in theta_phys.items()}, "r": _stack(nets)}

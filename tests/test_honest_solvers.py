@@ -250,9 +250,19 @@ def _optimum(problem, kind, lo, hi):
     return _OPTIMA[key]
 
 
-@pytest.mark.parametrize("kind", CONSTRAINTS)
-@pytest.mark.parametrize("solver", list(SOLVERS))
-@pytest.mark.parametrize("name", list(PROBLEMS))
+# Every problem with every solver and set, but for Adam then L-BFGS, the slowest sequence
+# to compile, on two of the problems (an ODE and a discrete model): its L-BFGS stage is the
+# solver the `lbfgs` cases test on all four.
+STATIONARY_CASES = [
+    (name, solver, kind)
+    for name in PROBLEMS
+    for solver in SOLVERS
+    for kind in CONSTRAINTS
+    if solver != "adam_lbfgs" or name in ("pendulum", "discrete")
+]
+
+
+@pytest.mark.parametrize("name, solver, kind", STATIONARY_CASES)
 def test_success_means_a_constrained_stationary_point(name, solver, kind):
     problem = PROBLEMS[name]
     constraints, lo, hi = _constraint(kind, problem)

@@ -169,25 +169,19 @@ def test_a_divergence_behind_the_best_scored_iterate_is_named():
     u, z, x0 = _record(2, 60, 0.01)
     uv, zv, _ = _record(3, 60, 0.01)
     solver = oj.Adam(lr_theta=100.0, lr_x0=5.0, max_steps=40)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = oj.fit(
-            MODEL,
-            {"k": 3.0, "c": 0.3, "g": 0.8},
-            x0,
-            u,
-            z,
-            solver=solver,
-            validation=oj.Validation(uv, zv, n=20),
-        )
+
+    def fit(**kwargs):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return oj.fit(MODEL, {"k": 3.0, "c": 0.3, "g": 0.8}, x0, u, z, solver=solver, **kwargs)
+
+    res = fit(validation=oj.Validation(uv, zv, n=20))
     assert res.status == "validation" and not res.success
     assert res.stop_info["solver_stop"] == "diverged" and res.stop_info["nonfinite"] == "loss"
     assert "the solver itself stopped with diverged" in res.message
     # Without validation the stop is `diverged`, and its first-order measure is NaN (it
     # read 0, a stationary point's value, from the division by an infinite ||r||).
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = oj.fit(MODEL, {"k": 3.0, "c": 0.3, "g": 0.8}, x0, u, z, solver=solver)
+    res = fit()
     assert res.status == "diverged" and np.isnan(res.stop_info["first_order"])
 
 
