@@ -198,6 +198,13 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     return out, wall, diagnostics, jacobians, during
 
 
+@eqx.filter_jit
+def _loss_at(problem, params, strategy):
+    """The problem's loss at `params`, compiled once per problem structure and strategy
+    (the data are arguments) for `_flag_unconverged_rollouts`' re-checks."""
+    return problem.loss(params, strategy)
+
+
 def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals=None):
     """`result` with the stop reason `unconverged_rollout` where it reported a success
     while the parallel rollout of the returned point keeps Newton's unconverged iterate
@@ -209,11 +216,10 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
     counts = result.diagnostics or {}
     if not counts.get("unconverged_rollouts"):
         return result
-    loss = eqx.filter_jit(lambda prob, p: prob.loss(p, strategy))  # (data as arguments)
 
     def unconverged(params):
         with counting() as again:  # the point's rollout, once more
-            jax.block_until_ready(loss(problem, params))
+            jax.block_until_ready(_loss_at(problem, params, strategy))
         return bool(again["unconverged_rollouts"])
 
     reasons = None if result.starts is None else list(result.starts.stop_reason)

@@ -224,6 +224,14 @@ class Optimistix(AbstractSolver):
         f_struct = jax.eval_shape(lambda: fn(y, args)[0])
         return self.solver.init(fn, y, args, {}, f_struct, None, frozenset())
 
+    def _first_order(self, problem, params, loss, g):
+        """The first-order measure at `params` (`_optimality.first_order`, from the loss
+        and its gradient g = 2 J^T r)."""
+        half = Params(0.5 * g.theta, 0.5 * g.x0)
+        return first_order(
+            problem, params, loss, half, *column_norms(problem, params, self.strategy)
+        )
+
     def init(self, problem, params):
         held = _Held(jnp.zeros(params.theta.shape, bool), params.theta)
         y = (params.theta, params.x0)
@@ -233,10 +241,7 @@ class Optimistix(AbstractSolver):
         if self.max_steps == 0:
             # No step allowed: the start is its last step, tested as `step` tests one
             # (the other solvers test their start: converged there at an optimum).
-            half = Params(0.5 * g.theta, 0.5 * g.x0)
-            fo = first_order(
-                problem, params, loss, half, *column_norms(problem, params, self.strategy)
-            )
+            fo = self._first_order(problem, params, loss, g)
             gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
             done = (fo <= gtol) & jnp.isfinite(loss) & jnp.isfinite(grad_norm(g))
         return _OptxState(
@@ -312,12 +317,9 @@ class Optimistix(AbstractSolver):
         # first-order test (its stop counts as a stall: the round-off limit applies).
         # (formed at the last step too: the measure a max_steps stop reports)
         count = state.count + 1
-        half = Params(0.5 * g.theta, 0.5 * g.x0)
         fo = lazy_cond(
             done | (count >= self.max_steps),
-            lambda: first_order(
-                problem, params, loss, half, *column_norms(problem, params, self.strategy)
-            ),
+            lambda: self._first_order(problem, params, loss, g),
             jnp.array(jnp.nan, loss.dtype),
         )
         stationary = (fo <= self.gtol) | (fo <= roundoff_limit(problem.dtype))
