@@ -95,26 +95,70 @@ def protocol_scores(scores, pred, unit: str) -> dict:
     }
 
 
-def check_solver(name: str, kwargs: Mapping) -> None:
-    """Raise a `ValueError` naming the option when a spec cannot run."""
+SCIPY_METHODS = (
+    "Nelder-Mead",
+    "Powell",
+    "CG",
+    "BFGS",
+    "Newton-CG",
+    "L-BFGS-B",
+    "TNC",
+    "COBYLA",
+    "COBYQA",
+    "SLSQP",
+    "trust-constr",
+    "dogleg",
+    "trust-ncg",
+    "trust-exact",
+    "trust-krylov",
+)
+
+
+def check_solver(name: str, kwargs: Mapping, key: str = "solver") -> None:
+    """Raise a `ValueError` naming the option (under `key`, where the spec sits in the
+    configuration) when a spec cannot run."""
     kwargs = dict(kwargs or {})
     if name in SOLVER_CLASSES:
         try:
             make_solver(name, kwargs)
         except (TypeError, ValueError) as err:
-            raise ValueError(f"solver.kwargs of {name!r}: {err}") from None
+            raise ValueError(f"{key}.kwargs of {name!r}: {err}") from None
         return
+
+    def bad(option, expected):
+        raise ValueError(f"`{key}.kwargs.{option}` must be {expected}, got {kwargs[option]!r}.")
+
     unknown = sorted(set(kwargs) - set(SCIPY_KEYS))
     if unknown:
-        raise ValueError(f"solver 'scipy' got unknown kwargs {unknown}; valid: {list(SCIPY_KEYS)}.")
+        raise ValueError(
+            f"{key}: solver 'scipy' got unknown kwargs {unknown}; valid: {list(SCIPY_KEYS)}."
+        )
+    if "method" in kwargs and str(kwargs["method"]).lower() not in {
+        m.lower() for m in SCIPY_METHODS
+    }:
+        bad("method", "a scipy.optimize.minimize method (" + ", ".join(SCIPY_METHODS) + ")")
     if kwargs.get("jac", "closed_form") not in ("closed_form", "fd"):
-        raise ValueError(f"scipy `jac` must be 'closed_form' or 'fd', got {kwargs['jac']!r}.")
+        bad("jac", "'closed_form' or 'fd'")
+    if kwargs.get("fd_scheme", "2-point") not in ("2-point", "3-point"):
+        bad("fd_scheme", "'2-point' or '3-point'")
     if kwargs.get("maxiter") is not None and (
         isinstance(kwargs["maxiter"], bool)
         or not isinstance(kwargs["maxiter"], int)
         or kwargs["maxiter"] < 1
     ):
-        raise ValueError(f"scipy `maxiter` must be an integer >= 1, got {kwargs['maxiter']!r}.")
+        bad("maxiter", "an integer >= 1 (or null)")
+    tol = kwargs.get("tol")
+    if tol is not None and (
+        isinstance(tol, bool)
+        or not isinstance(tol, (int, float))
+        or not math.isfinite(tol)
+        or tol <= 0
+    ):
+        bad("tol", "a finite number > 0 (or null: scipy's default)")
+    if not isinstance(kwargs.get("scale", False), bool):
+        bad("scale", "true or false")
+    if not isinstance(kwargs.get("options") or {}, Mapping):
+        bad("options", "a mapping of scipy options")
 
 
 def same_solver(a, b) -> bool:

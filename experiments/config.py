@@ -117,11 +117,15 @@ class SolverConfig:
     label: str | None = None
     kwargs: dict[str, Any] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def check(self, key: str = "solver") -> None:
+        """Raise a `ConfigError` naming `key` (where this spec sits) if it cannot run."""
         from . import common
 
-        _one_of("solver.name", self.name, SOLVER_NAMES)
-        common.check_solver(self.name, self.kwargs)
+        _one_of(f"{key}.name", self.name, SOLVER_NAMES)
+        try:
+            common.check_solver(self.name, self.kwargs, key)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
 
     @property
     def title(self) -> str:
@@ -226,6 +230,7 @@ class SatelliteConfig:
         _number(k + "fig3.spread", self.fig3.spread, lo=0.0, hi=1.0, hi_open=True)
         for key, m in self.methods.items():
             _one_of(f"{k}methods.{key}.cost", m.cost, ("multi_step", "single_step"))
+            m.solver.check(f"{k}methods.{key}.solver")
         names = list(self.methods)
         for group in ("run_methods", "fig4_methods", "fig5_methods"):
             for key in getattr(self, group) or []:
@@ -535,6 +540,7 @@ class Config:
 
     def __post_init__(self):
         _integer("seed", self.seed, 0)
+        self.solver.check("solver")
         allowed = type(self.experiment).SOLVERS
         if self.solver.name not in allowed:
             label = f" ({self.solver.label})" if self.solver.label else ""
@@ -576,7 +582,38 @@ def load(cfg) -> Config:
             "(compose it from configs/config.yaml)."
         )
     _refuse_unknown_keys(cfg, out, "")
+    _refuse_unread_solver_defaults(out.experiment)
     return out
+
+
+def _solver_default_keys() -> dict[str, set[str]]:
+    """{solver: options} that configs/solver/<solver>.yaml reads from
+    `experiment.solver_defaults.<solver>.<option>`."""
+    import re
+    from pathlib import Path
+
+    pattern = re.compile(r"experiment\.solver_defaults\.(\w+)\.(\w+)")
+    keys: dict[str, set[str]] = {}
+    for path in (Path(__file__).resolve().parent.parent / "configs" / "solver").glob("*.yaml"):
+        for solver, option in pattern.findall(path.read_text()):
+            keys.setdefault(solver, set()).add(option)
+    return keys
+
+
+def _refuse_unread_solver_defaults(experiment) -> None:
+    """`+experiment.solver_defaults.adam.max_stepz=5` composes (an open dict) but no solver
+    config reads it: refuse it, naming it."""
+    known = _solver_default_keys()
+    for solver, options in (getattr(experiment, "solver_defaults", None) or {}).items():
+        where = f"experiment.solver_defaults.{solver}"
+        if solver not in known:
+            _fail(where, "one of " + ", ".join(sorted(known)), solver)
+        unread = sorted(set(options or {}) - known[solver])
+        if unread:
+            raise ConfigError(
+                f"unknown key(s) {', '.join(f'{where}.{o}' for o in unread)}: "
+                f"configs/solver/ reads {', '.join(sorted(known[solver]))} from {where}."
+            )
 
 
 def _refuse_unknown_keys(node, obj, where):

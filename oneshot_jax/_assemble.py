@@ -217,7 +217,11 @@ def _warn_identifiability(names, ok, what):
         warnings.warn(
             f"the Jacobian is rank-deficient at the solution: {what} {listed} enter its "
             "null space (a change of them, alone or together, that leaves the outputs "
-            "unchanged: not identifiable from these data); their std is inf.",
+            "unchanged: not identifiable from these data); their std is inf. Hold some of "
+            "them (`fit(..., fixed=...)`"
+            + (", `estimate_x0=...`" if what == "initial states" else "")
+            + "), reparametrise (a product a * b as one parameter), or add data that "
+            "excite them.",
             stacklevel=4,
         )
 
@@ -328,6 +332,10 @@ def assemble(
             theta=layout.rows(rows),
             loss=losses,
             stop_reason=tuple(name_of(from_index(int(c))) for c in results),
+            solver_stop=tuple(
+                name_of(from_index(int(c if name_of(from_index(int(c))) != "validation" else s)))
+                for c, s in zip(results, np.asarray(out.solver_results))
+            ),
         )
     metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
     stop_info = {

@@ -92,9 +92,32 @@ def as_float(a, name, dtype=None):
     return a
 
 
+def _spans_hosts(a) -> bool:
+    """Whether `a` is a jax.Array with shards on other processes' devices (a fleet sharded
+    over several hosts): NumPy cannot read it, a reduction on the devices can."""
+    return (
+        isinstance(a, jax.Array)
+        and not isinstance(a, jax.core.Tracer)
+        and not a.is_fully_addressable
+    )
+
+
+def _on_devices(a) -> bool:
+    """Whether `a` is a concrete jax.Array sharded over several devices."""
+    return (
+        isinstance(a, jax.Array)
+        and not isinstance(a, jax.core.Tracer)
+        and len(a.sharding.device_set) > 1
+    )
+
+
 def check_finite(a, name, hint=""):
     if isinstance(a, np.ndarray) or is_concrete(a):
-        if not np.isfinite(np.asarray(a)).all():
+        if _spans_hosts(a):
+            finite = bool(jnp.isfinite(a).all())
+        else:
+            finite = np.isfinite(np.asarray(a)).all()
+        if not finite:
             raise ValueError(f"`{name}` contains NaN or inf values{hint}.")
 
 
@@ -308,8 +331,16 @@ def check_weight(weight, n_z, dtype):
     return w
 
 
-def check_outside_transformations(*args):
-    """`fit` and the helpers built on it run their own compiled call on concrete data."""
+def check_outside_transformations(*args, name=None):
+    """`fit` and the helpers built on it run their own compiled call on concrete data;
+    `name` (e.g. "`estimate_x0`") for a function other than `fit`."""
+    if name is not None and not is_concrete(*args):
+        raise TypeError(
+            f"{name} runs outside JAX transformations (jit, vmap, grad): it was given "
+            "traced values. It solves for x0 on the host; to transform a simulation, the "
+            "loss or its gradient use `oneshot_jax.simulate` / `oneshot_jax.loss` / "
+            "`oneshot_jax.value_and_grad`, which work under jit, vmap and grad."
+        )
     if not is_concrete(*args):
         raise TypeError(
             "`fit` runs outside JAX transformations (jit, vmap, grad): it was given traced "
@@ -634,7 +665,24 @@ def check_data(
                 f"{_transposed_hint(z.shape, u_shape, T, n_z, z_name)}."
             )
         observed = None
-        if missing == "mask" and is_concrete(z):
+        if missing == "mask" and is_concrete(z) and _on_devices(z):
+            # A fleet sharded over devices (`oneshot_jax.sharding`): masked where it lies.
+            observed = ~jnp.isnan(z)
+            if bool(jnp.isinf(z).any()):
+                raise ValueError(f"`{z_name}` contains inf values (NaN marks a missing sample).")
+            if not bool(observed.any()) and not readings:
+                raise ValueError(f"`{z_name}` is NaN everywhere: no output sample is measured.")
+            if (
+                batched
+                and not readings
+                and not bool(observed.reshape(z.shape[0], -1).any(axis=1).all())
+            ):
+                raise ValueError(
+                    f"`{z_name}`: a trajectory (first axis) has no measured sample (NaN "
+                    "everywhere): leave it out."
+                )
+            z = jnp.where(observed, z, jnp.zeros((), z.dtype))
+        elif missing == "mask" and is_concrete(z):
             zn = np.asarray(z)
             if np.any(np.isinf(zn)):
                 raise ValueError(f"`{z_name}` contains inf values (NaN marks a missing sample).")
@@ -651,6 +699,9 @@ def check_data(
                         f"`{z_name}`: trajectory {empty.tolist()} (first axis) has no measured "
                         "sample (NaN everywhere): leave it out."
                     )
+        elif missing == "mask":  # traced z (under jax.jit or vmap): mask its NaN in the trace
+            observed = ~jnp.isnan(z)
+            z = jnp.where(observed, z, jnp.zeros((), z.dtype))
         else:
             check_finite(
                 z,
@@ -659,7 +710,7 @@ def check_data(
                 '`missing="mask"`, which treats NaN as a missing sample)',
             )
         if is_concrete(z) and z.size:
-            _check_magnitude(np.asarray(z), z_name)
+            _check_magnitude(z if _spans_hosts(z) else np.asarray(z), z_name)
         mask = sample_mask(z.shape, z.dtype, lengths, observed)
     weight = check_weight(weight, n_z, z_hat.dtype)
     if known is None:
@@ -670,7 +721,7 @@ def check_data(
 def _check_magnitude(z: np.ndarray, name: str = "z") -> None:
     """Refuse outputs whose squares underflow in their dtype: the loss would be exactly
     zero (a fit then ends at its start, `zero_residual`)."""
-    largest = np.max(np.abs(z))
+    largest = float(jnp.max(jnp.abs(z))) if _spans_hosts(z) else np.max(np.abs(z))
     if 0 < largest and np.square(largest) < np.finfo(z.dtype).tiny:
         raise ValueError(
             f"`{name}`: its largest magnitude {largest:.3g} squares to below the smallest normal "

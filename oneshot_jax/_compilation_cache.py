@@ -68,7 +68,7 @@ def enable_compilation_cache(
     try:
         seconds = (
             float("nan")
-            if isinstance(min_compile_time_secs, bool)
+            if isinstance(min_compile_time_secs, (bool, str, bytes))
             else float(min_compile_time_secs)
         )
     except (TypeError, ValueError):

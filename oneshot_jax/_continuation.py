@@ -11,6 +11,7 @@ short-window fit from the same theta and warns where the first is far worse.
 """
 
 import math
+import numbers
 import warnings
 
 import equinox as eqx
@@ -126,7 +127,7 @@ def _schedule(windows, start, factor, T):
         )
     if (
         isinstance(factor, bool)
-        or not isinstance(factor, (int, float))
+        or not isinstance(factor, numbers.Real)
         or not factor > 1
         or not math.isfinite(factor)
     ):
@@ -350,7 +351,7 @@ def check_basin(
             f"{np.shape(u)[0]}), got {window!r}."
         )
     window = int(window)
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin >= 0:
+    if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not margin >= 0:
         raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
     for name in ("window", "multistart"):
         if name in kwargs:

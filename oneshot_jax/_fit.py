@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
@@ -271,6 +272,28 @@ def _warn_unequal_noise(residuals, weight, std):
         "np.nanmean(result.residuals**2, axis=0) for one record (see the uncertainty guide).",
         stacklevel=3,
     )
+
+
+def _warn_infeasible(project, theta, rtol=1e-8):
+    """Warn where the returned theta is not a fixed point of the general projection: the
+    projection onto an intersection (Dykstra's alternating projections, `constraints.
+    combine`, capped at its cycles) did not converge, and the estimate lies outside the
+    constraint set (a wedge of a small angle needs about 1 / angle^2 cycles)."""
+    params, _ = _pytree.split(theta)
+    a, _ = ravel_pytree(params)
+    b, _ = ravel_pytree(project(jax.tree_util.tree_map(jnp.asarray, params)))
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    gap = float(np.max(np.abs(a - b), initial=0.0))
+    if gap > rtol * max(float(np.max(np.abs(a), initial=0.0)), 1.0):
+        warnings.warn(
+            f"the estimate lies outside the constraint set: the projection moves it by "
+            f"{gap:.3g}. The projection onto the intersection of the sets (Dykstra's "
+            "alternating projections) did not converge within its cycles (sets that meet at "
+            "a small angle converge slowly), so the iterates were not feasible either: "
+            "write the set as one projection, or in parameters of similar scale.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def _warn_projected(moved, names, theta0):
@@ -573,7 +596,10 @@ def fit(
         result = agg.restore(result)
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         result = dataclasses.replace(result, weight=np.asarray(weight, result.x0.dtype))
-    _warn_unequal_noise(result.residuals, weight, result.std)
+    if result.status != "zero_residual":  # (round-off residuals have no noise level)
+        _warn_unequal_noise(result.residuals, weight, result.std)
+    if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
+        _warn_infeasible(built.problem.project, result.theta)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
     elif aggregate is not None and (window is None or not model.timed):

@@ -37,7 +37,7 @@ from ._solver_arg import as_solvers
 from ._starts import check_finite_starts, check_fixed_starts, check_held_x0_starts, theta_starts
 from ._timing import split_intervals
 from ._validation import monitor
-from ._windows import cut
+from ._windows import BlowUp, cut
 
 _NO_PROGRESS = NoProgress()
 
@@ -170,9 +170,30 @@ def check_inputs(
         data = check_data(
             model, theta_first, x0_record, u, z, weight, missing, t, theta_name="theta0"
         )
-        x0_w, u_w, z_w, mask_w, starts = cut(
-            data, window, np.asarray(x0) if per_window_x0 else None
-        )
+        # The windows' starting states are estimated with one start's theta: the first
+        # whose simulation stays finite over the windows (one start that blows up does not
+        # refuse a multistart fit, whatever its place among the starts).
+        for s in range(1 if theta_params is None else n_starts):
+            theta_s = _pytree.combine(
+                jax.tree_util.tree_map(lambda a, s=s: a[s], theta_params),
+                _pytree.split(theta0)[1],
+            ) if s else theta_first  # fmt: skip
+            data_s = data if s == 0 else check_data(
+                model, theta_s, x0_record, u, z, weight, missing, t, theta_name="theta0"
+            )  # fmt: skip
+            try:
+                x0_w, u_w, z_w, mask_w, starts = cut(
+                    data_s, window, np.asarray(x0) if per_window_x0 else None
+                )
+                break
+            except BlowUp as error:
+                if theta_params is None:
+                    raise
+                if s == n_starts - 1:
+                    raise ValueError(
+                        f"every one of the {n_starts} starts of theta0 (multistart) makes the "
+                        f"model blow up within the windows; the last: {error}"
+                    ) from None
         u_w, t_w = split_intervals(data.model, u_w)  # each window keeps its intervals
         data = check_data(
             model, theta_first, x0_w, u_w, z_w, weight, t=t_w, theta_name="theta0"
@@ -434,7 +455,7 @@ def build_problem(
         mask=None
         if data.mask is None
         else jax.tree_util.tree_map(
-            lambda a: np.asarray(a) if batched else np.asarray(a)[None], data.mask
+            lambda a: _host(a) if batched else np.asarray(a)[None], data.mask
         ),
     )
 

@@ -272,8 +272,10 @@ def report(result) -> str:
     estimated = np.asarray(result.x0_estimated, bool)
     x0 = np.asarray(result.x0)
     states = f"{int(estimated.sum())} of {estimated.size} initial states"
+    # A windowed fit (multiple shooting) has one initial state per window.
+    rows = "windows" if result.window_starts is not None else "trajectories"
     if x0.ndim == 2:
-        states += f" (per trajectory, {x0.shape[0]} trajectories)"
+        states += f" (per {rows[:-1]}, {x0.shape[0]} {rows})"
     solvers = " then ".join(str(s.get("solver", "?")) for s in result.solver) or "?"
     # The stop: FitResult.message's first part (the test that fired, with its values, or
     # the reason's own words), never the RESULTS repr.
@@ -288,12 +290,20 @@ def report(result) -> str:
     if result.validation_loss is not None:
         out.append(f"validation loss {result.validation_loss:.6e} (held-out records)")
     if result.starts is not None:
-        stops = {}
-        for r in result.starts.stop_reason:
-            stops[r] = stops.get(r, 0) + 1
+
+        def counts(reasons):
+            tally = {}
+            for r in reasons:
+                tally[r] = tally.get(r, 0) + 1
+            return ", ".join(f"{k} {n}" for k, n in tally.items())
+
+        starts = result.starts
+        own = ""
+        if starts.solver_stop != starts.stop_reason:  # (validation or the rollout check)
+            own = f" (the solvers' own stops: {counts(starts.solver_stop)})"
         out.append(
-            f"multistart: the best of {len(result.starts.stop_reason)} starts (index "
-            f"{result.best}); stops: {', '.join(f'{k} {n}' for k, n in stops.items())}"
+            f"multistart: the best of {len(starts.stop_reason)} starts (index "
+            f"{result.best}); stops: {counts(starts.stop_reason)}{own}"
         )
     if result.status == "diverged":
         # (Where no iterate had a finite loss, the start is returned: `FitResult.message`.)
@@ -320,9 +330,9 @@ def report(result) -> str:
     out.append(line(x0_header))
     out.extend(line(r) for r in x0_table)
     if not x0_table:
-        out.append(f"  (fixed, not estimated: result.x0, {left_out} trajectories)")
+        out.append(f"  (fixed, not estimated: result.x0, {left_out} {rows})")
     elif left_out:
-        out.append(f"  ... and {left_out} more trajectories (result.x0, result.x0_std)")
+        out.append(f"  ... and {left_out} more {rows} (result.x0, result.x0_std)")
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
     aic = float(result.metrics["aic"])

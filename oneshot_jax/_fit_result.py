@@ -156,11 +156,16 @@ class Starts(eqx.Module):
     - `theta`: theta's parameter pytree with a leading axis of starts.
     - `loss`: the final loss of each start.
     - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
+    - `solver_stop`: each start's own solver stop, the same as `stop_reason` except where
+        a check after the solver replaced it (`validation`: the best-scoring iterate kept;
+        `unconverged_rollout`): there the solver's stop (`diverged`, `converged`, ...), as
+        `stop_info["solver_stop"]` for the returned start.
     """
 
     theta: Any
     loss: np.ndarray
     stop_reason: tuple = eqx.field(static=True)
+    solver_stop: tuple = eqx.field(static=True)
 
 
 def _first_row_missing(z_head) -> bool:
@@ -310,6 +315,27 @@ class FitResult(eqx.Module):
                     f"got shape {shape}{hint}."
                 )
 
+    def _measurement_noise(self):
+        """The measurement noise covariance the fit estimated, sigma^2 Q^{-1} (Q the fit's
+        weight, I without one; sigma^2 = SSE / dof of its weighted residuals, as its
+        covariance scales, `_covariance.scale`), or None where Q is singular or sigma^2
+        is not known (no degrees of freedom, or residuals exactly zero)."""
+        e = np.asarray(self.residuals, np.float64)
+        n_z = e.shape[-1]
+        w = np.ones(n_z) if self.weight is None else np.asarray(self.weight, np.float64)
+        q = np.diag(w) if w.ndim == 1 else w
+        if not np.all(np.isfinite(q)) or np.min(np.linalg.eigvalsh(q)) <= 0:
+            return None
+        e = e.reshape(-1, n_z)
+        seen = np.isfinite(e)
+        x0_free = np.asarray(self.x0_estimated, bool).sum() * max(
+            1, np.size(self.x0) // max(1, np.shape(self.x0)[-1])
+        )
+        dof = int(seen.sum()) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
+        e = np.where(seen, e, 0.0)
+        s2 = float(np.einsum("ki,ij,kj->", e, q, e)) / dof if dof > 0 else 0.0
+        return s2 * np.linalg.inv(q) if np.isfinite(s2) and s2 > 0 else None
+
     def _check_z_head(self, z_head):
         """Refuse a head with another number of output columns than the fitted data's (for a
         model that observes its whole state, z_head[0] is x0's default guess, so a wrong
@@ -407,6 +433,11 @@ class FitResult(eqx.Module):
         - `t`: the new record's sample times (T,), for a model of time-stamped records.
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
+            The smoother's measurement noise defaults to the one the fit estimated,
+            sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE / dof of its
+            weighted residuals, as its standard errors use): a weight's scale, which a
+            fit ignores, does not change it. Where Q is singular (an output of weight 0)
+            or the residuals are exactly zero, `estimate_x0`'s defaults apply.
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
@@ -425,7 +456,13 @@ class FitResult(eqx.Module):
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
-        if kwargs.get("weight") is None and self.weight is not None:
+        noise = None
+        if method == "smoother" and kwargs.get("measurement_noise") is None:
+            if kwargs.get("weight") is None:
+                noise = self._measurement_noise()
+        if noise is not None:  # Q's scale is arbitrary: the smoother gets sigma^2 Q^{-1}
+            kwargs["measurement_noise"] = noise
+        elif kwargs.get("weight") is None and self.weight is not None:
             kwargs["weight"] = self.weight  # the fit's Q: an output it ignored stays ignored
         if kwargs.get("x0") is None and (
             not self.model.observes_state or _first_row_missing(z_head)

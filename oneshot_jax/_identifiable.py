@@ -161,8 +161,11 @@ def fit_physics_first(
         held at stage 1's estimate and x0 started from stage 1's.
 
     The physical estimates of the hybrid are stage 1's, exactly, whatever the learned
-    terms see (a network fed the whole state cannot absorb part of the restoring force),
-    and stage 2 only lowers the loss. For a learned term added to the output this is
+    terms see (a network fed the whole state cannot absorb part of the restoring force).
+    Stage 2 starts at stage 1's loss only when the learned terms start with a zero output
+    (an `MLP` with `zero_last=True`, a `Dictionary` of zero coefficients); started
+    elsewhere, it can end above stage 1's loss (see `success`). For a learned term added
+    to the output this is
     the estimate of orthogonal-by-construction augmentation (Gyorok et al., arXiv
     2511.01321, 2025; see `fit_orthogonal`). The price: the physics is estimated with
     the unmodelled effect in its residuals (the physical model's own bias).
@@ -523,6 +526,14 @@ def fit_orthogonal(
     for _ in range(int(rounds)):
         before = _flat(theta, names)
         m = _basis(model, theta, x0, u, names, root)
+        if not np.all(np.isfinite(m)):
+            if result is None:
+                raise ValueError(
+                    f"the model's outputs or their sensitivities to the physical parameters "
+                    f"{names} are not finite at theta0 and x0: start where the model simulates "
+                    "(`oneshot_jax.simulate(model, theta0, x0, u)` finite)."
+                )
+            break  # not converged: the basis cannot be formed at this estimate
         u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
         x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
         with warnings.catch_warnings():

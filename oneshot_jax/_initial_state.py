@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data
+from ._checks import check_cost, check_data, check_outside_transformations
 from ._cost import weigh
 from ._counts import is_count
 from ._jit import jit
@@ -287,6 +287,9 @@ def _estimate(
     `z_name`: the caller's name of z, for the errors."""
     if method not in METHODS:
         raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
+    check_outside_transformations(
+        theta, u, z, x0, weight, record, name="`predict`" if record is not None else "`estimate_x0`"
+    )
     n = _check_head(u, z, n, z_name)
     t = head_times(t, np.shape(u)[0], n)
     u, z = u[:n], z[:n]
@@ -452,7 +455,7 @@ def predict(
 
     ```python
     test = oneshot_jax.datasets.load_cascaded_tanks().test
-    pred = oneshot_jax.predict(model, theta, test.u, test.y, test.n, x0=x0_guess)
+    pred = oneshot_jax.predict(model, theta, test.u[:, None], test.y[:, None], test.n, x0=x0_guess)
     scores = oneshot_jax.metrics.benchmark_scores(test.y, pred.z, test.n)
     ```
     """

@@ -13,7 +13,7 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   arrays (`{"scalar": true}` added for NumPy scalars) and `{"const": v}` nodes for Python
   booleans, or null for a structure JSON cannot describe), `names`, `stop_reason` (a
   `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
-  solver), the metric names, `starts_stop_reason`, `diagnostics` and
+  solver), the metric names, `starts_stop_reason` and `starts_solver_stop`, `diagnostics` and
   `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object),
   `validation_loss` (a number or null) and `static_signature` (what `load_result(like=)`
   compares beyond shapes and names: the static fields of theta's equinox modules and its
@@ -250,6 +250,7 @@ def save_result(result, path):
             k: ("float" if isinstance(v, float) else "array") for k, v in result.metrics.items()
         },
         "starts_stop_reason": None if result.starts is None else list(result.starts.stop_reason),
+        "starts_solver_stop": None if result.starts is None else list(result.starts.solver_stop),
         "diagnostics": _plain(result.diagnostics),
         "stop_info": _plain(result.stop_info),
         "theta_order": list(result.theta_order),
@@ -433,6 +434,8 @@ def _fields(arrays, meta, group, build, static) -> dict:
             theta=build(group("starts/theta/")),
             loss=arrays["starts/loss"],
             stop_reason=tuple(meta["starts_stop_reason"]),
+            # (a file written before `starts_solver_stop` existed: the stops as they were)
+            solver_stop=tuple(meta.get("starts_solver_stop") or meta["starts_stop_reason"]),
         )
     return dict(
         theta=_pytree.combine(params, static),

@@ -60,9 +60,9 @@ def schur_complement(Jt, Jx, A):
     return jnp.einsum("nrp,nrq->pq", P, P)
 
 
-def floor(d):
-    """Diagonal entries floored at 1e-12 of their largest (Marquardt's scaling D)."""
-    return jnp.maximum(d, 1e-12 * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
+def floor(d, rel=1e-12):
+    """Diagonal entries floored at `rel` of their largest (Marquardt's scaling D)."""
+    return jnp.maximum(d, rel * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
 
 
 def scaled_eigh(M, diag=None):

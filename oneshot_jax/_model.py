@@ -10,6 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._counts import integral
+
 _INPUTS = ("zoh", "foh")
 
 
@@ -31,6 +33,7 @@ def _check_integrator(rhs, method, substeps) -> int:
         raise ValueError(f"`rhs` must be callable (x, u, theta) -> dx/dt, got {rhs!r}.")
     if method not in ("rk4", "euler"):
         raise ValueError(f"`method` must be 'rk4' or 'euler', got {method!r}.")
+    substeps = integral(substeps)  # (a 0-d array: the count it holds)
     if (
         isinstance(substeps, bool)
         or not isinstance(substeps, numbers.Real)
@@ -115,6 +118,10 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     The state at t_{k+1}.
     """
     substeps = _check_integrator(rhs, method, substeps)
+    if not isinstance(x, (jax.Array, np.ndarray)):
+        x = jnp.asarray(x)  # a list, a tuple or a Python number
+    if isinstance(u, (list, tuple)):
+        u = jnp.asarray(u)
     if _check_input(input) == "foh" and (jnp.ndim(u) != 2 or jnp.shape(u)[0] != 2):
         raise ValueError(
             f'`u` must be the pair (u[k], u[k+1]) of shape (2, n_u) for input="foh", got '
@@ -122,8 +129,6 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
         )
     if not isinstance(dt, jax.core.Tracer):
         dt = _positive_number(dt, "dt", "the sample interval")
-    if isinstance(x, (list, tuple)):
-        x = jnp.asarray(x)
     h = dt / substeps
     u_at = _input_at(u, dt, input)
 
@@ -190,7 +195,11 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
         n = substeps
         h = dt / substeps
     else:
-        n = interval_count(dt, max_step, jnp)
+        # (at most `substeps`: the host's check counts in NumPy, and the compiled count
+        # can round one higher next to a multiple of max_step (XLA folds 1 / max_step and
+        # the tolerance into one constant); a count above the loop's bound would leave the
+        # rest of the interval unintegrated)
+        n = jnp.minimum(interval_count(dt, max_step, jnp), substeps)
         h = dt / jnp.maximum(n, 1.0)
     u_at = _input_at(u, jnp.where(dt > 0, dt, 1.0), input)  # (dt = 0: no step is taken)
 
@@ -430,7 +439,7 @@ ODE_STEPS = (_ODEStep, _TimedODEStep)
 
 def _positive_number(value, name, what):
     try:
-        if isinstance(value, (str, bytes, bool)):
+        if isinstance(value, (str, bytes, bool, np.bool_)):
             raise TypeError
         value = float(value)
     except (TypeError, ValueError):

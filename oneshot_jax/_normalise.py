@@ -47,7 +47,8 @@ def sample_mask(shape, dtype, lengths, observed) -> Mask | None:
     """The `Mask` (of `dtype`) of z of `shape` (*N, T, n_z): the samples within each
     trajectory's length (`lengths`, None when all have T) that are measured (`observed`,
     None when all are); None when every sample counts."""
-    if lengths is None and (observed is None or observed.all()):
+    traced = observed is not None and not isinstance(observed, np.ndarray)
+    if lengths is None and (observed is None or (not traced and observed.all())):
         return None
     T = shape[-2]
     samples = np.ones(shape[:-1], np.float64)

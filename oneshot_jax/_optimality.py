@@ -217,8 +217,13 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     # (|C|: a first-order solver's C with a signed penalty may be negative; C >= 0 for
     # least squares)
     norm = jnp.sqrt(jnp.maximum(jnp.abs(C), jnp.finfo(dtype).tiny))
-    dt2 = floor(d_t) if d_t.size else d_t
-    dx2 = floor(d_x) if d_x.size else d_x
+    # Marquardt's diagonal floored only at round-off of its largest entry (eps^2): the
+    # damping's floor of 1e-12 divided the cosine of a parameter in small units (a column
+    # norm 1e-15 of the largest) by up to 1e9, and a fit at its start read "converged".
+    # (|g_i| <= sqrt(d_i) ||r||: the cosines stay <= 1 however small d_i.)
+    rel = jnp.finfo(dtype).eps ** 2
+    dt2 = floor(d_t, rel) if d_t.size else d_t
+    dx2 = floor(d_x, rel) if d_x.size else d_x
     # x0 is never constrained: its cosines.
     c_x = jnp.abs(g.x0) / (jnp.sqrt(dx2) * norm) if g.x0.size else g.x0
     theta = params.theta

@@ -9,6 +9,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._counts import integral
+
 _BARS: dict[int, object] = {}
 _LOCK = threading.Lock()
 _IDS = itertools.count(1)
@@ -23,7 +25,7 @@ class TqdmProgress(eqx.Module):
         callback from the compiled loop).
     """
 
-    refresh_steps: int = 10
+    refresh_steps: int = eqx.field(default=10, converter=integral)
 
     def __check_init__(self):
         r = self.refresh_steps

@@ -98,7 +98,9 @@ class ProximalState(NamedTuple):
 def check_non_negative_scalar(value, name):
     """Raise a ValueError unless `value` is a finite scalar >= 0 (or traced)."""
     try:
-        ok = np.ndim(value) == 0 and (not is_concrete(value) or np.isfinite(float(value)))
+        # (a string or a bool converts with float() but is no strength)
+        ok = not isinstance(value, (str, bytes, bool, np.bool_))
+        ok = ok and np.ndim(value) == 0 and (not is_concrete(value) or np.isfinite(float(value)))
         ok = ok and (not is_concrete(value) or float(value) >= 0)
     except (TypeError, ValueError):
         ok = False
@@ -138,9 +140,14 @@ def check_learning_rate(learning_rate, allow_none):
         check_schedule(learning_rate, "`learning_rate`")
         return
     try:
-        ok = np.ndim(learning_rate) == 0 and (
-            not is_concrete(learning_rate)
-            or (np.isfinite(float(learning_rate)) and float(learning_rate) > 0)
+        ok = not isinstance(learning_rate, (str, bytes, bool, np.bool_))
+        ok = (
+            ok
+            and np.ndim(learning_rate) == 0
+            and (
+                not is_concrete(learning_rate)
+                or (np.isfinite(float(learning_rate)) and float(learning_rate) > 0)
+            )
         )
     except (TypeError, ValueError):
         ok = False
@@ -271,7 +278,38 @@ def indicator(project, bounds=None) -> ProximalTransformation:
     return ProximalTransformation(init, update, prox, _zero, project, bounds)
 
 
-def penalty(prox, value, strength, learning_rate, name) -> ProximalTransformation:
+class Keyed:
+    """A function that compares and hashes by a key (its factory's name and arguments),
+    not by identity: `fit` compiles per regulariser function (a static argument), so
+    `l1(1e-3)` made anew on every call reuses the compiled solve."""
+
+    __slots__ = ("fn", "key")
+
+    def __init__(self, fn, key):
+        self.fn, self.key = fn, key
+
+    def __call__(self, *args, **kwargs):
+        return self.fn(*args, **kwargs)
+
+    def __eq__(self, other):
+        return isinstance(other, Keyed) and self.key == other.key
+
+    def __hash__(self):
+        return hash(self.key)
+
+
+def keyed(fn, key):
+    """`fn` compared by `key`, or `fn` itself where `key` is None (not hashable)."""
+    if key is None:
+        return fn
+    try:
+        hash(key)
+    except TypeError:
+        return fn
+    return Keyed(fn, key)
+
+
+def penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTransformation:
     """The proximal transformation of a penalty g (Parikh and Boyd 2014, Sec. 4.2).
 
     **Arguments:**
@@ -282,6 +320,8 @@ def penalty(prox, value, strength, learning_rate, name) -> ProximalTransformatio
     - `learning_rate`: the step of the optimiser the transform follows (a scalar or an
         optax schedule of the update count), or None (then `init` names it as missing).
     - `name`: the factory's name, for that error.
+    - `key`: the factory's arguments as a hashable value, or None: `prox` and `value`
+        then compare equal between transformations made alike (`Keyed`).
 
     **Returns:**
 
@@ -304,6 +344,8 @@ def penalty(prox, value, strength, learning_rate, name) -> ProximalTransformatio
         out = _moved(prox, params, updates, step_at(learning_rate, state.count))
         return out, ProximalState(count=optax.safe_increment(state.count))
 
+    if key is not None:
+        prox, value = keyed(prox, (name, "prox", *key)), keyed(value, (name, "value", *key))
     strength = float(strength) if is_concrete(strength) else None
     return ProximalTransformation(init, update, prox, value, None, None, strength, learning_rate)
 
@@ -441,6 +483,7 @@ def combine(transforms) -> ProximalTransformation | None:
         return params
 
     penalties = [t for t in transforms if t.project is None]
+    prox = keyed(prox, ("combine", "prox", tuple(t.prox for t in transforms)))
     if not penalties:
         boxes = [t.bounds for t in transforms]
         if None not in boxes:  # boxes: clipping in turn projects onto the intersection
@@ -469,6 +512,8 @@ def combine(transforms) -> ProximalTransformation | None:
 
     def value(params):
         return sum(t.value(params) for t in penalties)
+
+    value = keyed(value, ("combine", "value", tuple(t.value for t in penalties)))
 
     chained = optax.chain(*(optax.GradientTransformation(t.init, t.update) for t in transforms))
     strengths = [t.strength for t in penalties]

@@ -297,10 +297,21 @@ def pack(tree):
     return buffers, (treedef, items)
 
 
+def _to_host(a):
+    """A NumPy copy of `a`, gathered from every process where its shards span several
+    hosts (a fleet sharded with `oneshot_jax.sharding` after `jax.distributed.initialize`:
+    every process runs the same program, so every one gathers)."""
+    if isinstance(a, jax.Array) and not a.is_fully_addressable:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+    return np.asarray(a)
+
+
 def unpack(buffers, layout):
     """The pytree `pack` packed, as NumPy views of the (host) buffers."""
     treedef, items = layout
-    host = [np.asarray(b) for b in buffers]
+    host = [_to_host(b) for b in buffers]
     leaves = [host[k][start:stop].reshape(shape) for k, start, stop, shape in items]
     return jax.tree_util.tree_unflatten(treedef, leaves)
 

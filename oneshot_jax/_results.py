@@ -33,13 +33,16 @@ class RESULTS(eqx.Enumeration):
         "stalled: the step or the predicted decrease reached round-off (or the optional "
         "step test rtol/atol fired), but the point is not stationary (the first-order "
         "measure is above gtol); this is not a solution. "
-        "Check the scaling of the problem; bounds that keep the model stable, windows "
-        "(multiple shooting) or a better start help"
+        "Check the scaling of the problem (an output with a large offset, 1e4 around a "
+        "noise of 1e-4, leaves the loss too few digits: subtract it from the data "
+        "first); bounds that keep the model stable, windows (multiple shooting) or a "
+        "better start help"
     )
     no_progress = (
         "no step decreased the loss any more (the damping or the line search gave up) "
-        "before the first-order test held; check the scaling of the problem or try "
-        "another solver or starting point"
+        "before the first-order test held; check the scaling of the problem (a large "
+        "output offset leaves the loss too few digits: subtract it) or try another solver "
+        "or starting point"
     )
     diverged = (
         "the simulation diverged (a non-finite loss or gradient); the last finite iterate "

@@ -84,7 +84,8 @@ def simulate(
     - `t`: the sample times, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`; required there, refused by any other model):
         shape (T,), or (N, T), or a list of N arrays (T_i,) like `u`; finite and strictly
-        increasing. Step k integrates over t[k+1] - t[k].
+        increasing. Step k integrates over t[k+1] - t[k]. (Traced `t`, under `jax.jit` or
+        `vmap`, cannot be checked on the host: its values are taken as given.)
 
     **Returns:**
 
@@ -138,7 +139,9 @@ def loss(
         lambda is `penalty_weight / T`). Without a `penalty` it multiplies nothing (so a
         sweep may pass `penalty=None` and a weight alike).
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z as
-        missing samples, which contribute nothing to C (nor to its derivatives).
+        missing samples, which contribute nothing to C (nor to its derivatives). Under
+        `jax.jit` or `vmap` (traced z) `"mask"` masks the NaN as on the host, while
+        `"raise"` cannot look at the values: a NaN in z gives a NaN C there.
     - `strategy`: how the rollout is computed, as for `simulate`.
     - `aggregate`: aggregated readings of some outputs, an `Aggregate` or a list of them
         (for N trajectories, a list of N entries, each an `Aggregate`, a list or None).

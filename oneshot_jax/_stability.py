@@ -251,6 +251,16 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
             'RK4 (`Model.from_ode(..., method="rk4")`): explicit Euler grows an undamped '
             "mode at any step"
         )
+    elif report.max_step is None and report.value > 1e4 * report.limit:
+        # (an eigenvalue this far past the limit comes from a very stiff mode or, far more
+        # often, from states that have blown up along the simulation: a 100-digit count of
+        # substeps was suggested for one)
+        need = report.value * report.substeps / report.limit
+        remedy = (
+            f"about {need:.3g} substeps for a mode this stiff; but where the simulated "
+            "states grow without bound from this theta (see `oneshot_jax.simulate`), the "
+            "simulation diverges, and the remedy is a theta (or start) at which it does not"
+        )
     elif report.max_step is None:
         need = int(np.ceil(report.value * report.substeps / report.limit))
         remedy = (

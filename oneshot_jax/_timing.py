@@ -150,7 +150,11 @@ def append_intervals(u, dt):
     """u (*N, T, n_u) with the intervals dt (*N, T) as its last column: (*N, T, n_u + 1)."""
     if dt is None:
         return u
-    if _is_tracer(u) or _is_tracer(dt):
+    if (
+        _is_tracer(u)
+        or _is_tracer(dt)
+        or any(isinstance(a, jax.Array) and len(a.sharding.device_set) > 1 for a in (u, dt))
+    ):  # (traced, or a fleet sharded over devices: kept where it lies)
         return jnp.concatenate([u, jnp.asarray(dt, u.dtype)[..., None]], axis=-1)
     return np.concatenate([np.asarray(u), np.asarray(dt, u.dtype)[..., None]], axis=-1)
 

@@ -9,6 +9,11 @@ from ._counts import is_count
 from ._x0_lsq import solve_x0
 
 
+class BlowUp(ValueError):
+    """theta makes the model blow up within windows (`window_starts`): a multistart fit
+    tries its next start (`_fit_inputs.check_inputs`)."""
+
+
 def window_starts(data, u_w, z_w, mask_w=None, keep_first=True):
     """Each window's starting state from its own samples with theta0, for `fit(window=)`
     on a partly observed state: x0-only Gauss-Newton on all windows at once (one
@@ -24,7 +29,7 @@ def window_starts(data, u_w, z_w, mask_w=None, keep_first=True):
     )
     if not np.all(finite):
         bad = [int(i) for i in np.flatnonzero(~finite)]
-        raise ValueError(
+        raise BlowUp(
             f"theta0 makes the model blow up (NaN or inf) within windows {bad} of "
             f"{u_w.shape[1]} samples: each window's starting state is estimated from its "
             "own samples by simulating it with theta0. Start from parameters that keep the "

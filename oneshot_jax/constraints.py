@@ -89,6 +89,11 @@ def _fill_like(bound, params, fill, name):
         return jax.tree_util.tree_unflatten(
             treedef, [_fill_like(b, p, fill, name) for b, p in zip(b_leaves, leaves)]
         )
+    kind = getattr(np.asarray(bound) if is_concrete(bound) else bound, "dtype", None)
+    if isinstance(bound, (str, bytes, bool, np.bool_)) or (
+        kind is not None and np.dtype(kind).kind not in "iuf"
+    ):
+        raise ValueError(f"`{name}` must hold real numbers (a bound), got {bound!r}.")
     if jnp.ndim(bound) == 0 or len(leaves) == 1:
         xp = np if is_concrete(bound) else jnp
         b = xp.asarray(bound)
@@ -172,8 +177,13 @@ def non_negative() -> ProximalTransformation:
 
 def positive(eps: float = 1e-12) -> ProximalTransformation:
     """Projection onto `params >= eps`, a closed stand-in for the open set `params > 0`."""
-    if not eps > 0:
-        raise ValueError(f"`eps` must be > 0, got {eps}.")
+    try:
+        ok = not isinstance(eps, (str, bytes, bool, np.bool_)) and np.ndim(eps) == 0
+        ok = ok and not np.iscomplexobj(eps) and float(eps) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"`eps` must be a number > 0, got {eps!r}.")
     return box(lower=eps)
 
 

@@ -334,7 +334,8 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
 
     - `z`: measured outputs, shape (T,) or (T, n_z), or a `oneshot_jax.datasets.Record`
         or `nonlinear_benchmarks.Input_output_data` (its `y` is used).
-    - `zhat`: model outputs, same shape (or a record-like object, its `y`).
+    - `zhat`: model outputs, same shape (or a record-like object, its `y`); (T,) and
+        (T, 1) are the same single output.
     - `n`: number of initial samples left out, 0 <= n <= T - 2. Default: the `n` (or
         `state_initialization_window_length`) of `z` when it is a record.
 
@@ -366,11 +367,15 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
         raise TypeError(f"`n` must be an integer, got {type(n).__name__}.")
     n = int(n)
     y, yhat = _outputs(z, "z"), _outputs(zhat, "zhat")
-    if y.shape != yhat.shape:
-        raise ValueError(
-            f"`z` and `zhat` must have the same shape, got {y.shape} and {yhat.shape}."
-        )
+    # (T,) is one output channel, the same as (T, 1): a one-output record against a model's
+    # (T, 1) outputs is not a mismatch.
     y, yhat = (a if a.ndim == 2 else a[:, None] for a in (y, yhat))
+    if y.shape != yhat.shape:
+        hint = " Is `zhat` transposed? (time first)" if yhat.shape == y.shape[::-1] else ""
+        raise ValueError(
+            f"`z` and `zhat` must have the same shape (T, n_z), got {y.shape} and "
+            f"{yhat.shape}.{hint}"
+        )
     T = y.shape[0]
     if T < 2 and y.shape[1] >= 2:
         raise ValueError(
@@ -541,9 +546,12 @@ def residual_correlations(
     - `max_lag`: the largest lag, an integer, 1 <= max_lag <= T - 1 (MATLAB's default 25).
     - `confidence`: the level of the band, 0 < confidence < 1 (z = 2.576 for 0.99).
     - `tolerance`: the fraction of lags allowed outside the band in a verdict,
-        0 <= tolerance < 1. The band holds 99 % of the lags of a white residual, so the
-        default 0.05 (one lag in 25) keeps false alarms rare; 0 is the strict reading,
-        "no lag outside".
+        0 <= tolerance < 1; 0 is the strict reading, "no lag outside". The verdict allows
+        floor(tolerance max_lag) lags outside the band. For a white residual the count
+        outside is about Binomial(max_lag, 1 - confidence), so the false-alarm rate
+        depends on max_lag: with the defaults it is 2.6 % at MATLAB's max_lag 25 (one lag
+        allowed), but 1 - 0.99^max_lag for max_lag < 20, where no lag is allowed (17 %
+        at 19), and it jumps at each multiple of 20.
     - `demean`: subtract each channel's mean (over its measured samples, all trajectories
         pooled) first (default); False: the sums of the signals as given, as MATLAB's
         `resid` forms them.

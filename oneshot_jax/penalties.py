@@ -39,6 +39,10 @@ def _constants(value, name, fill, positive=False):
     """A scalar or a 1-D sequence as a static tuple of floats (None -> the fill value)."""
     if value is None:
         return (fill,)
+    if isinstance(value, (str, bytes, bool, np.bool_)) or np.asarray(value).dtype.kind not in "iuf":
+        raise ValueError(
+            f"`{name}` must be a scalar or a 1-D sequence of real numbers, got {value!r}."
+        )
     try:
         arr = np.atleast_1d(np.asarray(value, dtype=np.float64))
     except (TypeError, ValueError) as err:
@@ -137,6 +141,13 @@ def state_box(lower=None, upper=None, *, width=1.0, power: int = 2) -> StateBox:
     """
     lo = _constants(lower, "lower", -math.inf)
     hi = _constants(upper, "upper", math.inf)
+    if math.inf in lo or -math.inf in hi:
+        side = "lower" if math.inf in lo else "upper"
+        raise ValueError(
+            f"`{side}` holds {'+inf' if side == 'lower' else '-inf'}: no state satisfies it "
+            f"(h would be inf everywhere); use None or {'-inf' if side == 'lower' else '+inf'} "
+            "to leave that side unbounded."
+        )
     if len(lo) == len(hi) or 1 in (len(lo), len(hi)):
         if np.any(np.asarray(lo) > np.asarray(hi)):
             raise ValueError("`state_box` needs lower <= upper for every state.")
@@ -164,9 +175,9 @@ def state_ball(radius, *, center=None, scale=None, width=1.0, power: int = 2) ->
 
     A `StateBall`, callable as `h(x, theta)` on one state x of shape (n_x,).
     """
-    if not (isinstance(radius, numbers.Real) and 0 < radius < math.inf):
+    if isinstance(radius, bool) or not (isinstance(radius, numbers.Real) and 0 < radius < math.inf):
         raise ValueError(f"`radius` must be a finite number > 0, got {radius!r}.")
-    if not (isinstance(width, numbers.Real) and 0 < width < math.inf):
+    if isinstance(width, bool) or not (isinstance(width, numbers.Real) and 0 < width < math.inf):
         raise ValueError(f"`width` must be a finite number > 0, got {width!r}.")
     center = _constants(center, "center", 0.0)
     if not all(math.isfinite(c) for c in center):

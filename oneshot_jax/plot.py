@@ -106,6 +106,13 @@ def _model_output(i, model, u, z, n, t=None):
                 "own x0: to compare it with one record, pass `n` (its initial state is then "
                 "estimated from the record's first n outputs)."
             )
+        starts = model.window_starts
+        if not n and starts is not None and np.ndim(u) == 2 and 0 not in np.asarray(starts):
+            raise ValueError(
+                f"`{name}` was fitted on windows (`window=`) none of which starts at sample 0, "
+                "so it has no state for the record's start: pass `n` (its initial state is "
+                "then estimated from the record's first n outputs)."
+            )
         zhat = model.predict(u, z[:n], t=t, **gaps).z if n else model.simulate(u, t=t)[1]
         if not n:
             _warn_other_record(name, model, np.asarray(zhat), z)

@@ -82,6 +82,28 @@ def _split_key(key, n):
         ) from err
 
 
+def _real_scalar(value, name):
+    """`value` as a Python float: a finite real number, given as a Python or NumPy scalar
+    or a concrete 0-d array (a static constant of the module, not a trained parameter)."""
+    shape = np.shape(value) if not isinstance(value, numbers.Number) else ()
+    if shape != ():
+        raise ValueError(
+            f"`{name}` must be one finite number (a static constant, not trained), got an "
+            f"array of shape {shape}."
+        )
+    try:
+        v = np.asarray(value)
+    except Exception as err:  # a tracer: a traced value cannot be a static constant
+        raise ValueError(
+            f"`{name}` must be a concrete finite number (a static constant), got {value!r}."
+        ) from err
+    if v.dtype == bool or not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
+        raise ValueError(f"`{name}` must be a finite real number, got {value!r}.")
+    if not np.isfinite(v):
+        raise ValueError(f"`{name}` must be finite, got {float(v)!r}.")
+    return float(v)
+
+
 def _float_tuple(value, size, name, positive=False):
     """An optional per-entry constant as a tuple of Python floats (static, hashable)."""
     if value is None:
@@ -164,9 +186,8 @@ class MLP(eqx.Module):
         widths = tuple(_positive_int(w, "widths") for w in widths)
         if not callable(activation):
             raise ValueError(f"`activation` must be callable, got {activation!r}.")
-        if not (isinstance(scale, numbers.Real) and math.isfinite(scale)):
-            raise ValueError(f"`scale` must be a finite number, got {scale!r}.")
-        if bound is not None and not (isinstance(bound, numbers.Real) and 0 < bound < math.inf):
+        scale = _real_scalar(scale, "scale")
+        if bound is not None and not 0 < _real_scalar(bound, "bound") < math.inf:
             raise ValueError(f"`bound` must be None or a finite number > 0, got {bound!r}.")
         input_offset = _float_tuple(input_offset, in_size, "input_offset")
         input_scale = _float_tuple(input_scale, in_size, "input_scale", positive=True)
@@ -356,6 +377,9 @@ class Features(eqx.Module):
             raise ValueError(f"`u` must have shape ({self.n_u},), got {jnp.shape(u)}.")
         x, u = jnp.asarray(x), jnp.asarray(u)
         v = jnp.concatenate([x, u]) if self.n_u else x
+        if not jnp.issubdtype(v.dtype, jnp.inexact):  # (integer data: `functions` would truncate)
+            v = v.astype(jnp.result_type(float))
+            x, u = x.astype(v.dtype), u.astype(v.dtype)
         # `products` is ordered by degree (see __init__): one gather per degree.
         cols = []
         for d, group in itertools.groupby(self.products, key=len):

@@ -56,6 +56,8 @@ def fleet_mesh(devices=None):
 
     A `jax.sharding.Mesh` of shape (len(devices),).
     """
+    if isinstance(devices, jax.Device):
+        devices = [devices]  # one device: a mesh of one
     devices = jax.devices() if devices is None else list(devices)
     if not devices:
         raise ValueError("`devices` must hold at least one device.")
@@ -113,14 +115,23 @@ def shard_fleet(x0, u, z=None, *, mesh=None):
     _check_mesh(mesh)
     arrays = {"x0": x0, "u": u} if z is None else {"x0": x0, "u": u, "z": z}
     ndims = {"x0": 2, "u": 3, "z": 3}
+    for name, a in arrays.items():
+        if not isinstance(a, jax.Array):
+            try:
+                arrays[name] = np.asarray(a)
+            except ValueError as err:  # NumPy's "inhomogeneous shape"
+                raise ValueError(
+                    f"`{name}` must be one array with a leading axis of trajectories: "
+                    "trajectories of different lengths (a list of records) cannot be "
+                    'sharded; pad them to one length with NaN in z and `missing="mask"`.'
+                ) from err
+    x0 = arrays["x0"]
     N = np.shape(x0)[0] if np.ndim(x0) == 2 else None
     for name, a in arrays.items():
         if np.ndim(a) != ndims[name] or np.shape(a)[0] != N:
             want = "(N, n_x)" if name == "x0" else f"(N, T, n_{name})"
-            raise ValueError(
-                f"`{name}` must have shape {want} with the same N as `x0` "
-                f"(shape {np.shape(x0)}), got shape {np.shape(a)}."
-            )
+            same = "" if name == "x0" else f" with the same N as `x0` (shape {np.shape(x0)})"
+            raise ValueError(f"`{name}` must have shape {want}{same}, got shape {np.shape(a)}.")
     n_dev = mesh.devices.size
     if N % n_dev:
         raise ValueError(

@@ -110,7 +110,8 @@ def soft_threshold(v, threshold):
     """
     v = jnp.asarray(v)
     t = jnp.asarray(threshold, dtype=v.dtype)
-    return jnp.where(jnp.abs(v) > t, v - t * jnp.sign(v), jnp.zeros_like(v))
+    # `~(|v| <= t)`, not `|v| > t`: a NaN entry stays NaN (a failed step is not a zero).
+    return jnp.where(jnp.abs(v) <= t, jnp.zeros_like(v), v - t * jnp.sign(v))
 
 
 def block_soft_threshold(v, threshold, axis=None):
@@ -123,7 +124,7 @@ def block_soft_threshold(v, threshold, axis=None):
     v = jnp.asarray(v)
     t = jnp.asarray(threshold, dtype=v.dtype)
     norm = jnp.sqrt(jnp.sum(v * v, axis=axis, keepdims=True))
-    keep = norm > t
+    keep = ~(norm <= t)  # (a NaN group stays NaN)
     safe = jnp.where(keep, norm, jnp.ones_like(norm))
     return jnp.where(keep, v * (1 - t / safe), jnp.zeros_like(v))
 
@@ -183,7 +184,14 @@ def mask(select: Callable[[Any], Any]) -> Callable[[Any], Any]:
             ) from err
         # Only floating leaves are parameters: a module's activation function or integer
         # buffers below a selected node stay unselected.
-        return jax.tree_util.tree_map(lambda b, p: b and _is_float(p), picked, params)
+        out = jax.tree_util.tree_map(lambda b, p: b and _is_float(p), picked, params)
+        if not any(jax.tree_util.tree_leaves(out)):
+            raise ValueError(
+                "`select` picks no floating parameter (an activation function, a static "
+                "field or an integer array is not a parameter): the regulariser would act on "
+                "nothing."
+            )
+        return out
 
     return where
 
@@ -218,6 +226,22 @@ def fixed_zeros(theta, where=None):
         else:
             out.append(np.asarray(b, bool) & (np.asarray(p) == 0))
     return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def _key(strength, where, *extra):
+    """The factory's arguments as a hashable key (`_prox.Keyed`), or None: a strength
+    that is a Python or NumPy scalar, and a `where` that is None, a function (by
+    identity) or a pytree of Python bools."""
+    if not isinstance(strength, (int, float, np.number)) or isinstance(strength, bool):
+        return None
+    if where is None or callable(where):
+        w = where
+    else:
+        leaves, treedef = jax.tree_util.tree_flatten(where)
+        if not all(isinstance(b, (bool, np.bool_)) for b in leaves):
+            return None
+        w = (treedef, tuple(bool(b) for b in leaves))
+    return (type(strength), strength, w, *extra)
 
 
 def _is_float(p):
@@ -282,7 +306,22 @@ def _step_leaves(step, params):
             "`step_size` must be a scalar or a pytree with the structure of the parameters, "
             f"got structure {s_def} for parameters {treedef}."
         )
+    for i, (s, p) in enumerate(zip(s_leaves, leaves)):
+        if np.ndim(s) and np.shape(s) != np.shape(p):
+            raise ValueError(
+                f"`step_size`: its leaf {i} must be a scalar or have its parameter's shape "
+                f"{np.shape(p)}, got {np.shape(s)}."
+            )
     return s_leaves, False
+
+
+def _check_step(s):
+    """Refuse a concrete negative or non-finite step of a selected leaf: the prox's
+    threshold step * strength would push its entries away from zero."""
+    if is_concrete(s):
+        a = np.asarray(s)
+        if a.dtype.kind not in "iuf" or not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise ValueError(f"`step_size` must be finite and >= 0, got {s!r}.")
 
 
 def _map_selected(fn, params, sel, step_size):
@@ -294,6 +333,8 @@ def _map_selected(fn, params, sel, step_size):
         if b is False:
             out.append(p)
             continue
+        _check_step(s)
+        p = jnp.asarray(p)  # (a Python float leaf is a parameter too)
         new = fn(p, jnp.asarray(s, p.dtype), scalar)
         out.append(new if b is True else jnp.where(b, new, p))
     return jax.tree_util.tree_unflatten(treedef, out)
@@ -335,7 +376,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
         return strength * total
 
-    return penalty(prox, value, strength, learning_rate, "l1")
+    return penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
 
 
 def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
@@ -368,7 +409,7 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, p * p, 0))
         return 0.5 * strength * total
 
-    return penalty(prox, value, strength, learning_rate, "l2")
+    return penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -429,4 +470,4 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
                 total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
         return strength * total
 
-    return penalty(prox, value, strength, learning_rate, "group_lasso")
+    return penalty(prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis))

@@ -10,6 +10,7 @@ import optimistix as optx
 import pytest
 
 import oneshot_jax as oj
+from oneshot_jax import constraints as oc
 
 N_X, N_U, N_Z, T = 3, 2, 2, 6
 
@@ -636,6 +637,15 @@ def test_options_take_numpy_integers_and_schedules_that_start_at_zero():
     solver = oj.LevenbergMarquardt(max_steps=np.int64(20))
     assert oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, solver=solver).success
     oj.Adam(lr_theta=optax.linear_schedule(0.0, 1e-2, 100))  # a warm-up starts at 0
+    # 0-d arrays (an option computed with jnp) are the numbers they hold; they were
+    # refused as "must be a number".
+    lm = oj.LevenbergMarquardt(gtol=jnp.array(1e-6), mu0=jnp.array(1e-2), rtol=np.array(0.0))
+    assert (lm.gtol, lm.mu0, lm.rtol) == (1e-6, 1e-2, 0.0) and type(lm.gtol) is float
+    adam = oj.Adam(lr_theta=jnp.array(0.01), b1=jnp.array(0.8), tol_loss=jnp.array(1e-9))
+    assert (adam.lr_theta, adam.b1, adam.tol_loss) == (0.01, 0.8, 1e-9)
+    assert oj.LBFGS(tol_grad=jnp.array(1e-9)).tol_grad == 1e-9
+    with pytest.raises(ValueError, match=r"`GaussNewton\(gtol=\.\.\.\)` must be a number"):
+        oj.GaussNewton(gtol=jnp.array([1e-8, 1e-8]))
 
 
 @pytest.mark.parametrize(
@@ -649,6 +659,7 @@ def test_options_take_numpy_integers_and_schedules_that_start_at_zero():
         (lambda v: oj.Windows(v), "length"),
         (lambda v: oj.Windows(10, every=v), "every"),
         (lambda v: oj.Windows(10, count=v), "count"),
+        (lambda v: oj.TqdmProgress(v), "refresh_steps"),
     ],
 )
 def test_counts_are_integers_or_whole_floats_everywhere(make, field):
@@ -657,8 +668,67 @@ def test_counts_are_integers_or_whole_floats_everywhere(make, field):
     made = make(20.0)
     assert getattr(made, field) == 20 and type(getattr(made, field)) is int
     assert type(getattr(make(np.int32(20)), field)) is int
+    # A 0-d JAX array (a count computed with jnp) was refused as "not an integer".
+    for v in (jnp.array(20), jnp.array(20.0), np.array(20)):
+        assert getattr(make(v), field) == 20 and type(getattr(make(v), field)) is int
     with pytest.raises(ValueError, match=rf"{field}=\.\.\.\)` must be"):
         make(20.5)
+    with pytest.raises(ValueError, match=rf"{field}=\.\.\.\)` must be"):
+        make(jnp.array(True))
+    with warnings.catch_warnings():  # (not "a JAX array is being set as static")
+        warnings.simplefilter("error")
+        assert type(oj.NeweyWest(jnp.array(3)).lags) is int
+
+
+def test_numbers_given_as_strings_bools_or_complex_are_refused_by_name():
+    """Each was silently taken as a number: box(lower="0.7") clipped to 0.7, lower=True
+    bound at 1, a complex bound or record lost its imaginary part; positive("x") failed
+    with "'>' not supported"; state_box(upper=-inf) made h infinite everywhere, and the fit
+    blamed a diverging simulation."""
+    theta = {"k": np.array(1.0)}
+    for bad in ("0.7", True, 1 + 2j):
+        with pytest.raises(ValueError, match="`lower` must hold real numbers"):
+            oc.box(lower=bad).project(theta)
+    for bad in ("x", None, True, np.array([1e-3, 1.0])):
+        with pytest.raises(ValueError, match="`eps` must be a number > 0"):
+            oc.positive(bad)
+    with pytest.raises(ValueError, match=r"`upper` holds -inf: no state satisfies it"):
+        oj.penalties.state_box(upper=-np.inf)
+    with pytest.raises(ValueError, match=r"`lower` holds \+inf"):
+        oj.penalties.state_box(lower=[0.0, np.inf])
+    with pytest.raises(ValueError, match="`lower` must be a scalar or a 1-D sequence of real"):
+        oj.penalties.state_box(lower="1")
+    with pytest.raises(ValueError, match="`radius`"):
+        oj.penalties.state_ball(True)
+    with pytest.raises(TypeError, match="`u` must hold real numbers"):
+        oj.datasets.Record(u=np.ones(10) * 1j, y=np.ones(10), Ts=0.1)
+    with pytest.raises((TypeError, ValueError), match="`dt`"):
+        oj.Model.from_ode(lambda x, u, p: -x, np.True_)
+    with pytest.raises((TypeError, ValueError), match="`min_compile_time_secs`"):
+        oj.enable_compilation_cache("/tmp/unused-cache", min_compile_time_secs="1.5")
+
+
+def test_records_and_substeps_take_whole_floats_and_0d_arrays():
+    rec = oj.datasets.Record(u=np.ones(10), y=np.ones(10), Ts=jnp.array(0.5), n=5.0)
+    assert (rec.Ts, rec.n, type(rec.n)) == (0.5, 5, int)
+    assert oj.datasets.Record(u=np.ones(10), y=np.ones(10), Ts=0.5, n=jnp.array(3)).n == 3
+    with pytest.raises(TypeError, match="`n` must be an integer"):
+        oj.datasets.Record(u=np.ones(10), y=np.ones(10), Ts=0.5, n=5.5)
+    model = oj.Model.from_ode(lambda x, u, p: -x, 0.1, substeps=jnp.array(3))
+    assert model.step.substeps == 3 and type(model.step.substeps) is int
+
+
+def test_ode_step_takes_a_python_number_state_and_a_list_input():
+    """`ode_step(rhs, 1.0, [1.0], ...)` raised AttributeError ('float' has no dtype) and
+    TypeError (array + list)."""
+
+    def rhs(x, u, p):
+        return -p * x + u[0]
+
+    ref = oj.ode_step(rhs, jnp.array(1.0), jnp.array([1.0]), 0.5, 0.1)
+    assert oj.ode_step(rhs, 1.0, [1.0], 0.5, 0.1) == ref
+    foh = oj.ode_step(rhs, jnp.array(1.0), jnp.ones((2, 1)), 0.5, 0.1, input="foh")
+    assert oj.ode_step(rhs, 1.0, [[1.0], [1.0]], 0.5, 0.1, input="foh") == foh
 
 
 def test_the_head_length_of_predict_may_be_a_whole_float(lin_result):
@@ -977,3 +1047,31 @@ def test_a_transposed_siso_record_names_the_array_that_is_transposed():
     r = oj.fit(model, th, x0, u, z, solver=oj.GaussNewton(max_steps=2))
     with pytest.raises(ValueError, match=r"`z_head` must have shape \(4, 1\).*transposed"):
         r.predict(u, z[:4].T)
+
+
+def test_missing_mask_under_jit_and_vmap_masks_the_nan():
+    # z traced (jit, vmap): its NaN are masked in the trace, as on the host.
+    model = oj.Model(lambda x, u, th: jnp.array([th["a"] * x[0] + u[0]]))
+    rng = np.random.default_rng(0)
+    u, z = rng.standard_normal((30, 1)), rng.standard_normal((30, 1))
+    z[3] = np.nan
+    th, x0 = {"a": 0.7}, np.ones(1)
+    C = oj.loss(model, th, x0, u, z, missing="mask")
+    assert np.isfinite(C)
+    assert jax.jit(lambda z: oj.loss(model, th, x0, u, z, missing="mask"))(z) == C
+    g = oj.value_and_grad(model, th, x0, u, z, missing="mask")[1][0]["a"]
+    g_jit = jax.jit(lambda z: oj.value_and_grad(model, th, x0, u, z, missing="mask"))(z)
+    assert g_jit[1][0]["a"] == g
+    Cs = jax.vmap(lambda z: oj.loss(model, th, x0, u, z, missing="mask"))(np.stack([z, z]))
+    np.testing.assert_allclose(Cs, [C, C], rtol=1e-14)  # (a batched sum: round-off)
+
+
+@pytest.mark.parametrize("name", ["estimate_x0", "predict"])
+def test_estimate_x0_and_predict_inside_a_transformation_say_so(name):
+    model = oj.Model(lambda x, u, th: th["a"] * x + u)
+    call = {
+        "estimate_x0": lambda z: oj.estimate_x0(model, {"a": 0.5}, _U1[:5], z[:5]).x0,
+        "predict": lambda z: oj.predict(model, {"a": 0.5}, _U1, z, 5).z,
+    }[name]
+    with pytest.raises(TypeError, match=rf"`{name}` runs outside JAX transformations"):
+        jax.jit(call)(_Z1)

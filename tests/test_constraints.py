@@ -269,6 +269,36 @@ def test_a_fit_with_a_box_and_a_general_set_stays_in_both():
     np.testing.assert_allclose(losses[1], losses[0], rtol=1e-6)
 
 
+def test_an_estimate_a_slow_intersection_leaves_outside_is_named():
+    """The wedge 0 <= I1 <= 0.01 I0 as a box and a halfspace: they meet at an angle of
+    0.01, and Dykstra's alternating projections need about 1e4 cycles; capped at 1000 they
+    stop short, and LM returned I = (-0.962, 0), outside the halfspace, in silence. The fit
+    warns with the distance; a fit whose estimate lies in the set does not."""
+    s = 1e-2
+
+    def half(th):  # the Euclidean projection onto {I1 <= s I0}
+        a = jnp.array([-s, 1.0])
+        return {"I": th["I"] - jnp.maximum(th["I"] @ a, 0.0) * a / (a @ a)}
+
+    cons = [oc.box(lower={"I": np.array([-np.inf, 0.0])}), oc.project(half)]
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: x + th["I"] @ u)
+    u = np.random.default_rng(0).standard_normal((100, 2))
+    start = {"I": np.array([1.0, 0.005])}
+    with pytest.warns(RuntimeWarning, match=r"outside the constraint set: the projection moves"):
+        r = oj.fit(
+            model, start, np.zeros(1), u, (u @ np.array([-1.0, -0.5]))[:, None],
+            constraints=cons, estimate_x0=False,
+        )  # fmt: skip
+    assert float(r.theta["I"][1] - s * r.theta["I"][0]) > 1e-3 and not r.success
+    with warnings.catch_warnings():  # data from inside the set: a feasible optimum
+        warnings.simplefilter("error")
+        r = oj.fit(
+            model, start, np.zeros(1), u, (u @ np.array([2.0, 0.01]))[:, None],
+            constraints=cons, estimate_x0=False,
+        )  # fmt: skip
+    assert r.success
+
+
 def test_invalid_constraints_raise():
     # These made the parameter NaN or infinite and the fit "diverged at step 0".
     with pytest.raises(ValueError, match="`lower` holds NaN"):

@@ -307,6 +307,31 @@ def test_stability_limit_of_euler_and_other_models():
         oj.check_stability(euler, {"a": 1.0}, np.zeros(1), u, points=0)
 
 
+def test_a_diverging_simulation_is_not_given_a_100_digit_substeps_count():
+    """Euler on a stiff cubic oscillator from this theta blows the states up to 1e50: the
+    largest eigenvalue along the trajectory comes from there, and the warning suggested
+    `substeps=19957045155542065708514...`. Far past the limit it names the divergence."""
+
+    def rhs(x, u, p):
+        return jnp.array([x[1], -p["k"] * x[0] - p["c"] * x[1] - 5.0 * x[0] ** 3])
+
+    model = oj.Model.from_ode(rhs, 0.1, method="euler")
+    with pytest.warns(RuntimeWarning, match=r"the simulation diverges") as caught:
+        oj.check_stability(model, {"k": 10.0, "c": 0.5}, np.array([1.0, 0.0]), np.zeros((60, 1)))
+    assert "substeps=" not in str(caught[0].message)
+
+
+def test_continuation_and_basin_take_numpy_numbers():
+    """`margin=np.int64(20)` was refused as "not a non-negative number" (and `factor`
+    alike), while `window=np.int64(20)` was taken."""
+    cont = _no_warnings(
+        oj.fit_continuation, MODEL, START, np.zeros(2), U, Z, start=50, factor=np.int64(3)
+    )
+    assert [s.window for s in cont.stages] == [50, 150, None]
+    with pytest.raises(ValueError, match="`margin` must be a non-negative number"):
+        oj.check_basin(cont.result, U, Z, margin=np.float32(-1.0))
+
+
 def test_each_new_window_starts_from_the_last_stage_state_at_its_start():
     """Stage k + 1's windows start from stage k's trajectories (each simulated from its
     own window's x0) read at the new starts: for windows of 50 then 120, the new windows

@@ -407,7 +407,7 @@ def test_record_basics():
         (dict(Ts="1"), TypeError, "`Ts` must be a positive number"),
         (dict(n=5), ValueError, r"0 <= n < T = 5"),
         (dict(n=-1), ValueError, r"0 <= n < T"),
-        (dict(n=1.0), TypeError, "`n` must be an integer"),
+        (dict(n=1.5), TypeError, "`n` must be an integer"),  # (1.0 is the count 1)
         (dict(name=3), TypeError, "`name` must be a string"),
     ],
 )

@@ -11,6 +11,7 @@ import io
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import benchmark_or_skip
 
@@ -129,7 +130,25 @@ def test_guides_on_the_benchmark_files_run(path, tmp_path, monkeypatch):
     they use); a skip names the files when they are not found."""
     for name in _loaders(path):
         benchmark_or_skip(getattr(oj.datasets, name))
-    _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
+    ns = _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
+    if path == "docs/guides/real-data.md":
+        _check_real_data_prose(ns)
+
+
+def _check_real_data_prose(ns):
+    """The numbers the real-data guide's prose quotes are those its code computes: the
+    protocol FIT of the basic tanks model, and the positive lags at which the residual's
+    cross-correlation with the pump voltage leaves the band (`plot.resid`'s numbers)."""
+    text = (ROOT / "docs" / "guides" / "real-data.md").read_text()
+    test, prediction = ns["test"], ns["prediction"]
+    fit = oj.metrics.benchmark_scores(test.y[:, None], prediction.z, test.n).fit_percent[0]
+    assert f"FIT {fit:.1f} %" in text and f"({fit:.2f} %, the" in text, fit
+    rc = oj.metrics.residual_correlations(ns["tanks_fit"].residuals, ns["train"].u[:, None])
+    outside = np.abs(rc.cross[:, 0, 0]) > rc.bound[0]
+    lags = rc.lags[outside & (rc.lags >= 0)]
+    assert f"leaves the band at lags {lags.min()} to {lags.max()}" in text, lags
+    assert np.array_equal(lags, np.arange(lags.min(), lags.max() + 1)), lags
+    assert np.any(outside & (rc.lags < 0))  # "and at negative lags"
 
 
 def test_non_uniform_guide_runs(tmp_path, monkeypatch):

@@ -146,6 +146,22 @@ BAD = [
     (["experiment.run_methods=[nope]"], "`experiment.run_methods` must be one of"),
     (["solver.kwargs.max_steps=-3"], r"Adam\(max_steps=...\)"),
     (["+solver.kwargs.foo=1"], r"unknown kwargs \['foo'\]"),
+    (["solver=slsqp", "solver.kwargs.method=NOPE"], r"`solver.kwargs.method` must be a scipy"),
+    (["solver=slsqp", "solver.kwargs.fd_scheme=7-point"], r"`solver.kwargs.fd_scheme` must be"),
+    (["solver=slsqp", "solver.kwargs.scale=maybe"], r"`solver.kwargs.scale` must be true or"),
+    (["solver=slsqp", "solver.kwargs.tol=abc"], r"`solver.kwargs.tol` must be a finite"),
+    (
+        ["experiment.methods.gb_one_step.solver.kwargs.max_steps=-1"],
+        r"experiment.methods.gb_one_step.solver.kwargs of 'levenberg_marquardt'",
+    ),
+    (
+        ["experiment.methods.slsqp_fd.solver.name=foo"],
+        r"`experiment.methods.slsqp_fd.solver.name` must be one of",
+    ),
+    (
+        ["+experiment.solver_defaults.adam.max_stepz=5"],
+        r"unknown key\(s\) experiment.solver_defaults.adam.max_stepz",
+    ),
     (["experiment=emps", "solver=slsqp"], "experiment=emps runs the library's solvers only"),
     (["experiment=emps", "experiment.eps=0"], "`experiment.eps` must be a finite number > 0"),
     (

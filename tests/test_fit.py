@@ -841,7 +841,7 @@ def test_gauss_newton_steps_past_a_parameter_without_effect():
     u = jnp.ones((50, 1))
     _, z = oj.simulate(model, {"a": 0.9, "b": 0.1}, jnp.array([0.0]), u)
     for solver in ("gauss_newton", "levenberg_marquardt"):
-        with pytest.warns(UserWarning, match="not identifiable"):
+        with pytest.warns(UserWarning, match=r"not identifiable.*Hold some of them .*fixed="):
             res = oj.fit(
                 model,
                 {"a": 0.5, "b": 0.3},
@@ -880,6 +880,10 @@ def test_outputs_with_unequal_noise_warn_that_the_errors_pool_one_level():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         oj.fit(model, start, np.zeros(2), u, z, weight=1 / sigma**2)
+        # Noise-free data: a `zero_residual` stop's round-off residuals have no noise
+        # level to compare (they warned of a factor of hundreds).
+        r = oj.fit(model, start, np.zeros(2), u, np.asarray(z0) * [1.0, 1e3])
+        assert r.status == "zero_residual"
 
 
 def test_an_output_of_zero_weight_is_not_counted_as_observations():

@@ -1124,3 +1124,25 @@ def test_a_first_order_fit_reports_its_exact_measure_at_max_steps():
     assert r.status == "max_steps_reached"
     fresh = oj.fit(model, r.theta, r.x0, u, z, solver=oj.Adam(max_steps=0), estimate_x0=True)
     assert r.stop_info["first_order"] == pytest.approx(fresh.stop_info["first_order"], rel=1e-6)
+
+
+@pytest.mark.parametrize("solver", [oj.LevenbergMarquardt(), oj.LBFGS()], ids=["lm", "lbfgs"])
+def test_a_parameter_in_small_units_does_not_fake_a_success(solver):
+    """b in units of 1e-15 (its Jacobian column 1e-15 of a's): Marquardt's diagonal,
+    floored at 1e-12 of its largest entry, divided b's cosine by up to 1e9, and LM and
+    L-BFGS read "converged" at the start b = 0.3 (the optimum is 0.5, measure 0.77). A
+    success is now a solution; L-BFGS, not scale-invariant, stops honestly short."""
+    S = 1e15
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] / S * u)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((120, 1))
+    _, z = oj.simulate(model, {"a": 0.9, "b": 0.5 * S}, np.array([1.0]), u)
+    z = np.asarray(z) + 1e-2 * rng.standard_normal(z.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(model, {"a": 0.7, "b": 0.3 * S}, np.array([0.5]), u, z, solver=solver)
+    b = float(r.theta["b"]) / S
+    if isinstance(solver, oj.LevenbergMarquardt):
+        assert r.success and abs(b - 0.5) < 0.01, (r.status, b)
+    else:
+        assert not r.success and r.stop_info["first_order"] > 0.5, (r.status, b)

@@ -311,3 +311,17 @@ def test_physics_first_multistart_true_names_a_scalar_physical_leaf(small):
     starts = {**theta0, "k": np.array([2.0, 3.0])}
     with pytest.raises(ValueError, match=r"leading axis of starts.*theta0\['c'\] is a scalar"):
         oj.fit_physics_first(model, starts, np.zeros(2), u, z, multistart=True)
+
+
+def test_fit_orthogonal_names_a_start_where_the_model_does_not_simulate(small):
+    """sqrt(k) at k = -1: the sensitivity basis is NaN, and the error blamed the user's `u`
+    (the basis travels as extra input columns)."""
+
+    def hybrid(x, u, p):
+        k = jnp.sqrt(p["k"]) ** 2
+        return jnp.stack([x[1], -k * x[0] - p["c"] * x[1] + p["r"](x)[0] + u[0]])
+
+    _, theta0, u, z = small
+    model = oj.Model.from_ode(hybrid, DT, observe=lambda x, u, p: x[:1])
+    with pytest.raises(ValueError, match=r"not finite at theta0 and x0: start where the model"):
+        oj.fit_orthogonal(model, {**theta0, "k": -1.0}, np.zeros(2), u, z, rounds=1)

@@ -250,6 +250,41 @@ def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
         np.testing.assert_array_equal(pred.x0, ref.x0)
 
 
+def test_fit_result_predict_smoother_uses_the_noise_the_fit_estimated():
+    """The smoother reads a weight as an inverse noise covariance, whose scale a fit does
+    not set: a fit with weight W / 1e4 gave x0 off by 0.2 with std 30 (a probe).
+    `FitResult.predict` gives it sigma^2 W^{-1} (sigma^2 = SSE / dof of the fit's weighted
+    residuals): the same prediction for W, 1e4 W and 1e-4 W, and the same as
+    `estimate_x0` with that noise computed here."""
+    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    rng = np.random.default_rng(3)
+    u = 0.5 * np.sin(0.3 * np.arange(60))[:, None]
+    z = np.asarray(oj.simulate(model, PEND_THETA, np.array([0.8, -0.3]), u)[1])
+    z = z + 0.01 * rng.standard_normal(z.shape)
+    u_new = 0.5 * np.sin(0.3 * np.arange(80) + 2.0)[:, None]
+    z_new = np.asarray(oj.simulate(model, PEND_THETA, np.array([-0.5, 0.9]), u_new)[1])
+    z_new = z_new + 0.01 * rng.standard_normal(z_new.shape)
+    w = np.array([[4.0, 0.5], [0.5, 0.25]])
+    preds = []
+    for c in (1.0, 1e4, 1e-4):
+        r = oj.fit(model, np.array([9.0, 0.5]), np.array([0.7, -0.2]), u, z, weight=c * w)
+        assert r.success
+        preds.append(r.predict(u_new, z_new[:N_HEAD], method="smoother"))
+        if c == 1.0:
+            e = np.asarray(r.residuals)
+            s2 = np.einsum("ki,ij,kj->", e, w, e) / (e.size - 2 - 2)
+            ref = oj.estimate_x0(
+                model, r.theta, u_new, z_new, n=N_HEAD, x0=r.x0, method="smoother",
+                measurement_noise=s2 * np.linalg.inv(w),
+            )  # fmt: skip
+            np.testing.assert_array_equal(preds[0].x0, ref.x0)
+            np.testing.assert_array_equal(preds[0].estimate.std, ref.std)
+    for p in preds[1:]:
+        np.testing.assert_allclose(p.x0, preds[0].x0, rtol=1e-6)
+        np.testing.assert_allclose(p.estimate.std, preds[0].estimate.std, rtol=1e-6)
+    assert np.all(np.abs(preds[0].x0 - [-0.5, 0.9]) < 4 * preds[0].estimate.std)
+
+
 def test_lsq_is_the_x0_only_fit():
     """`estimate_x0` solves x0 below `fit`, with the numbers of the public x0-only fit
     (every parameter fixed) on the head: a weighted two-output head, Levenberg-Marquardt

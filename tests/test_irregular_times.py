@@ -457,3 +457,25 @@ def test_errors_about_u_name_the_users_n_u():
     model = oj.Model.from_ode(lambda x, u, th: rhs(x, jnp.eye(2) @ u, th), None)
     with pytest.raises(ValueError, match=r"input of shape \(1,\) \(from `u` of shape \(12, 1\)\)"):
         oj.simulate(model, THETA, x0, u[:, :1], t=t)
+
+
+@pytest.mark.parametrize(
+    "dtype, substeps, t1",
+    [
+        (np.float32, 4, 0.4000004529953003),  # a float32 number
+        (np.float64, 1, 0.10000010000010001),  # max_step / (1 - 1e-6): the tolerance's edge
+        (np.float64, 3, 0.30000030000030004),
+    ],
+)
+def test_an_interval_next_to_a_multiple_of_max_step_is_integrated_whole(dtype, substeps, t1):
+    """The host check counted n steps of max_step = 0.1 for these intervals and the compiled
+    step n + 1 (XLA folds 1 / max_step and the tolerance into one constant), and the loop,
+    bounded by `substeps`, integrated n / (n + 1) of the interval (half of it, for one
+    substep). The count is capped at `substeps`: dx/dt = 1 crosses the whole interval."""
+    model = oj.Model.from_ode(
+        lambda x, u, p: p["c"] * jnp.ones_like(x), None, max_step=0.1, substeps=substeps
+    )
+    t = np.array([0.0, t1])
+    x, _ = oj.simulate(model, {"c": dtype(1.0)}, np.zeros(1, dtype), np.zeros((2, 0), dtype), t=t)
+    assert x.dtype == dtype
+    np.testing.assert_allclose(float(x[1, 0]), float(dtype(t1)), rtol=4 * np.finfo(dtype).eps)

@@ -174,6 +174,21 @@ def test_benchmark_scores_of_a_record_and_its_output():
     np.testing.assert_array_equal(metrics.benchmark_scores(rec, zhat).nrmse, s.nrmse)
 
 
+def test_benchmark_scores_one_output_as_1d_or_column():
+    # A one-output record's y is (T,); a model's simulated outputs are (T, 1). Both are the
+    # same single channel, scored as such (never broadcast to (T, T)).
+    from oneshot_jax.datasets import Record
+
+    z, zhat = _pair((100,), 3)
+    rec = Record(u=np.zeros(100), y=z, Ts=0.1, n=10, name="test")
+    ref = metrics.benchmark_scores(z[:, None], zhat[:, None], 10)
+    for a, b in ((rec, zhat[:, None]), (z[:, None], zhat), (z, zhat[:, None])):
+        s = metrics.benchmark_scores(a, b, 10)
+        assert s.rmse.shape == (1,)
+        np.testing.assert_array_equal(s.rmse, ref.rmse)
+        np.testing.assert_array_equal(s.fit_percent, ref.fit_percent)
+
+
 def test_benchmark_scores_print_and_json():
     import json
 
@@ -202,7 +217,8 @@ def test_benchmark_scores_perfect_and_mean_models():
     "z_shape, zhat_shape, n, error, pattern",
     [
         ((50, 2), (50, 3), 5, ValueError, "same shape"),
-        ((50,), (50, 1), 5, ValueError, "same shape"),
+        ((50, 2), (2, 50), 5, ValueError, "same shape .* Is `zhat` transposed"),
+        ((50,), (1, 50), 5, ValueError, "same shape .* Is `zhat` transposed"),
         ((4, 50, 2), (4, 50, 2), 5, ValueError, r"\(T,\) or \(T, n_z\)"),
         ((50,), (50,), 49, ValueError, r"0 <= n <= T - 2 = 48"),
         ((50,), (50,), -1, ValueError, r"0 <= n"),

@@ -334,6 +334,12 @@ def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
     z2 = np.asarray(oj.simulate(model, truth, x0, u2)[1])
     with pytest.warns(UserWarning, match="pass `n`"):
         oj.plot.compare(z2, res, u=u2)
+    # Windows none of which starts at 0: no state for the record's start; `n` is the remedy
+    # inside compare (not simulate's advice of an x0 or `predict`), and n works.
+    res = oj.fit(model, res.theta, np.zeros(2), u, z, window=oj.Windows(50, starts=[20, 120]))
+    with pytest.raises(ValueError, match=r"none of which starts at sample 0.*pass `n`"):
+        oj.plot.compare(z, res, u=u)
+    assert "FIT" in " ".join(_legend_texts(oj.plot.compare(z, res, u=u, n=10).axes[0]))
 
 
 def test_transposed_records_and_windowed_residuals_get_a_hint(fitted):

@@ -168,6 +168,8 @@ def test_mlp_options_and_parameter_count():
         (dict(in_size=2, out_size=1, widths=4), "`widths`"),
         (dict(in_size=2, out_size=1, bound=0.0), "`bound`"),
         (dict(in_size=2, out_size=1, scale=math.inf), "`scale`"),
+        (dict(in_size=2, out_size=1, scale=jnp.array([1.0, 2.0])), "`scale` must be one finite"),
+        (dict(in_size=2, out_size=1, scale=True), "`scale` must be a finite real"),
         (dict(in_size=2, out_size=1, activation="tanh"), "`activation`"),
         (dict(in_size=2, out_size=1, input_scale=[1.0, 0.0]), "`input_scale`"),
         (dict(in_size=2, out_size=1, input_offset=[1.0, 2.0, 3.0]), "`input_offset`"),
@@ -176,6 +178,27 @@ def test_mlp_options_and_parameter_count():
 def test_mlp_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         MLP(**kwargs, key=jax.random.PRNGKey(0))
+
+
+def test_features_of_integer_data_are_not_truncated():
+    """Integer states gave sin(1) = 0: the user functions' values were cast to the data's
+    integer dtype (in `Dictionary` and `Features.rms` too)."""
+    f = Features(1, 0, 2, functions={"sin(x0)": lambda x, u: jnp.sin(x[0])})
+    np.testing.assert_array_equal(f(np.array([1]), np.zeros(0)), f(np.array([1.0]), np.zeros(0)))
+    assert float(f(np.array([1]), np.zeros(0))[-1]) == pytest.approx(np.sin(1.0), rel=1e-15)
+    d = Dictionary(f, 1, coef=np.ones((3, 1)))
+    np.testing.assert_array_equal(d(np.array([1]), np.zeros(0)), d(np.array([1.0]), np.zeros(0)))
+    ints, floats = np.array([[1], [2]]), np.array([[1.0], [2.0]])
+    np.testing.assert_array_equal(f.rms(ints, np.zeros((2, 0))), f.rms(floats, np.zeros((2, 0))))
+
+
+def test_mlp_takes_a_scale_given_as_a_0d_array():
+    # A scale from data (jnp.std(...) or np.float64) is a 0-d array: a constant like 2.0.
+    key = jax.random.PRNGKey(0)
+    for scale in (jnp.array(2.0), np.array(2.0), np.float64(2.0)):
+        mlp = MLP(2, 1, (4,), key=key, zero_last=False, scale=scale, bound=jnp.array(3.0))
+        assert (mlp.scale, mlp.bound) == (2.0, 3.0)
+        assert type(mlp.scale) is float
 
 
 @pytest.mark.parametrize(

@@ -286,6 +286,18 @@ def test_a_windowed_fit_says_its_fit_is_over_the_windows(fitted):
     assert "(over the 3 windows, each from its own fitted x0: not a simulation" in text
     assert np.shape(r.residuals) == (3, 40, 1)
     assert "over the" not in str(fitted)
+    # Its initial states are the windows', not trajectories.
+    assert "(per window, 3 windows)" in text and "trajector" not in text
+    r = oj.fit(
+        MODEL,
+        {"w0sq": 3.0, "c": 0.2, "b": 1.0},
+        x0,
+        u,
+        z,
+        window=20,
+        solver=oj.LevenbergMarquardt(max_steps=3),
+    )
+    assert "... and 4 more windows (result.x0" in str(r)
 
 
 def test_units_are_checked():

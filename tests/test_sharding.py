@@ -10,7 +10,8 @@ process has already done. There, with 8 trajectories split over 4 CPU devices:
 - the Gauss-Newton normal equations (`_linalg.normal_blocks`, einsums over the
   trajectory axis) of the closed-form residual Jacobians equal the unsharded ones;
 - the parallel-in-time gradient over the sharded fleet equals the sequential one;
-- `fit` on the sharded fleet equals `fit` on the unsharded one;
+- `fit` on the sharded fleet equals `fit` on the unsharded one, also with missing samples
+  (whose masked z stays sharded);
 - N = 6 on 4 devices is refused with a ValueError.
 """
 
@@ -110,7 +111,19 @@ SCRIPT = textwrap.dedent(
     assert rel(got.theta["I"], want.theta["I"]) <= 1e-10, rel(got.theta["I"], want.theta["I"])
     assert rel(got.x0, want.x0) <= 1e-10
 
-    # 5. Uneven fleets are refused.
+    # 5. A fleet with missing samples stays sharded (z was copied to the host for its
+    #    mask) and fits as the unsharded one.
+    from oneshot_jax.internal import check_data
+
+    zn = np.asarray(zt).copy()
+    zn[1, 5:9, 0] = np.nan
+    _, _, zns = shard_fleet(x0, u, zn, mesh=mesh)
+    assert len(check_data(model, theta, xs, us, zns, None, "mask").z.sharding.device_set) == 4
+    want = oj.fit(model, theta0, x0, u, zn, missing="mask", solver=oj.GaussNewton())
+    got = oj.fit(model, theta0, xs, us, zns, missing="mask", solver=oj.GaussNewton())
+    assert rel(got.theta["I"], want.theta["I"]) <= 1e-10, rel(got.theta["I"], want.theta["I"])
+
+    # 6. Uneven fleets are refused.
     try:
         shard_fleet(x0[:6], u[:6], z[:6], mesh=mesh)
     except ValueError as err:
@@ -148,8 +161,30 @@ def test_sharded_fleet_equals_unsharded():
         (lambda: sharding.fleet_sharding(None, 2), TypeError, "`mesh` must be a 1-D"),
         (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 0), ValueError, "`ndim`"),
         (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 1.0), ValueError, "`ndim`"),
+        # NumPy's "inhomogeneous shape", and "the same N as `x0`" said of x0 itself.
+        (
+            lambda: sharding.shard_fleet(np.zeros((2, 1)), [np.zeros((5, 1)), np.zeros((3, 1))]),
+            ValueError,
+            "`u` must be one array .* different lengths .* cannot be sharded",
+        ),
+        (
+            lambda: sharding.shard_fleet(np.zeros(2), np.zeros((2, 5, 1))),
+            ValueError,
+            r"`x0` must have shape \(N, n_x\), got shape \(2,\)\.",
+        ),
     ],
 )
 def test_bad_mesh_and_ndim_are_named(call, error, match):
     with pytest.raises(error, match=match):
         call()
+
+
+def test_a_fleet_given_as_lists_or_on_one_device():
+    """A list of x0 rows passed the shape check and failed inside `device_put`; one
+    `Device` for `fleet_mesh` was "'Device' object is not iterable"."""
+    import jax
+
+    mesh = sharding.fleet_mesh(jax.devices()[0])
+    assert mesh.devices.size == 1
+    x0, u = sharding.shard_fleet(list(np.zeros((2, 2))), np.zeros((2, 5, 1)), mesh=mesh)
+    assert x0.shape == (2, 2) and u.shape == (2, 5, 1)

@@ -13,6 +13,7 @@ import pytest
 import oneshot_jax as oj
 import oneshot_jax.sparsity as sp
 from oneshot_jax import constraints as oc
+from oneshot_jax.residual import MLP
 
 
 def test_soft_threshold_closed_form_and_exact_zeros():
@@ -29,6 +30,47 @@ def test_soft_threshold_closed_form_and_exact_zeros():
     nz = out != 0
     np.testing.assert_allclose(out[nz] - v[nz] + t * np.sign(out[nz]), 0.0, atol=1e-15)
     assert np.all(np.abs(v[~nz]) <= t)
+
+
+def test_a_nan_entry_stays_nan_not_a_zero():
+    """`|v| > t` is False for NaN, so the thresholds returned an exact zero there: a failed
+    step (a NaN gradient in a hand-written optax loop) read as a term selected out."""
+    out = np.asarray(sp.soft_threshold(jnp.array([np.nan, 0.3, -np.inf, 0.05]), 0.1))
+    assert np.isnan(out[0]) and out[1] == pytest.approx(0.2) and out[2] == -np.inf
+    assert out[3] == 0.0
+    W = jnp.array([[np.nan, 0.0, 0.0], [1e-3, 0.0, 0.0], [3.0, 4.0, 0.0]])
+    out = np.asarray(sp.block_soft_threshold(W, 1.0, axis=-1))
+    assert np.all(np.isnan(out[0])) and np.all(out[1] == 0.0)
+    np.testing.assert_allclose(out[2], [2.4, 3.2, 0.0], rtol=1e-15)
+    tx = optax.chain(optax.sgd(0.1), sp.l1(0.01, learning_rate=0.1))
+    params = jnp.array([0.5, -0.2])
+    updates, _ = tx.update(jnp.array([np.nan, 0.1]), tx.init(params), params)
+    assert np.isnan(np.asarray(optax.apply_updates(params, updates))[0])
+
+
+def test_prox_of_a_python_float_leaf_and_bad_steps():
+    """A Python number is a parameter (`where=None` selects it): its prox raised
+    AttributeError ('float' object has no attribute 'dtype'). A negative step moved entries
+    away from zero, and a step of the wrong shape failed inside `gt`."""
+    theta = {"a": jnp.array([0.5, -0.1]), "k": 1.0}
+    for reg, k in ((sp.l1(2.0), 0.8), (sp.l2(2.0), 1.0 / 1.2), (sp.group_lasso(2.0), 0.8)):
+        assert float(reg.prox(theta, 0.1)["k"]) == pytest.approx(k, rel=1e-12)
+    with pytest.raises(ValueError, match="`step_size` must be finite and >= 0"):
+        sp.l1(1.0).prox(theta, -0.1)
+    with pytest.raises(ValueError, match="`step_size` must be finite and >= 0"):
+        sp.l1(1.0).prox(theta, {"a": jnp.array([0.1, -0.1]), "k": 0.1})
+    with pytest.raises(ValueError, match=r"`step_size`: its leaf 0 .* shape \(2,\), got \(3,\)"):
+        sp.l1(1.0).prox(theta, {"a": jnp.ones(3), "k": 0.1})
+
+
+def test_a_where_that_selects_no_parameter_is_refused():
+    """`mask(lambda t: t["n"].activation)` picks a function, no parameter: the regulariser
+    acted on nothing and the fit ran as if it were not there."""
+    net = MLP(2, 1, (3,), key=jax.random.PRNGKey(0))
+    theta = {"k": jnp.asarray(0.5), "n": net}
+    reg = sp.l1(1.0, where=sp.mask(lambda t: t["n"].activation))
+    with pytest.raises(ValueError, match="picks no floating parameter"):
+        reg.prox(theta, 0.1)
 
 
 def test_soft_threshold_idempotent_where_it_should_be():
@@ -300,6 +342,10 @@ def test_schedule_and_combine():
     [
         (lambda: sp.l1(-1.0), "`strength`"),
         (lambda: sp.l1(float("nan")), "`strength`"),
+        (lambda: sp.l1("0.5"), "`strength` must be a finite scalar"),
+        (lambda: sp.l1(True), "`strength` must be a finite scalar"),
+        (lambda: sp.l1(0.1, learning_rate="0.1"), "`learning_rate` must be the step size"),
+        (lambda: sp.l1(0.1, learning_rate=True), "`learning_rate` must be the step size"),
         (lambda: sp.l1(0.1, learning_rate=0.0), "`learning_rate`"),
         (lambda: sp.l1(0.1, learning_rate="fast"), "`learning_rate`"),
         (lambda: sp.group_lasso(0.1, axis="rows"), "`axis`"),

@@ -162,7 +162,7 @@ def test_patience_stops_early():
     assert res.num_steps == res.history.step[i] + 25  # stopped after 25 without a better score
 
 
-def test_a_divergence_behind_the_best_scored_iterate_is_named():
+def test_a_divergence_behind_the_best_scored_iterate_is_named(tmp_path):
     """Adam with a learning rate that blows the simulation up: the best-scored iterate is
     returned (`validation`), and the solver's own stop, `diverged`, is named with it
     (nothing said so)."""
@@ -183,6 +183,20 @@ def test_a_divergence_behind_the_best_scored_iterate_is_named():
     # read 0, a stationary point's value, from the division by an infinite ||r||).
     res = fit()
     assert res.status == "diverged" and np.isnan(res.stop_info["first_order"])
+    # With several starts each start's own stop is kept too (they all read `validation`),
+    # printed, and saved.
+    starts = {"k": np.array([3.0, 2.5]), "c": np.array([0.3, 0.3]), "g": np.array([0.8, 0.8])}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = oj.fit(
+            MODEL, starts, x0, u, z, solver=solver, multistart=True,
+            validation=oj.Validation(uv, zv, n=20),
+        )  # fmt: skip
+    assert res.starts.stop_reason == ("validation", "validation")
+    assert res.starts.solver_stop == ("diverged", "diverged")
+    assert "stops: validation 2 (the solvers' own stops: diverged 2)" in str(res)
+    path = res.save(tmp_path / "r.npz")
+    assert oj.load_result(path).starts.solver_stop == ("diverged", "diverged")
 
 
 def test_counts_given_as_whole_floats_count():

@@ -118,3 +118,19 @@ def test_window_with_an_x0_per_start_is_refused_by_name():
             multistart=True,
             window=50,
         )
+
+
+def test_multistart_windows_take_their_states_from_a_start_that_stays_finite():
+    """With `multistart` and `window`, the windows' starting states come from the first
+    start whose simulation stays finite over the windows: a blowing-up first start does
+    not refuse the whole fit, and the order of the starts does not matter."""
+    u, z, x0 = _record()
+    good, bad = {"k": 3.0, "c": 0.4}, {"k": -4000.0, "c": -600.0}
+    for first, second in ((bad, good), (good, bad)):
+        theta0 = {key: np.array([first[key], second[key]]) for key in good}
+        r = oj.fit(MODEL, theta0, x0, u, z, multistart=True, window=100)
+        assert r.success and sorted(r.starts.stop_reason)[0] == "converged"
+        assert abs(float(r.theta["k"]) - 4.0) < 0.05
+    theta0 = {key: np.array([bad[key], bad[key]]) for key in good}
+    with pytest.raises(ValueError, match="every one of the 2 starts"):
+        oj.fit(MODEL, theta0, x0, u, z, multistart=True, window=100)

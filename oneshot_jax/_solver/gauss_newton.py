@@ -3,7 +3,7 @@
 
 import equinox as eqx
 
-from .._counts import integral
+from .._counts import integral, real
 from ._search import Backtracking
 from .least_squares import AbstractLeastSquares
 
@@ -51,14 +51,14 @@ class GaussNewton(AbstractLeastSquares):
         iteration budget per step (with `"cg"`).
     """
 
-    rtol: float = 0.0
-    atol: float = 0.0
-    gtol: float = 1e-8
-    stol: float = 1e-2
+    rtol: float = eqx.field(default=0.0, converter=real)
+    atol: float = eqx.field(default=0.0, converter=real)
+    gtol: float = eqx.field(default=1e-8, converter=real)
+    stol: float = eqx.field(default=1e-2, converter=real)
     max_steps: int = eqx.field(default=100, converter=integral)
     strategy: str = "auto"
     linear_solver: str = "auto"
-    cg_rtol: float = 1e-8
+    cg_rtol: float = eqx.field(default=1e-8, converter=real)
     cg_max_steps: int = eqx.field(default=50, converter=integral)
 
     def __check_init__(self):

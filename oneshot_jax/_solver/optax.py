@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._counts import integral
+from .._counts import integral, real
 from .._linalg import floor
 from .._optimality import (
     Measures,
@@ -350,9 +350,9 @@ class Optax(_AbstractOptax):
 
     transform: optax.GradientTransformation
     max_steps: int = eqx.field(default=1000, converter=integral)
-    tol_loss: float | None = None
-    tol_grad: float = 0.0
-    gtol: float = 1e-8
+    tol_loss: float | None = eqx.field(default=None, converter=real)
+    tol_grad: float = eqx.field(default=0.0, converter=real)
+    gtol: float = eqx.field(default=1e-8, converter=real)
     strategy: str = "auto"
 
     def __check_init__(self):
@@ -394,7 +394,9 @@ class Adam(_AbstractOptax):
     d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps), lambda the regulariser's
     strength (the largest one of a combination). The prox in this metric soft-thresholds
     coordinate i at d_i lambda, so selected terms land exactly on zero and stay there
-    while |dC/dtheta_i| <= lambda; the fixed points are the stationary points of C + g.
+    while Adam's averaged gradient |m_hat_i| <= lambda (the momentum of earlier, larger
+    gradients can carry a zero away although |dC/dtheta_i| <= lambda now); the fixed
+    points are the stationary points of C + g.
     The floor lambda on sqrt(v_hat) keeps every move at most about lr_theta (it also
     applies to the unregularised entries of theta). x0 takes plain Adam steps.
 
@@ -415,15 +417,15 @@ class Adam(_AbstractOptax):
     - `max_steps`, `tol_loss`, `tol_grad`, `gtol`, `strategy`: as for `Optax`.
     """
 
-    lr_theta: Any = 1e-3
-    lr_x0: Any = 1e-4
-    b1: float = 0.9
-    b2: float = 0.999
-    eps: float = 1e-8
+    lr_theta: Any = eqx.field(default=1e-3, converter=real)
+    lr_x0: Any = eqx.field(default=1e-4, converter=real)
+    b1: float = eqx.field(default=0.9, converter=real)
+    b2: float = eqx.field(default=0.999, converter=real)
+    eps: float = eqx.field(default=1e-8, converter=real)
     max_steps: int = eqx.field(default=5000, converter=integral)
-    tol_loss: float | None = None
-    tol_grad: float = 0.0
-    gtol: float = 1e-8
+    tol_loss: float | None = eqx.field(default=None, converter=real)
+    tol_grad: float = eqx.field(default=0.0, converter=real)
+    gtol: float = eqx.field(default=1e-8, converter=real)
     strategy: str = "auto"
     scale: str | None = None
 
@@ -583,9 +585,9 @@ class LBFGS(_AbstractOptax):
     memory_size: int = eqx.field(default=10, converter=integral)
     max_linesearch_steps: int = eqx.field(default=20, converter=integral)
     max_steps: int = eqx.field(default=500, converter=integral)
-    tol_loss: float | None = None
-    tol_grad: float = 0.0
-    gtol: float = 1e-8
+    tol_loss: float | None = eqx.field(default=None, converter=real)
+    tol_grad: float = eqx.field(default=0.0, converter=real)
+    gtol: float = eqx.field(default=1e-8, converter=real)
     strategy: str = "auto"
 
     _monotone = True

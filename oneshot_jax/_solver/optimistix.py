@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._counts import integral
+from .._counts import integral, real
 from .._optimality import (
     Measures,
     column_norms,
@@ -174,7 +174,7 @@ class Optimistix(AbstractSolver):
 
     solver: Any
     max_steps: int = eqx.field(default=256, converter=integral)
-    gtol: float = 1e-8
+    gtol: float = eqx.field(default=1e-8, converter=real)
     strategy: str = "auto"
 
     def __check_init__(self):

@@ -8,10 +8,13 @@ import numbers
 
 import numpy as np
 
+from .._counts import integral, real
 from ..metrics import benchmark_scores
 
 
 def _series(value, name):
+    if np.iscomplexobj(value):
+        raise TypeError(f"`{name}` must hold real numbers, got complex values.")
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -69,7 +72,7 @@ class Record:
             )
         if u.shape[0] < 1:
             raise ValueError("`u` and `y` must hold at least one sample, got 0.")
-        Ts = self.Ts
+        Ts = real(self.Ts)  # (a 0-d array: the number it holds)
         if Ts is not None:
             if isinstance(Ts, bool) or not isinstance(Ts, numbers.Real):
                 raise TypeError(
@@ -78,7 +81,7 @@ class Record:
             Ts = float(Ts)
             if not (np.isfinite(Ts) and Ts > 0):
                 raise ValueError(f"`Ts` must be a positive finite sampling time (s), got {Ts}.")
-        n = self.n
+        n = integral(self.n)  # (20.0 or a 0-d array: the count it holds)
         if isinstance(n, bool) or not isinstance(n, numbers.Integral):
             raise TypeError(f"`n` must be an integer, got {type(n).__name__}.")
         n = int(n)
