@@ -77,8 +77,10 @@ def _failing_caption(res, failing) -> str:
         "(*raw*) with its default tolerances, where the cost is tiny (C = "
         f"{_e(res['initial_loss'])} (rad/s)^2 at the initial values). The estimates lie "
         f"{low if low == high else f'{low} to {high}'} times the Cramer-Rao RMS error from "
-        "theta. The *scaled* rows are the same solvers with the variables divided by their "
-        "initial magnitudes and C by its initial value."
+        "theta; scipy's own success flag on these rows depends on round-off (another "
+        "machine or library build can count other seeds as converged). The *scaled* rows "
+        "are the same solvers with the variables divided by their initial magnitudes and C "
+        "by its initial value."
     )
 
 
