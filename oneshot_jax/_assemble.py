@@ -328,14 +328,13 @@ def assemble(
         rows = np.broadcast_to(np.asarray(problem.theta_base), (losses.shape[0], theta_flat.size))
         rows = rows.copy()
         rows[:, list(free)] = out.start_theta
+        stops = tuple(name_of(from_index(int(c))) for c in results)
+        own = (name_of(from_index(int(c))) for c in np.asarray(out.solver_results))
         starts = Starts(
             theta=layout.rows(rows),
             loss=losses,
-            stop_reason=tuple(name_of(from_index(int(c))) for c in results),
-            solver_stop=tuple(
-                name_of(from_index(int(c if name_of(from_index(int(c))) != "validation" else s)))
-                for c, s in zip(results, np.asarray(out.solver_results))
-            ),
+            stop_reason=stops,
+            solver_stop=tuple(o if r == "validation" else r for r, o in zip(stops, own)),
         )
     metrics = {k: (float(v) if k == "aic" else v) for k, v in met.items()}
     stop_info = {

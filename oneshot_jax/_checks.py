@@ -334,22 +334,23 @@ def check_weight(weight, n_z, dtype):
 def check_outside_transformations(*args, name=None):
     """`fit` and the helpers built on it run their own compiled call on concrete data;
     `name` (e.g. "`estimate_x0`") for a function other than `fit`."""
-    if name is not None and not is_concrete(*args):
+    if is_concrete(*args):
+        return
+    if name is not None:
         raise TypeError(
             f"{name} runs outside JAX transformations (jit, vmap, grad): it was given "
             "traced values. It solves for x0 on the host; to transform a simulation, the "
             "loss or its gradient use `oneshot_jax.simulate` / `oneshot_jax.loss` / "
             "`oneshot_jax.value_and_grad`, which work under jit, vmap and grad."
         )
-    if not is_concrete(*args):
-        raise TypeError(
-            "`fit` runs outside JAX transformations (jit, vmap, grad): it was given traced "
-            "values. It compiles its own solve; to fit several data sets at once use "
-            "several trajectories (x0 (N, n_x), u (N, T, n_u)) or `multistart=True`, and "
-            "to transform the loss or its gradient use `oneshot_jax.loss` / "
-            "`oneshot_jax.value_and_grad` / `oneshot_jax.simulate`, which work under jit, "
-            "vmap and grad."
-        )
+    raise TypeError(
+        "`fit` runs outside JAX transformations (jit, vmap, grad): it was given traced "
+        "values. It compiles its own solve; to fit several data sets at once use "
+        "several trajectories (x0 (N, n_x), u (N, T, n_u)) or `multistart=True`, and "
+        "to transform the loss or its gradient use `oneshot_jax.loss` / "
+        "`oneshot_jax.value_and_grad` / `oneshot_jax.simulate`, which work under jit, "
+        "vmap and grad."
+    )
 
 
 def _checked_trajectories(items, name, dtype, n_traj):

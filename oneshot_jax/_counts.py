@@ -7,9 +7,11 @@ import numbers
 import numpy as np
 
 
-def _number(value):
-    """A 0-d NumPy or JAX array of a real, non-boolean dtype (concrete) as the Python
-    number it holds; anything else as given."""
+def real(value):
+    """A number given as a concrete 0-d array (NumPy or JAX, of a real dtype) as the Python
+    number it holds; anything else (a Python or NumPy number, a schedule, a wrong value)
+    as given, for the caller's check to accept or refuse by name. The converter of the
+    solvers' real options."""
     if (
         (isinstance(value, np.ndarray) or type(value).__module__.startswith("jax"))
         and getattr(value, "ndim", None) == 0
@@ -25,7 +27,7 @@ def _number(value):
 def is_count(value, least) -> bool:
     """Whether `value` is an integer >= `least`: an int, a NumPy integer or an integral
     float, not a bool."""
-    value = _number(value)
+    value = real(value)
     return (
         isinstance(value, numbers.Real)
         and not isinstance(value, (bool, np.bool_))
@@ -39,15 +41,7 @@ def integral(value):
     """A count given as an integral float (10.0, as a configuration file may write it) as
     the int it is; anything else as given, for the caller's check to accept or refuse by
     name. The converter of the count options of solvers and `Validation`."""
-    value = _number(value)
+    value = real(value)
     if is_count(value, 0):
         return int(value)
     return value
-
-
-def real(value):
-    """A number given as a concrete 0-d array (NumPy or JAX, of a real dtype) as the Python
-    number it holds; anything else (a Python or NumPy number, a schedule, a wrong value)
-    as given, for the caller's check to accept or refuse by name. The converter of the
-    solvers' real options."""
-    return _number(value)

@@ -457,9 +457,9 @@ class FitResult(eqx.Module):
         kwargs = dict(kwargs)
         method = kwargs.pop("method", "lsq")
         noise = None
-        if method == "smoother" and kwargs.get("measurement_noise") is None:
-            if kwargs.get("weight") is None:
-                noise = self._measurement_noise()
+        given = kwargs.get("measurement_noise") is not None or kwargs.get("weight") is not None
+        if method == "smoother" and not given:
+            noise = self._measurement_noise()
         if noise is not None:  # Q's scale is arbitrary: the smoother gets sigma^2 Q^{-1}
             kwargs["measurement_noise"] = noise
         elif kwargs.get("weight") is None and self.weight is not None:

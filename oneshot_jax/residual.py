@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._counts import real
 from ._pytree import is_parameter
 
 __all__ = ["MLP", "Features", "Dictionary", "count_parameters"]
@@ -85,21 +86,15 @@ def _split_key(key, n):
 def _real_scalar(value, name):
     """`value` as a Python float: a finite real number, given as a Python or NumPy scalar
     or a concrete 0-d array (a static constant of the module, not a trained parameter)."""
-    shape = np.shape(value) if not isinstance(value, numbers.Number) else ()
-    if shape != ():
+    if np.ndim(value):
         raise ValueError(
             f"`{name}` must be one finite number (a static constant, not trained), got an "
-            f"array of shape {shape}."
+            f"array of shape {np.shape(value)}."
         )
-    try:
-        v = np.asarray(value)
-    except Exception as err:  # a tracer: a traced value cannot be a static constant
-        raise ValueError(
-            f"`{name}` must be a concrete finite number (a static constant), got {value!r}."
-        ) from err
-    if v.dtype == bool or not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
+    v = real(value)
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise ValueError(f"`{name}` must be a finite real number, got {value!r}.")
-    if not np.isfinite(v):
+    if not math.isfinite(v):
         raise ValueError(f"`{name}` must be finite, got {float(v)!r}.")
     return float(v)
 
