@@ -68,11 +68,15 @@ def _theta_order(theta):
     return _pytree.kept(_ORDERS, key, lambda: theta_order(theta))
 
 
-def _warn_held_window_states(window, x0, estimate_x0, window_starts):
+def _warn_held_window_states(window, x0, estimate_x0, window_starts, model):
     """Warn where `estimate_x0` holds x0 entries of windows after the first that no data
-    gave: with one x0 (n_x,) for a windowed record, those windows start from a simulation
-    with theta0, and a held entry keeps that value (biased where theta0 is wrong)."""
+    gave: with one x0 (n_x,) for a windowed record of a model that does not observe its
+    whole state, those windows start from an estimate with theta0, and a held entry
+    keeps that value (biased where theta0 is wrong). (A model that observes its state
+    reads them off z: measured values.)"""
     if window is None or window_starts is None or len(window_starts) < 2:
+        return
+    if model.observes_state:
         return
     if np.ndim(x0) != 1 or estimate_x0 is True:
         return
@@ -81,8 +85,8 @@ def _warn_held_window_states(window, x0, estimate_x0, window_starts):
         return
     warnings.warn(
         f"`estimate_x0` holds x0 entries {np.flatnonzero(held).tolist()} of every window, and "
-        f"the {len(window_starts) - 1} windows after the first start from a simulation with "
-        "theta0, not from data: those held states are theta0's, and the estimates are biased "
+        f"the {len(window_starts) - 1} windows after the first start from states estimated "
+        "with theta0, not measured: those held states are theta0's, and the estimates are biased "
         "where theta0 is wrong. Pass estimate_x0=True for a windowed fit, or one x0 per "
         "window (n_windows, n_x) holding known values.",
         UserWarning,
@@ -123,7 +127,10 @@ def _solve(
     )
     final = stages[-1]
     # The best start: the lowest final loss, or with validation data the lowest score.
-    rank = final.loss if final.best is None else final.best.score
+    # (where no start has a finite score, the held-out data tell nothing: the loss ranks)
+    rank = final.loss
+    if final.best is not None:
+        rank = jnp.where(jnp.any(jnp.isfinite(final.best.score)), final.best.score, rank)
     best = jnp.argmin(jnp.where(jnp.isfinite(rank), rank, jnp.inf))
     params = jax.tree_util.tree_map(lambda a: a[best], final.params)
     blocks = (
@@ -274,26 +281,49 @@ def _warn_unequal_noise(residuals, weight, std):
     )
 
 
-def _warn_infeasible(project, theta, rtol=1e-8):
-    """Warn where the returned theta is not a fixed point of the general projection: the
-    projection onto an intersection (Dykstra's alternating projections, `constraints.
-    combine`, capped at its cycles) did not converge, and the estimate lies outside the
-    constraint set (a wedge of a small angle needs about 1 / angle^2 cycles)."""
-    params, _ = _pytree.split(theta)
+def _flag_infeasible(result, project, rtol=1e-8):
+    """`result` with the stop reason `infeasible` where it reported a success at a theta
+    that the general projection moves (the projection onto an intersection, Dykstra's
+    alternating projections of `constraints.combine` or of `FitProblem.feasible` with
+    fixed entries, is capped at its cycles: sets that meet at a small angle need about
+    1 / angle^2 of them), and a warning with the distance wherever it moves it. The
+    distance is to the user's set alone; with fixed entries held, the estimate can lie
+    further from the set it was to be in."""
+    params, _ = _pytree.split(result.theta)
     a, _ = ravel_pytree(params)
     b, _ = ravel_pytree(project(jax.tree_util.tree_map(jnp.asarray, params)))
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     gap = float(np.max(np.abs(a - b), initial=0.0))
-    if gap > rtol * max(float(np.max(np.abs(a), initial=0.0)), 1.0):
-        warnings.warn(
-            f"the estimate lies outside the constraint set: the projection moves it by "
-            f"{gap:.3g}. The projection onto the intersection of the sets (Dykstra's "
-            "alternating projections) did not converge within its cycles (sets that meet at "
-            "a small angle converge slowly), so the iterates were not feasible either: "
-            "write the set as one projection, or in parameters of similar scale.",
-            RuntimeWarning,
-            stacklevel=3,
+    if not gap > rtol * max(float(np.max(np.abs(a), initial=0.0)), 1.0):
+        return result
+    demoted = result.success
+    warnings.warn(
+        f"the estimate lies outside the constraint set: the projection moves it by "
+        f"{gap:.3g}. The projection onto the intersection of the sets (Dykstra's "
+        "alternating projections, of a constraint list or of a projection with fixed "
+        "entries) did not converge within its cycles (sets that meet at a small angle "
+        "converge slowly), so the iterates were not feasible either"
+        + (
+            f"; the solver's {name_of(result.stop_reason)} is not a solution (status 'infeasible')"
+            if demoted
+            else ""
         )
+        + ": write the set as one projection (keeping any fixed entries at their values), "
+        "or in parameters of similar scale.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    if not demoted:
+        return result
+    info = {**result.stop_info, "solver_stop": name_of(result.stop_reason), "infeasible": gap}
+    out = dataclasses.replace(result, stop_reason=RESULTS.infeasible, stop_info=info)
+    if result.starts is not None:  # (the best start's own stop, as the status line's)
+        reasons = list(result.starts.stop_reason)
+        reasons[result.best] = "infeasible"
+        out = dataclasses.replace(
+            out, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+        )
+    return out
 
 
 def _warn_projected(moved, names, theta0):
@@ -419,7 +449,9 @@ def fit(
         n outputs, the loss over the rest), the iterate with the lowest score is
         returned (stop reason `validation` where it is not the one the solver stopped
         at) and `Validation(patience=k)` stops a solver after k iterations without
-        improvement. The scores are `result.history.validation`.
+        improvement. The scores are `result.history.validation`. Where no iterate scores
+        a finite loss (the model blows up on the held-out records), they choose nothing:
+        no patience is spent, the final loss ranks the starts, and `fit` warns.
     - `multistart`: several starts, run in the one compiled call; the start with the
         least final loss (with `validation`, the lowest score) is returned and
         `result.starts` reports each.
@@ -506,7 +538,7 @@ def fit(
         t=t,
         readings=aggregate is not None,
     )
-    _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts)
+    _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts, model)
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
         agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
         inputs = check_inputs(
@@ -594,12 +626,20 @@ def fit(
     )
     if aggregate is not None:
         result = agg.restore(result)
+    if result.validation_loss is not None and not np.isfinite(result.validation_loss):
+        warnings.warn(
+            "`validation`: no iterate scored a finite validation loss (the model blows up "
+            "on the held-out records, or their head estimate fails): the held-out data "
+            "chose nothing, and the result is the solvers' own.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         result = dataclasses.replace(result, weight=np.asarray(weight, result.x0.dtype))
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
         _warn_unequal_noise(result.residuals, weight, result.std)
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
-        _warn_infeasible(built.problem.project, result.theta)
+        result = _flag_infeasible(result, built.problem.project)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
     elif aggregate is not None and (window is None or not model.timed):

@@ -275,7 +275,7 @@ def report(result) -> str:
     # A windowed fit (multiple shooting) has one initial state per window.
     rows = "windows" if result.window_starts is not None else "trajectories"
     if x0.ndim == 2:
-        states += f" (per {rows[:-1]}, {x0.shape[0]} {rows})"
+        states += f" (per {'window' if rows == 'windows' else 'trajectory'}, {x0.shape[0]} {rows})"
     solvers = " then ".join(str(s.get("solver", "?")) for s in result.solver) or "?"
     # The stop: FitResult.message's first part (the test that fired, with its values, or
     # the reason's own words), never the RESULTS repr.

@@ -110,6 +110,12 @@ def stop_detail(status: str, info: dict) -> str:
             "parallel rollouts kept Newton's unconverged iterate (the solver stopped with "
             f"{info.get('solver_stop', '?')})"
         )
+    if status == "infeasible":
+        return (
+            f"the estimate lies outside the constraint set: the projection moves it by "
+            f"{_g(info.get('infeasible'))} (the solver stopped with "
+            f"{info.get('solver_stop', '?')})"
+        )
     if status == "validation":
         patience = info.get("patience")
         solver = info.get("solver_stop")

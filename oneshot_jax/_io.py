@@ -183,6 +183,19 @@ def _static_signature(theta, root="theta") -> list:
     return out
 
 
+def _digest(arrays, meta) -> str:
+    """SHA-256 of a file's arrays (name, dtype, shape, bytes) and its metadata without the
+    digest: what `read_result` compares to refuse a file edited after saving."""
+    h = hashlib.sha256(
+        json.dumps({k: v for k, v in meta.items() if k != "digest"}, sort_keys=True).encode()
+    )
+    for key in sorted(k for k in arrays if k != "__meta__"):
+        a = np.ascontiguousarray(arrays[key])
+        h.update(f"{key}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def _leaves(tree):
     return [np.asarray(a) for a in jax.tree_util.tree_leaves(tree)]
 
@@ -260,6 +273,7 @@ def save_result(result, path):
         "n_u": result.n_u,
         "model_signature": None if result.model is None else _model_signature(result.model),
     }
+    meta["digest"] = _digest(arrays, meta)
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
@@ -340,6 +354,8 @@ def read_result(path, *, like=None, model=None) -> dict:
             f"`path`: {path} has format version {meta.get('version')}; this oneshot_jax "
             f"reads version {VERSION}."
         )
+    if "digest" in meta and meta["digest"] != _digest(arrays, meta):  # (older files: none)
+        raise _damaged(path, "its contents differ from those it was saved with (edited)")
     missing = [k for k in _META_KEYS if k not in meta]
     if missing:
         raise _damaged(path, f"its __meta__ lacks {', '.join(missing)}")

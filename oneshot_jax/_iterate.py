@@ -120,7 +120,10 @@ def _update_best(best: Best, params, score, val_x0, running):
         jnp.where(better, score, best.score),
         _freeze(better, params, best.params),
         val_x0,
-        jnp.where(better, 0, best.since + running.astype(best.since.dtype)),
+        # (no finite score yet: nothing to improve on, so no patience spent)
+        jnp.where(
+            better, 0, best.since + (running & jnp.isfinite(best.score)).astype(best.since.dtype)
+        ),
         (score <= best.score) | (best.here & ~running),
     )
 

@@ -381,7 +381,8 @@ def dykstra(projections, max_cycles=1000):
     Bauschke and Combettes, "Convex analysis and monotone operator theory in Hilbert
     spaces", 2011, Thm. 30.7): with an increment p_i per set, one cycle is
     y = P_i(x + p_i), p_i <- x + p_i - y, x <- y for each set in turn, repeated until a
-    cycle moves x by at most 10 eps max(1, |x|) (or `max_cycles`). Plain alternating
+    cycle moves x and every increment by at most 10 eps max(1, |x|) (or `max_cycles`: x
+    can stand still for a cycle while the increments still change). Plain alternating
     projections would reach a point of the intersection that is not the projection, and
     whose fixed points are not the constrained stationary points. A point already in the
     intersection is returned after one cycle, unchanged. The result lies exactly in the
@@ -406,9 +407,15 @@ def dykstra(projections, max_cycles=1000):
                 y = jax.tree_util.tree_leaves(P(jax.tree_util.tree_unflatten(treedef, shifted)))
                 out.append([a - b for a, b in zip(shifted, y)])
                 x = y
-            moved = jnp.max(
-                jnp.stack([jnp.max(jnp.abs(a - b), initial=0.0) for a, b in zip(x, start)])
-            )
+            # x can stand still for a cycle while the increments still change (the box
+            # clips the same point twice): converged only when both have settled.
+            changes = [jnp.max(jnp.abs(a - b), initial=0.0) for a, b in zip(x, start)]
+            changes += [
+                jnp.max(jnp.abs(a - b), initial=0.0)
+                for new_p, old_p in zip(out, increments)
+                for a, b in zip(new_p, old_p)
+            ]
+            moved = jnp.max(jnp.stack(changes))
             return x, out, k + 1, moved
 
         def going(carry):

@@ -49,6 +49,15 @@ class RESULTS(eqx.Enumeration):
         "is returned. Bounds that keep the model stable, windows (multiple shooting) or a "
         "better start help"
     )
+    infeasible = (
+        "after the solve: the solver stopped with a success, but the estimate lies outside "
+        "the constraint set (the user's projection moves it): the projection onto an "
+        "intersection (Dykstra's alternating projections, of `constraints.combine` or of a "
+        "general projection with fixed entries) did not converge within its cycles, so the "
+        "iterates were not feasible and the test was judged at a point that is not a "
+        "solution. Write the set as one projection (one that keeps the fixed entries at "
+        "their values), or in parameters of similar scale"
+    )
     validation = (
         "the iterate with the lowest validation loss (held-out data, `fit(validation=...)`), "
         "returned instead of the point the solver stopped at (or stopped early after "

@@ -155,7 +155,10 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     try:
         data = check_data(model, theta, x0, u, validation.z, t=validation.t)
     except (ValueError, TypeError) as err:
-        raise type(err)(f"`validation`: {err}") from None
+        message = str(err)
+        if "NaN or inf" in message:  # (the hint of `missing="mask"` is `fit`'s z's, not this)
+            message = message.split(" (")[0] + ": held-out records must be fully measured."
+        raise type(err)(f"`validation`: {message}") from None
     if data.lengths is not None:
         raise ValueError("`validation`: records of different lengths are not supported.")
     if n_u is not None and np.shape(data.u)[-1] != n_u:

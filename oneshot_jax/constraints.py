@@ -58,9 +58,12 @@ for a general convex set). The name of oneshot_jax 0.2, kept."""
 
 
 def _dtype(p):
-    """A leaf's dtype: its own where it has one (no JAX dtype promotion on the host)."""
+    """A leaf's dtype: its own where it has one (no JAX dtype promotion on the host), and
+    a float one for an integer or bool leaf (a bound of 2.2 or -inf on an integer
+    parameter is not an integer)."""
     dtype = getattr(p, "dtype", None)
-    return jnp.result_type(p) if dtype is None else dtype
+    dtype = jnp.result_type(p) if dtype is None else dtype
+    return dtype if jnp.issubdtype(dtype, jnp.inexact) else jnp.result_type(dtype, 1.0)
 
 
 def _fill_like(bound, params, fill, name):
@@ -94,7 +97,7 @@ def _fill_like(bound, params, fill, name):
         kind is not None and np.dtype(kind).kind not in "iuf"
     ):
         raise ValueError(f"`{name}` must hold real numbers (a bound), got {bound!r}.")
-    if jnp.ndim(bound) == 0 or len(leaves) == 1:
+    if (np.ndim(bound) if is_concrete(bound) else jnp.ndim(bound)) == 0 or len(leaves) == 1:
         xp = np if is_concrete(bound) else jnp
         b = xp.asarray(bound)
         out = []
@@ -103,7 +106,7 @@ def _fill_like(bound, params, fill, name):
                 out.append(xp.broadcast_to(b, np.shape(p)).astype(_dtype(p)))
             except ValueError as err:
                 raise ValueError(
-                    f"`{name}` of shape {b.shape} does not fit a parameter of shape {jnp.shape(p)}."
+                    f"`{name}` of shape {b.shape} does not fit a parameter of shape {np.shape(p)}."
                 ) from err
         return jax.tree_util.tree_unflatten(treedef, out)
     raise ValueError(f"`{name}` must be a scalar or have the structure of the parameters.")

@@ -426,16 +426,20 @@ class ResidualCorrelations(NamedTuple):
         (2 max_lag + 1, n_z) (symmetric in tau, 1 at tau = 0).
     - `cross`: the normalised cross-correlation r_eu(tau) of each output's residual with
         each input, shape (2 max_lag + 1, n_z, n_u); None without `u`.
-    - `bound`: the half-width of the confidence band, z / sqrt(n) per output, shape (n_z,).
+    - `bound`: the half-width of the confidence band of `auto` (a white residual's),
+        z / sqrt(n) per output, shape (n_z,).
     - `white`: per output, whether at most a fraction `tolerance` of the lags 1..max_lag
         of `auto` lie outside the band (whiteness test), shape (n_z,).
     - `independent`: per output, whether for every input at most a fraction `tolerance`
-        of the lags 0..max_lag of `cross` lie outside the band (independence of the
-        current and past inputs), shape (n_z,); None without `u`.
+        of the lags 0..max_lag of `cross` lie outside its band `cross_bound`
+        (independence of the current and past inputs), shape (n_z,); None without `u`.
     - `auto_outside`: the fraction of the lags 1..max_lag outside the band, (n_z,).
     - `cross_outside`: the fraction of the lags 0..max_lag outside the band, (n_z, n_u);
         None without `u`.
     - `n`: the number of measured residual samples per output, (n_z,).
+    - `cross_bound`: the half-width of the band of `cross`, z sqrt(P / n) with Ljung's
+        P = 1 + 2 sum_{k=1..max_lag} r_e(k) r_u(k) (at least 1: never narrower than
+        `bound`), shape (n_z, n_u); None without `u`.
     """
 
     lags: np.ndarray
@@ -447,6 +451,7 @@ class ResidualCorrelations(NamedTuple):
     auto_outside: np.ndarray
     cross_outside: np.ndarray | None
     n: np.ndarray
+    cross_bound: np.ndarray | None = None
 
 
 def _trajectories(a, name, shape=None):
@@ -524,8 +529,10 @@ def residual_correlations(
     every input: a peak at lag tau > 0 says that the part of the output due to u(t - tau)
     is not explained by the model. Correlation at negative lags (future inputs) is left
     out of the verdict: under feedback it appears even for a right model. The
-    cross-correlation band assumes a white residual (or a white input); with both coloured
-    it is too narrow (its variance is then sum_k r_e(k) r_u(k) / n, Ljung, Sec. 16.6).
+    cross-correlation's band allows for a coloured residual and a coloured input (the
+    usual case after an output-error fit): its variance is P / n with
+    P = sum_k r_e(k) r_u(k) over |k| <= max_lag (Ljung, Sec. 16.6), taken at least 1
+    (the white band), so `cross_bound` is per output and input.
 
     Each signal's mean is removed first (`demean`): MATLAB's `resid` correlates the
     signals as given and expects data detrended before the estimation, but grey-box data
@@ -559,7 +566,7 @@ def residual_correlations(
     **Returns:**
 
     A `ResidualCorrelations(lags, auto, cross, bound, white, independent, auto_outside,
-    cross_outside, n)` of NumPy arrays.
+    cross_outside, n, cross_bound)` of NumPy arrays.
 
     **Raises:**
 
@@ -613,7 +620,7 @@ def residual_correlations(
     bound = special.ndtri(0.5 + 0.5 * float(confidence)) / np.sqrt(n)
     auto_outside = np.mean(np.abs(half[1:] / n / r0) > bound, axis=0)
 
-    cross = independent = cross_outside = None
+    cross = independent = cross_outside = cross_bound = None
     if u is not None:
         u, known = _inputs(u, N, T)
         if not np.all(np.isfinite(u[known])):
@@ -633,7 +640,14 @@ def residual_correlations(
 
         scale = n[:, None] * np.sqrt(r0[:, None] * ru0[None, :])
         cross = np.stack([lagged(int(k)) for k in lags]) / scale
-        cross_outside = np.mean(np.abs(cross[max_lag:]) > bound[:, None], axis=0)
+        # Ljung's variance of r_eu: P / n, P = sum_k r_e(k) r_u(k) (both coloured).
+        r_u = np.stack(
+            [np.sum(u[:, k:] * u[:, : T - k], axis=(0, 1)) for k in range(1, max_lag + 1)]
+        ) / (count * ru0)
+        r_e = half[1:] / n / r0
+        P = np.maximum(1.0 + 2.0 * np.einsum("kz,ku->zu", r_e, r_u), 1.0)
+        cross_bound = bound[:, None] * np.sqrt(P)
+        cross_outside = np.mean(np.abs(cross[max_lag:]) > cross_bound, axis=0)
         independent = np.all(cross_outside <= tolerance, axis=1)
     return ResidualCorrelations(
         lags=lags,
@@ -645,4 +659,5 @@ def residual_correlations(
         auto_outside=auto_outside,
         cross_outside=cross_outside,
         n=n,
+        cross_bound=cross_bound,
     )

@@ -82,7 +82,8 @@ def _warn_other_record(name, result, zhat, z):
     warnings.warn(
         f"`{name}` is simulated from the x0 fitted on its own data, which is not this "
         "record: pass `n` (e.g. n=20) to estimate x0 from the first n samples of `z`, as "
-        "the benchmark protocol and MATLAB's compare do.",
+        "the benchmark protocol does (MATLAB's compare estimates it from the whole record: "
+        "pass `result.predict(u, z)`'s output for that).",
         stacklevel=4,
     )
 
@@ -154,7 +155,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         (the data it was fitted on, or a record from the same initial state; on another
         record it warns; after a `window=` fit, from the state of its window at sample
         0, as `FitResult.simulate`), or, with `n`, predicted from the first n samples of `z`
-        (`FitResult.predict`, as MATLAB's `compare` estimates the initial state); a
+        (`FitResult.predict`; MATLAB's `compare` estimates the initial state too, but from
+        the whole record, and scores every sample: pass the `z` of
+        `result.predict(u, z)` for its numbers); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
@@ -341,7 +344,7 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
             f"({100 * rc.auto_outside[i]:.0f} % of lags outside)"
         )
         for j in range(n_u):
-            stems(axes[i, j + 1], rc.lags, rc.cross[:, i, j], rc.bound[i])
+            stems(axes[i, j + 1], rc.lags, rc.cross[:, i, j], rc.cross_bound[i, j])
             axes[i, j + 1].axvline(0.0, color="0.5", lw=0.6, ls=":")
             axes[i, j + 1].set_title(f"cross-correlation of e[{names[i]}] and u[{j}]", fontsize=9)
         if n_u:

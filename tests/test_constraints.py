@@ -234,6 +234,49 @@ def test_a_box_and_a_general_set_project_onto_their_intersection(order):
     assert both.project(inside) == inside  # a point of the intersection stays
 
 
+def _below_the_plane(th):
+    """The projection onto 1 b + 2 c + 0.5 k <= 2 (theta = (b, c, k))."""
+    n = jnp.array([1.0, 2.0, 0.5])
+    return th - jnp.maximum(n @ th - 2.0, 0.0) * n / (n @ n)
+
+
+def test_dykstra_stops_only_when_its_increments_have_settled_too():
+    """A halfspace then a box: from y = (2.035, 0.611, 5.520) the iterate stood still at
+    the box's corner (0.8, 0.1, 3) for a cycle while the halfspace's increment was still
+    changing, and the projection stopped there, outside the halfspace (n.x = 2.5), and a
+    fit of z = theta reported `converged` at it, with a loss below the constrained
+    minimum's. The projection is (0.3, 0.1, 3) (KKT, checked by SLSQP)."""
+    from scipy.optimize import minimize
+
+    box = oc.box(lower=np.array([0.0, 0.1, 1.0]), upper=np.array([0.8, 0.5, 3.0]))
+    cons = [oc.project(_below_the_plane), box]
+    P = oc.combine(cons).project
+    n = np.array([1.0, 2.0, 0.5])
+    for y in ([2.03500512, 0.61083562, 5.51985257], [0.01332983, 1.93441316, 0.41110532]):
+        y = np.array(y)
+        exact = minimize(
+            lambda v: np.sum((v - y) ** 2), np.array([0.4, 0.3, 2.0]), method="SLSQP",
+            bounds=list(zip([0.0, 0.1, 1.0], [0.8, 0.5, 3.0])),
+            constraints=[{"type": "ineq", "fun": lambda v: 2.0 - n @ v}],
+            options={"ftol": 1e-15, "maxiter": 500},
+        ).x  # fmt: skip
+        np.testing.assert_allclose(np.asarray(P(jnp.asarray(y))), exact, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(P(jnp.asarray(y))), [0.01332983, 0.5, 1.0])
+    # the fit: z = theta, so its minimiser is the projection of the data
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: th + 0.0 * x[0])
+    z = np.tile([2.03500512, 0.61083562, 5.51985257], (20, 1))
+    for solver in (oj.LevenbergMarquardt(), oj.LBFGS()):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            warnings.filterwarnings("error", message=".*outside the constraint set")
+            r = oj.fit(
+                model, jnp.array([0.5, 0.2, 1.5]), np.zeros(1), np.zeros((20, 0)), z,
+                solver=solver, constraints=cons, estimate_x0=False,
+            )  # fmt: skip
+        assert r.success, (solver, r.message)
+        np.testing.assert_allclose(np.asarray(r.theta), [0.3, 0.1, 3.0], atol=1e-8)
+
+
 def test_a_fit_with_a_box_and_a_general_set_stays_in_both():
     rng = np.random.default_rng(0)
     dt = 0.05
@@ -297,6 +340,37 @@ def test_an_estimate_a_slow_intersection_leaves_outside_is_named():
             constraints=cons, estimate_x0=False,
         )  # fmt: skip
     assert r.success
+
+
+def test_a_success_outside_the_constraint_set_is_not_reported():
+    """z = theta = (k, b), k fixed at 2, and the halfspace k + 0.01 b <= 2.005 (so b <=
+    0.5): the halfspace and {k = 2} meet at an angle of 0.01, and the fixed rounds of
+    Dykstra's projections barely move b. LM reported `converged` at b = 0.997, outside
+    the set, with a warning only. Its success is now the status `infeasible`, naming the
+    solver's own stop; a set the estimate lies in keeps the success."""
+    n = jnp.array([1.0, 1e-2])
+
+    def half(th):
+        return th - jnp.maximum(n @ th - 2.005, 0.0) * n / (n @ n)
+
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: th + 0.0 * x[0])
+    z, u = np.tile([2.0, 1.0], (20, 1)), np.zeros((20, 0))
+    fixed = jnp.array([True, False])
+    kw = dict(fixed=fixed, estimate_x0=False)
+    with pytest.warns(RuntimeWarning, match=r"outside the constraint set.*status 'infeasible'"):
+        r = oj.fit(model, jnp.array([2.0, 0.4]), np.zeros(1), u, z,
+                   constraints=oc.project(half), **kw)  # fmt: skip
+    assert float(n @ r.theta) > 2.005 + 1e-3  # outside: the case this test is about
+    assert r.status == "infeasible" and not r.success
+    assert r.stop_info["solver_stop"] == "converged" and r.stop_info["infeasible"] > 1e-3
+    assert r.message.startswith("the estimate lies outside the constraint set"), r.message
+    assert "infeasible" in str(r)
+    with warnings.catch_warnings():  # inside the set: the success stands, in silence
+        warnings.simplefilter("ignore")
+        warnings.filterwarnings("error", message=".*outside the constraint set")
+        r = oj.fit(model, jnp.array([2.0, 0.4]), np.zeros(1), u, np.tile([2.0, 0.3], (20, 1)),
+                   constraints=oc.project(half), **kw)  # fmt: skip
+    assert r.success and float(r.theta[1]) == pytest.approx(0.3)
 
 
 def test_invalid_constraints_raise():

@@ -383,3 +383,23 @@ def test_basin_check_says_inconclusive_when_its_windowed_fit_fails(plain):
             plain, U, Z, window=50, margin=1e4, solver=oj.LevenbergMarquardt(max_steps=2)
         )
     assert not check.bad_basin and not check.windowed.success
+
+
+def test_held_window_states_read_off_z_are_not_called_theta0s():
+    """A model that observes its whole state starts each window at its measured z: holding
+    those states (estimate_x0=False) holds data, not theta0's guesses, and fit does not
+    warn that they are theta0's."""
+    full = oj.Model.from_ode(lambda x, u, p: jnp.stack([x[1], -p["k"] * x[0] + u[0]]), 0.1)
+    u = np.random.default_rng(0).standard_normal((100, 1))
+    _, z = oj.simulate(full, {"k": 4.0}, np.array([0.3, -0.2]), u)
+    r = _no_warnings(
+        oj.fit,
+        full,
+        {"k": 3.0},
+        np.array([0.3, -0.2]),
+        u,
+        np.asarray(z),
+        window=25,
+        estimate_x0=False,
+    )
+    np.testing.assert_array_equal(r.x0[1:], np.asarray(z)[[25, 50, 75]])

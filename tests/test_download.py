@@ -241,3 +241,36 @@ def test_an_archive_member_failing_its_crc_is_a_format_error(server, tmp_path):
     ):
         ds.load_cascaded_tanks(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
     assert _nothing_kept(cache, "cascaded_tanks")
+
+
+def test_an_incomplete_archive_keeps_nothing(server, tmp_path, monkeypatch):
+    """An archive that holds DATA_EMPS.mat alone (with its checksum right) was refused
+    after its file was installed: the cache kept DATA_EMPS.mat, against the promise that
+    nothing is kept on failure. The set is checked before anything is installed."""
+    base, www, _ = server
+    src = tmp_path / "src"
+    src.mkdir()
+    files = _emps_mats(src)
+    _zip(www / "EMPS.zip", files[:1])
+    _trust(monkeypatch, "emps", files)
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetFormatError, match=r"DATA_EMPS_PULSES\.mat.*Nothing was kept"):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "emps")
+
+
+@pytest.mark.parametrize("base_url", [5, b"http://127.0.0.1:1", "", "  "])
+def test_a_base_url_that_is_not_a_url_is_refused(tmp_path, base_url):
+    """An int or bytes failed deep in string handling, and "" fell back to the official
+    internet addresses in silence."""
+    with pytest.raises(TypeError, match=r"`base_url` must be a non-empty str"):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=tmp_path, base_url=base_url)
+
+
+@pytest.mark.parametrize("download", ["no", 1, None])
+def test_download_must_be_a_bool(server, tmp_path, download):
+    """`download="no"` is truthy, and it downloaded."""
+    base, _, log = server
+    with pytest.raises(TypeError, match=r"`download` must be True or False"):
+        ds.load_silverbox(tmp_path / "empty", download=download, cache_dir=tmp_path, base_url=base)
+    assert log == []

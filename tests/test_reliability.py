@@ -292,7 +292,16 @@ def test_a_damaged_result_file_gives_one_clear_error(saved, tmp_path):
     with np.load(path, allow_pickle=False) as npz:
         meta = json.loads(str(npz["__meta__"]))
     bad_tree = {**meta, "theta_tree": {"dict": {"c": {"leaf": 0}, "k": {"leaf": 7}}}}
+    with np.load(path, allow_pickle=False) as npz:
+        x0 = npz["x0"]
     cases = {
+        # edited after saving: well-formed, but not what was saved (they loaded, and
+        # a shorter x0 broke print(result) later)
+        "edited_x0.npz": lambda f: _rewrite(path, f, x0=x0 + 1.0),
+        "short_x0.npz": lambda f: _rewrite(path, f, x0=x0[..., :1]),
+        "edited_meta.npz": lambda f: _rewrite(
+            path, f, __meta__=np.array(json.dumps({**meta, "num_steps": 2.7}))
+        ),
         "truncated.npz": lambda f: f.write_bytes(good[: len(good) // 2]),
         "garbage.npz": lambda f: f.write_bytes(b"not a result at all" * 20),
         "no_x0.npz": lambda f: _rewrite(path, f, drop=("x0",)),

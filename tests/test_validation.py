@@ -162,6 +162,28 @@ def test_patience_stops_early():
     assert res.num_steps == res.history.step[i] + 25  # stopped after 25 without a better score
 
 
+def test_held_out_data_that_never_score_finite_choose_nothing():
+    """A held-out input of 1e300 overflows every iterate's score. The argmin over the
+    starts' infinite scores kept start 0, whose training loss was 700 times start 1's,
+    and with patience 2 the fit stopped after 2 steps ("lowest validation loss inf"), in
+    silence. The training loss now ranks the starts, no patience is spent before a
+    finite score, and fit warns that the held-out data chose nothing."""
+    u, z, x0 = _record(0, 80, 0.01)
+    bad = oj.Validation(np.full((40, 1), 1e300), np.zeros((40, 1)), x0=np.zeros(2))
+    start = {"k": 2.5, "c": 0.2, "g": 1.0}
+    lm = oj.LevenbergMarquardt(max_steps=2)
+    starts = {"k": np.array([0.3, 4.0])}
+    plain = oj.fit(MODEL, start, x0, u, z, solver=lm, multistart=starts)
+    assert plain.best == 1  # the case: the starts' training losses differ
+    with pytest.warns(RuntimeWarning, match="no iterate scored a finite validation loss"):
+        r = oj.fit(MODEL, start, x0, u, z, solver=lm, validation=bad, multistart=starts)
+    assert r.best == plain.best and float(r.loss) == float(plain.loss)
+    with pytest.warns(RuntimeWarning, match="no iterate scored a finite validation loss"):
+        r = oj.fit(MODEL, start, x0, u, z, validation=oj.Validation(
+            np.full((40, 1), 1e300), np.zeros((40, 1)), x0=np.zeros(2), patience=2))  # fmt: skip
+    assert r.num_steps > 2 and r.status != "validation"
+
+
 def test_a_divergence_behind_the_best_scored_iterate_is_named(tmp_path):
     """Adam with a learning rate that blows the simulation up: the best-scored iterate is
     returned (`validation`), and the solver's own stop, `diverged`, is named with it
@@ -231,7 +253,8 @@ def test_validation_checks():
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, z, n=50))
     bad = z.copy()
     bad[3] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
+    # (not fit's hint of missing="mask": that option is for the fitted z)
+    with pytest.raises(ValueError, match="NaN.*held-out records must be fully measured.$"):
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, bad, n=5))
 
 

@@ -20,7 +20,9 @@ The safeguards, in order:
    rtol = 256 eps of the state's dtype by default); the converged increment is applied,
    so the error left is O(|d|^2), at roundoff. A Newton step also measures conditioning:
    near the solution d is the residual's roundoff amplified by the products of the A_k,
-   so a trajectory too sensitive to be reproduced to rtol does not pass the test. Newton
+   so a trajectory too sensitive to be reproduced to rtol does not pass the test (within
+   a chunk: with `chunk_size`, a chunk's test does not see how the later chunks amplify
+   the state it hands on, and a chaotic record can drift from the sequential one). Newton
    gives up on a non-finite iterate (it diverges on unstable and chaotic dynamics), at
    the iteration cap, or after 5 iterations without a new smallest ||r||^2.
 2. **Damped (ELK).** Levenberg-Marquardt steps (`_elk.py`: ELK, Gonzalez et al.,

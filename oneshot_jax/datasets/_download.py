@@ -156,7 +156,22 @@ def _unzip(archive: Path, into: Path, url):
             ) from err
 
 
-def fetch(name, *, cache_dir=None, base_url=None) -> Path:
+def _install(src: Path, dest: Path):
+    """Move `src` to `dest` file by file with `os.replace` (atomic), merging into a folder
+    that a concurrent call may have installed meanwhile instead of deleting it."""
+    if src.is_dir():
+        if dest.exists() and not dest.is_dir():
+            dest.unlink()
+        dest.mkdir(parents=True, exist_ok=True)
+        for p in src.iterdir():
+            _install(p, dest / p.name)
+    else:
+        if dest.is_dir():
+            shutil.rmtree(dest, ignore_errors=True)
+        os.replace(src, dest)
+
+
+def fetch(name, *, cache_dir=None, base_url=None, alternatives=None) -> Path:
     """Download a benchmark's official files into the cache and verify them.
 
     **Arguments:**
@@ -182,6 +197,11 @@ def fetch(name, *, cache_dir=None, base_url=None) -> Path:
     if name not in SOURCES:
         raise ValueError(f"`name` must be one of {', '.join(SOURCES)}, got {name!r}.")
     src = SOURCES[name]
+    if base_url is not None and (not isinstance(base_url, str) or not base_url.strip()):
+        raise TypeError(
+            f"`base_url` must be a non-empty str (a URL such as 'https://host/folder') or "
+            f"None, got {base_url!r}."
+        )
     base_url = base_url if base_url is not None else os.environ.get(URL_ENV_VAR)
     urls = [f"{base_url.rstrip('/')}/{src.archive}"] if base_url else list(src.urls)
     root = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
@@ -242,12 +262,17 @@ def fetch(name, *, cache_dir=None, base_url=None) -> Path:
                         f"{src.files[f]}; the download is corrupt or not the official "
                         f"file. Nothing was kept. Download it by hand from {src.page}."
                     )
+        if alternatives is not None:  # a complete set, or nothing is kept
+            folders = {p.parent for p in unpacked.rglob("*") if p.is_file()}
+            if not any(
+                all((d / f).is_file() for f in names) for d in folders for names in alternatives
+            ):
+                raise DatasetFormatError(
+                    f"{url}: the download does not hold "
+                    f"{' or '.join(map(' and '.join, alternatives))} in one folder. Nothing "
+                    f"was kept. Download the files by hand from {src.page}."
+                )
         target.mkdir(parents=True, exist_ok=True)
         for p in unpacked.iterdir():
-            dest = target / p.name
-            if dest.is_dir():
-                shutil.rmtree(dest)
-            elif dest.exists():
-                dest.unlink()
-            shutil.move(p, dest)
+            _install(p, target / p.name)
     return target

@@ -43,6 +43,8 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
 
     `(folder, files)`: the folder and the set of file names found there.
     """
+    if not isinstance(download, (bool, np.bool_)):  # ("no" is truthy: it would download)
+        raise TypeError(f"`download` must be True or False, got {download!r}.")
     if path is not None and Path(path).expanduser().is_file():
         path = Path(path).expanduser().parent
     env = os.environ.get(ENV_VAR)
@@ -63,7 +65,7 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
         if path is not None and not Path(path).expanduser().exists():
             err = DatasetNotFoundError(f"path={str(path)!r} does not exist. {err}")
         raise err
-    target = fetch(name, cache_dir=cache_dir, base_url=base_url)
+    target = fetch(name, cache_dir=cache_dir, base_url=base_url, alternatives=alternatives)
     # The archive may keep the files in a subfolder (e.g. SilverboxFiles/).
     folders = sorted(
         {p.parent for p in target.rglob("*") if p.is_file()}, key=lambda p: len(p.parts)
