@@ -13,7 +13,8 @@ of its estimates. x0 is determined by the few samples at the head of the record:
 sandwich takes its own part from the residuals' autocovariance pooled over the record
 (`oneshot_jax._covariance.sandwich`).
 
-Run: `python benchmarks/sandwich_x0.py` (`--draws N`, default 200; `--quick`: 10 draws).
+Run: `python benchmarks/sandwich_x0.py` (`--draws N`, default 200; `--quick`: 10 draws;
+`--lags L ...`: the sandwich's lags under the AR(1) noise, default 20).
 """
 
 import argparse
@@ -31,7 +32,7 @@ from timing import conditions  # noqa: E402
 import oneshot_jax as oj  # noqa: E402
 
 TRUTH, X0, T, SIGMA = {"a": 0.8, "b": 0.5}, 1.0, 200, 0.1
-CASES = ((0.0, 3), (0.8, 20))  # (AR(1) coefficient, the sandwich's lags)
+WHITE_LAGS, PHI = 3, 0.8  # the sandwich's lags under white noise; the AR(1) coefficient
 
 
 def step(x, u, th):
@@ -39,19 +40,21 @@ def step(x, u, th):
 
 
 def study(draws, phi, lags):
+    """Per covariance ("classical", and "L" for each of `lags`), each draw's (a, SE of a,
+    x0, SE of x0)."""
     model = oj.Model(step)
-    out = {"classical": [], "sandwich": [], "x0": []}
+    covs = {"classical": "classical", **{str(L): oj.NeweyWest(lags=L) for L in lags}}
+    out = {name: [] for name in covs}
     for seed in range(draws):
         rng = np.random.default_rng(seed)
         u = rng.standard_normal((T, 1))
         _, x = oj.simulate(model, TRUTH, np.array([X0]), u)
         z = np.asarray(x) + ar1(rng, T, phi, SIGMA)
-        for name, cov in (("classical", "classical"), ("sandwich", oj.NeweyWest(lags=lags))):
+        for name, cov in covs.items():
             r = oj.fit(model, {"a": 0.7, "b": 0.4}, np.array([X0]), u, z, covariance=cov)
             out[name].append(
                 (float(r.theta["a"]), float(r.std["a"]), float(r.x0[0]), float(r.x0_std[0]))
             )
-        out["x0"].append(float(r.x0[0]))
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -59,6 +62,9 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--draws", type=int, default=200, help="noise draws (default 200)")
     parser.add_argument("--quick", action="store_true", help="10 draws")
+    parser.add_argument(
+        "--lags", type=int, nargs="+", default=[20], help="the sandwich's lags, AR(1) noise"
+    )
     args = parser.parse_args(argv)
     draws = 10 if args.quick else args.draws
     warnings.simplefilter("ignore")
@@ -69,19 +75,23 @@ def main(argv=None):
     )
     print(conditions())
     print(
-        f"\n  {'noise':<14}{'covariance':<22}{'a: coverage':>12}{'x0: coverage':>14}"
-        f"{'x0: RMS SE / spread':>21}"
+        f"\n  {'noise':<14}{'covariance':<22}{'a: coverage':>12}{'a: RMS SE / spread':>20}"
+        f"{'x0: coverage':>14}{'x0: RMS SE / spread':>21}"
     )
-    for phi, lags in CASES:
+    for phi, lags in ((0.0, [WHITE_LAGS]), (PHI, args.lags)):
         res = study(draws, phi, lags)
-        spread = res["x0"].std(ddof=1)
         noise = "white" if phi == 0 else f"AR(1) {phi:g}"
-        for name, label in (("classical", "classical"), ("sandwich", f"Newey-West ({lags})")):
-            a, sa, x0, sx = res[name].T
+        for name, r in res.items():
+            a, sa, x0, sx = r.T
             cover_a = 100 * np.mean(np.abs(a - TRUTH["a"]) <= 1.96 * sa)
             cover_x = 100 * np.mean(np.abs(x0 - X0) <= 1.96 * sx)
-            ratio = np.sqrt(np.mean(sx**2)) / spread
-            print(f"  {noise:<14}{label:<22}{cover_a:>11.0f}%{cover_x:>13.0f}%{ratio:>21.2f}")
+            ratio_a = np.sqrt(np.mean(sa**2)) / a.std(ddof=1)
+            ratio_x = np.sqrt(np.mean(sx**2)) / x0.std(ddof=1)
+            label = name if name == "classical" else f"Newey-West ({name})"
+            print(
+                f"  {noise:<14}{label:<22}{cover_a:>11.0f}%{ratio_a:>20.2f}"
+                f"{cover_x:>13.0f}%{ratio_x:>21.2f}"
+            )
     return 0
 
 
