@@ -47,6 +47,19 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(arrays))
 
 
+def check_tree(tree, name="theta"):
+    """A ValueError naming `name` where JAX cannot flatten `tree` (a dict whose keys
+    cannot be sorted against each other, {0: ..., "b": ...}): JAX's own error names no
+    argument."""
+    try:
+        jax.tree_util.tree_structure(tree)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"`{name}` must be a pytree that JAX can flatten (a dict's keys must sort "
+            f"against each other: all str, or all int), got {_theta_summary(tree)}: {err}"
+        ) from None
+
+
 def check_path(path, name="path", what="a file or folder", optional=True):
     """A TypeError unless `path` is a non-empty str or an `os.PathLike` (or None, where
     `optional`)."""
@@ -460,8 +473,9 @@ def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
         # RK4 broadcasts dx/dt against x: a right-hand side of the wrong shape would give
         # a state of the right shape and a wrong model.
         _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u, theta_name)
-    with _naming_shapes("the model", x_1, u_1, x0, u, theta, theta_name):
+    with _naming_shapes("the model's `step`", x_1, u_1, x0, u, theta, theta_name):
         x_next = _abstract_call(model.step, x_1, u_step, theta)
+    with _naming_shapes("the model's `observe`", x_1, u_1, x0, u, theta, theta_name):
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
     _check_indices(model, theta, x_1, u_step, u_seen, u_1.shape[0])
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
@@ -555,6 +569,7 @@ def check_data(
     """
     if missing not in ("raise", "mask"):
         raise ValueError(f"`missing` must be 'raise' or 'mask', got {missing!r}.")
+    check_tree(theta, theta_name)
     # What depends only on the model, the structure, shapes and dtypes of the arguments
     # (the dtype, the bound model, the abstract trace below) is kept from an earlier call
     # that passed the checks; the checks of values run every time.

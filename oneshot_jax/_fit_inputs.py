@@ -23,6 +23,7 @@ from ._checks import (
     check_data,
     check_fixed_bounds,
     check_outside_transformations,
+    check_tree,
     fixed_mask,
     x0_mask,
 )
@@ -123,6 +124,7 @@ def check_inputs(
     """
     if z is None:
         raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")
+    check_tree(theta0, "theta0")
     check_outside_transformations(theta0, x0, u, z, weight, penalty_weight)
     _warn_integer_entries(theta0)
     _warn_module_python_ints(theta0)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data, check_outside_transformations
+from ._checks import check_cost, check_data, check_outside_transformations, check_tree
 from ._cost import weigh
 from ._counts import is_count
 from ._jit import jit
@@ -287,6 +287,7 @@ def _estimate(
     `z_name`: the caller's name of z, for the errors."""
     if method not in METHODS:
         raise ValueError(f"`method` must be 'lsq' or 'smoother', got {method!r}.")
+    check_tree(theta, "theta")
     check_outside_transformations(
         theta, u, z, x0, weight, record, name="`predict`" if record is not None else "`estimate_x0`"
     )

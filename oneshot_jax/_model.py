@@ -299,10 +299,13 @@ class Model(eqx.Module):
     shape (T, 0), which gives a record its length). JAX clamps an index beyond an array's
     end instead of raising (`u[1]` with n_u = 1 reads u[0]), so the checks cannot see
     such a slip: index the state and the input within their sizes. Both functions must be
-    pure and traceable by JAX. The model is immutable and hashable: pass it to a function under
-    `eqx.filter_jit` (as the library does), as a static argument of `jax.jit`, or close
-    over it; plain `jax.jit` cannot take it as a traced argument because it holds
-    functions.
+    pure and traceable by JAX: a value they read from a global or a closure is frozen into
+    each compiled function at its first call (a later `simulate` keeps the old value, a
+    `fit` compiled after the change takes the new one); pass a value that changes as an
+    entry of theta (held by `fit(fixed=...)`). The model is immutable and hashable: pass
+    it to a function under `eqx.filter_jit` (as the library does), as a static argument
+    of `jax.jit`, or close over it; plain `jax.jit` cannot take it as a traced argument
+    because it holds functions.
 
     **Arguments:**
 
@@ -343,6 +346,9 @@ class Model(eqx.Module):
             )
         if not isinstance(timed, bool):
             raise TypeError(f"`timed` must be a bool, got {timed!r}.")
+        _check_hashable(step, "step")
+        if observe is not None:
+            _check_hashable(observe, "observe")
         self.step = step
         self.observe = _identity_observe if observe is None else observe
         self.input = _check_input(input)
@@ -415,6 +421,7 @@ class Model(eqx.Module):
         ```
         """
         substeps = _check_integrator(rhs, method, substeps)
+        _check_hashable(rhs, "rhs")
         input = _check_input(input)
         if dt is None:
             if max_step is not None:
@@ -435,6 +442,25 @@ class Model(eqx.Module):
 
 ODE_STEPS = (_ODEStep, _TimedODEStep)
 """The step classes of `Model.from_ode` (their `rhs` is checked with the data)."""
+
+
+def _check_hashable(fn, name):
+    """Every compiled call takes the model's functions as static (hashed) arguments: a
+    callable object that cannot be hashed (a `@dataclass`, whose eq=True sets __hash__ to
+    None) would fail there with JAX's "Non-hashable static arguments" error. Arrays
+    inside an equinox module are the model's leaves (traced), not hashed."""
+    for leaf in jax.tree_util.tree_leaves(fn):
+        if isinstance(leaf, (jax.Array, np.ndarray, np.generic)):
+            continue
+        try:
+            hash(leaf)
+        except TypeError:
+            raise TypeError(
+                f"`{name}` must be hashable (the compiled functions take it as a static "
+                f"argument), got an unhashable {type(leaf).__name__}: use a function, "
+                "functools.partial, an equinox.Module, or @dataclass(frozen=True) (a "
+                "plain @dataclass sets __hash__ to None)."
+            ) from None
 
 
 def _positive_number(value, name, what):

@@ -225,21 +225,28 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     dt2 = floor(d_t, rel) if d_t.size else d_t
     dx2 = floor(d_x, rel) if d_x.size else d_x
     # x0 is never constrained: its cosines.
-    c_x = jnp.abs(g.x0) / (jnp.sqrt(dx2) * norm) if g.x0.size else g.x0
+    # (a column that is exactly zero, every column of a model whose outputs do not
+    # depend on the variables, has g_i = 0 and d_i = 0: its cosine is 0, not 0 / 0)
+    c_x = _cosine(g.x0, dx2, norm) if g.x0.size else g.x0
     theta = params.theta
     if not theta.size:
         return jnp.max(c_x, initial=0.0)
     constrained = problem.constrained or problem.regulariser is not None
     if not constrained:
-        c_t = jnp.abs(g.theta) / (jnp.sqrt(dt2) * norm)
+        c_t = _cosine(g.theta, dt2, norm)
         return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
-    t = 0.5 / dt2
+    t = 0.5 / jnp.where(dt2 > 0, dt2, 1.0)  # (dt2 = 0: every column zero, g = 0)
     if problem.project is not None:
         t = jnp.full_like(t, jnp.min(t))
     trial = problem.feasible(problem.prox(theta - t * 2.0 * g.theta, t))
     moved = jnp.maximum(jnp.abs(trial - theta) - 4 * eps * jnp.abs(theta), 0.0)
-    c_t = moved / (2.0 * t * jnp.sqrt(dt2) * norm)
+    c_t = jnp.where(moved == 0, 0.0, moved / (2.0 * t * jnp.sqrt(dt2) * norm))
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
+
+
+def _cosine(g, d, norm):
+    """|g_i| / (sqrt(d_i) ||r||), 0 where g_i = 0 (also where d_i = 0)."""
+    return jnp.where(g == 0, 0.0, jnp.abs(g) / (jnp.sqrt(d) * norm))
 
 
 def vanished_columns(d, top):

@@ -208,7 +208,7 @@ BAD_MODELS = {
     ),
     "step fails": (
         oj.Model(lambda x, u, th: th["missing"] * x, observe),
-        r"calling the model on a state of shape \(3,\) \(from `x0`.* and the parameters "
+        r"calling the model's `step` on a state of shape \(3,\) \(from `x0`.* and the parameters "
         r"`theta0?` \(a dict, leaf shapes \{'B': \(3, 2\), 'a': \(\)\}\) failed: KeyError",
     ),
     "step returns a list": (
@@ -1075,3 +1075,17 @@ def test_estimate_x0_and_predict_inside_a_transformation_say_so(name):
     }[name]
     with pytest.raises(TypeError, match=rf"`{name}` runs outside JAX transformations"):
         jax.jit(call)(_Z1)
+
+
+def test_a_theta_whose_keys_do_not_sort_is_named():
+    """{0: ..., "b": ...}: JAX's "Comparator raised exception while sorting pytree
+    dictionary keys" named no argument, in fit, simulate and estimate_x0 alike."""
+    model = oj.Model(lambda x, u, th: th[0] * x + th["b"] * u)
+    theta = {0: 0.5, "b": 1.0}
+    u, z = np.ones((10, 1)), np.ones((10, 1))
+    with pytest.raises(ValueError, match=r"`theta0` must be a pytree that JAX can flatten"):
+        oj.fit(model, theta, np.zeros(1), u, z)
+    with pytest.raises(ValueError, match=r"`theta` must be a pytree that JAX can flatten"):
+        oj.simulate(model, theta, np.zeros(1), u)
+    with pytest.raises(ValueError, match=r"`theta` must be a pytree that JAX can flatten"):
+        oj.estimate_x0(model, theta, u, z)

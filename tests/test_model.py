@@ -292,3 +292,33 @@ def test_model_is_immutable():
     other = oj.Model.from_ode(pendulum_rhs, 0.1)
     assert model == other and hash(model) == hash(other)
     assert model != oj.Model.from_ode(pendulum_rhs, 0.2)
+
+
+def test_an_unhashable_callable_is_refused_naming_it():
+    """A plain @dataclass (eq=True sets __hash__ to None) cannot be a static argument of
+    the compiled calls: refused when the model is built, not with JAX's error."""
+
+    @dataclasses.dataclass
+    class Step:
+        a: float
+
+        def __call__(self, x, u, theta):
+            return self.a * x + theta["b"] * u
+
+    with pytest.raises(TypeError, match="`step` must be hashable"):
+        oj.Model(Step(0.9))
+    with pytest.raises(TypeError, match="`observe` must be hashable"):
+        oj.Model(lambda x, u, th: x, Step(1.0))
+    with pytest.raises(TypeError, match="`rhs` must be hashable"):
+        oj.Model.from_ode(Step(0.9), dt=0.1)
+
+    @dataclasses.dataclass(frozen=True)
+    class Frozen:
+        a: float
+
+        def __call__(self, x, u, theta):
+            return self.a * x + theta["b"] * u
+
+    u = np.ones((5, 1))
+    x, _ = oj.simulate(oj.Model(Frozen(0.5)), {"b": 1.0}, np.zeros(1), u)  # hashable: runs
+    assert np.allclose(x[:, 0], [0.0, 1.0, 1.5, 1.75, 1.875])

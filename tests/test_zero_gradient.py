@@ -146,3 +146,26 @@ def test_each_start_of_a_multistart_that_stays_at_a_zero_gradient_is_reported():
     assert stuck.status == "zero_gradient"
     assert stuck.starts.stop_reason == ("zero_gradient", "zero_gradient")
     assert "stops: zero_gradient 2" in str(stuck)
+
+
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "lbfgs"])
+@pytest.mark.parametrize("constrained", [False, True])
+def test_outputs_independent_of_every_variable_are_stationary(solver, constrained):
+    """Every Jacobian column exactly zero (an `observe` that ignores x and theta): the
+    first-order measure is 0 (not 0 / 0 = NaN, which no test passed: "stalled")."""
+    u = np.random.default_rng(0).standard_normal((40, 1))
+    model = oj.Model(lambda x, u, th: 0.9 * x + th["k"] * u, lambda x, u, th: 2.0 * u)
+    constraints = oj.constraints.positive() if constrained else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(
+            model,
+            {"k": 0.3},
+            np.zeros(1),
+            u,
+            2.0 * u + 0.01,
+            solver=solver,
+            constraints=constraints,
+        )
+    assert r.stop_info["first_order"] == 0.0
+    assert r.success
