@@ -19,7 +19,10 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   compares beyond shapes and names: the static fields of theta's equinox modules and its
   non-parameter leaves such as an activation function, each in words), `n_u` (the
   fitted data's input columns, which `FitResult.simulate`/`predict` check) and
-  `model_signature` (the model's static settings, which `load_result(model=)` checks).
+  `model_signature` (the model's static settings, which `load_result(model=)` checks),
+  and `digest`: the SHA-256 of the arrays (names, dtypes, shapes, bytes) and of the rest
+  of `__meta__`, by which an edited file is told from the saved one (a file without it,
+  written before it was added, is read without that check).
 - arrays: `theta/<i>` and `std/<i>` (theta's parameter leaves in leaf order),
   `static/<j>` (theta's integer and boolean arrays), `x0`,
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,

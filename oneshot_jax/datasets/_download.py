@@ -181,6 +181,8 @@ def fetch(name, *, cache_dir=None, base_url=None, alternatives=None) -> Path:
         `<cache_dir>/<name>/`, unpacked as in the official archive.
     - `base_url`: fetch `<base_url>/<archive name>` instead of the official URLs; default
         `$ONESHOT_JAX_DATA_URL` when set.
+    - `alternatives`: tuples of file names, each a complete set (the loader's): the
+        download must hold one of them in one folder, or nothing is installed.
 
     **Returns:**
 
