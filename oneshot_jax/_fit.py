@@ -230,24 +230,36 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
             jax.block_until_ready(_loss_at(problem, params, strategy))
         return bool(again["unconverged_rollouts"])
 
-    reasons = None if result.starts is None else list(result.starts.stop_reason)
-    if reasons is not None and finals is not None:
+    out = result
+    if result.starts is not None and finals is not None:
+        reasons = list(result.starts.stop_reason)
         for s, reason in enumerate(reasons):
             if s != result.best and reason in SUCCESS:
                 if unconverged(Params(finals.theta[s], finals.x0[s])):
                     reasons[s] = "unconverged_rollout"
-    out = result
+        if reasons != list(result.starts.stop_reason):
+            starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+            out = dataclasses.replace(out, starts=starts)
     if result.success and unconverged(problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))):
-        info = {
-            **result.stop_info,
-            "solver_stop": name_of(result.stop_reason),
-            "unconverged_rollouts": counts["unconverged_rollouts"],
-            "parallel_rollouts": counts["parallel_rollouts"],
-        }
-        out = dataclasses.replace(result, stop_reason=RESULTS.unconverged_rollout, stop_info=info)
-        if reasons is not None:  # (the best start's own stop, as the status line's)
-            reasons[result.best] = "unconverged_rollout"
-    if reasons is not None and reasons != list(result.starts.stop_reason):
+        out = _demoted(
+            out,
+            "unconverged_rollout",
+            unconverged_rollouts=counts["unconverged_rollouts"],
+            parallel_rollouts=counts["parallel_rollouts"],
+        )
+    return out
+
+
+def _demoted(result, reason, **info):
+    """`result` with the stop reason `reason` (not a success) where a check after the
+    solve refutes the solver's success: the solver's own stop in
+    `stop_info["solver_stop"]` with `info`, and the best start's stop in `result.starts`
+    too (as the status line's)."""
+    info = {**result.stop_info, "solver_stop": name_of(result.stop_reason), **info}
+    out = dataclasses.replace(result, stop_reason=getattr(RESULTS, reason), stop_info=info)
+    if result.starts is not None:
+        reasons = list(result.starts.stop_reason)
+        reasons[result.best] = reason
         starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
         out = dataclasses.replace(out, starts=starts)
     return out
@@ -313,17 +325,7 @@ def _flag_infeasible(result, project, rtol=1e-8):
         RuntimeWarning,
         stacklevel=3,
     )
-    if not demoted:
-        return result
-    info = {**result.stop_info, "solver_stop": name_of(result.stop_reason), "infeasible": gap}
-    out = dataclasses.replace(result, stop_reason=RESULTS.infeasible, stop_info=info)
-    if result.starts is not None:  # (the best start's own stop, as the status line's)
-        reasons = list(result.starts.stop_reason)
-        reasons[result.best] = "infeasible"
-        out = dataclasses.replace(
-            out, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
-        )
-    return out
+    return _demoted(result, "infeasible", infeasible=gap) if demoted else result
 
 
 def _warn_projected(moved, names, theta0):

@@ -454,6 +454,13 @@ class ResidualCorrelations(NamedTuple):
     cross_bound: np.ndarray | None = None
 
 
+def _lag_sums(x, max_lag):
+    """sum_t x(t) x(t - k) per channel within each trajectory of x (N, T, channels), for
+    k = 0..max_lag: (max_lag + 1, channels)."""
+    T = x.shape[1]
+    return np.stack([np.sum(x[:, k:] * x[:, : T - k], axis=(0, 1)) for k in range(max_lag + 1)])
+
+
 def _trajectories(a, name, shape=None):
     """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have."""
     if np.iscomplexobj(a):
@@ -615,10 +622,11 @@ def residual_correlations(
         )
     lags = np.arange(-max_lag, max_lag + 1)
     # R_e(tau) for tau >= 0 within each trajectory; R_e(-tau) = R_e(tau).
-    half = np.stack([np.sum(e[:, k:] * e[:, : T - k], axis=(0, 1)) for k in range(max_lag + 1)])
+    half = _lag_sums(e, max_lag)
     auto = np.concatenate([half[:0:-1], half]) / n / r0
+    r_e = auto[max_lag + 1 :]  # lags 1..max_lag
     bound = special.ndtri(0.5 + 0.5 * float(confidence)) / np.sqrt(n)
-    auto_outside = np.mean(np.abs(half[1:] / n / r0) > bound, axis=0)
+    auto_outside = np.mean(np.abs(r_e) > bound, axis=0)
 
     cross = independent = cross_outside = cross_bound = None
     if u is not None:
@@ -641,10 +649,7 @@ def residual_correlations(
         scale = n[:, None] * np.sqrt(r0[:, None] * ru0[None, :])
         cross = np.stack([lagged(int(k)) for k in lags]) / scale
         # Ljung's variance of r_eu: P / n, P = sum_k r_e(k) r_u(k) (both coloured).
-        r_u = np.stack(
-            [np.sum(u[:, k:] * u[:, : T - k], axis=(0, 1)) for k in range(1, max_lag + 1)]
-        ) / (count * ru0)
-        r_e = half[1:] / n / r0
+        r_u = _lag_sums(u, max_lag)[1:] / (count * ru0)
         P = np.maximum(1.0 + 2.0 * np.einsum("kz,ku->zu", r_e, r_u), 1.0)
         cross_bound = bound[:, None] * np.sqrt(P)
         cross_outside = np.mean(np.abs(cross[max_lag:]) > cross_bound, axis=0)
