@@ -220,24 +220,27 @@ def check_inputs(
 
 
 def _warn_integer_entries(theta0) -> None:
-    """Warn where theta0 holds an integer scalar of NumPy or JAX outside an equinox
-    module (`{"k": np.int64(1)}`, a value taken from an integer array): it is carried as
-    data, not estimated (`_pytree.is_parameter`), which a user rarely means there. A
-    module's integer fields (an exponent, an index) and Python ints are not named."""
+    """Warn where theta0 holds an integer scalar or array of NumPy or JAX outside an
+    equinox module (`{"k": np.int64(1)}`, a value taken from an integer array,
+    `{"a": np.array([1, 2])}`): it is carried as data, not estimated
+    (`_pytree.is_parameter`), which a user rarely means there. A module's integer fields
+    (an exponent, an index) and Python ints are not named."""
     is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
     named = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(theta0, is_leaf=is_module)[0]:
         if is_module(leaf) or isinstance(leaf, (bool, int, float, np.bool_)):
             continue
         dtype = getattr(leaf, "dtype", None)
-        if dtype is not None and np.ndim(leaf) == 0 and np.issubdtype(dtype, np.integer):
-            named.append(f"theta0{jax.tree_util.keystr(path)} ({dtype})")
+        if dtype is not None and np.issubdtype(dtype, np.integer):
+            shape = np.shape(leaf)
+            kind = f"{dtype}" if not shape else f"{dtype}, shape {shape}"
+            named.append(f"theta0{jax.tree_util.keystr(path)} ({kind})")
     if named:
         warnings.warn(
             f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: an integer "
-            "scalar of NumPy or JAX is held fixed as data, not estimated (right for an "
-            "exponent or an index). To estimate it, give a float (1.0, float(value)); "
-            "`fixed=` holds a parameter fixed.",
+            "scalar or array of NumPy or JAX is held fixed as data, not estimated (right "
+            "for an exponent or an index). To estimate it, give floats (1.0, "
+            "float(value), np.asarray(a, float)); `fixed=` holds a parameter fixed.",
             UserWarning,
             stacklevel=4,
         )

@@ -190,6 +190,13 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     T, n_z = z.shape
     if not models:
         raise ValueError("`models` is empty: pass at least one model (or model output).")
+    if n_z > T:
+        warnings.warn(
+            f"`z` holds T = {T} samples of {n_z} outputs, one axis per output: is it "
+            f"transposed? `compare` takes samples along the first axis, shape (T, n_z).",
+            UserWarning,
+            stacklevel=2,
+        )
     if u is not None:
         u = _columns(u, "u")
         if u.shape[0] != T:

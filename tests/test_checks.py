@@ -498,6 +498,25 @@ def test_an_integer_scalar_of_numpy_in_theta0_warns_that_it_is_held():
         oj.fit(model, {"k": 2, "c": 0.2}, np.array([1.0, 0.0]), u, z)
 
 
+def test_an_integer_array_of_numpy_in_theta0_warns_that_it_is_held():
+    """{"kc": np.array([2, 0])} (integers typed by hand) was held as data in silence: the
+    fit returned the start for both entries."""
+
+    def rhs(x, u, p):
+        return jnp.stack([x[1], -p["kc"][0] * x[0] - p["kc"][1] * x[1] + p["b"] * u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.1)
+    u = np.random.default_rng(1).standard_normal((100, 1))
+    _, z = oj.simulate(model, {"kc": np.array([2.0, 0.3]), "b": 1.0}, np.array([1.0, 0.0]), u)
+    with pytest.warns(UserWarning, match=r"theta0\['kc'\] \(int64, shape \(2,\)\).*held fixed"):
+        r = oj.fit(model, {"kc": np.array([2, 0]), "b": 1.0}, np.array([1.0, 0.0]), u, z)
+    assert r.names == ("b",) and np.array_equal(r.theta["kc"], [2, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = oj.fit(model, {"kc": np.array([2.0, 0.0]), "b": 1.0}, np.array([1.0, 0.0]), u, z)
+    assert np.allclose(r.theta["kc"], [2.0, 0.3], atol=1e-6)
+
+
 def test_a_python_int_field_of_a_module_warns_that_it_is_estimated():
     """An equinox module's `power: int = 1` (not static) is a parameter, fitted as a float
     where equinox's convention leaves it alone: fit says so, with the remedies; a static

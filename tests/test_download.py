@@ -274,3 +274,15 @@ def test_download_must_be_a_bool(server, tmp_path, download):
     with pytest.raises(TypeError, match=r"`download` must be True or False"):
         ds.load_silverbox(tmp_path / "empty", download=download, cache_dir=tmp_path, base_url=base)
     assert log == []
+
+
+def test_a_cache_folder_that_cannot_be_made_is_named(server, tmp_path):
+    """A cache folder below a regular file failed with a bare NotADirectoryError."""
+    base, _, log = server
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(ValueError, match=r"`cache_dir`: cannot use .*a_file.*download cache"):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=blocker / "cache", base_url=base)
+    with pytest.raises(ValueError, match=r"`cache_dir`: cannot use .*a_file"):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=blocker, base_url=base)
+    assert log == []

@@ -511,3 +511,16 @@ def test_compare_names_bad_labels():
     z = np.ones((20, 1))
     with pytest.raises(TypeError, match=r"`labels` must be a string or a sequence of 1"):
         oj.plot.compare(z, z, labels=5)
+
+
+def test_compare_of_transposed_arrays_warns():
+    """Model outputs given as arrays need no `u`, and z shaped (2, 60) drew 60 axes of two
+    samples each without a word."""
+    t = np.linspace(0.0, 1.0, 60)
+    z = np.stack([np.sin(t), np.cos(t)], axis=1)
+    with pytest.warns(UserWarning, match=r"`z` holds T = 2 samples of 8 outputs, .*: is it trans"):
+        fig = oj.plot.compare(z.T[:, :8], 0.9 * z.T[:, :8])
+    assert len(fig.axes) == 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.plot.compare(z, 0.9 * z)

@@ -22,7 +22,12 @@ import zipfile
 import zlib
 from pathlib import Path
 
-from ._locations import DatasetFormatError, DatasetNotFoundError, default_cache_dir
+from ._locations import (
+    CACHE_ENV_VAR,
+    DatasetFormatError,
+    DatasetNotFoundError,
+    default_cache_dir,
+)
 
 URL_ENV_VAR = "ONESHOT_JAX_DATA_URL"
 """Environment variable naming a base URL that replaces the official download URLs."""
@@ -208,7 +213,16 @@ def fetch(name, *, cache_dir=None, base_url=None, alternatives=None) -> Path:
     urls = [f"{base_url.rstrip('/')}/{src.archive}"] if base_url else list(src.urls)
     root = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     target = root / src.subdir
-    root.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # a regular file on the way, no permission, a read-only disk
+        raise ValueError(
+            f"`cache_dir`: cannot use {str(root)!r} as the download cache folder "
+            f"({type(err).__name__}: {err.strerror or err}); pass cache_dir=<a folder you can "
+            f"write> or set ${CACHE_ENV_VAR}."
+        ) from err
+    if not root.is_dir():
+        raise ValueError(f"`cache_dir`: {str(root)!r} is not a folder.")
     with tempfile.TemporaryDirectory(prefix=f".{src.subdir}-", dir=root) as tmp:
         tmp = Path(tmp)
         archive = tmp / src.archive
