@@ -168,6 +168,7 @@ def estimate_x0(
     prior_covariance=None,
     t: Float[ArrayLike, " T"] | None = None,
     missing: str = "raise",
+    estimate=None,
 ) -> X0Estimate:
     """Estimate the initial state x0 of a record from its first n samples (MATLAB's
     `findstates`), with theta known.
@@ -228,6 +229,11 @@ def estimate_x0(
     - `missing`: `"mask"` takes NaN entries of the head's z as missing samples, left out
         of the cost (`"lsq"` only; then `x0` is needed where z[0] has one); `"raise"`
         (default) refuses them.
+    - `estimate`: `"lsq"` only: an (n_x,) boolean mask, True for the entries to
+        estimate; the others are known and keep their value in `x0` (variance 0), as
+        with `fit(estimate_x0=mask)` (MATLAB's `InitialStates(i).Fixed`). Default: every
+        entry. `FitResult.predict` passes it on: `estimate=result.x0_estimated` holds
+        the entries the fit held, at the values given in `x0=`.
 
     **Returns:**
 
@@ -258,6 +264,7 @@ def estimate_x0(
         stacklevel=3,
         t=t,
         missing=missing,
+        estimate=estimate,
     )[0]
 
 
@@ -280,6 +287,7 @@ def _estimate(
     record=None,
     missing="raise",
     z_name="z",
+    estimate=None,
 ):
     """`estimate_x0`, with its warnings attributed `stacklevel` frames up. With `record`
     (the whole record's `(u, t)`, whose head is `u`), also the record simulated from the
@@ -308,6 +316,11 @@ def _estimate(
             )
     elif solver is not None:
         raise ValueError("`solver` only applies to method='lsq'.")
+    if estimate is not None and method != "lsq":
+        raise ValueError(
+            "`estimate` (a mask of the x0 entries to estimate) applies to method='lsq'; the "
+            "smoother holds an entry known through a small `prior_covariance` for it."
+        )
     if missing == "mask" and method != "lsq":
         raise ValueError(
             "`missing=\"mask\"` applies to method='lsq' (the smoother needs every sample)."
@@ -343,6 +356,24 @@ def _estimate(
             f"`{z_name}` has the model's outputs as columns, or give `x0`.)"
         ) from err
     guess = np.asarray(data.x0)
+    if estimate is not None:
+        if estimate is True or estimate is False:
+            raise TypeError(
+                f"`estimate` must be an (n_x,) = ({guess.size},) boolean mask or None (every "
+                f"entry), got {estimate!r}."
+            )
+        mask = np.asarray(estimate)
+        if mask.dtype != bool or mask.shape != guess.shape:
+            raise ValueError(
+                f"`estimate` must be an (n_x,) = ({guess.size},) boolean mask, True for the "
+                f"entries to estimate, got {estimate!r}."
+            )
+        if defaulted and not mask.all():
+            raise ValueError(
+                "`estimate` holds some x0 entries at their value in `x0`: give `x0` (the "
+                "known values of the held entries, guesses for the others)."
+            )
+        estimate = None if mask.all() else mask
 
     stop_reason, kalman, e, ok, sim = None, None, None, None, None
     if method == "lsq":
@@ -351,7 +382,12 @@ def _estimate(
             whole = check_data(model, theta, guess, record[0], t=record[1]).u
             if whole.dtype != data.u.dtype:  # simulated apart, in its own dtype
                 whole = None
-        r = solve_x0(data, solver, record=whole)
+        if estimate is not None and not estimate.any():  # nothing to estimate: x0 as given
+            raise ValueError(
+                "`estimate` holds every x0 entry: there is nothing to estimate; simulate "
+                "from `x0` instead (`oneshot_jax.simulate`)."
+            )
+        r = solve_x0(data, solver, record=whole, estimate=estimate)
         ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]
         cov = np.asarray(r.covariance[0], guess.dtype)
@@ -431,8 +467,10 @@ def predict(
 ) -> Prediction:
     """Simulate a record from an initial state estimated from its first n outputs: the
     benchmark protocol's prediction (the model may use the whole input and z[:n]). This
-    is an open-loop simulation (MATLAB's `compare` with an estimated initial state), not
-    MATLAB's K-step-ahead `predict`, which has no counterpart here.
+    is an open-loop simulation (MATLAB's `compare` with an estimated initial state). For an
+    output-error model (no noise model, as `idnlgrey`) MATLAB's K-step-ahead `predict` is
+    this same simulation whatever K; a predictor that corrects the state from the outputs
+    (a Kalman filter) is not built here.
 
     **Arguments:**
 
@@ -476,6 +514,7 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None, z
         measurement_noise=None,
         prior_covariance=None,
         missing="raise",
+        estimate=None,
     )
     unknown = sorted(set(kwargs) - set(options))
     if unknown:

@@ -112,7 +112,9 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
     return _pytree.pack((X0, final.loss[0], final.result._value[0], e, cov, extra))
 
 
-def solve_x0(data: Data, solver=None, *, with_covariance: bool = True, record=None) -> X0Fit:
+def solve_x0(
+    data: Data, solver=None, *, with_covariance: bool = True, record=None, estimate=None
+) -> X0Fit:
     """Minimise C of eq. (5) over the initial states alone, theta fixed.
 
     **Arguments:**
@@ -126,6 +128,8 @@ def solve_x0(data: Data, solver=None, *, with_covariance: bool = True, record=No
         where the data start (checked as `data.u` is): the identifiability of x0
         (`identifiable_x0`) and the record simulated from the estimate come from the same
         compiled call (`predict`).
+    - `estimate`: an (n_x,) boolean mask of the entries to estimate; the others keep
+        their value in `data.x0` (zero variance, counted identifiable). Default: all.
 
     **Returns:**
 
@@ -152,16 +156,28 @@ def solve_x0(data: Data, solver=None, *, with_covariance: bool = True, record=No
         theta_free=(),
         unravel=unravel,
         x0_base=X0,
-        x0_free=tuple(range(X0.shape[1])),
+        x0_free=tuple(
+            range(X0.shape[1]) if estimate is None else np.flatnonzero(estimate).tolist()
+        ),
         project=None,
         lower=None,
         upper=None,
         regulariser=None,
         mask=mask,
     )
-    start = Params(np.zeros((1, 0), flat0.dtype), X0[None])
+    start = Params(np.zeros((1, 0), flat0.dtype), problem.split(flat0, X0).x0[None])
     buffers, layout = _solve(solvers, problem, start, with_covariance, record)
     x0, loss, result, e, cov, extra = _pytree.unpack(buffers, layout)
-    x0_cov = None if cov is None else cov.x0
+    x0_cov = None if cov is None else np.asarray(cov.x0)
     ok, sim = (None, None) if extra is None else extra
+    if estimate is not None:  # the free entries' blocks, into (n_x, n_x): held ones known
+        free = np.flatnonzero(estimate)
+        if x0_cov is not None:
+            full = np.zeros((x0_cov.shape[0], X0.shape[1], X0.shape[1]), x0_cov.dtype)
+            full[:, free[:, None], free[None, :]] = x0_cov
+            x0_cov = full
+        if ok is not None:
+            held = np.ones(X0.shape[1], bool)
+            held[free] = np.asarray(ok)
+            ok = held
     return X0Fit(x0, loss, from_index(int(result)), e, x0_cov, ok, sim)

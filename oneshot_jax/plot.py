@@ -17,6 +17,7 @@ import numpy as np
 from . import metrics
 from ._fit_result import FitResult
 from ._initial_state import Prediction
+from ._model import ODE_STEPS
 from ._timing import as_times as _as_times
 
 __all__ = ["compare", "resid"]
@@ -88,7 +89,24 @@ def _warn_other_record(name, result, zhat, z):
     )
 
 
-def _model_output(i, model, u, z, n, t=None):
+def _check_sample_interval(name, result, Ts):
+    """Refuse a record sampled at `Ts` for a FitResult of a `Model.from_ode` model with
+    another fixed `dt`: its step advances dt per sample, so the simulation would run on
+    the wrong time scale (MATLAB's compare simulates a continuous-time model at the
+    data's Ts)."""
+    step = getattr(getattr(result, "model", None), "step", None)
+    dt = getattr(step, "dt", None) if isinstance(step, ODE_STEPS) else None
+    if Ts is None or dt is None or np.isclose(float(Ts), float(dt), rtol=1e-9, atol=0.0):
+        return
+    raise ValueError(
+        f"the record is sampled at Ts = {float(Ts)!r}, but `{name}`'s model was built with "
+        f"dt = {float(dt)!r} (`Model.from_ode(rhs, dt)` advances dt per sample): build the "
+        f"model for this record, `Model.from_ode(rhs, dt={float(Ts)!r}, ...)`, and pass "
+        "`oneshot_jax.predict(model, result.theta, u, z, n)`'s Prediction instead."
+    )
+
+
+def _model_output(i, model, u, z, n, t=None, Ts=None):
     """The output (T, n_z) of the i-th model: a FitResult's simulation (or its prediction
     from the first n samples; at the sample times `t` for a timed model), a Prediction's
     z, or the array itself."""
@@ -96,6 +114,7 @@ def _model_output(i, model, u, z, n, t=None):
     if isinstance(model, FitResult):
         if u is None:
             raise ValueError(f"`u` is required to simulate {name}, a FitResult.")
+        _check_sample_interval(name, model, Ts)
         t = t if getattr(model.model, "timed", False) else None
         # Missing samples of the head (NaN) are left out of x0's fit, as of the FIT.
         gaps = {"missing": "mask"} if n and np.isnan(z[:n]).any() else {}
@@ -233,7 +252,7 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
             raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
         xlabel = "time"
 
-    outputs = [_model_output(i, m, u, z, n, times) for i, m in enumerate(models)]
+    outputs = [_model_output(i, m, u, z, n, times, Ts) for i, m in enumerate(models)]
     fig, axes = _axes(ax, n_z, plt, (8.0, 0.6 + 2.6 * n_z))
     measured = np.isfinite(z[n:])  # missing samples are left out of the FIT
     # An output never sampled at an instant (one measured only in aggregate, an all-NaN

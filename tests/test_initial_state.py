@@ -310,6 +310,43 @@ def test_lsq_is_the_x0_only_fit():
     assert np.max(np.abs(unweighted.x0 - est.x0)) > 1e-3
 
 
+def test_lsq_holds_the_known_entries_as_the_masked_x0_only_fit():
+    """`estimate=` (MATLAB's InitialStates(i).Fixed on new data): the held rate keeps its
+    given value, and the angle has the numbers of fit(estimate_x0=mask) on the head; it
+    differs from the estimate of both entries. predict and FitResult.predict pass it on."""
+    u, z, _ = pendulum_record(60, 3, NOISE, x0=(0.8, 0.0))
+    mask = np.array([True, False])
+    guess = np.array([0.0, 0.0])
+    held = oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=mask)
+    ref = oj.fit(
+        PENDULUM, PEND_THETA, guess, u[:N_HEAD], z[:N_HEAD], fixed=True, estimate_x0=mask,
+        solver=oj.GaussNewton(),
+    )  # fmt: skip
+    np.testing.assert_array_equal(held.x0, ref.x0)
+    np.testing.assert_array_equal(held.covariance[:1, :1], ref.x0_covariance)  # its free block
+    assert held.x0[1] == 0.0 and held.std[1] == 0.0 and held.identifiable.all()
+    both = oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess)
+    assert both.x0[1] != 0.0 and abs(both.x0[0] - held.x0[0]) > 1e-6
+    pred = oj.predict(PENDULUM, PEND_THETA, u, z, N_HEAD, x0=guess, estimate=mask)
+    np.testing.assert_array_equal(pred.x0, held.x0)
+    fitted = oj.fit(PENDULUM, PEND_THETA, guess, u, z, estimate_x0=mask)
+    np.testing.assert_array_equal(fitted.x0_estimated, mask)
+    again = fitted.predict(u, z[:N_HEAD], x0=guess, estimate=fitted.x0_estimated)
+    assert again.x0[1] == 0.0
+    with pytest.raises(ValueError, match=r"`estimate` holds some x0 entries.*give `x0`"):
+        oj.estimate_x0(oj.Model(lambda x, u, th: th * x), 0.9, u, np.c_[z, z], n=5, estimate=mask)
+    with pytest.raises(ValueError, match=r"`estimate` must be an \(n_x,\) = \(2,\) boolean"):
+        oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=[1, 0])
+    with pytest.raises(TypeError, match=r"`estimate` must be an \(n_x,\)"):
+        oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=True)
+    with pytest.raises(ValueError, match=r"holds every x0 entry: there is nothing"):
+        oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=~(mask | ~mask))
+    with pytest.raises(ValueError, match=r"`estimate` .* applies to method='lsq'"):
+        oj.estimate_x0(
+            PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=mask, method="smoother"
+        )
+
+
 def test_lsq_with_missing_head_samples_is_the_masked_x0_only_fit():
     """`missing="mask"`: NaN samples of the head leave the cost, as in `fit`; the two
     solves agree to the last digit, and differ from one that took the NaN as 0. Needs a
