@@ -42,6 +42,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
+from ._jit import forward_mode_error
 from ._kernels import local_terms
 from ._simulate import rollout, sample_count
 from ._strategy import AbstractStrategy, as_strategy
@@ -142,9 +143,13 @@ def value_and_grad(
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
-    C, (g_theta, g_x0) = value_and_grad_impl(
-        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
-    )
+    try:
+        C, (g_theta, g_x0) = value_and_grad_impl(
+            data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
+        )
+    except TypeError as err:
+        forward_mode_error(err)
+        raise
     if aggregate is not None:  # the accumulators' initial states are not variables
         g_x0 = g_x0[..., : agg.n_x]
     return C, (g_theta, g_x0)

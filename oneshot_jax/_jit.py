@@ -86,6 +86,23 @@ def compiler_options():
     return CPU_OPTIONS if OPTIONS_TAKEN[0] else {}
 
 
+def forward_mode_error(err: TypeError) -> None:
+    """Re-raise JAX's refusal to differentiate a `jax.custom_vjp` in forward mode, met
+    while tracing the model's functions, as a TypeError that says which of this library's
+    derivatives need forward mode and what to do; return for any other TypeError."""
+    if "custom_vjp" not in str(err) or "forward-mode" not in str(err):
+        return
+    raise TypeError(
+        "the model's `step`, `observe` or `rhs` calls a function with a `jax.custom_vjp`, "
+        "which JAX cannot differentiate in forward mode, and this library differentiates the "
+        "model in forward mode: the Jacobian of the least-squares solvers, the first-order "
+        "tests and the standard errors of `fit`, `estimate_x0`, and the strategy "
+        "'jacobian' (which 'auto' takes for a small theta). Define that function's "
+        "derivative with `jax.custom_jvp` instead; of the gradient paths only "
+        f"`value_and_grad(..., strategy='vjp')` works with a custom_vjp. (JAX: {err})"
+    ) from err
+
+
 def jit(fn):
     """`fn` compiled as `equinox.filter_jit(fn)` would (arrays traced, everything else
     static), with `CPU_OPTIONS` on a CPU whose XLA takes them (`compiler_options`).
@@ -115,6 +132,9 @@ def jit(fn):
             f = compiled[key] = jax.jit(functools.partial(traced, structure), **kw)
         try:
             out_arrays, out_structure = f(arrays)
+        except TypeError as err:
+            forward_mode_error(err)
+            raise
         except ValueError as err:
             if "top-level" not in str(err):
                 raise

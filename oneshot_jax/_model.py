@@ -204,8 +204,18 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
     u_at = _input_at(u, jnp.where(dt > 0, dt, 1.0), input)  # (dt = 0: no step is taken)
 
     def substep(j, x):
-        x_new = _integrator_step(rhs, x, u_at, theta, j * h, h, method)
-        return x_new if max_step is None else jnp.where(j < n, x_new, x)
+        if max_step is None:
+            return _integrator_step(rhs, x, u_at, theta, j * h, h, method)
+        # A step j >= n is masked. It is taken with h = 0 and evaluated at the start of the
+        # interval, so its stages see only the state x, where the steps before it evaluated
+        # rhs too. A full step of h would evaluate rhs beyond the interval (the stages of
+        # RK4 after the last state), and a non-finite derivative there (sqrt of a stage
+        # below 0) would reach the gradient through the zero cotangent of the `where`
+        # (0 * nan) in reverse mode.
+        live = j < n
+        h_j = jnp.where(live, h, 0.0)
+        x_new = _integrator_step(rhs, x, u_at, theta, jnp.where(live, j * h, 0.0), h_j, method)
+        return jnp.where(live, x_new, x)
 
     if substeps <= 8 and max_step is None:  # unrolled as in `ode_step`; masked: a loop
         for j in range(substeps):
@@ -302,7 +312,10 @@ class Model(eqx.Module):
     pure and traceable by JAX: a value they read from a global or a closure is frozen into
     each compiled function at its first call (a later `simulate` keeps the old value, a
     `fit` compiled after the change takes the new one); pass a value that changes as an
-    entry of theta (held by `fit(fixed=...)`). The model is immutable and hashable: pass
+    entry of theta (held by `fit(fixed=...)`). They are differentiated in forward mode
+    (`jax.jvp`) as well as in reverse mode: a function with a custom derivative inside them
+    needs `jax.custom_jvp` (a `jax.custom_vjp` works only with
+    `value_and_grad(strategy="vjp")`). The model is immutable and hashable: pass
     it to a function under `eqx.filter_jit` (as the library does), as a static argument
     of `jax.jit`, or close over it; plain `jax.jit` cannot take it as a traced argument
     because it holds functions.

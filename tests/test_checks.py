@@ -1108,3 +1108,27 @@ def test_a_theta_whose_keys_do_not_sort_is_named():
         oj.simulate(model, theta, np.zeros(1), u)
     with pytest.raises(ValueError, match=r"`theta` must be a pytree that JAX can flatten"):
         oj.estimate_x0(model, theta, u, z)
+
+
+def test_a_custom_vjp_in_the_model_names_forward_mode():
+    """A step with a `jax.custom_vjp` (a straight-through rounding) failed with JAX's bare
+    "can't apply forward-mode autodiff (jvp) to a custom_vjp function" from deep inside
+    the default fit and the default gradient; now a TypeError says what needs forward
+    mode and what to do. The reverse-mode gradient still works."""
+
+    @jax.custom_vjp
+    def ste_round(x):
+        return jnp.round(x)
+
+    ste_round.defvjp(lambda x: (jnp.round(x), None), lambda _, g: (g,))
+    model = oj.Model(lambda x, u, th: 0.5 * x + th["a"] * ste_round(4 * x) / 4 + th["b"] * u)
+    u = np.random.default_rng(0).standard_normal((20, 1))
+    theta, x0 = {"a": 0.3, "b": 0.7}, np.array([0.1])
+    _, z = oj.simulate(model, theta, x0, u)
+    advice = r"custom_vjp.*forward mode.*`jax\.custom_jvp`"
+    with pytest.raises(TypeError, match=advice):
+        oj.fit(model, theta, x0, u, np.asarray(z) + 0.1)
+    with pytest.raises(TypeError, match=advice):
+        oj.value_and_grad(model, theta, x0, u, np.asarray(z) + 0.1)
+    C, (g, _) = oj.value_and_grad(model, theta, x0, u, np.asarray(z) + 0.1, strategy="vjp")
+    assert np.isfinite(C) and np.isfinite(float(g["a"]))
