@@ -15,7 +15,12 @@ from ._fit_result import FitHistory, FitResult, Starts
 from ._optimality import resolution, roundoff_limit
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
-from ._strategy import COVARIANCE_MAX_THETA
+from ._strategy import (
+    COVARIANCE_MAX_THETA,
+    DENSE_JACOBIAN_BYTES,
+    dense_jacobian_bytes,
+    dense_jacobian_fits,
+)
 
 
 class StageOut(NamedTuple):
@@ -123,13 +128,19 @@ def post(problem, params, blocks, strategy, lags=None):
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
     xs, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
-    # Above COVARIANCE_MAX_THETA free entries of theta the covariance (a dense Jacobian with
-    # a column per parameter, and a p x p eigendecomposition) is not computed.
+    # Above COVARIANCE_MAX_THETA free entries of theta, or where its dense Jacobian would
+    # not fit (`dense_jacobian_fits`; the blocks a dense least-squares solve held are
+    # used as they are), the covariance (a dense Jacobian with a column per parameter, and
+    # a p x p eigendecomposition) is not computed.
     zs = problem.z
     m = None if problem.mask is None else problem.mask.outputs
     e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
     cov = None
-    if params.theta.shape[0] <= COVARIANCE_MAX_THETA:
+    held = blocks is not None and lags is None  # the solver's own Jacobian's blocks
+    n_cols = params.theta.shape[0] + params.x0.shape[-1]
+    if params.theta.shape[0] <= COVARIANCE_MAX_THETA and (
+        held or dense_jacobian_fits(problem, n_cols)
+    ):
         seen = problem.cost.observed()
         if lags is None:
             cov = scale(covariance(problem, params, strategy, blocks), e, seen)
@@ -287,9 +298,18 @@ def assemble(
     flat_std = np.zeros(theta_flat.shape, theta_flat.dtype)  # (the data's dtype, float32 too)
     x0_std = np.zeros(X0.shape, X0.dtype)
     if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
+        if len(free) > COVARIANCE_MAX_THETA:
+            why = f"above {COVARIANCE_MAX_THETA} free entries of theta ({len(free)} here)"
+        else:
+            size = dense_jacobian_bytes(problem, len(free) + len(x0_free))
+            why = (
+                f"where its dense Jacobian would exceed {DENSE_JACOBIAN_BYTES / 2**30:.3g} "
+                f"GiB ({size / 2**30:.3g} GiB here: a long record with many parameters; "
+                "fit a part of the record for standard errors)"
+            )
         warnings.warn(
-            f"the covariance of the estimates is not computed above {COVARIANCE_MAX_THETA} "
-            f"free entries of theta ({len(free)} here): std and x0_std are inf (unknown).",
+            f"the covariance of the estimates is not computed {why}: std and x0_std are inf "
+            "(unknown).",
             stacklevel=3,
         )
         theta_cov = np.zeros((0, 0))

@@ -219,7 +219,9 @@ class FitResult(eqx.Module):
         rows and columns of a parameter the data do not determine. The least-squares
         solvers take J from their last linearisation, at the returned point or one
         converged step (of scaled size <= rtol) before it. Not computed above 1024 free
-        entries of theta (a neural residual, say): then an empty (0, 0) array, `std`,
+        entries of theta (a neural residual, say), nor where its dense Jacobian would
+        exceed 1 GiB (N T (n_z + n_x) entries per free variable: a long record with
+        hundreds of parameters): then an empty (0, 0) array, `std`,
         `x0_std` and `x0_covariance` are inf (unknown), and `fit` warns.
     - `std`: standard errors shaped like theta's parameters (0 where fixed).
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;

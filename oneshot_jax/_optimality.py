@@ -92,6 +92,7 @@ import numpy as np
 from ._cost import weigh
 from ._linalg import floor
 from ._problem import FitProblem, Params
+from ._strategy import dense_jacobian_fits
 
 # A column of J has vanished along the fit where its squared norm is at most this fraction
 # of the largest it had (a norm below 1e-4 of it), in every precision (`stall_test`).
@@ -320,10 +321,11 @@ def column_norms(problem: FitProblem, params: Params, strategy, *, dense_max=256
     each trajectory's x0 columns (N, m).
 
     The x0 columns are formed (`x0_columns`). The theta columns are formed too while
-    p <= `dense_max`; above, the diagonal is estimated (`rademacher_diagonal`).
+    p <= `dense_max` and the dense Jacobian fits (`_strategy.dense_jacobian_fits`);
+    otherwise the diagonal is estimated (`rademacher_diagonal`).
     """
     p = params.theta.shape[0]
-    if p <= dense_max:
+    if p <= dense_max and dense_jacobian_fits(problem, p + params.x0.shape[-1]):
         lin = problem.jacobian(params, strategy)
         return jnp.sum(lin.Jt**2, axis=(0, 1)), jnp.sum(lin.Jx**2, axis=1)
     r, _, traj = problem.linearise(params, strategy)

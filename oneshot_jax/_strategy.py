@@ -84,6 +84,28 @@ MATRIX_FREE_MIN_THETA = 256
 # parameter, and a p x p eigendecomposition) only up to this many free entries of theta.
 COVARIANCE_MAX_THETA = 1024
 
+# The dense residual Jacobian and its forward sensitivities (N T (n_z + n_x) entries per
+# column, a column per free variable), which the least-squares solvers' dense solve, the
+# first-order test's column norms and the covariance of the estimates form, are formed
+# only up to this many bytes: beyond, a long record with many parameters would end the
+# whole fit out of memory. Then "auto" solves by conjugate gradients, the column norms are
+# estimated (`_optimality.rademacher_diagonal`) and the covariance is not computed.
+DENSE_JACOBIAN_BYTES = 2**30
+
+
+def dense_jacobian_bytes(problem, n_cols: int) -> int:
+    """The bytes of `problem`'s dense residual Jacobian and forward sensitivities with
+    `n_cols` columns (static shapes)."""
+    N, T, n_z = problem.z.shape
+    n_x = problem.x0_base.shape[1]
+    return int(N) * int(T) * (int(n_z) + int(n_x)) * int(n_cols) * problem.dtype.itemsize
+
+
+def dense_jacobian_fits(problem, n_cols: int) -> bool:
+    """Whether the dense Jacobian of `n_cols` columns stays within `DENSE_JACOBIAN_BYTES`."""
+    return dense_jacobian_bytes(problem, n_cols) <= DENSE_JACOBIAN_BYTES
+
+
 # Above this many bytes for the stacked J^{x/x}_k, "auto" takes the vjp strategy.
 JACOBIAN_BYTES = 256 * 2**20
 JACOBIAN_MAX_NX = 16
@@ -497,10 +519,11 @@ def sensitivity_strategy(strategy, n_traj, n_x, n_cols, T, itemsize):
     return as_strategy(strategy).resolve(n_x, T, itemsize, n_traj, n_cols).name
 
 
-def least_squares_solver(linear_solver, n_theta):
+def least_squares_solver(linear_solver, n_theta, fits=True):
     """Resolve "auto" for the normal equations of `GaussNewton` / `LevenbergMarquardt`:
     the dense structured solve (formed Jacobian) up to `MATRIX_FREE_MIN_THETA` free
-    entries of theta, conjugate gradients on Jacobian products above."""
+    entries of theta, conjugate gradients on Jacobian products above, or where the dense
+    Jacobian would not fit (`fits` False: `dense_jacobian_fits`)."""
     if linear_solver != "auto":
         return linear_solver
-    return "cg" if n_theta > MATRIX_FREE_MIN_THETA else "dense"
+    return "cg" if n_theta > MATRIX_FREE_MIN_THETA or not fits else "dense"

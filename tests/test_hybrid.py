@@ -659,6 +659,35 @@ def test_a_mask_on_a_whole_network_selects_its_arrays_only():
     assert float(out["a"]) == 0.5 and out["r"].activation is net.activation
 
 
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "lbfgs"])
+def test_a_dense_jacobian_too_large_is_not_formed(monkeypatch, solver):
+    """A long record with a few hundred parameters formed its dense Jacobian and forward
+    sensitivities (gigabytes) for the first-order test's column norms and the covariance,
+    even with a matrix-free solver, and the whole fit ended out of memory. Above the limit
+    (lowered here to 1000 bytes, for a record of 40 samples and 4 free variables) "auto"
+    solves by conjugate gradients, the column norms are estimated, the covariance is not
+    computed (fit says why), and the fit still converges to the estimate of a fit within
+    the limit."""
+    from oneshot_jax.internal import strategy_module
+
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u + th["c"] * jnp.tanh(x))
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 0.5, "b": 1.0, "c": 0.2}, jnp.array([0.3]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    theta0 = {"a": 0.4, "b": 0.9, "c": 0.0}
+    within = oj.fit(model, theta0, jnp.zeros(1), u, z, solver=solver)
+    assert within.success and np.all(np.isfinite([float(within.std[k]) for k in theta0]))
+    monkeypatch.setattr(strategy_module, "DENSE_JACOBIAN_BYTES", 1000)
+    small = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u + th["c"] * jnp.tanh(x))
+    with pytest.warns(UserWarning, match=r"not computed where its dense Jacobian would exceed"):
+        r = oj.fit(small, theta0, jnp.zeros(1), u, z, solver=solver)
+    assert r.success, r.message
+    for k in theta0:
+        assert float(r.theta[k]) == pytest.approx(float(within.theta[k]), abs=1e-5)
+        assert np.isinf(float(r.std[k]))
+
+
 def test_without_a_covariance_the_errors_are_unknown_not_nan(monkeypatch):
     """Above the covariance limit (lowered here to 2 free entries) fit warns, reports inf
     (unknown) standard errors, never NaN, and still reports its convergence."""

@@ -75,7 +75,13 @@ from .._optimality import (
 )
 from .._problem import Params
 from .._results import RESULTS
-from .._strategy import LINEAR_SOLVERS, ParallelInTime, as_strategy, least_squares_solver
+from .._strategy import (
+    LINEAR_SOLVERS,
+    ParallelInTime,
+    as_strategy,
+    dense_jacobian_fits,
+    least_squares_solver,
+)
 from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
@@ -147,12 +153,14 @@ class AbstractLeastSquares(AbstractSolver):
                 "strategy='parallel': take linear_solver='dense' (or 'auto') there."
             )
 
-    def _matrix_free(self, params):
+    def _matrix_free(self, problem, params):
         # The parallel-in-time path forms the Jacobian (its sensitivities are associative
         # scans); the matrix-free products are sequential.
         if isinstance(as_strategy(self.strategy), ParallelInTime):
             return False
-        return least_squares_solver(self.linear_solver, params.theta.shape[0]) == "cg"
+        p = params.theta.shape[0]
+        fits = dense_jacobian_fits(problem, p + params.x0.shape[-1])
+        return least_squares_solver(self.linear_solver, p, fits) == "cg"
 
     @abc.abstractmethod
     def _search(self) -> AbstractSearch:
@@ -166,7 +174,7 @@ class AbstractLeastSquares(AbstractSolver):
             problem,
             params,
             self.strategy,
-            self._matrix_free(params),
+            self._matrix_free(problem, params),
             self.cg_rtol,
             self.cg_max_steps,
         )
@@ -311,14 +319,14 @@ class AbstractLeastSquares(AbstractSolver):
         loss = jnp.where(take, new_loss, state.loss)
         return _Move(params, loss, take, h, pred, t.gave_up & ~take, search_state, t.at_full)
 
-    def _linearises_trials(self, params) -> bool:
+    def _linearises_trials(self, problem, params) -> bool:
         """Whether a step linearises at its trial point (its loss is the linearisation's
         C, and an accepted full step keeps that linearisation), rather than simulating the
         trial for its loss and linearising where the step ends: where the Jacobian is
         formed with at most `TRIAL_COLUMNS` columns per trajectory, the sensitivities cost
         about what the simulation costs, and this saves one simulation per step."""
         columns = params.theta.shape[0] + params.x0.shape[-1]
-        return not self._matrix_free(params) and columns <= TRIAL_COLUMNS
+        return not self._matrix_free(problem, params) and columns <= TRIAL_COLUMNS
 
     def step(self, problem, params, state):
         """One iteration: the descent and its search (`_move`), the linearisation where the
@@ -332,7 +340,7 @@ class AbstractLeastSquares(AbstractSolver):
         # The first step's move: none (its linearisation is at the start).
         nil = jnp.zeros((), problem.dtype)
         prime = _Move(params, state.loss, ~false, zeros, nil, false, state.search, ~false)
-        if self._linearises_trials(params):
+        if self._linearises_trials(problem, params):
             h, point = lazy_cond(
                 primed, lambda: self._descent(problem, params, state), (zeros, params)
             )
