@@ -6,8 +6,9 @@ move it by: the fit returns it unchanged, and a first-order test at the returned
 passes, although a little away from the start it does act on the outputs.
 `flag_zero_gradient` finds these on the host after the solve, from what the solve
 returned (the entries of the best start that never moved) and, only where some never
-moved, one evaluation of the gradient (eq. 17, 20) and of their Jacobian columns at the
-start and a little away from it; it warns, naming them, and makes the stop reason
+moved, one evaluation of the gradient (eq. 17, 20) at the start and, only where it is
+exactly zero for some of them, one of their Jacobian columns at the start and a little
+away from it; it warns, naming them, and makes the stop reason
 `zero_gradient`. The compiled solve is unchanged. A parameter without effect away from
 the start too, and every parameter of a fit that reproduces the outputs exactly
 (`zero_residual`), is one these data do not determine, which the covariance reports
@@ -46,26 +47,50 @@ def _columns(problem, params, entries, strategy):
 
 
 @jit
-def _stuck(problem, params, entries, strategy):
-    """Whether each free entry `entries` of theta has an exactly zero gradient (eq. 17, 20)
-    and Jacobian column at `params`, and a Jacobian column that is not zero once they are
-    all moved a little away from it, up or down within the box (not zero, or not finite:
-    it acts away from the start)."""
-    _, g = problem.value_and_grad(params, strategy)
-    zero = (g.theta[entries] == 0) & jnp.all(_columns(problem, params, entries, strategy) == 0, 1)
+def _gradient(problem, params, strategy):
+    """The gradient (eq. 17, 20) of the free entries of theta at `params`, (p,)."""
+    return problem.value_and_grad(params, strategy)[1].theta
+
+
+@jit
+def _stuck(problem, params, entries, valid, strategy):
+    """Whether each free entry `entries` of theta (where `valid`; the others pad the
+    array to a size that is compiled once, `_padded`), all of an exactly zero gradient at
+    `params` (`_gradient`), has an exactly zero Jacobian column there too, and one that
+    is not zero once they are all moved a little away from it, up or down within the box
+    (not zero, or not finite: it acts away from the start). The columns at the start and
+    at the two moved points are one vmapped evaluation (one copy of the sensitivities to
+    compile)."""
     values = params.theta[entries]
-    move = jnp.where(zero, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
-    acts = jnp.zeros(values.shape, bool)
+    move = jnp.where(valid, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
     # Both ways (relu(-k) acts below a start at 0 only), each within the box.
-    for sign in (1.0, -1.0):
-        moved = values + sign * move
+    signs = jnp.array([0.0, 1.0, -1.0], values.dtype)
+    # (added: a padding entry repeats a valid one and adds 0 to it)
+    thetas = jax.vmap(lambda sgn: params.theta.at[entries].add(sgn * move))(signs)
+    cols = jax.vmap(
+        lambda theta: _columns(problem, params._replace(theta=theta), entries, strategy)
+    )(thetas)
+    zero = valid & jnp.all(cols[0] == 0, 1)
+    acts = jnp.zeros(values.shape, bool)
+    for k in (1, 2):
+        moved = values + signs[k] * move
         inside = jnp.ones(values.shape, bool)
         if problem.lower is not None:
             inside = (moved >= problem.lower[entries]) & (moved <= problem.upper[entries])
-        away = params._replace(theta=params.theta.at[entries].set(moved))
-        cols = _columns(problem, away, entries, strategy)
-        acts = acts | (inside & (jnp.any(cols != 0, 1) | ~jnp.all(jnp.isfinite(cols), 1)))
+        c = cols[k]
+        acts = acts | (inside & (jnp.any(c != 0, 1) | ~jnp.all(jnp.isfinite(c), 1)))
     return zero & acts
+
+
+def _padded(unmoved, p):
+    """`unmoved` (k entries of p) padded by repeating its first entry to a size that
+    changes rarely (8, then powers of two, at most p), so that the checks of fits and
+    starts with different counts of unmoved entries share one compiled `_stuck`; and
+    the mask of the real entries."""
+    size = min(p, max(8, 1 << (len(unmoved) - 1).bit_length()))
+    entries = np.full(size, unmoved[0], unmoved.dtype)
+    entries[: len(unmoved)] = unmoved
+    return entries, np.arange(size) < len(unmoved)
 
 
 def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.ndarray:
@@ -87,8 +112,14 @@ def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.n
     if not unmoved.size:  # every free entry moved: nothing to evaluate
         return unmoved
     params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
-    stuck = np.asarray(_stuck(problem, params, jnp.asarray(unmoved), strategy))
-    return unmoved[stuck]
+    # The gradient first (one reverse pass): an entry held where it is not flat (at a
+    # bound, say) needs no Jacobian columns.
+    flat = unmoved[np.asarray(_gradient(problem, params, strategy))[unmoved] == 0]
+    if not flat.size:
+        return flat
+    entries, valid = _padded(flat, np.size(start.theta))
+    stuck = np.asarray(_stuck(problem, params, jnp.asarray(entries), valid, strategy))
+    return flat[stuck[: len(flat)]]
 
 
 def _starts_flagged(result, problem, starts: Params, finals, strategy):

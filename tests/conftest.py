@@ -1,9 +1,6 @@
-import atexit
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 
 # XLA's elemental emitter compiles a CPU kernel in about 40 % less time than its default
 # fusion emitters, for the same kernels (`oneshot_jax._jit` passes it to the library's
@@ -38,29 +35,10 @@ if PROBED not in os.environ:
         if name not in os.environ.get("XLA_FLAGS", "") and _xla_takes(flag):
             os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
 
-# JAX's persistent compilation cache, in a folder of this run: each test module starts from
-# empty in-memory caches (`_fresh_compilation_caches` below), and a program that a later
-# module compiles again (the same model, shapes, solver and options) is loaded from disk,
-# the same executable, instead of being compiled anew. One folder per pytest-xdist worker:
-# without a file lock the cache's writes are not atomic, and a worker could read another's
-# half-written entry. The folder is made by the first process (the controller under
-# pytest-xdist) and removed when it exits; ONESHOT_JAX_TESTS_NO_JAX_CACHE=1 turns it off.
-JAX_CACHE = "ONESHOT_JAX_TESTS_JAX_CACHE"
-if not os.environ.get("ONESHOT_JAX_TESTS_NO_JAX_CACHE") and JAX_CACHE not in os.environ:
-    os.environ[JAX_CACHE] = tempfile.mkdtemp(prefix="oneshot-jax-tests-")
-    atexit.register(shutil.rmtree, os.environ[JAX_CACHE], ignore_errors=True)
-
 import jax  # noqa: E402
 
 # Identification runs in float64; the library itself never flips this on import.
 jax.config.update("jax_enable_x64", True)
-if os.environ.get(JAX_CACHE) and not os.environ.get("ONESHOT_JAX_TESTS_NO_JAX_CACHE"):
-    jax.config.update(
-        "jax_compilation_cache_dir",
-        os.path.join(os.environ[JAX_CACHE], os.environ.get("PYTEST_XDIST_WORKER", "main")),
-    )
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import pytest  # noqa: E402
 

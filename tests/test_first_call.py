@@ -31,21 +31,14 @@ def _data(model, theta, x0, n_traj=1, seed=0):
 
 
 class _Compiles:
-    """Counts XLA compilations (jax.monitoring) while active: programs compiled, and
-    programs loaded from a persistent compilation cache instead (conftest turns one on),
-    which a process without the cache would have compiled."""
+    """Counts XLA compilations (jax.monitoring) while active."""
 
     def __init__(self):
         self.n, self.on = 0, False
         jax.monitoring.register_event_duration_secs_listener(self._listen)
-        jax.monitoring.register_event_listener(self._loaded)
 
     def _listen(self, event, seconds, **kwargs):
         if self.on and event == "/jax/core/compile/backend_compile_duration":
-            self.n += 1
-
-    def _loaded(self, event, **kwargs):
-        if self.on and event == "/jax/compilation_cache/cache_hits":
             self.n += 1
 
     def count(self, fn):
