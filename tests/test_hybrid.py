@@ -12,6 +12,7 @@
 """
 
 import sys
+import types
 from pathlib import Path
 
 import equinox as eqx
@@ -594,9 +595,20 @@ def test_auto_linear_solver_rule():
     assert least_squares_solver("auto", n + 1) == "cg"
     assert least_squares_solver("dense", 10 * n) == "dense"
     assert least_squares_solver("cg", 3) == "cg"
+
+    # (a problem's shapes: N = 1 record of T samples, one output, two states)
+    def record(T):
+        return types.SimpleNamespace(
+            z=np.zeros((1, T, 1)), x0_base=np.zeros((1, 2)), dtype=np.dtype(np.float64)
+        )
+
     for solver in (oj.LevenbergMarquardt(), oj.GaussNewton()):
-        assert solver._matrix_free(Params(jnp.zeros(n + 1), jnp.zeros((1, 2))))
-        assert not solver._matrix_free(Params(jnp.zeros(n), jnp.zeros((1, 2))))
+        assert solver._matrix_free(record(100), Params(jnp.zeros(n + 1), jnp.zeros((1, 2))))
+        assert not solver._matrix_free(record(100), Params(jnp.zeros(n), jnp.zeros((1, 2))))
+        # A dense Jacobian beyond DENSE_JACOBIAN_BYTES (3 x 8 bytes a sample and column).
+        long = record(2**30 // (3 * 8 * 12) + 1)
+        assert solver._matrix_free(long, Params(jnp.zeros(10), jnp.zeros((1, 2))))
+        assert not solver._matrix_free(record(10**5), Params(jnp.zeros(10), jnp.zeros((1, 2))))
     # An MLP residual of a few hundred parameters is above the threshold.
     assert count_parameters(mlp_theta(widths=(16, 16))) > n
     with pytest.raises(ValueError, match="linear_solver"):

@@ -6,6 +6,8 @@ The cases have rejected steps (LM from a far start), shortened steps (Gauss-Newt
 backtracking) and steps at an active bound (the projected-gradient fallback), where
 keeping the trial's linearisation would be wrong: the two ways would then part."""
 
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -82,6 +84,11 @@ def test_the_trial_is_linearised_for_few_columns_only():
     def params(p, m):
         return Params(jnp.zeros(p), jnp.zeros((4, m)))
 
-    assert solver._linearises_trials(params(limit - 2, 2))
-    assert not solver._linearises_trials(params(limit - 1, 2))
-    assert not oj.LevenbergMarquardt(linear_solver="cg")._linearises_trials(params(3, 2))
+    # (a problem's shapes: 4 records of 50 samples, one output, two states)
+    problem = types.SimpleNamespace(
+        z=np.zeros((4, 50, 1)), x0_base=np.zeros((4, 2)), dtype=np.dtype(np.float64)
+    )
+    assert solver._linearises_trials(problem, params(limit - 2, 2))
+    assert not solver._linearises_trials(problem, params(limit - 1, 2))
+    cg = oj.LevenbergMarquardt(linear_solver="cg")
+    assert not cg._linearises_trials(problem, params(3, 2))
