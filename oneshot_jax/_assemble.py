@@ -10,7 +10,7 @@ import numpy as np
 
 from . import _pytree
 from . import metrics as _metrics
-from ._covariance import covariance, sandwich, scale
+from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
 from ._optimality import resolution, roundoff_limit
 from ._results import from_index, name_of
@@ -124,7 +124,8 @@ def post(problem, params, blocks, strategy, lags=None):
     """Everything `FitResult` needs from the solution, traced inside the fit's compiled
     call: theta (flat), x0, the residuals, the covariance blocks and the metrics; and the
     simulated states (for `_stability`). `lags`: the Newey-West sandwich's L (the
-    covariance is then `sandwich`), or None."""
+    covariance is then `sandwich`), None, or `NOT_COMPUTED` (`fit(covariance=None)`: no
+    covariance)."""
     theta = problem.theta_of(params.theta)
     X0 = problem.x0_of(params.x0)
     xs, zhat = simulate_impl(problem.model, theta, X0, problem.u, True, strategy)
@@ -138,8 +139,10 @@ def post(problem, params, blocks, strategy, lags=None):
     cov = None
     held = blocks is not None and lags is None  # the solver's own Jacobian's blocks
     n_cols = params.theta.shape[0] + params.x0.shape[-1]
-    if params.theta.shape[0] <= COVARIANCE_MAX_THETA and (
-        held or dense_jacobian_fits(problem, n_cols)
+    if (
+        lags != NOT_COMPUTED
+        and params.theta.shape[0] <= COVARIANCE_MAX_THETA
+        and (held or dense_jacobian_fits(problem, n_cols))
     ):
         seen = problem.cost.observed()
         if lags is None:
@@ -298,7 +301,9 @@ def assemble(
     flat_std = np.zeros(theta_flat.shape, theta_flat.dtype)  # (the data's dtype, float32 too)
     x0_std = np.zeros(X0.shape, X0.dtype)
     if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
-        if len(free) > COVARIANCE_MAX_THETA:
+        if (diagnostics or {}).get("covariance") == NOT_COMPUTED:  # asked for none
+            why = None
+        elif len(free) > COVARIANCE_MAX_THETA:
             why = f"above {COVARIANCE_MAX_THETA} free entries of theta ({len(free)} here)"
         else:
             size = dense_jacobian_bytes(problem, len(free) + len(x0_free))
@@ -307,11 +312,12 @@ def assemble(
                 f"GiB ({size / 2**30:.3g} GiB here: a long record with many parameters; "
                 "fit a part of the record for standard errors)"
             )
-        warnings.warn(
-            f"the covariance of the estimates is not computed {why}: std and x0_std are inf "
-            "(unknown).",
-            stacklevel=3,
-        )
+        if why is not None:
+            warnings.warn(
+                f"the covariance of the estimates is not computed {why}: std and x0_std are "
+                "inf (unknown).",
+                stacklevel=3,
+            )
         theta_cov = np.zeros((0, 0))
         flat_std[list(free)] = np.inf
         x0_std[:, list(x0_free)] = np.inf

@@ -188,8 +188,9 @@ def fit_continuation(
         while shorter than the record (doubling from 50 by default).
     - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
         `constraints`, ...); not `window`, `multistart` or `aggregate`. `covariance`
-        and `estimate_x0` go to the last stage only: the windowed stages keep the classical
-        covariance and estimate every entry of every window's x0 (the states where a
+        and `estimate_x0` go to the last stage only: the windowed stages compute no
+        covariance (their `Stage` keeps no standard errors) and estimate every entry of
+        every window's x0 (the states where a
         window after the first starts come from the last stage's fit, not from data,
         so holding some of them would hold guesses).
 
@@ -236,7 +237,8 @@ def fit_continuation(
         with warnings.catch_warnings():
             # The tail that fills no window is fitted by the last stage, the whole record.
             warnings.filterwarnings("ignore", message="the last .* do not fill a window")
-            result = fit(model, theta, x0_stage, u, z, window=w, **kwargs)
+            # (a stage keeps no standard errors: its covariance is not computed)
+            result = fit(model, theta, x0_stage, u, z, window=w, covariance=None, **kwargs)
         stages.append(_stage(w, result))
         theta, w_prev = result.theta, w
     final_x0 = np.asarray(result.x0)[0]

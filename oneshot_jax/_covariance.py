@@ -22,7 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._counts import integral
-from ._linalg import eliminate_x0, identifiable, normal_blocks, psd_solve, schur_complement
+from ._linalg import (
+    eliminate_x0,
+    identifiable,
+    normal_blocks,
+    psd_solve,
+    scaled_eigh,
+    schur_complement,
+)
 from ._problem import FitProblem, Params
 
 
@@ -88,15 +95,22 @@ class NeweyWest(eqx.Module):
         return int(self.lags)
 
 
+NOT_COMPUTED = "none"  # `fit(covariance=None)`: the covariance is not computed
+
+
 def as_covariance(value):
-    """`fit`'s `covariance` argument as None (sigma^2 (J^T J)^+) or a `NeweyWest`."""
+    """`fit`'s `covariance` argument as None (sigma^2 (J^T J)^+), a `NeweyWest`, or
+    `NOT_COMPUTED` (`None` or `"none"`: no covariance, MATLAB's `EstimateCovariance`
+    false)."""
     if isinstance(value, NeweyWest):
         return value
+    if value is None or (isinstance(value, str) and value == NOT_COMPUTED):
+        return NOT_COMPUTED
     if isinstance(value, str) and value in ("classical", "newey_west"):
         return None if value == "classical" else NeweyWest()
     raise ValueError(
-        '`covariance` must be "classical", "newey_west" or a `oneshot_jax.NeweyWest(lags)`; '
-        f"got {value!r}."
+        '`covariance` must be "classical", "newey_west", a `oneshot_jax.NeweyWest(lags)` or '
+        f"None (not computed); got {value!r}."
     )
 
 
@@ -135,7 +149,17 @@ def _pseudo_inverse(blocks):
     if p == 0:
         return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok), elim
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A))
-    t_ok = identifiable(S, jnp.diag(A))
+    d_t, _, vecs, null = scaled_eigh(S, jnp.diag(A))  # (`identifiable`'s decomposition)
+    t_ok = ~jnp.any(null[None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
+    if m:
+        # A direction v of the null space of theta's Schur complement moves each x0_i by
+        # -C_i^+ B_i^T v (the outputs unchanged): an initial state with a component
+        # there is not identifiable either, though C_i alone is regular. Judged as theta
+        # is, in the Jacobi scaling of J^T J (v of unit length there).
+        V = jnp.where(null[None, :], vecs / d_t[:, None], 0.0)
+        d_x = jnp.sqrt(jnp.diagonal(Cb, axis1=-2, axis2=-1))
+        Vx = jnp.einsum("nmp,pk->nmk", elim.CinvBt, V) * d_x[..., None]
+        x_ok = x_ok & ~jnp.any(jnp.abs(Vx) > 1e-6, axis=-1)
     return Covariance(sse, S_inv, elim.covariance(S_inv), t_ok, x_ok), elim
 
 

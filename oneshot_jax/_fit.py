@@ -21,7 +21,7 @@ from . import _pytree
 from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post, prepare
 from ._checks import x0_mask
-from ._covariance import as_covariance
+from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
 from ._fit_result import FitResult
@@ -489,7 +489,10 @@ def fit(
         `"classical"`, sigma^2 (J^T J)^+ (white residuals), or `NeweyWest(lags)`
         (`"newey_west"`: its default lags), a sandwich that holds when the residuals are
         correlated in time (a model error); the result's `diagnostics["covariance"]`
-        names it.
+        names it. None (or `"none"`, MATLAB's `EstimateCovariance` false): not computed,
+        which saves its time and memory where theta is large (the dense Jacobian and a
+        p x p eigendecomposition) or the fit is an intermediate stage; `std` and `x0_std`
+        are then inf, `covariance` empty and the printout says "(not computed)".
 
     **Staged training** (physics first, then a residual, then sparsity), each stage a
     `fit` that starts from the last one's result:
@@ -512,7 +515,7 @@ def fit(
     """
     check_window(aggregate, window)
     robust = as_covariance(covariance)
-    if robust is not None and penalty is not None:
+    if isinstance(robust, NeweyWest) and penalty is not None:
         raise ValueError(
             "`covariance=NeweyWest(...)` is not available with `penalty`: the penalty's "
             'rows are not observations; use covariance="classical".'
@@ -570,8 +573,8 @@ def fit(
         regulariser=regulariser,
         validation=validation,
     )
-    lags = None
-    if robust is not None:
+    lags = NOT_COMPUTED if robust == NOT_COMPUTED else None
+    if isinstance(robust, NeweyWest):
         lengths = inputs.data.lengths
         lags = robust.resolved(
             int(built.problem.u.shape[1]), None if lengths is None else int(min(lengths))
@@ -599,7 +602,9 @@ def fit(
         ),
         lags=lags,
     )
-    if lags is not None:
+    if lags == NOT_COMPUTED:
+        diagnostics = {**diagnostics, "covariance": NOT_COMPUTED}
+    elif lags is not None:
         diagnostics = {**diagnostics, "covariance": "newey_west", "covariance_lags": lags}
     _warn_projected(out.moved, prepared.names, theta0)
     result = assemble(

@@ -13,6 +13,7 @@
 
 import sys
 import types
+import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -718,3 +719,47 @@ def test_without_a_covariance_the_errors_are_unknown_not_nan(monkeypatch):
     std = np.array([float(r.std[k]) for k in ("a", "b", "c")])
     assert np.all(np.isinf(std)) and not np.any(np.isnan(std))
     assert "(not computed)" in str(r)
+
+
+def test_covariance_none_skips_it_and_leaves_the_fit_alone(monkeypatch, tmp_path):
+    """`fit(covariance=None)` (MATLAB's EstimateCovariance false) does not compute the
+    covariance (the routine that forms it fails here if it is called), warns of nothing,
+    reports inf (unknown) standard errors and the same estimate, loss and stop as the
+    default fit, which does compute it; and the result saves and loads."""
+    from oneshot_jax.internal import assemble_module as _assemble
+
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u + th["c"] * x**2)
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((60, 1))
+    true = {"a": jnp.asarray(0.5), "b": jnp.asarray(1.0), "c": jnp.asarray(0.05)}
+    _, z = oj.simulate(model, true, jnp.asarray([0.2]), u)
+    z = z + 0.01 * rng.standard_normal(z.shape)
+    theta0 = {"a": jnp.asarray(0.4), "b": jnp.asarray(0.9), "c": jnp.asarray(0.0)}
+    # with a penalty too (a Newey-West covariance is refused there; no covariance is not)
+    kw = dict(penalty=lambda x, th: 1e-3 * x[0] ** 2)
+    full = oj.fit(model, theta0, jnp.zeros(1), u, z, **kw)
+    assert full.success and full.covariance.shape == (3, 3)
+    assert np.all(np.isfinite([float(full.std[k]) for k in theta0]))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the covariance was computed")
+
+    monkeypatch.setattr(_assemble, "covariance", refuse)
+    jax.clear_caches()  # (the default fit's program holds the covariance: trace anew)
+    with pytest.raises(AssertionError, match="was computed"):  # the patch bites
+        oj.fit(model, theta0, jnp.zeros(1), u, z, **kw)
+    for none in (None, "none"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            r = oj.fit(model, theta0, jnp.zeros(1), u, z, covariance=none, **kw)
+        assert r.stop_reason == full.stop_reason and r.success
+        assert float(r.loss) == float(full.loss)
+        for k in theta0:
+            assert float(r.theta[k]) == float(full.theta[k])
+            assert np.isinf(float(r.std[k]))
+        assert np.all(np.isinf(r.x0_std)) and r.covariance.shape == (0, 0)
+        assert r.diagnostics["covariance"] == "none"
+        assert str(r).count("(not computed)") == 4
+    oj.save_result(r, tmp_path / "r")
+    back = oj.load_result(tmp_path / "r")
+    assert back.diagnostics["covariance"] == "none" and "(not computed)" in str(back)

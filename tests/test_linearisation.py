@@ -153,6 +153,30 @@ def test_a_parameter_that_x0_reproduces_is_not_identifiable():
     assert not np.any(cov.theta_identifiable)
 
 
+def test_initial_states_that_move_with_a_parameter_are_not_identifiable():
+    """theta_0's column is a multiple a_i of x0_i[0]'s in every trajectory: moving theta_0
+    by 1 and each x0_i[0] by -a_i leaves the outputs unchanged. Each C_i alone is regular,
+    and the x0 entries used to be reported identifiable (finite standard errors) while
+    theta_0 was not. Now both are, as the dense null space of J says, and the rest stay
+    identifiable."""
+    Jt, Jx, r, J = _arrow(seed=3)
+    N, _, p = Jt.shape
+    m = Jx.shape[-1]
+    a = np.array([0.5, -2.0, 1.5])
+    Jt[:, :, 0] = a[:, None] * Jx[:, :, 0]
+    for i in range(N):
+        J[i * Jt.shape[1] : (i + 1) * Jt.shape[1], :p] = Jt[i]
+    _, sv, Vt = np.linalg.svd(J)
+    null = Vt[sv < 1e-10 * sv[0]]
+    assert null.shape[0] == 1  # one direction: theta_0 with every x0_i[0]
+    dense_ok = np.abs(null[0]) < 1e-8
+    lin = _linearisation(Jt, Jx, r)
+    cov = covariance(None, None, None, blocks=lin.covariance_blocks(lin.C))
+    np.testing.assert_array_equal(cov.theta_identifiable, dense_ok[:p])
+    np.testing.assert_array_equal(cov.x0_identifiable, dense_ok[p:].reshape(N, m))
+    assert not cov.x0_identifiable[:, 0].any() and cov.x0_identifiable[:, 1].all()
+
+
 def test_the_searches_own_their_state():
     C = jnp.array(1.0)
     # Backtracking halves until the loss decreases; it has no damping.
