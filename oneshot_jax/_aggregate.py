@@ -38,7 +38,7 @@ import numpy as np
 from . import metrics as _metrics
 from ._checks import as_float, x0_mask
 from ._model import ODE_STEPS, Model
-from ._timing import _intervals
+from ._timing import _intervals, _is_tracer
 
 KINDS = ("sum", "mean", "integral", "time_mean")
 
@@ -480,9 +480,17 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     if data.z is None:
         raise ValueError("`aggregate` needs the measured outputs `z`.")
     dtype = np.dtype(data.u.dtype)
-    U, Z = np.asarray(data.u), np.asarray(data.z)
+    # Traced x0, u or z (under jax.jit, vmap or grad) stay traced: the readings' layout
+    # depends only on the intervals, the values and the time stamps, which must be concrete.
+    xp = jnp if _is_tracer((data.u, data.z, data.mask, x0)) else np
+    if _is_tracer(data.weight):
+        raise ValueError(
+            "`weight` must be concrete (not traced under jax.jit, vmap or grad) with "
+            "`aggregate`: it sets the readings' default weights."
+        )
+    U, Z = xp.asarray(data.u), xp.asarray(data.z)
     if data.mask is not None:  # the checks zero the missing samples: NaN again
-        Z = np.where(np.asarray(data.mask.outputs) > 0, Z, np.nan)
+        Z = xp.where(xp.asarray(data.mask.outputs) > 0, Z, np.nan)
     if not data.batched:
         U, Z = U[None], Z[None]
     N, T_max, n_u = U.shape
@@ -503,7 +511,16 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     per_record = []
     for i, aggs in enumerate(records):
         where = f"[{i}]" if data.batched else ""
-        ti = None if t is None else np.asarray(t[i], dtype=float)[: lengths[i]]
+        if _is_tracer(t[i]):
+            if any(a.kind in ("integral", "time_mean") for a in aggs if isinstance(a, Aggregate)):
+                raise ValueError(
+                    "`t` must be concrete (not traced under jax.jit, vmap or grad) with an "
+                    "`Aggregate` of kind 'integral' or 'time_mean': its weights are the "
+                    "trapezoid rule over the time stamps."
+                )
+            ti = None  # ('sum' and 'mean' do not use the times)
+        else:
+            ti = None if t is None else np.asarray(t[i], dtype=float)[: lengths[i]]
         readings = _readings(aggs, lengths[i], n_z, Q, ti, where)
         if missing == "raise" and any(np.isnan(r.value) for r in readings):
             raise ValueError(
@@ -529,8 +546,8 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
                     # a reading of weight 0 is no observation (as an output of weight 0)
                     extra[i, r.stop - 1, j] = r.value if np.any(r.row) else np.nan
                 j += 1
-    U_aug = np.concatenate([U, drive], axis=-1)
-    Z_aug = np.concatenate([Z, extra], axis=-1)
+    U_aug = xp.concatenate([U, drive], axis=-1)
+    Z_aug = xp.concatenate([Z, extra], axis=-1)
     if data.lengths is not None:
         u_out = [U_aug[i, :n] for i, n in enumerate(lengths)]
         z_out = [Z_aug[i, :n] for i, n in enumerate(lengths)]
@@ -538,8 +555,8 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
         u_out, z_out = U_aug, Z_aug
     else:
         u_out, z_out = U_aug[0], Z_aug[0]
-    x0 = np.asarray(x0, dtype)
-    x0_out = np.concatenate([x0, np.zeros((*x0.shape[:-1], m), dtype)], axis=-1)
+    x0 = xp.asarray(x0, dtype)
+    x0_out = xp.concatenate([x0, np.zeros((*x0.shape[:-1], m), dtype)], axis=-1)
     if Q is None:
         w_out = None
     elif Q.ndim == 1:

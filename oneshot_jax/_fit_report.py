@@ -336,7 +336,8 @@ def report(result) -> str:
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
     aic = float(result.metrics["aic"])
-    aic = f"{aic:.4g}" if not np.isnan(aic) else "nan (no sample measures every output)"
+    few = "nan (fewer samples measure every output than there are outputs)"
+    aic = f"{aic:.4g}" if not np.isnan(aic) else few
     out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}")
     at_bound = (result.stop_info or {}).get("at_bound")
     if at_bound:

@@ -177,7 +177,9 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
     the unrolled masked steps) runs to the static bound `substeps` and the steps j >= n
     leave the state as it is (a `jnp.where`, so the map stays differentiable
     in x and theta; the caller checks n <= substeps). A zero interval (the padding after
-    a record's last sample) leaves the state unchanged.
+    a record's last sample) leaves the state unchanged. An interval the caller could not
+    check (traced time stamps) that is negative, not finite, or needs n > substeps + 1
+    gives a NaN state.
 
     **Arguments:**
 
@@ -199,8 +201,13 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
         # can round one higher next to a multiple of max_step (XLA folds 1 / max_step and
         # the tolerance into one constant); a count above the loop's bound would leave the
         # rest of the interval unintegrated)
-        n = jnp.minimum(interval_count(dt, max_step, jnp), substeps)
+        count = interval_count(dt, max_step, jnp)
+        n = jnp.minimum(count, substeps)
         h = dt / jnp.maximum(n, 1.0)
+        # An interval the host did not check (a traced `t`) that needs more than one step
+        # beyond the bound, or that is negative or not finite, gives NaN states: steps
+        # longer than `max_step`, or a frozen state, would be a silently wrong answer.
+        bad = ~(jnp.isfinite(dt) & (dt >= 0) & (count <= substeps + 1))
     u_at = _input_at(u, jnp.where(dt > 0, dt, 1.0), input)  # (dt = 0: no step is taken)
 
     def substep(j, x):
@@ -221,7 +228,8 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
         for j in range(substeps):
             x = substep(j, x)
         return x
-    return jax.lax.fori_loop(0, substeps, substep, x)
+    x = jax.lax.fori_loop(0, substeps, substep, x)
+    return x if max_step is None else jnp.where(bad, jnp.nan, x)
 
 
 def interval_count(dt, max_step, xp=np):

@@ -85,7 +85,9 @@ def simulate(
         (`Model.from_ode(rhs, dt=None)`; required there, refused by any other model):
         shape (T,), or (N, T), or a list of N arrays (T_i,) like `u`; finite and strictly
         increasing. Step k integrates over t[k+1] - t[k]. (Traced `t`, under `jax.jit` or
-        `vmap`, cannot be checked on the host: its values are taken as given.)
+        `vmap`, cannot be checked on the host: with `max_step`, an interval that is
+        negative, not finite or needs more than `substeps + 1` steps gives NaN states from
+        there on; without it, the values are taken as given.)
 
     **Returns:**
 

@@ -268,8 +268,13 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
             "or more)"
         )
     else:
+        # (as the substeps above: a step that brings |lambda| h to the limit, and at least
+        # half the present one; floored to 3 digits, so the printed value is inside it)
+        step = min(h / 2, h * report.limit / report.value)
+        digits = 2 - int(np.floor(np.log10(step)))
+        step = np.floor(step * 10.0**digits) / 10.0**digits
         remedy = (
-            f"a smaller `max_step` (`Model.from_ode(..., max_step={h / 2:.3g})` or less, "
+            f"a smaller `max_step` (`Model.from_ode(..., max_step={step:.3g})` or less, "
             "with `substeps` enough for the longest interval)"
         )
     measure = (

@@ -174,7 +174,8 @@ def aic(z, zhat, n_params, mask=None):
     measured, when a `mask` is given) (MATLAB's raw AIC without the constant
     n n_z (log 2 pi + 1)). Lower is better; only differences between models on the same
     data mean anything. `ValueError` where `mask` leaves no sample with every output
-    measured (outputs sampled at different times).
+    measured (outputs sampled at different times); NaN where fewer samples measure every
+    output than there are outputs (E^T E / n is then singular).
     """
     _check_n_params(n_params)
     _check(z, zhat, mask)
@@ -244,7 +245,10 @@ def _error_covariance(z, zhat, mask):
 def _aic(z, zhat, n_params, mask):
     cov, n = _error_covariance(z, zhat, mask)
     _, logdet = jnp.linalg.slogdet(cov)
-    return n * logdet + 2.0 * n_params
+    # fewer full samples than measured outputs: E^T E / n is singular (rank <= n), its
+    # log det -inf and the finite slogdet round-off: no AIC (as `fpe`'s d >= n is inf)
+    used = jnp.sum(jnp.any(_flat(z, zhat, mask)[2] > 0, axis=0))
+    return jnp.where(n >= used, n * logdet + 2.0 * n_params, jnp.nan)
 
 
 @jax.jit

@@ -224,6 +224,35 @@ def test_residual_jacobian_equals_autodiff_of_the_direct_residuals(form, strateg
     assert np.count_nonzero(r) == np.count_nonzero(np.asarray(r_ref))
 
 
+def test_the_loss_with_an_aggregate_under_grad_jit_and_vmap():
+    """`oj.loss(..., aggregate=)` traced (jax.grad over x0, jit over z and over t, vmap
+    over x0) equals the eager values and `value_and_grad`; it used to fail deep inside
+    with a TracerArrayConversionError. A traced `t` with a reading over time (trapezoid
+    weights from the stamps) is refused by name."""
+    lag = lambda x, u, th: (-x + th["K"] * u) / th["tau"]  # noqa: E731
+    model = oj.Model.from_ode(lag, dt=None, max_step=0.1, substeps=20)
+    th = {"K": 2.0, "tau": 0.7}
+    t = np.array([0.0, 0.1, 0.2, 1.5, 1.6, 1.7])
+    u, x0 = np.ones((6, 1)), np.array([0.1])
+    z = np.full((6, 1), np.nan)
+    z[4] = 1.0
+    agg = oj.Aggregate(0, [(0, 3)], [1.0], kind="mean")
+
+    def loss(x0, z=z, t=t, agg=agg):
+        return oj.loss(model, th, x0, u, z, t=t, aggregate=agg, missing="mask")
+
+    C, (_, g_x0) = oj.value_and_grad(model, th, x0, u, z, t=t, aggregate=agg, missing="mask")
+    assert float(loss(x0)) == pytest.approx(float(C), rel=1e-14)
+    np.testing.assert_allclose(np.asarray(jax.grad(loss)(x0)), np.asarray(g_x0), rtol=1e-13)
+    assert float(jax.jit(lambda z: loss(x0, z))(z)) == pytest.approx(float(C), rel=1e-14)
+    assert float(jax.jit(lambda t: loss(x0, t=t))(t)) == pytest.approx(float(C), rel=1e-14)
+    both = np.asarray(jax.vmap(loss)(np.stack([x0, 2 * x0])))
+    np.testing.assert_allclose(both, [float(loss(x0)), float(loss(2 * x0))], rtol=1e-14)
+    over_time = oj.Aggregate(0, [(0, 3)], [1.0], kind="time_mean")
+    with pytest.raises(ValueError, match="`t` must be concrete"):
+        jax.jit(lambda t: loss(x0, t=t, agg=over_time))(t)
+
+
 def test_batch_of_records_with_an_aggregate_per_record():
     """Two records of different lengths (a list), aggregates on the first only: the loss
     and gradient equal the direct ones summed over records over the total time points."""

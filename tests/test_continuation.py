@@ -293,6 +293,21 @@ def test_stability_of_a_time_stamped_model_takes_each_step_its_own_h():
     assert report.value == pytest.approx(65.0 * 0.04) and report.max_step == 0.045
 
 
+def test_the_max_step_remedy_reaches_the_limit_in_one_go():
+    """A lag with lambda = -100 sampled every second, integrated with steps of 0.5:
+    |lambda| h = 50, twenty times the limit. The warning used to suggest half the step
+    (0.25, still ten times the limit, then 0.125, ...); it names a step that reaches the
+    limit, and the model built with it does not warn."""
+    fast = lambda x, u, th: (-x + u) / th["tau"]  # noqa: E731
+    t, u, th = np.arange(20.0), np.ones((20, 1)), {"tau": 0.01}
+    model = oj.Model.from_ode(fast, None, max_step=0.5, substeps=200)
+    with pytest.warns(RuntimeWarning, match=r"h = 50 .*max_step=0\.025\)") as seen:
+        oj.check_stability(model, th, np.zeros(1), u, t=t)
+    step = float(str(seen[-1].message).split("max_step=")[1].split(")")[0])
+    refined = oj.Model.from_ode(fast, None, max_step=step, substeps=200)
+    _no_warnings(oj.check_stability, refined, th, np.zeros(1), u, t=t)
+
+
 def test_stability_limit_of_euler_and_other_models():
     u = np.zeros((20, 1))
     euler = oj.Model.from_ode(lag, DT, method="euler")

@@ -235,6 +235,7 @@ def test_timed_model_differs_from_regular():
     assert np.max(np.abs(np.asarray(x) - np.asarray(x_other))) > 0.1
 
 
+@pytest.mark.default_optimisation  # (two programs, equal to the bit: conftest.py)
 @pytest.mark.parametrize("input, max_step", [("zoh", None), ("foh", 0.25 / 3)])
 def test_equal_intervals_reproduce_from_ode_exactly(input, max_step):
     """With t = k dt (exact in binary), the timed model is the regular one, bit for bit:
@@ -472,6 +473,34 @@ def test_too_few_substeps_for_max_step():
     model = timed_model("zoh", 0.1, 8)
     with pytest.raises(ValueError, match=r"needs 10 integrator steps.*`substeps` = 8.*substeps=10"):
         oj.simulate(model, THETA, x0, u, t=t)
+
+
+def test_traced_times_the_host_cannot_check_give_nan_not_a_wrong_state():
+    """Under `jax.jit` the host cannot check `t`: an interval that needs more steps of
+    `max_step` than `substeps` allows (here 13 > 4 + 1), a decreasing `t` or a NaN in it
+    give NaN states from that interval on, where they used to give steps longer than
+    `max_step` (a wrong state, no error) or a frozen state. Valid traced stamps give the
+    eager states."""
+    lag = lambda x, u, th: (-x + th["K"] * u) / th["tau"]  # noqa: E731
+    th, u, x0 = {"K": 2.0, "tau": 0.7}, np.ones((6, 1)), np.zeros(1)
+    t = np.array([0.0, 0.1, 0.2, 1.5, 1.6, 1.7])  # the third interval needs 13 steps of 0.1
+    model = oj.Model.from_ode(lag, None, max_step=0.1, substeps=4)
+    sim = jax.jit(lambda t: oj.simulate(model, th, x0, u, t=t)[0][:, 0])
+    with pytest.raises(ValueError, match="needs 13 integrator steps"):
+        oj.simulate(model, th, x0, u, t=t)  # the host's check (eager)
+    x = np.asarray(sim(t))
+    assert np.all(np.isfinite(x[:3])) and np.all(np.isnan(x[3:]))
+    whole = oj.Model.from_ode(lag, None, max_step=0.1, substeps=13)
+    expected = np.asarray(oj.simulate(whole, th, x0, u, t=t)[0])[:3, 0]
+    np.testing.assert_allclose(x[:3], expected, rtol=1e-14)
+    assert np.all(np.isnan(np.asarray(sim(t[::-1].copy()))[1:]))
+    assert np.all(np.isnan(np.asarray(sim(np.where(np.arange(6) == 2, np.nan, t)))[2:]))
+    fine = np.linspace(0.0, 0.5, 6)  # intervals of 0.1: one step each
+    np.testing.assert_allclose(
+        np.asarray(sim(fine)),
+        np.asarray(oj.simulate(model, th, x0, u, t=fine)[0])[:, 0],
+        rtol=1e-14,
+    )
 
 
 def test_errors_about_u_name_the_users_n_u():

@@ -281,6 +281,24 @@ def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
     assert "fpe" in metrics.__all__
 
 
+def test_aic_is_nan_where_fewer_samples_measure_every_output_than_there_are_outputs():
+    """Two outputs at alternate samples, with one sample where both are measured: E^T E / n
+    has rank 1, its log det is -inf, and slogdet's finite round-off was reported as the
+    AIC. It is NaN now (as `fpe` is inf); with two such samples it is a number."""
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((40, 2))
+    zhat = z + 0.1 * rng.standard_normal((40, 2))
+    mask = np.zeros((40, 2), bool)
+    mask[::2, 0] = mask[1::2, 1] = True
+    mask[4] = True
+    assert np.isnan(float(metrics.aic(z, zhat, 2, mask)))
+    assert np.isinf(float(metrics.fpe(z, zhat, 2, mask)))
+    mask[6] = True
+    e = (zhat - z)[mask.all(axis=1)]
+    expected = 2 * np.linalg.slogdet(e.T @ e / 2)[1] + 2 * 2
+    assert float(metrics.aic(z, zhat, 2, mask)) == pytest.approx(expected, rel=1e-12)
+
+
 @pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2"])
 def test_mask_selects_and_does_not_weight(name):
     rng = np.random.default_rng(0)
