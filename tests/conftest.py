@@ -2,17 +2,22 @@ import os
 import subprocess
 import sys
 
-# XLA's elemental emitter compiles a CPU kernel in about 40 % less time than its default
-# fusion emitters, for the same kernels (`oneshot_jax._jit` passes it to the library's
-# top-level compiled calls); the suite is dominated by compilation, so the tests (and the
-# experiment runs they start) use it for every compiled call. Set before JAX starts, and
-# only where this XLA knows the flag: an XLA without it (jaxlib 0.11) aborts the process
-# on an unknown flag in XLA_FLAGS. One probe in a child process; the answer is kept in the
-# environment for the pytest-xdist workers and the runs the tests start. (LLVM's
-# optimisation level 0, `--xla_backend_optimization_level=0`, halves the suite's time
-# too, but it changes the last bits of some results, and the tests that check two paths
-# to the bit, or the docs' printed outputs, then fail.)
+# The suite is dominated by XLA's compilation of CPU kernels, so the tests (and the
+# experiment runs they start) compile with two options that shorten it, set before JAX
+# starts, and only where this XLA knows them (an XLA without one, jaxlib 0.11 for the
+# first, aborts the process on an unknown flag in XLA_FLAGS): one probe in a child process;
+# the answer is kept in the environment for the pytest-xdist workers and the runs the
+# tests start.
+# - XLA's elemental emitter compiles a kernel in about 40 % less time than its default
+#   fusion emitters, for the same kernels and numbers (`oneshot_jax._jit` passes it to the
+#   library's top-level compiled calls for users too).
+# - LLVM's optimisation level 0 takes about 40 % off the whole suite's time (slower
+#   kernels, much faster compilation). It changes the last bits of some results: the few
+#   tests that check two compiled paths to the bit, or the docs' printed outputs
+#   (generated with XLA's defaults), are marked `default_optimisation` and run in a child
+#   process with the level XLA uses by default (`pytest_runtest_call` below).
 FUSION_FLAG = "--xla_cpu_use_fusion_emitters=false"
+OPT_FLAG = "--xla_backend_optimization_level=0"
 PROBED = "ONESHOT_JAX_TESTS_XLA_PROBED"
 
 
@@ -30,7 +35,7 @@ def _xla_takes(flag):
 
 if PROBED not in os.environ:
     os.environ[PROBED] = "1"
-    for flag in (FUSION_FLAG,):
+    for flag in (FUSION_FLAG, OPT_FLAG):
         name = flag.split("=")[0].lstrip("-")
         if name not in os.environ.get("XLA_FLAGS", "") and _xla_takes(flag):
             os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
@@ -66,3 +71,32 @@ def _fresh_compilation_caches():
     of a long session do not pile up in one process."""
     yield
     jax.clear_caches()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_call(item):
+    """A test marked `default_optimisation` runs in a child pytest process whose XLA
+    compiles at its default optimisation level (without `OPT_FLAG`), where this process
+    has the flag; its failure is this test's, with the child's output."""
+    if item.get_closest_marker("default_optimisation") is None:
+        return
+    flags = os.environ.get("XLA_FLAGS", "")
+    if OPT_FLAG not in flags:
+        return  # (the child itself, or an XLA without the flag: run here)
+    env = dict(os.environ, XLA_FLAGS=flags.replace(OPT_FLAG, "").strip())
+    env.pop("PYTEST_XDIST_WORKER", None)
+    args = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist"]
+    done = subprocess.run(
+        [*args, "-o", "addopts=", item.nodeid],
+        cwd=item.config.rootpath,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        pytest.fail(
+            f"{item.nodeid} failed at XLA's default optimisation level (a child process):\n"
+            f"{done.stdout[-6000:]}\n{done.stderr[-3000:]}",
+            pytrace=False,
+        )
+    item.runtest = lambda: None  # (passed in the child)

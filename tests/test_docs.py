@@ -86,6 +86,8 @@ def test_readme_quick_start_runs_and_the_home_page_shows_its_output(tmp_path, mo
     assert '--8<-- "quickstart.py"' in home and '--8<-- "quickstart.txt"' in home
 
 
+# (the pages show outputs generated at XLA's default optimisation level: conftest.py)
+@pytest.mark.default_optimisation
 @pytest.mark.parametrize("page", sorted(_generate().PAGE_OUTPUTS))
 def test_pages_show_what_their_code_prints(page, tmp_path, monkeypatch):
     """A page that prints a result shows the output of its first code block, generated

@@ -425,6 +425,7 @@ def test_windows_take_given_starting_states_and_name_a_blow_up():
         oj.fit(DUFFING, np.array([3.0, -40.0, -30.0]), np.zeros(2), u, z, window=30)
 
 
+@pytest.mark.default_optimisation  # (two programs, equal to the bit: conftest.py)
 def test_window_starts_are_the_x0_only_fit_of_all_windows():
     """The windows' starting states (partly observed state, missing samples, a weight)
     are those of one public x0-only fit of all windows together from the record's x0,

@@ -49,6 +49,7 @@ CASES = {
 }
 
 
+@pytest.mark.default_optimisation  # (two programs, equal to the bit: conftest.py)
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_trial_linearisation_takes_the_same_iterates(case, monkeypatch):
     model, u, z = data()
