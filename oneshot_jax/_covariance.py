@@ -130,18 +130,22 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     """
     if blocks is None:
         blocks = _blocks(problem.jacobian(params, strategy, penalty=False))
-    cov, _ = _pseudo_inverse(blocks)
-    p = cov.theta.shape[0]
     nuisance = np.asarray(() if problem is None else problem.nuisance, int)
+    cov, _ = _pseudo_inverse(blocks, carry=nuisance.size == 0)
+    p = cov.theta.shape[0]
     if 0 < nuisance.size < p:
         S_inv, t_ok, _ = marginal(blocks[4], cov.theta, cov.theta_identifiable, nuisance)
         cov = cov._replace(theta=S_inv, theta_identifiable=t_ok)
     return cov
 
 
-def _pseudo_inverse(blocks):
+def _pseudo_inverse(blocks, carry=True):
     """The `Covariance` of (J^T J)^+ from `blocks` = (SSE, A, B, C_i, S) (no marginal
-    block), and the x0 elimination (`eliminate_x0`, with C_i^+) it used."""
+    block), and the x0 elimination (`eliminate_x0`, with C_i^+) it used. `carry`: judge
+    the initial states along the null directions of theta's Schur complement too (not
+    where theta holds a network: its weights' numerically null directions, which the
+    named parameters' marginal block sets aside, would flag initial states the outputs
+    determine; there each x0_i is judged from its own block C_i)."""
     sse, A, B, Cb, S = blocks
     p, m = A.shape[0], Cb.shape[-1]
     elim = eliminate_x0(B, Cb, pseudo_inverse=True)
@@ -151,7 +155,7 @@ def _pseudo_inverse(blocks):
     S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A))
     d_t, _, vecs, null = scaled_eigh(S, jnp.diag(A))  # (`identifiable`'s decomposition)
     t_ok = ~jnp.any(null[None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
-    if m:
+    if m and carry:
         # A direction v of the null space of theta's Schur complement moves each x0_i by
         # -C_i^+ B_i^T v (the outputs unchanged): an initial state with a component
         # there is not identifiable either, though C_i alone is regular. Judged as theta
@@ -209,7 +213,8 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     lin = problem.jacobian(params, strategy, penalty=False)
     blocks = _blocks(lin)
     S = blocks[4]
-    cov, elim = _pseudo_inverse(blocks)  # S^+ itself: no marginal block yet
+    # S^+ itself: no marginal block yet
+    cov, elim = _pseudo_inverse(blocks, carry=not len(problem.nuisance))
     N, R, p = lin.Jt.shape
     T = problem.u.shape[1]
     n_z = R // T
