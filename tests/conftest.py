@@ -1,6 +1,8 @@
 import os
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 # The suite is dominated by XLA's compilation of CPU kernels, so the tests (and the
 # experiment runs they start) compile with two options that shorten it, set before JAX
@@ -73,30 +75,65 @@ def _fresh_compilation_caches():
     jax.clear_caches()
 
 
+# The outcomes of the `default_optimisation` tests, per test file: one child process runs
+# all of a file's marked tests the first time one of them is reached.
+_CHILD_OUTCOMES = {}
+
+
+def _run_in_child(item):
+    """{test name: (outcome, text)} of every `default_optimisation` test in `item`'s file,
+    run in one child pytest process without `OPT_FLAG`."""
+    import xml.etree.ElementTree as ET
+
+    marked = [
+        i.nodeid
+        for i in item.session.items
+        if i.path == item.path and i.get_closest_marker("default_optimisation") is not None
+    ]
+    flags = os.environ.get("XLA_FLAGS", "").replace(OPT_FLAG, "").strip()
+    env = dict(os.environ, XLA_FLAGS=flags)
+    env.pop("PYTEST_XDIST_WORKER", None)
+    with tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "child.xml"
+        done = subprocess.run(
+            [
+                *(sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"),
+                *("-p", "no:xdist", "-o", "addopts=", f"--junitxml={report}", *marked),
+            ],
+            cwd=item.config.rootpath,
+            env=env,
+            capture_output=True,
+            text=True,
+        )
+        output = f"{done.stdout[-6000:]}\n{done.stderr[-3000:]}"
+        outcomes = {}
+        if report.exists():
+            for case in ET.parse(report).iter("testcase"):
+                kind, text = "passed", ""
+                for child in case:
+                    if child.tag in ("failure", "error", "skipped"):
+                        kind = child.tag
+                        text = child.get("message", "") + "\n" + (child.text or "")
+                outcomes[case.get("name")] = (kind, text or output)
+    return outcomes, output
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_call(item):
     """A test marked `default_optimisation` runs in a child pytest process whose XLA
     compiles at its default optimisation level (without `OPT_FLAG`), where this process
-    has the flag; its failure is this test's, with the child's output."""
+    has the flag (one child per test file); its failure or skip is this test's."""
     if item.get_closest_marker("default_optimisation") is None:
         return
-    flags = os.environ.get("XLA_FLAGS", "")
-    if OPT_FLAG not in flags:
+    if OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
         return  # (the child itself, or an XLA without the flag: run here)
-    env = dict(os.environ, XLA_FLAGS=flags.replace(OPT_FLAG, "").strip())
-    env.pop("PYTEST_XDIST_WORKER", None)
-    args = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist"]
-    done = subprocess.run(
-        [*args, "-o", "addopts=", item.nodeid],
-        cwd=item.config.rootpath,
-        env=env,
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        pytest.fail(
-            f"{item.nodeid} failed at XLA's default optimisation level (a child process):\n"
-            f"{done.stdout[-6000:]}\n{done.stderr[-3000:]}",
-            pytrace=False,
-        )
+    if item.path not in _CHILD_OUTCOMES:
+        _CHILD_OUTCOMES[item.path] = _run_in_child(item)
+    outcomes, output = _CHILD_OUTCOMES[item.path]
+    kind, text = outcomes.get(item.name, ("missing", output))
+    where = f"{item.nodeid} at XLA's default optimisation level (a child process)"
+    if kind == "skipped":
+        pytest.skip(f"{where}: {text.strip()}")
+    if kind != "passed":
+        pytest.fail(f"{where}: {kind}\n{text}", pytrace=False)
     item.runtest = lambda: None  # (passed in the child)
