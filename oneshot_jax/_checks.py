@@ -137,7 +137,8 @@ def check_finite(a, name, hint=""):
 def common_dtype(*trees):
     """The floating dtype every argument is promoted to: NumPy's promotion of the arrays
     (Python scalars are weak and do not widen it), canonicalised for JAX (float32 when
-    x64 is off)."""
+    x64 is off), float32 at least: half precision (float16, bfloat16) is widened, as the
+    fits' linear algebra (eigh, LAPACK) has no half-precision routines)."""
     dtypes = []
     for leaf in jax.tree_util.tree_leaves(trees):
         if is_weak(leaf) or leaf is None:
@@ -148,6 +149,8 @@ def common_dtype(*trees):
         if jnp.issubdtype(dt, jnp.inexact) and not jnp.issubdtype(dt, jnp.complexfloating):
             dtypes.append(dt)
     dt = np.result_type(*dtypes) if dtypes else np.result_type(float)
+    if np.dtype(dt).itemsize < 4:  # float16, bfloat16: no LAPACK routine takes them
+        dt = jnp.promote_types(dt, jnp.float32)
     return jax.dtypes.canonicalize_dtype(dt)
 
 

@@ -396,6 +396,26 @@ def test_float64_host_data_run_in_float32_without_x64():
         assert float(C) < 1e-10
 
 
+@pytest.mark.parametrize("half", ["float16", "bfloat16"])
+def test_half_precision_data_are_widened_to_float32(half):
+    """theta0, x0, u and z all in float16 (or bfloat16): the fit's linear algebra has no
+    half-precision routine (LAPACK's eigh failed with "Unsupported dtype float16" deep
+    inside), so the data are widened to float32, and the fit runs and recovers k."""
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
+
+    model = oj.Model(step)
+    dt = jnp.dtype(half)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))
+    _, z = oj.simulate(model, {"k": np.array(2.0)}, np.array([1.0, 0.0]), u)
+    h = lambda a: jnp.asarray(a, dt)  # noqa: E731
+    r = oj.fit(model, {"k": h(1.5)}, h([1.0, 0.0]), h(u), h(z), solver="gauss_newton")
+    assert r.theta["k"].dtype == np.float32 and np.asarray(r.x0).dtype == np.float32
+    assert abs(float(r.theta["k"]) - 2.0) < 0.05  # (the data carry half precision's error)
+
+
 def test_optimistix_trust_region_on_float32_with_x64_is_refused_by_name():
     """optimistix's trust-region solvers (LevenbergMarquardt, IndirectLevenbergMarquardt,
     Dogleg) fail deep inside lineax or `lax.cond` on float32 data with x64 on (optimistix
