@@ -21,6 +21,17 @@ def _g(x):
     return "?" if x is None else f"{x:.3g}"
 
 
+def _pair(a, b) -> tuple[str, str]:
+    """`a` and `b` as `_g` writes them, with more digits where those read the same (a
+    loss just below `tol_loss` printed as "0.00247 < tol_loss 0.00247")."""
+    x, y = _g(a), _g(b)
+    digits = 3
+    while x == y and a != b and digits < 17:
+        digits += 1
+        x, y = f"{a:.{digits}g}", f"{b:.{digits}g}"
+    return x, y
+
+
 def stop_detail(status: str, info: dict) -> str:
     """The test that fired and its values, in one line without a semicolon (empty where
     unknown): `FitResult.message` appends to it after one, and `print(result)` shows it up
@@ -29,7 +40,8 @@ def stop_detail(status: str, info: dict) -> str:
     step, decrease = info.get("step", np.nan), info.get("decrease", np.nan)
     at = info.get("at_step")
     known = np.isfinite(fo)
-    vs = f"first-order measure {_g(fo)}" + (f" (gtol {_g(gtol)})" if np.isfinite(gtol) else "")
+    fo_s, gtol_s = _pair(fo, gtol)
+    vs = f"first-order measure {fo_s}" + (f" (gtol {gtol_s})" if np.isfinite(gtol) else "")
     tolerances = f"rtol {_g(info.get('rtol'))}, atol {_g(info.get('atol'))}"
     step_test = ""
     if info.get("step_test"):
@@ -48,7 +60,7 @@ def stop_detail(status: str, info: dict) -> str:
         )
         if not fo > gtol:
             where = f", where {step_test}" if step_test else ""
-            return f"first-order measure {_g(fo)} <= gtol {_g(gtol)}{degenerate}{where}"
+            return f"first-order measure {fo_s} <= gtol {gtol_s}{degenerate}{where}"
         floor = info.get("resolution", np.nan)
         if gtol > 0 and fo <= floor:  # (False where NaN: a solver without that test)
             return (
@@ -67,7 +79,8 @@ def stop_detail(status: str, info: dict) -> str:
             if status == "tol_loss"
             else ("gradient norm", info.get("grad_norm", np.nan))
         )
-        out = f"{what} {_g(value)} < {status} {_g(info.get(status, np.nan))}"
+        shown, threshold = _pair(value, info.get(status, np.nan))
+        out = f"{what} {shown} < {status} {threshold}"
         if known and fo > gtol:
             out += f", {vs} > gtol: not a stationary point"
         return out

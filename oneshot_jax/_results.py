@@ -8,8 +8,9 @@ import numpy as np
 class RESULTS(eqx.Enumeration):
     """Why a fit stopped (`FitResult.stop_reason`). `RESULTS[item]` is the message;
     `FitResult.success` is True for `converged`, `statistically_converged`,
-    `zero_residual`, `tol_loss` and `tol_grad` only: each is a test of optimality at the
-    returned point.
+    `zero_residual`, `tol_loss` and `tol_grad` only: the first three are tests of
+    optimality at the returned point, the last two the user's thresholds (the message then
+    says whether the first-order test holds there too).
     `FitResult.message` adds the values the test fired on."""
 
     converged = (
@@ -46,7 +47,9 @@ class RESULTS(eqx.Enumeration):
     )
     diverged = (
         "the simulation diverged (a non-finite loss or gradient); the last finite iterate "
-        "is returned. Bounds that keep the model stable, windows (multiple shooting) or a "
+        "is returned (Levenberg-Marquardt and Gauss-Newton accept finite losses only: "
+        "their last accepted point, where the gradient may be the non-finite one). "
+        "Bounds that keep the model stable, windows (multiple shooting) or a "
         "better start help"
     )
     infeasible = (

@@ -492,6 +492,26 @@ def test_optimistix_in_float32_at_its_last_step_counts_gtol_as_the_resolution():
     assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-5)
 
 
+def test_optimistix_resumed_at_an_optimum_stops_at_its_start():
+    """A fit started where Levenberg-Marquardt converged: `Optimistix` tested its start
+    only with max_steps=0 and ran 14 more steps (BFGS 23); it stops at step 0 now, with
+    `converged`, as the library's own solvers do."""
+
+    def step(x, u, th):
+        return th["a"] * x + th["b"] * u
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))
+    _, z = oj.simulate(model, {"a": 0.8, "b": 0.5}, np.array([1.0]), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal(np.shape(z))
+    first = oj.fit(model, {"a": 0.5, "b": 0.1}, z[0], u, z)
+    assert first.status == "converged"
+    for inner in (optx.LevenbergMarquardt(rtol=1e-10, atol=1e-14), optx.BFGS(1e-10, 1e-14)):
+        r = oj.fit(model, first.theta, first.x0, u, z, solver=oj.Optimistix(inner))
+        assert r.status == "converged" and r.num_steps == 0, (r.status, r.num_steps)
+
+
 def test_optimistix_divergence_returns_the_last_finite_iterate():
     """Gauss-Newton through the bridge stepped to a point where the cubic term blows the
     simulation up (step 4): the fit returned that point with the loss inf. It returns the

@@ -120,6 +120,20 @@ def test_the_status_line_shows_the_whole_test_that_fired(fitted):
     assert "first-order measure 1e-05 (gtol" in str(stat)
 
 
+def test_a_value_next_to_its_threshold_is_printed_with_the_digits_that_tell_them_apart(fitted):
+    """A loss just below tol_loss (or a measure just below gtol) printed with 3 digits
+    read "0.00247 < tol_loss 0.00247": the status line now adds digits until they differ."""
+    info = dict(fitted.stop_info, tol_loss=0.0024742, loss_at_stop=0.00247419)
+    info.update(first_order=0.0099999, gtol=0.01)
+    for item in (oj.RESULTS.tol_loss, oj.RESULTS.converged):
+        result = eqx.tree_at(lambda r: (r.stop_reason, r.stop_info), fitted, (item, info))
+        (status,) = [ln for ln in str(result).splitlines() if ln.startswith("status: ")]
+        if item == oj.RESULTS.tol_loss:
+            assert "loss 0.00247419 < tol_loss 0.0024742" in status, status
+        else:
+            assert "first-order measure 0.0099999 <= gtol 0.01" in status, status
+
+
 def _check_status_lines(fitted, info):
     for name, item in RESULTS_BY_NAME.items():
         result = eqx.tree_at(lambda r: (r.stop_reason, r.stop_info), fitted, (item, info))

@@ -236,14 +236,11 @@ class Optimistix(AbstractSolver):
         held = _Held(jnp.zeros(params.theta.shape, bool), params.theta)
         y = (params.theta, params.x0)
         loss, g = problem.value_and_grad(params, self.strategy)
-        fo = jnp.array(jnp.nan, loss.dtype)
-        done = jnp.array(False)
-        if self.max_steps == 0:
-            # No step allowed: the start is its last step, tested as `step` tests one
-            # (the other solvers test their start: converged there at an optimum).
-            fo = self._first_order(problem, params, loss, g)
-            gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
-            done = (fo <= gtol) & jnp.isfinite(loss) & jnp.isfinite(grad_norm(g))
+        # The start is tested as `step` tests a point (as the other solvers test theirs):
+        # a fit resumed at an optimum stops at step 0 with `converged`.
+        fo = self._first_order(problem, params, loss, g)
+        gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
+        done = (fo <= gtol) & jnp.isfinite(loss) & jnp.isfinite(grad_norm(g))
         return _OptxState(
             y,
             self._inner_init(problem, y, held),
