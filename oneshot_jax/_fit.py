@@ -573,7 +573,7 @@ def fit(
         regulariser=regulariser,
         validation=validation,
     )
-    lags = NOT_COMPUTED if robust == NOT_COMPUTED else None
+    lags = NOT_COMPUTED if robust is NOT_COMPUTED else None
     if isinstance(robust, NeweyWest):
         lengths = inputs.data.lengths
         lags = robust.resolved(
