@@ -23,6 +23,8 @@ import numpy as np
 
 from ._counts import integral
 from ._linalg import (
+    NULL_COMPONENT,
+    eigh_solve,
     eliminate_x0,
     identifiable,
     normal_blocks,
@@ -152,9 +154,12 @@ def _pseudo_inverse(blocks, carry=True):
     x_ok = identifiable(Cb) if m else jnp.ones(Cb.shape[:2], bool)
     if p == 0:
         return Covariance(sse, A, elim.Cinv, jnp.ones((0,), bool), x_ok), elim
-    S_inv = psd_solve(S, jnp.eye(p, dtype=S.dtype), jnp.diag(A))
-    d_t, _, vecs, null = scaled_eigh(S, jnp.diag(A))  # (`identifiable`'s decomposition)
-    t_ok = ~jnp.any(null[None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
+    # One decomposition of S for its pseudo-inverse (`psd_solve`) and its null space
+    # (`identifiable`)
+    decomposition = scaled_eigh(S, jnp.diag(A))
+    S_inv = eigh_solve(decomposition, jnp.eye(p, dtype=S.dtype))
+    d_t, _, vecs, null = decomposition
+    t_ok = ~jnp.any(null[None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
     if m and carry:
         # A direction v of the null space of theta's Schur complement moves each x0_i by
         # -C_i^+ B_i^T v (the outputs unchanged): an initial state with a component
@@ -163,7 +168,7 @@ def _pseudo_inverse(blocks, carry=True):
         V = jnp.where(null[None, :], vecs / d_t[:, None], 0.0)
         d_x = jnp.sqrt(jnp.diagonal(Cb, axis1=-2, axis2=-1))
         Vx = jnp.einsum("nmp,pk->nmk", elim.CinvBt, V) * d_x[..., None]
-        x_ok = x_ok & ~jnp.any(jnp.abs(Vx) > 1e-6, axis=-1)
+        x_ok = x_ok & ~jnp.any(jnp.abs(Vx) > NULL_COMPONENT, axis=-1)
     return Covariance(sse, S_inv, elim.covariance(S_inv), t_ok, x_ok), elim
 
 

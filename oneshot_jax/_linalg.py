@@ -87,9 +87,15 @@ def psd_solve(M, b, diag=None):
     A direction in the null space of M gets a zero step instead of NaN or a huge one.
     `diag`: as for `scaled_eigh`.
     """
-    d, vals, vecs, null = scaled_eigh(M, diag)
+    return eigh_solve(scaled_eigh(M, diag), b)
+
+
+def eigh_solve(decomposition, b):
+    """`psd_solve` from M's `scaled_eigh` `decomposition` (d, vals, vecs, null), for a
+    caller that reads the decomposition too."""
+    d, vals, vecs, null = decomposition
     inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
-    vector = b.ndim == M.ndim - 1
+    vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
     coef = jnp.einsum("...ji,...jk->...ik", vecs, b / d[..., None])
     out = jnp.einsum("...ij,...jk->...ik", vecs, inv[..., None] * coef) / d[..., None]
@@ -104,11 +110,17 @@ def numerical_rank(M, diag=None):
     return jnp.sum(~null, axis=-1)
 
 
+# A variable has a component in a (unit, Jacobi-scaled) null direction above this size:
+# not identifiable (`identifiable`, and the initial states the covariance judges along
+# theta's null directions).
+NULL_COMPONENT = 1e-6
+
+
 def identifiable(M, diag=None):
     """Per variable of a PSD M: False where it has a component in M's numerical null
     space (the outputs do not determine it). `diag`: as for `scaled_eigh`."""
     _, _, vecs, null = scaled_eigh(M, diag)
-    return ~jnp.any(null[..., None, :] & (jnp.abs(vecs) > 1e-6), axis=-1)
+    return ~jnp.any(null[..., None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
 
 
 class Elimination(NamedTuple):

@@ -226,7 +226,8 @@ def _check_full_rows(z, mask):
 
 
 def _error_covariance(z, zhat, mask):
-    """E^T E / n over the n samples where every output is measured, and n (`aic`, `fpe`).
+    """E^T E / n over the n samples where every output is measured, n, and the number of
+    outputs measured anywhere (`aic`, `fpe`).
     An output with no measured sample (possible only inside `fit`, traced: a zero-weight
     output that is never measured) is left out (its row and column of E^T E / n are
     those of the identity)."""
@@ -238,22 +239,21 @@ def _error_covariance(z, zhat, mask):
     n = jnp.sum(full)
     cov = e.T @ e / n
     keep = used[:, None] & used[None, :]
-    return jnp.where(keep, cov, jnp.eye(cov.shape[0], dtype=cov.dtype)), n
+    return jnp.where(keep, cov, jnp.eye(cov.shape[0], dtype=cov.dtype)), n, jnp.sum(used)
 
 
 @jax.jit
 def _aic(z, zhat, n_params, mask):
-    cov, n = _error_covariance(z, zhat, mask)
+    cov, n, used = _error_covariance(z, zhat, mask)
     _, logdet = jnp.linalg.slogdet(cov)
     # fewer full samples than measured outputs: E^T E / n is singular (rank <= n), its
     # log det -inf and the finite slogdet round-off: no AIC (as `fpe`'s d >= n is inf)
-    used = jnp.sum(jnp.any(_flat(z, zhat, mask)[2] > 0, axis=0))
     return jnp.where(n >= used, n * logdet + 2.0 * n_params, jnp.nan)
 
 
 @jax.jit
 def _fpe(z, zhat, n_params, mask):
-    cov, n = _error_covariance(z, zhat, mask)
+    cov, n, _ = _error_covariance(z, zhat, mask)
     ratio = n_params / n
     factor = jnp.where(ratio < 1, (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0), jnp.inf)
     return jnp.linalg.det(cov) * factor
