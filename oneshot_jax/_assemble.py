@@ -336,6 +336,17 @@ def assemble(
                 for j in problem.x0_free
             ]
             _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
+        dof = int(scaled.dof)
+        if not diverged and dof <= 0 and scaled.theta_std.size + scaled.x0_std.size:
+            diagnostics = {**(diagnostics or {}), "degrees_of_freedom": dof}
+            n_free = scaled.theta_std.size + scaled.x0_std.size
+            warnings.warn(
+                f"no more measured output values ({n_free + dof}) than estimated entries "
+                f"({n_free}): the noise variance sigma^2 = SSE / (n_obs - n_free) is "
+                "unknown, so every std is inf, whether or not the data determine the "
+                "estimates. Use a longer record, or estimate fewer entries.",
+                stacklevel=3,
+            )
         theta_cov = scaled.theta
         if len(free) == flat_std.size:  # every entry free: no scatter
             flat_std = scaled.theta_std

@@ -382,6 +382,7 @@ class Scaled(NamedTuple):
     x0_identifiable: jax.Array
     theta_std: jax.Array  # (p,)
     x0_std: jax.Array  # (N, m)
+    dof: jax.Array  # n_obs - n_free: sigma^2 is unknown (every error inf) where it is <= 0
 
 
 def scale(cov: Covariance, e, observed=None, robust: bool = False) -> Scaled:
@@ -407,4 +408,4 @@ def scale(cov: Covariance, e, observed=None, robust: bool = False) -> Scaled:
     def std(c):
         return jnp.sqrt(jnp.maximum(jnp.diagonal(c, axis1=-2, axis2=-1), 0.0))
 
-    return Scaled(theta, x0, t_ok, x_ok, std(theta), std(x0))
+    return Scaled(theta, x0, t_ok, x_ok, std(theta), std(x0), dof)

@@ -111,6 +111,8 @@ def _interval(value, std, fixed, computed) -> str:
     if not computed:
         return "(not computed)"
     if not np.isfinite(std):
+        if computed == "no_dof":
+            return "(unknown: no more data than estimates)"
         return "(not identifiable)"
     return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
 
@@ -122,9 +124,13 @@ def _std(std, computed) -> str:
 
 def _computed(result):
     """Whether the covariance was computed: an empty one stands for "not computed" (above
-    the size limit) only where some entry of theta is free; "diverged" after that stop."""
+    the size limit) only where some entry of theta is free; "diverged" after that stop;
+    "no_dof" where the fit had no more measured output values than estimated entries
+    (sigma^2 unknown: every standard error inf, identifiable or not)."""
     if result.status == "diverged":
         return "diverged"
+    if (result.diagnostics or {}).get("degrees_of_freedom", 1) <= 0:
+        return "no_dof"
     return np.shape(result.covariance) != (0, 0) or bool(np.all(result.fixed))
 
 
@@ -329,7 +335,9 @@ def report(result) -> str:
     out.extend(line(r, k in modules) for k, r in enumerate(table))
     out.append(line(x0_header))
     out.extend(line(r) for r in x0_table)
-    if not x0_table:
+    if not x0_table and np.shape(result.x0)[-1] == 0:
+        out.append("  (none: the model has no state, n_x = 0)")
+    elif not x0_table:
         out.append(f"  (fixed, not estimated: result.x0, {left_out} {rows})")
     elif left_out:
         out.append(f"  ... and {left_out} more {rows} (result.x0, result.x0_std)")

@@ -283,7 +283,10 @@ class FitResult(eqx.Module):
         strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result) and
         `unconverged_rollouts` (with `ParallelInTime(fallback=False)`: rollouts that kept
-        Newton's best iterate, not the model's states; `fit` warns).
+        Newton's best iterate, not the model's states; `fit` warns);
+        `degrees_of_freedom` where the fit had no more measured output values than
+        estimated entries (n_obs - n_free <= 0: the noise variance, and with it every
+        standard error, is unknown; `fit` warns).
     """
 
     theta: Any

@@ -376,7 +376,9 @@ def _estimate(
         estimate = None if mask.all() else mask
 
     stop_reason, kalman, e, ok, sim = None, None, None, None, None
-    if method == "lsq":
+    if guess.size == 0:  # a model without state (n_x = 0): nothing to estimate
+        x0_hat, cov, loss, ok = guess, np.zeros((0, 0), guess.dtype), None, np.zeros(0, bool)
+    elif method == "lsq":
         whole = None
         if record is not None:  # the whole record, simulated in the x0 solve's call
             whole = check_data(model, theta, guess, record[0], t=record[1]).u

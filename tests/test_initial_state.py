@@ -505,3 +505,21 @@ def test_unobservable_combination_warning_names_a_direction_not_a_held_entry():
         est = oj.estimate_x0(m, 0.8, u, z, n=10, x0=np.array([5.0, 0.0]))
     np.testing.assert_allclose(est.x0, [4.0, -1.0], atol=1e-9)  # the sum fitted, (5, 0) + t(1, -1)
     assert not est.identifiable.any()
+
+
+@pytest.mark.parametrize("method", ["lsq", "smoother"])
+def test_a_model_without_state_has_no_initial_state_to_estimate(method):
+    """A static model (n_x = 0, z = d u + e): `estimate_x0` and `predict` return an empty
+    x0 and the simulation (they failed with a ZeroDivisionError in a reshape), and the
+    printout says the model has no state (it said x0 was fixed, for 0 trajectories)."""
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((20, 1))
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: th["d"] * u + th["e"])
+    z = 1.5 * u + 0.3 + 0.01 * rng.standard_normal((20, 1))
+    r = oj.fit(model, {"d": 1.0, "e": 0.0}, np.zeros(0), u, z)
+    assert "(none: the model has no state, n_x = 0)" in str(r)
+    p = r.predict(u, z[:3], method=method)
+    assert p.x0.shape == (0,)
+    np.testing.assert_array_equal(p.z, oj.simulate(model, r.theta, np.zeros(0), u)[1])
+    est = oj.estimate_x0(model, r.theta, u, z, x0=np.zeros(0), method=method)
+    assert est.x0.shape == (0,)

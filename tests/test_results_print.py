@@ -399,3 +399,37 @@ def test_simulate_takes_the_ragged_records_the_result_was_fitted_on():
     assert [np.shape(a) for a in again] == [(100, 1), (80, 1), (60, 1)]
     for a, b in zip(again, direct):
         np.testing.assert_array_equal(a, b)
+
+
+def _first_order_ar(T):
+    """x[k+1] = a x + b u, z = x, T noisy samples: 3 unknowns (a, b, x0)."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u)
+    u = np.array([[1.0], [-0.5], [0.3], [0.8], [-0.2]])[:T]
+    z = np.asarray(oj.simulate(model, {"a": 0.8, "b": 0.5}, np.array([1.0]), u)[1])
+    return model, u, z + np.array([[0.01], [-0.02], [0.015], [0.005], [-0.01]])[:T]
+
+
+@pytest.mark.parametrize("T", [1, 3])
+def test_no_more_data_than_estimates_is_not_called_unidentifiable(T, tmp_path):
+    """With no more measured outputs than estimated entries, sigma^2 = SSE / dof is unknown
+    and every std is inf, identifiable or not: the fit warns and names that (T = 3: J has
+    full rank 3, so "not identifiable" was false; it was printed for every entry, x0
+    included). One more sample (T = 4, below) gives finite standard errors."""
+    model, u, z = _first_order_ar(T)
+    with pytest.warns(UserWarning, match=rf"no more measured output values \({T}\) than "):
+        r = oj.fit(model, {"a": 0.5, "b": 0.2}, np.array([0.5]), u, z)
+    assert np.isinf(r.std["a"]) and np.isinf(r.std["b"]) and np.isinf(r.x0_std).all()
+    assert r.diagnostics["degrees_of_freedom"] == T - 3
+    for text in (str(r), str(oj.load_result(r.save(tmp_path / "r")))):
+        assert "not identifiable" not in text
+        assert text.count("(unknown: no more data than estimates)") == 3
+
+
+def test_one_degree_of_freedom_gives_finite_standard_errors():
+    model, u, z = _first_order_ar(4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = oj.fit(model, {"a": 0.5, "b": 0.2}, np.array([0.5]), u, z)
+    assert np.isfinite(r.std["a"]) and np.isfinite(r.x0_std).all()
+    assert "degrees_of_freedom" not in r.diagnostics
+    assert "no more data than estimates" not in str(r)
