@@ -143,7 +143,10 @@ def stop_detail(status: str, info: dict) -> str:
 
 
 class FitHistory(eqx.Module):
-    """The recorded iterates of a fit (bounded: see `fit(history=...)`).
+    """The recorded iterates of a fit (bounded: see `fit(history=...)`; a long run is
+    thinned evenly, each solver's final iterate kept). Where the starts of a multistart run
+    side by side (on an accelerator) they share one stride, that of the start with the most
+    steps: the returned start can keep fewer rows than a single fit from it would.
 
     **Fields:**
 
