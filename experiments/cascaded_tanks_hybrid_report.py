@@ -15,6 +15,32 @@ def physical_label(theta) -> str:
     return "physical (overflow + sensor)" if "c2" in theta else "physical (overflow)"
 
 
+def selection_verdict(store) -> str:
+    """One sentence on the selection (`cascaded_tanks_hybrid_select`'s stored scores,
+    `store`) against the physical stage on the held-out tail: the best candidate's mean
+    where one scores lower, else that none does (and so that the hybrid is not chosen over
+    the physics on the estimation record alone). Empty where `store` has no physical row
+    or no candidate."""
+    from .cascaded_tanks_hybrid_select import candidate_means
+
+    means = candidate_means(store) if store else {}
+    phys = (store or {}).get("physical")
+    if phys is None or not means:
+        return ""
+    best = min(means.values())
+    if best < phys["rmse"]:
+        return (
+            f" The best candidate scores {best:.4f} V there, against the physical stage's "
+            f"{phys['rmse']:.4f} V."
+        )
+    return (
+        f" None of the candidates beats it there (the best {best:.4f} V against the "
+        f"physical stage's {phys['rmse']:.4f} V): on the estimation record alone the "
+        "physical model would be kept, so the hybrid's lower test RMSE above is not a blind "
+        "choice of a hybrid over the physics."
+    )
+
+
 def _stages(h) -> str:
     return "; ".join(
         f"{REFINE.get(k, 'Adam' if k == 'adam' else k)}: {s['iterations']} steps, "
@@ -231,6 +257,7 @@ def markdown(res) -> str:
         "[choosing the configuration](cascaded_tanks_hybrid_selection.md), with the "
         "physical stage as here; that page also scores the physical stage alone on the "
         "held-out tail, the baseline the candidates are to beat."
+        + selection_verdict(res.get("selection"))
         + (
             " The quadratic sensor itself was chosen for the physical model's lower RMSE "
             "on the estimation record (cascaded-tanks study)."

@@ -58,7 +58,7 @@ CANDIDATES = {
     ],
 }
 PAGE = REPO / "docs" / "case-studies" / "cascaded_tanks_hybrid_selection.md"
-STORE = REPO / "experiments" / "cascaded_tanks_hybrid_selection.json"
+STORE = hybrid.SELECTION
 
 
 def load(overrides):
@@ -209,19 +209,25 @@ def prune(store):
     return store
 
 
+def candidate_means(store) -> dict:
+    """{(candidate, combine): its mean held-out RMSE over the seeds}, in the order of
+    `CANDIDATES` (single before committee)."""
+    order = list(CANDIDATES)
+    names = sorted(store["scores"], key=lambda k: order.index(k) if k in order else len(order))
+    return {
+        (name, kind): float(np.mean(store["scores"][name][kind]))
+        for name in names
+        for kind in ("single", "committee")
+        if kind in store["scores"][name]
+    }
+
+
 def markdown(store) -> str:
     """The selection page: the held-out scores of every stored candidate and the choice."""
     m, n, tail, seeds = store["m"], store["n"], store["tail"], store["seeds"]
-    order = list(CANDIDATES)
-    names = sorted(store["scores"], key=lambda k: order.index(k) if k in order else len(order))
-    scores = {k: store["scores"][k] for k in names}  # in the order of CANDIDATES
+    means = candidate_means(store)
+    scores = {name: store["scores"][name] for name, _ in means}  # in the order of CANDIDATES
     kinds = [k for k in ("single", "committee") if any(k in row for row in scores.values())]
-    means = {
-        (name, kind): float(np.mean(row[kind]))
-        for name, row in scores.items()
-        for kind in kinds
-        if kind in row
-    }
     best = min(means, key=means.get) if means else None
     L = [
         "# Cascaded tanks hybrid: choosing the configuration on the estimation record",

@@ -231,3 +231,20 @@ def test_selection_page_states_each_runs_conditions():
     row = {"rmse": 0.21, "command": "z", "wall_s": 9, "conditions": "machine M."}
     md = select.markdown(select.merge_physical(store, row, 768, 5, 256, [0, 1]))
     assert "(`z`, 9 s; machine M)." in md
+
+
+def test_hybrid_page_says_whether_a_candidate_beat_the_physical_stage():
+    """The hybrid page reports the selection's outcome against the physical stage on the
+    held-out tail (the candidates' means over the seeds, as the selection page ranks them):
+    that none beat it, so that the estimation record alone would keep the physics, or the
+    best candidate's score."""
+    from experiments import cascaded_tanks_hybrid_report as report
+
+    store = {"physical": {"rmse": 0.19}, "scores": {"a": {"single": [0.2, 0.22], "run": 1}}}
+    assert "None of the candidates beats it there (the best 0.2100 V against the physical " in (
+        report.selection_verdict(store)
+    )
+    store["scores"]["b"] = {"committee": [0.15, 0.17], "run": 1}
+    assert "The best candidate scores 0.1600 V there" in report.selection_verdict(store)
+    assert report.selection_verdict(None) == ""
+    assert report.selection_verdict({"scores": store["scores"]}) == ""
