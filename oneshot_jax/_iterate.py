@@ -226,6 +226,8 @@ def iterate(
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
     final_loss, final_gnorm = _over_starts(solver.summary, n_starts)(state)
+    low = jnp.min(jnp.where(jnp.isnan(final_loss), jnp.inf, final_loss))
+    meter.finish(bar_id, offset, c.step, jnp.minimum(done_low, low))
     measures = _over_starts(solver.measures, n_starts)(state)
     out_params, out_loss, blocks = _over_starts(
         lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts

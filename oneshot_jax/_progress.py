@@ -56,19 +56,26 @@ class TqdmProgress(eqx.Module):
         `refresh_steps` steps, move the bar to `offset + step` and show `loss` (the
         smallest over the starts: those running, and with the starts in turn the final
         losses of those done)."""
-
-        def show(bar_id, n, loss):
-            with _LOCK:
-                bar = _BARS.get(int(bar_id))
-            if bar is not None:
-                bar.n = int(n)
-                bar.set_postfix_str(f"loss {float(loss):.6e}")
-
         jax.lax.cond(
             step % self.refresh_steps == 0,
-            lambda: jax.debug.callback(show, bar_id, offset + step, loss),
+            lambda: jax.debug.callback(_show, bar_id, offset + step, loss),
             lambda: None,
         )
+
+    def finish(self, bar_id, offset, step, loss):
+        """Called once after each solver's loop: move the bar to the step the solver
+        stopped at and show the loss there, whatever `refresh_steps` (a refresh alone
+        would leave the bar at the last multiple of it)."""
+        jax.debug.callback(_show, bar_id, offset + step, loss)
+
+
+def _show(bar_id, n, loss):
+    """On the host: move the bar `bar_id` to step `n` and show `loss`."""
+    with _LOCK:
+        bar = _BARS.get(int(bar_id))
+    if bar is not None:
+        bar.n = int(n)
+        bar.set_postfix_str(f"loss {float(loss):.6e}")
 
 
 class NoProgress(eqx.Module):
@@ -82,4 +89,7 @@ class NoProgress(eqx.Module):
         """No bar to close."""
 
     def update(self, bar_id, offset, step, loss):
+        """Nothing to show."""
+
+    def finish(self, bar_id, offset, step, loss):
         """Nothing to show."""

@@ -379,6 +379,24 @@ def test_progress_bar_shows_the_loss(sat, capsys):
     assert "loss" in err and "/30" in err
 
 
+def test_progress_bar_ends_where_the_fit_stopped(sat, capsys):
+    """The bar's last state is the step the solver stopped at and the loss there, not the
+    last multiple of `refresh_steps` (it closed at 10/300 with the loss of step 10 for a
+    fit that stopped at step 15)."""
+    r = oj.fit(
+        SAT_MODEL,
+        SAT_THETA0,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        progress=oj.TqdmProgress(10),
+        solver=oj.LevenbergMarquardt(max_steps=300),
+    )
+    assert r.success and r.num_steps % 10 != 0
+    last = capsys.readouterr().err.replace("\r", "\n").strip().splitlines()[-1]
+    assert f" {r.num_steps}/300 " in last and f"loss {float(r.loss):.6e}" in last, last
+
+
 def test_library_does_not_import_experiments_or_their_dependencies():
     code = (
         "import sys, oneshot_jax; "
