@@ -154,6 +154,14 @@ def _window_states(model, result, u, w_prev, window, t=None):
     return xs[np.arange(u.shape[0] // window) * window]
 
 
+def _in_order(theta, like):
+    """`theta` with its dicts' keys in the order of `like`'s (a fitted theta comes back
+    with sorted keys; the printout shows theta0's written order)."""
+    if isinstance(theta, dict) and isinstance(like, dict) and theta.keys() == like.keys():
+        return {k: _in_order(theta[k], like[k]) for k in like}
+    return theta
+
+
 def fit_continuation(
     model,
     theta0: PyTree,
@@ -240,7 +248,7 @@ def fit_continuation(
             # (a stage keeps no standard errors: its covariance is not computed)
             result = fit(model, theta, x0_stage, u, z, window=w, covariance=None, **kwargs)
         stages.append(_stage(w, result))
-        theta, w_prev = result.theta, w
+        theta, w_prev = _in_order(result.theta, theta0), w
     final_x0 = np.asarray(result.x0)[0]
     if held is not None:
         final_x0 = np.where(held, np.asarray(x0, final_x0.dtype), final_x0)

@@ -418,3 +418,12 @@ def test_held_window_states_read_off_z_are_not_called_theta0s():
         estimate_x0=False,
     )
     np.testing.assert_array_equal(r.x0[1:], np.asarray(z)[[25, 50, 75]])
+
+
+def test_the_result_prints_the_parameters_in_theta0s_order(continued):
+    """Each stage starts from theta0's written order (w0sq before b), not the sorted keys
+    of the last stage's fitted theta, so the printout lists them as a plain fit does."""
+    assert list(START) == ["w0sq", "b"]
+    assert continued.result.theta_order == ("w0sq", "b")
+    text = str(continued.result)
+    assert text.index("  w0sq ") < text.index("  b ")
