@@ -1,9 +1,10 @@
 """A bounded record of a solver's iterates, kept inside the compiled loop.
 
 The buffer holds at most `size` rows whatever the step budget. Rows are written every
-`stride` steps, starting at step 0; when the buffer fills, every other row is dropped and
-the stride doubles. So a run of any length keeps its whole path at an even spacing of at
-most 2 (steps / size). The step counter is shared by all starting points run side by
+`stride` steps, starting at step 0; when a row is due and the buffer is full, every other
+row is dropped and the stride doubles (a run that ends as the buffer fills keeps every
+row). So a run of any length keeps its whole path at an even spacing of at most
+2 (steps / size). The step counter is shared by all starting points run side by
 side (they advance together, a finished one frozen), so the decisions to write and to
 thin are plain conditionals, taken only when due; each row holds every start's values.
 (Starts run in turn each keep a buffer of their own: `_iterate._unstack`.) The final
@@ -75,8 +76,11 @@ def first(h: History, loss, grad_norm, theta, validation=None) -> History:
 
 
 def record(h: History, step, loss, grad_norm, theta, validation=None) -> History:
-    """Record step `step` (shared by the starts) if it falls on the stride, and thin a full
-    buffer."""
+    """Record step `step` (shared by the starts) if it falls on the stride; a full buffer is
+    thinned first, only when a row is due (so a run that ends as the buffer fills keeps
+    every row)."""
+    size = h.step.shape[0]
+    h = jax.lax.cond((h.count == size) & (step % h.stride == 0), _compact, lambda h: h, h)
     due = step % h.stride == 0
     i = jnp.where(due, h.count, h.step.shape[0] - 1)
     if validation is not None:
@@ -90,4 +94,4 @@ def record(h: History, step, loss, grad_norm, theta, validation=None) -> History
         step=h.step.at[i].set(jnp.where(due, step, h.step[i])),
         count=h.count + due,
     )
-    return jax.lax.cond(h.count == h.step.shape[0], _compact, lambda h: h, h)
+    return h

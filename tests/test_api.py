@@ -365,6 +365,24 @@ def test_history_is_bounded_and_evenly_thinned(sat):
     assert h.grad_norm[-1] < 1e-6 <= h.grad_norm[-2]
 
 
+@pytest.mark.parametrize("steps, kept", [(13, [0, 4, 8, 12, 13]), (7, [0, 2, 4, 6, 7])])
+def test_history_thins_only_when_a_row_is_due(sat, steps, kept):
+    """A full buffer is thinned when the next row comes, not as it fills: a run that ends
+    there keeps every row (13 steps with `history=4` kept steps 0, 8 and 13; 999 steps
+    with the default 1000 kept 501 rows)."""
+    r = oj.fit(
+        SAT_MODEL,
+        SAT_THETA0,
+        SAT_X00,
+        sat["M"],
+        sat["z"],
+        history=4,
+        solver=oj.Adam(lr_x0=1e-5, max_steps=steps, gtol=0.0),
+    )
+    assert r.num_steps == steps
+    assert list(r.history.step) == kept
+
+
 def test_progress_bar_shows_the_loss(sat, capsys):
     oj.fit(
         SAT_MODEL,

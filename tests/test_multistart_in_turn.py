@@ -61,7 +61,7 @@ def _fit(monkeypatch, in_turn, validation):
         z,
         solver=[oj.Adam(1e-2, max_steps=7), oj.LevenbergMarquardt(max_steps=15, gtol=1e-6)],
         multistart={"w": W_STARTS},
-        history=16,
+        history=8,
         **kwargs,
     )
 
