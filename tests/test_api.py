@@ -343,15 +343,16 @@ def test_optimistix_runs_compiled_with_a_real_history_and_multistart(sat):
     assert all(s == "converged" for s in r.starts.stop_reason)
 
 
+def _sat_fit(sat, **kwargs):
+    """A fit of the satellite record from the module's start."""
+    return oj.fit(SAT_MODEL, SAT_THETA0, SAT_X00, sat["M"], sat["z"], **kwargs)
+
+
 def test_history_is_bounded_and_evenly_thinned(sat):
     """A step budget of 10^9 allocates nothing per step: the history keeps at most
     `history` rows, evenly strided, with the final iterate last."""
-    r = oj.fit(
-        SAT_MODEL,
-        SAT_THETA0,
-        SAT_X00,
-        sat["M"],
-        sat["z"],
+    r = _sat_fit(
+        sat,
         history=8,
         solver=oj.Adam(lr_x0=1e-5, max_steps=10**9, tol_grad=1e-6),
     )
@@ -370,12 +371,8 @@ def test_history_thins_only_when_a_row_is_due(sat, steps, kept):
     """A full buffer is thinned when the next row comes, not as it fills: a run that ends
     there keeps every row (13 steps with `history=4` kept steps 0, 8 and 13; 999 steps
     with the default 1000 kept 501 rows)."""
-    r = oj.fit(
-        SAT_MODEL,
-        SAT_THETA0,
-        SAT_X00,
-        sat["M"],
-        sat["z"],
+    r = _sat_fit(
+        sat,
         history=4,
         solver=oj.Adam(lr_x0=1e-5, max_steps=steps, gtol=0.0),
     )
@@ -384,12 +381,8 @@ def test_history_thins_only_when_a_row_is_due(sat, steps, kept):
 
 
 def test_progress_bar_shows_the_loss(sat, capsys):
-    oj.fit(
-        SAT_MODEL,
-        SAT_THETA0,
-        SAT_X00,
-        sat["M"],
-        sat["z"],
+    _sat_fit(
+        sat,
         progress=oj.TqdmProgress(1),
         solver=oj.Adam(lr_x0=1e-5, max_steps=30),
     )
@@ -401,12 +394,8 @@ def test_progress_bar_ends_where_the_fit_stopped(sat, capsys):
     """The bar's last state is the step the solver stopped at and the loss there, not the
     last multiple of `refresh_steps` (it closed at 10/300 with the loss of step 10 for a
     fit that stopped at step 15)."""
-    r = oj.fit(
-        SAT_MODEL,
-        SAT_THETA0,
-        SAT_X00,
-        sat["M"],
-        sat["z"],
+    r = _sat_fit(
+        sat,
         progress=oj.TqdmProgress(10),
         solver=oj.LevenbergMarquardt(max_steps=300),
     )
