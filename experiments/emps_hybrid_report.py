@@ -76,8 +76,13 @@ def markdown(res) -> str:
         "",
         f"The hybrid model's validation RMSE is {abs(change):.1f} % "
         f"{'lower' if change > 0 else 'higher'} than the physical model's. "
-        f"Largest learned force over |q'| <= {lf['v_max_m_per_s']:.3f} m/s (at "
-        f"q = {lf['q_m']:.3f} m): {lf['max_abs']:.2f} N; at q' = 0: "
+        f"Largest learned force over |q'| <= {lf['v_max_m_per_s']:.3f} m/s"
+        + (
+            f" (at mid-travel, q = {lf['q_m']:.3f} m)"
+            if res["config"].get("inputs") == "qv"  # (r of the velocity alone: no q)
+            else ""
+        )
+        + f": {lf['max_abs']:.2f} N; at q' = 0: "
         f"{lf['at_zero_velocity']:+.2f} N. The network has seen the velocities of the "
         f"estimation record, |q'| <= {lf['v_max_m_per_s']:.3f} m/s (central differences of "
         f"qm); the validation record reaches {lf['v_max_validation_m_per_s']:.3f} m/s, where "

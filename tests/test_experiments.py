@@ -412,6 +412,14 @@ def test_emps_hybrid_end_to_end(tmp_path):
         assert scores["n"] == 20
         assert all(np.isfinite(scores[k]) for k in ("rmse_mm", "nrmse", "r2", "fit_percent"))
     assert np.isfinite(res["hybrid"]["learned_force_N"]["max_abs"])
+    # r of the velocity alone: the page names no position for its largest force
+    md = (out / "results.md").read_text()
+    assert "Largest learned force over" in md and "(at mid-travel" not in md
+    from experiments import emps_hybrid_report
+
+    res_qv = {**res, "config": {**res["config"], "inputs": "qv"}}
+    assert "Largest learned force over" in emps_hybrid_report.markdown(res_qv)
+    assert "(at mid-travel, q = " in emps_hybrid_report.markdown(res_qv)
     assert set(res["figures"]) == {"compare.png", "friction.png"}
     for fig in res["figures"]:
         assert (out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", fig
