@@ -336,10 +336,9 @@ def assemble(
                 for j in problem.x0_free
             ]
             _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
-        dof = int(scaled.dof)
-        if not diverged and dof <= 0 and scaled.theta_std.size + scaled.x0_std.size:
+        dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
+        if not diverged and dof <= 0 and n_free:
             diagnostics = {**(diagnostics or {}), "degrees_of_freedom": dof}
-            n_free = scaled.theta_std.size + scaled.x0_std.size
             warnings.warn(
                 f"no more measured output values ({n_free + dof}) than estimated entries "
                 f"({n_free}): the noise variance sigma^2 = SSE / (n_obs - n_free) is "

@@ -133,12 +133,18 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     if blocks is None:
         blocks = _blocks(problem.jacobian(params, strategy, penalty=False))
     nuisance = np.asarray(() if problem is None else problem.nuisance, int)
-    cov, _ = _pseudo_inverse(blocks, carry=nuisance.size == 0)
+    cov, _ = _pseudo_inverse(blocks, carry=_carries(problem))
     p = cov.theta.shape[0]
     if 0 < nuisance.size < p:
         S_inv, t_ok, _ = marginal(blocks[4], cov.theta, cov.theta_identifiable, nuisance)
         cov = cov._replace(theta=S_inv, theta_identifiable=t_ok)
     return cov
+
+
+def _carries(problem) -> bool:
+    """Whether `_pseudo_inverse` judges the initial states along theta's null directions:
+    not where theta holds a network (nuisance entries)."""
+    return problem is None or len(problem.nuisance) == 0
 
 
 def _pseudo_inverse(blocks, carry=True):
@@ -219,7 +225,7 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     blocks = _blocks(lin)
     S = blocks[4]
     # S^+ itself: no marginal block yet
-    cov, elim = _pseudo_inverse(blocks, carry=not len(problem.nuisance))
+    cov, elim = _pseudo_inverse(blocks, carry=_carries(problem))
     N, R, p = lin.Jt.shape
     T = problem.u.shape[1]
     n_z = R // T

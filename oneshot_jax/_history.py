@@ -81,8 +81,8 @@ def record(h: History, step, loss, grad_norm, theta, validation=None) -> History
     every row)."""
     size = h.step.shape[0]
     h = jax.lax.cond((h.count == size) & (step % h.stride == 0), _compact, lambda h: h, h)
-    due = step % h.stride == 0
-    i = jnp.where(due, h.count, h.step.shape[0] - 1)
+    due = step % h.stride == 0  # (the stride as it is after thinning)
+    i = jnp.where(due, h.count, size - 1)
     if validation is not None:
         h = h._replace(
             validation=h.validation.at[i].set(jnp.where(due, validation, h.validation[i]))

@@ -128,6 +128,12 @@ def _update_best(best: Best, params, score, val_x0, running):
     )
 
 
+def _shown(done_low, loss):
+    """The loss a progress bar shows: the smallest over the starts' `loss` (NaN left out)
+    and `done_low` (the final losses of the starts already run in turn)."""
+    return jnp.minimum(done_low, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
+
+
 def iterate(
     solver, problem: FitProblem, params: Params, *, history_size, meter, meter_args, best=None
 ):
@@ -205,8 +211,7 @@ def iterate(
         hist = c.history
         if hist is not None:
             hist = _history.record(hist, step, loss, gnorm, params.theta, score)
-        shown = jnp.minimum(done_low, jnp.min(jnp.where(jnp.isnan(loss), jnp.inf, loss)))
-        meter.update(bar_id, offset, step, shown)
+        meter.update(bar_id, offset, step, _shown(done_low, loss))
         dynamic, _ = eqx.partition(state, eqx.is_array)
         return _Carry(
             params,
@@ -226,8 +231,7 @@ def iterate(
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
     final_loss, final_gnorm = _over_starts(solver.summary, n_starts)(state)
-    low = jnp.min(jnp.where(jnp.isnan(final_loss), jnp.inf, final_loss))
-    meter.finish(bar_id, offset, c.step, jnp.minimum(done_low, low))
+    meter.finish(bar_id, offset, c.step, _shown(done_low, final_loss))
     measures = _over_starts(solver.measures, n_starts)(state)
     out_params, out_loss, blocks = _over_starts(
         lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts
