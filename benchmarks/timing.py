@@ -142,7 +142,7 @@ def commit() -> str:
 
 def _shown(cmd: str) -> str:
     """The command as the docs show it: without `--json PATH` (a file of the run)."""
-    return re.sub(r"\s--json\s+\S+", "", cmd)
+    return re.sub(r"\s--json\s+[^\s`]+", "", cmd)
 
 
 def conditions(extra_versions=(), argv=None) -> str:

@@ -172,8 +172,8 @@ def literal_value_and_grad(
 
     Forms every J^{x/x}_k and J^{x/theta}_k (jacfwd, flattened theta) and every chained
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.
-    Same arguments (`t` included) and returns as `value_and_grad` (one trajectory or N
-    trajectories).
+    The arguments and returns of `value_and_grad` (`t` included; one trajectory or N
+    trajectories), except `strategy` and `aggregate`, which it does not take.
     """
     data = check_data(model, theta, x0, u, z, weight, missing, t)
     cost = check_cost(data, penalty, penalty_weight)

@@ -279,7 +279,7 @@ class Orthogonal(eqx.Module):
     - `loss`: the data cost C of eq. (5) at them (the penalty excluded).
     - `rounds`: a `Round` per round (physical parameters, loss, projection, changes,
         stop).
-    - `result`: the last round's `FitResult`, of the augmented model (its `x0`, `z_hat`
+    - `result`: the last round's `FitResult`, of the augmented model (its `x0`, `residuals`
         and outputs are the augmented ones; its `std` is that of the penalised fit).
     - `converged`: whether the physical parameters moved by less than `stol` standard
         errors, or by less than `rtol` relative, in the last round.

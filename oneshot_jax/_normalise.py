@@ -3,7 +3,8 @@
 Several trajectories of different lengths T_i (lists of arrays) become one (N, T_max, c)
 array, each padded by repeating its last row; the padded samples, and in
 `missing="mask"` mode the NaN samples of z, are masked out of the cost (a `Mask`:
-eq. 5 then sums over the measured samples only, and normalises by their number). The
+eq. 5 then sums over the measured samples only, and divides by the number of time points
+of the unpadded records, NaN samples included). The
 checks themselves (shapes, channels, finiteness) stay in `_checks.check_data`, which calls
 these functions in the order that keeps its errors in the order of the arguments.
 """

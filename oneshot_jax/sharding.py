@@ -41,6 +41,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+__all__ = ["AXIS", "fleet_mesh", "fleet_sharding", "shard_fleet", "replicate"]
+
 AXIS = "trajectories"
 """The mesh axis name of the trajectory axis."""
 

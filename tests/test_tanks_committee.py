@@ -2,6 +2,8 @@
 is taken out of a multistart's parameters whole, and the committee's scores are those of
 the mean of its members' outputs, each member from its own initial state."""
 
+import json
+import re
 import sys
 from pathlib import Path
 
@@ -248,3 +250,15 @@ def test_hybrid_page_says_whether_a_candidate_beat_the_physical_stage():
     assert "The best candidate scores 0.1600 V there" in report.selection_verdict(store)
     assert report.selection_verdict(None) == ""
     assert report.selection_verdict({"scores": store["scores"]}) == ""
+
+
+def test_the_published_selection_page_is_its_store_rendered():
+    """docs/case-studies/cascaded_tanks_hybrid_selection.md is `markdown` of the stored
+    runs (experiments/cascaded_tanks_hybrid_selection.json), as `--publish` writes it: a
+    hand edit of the page, or text in the store that the script does not write, shows."""
+    from experiments import cascaded_tanks_hybrid_select as select
+
+    store = json.loads(select.STORE.read_text())
+    assert select.PAGE.read_text() == select.markdown(store)
+    for run in store["runs"]:
+        assert re.search(r"; the run may use \d+ of them\.$", run["conditions"]), run["conditions"]

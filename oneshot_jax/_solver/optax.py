@@ -345,7 +345,7 @@ class Optax(_AbstractOptax):
         most `gtol` (see `oneshot_jax._optimality`; estimated from the gradient with
         Marquardt's diagonal of the start, recomputed where the estimate passes).
     - `strategy`: how the gradient's per-step Jacobians are formed (`"auto"`,
-        `"jacobian"`, `"vjp"`; see `oneshot_jax.value_and_grad`).
+        `"jacobian"`, `"vjp"`, `"parallel"`; see `oneshot_jax.value_and_grad`).
     """
 
     transform: optax.GradientTransformation
@@ -388,7 +388,7 @@ class Adam(_AbstractOptax):
     """Algorithm 1 of the paper: Adam (eq. 8-9) with separate learning rates for theta
     and x0, on the one-shot closed-form gradient.
 
-    With a regulariser g (`sparsity.l1`, `group_lasso`) in `fit(regulariser=...)`, theta
+    With a regulariser g (`sparsity.l1`, `group_lasso`, `l2`) in `fit(regulariser=...)`, theta
     takes proximal Adam steps (`proximal_adam`): with Adam's bias-corrected
     moments m_hat, v_hat, theta+ = prox_{g, D}(theta - D m_hat), D = diag(d),
     d_i = lr_theta / (max(sqrt(v_hat_i), lambda) + eps), lambda the regulariser's

@@ -167,7 +167,8 @@ class Optimistix(AbstractSolver):
         is `converged` only if the scaled projected gradient there is at most `gtol`, or
         at most its round-off limit (see `oneshot_jax._optimality`); otherwise
         `stalled`.
-    - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`).
+    - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`,
+        `"parallel"`; see `oneshot_jax.value_and_grad`).
     """
 
     GTOL_AT_LEAST_RESOLUTION = True  # (at its last step and after a failure: no stall)
