@@ -3,6 +3,8 @@ reports), a pytree of data that prints as a parameter table; its `simulate`, `pr
 and `save` are thin calls of `oneshot_jax.simulate`, `oneshot_jax._initial_state` and
 `oneshot_jax._io`, and `load_result` builds one from a saved file."""
 
+import os
+import sys
 from typing import Any
 
 import equinox as eqx
@@ -190,6 +192,19 @@ class Starts(eqx.Module):
     solver_stop: tuple = eqx.field(static=True)
 
 
+_LIBRARY_DIRS = tuple(os.path.dirname(m.__file__) + os.sep for m in (sys.modules[__package__], eqx))
+
+
+def _frames_to_user() -> int:
+    """The frames between the caller of this function's caller and the user's code: the
+    wrappers equinox puts around a module's bound methods, and this library's functions
+    that call the method (`plot.compare`), so that a warning points at the user's line."""
+    frame, count = sys._getframe(2), 0
+    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
+        frame, count = frame.f_back, count + 1
+    return count
+
+
 def _first_row_missing(z_head) -> bool:
     """Whether the first row of a record's head (n, n_z) has a NaN (False where it is not
     a numeric array: `predict` names that)."""
@@ -320,6 +335,9 @@ class FitResult(eqx.Module):
     window_starts: np.ndarray | None = None
     n_u: int | None = eqx.field(static=True, default=None)
     weight: np.ndarray | None = None
+    # What a loaded file recorded of the fitted model (`load_result`), kept so that a
+    # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
+    saved_model_signature: tuple | None = eqx.field(static=True, default=None, repr=False)
 
     def _check_u(self, u):
         """Refuse inputs with another number of columns than the fitted data's (each
@@ -504,7 +522,7 @@ class FitResult(eqx.Module):
             None,
             method,
             kwargs,
-            stacklevel=3,
+            stacklevel=3 + _frames_to_user(),
             t=t,
             z_name="z_head",
         )
@@ -548,6 +566,8 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     The `FitResult`, equal to the saved one field by field.
     """
     fields = _io.read_result(path, like=like, model=model)
+    if model is not None:  # (the model itself is the record, as after `fit`)
+        fields["saved_model_signature"] = None
     history = FitHistory(**fields.pop("history"))
     starts = fields.pop("starts")
     return FitResult(

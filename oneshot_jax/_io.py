@@ -217,8 +217,15 @@ def save_result(result, path):
     The path written.
     """
     if not all(hasattr(result, a) for a in ("theta", "std", "history", "stop_reason")):
+        hint = ""
+        if all(hasattr(getattr(result, "result", None), a) for a in ("theta", "std", "history")):
+            hint = (
+                f" A {type(result).__name__} is not saved whole: save its `.result` (a "
+                "`FitResult`; the other fields, such as stages or rounds, are not kept)"
+            )
         raise TypeError(
-            f"`result` must be a `FitResult` (what `fit` returns), got {type(result).__name__}."
+            f"`result` must be a `FitResult` (what `fit` returns), got "
+            f"{type(result).__name__}.{hint}"
         )
     path = _as_path(path)
     if path.suffix != ".npz":
@@ -274,13 +281,22 @@ def save_result(result, path):
         "validation_loss": result.validation_loss,
         "static_signature": _static_signature(result.theta),
         "n_u": result.n_u,
-        "model_signature": None if result.model is None else _model_signature(result.model),
+        # (a result loaded without a model keeps the record of the file it came from)
+        "model_signature": (
+            _model_signature(result.model)
+            if result.model is not None
+            else _saved_signature(getattr(result, "saved_model_signature", None))
+        ),
     }
     meta["digest"] = _digest(arrays, meta)
     arrays["__meta__"] = np.array(json.dumps(meta))
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
     return path
+
+
+def _saved_signature(sig):
+    return None if sig is None else list(sig)
 
 
 def _as_path(path) -> Path:
@@ -484,6 +500,9 @@ def _fields(arrays, meta, group, build, static) -> dict:
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
         n_u=meta.get("n_u"),
         weight=arrays.get("weight"),
+        saved_model_signature=(
+            None if meta.get("model_signature") is None else tuple(meta["model_signature"])
+        ),
     )
 
 

@@ -467,7 +467,11 @@ def _lag_sums(x, max_lag):
 
 def _trajectories(a, name, shape=None):
     """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have."""
-    if np.iscomplexobj(a):
+    try:
+        complex_ = np.iscomplexobj(a)  # (np.asarray inside: a ragged object raises here)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"`{name}` must be a numeric array, got {type(a).__name__}.") from err
+    if complex_:
         raise ValueError(f"`{name}` must hold real numbers, got dtype {np.asarray(a).dtype}.")
     try:
         a = np.asarray(a, dtype=np.float64)

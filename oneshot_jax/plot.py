@@ -37,9 +37,12 @@ def _pyplot():
 def _columns(a, name):
     """`a` as a float64 (T, n) array."""
     try:
-        a = np.asarray(a, dtype=np.float64)
+        complex_ = np.iscomplexobj(a)
+        a = a if complex_ else np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must be a numeric array, got {type(a).__name__}.") from err
+    if complex_:  # (a cast would drop the imaginary part)
+        raise ValueError(f"`{name}` must hold real numbers, got dtype {np.asarray(a).dtype}.")
     if a.ndim not in (1, 2):
         raise ValueError(f"`{name}` must have shape (T,) or (T, n) (one record), got {a.shape}.")
     return a[:, None] if a.ndim == 1 else a
@@ -252,7 +255,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
             raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
         xlabel = "time"
 
-    outputs = [_model_output(i, m, u, z, n, times, Ts) for i, m in enumerate(models)]
+    outputs = []  # a loop, not a comprehension: its warnings point at the caller's line
+    for i, m in enumerate(models):
+        outputs.append(_model_output(i, m, u, z, n, times, Ts))
     fig, axes = _axes(ax, n_z, plt, (8.0, 0.6 + 2.6 * n_z))
     measured = np.isfinite(z[n:])  # missing samples are left out of the FIT
     # An output never sampled at an instant (one measured only in aggregate, an all-NaN
@@ -271,7 +276,8 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     for k, a in enumerate(axes):
         a.plot(t, z[:, k], color="k", lw=1.2, label="measured")
         for zhat, fit, label in zip(outputs, fits, labels):
-            a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {fit[k]:.2f} %")
+            shown = f"{fit[k]:.2f}" if abs(fit[k]) < 1e4 else f"{fit[k]:.3g}"
+            a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {shown} %")
         if n:
             a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
             a.axvline(t[n], color="0.4", lw=0.8, ls="--")
@@ -318,9 +324,11 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     `residual_correlations`.
     """
     plt = _pyplot()
-    windows, skipped, names = None, [], None
+    windows, skipped, names, stop = None, [], None, None
     if isinstance(e, FitResult):
         windows = e.window_starts
+        if not e.success:
+            stop = f"the fit did not succeed (status {e.status}): residuals of the returned point"
         e = np.asarray(e.residuals)
         # An output never sampled at an instant (one measured only in aggregate) has no
         # residual series: left out, and said so in the title.
@@ -385,6 +393,8 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     samples = str(int(counts[0])) if len(counts) == 1 else "/".join(str(int(c)) for c in rc.n)
     if skipped:
         verdicts.append(f"e{skipped}: no residual samples (measured only in aggregate)")
+    if stop:
+        verdicts.append(stop)
     fig.suptitle(
         f"Residual analysis ({pct} bounds, n = {samples} samples)\n" + "\n".join(verdicts),
         fontsize=10,

@@ -4,6 +4,7 @@ bar, and a library that does not import its experiments.
 
 The satellite here is the same problem as in test_fit.py (seeds 0 and 1)."""
 
+import dataclasses
 import functools
 import subprocess
 import sys
@@ -172,6 +173,9 @@ def test_save_and_load_a_dict_theta_with_starts(tmp_path):
         estimate_x0=False,
     )
     loaded = oj.load_result(r.save(tmp_path / "dict.npz"))
+    # (loaded without a model, it keeps the file's record of the model for a later save)
+    assert loaded.saved_model_signature is not None
+    loaded = dataclasses.replace(loaded, saved_model_signature=None)
     assert eqx.tree_equal(loaded, eqx.tree_at(lambda x: x.model, r, None)) is True
     assert loaded.starts.stop_reason == r.starts.stop_reason
     with pytest.raises(ValueError, match="holds no model"):
@@ -412,3 +416,22 @@ def test_library_does_not_import_experiments_or_their_dependencies():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_a_loaded_result_saved_again_keeps_the_model_check(tmp_path):
+    """A result loaded without `model=` and saved again keeps the file's record of the
+    fitted model: loading the second file with another model is refused as the first;
+    the results of the drivers that are not saved whole say what to save."""
+    model = oj.Model.from_ode(lambda x, u, th: -th["a"] * x + u, 0.1)
+    other = oj.Model.from_ode(lambda x, u, th: -th["a"] * x + u, 0.5)
+    u = np.random.default_rng(0).standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 1.0}, np.ones(1), u)
+    r = oj.fit(model, {"a": 0.5}, np.ones(1), u, np.asarray(z))
+    again = oj.load_result(r.save(tmp_path / "a.npz")).save(tmp_path / "b.npz")
+    for path in (tmp_path / "a.npz", again):
+        with pytest.raises(ValueError, match="model.step.dt = 0.5, the file model.step.dt = 0.1"):
+            oj.load_result(path, model=other)
+    assert oj.load_result(again, model=model).theta["a"] == r.theta["a"]
+    c = oj.fit_continuation(model, {"a": 0.5}, np.ones(1), u, np.asarray(z), windows=[10])
+    with pytest.raises(TypeError, match=r"Continuation is not saved whole: save its `.result`"):
+        oj.save_result(c, tmp_path / "c.npz")

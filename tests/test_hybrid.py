@@ -763,3 +763,59 @@ def test_covariance_none_skips_it_and_leaves_the_fit_alone(monkeypatch, tmp_path
     oj.save_result(r, tmp_path / "r")
     back = oj.load_result(tmp_path / "r")
     assert back.diagnostics["covariance"] == "none" and "(not computed)" in str(back)
+
+
+def _duffing_results(wrong=0, status="max_steps_reached", std=np.inf, c=0.214, k=4.64):
+    """A run's results (`duffing.run`) with made-up numbers, for the page's reading."""
+    stage = {"c": 0.3, "k": 1.0, "cubic_error": 0.0009, "loss": 8.5e-5, "validation": [1.0]}
+    return {
+        "T": 2000,
+        "sigma": 0.0094,
+        "physical": {"c": 0.44, "k": 2.67, "wall_s": 3.2, "validation": [50.7, 50.2, 48.1]},
+        "dictionary": {
+            "candidates": 16,
+            "wall_s": 30.0,
+            "stages": [
+                {**stage, "label": "refit", "equations": "dv = -0.7993 q^3", "wrong": wrong}
+            ],
+        },
+        "mlp": {
+            "parameters": 107,
+            "wall_s": 59.0,
+            "noise_variance": 1e-4,
+            "stages": [
+                {
+                    "label": "joint",
+                    "c": c,
+                    "k": k,
+                    "loss": 1.05e-4,
+                    "status": status,
+                    "validation": [1.158, 1.141, 1.03],
+                }
+            ],
+            "physics_std": {"c": std, "k": std},
+        },
+    }
+
+
+def test_the_duffing_page_reads_its_numbers_and_verdicts_from_the_run():
+    """docs/case-studies/duffing_hybrid.md is written by `duffing_hybrid.py --publish`: the
+    printed stages and every number and verdict of its reading come from the run."""
+    res = _duffing_results()
+    md = duffing.page(res, "python experiments/duffing_hybrid.py", "machine M; Python 3.")
+    assert "Printed by `python experiments/duffing_hybrid.py` (T = 2000 samples per record; " in md
+    assert "float64; machine M; Python 3):" in md
+    assert duffing.report(res) in md
+    assert "keeps exactly the missing term" in md and "is 0.09 % from -0.8" in md
+    assert "from 48.10 to 50.70 sigma (the physical model) to 1.03 to 1.16 times" in md
+    assert "stops at `max_steps`" in md and "c = 0.214 and k = 4.640" in md
+    assert "are not those of the true system" in md
+    assert "standard errors in the joint fit are inf (`fit` finds them not identifiable" in md
+    other = duffing.findings(_duffing_results(wrong=2, status="converged", std=0.01, c=0.3))
+    assert "keeps 2 wrong non-zero terms besides q^3" in other
+    assert "The joint fit ends `converged`." in other and "max_steps" not in other
+    assert "k = 4.640 are within 5 % of those of the true system" not in other
+    assert "are not those of the true system" in other  # (k = 4.64)
+    assert "(standard errors 0.01 and 0.01)." in other and "inf" not in other
+    close = duffing.findings(_duffing_results(std=0.01, c=0.301, k=0.99))
+    assert "c = 0.301 and k = 0.990 are within 5 % of those of the true system" in close

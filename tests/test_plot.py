@@ -538,3 +538,55 @@ def test_compare_refuses_a_record_at_another_sample_interval():
     with pytest.raises(ValueError, match=r"sampled at Ts = 0.1.*dt = 0.05"):
         oj.plot.compare(oj.datasets.Record(u=u, y=np.asarray(z), Ts=0.1, n=5), result)
     oj.plot.compare(oj.datasets.Record(u=u, y=np.asarray(z), Ts=0.05, n=5), result)
+
+
+def test_a_diverged_fit_is_plotted_readably_and_its_residuals_say_so(fitted):
+    """A fit that failed: `compare`'s legend shows a huge FIT in exponent notation (its
+    140 digits pushed the legend off the figure), and `resid`'s title says the fit did
+    not succeed (the whiteness verdicts of its residuals mean nothing)."""
+    model, u, z, result = fitted
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bad = oj.fit(
+            model, {"a": 3.0, "b": 1.0}, np.array([0.0]), u, z, solver=oj.GaussNewton(max_steps=1)
+        )
+    assert not bad.success
+    fit = float(np.asarray(bad.metrics["fit_percent"])[0])
+    assert abs(fit) > 1e4
+    texts = _legend_texts(oj.plot.compare(z, bad, u=u).axes[0])
+    assert texts[1] == f"model: FIT {fit:.3g} %", texts
+    title = oj.plot.resid(bad)._suptitle.get_text()
+    assert f"the fit did not succeed (status {bad.status})" in title
+    assert "did not succeed" not in oj.plot.resid(result)._suptitle.get_text()
+
+
+def test_warnings_of_compare_and_predict_point_at_the_callers_line(fitted):
+    """The warnings of `compare` and `FitResult.predict` name the user's line (not a frame
+    of this library or of equinox), so each call warns once under Python's default
+    filter."""
+    model, u, z, result = fitted
+    rng = np.random.default_rng(7)
+    u2 = rng.standard_normal((150, 1))
+    _, z2 = oj.simulate(model, result.theta, np.array([2.0]), u2)
+
+    def step(x, u, th):  # position and velocity; the position measured
+        return jnp.array([x[0] + 0.1 * x[1], x[1] + 0.1 * (u[0] - th["k"] * x[0])])
+
+    two = oj.Model(step, lambda x, u, th: x[:1])
+    _, zp = oj.simulate(two, {"k": 2.0}, np.array([1.0, 0.0]), u)
+    fit2 = oj.fit(two, {"k": 1.0}, np.zeros(2), u, np.asarray(zp))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        oj.plot.compare(np.asarray(z2), result, u=u2)  # another record, without n
+        fit2.predict(u, np.asarray(zp)[:1])  # one output: the velocity is not determined
+        oj.plot.compare(np.asarray(zp), fit2, u=u, n=1)
+    assert len(caught) == 3, [str(w.message)[:60] for w in caught]
+    assert all(w.filename == __file__ for w in caught), [w.filename for w in caught]
+
+
+def test_plot_and_resid_refuse_complex_and_ragged_arrays(fitted):
+    model, u, z, result = fitted
+    with pytest.raises(ValueError, match=r"`models\[0\]` must hold real numbers"):
+        oj.plot.compare(z, z + 1j)
+    with pytest.raises(ValueError, match=r"`e` must be a numeric array"):
+        oj.plot.resid([np.zeros(3), np.zeros(4)])
