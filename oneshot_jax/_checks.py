@@ -170,11 +170,6 @@ def check_theta(theta, dtype=None, name="theta"):
     else:
         params, static = _pytree.split(theta)
         leaves, treedef = jax.tree_util.tree_flatten(params)
-    if not leaves:
-        raise ValueError(
-            f"`{name}` must contain at least one array leaf of floating dtype (a parameter: "
-            "integer and boolean leaves are data, not parameters)."
-        )
     leaves = [as_float(leaf, name, dtype) for leaf in leaves]
     for leaf in leaves:
         check_finite(leaf, name)

@@ -333,6 +333,8 @@ def report(result) -> str:
         )
     out.append(line(header))
     out.extend(line(r, k in modules) for k, r in enumerate(table))
+    if not table:
+        out.append("  (none: the model has no parameters, theta holds no floating leaf)")
     out.append(line(x0_header))
     out.extend(line(r) for r in x0_table)
     if not x0_table and np.shape(result.x0)[-1] == 0:

@@ -138,6 +138,13 @@ def theta_starts(multistart, theta0, n_x0_starts):
     (NumPy arrays; a shared leaf repeated), and `n`.
     """
     params, _ = _pytree.split(theta0)
+    if multistart is True and not jax.tree_util.tree_leaves(params):
+        if n_x0_starts is None:
+            raise ValueError(
+                "with `multistart=True` and a `theta0` without parameters, the starts are "
+                "the rows of `x0`: give x0 of shape (S, n_x), one row per start."
+            )
+        return params, n_x0_starts
     if multistart is True:
         sizes = {np.shape(a)[0] if np.ndim(a) else None for a in jax.tree_util.tree_leaves(params)}
         if len(sizes) != 1 or None in sizes:

@@ -175,9 +175,35 @@ def test_not_real_numbers(case, entry):
         call(entry, **overrides)
 
 
-def test_empty_theta():
+def test_a_theta_without_parameters_is_a_known_model():
+    """A model whose functions read no parameter takes theta = {} or None: it simulates,
+    its x0 is estimated (MATLAB's findstates of a known model), and `fit` estimates x0
+    alone, as a fit with a parameter that the model ignores, held fixed, does; the
+    printout says there is none. A model that reads a parameter theta lacks names it."""
+
+    def step(x, u, th):
+        return jnp.array([x[0] + 0.1 * x[1], x[1] + 0.1 * (u[0] - 2.0 * x[0] - 0.5 * x[1])])
+
+    known = oj.Model(step, lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))
+    _, z = oj.simulate(known, {}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    ignored = oj.fit(known, {"unused": 1.0}, np.zeros(2), u, z, fixed={"unused": True})
+    for theta in ({}, None):
+        r = oj.fit(known, theta, np.zeros(2), u, z)
+        assert r.success, r.message
+        np.testing.assert_allclose(r.x0, ignored.x0, rtol=1e-12)
+        np.testing.assert_allclose(r.x0_std, ignored.x0_std, rtol=1e-10)
+        assert "(none: the model has no parameters" in str(r)
+        est = oj.estimate_x0(known, theta, u[:20], z[:20], x0=np.zeros(2))
+        np.testing.assert_allclose(est.x0, ignored.x0, atol=0.05)
+    starts = np.array([[0.0, 0.0], [3.0, 1.0]])
+    assert oj.fit(known, {}, starts, u, z, multistart=True).success
+    with pytest.raises(ValueError, match=r"the starts are the rows of `x0`"):
+        oj.fit(known, {}, np.zeros(2), u, z, multistart=True)
     for theta in ({}, None, []):
-        with pytest.raises(ValueError, match=r"`theta` must contain at least one array leaf"):
+        with pytest.raises(ValueError, match=r"calling the model's `step`.*failed: \w+Error"):
             call("loss", theta=theta)
 
 
