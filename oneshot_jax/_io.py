@@ -392,7 +392,8 @@ def read_result(path, *, like=None, model=None) -> dict:
         n_saved = sum(1 for k in arrays if k.startswith("theta/") and k[6:].isdigit())
         if n_saved != treedef.num_leaves:
             raise ValueError(
-                f"`like` has {treedef.num_leaves} parameter leaves, the saved theta {n_saved}."
+                f"`like` has {treedef.num_leaves} parameter leaves, the saved theta {n_saved}: "
+                "pass a theta of the fitted structure (e.g. theta0)."
             )
         # The same leaves: each of the saved shape, and the free entries of the same names
         # (a `like` with other keys or sizes would rename the parameters or refit none).

@@ -432,6 +432,8 @@ def test_a_loaded_result_saved_again_keeps_the_model_check(tmp_path):
         with pytest.raises(ValueError, match="model.step.dt = 0.5, the file model.step.dt = 0.1"):
             oj.load_result(path, model=other)
     assert oj.load_result(again, model=model).theta["a"] == r.theta["a"]
+    with pytest.raises(ValueError, match=r"saved theta 1: pass a theta of the fitted structure"):
+        oj.load_result(again, like={"a": 0.5, "b": 1.0})
     c = oj.fit_continuation(model, {"a": 0.5}, np.ones(1), u, np.asarray(z), windows=[10])
     with pytest.raises(TypeError, match=r"Continuation is not saved whole: save its `.result`"):
         oj.save_result(c, tmp_path / "c.npz")
