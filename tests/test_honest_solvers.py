@@ -492,34 +492,6 @@ def test_optimistix_in_float32_at_its_last_step_counts_gtol_as_the_resolution():
     assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-5)
 
 
-@pytest.mark.default_optimisation  # (the case is one of round-off: conftest.py)
-def test_gauss_newton_in_float32_stops_when_its_steps_move_nothing():
-    """float32, x0 alone on a record's head of 5 samples, from the x0 of the whole
-    record's fit (`estimate_x0`'s default solver): Gauss-Newton took 60 steps, each
-    accepted for a decrease of C by round-off, and ended max_steps_reached ("not a
-    stationary point yet") with its measure below the round-off limit. Such a step gains
-    nothing: the fit converges there."""
-
-    def step(x, u, th):
-        a = -th["k"] * x[0] - th["c"] * x[1] + u[0]
-        return jnp.array([x[0] + 0.1 * x[1], x[1] + 0.1 * a])
-
-    model = oj.Model(step, lambda x, u, th: jnp.array([x[0], 100.0 * x[1]]))
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((120, 1)).astype(np.float32)
-    x0 = np.array([1.0, 0.0], np.float32)
-    _, z = oj.simulate(model, {"k": np.float32(2.0), "c": np.float32(0.5)}, x0, u)
-    z = (np.asarray(z) + 0.01 * rng.standard_normal((120, 2))).astype(np.float32)
-    whole = oj.fit(model, {"k": np.float32(1.5), "c": np.float32(0.3)}, x0, u, z)
-    assert whole.success, whole.message
-    solver = oj.GaussNewton(max_steps=60)
-    r = oj.fit(model, whole.theta, whole.x0, u[:5], z[:5], fixed=True, solver=solver)
-    assert r.status == "converged", r.message
-    assert r.stop_info["first_order"] <= r.stop_info["roundoff_limit"]
-    lm = oj.fit(model, whole.theta, whole.x0, u[:5], z[:5], fixed=True)
-    np.testing.assert_allclose(r.x0, lm.x0, rtol=1e-4, atol=1e-5)
-
-
 def test_optimistix_resumed_at_an_optimum_stops_at_its_start():
     """A fit started where Levenberg-Marquardt converged: `Optimistix` tested its start
     only with max_steps=0 and ran 14 more steps (BFGS 23); it stops at step 0 now, with

@@ -30,8 +30,7 @@ point that is not stationary. So a bound never stops the fit short of a solution
 
 Stopping (`oneshot_jax._optimality`): the fit converges (succeeds) when the first-order
 measure at the current iterate, the scaled projected gradient, is at most `gtol`, or
-when it stops for lack of progress (no step decreases C at round-off, or a Gauss-Newton
-step was accepted for a decrease, actual and predicted, at round-off, or the optional step
+when it stops for lack of progress (no step decreases C at round-off, or the optional step
 test fired) with the measure at most its round-off limit 10 sqrt(eps) (a loss known
 to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
 converging fit can stop a little above gtol = 1e-8; a column that vanished along the
@@ -419,15 +418,7 @@ class AbstractLeastSquares(AbstractSolver):
         # outputs, and such steps still move the fit.)
         zero = zero_residual(loss, state.scale)
         tiny = primed & take & (step_d <= eps * size_d)
-        # An undamped (Gauss-Newton) step accepted for a decrease, actual and predicted, at
-        # round-off gains nothing either (in float32, Gauss-Newton took 100 steps at a
-        # stationary point, each accepted for a decrease of C by an ulp or two). (Not a
-        # damped step: LM's damping can hold a poorly scaled column's step at round-off
-        # while it falls, step by step, until that column moves.)
-        undamped = self._search().damping(state.search) == 0
-        flat = primed & take & undamped
-        flat = flat & (jnp.maximum(state.loss - loss, pred) <= 8 * eps * state.loss)
-        round_off = round_off | (tiny & zero) | flat
+        round_off = round_off | (tiny & zero)
         gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
         # Where the fit stops for lack of progress (round-off, or the step test fired), a
