@@ -285,7 +285,7 @@ def save_result(result, path):
         "model_signature": (
             _model_signature(result.model)
             if result.model is not None
-            else _saved_signature(getattr(result, "saved_model_signature", None))
+            else getattr(result, "saved_model_signature", None)
         ),
     }
     meta["digest"] = _digest(arrays, meta)
@@ -293,10 +293,6 @@ def save_result(result, path):
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
     return path
-
-
-def _saved_signature(sig):
-    return None if sig is None else list(sig)
 
 
 def _as_path(path) -> Path:
