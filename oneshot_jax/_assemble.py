@@ -59,6 +59,7 @@ class Out(NamedTuple):
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
     degenerate: jax.Array  # whether first_order is a stall's with vanished columns
     vanished: jax.Array  # the theta columns that vanished along the fit (or False)
+    limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
 
@@ -115,6 +116,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.step_test[best],
         m.degenerate[best],
         m.vanished[best],
+        m.limit[best],
         None if final.best is None else final.best.score[best],
         final.solver_result._value,
     )
@@ -383,6 +385,11 @@ def assemble(
         "at_step": int(out.stages[-1].num_steps),
         "roundoff_limit": prepared.roundoff_limit,
     }
+    limit = float(out.limit)
+    if np.isfinite(limit) and limit > prepared.roundoff_limit:
+        # (`_optimality.stall_limit`: raised by the precision of outputs far above the
+        # residuals)
+        stop_info.update(roundoff_limit=limit, outputs_precision=True)
     if np.isfinite(prepared.resolution):  # (a first-order solver's floor under gtol)
         stop_info["resolution"] = prepared.resolution
     if problem.lower is not None and free:  # entries the box holds (`FitResult.__str__`)

@@ -71,8 +71,13 @@ def stop_detail(status: str, info: dict) -> str:
             )
         limit = info.get("roundoff_limit", np.nan)
         why = step_test or "no step decreases the loss at round-off"
+        which = (
+            "its round-off limit at the precision of the outputs, which are far above the residuals"
+            if info.get("outputs_precision")
+            else "its round-off limit"
+        )
         return (
-            f"first-order measure {_g(fo)} <= {_g(limit)}, its round-off limit (gtol "
+            f"first-order measure {_g(fo)} <= {_g(limit)}, {which} (gtol "
             f"{_g(gtol)}){degenerate}, where the fit stopped for lack of progress ({why})"
         )
     if status in ("tol_loss", "tol_grad"):

@@ -26,7 +26,13 @@ Round-off of theta - t grad C (4 eps |theta_i|) is not counted.
 
 A loss evaluated in floating point resolves the measure down to about sqrt(eps) only
 (`roundoff_limit`): where no step decreases C any more, a measure below 10 sqrt(eps)
-also counts as stationary.
+also counts as stationary. The residuals r = z - z_hat are themselves known only to the
+precision of the outputs, eps ||z_hat|| at best (the rounding of z_hat alone): where the
+outputs are far above the residuals (float32 outputs of scale 30 with noise 1e-3), that
+error moves every cosine by up to eps ||z|| / ||r|| (3.6e-3 there), and a stall at the
+optimum measured 4.6e-3, above 10 sqrt(eps) = 3.5e-3. So a stall is tested at
+`stall_limit`, 10 max(sqrt(eps), eps ||z|| / ||r||) (at most `STALL_LIMIT_MAX`), which
+is 10 sqrt(eps) in float64 unless ||r|| is below 1.5e-8 ||z||.
 
 At a degenerate minimum a column of J vanishes with the gradient (a parameter c entering
 as c^2 u, the minimum at c = 0: J e_c = 2 c u and g_c = 2 c u^T r), and its cosine stays
@@ -98,6 +104,11 @@ from ._strategy import dense_jacobian_fits
 # of the largest it had (a norm below 1e-4 of it), in every precision (`stall_test`).
 VANISHED = 1e-8
 
+# The most the round-off limit of a stall may be raised to by the precision of the outputs
+# (`stall_limit`): a cosine of 0.03 leaves about 1e-3 C to gain. Beyond it a stall is a
+# failure, however imprecise the outputs.
+STALL_LIMIT_MAX = 0.03
+
 # The loss of a zero-residual fit, relative to `data_scale` (about the loss of predicting
 # each output's mean), at which the residuals count as round-off: eps in float64 (a
 # relative RMS residual of 1.5e-8) and in float32 (3.5e-4).
@@ -112,6 +123,23 @@ def roundoff_limit(dtype):
     from the optimum (the decrease left, about cos^2 C, is at round-off), so a fit that
     converges linearly can stop there, above a tighter `gtol`."""
     return 10.0 * float(np.sqrt(np.finfo(dtype).eps))
+
+
+def stall_limit(problem: FitProblem, C):
+    """The first-order measure below which a stall (no step decreases C) is stationary to
+    the precision of its loss and of its residuals: 10 max(sqrt(eps), eps sqrt(Z / C)),
+    with Z = `output_norm` the loss of predicting zero outputs (see the module docstring),
+    at least `roundoff_limit` and at most max(`STALL_LIMIT_MAX`, `roundoff_limit`)."""
+    return stall_limit_of(problem.dtype, output_norm(problem), C)
+
+
+def stall_limit_of(dtype, Z, C):
+    """`stall_limit` from Z = `output_norm` (a solver that keeps it in its state)."""
+    base = roundoff_limit(dtype)
+    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
+    ratio = jnp.sqrt(Z / jnp.maximum(jnp.abs(C), tiny))
+    raised = jnp.minimum(10.0 * eps * ratio, max(STALL_LIMIT_MAX, base))
+    return jnp.where(jnp.isfinite(raised), jnp.maximum(raised, base), base).astype(dtype)
 
 
 def resolution(dtype):
@@ -146,12 +174,13 @@ class Measures(NamedTuple):
     step_test: jax.Array
     degenerate: jax.Array
     vanished: jax.Array
+    limit: jax.Array  # the round-off limit of a stall there (`stall_limit`; NaN: none)
 
 
 def no_measures(dtype) -> Measures:
     nan = jnp.array(jnp.nan, dtype)
     false = jnp.array(False)
-    return Measures(nan, nan, nan, nan, false, false, false)
+    return Measures(nan, nan, nan, nan, false, false, false, nan)
 
 
 def _measured(problem: FitProblem):
@@ -264,7 +293,7 @@ def vanished(d, top):
 
 def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None):
     """The first-order test where no step decreases C any more (a stall; see the module
-    docstring): the measure `first_order`, stationary at most `roundoff_limit`; and, where
+    docstring): the measure `first_order`, stationary at most `stall_limit`; and, where
     that fails, the measure with the columns that vanished along the fit at the largest
     norm they had (`vanished`; More 1978, eq. (6.3)), stationary at most the same limit.
 
@@ -277,10 +306,10 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
 
     **Returns:**
 
-    The measure the stall is tested on, whether it is stationary, and whether that
-    measure is the one with the vanished columns (a degenerate minimum).
+    The measure the stall is tested on, whether it is stationary (at most `stall_limit`),
+    and whether that measure is the one with the vanished columns (a degenerate minimum).
     """
-    limit = roundoff_limit(problem.dtype)
+    limit = stall_limit(problem, C)
     if fo is None:
         fo = first_order(problem, params, C, g, d_t, d_x)
     kept = first_order(problem, params, C, g, vanished(d_t, top_t), vanished(d_x, top_x))
@@ -302,10 +331,10 @@ def data_scale(problem: FitProblem):
         dev = z - jnp.mean(z, axis=axes)
     else:
         zbar = jnp.sum(z * m, axis=axes) / jnp.maximum(jnp.sum(m, axis=axes), 1)
-        z, dev = z * m, (z - zbar) * m
-    w, v = weigh(dev, sqrt_q) * s, weigh(z, sqrt_q) * s
+        dev = (z - zbar) * m
+    w = weigh(dev, sqrt_q) * s
     eps = jnp.finfo(jnp.result_type(w)).eps
-    return jnp.sum(w * w) + 100.0 * eps * jnp.sum(v * v)
+    return jnp.sum(w * w) + 100.0 * eps * output_norm(problem)
 
 
 def zero_residual(C, scale):
@@ -314,6 +343,16 @@ def zero_residual(C, scale):
     signed penalty of a first-order solver): that says nothing of the residuals."""
     eps = jnp.finfo(jnp.result_type(C)).eps
     return (C >= 0) & (C <= ZERO_RESIDUAL_RTOL * eps * scale)
+
+
+def output_norm(problem: FitProblem):
+    """The loss of predicting zero outputs, sum over the counted samples of ||Q^{1/2}
+    z_k||^2 / T (in the loss's weights and scaling): the squared size of the outputs,
+    whose precision bounds that of the residuals (`stall_limit`)."""
+    z, m = problem.z, _measured(problem)
+    z = z if m is None else z * m
+    v = weigh(z, problem.cost.sqrt_weight()) * problem._scale()
+    return jnp.sum(v * v)
 
 
 def column_norms(problem: FitProblem, params: Params, strategy, *, dense_max=256, probes=16):

@@ -689,6 +689,82 @@ def test_an_output_offset_does_not_make_a_stalled_fit_a_zero_residual():
     assert good.success and good.metrics["fit_percent"][0] > 99.0, good.message
 
 
+def _scaled_outputs_problem(dtype):
+    """An oscillator measured as its position and 100 times its rate (outputs of about 30),
+    noise 1e-3 on both: in float32 the outputs' precision, eps |z| / |r| = 3.6e-3, moves the
+    first-order measure by more than the round-off limit 10 sqrt(eps) = 3.5e-3."""
+
+    def f(x, u, th):
+        q, v = x[0], x[1]
+        return jnp.stack([q + 0.1 * v, v + 0.1 * (u[0] - th["k"] * q - th["c"] * v)])
+
+    model = oj.Model(f, lambda x, u, th: jnp.stack([x[0], 100 * x[1]]))
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((120, 1)).astype(np.float32)
+    truth = {"k": np.float32(2.0), "c": np.float32(0.5)}
+    _, z = oj.simulate(model, truth, np.array([0.3, -0.2], np.float32), u)
+    z = (np.asarray(z) + 1e-3 * rng.standard_normal(np.shape(z))).astype(np.float32)
+    start = {"k": 1.5, "c": 0.3}
+    return model, {k: dtype(v) for k, v in start.items()}, np.array([0.1, 0.0], dtype), u, z
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [
+        oj.GaussNewton(),
+        oj.LevenbergMarquardt(),
+        oj.LBFGS(),
+    ],
+    ids=["gn", "lm", "lbfgs"],
+)
+def test_a_float32_stall_at_the_precision_of_its_outputs_converges(solver):
+    """float32, outputs far above the noise: every solver stalls at the optimum (theta
+    that of the float64 fit to 2e-6) with a measure of 3.6e-3 to 4.6e-3, above 10 sqrt(eps)
+    but within what the outputs' precision resolves (`_optimality.stall_limit`). It was
+    `zero_residual` ("the model reproduces the outputs exactly") at a FIT of 99.7 %."""
+    model, theta0, x0, u, z = _scaled_outputs_problem(np.float32)
+    r = oj.fit(model, theta0, x0, u, z, solver=solver)
+    assert r.status == "converged", r.message
+    base = 10 * np.sqrt(np.finfo(np.float32).eps)
+    assert r.stop_info["outputs_precision"] and r.stop_info["roundoff_limit"] > base
+    assert r.stop_info["first_order"] <= r.stop_info["roundoff_limit"]
+    assert "precision of the outputs" in r.message
+    assert min(r.metrics["fit_percent"]) < 99.9  # (noise far above round-off in q)
+    ref = oj.fit(model, *_scaled_outputs_problem(np.float64)[1:3], u.astype(float), z.astype(float))
+    assert ref.status == "converged" and "outputs_precision" not in ref.stop_info
+    for k in ("k", "c"):
+        assert float(r.theta[k]) == pytest.approx(float(ref.theta[k]), rel=2e-6)
+
+
+@pytest.mark.default_optimisation  # (the cycle needs XLA's round-off of its defaults)
+@pytest.mark.parametrize("solver", [oj.GaussNewton(), oj.LevenbergMarquardt()], ids=["gn", "lm"])
+def test_a_float32_x0_fit_does_not_cycle_on_round_off_decreases(solver):
+    """float32, outputs of 100 and noise 0.01, x0 alone from a head of 5 samples: the
+    linearisation's C and the simulation's C of one point differ by 4e-5 C, and
+    Gauss-Newton cycled between two points for 100 steps (`max_steps_reached`), each step a
+    "decrease" by one of the two programs. A decrease now counts above that difference
+    (`least_squares.AbstractLeastSquares._move`): the fit stops at round-off, stationary."""
+
+    def f(x, u, th):
+        q, v = x[0], x[1]
+        return jnp.stack([q + 0.1 * v, v + 0.1 * (u[0] - th["k"] * q - th["c"] * v)])
+
+    model = oj.Model(f, lambda x, u, th: jnp.stack([100 + x[0], 100 * x[1]]))
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((200, 1)).astype(np.float32)
+    theta = {"k": np.float32(2.0), "c": np.float32(0.5)}
+    _, z = oj.simulate(model, theta, np.array([0.3, -0.2], np.float32), u)
+    z = (np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))).astype(np.float32)
+    u, z = u[:5], z[:5]
+    x0 = np.array([z[0, 0] - 100, 0.0], np.float32)  # (q from the first output)
+    r = oj.fit(model, theta, x0, u, z, solver=solver, fixed=True)
+    assert r.status == "converged" and r.num_steps < 20, r.message
+    assert r.stop_info["first_order"] <= r.stop_info["roundoff_limit"]
+    ref = oj.fit(model, theta, x0.astype(float), u.astype(float), z.astype(float), fixed=True)
+    assert ref.status == "converged"
+    np.testing.assert_allclose(r.x0, ref.x0, atol=2e-5)
+
+
 def test_an_ill_conditioned_x0_block_does_not_hide_identifiable_parameters():
     """A partly observed Duffing oscillator from a far start ends at a point where the x0
     columns are nearly parallel (cond(C) about 1e11). The Schur complement formed from

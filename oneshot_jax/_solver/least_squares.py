@@ -33,7 +33,9 @@ measure at the current iterate, the scaled projected gradient, is at most `gtol`
 when it stops for lack of progress (no step decreases C at round-off, or the optional step
 test fired) with the measure at most its round-off limit 10 sqrt(eps) (a loss known
 to relative precision eps resolves cosines down to about sqrt(eps) only, so a slowly
-converging fit can stop a little above gtol = 1e-8; a column that vanished along the
+converging fit can stop a little above gtol = 1e-8; raised where the outputs are so far
+above the residuals that their precision moves the cosines more,
+`_optimality.stall_limit`; a column that vanished along the
 fit, at a degenerate minimum, is measured there at the largest norm it had:
 `_optimality.stall_test`); it
 is `zero_residual` (success) when it can make no further progress with the loss at the
@@ -69,6 +71,8 @@ from .._optimality import (
     data_scale,
     lazy_cond,
     n_observations,
+    output_norm,
+    stall_limit,
     standard_errors,
     vanished_columns,
     zero_residual,
@@ -85,6 +89,12 @@ from .._strategy import (
 from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
+
+# A step accepted for a decrease of at most this many eps (sqrt(C Z) + C), Z the outputs'
+# squared size (`_optimality.output_norm`; eps sqrt(C Z) bounds the round-off of C that
+# the outputs' precision causes), is checked against the round-off of C measured at the
+# current point (`AbstractLeastSquares._move`).
+SAME_PATH = 100.0
 
 # The most Jacobian columns per trajectory (free entries of theta and of one x0) for which
 # a step linearises at its trial point (`AbstractLeastSquares._linearises_trials`).
@@ -115,6 +125,9 @@ class _Move(NamedTuple):
     gave_up: jax.Array  # the search gave up and the gradient step failed too
     search: Any  # the search's next state
     at_full: jax.Array  # whether the iterate moved to the full step's point
+    # a step the search accepted against the linearisation's C but that did not decrease
+    # the simulated loss, and no gradient step either: a stall at round-off
+    same_path_reject: jax.Array
 
 
 class AbstractLeastSquares(AbstractSolver):
@@ -203,7 +216,7 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            Measures(nan, nan, nan, nan, false, false, jnp.zeros(params.theta.shape, bool)),
+            Measures(nan, nan, nan, nan, false, false, jnp.zeros(params.theta.shape, bool), nan),
             jnp.array(False),
             RESULTS.converged,
             jnp.array(False),
@@ -230,7 +243,7 @@ class AbstractLeastSquares(AbstractSolver):
         diagonal (a box commutes with it); a general projection takes the common step
         min_i D_ii^-2. It decreases C whenever theta is not stationary, so that a step
         clipped at a bound never ends the fit at a non-stationary point. Returns (point,
-        loss, whether it decreased C)."""
+        loss, whether it decreased C; a decrease at round-off is judged again by `_move`)."""
         C = b.C
         inv_t = 1.0 / floor(b.diag_t())
         if problem.project is not None:
@@ -289,10 +302,25 @@ class AbstractLeastSquares(AbstractSolver):
             h, point = lazy_cond(jnp.any(blocked), again, (h, point))
         return h, point
 
-    def _move(self, problem, params, state, h, full) -> _Move:
+    def _move(self, problem, params, state, h, full, full_simulated) -> _Move:
         """The search along the descent step `h` (`full`: its projected full point and
-        that point's loss) and the projected-gradient fallback: where the step ends,
-        before the linearisation there."""
+        that point's loss, simulated where `full_simulated`, else its linearisation's) and
+        the projected-gradient fallback: where the step ends, before the linearisation
+        there.
+
+        The search compares each trial's loss with the linearisation's C at the current
+        point. A trial's simulated loss (`_loss`) is a second evaluation of C by another
+        program, and the two differ by round-off, which in float32 with outputs far above
+        the residuals reached 4e-5 C: Gauss-Newton then cycled between two points for 100
+        steps, each step a "decrease" by one of the two programs. So where the search or
+        the projected-gradient step finds a decrease within `SAME_PATH` times the
+        round-off that the outputs' precision allows, the current point is also
+        simulated: the difference of its two losses is the round-off of C there, and the
+        decrease counts only above it, measured by one program (the trial's: the
+        simulation, or the linearisation for a full step that linearises at its trial
+        point). A decrease at round-off alone, of the step and of the gradient step, is a
+        stall at round-off (`_Move.same_path_reject`). (A decrease above the round-off
+        of C by either program is one by both: no other step simulates the point twice.)"""
         b = state.blocks
         search = self._search()
         # The decrease of C the linear model predicts for the full projected step:
@@ -303,21 +331,53 @@ class AbstractLeastSquares(AbstractSolver):
         t, search_state = search.search(
             lambda alpha: self.trial(problem, params, h, alpha), b.C, h, full, pred, state.search
         )
+        eps = jnp.finfo(problem.dtype).eps
+        resolved = SAME_PATH * eps * (jnp.sqrt(b.C * output_norm(problem)) + b.C)
+
+        def simulated_here():
+            return self._loss(problem, params)
+
+        def same_program(near, C_sim, loss, simulated):
+            # (a decrease above the round-off of C at this point, |C_sim - b.C|, measured
+            # by the program that gave `loss`; the point simulated where `near`, once)
+            C_sim = lazy_cond(near & jnp.isnan(C_sim), simulated_here, C_sim)
+            same = jnp.where(simulated, C_sim, b.C)
+            return ~near | (loss < same - jnp.abs(C_sim - b.C)), C_sim
+
+        nan = jnp.array(jnp.nan, b.C.dtype)
+        near = t.accept & (b.C - t.loss <= resolved)
+        simulated = jnp.array(True) if full_simulated else ~t.at_full
+        ok, C_sim = same_program(near, nan, t.loss, simulated)
+        accept = t.accept & ok
         # A step that failed: a projected-gradient step instead, which decreases C unless
         # theta is stationary. With a bound, a step that the projection clipped can
         # predict no decrease at any damping; on a rank-deficient Jacobian (a hybrid's
         # network) a larger damping alone creeps where this step makes progress
         # (`tests/test_hybrid_workflow.py`).
-        need = ~t.accept
+        need = ~accept
         arc = lazy_cond(
             need, lambda: self._gradient_arc(problem, params, b), (params, b.C, jnp.array(False))
         )
-        take = t.accept | arc[2]
-        new = jax.tree_util.tree_map(lambda a, c: jnp.where(t.accept, a, c), t.params, arc[0])
-        new_loss = jnp.where(t.accept, t.loss, arc[1])
+        arc_near = arc[2] & (b.C - arc[1] <= resolved)
+        arc_ok, _ = same_program(arc_near, C_sim, arc[1], jnp.array(True))
+        arc = (arc[0], arc[1], arc[2] & arc_ok)
+        same_path_reject = (t.accept & ~ok) | (arc_near & ~arc_ok)
+        take = accept | arc[2]
+        new = jax.tree_util.tree_map(lambda a, c: jnp.where(accept, a, c), t.params, arc[0])
+        new_loss = jnp.where(accept, t.loss, arc[1])
         params = jax.tree_util.tree_map(lambda a, c: jnp.where(take, a, c), new, params)
         loss = jnp.where(take, new_loss, state.loss)
-        return _Move(params, loss, take, h, pred, t.gave_up & ~take, search_state, t.at_full)
+        return _Move(
+            params,
+            loss,
+            take,
+            h,
+            pred,
+            t.gave_up & ~take,
+            search_state,
+            t.at_full & accept,
+            same_path_reject & ~take,
+        )
 
     def _linearises_trials(self, problem, params) -> bool:
         """Whether a step linearises at its trial point (its loss is the linearisation's
@@ -339,7 +399,7 @@ class AbstractLeastSquares(AbstractSolver):
         false = jnp.array(False)
         # The first step's move: none (its linearisation is at the start).
         nil = jnp.zeros((), problem.dtype)
-        prime = _Move(params, state.loss, ~false, zeros, nil, false, state.search, ~false)
+        prime = _Move(params, state.loss, ~false, zeros, nil, false, state.search, ~false, false)
         if self._linearises_trials(problem, params):
             h, point = lazy_cond(
                 primed, lambda: self._descent(problem, params, state), (zeros, params)
@@ -357,7 +417,7 @@ class AbstractLeastSquares(AbstractSolver):
                 def search():
                     return lazy_cond(
                         primed,
-                        lambda: self._move(problem, params, state, h, full),
+                        lambda: self._move(problem, params, state, h, full, False),
                         prime._replace(loss=C),
                     )
 
@@ -377,7 +437,8 @@ class AbstractLeastSquares(AbstractSolver):
 
             def descend_and_move():
                 h, point = self._descent(problem, params, state)
-                return self._move(problem, params, state, h, (point, self._loss(problem, point)))
+                full = (point, self._loss(problem, point))
+                return self._move(problem, params, state, h, full, True)
 
             mv = lazy_cond(primed, descend_and_move, prime)
             blocks, h_min = lazy_cond(
@@ -411,6 +472,7 @@ class AbstractLeastSquares(AbstractSolver):
         round_off = ~take & (
             (pred <= 8 * eps * state.loss)
             | (hsize <= 10 * jnp.sqrt(eps) * jnp.maximum(size, jnp.finfo(dtype).tiny))
+            | mv.same_path_reject
         )
         # At a zero residual the loss keeps falling by round-off (1e-36 and below) with
         # accepted steps of 1e-21: a step below round-off of the scaled parameters ends the
@@ -464,6 +526,7 @@ class AbstractLeastSquares(AbstractSolver):
             small_step,
             degenerate,
             vanished_columns(blocks.diag_t(), top.theta),
+            stall_limit(problem, blocks.C),
         )
         state = LSQState(
             blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false, top

@@ -50,7 +50,9 @@ from .._optimality import (
     Scaling,
     check_first_order,
     data_scale,
+    output_norm,
     scaling,
+    stall_limit_of,
     vanished_columns,
     zero_residual,
 )
@@ -76,7 +78,8 @@ class _OptaxState(NamedTuple):
     last_loss: jax.Array
     count: jax.Array  # updates made (for the regulariser's learning-rate schedule)
     scale: Scaling  # Marquardt's diagonal for the first-order measure
-    data: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
+    data: jax.Array  # the scale of a zero residual (`_optimality.data_scale`)
+    outputs: jax.Array  # the loss of predicting zero outputs (`_optimality.output_norm`)
     first_order: jax.Array  # the first-order measure at the current iterate
     stationary: jax.Array
     degenerate: jax.Array  # whether that measure is a stall's with vanished columns
@@ -186,6 +189,7 @@ class _AbstractOptax(AbstractSolver):
             zero,
             scale,
             data_scale(problem),
+            output_norm(problem),
             fo,
             stationary,
             degenerate,
@@ -271,6 +275,7 @@ class _AbstractOptax(AbstractSolver):
             count,
             scale,
             state.data,
+            state.outputs,
             fo,
             stationary,
             degenerate,
@@ -310,7 +315,8 @@ class _AbstractOptax(AbstractSolver):
         # infinite ||r|| and reads 0: it measures nothing there, report NaN.
         finite = jnp.isfinite(state.loss) & jnp.isfinite(grad_norm(state.grad))
         fo = jnp.where(finite, state.first_order, nan)
-        return Measures(fo, nan, nan, nan, jnp.array(False), state.degenerate, gone)
+        limit = stall_limit_of(state.smooth.dtype, state.outputs, state.smooth)
+        return Measures(fo, nan, nan, nan, jnp.array(False), state.degenerate, gone, limit)
 
     def postprocess(self, problem, params, state, result):
         del problem

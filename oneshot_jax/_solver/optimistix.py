@@ -38,7 +38,7 @@ from .._optimality import (
     first_order,
     gtol_at_least_resolution,
     lazy_cond,
-    roundoff_limit,
+    stall_limit,
     zero_residual,
 )
 from .._problem import FitProblem, Params
@@ -147,6 +147,7 @@ class _OptxState(NamedTuple):
     own_test: jax.Array  # the optimistix solver's own test stopped the fit
     last: Params  # the last iterate with a finite loss and gradient, and its loss
     last_loss: jax.Array
+    limit: jax.Array  # the round-off limit of a stall at the iterate (`_optimality.stall_limit`)
 
 
 class Optimistix(AbstractSolver):
@@ -256,6 +257,7 @@ class Optimistix(AbstractSolver):
             jnp.array(False),
             params,
             loss,
+            stall_limit(problem, loss),
         )
 
     def step(self, problem, params, state):
@@ -320,7 +322,8 @@ class Optimistix(AbstractSolver):
             lambda: self._first_order(problem, params, loss, g),
             jnp.array(jnp.nan, loss.dtype),
         )
-        stationary = (fo <= self.gtol) | (fo <= roundoff_limit(problem.dtype))
+        limit = stall_limit(problem, loss)
+        stationary = (fo <= self.gtol) | (fo <= limit)
         finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
         # Without a stall (below), a positive gtol counts as at least the measure's
         # resolution, as for the first-order solvers: in float32 a fit at 1e-6 said "not
@@ -362,6 +365,7 @@ class Optimistix(AbstractSolver):
             own_test,
             last,
             last_loss,
+            limit,
         )
 
     def terminate(self, problem, params, state):
@@ -377,7 +381,8 @@ class Optimistix(AbstractSolver):
         nan = jnp.full_like(state.loss, jnp.nan)
         failed = (state.result == RESULTS.no_progress) | (state.result == RESULTS.diverged)
         false = jnp.array(False)
-        return Measures(state.first_order, nan, nan, nan, state.own_test & ~failed, false, false)
+        own = state.own_test & ~failed
+        return Measures(state.first_order, nan, nan, nan, own, false, false, state.limit)
 
     def postprocess(self, problem, params, state, result):
         """A diverged fit returns its last finite iterate (as the library's solvers do)."""
