@@ -799,19 +799,50 @@ def _named_free(fixed, theta):
     return {k: _named_free(fixed[k], v) if k in fixed else False for k, v in theta.items()}
 
 
+def _names_as_dict(fixed, theta):
+    """`fixed` given as names of theta's dict keys ("k", or ["k", "phys.c"], as MATLAB's
+    `nlgreyest` users name the parameters they hold) as the dict {name: True}; any other
+    `fixed` as it is."""
+    if isinstance(fixed, str):
+        names = [fixed]
+    elif isinstance(fixed, (list, tuple, set, frozenset)) and fixed:
+        names = list(fixed)
+        if not all(isinstance(name, str) for name in names):
+            if any(isinstance(name, str) for name in names):
+                raise TypeError(
+                    f"`fixed` mixes names and other entries: {sorted(map(repr, names))}; give "
+                    "the names of the parameters to hold (['k', 'c']), or a pytree of "
+                    "booleans shaped like theta0."
+                )
+            return fixed
+    elif isinstance(fixed, (list, tuple, set, frozenset)) and isinstance(theta, dict):
+        return {}  # (no names: nothing held)
+    else:
+        return fixed
+    if not isinstance(theta, dict):
+        raise ValueError(
+            f"`fixed` names parameters ({names}), but theta0 is a "
+            f"{type(theta).__name__}, not a dict: give a pytree of booleans shaped like "
+            "theta0 instead."
+        )
+    return {name: True for name in names}
+
+
 def fixed_mask(fixed, theta) -> np.ndarray:
     """Flat boolean mask of the fixed entries of theta's parameters (leaf order).
 
     `fixed` is a pytree of booleans with the structure of theta, or a prefix of it: a
     boolean where theta has a subtree (an equinox module, a dict) fixes or frees the whole
     subtree; an array of booleans where theta has an array leaf fixes it per entry. Where
-    theta has a dict, `fixed` may name some of its keys: the others are free.
+    theta has a dict, `fixed` may name some of its keys: the others are free; it may also
+    be a name or a list of names of them (each held whole).
     """
     n = sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(theta))
     if fixed is None:
         return np.zeros(n, bool)
     if isinstance(fixed, (bool, np.bool_)):
         return np.full(n, bool(fixed))
+    fixed = _names_as_dict(fixed, theta)
     fixed = _named_free(fixed, theta)
     leaves, treedef = jax.tree_util.tree_flatten(fixed)
     try:

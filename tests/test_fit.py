@@ -286,6 +286,7 @@ def tiny_recording_step(x, u, theta):
 
 
 TINY = oj.Model(tiny_step)  # observes the whole state (z = x)
+TINY_LIST = oj.Model(lambda x, u, theta: tiny_plain_step(x, u, *theta))  # theta = [a, b]
 TINY_REC = oj.Model(tiny_recording_step)
 
 
@@ -649,6 +650,26 @@ def test_fixed_may_name_some_keys_of_a_dict(tiny):
         ValueError, match=r"`fixed` names parameters that are not in theta0: \['c'\]"
     ):
         oj.fit(*args, fixed={"c": True})
+
+
+def test_fixed_may_list_the_names_it_holds(tiny):
+    """`fixed=["b"]` (or "b") holds what `fixed={"b": True}` holds; the mask's checks
+    still name what is wrong."""
+    theta0 = {"a": np.array([0.6, 0.4]), "b": np.array(0.3)}
+    args = (TINY, theta0, np.array([1.0, -0.5]), tiny["u"], tiny["z_clean"])
+    ref = oj.fit(*args, solver="gauss_newton", fixed={"b": True})
+    for names in (["b"], ("b",), {"b"}, "b"):
+        r = oj.fit(*args, solver="gauss_newton", fixed=names)
+        assert r.names == ("a[0]", "a[1]") and float(r.theta["b"]) == 0.3
+        np.testing.assert_array_equal(r.theta["a"], ref.theta["a"])
+    free = oj.fit(*args, solver="gauss_newton", fixed=[])
+    assert free.names == ("a[0]", "a[1]", "b")
+    with pytest.raises(ValueError, match=r"not in theta0: \['c'\]"):
+        oj.fit(*args, fixed=["b", "c"])
+    with pytest.raises(TypeError, match="`fixed` mixes names and other entries"):
+        oj.fit(*args, fixed=["b", True])
+    with pytest.raises(ValueError, match="theta0 is a list, not a dict"):
+        oj.fit(TINY_LIST, [np.array([0.6, 0.4]), np.array(0.3)], *args[2:], fixed=["b"])
 
 
 #
