@@ -160,7 +160,9 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
     return zhat
 
 
-def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
+def compare(
+    z, *models, u=None, t=None, n=None, labels=None, ax=None, outputs=None, time_label=None
+):
     """Plot measured outputs against the outputs of one or several models, with each
     model's FIT % in the legend (MATLAB's `compare`).
 
@@ -190,6 +192,11 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         FIT; 0 <= n <= T - 2. Default: none (the record's `n` for a record).
     - `labels`: one name per model; default `"model"` or `"model 1"`, `"model 2"`, ...
     - `ax`: matplotlib Axes to draw in, one per output; default a new figure.
+    - `outputs`: one name per output for its axis, with its unit (`["q (mm)"]`;
+        MATLAB's `OutputName` and `OutputUnit`); default `"output"` or `"output 0"`, ...
+    - `time_label`: the time axis's label, with its unit (`"time (ms)"`; MATLAB's
+        `TimeUnit`); default `"sample"`, `"time (s)"` for a record with `Ts`, and
+        `"time"` for a given `t`.
 
     **Returns:**
 
@@ -198,8 +205,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     **Raises:**
 
     `ImportError` without matplotlib (install the `plot` extra); `ValueError` naming the
-    argument for a shape that does not match `z`, a missing `u`, or `n`, `t`, `labels`
-    or `ax` that do not fit.
+    argument for a shape that does not match `z`, a missing `u`, or `n`, `t`, `labels`,
+    `outputs` or `ax` that do not fit; `TypeError` for `labels`, `outputs` or
+    `time_label` that are not strings.
     """
     plt = _pyplot()
     Ts = None
@@ -245,6 +253,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     labels = list(labels)
     if len(labels) != len(models):
         raise ValueError(f"`labels` must hold {len(models)} names (one per model), got {labels}.")
+    names = _output_names(outputs, n_z)
+    if time_label is not None and not isinstance(time_label, str):
+        raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
     times = t  # the sample times a timed model's FitResult is simulated at
     if t is None:
         t = np.arange(T) * (1.0 if Ts is None else float(Ts))
@@ -281,9 +292,9 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
         if n:
             a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
             a.axvline(t[n], color="0.4", lw=0.8, ls="--")
-        a.set_ylabel(f"output {k}" if n_z > 1 else "output")
+        a.set_ylabel(names[k])
         a.legend(fontsize=8, loc="best")
-    axes[-1].set_xlabel(xlabel)
+    axes[-1].set_xlabel(xlabel if time_label is None else time_label)
     axes[0].set_title(
         "Measured and model outputs"
         + (f" (x0 from the first {n} samples, FIT over the rest)" if n else "")
@@ -291,6 +302,23 @@ def compare(z, *models, u=None, t=None, n=None, labels=None, ax=None):
     if ax is None:
         fig.tight_layout()
     return fig
+
+
+def _output_names(outputs, n_z):
+    """The axis labels of `compare`'s outputs: `outputs` checked, or the defaults."""
+    if outputs is None:
+        return [f"output {k}" for k in range(n_z)] if n_z > 1 else ["output"]
+    names = [outputs] if isinstance(outputs, str) else outputs
+    if not isinstance(names, (list, tuple)) or not all(isinstance(s, str) for s in names):
+        raise TypeError(
+            f"`outputs` must be a string or a sequence of {n_z} strings (one per output), "
+            f"got {outputs!r}."
+        )
+    if len(names) != n_z:
+        raise ValueError(
+            f"`outputs` must hold {n_z} names (one per output of `z`), got {list(names)}."
+        )
+    return list(names)
 
 
 def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True):

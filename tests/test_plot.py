@@ -513,6 +513,24 @@ def test_compare_names_bad_labels():
         oj.plot.compare(z, z, labels=5)
 
 
+def test_compare_names_its_outputs_and_time_axis():
+    """MATLAB's OutputName/OutputUnit and TimeUnit: `outputs=` labels each output's axis,
+    `time_label=` the time axis; wrong counts and types are named."""
+    z = np.c_[np.sin(np.arange(30.0)), np.cos(np.arange(30.0))]
+    fig = oj.plot.compare(z, z, t=np.arange(30) * 2.0, outputs=["q (mm)", "v (mm/s)"])
+    assert [a.get_ylabel() for a in fig.axes] == ["q (mm)", "v (mm/s)"]
+    assert fig.axes[-1].get_xlabel() == "time"
+    fig = oj.plot.compare(z[:, :1], z[:, :1], outputs="q (mm)", time_label="time (ms)")
+    assert fig.axes[0].get_ylabel() == "q (mm)" and fig.axes[0].get_xlabel() == "time (ms)"
+    with pytest.raises(ValueError, match=r"`outputs` must hold 2 names"):
+        oj.plot.compare(z, z, outputs=["q"])
+    with pytest.raises(TypeError, match=r"`outputs` must be a string or a sequence of 2"):
+        oj.plot.compare(z, z, outputs=[1, 2])
+    with pytest.raises(TypeError, match=r"`time_label` must be a string"):
+        oj.plot.compare(z, z, time_label=3)
+    plt.close("all")
+
+
 def test_compare_of_transposed_arrays_warns():
     """Model outputs given as arrays need no `u`, and z shaped (2, 60) drew 60 axes of two
     samples each without a word."""
