@@ -556,7 +556,8 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     - `path`: the `.npz` file.
     - `model`: the `Model`, for `FitResult.simulate` (models are not saved). It must match
         what the file records of the fitted one (a `Model.from_ode`'s dt, method,
-        substeps and input): a ValueError names a difference.
+        substeps and input) and run with the saved theta, keeping the saved state's size
+        and giving the saved number of outputs: a ValueError names a difference.
     - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
         equinox modules or other nodes that the file's JSON cannot describe; its
         non-numeric parts are put back around the loaded arrays. It must match the saved
@@ -571,6 +572,7 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     The `FitResult`, equal to the saved one field by field.
     """
     fields = _io.read_result(path, like=like, model=model)
+    _io.check_model_fits(model, fields)
     if model is not None:  # (the model itself is the record, as after `fit`)
         fields["saved_model_signature"] = None
     history = FitHistory(**fields.pop("history"))

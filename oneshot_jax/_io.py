@@ -510,6 +510,45 @@ def _model_signature(model) -> list:
     return [s for s in _static_signature(model, "model") if " = function " not in s]
 
 
+def check_model_fits(model, fields):
+    """Refuse a `model` for `load_result` whose functions do not fit the loaded result:
+    traced once on abstract values (`eqx.filter_eval_shape`) with the saved theta, its step must
+    keep the state of the saved x0 and its observation give as many outputs as the saved
+    residuals have (a model of another structure loaded without complaint, and its
+    `simulate` and `predict` then answered for another system)."""
+    if model is None or fields.get("n_u") is None:
+        return
+    x0, res = np.asarray(fields["x0"]), np.asarray(fields["residuals"])
+    x = jax.ShapeDtypeStruct(x0.shape[-1:], x0.dtype)
+    n_u = int(fields["n_u"]) + (1 if model.timed else 0)  # (a timed model sees the interval)
+    u = jax.ShapeDtypeStruct((n_u,), x0.dtype)
+    u_step = jax.eval_shape(model.step_inputs, jax.ShapeDtypeStruct((2, n_u), x0.dtype))
+    u_step = jax.ShapeDtypeStruct(u_step.shape[1:], u_step.dtype)
+    theta = fields["theta"]
+    try:
+        # (equinox's: theta's non-array leaves, a network's activation, stay static)
+        x_next = eqx.filter_eval_shape(model.step, x, u_step, theta)
+        z = eqx.filter_eval_shape(model.observe, x, u, theta)
+    except Exception as err:  # (any error of the user's functions, named below)
+        raise ValueError(
+            f"`model` does not run with the saved result's theta, a state of {x.shape[0]} "
+            f"and {fields['n_u']} inputs: {type(err).__name__}: {err}. Pass the fitted model."
+        ) from err
+    if getattr(x_next, "shape", None) != x.shape:
+        raise ValueError(
+            f"`model` does not fit the saved result: its step returns a state of shape "
+            f"{getattr(x_next, 'shape', type(x_next).__name__)}, the saved x0 has "
+            f"{x.shape}. Pass the fitted model."
+        )
+    n_z = res.shape[-1] if res.ndim else None
+    if n_z is not None and getattr(z, "shape", None) != (n_z,):
+        raise ValueError(
+            f"`model` does not fit the saved result: it gives outputs of shape "
+            f"{getattr(z, 'shape', type(z).__name__)}, the saved residuals have {n_z} "
+            f"output(s). Pass the fitted model."
+        )
+
+
 def check_model(meta, model):
     """Refuse a `model` for `load_result` that differs from the saved result's in what the
     file's `meta` records of it (`_model_signature`); files without that record (earlier

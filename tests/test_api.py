@@ -418,6 +418,37 @@ def test_library_does_not_import_experiments_or_their_dependencies():
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
+def test_load_refuses_a_model_of_another_structure(tmp_path):
+    """A model that does not fit the saved result (another number of outputs, another
+    state, a parameter the saved theta lacks) is refused by `load_result(model=)`, naming
+    the difference; the fitted model, and a timed one, load."""
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + 0.1 * x[1], x[1] + 0.1 * (u[0] - th["k"] * x[0])])
+
+    model = oj.Model(step, lambda x, u, th: x[:1])
+    u = np.random.default_rng(0).standard_normal((40, 1))
+    _, z = oj.simulate(model, {"k": 2.0}, np.array([1.0, 0.0]), u)
+    path = oj.fit(model, {"k": 1.5}, np.array([1.0, 0.0]), u, np.asarray(z)).save(tmp_path / "r")
+    assert oj.load_result(path, model=model).theta["k"] == oj.load_result(path).theta["k"]
+    with pytest.raises(ValueError, match=r"outputs of shape \(2,\), the saved residuals have 1"):
+        oj.load_result(path, model=oj.Model(step))
+    three = oj.Model(
+        lambda x, u, th: jnp.concatenate([step(x, u, th), x[:1]]), lambda x, u, th: x[:1]
+    )
+    with pytest.raises(ValueError, match=r"state of shape \(3,\), the saved x0 has \(2,\)"):
+        oj.load_result(path, model=three)
+    other = oj.Model(lambda x, u, th: step(x, u, th) * th["c"], lambda x, u, th: x[:1])
+    with pytest.raises(ValueError, match=r"does not run with the saved result's theta.*KeyError"):
+        oj.load_result(path, model=other)
+    timed = oj.Model.from_ode(lambda x, u, th: -th["a"] * x + u, dt=None)
+    t = np.arange(30) * 0.1
+    _, zt = oj.simulate(timed, {"a": 1.0}, np.ones(1), u[:30], t=t)
+    fitted = oj.fit(timed, {"a": 0.5}, np.ones(1), u[:30], np.asarray(zt), t=t)
+    loaded = oj.load_result(fitted.save(tmp_path / "t"), model=timed)
+    assert loaded.theta["a"] == fitted.theta["a"]
+
+
 def test_a_loaded_result_saved_again_keeps_the_model_check(tmp_path):
     """A result loaded without `model=` and saved again keeps the file's record of the
     fitted model: loading the second file with another model is refused as the first;
