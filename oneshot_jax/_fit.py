@@ -490,7 +490,8 @@ def fit(
         `"classical"`, sigma^2 (J^T J)^+ (white residuals), or `NeweyWest(lags)`
         (`"newey_west"`: its default lags), a sandwich that holds when the residuals are
         correlated in time (a model error); the result's `diagnostics["covariance"]`
-        names it. None (or `"none"`, MATLAB's `EstimateCovariance` false): not computed,
+        names it where it is not the classical one (`diagnostics.get("covariance",
+        "classical")`). None (or `"none"`, MATLAB's `EstimateCovariance` false): not computed,
         which saves its time and memory where theta is large (the dense Jacobian and a
         p x p eigendecomposition) or the fit is an intermediate stage; `std` and `x0_std`
         are then inf, `covariance` empty and the printout says "(not computed)".

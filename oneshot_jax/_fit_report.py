@@ -257,6 +257,14 @@ def vanished_note(names) -> str:
     )
 
 
+def _stationary(result) -> bool:
+    """Whether the returned point passed the first-order test (its measure at most gtol),
+    as the status line judges a stop by a user's threshold (`stop_detail`)."""
+    info = result.stop_info or {}
+    fo, gtol = info.get("first_order", np.nan), info.get("gtol", np.nan)
+    return not (np.isfinite(fo) and fo > gtol)
+
+
 def report(result) -> str:
     """What `print(result)` shows (see `FitResult`)."""
     table, modules = _parameter_table(result)
@@ -325,6 +333,13 @@ def report(result) -> str:
             "  (not a solution: the standard errors and intervals below are those of the "
             "linearisation at the returned point)"
         )
+    elif result.status in ("tol_loss", "tol_grad") and not _stationary(result):
+        # (a success by the user's threshold, at a point the first-order test rejects)
+        out.append(
+            f"  (not a stationary point: {result.status} stopped the fit by your threshold; "
+            "the standard errors and intervals below are those of the linearisation at the "
+            "returned point, not of an estimate)"
+        )
     lags = (result.diagnostics or {}).get("covariance_lags")
     if lags is not None:
         out.append(
@@ -346,8 +361,15 @@ def report(result) -> str:
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
     aic = float(result.metrics["aic"])
-    few = "nan (fewer samples measure every output than there are outputs)"
-    aic = f"{aic:.4g}" if not np.isnan(aic) else few
+    if np.isnan(aic):
+        why = (
+            "the loss is not finite"
+            if not np.isfinite(float(result.loss))
+            else "fewer samples measure every output than there are outputs"
+        )
+        aic = f"nan ({why})"
+    else:
+        aic = f"{aic:.4g}"
     out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}")
     at_bound = (result.stop_info or {}).get("at_bound")
     if at_bound:

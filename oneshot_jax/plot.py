@@ -175,7 +175,8 @@ def compare(
     - `z`: the measured outputs, shape (T,) or (T, n_z) (NaN where missing), or a record
         with `u`, `y` (a `oneshot_jax.datasets.Record`): then `u`, `n` and the time axis
         (from `Ts`) default to the record's.
-    - `models`: one or several of: a `FitResult`, simulated on `u` from its fitted x0
+    - `models`: one or several (as arguments, or one list of results) of: a
+        `FitResult`, simulated on `u` from its fitted x0
         (the data it was fitted on, or a record from the same initial state; on another
         record it warns; after a `window=` fit, from the state of its window at sample
         0, as `FitResult.simulate`), or, with `n`, predicted from the first n samples of `z`
@@ -218,6 +219,13 @@ def compare(
         n = getattr(record, "n", None) if n is None else n
     z = _columns(z, "z")
     T, n_z = z.shape
+    if (
+        len(models) == 1
+        and isinstance(models[0], (list, tuple))
+        and models[0]
+        and all(isinstance(m, (FitResult, Prediction)) for m in models[0])
+    ):  # (a list of results, as MATLAB's compare(data, sys1, sys2) users may pass them)
+        models = tuple(models[0])
     if not models:
         raise ValueError("`models` is empty: pass at least one model (or model output).")
     if n_z > T:

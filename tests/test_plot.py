@@ -260,6 +260,11 @@ def test_compare_figure(fitted):
     fit = 100 * (1 - np.linalg.norm(other - z) / np.linalg.norm(z - z.mean()))
     assert texts[2] == f"noisy: FIT {fit:.2f} %"
     assert texts[1].startswith("fit: FIT ") and texts[1].endswith(" %")
+    # Several results may come as one list (as MATLAB's compare users may pass them).
+    listed = oj.plot.compare(z, [result, result], u=u, labels=["a", "b"])
+    assert _legend_texts(listed.axes[0])[1:] == [
+        t.replace("fit:", s) for s in ("a:", "b:") for t in texts[1:2]
+    ]
 
     # With the protocol's head n: a FitResult is predicted from z[:n], FIT over n:.
     n = 20

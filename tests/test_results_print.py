@@ -163,11 +163,27 @@ def test_user_thresholds_name_their_test_and_values():
         (status,) = [ln for ln in str(r).splitlines() if ln.startswith("status: ")]
         assert status.startswith(f"status: {test} ({what} {value:.3g} < {test} ")
         assert status.endswith("> gtol: not a stationary point)")
+        # (its intervals are not an estimate's: the printout says so, as for a failure)
+        assert f"(not a stationary point: {test} stopped the fit by your threshold" in str(r)
     r = oj.fit(MODEL, start, x0, u, z, solver=oj.LevenbergMarquardt(rtol=0.05))
     assert r.status == "stalled" and r.stop_info["step_test"] and r.stop_info["rtol"] == 0.05
     assert "the step test fired (step " in r.message and "rtol 0.05, atol 0)" in r.message
     plain = oj.fit(MODEL, start, x0, u, z)
     assert plain.status == "converged" and "step_test" not in plain.stop_info
+
+
+def test_a_nan_aic_says_why():
+    """The AIC of a fit whose loss is not finite says so (it blamed missing samples); a
+    user's threshold met at a stationary point has no caveat."""
+    x0, u, z = data()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(MODEL, {"w0sq": -1e6, "c": 0.2, "b": 1.0}, x0, u, z)
+    assert r.status == "diverged" and not np.isfinite(r.loss)
+    assert "AIC nan (the loss is not finite)" in str(r)
+    done = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z)
+    at = oj.fit(MODEL, done.theta, done.x0, u, z, solver=oj.Adam(tol_loss=1.0))
+    assert at.status == "tol_loss" and "not a stationary point" not in str(at), str(at)
 
 
 def test_an_optimistix_solver_stop_names_its_own_tolerances():
