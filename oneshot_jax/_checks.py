@@ -822,10 +822,28 @@ def _names_as_dict(fixed, theta):
     if not isinstance(theta, dict):
         raise ValueError(
             f"`fixed` names parameters ({names}), but theta0 is a "
-            f"{type(theta).__name__}, not a dict: give a pytree of booleans shaped like "
-            "theta0 instead."
+            f"{type(theta).__name__}, not a dict or an equinox module: give a pytree of "
+            "booleans shaped like theta0 instead."
         )
     return {name: True for name in names}
+
+
+def _is_module(theta) -> bool:
+    import equinox as eqx
+
+    return isinstance(theta, eqx.Module)
+
+
+def _module_names(fixed):
+    """The names `fixed` holds where it names a module's fields: a name, a list of names,
+    or a dict from names to single booleans (the True ones); else None."""
+    if isinstance(fixed, str):
+        return [fixed]
+    if isinstance(fixed, (list, tuple, set, frozenset)) and all(isinstance(n, str) for n in fixed):
+        return list(fixed)
+    if isinstance(fixed, dict) and all(isinstance(v, (bool, np.bool_)) for v in fixed.values()):
+        return [str(k) for k, v in fixed.items() if v]
+    return None
 
 
 def fixed_mask(fixed, theta) -> np.ndarray:
@@ -835,13 +853,18 @@ def fixed_mask(fixed, theta) -> np.ndarray:
     boolean where theta has a subtree (an equinox module, a dict) fixes or frees the whole
     subtree; an array of booleans where theta has an array leaf fixes it per entry. Where
     theta has a dict, `fixed` may name some of its keys: the others are free; it may also
-    be a name or a list of names of them (each held whole).
+    be a name or a list of names of them (each held whole), as it may for the fields of
+    an equinox module theta (or a dict from their names to booleans).
     """
     n = sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(theta))
     if fixed is None:
         return np.zeros(n, bool)
     if isinstance(fixed, (bool, np.bool_)):
         return np.full(n, bool(fixed))
+    if _is_module(theta):  # (a module's fields by name, as `units` takes them)
+        names = _module_names(fixed)
+        if names is not None:
+            return _pytree.named_mask(names, theta, "fixed")
     fixed = _names_as_dict(fixed, theta)
     fixed = _named_free(fixed, theta)
     leaves, treedef = jax.tree_util.tree_flatten(fixed)

@@ -436,7 +436,8 @@ def fit(
         removed from the variables. Where theta0 is a dict, `fixed` may name some of its
         keys (`fixed={"b": True}`; a nested one as `{"phys": {"c": True}}` or
         `{"phys.c": True}`), or list the names of those it holds (`fixed=["b"]`,
-        `fixed="phys.c"`): the others are free. A leaf held whole is a constant of the
+        `fixed="phys.c"`; for an equinox module theta0, its fields' names): the others are
+        free. A leaf held whole is a constant of the
         fit; an entry held inside a leaf is not, and a non-finite derivative with
         respect to it (x**n with respect to n at x < 0) reaches the others: hold such an
         exponent as a leaf of its own, or give it as an integer (data).

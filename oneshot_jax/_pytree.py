@@ -199,6 +199,27 @@ def _key(entry) -> str:
     return str(entry)
 
 
+def named_mask(names, theta, name) -> np.ndarray:
+    """Flat boolean mask (leaf order) of theta's entries under the dotted `names` ("k",
+    "phys.c", a module's field "r" or "r.layers"): a leaf is selected where its path is a
+    name or lies below one. A name that selects nothing is a ValueError (`name`: the
+    argument) listing the names theta has."""
+    flat = jax.tree_util.tree_flatten_with_path(theta)[0]
+    paths = [".".join(_key(p) for p in path) for path, _ in flat]
+    hit = set()
+    parts = []
+    for path, (_, leaf) in zip(paths, flat):
+        under = [n for n in names if path == n or path.startswith(n + ".")]
+        hit.update(under)
+        parts.append(np.full(int(np.size(leaf)), bool(under)))
+    unknown = [n for n in names if n not in hit]
+    if unknown:
+        raise ValueError(
+            f"`{name}` names parameters that are not in theta0: {unknown}; theta0 has {paths}."
+        )
+    return np.concatenate(parts) if parts else np.zeros(0, bool)
+
+
 def nest_dotted(named, theta, name):
     """A dict over theta's dict keys, with dotted names ("phys.k", as the printout and
     `units` name a nested parameter) turned into nested dicts ({"phys": {"k": ...}}), so

@@ -10,6 +10,7 @@ library's `simulate`, and optimality is checked against costs written here.
 
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -670,6 +671,27 @@ def test_fixed_may_list_the_names_it_holds(tiny):
         oj.fit(*args, fixed=["b", True])
     with pytest.raises(ValueError, match="theta0 is a list, not a dict"):
         oj.fit(TINY_LIST, [np.array([0.6, 0.4]), np.array(0.3)], *args[2:], fixed=["b"])
+
+
+class _TinyParams(eqx.Module):
+    a: jax.Array
+    b: jax.Array
+
+
+def test_fixed_may_name_the_fields_of_a_module_theta(tiny):
+    """An equinox-module theta0 takes `fixed` by field names (as `units` does): a name, a
+    list, or a dict of booleans, the same as the module of booleans."""
+    model = oj.Model(lambda x, u, th: tiny_plain_step(x, u, th.a, th.b))
+    theta0 = _TinyParams(np.array([0.6, 0.4]), np.array(0.3))
+    args = (model, theta0, np.array([1.0, -0.5]), tiny["u"], tiny["z_clean"])
+    ref = oj.fit(*args, solver="gauss_newton", fixed=_TinyParams(False, True))
+    assert ref.names == ("a[0]", "a[1]")
+    for names in ("b", ["b"], {"b": True}, {"b": True, "a": False}):
+        r = oj.fit(*args, solver="gauss_newton", fixed=names)
+        assert r.names == ref.names and float(r.theta.b) == 0.3
+        np.testing.assert_array_equal(r.theta.a, ref.theta.a)
+    with pytest.raises(ValueError, match=r"not in theta0: \['c'\]; theta0 has \['a', 'b'\]"):
+        oj.fit(*args, fixed=["c"])
 
 
 #
