@@ -28,7 +28,7 @@ from ._results import RESULTS, is_success
 from ._simulate import simulate_impl
 from ._timing import head_times
 from ._x0_lsq import identifiable_x0, solve_x0
-from ._x0_smoother import KalmanPath, kalman_path
+from ._x0_smoother import MEASUREMENT_NOISE_REL, KalmanPath, _rms, kalman_path
 
 METHODS = ("lsq", "smoother")
 
@@ -416,6 +416,8 @@ def _estimate(
             "the head (or the starting guess `x0` is far off). Check theta, or use a "
             "shorter head."
         )
+    if method == "smoother" and measurement_noise is None and weight is None:
+        _warn_default_noise(e, z, n, stacklevel + 1)
     if loss is None:  # C of eq. (5) over the head: the mean over k of |Q^{1/2} e_k|^2
         weighted = weigh(jnp.asarray(e), check_cost(data, None, 1.0).sqrt_weight())
         loss = np.asarray(np.mean(np.sum(np.square(np.asarray(weighted)), axis=1)), guess.dtype)
@@ -454,6 +456,34 @@ def _estimate(
         stop_reason=stop_reason,
         kalman=kalman,
     ), sim
+
+
+# The default measurement noise of the smoother is called too small where the head's
+# residuals from its estimate are this many times it (RMS, some output).
+NOISE_MISMATCH = 3.0
+
+
+def _warn_default_noise(e, z, n, stacklevel):
+    """Warn where the smoother's default measurement noise, 1 % of each output's RMS over
+    the head (`_x0_smoother.MEASUREMENT_NOISE_REL`), is far below the residuals of the
+    head simulated from its estimate: its covariance then assumes data several times
+    more precise than they are, and its std is too small (4 times, on a record of noise
+    0.01 at an output RMS of 0.19)."""
+    assumed = MEASUREMENT_NOISE_REL * _rms(np.asarray(z, np.float64))
+    e = np.asarray(e, np.float64)
+    seen = np.isfinite(e)
+    rms = np.sqrt(np.sum(np.where(seen, e * e, 0.0), axis=0) / np.maximum(seen.sum(axis=0), 1))
+    ratio = float(np.max(rms / assumed))
+    if n >= 5 and ratio > NOISE_MISMATCH:
+        warnings.warn(
+            f"estimate_x0(method='smoother') assumed a measurement noise of 1 % of each "
+            f"output's RMS over the head, and the head's residuals from its estimate are "
+            f"{ratio:.3g} times that: its std (covariance) assumes data more precise than "
+            "these, and is too small. Pass `measurement_noise` (e.g. the fit's residual "
+            "variance, as `FitResult.predict` does) or `weight`, or use method='lsq', "
+            "whose std is estimated from the residuals.",
+            stacklevel=stacklevel,
+        )
 
 
 def predict(
