@@ -30,9 +30,11 @@ is not the constrained optimum; use plain gradient descent (`optax.sgd`) or a
 least-squares solver there.
 """
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -80,6 +82,21 @@ def _fill_like(bound, params, fill, name):
                 f"theta has {sorted(params, key=str)}."
             )
         return {k: _fill_like(bound.get(k), v, fill, name) for k, v in params.items()}
+    if isinstance(params, eqx.Module) and isinstance(bound, dict):
+        # (a module's fields by name, as `fit`'s `fixed` and `units` take them)
+        fields = [f.name for f in dataclasses.fields(params) if not f.metadata.get("static", False)]
+        unknown = set(bound) - set(fields)
+        if unknown:
+            raise ValueError(
+                f"`{name}` names fields that are not in theta's {type(params).__name__}: "
+                f"{sorted(unknown, key=str)}; it has {fields}."
+            )
+        held = [f for f in fields if jax.tree_util.tree_leaves(getattr(params, f))]
+        return eqx.tree_at(
+            lambda m: [getattr(m, f) for f in held],
+            params,
+            [_fill_like(bound.get(f), getattr(params, f), fill, name) for f in held],
+        )
     if isinstance(bound, (list, tuple)) and isinstance(params, (list, tuple)):
         if len(bound) != len(params):
             raise ValueError(f"`{name}` must have one entry per parameter leaf ({len(params)}).")
@@ -119,8 +136,9 @@ def box(lower=None, upper=None) -> ProximalTransformation:
 
     - `lower`, `upper`: a scalar (every element), a pytree with the parameters' structure
         (leaves broadcast to each parameter's shape), or for dict parameters a dict naming
-        some of them (a nested one as `{"phys": {"c": 0.0}}` or `{"phys.c": 0.0}`);
-        missing entries and None mean unbounded (-inf / +inf).
+        some of them (a nested one as `{"phys": {"c": 0.0}}` or `{"phys.c": 0.0}`), and
+        for an equinox module a dict naming some of its fields; missing entries and None
+        mean unbounded (-inf / +inf).
 
     **Returns:**
 

@@ -531,3 +531,20 @@ def test_box_takes_bounds_written_as_thetas_own_module():
         constraints=oc.box(lower=_Phys(None, 0.35)),
     )
     assert float(res.theta.c) == 0.35 and abs(float(res.theta.k) - 4.0) < 0.2
+
+
+class _Spring(eqx.Module):
+    c: jax.Array
+    k: jax.Array
+
+
+def test_box_bounds_name_the_fields_of_a_module_theta():
+    """A box on an equinox-module theta takes its fields by name, as on a dict theta (it
+    said "`upper` must hold real numbers (a bound), got {'c': 0.2}"); an unknown field is
+    named."""
+    theta = _Spring(jnp.array(0.5), jnp.array([1.0, 2.0]))
+    lo, hi = oc.box(lower={"k": 0.0}, upper={"c": 0.2}).bounds(theta)
+    assert float(hi.c) == 0.2 and np.all(np.isinf(hi.k)) and np.all(lo.k == 0.0)
+    assert np.isneginf(float(lo.c))
+    with pytest.raises(ValueError, match=r"`upper` names fields that are not in theta's _Spring"):
+        oc.box(upper={"q": 1.0}).bounds(theta)
