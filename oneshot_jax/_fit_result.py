@@ -116,6 +116,12 @@ def stop_detail(status: str, info: dict) -> str:
                 "there (a parameter at a bound where it is not, such as sqrt(c) at c = 0: "
                 "keep it off that point, e.g. with constraints.positive())"
             )
+        if at == 0:
+            return (
+                "the loss at the start is not finite: the simulation from theta0 and x0 "
+                "blows up or gives NaN (start where the model is stable, e.g. with bounds, "
+                "or in windows)"
+            )
         return "the loss became non-finite" + at_step
     if status == "zero_gradient":
         names = info.get("zero_gradient", [])

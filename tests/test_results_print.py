@@ -181,6 +181,7 @@ def test_a_nan_aic_says_why():
         r = oj.fit(MODEL, {"w0sq": -1e6, "c": 0.2, "b": 1.0}, x0, u, z)
     assert r.status == "diverged" and not np.isfinite(r.loss)
     assert "AIC nan (the loss is not finite)" in str(r)
+    assert "the loss at the start is not finite: the simulation from theta0" in r.message
     done = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z)
     at = oj.fit(MODEL, done.theta, done.x0, u, z, solver=oj.Adam(tol_loss=1.0))
     assert at.status == "tol_loss" and "not a stationary point" not in str(at), str(at)
