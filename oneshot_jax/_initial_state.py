@@ -24,7 +24,7 @@ from ._checks import check_cost, check_data, check_outside_transformations, chec
 from ._cost import weigh
 from ._counts import is_count
 from ._jit import jit
-from ._results import RESULTS, is_success
+from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate_impl
 from ._timing import head_times
 from ._x0_lsq import identifiable_x0, solve_x0
@@ -64,6 +64,18 @@ class X0Estimate(eqx.Module):
     n: int = eqx.field(static=True)
     stop_reason: Any = None
     kalman: KalmanPath | None = None
+
+    def __str__(self) -> str:
+        """A few lines for `print`: the estimate with its standard deviations, how it was
+        made, and the solver's stop (the fields hold the arrays)."""
+        how = f"x0 from the first {self.n} samples by {self.method}"
+        if self.stop_reason is not None:
+            how += f" ({name_of(self.stop_reason)})"
+        rows = [how + f", loss {float(self.loss):.6g}"]
+        for i, (v, s, ok) in enumerate(zip(self.x0, self.std, self.identifiable)):
+            note = "" if ok else "  (not determined by the head)"
+            rows.append(f"  x0[{i}] {float(v):12.6g}  std {float(s):.3g}{note}")
+        return "\n".join(rows)
 
     @property
     def success(self) -> bool:

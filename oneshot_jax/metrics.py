@@ -457,6 +457,27 @@ class ResidualCorrelations(NamedTuple):
     n: np.ndarray
     cross_bound: np.ndarray | None = None
 
+    def __str__(self) -> str:
+        """The verdicts per output, with the numbers they rest on (MATLAB's `resid`
+        reading): what `print` shows; the arrays are the fields."""
+        max_lag = int(np.max(self.lags))
+        out = [f"residual correlations over lags 1..{max_lag} (0..{max_lag} with the inputs)"]
+        for k in range(len(np.atleast_1d(self.white))):
+            white = "white" if bool(np.atleast_1d(self.white)[k]) else "not white"
+            line = (
+                f"  output {k}: {white} ({100 * float(self.auto_outside[k]):.0f} % of the lags "
+                f"outside +-{float(self.bound[k]):.3g}, n = {int(self.n[k])})"
+            )
+            if self.independent is not None:
+                ind = bool(self.independent[k])
+                worst = 100 * float(np.max(self.cross_outside[k]))
+                line += (
+                    f"; {'independent of' if ind else 'correlated with'} the inputs (at most "
+                    f"{worst:.0f} % of the lags outside the band)"
+                )
+            out.append(line)
+        return "\n".join(out)
+
 
 def _lag_sums(x, max_lag):
     """sum_t x(t) x(t - k) per channel within each trajectory of x (N, T, channels), for

@@ -550,3 +550,26 @@ def test_the_smoothers_default_noise_warns_where_the_residuals_are_far_above_it(
             model, theta, u, z, n=40, method="smoother", x0=np.zeros(2), measurement_noise=1e-4
         )
         oj.estimate_x0(model, theta, u, z, n=40, x0=np.zeros(2))
+
+
+def test_an_x0_estimate_and_residual_correlations_print_readably():
+    """`print` of an `X0Estimate` and of `ResidualCorrelations` gives a few lines with the
+    numbers and verdicts (it dumped the equinox repr and the raw arrays)."""
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((200, 1))
+    white = rng.standard_normal((200, 1))
+    rc = oj.metrics.residual_correlations(white, u, 10)
+    text = str(rc)
+    assert text.splitlines()[0] == "residual correlations over lags 1..10 (0..10 with the inputs)"
+    verdict = "white" if rc.white[0] else "not white"
+    share = f"{100 * rc.auto_outside[0]:.0f} % of the lags outside +-{rc.bound[0]:.3g}"
+    assert text.splitlines()[1].startswith(f"  output 0: {verdict} ({share}, n = 200); ")
+    coloured = np.convolve(white[:, 0], np.ones(5), "same")[:, None]
+    assert "output 0: not white" in str(oj.metrics.residual_correlations(coloured, None, 10))
+    model = oj.Model.from_ode(pendulum_rhs, DT, observe=angle)
+    _, z = oj.simulate(model, PEND_THETA, np.array([0.3, 0.0]), u[:40] * 0.1)
+    e = oj.estimate_x0(model, PEND_THETA, u[:40] * 0.1, np.asarray(z), n=20, x0=np.zeros(2))
+    lines = str(e).splitlines()
+    assert lines[0].startswith("x0 from the first 20 samples by lsq (")
+    assert lines[1].startswith("  x0[0]") and f"std {e.std[0]:.3g}" in lines[1]
+    assert "numpy" not in str(e)
