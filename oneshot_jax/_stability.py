@@ -240,7 +240,7 @@ def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability
     return report(model.step, idx, xs, J, data.u)
 
 
-def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
+def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitted model") -> None:
     """The warning of `check_stability`, where `report` exceeds its limit."""
     if report is None or not report.near_limit:
         return
@@ -288,7 +288,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int) -> None:
         else f"stable up to about {report.limit:g}"
     )
     warnings.warn(
-        f"the fitted model runs near its integrator's stability limit: a Jacobian "
+        f"{what} runs near its integrator's stability limit: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
         f"{measure} = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
         f"{report.substeps} ({report.method.upper()}: {region}). "
@@ -347,5 +347,5 @@ def check_stability(
     ):
         raise ValueError(f"`points` must be a positive integer, got {points!r}.")
     report = stability(model, theta, x0, u, t=t, points=int(points))
-    warn_if_near_limit(report, stacklevel=2)
+    warn_if_near_limit(report, stacklevel=2, what="the model")
     return report
