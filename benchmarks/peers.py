@@ -24,7 +24,14 @@ the median is reported. oneshot_jax is reported twice per solver: the whole `fit
 (what a user waits for) and its one compiled call alone (`FitResult.wall_time`:
 start projection, solve, covariance and metrics).
 
-Run:  python benchmarks/peers.py                  # everything, writes benchmarks/results.md
+One run measures every part, (a) to (d), and prints its report; `--json PATH` keeps the
+whole run (numbers, command, date, duration, load average, hardware, versions, commit),
+and `--render PATH` prints the report of a kept run again, as it stands in the section
+"Against other tools" of docs/benchmarks.md (whose run is `benchmarks/cpu/peers.json`).
+
+Run:  python benchmarks/peers.py --pin-cpu 1 --json benchmarks/cpu/peers.json   # the page's run
+      python benchmarks/peers.py --render benchmarks/cpu/peers.json   # its report, printed
+      python benchmarks/peers.py                  # everything, also writes benchmarks/results.md
       python benchmarks/peers.py --quick          # a small smoke run (does not write results.md)
       python benchmarks/peers.py --problems emps --tools oneshot_lm,scipy_trf
       python benchmarks/peers.py --problems tanks_hybrid --pin-cpu 1   # (d) only, printed
@@ -37,6 +44,7 @@ import argparse
 import datetime
 import json
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -143,19 +151,24 @@ def hybrid_worker(adam, lbfgs, repeats):
 
 
 def run_hybrid(adam, lbfgs, repeats, timeout=900):
-    """The hybrid-tanks comparison in a fresh process; None (with a message) if it fails."""
+    """The hybrid-tanks comparison in a fresh process: its numbers, or a dict with "status"
+    "timeout" or "error" (and a message) where it gave none."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--hybrid-worker"]
     cmd += [str(adam), str(lbfgs), str(repeats)]
     try:
-        cp = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout)
+        cp = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         print(f"tanks_hybrid: timeout at {timeout} s")
-        return None
+        return {"status": "timeout", "timeout_s": timeout}
+    sys.stderr.write(cp.stderr)
     for line in cp.stdout.splitlines():
         if line.startswith(MARK):
             return json.loads(line[len(MARK) :])
     print("tanks_hybrid failed (its messages are above)")
-    return None
+    lines = cp.stderr.strip().splitlines()
+    # the exception's line (JAX may print a note on its traceback after it)
+    error = next((x for x in reversed(lines) if re.match(r"\w+(Error|Exception)\b", x)), None)
+    return {"status": "error", "error": error or " | ".join(lines[-3:])}
 
 
 def diagnose_worker(problem):
@@ -371,13 +384,14 @@ def summarise(results):
     return summary
 
 
-def fmt_problem(prob, s):
+def fmt_problem(prob, s, level=4):
+    """The table of one problem, under a heading of `level` (the number of #)."""
     import peers_tools
 
     rows, ref, best = s["rows"], s["ref"], s["best_loss"]
     any_ok = next((r for r in rows if r["status"] == "ok"), None)
     title = any_ok["title"] if any_ok else prob
-    lines = [f"### {title}", ""]
+    lines = [f"{'#' * level} {title}", ""]
     if any_ok:
         lines.append(
             f"{any_ok['n_var']} unknowns, {any_ok['n_res']} residuals; parameter error "
@@ -470,7 +484,7 @@ def fmt_ratio_table(summary, problems, tools):
             if r is None:
                 cells.append("")
                 continue
-            label = r.get("label", tool)
+            label = r.get("label", label)
             if r["status"] == "timeout":
                 cells.append(f"timeout at {r['timeout_s']:.0f} s")
                 continue
@@ -488,12 +502,12 @@ def fmt_ratio_table(summary, problems, tools):
 _STRATEGY_NAMES = {"jacobian": "formed", "vjp": "matrix-free"}
 
 
-def fmt_where(summary, problems, diags):
+def fmt_where(summary, problems, diags, level=3):
     """Two tables: oneshot_jax's `fit()` against its compiled call alone, and the cost of
-    one trajectory Jacobian against one simulation."""
+    one trajectory Jacobian against one simulation (under a heading of `level`)."""
     L = [
         "",
-        "## Where the time goes",
+        f"{'#' * level} Where the time goes",
         "",
         "oneshot_jax's `fit()` against its compiled call alone (the faster of LM / GN per "
         "problem; `FitResult.wall_time`: projection, solve, covariance, metrics); the "
@@ -545,21 +559,28 @@ def fmt_where(summary, problems, diags):
 
 
 def fmt_faster(summary, problems):
-    """One sentence per problem where a peer reached the optimum faster than oneshot_jax
-    (time without compilation), or one sentence saying that none did; and one per problem
-    where a peer's first call (compilation included, in a fresh process) reached it
+    """Sentences computed from the numbers: per problem where oneshot_jax gave no result or
+    stopped above the best loss, and where a peer reached the optimum faster than
+    oneshot_jax (time without compilation), or one sentence saying that on every problem
+    oneshot_jax reached the best loss and no peer was faster; then one per problem where a
+    peer's first call (compilation included, in a fresh process) reached the optimum
     faster than oneshot_jax's first call."""
     faster, first = [], []
     for prob in problems:
         s = summary.get(prob)
-        if not s or s["ref"] is None or s["best_peer"] is None:
+        if not s:
             continue
         ref, best = s["ref"], s["best_loss"]
+        if ref is None:
+            faster.append(f"On {prob}, oneshot_jax gave no result.")
+            continue
         if ref["loss"] > best * (1 + 1e-6):
             faster.append(
                 f"On {prob}, oneshot_jax stopped at C = {ref['loss']:.6e}, above the best loss "
                 f"{best:.6e}."
             )
+        if s["best_peer"] is None:
+            continue
         rt, bt = warm_time(ref), warm_time(s["best_peer"])
         if bt < rt:
             faster.append(
@@ -597,69 +618,109 @@ def fmt_faster(summary, problems):
     return faster + first
 
 
-def write_report(results, problems, tools, args, path, wall, diags=(), hybrid=None):
-    import peers_tools
-
-    summary = summarise(results)
-    v = peers_tools.versions()
-    cmd = "python benchmarks/peers.py" + (
-        " " + " ".join(args.passthrough) if args.passthrough else ""
-    )
-    L = [
-        "# oneshot_jax against its peers",
+def fmt_conditions(m):
+    """The two paragraphs of a run's conditions: the command, date, duration and load
+    average; the hardware, the versions and the commit."""
+    load = m.get("load_average")
+    load = f", load average {load[0]:.1f} -> {load[1]:.1f}" if load else ""
+    at = ""
+    if m.get("commit"):
+        at = f"; oneshot_jax at commit {m['commit']}"
+        if m.get("changed"):
+            at += " (the files that differed from it: " + ", ".join(m["changed"]) + ")"
+    return [
+        f"Generated by `{m['command']}` on {m['date']} in {m['wall_s'] / 60:.1f} min{load} "
+        "(install the peers with `pip install -e .[bench]`).",
         "",
-        f"Generated by `{cmd}` on {datetime.date.today().isoformat()} in {wall / 60:.1f} min "
-        f"(install the peers with `pip install -e .[bench]`).",
-        "",
-        f"Hardware: {cpu_name()}, {os.cpu_count()} CPU cores, CPU only, float64. Versions: "
-        + ", ".join(f"{k} {val}" for k, val in v.items())
-        + (f"; oneshot_jax at commit {args.commit}" if getattr(args, "commit", None) else "")
+        f"Hardware: {m['hardware']}, {m['cores']} CPU cores, CPU only, float64. Versions: "
+        + ", ".join(f"{k} {val}" for k, val in m["versions"].items())
+        + at
         + ".",
         "",
-        "## Summary",
-        "",
-        "Time to solution without compilation (median of warm calls, each a fresh solve from the "
-        'same start); oneshot_jax is its `fit()` call, the faster of LM and GN. "Best peer" is '
-        "the fastest peer whose loss is within 1e-6 (relative) of the best loss any tool reached.",
-        "",
     ]
-    L += fmt_summary(summary, problems)
-    L += ["", *fmt_faster(summary, problems)]
-    L += [
-        "",
-        "## Ratios to oneshot_jax",
-        "",
-        "Each cell: time without compilation / oneshot_jax's (reference row of that problem), "
-        "and the loss reached relative to the best (C / C_best - 1).",
-        "",
-    ]
-    L += fmt_ratio_table(summary, problems, tools)
-    L += ["", "## Per problem", ""]
-    for prob in problems:
-        if prob in summary:
-            L += fmt_problem(prob, summary[prob])
-    if hybrid:
+
+
+def fmt_tanks(hybrid, level):
+    """Part (d), under a heading of `level`: its tables, or why the run has none."""
+    title = "(d) hybrid cascaded tanks: oneshot_jax against jax-sysid"
+    if "grad_s" in hybrid:
         import peers_hybrid
 
-        L += ["## A hybrid model: oneshot_jax against jax-sysid", ""]
-        L += peers_hybrid.fmt_hybrid(hybrid)
-    L += ["## How each tool is used", ""]
-    seen = {}
-    for r in results:
-        if r["status"] == "ok" and r["tool"] not in seen:
-            seen[r["tool"]] = (r["label"], r["method"])
-    for tool in tools:
-        if tool in seen:
-            L.append(f"- **{seen[tool][0]}**: {seen[tool][1]}.")
-    L += fmt_where(summary, problems, diags)
-    L += ["", NOTES]
-    Path(path).write_text("\n".join(L) + "\n")
-    return summary
+        head, *rest = peers_hybrid.fmt_hybrid(hybrid)
+        assert head.lstrip("#").strip() == title, head
+        return [f"{'#' * level} {title}", *rest]
+    what = (
+        f"stopped at the time cap of {hybrid['timeout_s']:.0f} s"
+        if hybrid.get("status") == "timeout"
+        else f"it failed: {hybrid.get('error', '')[:200]}"
+    )
+    return [f"{'#' * level} {title}", "", f"No result in this run ({what}).", ""]
 
 
-NOTES = """## Notes on the method
+def report(data, level=3):
+    """A run (the dict that `--json` writes) as Markdown lines: its conditions, then the
+    sections under headings of `level` (3 on the benchmarks page, whose section "Against
+    other tools" holds them; 2 in results.md), each problem one level below."""
+    m = data["meta"]
+    results, problems, tools = data["results"], m["problems"], m["tools"]
+    diags, hybrid = data.get("diagnostics") or [], data.get("hybrid")
+    summary = summarise(results)
+    sec = "#" * level
+    L = fmt_conditions(m)
+    if problems:
+        L += [
+            f"{sec} Summary",
+            "",
+            "Time to solution without compilation (median of warm calls, each a fresh solve "
+            "from the same start); oneshot_jax is its `fit()` call, the faster of LM and GN. "
+            '"Best peer" is the fastest peer whose loss is within 1e-6 (relative) of the best '
+            "loss any tool reached.",
+            "",
+        ]
+        L += fmt_summary(summary, problems)
+        L += ["", *fmt_faster(summary, problems)]
+        L += [
+            "",
+            f"{sec} Ratios to oneshot_jax",
+            "",
+            "Each cell: time without compilation / oneshot_jax's (reference row of that "
+            "problem), and the loss reached relative to the best (C / C_best - 1).",
+            "",
+        ]
+        L += fmt_ratio_table(summary, problems, tools)
+        L += [""]
+    if problems or hybrid is not None:
+        L += [f"{sec} Per problem", ""]
+    for prob in problems:
+        if prob in summary:
+            L += fmt_problem(prob, summary[prob], level + 1)
+    if hybrid is not None:
+        L += fmt_tanks(hybrid, level + 1)
+    if problems:
+        L += [f"{sec} How each tool is used", ""]
+        seen = {}
+        for r in results:
+            if r["status"] == "ok" and r["tool"] not in seen:
+                seen[r["tool"]] = (r["label"], r["method"])
+        for tool in tools:
+            if tool in seen:
+                L.append(f"- **{seen[tool][0]}**: {seen[tool][1]}.")
+        L += fmt_where(summary, problems, diags, level)
+        L += ["", f"{sec} Notes on the method", "", NOTES]
+    return L
 
-- Same cost, same model, same start for every tool: C = mean over records and samples of
+
+def render(path):
+    """The report of a run written by `--json`, as it stands on the benchmarks page."""
+    print("\n".join(report(json.loads(Path(path).read_text()), 3)).rstrip())
+
+
+def write_report(data, path):
+    """results.md: a title and the report with its sections at level 2."""
+    Path(path).write_text("# oneshot_jax against its peers\n\n" + "\n".join(report(data, 2)))
+
+
+NOTES = """- Same cost, same model, same start for every tool: C = mean over records and samples of
   ||zhat - z||^2 (eq. 5), classical RK4 with one step per sample and the input held over
   it; sign(q') of the EMPS friction is tanh(q'/1e-3) for every tool. The loss column is
   recomputed for every tool by one common JAX evaluator at the parameters it returned.
@@ -690,6 +751,23 @@ NOTES = """## Notes on the method
 
 
 # -------------------------------------------------------------------------------- main
+
+
+def changed_files():
+    """The library's and the benchmarks' Python files that differ from the commit, tracked
+    or not (what `timing.commit`'s "+changes" stands for)."""
+    try:
+        cp = subprocess.run(
+            ["git", "status", "--porcelain", "--", "oneshot_jax", "benchmarks/*.py"],
+            cwd=HERE.parent,
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return []
+    if cp.returncode:
+        return []
+    return sorted(line[3:].strip() for line in cp.stdout.splitlines() if line.strip())
 
 
 def main():
@@ -737,7 +815,22 @@ def main():
     )
     ap.add_argument("--quick", action="store_true", help="small problems, 2 repeats; no results.md")
     ap.add_argument("--out", default=str(HERE / "results.md"))
-    ap.add_argument("--json", default=None, help="also write the raw results as JSON")
+    ap.add_argument(
+        "--json", default=None, metavar="PATH", help="also write the whole run as JSON to PATH"
+    )
+    ap.add_argument(
+        "--render",
+        default=None,
+        metavar="JSON",
+        help="print the report of a run written by --json (as on the benchmarks page), "
+        "without running anything",
+    )
+    ap.add_argument(
+        "--report-only",
+        default=None,
+        metavar="JSON",
+        help="rewrite results.md (--out) from a run written by --json, without running anything",
+    )
     ap.add_argument("--worker", nargs=2, metavar=("PROBLEM", "TOOL"), help=argparse.SUPPRESS)
     ap.add_argument("--diagnose", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--hybrid-worker", nargs=3, type=int, help=argparse.SUPPRESS)
@@ -746,28 +839,12 @@ def main():
         action="store_true",
         help="skip the Jacobian-cost diagnostics (one process per problem, ~10 s each)",
     )
-    ap.add_argument(
-        "--report-only",
-        default=None,
-        metavar="JSON",
-        help="rewrite the report from a JSON file written by --json, without running anything",
-    )
     args = ap.parse_args()
+    if args.render:
+        render(args.render)
+        return
     if args.report_only:
-        saved = json.loads(Path(args.report_only).read_text())
-        m = saved["meta"]
-        args.passthrough = m["passthrough"]
-        args.commit = m.get("commit")
-        write_report(
-            saved["results"],
-            m["problems"],
-            m["tools"],
-            args,
-            args.out,
-            m["wall_s"],
-            saved["diagnostics"],
-            saved.get("hybrid"),
-        )
+        write_report(json.loads(Path(args.report_only).read_text()), args.out)
         print(f"wrote {args.out}")
         return
     if args.worker:
@@ -781,15 +858,16 @@ def main():
         return
     if args.pin_cpu is not None:  # inherited by every worker process
         os.sched_setaffinity(0, {args.pin_cpu})
-    # the command shown in results.md: without the output paths
-    argv, args.passthrough = sys.argv[1:], []
+    # the command shown in the report: without the output paths
+    argv, shown = sys.argv[1:], []
     while argv:
         a = argv.pop(0)
-        if a in ("--json", "--out", "--report-only"):
+        if a in ("--json", "--out"):
             argv = argv[1:]
-        elif not a.startswith(("--json=", "--out=", "--report-only=")):
-            args.passthrough.append(a)
+        elif not a.startswith(("--json=", "--out=")):
+            shown.append(a)
     import peers_problems
+    import peers_tools
 
     if args.quick:
         problems = ["satellite_T50", "chain5_quick"]
@@ -801,8 +879,22 @@ def main():
     run_tanks = HYBRID in problems
     problems = [p for p in problems if p != HYBRID]
     tools = args.tools.split(",") if args.tools else list(DEFAULT_TOOLS)
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    args.commit = commit() or None
+    meta = {
+        "command": " ".join(["python benchmarks/peers.py", *shown]),
+        "date": datetime.date.today().isoformat(),
+        "hardware": cpu_name(),
+        "cores": os.cpu_count(),
+        "versions": peers_tools.versions(),
+        "commit": commit() or None,
+        "changed": changed_files(),
+        "problems": problems,
+        "tools": tools,
+        "repeats": args.repeats,
+        "timeout_s": args.timeout,
+        "budget_s": args.budget,
+    }
     results = []
     for prob in problems:
         results += run_problem(
@@ -826,36 +918,18 @@ def main():
                     f"matrix-free {_t(d['closed_vjp'])} (fit uses {d['auto']})",
                     flush=True,
                 )
-    wall = time.perf_counter() - t0
+    meta["wall_s"] = time.perf_counter() - t0
+    meta["load_average"] = [load0, os.getloadavg()[0]]
+    data = {"results": results, "diagnostics": diags, "hybrid": hybrid, "meta": meta}
     if args.json:
-        meta = {
-            "problems": problems,
-            "tools": tools,
-            "wall_s": wall,
-            "passthrough": args.passthrough,
-            "commit": args.commit,
-        }
-        Path(args.json).write_text(
-            json.dumps(
-                {"results": results, "diagnostics": diags, "hybrid": hybrid, "meta": meta},
-                indent=1,
-            )
-        )
+        Path(args.json).write_text(json.dumps(data, indent=1) + "\n")
     out = None if args.quick or not problems else args.out  # (d) alone: printed only
     if out:
-        write_report(results, problems, tools, args, out, wall, diags, hybrid)
-        print(f"\nwrote {out} ({wall / 60:.1f} min)")
-    elif problems:
-        summary = summarise(results)
-        print()
-        print("\n".join(fmt_ratio_table(summary, problems, tools)))
-    if hybrid:
-        import peers_hybrid
-        from timing import conditions
-
-        print()
-        print("\n".join(peers_hybrid.fmt_hybrid(hybrid)))
-        print(conditions(("jax-sysid", "jaxopt")))
+        write_report(data, out)
+    print()
+    print("\n".join(report(data, 3)).rstrip())
+    if out:
+        print(f"\nwrote {out} ({meta['wall_s'] / 60:.1f} min)")
 
 
 if __name__ == "__main__":

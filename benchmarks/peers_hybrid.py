@@ -146,6 +146,10 @@ class Clock(eqx.Module):
         del bar_id
         jax.debug.callback(_tick, offset + step, loss)
 
+    def finish(self, bar_id, offset, step, loss):
+        # called once after each solver's loop; `update` has recorded every step already
+        del bar_id, offset, step, loss
+
 
 _TICKS: list = []
 
