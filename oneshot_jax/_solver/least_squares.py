@@ -302,11 +302,11 @@ class AbstractLeastSquares(AbstractSolver):
             h, point = lazy_cond(jnp.any(blocked), again, (h, point))
         return h, point
 
-    def _move(self, problem, params, state, h, full, full_simulated) -> _Move:
+    def _move(self, problem, params, state, h, full, full_simulated, full_met) -> _Move:
         """The search along the descent step `h` (`full`: its projected full point and
-        that point's loss, simulated where `full_simulated`, else its linearisation's) and
-        the projected-gradient fallback: where the step ends, before the linearisation
-        there.
+        that point's loss, simulated where `full_simulated`, else its linearisation's, and
+        `full_met`, whether that linearisation meets the first-order test) and the
+        projected-gradient fallback: where the step ends, before the linearisation there.
 
         The search compares each trial's loss with the linearisation's C at the current
         point. A trial's simulated loss (`_loss`) is a second evaluation of C by another
@@ -345,8 +345,10 @@ class AbstractLeastSquares(AbstractSolver):
             return ~near | (loss < same - jnp.abs(C_sim - b.C)), C_sim
 
         nan = jnp.array(jnp.nan, b.C.dtype)
-        near = t.accept & (b.C - t.loss <= resolved)
         simulated = jnp.array(True) if full_simulated else ~t.at_full
+        # (not where the full step's point meets the first-order test, `full_met`: the fit
+        # ends there, and a decrease to it, at round-off or not, cannot start a cycle)
+        near = t.accept & ~(t.at_full & full_met) & (b.C - t.loss <= resolved)
         ok, C_sim = same_program(near, nan, t.loss, simulated)
         accept = t.accept & ok
         # A step that failed: a projected-gradient step instead, which decreases C unless
@@ -413,11 +415,14 @@ class AbstractLeastSquares(AbstractSolver):
                 lin = self._linearise(problem, at)
                 C = lin[0].C
                 full = (at, jnp.where(jnp.isfinite(C), C, jnp.inf))
+                # (where the full step's point meets the first-order test, the fit ends
+                # there: its decrease needs no check at round-off, `_move`)
+                met = lin[0].first_order(problem, at) <= self.gtol
 
                 def search():
                     return lazy_cond(
                         primed,
-                        lambda: self._move(problem, params, state, h, full, False),
+                        lambda: self._move(problem, params, state, h, full, False, met),
                         prime._replace(loss=C),
                     )
 
@@ -438,7 +443,7 @@ class AbstractLeastSquares(AbstractSolver):
             def descend_and_move():
                 h, point = self._descent(problem, params, state)
                 full = (point, self._loss(problem, point))
-                return self._move(problem, params, state, h, full, True)
+                return self._move(problem, params, state, h, full, True, jnp.array(False))
 
             mv = lazy_cond(primed, descend_and_move, prime)
             blocks, h_min = lazy_cond(
