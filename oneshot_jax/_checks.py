@@ -799,51 +799,39 @@ def _named_free(fixed, theta):
     return {k: _named_free(fixed[k], v) if k in fixed else False for k, v in theta.items()}
 
 
-def _names_as_dict(fixed, theta):
-    """`fixed` given as names of theta's dict keys ("k", or ["k", "phys.c"], as MATLAB's
-    `nlgreyest` users name the parameters they hold) as the dict {name: True}; any other
-    `fixed` as it is."""
+def _held_names(fixed, theta):
+    """The names `fixed` gives of the parameters it holds ("k", or ["k", "phys.c"], as
+    MATLAB's `nlgreyest` users name them; for an equinox module theta also a dict from its
+    fields' names to single booleans, the True ones), or None where `fixed` is a pytree of
+    booleans."""
     if isinstance(fixed, str):
-        names = [fixed]
-    elif isinstance(fixed, (list, tuple, set, frozenset)) and fixed:
+        return [fixed]
+    if isinstance(fixed, (list, tuple, set, frozenset)):
         names = list(fixed)
-        if not all(isinstance(name, str) for name in names):
-            if any(isinstance(name, str) for name in names):
-                raise TypeError(
-                    f"`fixed` mixes names and other entries: {sorted(map(repr, names))}; give "
-                    "the names of the parameters to hold (['k', 'c']), or a pytree of "
-                    "booleans shaped like theta0."
-                )
-            return fixed
-    elif isinstance(fixed, (list, tuple, set, frozenset)) and isinstance(theta, dict):
-        return {}  # (no names: nothing held)
-    else:
-        return fixed
-    if not isinstance(theta, dict):
-        raise ValueError(
-            f"`fixed` names parameters ({names}), but theta0 is a "
-            f"{type(theta).__name__}, not a dict or an equinox module: give a pytree of "
-            "booleans shaped like theta0 instead."
-        )
-    return {name: True for name in names}
+        if not names:  # (no names: nothing held, where theta has names)
+            return names if isinstance(theta, dict) or _is_module(theta) else None
+        if all(isinstance(n, str) for n in names):
+            return names
+        if any(isinstance(n, str) for n in names):
+            raise TypeError(
+                f"`fixed` mixes names and other entries: {sorted(map(repr, names))}; give "
+                "the names of the parameters to hold (['k', 'c']), or a pytree of "
+                "booleans shaped like theta0."
+            )
+        return None
+    if (
+        _is_module(theta)
+        and isinstance(fixed, dict)
+        and all(isinstance(v, (bool, np.bool_)) for v in fixed.values())
+    ):
+        return [str(k) for k, v in fixed.items() if v]
+    return None
 
 
 def _is_module(theta) -> bool:
     import equinox as eqx
 
     return isinstance(theta, eqx.Module)
-
-
-def _module_names(fixed):
-    """The names `fixed` holds where it names a module's fields: a name, a list of names,
-    or a dict from names to single booleans (the True ones); else None."""
-    if isinstance(fixed, str):
-        return [fixed]
-    if isinstance(fixed, (list, tuple, set, frozenset)) and all(isinstance(n, str) for n in fixed):
-        return list(fixed)
-    if isinstance(fixed, dict) and all(isinstance(v, (bool, np.bool_)) for v in fixed.values()):
-        return [str(k) for k, v in fixed.items() if v]
-    return None
 
 
 def fixed_mask(fixed, theta) -> np.ndarray:
@@ -861,11 +849,15 @@ def fixed_mask(fixed, theta) -> np.ndarray:
         return np.zeros(n, bool)
     if isinstance(fixed, (bool, np.bool_)):
         return np.full(n, bool(fixed))
-    if _is_module(theta):  # (a module's fields by name, as `units` takes them)
-        names = _module_names(fixed)
-        if names is not None:
-            return _pytree.named_mask(names, theta, "fixed")
-    fixed = _names_as_dict(fixed, theta)
+    names = _held_names(fixed, theta)
+    if names is not None:
+        if not (isinstance(theta, dict) or _is_module(theta)):
+            raise ValueError(
+                f"`fixed` names parameters ({names}), but theta0 is a "
+                f"{type(theta).__name__}, not a dict or an equinox module: give a pytree of "
+                "booleans shaped like theta0 instead."
+            )
+        return _pytree.named_mask(names, theta, "fixed")
     fixed = _named_free(fixed, theta)
     leaves, treedef = jax.tree_util.tree_flatten(fixed)
     try:

@@ -54,7 +54,7 @@ import jax
 import numpy as np
 
 from . import _pytree
-from ._checks import check_path
+from ._checks import _step_input_struct, check_path
 from ._model import Model
 from ._results import from_name, name_of
 
@@ -522,8 +522,7 @@ def check_model_fits(model, fields):
     x = jax.ShapeDtypeStruct(x0.shape[-1:], x0.dtype)
     n_u = int(fields["n_u"]) + (1 if model.timed else 0)  # (a timed model sees the interval)
     u = jax.ShapeDtypeStruct((n_u,), x0.dtype)
-    u_step = jax.eval_shape(model.step_inputs, jax.ShapeDtypeStruct((2, n_u), x0.dtype))
-    u_step = jax.ShapeDtypeStruct(u_step.shape[1:], u_step.dtype)
+    u_step = _step_input_struct(model, u)
     theta = fields["theta"]
     try:
         # (equinox's: theta's non-array leaves, a network's activation, stay static)

@@ -249,19 +249,8 @@ def compare(
             raise ValueError(f"`n` must be an integer with 0 <= n <= T - 2 = {T - 2}, got {n!r}.")
         n = int(n)
     n = n or 0
-    if labels is None:
-        labels = ["model"] if len(models) == 1 else [f"model {i + 1}" for i in range(len(models))]
-    elif isinstance(labels, str):
-        labels = [labels]
-    if not isinstance(labels, (list, tuple)) or not all(isinstance(s, str) for s in labels):
-        raise TypeError(
-            f"`labels` must be a string or a sequence of {len(models)} strings (one per "
-            f"model), got {labels!r}."
-        )
-    labels = list(labels)
-    if len(labels) != len(models):
-        raise ValueError(f"`labels` must hold {len(models)} names (one per model), got {labels}.")
-    names = _output_names(outputs, n_z)
+    labels = _names(labels, len(models), "labels", "model", start=1)
+    names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
     times = t  # the sample times a timed model's FitResult is simulated at
@@ -312,19 +301,20 @@ def compare(
     return fig
 
 
-def _output_names(outputs, n_z):
-    """The axis labels of `compare`'s outputs: `outputs` checked, or the defaults."""
-    if outputs is None:
-        return [f"output {k}" for k in range(n_z)] if n_z > 1 else ["output"]
-    names = [outputs] if isinstance(outputs, str) else outputs
+def _names(given, count, arg, thing, start, of=""):
+    """`compare`'s names of its models or outputs: `given` checked (a string for one, or a
+    sequence of `count` strings), or the defaults `thing` or `thing <start>`, ...."""
+    if given is None:
+        return [thing] if count == 1 else [f"{thing} {i + start}" for i in range(count)]
+    names = [given] if isinstance(given, str) else given
     if not isinstance(names, (list, tuple)) or not all(isinstance(s, str) for s in names):
         raise TypeError(
-            f"`outputs` must be a string or a sequence of {n_z} strings (one per output), "
-            f"got {outputs!r}."
+            f"`{arg}` must be a string or a sequence of {count} strings (one per {thing}), "
+            f"got {given!r}."
         )
-    if len(names) != n_z:
+    if len(names) != count:
         raise ValueError(
-            f"`outputs` must hold {n_z} names (one per output of `z`), got {list(names)}."
+            f"`{arg}` must hold {count} names (one per {thing}{of}), got {list(names)}."
         )
     return list(names)
 

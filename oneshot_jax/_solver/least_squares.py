@@ -72,7 +72,7 @@ from .._optimality import (
     lazy_cond,
     n_observations,
     output_norm,
-    stall_limit,
+    stall_limit_of,
     standard_errors,
     vanished_columns,
     zero_residual,
@@ -106,7 +106,8 @@ class LSQState(NamedTuple):
     loss: jax.Array  # C at the current iterate
     h_min: jax.Array  # the smallest lambda h(x_k) at the current iterate
     search: Any  # the search's state (LM's damping mu, nu)
-    scale: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
+    scale: jax.Array  # the scale of a zero residual (`_optimality.data_scale`)
+    outputs: jax.Array  # the loss of predicting zero outputs (`_optimality.output_norm`)
     measures: Measures  # the first-order measure here, the last step and its prediction
     done: jax.Array
     result: RESULTS
@@ -216,6 +217,7 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
+            output_norm(problem),
             Measures(nan, nan, nan, nan, false, false, jnp.zeros(params.theta.shape, bool), nan),
             jnp.array(False),
             RESULTS.converged,
@@ -332,7 +334,7 @@ class AbstractLeastSquares(AbstractSolver):
             lambda alpha: self.trial(problem, params, h, alpha), b.C, h, full, pred, state.search
         )
         eps = jnp.finfo(problem.dtype).eps
-        resolved = SAME_PATH * eps * (jnp.sqrt(b.C * output_norm(problem)) + b.C)
+        resolved = SAME_PATH * eps * (jnp.sqrt(b.C * state.outputs) + b.C)
 
         def simulated_here():
             return self._loss(problem, params)
@@ -495,7 +497,10 @@ class AbstractLeastSquares(AbstractSolver):
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
         top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
-        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
+        limit = stall_limit_of(dtype, state.outputs, blocks.C)
+        at_stall, still, degenerate = blocks.stall_test(
+            problem, params, top.theta, top.x0, fo, limit
+        )
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
@@ -531,10 +536,20 @@ class AbstractLeastSquares(AbstractSolver):
             small_step,
             degenerate,
             vanished_columns(blocks.diag_t(), top.theta),
-            stall_limit(problem, blocks.C),
+            limit,
         )
         state = LSQState(
-            blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false, top
+            blocks,
+            loss,
+            h_min,
+            mv.search,
+            state.scale,
+            state.outputs,
+            measures,
+            done,
+            result,
+            ~false,
+            top,
         )
         return params, state
 
