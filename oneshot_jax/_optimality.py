@@ -291,9 +291,7 @@ def vanished(d, top):
     return jnp.where(vanished_columns(d, top), top, d)
 
 
-def stall_test(
-    problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None, limit=None
-):
+def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None):
     """The first-order test where no step decreases C any more (a stall; see the module
     docstring): the measure `first_order`, stationary at most `stall_limit`; and, where
     that fails, the measure with the columns that vanished along the fit at the largest
@@ -305,15 +303,13 @@ def stall_test(
     - `top_t`, `top_x`: the largest diag(J^T J) of each column along the fit (the shapes
         of `d_t` and `d_x`).
     - `fo`: `first_order` at `params` where the caller has it (else computed here).
-    - `limit`: `stall_limit` at C where the caller has it (else computed here).
 
     **Returns:**
 
     The measure the stall is tested on, whether it is stationary (at most `stall_limit`),
     and whether that measure is the one with the vanished columns (a degenerate minimum).
     """
-    if limit is None:
-        limit = stall_limit(problem, C)
+    limit = stall_limit(problem, C)
     if fo is None:
         fo = first_order(problem, params, C, g, d_t, d_x)
     kept = first_order(problem, params, C, g, vanished(d_t, top_t), vanished(d_x, top_x))
@@ -449,7 +445,6 @@ def check_first_order(
     strategy,
     fresh=False,
     final=False,
-    outputs=None,
 ):
     """The first-order test of a solver that has the gradient of C only.
 
@@ -461,7 +456,7 @@ def check_first_order(
     counts as at least the `resolution` of the dtype. Returns the measure, whether
     `params` is stationary (the measure at most that `gtol`, or at a stall the test of
     `stall_test`), the scaling to keep, and whether the measure is that of a stall with
-    vanished columns. `outputs`: `output_norm` where the solver keeps it (else computed).
+    vanished columns.
     """
     gtol = gtol_at_least_resolution(gtol, problem.dtype)
     half = Params(0.5 * grad.theta, 0.5 * grad.x0)
@@ -471,9 +466,8 @@ def check_first_order(
         scale = lazy_cond(refresh, lambda: scaling(problem, params, strategy, scale), scale)
         fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     met = fo <= gtol
-    limit = None if outputs is None else stall_limit_of(problem.dtype, outputs, C)
     at_stall, still, degenerate = stall_test(
-        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x, fo, limit
+        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x, fo
     )
     degenerate = stall & ~met & degenerate
     fo = jnp.where(degenerate, at_stall, fo)

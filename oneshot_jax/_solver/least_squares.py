@@ -72,7 +72,7 @@ from .._optimality import (
     lazy_cond,
     n_observations,
     output_norm,
-    stall_limit_of,
+    stall_limit,
     standard_errors,
     vanished_columns,
     zero_residual,
@@ -106,8 +106,7 @@ class LSQState(NamedTuple):
     loss: jax.Array  # C at the current iterate
     h_min: jax.Array  # the smallest lambda h(x_k) at the current iterate
     search: Any  # the search's state (LM's damping mu, nu)
-    scale: jax.Array  # the scale of a zero residual (`_optimality.data_scale`)
-    outputs: jax.Array  # the loss of predicting zero outputs (`_optimality.output_norm`)
+    scale: jax.Array  # the loss of predicting zero outputs (`_optimality.data_scale`)
     measures: Measures  # the first-order measure here, the last step and its prediction
     done: jax.Array
     result: RESULTS
@@ -217,7 +216,6 @@ class AbstractLeastSquares(AbstractSolver):
             h_min,
             self._search().init(dtype),
             data_scale(problem),
-            output_norm(problem),
             Measures(nan, nan, nan, nan, false, false, jnp.zeros(params.theta.shape, bool), nan),
             jnp.array(False),
             RESULTS.converged,
@@ -334,7 +332,7 @@ class AbstractLeastSquares(AbstractSolver):
             lambda alpha: self.trial(problem, params, h, alpha), b.C, h, full, pred, state.search
         )
         eps = jnp.finfo(problem.dtype).eps
-        resolved = SAME_PATH * eps * (jnp.sqrt(b.C * state.outputs) + b.C)
+        resolved = SAME_PATH * eps * (jnp.sqrt(b.C * output_norm(problem)) + b.C)
 
         def simulated_here():
             return self._loss(problem, params)
@@ -497,10 +495,7 @@ class AbstractLeastSquares(AbstractSolver):
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
         top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
-        limit = stall_limit_of(dtype, state.outputs, blocks.C)
-        at_stall, still, degenerate = blocks.stall_test(
-            problem, params, top.theta, top.x0, fo, limit
-        )
+        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
@@ -536,20 +531,10 @@ class AbstractLeastSquares(AbstractSolver):
             small_step,
             degenerate,
             vanished_columns(blocks.diag_t(), top.theta),
-            limit,
+            stall_limit(problem, blocks.C),
         )
         state = LSQState(
-            blocks,
-            loss,
-            h_min,
-            mv.search,
-            state.scale,
-            state.outputs,
-            measures,
-            done,
-            result,
-            ~false,
-            top,
+            blocks, loss, h_min, mv.search, state.scale, measures, done, result, ~false, top
         )
         return params, state
 

@@ -263,16 +263,7 @@ class _AbstractOptax(AbstractSolver):
         small_loss, small_grad = self._thresholds(obj, grad_norm(g_new))
         final = (count >= self.max_steps) | small_loss | small_grad
         fo, stationary, scale, degenerate = check_first_order(
-            problem,
-            new,
-            C,
-            g_new,
-            state.scale,
-            stall,
-            self.gtol,
-            self.strategy,
-            final=final,
-            outputs=state.outputs,
+            problem, new, C, g_new, state.scale, stall, self.gtol, self.strategy, final=final
         )
         return new, _OptaxState(
             opt_state,
