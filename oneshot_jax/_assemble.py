@@ -67,7 +67,7 @@ class Out(NamedTuple):
 def _stage_out(s, best) -> StageOut:
     """The best start's rows of one solver's bounded history (`_history`: a prefix of the
     buffer, steps increasing), its last iterate written after the rows before its last step
-    (the final iterate's validation loss: NaN, not recorded)."""
+    (with its validation loss, the `Best`'s last score)."""
     n = s.num_steps[best]
     step = s.history.step
     if step.ndim == 2:  # (starts taken in turn: each start's own steps)
@@ -85,7 +85,7 @@ def _stage_out(s, best) -> StageOut:
         after(s.history.theta[:, best], s.final_theta[best]),
         rows,
         n,
-        None if val is None else after(val[:, best], jnp.full((), jnp.nan, val.dtype)),
+        None if val is None else after(val[:, best], s.best.last[best].astype(val.dtype)),
     )
 
 
@@ -117,7 +117,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.degenerate[best],
         m.vanished[best],
         m.limit[best],
-        None if final.best is None else final.best.score[best],
+        None if final.best is None else final.best.returned_score()[best],
         final.solver_result._value,
     )
 

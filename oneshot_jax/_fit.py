@@ -130,7 +130,8 @@ def _solve(
     # (where no start has a finite score, the held-out data tell nothing: the loss ranks)
     rank = final.loss
     if final.best is not None:
-        rank = jnp.where(jnp.any(jnp.isfinite(final.best.score)), final.best.score, rank)
+        score = final.best.returned_score()
+        rank = jnp.where(jnp.any(jnp.isfinite(score)), score, rank)
     best = jnp.argmin(jnp.where(jnp.isfinite(rank), rank, jnp.inf))
     params = jax.tree_util.tree_map(lambda a: a[best], final.params)
     blocks = (

@@ -168,8 +168,8 @@ class FitHistory(eqx.Module):
     - `theta`: the iterates, theta's parameter pytree with a leading axis of rows.
     - `step`: the step each row was recorded at, counted from the start of its stage.
     - `stage`: which solver of a sequence the row belongs to (0 for a single solver).
-    - `validation`: with `fit(validation=...)`, the validation loss of each row (NaN
-        for a stage's final row), else None.
+    - `validation`: with `fit(validation=...)`, the validation loss of each row, else
+        None.
     """
 
     loss: np.ndarray
@@ -304,8 +304,9 @@ class FitResult(eqx.Module):
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.
     - `window_starts`: for a fit with `window=`, the first sample of each window (one
         per row of `x0`); else None.
-    - `validation_loss`: with `fit(validation=...)`, the lowest validation loss (that of
-        the returned iterate); else None.
+    - `validation_loss`: with `fit(validation=...)`, the validation loss of the returned
+        iterate (the lowest, or the solver's last iterate where it ties with the lowest:
+        `Validation`); else None.
     - `weight`: `fit(weight=...)`, the output weight Q (None for the identity), which
         `predict` uses by default to estimate a new record's x0.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time

@@ -55,7 +55,13 @@ class Best(NamedTuple):
     params: Params  # (S, ...)
     val_x0: jax.Array  # (S, N, n_x)
     since: jax.Array  # (S,) int
-    here: jax.Array  # (S,) bool: the best iterate is this solver's current one
+    here: jax.Array  # (S,) bool: the best iterate is this solver's current one (or ties it)
+    last: jax.Array  # (S,) the score of this solver's current iterate
+
+    def returned_score(self):
+        """The score of the iterate the fit returns: the current one where it is the best
+        or ties with it (`here`), else the lowest."""
+        return jnp.where(self.here, self.last, self.score)
 
 
 class _Carry(NamedTuple):
@@ -110,21 +116,26 @@ def _scores(problem: FitProblem, params: Params, val_x0):
     )
 
 
-def _update_best(best: Best, params, score, val_x0, running):
+def _update_best(best: Best, params, score, val_x0, running, tie):
     """Keep the iterate where its score improves on the best; count the others (a start
-    that has stopped keeps its count). The current iterate is the best one (`here`) where
-    it improves on it or ties with it: a step that a solver rejects leaves the iterate,
-    and its score, as they were, and the point the solver stops at is then still the best."""
+    that has stopped keeps its count). The current iterate stands for the best one
+    (`here`) where it improves on it or ties with it, within `tie` (`Monitor.tie`) of the
+    lowest score: a step that a solver rejects leaves the iterate, and its score, as they
+    were, and the point the solver stops at is then still the best; and a solver that
+    converges past the lowest score by a difference the held-out records cannot resolve
+    keeps its solution."""
     better = score < best.score
+    lowest = jnp.where(better, score, best.score)
     return Best(
-        jnp.where(better, score, best.score),
+        lowest,
         _freeze(better, params, best.params),
         val_x0,
         # (no finite score yet: nothing to improve on, so no patience spent)
         jnp.where(
             better, 0, best.since + (running & jnp.isfinite(best.score)).astype(best.since.dtype)
         ),
-        (score <= best.score) | (best.here & ~running),
+        (score <= lowest + tie(lowest)) | (best.here & ~running),
+        score,
     )
 
 
@@ -172,15 +183,18 @@ def iterate(
         score, val_x0 = _scores(problem, params, guess)
         if best is None:
             best = Best(
-                score, params, val_x0, jnp.zeros(n_starts, jnp.int32), jnp.ones(n_starts, bool)
+                score,
+                params,
+                val_x0,
+                jnp.zeros(n_starts, jnp.int32),
+                jnp.ones(n_starts, bool),
+                score,
             )
         else:  # the starting point is the last solver's final iterate
             best = _update_best(
-                best._replace(here=jnp.zeros_like(best.here)), params, score, val_x0, ~done
+                best._replace(here=jnp.zeros_like(best.here)), params, score, val_x0, ~done, mon.tie
             )
-            best = best._replace(
-                since=jnp.zeros_like(best.since), here=best.here | (score <= best.score)
-            )
+            best = best._replace(since=jnp.zeros_like(best.since))
     if hist is not None and not primes:
         hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
@@ -201,7 +215,7 @@ def iterate(
         score, best = None, c.best
         if mon is not None:
             score, val_x0 = _scores(problem, params, c.best.val_x0)
-            best = _update_best(c.best, params, score, val_x0, ~c.done)
+            best = _update_best(c.best, params, score, val_x0, ~c.done, mon.tie)
             if primes:  # (the start's score is in `best` already)
                 best = _where(step == 0, c.best, best)
             if mon.patience is not None:

@@ -46,11 +46,14 @@ class Validation(eqx.Module):
     - `t`: the records' sample times, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`), as `fit`'s `t`.
 
-    The fit returns the iterate with the lowest score over all its solvers; where that
-    is not the iterate a solver stopped at, its stop reason is `RESULTS.validation`
-    (not a success: the point is not a stationary point of the training loss).
-    `FitResult.history.validation` holds the score of each recorded row and
-    `FitResult.validation_loss` the best one.
+    The fit returns the iterate with the lowest score over all its solvers, or the one
+    the last solver stopped at where its score ties with the lowest: above it by less
+    than 1 % of the score's own standard deviation (score sqrt(2 / n), n the samples
+    scored times the outputs; a difference that the held-out records cannot resolve).
+    Where the returned iterate is not the one a solver stopped at, its stop reason is
+    `RESULTS.validation` (not a success: the point is not a stationary point of the
+    training loss). `FitResult.history.validation` holds the score of each recorded row
+    and `FitResult.validation_loss` that of the returned iterate.
     """
 
     u: Any
@@ -82,6 +85,11 @@ class Validation(eqx.Module):
             raise ValueError(
                 f"`Validation(x0_steps=...)` must be an integer >= 0, got {self.x0_steps!r}."
             )
+
+
+# Two validation scores tie where they differ by less than this fraction of the score's
+# own standard deviation (`Monitor.tie`).
+TIE = 0.01
 
 
 class Monitor(eqx.Module):
@@ -131,6 +139,16 @@ class Monitor(eqx.Module):
         count = self.u.shape[0] * (self.u.shape[1] - start)
         score = jnp.sum(sums) / count
         return jnp.where(jnp.isfinite(score), score, jnp.inf), x0s
+
+    def tie(self, score):
+        """The difference of scores below which two iterates tie on these records:
+        `TIE` times the standard deviation of the score itself, score sqrt(2 / n) for n
+        independent squared residuals of equal variance (the samples after the head
+        times the outputs). A fit that converges with a score this close to the lowest
+        returns its solution, not an iterate the records cannot tell apart from it."""
+        start = 0 if self.n is None else self.n
+        n = self.z.shape[0] * (self.z.shape[1] - start) * self.z.shape[2]
+        return TIE * score * (2.0 / n) ** 0.5
 
 
 def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
