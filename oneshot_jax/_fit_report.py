@@ -251,9 +251,10 @@ def vanished_note(names) -> str:
     """What the columns that vanished along the fit mean (`stop_info["vanished"]`)."""
     listed = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
     return (
-        f"The Jacobian columns of {listed} vanished along the fit (below 1e-4 of the largest "
-        "norm they had): a term that switched itself off (a gain at 0, a closed gate, a "
-        "dead unit), at a minimum or on a plateau; if it should act, start it elsewhere"
+        f"The Jacobian columns of {listed} vanished along the fit (shrunk 1e4 times more "
+        "than the least-shrunk column): a term that switched itself off (a gain at 0, a "
+        "closed gate, a dead unit), at a minimum or on a plateau; if it should act, start "
+        "it elsewhere"
     )
 
 

@@ -38,11 +38,16 @@ At a degenerate minimum a column of J vanishes with the gradient (a parameter c 
 as c^2 u, the minimum at c = 0: J e_c = 2 c u and g_c = 2 c u^T r), and its cosine stays
 at |u^T r| / (||u|| ||r||), however close to the minimum: the measure is then no test of
 stationarity. Where no step decreases C any more (a stall), a column whose squared norm
-has fallen below 1e-8 times the largest it had along the fit is measured at that
-largest norm instead (More's running scaling, "The Levenberg-Marquardt algorithm:
-implementation and theory", 1978, eq. (6.3); `stall_test`): the gradient is then tested
-in the scaling the parameter had before its column vanished, and the fit converges there
-where that measure is below the round-off limit (`Measures.degenerate` says so). Whatever
+has shrunk 1e8 times more than the least-shrunk column (its squared norm against the
+largest it had along the fit) is measured at that largest norm instead (More's running
+scaling, "The Levenberg-Marquardt algorithm: implementation and theory", 1978, eq.
+(6.3); `stall_test`): the gradient is then tested in the scaling the parameter had
+before its column vanished, and the fit converges there where that measure is below the
+round-off limit and no step along those columns lowers C by more than sqrt(eps) C
+(`descends`; `Measures.degenerate` says so). Relative shrinkage, because every column
+shrinks alike where the start was unstable (1e20 there), a change of the loss's scale;
+the descent, because a float32 fit whose columns of R and C shrank 1e8-fold in one step
+read stationary at their largest norm with a loss 7000 times the optimum's. Whatever
 the stop, `Measures.vanished` names the columns that vanished along the fit: a term that
 switched itself off (a gain at 0, a closed gate), at a minimum or on a plateau.
 
@@ -99,6 +104,11 @@ from ._cost import weigh
 from ._linalg import floor
 from ._problem import FitProblem, Params
 from ._strategy import dense_jacobian_fits
+
+# A decrease of the objective counts where it is above this many eps of its round-off,
+# sqrt(C Z) + C (Z the outputs' squared size, `output_norm`): two evaluations of one point
+# by two programs (a simulation and a linearisation) differ by up to about that.
+SAME_PATH = 100.0
 
 # A column of J has vanished along the fit where its squared norm is at most this fraction
 # of the largest it had (a norm below 1e-4 of it), in every precision (`stall_test`).
@@ -279,23 +289,33 @@ def _cosine(g, d, norm):
     return jnp.where(g == 0, 0.0, jnp.abs(g) / (jnp.sqrt(d) * norm))
 
 
-def vanished_columns(d, top):
-    """The columns that vanished along the fit: d_i <= VANISHED top_i with 0 < top_i < inf."""
-    # (Not where top is inf: a column that overflowed, inf <= VANISHED * inf, did not vanish.)
-    return (top > 0) & jnp.isfinite(top) & (d <= VANISHED * top)
+def vanished_columns(d_t, top_t, d_x, top_x):
+    """The theta and x0 columns that vanished along the fit, each a mask of its `d`'s
+    shape: d_i / top_i <= VANISHED s with 0 < top_i < inf, s the largest d_j / top_j of
+    all the columns. Relative to s: where every column shrank alike (a start at which the
+    model was unstable, whose columns were 1e20 times those at the fit's end), the loss's
+    scale changed, and no term switched itself off."""
+
+    def ratio(d, top):
+        # (Not where top is inf: a column that overflowed, inf <= VANISHED * inf, did not
+        # vanish.)
+        ok = (top > 0) & jnp.isfinite(top)
+        return ok, jnp.where(ok, d / jnp.where(ok, top, 1.0), 0.0)
+
+    (ok_t, r_t), (ok_x, r_x) = ratio(d_t, top_t), ratio(d_x, top_x)
+    s = jnp.maximum(jnp.max(r_t, initial=0.0), jnp.max(r_x, initial=0.0))
+    s = jnp.where(s > 0, s, 1.0)
+    return ok_t & (r_t <= VANISHED * s), ok_x & (r_x <= VANISHED * s)
 
 
-def vanished(d, top):
-    """Marquardt's diagonal with the columns that vanished along the fit (`stall_test`)
-    at the largest value `top` they had."""
-    return jnp.where(vanished_columns(d, top), top, d)
-
-
-def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None):
+def stall_test(
+    problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_t, top_x, fo=None, stall=True
+):
     """The first-order test where no step decreases C any more (a stall; see the module
     docstring): the measure `first_order`, stationary at most `stall_limit`; and, where
     that fails, the measure with the columns that vanished along the fit at the largest
-    norm they had (`vanished`; More 1978, eq. (6.3)), stationary at most the same limit.
+    norm they had (`vanished`; More 1978, eq. (6.3)), stationary at most the same limit
+    where no step along those columns decreases C (`descends`).
 
     **Arguments:**
 
@@ -303,6 +323,8 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
     - `top_t`, `top_x`: the largest diag(J^T J) of each column along the fit (the shapes
         of `d_t` and `d_x`).
     - `fo`: `first_order` at `params` where the caller has it (else computed here).
+    - `stall`: whether the solver stalls at `params` (the descent along the vanished
+        columns is tried only there).
 
     **Returns:**
 
@@ -312,9 +334,61 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
     limit = stall_limit(problem, C)
     if fo is None:
         fo = first_order(problem, params, C, g, d_t, d_x)
-    kept = first_order(problem, params, C, g, vanished(d_t, top_t), vanished(d_x, top_x))
-    degenerate = (fo > limit) & (kept <= limit)
+    gone_t, gone_x = vanished_columns(d_t, top_t, d_x, top_x)
+    kept = first_order(
+        problem, params, C, g, jnp.where(gone_t, top_t, d_t), jnp.where(gone_x, top_x, d_x)
+    )
+    candidate = (fo > limit) & (kept <= limit)
+    # (A column can shrink by 1e8 without its parameter switching off: a start where the
+    # model was unstable, or an initial state of 1e7, had columns 1e10 larger than at the
+    # fit's end. The measure at their largest norm then read 1e-22 at a point where a
+    # step along them still lowered C 165-fold; such a column is not at a minimum.)
+    down = lazy_cond(
+        candidate & stall,
+        lambda: descends(problem, params, g, d_t, d_x, gone_t, gone_x),
+        jnp.array(False),
+    )
+    degenerate = candidate & ~down
     return jnp.where(degenerate, kept, fo), (fo <= limit) | degenerate, degenerate
+
+
+# The step sizes `descends` tries, relative to the diagonal Gauss-Newton step.
+DESCENT_TRIALS = tuple(10.0**-k for k in range(8))
+
+
+def descends(problem: FitProblem, params: Params, g: Params, d_t, d_x, gone_t, gone_x):
+    """Whether a step along the columns `gone_t`, `gone_x` (those that vanished along the
+    fit) decreases the objective beyond its round-off: the diagonal Gauss-Newton step
+    -g_i / d_i of those columns alone (projected), scaled by each of `DESCENT_TRIALS`,
+    against the objective at `params` evaluated by the same program: a decrease counts
+    above sqrt(eps) C and above the round-off `SAME_PATH` eps (sqrt(C Z) + C), Z the
+    outputs' `output_norm`. At a degenerate minimum (c^2 u, the minimum at c = 0) every
+    such step raises C or leaves it within that; on a plateau at a limit (a closed gate
+    sigmoid(s) w, s -> -inf) the step gains what the term still contributes, 1e-10 C
+    there; where one lowers C more, the vanished columns' measure is no test of
+    stationarity."""
+    dtype = problem.dtype
+    eps = jnp.finfo(dtype).eps
+    rel = eps**2
+
+    def objective(p):
+        return problem.loss(p) + problem.g(p.theta)
+
+    here = objective(params)
+    round_off = SAME_PATH * eps * (jnp.sqrt(jnp.abs(here) * output_norm(problem)) + jnp.abs(here))
+    resolved = jnp.maximum(round_off, jnp.sqrt(eps) * jnp.abs(here))
+    step_t = jnp.where(gone_t, -g.theta / (floor(d_t, rel) if d_t.size else d_t), 0.0)
+    step_x = jnp.where(gone_x, -g.x0 / (floor(d_x, rel) if d_x.size else d_x), 0.0)
+
+    def lower(alpha):
+        theta = params.theta + alpha * step_t
+        if params.theta.size and (problem.constrained or problem.regulariser is not None):
+            theta = problem.feasible(theta)
+        value = objective(Params(theta, params.x0 + alpha * step_x))
+        return jnp.isfinite(value) & (value < here - resolved)
+
+    alphas = jnp.asarray(DESCENT_TRIALS, dtype)
+    return jnp.any(jax.lax.map(lower, alphas)) & jnp.isfinite(here)
 
 
 def data_scale(problem: FitProblem):
@@ -467,7 +541,7 @@ def check_first_order(
         fo = first_order(problem, params, C, half, scale.d_t, scale.d_x)
     met = fo <= gtol
     at_stall, still, degenerate = stall_test(
-        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x, fo
+        problem, params, C, half, scale.d_t, scale.d_x, scale.top_t, scale.top_x, fo, stall
     )
     degenerate = stall & ~met & degenerate
     fo = jnp.where(degenerate, at_stall, fo)

@@ -1102,6 +1102,51 @@ def test_columns_that_vanished_are_named_at_a_plateau_and_at_a_limit():
     assert float(off.loss) <= float(r.loss) <= float(off.loss) * (1 + 1e-6)
 
 
+def test_columns_that_shrank_alike_from_an_unstable_start_are_not_a_degenerate_minimum():
+    """x+ = a x + b u from a = 1.3 (unstable: at the start every column is 1e20 times its
+    size at the optimum). L-BFGS's first steps bring a inside the unit circle; every column
+    shrank alike, which is a change of the loss's scale, not a term that switched itself
+    off: the fit goes on to the optimum that LM finds from the truth, and names no column."""
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((200, 1))
+    best = oj.fit(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u, z, solver=oj.LevenbergMarquardt())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the start is unstable)
+        r = oj.fit(lin, {"a": 1.3, "b": 0.3}, np.ones(1), u, z, solver=oj.LBFGS())
+    assert best.success and r.success and "vanished" not in r.stop_info
+    assert float(r.loss) == pytest.approx(float(best.loss), rel=1e-9)
+
+
+def test_a_float32_plateau_that_still_descends_is_not_called_converged():
+    """float32 RC circuit x+ = x + 0.1 (u / C - x / (R C)) with R ~ 1e4, C ~ 1e-4: L-BFGS's
+    first step shrinks the columns of R and C 1e8-fold and the fit stops far from the
+    optimum (a loss 7000 times the optimum's). Measured at their largest norm the columns
+    read stationary, but a step along them still lowers the loss: not a degenerate
+    minimum, so not a success."""
+    rng = np.random.default_rng(1)
+    f32 = np.float32
+    rc = oj.Model(lambda x, u, p: x + 0.1 * (u / p["C"] - x / (p["R"] * p["C"])), lambda x, u, p: x)
+    u = 1e-4 * np.sign(np.sin(np.arange(300) / 15.0))[:, None]
+    _, z = oj.simulate(rc, {"R": 1e4, "C": 1e-4}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((300, 1))
+    best = oj.fit(rc, {"R": 1e4, "C": 1e-4}, np.zeros(1), u, z)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(
+            rc,
+            {"R": f32(2e4), "C": f32(0.5e-4)},
+            np.zeros(1, f32),
+            u.astype(f32),
+            z.astype(f32),
+            solver=oj.LBFGS(),
+        )
+    assert np.asarray(r.loss).dtype == np.float32 and best.success
+    assert r.success == (float(r.loss) <= 1.01 * float(best.loss)), (r.status, float(r.loss))
+
+
 def test_the_step_size_in_standard_errors_counts_the_rank():
     """sqrt(pred (R - rank) / C): the degrees of freedom are the observations less the
     numerical rank of J."""

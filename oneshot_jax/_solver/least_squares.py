@@ -67,6 +67,7 @@ import jax.numpy as jnp
 
 from .._linalg import floor
 from .._optimality import (
+    SAME_PATH,
     Measures,
     data_scale,
     lazy_cond,
@@ -90,15 +91,16 @@ from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
 from .base import AbstractSolver, check_options
 
-# A step accepted for a decrease of at most this many eps (sqrt(C Z) + C), Z the outputs'
-# squared size (`_optimality.output_norm`; eps sqrt(C Z) bounds the round-off of C that
-# the outputs' precision causes), is checked against the round-off of C measured at the
-# current point (`AbstractLeastSquares._move`).
-SAME_PATH = 100.0
-
 # The most Jacobian columns per trajectory (free entries of theta and of one x0) for which
 # a step linearises at its trial point (`AbstractLeastSquares._linearises_trials`).
 TRIAL_COLUMNS = 16
+
+
+def _vanished_theta(diagonals, top: Params):
+    """The theta columns that vanished along the fit (`vanished_columns`), from the
+    linearisation's `diagonals` and the largest ones along the fit."""
+    d_t, d_x = diagonals
+    return vanished_columns(d_t, top.theta, d_x, top.x0)[0]
 
 
 class LSQState(NamedTuple):
@@ -495,7 +497,9 @@ class AbstractLeastSquares(AbstractSolver):
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
         top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
-        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
+        at_stall, still, degenerate = blocks.stall_test(
+            problem, params, top.theta, top.x0, fo, round_off | small_step
+        )
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
@@ -530,7 +534,7 @@ class AbstractLeastSquares(AbstractSolver):
             se,
             small_step,
             degenerate,
-            vanished_columns(blocks.diag_t(), top.theta),
+            _vanished_theta(blocks.diagonals(params), top),
             stall_limit(problem, blocks.C),
         )
         state = LSQState(

@@ -310,7 +310,8 @@ class _AbstractOptax(AbstractSolver):
 
     def measures(self, state):
         nan = jnp.full_like(state.loss, jnp.nan)
-        gone = vanished_columns(state.scale.d_t, state.scale.top_t)
+        sc = state.scale
+        gone = vanished_columns(sc.d_t, sc.top_t, sc.d_x, sc.top_x)[0]
         # At a non-finite loss or gradient (a diverged fit) the measure divides by an
         # infinite ||r|| and reads 0: it measures nothing there, report NaN.
         finite = jnp.isfinite(state.loss) & jnp.isfinite(grad_norm(state.grad))
