@@ -313,10 +313,24 @@ class Data(NamedTuple):
 
 
 def check_weight(weight, n_z, dtype):
-    """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix; None stays None."""
+    """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix (a scalar for
+    one output, as a (1,) vector); None stays None."""
     if weight is None:
         return None
     w = as_float(weight, "weight", dtype)
+    if w.ndim == 0:
+        # (its sign first: a wrong shape would hide it)
+        check_finite(w, "weight")
+        if is_concrete(w) and float(w) < 0:
+            raise ValueError(f"`weight` (Q of eq. 4) must be non-negative, got {float(w):g}.")
+        if n_z != 1:
+            raise ValueError(
+                "`weight` is a scalar, which is taken for one output only: the model has "
+                f"n_z = {n_z} outputs, and a scalar would weigh them all alike (the estimates "
+                f"of no weight); give one weight per output, shape ({n_z},) (a diagonal Q), "
+                f"or a ({n_z}, {n_z}) PSD matrix Q."
+            )
+        w = w.reshape(1)
     if w.shape not in ((n_z,), (n_z, n_z)):
         raise ValueError(
             f"`weight` must have shape ({n_z},) (a diagonal Q) or ({n_z}, {n_z}) "
@@ -328,7 +342,8 @@ def check_weight(weight, n_z, dtype):
         scale = max(float(np.max(np.abs(wn))), 1.0e-300)
         if w.ndim == 1:
             if np.any(wn < 0):
-                raise ValueError("`weight` (diagonal of Q) must be non-negative.")
+                bad = ", ".join(f"weight[{i}] = {wn[i]:g}" for i in np.flatnonzero(wn < 0)[:8])
+                raise ValueError(f"`weight` (diagonal of Q) must be non-negative, got {bad}.")
         else:
             if not np.allclose(wn, wn.T, rtol=1e-10, atol=1e-12 * scale):
                 raise ValueError("`weight` must be a symmetric matrix Q.")

@@ -646,7 +646,8 @@ def fit(
             stacklevel=2,
         )
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
-        result = dataclasses.replace(result, weight=np.asarray(weight, result.x0.dtype))
+        q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
+        result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
         _warn_unequal_noise(result.residuals, weight, result.std)
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
