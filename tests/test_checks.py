@@ -11,6 +11,7 @@ import pytest
 
 import oneshot_jax as oj
 from oneshot_jax import constraints as oc
+from oneshot_jax.internal import fixed_mask
 
 N_X, N_U, N_Z, T = 3, 2, 2, 6
 
@@ -939,6 +940,34 @@ def test_a_fixed_mask_must_have_its_parameters_shape():
         oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([True])})
     r = oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([False, True])})
     assert float(r.theta["k"][1]) == 1.0  # (the baseline: a mask of the leaf's shape)
+
+
+def test_a_list_of_booleans_is_the_mask_of_an_array_theta():
+    # (MATLAB's habit, a parameter vector and a vector of Fixed flags: a PyTreeDef message)
+    model = oj.Model(lambda x, u, th: jnp.stack([th[0] * x[0] + th[1] * u[0]]), lambda x, u, th: x)
+    theta0 = np.array([0.5, 1.0])
+    r = oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed=[False, True])
+    assert float(r.theta[1]) == 1.0 and r.names == ("theta[0]",)
+    np.testing.assert_array_equal(fixed_mask((True, False), jnp.asarray(theta0)), [True, False])
+    np.testing.assert_array_equal(
+        fixed_mask({"k": [False, True]}, {"k": theta0, "m": 1.0}), [False, True, False]
+    )
+    np.testing.assert_array_equal(fixed_mask([True, False], [theta0, 1.0]), [1, 1, 0])
+    hint = (
+        r"a boolean array of theta0's shape \(2,\) \(True where held\), "
+        r"e.g. np.array\(\[True, False\]\)"
+    )
+    for bad in ([[True], [False, True]], {"a": True}):
+        with pytest.raises(ValueError, match=rf"`fixed` must be a boolean, or {hint}; got"):
+            fixed_mask(bad, theta0)
+    with pytest.raises(ValueError, match=rf"names parameters \(\['k'\]\).*give {hint} instead"):
+        fixed_mask("k", theta0)
+    with pytest.raises(
+        ValueError, match=r"entries must be booleans \(True where held\).*: \[1, 0\]"
+    ):
+        fixed_mask([1, 0], theta0)
+    with pytest.raises(ValueError, match=r"`fixed` entry of shape \(1,\) does not fit"):
+        fixed_mask([True], theta0)
 
 
 def test_newey_west_lags_must_fit_the_shortest_record():
