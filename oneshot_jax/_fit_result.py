@@ -371,6 +371,15 @@ class FitResult(eqx.Module):
                     f"got shape {shape}{hint}."
                 )
 
+    def _rows(self) -> str:
+        """What the rows of a multi-record (or windowed) fit's x0 are, for the messages
+        of `simulate` and `predict`."""
+        what = "window" if self.window_starts is not None else "trajectory (record)"
+        return (
+            f"this result holds {np.shape(self.x0)[0]} initial states, one per {what} of "
+            f"the fit (`result.x0` of shape {np.shape(self.x0)})"
+        )
+
     def _measurement_noise(self):
         """The measurement noise covariance the fit estimated, sigma^2 Q^{-1} (Q the fit's
         weight, I without one; sigma^2 = SSE / dof of its weighted residuals, as its
@@ -448,9 +457,10 @@ class FitResult(eqx.Module):
         at the sample times `t` for a model of time-stamped records.
 
         By default `x0` is the fitted initial state, which needs the shape of the fitted
-        data; after a fit with `window=`, it is the state of the window that starts at
-        sample 0 (the record's initial state, for a simulation of the whole record), and
-        a ValueError says so where no window starts there.
+        data: after a fit on N records, N records of `u` (for record i alone, pass
+        `x0=result.x0[i]`); after a fit with `window=`, it is the state of the window
+        that starts at sample 0 (the record's initial state, for a simulation of the whole
+        record), and a ValueError says so where no window starts there.
 
         **Returns:**
 
@@ -475,6 +485,16 @@ class FitResult(eqx.Module):
                         "that row), or use `result.predict(u, z_head)`, which estimates it."
                     )
                 x0 = np.asarray(self.x0)[at_zero[0]]
+            if np.ndim(x0) == 2:
+                n_rec = len(u) if is_ragged(u) else np.shape(u)[0] if np.ndim(u) == 3 else None
+                if n_rec != np.shape(x0)[0]:
+                    held = "one record" if n_rec in (None, 1) else f"{n_rec} records"
+                    raise ValueError(
+                        f"{self._rows()}, and `u` holds {held}: pass `x0=result.x0[i]` to "
+                        "simulate from the fitted initial state of record i (or an x0 of "
+                        "your own), or u of all the records, shape "
+                        f"({np.shape(x0)[0]}, T, n_u)."
+                    )
         return simulate(self.model, self.theta, x0, u, t=t)
 
     def predict(self, u, z_head, *, t=None, **kwargs):
@@ -509,8 +529,24 @@ class FitResult(eqx.Module):
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
             )
         self._check_u(u)
+        if is_ragged(u) or np.ndim(u) == 3:
+            raise ValueError(
+                f"`u` must be one record, shape (T, n_u), got {len(u)} records: predict "
+                "them one at a time, `result.predict(u[i], z_head[i])`."
+            )
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
+        given_x0 = kwargs.get("x0")
+        if (
+            given_x0 is not None
+            and np.ndim(self.x0) == 2
+            and np.shape(given_x0) == np.shape(self.x0)
+        ):
+            raise ValueError(
+                f"`x0` (the starting guess of the record's initial state) must have shape "
+                f"(n_x,); {self._rows()}: pass `x0=result.x0[i]` to start from that of "
+                "record i."
+            )
         method = kwargs.pop("method", "lsq")
         noise = None
         given = kwargs.get("measurement_noise") is not None or kwargs.get("weight") is not None
