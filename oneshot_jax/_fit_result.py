@@ -521,6 +521,11 @@ class FitResult(eqx.Module):
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
+            Every entry of x0 is estimated by default, also those the fit held
+            (`fit(estimate_x0=mask)`: their values were those of the fitted records, not
+            of a new one); `estimate=result.x0_estimated` holds them at their values in
+            `x0=` (e.g. `x0=result.x0`, for a state known to be the same: a velocity 0
+            at rest), as MATLAB's `findstates` holds a model's fixed initial states.
 
         **Returns:**
 

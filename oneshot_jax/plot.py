@@ -182,8 +182,11 @@ def compare(
         (the data it was fitted on, or a record from the same initial state; on another
         record it warns; after a `window=` fit, from the state of its window at sample
         0, as `FitResult.simulate`), or, with `n`, predicted from the first n samples of `z`
-        (`FitResult.predict`; MATLAB's `compare` estimates the initial state too, but from
-        the whole record, and scores every sample: pass the `z` of
+        (`FitResult.predict`, which estimates every entry of x0, also those the fit held;
+        to hold those, pass the Prediction of
+        `result.predict(u, z[:n], x0=known, estimate=result.x0_estimated)` instead;
+        MATLAB's `compare` estimates the initial state too, but from the whole record,
+        and scores every sample: pass the `z` of
         `result.predict(u, z)` for its numbers); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.

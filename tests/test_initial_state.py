@@ -250,6 +250,19 @@ def test_one_record_of_a_multi_record_fit_is_named_by_its_row_of_x0():
     np.testing.assert_allclose(r.predict(u2, z2[:N_HEAD], x0=r.x0[1]).x0, [0.0, 1.0], atol=1e-7)
 
 
+def test_fit_result_predict_estimates_the_entries_the_fit_held_unless_told():
+    """The documented default (a docstring read as if predict held them): a new record's
+    x0 is estimated whole; `estimate=result.x0_estimated` holds the fit's held entries at
+    their values in `x0=`."""
+    u, z, _ = pendulum_record(60, 11, 0.0)
+    r = oj.fit(PENDULUM, PEND_THETA, np.array([0.7, -0.3]), u, z, estimate_x0=[True, False])
+    assert r.x0_estimated.tolist() == [True, False] and float(r.x0[1]) == -0.3
+    u_new, z_new, _ = pendulum_record(80, 12, 0.0, x0=(-0.5, 0.9))
+    np.testing.assert_allclose(r.predict(u_new, z_new[:N_HEAD]).x0, [-0.5, 0.9], rtol=1e-7)
+    held = r.predict(u_new, z_new[:N_HEAD], x0=r.x0, estimate=r.x0_estimated)
+    assert float(held.x0[1]) == -0.3 and float(held.estimate.std[1]) == 0.0
+
+
 def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
     """An output the fit ignored (weight 0: a sensor with an offset of 5) stays ignored when
     `predict` estimates a new record's x0, also after save and load; it used the identity
