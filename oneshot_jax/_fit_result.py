@@ -450,10 +450,15 @@ class FitResult(eqx.Module):
 
     @property
     def ci95(self):
-        """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper)."""
+        """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper) of NumPy arrays
+        shaped like theta's parameters, as `std` (0-d for a scalar, not np.float64)."""
         params, _ = _pytree.split(self.theta)
-        lo = jax.tree_util.tree_map(lambda v, s: np.asarray(v) - 1.96 * s, params, self.std)
-        hi = jax.tree_util.tree_map(lambda v, s: np.asarray(v) + 1.96 * s, params, self.std)
+        lo = jax.tree_util.tree_map(
+            lambda v, s: np.asarray(np.asarray(v) - 1.96 * s), params, self.std
+        )
+        hi = jax.tree_util.tree_map(
+            lambda v, s: np.asarray(np.asarray(v) + 1.96 * s), params, self.std
+        )
         return lo, hi
 
     def simulate(self, u, x0=None, *, t=None):

@@ -395,6 +395,17 @@ def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path
     assert str(loaded) == str(fitted)
 
 
+def test_intervals_are_arrays_as_the_standard_errors_are(fitted, tmp_path):
+    # (`ci95` entries were np.float64 where `std` and `theta` hold 0-d arrays)
+    loaded = oj.load_result(fitted.save(tmp_path / "osc"), model=MODEL)
+    for r in (fitted, loaded):
+        lo, hi = r.ci95
+        for name in ("w0sq", "c", "b"):
+            for a in (lo[name], hi[name], r.std[name]):
+                assert type(a) is np.ndarray and a.shape == np.shape(r.theta[name]) == ()
+        assert float(lo["c"]) == float(r.theta["c"]) - 1.96 * float(r.std["c"])
+
+
 def test_nested_dicts_keep_their_written_order():
     from oneshot_jax.internal import theta_order
 
