@@ -313,10 +313,24 @@ class Data(NamedTuple):
 
 
 def check_weight(weight, n_z, dtype):
-    """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix; None stays None."""
+    """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix (a scalar for
+    one output, as a (1,) vector); None stays None."""
     if weight is None:
         return None
     w = as_float(weight, "weight", dtype)
+    if w.ndim == 0:
+        # (its sign first: a wrong shape would hide it)
+        check_finite(w, "weight")
+        if is_concrete(w) and float(w) < 0:
+            raise ValueError(f"`weight` (Q of eq. 4) must be non-negative, got {float(w):g}.")
+        if n_z != 1:
+            raise ValueError(
+                "`weight` is a scalar, which is taken for one output only: the model has "
+                f"n_z = {n_z} outputs, and a scalar would weigh them all alike (the estimates "
+                f"of no weight); give one weight per output, shape ({n_z},) (a diagonal Q), "
+                f"or a ({n_z}, {n_z}) PSD matrix Q."
+            )
+        w = w.reshape(1)
     if w.shape not in ((n_z,), (n_z, n_z)):
         raise ValueError(
             f"`weight` must have shape ({n_z},) (a diagonal Q) or ({n_z}, {n_z}) "
@@ -328,7 +342,8 @@ def check_weight(weight, n_z, dtype):
         scale = max(float(np.max(np.abs(wn))), 1.0e-300)
         if w.ndim == 1:
             if np.any(wn < 0):
-                raise ValueError("`weight` (diagonal of Q) must be non-negative.")
+                bad = ", ".join(f"weight[{i}] = {wn[i]:g}" for i in np.flatnonzero(wn < 0)[:8])
+                raise ValueError(f"`weight` (diagonal of Q) must be non-negative, got {bad}.")
         else:
             if not np.allclose(wn, wn.T, rtol=1e-10, atol=1e-12 * scale):
                 raise ValueError("`weight` must be a symmetric matrix Q.")
@@ -799,6 +814,33 @@ def _named_free(fixed, theta):
     return {k: _named_free(fixed[k], v) if k in fixed else False for k, v in theta.items()}
 
 
+def _lists_as_masks(fixed, theta):
+    """`fixed` with a list (or tuple) where theta has an array leaf read as a NumPy array:
+    the MATLAB-style mask `[True, False, False]` of an array theta (or of an array in a
+    dict of theta), which JAX would take for a pytree of three leaves."""
+    if isinstance(fixed, dict) and isinstance(theta, dict):
+        return {k: _lists_as_masks(v, theta[k]) if k in theta else v for k, v in fixed.items()}
+    if isinstance(fixed, (list, tuple)) and theta is not None and _is_leaf(theta):
+        try:
+            return np.asarray(fixed)
+        except ValueError:  # (ragged lists: the structure's own message)
+            return fixed
+    return fixed
+
+
+def _is_leaf(theta) -> bool:
+    return jax.tree_util.treedef_is_leaf(jax.tree_util.tree_structure(theta))
+
+
+def _array_mask_hint(theta) -> str:
+    """What to give as `fixed` for an array theta0."""
+    shape = np.shape(theta)
+    hint = f"a boolean array of theta0's shape {shape} (True where held)"
+    if len(shape) == 1 and shape[0] <= 6:
+        hint += f", e.g. np.array({[i == 0 for i in range(shape[0])]})"
+    return hint
+
+
 def _held_names(fixed, theta):
     """The names `fixed` gives of the parameters it holds ("k", or ["k", "phys.c"], as
     MATLAB's `nlgreyest` users name them; for an equinox module theta also a dict from its
@@ -842,7 +884,8 @@ def fixed_mask(fixed, theta) -> np.ndarray:
     subtree; an array of booleans where theta has an array leaf fixes it per entry. Where
     theta has a dict, `fixed` may name some of its keys: the others are free; it may also
     be a name or a list of names of them (each held whole), as it may for the fields of
-    an equinox module theta (or a dict from their names to booleans).
+    an equinox module theta (or a dict from their names to booleans). A list of booleans
+    where theta has an array leaf is that leaf's mask (`_lists_as_masks`).
     """
     n = sum(int(np.size(leaf)) for leaf in jax.tree_util.tree_leaves(theta))
     if fixed is None:
@@ -852,17 +895,27 @@ def fixed_mask(fixed, theta) -> np.ndarray:
     names = _held_names(fixed, theta)
     if names is not None:
         if not (isinstance(theta, dict) or _is_module(theta)):
+            what = (
+                _array_mask_hint(theta)
+                if _is_leaf(theta)
+                else "a pytree of booleans shaped like theta0"
+            )
             raise ValueError(
                 f"`fixed` names parameters ({names}), but theta0 is a "
-                f"{type(theta).__name__}, not a dict or an equinox module: give a pytree of "
-                "booleans shaped like theta0 instead."
+                f"{type(theta).__name__}, not a dict or an equinox module: give {what} "
+                "instead."
             )
         return _pytree.named_mask(names, theta, "fixed")
-    fixed = _named_free(fixed, theta)
+    fixed = _lists_as_masks(_named_free(fixed, theta), theta)
     leaves, treedef = jax.tree_util.tree_flatten(fixed)
     try:
         subtrees = treedef.flatten_up_to(theta)
     except (ValueError, TypeError) as err:
+        if _is_leaf(theta):  # (an array theta: no pytree to speak of)
+            raise ValueError(
+                f"`fixed` must be a boolean, or {_array_mask_hint(theta)}; got "
+                f"{type(fixed).__name__}."
+            ) from err
         raise ValueError(
             "`fixed` must be a pytree of booleans with the structure of theta0 (or a prefix "
             f"of it: one boolean for a whole subtree); theta0 has "
@@ -872,7 +925,11 @@ def fixed_mask(fixed, theta) -> np.ndarray:
     for f, sub in zip(leaves, subtrees):
         f = np.asarray(f)
         if f.dtype != bool:
-            raise ValueError(f"`fixed` entries must be booleans, got dtype {f.dtype}.")
+            raise ValueError(
+                f"`fixed` entries must be booleans (True where held), got dtype {f.dtype}"
+                + (f": {f.tolist()}" if f.size <= 8 else "")
+                + "."
+            )
         sub_leaves = jax.tree_util.tree_leaves(sub)
         if f.ndim and len(sub_leaves) != 1:
             raise ValueError(

@@ -438,7 +438,9 @@ def fit(
         keys (`fixed={"b": True}`; a nested one as `{"phys": {"c": True}}` or
         `{"phys.c": True}`), or list the names of those it holds (`fixed=["b"]`,
         `fixed="phys.c"`; for an equinox module theta0, its fields' names): the others are
-        free. A leaf held whole is a constant of the
+        free. For an array (in theta0) a list of booleans is its mask, as an array:
+        `fixed=[True, False, False]` for theta0 = np.array([m, c, k]). A leaf held whole
+        is a constant of the
         fit; an entry held inside a leaf is not, and a non-finite derivative with
         respect to it (x**n with respect to n at x < 0) reaches the others: hold such an
         exponent as a leaf of its own, or give it as an integer (data).
@@ -647,7 +649,8 @@ def fit(
             stacklevel=2,
         )
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
-        result = dataclasses.replace(result, weight=np.asarray(weight, result.x0.dtype))
+        q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
+        result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
         _warn_unequal_noise(result.residuals, weight, result.std)
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)

@@ -4,6 +4,8 @@ was written, with units, standard errors and 95 % intervals; the initial states;
 to the data. Also the rows it is built from, which `fit` uses to record theta0's order
 and to check `units=`."""
 
+import warnings
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -266,6 +268,31 @@ def _stationary(result) -> bool:
     return not (np.isfinite(fo) and fo > gtol)
 
 
+def _per_record_fit(result, rows, listed_max=6) -> list[str]:
+    """The line of FIT% per trajectory (or window) of a fit of several: each one's
+    values, or for more than `listed_max` the lowest and highest per output (none for a
+    result saved before `fit_percent_per_record` existed)."""
+    per = result.metrics.get("fit_percent_per_record")
+    if per is None:
+        return []
+    per = np.asarray(per, dtype=np.float64)
+    per = per.reshape(per.shape[0], -1)
+
+    def values(v):
+        return "[" + ", ".join(f"{f:.2f}" for f in v) + "]"
+
+    one = "window" if rows == "windows" else "trajectory"
+    if per.shape[0] <= listed_max:
+        return [f"FIT% per {one}: {', '.join(values(v) for v in per)}"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (an output never measured: NaN)
+        low, high = np.nanmin(per, axis=0), np.nanmax(per, axis=0)
+    return [
+        f"FIT% per {one}: from {values(low)} to {values(high)} over the {per.shape[0]} "
+        f"{rows} (result.metrics['fit_percent_per_record'])"
+    ]
+
+
 def report(result) -> str:
     """What `print(result)` shows (see `FitResult`)."""
     table, modules = _parameter_table(result)
@@ -371,7 +398,13 @@ def report(result) -> str:
         aic = f"nan ({why})"
     else:
         aic = f"{aic:.4g}"
-    out.append(f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}")
+    scores = f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}"
+    if x0.ndim == 2 and x0.shape[0] > 1:
+        # Pooled: each record against the mean of all (MATLAB's compare: one per experiment)
+        out.append(f"pooled over the {x0.shape[0]} {rows}: {scores}")
+        out.extend(_per_record_fit(result, rows))
+    else:
+        out.append(scores)
     at_bound = (result.stop_info or {}).get("at_bound")
     if at_bound:
         listed = ", ".join(at_bound[:8]) + (

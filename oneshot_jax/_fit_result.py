@@ -235,7 +235,8 @@ class FitResult(eqx.Module):
     module, such as a neural residual, as one row with its number of weights; an integer
     of theta, which is data, with its value as "(data, not estimated)"); the initial
     states with their standard errors (the first trajectories of several); FIT% and RMSE
-    per output, and the AIC.
+    per output, and the AIC (pooled over the trajectories or windows of several, with
+    the FIT% of each on a line of its own).
 
     **Fields:**
 
@@ -270,9 +271,12 @@ class FitResult(eqx.Module):
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
     - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries.
     - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, on the fitted data:
-        pooled over all its records (MATLAB's `compare` reports one per experiment), over
-        the windows of a fit with `window=` (each from its own fitted x0, so not the
-        model's open-loop fit of the whole record: `simulate` or `predict` that). The
+        pooled over all its records (each against the mean of all, which records at
+        different operating points inflate), over the windows of a fit with `window=`
+        (each from its own fitted x0, so not the model's open-loop fit of the whole
+        record: `simulate` or `predict` that). `fit_percent_per_record` (N, n_z) is the
+        FIT% of each record (window), as MATLAB's `compare` reports one per experiment
+        (one row for one record). The
         AIC counts the estimated x0 entries as parameters; it is computed on the samples
         where every output that is ever measured is measured (an output never measured
         is left out), and is NaN where there is no such sample (outputs sampled at
@@ -372,6 +376,15 @@ class FitResult(eqx.Module):
                     f"got shape {shape}{hint}."
                 )
 
+    def _rows(self) -> str:
+        """What the rows of a multi-record (or windowed) fit's x0 are, for the messages
+        of `simulate` and `predict`."""
+        what = "window" if self.window_starts is not None else "trajectory (record)"
+        return (
+            f"this result holds {np.shape(self.x0)[0]} initial states, one per {what} of "
+            f"the fit (`result.x0` of shape {np.shape(self.x0)})"
+        )
+
     def _measurement_noise(self):
         """The measurement noise covariance the fit estimated, sigma^2 Q^{-1} (Q the fit's
         weight, I without one; sigma^2 = SSE / dof of its weighted residuals, as its
@@ -438,10 +451,15 @@ class FitResult(eqx.Module):
 
     @property
     def ci95(self):
-        """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper)."""
+        """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper) of NumPy arrays
+        shaped like theta's parameters, as `std` (0-d for a scalar, not np.float64)."""
         params, _ = _pytree.split(self.theta)
-        lo = jax.tree_util.tree_map(lambda v, s: np.asarray(v) - 1.96 * s, params, self.std)
-        hi = jax.tree_util.tree_map(lambda v, s: np.asarray(v) + 1.96 * s, params, self.std)
+        lo = jax.tree_util.tree_map(
+            lambda v, s: np.asarray(np.asarray(v) - 1.96 * s), params, self.std
+        )
+        hi = jax.tree_util.tree_map(
+            lambda v, s: np.asarray(np.asarray(v) + 1.96 * s), params, self.std
+        )
         return lo, hi
 
     def simulate(self, u, x0=None, *, t=None):
@@ -449,9 +467,10 @@ class FitResult(eqx.Module):
         at the sample times `t` for a model of time-stamped records.
 
         By default `x0` is the fitted initial state, which needs the shape of the fitted
-        data; after a fit with `window=`, it is the state of the window that starts at
-        sample 0 (the record's initial state, for a simulation of the whole record), and
-        a ValueError says so where no window starts there.
+        data: after a fit on N records, N records of `u` (for record i alone, pass
+        `x0=result.x0[i]`); after a fit with `window=`, it is the state of the window
+        that starts at sample 0 (the record's initial state, for a simulation of the whole
+        record), and a ValueError says so where no window starts there.
 
         **Returns:**
 
@@ -476,6 +495,16 @@ class FitResult(eqx.Module):
                         "that row), or use `result.predict(u, z_head)`, which estimates it."
                     )
                 x0 = np.asarray(self.x0)[at_zero[0]]
+            if np.ndim(x0) == 2:
+                n_rec = len(u) if is_ragged(u) else np.shape(u)[0] if np.ndim(u) == 3 else None
+                if n_rec != np.shape(x0)[0]:
+                    held = "one record" if n_rec in (None, 1) else f"{n_rec} records"
+                    raise ValueError(
+                        f"{self._rows()}, and `u` holds {held}: pass `x0=result.x0[i]` to "
+                        "simulate from the fitted initial state of record i (or an x0 of "
+                        "your own), or u of all the records, shape "
+                        f"({np.shape(x0)[0]}, T, n_u)."
+                    )
         return simulate(self.model, self.theta, x0, u, t=t)
 
     def predict(self, u, z_head, *, t=None, **kwargs):
@@ -498,6 +527,11 @@ class FitResult(eqx.Module):
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
+            Every entry of x0 is estimated by default, also those the fit held
+            (`fit(estimate_x0=mask)`: their values were those of the fitted records, not
+            of a new one); `estimate=result.x0_estimated` holds them at their values in
+            `x0=` (e.g. `x0=result.x0`, for a state known to be the same: a velocity 0
+            at rest), as MATLAB's `findstates` holds a model's fixed initial states.
 
         **Returns:**
 
@@ -510,8 +544,24 @@ class FitResult(eqx.Module):
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
             )
         self._check_u(u)
+        if is_ragged(u) or np.ndim(u) == 3:
+            raise ValueError(
+                f"`u` must be one record, shape (T, n_u), got {len(u)} records: predict "
+                "them one at a time, `result.predict(u[i], z_head[i])`."
+            )
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
+        given_x0 = kwargs.get("x0")
+        if (
+            given_x0 is not None
+            and np.ndim(self.x0) == 2
+            and np.shape(given_x0) == np.shape(self.x0)
+        ):
+            raise ValueError(
+                f"`x0` (the starting guess of the record's initial state) must have shape "
+                f"(n_x,); {self._rows()}: pass `x0=result.x0[i]` to start from that of "
+                "record i."
+            )
         method = kwargs.pop("method", "lsq")
         noise = None
         given = kwargs.get("measurement_noise") is not None or kwargs.get("weight") is not None

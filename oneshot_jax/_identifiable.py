@@ -491,7 +491,7 @@ def fit_orthogonal(
         raise ValueError("`fixed` holds every physical parameter: nothing to keep orthogonal.")
     (T, n_u), n_x, n_z = u.shape, x0.shape[0], z.shape[1]
     w = np.eye(n_z) if weight is None else np.asarray(weight, dtype=float)
-    w = np.diag(w) if w.ndim == 1 else w
+    w = np.diag(np.atleast_1d(w)) if w.ndim <= 1 else w  # (a scalar for one output)
     if w.shape != (n_z, n_z):
         raise ValueError(f"`weight` must have shape ({n_z},) or ({n_z}, {n_z}), got {w.shape}.")
     vals, vecs = np.linalg.eigh((w + w.T) / 2)

@@ -244,8 +244,10 @@ def estimate_x0(
     - `estimate`: `"lsq"` only: an (n_x,) boolean mask, True for the entries to
         estimate; the others are known and keep their value in `x0` (variance 0), as
         with `fit(estimate_x0=mask)` (MATLAB's `InitialStates(i).Fixed`). Default: every
-        entry. `FitResult.predict` passes it on: `estimate=result.x0_estimated` holds
-        the entries the fit held, at the values given in `x0=`.
+        entry. `FitResult.predict` takes it too, with the same default: it estimates
+        every entry of a new record's x0, also those the fit held (their values were
+        the fitted records'); pass `estimate=result.x0_estimated` there to hold them, at
+        their values in `x0=`.
 
     **Returns:**
 

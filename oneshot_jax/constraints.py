@@ -151,7 +151,17 @@ def box(lower=None, upper=None) -> ProximalTransformation:
         hi = _fill_like(upper, params, jnp.inf, "upper")
         bad = jax.tree_util.tree_map(lambda a, b: a > b, lo, hi)
         if is_concrete(bad) and any(bool(np.any(b)) for b in jax.tree_util.tree_leaves(bad)):
-            raise ValueError("`box` needs lower <= upper for every parameter.")
+            a, b = _pytree.flat_host(lo), _pytree.flat_host(hi)
+            wrong = [
+                f"{n} (lower {x:g} > upper {y:g})"
+                for n, x, y in zip(_pytree.leaf_names(lo), a, b)
+                if x > y
+            ]
+            more = f" and {len(wrong) - 8} more" if len(wrong) > 8 else ""
+            raise ValueError(
+                "`box` needs lower <= upper for every parameter; it is not so for "
+                f"{', '.join(wrong[:8])}{more}."
+            )
         for name, bound, wrong, what in (
             ("lower", lo, np.inf, "+inf (use None or -inf for no lower bound)"),
             ("upper", hi, -np.inf, "-inf (use None or +inf for no upper bound)"),

@@ -126,8 +126,10 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         if not n and several and np.ndim(u) == 2:
             raise ValueError(
                 f"`{name}` was fitted on {np.shape(model.x0)[0]} trajectories, each from its "
-                "own x0: to compare it with one record, pass `n` (its initial state is then "
-                "estimated from the record's first n outputs)."
+                "own x0 (a row of its `x0`): to compare it with one record, pass `n` (its "
+                "initial state is then estimated from the record's first n outputs), or, "
+                "for record i of the fit, its simulation from the fitted initial state, "
+                "`result.simulate(u, x0=result.x0[i])[1]`, as the model output."
             )
         starts = model.window_starts
         if not n and starts is not None and np.ndim(u) == 2 and 0 not in np.asarray(starts):
@@ -180,8 +182,11 @@ def compare(
         (the data it was fitted on, or a record from the same initial state; on another
         record it warns; after a `window=` fit, from the state of its window at sample
         0, as `FitResult.simulate`), or, with `n`, predicted from the first n samples of `z`
-        (`FitResult.predict`; MATLAB's `compare` estimates the initial state too, but from
-        the whole record, and scores every sample: pass the `z` of
+        (`FitResult.predict`, which estimates every entry of x0, also those the fit held;
+        to hold those, pass the Prediction of
+        `result.predict(u, z[:n], x0=known, estimate=result.x0_estimated)` instead;
+        MATLAB's `compare` estimates the initial state too, but from the whole record,
+        and scores every sample: pass the `z` of
         `result.predict(u, z)` for its numbers); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.

@@ -11,6 +11,7 @@ import pytest
 
 import oneshot_jax as oj
 from oneshot_jax import constraints as oc
+from oneshot_jax.internal import fixed_mask
 
 N_X, N_U, N_Z, T = 3, 2, 2, 6
 
@@ -104,7 +105,10 @@ Z_SHAPE_CASES = {
     "z not batched": (dict(x0=X0_B, u=U_B), r"`z` must have shape \(2, 6, 2\)"),
     "z wrong N": (dict(x0=X0_B, u=U_B, z=Z_B[:1]), r"`z` must have shape \(2, 6, 2\)"),
     "weight wrong length": (dict(weight=jnp.ones(N_Z + 1)), r"`weight` must have shape \(2,\)"),
-    "weight scalar": (dict(weight=jnp.asarray(2.0)), r"`weight` must have shape \(2,\)"),
+    "weight scalar": (
+        dict(weight=jnp.asarray(2.0)),
+        r"`weight` is a scalar, which is taken for one output only: .*n_z = 2 .*shape \(2,\)",
+    ),
     "weight non-square": (dict(weight=jnp.ones((N_Z, N_Z + 1))), r"`weight` must have shape"),
     "weight 3-D": (dict(weight=jnp.ones((N_Z, N_Z, 1))), r"`weight` must have shape"),
     "weight sized for x": (dict(weight=jnp.eye(N_X)), r"`weight` must have shape .*\(2, 2\)"),
@@ -330,6 +334,29 @@ def test_bad_weight_values(case, entry):
     weight, match = WEIGHT_VALUES[case]
     with pytest.raises(ValueError, match=match):
         call(entry, weight=weight)
+
+
+def test_a_scalar_weight_is_the_weight_of_one_output():
+    # (weight=-1.0 on one output was refused for its shape (), which hid its sign.)
+    model = oj.Model(lambda x, u, th: th["a"] * jnp.tanh(x) + u[:1], lambda x, u, th: x)
+    theta, x0, z = {"a": 0.9}, X0[:1], Z[:, :1]
+    C = oj.loss(model, theta, x0, U, z, weight=jnp.array([2.0]))
+    assert oj.loss(model, theta, x0, U, z, weight=2.0) == C
+    assert oj.value_and_grad(model, theta, x0, U, z, weight=np.float64(2.0))[0] == C
+    for entry in WITH_Z:
+        with pytest.raises(
+            ValueError, match=r"`weight` \(Q of eq. 4\) must be non-negative, got -1\."
+        ):
+            call(entry, model=model, theta=theta, x0=x0, z=z, weight=-1.0)
+        # Its sign first where the shape is wrong too (two outputs)
+        with pytest.raises(ValueError, match=r"must be non-negative, got -1\."):
+            call(entry, weight=-1.0)
+    with pytest.raises(ValueError, match=r"must be non-negative, got weight\[1\] = -0\.1\."):
+        call("loss", weight=jnp.array([1.0, -0.1]))
+    r = oj.fit(model, theta, x0, U, z, weight=4.0)
+    np.testing.assert_array_equal(r.weight, [4.0])
+    # (the fit's weight, read by predict's smoother as sigma^2 Q^-1)
+    assert r.predict(U, z[:3], method="smoother").z.shape == z.shape
 
 
 PENALTIES = {
@@ -913,6 +940,34 @@ def test_a_fixed_mask_must_have_its_parameters_shape():
         oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([True])})
     r = oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed={"k": np.array([False, True])})
     assert float(r.theta["k"][1]) == 1.0  # (the baseline: a mask of the leaf's shape)
+
+
+def test_a_list_of_booleans_is_the_mask_of_an_array_theta():
+    # (MATLAB's habit, a parameter vector and a vector of Fixed flags: a PyTreeDef message)
+    model = oj.Model(lambda x, u, th: jnp.stack([th[0] * x[0] + th[1] * u[0]]), lambda x, u, th: x)
+    theta0 = np.array([0.5, 1.0])
+    r = oj.fit(model, theta0, np.zeros(1), _U1, _Z1, fixed=[False, True])
+    assert float(r.theta[1]) == 1.0 and r.names == ("theta[0]",)
+    np.testing.assert_array_equal(fixed_mask((True, False), jnp.asarray(theta0)), [True, False])
+    np.testing.assert_array_equal(
+        fixed_mask({"k": [False, True]}, {"k": theta0, "m": 1.0}), [False, True, False]
+    )
+    np.testing.assert_array_equal(fixed_mask([True, False], [theta0, 1.0]), [1, 1, 0])
+    hint = (
+        r"a boolean array of theta0's shape \(2,\) \(True where held\), "
+        r"e.g. np.array\(\[True, False\]\)"
+    )
+    for bad in ([[True], [False, True]], {"a": True}):
+        with pytest.raises(ValueError, match=rf"`fixed` must be a boolean, or {hint}; got"):
+            fixed_mask(bad, theta0)
+    with pytest.raises(ValueError, match=rf"names parameters \(\['k'\]\).*give {hint} instead"):
+        fixed_mask("k", theta0)
+    with pytest.raises(
+        ValueError, match=r"entries must be booleans \(True where held\).*: \[1, 0\]"
+    ):
+        fixed_mask([1, 0], theta0)
+    with pytest.raises(ValueError, match=r"`fixed` entry of shape \(1,\) does not fit"):
+        fixed_mask([True], theta0)
 
 
 def test_newey_west_lags_must_fit_the_shortest_record():

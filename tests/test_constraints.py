@@ -399,6 +399,18 @@ def test_invalid_constraints_raise():
         oc.project("not callable")
 
 
+def test_crossed_bounds_name_the_parameters():
+    # (The message named no parameter: which of a dozen bounds was crossed was a search.)
+    theta = {"m": 1.0, "k": 2.0, "phys": {"c": jnp.zeros(2)}}
+    box = oc.box(lower={"k": 5.0, "phys.c": [0.0, 3.0]}, upper={"k": 1.0, "phys": {"c": 2.0}})
+    with pytest.raises(ValueError, match="lower <= upper") as err:
+        box.bounds(theta)
+    assert "k (lower 5 > upper 1), phys.c[1] (lower 3 > upper 2)." in str(err.value)
+    assert " m " not in str(err.value) and "phys.c[0]" not in str(err.value)
+    with pytest.raises(ValueError, match=r"theta\[1\] \(lower 3 > upper 2\)\.$"):
+        oc.box(lower=np.array([0.0, 3.0]), upper=np.array([1.0, 2.0])).project(jnp.zeros(2))
+
+
 #
 # One proximal type: a projection is the prox of its set's indicator.
 #

@@ -228,6 +228,41 @@ def test_fit_result_predict():
     np.testing.assert_allclose(pred.z, z_new, atol=1e-7)
 
 
+def test_one_record_of_a_multi_record_fit_is_named_by_its_row_of_x0():
+    """After a fit on 2 records, `result.simulate(u)` of one record (no x0 given) said
+    "`x0` of shape (2, 2) ... (np.ravel(x0))", which the user never passed; the messages
+    now say that the result holds one initial state per record and how to pick one."""
+    (u1, z1, _), (u2, z2, _) = pendulum_record(60, 1, 0.0), pendulum_record(60, 2, 0.0, (0, 1))
+    U, Z = np.stack([u1, u2]), np.stack([z1, z2])
+    r = oj.fit(PENDULUM, PEND_THETA, np.array([[0.8, -0.3], [0.0, 1.0]]), U, Z)
+    rows = (
+        r"this result holds 2 initial states, one per trajectory \(record\) of the fit "
+        r"\(`result.x0` of shape \(2, 2\)\)"
+    )
+    for u, held in ((u1, "one record"), (U[:1], "one record"), ([u1, u2, u1[:30]], "3 records")):
+        with pytest.raises(ValueError, match=rf"{rows}, and `u` holds {held}: pass `x0=result"):
+            r.simulate(u)
+    np.testing.assert_allclose(r.simulate(u2, x0=r.x0[1])[1], z2, atol=1e-7)
+    with pytest.raises(ValueError, match=rf"\(n_x,\); {rows}: pass `x0=result.x0\[i\]`"):
+        r.predict(u1, z1[:N_HEAD], x0=r.x0)
+    with pytest.raises(ValueError, match=r"got 2 records: .* `result.predict\(u\[i\], z_head"):
+        r.predict(U, Z[:, :N_HEAD])
+    np.testing.assert_allclose(r.predict(u2, z2[:N_HEAD], x0=r.x0[1]).x0, [0.0, 1.0], atol=1e-7)
+
+
+def test_fit_result_predict_estimates_the_entries_the_fit_held_unless_told():
+    """The documented default (a docstring read as if predict held them): a new record's
+    x0 is estimated whole; `estimate=result.x0_estimated` holds the fit's held entries at
+    their values in `x0=`."""
+    u, z, _ = pendulum_record(60, 11, 0.0)
+    r = oj.fit(PENDULUM, PEND_THETA, np.array([0.7, -0.3]), u, z, estimate_x0=[True, False])
+    assert r.x0_estimated.tolist() == [True, False] and float(r.x0[1]) == -0.3
+    u_new, z_new, _ = pendulum_record(80, 12, 0.0, x0=(-0.5, 0.9))
+    np.testing.assert_allclose(r.predict(u_new, z_new[:N_HEAD]).x0, [-0.5, 0.9], rtol=1e-7)
+    held = r.predict(u_new, z_new[:N_HEAD], x0=r.x0, estimate=r.x0_estimated)
+    assert float(held.x0[1]) == -0.3 and float(held.estimate.std[1]) == 0.0
+
+
 def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
     """An output the fit ignored (weight 0: a sensor with an offset of 5) stays ignored when
     `predict` estimates a new record's x0, also after save and load; it used the identity

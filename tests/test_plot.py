@@ -340,10 +340,17 @@ def test_compare_of_a_multi_record_result_without_n_says_to_pass_n():
     u, x0 = rng.standard_normal((2, 60, 1)), rng.standard_normal((2, 2))
     _, z = oj.simulate(model, {"k": 4.0}, x0, u)
     res = oj.fit(model, {"k": 3.0}, x0, u, np.asarray(z))
-    with pytest.raises(ValueError, match=r"fitted on 2 trajectories.*pass `n`"):
+    with pytest.raises(ValueError, match=r"fitted on 2 trajectories.*pass `n`") as err:
         oj.plot.compare(np.asarray(z[0]), res, u=u[0])
     fig = oj.plot.compare(np.asarray(z[0]), res, u=u[0], n=10)
     assert "FIT" in " ".join(_legend_texts(fig.axes[0]))
+    # ... or the simulation of record i from its fitted x0, which the message shows
+    assert "or, for record i of the fit, its simulation from the fitted initial state, " in (
+        str(err.value)
+    )
+    assert "`result.simulate(u, x0=result.x0[i])[1]`, as the model output." in str(err.value)
+    fig = oj.plot.compare(np.asarray(z[0]), res.simulate(u[0], x0=res.x0[0])[1])
+    assert "FIT 100.00 %" in " ".join(_legend_texts(fig.axes[0]))
 
 
 def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():

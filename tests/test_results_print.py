@@ -250,6 +250,50 @@ def test_several_trajectories_show_the_first_rows_and_a_count():
     assert "x0[4, 0]" not in text and "3 more trajectories" in text
 
 
+def test_a_pooled_fit_says_so_and_gives_each_trajectory_s_fit(fitted, tmp_path):
+    """Two records at different operating points printed "FIT% [99.9]" (each against the
+    mean of both) where each record's own FIT% is far lower (98.3 % against 30.5 % and
+    38.3 % in a probe): the line now says it is pooled, and the FIT% of each follows."""
+    rng = np.random.default_rng(1)
+    # Small inputs about two operating points (x settles near b u / w0sq: 0 and 1.25)
+    u = 0.1 * rng.standard_normal((2, 80, 1)) + np.array([0.0, 5.0])[:, None, None]
+    x0 = np.array([[0.0, 0.0], [1.25, 0.0]])
+    z = np.asarray(oj.simulate(MODEL, TRUTH, x0, u)[1]) + 0.01 * rng.standard_normal((2, 80, 1))
+    r = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z)
+    zhat = np.asarray(r.simulate(u)[1])
+    own = [np.asarray(oj.metrics.fit_percent(z[i], zhat[i])) for i in range(2)]
+    per = np.asarray(r.metrics["fit_percent_per_record"])
+    assert per.shape == (2, 1)
+    np.testing.assert_allclose(per, own, rtol=1e-9)
+    assert float(r.metrics["fit_percent"][0]) > max(own)[0] + 1.0  # (the pooled one)
+    lines = str(r).splitlines()
+    fitp = f"{float(r.metrics['fit_percent'][0]):.2f}"
+    assert lines[-2].startswith(f"pooled over the 2 trajectories: FIT% [{fitp}]  RMSE [")
+    assert lines[-1] == f"FIT% per trajectory: [{own[0][0]:.2f}], [{own[1][0]:.2f}]"
+    loaded = oj.load_result(r.save(tmp_path / "two"), model=MODEL)
+    assert str(loaded) == str(r)
+    # A result saved before the entry existed: the pooled line alone.
+    older = eqx.tree_at(
+        lambda res: res.metrics,
+        r,
+        {k: v for k, v in r.metrics.items() if k != "fit_percent_per_record"},
+    )
+    assert str(older).splitlines()[-1] == lines[-2]
+    # One record: its row, and no "pooled"
+    np.testing.assert_array_equal(
+        fitted.metrics["fit_percent_per_record"], fitted.metrics["fit_percent"][None]
+    )
+    assert "pooled" not in str(fitted) and "per trajectory" not in str(fitted)
+    # Many: the lowest and the highest per output
+    x0, u, z = data(n_traj=8, T=60)
+    r = oj.fit(MODEL, TRUTH, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=2))
+    per = np.asarray(r.metrics["fit_percent_per_record"])
+    assert str(r).splitlines()[-1] == (
+        f"FIT% per trajectory: from [{per.min():.2f}] to [{per.max():.2f}] over the 8 "
+        "trajectories (result.metrics['fit_percent_per_record'])"
+    )
+
+
 def test_a_neural_residual_is_one_row():
     x0, u, z = data(T=60)
     net = MLP(2, 1, (8,), key=jax.random.PRNGKey(0))
@@ -315,6 +359,7 @@ def test_a_windowed_fit_says_its_fit_is_over_the_windows(fitted):
     r = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z, window=40)
     text = str(r)
     assert "(over the 3 windows, each from its own fitted x0: not a simulation" in text
+    assert "pooled over the 3 windows: FIT% [" in text and "\nFIT% per window: [" in text
     assert np.shape(r.residuals) == (3, 40, 1)
     assert "over the" not in str(fitted)
     # Its initial states are the windows', not trajectories.
@@ -348,6 +393,17 @@ def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path
     assert loaded.units == fitted.units == {"w0sq": "1/s^2", "c": "1/s"}
     assert eqx.tree_equal(loaded, fitted) is True
     assert str(loaded) == str(fitted)
+
+
+def test_intervals_are_arrays_as_the_standard_errors_are(fitted, tmp_path):
+    # (`ci95` entries were np.float64 where `std` and `theta` hold 0-d arrays)
+    loaded = oj.load_result(fitted.save(tmp_path / "osc"), model=MODEL)
+    for r in (fitted, loaded):
+        lo, hi = r.ci95
+        for name in ("w0sq", "c", "b"):
+            for a in (lo[name], hi[name], r.std[name]):
+                assert type(a) is np.ndarray and a.shape == np.shape(r.theta[name]) == ()
+        assert float(lo["c"]) == float(r.theta["c"]) - 1.96 * float(r.std["c"])
 
 
 def test_nested_dicts_keep_their_written_order():
