@@ -430,6 +430,8 @@ def assemble(
         C = last.loss[int(last.rows)]
         big = np.sqrt(np.finfo(np.asarray(C).dtype).max)
         stop_info["nonfinite"] = "gradient" if np.isfinite(C) and abs(C) < big else "loss"
+        if np.isfinite(C) and abs(C) >= big:  # (finite, but its gradient overflows)
+            stop_info["overflow"] = float(C)
     if status == "validation":  # the score that chose the point, and the patience
         stop_info["validation_loss"] = float(out.validation_loss)
         stop_info["patience"] = problem.validation.patience

@@ -116,6 +116,14 @@ def stop_detail(status: str, info: dict) -> str:
                 "there (a parameter at a bound where it is not, such as sqrt(c) at c = 0: "
                 "keep it off that point, e.g. with constraints.positive())"
             )
+        big = info.get("overflow")
+        if big is not None:  # (a finite loss beyond sqrt of the largest float)
+            where = "at the start" if at == 0 else at_step.strip()
+            return (
+                f"the loss {where}, {_g(big)}, is finite but beyond the square root of the "
+                "largest float, where its gradient overflows: the simulation from theta0 and "
+                "x0 blows up (start where the model is stable, e.g. with bounds, or in windows)"
+            )
         if at == 0:
             return (
                 "the loss at the start is not finite: the simulation from theta0 and x0 "
@@ -302,7 +310,8 @@ class FitResult(eqx.Module):
         own (`diverged`, `converged`, ...), `solver_stop`; with the stop `diverged`
         (or a `solver_stop` `diverged`),
         `nonfinite` ("loss", or "gradient" where the loss stayed finite, below sqrt of
-        the largest float).
+        the largest float) and, where the loss is finite but above that, `overflow` (the
+        loss).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

@@ -582,12 +582,37 @@ def test_a_start_where_the_simulation_diverges_is_a_failure_with_a_reason():
     assert r.status in ("diverged", "stalled", "no_progress", "max_steps_reached")
     if r.status == "diverged":
         said = ("the loss became non-finite at step", "the loss at the start is not finite")
+        said += ("is finite but beyond the square root of the largest float",)
         assert any(s in r.message for s in said) and r.stop_info["nonfinite"] == "loss"
         # The linearisation of a diverged simulation says nothing of identifiability.
         assert "(undefined: diverged)" in str(r) and "(not identifiable)" not in str(r)
         assert "the fit diverged; the returned point is its last finite" in str(r)
         assert "those of the linearisation" not in str(r)
         assert not any("not identifiable" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize("solver", [oj.LevenbergMarquardt(), oj.LBFGS()], ids=["lm", "lbfgs"])
+def test_a_float32_start_whose_loss_overflows_its_gradient_says_the_loss_is_finite(solver):
+    """float32, x+ = a x + b u from a = 1.2 over 200 samples: the loss at the start is
+    5.5e29, finite, and beyond sqrt of the largest float32 (1.8e19), so its gradient
+    overflows. The fit diverges at the start, and the message gives the loss (it said the
+    loss was not finite)."""
+    rng = np.random.default_rng(0)
+    f32 = np.float32
+    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    u = rng.standard_normal((200, 1)).astype(f32)
+    _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
+    z = (np.asarray(z) + 0.05 * rng.standard_normal((200, 1))).astype(f32)
+    start = {"a": f32(1.2), "b": f32(0.3)}
+    C = float(oj.loss(lin, start, z[0], u, z))
+    assert np.sqrt(np.finfo(f32).max) < C < np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(lin, start, z[0], u, z, solver=solver)
+    assert r.status == "diverged" and not r.success
+    assert r.stop_info["overflow"] == pytest.approx(C, rel=1e-6)
+    assert f"the loss at the start, {C:.3g}, is finite but beyond the square root" in r.message
+    assert "not finite" not in r.message
 
 
 def test_a_gradient_that_is_not_finite_at_a_bound_is_named(tmp_path):
