@@ -386,7 +386,7 @@ def fit_orthogonal(
     *,
     learned="r",
     strength: float = 100.0,
-    rounds: int = 5,
+    rounds: int = 10,
     stol: float = 0.1,
     rtol: float = 1e-4,
     solver="levenberg_marquardt",
@@ -435,7 +435,10 @@ def fit_orthogonal(
         `Dictionary` output exactly zero).
     - `strength`: lambda > 0 of the penalty (its residuals are sqrt(lambda / T) Q^T
         W^{1/2} d).
-    - `rounds`: the largest number of rounds (>= 1).
+    - `rounds`: the largest number of rounds (>= 1). The rounds contract slowly near
+        the end (a pendulum with an MLP damping moved 0.86, 0.24, 0.17, 0.04 standard
+        errors in rounds 2 to 5), so the default leaves room beyond the 4 to 6 they
+        take there.
     - `stol`: the change of the physical parameters in a round, in their standard
         errors, below which the rounds have converged (> 0); the fits' own statistical
         stop (`stol` of the least-squares solvers) leaves them about that precise.

@@ -81,7 +81,12 @@ rank J) set by the noise instead of machine precision. A step can be small becau
 damping is large (after rejected steps) rather than because nothing is left; so the
 test also asks that no parameter alone would move by a standard error: the cosine
 times sqrt(R - rank J) is the Gauss-Newton step of one parameter in its own standard
-error, and is at most 1. It is scale invariant (ratios of losses and a count) and is
+error, and is at most 1; and that the undamped Gauss-Newton step (the pseudo-inverse's)
+predicts at most rank J sigma^2, the mean of its chi^2 (the point the linear model leads
+to is within the confidence region of this one: a damped rotation far from its optimum,
+whose steps backtracked 2^-20, moved 1e-4 standard errors where the undamped step
+predicted 9 sigma^2 at rank 3); and a step whose linear model predicts no decrease
+measures nothing. It is scale invariant (ratios of losses and a count) and is
 tested only where S is rank deficient: on a regular Jacobian Gauss-Newton converges
 quadratically and the first-order test decides as before, and a null space of the
 initial states alone (an unobservable state, or x0 columns nearly parallel at a poor

@@ -1172,6 +1172,43 @@ def test_a_float32_plateau_that_still_descends_is_not_called_converged():
     assert r.success == (float(r.loss) <= 1.01 * float(best.loss)), (r.status, float(r.loss))
 
 
+def _rotation_step(x, u, p):
+    c, s = jnp.cos(p["w"]), jnp.sin(p["w"])
+    return p["r"] * jnp.stack([c * x[0] - s * x[1], s * x[0] + c * x[1]]) + jnp.stack([u[0], 0.0])
+
+
+def test_a_backtracked_step_far_from_the_optimum_is_not_statistical_convergence():
+    """A damped rotation (w, r) from w = 2 (truth 0.3): Gauss-Newton reaches a point where
+    x0[1] is -3000 and theta's columns, x0's eliminated, are parallel to 3e-7; its steps
+    backtrack 2^-20 and move 1e-4 standard errors, while the undamped step predicts 9
+    sigma^2 (3 standard errors) at rank 3. That was `statistically_converged`, a success,
+    at a loss 170 times the optimum's; the undamped step must be within sqrt(rank J)
+    standard errors too. An unstable start (x+ = a x + b u from a = 1.2) left columns
+    parallel to 1e-14 and a step whose linear model predicted an increase: 0 standard
+    errors, a success at 1e4 times the optimum's loss."""
+    rng = np.random.default_rng(3)
+    rot = oj.Model(_rotation_step, lambda x, u, p: x[:1])
+    u = 0.1 * rng.standard_normal((300, 1))
+    _, z = oj.simulate(rot, {"w": 0.3, "r": 0.995}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((300, 1))
+    x0 = np.array([z[0, 0], 0.0])
+    best = oj.fit(rot, {"w": 0.3, "r": 0.99}, x0, u, z)
+    r = oj.fit(rot, {"w": 2.0, "r": 0.99}, x0, u, z, solver=oj.GaussNewton())
+    assert best.success
+    assert r.success == (float(r.loss) <= float(best.loss) * (1 + 1e-6)), (r.status, r.loss)
+    rng = np.random.default_rng(0)
+    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((200, 1))
+    best = oj.fit(lin, {"a": 0.8, "b": 0.5}, z[0], u, z)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the start is unstable)
+        r = oj.fit(lin, {"a": 1.2, "b": 0.3}, z[0], u, z, solver=oj.GaussNewton())
+    assert best.success
+    assert r.success == (float(r.loss) <= float(best.loss) * (1 + 1e-6)), (r.status, r.loss)
+
+
 def test_the_step_size_in_standard_errors_counts_the_rank():
     """sqrt(pred (R - rank) / C): the degrees of freedom are the observations less the
     numerical rank of J."""

@@ -548,9 +548,10 @@ class AbstractLeastSquares(AbstractSolver):
         and first-order measure `fo`: the step's size in standard errors, and whether theta's
         columns of J (the x0 columns eliminated) are rank deficient, the step, its
         predicted decrease confirmed by the actual one (at least a quarter of it), is at
-        most `stol` standard errors, and no parameter alone would move by a standard
+        most `stol` standard errors, no parameter alone would move by a standard
         error (fo sqrt(R - rank) <= 1: the cosine times sqrt(R - rank) is a
-        one-parameter Gauss-Newton step in its own standard error).
+        one-parameter Gauss-Newton step in its own standard error), and the undamped
+        step is at most sqrt(rank) standard errors.
         The rank (an eigendecomposition) is formed only where the rest of the test holds.
         Off (NaN, False) with `stol=0` and where J^T J is not formed
         (`linear_solver="cg"`)."""
@@ -569,16 +570,38 @@ class AbstractLeastSquares(AbstractSolver):
         dof_min = jnp.maximum(n_obs - n_free, 0)
         tiny = jnp.finfo(dtype).tiny
         se_min = jnp.sqrt(jnp.maximum(pred, 0.0) * dof_min / jnp.maximum(C, tiny))
-        candidate = take & (actual > 0) & (actual >= 0.25 * pred)
+        # (pred > 0: where the linear model predicts no decrease, at round-off, the step
+        # measures nothing; an unstable start, whose columns were parallel to 1e-14, took
+        # such a step at a loss 1e4 times the optimum's and read 0 standard errors)
+        candidate = take & (pred > 0) & (actual > 0) & (actual >= 0.25 * pred)
         candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
         p = s.theta.size
-        rank, rank_t = lazy_cond(
+
+        def ranks_and_full_step():
+            # The undamped step (the pseudo-inverse's Gauss-Newton step, without the
+            # backtracking or the damping that made `s` small) and its predicted decrease.
+            act = self._active(problem, old.theta, b.g_t)
+            h = self._solve(problem, old, b, jnp.zeros((), dtype), act)
+            full = -(
+                2.0 * (h.theta @ b.g_t + jnp.sum(h.x0 * b.g_x))
+                + b.curvature(problem, old, h.theta, h.x0)
+            )
+            return tuple(r.astype(jnp.int32) for r in b.rank()) + (full,)
+
+        rank, rank_t, pred_full = lazy_cond(
             candidate,
-            lambda: tuple(r.astype(jnp.int32) for r in b.rank()),
-            (jnp.asarray(n_free, jnp.int32), jnp.asarray(p, jnp.int32)),
+            ranks_and_full_step,
+            (jnp.asarray(n_free, jnp.int32), jnp.asarray(p, jnp.int32), jnp.zeros((), dtype)),
         )
         se = standard_errors(pred, C, n_obs, rank)
         within = (se <= self.stol) & (fo * jnp.sqrt(n_obs - rank) <= 1.0)
+        # The undamped step's own size, at most sqrt(rank J) standard errors: the point the
+        # linear model leads to is within the confidence region of this one (pred_full at
+        # most rank J sigma^2, the mean of its chi^2). A far damped oscillator whose steps
+        # backtracked 2^-20 had taken 1e-4 standard errors where the full step, 3 standard
+        # errors, predicted 9 sigma^2 at rank 3: a loss 170 times the optimum's.
+        se_full = standard_errors(pred_full, C, n_obs, rank)
+        within = within & (se_full**2 <= rank)
         # Over-parameterised theta only: a null space of the initial states alone (an
         # unobservable state, or x0 columns nearly parallel at a poor point) does not
         # make the steps creep, and the first-order test decides there.
