@@ -648,6 +648,7 @@ def fit(
             RuntimeWarning,
             stacklevel=2,
         )
+    result = dataclasses.replace(result, theta=_pytree.ordered_like(result.theta, theta0))
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)

@@ -244,6 +244,16 @@ def nest_dotted(named, theta, name):
     return {k: nest_dotted(v, theta[k], name) if k in theta else v for k, v in out.items()}
 
 
+def ordered_like(tree, like):
+    """`tree` with the keys of its dicts in the order written in `like` (JAX returns them
+    sorted): the same pytree, so that a fit started from a result's theta prints its
+    parameters in the order of the first fit's theta0."""
+    if isinstance(tree, dict) and isinstance(like, dict):
+        keys = [k for k in like if k in tree] + [k for k in tree if k not in like]
+        return {k: ordered_like(tree[k], like.get(k)) for k in keys}
+    return tree
+
+
 def leaf_names(theta) -> tuple[str, ...]:
     """One name per scalar of theta: the path of its leaf (dict keys, indices, attribute
     names joined by '.') with [i] or [i, j] for array entries."""

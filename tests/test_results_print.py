@@ -74,6 +74,18 @@ def test_parameters_print_in_theta0_order_with_units(fitted):
     assert f"[{v - 1.96 * s:.6g}, {v + 1.96 * s:.6g}]" in _row(text, "w0sq")
 
 
+def test_a_fit_started_from_a_results_theta_prints_in_the_first_fits_order(fitted):
+    """result.theta is a dict in theta0's written order (JAX's own is sorted): a second
+    fit from it, with LM or with Adam, prints w0sq, c, b as the first fit did."""
+    assert list(fitted.theta) == ["w0sq", "c", "b"]
+    x0, u, z = data()
+    for solver in (oj.LevenbergMarquardt(max_steps=3), oj.Adam(max_steps=3)):
+        again = oj.fit(MODEL, fitted.theta, x0, u, z, solver=solver)
+        assert again.theta_order == ("w0sq", "c", "b") and list(again.theta) == ["w0sq", "c", "b"]
+        names = [ln.split()[0] for ln in str(again).splitlines() if ln.startswith("  ")]
+        assert names.index("w0sq") < names.index("c") < names.index("b")
+
+
 def test_the_stop_is_one_readable_line_never_the_results_repr(fitted):
     text = str(fitted)
     assert "RESULTS<" not in text and "RESULTS<" not in fitted.message
