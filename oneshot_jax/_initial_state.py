@@ -473,8 +473,12 @@ def _estimate(
 
 
 # The default measurement noise of the smoother is called too small where the head's
-# residuals from its estimate are this many times it (RMS, some output).
-NOISE_MISMATCH = 3.0
+# residuals from its estimate are this many times it (RMS, some output). Its std scales
+# about with the noise: at 3 a noise 2.3 times the default left the std half the spread
+# of the estimates, unwarned. At the default noise the ratio is about sqrt(1 - n_x / n)
+# (0.97 at n = 40) with a sampling spread of 1 / sqrt(2 n) (0.11): 1.5 is 4 of those
+# above it.
+NOISE_MISMATCH = 1.5
 
 
 def _warn_default_noise(e, z, n, stacklevel):

@@ -587,6 +587,29 @@ def test_the_smoothers_default_noise_warns_where_the_residuals_are_far_above_it(
         oj.estimate_x0(model, theta, u, z, n=40, x0=np.zeros(2))
 
 
+@pytest.mark.parametrize("times", [1.0, 2.0])
+def test_the_smoothers_default_noise_warns_from_twice_its_size(times):
+    """Noise `times` 1 % of the head's output RMS: at the default's own size no warning;
+    at twice it, where the smoother's std is about half the spread of its estimates, a
+    warning (it came only from 3 times)."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    theta = {"c": 0.3, "k": 2.0}
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((60, 1))
+    _, z = oj.simulate(model, theta, np.array([0.2, -0.1]), u)
+    z = np.asarray(z)
+    z = z + times * 0.01 * np.sqrt(np.mean(z[:40] ** 2)) * rng.standard_normal(np.shape(z))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        oj.estimate_x0(model, theta, u, z, n=40, method="smoother", x0=np.zeros(2))
+    said = [w for w in caught if "assumed a measurement noise of 1 %" in str(w.message)]
+    assert len(said) == (times > 1.5)
+
+
 def test_an_x0_estimate_and_residual_correlations_print_readably():
     """`print` of an `X0Estimate` and of `ResidualCorrelations` gives a few lines with the
     numbers and verdicts (it dumped the equinox repr and the raw arrays)."""
