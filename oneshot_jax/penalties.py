@@ -149,8 +149,18 @@ def state_box(lower=None, upper=None, *, width=1.0, power: int = 2) -> StateBox:
             "to leave that side unbounded."
         )
     if len(lo) == len(hi) or 1 in (len(lo), len(hi)):
-        if np.any(np.asarray(lo) > np.asarray(hi)):
-            raise ValueError("`state_box` needs lower <= upper for every state.")
+        lo_b, hi_b = np.broadcast_arrays(np.asarray(lo), np.asarray(hi))
+        crossed = np.flatnonzero(lo_b > hi_b)
+        if crossed.size:
+            names = ["every state"] if lo_b.size == 1 else [f"x[{i}]" for i in crossed[:8]]
+            listed = ", ".join(
+                f"{name} (lower {lo_b[i]:g} > upper {hi_b[i]:g})" for name, i in zip(names, crossed)
+            )
+            more = f" and {crossed.size - 8} more" if crossed.size > 8 else ""
+            raise ValueError(
+                "`state_box` needs lower <= upper for every state; it is not so for "
+                f"{listed}{more}."
+            )
     else:
         raise ValueError(f"`lower` ({len(lo)} entries) and `upper` ({len(hi)}) do not match.")
     return StateBox(lo, hi, _constants(width, "width", 1.0, positive=True), _check_power(power))

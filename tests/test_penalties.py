@@ -111,3 +111,11 @@ def test_bound_of_the_wrong_length_is_reported():
     u, z = jnp.zeros((5, 1)), jnp.zeros((5, 2))
     with pytest.raises(ValueError, match="`upper`"):
         oj.loss(model, {"a": 1.0}, jnp.ones(2), u, z, penalty=state_box(upper=[1.0, 1.0, 1.0]))
+
+
+def test_crossed_state_bounds_name_the_states():
+    # (The message named no state: which of the bounds was crossed was a search.)
+    with pytest.raises(ValueError, match=r"x\[1\] \(lower 3 > upper 2\)\.$"):
+        state_box(lower=[0.0, 3.0, -1.0], upper=2.0)
+    with pytest.raises(ValueError, match=r"every state \(lower 1 > upper 0\)\.$"):
+        state_box(lower=1.0, upper=0.0)
