@@ -27,6 +27,7 @@ from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
+from ._optimality import degenerate_refuted
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
@@ -264,6 +265,32 @@ def _demoted(result, reason, **info):
         starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
         out = dataclasses.replace(out, starts=starts)
     return out
+
+
+@eqx.filter_jit
+def _refuted_at(problem, params, gone_t, strategy):
+    """`_optimality.degenerate_refuted`, compiled once per problem structure and strategy
+    (the data are arguments)."""
+    return degenerate_refuted(problem, params, gone_t, strategy)
+
+
+def _flag_refuted_degenerate(result, problem, names, theta_flat, x0, strategy):
+    """`result` with the stop `stalled` where it converged at a degenerate minimum
+    (`stop_info["degenerate"]`) but a step along the columns that vanished still lowers
+    the objective by more than sqrt(eps) of it (`_optimality.degenerate_refuted`): its
+    first-order measure is then the plain one, and `stop_info["solver_stop"]` says
+    `converged`."""
+    info = result.stop_info
+    if not info.get("degenerate") or name_of(result.stop_reason) != "converged":
+        return result
+    gone = np.asarray([name in info.get("vanished", ()) for name in names], bool)
+    params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
+    down, fo = _refuted_at(problem, params, jnp.asarray(gone), strategy)
+    if not bool(down):
+        return result
+    info = {k: v for k, v in info.items() if k != "degenerate"}
+    out = dataclasses.replace(result, stop_info={**info, "first_order": float(fo)})
+    return _demoted(out, "stalled", descends_along_vanished=True)
 
 
 def _warn_unequal_noise(residuals, weight, std):
@@ -637,6 +664,9 @@ def fit(
         out.x0,
         strategy,
         finals=Params(out.start_theta, out.start_x0),
+    )
+    result = _flag_refuted_degenerate(
+        result, built.problem, prepared.names, out.theta, out.x0, strategy
     )
     if aggregate is not None:
         result = agg.restore(result)

@@ -311,7 +311,9 @@ class FitResult(eqx.Module):
         (or a `solver_stop` `diverged`),
         `nonfinite` ("loss", or "gradient" where the loss stayed finite, below sqrt of
         the largest float) and, where the loss is finite but above that, `overflow` (the
-        loss).
+        loss); with the stop `stalled` where the solver converged at a degenerate
+        minimum that a step along the vanished columns still descends from (checked
+        after the solve), `descends_along_vanished` and `solver_stop` `converged`.
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

@@ -119,13 +119,13 @@ class AbstractLinearisation(eqx.Module):
         """(diag_t, diag_x): Marquardt's diagonal of the theta and of the x0 columns."""
         return self.diag_t(), (self.diag_x() if params.x0.size else params.x0)
 
-    def stall_test(self, problem, params: Params, top_t, top_x, fo, stall):
+    def stall_test(self, problem, params: Params, top_t, top_x, fo):
         """The first-order test of a stall at the linearisation point, with the largest
-        diagonals `top_t`, `top_x` of the columns along the fit, the point's measure `fo`
-        and whether the solver stalls there (`_optimality.stall_test`)."""
+        diagonals `top_t`, `top_x` of the columns along the fit and the point's measure
+        `fo` (`_optimality.stall_test`)."""
         d_t, d_x = self.diagonals(params)
         g = Params(self.g_t, self.g_x)
-        return stall_test(problem, params, self.C, g, d_t, d_x, top_t, top_x, fo, stall)
+        return stall_test(problem, params, self.C, g, d_t, d_x, top_t, top_x, fo)
 
     def scaled_norm(self, p: Params):
         """||D p|| with D = sqrt(diag(J^T J)) (floored), which does not depend on units."""

@@ -497,9 +497,7 @@ class AbstractLeastSquares(AbstractSolver):
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
         top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
-        at_stall, still, degenerate = blocks.stall_test(
-            problem, params, top.theta, top.x0, fo, round_off | small_step
-        )
+        at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
