@@ -44,7 +44,8 @@ scaling, "The Levenberg-Marquardt algorithm: implementation and theory", 1978, e
 (6.3); `stall_test`): the gradient is then tested in the scaling the parameter had
 before its column vanished, and the fit converges there where that measure is below the
 round-off limit and no step along those columns lowers C by more than sqrt(eps) C
-(`descends`; `Measures.degenerate` says so). Relative shrinkage, because every column
+(`descends`, checked once after the solve by `degenerate_refuted`; `Measures.degenerate`
+says so). Relative shrinkage, because every column
 shrinks alike where the start was unstable (1e20 there), a change of the loss's scale;
 the descent, because a float32 fit whose columns of R and C shrank 1e8-fold in one step
 read stationary at their largest norm with a loss 7000 times the optimum's. Whatever
