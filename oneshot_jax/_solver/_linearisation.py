@@ -41,11 +41,13 @@ import jax
 import jax.numpy as jnp
 
 from .._linalg import (
+    eigh_solve,
     eliminate_x0,
     floor,
     normal_blocks,
     numerical_rank,
     psd_solve,
+    scaled_eigh,
     schur_complement,
 )
 from .._optimality import first_order, rademacher_diagonal, stall_test, x0_columns
@@ -186,6 +188,23 @@ class DenseLinearisation(AbstractLinearisation):
         rank_x = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
         rank_t = numerical_rank(self.S, jnp.diag(self.A)) if p else 0
         return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t)
+
+    def rank_and_decrease(self):
+        """(rank J, rank S, g^T (J^T J)^+ g): `rank`, and the decrease of C that the
+        undamped Gauss-Newton step (the pseudo-inverse's, without bounds) predicts, from
+        the same eigendecomposition of S: sum_i g_i^T C_i^+ g_i + q^T S^+ q with q the
+        reduced right-hand side (`_linalg.Elimination.rhs`)."""
+        p, m = self.A.shape[0], self.Cb.shape[-1]
+        rank_x = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
+        elim = eliminate_x0(self.B, self.Cb, self.g_x)
+        decrease = jnp.sum(self.g_x * elim.Cinvg) if m else jnp.zeros((), self.C.dtype)
+        rank_t = 0
+        if p:
+            decomposition = scaled_eigh(self.S, jnp.diag(self.A))
+            rank_t = jnp.sum(~decomposition[3])
+            q = elim.rhs(self.B, self.g_t)
+            decrease = decrease + q @ eigh_solve(decomposition, q)
+        return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t), decrease
 
 
 class MatrixFreeLinearisation(AbstractLinearisation):

@@ -577,7 +577,12 @@ class AbstractLeastSquares(AbstractSolver):
 
         def ranks_and_full_step():
             # The undamped step (the pseudo-inverse's Gauss-Newton step, without the
-            # backtracking or the damping that made `s` small) and its predicted decrease.
+            # backtracking or the damping that made `s` small) and its predicted decrease:
+            # without bounds from the rank's eigendecomposition of S (no second solve to
+            # compile), with them the step of the active set.
+            if problem.lower is None:
+                rank, rank_t, full = b.rank_and_decrease()
+                return rank.astype(jnp.int32), rank_t.astype(jnp.int32), full
             act = self._active(problem, old.theta, b.g_t)
             h = self._solve(problem, old, b, jnp.zeros((), dtype), act)
             full = -(
