@@ -560,11 +560,9 @@ def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     assert est.x0.shape == (0,)
 
 
-def test_the_smoothers_default_noise_warns_where_the_residuals_are_far_above_it():
-    """The smoother's default measurement noise is 1 % of each output's RMS over the head;
-    on data of noise 0.01 at an output RMS of about 0.2 its std came out 5 times too small,
-    silently. It now warns there, naming `measurement_noise`; with that given, or by
-    method='lsq' (std from the residuals), it does not."""
+def _smoother_case():
+    """A damped oscillator, its position measured without noise over 60 samples: (model,
+    theta, u, z, the generator for the noise)."""
 
     def rhs(x, u, th):
         return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
@@ -574,7 +572,16 @@ def test_the_smoothers_default_noise_warns_where_the_residuals_are_far_above_it(
     rng = np.random.default_rng(0)
     u = rng.standard_normal((60, 1))
     _, z = oj.simulate(model, theta, np.array([0.2, -0.1]), u)
-    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    return model, theta, u, np.asarray(z), rng
+
+
+def test_the_smoothers_default_noise_warns_where_the_residuals_are_far_above_it():
+    """The smoother's default measurement noise is 1 % of each output's RMS over the head;
+    on data of noise 0.01 at an output RMS of about 0.2 its std came out 5 times too small,
+    silently. It now warns there, naming `measurement_noise`; with that given, or by
+    method='lsq' (std from the residuals), it does not."""
+    model, theta, u, z, rng = _smoother_case()
+    z = z + 0.01 * rng.standard_normal(np.shape(z))
     with pytest.warns(
         UserWarning, match=r"assumed a measurement noise of 1 % .* `measurement_noise`"
     ):
@@ -592,16 +599,7 @@ def test_the_smoothers_default_noise_warns_from_twice_its_size(times):
     """Noise `times` 1 % of the head's output RMS: at the default's own size no warning;
     at twice it, where the smoother's std is about half the spread of its estimates, a
     warning (it came only from 3 times)."""
-
-    def rhs(x, u, th):
-        return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
-
-    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
-    theta = {"c": 0.3, "k": 2.0}
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((60, 1))
-    _, z = oj.simulate(model, theta, np.array([0.2, -0.1]), u)
-    z = np.asarray(z)
+    model, theta, u, z, rng = _smoother_case()
     z = z + times * 0.01 * np.sqrt(np.mean(z[:40] ** 2)) * rng.standard_normal(np.shape(z))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
