@@ -348,9 +348,9 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
 DESCENT_TRIALS = tuple(10.0**-k for k in range(8))
 
 
-def descends(problem: FitProblem, params: Params, g: Params, d_t, d_x, gone_t, gone_x):
-    """Whether a step along the columns `gone_t`, `gone_x` (those that vanished along the
-    fit) decreases the objective beyond its round-off: the diagonal Gauss-Newton step
+def descends(problem: FitProblem, params: Params, g: Params, d_t, gone_t, strategy):
+    """Whether a step along the theta columns `gone_t` (those that vanished along the fit)
+    decreases the objective beyond its round-off: the diagonal Gauss-Newton step
     -g_i / d_i of those columns alone (projected), scaled by each of `DESCENT_TRIALS`,
     against the objective at `params` evaluated by the same program: a decrease counts
     above sqrt(eps) C and above the round-off `SAME_PATH` eps (sqrt(C Z) + C), Z the
@@ -361,22 +361,20 @@ def descends(problem: FitProblem, params: Params, g: Params, d_t, d_x, gone_t, g
     stationarity."""
     dtype = problem.dtype
     eps = jnp.finfo(dtype).eps
-    rel = eps**2
 
-    def objective(p):
-        return problem.loss(p) + problem.g(p.theta)
+    def objective(theta):
+        return problem.loss(Params(theta, params.x0), strategy) + problem.g(theta)
 
-    here = objective(params)
+    here = objective(params.theta)
     round_off = SAME_PATH * eps * (jnp.sqrt(jnp.abs(here) * output_norm(problem)) + jnp.abs(here))
     resolved = jnp.maximum(round_off, jnp.sqrt(eps) * jnp.abs(here))
-    step_t = jnp.where(gone_t, -g.theta / (floor(d_t, rel) if d_t.size else d_t), 0.0)
-    step_x = jnp.where(gone_x, -g.x0 / (floor(d_x, rel) if d_x.size else d_x), 0.0)
+    step = jnp.where(gone_t, -g.theta / (floor(d_t, eps**2) if d_t.size else d_t), 0.0)
 
     def lower(alpha):
-        theta = params.theta + alpha * step_t
+        theta = params.theta + alpha * step
         if params.theta.size and (problem.constrained or problem.regulariser is not None):
             theta = problem.feasible(theta)
-        value = objective(Params(theta, params.x0 + alpha * step_x))
+        value = objective(theta)
         return jnp.isfinite(value) & (value < here - resolved)
 
     alphas = jnp.asarray(DESCENT_TRIALS, dtype)
@@ -394,8 +392,7 @@ def degenerate_refuted(problem: FitProblem, params: Params, gone_t, strategy):
     C, grad = problem.value_and_grad(params, strategy)
     g = Params(0.5 * grad.theta, 0.5 * grad.x0)
     d_t, d_x = column_norms(problem, params, strategy)
-    gone_x = jnp.zeros(d_x.shape, bool)
-    down = descends(problem, params, g, d_t, d_x, jnp.asarray(gone_t), gone_x)
+    down = descends(problem, params, g, d_t, jnp.asarray(gone_t), strategy)
     return down, first_order(problem, params, C, g, d_t, d_x)
 
 

@@ -96,13 +96,6 @@ from .base import AbstractSolver, check_options
 TRIAL_COLUMNS = 16
 
 
-def _vanished_theta(diagonals, top: Params):
-    """The theta columns that vanished along the fit (`vanished_columns`), from the
-    linearisation's `diagonals` and the largest ones along the fit."""
-    d_t, d_x = diagonals
-    return vanished_columns(d_t, top.theta, d_x, top.x0)[0]
-
-
 class LSQState(NamedTuple):
     blocks: AbstractLinearisation  # the linearisation at the current iterate
     loss: jax.Array  # C at the current iterate
@@ -496,7 +489,8 @@ class AbstractLeastSquares(AbstractSolver):
         # (the columns that vanished along the fit measured at their largest norm: a
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
-        top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(*blocks.diagonals(params)))
+        d_t, d_x = blocks.diagonals(params)
+        top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(d_t, d_x))
         at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
         met = fo <= self.gtol
         degenerate = (round_off | small_step) & ~met & degenerate
@@ -532,7 +526,7 @@ class AbstractLeastSquares(AbstractSolver):
             se,
             small_step,
             degenerate,
-            _vanished_theta(blocks.diagonals(params), top),
+            vanished_columns(d_t, top.theta, d_x, top.x0)[0],
             stall_limit(problem, blocks.C),
         )
         state = LSQState(
