@@ -436,9 +436,8 @@ def fit_orthogonal(
     - `strength`: lambda > 0 of the penalty (its residuals are sqrt(lambda / T) Q^T
         W^{1/2} d).
     - `rounds`: the largest number of rounds (>= 1). The rounds contract slowly near
-        the end (a pendulum with an MLP damping moved 0.86, 0.24, 0.17, 0.04 standard
-        errors in rounds 2 to 5), so the default leaves room beyond the 4 to 6 they
-        take there.
+        the end (`result.rounds` gives each round's move in standard errors), so the
+        default leaves room beyond the few a converging fit takes.
     - `stol`: the change of the physical parameters in a round, in their standard
         errors, below which the rounds have converged (> 0); the fits' own statistical
         stop (`stol` of the least-squares solvers) leaves them about that precise.
