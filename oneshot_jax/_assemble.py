@@ -12,7 +12,7 @@ from . import _pytree
 from . import metrics as _metrics
 from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
-from ._optimality import resolution, roundoff_limit
+from ._optimality import promises_descent, resolution, roundoff_limit
 from ._results import from_index, name_of
 from ._simulate import simulate_impl
 from ._strategy import (
@@ -62,6 +62,7 @@ class Out(NamedTuple):
     limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
+    promises_descent: jax.Array  # whether first_order promises a decrease (a zero residual's)
 
 
 def _stage_out(s, best) -> StageOut:
@@ -89,9 +90,9 @@ def _stage_out(s, best) -> StageOut:
     )
 
 
-def collect(stages, best, moved, posted) -> Out:
+def collect(problem, stages, best, moved, posted) -> Out:
     """`Out` from the solvers' `Solution`s and `post`'s output (traced, inside the fit's
-    compiled call: indexing only)."""
+    compiled call: indexing, and `promises_descent` at the best start's stop)."""
     theta, x0, e, cov, met, _ = posted
     final = stages[-1]
     per_stage = tuple(_stage_out(s, best) for s in stages)
@@ -119,6 +120,7 @@ def collect(stages, best, moved, posted) -> Out:
         m.limit[best],
         None if final.best is None else final.best.returned_score()[best],
         final.solver_result._value,
+        promises_descent(problem, final.loss[best], m.first_order[best]),
     )
 
 

@@ -27,7 +27,7 @@ from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
-from ._optimality import degenerate_refuted
+from ._optimality import refuted
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
@@ -140,7 +140,7 @@ def _solve(
     )
     strategy = getattr(solvers[-1], "strategy", "auto")
     posted = post(problem, params, blocks, strategy, lags)
-    out = collect(stages, best, moved, posted)
+    out = collect(problem, stages, best, moved, posted)
     jacobians = None
     if stability_at is not None:
         rhs, idx = stability_at
@@ -268,29 +268,40 @@ def _demoted(result, reason, **info):
 
 
 @eqx.filter_jit
-def _refuted_at(problem, params, gone_t, strategy):
-    """`_optimality.degenerate_refuted`, compiled once per problem structure and strategy
-    (the data are arguments)."""
-    return degenerate_refuted(problem, params, gone_t, strategy)
+def _refuted_at(problem, params, along, strategy):
+    """`_optimality.refuted`, compiled once per problem structure and strategy (the data
+    are arguments)."""
+    return refuted(problem, params, along, strategy)
 
 
-def _flag_refuted_degenerate(result, problem, names, theta_flat, x0, strategy):
-    """`result` with the stop `stalled` where it converged at a degenerate minimum
-    (`stop_info["degenerate"]`) but a step along the columns that vanished still lowers
-    the objective by more than sqrt(eps) of it (`_optimality.degenerate_refuted`): its
-    first-order measure is then the plain one, and `stop_info["solver_stop"]` says
-    `converged`."""
-    info = result.stop_info
-    if not info.get("degenerate") or name_of(result.stop_reason) != "converged":
-        return result
-    gone = np.asarray([name in info.get("vanished", ()) for name in names], bool)
+def _flag_refuted_stop(result, problem, names, theta_flat, x0, promising, strategy):
+    """`result` with the stop `stalled` where the solver's stop says no step lowers the
+    loss but one does by more than sqrt(eps) of it and its round-off
+    (`_optimality.refuted`), its first-order measure then the plain one and
+    `stop_info["solver_stop"]` the solver's own stop:
+
+    - converged at a degenerate minimum (`stop_info["degenerate"]`): a step along the
+      theta columns that vanished (`descends_along_vanished`);
+    - a zero residual where the first-order measure at the stop promises a decrease
+      beyond round-off (`_optimality.promises_descent`, `promising`): a step along every
+      column (`descends_from_zero_residual`)."""
+    info, stop = result.stop_info, name_of(result.stop_reason)
+    degenerate = info.get("degenerate") and stop == "converged"
+    if not (degenerate or (stop == "zero_residual" and promising)):
+        return result  # (before any array operation: each would compile a program)
     params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
-    down, fo = _refuted_at(problem, params, jnp.asarray(gone), strategy)
+    if degenerate:
+        gone = np.asarray([name in info.get("vanished", ()) for name in names], bool)
+        along, flag = Params(gone, np.zeros(params.x0.shape, bool)), "descends_along_vanished"
+    else:
+        along = Params(np.ones(params.theta.shape, bool), np.ones(params.x0.shape, bool))
+        flag = "descends_from_zero_residual"
+    down, fo = _refuted_at(problem, params, jax.tree_util.tree_map(jnp.asarray, along), strategy)
     if not bool(down):
         return result
     info = {k: v for k, v in info.items() if k != "degenerate"}
     out = dataclasses.replace(result, stop_info={**info, "first_order": float(fo)})
-    return _demoted(out, "stalled", descends_along_vanished=True)
+    return _demoted(out, "stalled", **{flag: True})
 
 
 def _warn_unequal_noise(residuals, weight, std):
@@ -665,8 +676,14 @@ def fit(
         strategy,
         finals=Params(out.start_theta, out.start_x0),
     )
-    result = _flag_refuted_degenerate(
-        result, built.problem, prepared.names, out.theta, out.x0, strategy
+    result = _flag_refuted_stop(
+        result,
+        built.problem,
+        prepared.names,
+        out.theta,
+        out.x0,
+        bool(out.promises_descent),
+        strategy,
     )
     if aggregate is not None:
         result = agg.restore(result)

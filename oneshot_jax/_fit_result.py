@@ -97,6 +97,16 @@ def stop_detail(status: str, info: dict) -> str:
     if status == "stalled":
         # (A first-order solver has no scaled step or linear model: NaN, not shown.)
         tail = vs + " > gtol" if known else "not stationary"
+        if info.get("descends_along_vanished"):
+            return (
+                "the solver stopped at what read as a degenerate minimum, but a step along "
+                f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
+            )
+        if info.get("descends_from_zero_residual"):
+            return (
+                "the solver stopped with the loss below the round-off level of the data (a "
+                f"zero residual), but a step still lowers the loss beyond round-off: {tail}"
+            )
         if step_test:
             return f"{step_test}: stalled, {tail}"
         if np.isfinite(step) and np.isfinite(decrease):
@@ -313,7 +323,10 @@ class FitResult(eqx.Module):
         the largest float) and, where the loss is finite but above that, `overflow` (the
         loss); with the stop `stalled` where the solver converged at a degenerate
         minimum that a step along the vanished columns still descends from (checked
-        after the solve), `descends_along_vanished` and `solver_stop` `converged`.
+        after the solve), `descends_along_vanished` and `solver_stop` `converged`; with
+        the stop `stalled` where the solver reported a zero residual that a step along
+        every column still descends from (checked after the solve),
+        `descends_from_zero_residual` and `solver_stop` `zero_residual`.
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

@@ -44,8 +44,8 @@ scaling, "The Levenberg-Marquardt algorithm: implementation and theory", 1978, e
 (6.3); `stall_test`): the gradient is then tested in the scaling the parameter had
 before its column vanished, and the fit converges there where that measure is below the
 round-off limit and no step along those columns lowers C by more than sqrt(eps) C
-(`descends`, checked once after the solve by `degenerate_refuted`; `Measures.degenerate`
-says so). Relative shrinkage, because every column
+(`descends`, checked once after the solve by `refuted`; `Measures.degenerate` says
+so). Relative shrinkage, because every column
 shrinks alike where the start was unstable (1e20 there), a change of the loss's scale;
 the descent, because a float32 fit whose columns of R and C shrank 1e8-fold in one step
 read stationary at their largest norm with a loss 7000 times the optimum's. Whatever
@@ -54,7 +54,9 @@ switched itself off (a gain at 0, a closed gate), at a minimum or on a plateau.
 
 Where the data determine the outputs exactly (a zero-residual fit, noise-free data), r
 is round-off at the solution and the cosine is meaningless; `zero_residual` tests the
-loss against the round-off level of the data instead.
+loss against the round-off level of the data instead, and `refuted` checks after the
+solve that no step along every column still lowers it (a loss below that level can
+still be 20 times the optimum's on noisy float32 data).
 
 Over-parameterised models (a network in theta) have a Jacobian with a null space and,
 next to it, directions the data determine only weakly, along which the linear model of
@@ -319,7 +321,7 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
     docstring): the measure `first_order`, stationary at most `stall_limit`; and, where
     that fails, the measure with the columns that vanished along the fit at the largest
     norm they had (`vanished_columns`; More 1978, eq. (6.3)), stationary at most the
-    same limit (a candidate that `degenerate_refuted` checks after the solve).
+    same limit (a candidate that `refuted` checks after the solve).
 
     **Arguments:**
 
@@ -348,51 +350,59 @@ def stall_test(problem: FitProblem, params: Params, C, g: Params, d_t, d_x, top_
 DESCENT_TRIALS = tuple(10.0**-k for k in range(8))
 
 
-def descends(problem: FitProblem, params: Params, g: Params, d_t, gone_t, strategy):
-    """Whether a step along the theta columns `gone_t` (those that vanished along the fit)
-    decreases the objective beyond its round-off: the diagonal Gauss-Newton step
-    -g_i / d_i of those columns alone (projected), scaled by each of `DESCENT_TRIALS`,
-    against the objective at `params` evaluated by the same program: a decrease counts
-    above sqrt(eps) C and above the round-off `SAME_PATH` eps (sqrt(C Z) + C), Z the
-    outputs' `output_norm`. At a degenerate minimum (c^2 u, the minimum at c = 0) every
-    such step raises C or leaves it within that; on a plateau at a limit (a closed gate
-    sigmoid(s) w, s -> -inf) the step gains what the term still contributes, 1e-10 C
-    there; where one lowers C more, the vanished columns' measure is no test of
-    stationarity."""
+def descends(problem: FitProblem, params: Params, g: Params, d: Params, along: Params, strategy):
+    """Whether a step along the columns `along` (boolean `Params`: those that vanished
+    along the fit, or every column) decreases the objective beyond its round-off: the
+    diagonal Gauss-Newton step -g_i / d_i of those columns alone (theta's projected),
+    scaled by each of `DESCENT_TRIALS`, against the objective at `params` evaluated by the
+    same program: a decrease counts above sqrt(eps) C and above the round-off `SAME_PATH`
+    eps (sqrt(C Z) + C), Z the outputs' `output_norm`. At a degenerate minimum (c^2 u,
+    the minimum at c = 0) every such step along the vanished columns raises C or leaves it
+    within that; on a plateau at a limit (a closed gate sigmoid(s) w, s -> -inf) the step
+    gains what the term still contributes, 1e-10 C there; where one lowers C more, the
+    vanished columns' measure is no test of stationarity. At a zero residual (round-off
+    residuals, C about eps^2 Z) no step lowers C by the round-off bound, which is then
+    above C itself."""
     dtype = problem.dtype
     eps = jnp.finfo(dtype).eps
 
-    def objective(theta):
-        return problem.loss(Params(theta, params.x0), strategy) + problem.g(theta)
+    def objective(p):
+        return problem.loss(p, strategy) + problem.g(p.theta)
 
-    here = objective(params.theta)
+    def diagonal_step(g, d, on):
+        return jnp.where(on, -g / floor(d, eps**2), 0.0) if d.size else d
+
+    here = objective(params)
     round_off = SAME_PATH * eps * (jnp.sqrt(jnp.abs(here) * output_norm(problem)) + jnp.abs(here))
     resolved = jnp.maximum(round_off, jnp.sqrt(eps) * jnp.abs(here))
-    step = jnp.where(gone_t, -g.theta / (floor(d_t, eps**2) if d_t.size else d_t), 0.0)
+    step = jax.tree_util.tree_map(diagonal_step, g, d, along)
 
     def lower(alpha):
-        theta = params.theta + alpha * step
+        theta = params.theta + alpha * step.theta
         if params.theta.size and (problem.constrained or problem.regulariser is not None):
             theta = problem.feasible(theta)
-        value = objective(theta)
+        value = objective(Params(theta, params.x0 + alpha * step.x0))
         return jnp.isfinite(value) & (value < here - resolved)
 
     alphas = jnp.asarray(DESCENT_TRIALS, dtype)
     return jnp.any(jax.lax.map(lower, alphas)) & jnp.isfinite(here)
 
 
-def degenerate_refuted(problem: FitProblem, params: Params, gone_t, strategy):
-    """After a solve that converged at a degenerate minimum (`stall_test`): whether a step
-    along the theta columns `gone_t` that vanished along the fit still lowers the
-    objective (`descends`), and the plain first-order measure at `params`. Run once, after
-    the solve, where the solver reported such a stop (its stop was at a stall either way:
-    only the verdict depends on it), so that the solver's compiled step holds no second
-    simulation. (A float32 RC circuit whose columns of R and C shrank 1e8-fold in one
-    step read stationary at their largest norm with a loss 7000 times the optimum's.)"""
+def refuted(problem: FitProblem, params: Params, along: Params, strategy):
+    """After a solve that reported a stop where no step lowers the loss, a degenerate
+    minimum (`stall_test`) or a zero residual (`zero_residual`): whether a step along the
+    columns `along` (boolean `Params`: theta's vanished columns, or every column) still
+    lowers the objective (`descends`), and the plain first-order measure at `params`. Run
+    once, after the solve, where the solver reported such a stop (its stop was at a stall
+    either way: only the verdict depends on it), so that the solver's compiled step holds
+    no second simulation. (A float32 RC circuit whose columns of R and C shrank 1e8-fold
+    in one step read stationary at their largest norm with a loss 7000 times the
+    optimum's; a float32 BFGS with a loose step test stopped on noisy data at 20 times the
+    optimum's loss, below eps `data_scale`, and read as a zero residual.)"""
     C, grad = problem.value_and_grad(params, strategy)
     g = Params(0.5 * grad.theta, 0.5 * grad.x0)
     d_t, d_x = column_norms(problem, params, strategy)
-    down = descends(problem, params, g, d_t, jnp.asarray(gone_t), strategy)
+    down = descends(problem, params, g, Params(d_t, d_x), along, strategy)
     return down, first_order(problem, params, C, g, d_t, d_x)
 
 
@@ -422,6 +432,20 @@ def zero_residual(C, scale):
     signed penalty of a first-order solver): that says nothing of the residuals."""
     eps = jnp.finfo(jnp.result_type(C)).eps
     return (C >= 0) & (C <= ZERO_RESIDUAL_RTOL * eps * scale)
+
+
+def promises_descent(problem: FitProblem, C, fo):
+    """Whether the first-order measure `fo` at a loss C promises a decrease of C beyond its
+    round-off (`descends`'s bound SAME_PATH eps (sqrt(C Z) + C), Z the outputs'
+    `output_norm`): fo^2 C, the decrease of the Gauss-Newton step along the column of the
+    largest cosine alone, above it. Where it does not, a zero-residual stop stands without
+    `refuted`'s check: at round-off residuals, C about (k eps)^2 Z, it cannot for k up to
+    SAME_PATH. Traced, inside the fit's compiled call: the check it spares is a second
+    program."""
+    eps = jnp.finfo(problem.dtype).eps
+    C = jnp.abs(C)
+    bound = SAME_PATH * eps * (jnp.sqrt(C * output_norm(problem)) + C)
+    return ~(fo**2 * C <= bound)  # (NaN fo: a solver without the measure, checked)
 
 
 def output_norm(problem: FitProblem):

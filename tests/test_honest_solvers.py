@@ -1172,6 +1172,31 @@ def test_a_float32_plateau_that_still_descends_is_not_called_converged():
     assert r.success == (float(r.loss) <= 1.01 * float(best.loss)), (r.status, float(r.loss))
 
 
+def test_a_float32_stop_below_the_data_round_off_that_still_descends_is_not_a_zero_residual():
+    """x+ = a x + b u with noise 3e-5 in float32: a BFGS with a loose step test (rtol
+    1e-3, atol 1e-9) stops at 20 times the optimum's loss, below eps times the loss of
+    predicting the outputs' mean, where `zero_residual` said success. A diagonal
+    Gauss-Newton step from there still lowers the loss beyond its round-off: stalled,
+    with the solver's own stop kept. The same solver without its loose test stays a
+    success at the optimum."""
+    rng = np.random.default_rng(0)
+    f32 = np.float32
+    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
+    z = np.asarray(z) + 3e-5 * rng.standard_normal((200, 1))
+    args = ({"a": f32(0.5), "b": f32(0.3)}, z[0].astype(f32), u.astype(f32), z.astype(f32))
+    best = oj.fit(lin, *args)
+    loose = oj.fit(lin, *args, solver=oj.Optimistix(optx.BFGS(rtol=1e-3, atol=1e-9)))
+    tight = oj.fit(lin, *args, solver=oj.Optimistix(optx.BFGS(rtol=1e-6, atol=1e-10)))
+    assert best.success and float(loose.loss) > 10 * float(best.loss)
+    assert not loose.success and loose.status == "stalled", loose.message
+    assert loose.stop_info["solver_stop"] == "zero_residual"
+    assert loose.stop_info["descends_from_zero_residual"]
+    assert "a step still lowers the loss" in loose.message
+    assert tight.success and float(tight.loss) <= 1.05 * float(best.loss), tight.message
+
+
 def _rotation_step(x, u, p):
     c, s = jnp.cos(p["w"]), jnp.sin(p["w"])
     return p["r"] * jnp.stack([c * x[0] - s * x[1], s * x[0] + c * x[1]]) + jnp.stack([u[0], 0.0])
