@@ -389,7 +389,7 @@ class Augmented(NamedTuple):
 
     def restore(self, result):
         """A `FitResult` of the augmented problem as one of the user's model: x0 with its
-        n_x entries, residuals and per-output metrics of z's n_z outputs, the AIC on the
+        n_x entries, residuals and per-output metrics of z's n_z outputs, the AIC and FPE on the
         point samples of the outputs that have any (the covariance, from all residuals,
         counts the readings as observations)."""
         n_x, n_z = self.n_x, self.n_z
@@ -408,6 +408,7 @@ class Augmented(NamedTuple):
             n_free += int(np.count_nonzero(np.asarray(result.x0_estimated)[:n_x])) * n_traj
             es, ms = np.where(seen, e, 0.0)[..., sampled], seen[..., sampled]
             metrics["aic"] = float(_metrics.aic(np.zeros_like(es), es, n_free, ms))
+            metrics["fpe"] = float(_metrics.fpe(np.zeros_like(es), es, n_free, ms))
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],

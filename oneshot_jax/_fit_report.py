@@ -389,16 +389,17 @@ def report(result) -> str:
     fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
     rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
     aic = float(result.metrics["aic"])
+    fpe = result.metrics.get("fpe")  # (a result saved before FPE was reported has none)
     if np.isnan(aic):
         why = (
             "the loss is not finite"
             if not np.isfinite(float(result.loss))
             else "fewer samples measure every output than there are outputs"
         )
-        aic = f"nan ({why})"
+        criteria = f"AIC nan ({why})"
     else:
-        aic = f"{aic:.4g}"
-    scores = f"FIT% [{fitp}]  RMSE [{rmse}]  AIC {aic}"
+        criteria = f"AIC {aic:.4g}" + ("" if fpe is None else f"  FPE {float(fpe):.4g}")
+    scores = f"FIT% [{fitp}]  RMSE [{rmse}]  {criteria}"
     if x0.ndim == 2 and x0.shape[0] > 1:
         # Pooled: each record against the mean of all (MATLAB's compare: one per experiment)
         out.append(f"pooled over the {x0.shape[0]} {rows}: {scores}")

@@ -224,6 +224,10 @@ def test_fit_result_metrics_against_hand_computations(sat, sat_gn):
     n_free = 3 + 3  # theta and x0
     aic = SAT_T * np.log(np.linalg.det(e.T @ e / SAT_T)) + 2 * n_free
     assert r.metrics["aic"] == pytest.approx(aic, rel=1e-9)
+    d = n_free / SAT_T  # Akaike's final prediction error (MATLAB's fpe), printed as nlgreyest
+    fpe = np.linalg.det(e.T @ e / SAT_T) * (1 + d) / (1 - d)
+    assert r.metrics["fpe"] == pytest.approx(fpe, rel=1e-9)
+    assert f"FPE {r.metrics['fpe']:.4g}" in str(r)
     # Covariance: sigma^2 (J^T J)^{-1}, sigma^2 = SSE / (n_obs - n_free), J in (theta, x0).
     p = jnp.concatenate([r.theta, r.x0])
     J = np.asarray(jax.jacfwd(lambda p: sat_outputs(p[:3], p[3:], sat["M"]).reshape(-1))(p))

@@ -95,7 +95,7 @@ def test_the_stop_is_one_readable_line_never_the_results_repr(fitted):
     lines = text.splitlines()
     assert lines[lines.index(status) + 1].startswith("loss ")
     assert " steps in " in text and "s (wall" in text
-    assert "FIT% [" in text and "RMSE [" in text and "AIC " in text
+    assert "FIT% [" in text and "RMSE [" in text and "AIC " in text and "FPE " in text
     assert repr(fitted) == text
     assert fitted.success and "not a solution" not in text
 
