@@ -540,9 +540,12 @@ class FitResult(eqx.Module):
 
         **Arguments:**
 
-        - `u`: the new record's inputs (T, n_u).
-        - `z_head`: its first n measured outputs (n, n_z).
-        - `t`: the new record's sample times (T,), for a model of time-stamped records.
+        - `u`: the new record's inputs (T, n_u); or several records, (N, T, n_u) or a
+            list of N arrays (T_i, n_u).
+        - `z_head`: its first n measured outputs (n, n_z); for several records, one head
+            per record ((N, n, n_z) or a list).
+        - `t`: the new record's sample times (T,), for a model of time-stamped records
+            (for several records, one (T_i,) per record, or one shared).
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
             The smoother's measurement noise defaults to the one the fit estimated,
@@ -562,7 +565,10 @@ class FitResult(eqx.Module):
         **Returns:**
 
         A `oneshot_jax.Prediction(z, x, x0, estimate)`; score it with
-        `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`.
+        `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`. For several records, a
+        list of N `Prediction`s, each record predicted alone (as MATLAB's `predict` of
+        multi-experiment data); `x0=` then takes one starting guess per record, (N, n_x)
+        (`x0=result.x0` after a fit on the same N records).
         """
         if self.model is None:
             raise ValueError(
@@ -571,10 +577,7 @@ class FitResult(eqx.Module):
             )
         self._check_u(u)
         if is_ragged(u) or np.ndim(u) == 3:
-            raise ValueError(
-                f"`u` must be one record, shape (T, n_u), got {len(u)} records: predict "
-                "them one at a time, `result.predict(u[i], z_head[i])`."
-            )
+            return self._predict_records(u, z_head, t, kwargs)
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
         given_x0 = kwargs.get("x0")
@@ -614,6 +617,42 @@ class FitResult(eqx.Module):
             t=t,
             z_name="z_head",
         )
+
+    def _predict_records(self, u, z_head, t, kwargs):
+        """`predict` of several records (u (N, T, n_u) or a list of N records, z_head
+        (N, n, n_z) or a list of N heads, `t` None, shared (T,) or one per record), each
+        as one record; `x0=` of shape (N, n_x) (`result.x0` after a fit on N records)
+        gives each its own starting guess. A list of N `Prediction`s (MATLAB's `predict`
+        of multi-experiment data: one per experiment)."""
+        records = list(u)
+        N = len(records)
+        try:
+            heads = list(z_head)
+        except TypeError:
+            heads = None
+        if heads is None or len(heads) != N or np.ndim(z_head) == 2:
+            raise ValueError(
+                f"`z_head` must hold one head per record of `u` ({N} records): shape "
+                f"(N, n, n_z) or a list of N arrays (n, n_z), got "
+                f"{type(z_head).__name__} of shape {np.shape(z_head) if heads else '?'}."
+            )
+        per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
+        if per_t and len(t) != N:
+            raise ValueError(
+                f"`t` must hold the sample times of each of the {N} records, got {len(t)}."
+            )
+        guess = kwargs.get("x0")
+        per_x0 = guess is not None and np.ndim(guess) == 2
+        if per_x0 and np.shape(guess)[0] != N:
+            raise ValueError(
+                f"`x0` (the starting guesses) must have shape (n_x,) or ({N}, n_x) (one per "
+                f"record of `u`), got shape {np.shape(guess)}."
+            )
+        out = []
+        for i in range(N):
+            kw = dict(kwargs, x0=guess[i]) if per_x0 else kwargs
+            out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
+        return out
 
     def save(self, path):
         """Save to one `.npz` file (`oneshot_jax.save_result`; read it back with

@@ -43,6 +43,13 @@ def _columns(a, name):
         raise ValueError(f"`{name}` must be a numeric array, got {type(a).__name__}.") from err
     if complex_:  # (a cast would drop the imaginary part)
         raise ValueError(f"`{name}` must hold real numbers, got dtype {np.asarray(a).dtype}.")
+    if a.ndim == 3:  # (several records: MATLAB's compare shows them one at a time too)
+        raise ValueError(
+            f"`{name}` must have shape (T,) or (T, n) (one record), got {a.shape}: "
+            f"{a.shape[0]} records. Compare them one at a time, e.g. "
+            "`compare(z[i], result, u=u[i], n=n)`, or with the predictions of "
+            "`result.predict(u, z[:, :n])` (one per record): `compare(z[i], preds[i], n=n)`."
+        )
     if a.ndim not in (1, 2):
         raise ValueError(f"`{name}` must have shape (T,) or (T, n) (one record), got {a.shape}.")
     return a[:, None] if a.ndim == 1 else a

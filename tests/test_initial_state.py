@@ -245,9 +245,33 @@ def test_one_record_of_a_multi_record_fit_is_named_by_its_row_of_x0():
     np.testing.assert_allclose(r.simulate(u2, x0=r.x0[1])[1], z2, atol=1e-7)
     with pytest.raises(ValueError, match=rf"\(n_x,\); {rows}: pass `x0=result.x0\[i\]`"):
         r.predict(u1, z1[:N_HEAD], x0=r.x0)
-    with pytest.raises(ValueError, match=r"got 2 records: .* `result.predict\(u\[i\], z_head"):
-        r.predict(U, Z[:, :N_HEAD])
     np.testing.assert_allclose(r.predict(u2, z2[:N_HEAD], x0=r.x0[1]).x0, [0.0, 1.0], atol=1e-7)
+
+
+def test_predict_of_several_records_predicts_each_from_its_own_head():
+    """MATLAB's `predict` of multi-experiment data: `result.predict` of N records (stacked,
+    or a list of different lengths) returns one `Prediction` per record, each from its own
+    head (records from different initial states: a head given to another record would
+    give that record's x0), with `x0=` one starting guess per record; a head count that
+    does not match is named."""
+    truth = ((0.8, -0.3), (-0.5, 0.9), (0.1, 0.4))
+    recs = [
+        pendulum_record(T, seed, 0.0, x0) for T, seed, x0 in zip((60, 60, 45), (1, 2, 3), truth)
+    ]
+    U, Z = np.stack([r[0] for r in recs[:2]]), np.stack([r[1] for r in recs[:2]])
+    r = oj.fit(PENDULUM, PEND_THETA, np.array([[0.7, -0.2], [-0.4, 0.8]]), U, Z)
+    stacked = r.predict(U, Z[:, :N_HEAD])
+    ragged = r.predict([c[0] for c in recs], [c[1][:N_HEAD] for c in recs], x0=np.zeros((3, 2)))
+    assert isinstance(stacked, list) and len(stacked) == 2 and len(ragged) == 3
+    for preds in (stacked, ragged):
+        for p, (u, z, _), x0 in zip(preds, recs, truth):
+            assert isinstance(p, oj.Prediction) and p.z.shape == z.shape
+            np.testing.assert_allclose(p.x0, x0, atol=1e-6)
+            np.testing.assert_allclose(p.z, z, atol=1e-6)
+    with pytest.raises(ValueError, match=r"`z_head` must hold one head per record of `u` \(2"):
+        r.predict(U, Z[0, :N_HEAD])
+    with pytest.raises(ValueError, match=r"`x0` \(the starting guesses\) must have shape"):
+        r.predict(U, Z[:, :N_HEAD], x0=np.zeros((3, 2)))
 
 
 def test_fit_result_predict_estimates_the_entries_the_fit_held_unless_told():

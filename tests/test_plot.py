@@ -351,6 +351,13 @@ def test_compare_of_a_multi_record_result_without_n_says_to_pass_n():
     assert "`result.simulate(u, x0=result.x0[i])[1]`, as the model output." in str(err.value)
     fig = oj.plot.compare(np.asarray(z[0]), res.simulate(u[0], x0=res.x0[0])[1])
     assert "FIT 100.00 %" in " ".join(_legend_texts(fig.axes[0]))
+    # Both records at once: one at a time, with each record's prediction, which it shows.
+    with pytest.raises(ValueError, match=r"2 records\. Compare them one at a time") as err:
+        oj.plot.compare(np.asarray(z), res, u=u, n=10)
+    assert "`compare(z[i], preds[i], n=n)`" in str(err.value)
+    preds = res.predict(u, np.asarray(z)[:, :10])
+    fig = oj.plot.compare(np.asarray(z[1]), preds[1], n=10)
+    assert "FIT 100.00 %" in " ".join(_legend_texts(fig.axes[0]))
 
 
 def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
