@@ -62,7 +62,13 @@ class Out(NamedTuple):
     limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
-    promises_descent: jax.Array  # whether first_order promises a decrease (a zero residual's)
+    # Per start (S,): whether its first-order measure promises a decrease (a zero
+    # residual's, `promises_descent`), whether it stopped at a degenerate minimum, and the
+    # theta columns that vanished along its fit ((S, p), or (S,) False): the checks after
+    # the solve (`_fit._flag_refuted_stop`).
+    promises_descent: jax.Array
+    start_degenerate: jax.Array
+    start_vanished: jax.Array
 
 
 def _stage_out(s, best) -> StageOut:
@@ -120,7 +126,9 @@ def collect(problem, stages, best, moved, posted) -> Out:
         m.limit[best],
         None if final.best is None else final.best.returned_score()[best],
         final.solver_result._value,
-        promises_descent(problem, final.loss[best], m.first_order[best]),
+        promises_descent(problem, final.loss, m.first_order),
+        m.degenerate,
+        m.vanished,
     )
 
 

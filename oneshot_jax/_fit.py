@@ -274,21 +274,13 @@ def _refuted_at(problem, params, along, strategy):
     return refuted(problem, params, along, strategy)
 
 
-def _flag_refuted_stop(result, problem, names, theta_flat, x0, promising, strategy):
-    """`result` with the stop `stalled` where the solver's stop says no step lowers the
-    loss but one does by more than sqrt(eps) of it and its round-off
-    (`_optimality.refuted`), its first-order measure then the plain one and
-    `stop_info["solver_stop"]` the solver's own stop:
-
-    - converged at a degenerate minimum (`stop_info["degenerate"]`): a step along the
-      theta columns that vanished (`descends_along_vanished`);
-    - a zero residual where the first-order measure at the stop promises a decrease
-      beyond round-off (`_optimality.promises_descent`, `promising`): a step along every
-      column (`descends_from_zero_residual`)."""
-    info, stop = result.stop_info, name_of(result.stop_reason)
+def _refutation(problem, names, stop, info, promising, theta_flat, x0, strategy):
+    """The flag of `_flag_refuted_stop` where a start's stop (`stop`, its `info`) is
+    refuted by a step that lowers the loss (`_optimality.refuted`), with the plain
+    first-order measure there; (None, None) where it stands or is not such a stop."""
     degenerate = info.get("degenerate") and stop == "converged"
     if not (degenerate or (stop == "zero_residual" and promising)):
-        return result  # (before any array operation: each would compile a program)
+        return None, None  # (before any array operation: each would compile a program)
     params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
     if degenerate:
         gone = np.asarray([name in info.get("vanished", ()) for name in names], bool)
@@ -297,11 +289,67 @@ def _flag_refuted_stop(result, problem, names, theta_flat, x0, promising, strate
         along = Params(np.ones(params.theta.shape, bool), np.ones(params.x0.shape, bool))
         flag = "descends_from_zero_residual"
     down, fo = _refuted_at(problem, params, jax.tree_util.tree_map(jnp.asarray, along), strategy)
-    if not bool(down):
+    return (flag, float(fo)) if bool(down) else (None, None)
+
+
+def _flag_refuted_stop(result, problem, names, out, strategy):
+    """`result` with the stop `stalled` where the solver's stop says no step lowers the
+    loss but one does by more than sqrt(eps) of it and its round-off
+    (`_optimality.refuted`), its first-order measure then the plain one and
+    `stop_info["solver_stop"]` the solver's own stop:
+
+    - converged at a degenerate minimum (`stop_info["degenerate"]`): a step along the
+      theta columns that vanished (`descends_along_vanished`);
+    - a zero residual where the first-order measure at the stop promises a decrease
+      beyond round-off (`_optimality.promises_descent`): a step along every column
+      (`descends_from_zero_residual`).
+
+    With several starts, each other start's stop in `result.starts` is checked alike
+    (`stalled` where refuted): a start that read as a success from its stop alone."""
+    promising = np.asarray(out.promises_descent)
+    best = int(out.best)
+    flag, fo = _refutation(
+        problem,
+        names,
+        name_of(result.stop_reason),
+        result.stop_info,
+        promising[best],
+        out.theta,
+        out.x0,
+        strategy,
+    )
+    if flag is not None:
+        info = {k: v for k, v in result.stop_info.items() if k != "degenerate"}
+        result = _demoted(
+            dataclasses.replace(result, stop_info={**info, "first_order": fo}),
+            "stalled",
+            **{flag: True},
+        )
+    if result.starts is None:
         return result
-    info = {k: v for k, v in info.items() if k != "degenerate"}
-    out = dataclasses.replace(result, stop_info={**info, "first_order": float(fo)})
-    return _demoted(out, "stalled", **{flag: True})
+    reasons = list(result.starts.stop_reason)
+    degenerate = np.asarray(out.start_degenerate)
+    vanished = np.asarray(out.start_vanished)
+    for s, reason in enumerate(reasons):
+        if s == result.best or reason not in ("converged", "zero_residual"):
+            continue
+        gone = np.broadcast_to(vanished[s], (len(names),))
+        info = {
+            "degenerate": bool(degenerate[s]),
+            "vanished": [n for n, g in zip(names, gone) if g],
+        }
+        theta = np.asarray(out.theta).copy()
+        theta[list(problem.theta_free)] = np.asarray(out.start_theta)[s]
+        x0 = np.asarray(out.x0).copy()
+        x0[..., list(problem.x0_free)] = np.asarray(out.start_x0)[s]
+        flag, _ = _refutation(problem, names, reason, info, promising[s], theta, x0, strategy)
+        if flag is not None:
+            reasons[s] = "stalled"
+    if reasons == list(result.starts.stop_reason):
+        return result
+    return dataclasses.replace(
+        result, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+    )
 
 
 def _warn_unequal_noise(residuals, weight, std):
@@ -676,15 +724,7 @@ def fit(
         strategy,
         finals=Params(out.start_theta, out.start_x0),
     )
-    result = _flag_refuted_stop(
-        result,
-        built.problem,
-        prepared.names,
-        out.theta,
-        out.x0,
-        bool(out.promises_descent),
-        strategy,
-    )
+    result = _flag_refuted_stop(result, built.problem, prepared.names, out, strategy)
     if aggregate is not None:
         result = agg.restore(result)
     if result.validation_loss is not None and not np.isfinite(result.validation_loss):

@@ -211,8 +211,10 @@ class Starts(eqx.Module):
     - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
     - `solver_stop`: each start's own solver stop, the same as `stop_reason` except where
         a check after the solver replaced it (`validation`: the best-scoring iterate kept;
-        `unconverged_rollout`): there the solver's stop (`diverged`, `converged`, ...), as
-        `stop_info["solver_stop"]` for the returned start.
+        `unconverged_rollout`; `zero_gradient`; `stalled` where a step still lowers the
+        loss from a degenerate minimum or a zero residual, each start checked): there the
+        solver's stop (`diverged`, `converged`, ...), as `stop_info["solver_stop"]` for
+        the returned start.
     """
 
     theta: Any

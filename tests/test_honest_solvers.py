@@ -1195,6 +1195,18 @@ def test_a_float32_stop_below_the_data_round_off_that_still_descends_is_not_a_ze
     assert loose.stop_info["descends_from_zero_residual"]
     assert "a step still lowers the loss" in loose.message
     assert tight.success and float(tight.loss) <= 1.05 * float(best.loss), tight.message
+    # Each start of a multistart is checked alike, not only the returned one.
+    theta0 = {"a": np.array([0.5, 0.7, 0.85], f32), "b": np.array([0.3, 0.6, 0.45], f32)}
+    many = oj.fit(
+        lin,
+        theta0,
+        *args[1:],
+        solver=oj.Optimistix(optx.BFGS(rtol=1e-3, atol=1e-9)),
+        multistart=True,
+    )
+    assert np.all(np.asarray(many.starts.loss) > 3 * float(best.loss))
+    assert many.starts.solver_stop == ("zero_residual",) * 3
+    assert many.starts.stop_reason == ("stalled",) * 3, many.starts.stop_reason
 
 
 def _rotation_step(x, u, p):
