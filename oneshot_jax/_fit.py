@@ -27,6 +27,7 @@ from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
+from ._noise_weight import fit_noise_weighted
 from ._optimality import refuted
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
@@ -374,8 +375,8 @@ def _warn_unequal_noise(residuals, weight, std):
         f"the weighted residuals of the outputs differ in variance by a factor "
         f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
         "outputs, so they hold only where `weight` is about 1 / (each output's noise "
-        "variance); refit with such a weight, e.g. weight=1 / "
-        "np.nanmean(result.residuals**2, axis=0) for one record (see the uncertainty guide).",
+        'variance); refit with weight="noise", which estimates it with theta (see the '
+        "uncertainty guide).",
         stacklevel=3,
     )
 
@@ -506,7 +507,12 @@ def fit(
         optax transform or optimistix solver (wrapped), or a sequence of these, run in
         order, each starting where the last stopped (e.g. `[Adam(), LBFGS()]`).
     - `weight`, `penalty`, `penalty_weight`: Q and h, lambda of eq. (4), (21), as for
-        `loss`. The least-squares solvers need lambda h >= 0.
+        `loss`. The least-squares solvers need lambda h >= 0. `weight="noise"` estimates
+        Q with theta (MATLAB's `OutputWeight` "noise"): fits alternate with Q set to the
+        inverse covariance of the residuals until it settles, each warm-started (at
+        most 10 fits; `result.weight` is the Q of the returned fit,
+        `stop_info["noise_weight_rounds"]` the number of fits), so that the standard
+        errors hold for outputs of unequal noise.
     - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
         `positive`, `project`), or a list of them, on theta: every iterate lies in the
         intersection of their sets (Section 3.3). A regulariser here (the mixed form of
@@ -605,6 +611,13 @@ def fit(
     and Jacobian column are exactly zero there (a coupling started at 0) are named in a
     warning, and the stop reason is then `zero_gradient` (not a success).
     """
+    if isinstance(weight, str):
+        if weight != "noise":
+            raise ValueError(
+                f'`weight` must be None, an array (Q of eq. 4) or "noise" (Q estimated '
+                f"from the residuals), got {weight!r}."
+            )
+        return fit_noise_weighted(fit, {k: v for k, v in locals().items() if k != "weight"})
     check_window(aggregate, window)
     robust = as_covariance(covariance)
     if isinstance(robust, NeweyWest) and penalty is not None:

@@ -368,6 +368,12 @@ def report(result) -> str:
             "the standard errors and intervals below are those of the linearisation at the "
             "returned point, not of an estimate)"
         )
+    rounds = (result.stop_info or {}).get("noise_weight_rounds")
+    if rounds is not None:
+        out.append(
+            f'  (weight="noise": the output weight estimated from the residuals over {rounds} '
+            "fits, the last one shown)"
+        )
     lags = (result.diagnostics or {}).get("covariance_lags")
     if lags is not None:
         out.append(
