@@ -370,9 +370,10 @@ def report(result) -> str:
         )
     rounds = (result.stop_info or {}).get("noise_weight_rounds")
     if rounds is not None:
+        starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
         out.append(
             f'  (weight="noise": the output weight estimated from the residuals over {rounds} '
-            "fits, the last one shown)"
+            f"fits, the last one shown{starts})"
         )
     lags = (result.diagnostics or {}).get("covariance_lags")
     if lags is not None:

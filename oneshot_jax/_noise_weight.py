@@ -57,17 +57,18 @@ def _change(new, old):
 def fit_noise_weighted(fit, args):
     """`fit(**args)` with the weight estimated from the residuals (see the module
     docstring): from Q = I, at most `NOISE_ROUNDS` fits, each warm-started from the last
-    (theta, and x0 where its shape is the one given; a multistart only in the first);
-    the result of the last fit, whose Q the residuals reproduce to `NOISE_RTOL`, with
+    (theta, and x0 where its shape is the one given; a multistart only in the first, whose
+    `starts` and `best` the result keeps); the result of the last fit, whose Q the residuals reproduce to `NOISE_RTOL`, with
     `result.weight` that Q and `stop_info["noise_weight_rounds"]` the number of fits.
     Only the returned fit's warnings are shown; a Q that has not settled after the last
     round, or residuals that give none, get a warning of their own."""
     given_x0 = np.shape(args["x0"])
-    w, change, rounds, result = None, np.inf, 0, None
+    w, change, rounds, result, first = None, np.inf, 0, None, None
     for rounds in range(1, NOISE_ROUNDS + 1):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             result = fit(**{**args, "weight": w})
+        first = result if first is None else first
         if not np.isfinite(float(result.loss)):
             break
         Q = noise_weight(result.residuals)
@@ -108,4 +109,7 @@ def fit_noise_weighted(fit, args):
     for c in caught:
         warnings.warn(c.message, c.category, stacklevel=3)
     info = {**result.stop_info, "noise_weight_rounds": rounds}
-    return dataclasses.replace(result, stop_info=info)
+    result = dataclasses.replace(result, stop_info=info)
+    if first.starts is not None and result.starts is None:  # (the first fit's multistart)
+        result = dataclasses.replace(result, starts=first.starts, best=first.best)
+    return result

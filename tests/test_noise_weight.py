@@ -57,6 +57,16 @@ def test_the_noise_weight_gives_the_fit_and_standard_errors_of_the_true_weight()
     )
 
 
+def test_a_noise_weighted_multistart_keeps_its_first_fits_starts():
+    """The starts run in the first fit (Q = I) only; the result keeps them, and says so."""
+    u, z = _data()
+    starts = {"k": np.array([3.0, 5.0]), "c": np.array([0.3, 0.6])}
+    r = oj.fit(MODEL, starts, np.zeros(2), u, z, weight="noise", multistart=True)
+    assert r.success and len(r.starts.stop_reason) == 2 and r.best in (0, 1)
+    assert "the starts those of the first (Q = I)" in str(r)
+    assert float(r.theta["k"]) == pytest.approx(4.0, abs=0.02)
+
+
 def test_the_noise_weight_of_outputs_with_missing_samples_is_diagonal():
     """Where some samples miss an output, the weight is each output's inverse mean squared
     residual over its own samples (no covariance of the pairs)."""
