@@ -58,8 +58,9 @@ def fit_noise_weighted(fit, args):
     """`fit(**args)` with the weight estimated from the residuals (see the module
     docstring): from Q = I, at most `NOISE_ROUNDS` fits, each warm-started from the last
     (theta, and x0 where its shape is the one given; a multistart only in the first, whose
-    `starts` and `best` the result keeps); the result of the last fit, whose Q the residuals reproduce to `NOISE_RTOL`, with
-    `result.weight` that Q and `stop_info["noise_weight_rounds"]` the number of fits.
+    `starts` and `best` the result keeps); the result of the last fit, whose Q the
+    residuals reproduce to `NOISE_RTOL`, with `result.weight` that Q and
+    `stop_info["noise_weight_rounds"]` the number of fits.
     Only the returned fit's warnings are shown; a Q that has not settled after the last
     round, or residuals that give none, get a warning of their own."""
     given_x0 = np.shape(args["x0"])
