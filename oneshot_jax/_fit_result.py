@@ -339,8 +339,10 @@ class FitResult(eqx.Module):
     - `validation_loss`: with `fit(validation=...)`, the validation loss of the returned
         iterate (the lowest, or the solver's last iterate where it ties with the lowest:
         `Validation`); else None.
-    - `weight`: `fit(weight=...)`, the output weight Q (None for the identity), which
-        `predict` uses by default to estimate a new record's x0.
+    - `weight`: `fit(weight=...)`, the output weight Q (None for the identity; with
+        `weight="noise"`, the Q estimated from the residuals, and `stop_info` holds
+        `noise_weight_rounds`, the number of fits), which `predict` uses by default to
+        estimate a new record's x0.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result) and
