@@ -634,11 +634,13 @@ class FitResult(eqx.Module):
             heads = list(z_head)
         except TypeError:
             heads = None
-        if heads is None or len(heads) != N or np.ndim(z_head) == 2:
+        one = heads is not None and not is_ragged(z_head) and np.ndim(z_head) == 2
+        if heads is None or len(heads) != N or one:
+            shape = "" if heads is None or is_ragged(z_head) else f" of shape {np.shape(z_head)}"
             raise ValueError(
                 f"`z_head` must hold one head per record of `u` ({N} records): shape "
                 f"(N, n, n_z) or a list of N arrays (n, n_z), got "
-                f"{type(z_head).__name__} of shape {np.shape(z_head) if heads else '?'}."
+                f"{type(z_head).__name__}{shape}" + (f" with {len(heads)} heads." if heads else ".")
             )
         per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
         if per_t and len(t) != N:

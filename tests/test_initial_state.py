@@ -261,7 +261,8 @@ def test_predict_of_several_records_predicts_each_from_its_own_head():
     U, Z = np.stack([r[0] for r in recs[:2]]), np.stack([r[1] for r in recs[:2]])
     r = oj.fit(PENDULUM, PEND_THETA, np.array([[0.7, -0.2], [-0.4, 0.8]]), U, Z)
     stacked = r.predict(U, Z[:, :N_HEAD])
-    ragged = r.predict([c[0] for c in recs], [c[1][:N_HEAD] for c in recs], x0=np.zeros((3, 2)))
+    heads = [c[1][:n] for c, n in zip(recs, (N_HEAD, N_HEAD, 20))]  # (heads of two lengths)
+    ragged = r.predict([c[0] for c in recs], heads, x0=np.zeros((3, 2)))
     assert isinstance(stacked, list) and len(stacked) == 2 and len(ragged) == 3
     for preds in (stacked, ragged):
         for p, (u, z, _), x0 in zip(preds, recs, truth):
