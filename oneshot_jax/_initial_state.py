@@ -113,7 +113,14 @@ def _check_head(u, z, n, z_name="z"):
     """u (T, n_u), z (T_z, n_z) and 1 <= n <= min(T, T_z), as the number of samples used
     (`z_name`: the caller's name of z)."""
     if np.ndim(u) != 2:
-        raise ValueError(f"`u` must have shape (T, n_u) (one record), got shape {np.shape(u)}.")
+        several = (
+            " (several records: one call each, or `FitResult.predict`, which takes them all)"
+            if np.ndim(u) == 3
+            else ""
+        )
+        raise ValueError(
+            f"`u` must have shape (T, n_u) (one record), got shape {np.shape(u)}{several}."
+        )
     if np.ndim(z) != 2:
         raise ValueError(
             f"`{z_name}` must have shape (T, n_z) (one record), got shape {np.shape(z)}."

@@ -529,6 +529,8 @@ def test_bad_input_errors():
         est(x0=x0, n=2.5)
     with pytest.raises(ValueError, match=r"`u` must have shape \(T, n_u\)"):
         oj.estimate_x0(LINEAR, 1.0, u[:, 0], z, x0=x0)
+    with pytest.raises(ValueError, match=r"several records: one call each, or `FitResult.pre"):
+        oj.predict(LINEAR, 1.0, np.stack([u, u]), np.stack([z, z]), 5, x0=x0)
     with pytest.raises(ValueError, match=r"`z` must have shape \(T, n_z\)"):
         oj.estimate_x0(LINEAR, 1.0, u, z[None], x0=x0)
     with pytest.raises(ValueError, match="`x0` .* is needed"):
