@@ -57,18 +57,17 @@ class Out(NamedTuple):
     decrease: jax.Array
     standard_errors: jax.Array
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
-    degenerate: jax.Array  # whether first_order is a stall's with vanished columns
-    vanished: jax.Array  # the theta columns that vanished along the fit (or False)
     limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
     validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
-    # Per start (S,): whether its first-order measure promises a decrease (a zero
-    # residual's, `promises_descent`), whether it stopped at a degenerate minimum, and the
-    # theta columns that vanished along its fit ((S, p), or (S,) False): the checks after
-    # the solve (`_fit._flag_refuted_stop`).
+    # Per start (S,): whether its first-order measure is a stall's with vanished columns
+    # (a degenerate minimum), the theta columns that vanished along its fit ((S, p), or
+    # (S,) False), and whether its measure promises a decrease (a zero residual's,
+    # `promises_descent`): the report, and the checks after the solve
+    # (`_fit._flag_refuted_stop`).
+    degenerate: jax.Array
+    vanished: jax.Array
     promises_descent: jax.Array
-    start_degenerate: jax.Array
-    start_vanished: jax.Array
 
 
 def _stage_out(s, best) -> StageOut:
@@ -98,7 +97,7 @@ def _stage_out(s, best) -> StageOut:
 
 def collect(problem, stages, best, moved, posted) -> Out:
     """`Out` from the solvers' `Solution`s and `post`'s output (traced, inside the fit's
-    compiled call: indexing, and `promises_descent` at the best start's stop)."""
+    compiled call: indexing, and `promises_descent` at each start's stop)."""
     theta, x0, e, cov, met, _ = posted
     final = stages[-1]
     per_stage = tuple(_stage_out(s, best) for s in stages)
@@ -121,14 +120,12 @@ def collect(problem, stages, best, moved, posted) -> Out:
         m.decrease[best],
         m.standard_errors[best],
         m.step_test[best],
-        m.degenerate[best],
-        m.vanished[best],
         m.limit[best],
         None if final.best is None else final.best.returned_score()[best],
         final.solver_result._value,
-        promises_descent(problem, final.loss, m.first_order),
         m.degenerate,
         m.vanished,
+        promises_descent(problem, final.loss, m.first_order),
     )
 
 
@@ -418,9 +415,9 @@ def assemble(
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
         stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
-    if bool(out.degenerate):  # (`_optimality.stall_test`: a degenerate minimum)
+    if bool(out.degenerate[best]):  # (`_optimality.stall_test`: a degenerate minimum)
         stop_info["degenerate"] = True
-    gone = np.broadcast_to(np.asarray(out.vanished), (len(free),))
+    gone = np.broadcast_to(np.asarray(out.vanished)[best], (len(free),))
     if gone.any():  # (`_optimality.vanished_columns`)
         stop_info["vanished"] = [n for n, g in zip(names, gone) if g]
     if status in ("tol_loss", "tol_grad"):

@@ -275,25 +275,26 @@ def _refuted_at(problem, params, along, strategy):
     return refuted(problem, params, along, strategy)
 
 
-def _refutation(problem, names, stop, info, promising, theta_flat, x0, strategy):
-    """The flag of `_flag_refuted_stop` where a start's stop (`stop`, its `info`) is
-    refuted by a step that lowers the loss (`_optimality.refuted`), with the plain
-    first-order measure there; (None, None) where it stands or is not such a stop."""
-    degenerate = info.get("degenerate") and stop == "converged"
+def _refutation(problem, stop, degenerate, gone, promising, theta, x0, strategy):
+    """The flag of `_flag_refuted_stop` where a start's stop `stop` (at a degenerate
+    minimum where `degenerate`, with the vanished theta columns `gone`; `promising`: its
+    `promises_descent`) is refuted at its free entries `theta` (p,), `x0` (N, m) by a step
+    that lowers the loss (`_optimality.refuted`), with the plain first-order measure
+    there; (None, None) where it stands or is not such a stop."""
+    degenerate = degenerate and stop == "converged"
     if not (degenerate or (stop == "zero_residual" and promising)):
         return None, None  # (before any array operation: each would compile a program)
-    params = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
     if degenerate:
-        gone = np.asarray([name in info.get("vanished", ()) for name in names], bool)
-        along, flag = Params(gone, np.zeros(params.x0.shape, bool)), "descends_along_vanished"
+        along, flag = Params(gone, np.zeros(x0.shape, bool)), "descends_along_vanished"
     else:
-        along = Params(np.ones(params.theta.shape, bool), np.ones(params.x0.shape, bool))
+        along = Params(np.ones(theta.shape, bool), np.ones(x0.shape, bool))
         flag = "descends_from_zero_residual"
+    params = Params(jnp.asarray(theta), jnp.asarray(x0))
     down, fo = _refuted_at(problem, params, jax.tree_util.tree_map(jnp.asarray, along), strategy)
     return (flag, float(fo)) if bool(down) else (None, None)
 
 
-def _flag_refuted_stop(result, problem, names, out, strategy):
+def _flag_refuted_stop(result, problem, out, strategy):
     """`result` with the stop `stalled` where the solver's stop says no step lowers the
     loss but one does by more than sqrt(eps) of it and its round-off
     (`_optimality.refuted`), its first-order measure then the plain one and
@@ -307,49 +308,36 @@ def _flag_refuted_stop(result, problem, names, out, strategy):
 
     With several starts, each other start's stop in `result.starts` is checked alike
     (`stalled` where refuted): a start that read as a success from its stop alone."""
-    promising = np.asarray(out.promises_descent)
-    best = int(out.best)
-    flag, fo = _refutation(
-        problem,
-        names,
-        name_of(result.stop_reason),
-        result.stop_info,
-        promising[best],
-        out.theta,
-        out.x0,
-        strategy,
-    )
-    if flag is not None:
+    theta, x0 = np.asarray(out.start_theta), np.asarray(out.start_x0)
+    degenerate, promising = np.asarray(out.degenerate), np.asarray(out.promises_descent)
+    vanished = np.asarray(out.vanished)
+    listed = result.starts is not None
+    stops = list(result.starts.stop_reason) if listed else []
+    for s in range(theta.shape[0]):
+        best = s == int(out.best)
+        stop = name_of(result.stop_reason) if best else stops[s]
+        gone = np.broadcast_to(vanished[s], theta.shape[1:])
+        flag, fo = _refutation(
+            problem, stop, bool(degenerate[s]), gone, promising[s], theta[s], x0[s], strategy
+        )
+        if flag is None:
+            continue
+        if not best:
+            stops[s] = "stalled"
+            continue
         info = {k: v for k, v in result.stop_info.items() if k != "degenerate"}
-        result = _demoted(
+        result = _demoted(  # (the best start's stop in `result.starts` too)
             dataclasses.replace(result, stop_info={**info, "first_order": fo}),
             "stalled",
             **{flag: True},
         )
-    if result.starts is None:
+    if not listed:
         return result
-    reasons = list(result.starts.stop_reason)
-    degenerate = np.asarray(out.start_degenerate)
-    vanished = np.asarray(out.start_vanished)
-    for s, reason in enumerate(reasons):
-        if s == result.best or reason not in ("converged", "zero_residual"):
-            continue
-        gone = np.broadcast_to(vanished[s], (len(names),))
-        info = {
-            "degenerate": bool(degenerate[s]),
-            "vanished": [n for n, g in zip(names, gone) if g],
-        }
-        theta = np.asarray(out.theta).copy()
-        theta[list(problem.theta_free)] = np.asarray(out.start_theta)[s]
-        x0 = np.asarray(out.x0).copy()
-        x0[..., list(problem.x0_free)] = np.asarray(out.start_x0)[s]
-        flag, _ = _refutation(problem, names, reason, info, promising[s], theta, x0, strategy)
-        if flag is not None:
-            reasons[s] = "stalled"
-    if reasons == list(result.starts.stop_reason):
+    stops[int(out.best)] = result.starts.stop_reason[int(out.best)]
+    if tuple(stops) == result.starts.stop_reason:
         return result
     return dataclasses.replace(
-        result, starts=dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+        result, starts=dataclasses.replace(result.starts, stop_reason=tuple(stops))
     )
 
 
@@ -737,7 +725,7 @@ def fit(
         strategy,
         finals=Params(out.start_theta, out.start_x0),
     )
-    result = _flag_refuted_stop(result, built.problem, prepared.names, out, strategy)
+    result = _flag_refuted_stop(result, built.problem, out, strategy)
     if aggregate is not None:
         result = agg.restore(result)
     if result.validation_loss is not None and not np.isfinite(result.validation_loss):
