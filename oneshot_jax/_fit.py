@@ -742,6 +742,11 @@ def fit(
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
         _warn_unequal_noise(result.residuals, weight, result.std)
+    else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
+        nrmse = np.asarray(result.metrics.get("nrmse", np.nan), np.float64)
+        if np.isfinite(nrmse).any():
+            info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
+            result = dataclasses.replace(result, stop_info=info)
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
         result = _flag_infeasible(result, built.problem.project)
     if stability_at is not None:

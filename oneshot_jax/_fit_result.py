@@ -115,7 +115,13 @@ def stop_detail(status: str, info: dict) -> str:
             )
         return f"no step decreases the loss, {tail}"
     if status == "zero_residual":
-        return "loss at the round-off level of the data" + (f", {vs}" if known else "")
+        nrmse = info.get("residual_nrmse", np.nan)
+        rms = (
+            f" (residual RMS at most {_g(nrmse)} of each output's standard deviation)"
+            if np.isfinite(nrmse)
+            else ""
+        )
+        return "loss at the round-off level of the data" + rms + (f", {vs}" if known else "")
     if status == "diverged":
         at_step = f" at step {at}" if at is not None else ""
         if info.get("nonfinite") == "gradient":
@@ -330,7 +336,9 @@ class FitResult(eqx.Module):
         after the solve), `descends_along_vanished` and `solver_stop` `converged`; with
         the stop `stalled` where the solver reported a zero residual that a step along
         every column still descends from (checked after the solve),
-        `descends_from_zero_residual` and `solver_stop` `zero_residual`.
+        `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
+        `zero_residual`, `residual_nrmse` (the largest of the outputs' NRMSE in
+        `metrics`: how far below sqrt(eps) of their variation the residuals are).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

@@ -1195,6 +1195,13 @@ def test_a_float32_stop_below_the_data_round_off_that_still_descends_is_not_a_ze
     assert loose.stop_info["descends_from_zero_residual"]
     assert "a step still lowers the loss" in loose.message
     assert tight.success and float(tight.loss) <= 1.05 * float(best.loss), tight.message
+    # Its residuals are the noise, 3e-5 of the outputs' variation, below float32's sqrt(eps):
+    # a zero residual whose words say how far from exact it is.
+    assert tight.status == "zero_residual"
+    nrmse = float(np.max(tight.metrics["nrmse"]))
+    assert 1e-5 < tight.stop_info["residual_nrmse"] == pytest.approx(nrmse, rel=1e-6)
+    assert f"residual RMS at most {nrmse:.3g}" in tight.message, tight.message
+    assert "exactly" not in tight.message
     # Each start of a multistart is checked alike, not only the returned one.
     theta0 = {"a": np.array([0.5, 0.7, 0.85], f32), "b": np.array([0.3, 0.6, 0.45], f32)}
     many = oj.fit(
