@@ -375,6 +375,7 @@ class Augmented(NamedTuple):
     n_x: int
     n_z: int
     n_acc: int
+    layout: tuple = ()  # the output (channel) of each accumulator's readings
 
     def penalty(self, penalty):
         """`penalty=` of the function, applied to the model's own states."""
@@ -386,6 +387,20 @@ class Augmented(NamedTuple):
             return False
         mask = x0_mask(estimate_x0, self.n_x)
         return np.concatenate([mask, np.zeros(self.n_acc, bool)])
+
+    def reading_mean_squares(self, result):
+        """Per output with aggregated readings, the mean over its readings of the squared
+        weighted residual w_i (r_i - v_i)^2 of a `FitResult` of the augmented problem (before
+        `restore`): comparable with the point samples' weighted residuals, whose noise
+        level sigma^2 the covariance pools with the readings'."""
+        e = np.asarray(result.residuals, dtype=np.float64)[..., self.n_z :]
+        out = {}
+        for c in sorted(set(self.layout)):
+            v = e[..., [j for j, ch in enumerate(self.layout) if ch == c]]
+            v = v[np.isfinite(v)]
+            if v.size:
+                out[c] = float(np.mean(v * v))
+        return out
 
     def restore(self, result):
         """A `FitResult` of the augmented problem as one of the user's model: x0 with its
@@ -448,6 +463,19 @@ def _per_record(aggregate, batched, N):
     return [as_list(a) for a in aggregate]
 
 
+def record_times(model, t, batched, lengths):
+    """The sample times of each record over which `"integral"` and `"time_mean"` readings
+    integrate: `t` (one record's, one row per record, or one axis they share), or for
+    t None k dt for a `Model.from_ode` with a fixed dt and the sample index for a
+    discrete-time model; a list of one per record."""
+    if t is not None and (not batched or (not isinstance(t, (list, tuple)) and np.ndim(t) == 1)):
+        return [t] * len(lengths)  # one record, or N records sharing one (T,) time axis
+    if t is None:
+        dt = getattr(model.step, "dt", None) if isinstance(model.step, ODE_STEPS) else None
+        return [(dt or 1.0) * np.arange(n) for n in lengths]
+    return t
+
+
 def check_window(aggregate, window):
     """`fit`'s `window` is refused with aggregates (checked before the windows are cut)."""
     if aggregate is not None and window is not None:
@@ -500,15 +528,7 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
     lengths = [T_max] * N if data.lengths is None else list(data.lengths)
     Q = None if data.weight is None else np.asarray(data.weight)
     records = _per_record(aggregate, data.batched, N)
-    if t is not None and (
-        not data.batched or (not isinstance(t, (list, tuple)) and np.ndim(t) == 1)
-    ):
-        t = [t] * N  # one record, or N records sharing one (T,) time axis
-    if t is None:
-        # A continuous-time model with a fixed dt integrates over t_k = k dt; a discrete
-        # model over unit spacing.
-        dt = getattr(model.step, "dt", None) if isinstance(model.step, ODE_STEPS) else None
-        t = [(dt or 1.0) * np.arange(n) for n in lengths]
+    t = record_times(model, t, data.batched, lengths)
     per_record = []
     for i, aggs in enumerate(records):
         where = f"[{i}]" if data.batched else ""
@@ -567,4 +587,4 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
         w_out[:n_z, :n_z] = Q
         w_out[n_z:, n_z:] = np.eye(m)
     aug_model = _augmented_model(model, n_x, n_u, tuple(layout))
-    return Augmented(aug_model, x0_out, u_out, z_out, w_out, n_x, n_z, m)
+    return Augmented(aug_model, x0_out, u_out, z_out, w_out, n_x, n_z, m, tuple(layout))

@@ -341,30 +341,47 @@ def _flag_refuted_stop(result, problem, out, strategy):
     )
 
 
-def _warn_unequal_noise(residuals, weight, std):
+def _warn_unequal_noise(residuals, weight, std, readings=None):
     """Warn where the weighted residuals of the outputs differ in variance by more than a
     factor of 10: the covariance pools one noise level sigma^2 over all outputs, which is
-    the Cramer-Rao bound only for a weight Q proportional to the inverse noise variance."""
+    the Cramer-Rao bound only for a weight Q proportional to the inverse noise variance.
+    `readings`: the mean squared weighted residual of each output's aggregated readings
+    (`Augmented.reading_mean_squares`), pooled in sigma^2 with the point samples too."""
     e = np.asarray(residuals, dtype=np.float64)
     n_z = e.shape[-1]
     finite = [np.isfinite(s).any() for s in jax.tree_util.tree_leaves(std)]
-    if n_z < 2 or not any(finite):
+    if not any(finite):
         return
     e = e.reshape(-1, n_z)
     q = np.ones(n_z) if weight is None else np.asarray(weight, dtype=np.float64)
-    q = np.diag(q) if q.ndim == 2 else q
+    q = np.diag(q) if q.ndim == 2 else np.broadcast_to(q, (n_z,))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an output with no sample: NaN
         var = np.array([np.nanmean(e[:, j] ** 2) * q[j] for j in range(n_z)])
+    names = [f"output {j}" for j in range(n_z) if np.isfinite(var[j]) and q[j] > 0]
     var = var[np.isfinite(var) & (q > 0)]
+    readings = {c: v for c, v in (readings or {}).items() if np.isfinite(v)}
+    names += [f"the readings of output {c}" for c in readings]
+    var = np.concatenate([var, list(readings.values())])
     if var.size < 2 or var.min() <= 0 or var.max() <= 10 * var.min():
         return
+    which = (
+        "outputs"
+        if not readings
+        else f"outputs and aggregated readings ({names[int(np.argmax(var))]} the largest, "
+        f"{names[int(np.argmin(var))]} the smallest)"
+    )
+    remedy = (
+        'refit with weight="noise", which estimates it with theta (see the uncertainty guide)'
+        if not readings
+        else "each `Aggregate`'s `weight` about 1 / (its readings' noise variance), on the "
+        'same scale; or weight="noise", which estimates both with theta'
+    )
     warnings.warn(
-        f"the weighted residuals of the outputs differ in variance by a factor "
+        f"the weighted residuals of the {which} differ in variance by a factor "
         f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
         "outputs, so they hold only where `weight` is about 1 / (each output's noise "
-        'variance); refit with weight="noise", which estimates it with theta (see the '
-        "uncertainty guide).",
+        f"variance); {remedy}.",
         stacklevel=3,
     )
 
@@ -500,7 +517,11 @@ def fit(
         inverse covariance of the residuals until it settles, each warm-started (at
         most 10 fits; `result.weight` is the Q of the returned fit,
         `stop_info["noise_weight_rounds"]` the number of fits), so that the standard
-        errors hold for outputs of unequal noise.
+        errors hold for outputs of unequal noise. With `aggregate`, each `Aggregate`'s
+        weights get a factor alike, the inverse mean square of its readings' residuals
+        on the same scale as Q (`stop_info["reading_weight_factors"]`, one per
+        Aggregate, records in order); an output measured only in aggregate gets Q's
+        entry 1.
     - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
         `positive`, `project`), or a list of them, on theta: every iterate lies in the
         intersection of their sets (Section 3.3). A regulariser here (the mixed form of
@@ -726,7 +747,9 @@ def fit(
         finals=Params(out.start_theta, out.start_x0),
     )
     result = _flag_refuted_stop(result, built.problem, out, strategy)
+    readings = None
     if aggregate is not None:
+        readings = agg.reading_mean_squares(result)
         result = agg.restore(result)
     if result.validation_loss is not None and not np.isfinite(result.validation_loss):
         warnings.warn(
@@ -741,7 +764,7 @@ def fit(
         q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
-        _warn_unequal_noise(result.residuals, weight, result.std)
+        _warn_unequal_noise(result.residuals, weight, result.std, readings)
     else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
         nrmse = np.asarray(result.metrics.get("nrmse", np.nan), np.float64)
         if np.isfinite(nrmse).any():

@@ -349,7 +349,9 @@ class FitResult(eqx.Module):
         `Validation`); else None.
     - `weight`: `fit(weight=...)`, the output weight Q (None for the identity; with
         `weight="noise"`, the Q estimated from the residuals, and `stop_info` holds
-        `noise_weight_rounds`, the number of fits), which `predict` uses by default to
+        `noise_weight_rounds`, the number of fits, and with aggregated readings
+        `reading_weight_factors`, the factor of each `Aggregate`'s weights), which
+        `predict` uses by default to
         estimate a new record's x0.
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not

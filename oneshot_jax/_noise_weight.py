@@ -10,10 +10,13 @@ noise covariance, whose fixed point minimises det(E^T E / n): Ljung, *System
 Identification*, 2nd ed., 1999, Section 7.3 and eq. (7.90)). Each round starts where the
 last stopped, so its solve is short, and the fit's compiled program is reused."""
 
+import copy
 import dataclasses
 import warnings
 
 import numpy as np
+
+from ._aggregate import _per_record, record_times
 
 # Rounds of the alternation at most, and the change of Q (relative, in the Frobenius
 # norm, Q normalised to det Q = 1) at which it counts as settled.
@@ -21,29 +24,54 @@ NOISE_ROUNDS = 10
 NOISE_RTOL = 1e-3
 
 
-def noise_weight(residuals):
+def noise_weight(residuals, readings=()):
     """Q from a fit's residuals: the inverse of E^T E / n over the samples (every record's,
     pooled) where every output is measured, (n_z, n_z); where some sample misses an output,
     the diagonal 1 / (each output's mean squared residual over its samples), (n_z,).
-    Normalised to det Q = 1 (a fit ignores Q's scale; the loss keeps its size). None
-    where an output's residuals are all zero or missing (no noise level to weigh by)."""
+
+    `readings`: one array per `Aggregate`, its readings' residuals times the square root
+    of their given weights (1 where none is given); each gets a factor, 1 / their mean
+    square, for its given weights. Q and the factors are normalised together so that the
+    geometric mean of the noise levels they invert is 1 (det Q = 1 without readings: a fit
+    ignores the weights' common scale; the loss keeps its size); an output measured only
+    in aggregate gets Q's entry 1 (it has no point sample to weigh).
+
+    **Returns:** `(Q, factors)`, or None where an output's residuals, or an Aggregate's,
+    are all zero or missing (no noise level to weigh by), naming it."""
     e = np.asarray(residuals, dtype=np.float64)
     e = e.reshape(-1, e.shape[-1])
+    n_z = e.shape[-1]
     seen = np.isfinite(e)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # (an output with no sample: NaN)
         var = np.nanmean(np.where(seen, e**2, np.nan), axis=0)
-    if not np.all(np.isfinite(var) & (var > 0)):
-        return None
-    n_z = e.shape[-1]
+        levels = [np.nanmean(np.asarray(r, dtype=np.float64) ** 2) for r in readings]
+    sampled = np.isfinite(var)
+    for j in range(n_z):
+        if (sampled[j] and var[j] <= 0) or (not sampled[j] and not readings):
+            return None, f"output {j}"
+    for i, level in enumerate(levels):
+        if not (np.isfinite(level) and level > 0):
+            return None, f"aggregate {i}"
+    logs = list(np.log(levels))
+    Q = None
     if seen.all() and n_z > 1:
         S = e.T @ e / e.shape[0]
         if np.linalg.cond(S) < 1e12:
             Q = np.linalg.inv(S)
             Q = 0.5 * (Q + Q.T)
-            return Q / np.linalg.det(Q) ** (1.0 / n_z)
-    q = 1.0 / var
-    return q / np.exp(np.mean(np.log(q)))
+            logs += [np.linalg.slogdet(S)[1] / n_z] * n_z
+    if Q is None:
+        Q = np.where(sampled, 1.0 / np.where(sampled, var, 1.0), np.nan)
+        logs += list(np.log(var[sampled]))
+    c = float(np.exp(np.mean(logs)))
+    Q = np.where(np.isnan(Q), 1.0, c * Q)  # (an output without point samples: 1)
+    return (Q, [c / level for level in levels]), None
+
+
+def _ratios(new, old):
+    """The relative changes of the readings' factors."""
+    return [abs(a - b) / b for a, b in zip(new, old, strict=True)]
 
 
 def _change(new, old):
@@ -52,6 +80,51 @@ def _change(new, old):
         new = np.diag(new) if new.ndim == 1 else new
         old = np.diag(old) if old.ndim == 1 else old
     return float(np.linalg.norm(new - old) / np.linalg.norm(old))
+
+
+def _reading_residuals(result, args):
+    """Per `Aggregate` of `args["aggregate"]` (records in order, each record's in order),
+    the residuals of its readings at `result` times the square root of their given
+    weights (1 where none is given; NaN for a missing reading or one of weight 0): the
+    fitted model simulated on each record (from its fitted x0) and aggregated
+    (`Aggregate.predict`)."""
+    u, t, model = args["u"], args["t"], args["model"]
+    ragged = isinstance(u, (list, tuple))
+    batched = ragged or np.ndim(u) == 3
+    zhat = result.simulate(u, t=t if model.timed else None)[1]
+    zhat = list(zhat) if batched else [zhat]
+    lengths = [np.shape(z)[0] for z in zhat]
+    times = record_times(model, t, batched, lengths)
+    out = []
+    for i, aggs in enumerate(_per_record(args["aggregate"], batched, len(zhat))):
+        ti = None if times[i] is None else np.asarray(times[i], dtype=float)[: lengths[i]]
+        for agg in aggs:
+            w = np.ones(len(agg.values)) if agg.weight is None else agg.weight
+            pred = np.asarray(agg.predict(np.asarray(zhat[i])[: lengths[i]], ti), np.float64)
+            r = np.sqrt(w) * (pred - agg.values)
+            out.append(np.where(w > 0, r, np.nan))
+    return out
+
+
+def _reweighted(aggregate, factors):
+    """`aggregate` (an `Aggregate`, a list, or one entry per record) with each Aggregate's
+    given weights (1 where none) times its factor, in `_reading_residuals`' order."""
+    it = iter(factors)
+
+    def one(agg):
+        new = copy.copy(agg)
+        w = np.ones(len(agg.values)) if agg.weight is None else agg.weight
+        new.weight = w * next(it)
+        return new
+
+    def walk(a):
+        if a is None:
+            return None
+        if isinstance(a, (list, tuple)):
+            return [walk(b) for b in a]
+        return one(a)
+
+    return walk(aggregate)
 
 
 def fit_noise_weighted(fit, args):
@@ -64,7 +137,8 @@ def fit_noise_weighted(fit, args):
     Only the returned fit's warnings are shown; a Q that has not settled after the last
     round, or residuals that give none, get a warning of their own."""
     given_x0 = np.shape(args["x0"])
-    w, change, rounds, result, first = None, np.inf, 0, None, None
+    aggregate = args.get("aggregate")
+    w, scales, used, change, rounds, result, first = None, [], [], np.inf, 0, None, None
     for rounds in range(1, NOISE_ROUNDS + 1):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -72,23 +146,31 @@ def fit_noise_weighted(fit, args):
         first = result if first is None else first
         if not np.isfinite(float(result.loss)):
             break
-        Q = noise_weight(result.residuals)
-        if Q is None:
+        used = scales  # (the readings' factors of this fit)
+        readings = (
+            ()
+            if aggregate is None
+            else _reading_residuals(result, {**args, "aggregate": aggregate})
+        )
+        weights, empty = noise_weight(result.residuals, readings)
+        if weights is None:
+            last = "the given weights" if w is None else "the last estimated weights"
             caught.append(
                 warnings.WarningMessage(
-                    "`weight='noise'`: an output's residuals are all zero or missing, so "
-                    "there is no noise level to weigh it by; the result is that of the "
-                    "last weight.",
+                    f"`weight='noise'`: the residuals of {empty} are all zero or missing, "
+                    "so there is no noise level to weigh it by; the result is that of the "
+                    f"fit with {last}.",
                     UserWarning,
                     __file__,
                     0,
                 )
             )
             break
-        change = np.inf if w is None else _change(Q, w)
+        Q, factors = weights
+        change = np.inf if w is None else max([_change(Q, w), *_ratios(factors, scales)])
         if change <= NOISE_RTOL:
             break
-        w = Q
+        w, scales = Q, factors
         x0 = np.asarray(result.x0)
         args = {
             **args,
@@ -96,6 +178,8 @@ def fit_noise_weighted(fit, args):
             "x0": x0 if x0.shape == given_x0 else args["x0"],
             "multistart": False,
         }
+        if aggregate is not None:
+            args["aggregate"] = _reweighted(aggregate, factors)
     else:
         caught.append(
             warnings.WarningMessage(
@@ -110,6 +194,8 @@ def fit_noise_weighted(fit, args):
     for c in caught:
         warnings.warn(c.message, c.category, stacklevel=3)
     info = {**result.stop_info, "noise_weight_rounds": rounds}
+    if used:
+        info["reading_weight_factors"] = [float(f) for f in used]
     result = dataclasses.replace(result, stop_info=info)
     if first.starts is not None and result.starts is None:  # (the first fit's multistart)
         result = dataclasses.replace(result, starts=first.starts, best=first.best)
