@@ -541,6 +541,14 @@ class Config:
     def __post_init__(self):
         _integer("seed", self.seed, 0)
         self.solver.check("solver")
+        if not dataclasses.is_dataclass(self.experiment):  # (a YAML without a schema)
+            raise ConfigError(
+                "the experiment's configuration has no schema: its YAML in "
+                "configs/experiment/ must start from one, `defaults: - "
+                "/schema/experiment/<name>@experiment`, a dataclass registered in "
+                "experiments/config.py's `register()` (see the experiments guide, 'An "
+                "experiment of your own')."
+            )
         allowed = type(self.experiment).SOLVERS
         if self.solver.name not in allowed:
             label = f" ({self.solver.label})" if self.solver.label else ""

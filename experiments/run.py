@@ -12,7 +12,8 @@ script enables float64 and, in the run's output folder: removes the results of a
 run there (results.json, results.md and its figures), checks the configuration (a bad value
 stops the run before anything is computed, exit status 2), writes `resolved_config.yaml`
 (Hydra keeps its own copy under `.hydra/`), calls `run`, and writes `results.json`
-atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error. With
+atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error (a
+`"status"` of the runner's own dict is kept as `"runner_status"`). With
 `publish=true` the run's `results.md` is copied to `docs/case-studies/<name>.md` (figure
 links rewritten to `../figures/`) and its figures to `docs/figures/<name>_<figure>`.
 Benchmark files that are not found end the run with exit status 2 and a message that names
@@ -192,6 +193,8 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
             },
         )
         raise
+    if "status" in results:  # (the run's own key: the runner's is kept beside it)
+        results["runner_status"] = results.pop("status")
     results = {"status": "ok", **results}
     results.setdefault("wall_time_s", time.perf_counter() - t0)
     results.setdefault("conditions", conditions())

@@ -328,6 +328,23 @@ def test_failed_run_replaces_stale_results(tmp_path):
     out = run.execute(_compose(), tmp_path, command="cmd", runner=lambda c, o, command: {"x": 1})
     assert json.loads((tmp_path / "results.json").read_text()) == out
     assert out["status"] == "ok" and out["x"] == 1
+    # A runner's own "status" (its fit's stop, say) does not stand for the run's.
+    out = run.execute(
+        _compose(), tmp_path, command="cmd", runner=lambda c, o, command: {"status": "stalled"}
+    )
+    assert out["status"] == "ok" and out["runner_status"] == "stalled"
+
+
+def test_an_experiment_without_a_schema_is_refused_with_what_to_add():
+    """A user's YAML that does not start from a registered schema: a ConfigError naming
+    the schema line, not an AttributeError of the solver check."""
+    from omegaconf import open_dict
+
+    cfg = _compose()
+    with open_dict(cfg):
+        cfg.experiment = {"name": "lag", "T": 200}
+    with pytest.raises(config.ConfigError, match="/schema/experiment/<name>@experiment"):
+        config.load(cfg)
 
 
 SMALL = [
