@@ -450,7 +450,14 @@ def _per_record(aggregate, batched, N):
         )
 
     if not batched:
-        return [as_list(aggregate)]
+        one = as_list(aggregate)
+        if any(a is None for a in one):
+            raise TypeError(
+                "`aggregate` holds None, which stands for a record without readings in a "
+                "list with one entry per record (several records); for one record, pass "
+                "its `Aggregate`s alone (an `Aggregate` or a list of them)."
+            )
+        return [one]
     if isinstance(aggregate, Aggregate) or not isinstance(aggregate, (list, tuple)):
         raise ValueError(
             f"with {N} trajectories, `aggregate` must be a list of {N} entries, one per "

@@ -13,7 +13,7 @@ from . import metrics as _metrics
 from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
 from ._optimality import promises_descent, resolution, roundoff_limit
-from ._results import from_index, name_of
+from ._results import SUCCESS, from_index, name_of
 from ._simulate import simulate_impl
 from ._strategy import (
     COVARIANCE_MAX_THETA,
@@ -236,17 +236,28 @@ def _settings(solver) -> dict:
     return dict(kept[1])
 
 
-def _warn_identifiability(names, ok, what):
+def _warn_identifiability(names, ok, what, stop):
+    """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
+    that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
+    at a blown-up simulation, say) it may be the point's only, and the warning says so."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
     if bad:
         # A network's weights are many and never all identifiable: name a few.
         listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
+        where, verdict = (
+            ("at the solution", "not identifiable from these data")
+            if stop in SUCCESS
+            else (
+                f"where the fit stopped ({stop}: not a solution, see its message)",
+                "not identifiable there, which may be the point's and not the data's",
+            )
+        )
         warnings.warn(
-            f"the Jacobian is rank-deficient at the solution: {what} {listed} enter its "
+            f"the Jacobian is rank-deficient {where}: {what} {listed} enter its "
             "null space (a change of them, alone or together, that leaves the outputs "
-            "unchanged: not identifiable from these data); their std is inf. Hold some of "
+            f"unchanged: {verdict}); their std is inf. Hold some of "
             "them (`fit(..., fixed=...)`"
             + (", `estimate_x0=...`" if what == "initial states" else "")
             + "), reparametrise (a product a * b as one parameter), or add data that "
@@ -341,16 +352,19 @@ def assemble(
         scaled = cov  # sigma^2 (J^T J)^+ and its standard errors (`scale`, in the solve)
         # (After a diverged simulation the linearisation says nothing of identifiability:
         # the stop reason speaks.)
-        diverged = name_of(from_index(int(out.results[best]))) == "diverged"
+        stop = name_of(from_index(int(out.results[best])))
+        diverged = stop == "diverged"
         if not diverged:
-            _warn_identifiability(names, scaled.theta_identifiable, "parameters")
+            _warn_identifiability(names, scaled.theta_identifiable, "parameters", stop)
         if not diverged and not scaled.x0_identifiable.all():
             x0_names = [
                 f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
                 for i in range(X0.shape[0])
                 for j in problem.x0_free
             ]
-            _warn_identifiability(x0_names, scaled.x0_identifiable.reshape(-1), "initial states")
+            _warn_identifiability(
+                x0_names, scaled.x0_identifiable.reshape(-1), "initial states", stop
+            )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
         if not diverged and dof <= 0 and n_free:
             diagnostics = {**(diagnostics or {}), "degrees_of_freedom": dof}

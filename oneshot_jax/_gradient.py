@@ -13,8 +13,9 @@ The paper's closed form (eq. 17 and 20) is
                    + sum_k sum_{tau>k} Gamma_tau J^{x/x}_tau ... J^{x/x}_{k+1} J^{x/theta}_k,
     grad_x0 C    = sum_k Gamma_k J^{x/x}_k ... J^{x/x}_1,
 
-a double sum with O(T^2) chained Jacobian products. `literal_value_and_grad` evaluates it
-exactly as written; it is the reference for the tests. Grouping the products that share a
+a double sum of O(T^2) chained Jacobian products. `literal_value_and_grad` evaluates it
+exactly as written, each chain formed anew (O(T^3) matrix products); it is the reference
+for the tests. Grouping the products that share a
 tail gives the O(T) recursion used everywhere else (the multiplier `lam`):
 
     lam_{T-1} = Gamma_{T-1}^T,   lam_k = Gamma_k^T + (J^{x/x}_{k+1})^T lam_{k+1},
@@ -168,7 +169,8 @@ def literal_value_and_grad(
     missing: str = "raise",
     t=None,
 ):
-    """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only).
+    """Eq. (17) and (20) evaluated literally, with the O(T^2) double sums (reference only;
+    each chained product formed anew: O(T^3) matrix products, seconds at T = 300).
 
     Forms every J^{x/x}_k and J^{x/theta}_k (jacfwd, flattened theta) and every chained
     product J^{x/x}_tau ... J^{x/x}_{k+1}. Use it to check `value_and_grad`, never to fit.

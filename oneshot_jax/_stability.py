@@ -6,7 +6,9 @@ knows nothing of that region: it can move a stiff mode (a friction, a fast pole)
 where the discrete step f of eq. (1) is no longer the ODE's flow, and the estimates then
 depend on `substeps`. `check_stability` evaluates the Jacobian of the right-hand side at
 a few states of the fitted trajectory (eq. 7) and compares max |lambda| h with the
-integrator's limit; `fit` calls it after every fit of such a model. A model of
+integrator's limit, and for RK4 with the range where its step follows the ODE's flow
+(`ACCURATE`: past 1.6 a faster mode steps like a slower one); `fit` calls it after every
+fit of such a model. A model of
 time-stamped records (`Model.from_ode(rhs, dt=None)`) takes each step's own h, its
 interval over its number of integrator steps, and is checked also before its longest
 interval.
@@ -35,6 +37,15 @@ from ._simulate import simulate_impl
 # axis (and contains no point of the imaginary axis: an undamped mode grows under Euler
 # at any h).
 LIMITS = {"rk4": 2.5, "euler": 2.0}
+
+# The largest |lambda| h at which RK4's step still follows the ODE's flow. Its step factor
+# R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24 decreases along the negative real axis only down
+# to z = -1.596, where R' = 0 (R''s other zeros, -0.70 +- 1.81j, lie farther out); past
+# it a faster mode steps like a slower one: R(-2.456) = R(-0.5) = e^-0.5, so a fitted lag
+# converged to a = 24.6 with a = 5's loss (h = 0.1), inside the stability margin and
+# without a warning. An undamped mode loses 8 % of its amplitude a step at 1.6 too.
+# Euler's factor 1 + z is one-to-one: its measure is judged against its disc alone.
+ACCURATE = {"rk4": 1.6, "euler": 2.0}
 
 
 def scaled_eigenvalues(eig, h, method):
@@ -81,6 +92,10 @@ class Stability(NamedTuple):
         at `sample` (a time-stamped model's t[k+1] - t[k]) and `substeps` the number of
         integrator steps it is split into there.
     - `max_step`: a time-stamped model's largest integrator step, or None.
+    - `accurate_limit`: the largest `value` at which the integrator's step still follows
+        the ODE's flow: 1.6 for RK4 (past it, its step factor R(lambda h) no longer
+        decreases along the negative real axis, so a faster mode steps like a slower
+        one, and a fit cannot tell them apart); `limit` for Euler.
     """
 
     value: float
@@ -91,11 +106,18 @@ class Stability(NamedTuple):
     substeps: int
     dt: float
     max_step: float | None = None
+    accurate_limit: float = math.inf
 
     @property
     def near_limit(self) -> bool:
         """Whether `value` exceeds `limit`."""
         return bool(self.value > self.limit)
+
+    @property
+    def inaccurate(self) -> bool:
+        """Whether `value` exceeds `accurate_limit` (or `limit`): `check_stability` and
+        `fit` warn."""
+        return bool(self.value > min(self.accurate_limit, self.limit))
 
 
 def is_ode(step) -> bool:
@@ -209,6 +231,7 @@ def report(step, idx, xs, J, u) -> Stability | None:
         substeps=int(n[i]),
         dt=float(dt[i]),
         max_step=getattr(step, "max_step", None),
+        accurate_limit=ACCURATE[step.method],
     )
 
 
@@ -220,7 +243,7 @@ def warn_after_fit(step, idx, xs, J, bound, u, stacklevel: int) -> None:
     # (|lambda| <= bound: within the limit, or no finite state: -inf. Euler's measure
     # exceeds |lambda| h for a lightly damped mode: always computed.)
     top = bound * float(np.max(h, initial=0.0))
-    if step.method != "euler" and not top > LIMITS[step.method]:
+    if step.method != "euler" and not top > ACCURATE[step.method]:
         return
     warn_if_near_limit(report(step, idx, xs, J, u), stacklevel=stacklevel + 1)
 
@@ -241,11 +264,13 @@ def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability
 
 
 def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitted model") -> None:
-    """The warning of `check_stability`, where `report` exceeds its limit."""
-    if report is None or not report.near_limit:
+    """The warning of `check_stability`, where `report` exceeds its limit, or the range
+    where its integrator follows the ODE (`Stability.inaccurate`)."""
+    if report is None or not report.inaccurate:
         return
     lam = report.eigenvalue
     h = report.dt / report.substeps
+    target = min(report.accurate_limit, report.limit)  # (the remedies reach it)
     if not np.isfinite(report.value):  # an undamped mode: Euler grows it at any h
         remedy = (
             'RK4 (`Model.from_ode(..., method="rk4")`): explicit Euler grows an undamped '
@@ -262,7 +287,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
             "simulation diverges, and the remedy is a theta (or start) at which it does not"
         )
     elif report.max_step is None:
-        need = int(np.ceil(report.value * report.substeps / report.limit))
+        need = int(np.ceil(report.value * report.substeps / target))
         remedy = (
             f"more substeps (`Model.from_ode(..., substeps={max(need, 2 * report.substeps)})` "
             "or more)"
@@ -270,7 +295,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
     else:
         # (as the substeps above: a step that brings |lambda| h to the limit, and at least
         # half the present one; floored to 3 digits, so the printed value is inside it)
-        step = min(h / 2, h * report.limit / report.value)
+        step = min(h / 2, h * target / report.value)
         digits = 2 - int(np.floor(np.log10(step)))
         step = np.floor(step * 10.0**digits) / 10.0**digits
         remedy = (
@@ -287,6 +312,20 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
         if report.method == "euler"
         else f"stable up to about {report.limit:g}"
     )
+    if not report.near_limit:  # (RK4 inside its stability margin, past its accurate range)
+        warnings.warn(
+            f"{what} runs where its integrator no longer follows the ODE: a Jacobian "
+            f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, "
+            f"gives |lambda| h = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
+            f"{report.substeps} (RK4: stable up to about {report.limit:g}, but its step "
+            f"factor follows the ODE's flow only up to about {report.accurate_limit:g}; past "
+            "it a faster mode steps like a slower one, R(-2.46) = R(-0.5), so the fit "
+            "cannot tell them apart). The estimates may describe the discretisation "
+            f"rather than the ODE: refit with {remedy}, and compare.",
+            RuntimeWarning,
+            stacklevel=stacklevel + 1,
+        )
+        return
     warnings.warn(
         f"{what} runs near its integrator's stability limit: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
@@ -313,9 +352,10 @@ def check_stability(
     Simulates the model (eq. 7), evaluates the Jacobian of the right-hand side d rhs / d x
     at `points` states evenly spaced along the trajectory (with their inputs) and returns
     the largest |lambda| h, h = dt / substeps, over their eigenvalues lambda. Above about
-    2.5 for RK4 (its stability region reaches 2.785 on the negative real axis, 2.828 on
-    the imaginary one), or outside Euler's disc |1 + lambda h| <= 1 (`Stability.value`),
-    it warns (RuntimeWarning), naming the eigenvalue
+    1.6 for RK4 (where its step stops following the ODE's flow: a faster mode then steps
+    like a slower one; its stability region reaches 2.785 on the negative real axis,
+    2.828 on the imaginary one), or outside Euler's disc |1 + lambda h| <= 1
+    (`Stability.value`), it warns (RuntimeWarning), naming the eigenvalue
     and how many substeps would bring it back inside. `fit` runs this check on the
     fitted theta and x0 after every fit of a `Model.from_ode` model.
 

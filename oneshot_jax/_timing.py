@@ -12,6 +12,7 @@ constant of the step, like u[k]. `check_data` calls these functions after it has
 u, so that its errors about u name the user's n_u.
 """
 
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -54,7 +55,10 @@ def as_times(a, name):
 
 
 def _intervals(t, name, T):
-    """t[k+1] - t[k] of one record of T samples, with 0 appended: (T,)."""
+    """t[k+1] - t[k] of one record of T samples, with 0 appended: (T,). Warns where `t`
+    came in a precision that leaves its intervals fewer than 3 digits (float32 stamps far
+    from 0: 1e6 + k 0.1 s rounds to steps of 0.0625 s)."""
+    given = None if _is_tracer(t) else getattr(t, "dtype", None)
     t = as_times(t, name)
     if t.ndim != 1 or t.shape[0] != T:
         raise ValueError(
@@ -72,6 +76,18 @@ def _intervals(t, name, T):
             f"`{name}` must be strictly increasing: {name}[{k + 1}] = {float(t[k + 1])!r} "
             f"does not come after {name}[{k}] = {float(t[k])!r}."
         )
+    if given is not None and np.issubdtype(given, np.floating) and dt.size:
+        resolution = float(np.finfo(given).eps) * float(np.max(np.abs(t)))
+        if resolution > 1e-3 * float(np.min(dt)):
+            warnings.warn(
+                f"`{name}` is stored in {given}, whose resolution at |{name}| up to "
+                f"{float(np.max(np.abs(t))):.3g} is {resolution:.2g}, "
+                f"{resolution / float(np.min(dt)):.2g} of the shortest interval: the "
+                "intervals have lost digits before the fit sees them. Pass the time stamps "
+                f"in float64, or relative to the record's start ({name} - {name}[0]).",
+                UserWarning,
+                stacklevel=2,
+            )
     return np.concatenate([dt, np.zeros(1)])
 
 

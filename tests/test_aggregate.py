@@ -484,6 +484,8 @@ def test_bad_aggregate(make, match):
         (oj.Aggregate(1, [(30, 41)], [1.0]), "ends past"),
         (oj.Aggregate(1, values=[1.0], matrix=np.ones((1, 39))), "one column per sample"),
         ([oj.Aggregate(1, [(0, 2)], [1.0]), "x"], "Aggregate"),
+        # (None stands for a record without readings in a list per record)
+        ([oj.Aggregate(1, [(0, 2)], [1.0]), None], "one entry per record"),
         (oj.Aggregate(1, [(0, 2)], [np.nan]), "missing='mask'"),
     ],
 )

@@ -212,6 +212,30 @@ def test_check_stability(substeps, warns):
     assert report.eigenvalue == pytest.approx(-52.0)
 
 
+def test_rk4_past_its_accurate_range_warns_that_a_faster_mode_steps_like_a_slower_one():
+    """A lag x' = a (u - x) sampled with h = 0.1, the data of a = 5 (simulated finely).
+    RK4's step factor R(-2.456) equals R(-0.5) = e^-0.5, so a = 24.56 fits as well as
+    a = 5: the fit from a = 20 converged there, at |lambda| h = 2.46, inside the stability
+    margin 2.5, without a warning. It warns now (RK4 follows the ODE up to about 1.6),
+    naming 2 substeps; the fit from a = 3 reaches a = 5 (|lambda| h = 0.5) silently."""
+    model = oj.Model.from_ode(lag, 0.1)
+    u = np.sign(np.sin(0.2 * np.arange(300)))[:, None]
+    _, z = oj.simulate(oj.Model.from_ode(lag, 0.1, substeps=10), {"a": 5.0}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * np.random.default_rng(0).standard_normal(z.shape)
+    near = _no_warnings(oj.fit, model, {"a": 3.0}, np.zeros(1), u, z)
+    with pytest.warns(RuntimeWarning, match=r"no longer follows the ODE.*substeps=2") as seen:
+        far = oj.fit(model, {"a": 20.0}, np.zeros(1), u, z)
+    assert len(seen) == 1
+    assert near.success and far.success  # (both minima of the discrete model's loss)
+    assert float(near.theta["a"]) == pytest.approx(5.0, abs=0.05)
+    assert float(far.theta["a"]) == pytest.approx(24.56, abs=0.05)
+    assert float(far.loss) == pytest.approx(float(near.loss), rel=1e-3)
+    with pytest.warns(RuntimeWarning, match="no longer follows the ODE"):
+        report = oj.check_stability(model, far.theta, far.x0, u)
+    assert report.inaccurate and not report.near_limit
+    assert report.value == pytest.approx(2.456, abs=0.01) and report.accurate_limit == 1.6
+
+
 @pytest.mark.parametrize("substeps, warns", [(2, True), (10, False)])
 def test_euler_stability_is_its_disc_not_a_radius(substeps, warns):
     """k = 900, c = 10: lambda = -5 +- 29.6j, |lambda| = 30. Under Euler with h = 0.05
@@ -298,12 +322,12 @@ def test_stability_of_a_time_stamped_model_takes_each_step_its_own_h():
 def test_the_max_step_remedy_reaches_the_limit_in_one_go():
     """A lag with lambda = -100 sampled every second, integrated with steps of 0.5:
     |lambda| h = 50, twenty times the limit. The warning used to suggest half the step
-    (0.25, still ten times the limit, then 0.125, ...); it names a step that reaches the
-    limit, and the model built with it does not warn."""
+    (0.25, still ten times the limit, then 0.125, ...); it names a step that reaches RK4's
+    accurate range (1.6: 0.016), and the model built with it does not warn."""
     fast = lambda x, u, th: (-x + u) / th["tau"]  # noqa: E731
     t, u, th = np.arange(20.0), np.ones((20, 1)), {"tau": 0.01}
     model = oj.Model.from_ode(fast, None, max_step=0.5, substeps=200)
-    with pytest.warns(RuntimeWarning, match=r"h = 50 .*max_step=0\.025\)") as seen:
+    with pytest.warns(RuntimeWarning, match=r"h = 50 .*max_step=0\.016\)") as seen:
         oj.check_stability(model, th, np.zeros(1), u, t=t)
     step = float(str(seen[-1].message).split("max_step=")[1].split(")")[0])
     refined = oj.Model.from_ode(fast, None, max_step=step, substeps=200)

@@ -1392,3 +1392,32 @@ def test_a_parameter_in_small_units_does_not_fake_a_success(solver):
         assert r.success and abs(b - 0.5) < 0.01, (r.status, b)
     else:
         assert not r.success and r.stop_info["first_order"] > 0.5, (r.status, b)
+
+
+def test_a_rank_deficient_jacobian_away_from_a_solution_is_not_blamed_on_the_data():
+    """A lag x' = a (u - x) started at a = 29 with h = 0.1: RK4 grows the simulation by
+    R(-2.9) = 1.19 a step (a loss of 1e42, finite), and the least-squares solvers stop
+    there without a solution. Their Jacobian at that point was reported as "not
+    identifiable from these data", for a parameter the data identify (from a = 3 the
+    fit reaches a = 5 with a finite standard error); the warning now says where it was
+    measured. At a solution it still blames the data: x+ = 0.9 x + a b u."""
+    lag = oj.Model.from_ode(lambda x, u, p: p["a"] * (u - x), 0.1)
+    u = np.sign(np.sin(0.2 * np.arange(300)))[:, None]
+    _, z = oj.simulate(lag, {"a": 5.0}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * np.random.default_rng(0).standard_normal(z.shape)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        r = oj.fit(lag, {"a": 29.0}, np.zeros(1), u, z)
+    assert not r.success
+    deficient = [str(w.message) for w in seen if "rank-deficient" in str(w.message)]
+    assert deficient, [str(w.message) for w in seen]
+    for text in deficient:
+        assert f"where the fit stopped ({r.status}: not a solution" in text, text
+        assert "from these data" not in text
+    good = oj.fit(lag, {"a": 3.0}, np.zeros(1), u, z)
+    assert good.success and np.isfinite(float(good.std["a"]))
+    product = oj.Model(lambda x, u, p: 0.9 * x + p["a"] * p["b"] * u[0], lambda x, u, p: x)
+    _, zp = oj.simulate(product, {"a": 1.0, "b": 2.0}, np.zeros(1), u)
+    zp = np.asarray(zp) + 0.01 * np.random.default_rng(1).standard_normal(zp.shape)
+    with pytest.warns(UserWarning, match=r"at the solution: .*not identifiable from these data"):
+        oj.fit(product, {"a": 1.5, "b": 1.5}, np.zeros(1), u, zp)

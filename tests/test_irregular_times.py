@@ -9,6 +9,7 @@ step (masked beyond each interval's count). The simulation is compared with scip
 """
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -436,6 +437,22 @@ def test_bad_t_names_t(bad, error, match):
     t, u, x0, _ = record()
     with pytest.raises(error, match=match):
         oj.simulate(timed_model("zoh", None, 2), THETA, x0, u, t=bad(t))
+
+
+def test_time_stamps_stored_too_coarsely_for_their_intervals_warn():
+    """float32 stamps of a record that starts at t = 1e6 (a Unix-like clock), 0.1 apart:
+    float32 resolves 0.0625 there, so the intervals came in rounded to 0, 0.0625 or 0.125
+    and the state was 0.11 off, silently. They warn now, naming the remedies; the same
+    stamps in float64, or relative to the start in float32, do not."""
+    t, u, x0, _ = record()
+    model = timed_model("zoh", None, 2)
+    far = 1e6 + 0.1 * np.arange(t.size)
+    with pytest.warns(UserWarning, match=r"`t` is stored in float32.*t - t\[0\]"):
+        oj.simulate(model, THETA, x0, u, t=far.astype(np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.simulate(model, THETA, x0, u, t=far)
+        oj.simulate(model, THETA, x0, u, t=(far - far[0]).astype(np.float32))
 
 
 def test_estimate_x0_checks_the_whole_t_as_predict_does():
