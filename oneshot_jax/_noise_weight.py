@@ -8,7 +8,12 @@ theta and x0 with Q, then set Q to the inverse of the residuals' covariance E^T 
 until Q settles (the relaxation algorithm of output-error estimation with an unknown
 noise covariance, whose fixed point minimises det(E^T E / n): Ljung, *System
 Identification*, 2nd ed., 1999, Section 7.3 and eq. (7.90)). Each round starts where the
-last stopped, so its solve is short, and the fit's compiled program is reused."""
+last stopped, so its solve is short, and the fit's compiled program is reused.
+
+Aggregated readings (`fit(aggregate=...)`, `_aggregate`) are observations too: each
+`Aggregate`'s weights get a factor per round, the inverse mean square of its readings'
+residuals, on the scale of Q (the readings of an output measured only in aggregate carry
+its whole noise level), so that the covariance's one sigma^2 holds for them as well."""
 
 import copy
 import dataclasses
