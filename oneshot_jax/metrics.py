@@ -9,8 +9,9 @@ functions (and jittable). Where an output channel is constant over the samples s
 and -inf for a model that misses it, NaN (0 / 0) for one that reproduces it exactly;
 `aic` is -inf and `fpe` 0 where the errors are exactly zero (det 0). `benchmark_scores`
 refuses a constant channel instead. A NaN sample (a missing one) counts only through
-`mask`: without one, a NaN in z or zhat makes that output's value NaN; pass
-`mask=~np.isnan(z)` to leave missing samples out, as `FitResult.metrics` does.
+`mask`: without one, a NaN in z or zhat makes that output's value NaN (a NaN in a
+concrete z warns); pass `mask=~np.isnan(z)` to leave missing samples out, as
+`FitResult.metrics` does.
 
 `benchmark_scores` scores a simulation under the community's benchmark protocol (the
 first n samples are left out) with the definitions of `nonlinear_benchmarks.error_metrics`;
@@ -24,6 +25,7 @@ bounds and a whiteness and an independence verdict (`oneshot_jax.plot.resid` dra
 from __future__ import annotations
 
 import numbers
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -70,6 +72,14 @@ def _check(z, zhat, mask):
         return
     if np.size(z) == 0:
         raise ValueError(f"`z` holds no samples (shape {np.shape(z)}).")
+    if mask is None and np.isnan(np.asarray(z, dtype=float)).any():
+        warnings.warn(
+            "`z` holds NaN (missing samples), and every output with one scores NaN: pass "
+            "`mask=~np.isnan(z)` to score the measured samples only (as `FitResult.metrics` "
+            "does).",
+            UserWarning,
+            stacklevel=3,
+        )
     if mask is not None and np.shape(mask) == np.shape(z):
         m = np.asarray(mask, dtype=float)
         if not np.all((m == 0) | (m == 1)):

@@ -1,5 +1,7 @@
 """`oneshot_jax.metrics` against NumPy formulas (MATLAB System Identification definitions)."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,6 +67,22 @@ def test_masked_metrics_match_numpy_on_the_measured_samples():
     ref = np_metrics(z[rows], zhat[rows], n_params=3)
     assert float(metrics.aic(z, zhat, 3, mask)) == pytest.approx(ref["aic"], rel=1e-12)
     assert float(metrics.fpe(z, zhat, 3, mask)) == pytest.approx(ref["fpe"], rel=1e-12)
+
+
+def test_missing_samples_without_a_mask_warn_how_to_score_the_measured_ones():
+    """A gappy record scored without `mask`: the outputs with a gap score NaN (silently,
+    before); a warning names the mask, and with it the scores are finite."""
+    rng = np.random.default_rng(3)
+    z = rng.standard_normal((40, 2))
+    zhat = z + 0.1 * rng.standard_normal((40, 2))
+    z[5, 1] = np.nan
+    for name in ("rmse", "nrmse", "fit_percent", "r2"):
+        with pytest.warns(UserWarning, match=r"mask=~np\.isnan\(z\)"):
+            got = np.asarray(getattr(metrics, name)(z, zhat))
+        assert np.isfinite(got[0]) and np.isnan(got[1])
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert np.all(np.isfinite(getattr(metrics, name)(z, zhat, ~np.isnan(z))))
 
 
 def test_metrics_of_a_perfect_and_of_a_mean_model():
