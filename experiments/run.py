@@ -13,7 +13,8 @@ run there (results.json, results.md and its figures), checks the configuration (
 stops the run before anything is computed, exit status 2), writes `resolved_config.yaml`
 (Hydra keeps its own copy under `.hydra/`), calls `run`, and writes `results.json`
 atomically with a top-level `"status"`: `"ok"`, or `"failed"` with the error (a
-`"status"` of the runner's own dict is kept as `"runner_status"`). With
+`"status"` of the runner's own dict is kept as `"runner_status"`; `"files"` lists the
+files the runner wrote there, which the next run into the folder removes first). With
 `publish=true` the run's `results.md` is copied to `docs/case-studies/<name>.md` (figure
 links rewritten to `../figures/`) and its figures to `docs/figures/<name>_<figure>`.
 Benchmark files that are not found end the run with exit status 2 and a message that names
@@ -73,15 +74,22 @@ def write_json(path: Path, obj) -> None:
         raise
 
 
+def _files(outdir: Path) -> set[str]:
+    """The names of the files directly in `outdir` (not Hydra's folder), less OUTPUTS."""
+    return {p.name for p in outdir.iterdir() if p.is_file()} - set(OUTPUTS)
+
+
 def clear_stale(outdir: Path) -> list[Path]:
     """Remove the outputs of an earlier run in `outdir` (results.json, results.md,
-    resolved_config.yaml and the figures the old results.json lists)."""
+    resolved_config.yaml, and the figures and files the old results.json lists)."""
     removed = []
     old = outdir / "results.json"
     names = list(OUTPUTS)
     if old.exists():
         try:
-            names += [str(f) for f in json.loads(old.read_text()).get("figures") or []]
+            listed = json.loads(old.read_text())
+            names += [str(f) for f in listed.get("figures") or []]
+            names += [str(f) for f in listed.get("files") or []]
         except (ValueError, AttributeError):
             pass
     for name in names:
@@ -173,6 +181,7 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
     command = command or command_line()
     t0 = time.perf_counter()
     name = OmegaConf.select(cfg, "experiment.name", throw_on_missing=False)
+    before = None  # (the folder's files when the runner starts)
     try:
         conf = config.load(cfg)
         name = conf.experiment.name
@@ -180,19 +189,22 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
         _setup_cache(conf.jax_cache_dir)
         if runner is None:
             runner = importlib.import_module(f"experiments.{name}").run
+        before = _files(outdir)
         results = dict(runner(conf, outdir, command=command))
     except BaseException as err:
-        write_json(
-            outdir / "results.json",
-            {
-                "status": "failed",
-                "error": f"{type(err).__name__}: {err}",
-                "experiment": name,
-                "command": command,
-                "wall_time_s": time.perf_counter() - t0,
-            },
-        )
+        failed = {
+            "status": "failed",
+            "error": f"{type(err).__name__}: {err}",
+            "experiment": name,
+            "command": command,
+            "wall_time_s": time.perf_counter() - t0,
+        }
+        written = [] if before is None else sorted(_files(outdir) - before)
+        write_json(outdir / "results.json", {**failed, **({"files": written} if written else {})})
         raise
+    written = sorted(_files(outdir) - before - set(results.get("files") or ()))
+    if written:  # (what the runner wrote, for the next run here to clear: `clear_stale`)
+        results["files"] = sorted({*(results.get("files") or ()), *written})
     if "status" in results:  # (the run's own key: the runner's is kept beside it)
         results["runner_status"] = results.pop("status")
     results = {"status": "ok", **results}

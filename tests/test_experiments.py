@@ -334,6 +334,18 @@ def test_failed_run_replaces_stale_results(tmp_path):
     )
     assert out["status"] == "ok" and out["runner_status"] == "stalled"
 
+    # A file the runner wrote is listed, and removed when the next run starts: a failed
+    # rerun leaves no result of the earlier run beside its own "failed".
+    def saves(c, o, command):
+        (o / "fit.npz").write_bytes(b"fit")
+        return {}
+
+    out = run.execute(_compose(), tmp_path, command="cmd", runner=saves)
+    assert out["files"] == ["fit.npz"] and (tmp_path / "fit.npz").exists()
+    with pytest.raises(RuntimeError, match="boom"):
+        run.execute(_compose(), tmp_path, command="cmd", runner=boom)
+    assert not (tmp_path / "fit.npz").exists()
+
 
 def test_an_experiment_without_a_schema_is_refused_with_what_to_add():
     """A user's YAML that does not start from a registered schema: a ConfigError naming
