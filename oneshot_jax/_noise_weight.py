@@ -41,8 +41,8 @@ def noise_weight(residuals, readings=()):
     ignores the weights' common scale; the loss keeps its size); an output measured only
     in aggregate gets Q's entry 1 (it has no point sample to weigh).
 
-    **Returns:** `(Q, factors)`, or None where an output's residuals, or an Aggregate's,
-    are all zero or missing (no noise level to weigh by), naming it."""
+    **Returns:** `((Q, factors), None)`, or `(None, name)` where the residuals of `name`
+    (an output, or an Aggregate) are all zero or missing: no noise level to weigh by."""
     e = np.asarray(residuals, dtype=np.float64)
     e = e.reshape(-1, e.shape[-1])
     n_z = e.shape[-1]

@@ -40,7 +40,7 @@ LIMITS = {"rk4": 2.5, "euler": 2.0}
 
 # The largest |lambda| h at which RK4's step still follows the ODE's flow. Its step factor
 # R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24 decreases along the negative real axis only down
-# to z = -1.596, where R' = 0 (R''s other zeros, -0.70 +- 1.81j, lie farther out); past
+# to z = -1.596, where R' = 0 (the other zeros of R', -0.70 +- 1.81j, lie farther out); past
 # it a faster mode steps like a slower one: R(-2.456) = R(-0.5) = e^-0.5, so a fitted lag
 # converged to a = 24.6 with a = 5's loss (h = 0.1), inside the stability margin and
 # without a warning. An undamped mode loses 8 % of its amplitude a step at 1.6 too.
