@@ -236,24 +236,31 @@ def _settings(solver) -> dict:
     return dict(kept[1])
 
 
-def _warn_identifiability(names, ok, what, stop):
+def _warn_identifiability(names, ok, what, stop, unconverged=0):
     """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
     that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
-    at a blown-up simulation, say) it may be the point's only, and the warning says so."""
+    at a blown-up simulation, say), or after `unconverged` parallel rollouts that kept
+    Newton's unconverged iterate, it may be the point's or the rollouts' only, and the
+    warning says so."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
     if bad:
         # A network's weights are many and never all identifiable: name a few.
         listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
-        where, verdict = (
-            ("at the solution", "not identifiable from these data")
-            if stop in SUCCESS
-            else (
+        if unconverged:
+            where, verdict = (
+                f"at the returned point, after {unconverged} parallel rollouts of the fit "
+                "did not converge (`ParallelInTime(fallback=False)`)",
+                "not identifiable there, which may be the rollouts' and not the data's",
+            )
+        elif stop in SUCCESS:
+            where, verdict = ("at the solution", "not identifiable from these data")
+        else:
+            where, verdict = (
                 f"where the fit stopped ({stop}: not a solution, see its message)",
                 "not identifiable there, which may be the point's and not the data's",
             )
-        )
         warnings.warn(
             f"the Jacobian is rank-deficient {where}: {what} {listed} enter its "
             "null space (a change of them, alone or together, that leaves the outputs "
@@ -354,8 +361,9 @@ def assemble(
         # the stop reason speaks.)
         stop = name_of(from_index(int(out.results[best])))
         diverged = stop == "diverged"
+        unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
         if not diverged:
-            _warn_identifiability(names, scaled.theta_identifiable, "parameters", stop)
+            _warn_identifiability(names, scaled.theta_identifiable, "parameters", stop, unconverged)
         if not diverged and not scaled.x0_identifiable.all():
             x0_names = [
                 f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
@@ -363,7 +371,7 @@ def assemble(
                 for j in problem.x0_free
             ]
             _warn_identifiability(
-                x0_names, scaled.x0_identifiable.reshape(-1), "initial states", stop
+                x0_names, scaled.x0_identifiable.reshape(-1), "initial states", stop, unconverged
             )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
         if not diverged and dof <= 0 and n_free:

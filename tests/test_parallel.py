@@ -622,9 +622,18 @@ def test_a_rollout_kept_without_fallback_is_reported():
     assert "parallel rollouts kept Newton's unconverged iterate" in r.message
     # With several starts every start's success is checked, not the best start's alone
     # (the other start was listed as `tol_loss`).
-    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+    with pytest.warns(
+        RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"
+    ) as rec:
         r = oj.fit(model, jnp.array([3.9, 3.85]), x0, u[:40], z[:40], solver=loose, multistart=True)
     assert r.starts.stop_reason == ("unconverged_rollout", "unconverged_rollout")
+    # Its Jacobian is the rollouts', not the model's: its rank deficiency is not blamed on
+    # the data (it read "at the solution ... not identifiable from these data").
+    deficient = [str(w.message) for w in rec if "rank-deficient" in str(w.message)]
+    assert deficient
+    for text in deficient:
+        assert "parallel rollouts of the fit did not converge" in text, text
+        assert "from these data" not in text
 
     # Where the returned point's own rollout converges, the stop stands (its values are
     # the model's), though rollouts of trial steps did not: a Duffing oscillator with 3
