@@ -202,9 +202,9 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
         written = [] if before is None else sorted(_files(outdir) - before)
         write_json(outdir / "results.json", {**failed, **({"files": written} if written else {})})
         raise
-    written = sorted(_files(outdir) - before - set(results.get("files") or ()))
+    written = _files(outdir) - before
     if written:  # (what the runner wrote, for the next run here to clear: `clear_stale`)
-        results["files"] = sorted({*(results.get("files") or ()), *written})
+        results["files"] = sorted(written | set(results.get("files") or ()))
     if "status" in results:  # (the run's own key: the runner's is kept beside it)
         results["runner_status"] = results.pop("status")
     results = {"status": "ok", **results}

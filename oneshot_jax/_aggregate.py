@@ -375,7 +375,6 @@ class Augmented(NamedTuple):
     n_x: int
     n_z: int
     n_acc: int
-    layout: tuple = ()  # the output (channel) of each accumulator's readings
 
     def penalty(self, penalty):
         """`penalty=` of the function, applied to the model's own states."""
@@ -394,9 +393,10 @@ class Augmented(NamedTuple):
         `restore`): comparable with the point samples' weighted residuals, whose noise
         level sigma^2 the covariance pools with the readings'."""
         e = np.asarray(result.residuals, dtype=np.float64)[..., self.n_z :]
+        layout = self.model.step.channels  # (the output of each accumulator's readings)
         out = {}
-        for c in sorted(set(self.layout)):
-            v = e[..., [j for j, ch in enumerate(self.layout) if ch == c]]
+        for c in sorted(set(layout)):
+            v = e[..., [j for j, ch in enumerate(layout) if ch == c]]
             v = v[np.isfinite(v)]
             if v.size:
                 out[c] = float(np.mean(v * v))
@@ -594,4 +594,4 @@ def augment(data, aggregate, model, x0, missing, *, t=None) -> Augmented:
         w_out[:n_z, :n_z] = Q
         w_out[n_z:, n_z:] = np.eye(m)
     aug_model = _augmented_model(model, n_x, n_u, tuple(layout))
-    return Augmented(aug_model, x0_out, u_out, z_out, w_out, n_x, n_z, m, tuple(layout))
+    return Augmented(aug_model, x0_out, u_out, z_out, w_out, n_x, n_z, m)

@@ -77,11 +77,12 @@ def _intervals(t, name, T):
             f"does not come after {name}[{k}] = {float(t[k])!r}."
         )
     if given is not None and np.issubdtype(given, np.floating) and dt.size:
-        resolution = float(np.finfo(given).eps) * float(np.max(np.abs(t)))
+        top = float(np.max(np.abs(t)))
+        resolution = float(np.finfo(given).eps) * top
         if resolution > 1e-3 * float(np.min(dt)):
             warnings.warn(
                 f"`{name}` is stored in {given}, whose resolution at |{name}| up to "
-                f"{float(np.max(np.abs(t))):.3g} is {resolution:.2g}, "
+                f"{top:.3g} is {resolution:.2g}, "
                 f"{resolution / float(np.min(dt)):.2g} of the shortest interval: the "
                 "intervals have lost digits before the fit sees them. Pass the time stamps "
                 f"in float64, or relative to the record's start ({name} - {name}[0]).",
