@@ -70,6 +70,10 @@ def _decays(eig):
     return (eig.real <= 1e-12 * np.abs(eig)) & (np.abs(eig) > 0)
 
 
+# An undamped mode that explicit Euler grows by at most this fraction over a record's
+# steps is not reported (Euler grows one at any h, by sqrt(1 + |lambda h|^2) a step).
+SMALL_GROWTH = 0.01
+
 # The states the Jacobian is evaluated at: this many, evenly spaced over all samples of
 # all trajectories (a few small Jacobians: cheap next to the fit).
 POINTS = 32
@@ -83,7 +87,8 @@ class Stability(NamedTuple):
     - `value`: max |lambda| h over the states checked, lambda an eigenvalue of the
         Jacobian d rhs / d x, h = dt / substeps; for Euler, max h |lambda|^2 /
         (-Re lambda) over the decaying modes (<= 2 exactly inside Euler's stability
-        disc |1 + lambda h| <= 1), |lambda| h over the others.
+        disc |1 + lambda h| <= 1), inf for an undamped mode that Euler grows by more
+        than 1 % over a record (see `growth`), |lambda| h over the others.
     - `limit`: the integrator's limit (2.5 for RK4, 2 for Euler).
     - `eigenvalue`: the lambda of `value`.
     - `sample`: where it was found: the index of its state in the trajectories
@@ -96,6 +101,9 @@ class Stability(NamedTuple):
         the ODE's flow: 1.6 for RK4 (past it, its step factor R(lambda h) no longer
         decreases along the negative real axis, so a faster mode steps like a slower
         one, and a fit cannot tell them apart); `limit` for Euler.
+    - `growth`: for Euler and an undamped mode (`value` inf), the factor by which the
+        integrator grows that mode's amplitude over a record's steps, (1 + |lambda
+        h|^2)^(N/2); None otherwise.
     """
 
     value: float
@@ -107,6 +115,7 @@ class Stability(NamedTuple):
     dt: float
     max_step: float | None = None
     accurate_limit: float = math.inf
+    growth: float | None = None
 
     @property
     def near_limit(self) -> bool:
@@ -221,7 +230,18 @@ def report(step, idx, xs, J, u) -> Stability | None:
     dt, n, h = (a[finite] for a in step_sizes(step, u, idx))
     eig = np.linalg.eigvals(J[finite])
     scaled = scaled_eigenvalues(eig, h[:, None], step.method)
+    growth = None
+    if np.isinf(scaled).any():  # Euler's undamped modes: their growth over a record
+        steps = max(np.shape(u)[-2] - 1, 1) * n[:, None]
+        log_growth = 0.5 * steps * np.log1p((np.abs(eig) * h[:, None]) ** 2)
+        # (within a 1 % growth over the record the mode is followed: its |lambda| h, which
+        # is then below 0.15)
+        small = np.isinf(scaled) & (log_growth <= np.log(1.0 + SMALL_GROWTH))
+        scaled = np.where(small, np.abs(eig) * h[:, None], scaled)
     i, j = np.unravel_index(np.argmax(scaled), eig.shape)
+    if np.isinf(scaled[i, j]):
+        with np.errstate(over="ignore"):
+            growth = float(np.exp(log_growth[i, j]))
     return Stability(
         value=float(scaled[i, j]),
         limit=LIMITS[step.method],
@@ -232,6 +252,7 @@ def report(step, idx, xs, J, u) -> Stability | None:
         dt=float(dt[i]),
         max_step=getattr(step, "max_step", None),
         accurate_limit=ACCURATE[step.method],
+        growth=growth,
     )
 
 
@@ -272,9 +293,17 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
     h = report.dt / report.substeps
     target = min(report.accurate_limit, report.limit)  # (the remedies reach it)
     if not np.isfinite(report.value):  # an undamped mode: Euler grows it at any h
+        growth = report.growth
+        growth = (
+            ""
+            if growth is None
+            else f", here by {growth:.3g} over a record"
+            if np.isfinite(growth)
+            else ", here by more than 1e308 over a record"
+        )
         remedy = (
             'RK4 (`Model.from_ode(..., method="rk4")`): explicit Euler grows an undamped '
-            "mode at any step"
+            f"mode at any step{growth}"
         )
     elif report.max_step is None and report.value > 1e4 * report.limit:
         # (an eigenvalue this far past the limit comes from a very stiff mode or, far more
@@ -355,7 +384,8 @@ def check_stability(
     1.6 for RK4 (where its step stops following the ODE's flow: a faster mode then steps
     like a slower one; its stability region reaches 2.785 on the negative real axis,
     2.828 on the imaginary one), or outside Euler's disc |1 + lambda h| <= 1
-    (`Stability.value`), it warns (RuntimeWarning), naming the eigenvalue
+    (`Stability.value`; an undamped mode, which Euler grows at any h, where it grows by
+    more than 1 % over a record), it warns (RuntimeWarning), naming the eigenvalue
     and how many substeps would bring it back inside. `fit` runs this check on the
     fitted theta and x0 after every fit of a `Model.from_ode` model.
 

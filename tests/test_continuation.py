@@ -263,7 +263,8 @@ def test_euler_warns_of_an_undamped_mode_at_any_step():
     """k = 38**2, c = 0: lambda = +-38j. Euler grows the mode by |1 + lambda h| = 2.15 a
     step at h = 0.05 (6e10 in 30 steps), but its measure fell back to |lambda| h = 1.9 < 2:
     no warning, while c = 1e-3 gave 1.4e5 and a warning. An undamped mode is outside
-    Euler's disc at any h: inf, and the remedy is RK4."""
+    Euler's disc at any h: inf, and the remedy is RK4, unless Euler grows it by at most
+    1 % over the record."""
 
     def rhs(x, u, th):
         return jnp.stack([x[1], -th["k"] * x[0] - th["c"] * x[1]])
@@ -278,6 +279,16 @@ def test_euler_warns_of_an_undamped_mode_at_any_step():
     with pytest.warns(RuntimeWarning, match=r"= inf .*method=\"rk4\"") as rec:
         report = oj.check_stability(model, {"k": 38.0**2, "c": 0.0}, x0, u)
     assert report.value == np.inf and len(rec) == 1
+    # A slow undamped mode: Euler grows it by (1 + |lambda h|^2)^(N/2) over a record's N
+    # steps, 1.0005 at h = 0.001 (followed: no warning), 1.051 at h = 0.01 (named).
+    slow, u = {"k": 1.0, "c": 0.0}, np.zeros((1000, 1))
+    report = _no_warnings(
+        oj.check_stability, oj.Model.from_ode(rhs, 0.001, method="euler"), slow, x0, u
+    )
+    assert report.value == pytest.approx(0.001) and report.growth is None
+    with pytest.warns(RuntimeWarning, match=r"here by 1\.05 over a record"):
+        report = oj.check_stability(oj.Model.from_ode(rhs, 0.01, method="euler"), slow, x0, u)
+    assert report.value == np.inf and report.growth == pytest.approx(1.0001**499.5)
     integrator = oj.Model.from_ode(lambda x, u, th: th["g"] * u[:1], 0.05, method="euler")
     report = _no_warnings(oj.check_stability, integrator, {"g": 1.0}, np.zeros(1), u)
     assert not report.near_limit  # lambda = 0: neither grows nor decays
