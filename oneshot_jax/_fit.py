@@ -516,7 +516,8 @@ def fit(
         Q with theta (MATLAB's `OutputWeight` "noise"): fits alternate with Q set to the
         inverse covariance of the residuals until it settles, each warm-started (at
         most 10 fits; `result.weight` is the Q of the returned fit,
-        `stop_info["noise_weight_rounds"]` the number of fits), so that the standard
+        `stop_info["noise_weight_rounds"]` the number of fits, `num_steps` and
+        `wall_time` those of all fits together), so that the standard
         errors hold for outputs of unequal noise. With `aggregate`, each `Aggregate`'s
         weights get a factor alike, the inverse mean square of its readings' residuals
         on the same scale as Q (`stop_info["reading_weight_factors"]`, one per

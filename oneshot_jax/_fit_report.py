@@ -373,7 +373,7 @@ def report(result) -> str:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
         out.append(
             f'  (weight="noise": the output weight estimated from the residuals over {rounds} '
-            f"fits, the last one shown{starts})"
+            f"fits, the last one shown, its steps and time those of all {rounds}{starts})"
         )
     lags = (result.diagnostics or {}).get("covariance_lags")
     if lags is not None:

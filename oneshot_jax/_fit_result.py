@@ -273,10 +273,11 @@ class FitResult(eqx.Module):
         `fit(regulariser=...)` holds one from `oneshot_jax.sparsity`.
     - `stop_reason`: a `RESULTS` item; `message` says why in words, `success` whether it
         converged.
-    - `num_steps`: the solver steps taken (all solvers of a sequence together).
+    - `num_steps`: the solver steps taken (all solvers of a sequence together; with
+        `weight="noise"`, all its fits together).
     - `wall_time`: seconds of the compiled solve with its covariance and metrics
         (compilation included on the first call of a configuration), without the input
-        checks.
+        checks; with `weight="noise"`, of all its fits.
     - `history`: a `FitHistory` of the iterates.
     - `residuals`: e = zhat - z, the shape of `z`; (n_windows, window, n_z) for a fit
         with `window=` (each window simulated from its own fitted x0).

@@ -132,23 +132,43 @@ def _reweighted(aggregate, factors):
     return walk(aggregate)
 
 
+def _identity(z):
+    """Q = I in the form `noise_weight` will return for these outputs (records), so that
+    the first fit and the next share one compiled program: (n_z, n_z) where every record
+    measures every output at every sample and the records have one length, else the
+    diagonal (n_z,) (a form that differs only costs a second compilation)."""
+    records = list(z) if isinstance(z, (list, tuple)) else [z]
+    arrays = [np.asarray(r, dtype=np.float64) for r in records]
+    n_z = arrays[0].shape[-1]
+    full = (
+        n_z > 1
+        and len({a.shape[-2] for a in arrays}) == 1
+        and all(np.isfinite(a).all() for a in arrays)
+    )
+    return np.eye(n_z) if full else np.ones(n_z)
+
+
 def fit_noise_weighted(fit, args):
     """`fit(**args)` with the weight estimated from the residuals (see the module
     docstring): from Q = I, at most `NOISE_ROUNDS` fits, each warm-started from the last
     (theta, and x0 where its shape is the one given; a multistart only in the first, whose
     `starts` and `best` the result keeps); the result of the last fit, whose Q the
-    residuals reproduce to `NOISE_RTOL`, with `result.weight` that Q and
-    `stop_info["noise_weight_rounds"]` the number of fits.
+    residuals reproduce to `NOISE_RTOL`, with `result.weight` that Q,
+    `stop_info["noise_weight_rounds"]` the number of fits, and `num_steps` and
+    `wall_time` those of all fits together.
     Only the returned fit's warnings are shown; a Q that has not settled after the last
     round, or residuals that give none, get a warning of their own."""
     given_x0 = np.shape(args["x0"])
     aggregate = args.get("aggregate")
     w, scales, used, change, rounds, result, first = None, [], [], np.inf, 0, None, None
+    steps, wall = 0, 0.0
     for rounds in range(1, NOISE_ROUNDS + 1):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            result = fit(**{**args, "weight": w})
-        first = result if first is None else first
+            result = fit(**{**args, "weight": _identity(args["z"]) if w is None else w})
+        steps, wall = steps + result.num_steps, wall + result.wall_time
+        if first is None:  # (Q = I: as without a weight)
+            first = result = dataclasses.replace(result, weight=None)
         if not np.isfinite(float(result.loss)):
             break
         used = scales  # (the readings' factors of this fit)
@@ -201,7 +221,7 @@ def fit_noise_weighted(fit, args):
     info = {**result.stop_info, "noise_weight_rounds": rounds}
     if used:
         info["reading_weight_factors"] = [float(f) for f in used]
-    result = dataclasses.replace(result, stop_info=info)
+    result = dataclasses.replace(result, stop_info=info, num_steps=steps, wall_time=wall)
     if first.starts is not None and result.starts is None:  # (the first fit's multistart)
         result = dataclasses.replace(result, starts=first.starts, best=first.best)
     return result

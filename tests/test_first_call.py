@@ -2,6 +2,7 @@
 check of a `Model.from_ode` fit and predict's observability check and simulation run
 inside those calls, with the numbers of the separate functions."""
 
+import logging
 import os
 import warnings
 
@@ -97,6 +98,45 @@ def test_first_fit_and_predict_compile_one_program_each():
     assert n_pred == 1
     _, n_again = COMPILES.count(lambda: result.predict(u[:-3], np.asarray(z)[:11]))
     assert n_again == 0
+
+
+class _Solves(logging.Handler):
+    """Counts the compilations of the fit's solve (`jax.log_compiles`' records)."""
+
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.n = 0
+
+    def emit(self, record):
+        self.n += record.getMessage().startswith("Finished XLA compilation of jit(_solve)")
+
+
+@pytest.mark.parametrize("n_z", [2, 1])
+def test_a_noise_weighted_fit_compiles_one_program(n_z):
+    """`weight="noise"` fits with Q = I first, then with the estimated Q: the first fit
+    ran without a weight and compiled the solve a second time (the first call took 4
+    times a plain fit's). Q = I in the estimate's form shares one; the result's steps and
+    time are those of all fits. (A round that starts at its optimum runs the check of
+    entries that never moved, `_zero_gradient`: a small program of its own.)"""
+    model = oj.Model.from_ode(cubic, DT, observe=lambda x, u, p: x[:n_z])
+    rng = np.random.default_rng(5)
+    u = rng.uniform(-1.0, 1.0, (T + 13 + n_z, 1))  # shapes no other test has
+    _, z = oj.simulate(model, {"a": 0.5, "b": 2.0}, np.array([0.8, 0.1]), u)
+    z = np.asarray(z) + rng.normal(0.0, [0.01, 0.1][:n_z], z.shape)
+
+    def fit():
+        return oj.fit(model, {"a": 0.4, "b": 1.5}, np.array([0.7, 0.0]), u, z, weight="noise")
+
+    solves = _Solves()
+    logger = logging.getLogger("jax")
+    logger.addHandler(solves)
+    try:
+        with jax.log_compiles(True):
+            result = fit()
+    finally:
+        logger.removeHandler(solves)
+    assert solves.n == 1 and result.stop_info["noise_weight_rounds"] >= 2
+    assert result.num_steps > result.history.loss.shape[0] - 1  # (the last fit's alone)
 
 
 def test_a_regulariser_made_anew_reuses_the_compiled_fit():
