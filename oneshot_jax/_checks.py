@@ -93,6 +93,14 @@ def as_float(a, name, dtype=None):
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must hold real numbers, got {type(a).__name__}: {err}") from err
     if a.dtype == object:
+        if a.ndim == 0 and a.item() is None:
+            what = (
+                " (the initial state, (n_x,) or (N, n_x); np.zeros(n_x) to start at 0 where "
+                "it is estimated)"
+                if name == "x0"
+                else " (an array of real numbers)"
+            )
+            raise ValueError(f"`{name}` is required{what}, got None.")
         raise ValueError(f"`{name}` must hold real numbers, got dtype object.")
     if jnp.issubdtype(a.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
@@ -639,6 +647,13 @@ def check_data(
     if u.ndim != len(lead) + 2 or u.shape[: len(lead)] != lead:
         want = f"({x0.shape[0]}, T, n_u)" if batched else "(T, n_u)"
         hint = ""
+        if not batched and u.ndim == 3:
+            hint = (
+                f": for {u.shape[0]} records give one initial state per record, x0 of shape "
+                f"({u.shape[0]}, {x0.shape[0]}) (np.tile(x0, ({u.shape[0]}, 1)))"
+            )
+        elif u.ndim == 1 and u.shape[0] > 1:
+            hint = ": a one-input record of T samples is u[:, None], shape (T, 1)"
         if batched and x0.shape[1] == 1 and u.ndim == 2:
             hint = (
                 f": `x0` of shape {x0.shape} is read as {x0.shape[0]} trajectories of one "
@@ -983,6 +998,14 @@ def x0_mask(estimate_x0, n_x) -> np.ndarray:
     if estimate_x0 is True or estimate_x0 is False:
         return np.full(n_x, estimate_x0)
     est = np.asarray(estimate_x0)
+    if est.dtype == bool and est.ndim == 2 and est.shape[-1] == n_x:
+        raise ValueError(
+            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), one mask "
+            f"for every record; got a mask of shape {est.shape}. A mask per record is not "
+            "supported: estimate the union of the entries (a record whose initial state "
+            "is known, at rest say, then gets its own estimate of it, n_x more "
+            "parameters)."
+        )
     if est.dtype != bool or est.shape not in ((), (n_x,)):
         raise ValueError(
             f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), "

@@ -546,7 +546,8 @@ def fit(
         fit; an entry held inside a leaf is not, and a non-finite derivative with
         respect to it (x**n with respect to n at x < 0) reaches the others: hold such an
         exponent as a leaf of its own, or give it as an integer (data).
-    - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries.
+    - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries
+        (the same entries of every record).
     - `window`: cut one record into consecutive windows of this many samples, each with
         its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them
         (every k-th, a number spread over the record, or given starts).
@@ -760,7 +761,11 @@ def fit(
             RuntimeWarning,
             stacklevel=2,
         )
-    result = dataclasses.replace(result, theta=_pytree.ordered_like(result.theta, theta0))
+    result = dataclasses.replace(
+        result,
+        theta=_pytree.ordered_like(result.theta, theta0),
+        std=_pytree.ordered_like(result.std, theta0),
+    )
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)

@@ -283,10 +283,12 @@ class FitResult(eqx.Module):
         with `window=` (each window simulated from its own fitted x0).
     - `names`: a name per free parameter (`"k"`, `"I[2]"`, `"net.layers.0.weight[1, 3]"`).
     - `fixed`: a flat boolean mask over theta's parameter entries (True where fixed).
-    - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta (J the data-residual
-        Jacobian in the weighted error, sigma^2 = SSE / (n_obs - n_free), n_obs the
-        measured samples of the outputs of non-zero weight); inf in the
-        rows and columns of a parameter the data do not determine. The least-squares
+    - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta, its rows and
+        columns in the order of `names` (JAX's, dict keys sorted, which may differ from
+        theta0's written order and the printout's; `std` holds the diagonal by name) (J
+        the data-residual Jacobian in the weighted error, sigma^2 = SSE / (n_obs -
+        n_free), n_obs the measured samples of the outputs of non-zero weight); inf in
+        the rows and columns of a parameter the data do not determine. The least-squares
         solvers take J from their last linearisation, at the returned point or one
         converged step (of scaled size <= rtol) before it. Not computed above 1024 free
         entries of theta (a neural residual, say), nor where its dense Jacobian would

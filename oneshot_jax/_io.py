@@ -469,8 +469,9 @@ def _fields(arrays, meta, group, build, static) -> dict:
             # (a file written before `starts_solver_stop` existed: the stops as they were)
             solver_stop=tuple(meta.get("starts_solver_stop") or meta["starts_stop_reason"]),
         )
+    order = tuple(meta.get("theta_order") or ())  # (dicts as written: JAX sorts them)
     return dict(
-        theta=_pytree.combine(params, static),
+        theta=_pytree.ordered_by_names(_pytree.combine(params, static), order),
         x0=arrays["x0"],
         loss=arrays["loss"],
         stop_reason=from_name(meta["stop_reason"]),
@@ -481,7 +482,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         names=tuple(meta["names"]),
         fixed=arrays["fixed"],
         covariance=arrays["covariance"],
-        std=build(group("std/")),
+        std=_pytree.ordered_by_names(build(group("std/")), order),
         x0_covariance=arrays["x0_covariance"],
         x0_std=arrays["x0_std"],
         x0_estimated=arrays["x0_estimated"],
@@ -491,7 +492,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         solver=tuple(meta["solver"]),
         diagnostics=dict(meta.get("diagnostics") or {}),
         stop_info=dict(meta.get("stop_info") or {}),
-        theta_order=tuple(meta.get("theta_order") or ()),
+        theta_order=order,
         units=dict(meta.get("units") or {}),
         validation_loss=meta.get("validation_loss"),
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,

@@ -254,6 +254,18 @@ def ordered_like(tree, like):
     return tree
 
 
+def ordered_by_names(tree, names):
+    """`tree` with the keys of its dicts in the order of `names`, rows written as paths
+    ("k", "phys.c": `FitResult.theta_order`), for a theta rebuilt in JAX's sorted order
+    (`load_result`)."""
+    like: dict = {}
+    for name in names:
+        node = like
+        for part in str(name).split("."):
+            node = node.setdefault(part, {})
+    return ordered_like(tree, like)
+
+
 def leaf_names(theta) -> tuple[str, ...]:
     """One name per scalar of theta: the path of its leaf (dict keys, indices, attribute
     names joined by '.') with [i] or [i, j] for array entries."""

@@ -551,6 +551,23 @@ def test_natural_mistakes_get_a_hint():
     model = oj.Model.from_ode(_osc, 0.1)
     with pytest.raises(ValueError, match=r"read as 2 trajectories.*shape \(2,\)"):
         oj.simulate(model, OSC, np.array([[1.0], [0.0]]), np.zeros((10, 1)))
+    # A MATLAB user's habits: two records with one x0, u of shape (T,), x0 left out, a
+    # mask of the initial states per record.
+    with pytest.raises(ValueError, match=r"for 3 records .* x0 of shape \(3, 2\)"):
+        oj.simulate(model, OSC, np.zeros(2), np.zeros((3, 10, 1)))
+    with pytest.raises(ValueError, match=r"u\[:, None\], shape \(T, 1\)"):
+        oj.simulate(model, OSC, np.zeros(2), np.zeros(10))
+    with pytest.raises(ValueError, match=r"`x0` is required \(the initial state"):
+        oj.fit(model, OSC, None, np.zeros((10, 1)), np.zeros((10, 2)))
+    with pytest.raises(ValueError, match=r"one mask for every record.*per record is not"):
+        oj.fit(
+            model,
+            OSC,
+            np.zeros((2, 2)),
+            np.zeros((2, 10, 1)),
+            np.zeros((2, 10, 2)),
+            estimate_x0=np.array([[False, False], [True, True]]),
+        )
     u = np.zeros((10, 1))
     u[3] = np.nan
     with pytest.raises(ValueError, match=r"`u` contains NaN.*`missing='mask'` applies to z"):

@@ -402,6 +402,9 @@ def test_units_are_checked():
 def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path):
     loaded = oj.load_result(fitted.save(tmp_path / "osc"), model=MODEL)
     assert loaded.theta_order == fitted.theta_order == ("w0sq", "c", "b")
+    # (theta and std as written, not in JAX's sorted order)
+    assert list(loaded.theta) == list(fitted.theta) == ["w0sq", "c", "b"]
+    assert list(loaded.std) == list(fitted.std) == ["w0sq", "c", "b"]
     assert loaded.units == fitted.units == {"w0sq": "1/s^2", "c": "1/s"}
     assert eqx.tree_equal(loaded, fitted) is True
     assert str(loaded) == str(fitted)
