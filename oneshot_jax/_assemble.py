@@ -236,12 +236,14 @@ def _settings(solver) -> dict:
     return dict(kept[1])
 
 
-def _warn_identifiability(names, ok, what, stop, unconverged=0):
+def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None):
     """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
     that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
-    at a blown-up simulation, say), or after `unconverged` parallel rollouts that kept
-    Newton's unconverged iterate, it may be the point's or the rollouts' only, and the
-    warning says so."""
+    at a blown-up simulation, say), after `unconverged` parallel rollouts that kept
+    Newton's unconverged iterate, or at a success whose simulation fits an output worse
+    than its mean (`worst_fit`, its FIT% below 0: a bad minimum, where a chaotic
+    trajectory's sensitivities make every column parallel), it may be the point's or
+    the rollouts' only, and the warning says so."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
@@ -253,6 +255,12 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0):
                 f"at the returned point, after {unconverged} parallel rollouts of the fit "
                 "did not converge (`ParallelInTime(fallback=False)`)",
                 "not identifiable there, which may be the rollouts' and not the data's",
+            )
+        elif stop in SUCCESS and worst_fit is not None:
+            where, verdict = (
+                f"where the fit stopped ({stop}, but an output's FIT is {worst_fit:.3g} %, "
+                "worse than its mean: likely a bad minimum, see `oj.check_basin`)",
+                "not identifiable there, which may be the point's and not the data's",
             )
         elif stop in SUCCESS:
             where, verdict = ("at the solution", "not identifiable from these data")
@@ -271,6 +279,15 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0):
             "excite them.",
             stacklevel=4,
         )
+
+
+def worst_fit(fit_percent):
+    """The lowest FIT% over the outputs where it is below 0 (a simulation that fits an
+    output worse than that output's mean), else None."""
+    fits = np.asarray(np.nan if fit_percent is None else fit_percent, np.float64)
+    if not np.isfinite(fits).any() or np.nanmin(fits) >= 0:
+        return None
+    return float(np.nanmin(fits))
 
 
 class Prepared(NamedTuple):
@@ -362,8 +379,11 @@ def assemble(
         stop = name_of(from_index(int(out.results[best])))
         diverged = stop == "diverged"
         unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
+        worst = worst_fit(met.get("fit_percent"))
         if not diverged:
-            _warn_identifiability(names, scaled.theta_identifiable, "parameters", stop, unconverged)
+            _warn_identifiability(
+                names, scaled.theta_identifiable, "parameters", stop, unconverged, worst
+            )
         if not diverged and not scaled.x0_identifiable.all():
             x0_names = [
                 f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
@@ -371,7 +391,12 @@ def assemble(
                 for j in problem.x0_free
             ]
             _warn_identifiability(
-                x0_names, scaled.x0_identifiable.reshape(-1), "initial states", stop, unconverged
+                x0_names,
+                scaled.x0_identifiable.reshape(-1),
+                "initial states",
+                stop,
+                unconverged,
+                worst,
             )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
         if not diverged and dof <= 0 and n_free:
@@ -421,9 +446,10 @@ def assemble(
         "roundoff_limit": prepared.roundoff_limit,
     }
     limit = float(out.limit)
-    if np.isfinite(limit) and limit > prepared.roundoff_limit:
+    if np.isfinite(limit) and limit > prepared.roundoff_limit * (1.0 + 1e-5):
         # (`_optimality.stall_limit`: raised by the precision of outputs far above the
-        # residuals)
+        # residuals; the margin: the limit computed in float32 rounds 10 sqrt(eps) up by
+        # 2e-8 relative, which flagged every float32 stall as this)
         stop_info.update(roundoff_limit=limit, outputs_precision=True)
     if np.isfinite(prepared.resolution):  # (a first-order solver's floor under gtol)
         stop_info["resolution"] = prepared.resolution

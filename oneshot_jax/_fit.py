@@ -19,7 +19,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._aggregate import augment, check_window
-from ._assemble import assemble, collect, post, prepare
+from ._assemble import assemble, collect, post, prepare, worst_fit
 from ._checks import x0_mask
 from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
@@ -776,6 +776,17 @@ def fit(
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)
+    worst = worst_fit(result.metrics.get("fit_percent"))
+    if result.success and worst is not None:
+        warnings.warn(
+            f"the fit reports {result.status}, but its simulation fits an output worse than "
+            f"that output's mean (FIT {worst:.3g} %): most often a bad minimum of the "
+            "simulation error (or a model that cannot describe these data). "
+            "`oj.check_basin(result, u, z)` compares it with a fit over short windows, "
+            "each from its own x0; `oj.fit_continuation` starts from such windows.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
         result = _flag_infeasible(result, built.problem.project)
     if stability_at is not None:

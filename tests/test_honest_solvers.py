@@ -653,6 +653,35 @@ def test_a_clipped_step_no_longer_converges_at_the_start():
             assert r.theta["k"] == pytest.approx(4.0, rel=0.02)
 
 
+def test_parameters_of_unlike_sizes_with_a_constraint_that_does_not_bind():
+    """y = c u1 + k u2 with c ~ 1e-4, k ~ 1e4 (SI units; each term of size 1), from
+    k = 5000 with c at its best for that k. A general projection that never binds
+    (c <= 1): every solver reported `converged` at the start (its one common step moved
+    k by less than k's round-off, and the measure read 0 where k's cosine is 0.998).
+    L-BFGS with an inactive box held c (its step below c's round-off), reset its memory
+    and stalled. Each must reach the least-squares optimum, as without the constraint."""
+    rng = np.random.default_rng(0)
+    u = np.column_stack([1e4 * rng.standard_normal(200), 1e-4 * rng.standard_normal(200)])
+    y = (1e-4 * u[:, 0] + 1e4 * u[:, 1] + 0.01 * rng.standard_normal(200))[:, None]
+    best = np.linalg.lstsq(u, y[:, 0], rcond=None)[0]
+    model = oj.Model(
+        lambda x, u, th: x, lambda x, u, th: jnp.atleast_1d(th["c"] * u[0] + th["k"] * u[1])
+    )
+    c0 = float(u[:, 0] @ (y[:, 0] - 5000.0 * u[:, 1]) / (u[:, 0] @ u[:, 0]))
+    below_one = oj.constraints.project(lambda t: {"c": jnp.minimum(t["c"], 1.0), "k": t["k"]})
+    for constraints, solvers in [
+        (below_one, (oj.LevenbergMarquardt(), oj.GaussNewton(), oj.LBFGS())),
+        (oj.constraints.box(upper={"c": 1.0}), (oj.LBFGS(),)),
+    ]:
+        for solver in solvers:
+            r = oj.fit(
+                model, {"c": c0, "k": 5000.0}, np.zeros(1), u, y, solver=solver,
+                constraints=constraints, estimate_x0=False,
+            )  # fmt: skip
+            assert r.success and r.num_steps > 0, (type(solver).__name__, r.message)
+            assert float(r.theta["k"]) == pytest.approx(best[1], rel=1e-8)
+
+
 def test_noise_free_data_end_as_a_zero_residual_success():
     problem = PROBLEMS["oscillator"]
     _, clean = oj.simulate(problem.model, problem.truth, problem.x0, problem.u)
@@ -711,6 +740,22 @@ def test_an_output_offset_does_not_make_a_stalled_fit_a_zero_residual():
     near = {"k": f32(3.0), "c": f32(0.3), "b": f32(0.8)}
     good = oj.fit(model, near, x0, u, z, solver=oj.LevenbergMarquardt())
     assert good.success and good.metrics["fit_percent"][0] > 99.0, good.message
+
+
+def test_a_float32_stall_with_outputs_near_their_noise_is_not_blamed_on_their_precision():
+    """float32, x+ = a x + b u with noise 0.3 (outputs 6 times the residuals): the limit
+    is 10 sqrt(eps) itself, but computed in float32 it exceeded the float64 value by
+    2e-8 relative, and every such stall said "at the precision of the outputs, which are
+    far above the residuals"."""
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((100, 1)).astype(np.float32)
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u)
+    f32 = np.float32
+    _, z = oj.simulate(model, {"a": f32(0.8), "b": f32(1.0)}, np.ones(1, f32), u)
+    z = (np.asarray(z) + 0.3 * rng.standard_normal((100, 1))).astype(f32)
+    r = oj.fit(model, {"a": f32(0.5), "b": f32(0.5)}, np.zeros(1, f32), u, z)
+    assert r.success and "round-off limit" in r.message, r.message
+    assert "outputs_precision" not in r.stop_info and "precision of the outputs" not in r.message
 
 
 def _scaled_outputs_problem(dtype):

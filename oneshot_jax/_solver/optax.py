@@ -200,14 +200,20 @@ class _AbstractOptax(AbstractSolver):
     def _held(self, problem, params, grad, scale):
         """Entries of theta that the constraints hold where they are: a projected
         diagonal-Newton step P(theta - grad C / (2 d^2)) leaves them in place although
-        their gradient is not zero (at a bound that the gradient pushes against)."""
+        their gradient is not zero (at a bound that the gradient pushes against). Only
+        where the projection moved the step: an entry whose step is below its round-off
+        (a large column's, next to one 1e7 times smaller) is not held, which reset the
+        memory and stalled L-BFGS with an inactive box."""
         if not problem.constrained:
             return jnp.zeros(params.theta.shape, bool)
         eps = jnp.finfo(problem.dtype).eps
         t = 0.5 / floor(scale.d_t)
-        trial = problem.feasible(params.theta - t * grad.theta)
-        return (jnp.abs(trial - params.theta) <= 4 * eps * jnp.abs(params.theta)) & (
-            grad.theta != 0
+        step = params.theta - t * grad.theta
+        trial = problem.feasible(step)
+        return (
+            (trial != step)
+            & (jnp.abs(trial - params.theta) <= 4 * eps * jnp.abs(params.theta))
+            & (grad.theta != 0)
         )
 
     def step(self, problem, params, state):
