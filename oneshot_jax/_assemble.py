@@ -281,10 +281,15 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None):
         )
 
 
-def worst_fit(fit_percent):
-    """The lowest FIT% over the outputs where it is below 0 (a simulation that fits an
-    output worse than that output's mean), else None."""
+def worst_fit(fit_percent, weight=None):
+    """The lowest FIT% over the outputs the fit weighs (Q's diagonal above 0: an output of
+    weight 0 is ignored on purpose) where it is below 0 (a simulation that fits an output
+    worse than that output's mean), else None."""
     fits = np.asarray(np.nan if fit_percent is None else fit_percent, np.float64)
+    if weight is not None and fits.ndim == 1:
+        q = np.asarray(weight, np.float64)
+        q = np.diagonal(q) if q.ndim == 2 else np.broadcast_to(q, fits.shape)
+        fits = np.where(q > 0, fits, np.nan)
     if not np.isfinite(fits).any() or np.nanmin(fits) >= 0:
         return None
     return float(np.nanmin(fits))
@@ -379,7 +384,7 @@ def assemble(
         stop = name_of(from_index(int(out.results[best])))
         diverged = stop == "diverged"
         unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
-        worst = worst_fit(met.get("fit_percent"))
+        worst = worst_fit(met.get("fit_percent"), problem.cost.weight)
         if not diverged:
             _warn_identifiability(
                 names, scaled.theta_identifiable, "parameters", stop, unconverged, worst

@@ -243,12 +243,16 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
         if reasons != list(result.starts.stop_reason):
             starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
             out = dataclasses.replace(out, starts=starts)
-    if result.success and unconverged(problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))):
+    point = problem.split(jnp.asarray(theta_flat), jnp.asarray(x0))
+    if result.success and unconverged(point):
+        # (`loss` stays the rollouts', as the history's; the model's, from the sequential
+        # loop, goes with the reason)
         out = _demoted(
             out,
             "unconverged_rollout",
             unconverged_rollouts=counts["unconverged_rollouts"],
             parallel_rollouts=counts["parallel_rollouts"],
+            model_loss=float(_loss_at(problem, point, "vjp")),
         )
     return out
 
@@ -619,8 +623,13 @@ def fit(
     when the fitted model runs near its integrator's stability limit (`check_stability`).
     For a fit that converges with a low FIT, see `check_basin` and `fit_continuation`.
     Free parameters that never moved from the start because their gradient
-    and Jacobian column are exactly zero there (a coupling started at 0) are named in a
-    warning, and the stop reason is then `zero_gradient` (not a success).
+    and Jacobian column are exactly zero there, though they act on the outputs a little
+    away from it (a coupling started at 0), are named in a warning, and the stop reason
+    is then `zero_gradient` (not a success); parameters without effect in a whole
+    neighbourhood (the weights of a network's units that are dead over the data) are
+    ones the data do not determine: their std is inf and a warning names them. A success
+    whose simulation fits an output worse than its mean (FIT below 0) warns of a bad
+    minimum.
     """
     if isinstance(weight, str):
         if weight != "noise":
@@ -776,7 +785,7 @@ def fit(
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)
-    worst = worst_fit(result.metrics.get("fit_percent"))
+    worst = worst_fit(result.metrics.get("fit_percent"), weight)
     if result.success and worst is not None:
         warnings.warn(
             f"the fit reports {result.status}, but its simulation fits an output worse than "

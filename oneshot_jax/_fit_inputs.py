@@ -405,6 +405,17 @@ def build_problem(
     proj, reg = split(constraints, regulariser)
     free = _free(data.theta, flat0.dtype, fixed, estimate_x0, n_x, proj)
     fixed_flat, theta_free, x0_est, x0_free = free.fixed, free.theta, free.x0_mask, free.x0
+    if free.lower is not None and np.any(free.lower == free.upper):
+        names = np.asarray(_pytree.leaf_names(data.theta), object)[theta_free]
+        pinned = [str(n) for n in names[free.lower == free.upper]]
+        warnings.warn(
+            f"the box's lower and upper bounds are equal for {pinned}: the fit holds them "
+            "there, but they still count as estimated (a standard error of the "
+            "linearisation, and one fewer degree of freedom in sigma^2, the AIC and FPE). "
+            "To hold a known value, fix it (`fit(..., fixed=...)`, MATLAB's "
+            "`Parameters(i).Fixed`).",
+            stacklevel=3,
+        )
     n_est = int(np.sum(x0_est))
     if inputs.window_starts is not None and len(theta_free) and Z.shape[1] * Z.shape[2] <= n_est:
         raise ValueError(

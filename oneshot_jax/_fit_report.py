@@ -360,13 +360,19 @@ def report(result) -> str:
         out.append(
             "  (not a solution: the standard errors and intervals below are those of the "
             "linearisation at the returned point)"
+            if _computed(result)
+            else "  (not a solution: see the status)"
         )
     elif result.status in ("tol_loss", "tol_grad") and not _stationary(result):
         # (a success by the user's threshold, at a point the first-order test rejects)
         out.append(
-            f"  (not a stationary point: {result.status} stopped the fit by your threshold; "
-            "the standard errors and intervals below are those of the linearisation at the "
-            "returned point, not of an estimate)"
+            f"  (not a stationary point: {result.status} stopped the fit by your threshold"
+            + (
+                "; the standard errors and intervals below are those of the linearisation "
+                "at the returned point, not of an estimate)"
+                if _computed(result)
+                else ")"
+            )
         )
     rounds = (result.stop_info or {}).get("noise_weight_rounds")
     if rounds is not None:

@@ -159,6 +159,12 @@ def stop_detail(status: str, info: dict) -> str:
             f"{info.get('unconverged_rollouts', '?')} of {info.get('parallel_rollouts', '?')} "
             "parallel rollouts kept Newton's unconverged iterate (the solver stopped with "
             f"{info.get('solver_stop', '?')})"
+            + (
+                ""
+                if info.get("model_loss") is None
+                else f"; the model's loss there, simulated sequentially, is "
+                f"{_g(info['model_loss'])}, where `loss` is the rollouts'"
+            )
         )
     if status == "infeasible":
         return (

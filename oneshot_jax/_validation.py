@@ -11,6 +11,7 @@ a run is never split into blocks (Adam's moments are not reset), and stops a sol
 `patience` scores without improvement.
 """
 
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -193,5 +194,15 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     if validation.n is not None and validation.n >= T:
         raise ValueError(
             f"`Validation(n=...)` must be below the records' length {T}, got {validation.n}."
+        )
+    n_z = Z.shape[-1]
+    if validation.n is not None and validation.n * n_z < n_x:
+        warnings.warn(
+            f"`Validation(n={validation.n})`: the head holds {validation.n * n_z} output "
+            f"values, fewer than the {n_x} initial states estimated from it, so they are not "
+            "determined by it (the estimate keeps its start along the others, and the score "
+            f"depends on that start); a head of at least {-(-n_x // n_z)} samples, or more "
+            "where the outputs show the state slowly.",
+            stacklevel=4,
         )
     return Monitor(U, Z, X0, sqrt_q, validation.n, validation.patience, validation.x0_steps)

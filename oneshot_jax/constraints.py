@@ -68,8 +68,9 @@ def _dtype(p):
     return dtype if jnp.issubdtype(dtype, jnp.inexact) else jnp.result_type(dtype, 1.0)
 
 
-def _fill_like(bound, params, fill, name):
-    """Broadcast a bound (scalar, pytree like params, or a partial dict) onto params."""
+def _fill_like(bound, params, fill, name, where=""):
+    """Broadcast a bound (scalar, pytree like params, or a partial dict) onto params
+    (`where`: the path of params in theta, for the messages)."""
     # Bounds are constants: NumPy builds them without a JAX dispatch per leaf.
     if bound is None:
         return jax.tree_util.tree_map(lambda p: np.full(np.shape(p), fill, _dtype(p)), params)
@@ -81,7 +82,10 @@ def _fill_like(bound, params, fill, name):
                 f"`{name}` names parameters that are not in theta: {sorted(unknown, key=str)}; "
                 f"theta has {sorted(params, key=str)}."
             )
-        return {k: _fill_like(bound.get(k), v, fill, name) for k, v in params.items()}
+        return {
+            k: _fill_like(bound.get(k), v, fill, name, f"{where}.{k}" if where else str(k))
+            for k, v in params.items()
+        }
     if isinstance(params, eqx.Module) and isinstance(bound, dict):
         # (a module's fields by name, as `fit`'s `fixed` and `units` take them)
         fields = [f.name for f in dataclasses.fields(params) if not f.metadata.get("static", False)]
@@ -95,7 +99,10 @@ def _fill_like(bound, params, fill, name):
         return eqx.tree_at(
             lambda m: [getattr(m, f) for f in held],
             params,
-            [_fill_like(bound.get(f), getattr(params, f), fill, name) for f in held],
+            [
+                _fill_like(bound.get(f), getattr(params, f), fill, name, f"{where}.{f}".lstrip("."))
+                for f in held
+            ],
         )
     if isinstance(bound, (list, tuple)) and isinstance(params, (list, tuple)):
         if len(bound) != len(params):
@@ -122,8 +129,10 @@ def _fill_like(bound, params, fill, name):
             try:
                 out.append(xp.broadcast_to(b, np.shape(p)).astype(_dtype(p)))
             except ValueError as err:
+                of = f" {where!r}" if where else ""
                 raise ValueError(
-                    f"`{name}` of shape {b.shape} does not fit a parameter of shape {np.shape(p)}."
+                    f"`{name}` of shape {b.shape} does not fit the parameter{of} of shape "
+                    f"{np.shape(p)}."
                 ) from err
         return jax.tree_util.tree_unflatten(treedef, out)
     raise ValueError(f"`{name}` must be a scalar or have the structure of the parameters.")

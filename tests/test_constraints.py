@@ -411,6 +411,24 @@ def test_crossed_bounds_name_the_parameters():
         oc.box(lower=np.array([0.0, 3.0]), upper=np.array([1.0, 2.0])).project(jnp.zeros(2))
 
 
+def test_a_bound_of_the_wrong_shape_names_its_parameter():
+    box = oc.box(lower={"p": {"a": np.zeros(3)}})
+    with pytest.raises(ValueError, match=r"the parameter 'p.a' of shape \(2,\)"):
+        box.bounds({"p": {"a": np.zeros(2)}, "b": 1.0})
+
+
+def test_equal_bounds_warn_that_the_entry_still_counts_as_estimated():
+    """box(lower=upper) holds k at 0.3, but k stays a free entry: a standard error, one
+    degree of freedom fewer; `fixed=` is what a known value needs."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["k"] * u)
+    u = np.random.default_rng(0).standard_normal((60, 1))
+    _, z = oj.simulate(model, {"a": 0.5, "k": 0.3}, np.zeros(1), u)
+    pinned = oc.box(lower={"k": 0.3}, upper={"k": 0.3})
+    with pytest.warns(UserWarning, match=r"equal for \['k'\].*fixed=") as rec:
+        r = oj.fit(model, {"a": 0.4, "k": 0.3}, np.zeros(1), u, np.asarray(z), constraints=pinned)
+    assert rec[0].filename == __file__ and "k" in r.names and float(r.theta["k"]) == 0.3
+
+
 #
 # One proximal type: a projection is the prox of its set's indicator.
 #

@@ -300,7 +300,12 @@ def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
         return u, np.asarray(oj.simulate(model, PEND_THETA, np.asarray(x0), u)[1]) + [0, 5]
 
     u, z = record(60, 1, (0.8, -0.3))
-    r = oj.fit(model, np.array([9.0, 0.5]), np.array([0.7, -0.2]), u, z, weight=q)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = oj.fit(model, np.array([9.0, 0.5]), np.array([0.7, -0.2]), u, z, weight=q)
+    # (the ignored output's FIT is -290 %: not a sign of a bad minimum)
+    assert r.metrics["fit_percent"][1] < 0
+    assert not [w for w in caught if "worse than that output's mean" in str(w.message)]
     u_new, z_new = record(80, 2, (-0.5, 0.9))
     ref = oj.predict(model, r.theta, u_new, z_new, N_HEAD, x0=r.x0, weight=q)
     np.testing.assert_allclose(ref.x0, [-0.5, 0.9], rtol=1e-6)

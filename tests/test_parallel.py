@@ -620,6 +620,11 @@ def test_a_rollout_kept_without_fallback_is_reported():
     assert r.status == "unconverged_rollout" and not r.success
     assert r.stop_info["solver_stop"] == "tol_loss"
     assert "parallel rollouts kept Newton's unconverged iterate" in r.message
+    # `loss` is the rollouts' (as its history); the model's own goes with the reason.
+    own = float(oj.loss(model, r.theta, r.x0, u[:40], z[:40]))
+    assert r.stop_info["model_loss"] == pytest.approx(own, rel=1e-12, abs=1e-300)
+    assert abs(own - float(r.loss)) > 1e-3 * float(r.loss)
+    assert "the model's loss there, simulated sequentially" in r.message
     # With several starts every start's success is checked, not the best start's alone
     # (the other start was listed as `tol_loss`).
     with pytest.warns(

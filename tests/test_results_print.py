@@ -521,3 +521,17 @@ def test_one_degree_of_freedom_gives_finite_standard_errors():
     assert np.isfinite(r.std["a"]) and np.isfinite(r.x0_std).all()
     assert "degrees_of_freedom" not in r.diagnostics
     assert "no more data than estimates" not in str(r)
+
+
+def test_a_stop_without_a_covariance_does_not_speak_of_its_standard_errors():
+    """`covariance=None` and a stop that is not a solution: every row says "(not
+    computed)", and the note under the status said "the standard errors and intervals
+    below are those of the linearisation"."""
+    x0, u, z = data()
+    theta0 = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
+    solver = oj.LevenbergMarquardt(max_steps=1)
+    for covariance, says in (("classical", True), (None, False)):
+        r = oj.fit(MODEL, theta0, x0, u, z, solver=solver, covariance=covariance)
+        assert not r.success
+        assert ("standard errors and intervals below" in str(r)) is says
+        assert ("(not computed)" in str(r)) is not says

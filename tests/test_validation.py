@@ -292,6 +292,16 @@ def test_validation_checks():
     # (not fit's hint of missing="mask": that option is for the fitted z)
     with pytest.raises(ValueError, match="NaN.*held-out records must be fully measured.$"):
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, bad, n=5))
+    # A head of one output value for two initial states does not determine them (as
+    # `predict` with n = 1 warns); a head of two does.
+    solver = oj.LevenbergMarquardt(max_steps=2)
+    with pytest.warns(UserWarning, match=r"Validation\(n=1\)`: the head holds 1 output") as rec:
+        oj.fit(MODEL, TRUTH, x0, u, z, solver=solver, validation=oj.Validation(u, z, n=1))
+    assert rec[0].filename == __file__
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        oj.fit(MODEL, TRUTH, x0, u, z, solver=solver, validation=oj.Validation(u, z, n=2))
+    assert not [w for w in caught if "the head holds" in str(w.message)]
 
 
 def test_known_initial_states_and_time_stamps():
