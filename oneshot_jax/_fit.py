@@ -775,6 +775,11 @@ def fit(
         theta=_pytree.ordered_like(result.theta, theta0),
         std=_pytree.ordered_like(result.std, theta0),
     )
+    if built.problem.regulariser is not None and result.covariance.size:
+        # (`FitResult.__str__` says what its standard errors are then)
+        result = dataclasses.replace(
+            result, diagnostics={**(result.diagnostics or {}), "regularised": True}
+        )
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
@@ -785,12 +790,15 @@ def fit(
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)
+    # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,
+    # all-zero terms, say.)
     worst = worst_fit(result.metrics.get("fit_percent"), weight)
-    if result.success and worst is not None:
+    if result.success and worst is not None and regulariser is None and penalty is None:
+        held = "" if constraints is None else ", or constraints that keep it from the data"
         warnings.warn(
             f"the fit reports {result.status}, but its simulation fits an output worse than "
             f"that output's mean (FIT {worst:.3g} %): most often a bad minimum of the "
-            "simulation error (or a model that cannot describe these data). "
+            f"simulation error (or a model that cannot describe these data{held}). "
             "`oj.check_basin(result, u, z)` compares it with a fit over short windows, "
             "each from its own x0; `oj.fit_continuation` starts from such windows.",
             RuntimeWarning,

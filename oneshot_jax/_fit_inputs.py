@@ -433,6 +433,16 @@ def build_problem(
             s.check_regulariser(reg)
         on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
         check_regulariser(on_theta, data.theta)
+        if proj is not None and proj.bounds is None:
+            warnings.warn(
+                "a regulariser with a general projection (`constraints.project`, or sets "
+                "combined): each step takes the regulariser's prox, then the projection, "
+                "which is the prox of their sum only for a box. Its fixed points need not be "
+                "stationary, so the fit can stop at max_steps with its first-order measure "
+                "stuck above gtol, where more steps do not help. Use box bounds with a "
+                "regulariser, or write the set's constraint as a penalty.",
+                stacklevel=3,
+            )
     project = None
     if proj is not None:
         if proj.bounds is not None:

@@ -374,6 +374,13 @@ def report(result) -> str:
                 else ")"
             )
         )
+    if (result.diagnostics or {}).get("regularised") and _computed(result):
+        out.append(
+            "  (regularised: the standard errors and intervals below are those of the "
+            "smooth loss at the shrunk estimate, without the regulariser, so they sit around "
+            "a biased value and zeros get some too; for inference refit the selected terms "
+            "with `fixed=sparsity.fixed_zeros(result.theta, where)`)"
+        )
     rounds = (result.stop_info or {}).get("noise_weight_rounds")
     if rounds is not None:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""

@@ -369,7 +369,9 @@ class FitResult(eqx.Module):
         Newton's best iterate, not the model's states; `fit` warns);
         `degrees_of_freedom` where the fit had no more measured output values than
         estimated entries (n_obs - n_free <= 0: the noise variance, and with it every
-        standard error, is unknown; `fit` warns).
+        standard error, is unknown; `fit` warns); `regularised` (True) after a fit with a
+        regulariser, whose covariance is that of the smooth loss C at the regularised
+        estimate, without the regulariser (the printout says so).
     """
 
     theta: Any

@@ -453,6 +453,32 @@ def test_fit_takes_regulariser_and_constraints_as_two_keywords():
     _same(new, mixed)
 
 
+def test_a_regularised_fit_says_what_its_standard_errors_are():
+    """The covariance of a regularised fit is that of C alone at the shrunk estimate (a
+    probe's intervals excluded the truth, and zeros had intervals): the printout says so
+    and names the refit; a fit without a regulariser does not."""
+    reg = sp.l1(0.5, where={"a": False, "b": False, "c": True})
+    r = _lin_fit(regulariser=reg)
+    assert r.diagnostics.get("regularised") is True
+    assert "(regularised: the standard errors and intervals below" in str(r)
+    assert "fixed_zeros" in str(r)
+    plain = _lin_fit()
+    assert "regularised" not in (plain.diagnostics or {}) and "regularised:" not in str(plain)
+
+
+def test_a_regulariser_with_a_general_projection_warns_that_it_may_not_converge():
+    """prox then projection is the prox of g plus the indicator only for a box: with a
+    general set the iteration stalls at points that are not stationary."""
+    reg = sp.l1(0.5, where={"a": False, "b": False, "c": True})
+    halfspace = oc.project(lambda t: {**t, "a": jnp.minimum(t["a"], 0.7)})
+    with pytest.warns(UserWarning, match="regulariser with a general projection") as rec:
+        _lin_fit(regulariser=reg, constraints=halfspace)
+    assert rec[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _lin_fit(regulariser=reg, constraints=oc.box(upper={"a": 0.7}))
+
+
 def test_a_projection_given_as_regulariser_names_the_argument():
     for bad in (oc.positive(), [sp.l1(0.1), oc.box(0.0, 1.0)], sp.combine([sp.l1(0.1), oc.box()])):
         with pytest.raises(ValueError, match="`regulariser`.*`constraints=`"):
