@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -374,16 +375,20 @@ def _solve_scipy(model, theta0, x0, u, z, kw, constraints, estimate_x0):
 
     bounds = scipy.optimize.Bounds(lo / s, hi / s) if np.isfinite(np.r_[lo, hi]).any() else None
     t0 = time.perf_counter()
-    res = scipy.optimize.minimize(
-        fun,
-        p0 / s,
-        jac=jac_arg,
-        method=method,
-        bounds=bounds,
-        tol=tol,
-        options=options,
-        callback=callback,
-    )
+    with warnings.catch_warnings():
+        # (trust-constr's note that its quasi-Newton update was skipped: the run's outcome,
+        # success or not, is reported with scipy's own message below)
+        warnings.filterwarnings("ignore", message="delta_grad == 0.0", category=UserWarning)
+        res = scipy.optimize.minimize(
+            fun,
+            p0 / s,
+            jac=jac_arg,
+            method=method,
+            bounds=bounds,
+            tol=tol,
+            options=options,
+            callback=callback,
+        )
     elapsed = time.perf_counter() - t0
     p = np.asarray(res.x, dtype=np.float64) * s
     theta = unflatten_rows(p[None, :n_t], theta0, squeeze=True)

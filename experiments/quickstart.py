@@ -1,4 +1,4 @@
-"""The README example: the paper's satellite (Section 4), a gradient check and a fit.
+"""The paper's satellite (Section 4) in a few lines: a gradient check and a fit.
 
 Run: `python experiments/quickstart.py`. The model is `oneshot_jax.examples.satellite`
 (Euler's equations I w' = M - w x (I w), theta = {"I": diagonal of I}, RK4 at dt = 0.1 s).

@@ -190,6 +190,8 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
         if runner is None:
             runner = importlib.import_module(f"experiments.{name}").run
         before = _files(outdir)
+        # (a first line at once: the first fits compile before anything else prints)
+        print(f"{name}: running into {outdir} (compiling first) ...", flush=True)
         results = dict(runner(conf, outdir, command=command))
     except BaseException as err:
         failed = {

@@ -187,3 +187,19 @@ def test_every_public_name_is_in_the_api_reference(name):
         assert f"::: oneshot_jax.{name}" in api, name
     else:
         assert f"::: oneshot_jax.{name}\n" in api, name
+
+
+def test_the_site_renders_without_a_network():
+    """The site's scripts and styles are its own (MathJax vendored), and the theme loads no
+    web fonts: Material's default fetched Roboto from Google Fonts on every page."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):  # (mkdocs' own tags, `!relative`, read as plain text)
+        pass
+
+    Loader.add_multi_constructor("!", lambda loader, tag, node: None)
+    conf = yaml.load((ROOT / "mkdocs.yml").read_text(), Loader=Loader)
+    assert conf["theme"].get("font") is False
+    for entry in conf.get("extra_javascript", []) + conf.get("extra_css", []):
+        assert "://" not in str(entry), entry
+        assert (ROOT / "docs" / str(entry)).is_file(), entry

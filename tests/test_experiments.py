@@ -381,7 +381,7 @@ def test_run_end_to_end(tmp_path):
     assert (out / "resolved_config.yaml").is_file()
     assert (out / ".hydra" / "config.yaml").is_file()
     md = (out / "results.md").read_text()
-    assert md.startswith("## Satellite")
+    assert md.startswith("# Satellite")
     # the run's output holds no INFO line of JAX's backend probing (configs/config.yaml)
     assert "Unable to initialize backend" not in proc.stdout + proc.stderr
     # the raw trust-constr baseline fails on purpose, and its rows say so

@@ -94,7 +94,8 @@ def not_found(what, files, searched, url, subdir):
         f"Download the official files from {url} and pass path=<folder holding them>, or "
         f"set ${ENV_VAR} to a folder that holds them directly or in a subfolder "
         f"'{subdir}/', or call the loader with download=True to fetch them into "
-        f"{default_cache_dir()} (${CACHE_ENV_VAR})."
+        f"{default_cache_dir()} (${CACHE_ENV_VAR}); from a shell: python -c 'import "
+        f"oneshot_jax as oj; oj.datasets.load_{subdir}(download=True)'."
     )
 
 
