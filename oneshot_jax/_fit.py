@@ -500,8 +500,8 @@ def fit(
     - `model`: a `Model`.
     - `theta0`: the starting parameters, any pytree (it may hold equinox modules: their
         floating arrays are estimated; integer and boolean arrays, static fields and other
-        parts are kept; outside a module, integers of NumPy or JAX are kept with a
-        warning). Python numbers, int or float, are parameters wherever they are
+        parts are kept; outside a module, integers of NumPy or JAX and bools are kept
+        with a warning). Python numbers, int or float, are parameters wherever they are
         (`{"k": 2}`), in a module's fields too: make a module's exponent or count a
         static field (`eqx.field(static=True)`) or a NumPy integer to keep it. With
         `multistart=True` every parameter leaf has a leading axis of starts.

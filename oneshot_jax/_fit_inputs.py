@@ -228,18 +228,22 @@ def _warn_integer_entries(theta0) -> None:
     is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
     named = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(theta0, is_leaf=is_module)[0]:
-        if is_module(leaf) or isinstance(leaf, (bool, int, float, np.bool_)):
+        if isinstance(leaf, (bool, np.bool_)):  # (True: held as data, as an integer is)
+            named.append(f"theta0{jax.tree_util.keystr(path)} (bool)")
+            continue
+        if is_module(leaf) or isinstance(leaf, (int, float)):
             continue
         dtype = getattr(leaf, "dtype", None)
-        if dtype is not None and np.issubdtype(dtype, np.integer):
+        if dtype is not None and (np.issubdtype(dtype, np.integer) or dtype == np.bool_):
             shape = np.shape(leaf)
             kind = f"{dtype}" if not shape else f"{dtype}, shape {shape}"
             named.append(f"theta0{jax.tree_util.keystr(path)} ({kind})")
     if named:
         warnings.warn(
             f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: an integer "
-            "scalar or array of NumPy or JAX is held fixed as data, not estimated (right "
-            "for an exponent or an index). To estimate it, give floats (1.0, "
+            "scalar or array of NumPy or JAX, or a bool, is held fixed as data, not "
+            "estimated (right for an exponent, an index or a switch). To estimate it, give "
+            "floats (1.0, "
             "float(value), np.asarray(a, float)); `fixed=` holds a parameter fixed.",
             UserWarning,
             stacklevel=4,

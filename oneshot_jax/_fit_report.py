@@ -116,7 +116,16 @@ def _interval(value, std, fixed, computed) -> str:
         if computed == "no_dof":
             return "(unknown: no more data than estimates)"
         return "(not identifiable)"
-    return f"[{value - 1.96 * std:.6g}, {value + 1.96 * std:.6g}]"
+    d = _digits(value, std)
+    return f"[{value - 1.96 * std:.{d}g}, {value + 1.96 * std:.{d}g}]"
+
+
+def _digits(value, std) -> int:
+    """Significant digits that show an estimate's standard error: 6, or more where it is
+    below 1e-4 of the value (an interval printed [2, 2] at 6 digits), at most 17."""
+    if not (np.isfinite(value) and np.isfinite(std)) or std <= 0 or value == 0:
+        return 6
+    return int(min(17, max(6, np.ceil(np.log10(abs(value) / std)) + 2)))
 
 
 def _std(std, computed) -> str:
@@ -176,7 +185,13 @@ def _parameter_table(result):
         for i, entry in enumerate(_entry_names(name, shape), start=a):
             v, s = flat[i], std[i]
             table.append(
-                (entry, unit, f"{v:.6g}", _std(s, computed), _interval(v, s, fixed[i], computed))
+                (
+                    entry,
+                    unit,
+                    f"{v:.{_digits(v, s) if not fixed[i] else 6}g}",
+                    _std(s, computed),
+                    _interval(v, s, fixed[i], computed),
+                )
             )
     table.extend(_data_rows(result))
     return table, modules
@@ -237,7 +252,7 @@ def _x0_table(result, shown_max=3):
                 (
                     entry,
                     "",
-                    f"{v:.6g}",
+                    f"{v:.{_digits(v, s) if estimated[j] else 6}g}",
                     _std(s, computed),
                     _interval(v, s, not estimated[j], computed),
                 )

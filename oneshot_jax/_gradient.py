@@ -137,6 +137,8 @@ def value_and_grad(
     like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
     (N, n_x).
     """
+    if z is None:
+        raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")
     data = check_data(model, theta, x0, u, z, weight, missing, t, aggregate is not None)
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)

@@ -230,6 +230,11 @@ def save_result(result, path):
     path = _as_path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
+    if not path.parent.is_dir():
+        raise ValueError(
+            f"`path`: the folder {str(path.parent)!r} does not exist; create it first "
+            "(pathlib.Path(folder).mkdir(parents=True))."
+        )
     params, _ = _pytree.split(result.theta)
     theta_tree, statics = _encode_tree(result.theta)
     arrays = {}

@@ -155,6 +155,8 @@ def loss(
 
     The scalar C.
     """
+    if z is None:
+        raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")
     data = check_data(model, theta, x0, u, z, weight, missing, t, aggregate is not None)
     if aggregate is not None:
         agg = augment(data, aggregate, model, x0, missing, t=t)

@@ -1250,3 +1250,20 @@ def test_a_custom_vjp_in_the_model_names_forward_mode():
         oj.value_and_grad(model, theta, x0, u, np.asarray(z) + 0.1)
     C, (g, _) = oj.value_and_grad(model, theta, x0, u, np.asarray(z) + 0.1, strategy="vjp")
     assert np.isfinite(C) and np.isfinite(float(g["a"]))
+
+
+def test_a_probe_s_misuses_name_their_argument(tmp_path):
+    """A bool in theta0 was held fixed silently (a Python int is estimated); loss and
+    value_and_grad without z failed inside a trace ('BatchTracer' - 'NoneType'); a save
+    into a missing folder raised FileNotFoundError."""
+    model = oj.Model(lambda x, u, th: th["a"] * 0.5 * x + th["b"] * u)
+    u = np.random.default_rng(0).standard_normal((30, 1))
+    _, z = oj.simulate(model, {"a": 1.0, "b": 0.5}, np.zeros(1), u)
+    with pytest.warns(UserWarning, match=r"theta0\['a'\] \(bool\).*held fixed as data"):
+        r = oj.fit(model, {"a": True, "b": 0.4}, np.zeros(1), u, np.asarray(z))
+    assert r.names == ("b",)
+    for fn in (oj.loss, oj.value_and_grad):
+        with pytest.raises(ValueError, match="`z` is required"):
+            fn(model, {"a": 1.0, "b": 0.5}, np.zeros(1), u, None)
+    with pytest.raises(ValueError, match="`path`: the folder .* does not exist"):
+        r.save(tmp_path / "missing" / "r.npz")

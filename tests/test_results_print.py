@@ -535,3 +535,16 @@ def test_a_stop_without_a_covariance_does_not_speak_of_its_standard_errors():
         assert not r.success
         assert ("standard errors and intervals below" in str(r)) is says
         assert ("(not computed)" in str(r)) is not says
+
+
+def test_an_interval_far_narrower_than_its_value_prints_apart():
+    """Noise 1e-6: a standard error 1e-6 of the value printed `2  1.42e-06  [2, 2]` at six
+    digits; the value and the interval take the digits that show it."""
+    x0, u, z = data()
+    _, clean = oj.simulate(MODEL, TRUTH, x0, u)
+    noisy = np.asarray(clean) + 1e-6 * np.random.default_rng(1).standard_normal(np.shape(z))
+    r = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, noisy)
+    row = next(line for line in str(r).splitlines() if line.lstrip().startswith("w0sq"))
+    lo, hi = row.split("[")[1].rstrip("]").split(", ")
+    assert float(lo) < float(hi), row
+    assert float(lo) < float(r.theta["w0sq"]) < float(hi)
