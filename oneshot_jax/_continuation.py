@@ -10,6 +10,7 @@ the last, up to the whole record; `check_basin` compares a whole-record fit with
 short-window fit from the same theta and warns where the first is far worse.
 """
 
+import inspect
 import math
 import numbers
 import warnings
@@ -207,6 +208,7 @@ def fit_continuation(
     A `Continuation`: `result`, the last stage's `FitResult` (whose `success` is its own),
     and `stages`, each stage's window, loss, FIT%, steps and stop reason.
     """
+    _check_fit_keywords(kwargs, "fit_continuation")
     if "window" in kwargs:
         raise ValueError(
             "`window` is not a keyword of `fit_continuation`: it sets each stage's windows "
@@ -301,6 +303,18 @@ def _held(result):
     return out if at == mask.size else None
 
 
+def _check_fit_keywords(kwargs, where):
+    """A TypeError naming `where` for keywords that neither it nor `fit` takes (they were
+    reported as `fit()`'s)."""
+    known = inspect.signature(fit).parameters
+    unknown = sorted(k for k in kwargs if k not in known)
+    if unknown:
+        raise TypeError(
+            f"`{where}` got unexpected keyword arguments {unknown}: besides its own, it takes "
+            "`fit`'s keywords (solver, fixed, constraints, ...)."
+        )
+
+
 def check_basin(
     result: FitResult,
     u: Float[ArrayLike, "T n_u"],
@@ -363,6 +377,7 @@ def check_basin(
     window = int(window)
     if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not margin >= 0:
         raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
+    _check_fit_keywords(kwargs, "check_basin")
     for name in ("window", "multistart"):
         if name in kwargs:
             raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")

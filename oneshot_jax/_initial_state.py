@@ -139,7 +139,10 @@ def _check_head(u, z, n, z_name="z"):
     if n < 1:
         raise ValueError(f"`n` (the number of head samples) must be >= 1, got {n}.")
     if n > T_z:
-        raise ValueError(f"`n` = {n} is more than the {T_z} samples of `z`.")
+        hint = ""
+        if np.ndim(z) == 2 and np.shape(z)[1] == T and T_z < T:
+            hint = f" (is `{z_name}` transposed? it has shape {np.shape(z)}, u has T = {T})"
+        raise ValueError(f"`n` = {n} is more than the {T_z} samples of `z`{hint}.")
     if n > T:
         raise ValueError(f"`n` = {n} is more than the {T} samples of `u`.")
     return n

@@ -1267,3 +1267,19 @@ def test_a_probe_s_misuses_name_their_argument(tmp_path):
             fn(model, {"a": 1.0, "b": 0.5}, np.zeros(1), u, None)
     with pytest.raises(ValueError, match="`path`: the folder .* does not exist"):
         r.save(tmp_path / "missing" / "r.npz")
+
+
+def test_keywords_and_a_transposed_head_are_named_where_they_were_given():
+    """Unknown keywords of `fit_continuation` and `check_basin` were reported as
+    `fit()`'s; a transposed z in `predict` was blamed on `n`."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u)
+    u = np.random.default_rng(0).standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 0.5, "b": 1.0}, np.zeros(1), u)
+    z = np.asarray(z)
+    with pytest.raises(TypeError, match=r"`fit_continuation` got unexpected .*\['solvr'\]"):
+        oj.fit_continuation(model, {"a": 0.4, "b": 0.9}, np.zeros(1), u, z, solvr="lm")
+    r = oj.fit(model, {"a": 0.4, "b": 0.9}, np.zeros(1), u, z)
+    with pytest.raises(TypeError, match=r"`check_basin` got unexpected .*\['foo'\]"):
+        oj.check_basin(r, u, z, window=10, foo=1)
+    with pytest.raises(ValueError, match=r"is `z` transposed\? it has shape \(1, 40\)"):
+        oj.predict(model, r.theta, u, z.T, 5, x0=np.zeros(1))
