@@ -561,6 +561,24 @@ def _transposed_hint(z_shape, u_shape, T, n_z, z_name):
     return ""
 
 
+def _size_hint(z_shape, want, model, z_name):
+    """Which argument a `z` of the wrong shape (not transposed) disagrees with: `u`'s
+    number of samples, or, for a model that observes its whole state, `x0`'s size."""
+    if len(z_shape) != len(want):
+        return ""
+    if z_shape[-2] != want[-2] and z_shape[-1] == want[-1]:
+        return (
+            f" (`u` holds T = {want[-2]} samples and `{z_name}` {z_shape[-2]}: a record's "
+            "inputs and outputs are sampled together)"
+        )
+    if z_shape[:-1] == want[:-1] and getattr(model, "observes_state", False):
+        return (
+            f" (the model observes its whole state, as no `observe` was given: n_z is the "
+            f"size of `x0`, {want[-1]}; is `x0` of the right size?)"
+        )
+    return ""
+
+
 def check_data(
     model,
     theta,
@@ -703,10 +721,12 @@ def check_data(
         z = as_float(z, z_name, z_hat.dtype)
         want = (*lead, T, n_z)
         if z.shape != want:
+            hint = _transposed_hint(z.shape, u_shape, T, n_z, z_name) or _size_hint(
+                z.shape, want, model, z_name
+            )
             raise ValueError(
                 f"`{z_name}` must have shape {want} (leading axes of `u`, n_z = {n_z} outputs of "
-                f"`model.observe`), got shape {z.shape}"
-                f"{_transposed_hint(z.shape, u_shape, T, n_z, z_name)}."
+                f"`model.observe`), got shape {z.shape}{hint}."
             )
         observed = None
         if missing == "mask" and is_concrete(z) and _on_devices(z):

@@ -134,8 +134,9 @@ def value_and_grad(
 
     `(C, (grad_theta, grad_x0))` with `grad_theta` shaped like `theta`'s parameters (None
     where theta holds non-numeric parts, as `equinox.filter_grad` gives) and `grad_x0`
-    like `x0`. For N trajectories C is the mean over trajectories and `grad_x0` has shape
-    (N, n_x).
+    like `x0`. For N trajectories C is the sum over trajectories divided by their total
+    number of time points (sum_i T_i: the mean over trajectories when they are of equal
+    length, as for `loss`) and `grad_x0` has shape (N, n_x).
     """
     if z is None:
         raise ValueError("`z` is required: the measured outputs, shape (T, n_z).")

@@ -1283,3 +1283,16 @@ def test_keywords_and_a_transposed_head_are_named_where_they_were_given():
         oj.check_basin(r, u, z, window=10, foo=1)
     with pytest.raises(ValueError, match=r"is `z` transposed\? it has shape \(1, 40\)"):
         oj.predict(model, r.theta, u, z.T, 5, x0=np.zeros(1))
+
+
+def test_a_z_of_the_wrong_size_names_the_argument_it_disagrees_with():
+    """A `z` whose samples differ from `u`'s, or whose outputs differ from the state
+    observed whole (no `observe`: n_z is x0's size), named only `z`'s expected shape."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + u[0])
+    u, z = np.ones((20, 1)), np.ones((20, 2))
+    with pytest.raises(ValueError, match=r"`u` holds T = 10 samples and `z` 20"):
+        oj.loss(model, {"a": 0.5}, np.zeros(2), u[:10], z)
+    with pytest.raises(ValueError, match=r"n_z is the size of `x0`, 3; is `x0` of the right"):
+        oj.loss(model, {"a": 0.5}, np.zeros(3), u, z)
+    with pytest.raises(ValueError, match=r"got shape \(20, 3\)\.$"):  # observe given: no hint
+        oj.loss(MODEL, THETA, X0, np.ones((20, N_U)), np.ones((20, 3)))
