@@ -240,6 +240,11 @@ class Aggregate:
                 f"`Aggregate.channel` = {self.channel} is out of range: `z` has {z.shape[1]} "
                 f"outputs (channel < {z.shape[1]})."
             )
+        if t is not None and np.shape(t) != (z.shape[0],):
+            raise ValueError(
+                f"`t` must have shape ({z.shape[0]},): one time stamp per row of `z` "
+                f"(T = {z.shape[0]}), got shape {np.shape(t)}."
+            )
         return jnp.asarray(self.operator(z.shape[0], t), z.dtype) @ z[:, self.channel]
 
 

@@ -647,8 +647,16 @@ def residual_correlations(
     measured = np.isfinite(e)
     n = measured.sum(axis=(0, 1))
     if np.any(n < 2):
+        few = np.flatnonzero(n < 2).tolist()
+        keep = np.flatnonzero(n >= 2).tolist()
         raise ValueError(
-            f"`e` has fewer than two finite samples in output(s) {np.flatnonzero(n < 2).tolist()}."
+            f"`e` has fewer than two finite samples in output(s) {few}"
+            + (
+                f" (an output read only as aggregates has no residuals of its own: pass "
+                f"e[..., {keep}], the outputs that have them)."
+                if keep
+                else "."
+            )
         )
     e = np.where(measured, e, 0.0)  # a missing sample adds nothing to the sums
     if demean:

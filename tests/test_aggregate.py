@@ -517,6 +517,14 @@ def test_predict_needs_z_of_shape_t_by_n_z(z):
         oj.Aggregate(0, [(0, 2)], [1.0]).predict(z)
 
 
+def test_predict_names_z_for_the_length_of_t():
+    """`t` of the wrong length was checked against "each sample of `u`", an argument
+    `predict` does not have."""
+    agg = oj.Aggregate(0, [(0, 3)], [1.0], kind="time_mean")
+    with pytest.raises(ValueError, match=r"one time stamp per row of `z` \(T = 6\)"):
+        agg.predict(np.zeros((6, 1)), np.arange(5.0))
+
+
 @pytest.mark.parametrize(
     "t, match",
     [

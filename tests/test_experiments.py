@@ -244,6 +244,8 @@ def test_cli_refuses_a_bad_value_before_running(tmp_path):
     assert res["status"] == "failed" and "experiment.T" in res["error"]
     assert not (out / "resolved_config.yaml").exists()
     assert not list(out.glob("*.png"))
+    # Hydra's job log is written only when something is logged (it was an empty run.log)
+    assert not list(out.glob("*.log"))
 
 
 def test_cli_refuses_a_group_set_to_null(tmp_path):

@@ -326,3 +326,14 @@ def test_mask_selects_and_does_not_weight(name):
     mask[:5] = 3.0
     with pytest.raises(ValueError, match="does not weight"):
         getattr(metrics, name)(z, zhat, mask)
+
+
+def test_an_output_without_residuals_of_its_own_is_named_with_the_ones_to_pass():
+    """An output read only as aggregates (NaN residuals throughout) was refused without
+    saying which outputs can be analysed."""
+    e = np.random.default_rng(0).standard_normal((50, 3))
+    e[:, 1] = np.nan
+    with pytest.raises(ValueError, match=r"output\(s\) \[1\] .* pass e\[\.\.\., \[0, 2\]\]"):
+        metrics.residual_correlations(e)
+    with pytest.raises(ValueError, match=r"output\(s\) \[0\]\.$"):
+        metrics.residual_correlations(np.full((50, 1), np.nan))
