@@ -28,7 +28,7 @@ from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
 from ._noise_weight import fit_noise_weighted
-from ._optimality import refuted
+from ._optimality import first_order_at, gtol_at_least_resolution, refuted
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
@@ -270,6 +270,38 @@ def _demoted(result, reason, **info):
         starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
         out = dataclasses.replace(out, starts=starts)
     return out
+
+
+@eqx.filter_jit
+def _first_order_at(problem, params, strategy):
+    return first_order_at(problem, params, strategy)
+
+
+def _measure_unmeasured_success(result, problem, out, strategy):
+    """A success that the solver reported without a first-order measure (a solver of
+    one's own, whose `measures` are `AbstractSolver`'s default): the measure is taken at
+    the returned point (`_optimality.first_order_at`). A `converged` whose measure is
+    above the solver's gtol (1e-8 where it has none; at least the measure's resolution in
+    the data's precision) and above the round-off limit is `stalled`
+    (`stop_info["unmeasured_claim"]`), or `zero_residual` where the residual is at the
+    round-off level of the data (where the measure says nothing): every solver's success
+    is the same test."""
+    info = result.stop_info
+    if not result.success or np.isfinite(info.get("first_order", np.nan)):
+        return result
+    best = int(out.best)
+    params = Params(jnp.asarray(out.start_theta[best]), jnp.asarray(out.start_x0[best]))
+    fo, zero = _first_order_at(problem, params, strategy)
+    fo = float(fo)
+    gtol = info.get("gtol", np.nan)
+    gtol = 1e-8 if not np.isfinite(gtol) else gtol
+    tol = max(float(gtol_at_least_resolution(gtol, problem.dtype)), info["roundoff_limit"])
+    result = dataclasses.replace(result, stop_info={**info, "first_order": fo, "gtol": gtol})
+    if result.status != "converged" or fo <= tol:
+        return result
+    if bool(zero):
+        return dataclasses.replace(result, stop_reason=RESULTS.zero_residual)
+    return _demoted(result, "stalled", unmeasured_claim=True)
 
 
 @eqx.filter_jit
@@ -758,6 +790,7 @@ def fit(
         finals=Params(out.start_theta, out.start_x0),
     )
     result = _flag_refuted_stop(result, built.problem, out, strategy)
+    result = _measure_unmeasured_success(result, built.problem, out, strategy)
     readings = None
     if aggregate is not None:
         readings = agg.reading_mean_squares(result)

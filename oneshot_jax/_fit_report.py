@@ -364,13 +364,14 @@ def report(result) -> str:
         )
     if result.status == "diverged":
         # (Where no iterate had a finite loss, the start is returned: `FitResult.message`.)
-        which = (
-            "last finite iterate" if np.isfinite(result.loss) else "start (no iterate was finite)"
-        )
-        out.append(
-            f"  (not a solution: the fit diverged; the returned point is its {which}, "
-            "without standard errors)"
-        )
+        which = "the returned point is its last finite iterate"
+        if not np.isfinite(result.loss):
+            which = (
+                "the returned point is its start (no iterate was finite)"
+                if result.stop_info.get("at_step") in (0, None)
+                else "the solver returned a point that is not finite"
+            )
+        out.append(f"  (not a solution: the fit diverged; {which}, without standard errors)")
     elif not result.success:
         out.append(
             "  (not a solution: the standard errors and intervals below are those of the "

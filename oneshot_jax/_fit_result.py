@@ -34,6 +34,15 @@ def _pair(a, b) -> tuple[str, str]:
     return x, y
 
 
+def _nonfinite_return(result) -> str:
+    """What a diverged fit whose returned loss is not finite returned: the start, where
+    its loss was not finite (the library's solvers keep their last finite iterate), or
+    else the solver's own non-finite point (a solver of one's own that does not keep it)."""
+    if result.stop_info.get("at_step") in (0, None):
+        return "the start is returned"
+    return "the returned point is not finite (the solver did not keep its last finite iterate)"
+
+
 def stop_detail(status: str, info: dict) -> str:
     """The test that fired and its values, in one line without a semicolon (empty where
     unknown): `FitResult.message` appends to it after one, and `print(result)` shows it up
@@ -102,6 +111,11 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped at what read as a degenerate minimum, but a step along "
                 f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
             )
+        if info.get("unmeasured_claim"):
+            return (
+                "the solver reported converged without a first-order measure of its own; "
+                f"measured at the returned point: {tail}"
+            )
         if info.get("descends_from_zero_residual"):
             return (
                 "the solver stopped with the loss below the round-off level of the data (a "
@@ -143,8 +157,8 @@ def stop_detail(status: str, info: dict) -> str:
         if at == 0:
             return (
                 "the loss at the start is not finite: the simulation from theta0 and x0 "
-                "blows up or gives NaN (start where the model is stable, e.g. with bounds, "
-                "or in windows)"
+                "blows up or gives NaN, or a penalty does there (start where the model is "
+                "stable, e.g. with bounds, or in windows)"
             )
         return "the loss became non-finite" + at_step
     if status == "zero_gradient":
@@ -488,7 +502,7 @@ class FitResult(eqx.Module):
         detail = stop_detail(self.status, self.stop_info)
         why = RESULTS[self.stop_reason]
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
-            why = why.replace("the last finite iterate is returned", "the start is returned")
+            why = why.replace("the last finite iterate is returned", _nonfinite_return(self))
         out = f"{detail}; {why}" if detail else why
         gone = self.stop_info.get("vanished")
         if gone:

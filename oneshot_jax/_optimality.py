@@ -407,11 +407,27 @@ def refuted(problem: FitProblem, params: Params, along: Params, strategy):
     in one step read stationary at their largest norm with a loss 7000 times the
     optimum's; a float32 BFGS with a loose step test stopped on noisy data at 20 times the
     optimum's loss, below eps `data_scale`, and read as a zero residual.)"""
-    C, grad = problem.value_and_grad(params, strategy)
-    g = Params(0.5 * grad.theta, 0.5 * grad.x0)
-    d_t, d_x = column_norms(problem, params, strategy)
+    C, g, d_t, d_x = _evaluated(problem, params, strategy)
     down = descends(problem, params, g, Params(d_t, d_x), along, strategy)
     return down, first_order(problem, params, C, g, d_t, d_x)
+
+
+def first_order_at(problem: FitProblem, params: Params, strategy):
+    """The first-order measure at `params`, from the gradient and the Jacobian's column
+    norms evaluated there, and whether the residual is zero there (`zero_residual`, where
+    the measure says nothing): for a success claimed by a solver that reports no measure
+    of its own (one written by a user, whose `measures` are `no_measures`), measured
+    after the solve, as `refuted` is."""
+    C, g, d_t, d_x = _evaluated(problem, params, strategy)
+    fo = first_order(problem, params, C, g, d_t, d_x)
+    return fo, zero_residual(C, data_scale(problem))
+
+
+def _evaluated(problem: FitProblem, params: Params, strategy):
+    """C, half its gradient (J^T r) and diag(J^T J) at `params`."""
+    C, grad = problem.value_and_grad(params, strategy)
+    d_t, d_x = column_norms(problem, params, strategy)
+    return C, Params(0.5 * grad.theta, 0.5 * grad.x0), d_t, d_x
 
 
 def data_scale(problem: FitProblem):

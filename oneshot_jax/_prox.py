@@ -158,10 +158,11 @@ def check_learning_rate(learning_rate, allow_none):
         )
 
 
-def _check_like(out, theta):
+def _check_like(out, theta, what="`constraints`: the projection"):
     """Raise a ValueError unless `out` has theta's leaves: the same paths (dict keys,
-    attributes, indices), shapes and dtypes. `fit` reads a projection's output back as a
-    flat vector, so a missing leaf would shift the others into its place."""
+    attributes, indices), shapes and dtypes. `fit` reads a projection's (or a prox's,
+    `what`) output back as a flat vector, so a missing leaf would shift the others into
+    its place."""
     want = jax.tree_util.tree_flatten_with_path(theta)[0]
     got = jax.tree_util.tree_flatten_with_path(out)[0]
     want_paths = [jax.tree_util.keystr(p) for p, _ in want]
@@ -175,20 +176,20 @@ def _check_like(out, theta):
             if paths
         )
         raise ValueError(
-            "`constraints`: the projection must return parameters with the structure of "
+            f"{what} must return parameters with the structure of "
             f"theta (leaves {', '.join(want_paths)}), got leaves {', '.join(got_paths) or 'none'}"
             f"{'; ' + detail if detail else ' (in another order)'}."
         )
     for path, (_, a), (_, b) in zip(want_paths, got, want):
         if jnp.shape(a) != jnp.shape(b):
             raise ValueError(
-                f"`constraints`: the projection returned shape {jnp.shape(a)} for theta{path} "
+                f"{what} returned shape {jnp.shape(a)} for theta{path} "
                 f"of shape {jnp.shape(b)}; it must keep the structure, shapes and dtypes of theta."
             )
         weak = isinstance(a, (int, float)) and not isinstance(a, bool)
         if not weak and jnp.result_type(a) != jnp.result_type(b):
             raise ValueError(
-                f"`constraints`: the projection returned dtype {jnp.result_type(a)} for "
+                f"{what} returned dtype {jnp.result_type(a)} for "
                 f"theta{path} of dtype {jnp.result_type(b)}; it must keep the structure, shapes "
                 "and dtypes of theta."
             )
@@ -224,8 +225,16 @@ def check_regulariser(regulariser, theta):
         )
     steps = jax.tree_util.tree_map(jnp.zeros_like, theta)
     out = regulariser.prox(theta, steps)
-    if jax.tree_util.tree_structure(out) != jax.tree_util.tree_structure(theta):
-        raise ValueError("`regulariser`: its prox changed the structure of theta.")
+    # (`fit` reads the prox's output back as a flat vector: a leaf of another shape
+    # would shift the others into its place)
+    _check_like(out, theta, "`regulariser`: its prox")
+    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(out)])
+    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(theta)])
+    if not np.allclose(a, b, rtol=1e-10, atol=1e-10 * max(np.max(np.abs(b), initial=0.0), 1e-300)):
+        raise ValueError(
+            "`regulariser`: its prox with a step of 0 must return theta unchanged (the "
+            "proximal map of t g at t = 0 is the identity), but it moved theta0."
+        )
 
 
 def step_at(learning_rate, count):

@@ -1296,3 +1296,23 @@ def test_a_z_of_the_wrong_size_names_the_argument_it_disagrees_with():
         oj.loss(model, {"a": 0.5}, np.zeros(3), u, z)
     with pytest.raises(ValueError, match=r"got shape \(20, 3\)\.$"):  # observe given: no hint
         oj.loss(MODEL, THETA, X0, np.ones((20, N_U)), np.ones((20, 3)))
+
+
+@pytest.mark.parametrize(
+    "update",
+    [
+        lambda g: {"theta": g["theta"]},  # x0 dropped
+        lambda g: jax.tree.map(lambda x: jnp.stack([x, x]), g),  # shapes changed
+    ],
+    ids=["drops-x0", "changes-shapes"],
+)
+def test_an_optax_transform_whose_update_does_not_match_the_parameters_is_named(update):
+    """Such an update failed deep inside JAX ("pytree structure error", "Sum of sizes 3
+    must be equal to dimension 0")."""
+    import optax
+
+    bad = optax.GradientTransformation(
+        lambda p: optax.EmptyState(), lambda g, s, p=None: (update(g), s)
+    )
+    with pytest.raises(ValueError, match=r"`Optax\(transform\)`: the transform's update must"):
+        oj.fit(MODEL, THETA, X0, U, Z, solver=oj.Optax(bad, max_steps=3))

@@ -1466,3 +1466,76 @@ def test_a_rank_deficient_jacobian_away_from_a_solution_is_not_blamed_on_the_dat
     zp = np.asarray(zp) + 0.01 * np.random.default_rng(1).standard_normal(zp.shape)
     with pytest.warns(UserWarning, match=r"at the solution: .*not identifiable from these data"):
         oj.fit(product, {"a": 1.5, "b": 1.5}, np.zeros(1), u, zp)
+
+
+#
+# A solver of one's own: its success is measured as every solver's is.
+#
+
+
+class _GradientDescent(oj.AbstractSolver):
+    """Plain gradient descent that claims `converged` after `claim_at` steps (a solver
+    of one's own, without `measures`)."""
+
+    lr: float = 0.25
+    claim_at: int = 3
+    max_steps: int = 500
+
+    def init(self, problem, params):
+        C, g = problem.value_and_grad(params, "auto")
+        return C, g, jnp.array(0)
+
+    def step(self, problem, params, state):
+        _, g, k = state
+        new = jax.tree.map(lambda p, d: p - self.lr * d, params, g)
+        C, g = problem.value_and_grad(new, "auto")
+        return new, (C, g, k + 1)
+
+    def terminate(self, problem, params, state):
+        return state[2] >= self.claim_at, oj.RESULTS.converged
+
+    def summary(self, state):
+        C, g, _ = state
+        return C, jnp.sqrt(sum(jnp.sum(x**2) for x in jax.tree.leaves(g)))
+
+
+class _NaNAfterTwo(_GradientDescent):
+    """Its iterates are NaN from the third on, and it keeps no finite one."""
+
+    def step(self, problem, params, state):
+        new, (C, g, k) = super().step(problem, params, state)
+        new = jax.tree.map(lambda p: jnp.where(k >= 3, jnp.nan, p), new)
+        C, g = problem.value_and_grad(new, "auto")
+        return new, (C, g, k)
+
+
+def test_a_success_claimed_by_a_solver_of_ones_own_is_measured():
+    """A solver without a first-order measure of its own that claimed `converged` after 3
+    steps (loss 3000 times the optimum's) was reported a success, its measure NaN; one
+    that claims it at the solution is still a success, now with its measure."""
+    model = oj.Model(lambda x, u, th: th["a"] * u, lambda x, u, th: x)
+    u = np.random.default_rng(0).standard_normal((60, 1))
+    _, z = oj.simulate(model, {"a": np.array([0.7])}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * np.random.default_rng(1).standard_normal(z.shape)
+    fit = lambda s: oj.fit(  # noqa: E731
+        model, {"a": np.array([0.1])}, np.zeros(1), u, z, solver=s, estimate_x0=False
+    )
+    early = fit(_GradientDescent(lr=0.01, claim_at=3))
+    assert early.status == "stalled" and not early.success
+    assert early.stop_info["solver_stop"] == "converged"
+    assert early.stop_info["first_order"] > 0.5
+    assert "reported converged without a first-order measure" in early.message
+    done = fit(_GradientDescent(claim_at=80))
+    assert done.status == "converged" and done.success
+    assert done.stop_info["first_order"] <= 1e-8
+    np.testing.assert_allclose(
+        done.theta["a"],
+        oj.fit(model, {"a": np.array([0.1])}, np.zeros(1), u, z, estimate_x0=False).theta["a"],
+        rtol=1e-9,
+    )
+    # A solver of one's own that returns a NaN point was said to return the start.
+    lost = fit(_NaNAfterTwo(claim_at=50))
+    assert lost.status == "diverged" and lost.stop_info["at_step"] > 0
+    assert "the start is returned" not in lost.message
+    assert "did not keep its last finite iterate" in lost.message
+    assert "the solver returned a point that is not finite" in str(lost)

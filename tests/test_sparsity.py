@@ -489,6 +489,26 @@ def test_a_projection_given_as_regulariser_names_the_argument():
         _lin_fit(regulariser="l1")
 
 
+def _own_regulariser(prox):
+    return sp.ProximalTransformation(
+        init=lambda p: optax.EmptyState(),
+        update=lambda u, s, p=None: (u, s),
+        prox=prox,
+        value=lambda p: 0.0,
+    )
+
+
+def test_a_regulariser_whose_prox_changes_shapes_or_moves_at_step_zero_is_refused():
+    """A prox of one's own that returned (2,) for a scalar leaf was read back as a flat
+    vector: the fit ran with b = a + 1 (its leaves shifted into each other's places)."""
+    stacked = _own_regulariser(lambda p, t: jax.tree.map(lambda v: jnp.stack([v, v + 1.0]), p))
+    with pytest.raises(ValueError, match=r"`regulariser`: its prox returned shape \(2, 1\)"):
+        _lin_fit(regulariser=stacked)
+    shifted = _own_regulariser(lambda p, t: jax.tree.map(lambda v: v + 0.01, p))
+    with pytest.raises(ValueError, match="prox with a step of 0 must return theta unchanged"):
+        _lin_fit(regulariser=shifted)
+
+
 @pytest.mark.parametrize(
     "call",
     [

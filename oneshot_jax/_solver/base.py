@@ -28,7 +28,19 @@ from .._problem import FitProblem, Params
 
 
 class AbstractSolver(eqx.Module):
-    """Base class of the solvers of `fit`."""
+    """Base class of the solvers of `fit`: an equinox Module whose fields are its
+    options (a `max_steps` among them), with the methods `init`, `step`, `terminate` and
+    `summary` (and optionally `postprocess`, `measures`, `check_regulariser`,
+    `check_dtype`), which `fit`'s one loop calls (this module's docstring). They see the
+    `FitProblem` (`value_and_grad`, `residuals`, `jacobian`, `feasible` for the
+    constraints) and the free variables `Params(theta, x0)`, a named tuple of theta's free
+    entries (p,) and each trajectory's free initial-state entries (N, m).
+
+    A solver's `converged` is taken as it says where its `measures` give the first-order
+    measure it tested (the library's solvers); without them `fit` measures the returned
+    point itself, against the solver's `gtol` (1e-8 without one), and reports a claim
+    that does not hold as `stalled`. The solvers guide has an example (gradient descent).
+    """
 
     max_steps: eqx.AbstractVar[int]
 

@@ -95,6 +95,23 @@ def _as_params(d) -> Params:
     return Params(d["theta"], d["x0"])
 
 
+def _check_updates(updates, params):
+    """Raise a ValueError (while tracing) unless an optax transform's `updates` have the
+    structure and shapes of the parameter dict it was given: `apply_updates` would
+    otherwise fail deep inside JAX, or broadcast."""
+    want = jax.tree_util.tree_map(jnp.shape, params)
+    try:
+        got = jax.tree_util.tree_map(jnp.shape, updates)
+    except (TypeError, ValueError):
+        got = updates
+    if got != want:
+        raise ValueError(
+            "`Optax(transform)`: the transform's update must have the structure and shapes "
+            f"of the parameters it is given, {want} (theta's free entries flat, one x0 "
+            f"row per trajectory), got {got}."
+        )
+
+
 class _ClosedFormLoss(eqx.Module):
     """C at the projected point as a function of the optax parameter dict, whose gradient
     (for line searches that call `jax.value_and_grad` on it) is the one-shot closed form."""
@@ -242,6 +259,7 @@ class _AbstractOptax(AbstractSolver):
             )
         else:
             updates, opt_state = tx.update(g, opt_state, d)
+        _check_updates(updates, d)
         new = _as_params(optax.apply_updates(d, updates))
         theta = self._prox(problem, new.theta, state.count)
         new = Params(problem.feasible(theta), new.x0)
