@@ -146,8 +146,14 @@ def check_inputs(
         )
     x0_axis = starting and np.ndim(x0) == data_x0_ndim + 1
     if starting:
+        note = (
+            f" (with `window`, x0 of shape {np.shape(x0)} is one state per window, not "
+            "starts: multistart over x0 does not combine with `window`)"
+            if per_window_x0
+            else ""
+        )
         theta_params, n_starts = theta_starts(
-            multistart, theta0, np.shape(x0)[0] if x0_axis else None
+            multistart, theta0, np.shape(x0)[0] if x0_axis else None, note
         )
         theta_first = _pytree.combine(
             jax.tree_util.tree_map(lambda a: a[0], theta_params), _pytree.split(theta0)[1]

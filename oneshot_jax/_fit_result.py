@@ -241,6 +241,9 @@ class Starts(eqx.Module):
         loss from a degenerate minimum or a zero residual, each start checked): there the
         solver's stop (`diverged`, `converged`, ...), as `stop_info["solver_stop"]` for
         the returned start.
+
+    With `fit(weight="noise")` these are the starts of its first fit (Q = I); the later
+    fits refine the best start only.
     """
 
     theta: Any

@@ -120,7 +120,7 @@ class _Entry:
         return f"[{self.key!r}]"
 
 
-def theta_starts(multistart, theta0, n_x0_starts):
+def theta_starts(multistart, theta0, n_x0_starts, x0_note=""):
     """theta0's parameter leaves with a leading axis of starts, from `fit`'s
     `multistart`, and the number of starts.
 
@@ -131,6 +131,8 @@ def theta_starts(multistart, theta0, n_x0_starts):
     - `theta0`: `fit`'s theta0.
     - `n_x0_starts`: the number of starts on `x0`'s leading axis, or None where `x0` has
         none.
+    - `x0_note`: what `x0`'s leading axis is instead, for the error where nothing has
+        starts (with `window`: one state per window).
 
     **Returns:**
 
@@ -169,7 +171,7 @@ def theta_starts(multistart, theta0, n_x0_starts):
         if not given and n_x0_starts is None:
             raise ValueError(
                 "`multistart` names no parameter of theta0 and `x0` has no leading axis of "
-                "starts: there is nothing to start from."
+                f"starts{x0_note}: there is nothing to start from."
             )
         n = next(iter(sizes.values())) if given else n_x0_starts
 

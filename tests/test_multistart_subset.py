@@ -247,3 +247,11 @@ def test_starts_outside_the_bounds_are_named_in_the_projection_warning():
             constraints=oj.constraints.box(lower=-0.9, upper=0.9),
         )
     assert abs(float(r.theta["a"]) - 0.5) < 1e-8
+
+
+def test_window_states_are_not_read_as_starts_of_x0(data, theta0):
+    """With `window`, x0 (n, n_x) is one state per window: `multistart={}` was refused
+    saying that x0 has no leading axis of starts, and not why."""
+    x0, u, z = data
+    with pytest.raises(ValueError, match=r"is one state per window, not starts"):
+        oj.fit(MODEL, theta0, np.stack([x0, x0]), u, z, window=T // 2, multistart={})
