@@ -55,7 +55,8 @@ class Windows(eqx.Module):
         last included). Not with `every`.
     - `starts`: the windows' first samples, given (sorted, each window within the
         record; windows may overlap, but the standard errors then count a sample once per
-        window it lies in and are too small: `fit` warns). Not with `every` or `count`.
+        window it lies in and are not those of the record: `fit` warns). Not with
+        `every` or `count`.
 
     The windows that start at sample 0 starts from `fit`'s `x0`; every other window's
     starting state is read off z where the model observes its whole state, and
@@ -166,8 +167,9 @@ def cut(data, window, x0_windows=None):
         warnings.warn(
             f"the windows overlap: a sample lies in up to {int(copies.max())} windows "
             f"({mean:.3g} on average). The covariance counts each copy as an independent "
-            f"observation, so the standard errors are too small, by about a factor "
-            f"sqrt({mean:.3g}) = {np.sqrt(mean):.3g}; windows that do not overlap give "
+            "observation, each window with an initial state of its own, so the standard "
+            "errors are not those of the record: they can be too small or too large, by "
+            "an amount that differs between parameters; windows that do not overlap give "
             "honest ones.",
             stacklevel=4,
         )
