@@ -390,6 +390,17 @@ def report(result) -> str:
                 else ")"
             )
         )
+    kept = (result.diagnostics or {}).get("unconverged_rollouts")
+    # (A success had the returned point's own rollout checked, and `unconverged_rollout`
+    # says it itself; another stop's numbers may be the rollouts'.)
+    if kept and not result.success and result.status != "unconverged_rollout":
+        out.append(
+            f"  ({kept} of {result.diagnostics.get('parallel_rollouts', '?')} parallel "
+            "rollouts kept Newton's unconverged iterate (`ParallelInTime(fallback=False)`): "
+            "the loss, metrics and standard errors below may be computed from states that "
+            "are not the model's; `oneshot_jax.loss` with a sequential strategy gives the "
+            "model's loss)"
+        )
     if (result.diagnostics or {}).get("regularised") and _computed(result):
         out.append(
             "  (regularised: the standard errors and intervals below are those of the "

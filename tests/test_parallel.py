@@ -741,3 +741,17 @@ def test_auto_takes_the_parallel_path_only_on_accelerators(monkeypatch):
     # at n_x = 4096, T = 512).
     assert oj.Auto().resolve(64, PARALLEL_MIN_T, 8) == oj.VJP()
     assert oj.Auto().resolve(4096, PARALLEL_MIN_T, 8) == oj.VJP()
+
+
+def test_a_stop_on_unconverged_rollouts_says_so_in_the_printout():
+    """A fit that stops without success on rollouts that kept Newton's iterate printed
+    its loss, FIT and standard errors with nothing saying they were the rollouts'."""
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    model = oj.Model(step)
+    u = jnp.zeros((40, 1))
+    z = np.asarray(oj.simulate(model, theta, x0, u)[1])
+    kept = oj.Adam(max_steps=2, strategy=oj.ParallelInTime(fallback=False))
+    with pytest.warns(RuntimeWarning, match=r"parallel rollouts: the parallel rollout did not"):
+        r = oj.fit(model, theta, x0, u, z, fixed=True, solver=kept)
+    assert not r.success and r.diagnostics["unconverged_rollouts"] >= 1
+    assert "parallel rollouts kept Newton's unconverged iterate" in str(r)

@@ -58,8 +58,11 @@ def _host(fallback, converged):
     if np.any(fallback):
         warnings.warn(
             "the parallel rollout did not converge (unstable or chaotic dynamics, or a "
-            "record too long for Newton's method) and fell back to the sequential loop: "
-            "the result is exact, but computed sequentially.",
+            "record too long for Newton's method) and fell back to the sequential loop "
+            "where it did not (the record, or with `chunk_size` those chunks): every state "
+            "is the model's step of the one before to round-off (with chunks of chaotic "
+            "dynamics, not necessarily the sequential rollout's trajectory: see the "
+            "parallel guide).",
             RuntimeWarning,
             stacklevel=2,
         )
