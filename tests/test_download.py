@@ -286,3 +286,23 @@ def test_a_cache_folder_that_cannot_be_made_is_named(server, tmp_path):
     with pytest.raises(ValueError, match=r"`cache_dir`: cannot use .*a_file"):
         ds.load_emps(tmp_path / "empty", download=True, cache_dir=blocker, base_url=base)
     assert log == []
+
+
+def test_a_download_in_a_subfolder_of_its_archive_is_found_again(server, tmp_path, monkeypatch):
+    """An archive holding EMPS/DATA_EMPS.mat loaded once, then was downloaded again on
+    every call (and not found without `download=True`): the lookup before a download
+    searched <cache>/emps itself only."""
+    base, www, log = server
+    src = tmp_path / "src"
+    src.mkdir()
+    files = _emps_mats(src)
+    _zip(www / "EMPS.zip", files, prefix="EMPS/")
+    _trust(monkeypatch, "emps", files)
+    cache = tmp_path / "cache"
+    first = ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert first.estimation.file == cache / "emps" / "EMPS" / "DATA_EMPS.mat"
+    again = ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert log == ["/EMPS.zip"]  # one download
+    assert again.estimation.file == first.estimation.file
+    found = ds.load_emps(tmp_path / "empty", cache_dir=cache)  # without download=True
+    assert found.estimation.file == first.estimation.file

@@ -223,7 +223,15 @@ def fetch(name, *, cache_dir=None, base_url=None, alternatives=None) -> Path:
         ) from err
     if not root.is_dir():
         raise ValueError(f"`cache_dir`: {str(root)!r} is not a folder.")
-    with tempfile.TemporaryDirectory(prefix=f".{src.subdir}-", dir=root) as tmp:
+    try:
+        scratch = tempfile.TemporaryDirectory(prefix=f".{src.subdir}-", dir=root)
+    except OSError as err:  # a folder that exists but cannot be written (read-only)
+        raise ValueError(
+            f"`cache_dir`: cannot write into {str(root)!r} ({type(err).__name__}: "
+            f"{err.strerror or err}); pass cache_dir=<a folder you can write> or set "
+            f"${CACHE_ENV_VAR}."
+        ) from err
+    with scratch as tmp:
         tmp = Path(tmp)
         archive = tmp / src.archive
         errors = []

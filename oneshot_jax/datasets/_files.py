@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_path as check_path
-from ._download import fetch
+from ._download import SOURCES, fetch
 from ._locations import (
     CACHE_ENV_VAR,
     ENV_VAR,
@@ -24,6 +24,15 @@ from ._locations import (
     default_cache_dir,
     find_folder,
 )
+
+
+def _folders(target: Path) -> list[Path]:
+    """The folders under a download's `target` that hold files, shallowest first (the
+    archive may keep the files in a subfolder, e.g. SilverboxFiles/)."""
+    if not target.is_dir():
+        return []
+    found = {p.parent for p in target.rglob("*") if p.is_file()}
+    return sorted(found, key=lambda p: (len(p.parts), str(p)))
 
 
 def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, on_missing):
@@ -55,7 +64,10 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
         )
     dirs = candidates(path, subdirs)
     if cache_dir is not None or download:
-        dirs += candidates(cache_dir if cache_dir is not None else default_cache_dir(), subdirs)
+        cache = cache_dir if cache_dir is not None else default_cache_dir()
+        dirs += candidates(cache, subdirs)
+        # (what an earlier download unpacked, in whatever subfolders its archive keeps)
+        dirs += _folders(Path(cache).expanduser() / SOURCES[name].subdir)
     dirs = list(dict.fromkeys(dirs))
     folder, names = find_folder(dirs, alternatives)
     if folder is not None:
@@ -66,11 +78,7 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
             err = DatasetNotFoundError(f"path={str(path)!r} does not exist. {err}")
         raise err
     target = fetch(name, cache_dir=cache_dir, base_url=base_url, alternatives=alternatives)
-    # The archive may keep the files in a subfolder (e.g. SilverboxFiles/).
-    folders = sorted(
-        {p.parent for p in target.rglob("*") if p.is_file()}, key=lambda p: len(p.parts)
-    )
-    folder, names = find_folder(folders, alternatives)
+    folder, names = find_folder(_folders(target), alternatives)
     if folder is None:
         raise DatasetFormatError(
             f"{target}: the download does not hold {' or '.join(map(' and '.join, alternatives))}."
