@@ -19,7 +19,6 @@ Run: `python benchmarks/sandwich_oscillator.py` (`--draws N`, default 200; `--qu
 draws; `--lags L ...`: the sandwich's lags besides the rule's, default 10 20 40).
 """
 
-import argparse
 import sys
 import warnings
 
@@ -30,6 +29,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 from hybrid_sandwich import ar1  # noqa: E402
+from sandwich_x0 import arguments  # noqa: E402
 from timing import conditions  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
@@ -72,13 +72,7 @@ def study(draws, phi, covariances):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--draws", type=int, default=200, help="noise draws (default 200)")
-    parser.add_argument("--quick", action="store_true", help="10 draws")
-    parser.add_argument(
-        "--lags", type=int, nargs="+", default=[10, 20, 40], help="the sandwich's lags"
-    )
-    args = parser.parse_args(argv)
+    args = arguments(__doc__, [10, 20, 40], argv)
     draws = 10 if args.quick else args.draws
     warnings.simplefilter("ignore")
     print(

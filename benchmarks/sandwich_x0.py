@@ -58,14 +58,17 @@ def study(draws, phi, lags):
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def arguments(doc, lags, argv):
+    """The command line of a sandwich study: `--draws`, `--quick` (10 draws), `--lags`."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--draws", type=int, default=200, help="noise draws (default 200)")
     parser.add_argument("--quick", action="store_true", help="10 draws")
-    parser.add_argument(
-        "--lags", type=int, nargs="+", default=[20], help="the sandwich's lags, AR(1) noise"
-    )
-    args = parser.parse_args(argv)
+    parser.add_argument("--lags", type=int, nargs="+", default=lags, help="the sandwich's lags")
+    return parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = arguments(__doc__, [20], argv)
     draws = 10 if args.quick else args.draws
     warnings.simplefilter("ignore")
     print(
