@@ -61,11 +61,13 @@ def check_tree(tree, name="theta"):
 
 
 def check_path(path, name="path", what="a file or folder", optional=True):
-    """A TypeError unless `path` is a non-empty str or an `os.PathLike` (or None, where
-    `optional`)."""
+    """A TypeError unless `path` is a str or an `os.PathLike` (or None, where
+    `optional`), a ValueError where it is the empty string."""
     if path is None and optional:
         return
-    if not isinstance(path, (str, os.PathLike)) or path == "":
+    if path == "":
+        raise ValueError(f"`{name}` is an empty string: give {what}.")
+    if not isinstance(path, (str, os.PathLike)):
         raise TypeError(
             f"`{name}` must be a str or os.PathLike ({what}){' or None' if optional else ''}, "
             f"got {path!r}."

@@ -405,9 +405,10 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
         raise ValueError("`z` contains NaN or inf values in the scored samples.")
     bad = ~np.all(np.isfinite(yhat), axis=1)
     if bad.any():
+        first = n + int(np.argmax(bad))
         raise ValueError(
-            f"`zhat` contains NaN or inf from sample {n + int(np.argmax(bad))} on "
-            f"({int(bad.sum())} scored samples): the model output diverged."
+            f"`zhat` contains NaN or inf in {int(bad.sum())} scored samples, the first at "
+            f"sample {first}" + (": the model output diverged." if bad[first - n :].all() else ".")
         )
     std = np.std(y, axis=0)
     if np.any(std <= 0):

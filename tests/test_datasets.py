@@ -298,6 +298,9 @@ def test_loaders_name_a_path_of_the_wrong_type(load, argument):
     """`path=123` was `Path`'s TypeError, which names no argument."""
     with pytest.raises(TypeError, match=f"`{argument}` must be a str or os.PathLike"):
         load(**{argument: 123})
+    # (an empty string was called "not a str")
+    with pytest.raises(ValueError, match=f"`{argument}` is an empty string"):
+        load(**{argument: ""})
 
 
 # ----------------------------------------------------------------------- protocol views

@@ -186,6 +186,19 @@ def test_html_page_instead_of_an_archive(server, tmp_path):
     assert _nothing_kept(cache, "emps")
 
 
+def test_a_zip_cut_short_is_not_blamed_on_the_link(server, tmp_path):
+    """A zip without its end read "the download link may have changed"."""
+    base, www, _ = server
+    src = tmp_path / "src"
+    src.mkdir()
+    whole = _zip(tmp_path / "whole.zip", _emps_mats(src)).read_bytes()
+    (www / "EMPS.zip").write_bytes(whole[: len(whole) // 2])
+    cache = tmp_path / "cache"
+    with pytest.raises(ds.DatasetFormatError, match=r"incomplete: the download was cut short"):
+        ds.load_emps(tmp_path / "e", download=True, cache_dir=cache, base_url=base)
+    assert _nothing_kept(cache, "emps")
+
+
 @pytest.mark.parametrize(
     "member, pattern",
     [("../escape.csv", "leaves the folder"), ("other.csv", "holds none of dataBenchmark")],

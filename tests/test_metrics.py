@@ -254,7 +254,17 @@ def test_benchmark_scores_bad_input(z_shape, zhat_shape, n, error, pattern):
 def test_benchmark_scores_refuses_diverged_output_and_constant_data():
     z, zhat = _pair((50, 2), 6)
     zhat[30:, 1] = np.nan
-    with pytest.raises(ValueError, match=r"`zhat` contains NaN or inf from sample 30 on \(20"):
+    with pytest.raises(
+        ValueError,
+        match=r"NaN or inf in 20 scored samples, the first at sample 30: the model output diverged",
+    ):
+        metrics.benchmark_scores(z, zhat, 5)
+    # One bad sample is not called a divergence.
+    zhat[30:, 1] = 0.0
+    zhat[12, 1] = np.nan
+    with pytest.raises(
+        ValueError, match=r"NaN or inf in 1 scored samples, the first at sample 12\.$"
+    ):
         metrics.benchmark_scores(z, zhat, 5)
     # NaN only in the head (not scored) is fine.
     z, zhat = _pair((50,), 6)

@@ -143,9 +143,16 @@ def _unzip(archive: Path, into: Path, url):
     if not zipfile.is_zipfile(archive):
         with open(archive, "rb") as fh:
             head = fh.read(64)
+        damaged = head.startswith(b"PK")  # a zip's start, without its end: cut short
         raise DatasetFormatError(
             f"{url} did not return a zip archive ({archive.stat().st_size} bytes starting "
-            f"with {head[:40]!r}); the download link may have changed."
+            f"with {head[:40]!r}); "
+            + (
+                "it starts as one but is incomplete: the download was cut short or damaged. "
+                "Nothing was kept."
+                if damaged
+                else "the download link may have changed."
+            )
         )
     with zipfile.ZipFile(archive) as zf:
         for m in zf.namelist():
