@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -276,9 +277,19 @@ def positive_scalar(file, name, value, meaning):
 
 
 def require_length(file, what, n, minimum, official):
-    """A `DatasetFormatError` unless the record has at least `minimum` samples."""
+    """A `DatasetFormatError` unless the record has at least `minimum` samples, and a
+    `UserWarning` where its length is not the official file's (a file cut short, say,
+    which still parses: its scores are not the benchmark's)."""
     if n < minimum:
         raise DatasetFormatError(
             f"{file}: {what} has {n} samples; the official splits need at least {minimum} "
             f"(the official file has {official})."
+        )
+    if n != official:
+        warnings.warn(
+            f"{file}: {what} has {n} samples, the official file {official}: not the "
+            "official record (cut short or edited?), so scores on it are not the "
+            "benchmark's.",
+            UserWarning,
+            stacklevel=4,
         )
