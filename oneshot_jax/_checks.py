@@ -65,7 +65,7 @@ def check_path(path, name="path", what="a file or folder", optional=True):
     `optional`), a ValueError where it is the empty string."""
     if path is None and optional:
         return
-    if path == "":
+    if isinstance(path, str) and path == "":
         raise ValueError(f"`{name}` is an empty string: give {what}.")
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(
