@@ -308,6 +308,14 @@ def _per_record_fit(result, rows, listed_max=6) -> list[str]:
     ]
 
 
+def returned_start(result) -> bool:
+    """Whether a diverged fit whose returned loss is not finite returned its start: it
+    stopped at step 0, where the start's loss was not finite (the library's solvers keep
+    their last finite iterate; a solver of one's own that does not returns its own
+    non-finite point)."""
+    return result.stop_info.get("at_step") in (0, None)
+
+
 def report(result) -> str:
     """What `print(result)` shows (see `FitResult`)."""
     table, modules = _parameter_table(result)
@@ -368,7 +376,7 @@ def report(result) -> str:
         if not np.isfinite(result.loss):
             which = (
                 "the returned point is its start (no iterate was finite)"
-                if result.stop_info.get("at_step") in (0, None)
+                if returned_start(result)
                 else "the solver returned a point that is not finite"
             )
         out.append(f"  (not a solution: the fit diverged; {which}, without standard errors)")

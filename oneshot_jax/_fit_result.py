@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._fit_report import report, vanished_note
+from ._fit_report import report, returned_start, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
@@ -32,15 +32,6 @@ def _pair(a, b) -> tuple[str, str]:
         digits += 1
         x, y = f"{a:.{digits}g}", f"{b:.{digits}g}"
     return x, y
-
-
-def _nonfinite_return(result) -> str:
-    """What a diverged fit whose returned loss is not finite returned: the start, where
-    its loss was not finite (the library's solvers keep their last finite iterate), or
-    else the solver's own non-finite point (a solver of one's own that does not keep it)."""
-    if result.stop_info.get("at_step") in (0, None):
-        return "the start is returned"
-    return "the returned point is not finite (the solver did not keep its last finite iterate)"
 
 
 def stop_detail(status: str, info: dict) -> str:
@@ -505,7 +496,13 @@ class FitResult(eqx.Module):
         detail = stop_detail(self.status, self.stop_info)
         why = RESULTS[self.stop_reason]
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
-            why = why.replace("the last finite iterate is returned", _nonfinite_return(self))
+            why = why.replace(
+                "the last finite iterate is returned",
+                "the start is returned"
+                if returned_start(self)
+                else "the returned point is not finite (the solver did not keep its last "
+                "finite iterate)",
+            )
         out = f"{detail}; {why}" if detail else why
         gone = self.stop_info.get("vanished")
         if gone:

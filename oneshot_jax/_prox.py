@@ -195,6 +195,19 @@ def _check_like(out, theta, what="`constraints`: the projection"):
             )
 
 
+def _same_point(a, b, rtol=1e-10):
+    """Whether the pytrees `a` and `b` hold the same values, leaf by leaf in order, to
+    `rtol` of `a`'s largest entry (a check on theta0, outside the compiled solve)."""
+
+    def flat(tree):
+        leaves = [np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(tree)]
+        return np.concatenate(leaves) if leaves else np.zeros(0)
+
+    x, y = flat(a), flat(b)
+    scale = max(np.max(np.abs(x), initial=0.0), 1e-300)
+    return x.shape == y.shape and np.allclose(x, y, rtol=rtol, atol=rtol * scale)
+
+
 def check_projection(proj, theta, rtol=1e-10):
     """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
     (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
@@ -202,12 +215,7 @@ def check_projection(proj, theta, rtol=1e-10):
     wherever it happens to stop."""
     once = proj.project(theta)
     _check_like(once, theta)
-    twice = proj.project(once)
-    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(once)])
-    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(twice)])
-    if a.shape != b.shape or not np.allclose(
-        a, b, rtol=rtol, atol=rtol * max(np.max(np.abs(a), initial=0.0), 1e-300)
-    ):
+    if not _same_point(once, proj.project(once), rtol):
         raise ValueError(
             "`constraints`: the projection is not idempotent (P(P(theta0)) != P(theta0)); "
             "a projection onto a convex set must map every point of the set to itself."
@@ -228,9 +236,7 @@ def check_regulariser(regulariser, theta):
     # (`fit` reads the prox's output back as a flat vector: a leaf of another shape
     # would shift the others into its place)
     _check_like(out, theta, "`regulariser`: its prox")
-    a = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(out)])
-    b = np.concatenate([np.ravel(np.asarray(v, float)) for v in jax.tree_util.tree_leaves(theta)])
-    if not np.allclose(a, b, rtol=1e-10, atol=1e-10 * max(np.max(np.abs(b), initial=0.0), 1e-300)):
+    if not _same_point(theta, out):
         raise ValueError(
             "`regulariser`: its prox with a step of 0 must return theta unchanged (the "
             "proximal map of t g at t = 0 is the identity), but it moved theta0."
