@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
+from ._counts import integral
+
 __all__ = [
     "rmse",
     "nrmse",
@@ -361,7 +363,8 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
 
     `ValueError` if the shapes differ or are not (T,) / (T, n_z), `n` is out of range or
     missing, a value is NaN or inf (for `zhat`, the first such sample is named), or a
-    channel of z[n:] is constant (NRMSE undefined); `TypeError` if `n` is not an integer.
+    channel of z[n:] is constant (NRMSE undefined); `TypeError` if `n` is not an integer
+    (an integral float such as 20.0 counts, as for `predict` and `Record`).
 
     **Reference:**
 
@@ -377,6 +380,7 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
                 "`n` (the number of initial samples a model may use, left out of the score) "
                 "is required unless `z` is a record that carries it."
             )
+    n = integral(n)  # (20.0, as a configuration file may write it, or a 0-d array)
     if isinstance(n, bool) or not isinstance(n, numbers.Integral):
         raise TypeError(f"`n` must be an integer, got {type(n).__name__}.")
     n = int(n)

@@ -827,6 +827,17 @@ def test_records_and_substeps_take_whole_floats_and_0d_arrays():
     assert model.step.substeps == 3 and type(model.step.substeps) is int
 
 
+def test_benchmark_scores_take_the_counts_a_record_takes():
+    z = np.sin(np.arange(30.0))
+    zhat = z + 0.1 * np.cos(np.arange(30.0))
+    want = oj.metrics.benchmark_scores(z, zhat, 5).rmse
+    for n in (5.0, np.float64(5.0), jnp.array(5), np.array(5)):
+        np.testing.assert_array_equal(oj.metrics.benchmark_scores(z, zhat, n).rmse, want)
+    for n in (5.5, True, "5"):
+        with pytest.raises(TypeError, match="`n` must be an integer"):
+            oj.metrics.benchmark_scores(z, zhat, n)
+
+
 def test_ode_step_takes_a_python_number_state_and_a_list_input():
     """`ode_step(rhs, 1.0, [1.0], ...)` raised AttributeError ('float' has no dtype) and
     TypeError (array + list)."""
