@@ -29,7 +29,7 @@ _TRAIN_FRACTION = 0.75
 @dataclasses.dataclass(frozen=True)
 class Silverbox:
     """The Silverbox benchmark with its official splits (u = V1, the input voltage, V;
-    y = V2, the output voltage, V; Ts = 1/610.35 s).
+    y = V2, the output voltage, V; Ts = 2^14 / 10^7 s, fs = 610.35 Hz).
 
     **Fields:**
 
