@@ -166,6 +166,14 @@ def test_missing_files_say_where_to_get_them(tmp_path):
     with pytest.raises(ds.DatasetNotFoundError) as e:
         ds.load_emps(tmp_path)
     assert "does not exist" not in str(e.value)
+    # A file of another name given as `path`: the loader reads the official names only.
+    scipy.io.savemat(tmp_path / "my_emps.mat", _emps_dict())
+    with pytest.raises(ds.DatasetNotFoundError) as e:
+        ds.load_emps(tmp_path / "my_emps.mat")
+    assert str(e.value).startswith(
+        f"path={str(tmp_path / 'my_emps.mat')!r} is a file the loader does not read: it "
+        "reads DATA_EMPS.mat and DATA_EMPS_PULSES.mat by these names"
+    )
 
 
 def test_emps_half_a_data_set(tmp_path):

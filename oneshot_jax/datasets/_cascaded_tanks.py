@@ -93,6 +93,8 @@ def load_cascaded_tanks(path=None, *, download=False, cache_dir=None, base_url=N
 
     - `path`: `dataBenchmark.csv` (or `.mat`) itself, a folder holding it, or a folder with
         a `cascaded_tanks/` subfolder that holds it. Default: see the package docstring.
+        The `.csv` file is read when a folder holds both; a file given as `path` is read
+        whatever its name.
     - `download`: when the file is not found, fetch the official archive into the cache
         folder and verify the files' SHA-256 (see `oneshot_jax.datasets`).
     - `cache_dir`: the cache folder (default `default_cache_dir()`).

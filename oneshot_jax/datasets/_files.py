@@ -55,8 +55,10 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
     """
     if not isinstance(download, (bool, np.bool_)):  # ("no" is truthy: it would download)
         raise TypeError(f"`download` must be True or False, got {download!r}.")
+    given_file = None  # (a file of another name than the benchmark's: named if not found)
     if path is not None and Path(path).expanduser().is_file():
-        path = Path(path).expanduser().parent
+        given_file = Path(path).expanduser()
+        path = given_file.parent
     env = os.environ.get(ENV_VAR)
     if path is None and env and not Path(env).expanduser().is_dir():
         raise DatasetNotFoundError(
@@ -77,6 +79,12 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
         err = on_missing(dirs)
         if path is not None and not Path(path).expanduser().exists():
             err = DatasetNotFoundError(f"path={str(path)!r} does not exist. {err}")
+        elif given_file is not None and all(given_file.name not in a for a in alternatives):
+            err = DatasetNotFoundError(
+                f"path={str(given_file)!r} is a file the loader does not read: it reads "
+                f"{' or '.join(map(' and '.join, alternatives))} by these names, from the "
+                f"folder of a file given as `path` (give the files these names). {err}"
+            )
         raise err
     target = fetch(name, cache_dir=cache_dir, base_url=base_url, alternatives=alternatives)
     folder, names = find_folder(_folders(target), alternatives)
