@@ -96,7 +96,9 @@ def load_silverbox(path=None, *, download=False, cache_dir=None, base_url=None) 
     - `path`: `SNLS80mV.mat` or `SNLS80mV.csv` itself, a folder holding it (e.g. the
         unpacked `SilverboxFiles/`), or a folder with a `silverbox/` subfolder that holds
         it. Default: see the package docstring. The `.mat` file is preferred when both
-        are there.
+        are there. The `.mat` file holds `V1` and `V2`; a `.csv` file has a header row
+        naming the columns `V1` and `V2`, then one row per sample (the sampling time is
+        the benchmark's constant, `SILVERBOX_TS`).
     - `download`: when the file is not found, fetch the official archive
         `SilverboxFiles.zip` into the cache folder (see `oneshot_jax.datasets`).
     - `cache_dir`: the cache folder (default `default_cache_dir()`).

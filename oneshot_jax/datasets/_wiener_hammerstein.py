@@ -78,7 +78,10 @@ def load_wiener_hammerstein(path=None, *, download=False, cache_dir=None, base_u
     - `path`: `WienerHammerBenchMark.mat` or `WienerHammerBenchmark.csv` itself, a folder
         holding it, or a folder with a `wiener_hammerstein/` subfolder that holds it.
         Default: see the package docstring. The `.mat` file is preferred when both are
-        there.
+        there. The `.mat` file holds `uBenchMark`, `yBenchMark` and `fs`; a `.csv` file
+        has a header row naming the columns `uBenchMark`, `yBenchMark` and `fs`, then one
+        row per sample (`fs`, in Hz, in the first data row; its other cells may be
+        empty).
     - `download`: when the file is not found, fetch the official
         `WienerHammerBenchMark.mat` into the cache folder (see `oneshot_jax.datasets`).
     - `cache_dir`: the cache folder (default `default_cache_dir()`).
