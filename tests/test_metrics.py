@@ -240,7 +240,7 @@ def test_benchmark_scores_perfect_and_mean_models():
         ((4, 50, 2), (4, 50, 2), 5, ValueError, r"\(T,\) or \(T, n_z\)"),
         ((50,), (50,), 49, ValueError, r"0 <= n <= T - 2 = 48"),
         ((50,), (50,), -1, ValueError, r"0 <= n"),
-        ((50,), (50,), 2.0, TypeError, "`n` must be an integer"),
+        ((50,), (50,), 2.5, TypeError, "`n` must be an integer"),
         ((50,), (50,), True, TypeError, "`n` must be an integer"),
         ((50,), (50,), None, ValueError, "`n` .* is required"),
     ],
