@@ -77,7 +77,7 @@ def _fresh_compilation_caches():
 
 # The outcomes of the `default_optimisation` tests, per test file: one child process runs
 # all of a file's marked tests the first time one of them is reached (in each pytest-xdist
-# worker that reaches one: README's test command, `--dist loadfile`, gives a file to one).
+# worker that reaches one).
 _CHILD_OUTCOMES = {}
 
 
