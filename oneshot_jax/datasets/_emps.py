@@ -139,8 +139,8 @@ def load_emps(path=None, *, download=False, cache_dir=None, base_url=None) -> EM
 
     - `path`: a folder holding `DATA_EMPS.mat` and `DATA_EMPS_PULSES.mat` (or one of
         them, whose folder is searched for both by these names), or a folder with an
-        `emps/` subfolder that holds them. Default: see the
-        package docstring (`$ONESHOT_JAX_DATA`, then `../shared/data`, then the cache).
+        `emps/` subfolder that holds them. Default: see the package docstring
+        (`$ONESHOT_JAX_DATA`, then `../shared/data`, then the cache).
     - `download`: when the files are not found, fetch the official archive into the
         cache folder and verify the files' SHA-256 (see `oneshot_jax.datasets`).
     - `cache_dir`: the cache folder (default `default_cache_dir()`).
