@@ -1,7 +1,11 @@
+import hashlib
+import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 # The suite is dominated by XLA's compilation of CPU kernels, so the tests (and the
@@ -76,9 +80,24 @@ def _fresh_compilation_caches():
 
 
 # The outcomes of the `default_optimisation` tests, per test file: one child process runs
-# all of a file's marked tests the first time one of them is reached (in each pytest-xdist
-# worker that reaches one).
+# all of a file's marked tests the first time one of them is reached, in the first
+# pytest-xdist worker to reach one; it leaves them in a folder of this test run (`SHARED`,
+# made by the process that starts the workers) for the other worker.
 _CHILD_OUTCOMES = {}
+SHARED = "ONESHOT_JAX_TESTS_CHILD_OUTCOMES"
+_MADE = []
+
+
+def pytest_configure(config):
+    if SHARED not in os.environ:
+        _MADE.append(tempfile.mkdtemp(prefix="oneshot_jax_tests_"))
+        os.environ[SHARED] = _MADE[0]
+
+
+def pytest_unconfigure(config):
+    for folder in _MADE:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(SHARED, None)
 
 
 def _run_in_child(item):
@@ -119,6 +138,30 @@ def _run_in_child(item):
     return outcomes, output
 
 
+def _shared_child_outcomes(item, wait=3600.0):
+    """`_run_in_child(item)`, run by the first process of this test run to ask for
+    `item`'s file: the others wait for its outcomes in the `SHARED` folder (and run their
+    own child if none come within `wait` seconds)."""
+    folder = Path(os.environ[SHARED])
+    key = hashlib.sha256(str(item.path).encode()).hexdigest()[:16]
+    done = folder / f"{key}.json"
+    try:
+        os.close(os.open(folder / f"{key}.lock", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        deadline = time.monotonic() + wait
+        while not done.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if done.exists():
+            outcomes, output = json.loads(done.read_text())
+            return {name: tuple(kind) for name, kind in outcomes.items()}, output
+        return _run_in_child(item)
+    outcomes, output = _run_in_child(item)
+    partial = folder / f"{key}.part"
+    partial.write_text(json.dumps([outcomes, output]))
+    os.replace(partial, done)
+    return outcomes, output
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_call(item):
     """A test marked `default_optimisation` runs in a child pytest process whose XLA
@@ -129,7 +172,7 @@ def pytest_runtest_call(item):
     if OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
         return  # (the child itself, or an XLA without the flag: run here)
     if item.path not in _CHILD_OUTCOMES:
-        _CHILD_OUTCOMES[item.path] = _run_in_child(item)
+        _CHILD_OUTCOMES[item.path] = _shared_child_outcomes(item)
     outcomes, output = _CHILD_OUTCOMES[item.path]
     kind, text = outcomes.get(item.name, ("missing", output))
     where = f"{item.nodeid} at XLA's default optimisation level (a child process)"
