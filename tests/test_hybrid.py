@@ -637,7 +637,7 @@ def test_mlp_residual_reaches_the_noise_level():
     recs = [duffing.make_data(seed, 800) for seed in (0, 2)]
     u, z = np.stack([r[0] for r in recs]), np.stack([r[1] for r in recs])
     sigma2 = np.mean([r[3] ** 2 for r in recs])
-    physics, joint = duffing.train_mlp(u, z, widths=(8, 8), adam_steps=1000, lm_steps=50)
+    physics, joint = duffing.train_mlp(u, z, widths=(8, 8), adam_steps=700, lm_steps=50)
     assert isinstance(joint.theta["r"], MLP)
     assert float(joint.loss) < 1.1 * sigma2 < float(physics.loss)
     u_val, z_val, x0_val, sigma_val = duffing.make_data(1, 800)
