@@ -591,6 +591,7 @@ def fit(
     - `missing`: `"raise"` (default) rejects NaN in z; `"mask"` takes NaN entries of z
         as missing samples (zero weight in the loss, the gradient and the Jacobian).
         Trajectories of different lengths (lists for `u` and `z`) are masked the same way.
+        With `"mask"`, `result.predict` takes NaN in a new record's head as missing too.
     - `validation`: an `oneshot_jax.Validation(u, z, n=...)` of held-out records: every
         iterate of every solver is scored on them (x0 estimated from each record's first
         n outputs, the loss over the rest), the iterate with the lowest score is
@@ -815,6 +816,8 @@ def fit(
         result = dataclasses.replace(
             result, diagnostics={**(result.diagnostics or {}), "regularised": True}
         )
+    if missing == "mask":  # (`result.predict` takes the head's NaN as missing too)
+        result = dataclasses.replace(result, missing="mask")
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
         q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
         result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)

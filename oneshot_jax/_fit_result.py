@@ -370,6 +370,8 @@ class FitResult(eqx.Module):
         `reading_weight_factors`, the factor of each `Aggregate`'s weights), which
         `predict` uses by default to
         estimate a new record's x0.
+    - `missing`: `fit(missing=...)`: with `"mask"` (NaN in z marked missing samples),
+        `predict` takes NaN in a new record's head as missing too (`"raise"` otherwise).
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
         strategy, `parallel_rollouts`, `sequential_fallbacks` (rollouts that did not
         converge in parallel and were computed sequentially, with the same result) and
@@ -410,6 +412,7 @@ class FitResult(eqx.Module):
     window_starts: np.ndarray | None = None
     n_u: int | None = eqx.field(static=True, default=None)
     weight: np.ndarray | None = None
+    missing: str = eqx.field(static=True, default="raise")
     # What a loaded file recorded of the fitted model (`load_result`), kept so that a
     # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
     saved_model_signature: tuple | None = eqx.field(static=True, default=None, repr=False)
@@ -587,7 +590,9 @@ class FitResult(eqx.Module):
             (for several records, one (T_i,) per record, or one shared).
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
-            The smoother's measurement noise defaults to the one the fit estimated,
+            `missing=` is by default the fit's for `method="lsq"`: after a fit with
+            `missing="mask"`, NaN in `z_head` are missing samples (the smoother needs
+            every sample). The smoother's measurement noise defaults to the one the fit estimated,
             sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE / dof of its
             weighted residuals, as its standard errors use): a weight's scale, which a
             fit ignores, does not change it. Where Q is singular (an output of weight 0)
@@ -631,6 +636,8 @@ class FitResult(eqx.Module):
                 "record i."
             )
         method = kwargs.pop("method", "lsq")
+        if method == "lsq" and "missing" not in kwargs and self.missing == "mask":
+            kwargs["missing"] = "mask"  # (the fit's NaN were missing samples: the head's too)
         noise = None
         given = kwargs.get("measurement_noise") is not None or kwargs.get("weight") is not None
         if method == "smoother" and not given:

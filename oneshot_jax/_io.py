@@ -286,6 +286,7 @@ def save_result(result, path):
         "validation_loss": result.validation_loss,
         "static_signature": _static_signature(result.theta),
         "n_u": result.n_u,
+        "missing": result.missing,
         # (a result loaded without a model keeps the record of the file it came from)
         "model_signature": (
             _model_signature(result.model)
@@ -502,6 +503,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         validation_loss=meta.get("validation_loss"),
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
         n_u=meta.get("n_u"),
+        missing=meta.get("missing") or "raise",  # (older files: none)
         weight=arrays.get("weight"),
         saved_model_signature=(
             None if meta.get("model_signature") is None else tuple(meta["model_signature"])

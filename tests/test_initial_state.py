@@ -661,3 +661,32 @@ def test_an_x0_estimate_and_residual_correlations_print_readably():
     assert lines[0].startswith("x0 from the first 20 samples by lsq (")
     assert lines[1].startswith("  x0[0]") and f"std {e.std[0]:.3g}" in lines[1]
     assert "numpy" not in str(e)
+
+
+def test_a_masked_fits_predict_takes_the_heads_nan_as_missing(tmp_path):
+    """After `fit(missing="mask")`, `result.predict` masks the NaN of a new head as that
+    fit masked its data (the same prediction as `missing="mask"` given), also after
+    save and load; `missing="raise"` given still refuses them, and so does the predict
+    of a fit without a mask."""
+    u, z, _ = pendulum_record(120, seed=8, noise=0.01)
+    z[[4, 50]] = np.nan
+    theta0 = np.array([9.0, 0.5])
+    masked = oj.fit(PENDULUM, theta0, np.array([0.8, -0.3]), u, z, missing="mask")
+    u_new, z_new, _ = pendulum_record(80, seed=9, noise=0.01, x0=(0.5, 0.2))
+    head = z_new[:20].copy()
+    head[[3, 11]] = np.nan
+    kw = dict(x0=np.array([0.4, 0.0]))
+    inherited = masked.predict(u_new, head, **kw)
+    given = masked.predict(u_new, head, missing="mask", **kw)
+    np.testing.assert_array_equal(inherited.x0, given.x0)
+    np.testing.assert_array_equal(inherited.z, given.z)
+    assert np.all(np.isfinite(inherited.z))
+    with pytest.raises(ValueError, match="`z_head` contains NaN"):
+        masked.predict(u_new, head, missing="raise", **kw)
+    loaded = oj.load_result(masked.save(tmp_path / "masked.npz"), model=PENDULUM)
+    assert loaded.missing == "mask"
+    np.testing.assert_array_equal(loaded.predict(u_new, head, **kw).z, inherited.z)
+    full = oj.fit(PENDULUM, theta0, np.array([0.8, -0.3]), u[60:], z[60:])
+    assert full.missing == "raise"
+    with pytest.raises(ValueError, match="`z_head` contains NaN"):
+        full.predict(u_new, head, **kw)
