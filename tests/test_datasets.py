@@ -419,8 +419,9 @@ def test_record_basics():
         (dict(u=np.zeros(0), y=np.zeros(0)), ValueError, "at least one sample"),
         (dict(Ts=-1.0), ValueError, "positive finite sampling time"),
         (dict(Ts="1"), TypeError, "`Ts` must be a positive number"),
-        (dict(n=5), ValueError, r"0 <= n < T = 5"),
-        (dict(n=-1), ValueError, r"0 <= n < T"),
+        (dict(n=5), ValueError, r"0 < n <= T - 2 = 3"),
+        (dict(n=4), ValueError, r"0 < n <= T - 2 = 3 .* got 4"),  # (one output scored)
+        (dict(n=-1), ValueError, r"`n` must be 0 or satisfy"),
         (dict(n=1.5), TypeError, "`n` must be an integer"),  # (1.0 is the count 1)
         (dict(name=3), TypeError, "`name` must be a string"),
     ],

@@ -45,7 +45,8 @@ class Record:
     - `y`: output, float64 array of shape (T,) or (T, n_y).
     - `Ts`: sampling time in s, or None for a discrete-time record.
     - `n`: number of initial outputs a model may use (the protocol's state-initialisation
-        window); 0 for a training record, where every output may be used.
+        window), at most T - 2 (the protocol scores at least two outputs); 0 for a
+        training record, where every output may be used.
     - `name`: a short label, e.g. `"test WH"`.
 
     Unpacks as `u, y = record`. The aliases `sampling_time` and
@@ -85,10 +86,10 @@ class Record:
         if isinstance(n, bool) or not isinstance(n, numbers.Integral):
             raise TypeError(f"`n` must be an integer, got {type(n).__name__}.")
         n = int(n)
-        if not 0 <= n < y.shape[0]:
+        if not (n == 0 or 0 < n <= y.shape[0] - 2):  # (`score` needs two samples scored)
             raise ValueError(
-                f"`n` must satisfy 0 <= n < T = {y.shape[0]} (the number of initial outputs "
-                f"a model may use), got {n}."
+                f"`n` must be 0 or satisfy 0 < n <= T - 2 = {y.shape[0] - 2} (the number of "
+                f"initial outputs a model may use; the protocol scores at least two), got {n}."
             )
         if not isinstance(self.name, str):
             raise TypeError(f"`name` must be a string, got {type(self.name).__name__}.")
