@@ -103,8 +103,8 @@ def test_pages_show_what_their_code_prints(page, tmp_path, monkeypatch):
     )
 
 
-# The hybrid guide is the longest: run after the getting-started page in a test of its own
-# (in parallel with the others under pytest-xdist).
+# The hybrid guide is the longest: run in a test of its own (in parallel with the others
+# under pytest-xdist).
 LONG_GUIDES = ["docs/guides/hybrid.md"]
 
 
@@ -116,8 +116,8 @@ def test_getting_started_and_guides_run(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("path", [g for g in LONG_GUIDES if g not in DATA_GUIDES])
 def test_long_guides_run(path, tmp_path, monkeypatch):
-    """A long guide after the getting-started page (whose names it may use)."""
-    _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
+    """A long guide, on its own: its code imports and defines what it uses."""
+    _run([path], tmp_path, monkeypatch)
 
 
 def test_minima_guide_runs(tmp_path, monkeypatch):
@@ -128,11 +128,11 @@ def test_minima_guide_runs(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("path", DATA_GUIDES)
 def test_guides_on_the_benchmark_files_run(path, tmp_path, monkeypatch):
-    """The guides that load a benchmark, after the getting-started page (whose imports
-    they use); a skip names the files when they are not found."""
+    """The guides that load a benchmark, each on its own; a skip names the files when
+    they are not found."""
     for name in _loaders(path):
         benchmark_or_skip(getattr(oj.datasets, name))
-    ns = _run(["docs/getting-started.md", path], tmp_path, monkeypatch)
+    ns = _run([path], tmp_path, monkeypatch)
     if path == "docs/guides/real-data.md":
         _check_real_data_prose(ns)
 
