@@ -33,7 +33,8 @@ def markdown(res) -> str:
         )
     L += [
         "",
-        "± : the standard error of the fit, sigma^2 (J^T J)^-1 with white residuals.",
+        "± : the standard error of the fit, the square root of the diagonal of "
+        "sigma^2 (J^T J)^-1 with white residuals.",
         "",
         "Relative error 100 ||q_sim - qm|| / ||qm|| (benchmark eq. 11) of the closed-loop "
         "simulation from qg (and the pulses), every parameter set in the same simulator:",

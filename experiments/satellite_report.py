@@ -165,7 +165,8 @@ def markdown(res: dict) -> str:
         )
     w("")
     w(
-        "± : the standard error of the fit, sigma^2 (J^T J)^-1. Cramer-Rao standard "
+        "± : the standard error of the fit, the square root of the diagonal of "
+        "sigma^2 (J^T J)^-1. Cramer-Rao standard "
         f"deviations at T = {T}: {_vec(crb_std, 2)} kg m^2."
     )
     w("")

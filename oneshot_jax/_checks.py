@@ -79,10 +79,11 @@ def is_weak(a) -> bool:
     return isinstance(a, (int, float)) and not isinstance(a, bool)
 
 
-def as_float(a, name, dtype=None):
+def as_float(a, name, dtype=None, measured=False):
     """`a` as a floating array (JAX's canonical dtype, or `dtype`). Host data (NumPy
     arrays, lists) stay NumPy arrays, so validation costs no device transfer or eager JAX
-    call; the compiled functions take them as they are."""
+    call; the compiled functions take them as they are. Booleans become 0 and 1, except
+    for `measured` outputs (a comparison such as `z > 0` passed for z)."""
     if type(a) is np.ndarray and a.dtype == dtype and a.dtype.kind == "f":
         return a  # already what it would become (the common case of `fit`'s data)
     try:
@@ -106,6 +107,11 @@ def as_float(a, name, dtype=None):
         raise ValueError(f"`{name}` must hold real numbers, got dtype object.")
     if jnp.issubdtype(a.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
+    if measured and a.dtype == jnp.bool_:
+        raise ValueError(
+            f"`{name}` must hold real numbers (measured outputs), got dtype bool: pass "
+            f"`{name}.astype(float)` for outputs that are 0 or 1."
+        )
     if not jnp.issubdtype(a.dtype, jnp.inexact):
         if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
             raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")
@@ -389,14 +395,14 @@ def check_outside_transformations(*args, name=None):
     )
 
 
-def _checked_trajectories(items, name, dtype, n_traj):
+def _checked_trajectories(items, name, dtype, n_traj, measured=False):
     """Ragged trajectories checked (one per row of x0, each (T_i, c) with T_i >= 1, the
     same c), as float arrays of `dtype`; `_normalise.pad` stacks them."""
     if len(items) != n_traj:
         raise ValueError(
             f"`{name}` holds {len(items)} trajectories but `x0` has {n_traj} rows (N, n_x)."
         )
-    arrays = [as_float(a, f"{name}[{i}]", dtype) for i, a in enumerate(items)]
+    arrays = [as_float(a, f"{name}[{i}]", dtype, measured) for i, a in enumerate(items)]
     for i, a in enumerate(arrays):
         if a.ndim != 2 or a.shape[0] < 1:
             raise ValueError(
@@ -525,6 +531,12 @@ def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
         raise ValueError(
             f"`model.observe` must return a 1-D output z of shape (n_z,), got {shape}."
         )
+    if z_hat.shape[0] == 0:  # (a slice past the state's end, x[2:3] of 2 states, is empty)
+        raise ValueError(
+            f"`model.observe` returned no output (shape (0,)) for a state of shape "
+            f"{x_1.shape}: a slice past the state's end (such as x[{x_1.shape[0]}:"
+            f"{x_1.shape[0] + 1}]) is empty; it must return at least one output."
+        )
     if not jnp.issubdtype(z_hat.dtype, jnp.inexact):  # outputs are real numbers
         model = Model(
             model.step, FloatObserve(model.observe, dtype), input=model.input, timed=model.timed
@@ -649,7 +661,9 @@ def check_data(
             )
         u, lengths = pad(_checked_trajectories(u, "u", dtype, x0.shape[0]), dtype)
         if z is not None:
-            z_padded, z_lengths = pad(_checked_trajectories(z, z_name, dtype, x0.shape[0]), dtype)
+            z_padded, z_lengths = pad(
+                _checked_trajectories(z, z_name, dtype, x0.shape[0], measured=True), dtype
+            )
             for i, (a, b) in enumerate(zip(lengths, z_lengths)):
                 if a != b:
                     raise ValueError(
@@ -720,7 +734,7 @@ def check_data(
 
     mask = None
     if z is not None:
-        z = as_float(z, z_name, z_hat.dtype)
+        z = as_float(z, z_name, z_hat.dtype, measured=True)
         want = (*lead, T, n_z)
         if z.shape != want:
             hint = _transposed_hint(z.shape, u_shape, T, n_z, z_name) or _size_hint(

@@ -474,7 +474,8 @@ def fit_orthogonal(
     if model.timed:
         raise ValueError("`model` is timed (dt=None): `fit_orthogonal` needs a fixed dt.")
     x0, u, z = (
-        np.asarray(as_float(a, name), dtype=float) for a, name in ((x0, "x0"), (u, "u"), (z, "z"))
+        np.asarray(as_float(a, name, measured=name == "z"), dtype=float)
+        for a, name in ((x0, "x0"), (u, "u"), (z, "z"))
     )
     if x0.ndim != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {x0.shape}.")

@@ -451,8 +451,8 @@ def _estimate(
     if not np.all(ok):
         bad = [f"x0[{i}]" for i in np.flatnonzero(~ok)]
         then = (
-            "along that direction the estimate keeps its starting value (from zeros: the "
-            "minimum-norm solution) and their std is inf"
+            "along that direction the estimate stays at the starting guess `x0` (a guess of "
+            "zeros gives the minimum-norm solution) and their std is inf"
             if method == "lsq"
             else "along that direction the smoother leaves the estimate at the prior (mean `x0`, "
             "`prior_covariance`)"

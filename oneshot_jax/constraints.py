@@ -116,11 +116,15 @@ def _fill_like(bound, params, fill, name, where=""):
         return jax.tree_util.tree_unflatten(
             treedef, [_fill_like(b, p, fill, name) for b, p in zip(b_leaves, leaves)]
         )
+    given = bound
+    if isinstance(bound, (list, tuple)) and any(b is None for b in bound):
+        # (a list of numbers with None entries: those entries unbounded, as a None bound)
+        bound = [fill if b is None else b for b in bound]
     kind = getattr(np.asarray(bound) if is_concrete(bound) else bound, "dtype", None)
     if isinstance(bound, (str, bytes, bool, np.bool_)) or (
         kind is not None and np.dtype(kind).kind not in "iuf"
     ):
-        raise ValueError(f"`{name}` must hold real numbers (a bound), got {bound!r}.")
+        raise ValueError(f"`{name}` must hold real numbers (a bound), got {given!r}.")
     if (np.ndim(bound) if is_concrete(bound) else jnp.ndim(bound)) == 0 or len(leaves) == 1:
         xp = np if is_concrete(bound) else jnp
         b = xp.asarray(bound)
@@ -147,7 +151,7 @@ def box(lower=None, upper=None) -> ProximalTransformation:
         (leaves broadcast to each parameter's shape), or for dict parameters a dict naming
         some of them (a nested one as `{"phys": {"c": 0.0}}` or `{"phys.c": 0.0}`), and
         for an equinox module a dict naming some of its fields; missing entries and None
-        mean unbounded (-inf / +inf).
+        (also an entry of a list of numbers: `[0.0, None]`) mean unbounded (-inf / +inf).
 
     **Returns:**
 

@@ -74,6 +74,12 @@ def _check(z, zhat, mask):
         return
     if np.size(z) == 0:
         raise ValueError(f"`z` holds no samples (shape {np.shape(z)}).")
+    shape = np.shape(z)
+    if len(shape) == 2 and shape[0] == 1 and shape[1] >= 2:  # (a (T,) record as a row)
+        raise ValueError(
+            f"`z` holds T = 1 sample of {shape[-1]} outputs (shape {shape}): is it transposed? "
+            "(z is (T, n_z), time first)"
+        )
     if mask is None and np.isnan(np.asarray(z, dtype=float)).any():
         warnings.warn(
             "`z` holds NaN (missing samples), and every output with one scores NaN: pass "

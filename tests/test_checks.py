@@ -167,6 +167,11 @@ NOT_REAL = {
     "x0 complex": (dict(x0=X0.astype(jnp.complex128)), "x0"),
     "u string": (dict(u=np.array([["a", "b"]] * T)), "u"),
     "z complex": (dict(z=Z + 1j), "z"),
+    "z bool": (dict(z=Z > 0), "z"),  # (a comparison passed for the measured outputs)
+    "z bool records": (
+        dict(x0=np.stack([X0, X0]), u=[U, U[:-3]], z=[Z > 0, Z[:-3] > 0]),
+        r"z\[0\]",
+    ),
     "theta string": (dict(theta={"a": "0.9", "B": THETA["B"]}), "theta"),
 }
 
@@ -1177,6 +1182,19 @@ def test_a_model_that_indexes_past_the_end_of_an_array_is_refused():
         return jnp.stack([x[1], table[i] + u[0]])
 
     oj.simulate(oj.Model(by_state, lambda x, u, th: x), {"table": jnp.ones(3)}, x0, u)
+
+
+def test_an_observe_that_slices_past_the_state_is_refused():
+    """A slice past the state's end (x[2:3] of two states) is empty, not an index error:
+    the output had n_z = 0 and the error blamed z's shape, (5, 0)."""
+    model = oj.Model(lambda x, u, th: th["a"] * x, lambda x, u, th: x[2:3])
+    x0, u, z = np.zeros(2), np.ones((5, 1)), np.zeros((5, 1))
+    for call in (
+        lambda: oj.simulate(model, {"a": 0.5}, x0, u),
+        lambda: oj.fit(model, {"a": 0.5}, x0, u, z),
+    ):
+        with pytest.raises(ValueError, match=r"`model.observe` returned no output .* x\[2:3\]"):
+            call()
 
 
 def test_a_transposed_siso_record_names_the_array_that_is_transposed():

@@ -147,6 +147,14 @@ def test_box_bounds_broadcast_and_default_to_infinity():
         jnp.array([-5.0, 5.0])
     )
     np.testing.assert_array_equal(x, [0.0, 2.0])
+    # None entries of a list of numbers are unbounded, as a None bound is.
+    lo, hi = oc.box(lower=[0.0, None, 1.0], upper=(None, 5.0, None)).bounds(jnp.zeros(3))
+    np.testing.assert_array_equal(lo, [0.0, -np.inf, 1.0])
+    np.testing.assert_array_equal(hi, [np.inf, 5.0, np.inf])
+    with pytest.raises(
+        ValueError, match=r"`lower` must hold real numbers .* got \[0.0, 'a', None\]"
+    ):
+        oc.box(lower=[0.0, "a", None]).bounds(jnp.zeros(3))
 
 
 def test_non_negative_and_positive():

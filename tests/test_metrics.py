@@ -295,6 +295,10 @@ def test_metrics_refuse_what_is_no_record_of_numbers(name):
         fn(z, z + 1, np.array([[True, False]] * 10))
     with pytest.raises(ValueError, match=r"`mask` must be true where"):
         fn(z, z + 1, -np.ones_like(z))
+    # a (T,) record passed as a row, (1, T): each "output" had one sample (NaN scores)
+    row = np.arange(30.0)[None]
+    with pytest.raises(ValueError, match=r"T = 1 sample of 30 outputs .* is it transposed\?"):
+        fn(row, row + 0.1)
 
 
 def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
