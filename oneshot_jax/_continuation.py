@@ -101,6 +101,16 @@ def _stage(window, r):
 def _schedule(windows, start, factor, T):
     """The window lengths, shortest first, each shorter than the record."""
     if windows is not None:
+        if start is not None or factor is not None:
+            raise ValueError(
+                "`start` and `factor` make the window lengths when `windows` is not given: "
+                "pass `windows` or them, not both."
+            )
+        if isinstance(windows, (dict, set, frozenset, str, bytes)):
+            raise TypeError(
+                f"`windows` must be a sequence of window lengths (a list or tuple, in the "
+                f"stages' order), got {type(windows).__name__} {windows!r}."
+            )
         try:
             windows = list(windows)
         except TypeError:
@@ -119,6 +129,8 @@ def _schedule(windows, start, factor, T):
                 f"last stage fits the whole record; got {windows!r}."
             )
         return [int(w) for w in windows]
+    start = 50 if start is None else start
+    factor = 2 if factor is None else factor
     if not is_count(start, 1):
         raise ValueError(f"`start` must be a positive integer, got {start!r}.")
     if start >= T:
@@ -171,8 +183,8 @@ def fit_continuation(
     z: Float[ArrayLike, "T n_z"],
     *,
     windows=None,
-    start: int = 50,
-    factor: float = 2,
+    start: int | None = None,
+    factor: float | None = None,
     **kwargs,
 ) -> Continuation:
     """Fit by horizon continuation: short windows first, then longer ones, then the whole
@@ -194,7 +206,8 @@ def fit_continuation(
     - `windows`: the window lengths of the stages before the whole record, increasing,
         each shorter than the record, e.g. `(50, 100, 200)`.
     - `start`, `factor`: without `windows`, the lengths `start`, `start * factor`, ...
-        while shorter than the record (doubling from 50 by default).
+        while shorter than the record (by default 50 and 2: doubling from 50); with
+        `windows`, neither.
     - keyword arguments: passed to every stage's `fit` (`solver`, `weight`, `fixed`,
         `constraints`, ...); not `window`, `multistart` or `aggregate`. `covariance`
         and `estimate_x0` go to the last stage only: the windowed stages compute no
@@ -208,7 +221,7 @@ def fit_continuation(
     A `Continuation`: `result`, the last stage's `FitResult` (whose `success` is its own),
     and `stages`, each stage's window, loss, FIT%, steps and stop reason.
     """
-    _check_fit_keywords(kwargs, "fit_continuation")
+    check_fit_keywords(kwargs, "fit_continuation")
     if "window" in kwargs:
         raise ValueError(
             "`window` is not a keyword of `fit_continuation`: it sets each stage's windows "
@@ -303,7 +316,7 @@ def _held(result):
     return out if at == mask.size else None
 
 
-def _check_fit_keywords(kwargs, where):
+def check_fit_keywords(kwargs, where):
     """A TypeError naming `where` for keywords that neither it nor `fit` takes (they were
     reported as `fit()`'s)."""
     known = inspect.signature(fit).parameters
@@ -377,7 +390,7 @@ def check_basin(
     window = int(window)
     if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not margin >= 0:
         raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
-    _check_fit_keywords(kwargs, "check_basin")
+    check_fit_keywords(kwargs, "check_basin")
     for name in ("window", "multistart"):
         if name in kwargs:
             raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")

@@ -43,6 +43,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from ._checks import as_float, check_data, is_weak
+from ._continuation import check_fit_keywords
 from ._fit import fit
 from ._fit_result import FitResult
 from ._model import Model
@@ -98,7 +99,8 @@ def _learned_keys(theta0, learned):
     if len(set(keys)) != len(keys):
         raise ValueError(f"`learned` names a key twice: {keys!r}.")
     for k in keys:
-        if not any(eqx.is_inexact_array(a) for a in jax.tree_util.tree_leaves(theta0[k])):
+        leaves = jax.tree_util.tree_leaves(theta0[k])
+        if not any(eqx.is_inexact_array(a) or is_weak(a) for a in leaves):  # (as `fit` reads)
             raise ValueError(f"`learned` names {k!r}, which holds no floating array to fit.")
     physical = [k for k in theta0 if k not in keys]
     if not any(
@@ -191,6 +193,7 @@ def fit_physics_first(
     hybrid, whose physical entries equal stage 1's); `success` when both stages
     succeeded.
     """
+    check_fit_keywords(kwargs, "fit_physics_first")
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
     if multistart is True:
@@ -457,6 +460,7 @@ def fit_orthogonal(
     physical sensitivities), the last round's `FitResult` and `converged`; `success`
     when the rounds converged and the last fit succeeded.
     """
+    check_fit_keywords(kwargs, "fit_orthogonal")
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
     refused = sorted(k for k in kwargs if k in _REFUSED)

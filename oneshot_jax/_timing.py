@@ -45,6 +45,11 @@ def as_times(a, name):
         arr = np.asarray(a)
     except (TypeError, ValueError) as err:
         raise TypeError(f"`{name}` must be an array of sample times, got {a!r}.") from err
+    if arr.dtype.kind in "mM":  # (NumPy counts a timedelta64 as an integer: of its unit)
+        raise TypeError(
+            f"`{name}` must hold real numbers in the model's time unit, got dtype "
+            f"{arr.dtype}: convert it, e.g. `(t - t[0]) / np.timedelta64(1, 's')` for seconds."
+        )
     if arr.dtype == bool or not (
         np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
     ):

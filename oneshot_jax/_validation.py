@@ -176,7 +176,9 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     except (ValueError, TypeError) as err:
         message = str(err)
         if "NaN or inf" in message:  # (the hint of `missing="mask"` is `fit`'s z's, not this)
-            message = message.split(" (")[0] + ": held-out records must be fully measured."
+            message = (
+                message.split(" (")[0].rstrip(".") + ": held-out records must be fully measured."
+            )
         raise type(err)(f"`validation`: {message}") from None
     if data.lengths is not None:
         raise ValueError("`validation`: records of different lengths are not supported.")

@@ -406,6 +406,8 @@ def benchmark_scores(z, zhat, n=None) -> BenchmarkScores:
             f"`z` holds T = {T} sample of {y.shape[1]} outputs: is it transposed? (z is "
             "(T, n_z), time first)"
         )
+    if T < 2:
+        raise ValueError(f"`z` must hold at least two samples to score, got T = {T}.")
     if not 0 <= n <= T - 2:
         raise ValueError(
             f"`n` must satisfy 0 <= n <= T - 2 = {T - 2} (at least two samples scored), got {n}."
@@ -689,6 +691,15 @@ def residual_correlations(
     cross = independent = cross_outside = cross_bound = None
     if u is not None:
         u, known = _inputs(u, N, T)
+        beyond = measured.any(axis=-1) & ~known  # (records given in another order)
+        if beyond.any():
+            i = int(np.flatnonzero(beyond.any(axis=1))[0])
+            last = int(np.flatnonzero(measured[i].any(axis=-1))[-1])
+            raise ValueError(
+                f"`u[{i}]` has {int(known[i].sum())} samples but `e[{i}]` has measured "
+                f"residuals up to sample {last}: give the records of `u` in the order of "
+                "`e`'s, each as long as its record."
+            )
         if not np.all(np.isfinite(u[known])):
             raise ValueError("`u` contains NaN or inf values: the inputs must be known.")
         count = known.sum()

@@ -238,7 +238,7 @@ def compare(
         and all(isinstance(m, (FitResult, Prediction)) for m in models[0])
     ):  # (a list of results, as MATLAB's compare(data, sys1, sys2) users may pass them)
         models = tuple(models[0])
-    if not models:
+    if not models or (len(models) == 1 and isinstance(models[0], (list, tuple)) and not models[0]):
         raise ValueError("`models` is empty: pass at least one model (or model output).")
     if n_z > T:
         warnings.warn(

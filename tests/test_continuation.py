@@ -144,6 +144,10 @@ def test_doubling_schedule():
         ({"start": 400}, "shorter than the record"),
         ({"start": 0}, "positive integer"),
         ({"factor": 1}, "factor"),
+        # (start and factor were ignored beside windows; a dict's keys were the lengths)
+        ({"windows": (40,), "start": 10}, "pass `windows` or them, not both"),
+        ({"windows": (40,), "factor": 3}, "pass `windows` or them, not both"),
+        ({"windows": {40: 1}}, "a sequence of window lengths .* got dict"),
         ({"window": 50}, "window"),
         ({"multistart": True}, "multistart"),
         # It said "`window` cannot be combined with `aggregate`", a `window` never passed.
@@ -154,7 +158,7 @@ def test_doubling_schedule():
     ],
 )
 def test_continuation_rejects_bad_arguments(kwargs, match):
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises((ValueError, TypeError), match=match):
         oj.fit_continuation(MODEL, START, np.zeros(2), U, Z, **kwargs)
 
 

@@ -880,6 +880,32 @@ def test_bad_arguments_raise_value_errors_naming_them(tiny):
         oj.fit(TINY, TINY_THETA0, TINY_X00, u, z, constraints="positive")
 
 
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        # (the compiled loops count steps in int32: 10**12 wrapped to a negative budget)
+        (lambda: oj.LevenbergMarquardt(max_steps=10**12), r"max_steps=\.\.\.\)` must be at most"),
+        (lambda: oj.Adam(max_steps=2**32 + 3), r"`Adam\(max_steps=\.\.\.\)` must be at most"),
+        (lambda: oj.LBFGS(max_steps=2**31), "must be at most 2\\*\\*31 - 1"),
+        # (LevenbergMarquardt(5) meant max_steps=5: it set rtol, and the fit stopped early)
+        (
+            lambda: oj.LevenbergMarquardt(5),
+            r"rtol=\.\.\.\)` must be a number in \[0, 1\).*by keyword",
+        ),
+        (lambda: oj.GaussNewton(rtol=1.0), r"`GaussNewton\(rtol=\.\.\.\)` must be a number in"),
+        # (no conjugate-gradient step: theta never moved, and the fit said max_steps)
+        (
+            lambda: oj.LevenbergMarquardt(cg_max_steps=0),
+            r"cg_max_steps=\.\.\.\)` must be an integer >= 1",
+        ),
+    ],
+)
+def test_solver_options_out_of_range_are_refused(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+    oj.LevenbergMarquardt(max_steps=2**31 - 1, rtol=0.5, cg_max_steps=1)  # (the limits)
+
+
 def test_gauss_newton_steps_past_a_parameter_without_effect():
     # b multiplies max(x - 100, 0), which is zero along the whole trajectory: its Jacobian
     # column vanishes, the normal equations are singular, and the pseudo-inverse step

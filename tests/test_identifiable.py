@@ -127,12 +127,16 @@ def test_physics_first_rejects_bad_arguments(case):
         oj.fit_physics_first(model, theta0, x0, u, z, learned="net")
     with pytest.raises(ValueError, match="`learned` names a key twice"):
         oj.fit_physics_first(model, theta0, x0, u, z, learned=("r", "r"))
+    # (an integer array is data to `fit`, not a parameter; a Python number is one)
     with pytest.raises(ValueError, match="`learned` names 'b', which holds no floating"):
-        oj.fit_physics_first(model, {**theta0, "b": 2}, x0, u, z, learned=("r", "b"))
+        oj.fit_physics_first(model, {**theta0, "b": np.array(2)}, x0, u, z, learned=("r", "b"))
     with pytest.raises(ValueError, match="`learned` names every parameter"):
         oj.fit_physics_first(model, {"r": theta0["r"]}, x0, u, z, learned="r")
     with pytest.raises(TypeError, match="`fixed` must be None or a dict"):
         oj.fit_physics_first(model, theta0, x0, u, z, fixed=[True])
+    for fn in (oj.fit_physics_first, oj.fit_orthogonal):  # (they said `fit()` got it)
+        with pytest.raises(TypeError, match=rf"`{fn.__name__}` got unexpected keyword .*bogus"):
+            fn(model, theta0, x0, u, z, bogus=1)
     with pytest.raises(ValueError, match="`fixed` has keys that theta0 does not have"):
         oj.fit_physics_first(model, theta0, x0, u, z, fixed={"k": True})
     with pytest.raises(ValueError, match="`multistart` has starts of the learned terms"):
@@ -152,6 +156,17 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     assert r.rounds[-1].moved <= 0.1
     assert r.x0.shape == (2,)
     assert "Orthogonal augmentation" in str(r)
+
+
+def test_physics_first_learns_a_term_written_as_a_python_float(case):
+    """A learned term written as a Python float (b = 0.2), which `fit` estimates, was
+    refused as holding "no floating array to fit": stage 1 holds it, stage 2 fits it."""
+    model, theta0, u, z = case
+    short = oj.LevenbergMarquardt(max_steps=2)
+    r = oj.fit_physics_first(
+        model, theta0, np.zeros(2), u, z, learned=("r", "b"), solver=short, network_solver=short
+    )
+    assert float(r.physics.theta["b"]) == 0.2 != float(r.result.theta["b"])
 
 
 def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case):

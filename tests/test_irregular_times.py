@@ -431,6 +431,13 @@ def test_timed_model_needs_t():
         (lambda t: "0 1 2", TypeError, "`t` must be an array of sample times"),
         (lambda t: t.astype(complex), TypeError, "`t` must hold real numbers"),
         (lambda t: t[None], ValueError, r"`t` must have shape \(12,\)"),
+        # (a pandas index's differences: NumPy counts them as integers, of nanoseconds)
+        (
+            lambda t: (t * 1e9).astype("timedelta64[ns]"),
+            TypeError,
+            r"`t` must hold real numbers in the model's time unit, got dtype timedelta64\[ns\]",
+        ),
+        (lambda t: np.datetime64("2026-01-01") + t.astype(int), TypeError, "datetime64"),
     ],
 )
 def test_bad_t_names_t(bad, error, match):

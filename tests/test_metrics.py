@@ -243,6 +243,8 @@ def test_benchmark_scores_perfect_and_mean_models():
         ((50,), (50,), 2.5, TypeError, "`n` must be an integer"),
         ((50,), (50,), True, TypeError, "`n` must be an integer"),
         ((50,), (50,), None, ValueError, "`n` .* is required"),
+        ((0,), (0,), 0, ValueError, r"at least two samples to score, got T = 0"),
+        ((1,), (1,), 0, ValueError, r"at least two samples to score, got T = 1"),
     ],
 )
 def test_benchmark_scores_bad_input(z_shape, zhat_shape, n, error, pattern):

@@ -139,6 +139,9 @@ def test_records_of_different_lengths_pool_within_each_record():
     oj.plot.resid(e, u, max_lag=M)
     with pytest.raises(ValueError, match=r"`u` must hold the N = 2 records of `e`, got 3"):
         metrics.residual_correlations(e, [*u, u[1][:10]], max_lag=M)
+    # (in the other order, the first record's residuals past sample 39 were dropped)
+    with pytest.raises(ValueError, match=r"`u\[0\]` has 40 samples but `e\[0\]` has .* 119"):
+        metrics.residual_correlations(e, u[::-1], max_lag=M)
 
 
 def test_whiteness_verdict():
@@ -530,6 +533,9 @@ def test_compare_names_bad_labels():
     z = np.ones((20, 1))
     with pytest.raises(TypeError, match=r"`labels` must be a string or a sequence of 1"):
         oj.plot.compare(z, z, labels=5)
+    for empty in ((), ([],)):  # (an empty list was read as an output of shape (0, 1))
+        with pytest.raises(ValueError, match="`models` is empty"):
+            oj.plot.compare(z, *empty)
 
 
 def test_compare_names_its_outputs_and_time_axis():

@@ -165,6 +165,8 @@ def check_options(solver, *, positive=(), non_negative=(), integers=(), fraction
         v = getattr(solver, field)
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 0:
             raise ValueError(f"`{name}({field}=...)` must be a non-negative integer, got {v!r}.")
+        if v > 2**31 - 1:  # (the compiled loops count in int32: a larger budget wraps)
+            raise ValueError(f"`{name}({field}=...)` must be at most 2**31 - 1, got {v!r}.")
     for field in fractions:
         v = getattr(solver, field)
         if not is_real(v) or not 0 <= v < 1:

@@ -89,7 +89,7 @@ from .._strategy import (
 )
 from ._linearisation import AbstractLinearisation, linearise, placeholder
 from ._search import AbstractSearch
-from .base import AbstractSolver, check_options
+from .base import AbstractSolver, check_options, is_real
 
 # The most Jacobian columns per trajectory (free entries of theta and of one x0) for which
 # a step linearises at its trial point (`AbstractLeastSquares._linearises_trials`).
@@ -142,12 +142,22 @@ class AbstractLeastSquares(AbstractSolver):
     cg_max_steps: eqx.AbstractVar[int]
 
     def _check(self):
+        name = type(self).__name__
+        if is_real(self.rtol) and not 0 <= self.rtol < 1:  # (a step test that always fires)
+            raise ValueError(
+                f"`{name}(rtol=...)` must be a number in [0, 1), got {self.rtol!r} (the first "
+                f"positional argument is rtol: write `{name}(max_steps=...)` by keyword)."
+            )
         check_options(
             self,
             non_negative=("rtol", "atol", "stol", "cg_rtol"),
             fractions=("gtol",),
             integers=("max_steps", "cg_max_steps"),
         )
+        if self.cg_max_steps < 1:  # (no conjugate-gradient step: theta would never move)
+            raise ValueError(
+                f"`{name}(cg_max_steps=...)` must be an integer >= 1, got {self.cg_max_steps!r}."
+            )
         as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(
