@@ -366,7 +366,8 @@ def check_basin(
         FIT the bounds forbid). `fixed` defaults to what the result held
         (`FitResult.fixed`, per key of a dict theta; for another theta with held
         entries, pass `fixed`: the check warns): a network held in the fit and freed in
-        the windows would fit them better for that alone.
+        the windows would fit them better for that alone. `missing` defaults to the
+        result's (`"mask"` after a fit that took NaN in z as missing samples).
 
     **Returns:**
 
@@ -411,6 +412,8 @@ def check_basin(
                 UserWarning,
                 stacklevel=2,
             )
+    if "missing" not in kwargs:  # (a fit with missing="mask": z holds its NaN samples)
+        kwargs["missing"] = result.missing
     windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])
     short = np.asarray(windowed.metrics["fit_percent"])

@@ -187,6 +187,12 @@ def test_basin_check_holds_what_the_fit_held():
     assert check.windowed.names == ("b",)
     free = oj.check_basin(held, U, Z, window=100, fixed=None)
     assert free.windowed.names == ("b", "w0sq")
+    # A fit that took NaN in z as missing samples: the windows do too (they raised).
+    gaps = np.array(Z)
+    gaps[[7, 250]] = np.nan
+    masked = oj.fit(MODEL, TRUTH, np.zeros(2), U, gaps, fixed={"w0sq": True}, missing="mask")
+    check = oj.check_basin(masked, U, gaps, window=100)
+    assert np.isnan(check.windowed.residuals).sum() == 2
 
 
 # A first-order lag x' = a (u - x): one real eigenvalue -a.
