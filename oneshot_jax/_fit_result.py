@@ -592,11 +592,11 @@ class FitResult(eqx.Module):
             `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
             `missing=` is by default the fit's for `method="lsq"`: after a fit with
             `missing="mask"`, NaN in `z_head` are missing samples (the smoother needs
-            every sample). The smoother's measurement noise defaults to the one the fit estimated,
-            sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE / dof of its
-            weighted residuals, as its standard errors use): a weight's scale, which a
-            fit ignores, does not change it. Where Q is singular (an output of weight 0)
-            or the residuals are exactly zero, `estimate_x0`'s defaults apply.
+            every sample). The smoother's measurement noise defaults to the one the fit
+            estimated, sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE /
+            dof of its weighted residuals, as its standard errors use): a weight's scale,
+            which a fit ignores, does not change it. Where Q is singular (an output of
+            weight 0) or the residuals are exactly zero, `estimate_x0`'s defaults apply.
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
