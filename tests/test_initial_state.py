@@ -567,7 +567,8 @@ def test_unobservable_combination_warning_names_a_direction_not_a_held_entry():
     u = np.random.default_rng(0).standard_normal((30, 1))
     _, z = oj.simulate(m, 0.8, np.array([1.0, 2.0]), u)
     with pytest.warns(
-        UserWarning, match=r"alone or together.*along that direction the estimate keeps"
+        UserWarning,
+        match=r"alone or together.*along that direction the estimate stays at the starting guess",
     ):
         est = oj.estimate_x0(m, 0.8, u, z, n=10, x0=np.array([5.0, 0.0]))
     np.testing.assert_allclose(est.x0, [4.0, -1.0], atol=1e-9)  # the sum fitted, (5, 0) + t(1, -1)
