@@ -234,11 +234,10 @@ def compare(
     if (
         len(models) == 1
         and isinstance(models[0], (list, tuple))
-        and models[0]
         and all(isinstance(m, (FitResult, Prediction)) for m in models[0])
     ):  # (a list of results, as MATLAB's compare(data, sys1, sys2) users may pass them)
         models = tuple(models[0])
-    if not models or (len(models) == 1 and isinstance(models[0], (list, tuple)) and not models[0]):
+    if not models:
         raise ValueError("`models` is empty: pass at least one model (or model output).")
     if n_z > T:
         warnings.warn(

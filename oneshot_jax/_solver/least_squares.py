@@ -158,15 +158,15 @@ class AbstractLeastSquares(AbstractSolver):
             raise ValueError(
                 f"`{name}(cg_max_steps=...)` must be an integer >= 1, got {self.cg_max_steps!r}."
             )
-        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
+        as_strategy(self.strategy, f"`{name}(strategy=...)`")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(
-                f"`{type(self).__name__}(linear_solver=...)` must be one of {LINEAR_SOLVERS}, "
+                f"`{name}(linear_solver=...)` must be one of {LINEAR_SOLVERS}, "
                 f"got {self.linear_solver!r}."
             )
         if isinstance(as_strategy(self.strategy), ParallelInTime) and self.linear_solver == "cg":
             raise ValueError(
-                f"`{type(self).__name__}(linear_solver='cg')` runs its Jacobian-vector "
+                f"`{name}(linear_solver='cg')` runs its Jacobian-vector "
                 "products by sequential recursions and does not combine with "
                 "strategy='parallel': take linear_solver='dense' (or 'auto') there."
             )
