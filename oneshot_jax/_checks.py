@@ -440,10 +440,10 @@ def _naming_shapes(what, x_1, u_1, x0, u, theta, theta_name):
         ) from err
 
 
-def _check_rhs(rhs, x_1, u_1, theta, x0, u, theta_name):
+def _check_rhs(rhs, x_1, u_1, theta, x0, u, theta_name, shown):
     """`Model.from_ode`'s `rhs` traced once on abstract values: it must return dx/dt of
     the state's shape."""
-    with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u, theta, theta_name):
+    with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u, shown, theta_name):
         dx = _abstract_call(rhs, x_1, u_1, theta)
     if not isinstance(dx, jax.ShapeDtypeStruct) or dx.shape != x_1.shape:
         if isinstance(dx, (list, tuple)):
@@ -487,11 +487,13 @@ def _check_indices(model, theta, x_1, u_step, u_seen, n_u):
         )
 
 
-def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
+def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta", shown=None):
     """Trace the user's functions once on abstract values, so that a step that changes the
     state's shape or dtype is reported here and not as an error deep inside a scan.
     Returns the model (its observation promoted to `dtype` where it returns integers) and
-    the abstract output z."""
+    the abstract output z. `shown`: the theta that the errors describe (default `theta`,
+    whose held leaves are None)."""
+    shown = theta if shown is None else shown
     x_1 = jax.ShapeDtypeStruct(x0.shape[len(lead) :], x0.dtype)
     u_1 = jax.ShapeDtypeStruct(u.shape[len(lead) + 1 :], u.dtype)
     u_seen = u_1  # a timed model's functions see the interval appended (`_timing`)
@@ -501,10 +503,10 @@ def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta"):
     if isinstance(model.step, ODE_STEPS):
         # RK4 broadcasts dx/dt against x: a right-hand side of the wrong shape would give
         # a state of the right shape and a wrong model.
-        _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u, theta_name)
-    with _naming_shapes("the model's `step`", x_1, u_1, x0, u, theta, theta_name):
+        _check_rhs(model.step.rhs, x_1, u_1, theta, x0, u, theta_name, shown)
+    with _naming_shapes("the model's `step`", x_1, u_1, x0, u, shown, theta_name):
         x_next = _abstract_call(model.step, x_1, u_step, theta)
-    with _naming_shapes("the model's `observe`", x_1, u_1, x0, u, theta, theta_name):
+    with _naming_shapes("the model's `observe`", x_1, u_1, x0, u, shown, theta_name):
         z_hat = _abstract_call(model.observe, x_1, u_seen, theta)
     _check_indices(model, theta, x_1, u_step, u_seen, u_1.shape[0])
     if not isinstance(x_next, jax.ShapeDtypeStruct) or x_next.shape != x_1.shape:
@@ -637,6 +639,7 @@ def check_data(
         dtype = common_dtype(_pytree.split(theta)[0], x0, *rows_u, *rows_z)
     else:
         _, dtype, bound, z_hat = known
+    shown = theta  # (the errors describe the whole theta, its held integer leaves too)
     theta, static = check_theta(theta, dtype, theta_name)
     given = model
     model = bind_model(model, static) if known is None else bound
@@ -728,7 +731,7 @@ def check_data(
                 f"leading axes of `u`: T = {T} samples), got shape {z_shape}{hint}."
             )
     if known is None:
-        model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name)
+        model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name, shown)
     n_z = z_hat.shape[0]
     u = append_intervals(u, intervals)
 

@@ -324,9 +324,20 @@ _META_KEYS = (
 
 
 def _read_arrays(path):
-    """Every array of the `.npz` file, never unpickling (a saved result holds none)."""
+    """Every array of the `.npz` file, never unpickling (a saved result holds none). The
+    file is opened here, so that it is closed whatever NumPy makes of it (`np.load` of a
+    path leaves it open when the archive is damaged)."""
     try:
-        npz = np.load(path, allow_pickle=False)
+        fh = open(path, "rb")  # (closed below, whatever is raised)
+    except OSError as err:
+        raise _damaged(path, f"not a readable .npz archive ({type(err).__name__}: {err})") from err
+    with fh:
+        return _read_open(path, fh)
+
+
+def _read_open(path, fh):
+    try:
+        npz = np.load(fh, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
         if "pickle" in str(err):  # NumPy's advice (load it unsafely) is not ours to give
             raise _damaged(path, "not an .npz archive of arrays") from None
@@ -442,6 +453,7 @@ def read_result(path, *, like=None, model=None) -> dict:
         )
 
     try:
+        _check_shapes(arrays, meta, group)
         return _fields(arrays, meta, group, build, static)
     except KeyError as err:
         raise _damaged(path, f"it lacks the entry {err.args[0]!r}") from err
@@ -449,6 +461,44 @@ def read_result(path, *, like=None, model=None) -> dict:
         raise _damaged(
             path, f"its entries do not fit together ({type(err).__name__}: {err})"
         ) from err
+
+
+def _check_shapes(arrays, meta, group):
+    """Raise a ValueError where the file's arrays do not fit together as `save` writes
+    them: a file without its `digest` (of an earlier version, or edited with the digest
+    removed) is not otherwise checked, and a wrong shape would surface later, far from
+    the file (in `print(result)`, `predict` or a plot)."""
+    theta, std = group("theta/"), group("std/")
+    for i, a in enumerate(theta):
+        if a.dtype.kind not in "biuf":
+            raise ValueError(f"theta leaf {i} holds {a.dtype} values, not numbers")
+    if [a.shape for a in std] != [a.shape for a in theta]:
+        raise ValueError(
+            f"std's leaves have shapes {[a.shape for a in std]}, theta's {[a.shape for a in theta]}"
+        )
+    p = len(meta["names"])
+    if arrays["covariance"].shape not in ((p, p), (0, 0)):  # ((0, 0): not computed)
+        raise ValueError(f"covariance has shape {arrays['covariance'].shape}, not ({p}, {p})")
+    x0, x0_cov = arrays["x0"], arrays["x0_covariance"]
+    if x0.ndim not in (1, 2) or arrays["x0_std"].shape != x0.shape:
+        raise ValueError(f"x0 has shape {x0.shape}, x0_std {arrays['x0_std'].shape}")
+    if arrays["x0_estimated"].shape != x0.shape[-1:]:
+        raise ValueError(f"x0 has shape {x0.shape}, x0_estimated {arrays['x0_estimated'].shape}")
+    # (over the estimated entries of x0, or (0, 0): not computed)
+    if x0_cov.ndim < 2 or x0_cov.shape[-1] != x0_cov.shape[-2] or x0_cov.shape[-1] > x0.shape[-1]:
+        raise ValueError(f"x0_covariance has shape {x0_cov.shape}, x0 {x0.shape}")
+    if np.ndim(arrays["loss"]) != 0 or np.ndim(arrays["residuals"]) < 2:
+        raise ValueError(
+            f"loss has shape {np.shape(arrays['loss'])} and residuals "
+            f"{np.shape(arrays['residuals'])}: a scalar and (..., T, n_z) expected"
+        )
+    n = np.shape(arrays["history/loss"])
+    for i, (h, a) in enumerate(zip(group("history/theta/"), theta, strict=True)):
+        if h.shape != (*n, *a.shape):
+            raise ValueError(
+                f"history's theta leaf {i} has shape {h.shape}, not {(*n, *a.shape)} (its "
+                f"{n[0] if n else 0} rows of theta leaf {i})"
+            )
 
 
 def _fields(arrays, meta, group, build, static) -> dict:

@@ -126,8 +126,9 @@ def check_schedule(schedule, name):
         ok, detail = False, f"raised {type(err).__name__}: {err}"
     if not ok:
         raise TypeError(
-            f"{name} must be a learning rate (a finite number > 0) or an optax schedule "
-            f"mapping the step count to one; called with the count 0 it {detail}."
+            f"{name} must be a learning rate or an optax schedule mapping the step count "
+            f"to one (a finite real number >= 0: a warm-up may start at 0); called with the "
+            f"count 0 it {detail}."
         )
 
 

@@ -118,6 +118,14 @@ class Windows(eqx.Module):
                     f"windows of {self.length} samples."
                 )
             s = s[np.unique(np.round(np.linspace(0, s.size - 1, self.count)).astype(int))]
+        if self.every > 1 and s.size > 1 and self.every >= s.size:
+            # (a stride read as samples, not windows, would fit one window without a word)
+            raise ValueError(
+                f"`Windows(every={self.every})` takes every {self.every}-th window, but the "
+                f"record (T = {T}) holds only {s.size} windows of {self.length} samples: it "
+                f"would keep the first alone. `every` counts windows, not samples; for one "
+                f"window take `Windows({self.length}, count=1)`."
+            )
         return s[:: self.every]
 
 

@@ -304,6 +304,16 @@ def test_bad_model(case, entry):
         call(entry, model=model, **kwargs)
 
 
+def test_a_failing_model_call_describes_the_held_leaves_of_theta():
+    """The shapes in the message were None for theta's integer leaves (held as data)."""
+    model = oj.Model(lambda x, u, th: th["missing"] * x, observe)
+    theta = {**THETA, "n": np.int64(3), "k": np.arange(4)}
+    with pytest.raises(
+        ValueError, match=r"leaf shapes \{'B': \(3, 2\), 'a': \(\), 'k': \(4,\), 'n': \(\)\}"
+    ):
+        oj.simulate(model, theta, X0, U)
+
+
 def test_a_transposed_input_is_named():
     with pytest.raises(
         ValueError, match=r"`u` of shape \(2, 6\) holds T = 2 samples of 6 inputs: "
@@ -733,6 +743,8 @@ def test_the_intersection_of_boxes_that_meet_is_kept():
         (lambda: oj.Adam(lr_theta=lambda: 1e-3), TypeError, r"`Adam\(lr_theta=...\)` must be"),
         (lambda: oj.Adam(lr_x0=lambda c: jnp.ones(3)), TypeError, r"`Adam\(lr_x0=...\)`"),
         (lambda: oj.Adam(lr_theta=lambda c: jnp.nan), TypeError, r"returned nan"),
+        # (the bound it states is the one it checks: a schedule may start at 0)
+        (lambda: oj.Adam(lr_theta=lambda c: -1e-3), TypeError, r">= 0: a warm-up .*returned -0"),
         (lambda: oj.LevenbergMarquardt(gtol=1.0), ValueError, r"`LevenbergMarquardt\(gtol"),
         (lambda: oj.Adam(gtol=2.0), ValueError, r"`Adam\(gtol=...\)` must be a number in"),
         (lambda: oj.Validation(_U1, None, n=2), ValueError, r"`Validation` needs `z`"),

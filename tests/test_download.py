@@ -111,6 +111,33 @@ def test_emps_download_checksum_and_cache(server, tmp_path, monkeypatch):
     assert ds.default_cache_dir() == cache and cache in ds.default_data_dirs()
 
 
+def test_a_cached_file_that_changed_is_downloaded_again(server, tmp_path, monkeypatch):
+    """download=True used to take whatever the cache held, checked once when downloaded."""
+    base, www, log = server
+    src = tmp_path / "src"
+    src.mkdir()
+    files = _emps_mats(src)
+    _zip(www / "EMPS.zip", files)
+    _trust(monkeypatch, "emps", files)
+    cache = tmp_path / "cache"
+    ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    cached = cache / "emps" / "DATA_EMPS_PULSES.mat"
+    cached.write_bytes(cached.read_bytes() + b"edited")  # changed in the cache
+    with pytest.raises(ds.DatasetFormatError, match="not a readable MATLAB"):
+        ds.load_emps(tmp_path / "empty", cache_dir=cache)  # (not asked to download: as found)
+    assert log == ["/EMPS.zip"]
+    with pytest.warns(UserWarning, match=r"DATA_EMPS_PULSES\.mat in the download cache .* no "):
+        ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
+    assert log == ["/EMPS.zip", "/EMPS.zip"]
+    assert cached.read_bytes() == (src / "DATA_EMPS_PULSES.mat").read_bytes()
+    # The user's own folder is theirs: its files are read as they are.
+    own = tmp_path / "own"
+    own.mkdir()
+    _emps_mats(own, n=30)
+    d = ds.load_emps(own, download=True, cache_dir=cache, base_url=base)
+    assert len(d.test) == 30 and len(log) == 2
+
+
 def test_checksum_mismatch_keeps_nothing(server, tmp_path):
     """Synthetic files are not the official ones: the reference SHA-256 refuses them."""
     base, www, _ = server

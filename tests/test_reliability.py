@@ -6,6 +6,7 @@ The setup of the reproducers: a damped oscillator observed through its position,
 T = 100, theta0 = {"k": 1.5, "c": 0.3}, x0 = [0.9, 0.1]."""
 
 import dataclasses
+import gc
 import json
 import warnings
 
@@ -293,7 +294,10 @@ def test_a_damaged_result_file_gives_one_clear_error(saved, tmp_path):
         meta = json.loads(str(npz["__meta__"]))
     bad_tree = {**meta, "theta_tree": {"dict": {"c": {"leaf": 0}, "k": {"leaf": 7}}}}
     with np.load(path, allow_pickle=False) as npz:
-        x0 = npz["x0"]
+        x0, x0_std = npz["x0"], npz["x0_std"]
+    # A file without its digest (of an earlier version) is checked by its shapes.
+    undigested = np.array(json.dumps({k: v for k, v in meta.items() if k != "digest"}))
+    assert oj.load_result(_rewrite(path, tmp_path / "undigested.npz", __meta__=undigested))
     cases = {
         # edited after saving: well-formed, but not what was saved (they loaded, and
         # a shorter x0 broke print(result) later)
@@ -310,16 +314,31 @@ def test_a_damaged_result_file_gives_one_clear_error(saved, tmp_path):
         "objects.npz": lambda f: np.savez(
             f, __meta__=np.array(json.dumps(meta)), x0=np.array([None, 1], dtype=object)
         ),
+        "undigested_x0_std.npz": lambda f: _rewrite(
+            path, f, __meta__=undigested, x0_std=x0_std[..., :1]
+        ),
+        "undigested_covariance.npz": lambda f: _rewrite(
+            path, f, __meta__=undigested, covariance=np.ones((5, 5))
+        ),
+        "undigested_text.npz": lambda f: _rewrite(
+            path, f, **{"__meta__": undigested, "theta/0": np.array("x")}
+        ),
     }
-    for name, write in cases.items():
-        f = tmp_path / name
-        write(f)
-        with pytest.raises(ValueError) as e:
-            oj.load_result(f)
-        msg = str(e.value)
-        assert type(e.value) is ValueError, (name, type(e.value))
-        assert name in msg and "damaged" in msg, (name, msg)
-        assert "allow_pickle" not in msg and "unsafe" not in msg, (name, msg)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        for name, write in cases.items():
+            f = tmp_path / name
+            write(f)
+            with pytest.raises(ValueError) as e:
+                oj.load_result(f)
+            msg = str(e.value)
+            assert type(e.value) is ValueError, (name, type(e.value))
+            assert name in msg and "damaged" in msg, (name, msg)
+            assert "allow_pickle" not in msg and "unsafe" not in msg, (name, msg)
+            del e
+        gc.collect()
+    # (a damaged archive used to leave its file open)
+    assert not [w for w in seen if issubclass(w.category, ResourceWarning)]
 
 
 def test_save_and_load_keep_the_diagnostics(saved, tmp_path):

@@ -89,6 +89,10 @@ def test_windows_checks():
         oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(50, starts=[0, 380]))
     with pytest.raises(ValueError, match="holds only"):
         oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(100, count=5))
+    # A stride in samples given as `every`: 4 windows of 100, every 4th keeps one.
+    with pytest.raises(ValueError, match=r"holds only 4 windows .*counts windows, not samples"):
+        oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(100, every=4))
+    np.testing.assert_array_equal(oj.Windows(100, every=3).first_samples(T), [0, 300])
 
 
 @pytest.mark.parametrize("length", [1, 2])

@@ -31,7 +31,10 @@ Nothing is downloaded unless asked. With `download=True`, a loader that finds no
 fetches the official archive (the URLs of `nonlinear_benchmarks`) into the cache folder
 (`cache_dir` argument, default `default_cache_dir()`), unpacks it, and checks the data
 files' SHA-256 against reference checksums (known for EMPS and the tanks' CSV; for the
-other files a `UserWarning` gives the checksum of what was downloaded). A base URL
+other files a `UserWarning` gives the checksum of what was downloaded). Files that an
+earlier download left in the cache are checked again by the next loader call with
+`download=True`: one that no longer matches its reference checksum (damaged or edited
+since) is downloaded again, with a warning. A base URL
 (`base_url` argument, or `$ONESHOT_JAX_DATA_URL`) replaces the official URLs: the archive
 is then fetched from `<base_url>/<archive name>`.
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .._checks import check_path as check_path
-from ._download import SOURCES, fetch
+from ._download import SOURCES, fetch, sha256
 from ._locations import (
     CACHE_ENV_VAR,
     ENV_VAR,
@@ -73,6 +73,17 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
         dirs += _folders(Path(cache).expanduser() / SOURCES[name].subdir)
     dirs = list(dict.fromkeys(dirs))
     folder, names = find_folder(dirs, alternatives)
+    if folder is not None and download:
+        changed = _changed_in_cache(folder, names, name, cache)
+        if changed:
+            warnings.warn(
+                f"{', '.join(changed)} in the download cache {folder} no longer "
+                f"match{'es' if len(changed) == 1 else ''} the official file's SHA-256 "
+                "(damaged or edited since it was downloaded): downloading the files again.",
+                UserWarning,
+                stacklevel=3,
+            )
+            folder = None
     if folder is not None:
         return folder, names
     if not download:
@@ -93,6 +104,18 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
             f"{target}: the download does not hold {' or '.join(map(' and '.join, alternatives))}."
         )
     return folder, names
+
+
+def _changed_in_cache(folder, names, name, cache):
+    """The files of `names` in `folder` that an earlier download put in the cache (under
+    `<cache>/<subdir>`) and whose SHA-256 differs from their reference checksum (files
+    without one, and the user's own folders, are not judged)."""
+    src = SOURCES[name]
+    try:
+        folder.resolve().relative_to((Path(cache).expanduser() / src.subdir).resolve())
+    except ValueError:
+        return []
+    return [f for f in sorted(names) if src.files.get(f) and sha256(folder / f) != src.files[f]]
 
 
 def not_found(what, files, searched, url, subdir):
