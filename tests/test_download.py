@@ -88,14 +88,20 @@ def _nothing_kept(cache, subdir):
     return not (cache / subdir).exists() and not list(cache.glob(f".{subdir}-*"))
 
 
-def test_emps_download_checksum_and_cache(server, tmp_path, monkeypatch):
-    base, www, log = server
+def _served_emps(www, tmp_path, monkeypatch):
+    """Synthetic EMPS files in `tmp_path / "src"`, served zipped and trusted: (files, the
+    cache folder to download into)."""
     src = tmp_path / "src"
     src.mkdir()
     files = _emps_mats(src)
     _zip(www / "EMPS.zip", files)
     _trust(monkeypatch, "emps", files)
-    cache = tmp_path / "cache"
+    return files, tmp_path / "cache"
+
+
+def test_emps_download_checksum_and_cache(server, tmp_path, monkeypatch):
+    base, www, log = server
+    files, cache = _served_emps(www, tmp_path, monkeypatch)
     d = ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
     assert log == ["/EMPS.zip"]
     assert d.estimation.file == cache / "emps" / "DATA_EMPS.mat"
@@ -114,12 +120,7 @@ def test_emps_download_checksum_and_cache(server, tmp_path, monkeypatch):
 def test_a_cached_file_that_changed_is_downloaded_again(server, tmp_path, monkeypatch):
     """download=True used to take whatever the cache held, checked once when downloaded."""
     base, www, log = server
-    src = tmp_path / "src"
-    src.mkdir()
-    files = _emps_mats(src)
-    _zip(www / "EMPS.zip", files)
-    _trust(monkeypatch, "emps", files)
-    cache = tmp_path / "cache"
+    _, cache = _served_emps(www, tmp_path, monkeypatch)
     ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
     cached = cache / "emps" / "DATA_EMPS_PULSES.mat"
     cached.write_bytes(cached.read_bytes() + b"edited")  # changed in the cache
@@ -129,7 +130,7 @@ def test_a_cached_file_that_changed_is_downloaded_again(server, tmp_path, monkey
     with pytest.warns(UserWarning, match=r"DATA_EMPS_PULSES\.mat in the download cache .* no "):
         ds.load_emps(tmp_path / "empty", download=True, cache_dir=cache, base_url=base)
     assert log == ["/EMPS.zip", "/EMPS.zip"]
-    assert cached.read_bytes() == (src / "DATA_EMPS_PULSES.mat").read_bytes()
+    assert cached.read_bytes() == (tmp_path / "src" / "DATA_EMPS_PULSES.mat").read_bytes()
     # The user's own folder is theirs: its files are read as they are.
     own = tmp_path / "own"
     own.mkdir()
