@@ -55,7 +55,12 @@ def _check(z, zhat, mask):
     an output."""
     named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
     for name, a in named:
-        if isinstance(a, jax.Array):
+        if isinstance(a, jax.Array):  # (a tracer too: its dtype, without its values)
+            if a.dtype.kind not in "biuf":
+                raise TypeError(
+                    f"`{name}` must be a numeric array (T,) or (T, n_z), got a JAX array of "
+                    f"dtype {a.dtype}."
+                )
             continue
         try:
             kind = np.asarray(a).dtype.kind
@@ -569,6 +574,19 @@ def _inputs(u, N, T):
     return out, known
 
 
+def _real_scalar(value):
+    """`value` as a float where it is one real number (a Python or NumPy number, or a 0-d
+    NumPy or concrete JAX array of a real dtype; not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)):
+        return None
+    if isinstance(value, numbers.Real):
+        return float(value)
+    if isinstance(value, (np.ndarray, jax.Array)) and not isinstance(value, jax.core.Tracer):
+        if value.ndim == 0 and value.dtype.kind in "iuf":
+            return float(value)
+    return None
+
+
 def residual_correlations(
     e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
 ) -> ResidualCorrelations:
@@ -650,10 +668,14 @@ def residual_correlations(
             f"`max_lag` must satisfy 1 <= max_lag <= T - 1 = {T - 1}, got {max_lag}{hint}."
         )
     max_lag = int(max_lag)
-    if not (isinstance(confidence, numbers.Real) and 0.0 < confidence < 1.0):
-        raise ValueError(f"`confidence` must be a number in (0, 1), got {confidence!r}.")
-    if not (isinstance(tolerance, numbers.Real) and 0.0 <= tolerance < 1.0):
-        raise ValueError(f"`tolerance` must be a number in [0, 1), got {tolerance!r}.")
+    given = confidence
+    confidence = _real_scalar(confidence)
+    if confidence is None or not 0.0 < confidence < 1.0:
+        raise ValueError(f"`confidence` must be a number in (0, 1), got {given!r}.")
+    given = tolerance
+    tolerance = _real_scalar(tolerance)
+    if tolerance is None or not 0.0 <= tolerance < 1.0:
+        raise ValueError(f"`tolerance` must be a number in [0, 1), got {given!r}.")
     if not isinstance(demean, (bool, np.bool_)):
         raise TypeError(f"`demean` must be True or False, got {demean!r}.")
 
@@ -670,6 +692,12 @@ def residual_correlations(
                 if keep
                 else "."
             )
+        )
+    if np.any(n <= max_lag):  # (the larger lags would rest on no pair of samples)
+        few = np.flatnonzero(n <= max_lag).tolist()
+        raise ValueError(
+            f"`max_lag` ({max_lag}) must be below the number of finite samples of `e`, "
+            f"but output(s) {few} have only {n[few].tolist()}: choose a smaller max_lag."
         )
     e = np.where(measured, e, 0.0)  # a missing sample adds nothing to the sums
     if demean:

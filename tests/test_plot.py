@@ -206,6 +206,10 @@ def test_the_independence_band_allows_for_a_coloured_residual_and_input():
         (dict(max_lag=True), "max_lag"),
         (dict(confidence=1.0), "confidence"),
         (dict(confidence="0.99"), "confidence"),
+        (dict(confidence=True), "confidence"),
+        (dict(confidence=np.array([0.99])), "confidence"),
+        # 3 finite samples: lags up to 5 rest on no pair (a verdict "white" from nothing)
+        (dict(e=np.r_[1.0, -0.5, 0.2, np.full(47, np.nan)]), "max_lag"),
         (dict(tolerance=-0.1), "tolerance"),
         (dict(e=np.zeros((2, 3, 50, 1))), "e"),
         (dict(e=np.full(50, np.nan)), "e"),
@@ -222,6 +226,17 @@ def test_bad_arguments_raise(kwargs, name):
     e, u = args.pop("e"), args.pop("u")
     with pytest.raises(ValueError, match=f"`{name}`"):
         metrics.residual_correlations(e, u, **args)
+
+
+def test_levels_given_as_jax_scalars_are_numbers():
+    """A 0-d JAX array was refused as "not a number in (0, 1)"."""
+    e = np.random.default_rng(4).standard_normal(50)
+    want = metrics.residual_correlations(e, None, 5, confidence=0.95, tolerance=0.1)
+    got = metrics.residual_correlations(
+        e, None, 5, confidence=jnp.array(0.95), tolerance=jnp.array(0.1)
+    )
+    np.testing.assert_array_equal(got.bound, want.bound)
+    assert got.white == want.white
 
 
 # --------------------------------------------------------------------------- figures
