@@ -10,6 +10,7 @@ the free entries of theta and x0 and the bounds on them.
 """
 
 import warnings
+from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -55,6 +56,8 @@ class FitInputs(NamedTuple):
     n_starts: int | None  # multistart: the number of starts
     x0_starts: np.ndarray | None  # multistart: x0 with its axis of starts, if given
     window_starts: np.ndarray | None = None  # with `window`: each window's first sample
+    # a dict `multistart`: theta0's own values (flat), which a fixed entry keeps
+    theta_held: np.ndarray | None = None
 
 
 class Built(NamedTuple):
@@ -222,7 +225,12 @@ def check_inputs(
                 "sqrt(penalty_weight h). Use a first-order solver (Adam, LBFGS) for a "
                 "signed penalty."
             )
-    return FitInputs(solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts)
+    held = None
+    if isinstance(multistart, Mapping):  # (its starts replace theta0's values where given)
+        held = _pytree.flat_host(_pytree.split(theta0)[0])
+    return FitInputs(
+        solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts, held
+    )
 
 
 def _warn_integer_entries(theta0) -> None:
@@ -503,7 +511,7 @@ def build_problem(
                 for i in range(inputs.n_starts)
             ]
         ).astype(X0.dtype)
-        check_fixed_starts(starts_flat, fixed_flat, data.theta)
+        check_fixed_starts(starts_flat, fixed_flat, data.theta, inputs.theta_held)
         x0_starts = inputs.x0_starts
         if x0_starts is not None:
             X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)

@@ -207,18 +207,22 @@ def check_finite_starts(starts, name):
         )
 
 
-def check_fixed_starts(starts_flat, fixed_flat, theta):
+def check_fixed_starts(starts_flat, fixed_flat, theta, held=None):
     """A ValueError if the starts (S, p) of a multistart fit differ in a fixed entry of
     theta (`fixed_flat`, (p,)): a fixed entry keeps one value, so its starts would be
-    silently dropped."""
+    silently dropped. `held`: theta0's own values (p,) where the starts of a dict
+    `multistart` replace them: a fixed entry keeps that value, so starts that all differ
+    from it alike would replace the held value in silence."""
     differ = fixed_flat & np.any(starts_flat != starts_flat[:1], axis=0)
+    if held is not None and np.shape(held) == starts_flat.shape[1:]:
+        differ |= fixed_flat & np.any(starts_flat != held.astype(starts_flat.dtype), axis=0)
     if differ.any():
         names = [n for n, d in zip(_pytree.indexed_names(theta), differ) if d]
         listed = names if len(names) <= 10 else [*names[:10], f"... ({len(names)} in all)"]
         raise ValueError(
-            "`multistart` gives different starts for fixed entries of theta "
-            f"({', '.join(listed)}): a fixed entry keeps one value. Start only free entries, "
-            "or free them in `fixed`."
+            "`multistart` gives starts for fixed entries of theta "
+            f"({', '.join(listed)}) that differ from each other or from theta0: a fixed entry "
+            "keeps its value in theta0. Start only free entries, or free them in `fixed`."
         )
 
 

@@ -194,10 +194,12 @@ def test_bad_specs_are_clear_errors(data, theta0, spec, error, match):
         oj.fit(MODEL, theta0, x0, u, z, multistart=spec)
 
 
-def test_starts_of_a_fixed_entry_are_refused(data, theta0):
+@pytest.mark.parametrize("starts", [W_STARTS, np.full(4, 0.25)])
+def test_starts_of_a_fixed_entry_are_refused(data, theta0, starts):
+    """Equal starts, unlike theta0's w = 2, replaced the held value without a word."""
     x0, u, z = data
     with pytest.raises(
-        ValueError, match=r"different starts for fixed entries of theta \(theta\['phys'\]\['w'\]\)"
+        ValueError, match=r"starts for fixed entries of theta \(theta\['phys'\]\['w'\]\) that"
     ):
         oj.fit(
             MODEL,
@@ -206,7 +208,7 @@ def test_starts_of_a_fixed_entry_are_refused(data, theta0):
             u,
             z,
             fixed={"phys": True, "net": True},
-            multistart={"phys": {"w": W_STARTS}},
+            multistart={"phys": {"w": starts}},
         )
 
 
