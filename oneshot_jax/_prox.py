@@ -209,14 +209,30 @@ def _same_point(a, b, rtol=1e-10):
     return x.shape == y.shape and np.allclose(x, y, rtol=rtol, atol=rtol * scale)
 
 
+def _projected(proj, theta):
+    """`proj.project(theta)`, an error of the user's function re-raised as a ValueError
+    naming `constraints` (this library's own errors, which name their argument, as
+    they are)."""
+    try:
+        return proj.project(theta)
+    except Exception as err:  # noqa: BLE001 - a user's function: whatever it raises
+        if isinstance(err, (ValueError, TypeError)) and str(err).startswith("`"):
+            raise
+        raise ValueError(
+            f"`constraints`: the projection failed when called on theta0 "
+            f"({type(err).__name__}: {err}); it must take theta (a pytree of theta0's "
+            "structure) and return one of the same structure."
+        ) from err
+
+
 def check_projection(proj, theta, rtol=1e-10):
     """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
     (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
     P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
     wherever it happens to stop."""
-    once = proj.project(theta)
+    once = _projected(proj, theta)
     _check_like(once, theta)
-    if not _same_point(once, proj.project(once), rtol):
+    if not _same_point(once, _projected(proj, once), rtol):
         raise ValueError(
             "`constraints`: the projection is not idempotent (P(P(theta0)) != P(theta0)); "
             "a projection onto a convex set must map every point of the set to itself."

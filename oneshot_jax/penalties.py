@@ -32,13 +32,18 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._counts import real
+
 __all__ = ["state_box", "state_ball", "StateBox", "StateBall"]
 
 
-def _constants(value, name, fill, positive=False):
-    """A scalar or a 1-D sequence as a static tuple of floats (None -> the fill value)."""
+def _constants(value, name, fill, positive=False, none_entries=False):
+    """A scalar or a 1-D sequence as a static tuple of floats (None -> the fill value; with
+    `none_entries`, also a None entry of a list or tuple)."""
     if value is None:
         return (fill,)
+    if none_entries and isinstance(value, (list, tuple)) and any(v is None for v in value):
+        value = [fill if v is None else v for v in value]  # (a bound's unbounded entries)
     if isinstance(value, (str, bytes, bool, np.bool_)) or np.asarray(value).dtype.kind not in "iuf":
         raise ValueError(
             f"`{name}` must be a scalar or a 1-D sequence of real numbers, got {value!r}."
@@ -55,6 +60,7 @@ def _constants(value, name, fill, positive=False):
 
 
 def _check_power(power):
+    power = real(power)  # (a concrete 0-d array: the number it holds)
     if isinstance(power, bool) or not isinstance(power, numbers.Integral) or power < 2:
         raise ValueError(
             f"`power` must be an integer >= 2 (h smooth at the boundary), got {power!r}."
@@ -139,8 +145,8 @@ def state_box(lower=None, upper=None, *, width=1.0, power: int = 2) -> StateBox:
 
     A `StateBox`, callable as `h(x, theta)` on one state x of shape (n_x,).
     """
-    lo = _constants(lower, "lower", -math.inf)
-    hi = _constants(upper, "upper", math.inf)
+    lo = _constants(lower, "lower", -math.inf, none_entries=True)
+    hi = _constants(upper, "upper", math.inf, none_entries=True)
     if math.inf in lo or -math.inf in hi:
         side = "lower" if math.inf in lo else "upper"
         raise ValueError(
@@ -185,6 +191,7 @@ def state_ball(radius, *, center=None, scale=None, width=1.0, power: int = 2) ->
 
     A `StateBall`, callable as `h(x, theta)` on one state x of shape (n_x,).
     """
+    radius, width = real(radius), real(width)  # (0-d arrays: their numbers)
     if isinstance(radius, bool) or not (isinstance(radius, numbers.Real) and 0 < radius < math.inf):
         raise ValueError(f"`radius` must be a finite number > 0, got {radius!r}.")
     if isinstance(width, bool) or not (isinstance(width, numbers.Real) and 0 < width < math.inf):

@@ -137,10 +137,11 @@ class MLP(eqx.Module):
     - `widths`: the hidden layers' widths, e.g. `(32, 32)`; `()` is an affine map.
     - `activation`: the hidden layers' nonlinearity (default `jax.nn.tanh`).
     - `key`: a `jax.random` key for the (LeCun-uniform, equinox's default) initialisation.
-    - `scale`: a constant output factor (static, not trained), to put the output in the
-        units of the term it corrects.
+    - `scale`: a constant output factor > 0 (static, not trained), to put the output in
+        the units of the term it corrects.
     - `bound`: None, or a bound > 0 on |y| (elementwise), applied by a tanh.
-    - `zero_last`: start with the last layer at zero (the hybrid is the physical model).
+    - `zero_last`: True or False: start with the last layer at zero (the hybrid is the
+        physical model).
         With False the output starts at the size set by `scale`.
     - `input_offset`, `input_scale`: constants (scalars or length-`in_size`) that centre
         and scale the features, e.g. the mean and standard deviation of the data.
@@ -182,6 +183,14 @@ class MLP(eqx.Module):
         if not callable(activation):
             raise ValueError(f"`activation` must be callable, got {activation!r}.")
         scale = _real_scalar(scale, "scale")
+        if scale <= 0:
+            # (0 makes the residual identically zero with a zero gradient: it never learns)
+            raise ValueError(
+                f"`scale` must be > 0 (the output's size in the units of the term it "
+                f"corrects), got {scale!r}."
+            )
+        if not isinstance(zero_last, (bool, np.bool_)):
+            raise TypeError(f"`zero_last` must be True or False, got {zero_last!r}.")
         if bound is not None and not 0 < _real_scalar(bound, "bound") < math.inf:
             raise ValueError(f"`bound` must be None or a finite number > 0, got {bound!r}.")
         input_offset = _float_tuple(input_offset, in_size, "input_offset")

@@ -52,17 +52,50 @@ def fleet_mesh(devices=None):
 
     **Arguments:**
 
-    - `devices`: a sequence of devices, or None.
+    - `devices`: a non-empty sequence of distinct `jax.Device`s (e.g. `jax.devices()[:k]`),
+        one `jax.Device` (a mesh of one), or None.
 
     **Returns:**
 
     A `jax.sharding.Mesh` of shape (len(devices),).
+
+    **Raises:**
+
+    `TypeError` when `devices` is not a sequence of `jax.Device`s (a platform name such as
+    "cpu", device ids); `ValueError` when it is empty or names a device twice.
     """
     if isinstance(devices, jax.Device):
         devices = [devices]  # one device: a mesh of one
-    devices = jax.devices() if devices is None else list(devices)
+    if devices is None:
+        devices = jax.devices()
+    elif isinstance(devices, (str, bytes)):
+        # (a string is a sequence of its letters: "cpu" gave a mesh of characters)
+        raise TypeError(
+            f"`devices` must be a sequence of jax.Device objects (e.g. jax.devices('cpu')), "
+            f"got the string {devices!r}."
+        )
+    else:
+        try:
+            devices = list(devices)
+        except TypeError as err:
+            raise TypeError(
+                "`devices` must be a sequence of jax.Device objects (e.g. jax.devices()), or "
+                f"None for all devices, got {type(devices).__name__} {devices!r}."
+            ) from err
     if not devices:
         raise ValueError("`devices` must hold at least one device.")
+    for i, d in enumerate(devices):
+        if not isinstance(d, jax.Device):
+            raise TypeError(
+                f"`devices` must be a sequence of jax.Device objects (e.g. jax.devices()), got "
+                f"{type(d).__name__} {d!r} at index {i}."
+            )
+    if len(set(devices)) != len(devices):
+        twice = next(d for i, d in enumerate(devices) if d in devices[:i])
+        raise ValueError(
+            f"`devices` must be distinct devices: {twice} appears more than once (a mesh "
+            "places one block of trajectories on each device)."
+        )
     return Mesh(np.asarray(devices), (AXIS,))
 
 
@@ -89,10 +122,32 @@ def fleet_sharding(mesh, ndim):
 
 
 def replicate(tree, mesh):
-    """Every array leaf of `tree` (theta, a weight) placed whole on every device of `mesh`."""
+    """Every array leaf of `tree` (theta, a weight) placed whole on every device of `mesh`.
+
+    Array leaves are arrays and numbers (of a numeric or boolean dtype); callable leaves
+    (an equinox residual's activation function) are returned as they are. Any other leaf
+    (a string, an object array) raises a `TypeError` naming its place in `tree`.
+    """
     _check_mesh(mesh, fleet=False)  # (any mesh: a replicated array has no split axis)
     sharding = NamedSharding(mesh, PartitionSpec())
-    return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
+
+    def put(path, a):
+        if isinstance(a, jax.Array):  # (also a typed PRNG key array)
+            return jax.device_put(a, sharding)
+        if isinstance(a, (np.ndarray, np.generic, bool, int, float, complex)):
+            if np.asarray(a).dtype.kind in "biufc":
+                return jax.device_put(a, sharding)
+        elif callable(a):
+            return a  # (a function of an equinox module: static data, nothing to place)
+        where = jax.tree_util.keystr(path) or "(the whole tree)"
+        got = f"{type(a).__name__} {a!r}"
+        if isinstance(a, np.ndarray):
+            got = f"an array of shape {a.shape} and dtype {a.dtype}"
+        raise TypeError(
+            f"`tree` must hold arrays or numbers to replicate; its leaf {where} is {got}."
+        )
+
+    return jax.tree_util.tree_map_with_path(put, tree)
 
 
 def shard_fleet(x0, u, z=None, *, mesh=None):
@@ -110,8 +165,9 @@ def shard_fleet(x0, u, z=None, *, mesh=None):
 
     **Raises:**
 
-    `ValueError` when the leading axes disagree or N is not a multiple of the number of
-    devices in `mesh` (see the module docstring for why nothing is padded).
+    `ValueError` when the leading axes disagree, N = 0, `u` and `z` have different T, or N
+    is not a multiple of the number of devices in `mesh` (see the module docstring for why
+    nothing is padded).
     """
     mesh = fleet_mesh() if mesh is None else mesh
     _check_mesh(mesh)
@@ -134,6 +190,15 @@ def shard_fleet(x0, u, z=None, *, mesh=None):
             want = "(N, n_x)" if name == "x0" else f"(N, T, n_{name})"
             same = "" if name == "x0" else f" with the same N as `x0` (shape {np.shape(x0)})"
             raise ValueError(f"`{name}` must have shape {want}{same}, got shape {np.shape(a)}.")
+    if N == 0:
+        raise ValueError(
+            f"`x0` must hold at least one trajectory (N >= 1), got shape {np.shape(x0)}."
+        )
+    if "z" in arrays and np.shape(arrays["z"])[1] != np.shape(arrays["u"])[1]:
+        raise ValueError(
+            f"`z` must have the same number of time steps T as `u`: got shape "
+            f"{np.shape(arrays['z'])} for `z` and {np.shape(arrays['u'])} for `u`."
+        )
     n_dev = mesh.devices.size
     if N % n_dev:
         raise ValueError(

@@ -102,14 +102,51 @@ __all__ = [
 _BISECTION_STEPS = 80
 
 
+def _as_float(v):
+    """`v` as a JAX array of a floating (or complex) dtype: an integer or boolean input is
+    computed in the default floating dtype (its threshold cast to the integer dtype would
+    be truncated: 0.5 became 0)."""
+    v = jnp.asarray(v)
+    if not jnp.issubdtype(v.dtype, jnp.inexact):
+        v = v.astype(jnp.result_type(float))
+    return v
+
+
+def _check_threshold(threshold, shape, against):
+    """Refuse a threshold that is not real, whose shape does not broadcast to `shape`
+    (that of `against`), or (where concrete) that is negative or not finite: a negative
+    threshold pushes entries away from zero."""
+    dtype = threshold.dtype if hasattr(threshold, "dtype") else np.asarray(threshold).dtype
+    if np.dtype(dtype).kind not in "iuf":
+        raise TypeError(
+            f"`threshold` must be a real number >= 0 or an array of them, got {threshold!r}."
+        )
+    t_shape = np.shape(threshold)
+    try:
+        ok = np.broadcast_shapes(t_shape, shape) == tuple(shape)
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(
+            f"`threshold` must be a scalar or an array that broadcasts to {against} "
+            f"{tuple(shape)}, got shape {t_shape}."
+        )
+    if is_concrete(threshold):
+        a = np.asarray(threshold)
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise ValueError(f"`threshold` must be finite and >= 0, got {threshold!r}.")
+
+
 def soft_threshold(v, threshold):
     """The proximal map of `threshold * ||.||_1`: sign(v) max(|v| - threshold, 0).
 
-    `threshold` is a scalar or an array broadcast against `v` (per-coordinate thresholds).
-    Entries with |v| <= threshold become exactly +0.0 (Parikh and Boyd 2014, Sec. 6.5.2).
+    `threshold` is a scalar >= 0 or an array of them that broadcasts to `v`'s shape
+    (per-coordinate thresholds). Entries with |v| <= threshold become exactly +0.0 (Parikh
+    and Boyd 2014, Sec. 6.5.2). An integer `v` is computed in the default floating dtype.
     """
-    v = jnp.asarray(v)
-    t = jnp.asarray(threshold, dtype=v.dtype)
+    v = _as_float(v)
+    _check_threshold(threshold, v.shape, "the shape of `v`")
+    t = jnp.asarray(threshold, dtype=jnp.finfo(v.dtype).dtype)
     # `~(|v| <= t)`, not `|v| > t`: a NaN entry stays NaN (a failed step is not a zero).
     return jnp.where(jnp.abs(v) <= t, jnp.zeros_like(v), v - t * jnp.sign(v))
 
@@ -120,13 +157,53 @@ def block_soft_threshold(v, threshold, axis=None):
     The groups G are the slices along `axis` (the axes the norm is taken over): `axis=None`
     makes the whole array one group, `axis=-1` makes each row of a matrix a group. A group
     with ||v_G|| <= threshold becomes exactly zero (Parikh and Boyd 2014, Sec. 6.5.4).
+    `threshold` is a scalar >= 0, or an array of them (one per group) that broadcasts to
+    the shape of the group norms (`v`'s with the `axis` axes of length 1). An integer `v`
+    is computed in the default floating dtype.
     """
-    v = jnp.asarray(v)
-    t = jnp.asarray(threshold, dtype=v.dtype)
+    v = _as_float(v)
+    axis = _check_axes(_normalise_axis(axis), v.shape, "`v`")
+    axes = range(v.ndim) if axis is None else (axis if isinstance(axis, tuple) else (axis,))
+    axes = {a % v.ndim for a in axes}
+    groups = tuple(1 if i in axes else n for i, n in enumerate(v.shape))
+    _check_threshold(threshold, groups, "the shape of the group norms")
+    t = jnp.asarray(threshold, dtype=jnp.finfo(v.dtype).dtype)
     norm = jnp.sqrt(jnp.sum(v * v, axis=axis, keepdims=True))
     keep = ~(norm <= t)  # (a NaN group stays NaN)
     safe = jnp.where(keep, norm, jnp.ones_like(norm))
     return jnp.where(keep, v * (1 - t / safe), jnp.zeros_like(v))
+
+
+def _is_int(a):
+    return isinstance(a, (int, np.integer)) and not isinstance(a, (bool, np.bool_))
+
+
+def _normalise_axis(axis):
+    """`axis` as None, an int or a tuple of distinct ints (NumPy integers as ints); a bool
+    (an int to Python: True acted as axis 1) or a repeated axis is refused."""
+    if axis is None:
+        return None
+    if _is_int(axis):
+        return int(axis)
+    if isinstance(axis, tuple) and all(_is_int(a) for a in axis):
+        axes = tuple(int(a) for a in axis)
+        if len(set(axes)) != len(axes):
+            raise ValueError(f"`axis` must not repeat an axis, got {axis!r}.")
+        return axes
+    raise ValueError(f"`axis` must be None, an int or a tuple of ints, got {axis!r}.")
+
+
+def _check_axes(axis, shape, what):
+    """`axis` (normalised), after checking that its axes exist in an array of `shape` and
+    are distinct there (-1 and 1 are one axis of a matrix)."""
+    axes = () if axis is None else (axis if isinstance(axis, tuple) else (axis,))
+    ndim = len(shape)
+    for a in axes:
+        if not -ndim <= a < ndim:
+            raise ValueError(f"`axis` {axis} does not exist in {what} of shape {tuple(shape)}.")
+    if len({a % ndim for a in axes}) != len(axes):
+        raise ValueError(f"`axis` {axis} names one axis twice for {what} of shape {tuple(shape)}.")
+    return axis
 
 
 def _block_soft_threshold_metric(v, steps, strength, axis):
@@ -274,17 +351,19 @@ def _resolve_where(where, params, entries):
         )
     out = []
     for p, b in zip(leaves, m_leaves):
-        if isinstance(b, (bool, np.bool_)) or (np.ndim(b) == 0 and is_concrete(b)):
+        # (a float or a string is no bool: bool(0.5) made `where={"a": 0.5}` act as True)
+        dtype = np.dtype(b.dtype if hasattr(b, "dtype") else np.asarray(b).dtype)
+        if dtype == np.bool_ and np.ndim(b) == 0 and is_concrete(b):
             b = bool(b)
         elif not entries:
             raise ValueError(
                 "`where` must hold one bool per parameter leaf for `group_lasso` (a group "
-                f"is a slice of a whole leaf), got an array of shape {np.shape(b)}."
+                f"is a slice of a whole leaf), got {dtype} of shape {np.shape(b)}."
             )
-        elif jnp.shape(b) != jnp.shape(p) or jnp.result_type(b) != jnp.bool_:
+        elif np.shape(b) != np.shape(p) or dtype != np.bool_:
             raise ValueError(
                 "`where` leaves must be bools or boolean arrays of the parameter's shape "
-                f"{jnp.shape(p)}, got {jnp.result_type(b)} of shape {jnp.shape(b)}."
+                f"{np.shape(p)}, got {dtype} of shape {np.shape(b)}."
             )
         if b is not False and not _is_float(p):
             raise ValueError(
@@ -340,6 +419,26 @@ def _map_selected(fn, params, sel, step_size):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
+def _penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTransformation:
+    """`_prox.penalty`, whose optax `update` first checks that `params` has the structure
+    of `updates` (else optax's `apply_updates` failed with a bare pytree error)."""
+    t = penalty(prox, value, strength, learning_rate, name, key)
+
+    def update(updates, state, params=None):
+        if params is not None:
+            want = jax.tree_util.tree_structure(updates)
+            got = jax.tree_util.tree_structure(params)
+            if got != want:
+                raise ValueError(
+                    f"`params` and `updates` of `{name}(...).update(updates, state, params)` "
+                    f"must have the same pytree structure, got {got} for `params` and {want} "
+                    "for `updates`."
+                )
+        return t.update(updates, state, params)
+
+    return t._replace(update=update)
+
+
 def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     """L1 regularisation `strength * ||w||_1` as an exact proximal (soft-thresholding) step.
 
@@ -376,7 +475,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
         return strength * total
 
-    return penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
+    return _penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
 
 
 def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
@@ -409,7 +508,7 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, p * p, 0))
         return 0.5 * strength * total
 
-    return penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
+    return _penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -437,18 +536,10 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
     lambda steps_G) with r = ||y_G|| found by bisection.
     """
     check_non_negative_scalar(strength, "strength")
-    if axis is not None and not (
-        isinstance(axis, int) or (isinstance(axis, tuple) and all(isinstance(a, int) for a in axis))
-    ):
-        raise ValueError(f"`axis` must be None, an int or a tuple of ints, got {axis!r}.")
+    axis = _normalise_axis(axis)
 
     def _check_axis(p):
-        axes = () if axis is None else (axis if isinstance(axis, tuple) else (axis,))
-        for a in axes:
-            if not -p.ndim <= a < p.ndim:
-                raise ValueError(
-                    f"`axis` {axis} does not exist in a selected parameter of shape {p.shape}."
-                )
+        _check_axes(axis, jnp.shape(p), "a selected parameter")
 
     def prox(params, step_size):
         sel = _resolve_where(where, params, entries=False)
@@ -470,4 +561,6 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
                 total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
         return strength * total
 
-    return penalty(prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis))
+    return _penalty(
+        prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis)
+    )

@@ -119,3 +119,28 @@ def test_crossed_state_bounds_name_the_states():
         state_box(lower=[0.0, 3.0, -1.0], upper=2.0)
     with pytest.raises(ValueError, match=r"every state \(lower 1 > upper 0\)\.$"):
         state_box(lower=1.0, upper=0.0)
+
+
+def test_state_box_none_entries_leave_that_side_unbounded():
+    # (The docstring's "None ... entries" was refused: "must be ... real numbers".)
+    h = state_box(lower=[0.0, None], upper=[None, 1.0])
+    assert h == state_box(lower=[0.0, -np.inf], upper=[np.inf, 1.0])
+    assert float(h(jnp.array([1e6, -1e6]))) == 0.0
+    assert float(h(jnp.array([-2.0, 3.0]))) == pytest.approx(2.0**2 + 2.0**2)
+
+
+def test_0d_jax_arrays_are_numbers():
+    # (`radius` and `width` of a 0-d jax.Array were "must be a finite number > 0", and a
+    # 0-d `power` "must be an integer", while NumPy scalars were taken.)
+    for one, half, two in [
+        (jnp.asarray(1.0), jnp.asarray(0.5), jnp.asarray(2)),
+        (np.array(1.0), np.array(0.5), np.array(2)),
+    ]:
+        assert state_ball(one, width=half, power=two) == state_ball(1.0, width=0.5, power=2)
+        assert state_box(lower=-one, upper=one, width=half, power=two) == state_box(
+            lower=-1.0, upper=1.0, width=0.5, power=2
+        )
+    with pytest.raises(ValueError, match="`radius` must be a finite number > 0, got 0.0"):
+        state_ball(jnp.asarray(0.0))
+    with pytest.raises(ValueError, match="`width`"):
+        state_ball(1.0, width=jnp.asarray([1.0]))

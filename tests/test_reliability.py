@@ -144,6 +144,13 @@ def test_a_map_that_is_not_a_projection_is_refused(data):
         oj.fit(M, TH0, X0, u, z, constraints=oc.project(lambda p: {k: v / 2 for k, v in p.items()}))
 
 
+def test_a_projection_that_raises_is_named(data):
+    """A KeyError of the user's projection came out bare, naming no argument."""
+    u, z = data
+    with pytest.raises(ValueError, match=r"`constraints`: the projection failed .*KeyError"):
+        oj.fit(M, TH0, X0, u, z, constraints=oc.project(lambda p: {"k": p["zz"], "c": p["c"]}))
+
+
 def test_an_all_zero_weight_is_refused(data):
     u, z = data
     with pytest.raises(ValueError, match="`weight` is all zeros"):

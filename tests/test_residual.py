@@ -202,6 +202,24 @@ def test_mlp_takes_a_scale_given_as_a_0d_array():
 
 
 @pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        # A scale of 0 gave a residual identically zero with a zero gradient.
+        (dict(scale=0.0), ValueError, "`scale` must be > 0"),
+        (dict(scale=jnp.array(-1.0)), ValueError, "`scale` must be > 0"),
+        # A non-bool zero_last was taken for its truth value ("no" as True).
+        (dict(zero_last="no"), TypeError, "`zero_last` must be True or False, got 'no'"),
+        (dict(zero_last=None), TypeError, "`zero_last` must be True or False"),
+        (dict(zero_last=1), TypeError, "`zero_last` must be True or False"),
+    ],
+)
+def test_mlp_scale_must_be_positive_and_zero_last_a_bool(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        MLP(2, 1, (4,), key=jax.random.PRNGKey(0), **kwargs)
+    assert MLP(2, 1, (4,), key=jax.random.PRNGKey(0), zero_last=np.bool_(False)).scale == 1.0
+
+
+@pytest.mark.parametrize(
     "key, dtype, error, match",
     [
         # JAX's "invalid PRNG key data" (an int) and "split accepts a single key".

@@ -21,6 +21,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -188,3 +189,62 @@ def test_a_fleet_given_as_lists_or_on_one_device():
     assert mesh.devices.size == 1
     x0, u = sharding.shard_fleet(list(np.zeros((2, 2))), np.zeros((2, 5, 1)), mesh=mesh)
     assert x0.shape == (2, 2) and u.shape == (2, 5, 1)
+
+
+@pytest.mark.parametrize(
+    "devices, error, match",
+    [
+        # A mesh of characters, then "'str' object has no attribute 'id'".
+        ("cpu", TypeError, "`devices` must be a sequence of jax.Device objects .* the string"),
+        # "'numpy.int64' object has no attribute 'platform'" in `shard_fleet`.
+        ([1, 2], TypeError, "`devices` must be a sequence of jax.Device objects .* int 1"),
+        # "'int' object is not iterable".
+        (0, TypeError, "`devices` must be a sequence of jax.Device objects"),
+        # A mesh of one device twice, then a `safe_zip` error in `shard_fleet`.
+        (
+            lambda: [jax.devices()[0]] * 2,
+            ValueError,
+            "`devices` must be distinct devices: .* appears more than once",
+        ),
+        ([], ValueError, "`devices` must hold at least one device"),
+    ],
+)
+def test_fleet_mesh_refuses_what_is_not_distinct_devices(devices, error, match):
+    devices = devices() if callable(devices) else devices
+    with pytest.raises(error, match=match):
+        sharding.fleet_mesh(devices)
+    assert sharding.fleet_mesh(tuple(jax.devices())).devices.size == len(jax.devices())
+
+
+def test_replicate_names_a_leaf_that_is_not_an_array():
+    # (JAX's "Argument 'x' of type <class 'str'> is not a valid JAX type", naming neither.)
+    mesh = sharding.fleet_mesh()
+    with pytest.raises(TypeError, match=r"`tree` must hold arrays .* leaf \['a'\] is str 'x'"):
+        sharding.replicate({"a": "x"}, mesh)
+    with pytest.raises(TypeError, match=r"leaf \['b'\]\[0\] is an array of shape \(1,\)"):
+        sharding.replicate({"b": [np.array(["s"])]}, mesh)
+
+
+def test_replicate_carries_the_functions_of_a_residual():
+    # (An MLP in theta failed: its activation function is a leaf that JAX cannot place.)
+    from oneshot_jax.residual import MLP
+
+    theta = {"k": 1.0, "r": MLP(2, 1, (3,), key=jax.random.PRNGKey(0))}
+    out = sharding.replicate(theta, sharding.fleet_mesh())
+    assert out["r"].activation is theta["r"].activation
+    assert out["r"].layers[0].weight.sharding.is_fully_replicated
+    np.testing.assert_array_equal(out["r"].layers[0].weight, theta["r"].layers[0].weight)
+
+
+@pytest.mark.parametrize(
+    "shapes, match",
+    [
+        # N = 0 was sharded (fit refused it later).
+        (((0, 2), (0, 5, 1), (0, 5, 1)), r"`x0` must hold at least one trajectory .*\(0, 2\)"),
+        # u and z of different T were sharded (fit refused them later).
+        (((2, 2), (2, 5, 1), (2, 4, 1)), r"`z` must have the same number of time steps T as `u`"),
+    ],
+)
+def test_shard_fleet_refuses_no_trajectories_and_a_z_of_another_length(shapes, match):
+    with pytest.raises(ValueError, match=match):
+        sharding.shard_fleet(*(np.zeros(s) for s in shapes))

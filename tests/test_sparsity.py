@@ -349,6 +349,8 @@ def test_schedule_and_combine():
         (lambda: sp.l1(0.1, learning_rate=0.0), "`learning_rate`"),
         (lambda: sp.l1(0.1, learning_rate="fast"), "`learning_rate`"),
         (lambda: sp.group_lasso(0.1, axis="rows"), "`axis`"),
+        (lambda: sp.group_lasso(0.1, axis=True), "`axis`"),
+        (lambda: sp.group_lasso(0.1, axis=(0, 0)), "`axis`"),
         (lambda: sp.mask(3), "`select`"),
         (lambda: sp.combine([optax.sgd(0.1)]), "`regularisers`"),
     ],
@@ -387,6 +389,85 @@ def test_bad_where_and_step():
         sp.proximal_adam(-1.0, sp.l1(0.1))
     with pytest.raises(ValueError, match="`floor`"):
         sp.proximal_adam(0.1, sp.l1(0.1), floor=-1.0)
+
+
+def test_soft_thresholds_check_their_threshold_and_compute_integers_in_floats():
+    """A negative threshold moved entries away from zero ([0.5, -0.05] -> [0.6, -0.15]),
+    an integer input truncated the threshold 0.5 to 0, and a threshold of the wrong shape
+    failed inside JAX without naming it."""
+    v = jnp.array([0.5, -0.05])
+    for bad in (-0.1, np.nan, np.inf, jnp.array([0.1, -0.1])):
+        with pytest.raises(ValueError, match="`threshold` must be finite and >= 0"):
+            sp.soft_threshold(v, bad)
+    with pytest.raises(ValueError, match="`threshold` must be finite and >= 0"):
+        sp.block_soft_threshold(jnp.array([3.0, 4.0]), -1.0)
+    with pytest.raises(TypeError, match="`threshold` must be a real number"):
+        sp.soft_threshold(v, True)
+    with pytest.raises(
+        ValueError, match=r"`threshold` .* broadcasts to .* \(2,\), got shape \(3,\)"
+    ):
+        sp.soft_threshold(jnp.ones(2), jnp.ones(3))
+    # A per-coordinate threshold is no block prox: one threshold per group at most.
+    with pytest.raises(
+        ValueError, match=r"`threshold` .* group norms \(3, 1\), got shape \(3, 2\)"
+    ):
+        sp.block_soft_threshold(jnp.ones((3, 2)), jnp.ones((3, 2)), axis=-1)
+    per_group = sp.block_soft_threshold(jnp.ones((2, 2)), jnp.array([[0.0], [2.0]]), axis=-1)
+    np.testing.assert_array_equal(per_group, [[1.0, 1.0], [0.0, 0.0]])
+    np.testing.assert_allclose(sp.soft_threshold(jnp.array([3, -1]), 0.5), [2.5, -0.5])
+    np.testing.assert_allclose(sp.block_soft_threshold(jnp.array([3, 4]), 1), [2.4, 3.2])
+    # Traced thresholds (inside jit) are not checked by value, and still work.
+    np.testing.assert_allclose(jax.jit(sp.soft_threshold)(v, 0.1), [0.4, 0.0])
+    jitted = jax.jit(lambda t: sp.block_soft_threshold(jnp.array([3.0, 4.0]), t))
+    np.testing.assert_allclose(jitted(1.0), [2.4, 3.2])
+
+
+def test_group_lasso_axis_refuses_bools_and_repeats_and_takes_numpy_integers():
+    """`axis=True` acted as axis 1, `axis=(1, 1)` failed later in JAX's sum, and a NumPy
+    integer (np.int64(-1)) was refused."""
+    with pytest.raises(ValueError, match="`axis` must be None, an int or a tuple of ints"):
+        sp.group_lasso(1.0, axis=True)
+    with pytest.raises(ValueError, match="`axis` must be None, an int or a tuple of ints"):
+        sp.block_soft_threshold(jnp.ones((2, 2)), 1.0, axis=True)
+    with pytest.raises(ValueError, match="`axis` must not repeat an axis"):
+        sp.group_lasso(1.0, axis=(1, 1))
+    with pytest.raises(ValueError, match=r"`axis` \(1, -1\) names one axis twice"):
+        sp.group_lasso(1.0, axis=(1, -1)).prox(jnp.ones((2, 2)), 1.0)
+    W = jnp.array([[3.0, 4.0], [0.1, 0.0]])
+    expected = sp.block_soft_threshold(W, 1.0, axis=-1)
+    np.testing.assert_array_equal(sp.group_lasso(1.0, axis=np.int64(-1)).prox(W, 1.0), expected)
+    both = sp.group_lasso(1.0, axis=(np.int32(0), 1)).prox(W, 1.0)
+    np.testing.assert_array_equal(both, sp.block_soft_threshold(W, 1.0))
+
+
+def test_a_non_bool_scalar_in_where_is_refused():
+    """`where={"a": 0.5}` acted as True (bool(0.5)); a float array was already refused."""
+    theta = {"a": jnp.array([0.5, -0.05])}
+    with pytest.raises(ValueError, match="`where` leaves must be bools.*got float64 of shape"):
+        sp.l1(1.0, where={"a": 0.5}).prox(theta, 1.0)
+    with pytest.raises(ValueError, match="`where`"):
+        sp.l1(1.0, where={"a": "yes"}).value(theta)
+    with pytest.raises(ValueError, match="`where`"):
+        sp.group_lasso(1.0, where={"a": 1}).prox(theta, 1.0)
+    # Boolean scalars, NumPy and JAX ones included, are still one bool for the leaf.
+    for off in (False, np.bool_(False), np.array(False), jnp.array(False)):
+        np.testing.assert_array_equal(
+            sp.l1(1.0, where={"a": off}).prox(theta, 1.0)["a"], theta["a"]
+        )
+
+
+def test_update_with_params_of_another_structure_names_them():
+    """Params of another structure than the updates failed with a bare pytree error."""
+    tx = sp.l1(0.1, learning_rate=0.1)
+    state = tx.init({"a": jnp.ones(3)})
+    params = {"a": jnp.ones(3), "b": jnp.ones(3)}
+    with pytest.raises(ValueError, match="`params` and `updates` .* must have the same"):
+        tx.update({"a": jnp.ones(3)}, state, params)
+    chained = sp.combine([sp.l1(0.1, learning_rate=0.1), sp.l2(0.1, learning_rate=0.1)])
+    with pytest.raises(ValueError, match="`params` and `updates`"):
+        chained.update({"a": jnp.ones(3)}, chained.init(params), params)
+    upd, _ = tx.update({"a": jnp.zeros(3)}, state, {"a": jnp.ones(3)})
+    np.testing.assert_allclose(upd["a"], -0.01)
 
 
 def test_float32_parameters_stay_float32():
