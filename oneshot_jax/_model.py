@@ -120,6 +120,12 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     substeps = _check_integrator(rhs, method, substeps)
     if not isinstance(x, (jax.Array, np.ndarray)):
         x = jnp.asarray(x)  # a list, a tuple or a Python number
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        # (`rhs` was blamed for returning floats to an integer state)
+        raise TypeError(
+            f"`x` must be a floating-point state, got dtype {x.dtype}: the integrator "
+            "carries the state in its own dtype (write [1.0, 0.0], or x.astype(float))."
+        )
     if isinstance(u, (list, tuple)):
         u = jnp.asarray(u)
     if _check_input(input) == "foh" and (jnp.ndim(u) != 2 or jnp.shape(u)[0] != 2):

@@ -79,6 +79,8 @@ def _warn_other_record(name, result, zhat, z):
         e, zhat, z = first, zhat[: first.shape[0]], z[: first.shape[0]]
     elif np.ndim(result.x0) != 1:  # several records: no one record to tell
         return
+    if e.ndim == z.ndim and z.shape[0] < e.shape[0]:  # (the head of the fitted record)
+        e = e[: z.shape[0]]
     if e.shape == z.shape:
         fitted = zhat.reshape(z.shape) - e
         both = np.isfinite(fitted) & np.isfinite(z)
@@ -184,7 +186,7 @@ def compare(
     - `z`: the measured outputs, shape (T,) or (T, n_z) (NaN where missing), or a record
         with `u`, `y` (a `oneshot_jax.datasets.Record`): then `u`, `n` and the time axis
         (from `Ts`) default to the record's.
-    - `models`: one or several (as arguments, or one list of results) of: a
+    - `models`: one or several (as arguments, or one list) of: a
         `FitResult`, simulated on `u` from its fitted x0
         (the data it was fitted on, or a record from the same initial state; on another
         record it warns; after a `window=` fit, from the state of its window at sample
@@ -231,11 +233,16 @@ def compare(
         n = getattr(record, "n", None) if n is None else n
     z = _columns(z, "z")
     T, n_z = z.shape
+
+    def one_model(m):  # (a result, or one output record of z's T samples)
+        if isinstance(m, (FitResult, Prediction)):
+            return True
+        return hasattr(m, "shape") and np.ndim(m) in (1, 2) and np.shape(m)[0] == T
+
     if (
-        len(models) == 1
-        and isinstance(models[0], (list, tuple))
-        and all(isinstance(m, (FitResult, Prediction)) for m in models[0])
-    ):  # (a list of results, as MATLAB's compare(data, sys1, sys2) users may pass them)
+        len(models) == 1 and isinstance(models[0], (list, tuple)) and all(map(one_model, models[0]))
+    ):  # (a list of models, as MATLAB's compare(data, sys1, sys2) users may pass them; a
+        # list of output arrays was read as one array of several records)
         models = tuple(models[0])
     if not models:
         raise ValueError("`models` is empty: pass at least one model (or model output).")
@@ -272,6 +279,8 @@ def compare(
         t = _as_times(t, "t")
         if t.shape != (T,):
             raise ValueError(f"`t` must have shape (T,) = ({T},), got {t.shape}.")
+        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise ValueError("`t` must hold finite, increasing sample times.")
         xlabel = "time"
 
     outputs = []  # a loop, not a comprehension: its warnings point at the caller's line

@@ -866,6 +866,9 @@ def test_ode_step_takes_a_python_number_state_and_a_list_input():
     assert oj.ode_step(rhs, 1.0, [1.0], 0.5, 0.1) == ref
     foh = oj.ode_step(rhs, jnp.array(1.0), jnp.ones((2, 1)), 0.5, 0.1, input="foh")
     assert oj.ode_step(rhs, 1.0, [[1.0], [1.0]], 0.5, 0.1, input="foh") == foh
+    # An integer state is the caller's mistake, not `rhs`'s (which was blamed for floats).
+    with pytest.raises(TypeError, match=r"`x` must be a floating-point state, got dtype int"):
+        oj.ode_step(rhs, [1, 0], [1.0], 0.5, 0.1)
 
 
 def test_the_head_length_of_predict_may_be_a_whole_float(lin_result):

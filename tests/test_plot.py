@@ -442,6 +442,11 @@ def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
         oj.plot.compare(np.asarray(z2), result, u=u2)
     with pytest.warns(UserWarning, match="not this record"):  # same length, other data
         oj.plot.compare(z[::-1], result, u=u[::-1])
+    with warnings.catch_warnings():  # (the head of the fitted record was called another)
+        warnings.simplefilter("error")
+        oj.plot.compare(z[:60], result, u=u[:60])
+    with pytest.warns(UserWarning, match="not this record"):  # a head of other data
+        oj.plot.compare(z[::-1][:60], result, u=u[::-1][:60])
 
 
 def test_resid_figure(fitted):
@@ -551,6 +556,19 @@ def test_compare_names_bad_labels():
     for empty in ((), ([],)):  # (an empty list was read as an output of shape (0, 1))
         with pytest.raises(ValueError, match="`models` is empty"):
             oj.plot.compare(z, *empty)
+    # A list of outputs is a list of models, as a list of results is (it was read as one
+    # array of two records).
+    wave = np.sin(np.arange(20.0))[:, None]
+    texts = _legend_texts(oj.plot.compare(wave, [wave, 2 * wave], labels=["a", "b"]).axes[0])
+    assert [t.split(":")[0] for t in texts[-2:]] == ["a", "b"] and "FIT 100" in texts[-2]
+    plt.close("all")
+
+
+def test_compare_refuses_a_time_axis_that_does_not_increase():
+    z = np.ones((20, 1))
+    for t in (np.arange(20.0)[::-1], np.r_[np.nan, np.arange(19.0)]):
+        with pytest.raises(ValueError, match="`t` must hold finite, increasing sample times"):
+            oj.plot.compare(z, z, t=t)
 
 
 def test_compare_names_its_outputs_and_time_axis():
