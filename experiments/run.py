@@ -50,11 +50,15 @@ OUTPUTS = ("results.json", "results.md", "resolved_config.yaml")
 
 
 def _setup_cache(cache_dir):
+    """JAX's persistent compilation cache in `cache_dir` (`jax_cache_dir`), if given; a
+    folder that cannot be made is a configuration error (exit 2), not a traceback."""
     if cache_dir:
-        path = Path(str(cache_dir)).expanduser()
-        path.mkdir(parents=True, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", str(path))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        from oneshot_jax import enable_compilation_cache
+
+        try:
+            enable_compilation_cache(str(cache_dir), min_compile_time_secs=0.2)
+        except ValueError as err:
+            raise config.ConfigError(f"`jax_cache_dir`: {err}") from None
 
 
 def write_json(path: Path, obj) -> None:

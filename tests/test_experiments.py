@@ -248,6 +248,16 @@ def test_cli_refuses_a_bad_value_before_running(tmp_path):
     assert not list(out.glob("*.log"))
 
 
+def test_cli_names_a_cache_folder_it_cannot_make(tmp_path):
+    """`jax_cache_dir` under a regular file ended in a Python traceback (exit 1)."""
+    (tmp_path / "file").write_text("")
+    cache = tmp_path / "file" / "cache"
+    proc = _cli([f"hydra.run.dir={tmp_path / 'run'}", f"jax_cache_dir={cache}"], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "invalid configuration: `jax_cache_dir`: `path`: cannot create" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_cli_refuses_a_group_set_to_null(tmp_path):
     """`experiment=null` (or `solver=~`) stops with exit status 2 and the options of the
     group, not Hydra's traceback ("Config group override must be a string")."""
