@@ -159,6 +159,10 @@ def box(lower=None, upper=None) -> ProximalTransformation:
     whatever the step) with `bounds`.
     """
 
+    scalars = [b for b in (lower, upper) if _value_key(b) and _value_key(b)[0] == "scalar"]
+    if len(scalars) == 2 and lower > upper:  # (the check in `bounds` waits for theta)
+        raise ValueError(f"`box` needs lower <= upper, got lower {lower!r} > upper {upper!r}.")
+
     def bounds(params):
         lo = _fill_like(lower, params, -jnp.inf, "lower")
         hi = _fill_like(upper, params, jnp.inf, "upper")
@@ -223,11 +227,11 @@ def positive(eps: float = 1e-12) -> ProximalTransformation:
     """Projection onto `params >= eps`, a closed stand-in for the open set `params > 0`."""
     try:
         ok = not isinstance(eps, (str, bytes, bool, np.bool_)) and np.ndim(eps) == 0
-        ok = ok and not np.iscomplexobj(eps) and float(eps) > 0
+        ok = ok and not np.iscomplexobj(eps) and 0 < float(eps) < np.inf
     except (TypeError, ValueError):
         ok = False
     if not ok:
-        raise ValueError(f"`eps` must be a number > 0, got {eps!r}.")
+        raise ValueError(f"`eps` must be a finite number > 0, got {eps!r}.")
     return box(lower=eps)
 
 

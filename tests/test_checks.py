@@ -815,9 +815,12 @@ def test_numbers_given_as_strings_bools_or_complex_are_refused_by_name():
     for bad in ("0.7", True, 1 + 2j):
         with pytest.raises(ValueError, match="`lower` must hold real numbers"):
             oc.box(lower=bad).project(theta)
-    for bad in ("x", None, True, np.array([1e-3, 1.0])):
-        with pytest.raises(ValueError, match="`eps` must be a number > 0"):
+    for bad in ("x", None, True, np.array([1e-3, 1.0]), np.inf):
+        with pytest.raises(ValueError, match="`eps` must be a finite number > 0"):
             oc.positive(bad)
+    # (refused when made, not at its first use: nothing satisfies it)
+    with pytest.raises(ValueError, match=r"`box` needs lower <= upper, got lower 1.0 > upper 0"):
+        oc.box(1.0, 0.0)
     with pytest.raises(ValueError, match=r"`upper` holds -inf: no state satisfies it"):
         oj.penalties.state_box(upper=-np.inf)
     with pytest.raises(ValueError, match=r"`lower` holds \+inf"):
