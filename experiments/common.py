@@ -120,6 +120,14 @@ def check_solver(name: str, kwargs: Mapping, key: str = "solver") -> None:
     configuration) when a spec cannot run."""
     kwargs = dict(kwargs or {})
     if name in SOLVER_CLASSES:
+        steps = kwargs.get("max_steps")
+        if isinstance(steps, int) and not isinstance(steps, bool) and steps == 0:
+            # (the library takes 0, a fit that evaluates its start; a study reporting it
+            # would present the start as the estimate)
+            raise ValueError(
+                f"`{key}.kwargs.max_steps` must be an integer >= 1 in an experiment (0 takes "
+                "no step, and the tables would report the start as the fit), got 0."
+            )
         try:
             make_solver(name, kwargs)
         except (TypeError, ValueError) as err:

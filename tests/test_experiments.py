@@ -145,6 +145,8 @@ BAD = [
     (["experiment.fig2.pair=[0,0]"], "`experiment.fig2.pair` must be two different"),
     (["experiment.run_methods=[nope]"], "`experiment.run_methods` must be one of"),
     (["solver.kwargs.max_steps=-3"], r"Adam\(max_steps=...\)"),
+    # (a study of no step reported the start as its fit)
+    (["solver.kwargs.max_steps=0"], r"`solver.kwargs.max_steps` must be an integer >= 1"),
     (["+solver.kwargs.foo=1"], r"unknown kwargs \['foo'\]"),
     (["solver=slsqp", "solver.kwargs.method=NOPE"], r"`solver.kwargs.method` must be a scipy"),
     (["solver=slsqp", "solver.kwargs.fd_scheme=7-point"], r"`solver.kwargs.fd_scheme` must be"),
