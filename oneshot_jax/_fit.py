@@ -96,6 +96,36 @@ def _warn_held_window_states(window, x0, estimate_x0, window_starts, model):
     )
 
 
+def _flag_diverged_stages(result):
+    """Warn, and list in `stop_info["stages_diverged"]`, where a solver of a sequence
+    other than the last diverged (a NaN or inf loss in its rows of the history): the next
+    solver starts from its last finite iterate and the result reports the last solver's
+    stop, so the divergence showed only as NaN in `history.loss`."""
+    stage, loss = np.asarray(result.history.stage), np.asarray(result.history.loss)
+    if stage.size == 0 or stage.max() == 0:
+        return result
+    last = int(stage.max())
+    bad = [i for i in range(last) if not np.all(np.isfinite(loss[stage == i]))]
+    if not bad:
+        return result
+    names = [
+        str(result.solver[i].get("solver", i)) if i < len(result.solver) else str(i) for i in bad
+    ]
+    first = int(np.asarray(result.history.step)[(stage == bad[0]) & ~np.isfinite(loss)][0])
+    warnings.warn(
+        f"solver {bad[0] + 1} of the {last + 1} in the sequence ({names[0]}) diverged: its "
+        f"loss was not finite at step {first}"
+        + (f" (and solvers {[i + 1 for i in bad[1:]]} likewise)" if len(bad) > 1 else "")
+        + ". The next solver started from its last finite iterate; the result and its "
+        "stop are the last solver's. A smaller learning rate (or Adam's scale='theta0') "
+        "keeps the earlier stage finite.",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    info = {**result.stop_info, "stages_diverged": bad}
+    return dataclasses.replace(result, stop_info=info)
+
+
 @jit
 def _solve(
     solvers,
@@ -798,6 +828,7 @@ def fit(
     if aggregate is not None:
         readings = agg.reading_mean_squares(result)
         result = agg.restore(result)
+    result = _flag_diverged_stages(result)
     if result.validation_loss is not None and not np.isfinite(result.validation_loss):
         warnings.warn(
             "`validation`: no iterate scored a finite validation loss (the model blows up "

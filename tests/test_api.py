@@ -8,6 +8,7 @@ import dataclasses
 import functools
 import subprocess
 import sys
+import warnings
 
 import equinox as eqx
 import jax
@@ -106,6 +107,23 @@ def test_a_nested_sequence_runs_every_solver():
 
     seq = as_solvers([oj.Adam(), [oj.LBFGS(max_steps=7), "gauss_newton"]])
     assert seq == (oj.Adam(), oj.LBFGS(max_steps=7), oj.GaussNewton())
+
+
+def test_a_sequence_says_when_an_earlier_solver_diverged(sat):
+    """Adam's first step at an absolute rate of 1e-2 takes I[2] = 0.009 to the bound, where
+    the loss is not finite; L-BFGS started again from the last finite point and the fit
+    reported its convergence, the divergence only a NaN in the history."""
+    fit = functools.partial(
+        oj.fit, SAT_MODEL, SAT_THETA0, SAT_X00, sat["M"], sat["z"], constraints=oc.positive()
+    )
+    with pytest.warns(RuntimeWarning, match=r"solver 1 of the 2 in the sequence \(Adam\) div"):
+        r = fit(solver=[oj.Adam(lr_theta=1e-2, max_steps=20), oj.LBFGS(max_steps=200)])
+    assert r.stop_info["stages_diverged"] == [0]
+    assert not np.all(np.isfinite(r.history.loss[r.history.stage == 0]))
+    with warnings.catch_warnings():  # (the baseline: a finite first stage, no word)
+        warnings.simplefilter("error")
+        r = fit(solver=[oj.Adam(lr_theta=1e-5, max_steps=20), oj.LBFGS(max_steps=200)])
+    assert "stages_diverged" not in r.stop_info
 
 
 def test_optimistix_without_steps_tests_its_start(sat, sat_lm):
