@@ -592,7 +592,7 @@ def fit(
     - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
         `positive`, `project`), or a list of them, on theta: every iterate lies in the
         intersection of their sets (Section 3.3). A regulariser here (the mixed form of
-        0.2) still works, with a DeprecationWarning: pass it as `regulariser`.
+        earlier releases) still works, with a DeprecationWarning: pass it as `regulariser`.
     - `regulariser`: a proximal regulariser from `oneshot_jax.sparsity` (`l1`,
         `group_lasso`, `l2`), or a list of them, on theta (their `where` is written on
         theta as given, modules included). A regulariser g makes the objective

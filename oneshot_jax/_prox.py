@@ -605,7 +605,7 @@ def split(constraints, regulariser):
     """`fit`'s `constraints` and `regulariser` as (one projection or None, one
     regulariser or None), each combined from its terms in order.
 
-    A regulariser given in `constraints` (the mixed form of oneshot_jax 0.2) still works,
+    A regulariser given in `constraints` (the mixed form of earlier releases) still works,
     with a DeprecationWarning naming `regulariser=`; it comes before those of
     `regulariser`. A projection given in `regulariser` is a ValueError naming the
     argument. A step of `fit` applies the regulariser's prox, then the projection (see

@@ -104,6 +104,14 @@ class Stability(NamedTuple):
     - `growth`: for Euler and an undamped mode (`value` inf), the factor by which the
         integrator grows that mode's amplitude over a record's steps, (1 + |lambda
         h|^2)^(N/2); None otherwise.
+
+    **Properties:**
+
+    - `inaccurate`: whether `value` exceeds min(`accurate_limit`, `limit`) (1.6 for
+        RK4, 2 for Euler): the condition on which `check_stability` and `fit` warn.
+    - `near_limit`: whether `value` exceeds `limit` (2.5 for RK4, 2 for Euler), past
+        the integrator's stability margin. For RK4 a `value` between 1.6 and 2.5 is
+        `inaccurate` (it warns) but not `near_limit`; for Euler the two agree.
     """
 
     value: float
