@@ -26,18 +26,10 @@ class LevenbergMarquardt(AbstractLeastSquares):
         projected gradient, the largest cosine between the residual and a Jacobian
         column, is at most `gtol` (see `oneshot_jax._optimality`).
     - `stol`: the statistical test, only where theta's columns of the Jacobian have a
-        null space once the initial states are fitted (an over-parameterised model such
-        as a network, where the first-order test is not
-        reached): the fit converges (succeeds, `statistically_converged`) when an
-        accepted step, its predicted decrease of the loss confirmed by the actual one
-        (at least a quarter of it), moves the fit by at most `stol` standard errors
-        (predicted decrease at most stol^2 sigma^2, sigma^2 = C / (observations -
-        rank J)), no parameter alone would move by a standard error (first-order
-        measure at most 1 / sqrt(observations - rank J)), and the undamped Gauss-Newton
-        step (the pseudo-inverse's, of the active set where there are bounds) is at most
-        sqrt(rank J) standard errors (predicted decrease at most rank J sigma^2); see
-        `oneshot_jax._optimality`. 0 turns it off. Not tested with
-        `linear_solver="cg"`, which does not form J^T J.
+        null space once the initial states are fitted (a network in theta): the fit
+        converges (succeeds, `statistically_converged`) when an accepted step moves it by
+        at most `stol` standard errors, with the conditions given under `GaussNewton`.
+        0 turns it off.
     - `rtol`, `atol`: an optional step test (off by default): an accepted step of
         scaled size at most rtol ||D p|| + atol that decreased the loss by at most
         rtol C + atol ends the fit, as `converged` if the first-order measure is at
