@@ -86,8 +86,10 @@ class RESULTS(eqx.Enumeration):
         "over-parameterised model, such as a network, on which the first-order test "
         "converges too slowly to be reached): the last accepted least-squares step, its "
         "predicted decrease confirmed by the actual one, changed the fit by at most the "
-        "solver's stol standard errors, so no quantity the data determine can still "
-        "change significantly (see `oneshot_jax._optimality.standard_errors`)"
+        "solver's stol standard errors, no parameter alone would move by a standard error, "
+        "and the undamped Gauss-Newton step is within sqrt(rank J) standard errors, so no "
+        "quantity the data determine can still change significantly (see "
+        "`oneshot_jax._optimality.standard_errors`)"
     )
     unconverged_rollout = (
         "parallel rollouts of the fit did not converge and `ParallelInTime(fallback=False)` "
