@@ -108,12 +108,10 @@ def _flag_diverged_stages(result):
     bad = [i for i in range(last) if not np.all(np.isfinite(loss[stage == i]))]
     if not bad:
         return result
-    names = [
-        str(result.solver[i].get("solver", i)) if i < len(result.solver) else str(i) for i in bad
-    ]
     first = int(np.asarray(result.history.step)[(stage == bad[0]) & ~np.isfinite(loss)][0])
     warnings.warn(
-        f"solver {bad[0] + 1} of the {last + 1} in the sequence ({names[0]}) diverged: its "
+        f"solver {bad[0] + 1} of the {last + 1} in the sequence "
+        f"({result.solver[bad[0]]['solver']}) diverged: its "
         f"loss was not finite at step {first}"
         + (f" (and solvers {[i + 1 for i in bad[1:]]} likewise)" if len(bad) > 1 else "")
         + ". The next solver started from its last finite iterate; the result and its "

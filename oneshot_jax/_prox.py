@@ -272,6 +272,13 @@ def _moved(prox, params, updates, step):
             "a proximal transform (a projection or a regulariser) needs `params` in "
             "`update(updates, state, params)`."
         )
+    want, got = jax.tree_util.tree_structure(updates), jax.tree_util.tree_structure(params)
+    if got != want:  # (else optax's `apply_updates` fails with a bare pytree error)
+        raise ValueError(
+            "`params` and `updates` of a proximal transform's `update(updates, state, "
+            f"params)` must have the same pytree structure, got {got} for `params` and "
+            f"{want} for `updates`."
+        )
     new = prox(optax.apply_updates(params, updates), step)
     return jax.tree_util.tree_map(lambda n, p: n - p, new, params)
 

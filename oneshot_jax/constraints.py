@@ -159,8 +159,8 @@ def box(lower=None, upper=None) -> ProximalTransformation:
     whatever the step) with `bounds`.
     """
 
-    scalars = [b for b in (lower, upper) if _value_key(b) and _value_key(b)[0] == "scalar"]
-    if len(scalars) == 2 and lower > upper:  # (the check in `bounds` waits for theta)
+    kinds = [(_value_key(b) or ("other",))[0] for b in (lower, upper)]
+    if kinds == ["scalar", "scalar"] and lower > upper:  # (`bounds` checks the rest)
         raise ValueError(f"`box` needs lower <= upper, got lower {lower!r} > upper {upper!r}.")
 
     def bounds(params):

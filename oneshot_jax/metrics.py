@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
-from ._counts import integral
+from ._counts import integral, real
 
 __all__ = [
     "rmse",
@@ -574,17 +574,8 @@ def _inputs(u, N, T):
     return out, known
 
 
-def _real_scalar(value):
-    """`value` as a float where it is one real number (a Python or NumPy number, or a 0-d
-    NumPy or concrete JAX array of a real dtype; not a bool), else None."""
-    if isinstance(value, (bool, np.bool_)):
-        return None
-    if isinstance(value, numbers.Real):
-        return float(value)
-    if isinstance(value, (np.ndarray, jax.Array)) and not isinstance(value, jax.core.Tracer):
-        if value.ndim == 0 and value.dtype.kind in "iuf":
-            return float(value)
-    return None
+def _is_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def residual_correlations(
@@ -668,14 +659,13 @@ def residual_correlations(
             f"`max_lag` must satisfy 1 <= max_lag <= T - 1 = {T - 1}, got {max_lag}{hint}."
         )
     max_lag = int(max_lag)
-    given = confidence
-    confidence = _real_scalar(confidence)
-    if confidence is None or not 0.0 < confidence < 1.0:
-        raise ValueError(f"`confidence` must be a number in (0, 1), got {given!r}.")
-    given = tolerance
-    tolerance = _real_scalar(tolerance)
-    if tolerance is None or not 0.0 <= tolerance < 1.0:
-        raise ValueError(f"`tolerance` must be a number in [0, 1), got {given!r}.")
+    # (a concrete 0-d array as the number it holds: `_counts.real`)
+    level, share = real(confidence), real(tolerance)
+    if not (_is_number(level) and 0.0 < level < 1.0):
+        raise ValueError(f"`confidence` must be a number in (0, 1), got {confidence!r}.")
+    if not (_is_number(share) and 0.0 <= share < 1.0):
+        raise ValueError(f"`tolerance` must be a number in [0, 1), got {tolerance!r}.")
+    confidence, tolerance = level, share
     if not isinstance(demean, (bool, np.bool_)):
         raise TypeError(f"`demean` must be True or False, got {demean!r}.")
 

@@ -419,26 +419,6 @@ def _map_selected(fn, params, sel, step_size):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
-def _penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTransformation:
-    """`_prox.penalty`, whose optax `update` first checks that `params` has the structure
-    of `updates` (else optax's `apply_updates` failed with a bare pytree error)."""
-    t = penalty(prox, value, strength, learning_rate, name, key)
-
-    def update(updates, state, params=None):
-        if params is not None:
-            want = jax.tree_util.tree_structure(updates)
-            got = jax.tree_util.tree_structure(params)
-            if got != want:
-                raise ValueError(
-                    f"`params` and `updates` of `{name}(...).update(updates, state, params)` "
-                    f"must have the same pytree structure, got {got} for `params` and {want} "
-                    "for `updates`."
-                )
-        return t.update(updates, state, params)
-
-    return t._replace(update=update)
-
-
 def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     """L1 regularisation `strength * ||w||_1` as an exact proximal (soft-thresholding) step.
 
@@ -475,7 +455,7 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
         return strength * total
 
-    return _penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
+    return penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
 
 
 def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
@@ -508,7 +488,7 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
                 total = total + jnp.sum(jnp.where(b, p * p, 0))
         return 0.5 * strength * total
 
-    return _penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
+    return penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
 
 
 def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> ProximalTransformation:
@@ -561,6 +541,4 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
                 total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
         return strength * total
 
-    return _penalty(
-        prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis)
-    )
+    return penalty(prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis))
