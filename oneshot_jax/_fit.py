@@ -450,39 +450,61 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
     )
 
 
-def _flag_infeasible(result, project, rtol=1e-8):
+def _flag_infeasible(result, projections, rtol=1e-8):
     """`result` with the stop reason `infeasible` where it reported a success at a theta
-    that the general projection moves (the projection onto an intersection, Dykstra's
+    that one of the general projection's sets does not hold: `projections` (`Built.sets`)
+    projects onto each set it intersects (the projection onto an intersection, Dykstra's
     alternating projections of `constraints.combine` or of `FitProblem.feasible` with
     fixed entries, is capped at its cycles: sets that meet at a small angle need about
-    1 / angle^2 of them), and a warning with the distance wherever it moves it. The
-    distance is to the user's set alone; with fixed entries held, the estimate can lie
-    further from the set it was to be in."""
-    params, _ = _pytree.split(result.theta)
-    a, _ = ravel_pytree(params)
-    b, _ = ravel_pytree(project(jax.tree_util.tree_map(jnp.asarray, params)))
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    gap = float(np.max(np.abs(a - b), initial=0.0))
-    if not gap > rtol * max(float(np.max(np.abs(a), initial=0.0)), 1.0):
+    1 / angle^2 of them, and on sets that do not meet it ends in the last set only), and
+    a warning with the largest distance wherever one moves it. The distances are to the
+    user's sets alone; with fixed entries held, the estimate can lie further from the set
+    it was to be in. With several starts, each other start that reported a success is
+    checked the same way (its stop in `result.starts`)."""
+
+    def gap(theta):  # the largest distance to a set, or 0 within rtol of theta's size
+        params, _ = _pytree.split(theta)
+        a, _ = ravel_pytree(params)
+        a = np.asarray(a, np.float64)
+        out = 0.0
+        for project in projections:
+            b, _ = ravel_pytree(project(jax.tree_util.tree_map(jnp.asarray, params)))
+            out = max(out, float(np.max(np.abs(a - np.asarray(b, np.float64)), initial=0.0)))
+        return out if out > rtol * max(float(np.max(np.abs(a), initial=0.0)), 1.0) else 0.0
+
+    if result.starts is not None:
+        reasons = list(result.starts.stop_reason)
+        for s, reason in enumerate(reasons):
+            theta = jax.tree_util.tree_map(
+                lambda a, s=s: a[s] if eqx.is_array(a) else a, result.starts.theta
+            )
+            if s != result.best and reason in SUCCESS and gap(theta):
+                reasons[s] = "infeasible"
+        if reasons != list(result.starts.stop_reason):
+            starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+            result = dataclasses.replace(result, starts=starts)
+    distance = gap(result.theta)
+    if not distance:
         return result
     demoted = result.success
     warnings.warn(
         f"the estimate lies outside the constraint set: the projection moves it by "
-        f"{gap:.3g}. The projection onto the intersection of the sets (Dykstra's "
+        f"{distance:.3g}. The projection onto the intersection of the sets (Dykstra's "
         "alternating projections, of a constraint list or of a projection with fixed "
         "entries) did not converge within its cycles (sets that meet at a small angle "
-        "converge slowly), so the iterates were not feasible either"
+        "converge slowly; sets that do not meet never do), so the iterates were not "
+        "feasible either"
         + (
             f"; the solver's {name_of(result.stop_reason)} is not a solution (status 'infeasible')"
             if demoted
             else ""
         )
-        + ": write the set as one projection (keeping any fixed entries at their values), "
-        "or in parameters of similar scale.",
+        + ": check that the sets meet, write the set as one projection (keeping any fixed "
+        "entries at their values), or write it in parameters of similar scale.",
         RuntimeWarning,
         stacklevel=3,
     )
-    return _demoted(result, "infeasible", infeasible=gap) if demoted else result
+    return _demoted(result, "infeasible", infeasible=distance) if demoted else result
 
 
 def _warn_projected(moved, names, theta0):
@@ -578,7 +600,9 @@ def fit(
     - `weight`, `penalty`, `penalty_weight`: Q and h, lambda of eq. (4), (21), as for
         `loss`. The least-squares solvers need lambda h >= 0. `weight="noise"` estimates
         Q with theta (MATLAB's `OutputWeight` "noise"): fits alternate with Q set to the
-        inverse covariance of the residuals until it settles, each warm-started (at
+        inverse covariance of the residuals (of the samples that measure outputs; where
+        some sample measures some outputs only, the diagonal of each output's inverse
+        mean squared residual) until it settles, each warm-started (at
         most 10 fits; `result.weight` is the Q of the returned fit,
         `stop_info["noise_weight_rounds"]` the number of fits, `num_steps` and
         `wall_time` those of all fits together), so that the standard
@@ -872,7 +896,7 @@ def fit(
             stacklevel=2,
         )
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
-        result = _flag_infeasible(result, built.problem.project)
+        result = _flag_infeasible(result, built.sets)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
     elif aggregate is not None and (window is None or not model.timed):

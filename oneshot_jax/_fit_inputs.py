@@ -68,6 +68,10 @@ class Built(NamedTuple):
     starts: Params  # (S, ...) free entries of theta and x0 per start
     fixed: np.ndarray  # (p,) True for the fixed entries of flat theta
     x0_estimated: np.ndarray  # (n_x,) True for the estimated entries of x0
+    # With a general projection, the projection onto each set it intersects (each term of
+    # a `combine`, on its own): the estimate must lie in every one (`_fit._flag_infeasible`;
+    # the projection onto sets that do not meet maps into the last of them only).
+    sets: tuple = ()
 
 
 def _host(a):
@@ -461,14 +465,14 @@ def build_problem(
                 "regulariser, or write the set's constraint as a penalty.",
                 stacklevel=3,
             )
-    project = None
+    project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:
             if free.any_fixed:
                 check_fixed_bounds(data.theta, fixed_flat, *_bounds(proj, data.theta))
         else:  # a general projection: check that it is one (boxes are by construction)
             check_projection(proj, data.theta)
-            project = proj.project
+            project, sets = proj.project, _sets(proj)
 
     problem = _pytree.build(
         FitProblem,
@@ -525,4 +529,12 @@ def build_problem(
         starts_flat if all_t else starts_flat[:, theta_free],
         X0s if all_x else X0s[:, :, x0_free],
     )
-    return Built(problem, starts, fixed_flat, x0_est)
+    return Built(problem, starts, fixed_flat, x0_est, sets)
+
+
+def _sets(t):
+    """The projections onto the sets that the projection `t` intersects: each term of a
+    `combine` (nested ones taken apart), or `t`'s own."""
+    if not t.terms:
+        return (t.project,)
+    return tuple(p for s in t.terms for p in _sets(s))

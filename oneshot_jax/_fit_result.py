@@ -228,9 +228,9 @@ class Starts(eqx.Module):
     - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
     - `solver_stop`: each start's own solver stop, the same as `stop_reason` except where
         a check after the solver replaced it (`validation`: the best-scoring iterate kept;
-        `unconverged_rollout`; `zero_gradient`; `stalled` where a step still lowers the
-        loss from a degenerate minimum or a zero residual, each start checked): there the
-        solver's stop (`diverged`, `converged`, ...), as `stop_info["solver_stop"]` for
+        `unconverged_rollout`; `zero_gradient`; `infeasible`; `stalled` where a step still
+        lowers the loss from a degenerate minimum or a zero residual, each start checked):
+        there the solver's stop (`diverged`, `converged`, ...), as `stop_info["solver_stop"]` for
         the returned start.
 
     With `fit(weight="noise")` these are the starts of its first fit (Q = I); the later
@@ -679,10 +679,13 @@ class FitResult(eqx.Module):
         one = heads is not None and not is_ragged(z_head) and np.ndim(z_head) == 2
         if heads is None or len(heads) != N or one:
             shape = "" if heads is None or is_ragged(z_head) else f" of shape {np.shape(z_head)}"
+            count = "." if not heads else f" with {len(heads)} heads."
+            if one:  # (its rows are samples, not heads)
+                count = ", one head (n, n_z)."
             raise ValueError(
                 f"`z_head` must hold one head per record of `u` ({N} records): shape "
                 f"(N, n, n_z) or a list of N arrays (n, n_z), got "
-                f"{type(z_head).__name__}{shape}" + (f" with {len(heads)} heads." if heads else ".")
+                f"{type(z_head).__name__}{shape}{count}"
             )
         per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
         if per_t and len(t) != N:

@@ -31,7 +31,9 @@ NOISE_RTOL = 1e-3
 
 def noise_weight(residuals, readings=()):
     """Q from a fit's residuals: the inverse of E^T E / n over the samples (every record's,
-    pooled) where every output is measured, (n_z, n_z); where some sample misses an output,
+    pooled) where every output is measured, (n_z, n_z), where every sample measures all
+    outputs or none (a sample of none, such as the padding past the end of a shorter
+    record, tells nothing and is left out); where some sample measures some outputs only,
     the diagonal 1 / (each output's mean squared residual over its samples), (n_z,).
 
     `readings`: one array per `Aggregate`, its readings' residuals times the square root
@@ -60,8 +62,9 @@ def noise_weight(residuals, readings=()):
             return None, f"aggregate {i}"
     logs = list(np.log(levels))
     Q = None
-    if seen.all() and n_z > 1:
-        S = e.T @ e / e.shape[0]
+    rows = seen.any(axis=1)  # (samples of no output: left out)
+    if n_z > 1 and rows.any() and seen[rows].all():
+        S = e[rows].T @ e[rows] / np.count_nonzero(rows)
         if np.linalg.cond(S) < 1e12:
             Q = np.linalg.inv(S)
             Q = 0.5 * (Q + Q.T)
@@ -134,17 +137,14 @@ def _reweighted(aggregate, factors):
 
 def _identity(z):
     """Q = I in the form `noise_weight` will return for these outputs (records), so that
-    the first fit and the next share one compiled program: (n_z, n_z) where every record
-    measures every output at every sample and the records have one length, else the
-    diagonal (n_z,) (a form that differs only costs a second compilation)."""
+    the first fit and the next share one compiled program: (n_z, n_z) where every sample
+    of every record measures every output or none, else the diagonal (n_z,) (a form that
+    differs only costs a second compilation)."""
     records = list(z) if isinstance(z, (list, tuple)) else [z]
     arrays = [np.asarray(r, dtype=np.float64) for r in records]
     n_z = arrays[0].shape[-1]
-    full = (
-        n_z > 1
-        and len({a.shape[-2] for a in arrays}) == 1
-        and all(np.isfinite(a).all() for a in arrays)
-    )
+    seen = [np.isfinite(a).reshape(-1, n_z) for a in arrays]
+    full = n_z > 1 and all((s.all(axis=1) | ~s.any(axis=1)).all() for s in seen)
     return np.eye(n_z) if full else np.ones(n_z)
 
 

@@ -58,10 +58,11 @@ class RESULTS(eqx.Enumeration):
         "after the solve: the solver stopped with a success, but the estimate lies outside "
         "the constraint set (the user's projection moves it): the projection onto an "
         "intersection (Dykstra's alternating projections, of `constraints.combine` or of a "
-        "general projection with fixed entries) did not converge within its cycles, so the "
-        "iterates were not feasible and the test was judged at a point that is not a "
-        "solution. Write the set as one projection (one that keeps the fixed entries at "
-        "their values), or in parameters of similar scale"
+        "general projection with fixed entries) did not converge within its cycles (or the "
+        "sets do not meet), so the iterates were not feasible and the test was judged at a "
+        "point that is not a solution. Check that the sets meet; write the set as one "
+        "projection (one that keeps the fixed entries at their values), or in parameters of "
+        "similar scale"
     )
     validation = (
         "the iterate with the lowest validation loss (held-out data, `fit(validation=...)`), "

@@ -381,6 +381,48 @@ def test_a_success_outside_the_constraint_set_is_not_reported():
     assert r.success and float(r.theta[1]) == pytest.approx(0.3)
 
 
+def test_a_success_on_sets_that_do_not_meet_is_not_reported():
+    """A general projection (a <= 0.5) combined with a box (a >= 1): the sets do not meet.
+    Dykstra's projection then ends in the box, the last set, where the combined
+    projection stands still: LM reported `converged` at a = 1, outside the first set.
+    Each set of the combination is now checked on its own, a nested combination's too,
+    at every start. Where the sets meet, the success stands."""
+    model = oj.Model.from_ode(lambda x, u, th: -th["a"] * x + u, 0.1)
+    u = np.ones((40, 1))
+    z = np.asarray(oj.simulate(model, {"a": jnp.array(2.0)}, jnp.array([0.5]), u)[1])
+    below = oc.project(lambda th: {**th, "a": jnp.minimum(th["a"], 0.5)})
+    theta0, x0 = {"a": jnp.array(2.0)}, jnp.array([0.5])
+    for cons in (
+        oc.combine([below, oc.box(lower={"a": 1.0})]),
+        oc.combine([oc.combine([below, oc.positive()]), oc.box(lower={"a": 1.0})]),
+    ):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            warnings.filterwarnings("error", message="the estimate lies outside")
+            with pytest.raises(RuntimeWarning, match="sets that do not meet never do"):
+                oj.fit(model, theta0, x0, u, z, constraints=cons)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = oj.fit(model, theta0, x0, u, z, constraints=cons)
+        assert float(r.theta["a"]) > 0.5 + 1e-3  # outside `below`: the case of this test
+        assert r.status == "infeasible" and not r.success, r.status
+        assert r.stop_info["solver_stop"] == "converged"
+    # With several starts, each start's success is checked (the other start's stood).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(model, {"a": jnp.array([2.0, 3.0])}, x0, u, z, constraints=cons,
+                   multistart=True)  # fmt: skip
+    assert r.starts.stop_reason == ("infeasible", "infeasible"), r.starts.stop_reason
+    assert r.starts.solver_stop == ("converged", "converged")
+    with warnings.catch_warnings():  # sets that meet (0.2 <= a <= 0.5): the success stands
+        warnings.simplefilter("ignore")
+        warnings.filterwarnings("error", message="the estimate lies outside")
+        r = oj.fit(
+            model, theta0, x0, u, z, constraints=oc.combine([below, oc.box(lower={"a": 0.2})])
+        )
+    assert r.success and float(r.theta["a"]) == pytest.approx(0.5)
+
+
 def test_invalid_constraints_raise():
     # These made the parameter NaN or infinite and the fit "diverged at step 0".
     with pytest.raises(ValueError, match="`lower` holds NaN"):

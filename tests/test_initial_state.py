@@ -271,6 +271,9 @@ def test_predict_of_several_records_predicts_each_from_its_own_head():
             np.testing.assert_allclose(p.z, z, atol=1e-6)
     with pytest.raises(ValueError, match=r"`z_head` must hold one head per record of `u` \(2"):
         r.predict(U, Z[0, :N_HEAD])
+    # (one head's rows are samples: it read "with 10 heads")
+    with pytest.raises(ValueError, match=r"got ndarray of shape \(10, 1\), one head \(n, n_z\)\."):
+        r.predict(U, Z[0, :10])
     with pytest.raises(ValueError, match=r"`x0` \(the starting guesses\) must have shape"):
         r.predict(U, Z[:, :N_HEAD], x0=np.zeros((3, 2)))
 

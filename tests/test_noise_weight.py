@@ -79,6 +79,35 @@ def test_the_noise_weight_of_outputs_with_missing_samples_is_diagonal():
     np.testing.assert_allclose(r.weight, q / np.sqrt(q.prod()), rtol=1e-2)
 
 
+def test_records_of_different_lengths_get_the_full_noise_weight():
+    """Records of 200 and 199 samples with correlated output noise: the samples past the
+    shorter record's end measure nothing and tell nothing about the noise. Q was the
+    diagonal (as where a sample misses one output), its standard errors about twice
+    those of the full Q; it is now the inverse covariance of the residuals of the
+    measured samples (the fixed point), as for records of one length, and so is a record
+    with a sample that measures no output."""
+    rng = np.random.default_rng(0)
+    mix = np.array([[0.01, 0.0], [0.15, 0.1]])  # correlated noise of the two outputs
+    us, zs = [], []
+    for T in (200, 199):
+        u = rng.standard_normal((T, 1))
+        _, z = oj.simulate(MODEL, {"k": 4.0, "c": 0.5}, np.array([0.5, 0.0]), u)
+        us.append(u)
+        zs.append(np.asarray(z) + rng.standard_normal((T, 2)) @ mix.T)
+    x0 = np.stack([z[0] for z in zs])
+    r = oj.fit(MODEL, THETA0, x0, us, zs, weight="noise")
+    e = np.concatenate([np.asarray(a) for a in r.residuals])
+    e = e[np.isfinite(e).all(axis=1)]
+    assert len(e) == 399
+    Q = np.linalg.inv(e.T @ e / len(e))
+    Q /= np.sqrt(np.linalg.det(Q))
+    assert np.shape(r.weight) == (2, 2)
+    np.testing.assert_allclose(r.weight, Q, rtol=1e-2, atol=1e-2 * np.abs(Q).max())
+    zs[1][50] = np.nan  # a sample of no output: left out as well
+    r = oj.fit(MODEL, THETA0, x0, us, zs, weight="noise", missing="mask")
+    assert np.shape(r.weight) == (2, 2)
+
+
 def test_a_weight_that_is_no_array_nor_noise_is_named():
     u, z = _data()
     with pytest.raises(ValueError, match=r"`weight` must be None, an array .* or \"noise\""):
