@@ -281,15 +281,21 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None):
         )
 
 
-def worst_fit(fit_percent, weight=None):
-    """The lowest FIT% over the outputs the fit weighs (Q's diagonal above 0: an output of
-    weight 0 is ignored on purpose) where it is below 0 (a simulation that fits an output
-    worse than that output's mean), else None."""
-    fits = np.asarray(np.nan if fit_percent is None else fit_percent, np.float64)
-    if weight is not None and fits.ndim == 1:
+def weighed(per_output, weight=None):
+    """A metric per output (n_z,) as float64, NaN for the outputs the fit does not weigh
+    (Q's diagonal 0: an output of weight 0 is ignored on purpose)."""
+    values = np.asarray(np.nan if per_output is None else per_output, np.float64)
+    if weight is not None and values.ndim == 1:
         q = np.asarray(weight, np.float64)
-        q = np.diagonal(q) if q.ndim == 2 else np.broadcast_to(q, fits.shape)
-        fits = np.where(q > 0, fits, np.nan)
+        q = np.diagonal(q) if q.ndim == 2 else np.broadcast_to(q, values.shape)
+        values = np.where(q > 0, values, np.nan)
+    return values
+
+
+def worst_fit(fit_percent, weight=None):
+    """The lowest FIT% over the outputs the fit weighs (`weighed`) where it is below 0 (a
+    simulation that fits an output worse than that output's mean), else None."""
+    fits = weighed(fit_percent, weight)
     if not np.isfinite(fits).any() or np.nanmin(fits) >= 0:
         return None
     return float(np.nanmin(fits))

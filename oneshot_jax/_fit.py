@@ -19,7 +19,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._aggregate import augment, check_window
-from ._assemble import assemble, collect, post, prepare, worst_fit
+from ._assemble import assemble, collect, post, prepare, weighed, worst_fit
 from ._checks import x0_mask
 from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
@@ -877,7 +877,7 @@ def fit(
     if result.status != "zero_residual":  # (round-off residuals have no noise level)
         _warn_unequal_noise(result.residuals, weight, result.std, readings)
     else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
-        nrmse = np.asarray(result.metrics.get("nrmse", np.nan), np.float64)
+        nrmse = weighed(result.metrics.get("nrmse"), weight)  # (weight 0: not fitted)
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)

@@ -355,7 +355,8 @@ class FitResult(eqx.Module):
         every column still descends from (checked after the solve),
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
         `zero_residual`, `residual_nrmse` (the largest of the outputs' NRMSE in
-        `metrics`: how far below sqrt(eps) of their variation the residuals are).
+        `metrics`, over the outputs of weight above 0: how far below sqrt(eps) of their
+        variation the residuals are).
     - `theta_order`: the names of theta's rows (`"k"`, `"phys.c"`, a module `"r"`) in the
         order theta0 was written (JAX sorts dict keys); `print(result)` follows it.
     - `units`: `fit(units=...)`, a unit string per parameter name, shown by `print`.

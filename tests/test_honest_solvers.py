@@ -1328,6 +1328,27 @@ def test_the_zero_residual_scale_of_data_with_gaps_is_their_own_variation():
     assert float(data_scale(masked)) == pytest.approx(want, rel=1e-10)
 
 
+def test_a_zero_residual_states_the_level_of_the_outputs_it_weighs():
+    """Noise-free position and velocity, the velocity replaced by noise and weighted 0: a
+    zero residual (the truth, loss 1e-33), whose message and `residual_nrmse` stated the
+    ignored output's NRMSE (0.74), against the test it stands for (at most sqrt(eps))."""
+    rhs = lambda x, u, p: jnp.stack([x[1], -p["k"] * x[0] - p["c"] * x[1] + u[0]])  # noqa: E731
+    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, p: x)
+    t = 0.05 * np.arange(200)
+    u = (np.sin(1.3 * t) + 0.5 * np.sin(3.7 * t))[:, None]
+    _, z = oj.simulate(model, {"k": 4.0, "c": 0.3}, np.array([0.2, -0.1]), u)
+    z = np.array(z)
+    z[:, 1] += 0.5 * np.random.default_rng(0).standard_normal(200)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(model, {"k": 3.0, "c": 0.15}, np.zeros(2), u, z, weight=np.array([1.0, 0.0]))
+    assert r.status == "zero_residual" and r.success, r.message
+    nrmse = np.asarray(r.metrics["nrmse"])
+    assert nrmse[1] > 0.5  # the ignored output: the case of this test
+    assert r.stop_info["residual_nrmse"] == pytest.approx(nrmse[0], rel=1e-6)
+    assert r.stop_info["residual_nrmse"] < 1.5e-8, r.message
+
+
 def _scalar_ar(dtype=np.float64):
     """x[k+1] = a x[k] + b u[k] observed, a = 0.8, b = 0.5, noise 0.05 (T = 100)."""
     rng = np.random.default_rng(0)
