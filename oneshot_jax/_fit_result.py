@@ -230,8 +230,8 @@ class Starts(eqx.Module):
         a check after the solver replaced it (`validation`: the best-scoring iterate kept;
         `unconverged_rollout`; `zero_gradient`; `infeasible`; `stalled` where a step still
         lowers the loss from a degenerate minimum or a zero residual, each start checked):
-        there the solver's stop (`diverged`, `converged`, ...), as `stop_info["solver_stop"]` for
-        the returned start.
+        there the solver's stop (`diverged`, `converged`, ...), as
+        `stop_info["solver_stop"]` for the returned start.
 
     With `fit(weight="noise")` these are the starts of its first fit (Q = I); the later
     fits refine the best start only.

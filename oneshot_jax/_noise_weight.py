@@ -29,6 +29,12 @@ NOISE_ROUNDS = 10
 NOISE_RTOL = 1e-3
 
 
+def _all_or_none(seen):
+    """Whether every sample (a row of `seen`, (samples, n_z) bool) measures all outputs or
+    none: then Q is the full inverse covariance (`noise_weight`)."""
+    return bool((seen.all(axis=1) | ~seen.any(axis=1)).all())
+
+
 def noise_weight(residuals, readings=()):
     """Q from a fit's residuals: the inverse of E^T E / n over the samples (every record's,
     pooled) where every output is measured, (n_z, n_z), where every sample measures all
@@ -63,7 +69,7 @@ def noise_weight(residuals, readings=()):
     logs = list(np.log(levels))
     Q = None
     rows = seen.any(axis=1)  # (samples of no output: left out)
-    if n_z > 1 and rows.any() and seen[rows].all():
+    if n_z > 1 and rows.any() and _all_or_none(seen):
         S = e[rows].T @ e[rows] / np.count_nonzero(rows)
         if np.linalg.cond(S) < 1e12:
             Q = np.linalg.inv(S)
@@ -143,8 +149,7 @@ def _identity(z):
     records = list(z) if isinstance(z, (list, tuple)) else [z]
     arrays = [np.asarray(r, dtype=np.float64) for r in records]
     n_z = arrays[0].shape[-1]
-    seen = [np.isfinite(a).reshape(-1, n_z) for a in arrays]
-    full = n_z > 1 and all((s.all(axis=1) | ~s.any(axis=1)).all() for s in seen)
+    full = n_z > 1 and all(_all_or_none(np.isfinite(a).reshape(-1, n_z)) for a in arrays)
     return np.eye(n_z) if full else np.ones(n_z)
 
 
