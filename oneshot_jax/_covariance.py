@@ -27,6 +27,7 @@ from ._linalg import (
     eigh_solve,
     eliminate_x0,
     identifiable,
+    identified,
     normal_blocks,
     psd_solve,
     scaled_eigh,
@@ -164,8 +165,8 @@ def _pseudo_inverse(blocks, carry=True):
     # (`identifiable`)
     decomposition = scaled_eigh(S, jnp.diag(A))
     S_inv = eigh_solve(decomposition, jnp.eye(p, dtype=S.dtype))
-    d_t, _, vecs, null = decomposition
-    t_ok = ~jnp.any(null[None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
+    d_t, _, vecs, null, _ = decomposition
+    t_ok = identified(decomposition)
     if m and carry:
         # A direction v of the null space of theta's Schur complement moves each x0_i by
         # -C_i^+ B_i^T v (the outputs unchanged): an initial state with a component

@@ -65,7 +65,17 @@ def floor(d, rel=1e-12):
     return jnp.maximum(d, rel * jnp.maximum(jnp.max(d, initial=0.0), 1e-300))
 
 
-def scaled_eigh(M, diag=None):
+class Decomposition(NamedTuple):
+    """A `scaled_eigh` of a PSD M: M = D^{1/2} V diag(vals) V^T D^{1/2}."""
+
+    d: jax.Array  # D^{1/2}: the scaling's square roots
+    vals: jax.Array  # eigenvalues of the scaled matrix
+    vecs: jax.Array  # its eigenvectors (columns)
+    null: jax.Array  # the eigenvalues at or below `cut`: numerically null
+    cut: jax.Array  # the null cutoff, 1e3 eps times the largest eigenvalue (keepdims)
+
+
+def scaled_eigh(M, diag=None) -> Decomposition:
     """Eigendecomposition of the Jacobi-scaled D^{-1/2} M D^{-1/2} (unit diagonal) and its
     numerically null eigenvalues. Scaling first makes the cutoff detect collinear
     columns whatever the parameters' units, without dropping small-scale directions.
@@ -78,7 +88,7 @@ def scaled_eigh(M, diag=None):
     if diag is not None:  # judged against the reference's unit diagonal too
         top = jnp.maximum(top, 1.0)
     cut = 1e3 * jnp.finfo(M.dtype).eps * top
-    return d, vals, vecs, vals <= cut
+    return Decomposition(d, vals, vecs, vals <= cut, cut)
 
 
 def psd_solve(M, b, diag=None):
@@ -93,7 +103,7 @@ def psd_solve(M, b, diag=None):
 def eigh_solve(decomposition, b):
     """`psd_solve` from M's `scaled_eigh` `decomposition` (d, vals, vecs, null), for a
     caller that reads the decomposition too."""
-    d, vals, vecs, null = decomposition
+    d, vals, vecs, null, _ = decomposition
     inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
     vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
@@ -106,21 +116,45 @@ def numerical_rank(M, diag=None):
     """The numerical rank of a (batched) PSD M: its eigenvalues above the null cutoff of
     `scaled_eigh`, the cutoff of `psd_solve` and of the covariance's identifiability.
     `diag`: as for `scaled_eigh`."""
-    _, _, _, null = scaled_eigh(M, diag)
-    return jnp.sum(~null, axis=-1)
+    return jnp.sum(~scaled_eigh(M, diag).null, axis=-1)
 
 
 # A variable has a component in a (unit, Jacobi-scaled) null direction above this size:
-# not identifiable (`identifiable`, and the initial states the covariance judges along
-# theta's null directions).
+# not identifiable unless the data determine it as `identified` says (and, for the initial
+# states the covariance judges along theta's null directions, without that exception).
 NULL_COMPONENT = 1e-6
 
 
+def identified(decomposition: Decomposition):
+    """Per variable of a PSD M, from its `scaled_eigh` `decomposition`: False where the
+    outputs do not determine it, i.e. where it has a component in M's numerical null space
+    (above `NULL_COMPONENT`) that matters to its variance.
+
+    A variable's variance (scaled) is sum_j v_ij^2 / lambda_j over the eigenpairs; the
+    pseudo-inverse keeps the determined directions' part w_i and drops the null ones. A
+    null direction's eigenvalue is known only to lie below the cut, so the variable counts
+    as determined when its null components could not add more than w_i even with their
+    eigenvalues at the cut (sum_null v_ij^2 <= cut w_i): then the pseudo-inverse's standard
+    error is within a factor sqrt(2) of the one a null eigenvalue at the cut would give.
+    Otherwise it is not identifiable (an exact null direction, e.g. a * b entering as their
+    product, has components of order 1). This matters where a null direction is nearly
+    one variable's: the damping of a hybrid model that a network of the velocity
+    reproduces, whose null eigenvector carried components of 2e-6 on the stiffness and the
+    input gain, whose variances came from eigenvalues near 1e-3: those are determined,
+    their standard errors finite.
+    """
+    _, vals, vecs, null, cut = decomposition
+    null_mass = jnp.sum(jnp.where(null[..., None, :], vecs**2, 0.0), axis=-1)
+    inverse = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
+    determined = jnp.sum(vecs**2 * inverse[..., None, :], axis=-1)
+    touched = jnp.any(null[..., None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
+    return ~(touched & (null_mass > cut * determined))
+
+
 def identifiable(M, diag=None):
-    """Per variable of a PSD M: False where it has a component in M's numerical null
-    space (the outputs do not determine it). `diag`: as for `scaled_eigh`."""
-    _, _, vecs, null = scaled_eigh(M, diag)
-    return ~jnp.any(null[..., None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
+    """Per variable of a PSD M: False where the outputs do not determine it (`identified`).
+    `diag`: as for `scaled_eigh`."""
+    return identified(scaled_eigh(M, diag))
 
 
 class Elimination(NamedTuple):

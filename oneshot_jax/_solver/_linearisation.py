@@ -201,7 +201,7 @@ class DenseLinearisation(AbstractLinearisation):
         rank_t = 0
         if p:
             decomposition = scaled_eigh(self.S, jnp.diag(self.A))
-            rank_t = jnp.sum(~decomposition[3])
+            rank_t = jnp.sum(~decomposition.null)
             q = elim.rhs(self.B, self.g_t)
             decrease = decrease + q @ eigh_solve(decomposition, q)
         return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t), decrease
