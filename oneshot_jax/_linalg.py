@@ -101,7 +101,7 @@ def psd_solve(M, b, diag=None):
 
 
 def eigh_solve(decomposition, b):
-    """`psd_solve` from M's `scaled_eigh` `decomposition` (d, vals, vecs, null), for a
+    """`psd_solve` from M's `scaled_eigh` `decomposition`, for a
     caller that reads the decomposition too."""
     d, vals, vecs, null, _ = decomposition
     inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
@@ -131,24 +131,30 @@ def identified(decomposition: Decomposition):
     (above `NULL_COMPONENT`) that matters to its variance.
 
     A variable's variance (scaled) is sum_j v_ij^2 / lambda_j over the eigenpairs; the
-    pseudo-inverse keeps the determined directions' part w_i and drops the null ones. A
-    null direction's eigenvalue is known only to lie below the cut, so the variable counts
-    as determined when its null components could not add more than w_i even with their
-    eigenvalues at the cut (sum_null v_ij^2 <= cut w_i): then the pseudo-inverse's standard
-    error is within a factor sqrt(2) of the one a null eigenvalue at the cut would give.
-    Otherwise it is not identifiable (an exact null direction, e.g. a * b entering as their
-    product, has components of order 1). This matters where a null direction is nearly
-    one variable's: the damping of a hybrid model that a network of the velocity
-    reproduces, whose null eigenvector carried components of 2e-6 on the stiffness and the
-    input gain, whose variances came from eigenvalues near 1e-3: those are determined,
-    their standard errors finite.
+    pseudo-inverse keeps the determined directions' part w_i and drops the null ones. The
+    variable counts as determined when its null directions, taken with their eigenvalues
+    as computed, would add less than w_i (sum_null v_ij^2 / lambda_j < w_i): then the
+    pseudo-inverse's standard error is within a factor sqrt(2) of the one that keeps them.
+    An exact null direction has an eigenvalue of round-off size or below zero, which
+    counts as zero: a variable with a component above `NULL_COMPONENT` in it is not
+    identifiable (a * b entering as their product; c + 1e-5 a next to them, though c's
+    column alone is well determined). This matters where a numerically null direction is
+    nearly one variable's and its eigenvalue, though below the cut, is that variable's
+    small remaining information: the damping of a hybrid model that a network of the
+    velocity reproduces (eigenvalue 9e-14 of the scaled matrix), whose eigenvector carried
+    2e-6 of the stiffness and of the input gain, whose variances came from eigenvalues
+    near 1e-3 (an added share of about 5 %): those two are determined, their standard
+    errors finite.
     """
-    _, vals, vecs, null, cut = decomposition
-    null_mass = jnp.sum(jnp.where(null[..., None, :], vecs**2, 0.0), axis=-1)
+    _, vals, vecs, null, _ = decomposition
+    square = vecs**2
+    kept = null & (vals > 0)
+    share = jnp.where(kept, 1.0 / jnp.where(kept, vals, 1.0), jnp.inf)[..., None, :]
+    share = jnp.where(null[..., None, :] & (square > 0), square * share, 0.0)
     inverse = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
-    determined = jnp.sum(vecs**2 * inverse[..., None, :], axis=-1)
+    determined = jnp.sum(square * inverse[..., None, :], axis=-1)
     touched = jnp.any(null[..., None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
-    return ~(touched & (null_mass > cut * determined))
+    return ~(touched & (jnp.sum(share, axis=-1) >= determined))
 
 
 def identifiable(M, diag=None):

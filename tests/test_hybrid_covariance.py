@@ -153,31 +153,34 @@ def test_exact_confounding_stays_not_identifiable():
     assert np.isfinite(np.asarray(res.std["lin"].weight)[0, 1])
 
 
-def _with_null_direction(component, determined):
-    """A PSD matrix (unit scaling) with an exact null eigenvector that is variable 0's
-    but for `component` on variables 1 and 2, whose other eigenvalues are `determined`."""
+def _with_null_direction(component, determined, null=1e-13):
+    """A PSD matrix (unit scaling) whose eigenvalue `null` (below the cutoff, 1e3 eps)
+    has an eigenvector that is variable 0's but for `component` on variables 1 and 2,
+    and whose other eigenvalues are `determined`."""
     v0 = np.array([1.0, component, -0.7 * component])
     basis, _ = np.linalg.qr(np.column_stack([v0, [0.0, 1.0, 0.3], [0.0, -0.2, 1.0]]))
-    return basis @ np.diag([0.0, *determined]) @ basis.T
+    return basis @ np.diag([null, *determined]) @ basis.T
 
 
 def test_a_small_share_of_a_null_direction_leaves_a_poorly_determined_variable_determined():
-    # Variables 1 and 2 carry 2e-6 of the null direction (above the 1e-6 the rule used to
-    # stop at), and their variances come from eigenvalues of 1e-3: were the null
-    # eigenvalue at the cutoff (1e3 eps), it would add a share of 4e-12 / 2.2e-13 ~ 20
-    # to variances of ~1e3, so they are determined. The same share next to eigenvalues
-    # of order 1, or a share of 1e-3 next to 1e-3, is not (it would dominate).
+    # Variables 1 and 2 carry 2e-6 of a numerically null direction (above the 1e-6 the
+    # rule used to stop at) whose eigenvalue is 1e-13, and their variances come from
+    # eigenvalues of 1e-3: kept, that direction would add a share of 4e-12 / 1e-13 = 40 to
+    # variances of about 1e3, so they are determined. The same share next to eigenvalues
+    # of order 1, a share of 1e-3, or an exact null direction (eigenvalue 0: c + 2e-6 a
+    # next to a and b entering as a * b) would dominate: not identifiable.
     ones = np.ones(3)
     flags = oj.internal.identifiable
     np.testing.assert_array_equal(
         flags(_with_null_direction(2e-6, (1e-3, 3e-3)), ones), [False, True, True]
     )
-    np.testing.assert_array_equal(
-        flags(_with_null_direction(2e-6, (0.5, 1.0)), ones), [False, False, False]
-    )
-    np.testing.assert_array_equal(
-        flags(_with_null_direction(1e-3, (1e-3, 3e-3)), ones), [False, False, False]
-    )
+    for component, determined, null in (
+        (2e-6, (0.5, 1.0), 1e-13),
+        (1e-3, (1e-3, 3e-3), 1e-13),
+        (2e-6, (1e-3, 3e-3), 0.0),
+    ):
+        matrix = _with_null_direction(component, determined, null)
+        np.testing.assert_array_equal(flags(matrix, ones), [False, False, False])
 
 
 def test_physics_next_to_a_nearly_confounded_damping_keeps_finite_errors():
