@@ -71,8 +71,7 @@ class Decomposition(NamedTuple):
     d: jax.Array  # D^{1/2}: the scaling's square roots
     vals: jax.Array  # eigenvalues of the scaled matrix
     vecs: jax.Array  # its eigenvectors (columns)
-    null: jax.Array  # the eigenvalues at or below `cut`: numerically null
-    cut: jax.Array  # the null cutoff, 1e3 eps times the largest eigenvalue (keepdims)
+    null: jax.Array  # the eigenvalues at or below 1e3 eps of the largest: numerically null
 
 
 def scaled_eigh(M, diag=None) -> Decomposition:
@@ -88,7 +87,7 @@ def scaled_eigh(M, diag=None) -> Decomposition:
     if diag is not None:  # judged against the reference's unit diagonal too
         top = jnp.maximum(top, 1.0)
     cut = 1e3 * jnp.finfo(M.dtype).eps * top
-    return Decomposition(d, vals, vecs, vals <= cut, cut)
+    return Decomposition(d, vals, vecs, vals <= cut)
 
 
 def psd_solve(M, b, diag=None):
@@ -101,9 +100,9 @@ def psd_solve(M, b, diag=None):
 
 
 def eigh_solve(decomposition, b):
-    """`psd_solve` from M's `scaled_eigh` `decomposition`, for a
-    caller that reads the decomposition too."""
-    d, vals, vecs, null, _ = decomposition
+    """`psd_solve` from M's `scaled_eigh` `decomposition`, for a caller that reads the
+    decomposition too."""
+    d, vals, vecs, null = decomposition
     inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
     vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
@@ -146,7 +145,7 @@ def identified(decomposition: Decomposition):
     near 1e-3 (an added share of about 5 %): those two are determined, their standard
     errors finite.
     """
-    _, vals, vecs, null, _ = decomposition
+    _, vals, vecs, null = decomposition
     square = vecs**2
     kept = null & (vals > 0)
     share = jnp.where(kept, 1.0 / jnp.where(kept, vals, 1.0), jnp.inf)[..., None, :]

@@ -57,6 +57,22 @@ def _autodiff_jacobian(model, result, u, z):
     return np.asarray(residuals(v)), np.asarray(jax.jacfwd(residuals)(v)), np.asarray(flat)
 
 
+def _marginal_std(r, J, i, cutoffs=(1e-8, 1e-7, 1e-6, 1e-5)):
+    """NumPy's marginal std of variable i, one per cutoff: its column with its projection
+    onto the range of the other columns (Jacobi-scaled, singular values above `cutoff`
+    of the largest) removed, sigma^2 = r^T r / (R - n)."""
+    s2 = r @ r / (r.size - J.shape[1])
+    others = np.delete(J, i, axis=1)
+    scale = np.linalg.norm(others, axis=0)
+    U, S, _ = np.linalg.svd(others / np.where(scale > 0, scale, 1.0), full_matrices=False)
+    refs = []
+    for cutoff in cutoffs:
+        Ur = U[:, S > cutoff * S[0]]
+        perp = J[:, i] - Ur @ (Ur.T @ J[:, i])
+        refs.append(np.sqrt(s2 / (perp @ perp)))
+    return refs
+
+
 def _index(flat, value):
     (i,) = np.flatnonzero(flat == value)
     return int(i)
@@ -121,15 +137,7 @@ def test_over_parameterised_network_leaves_the_physics_identifiable():
     # network's singular values decay without a gap, so the cutoff moves it: the reported
     # value must lie within the range given by cutoffs around the library's
     # (sqrt(1e3 eps) ~ 5e-7 relative).
-    s2 = r @ r / (r.size - J.shape[1])
-    Jo = np.delete(J, i, axis=1)
-    scale = np.linalg.norm(Jo, axis=0)
-    U, S, _ = np.linalg.svd(Jo / np.where(scale > 0, scale, 1.0), full_matrices=False)
-    refs = []
-    for cutoff in (1e-8, 1e-7, 1e-6, 1e-5):
-        Ur = U[:, S > cutoff * S[0]]
-        perp = J[:, i] - Ur @ (Ur.T @ J[:, i])
-        refs.append(np.sqrt(s2 / (perp @ perp)))
+    refs = _marginal_std(r, J, i)
     assert min(refs) * 0.9 <= std <= max(refs) * 1.1, (std, refs)
     # The initial states, which the outputs determine, keep finite standard errors: the
     # network's numerically null directions are not carried over to them.
@@ -200,17 +208,9 @@ def test_physics_next_to_a_nearly_confounded_damping_keeps_finite_errors():
         res = oj.fit(model, theta0, x0, u, z, solver=oj.LevenbergMarquardt(max_steps=200))
     assert not np.isfinite(res.std["c"]) or res.std["c"] > 100.0  # the network's share
     r, J, flat = _autodiff_jacobian(model, res, u, z)
-    s2 = r @ r / (r.size - J.shape[1])
     for name, truth in (("w0sq", W0SQ), ("g", 1.0)):
         i = _index(flat, res.theta[name])
         std = res.std[name]
         assert np.isfinite(std) and abs(res.theta[name] - truth) < 1.96 * std, (name, std)
-        Jo = np.delete(J, i, axis=1)  # c and the network among the others
-        scale = np.linalg.norm(Jo, axis=0)
-        U, S, _ = np.linalg.svd(Jo / np.where(scale > 0, scale, 1.0), full_matrices=False)
-        refs = []
-        for cutoff in (1e-8, 1e-7, 1e-6, 1e-5):
-            Ur = U[:, S > cutoff * S[0]]
-            perp = J[:, i] - Ur @ (Ur.T @ J[:, i])
-            refs.append(np.sqrt(s2 / (perp @ perp)))
+        refs = _marginal_std(r, J, i)  # (c and the network among the other columns)
         assert min(refs) * 0.9 <= std <= max(refs) * 1.1, (name, std, refs)
