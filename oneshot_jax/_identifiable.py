@@ -102,6 +102,13 @@ def _learned_keys(theta0, learned):
         leaves = jax.tree_util.tree_leaves(theta0[k])
         if not any(eqx.is_inexact_array(a) or is_weak(a) for a in leaves):  # (as `fit` reads)
             raise ValueError(f"`learned` names {k!r}, which holds no floating array to fit.")
+    if all(np.ndim(a) == 0 for k in keys for a in jax.tree_util.tree_leaves(theta0[k])):
+        raise ValueError(
+            f"`learned` names only single numbers ({', '.join(map(repr, keys))}): the learned "
+            "terms are networks (`MLP`), `Dictionary` terms or arrays of weights, switched "
+            "off at zero; a single number is a physical parameter (name the key of the "
+            "network)."
+        )
     physical = [k for k in theta0 if k not in keys]
     if not any(
         eqx.is_inexact_array(a) or is_weak(a)

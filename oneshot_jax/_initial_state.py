@@ -110,7 +110,7 @@ class Prediction(NamedTuple):
 
 
 def _check_head(u, z, n, z_name="z"):
-    """u (T, n_u), z (T_z, n_z) and 1 <= n <= min(T, T_z), as the number of samples used
+    """u (T, n_u), z (T_z <= T, n_z) and 1 <= n <= T_z, as the number of samples used
     (`z_name`: the caller's name of z)."""
     if np.ndim(u) != 2:
         several = (
@@ -126,6 +126,11 @@ def _check_head(u, z, n, z_name="z"):
             f"`{z_name}` must have shape (T, n_z) (one record), got shape {np.shape(z)}."
         )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
+    if T_z > T:  # (only z[:n] is read: more outputs than inputs is another record)
+        raise ValueError(
+            f"`{z_name}` has {T_z} rows, more than the {T} samples of `u`: give the "
+            "record's outputs (T rows) or only its first ones."
+        )
     if n is None:  # (n is z's length: name z)
         if not 1 <= T_z <= T:
             raise ValueError(
@@ -143,9 +148,7 @@ def _check_head(u, z, n, z_name="z"):
         if np.ndim(z) == 2 and np.shape(z)[1] == T and T_z < T:
             hint = f" (is `{z_name}` transposed? it has shape {np.shape(z)}, u has T = {T})"
         raise ValueError(f"`n` = {n} is more than the {T_z} samples of `z`{hint}.")
-    if n > T:
-        raise ValueError(f"`n` = {n} is more than the {T} samples of `u`.")
-    return n
+    return n  # (n <= T_z <= T)
 
 
 #
@@ -558,6 +561,10 @@ def predict(
     scores = oneshot_jax.metrics.benchmark_scores(test.y, pred.z, test.n)
     ```
     """
+    if n is None:  # (`estimate_x0` takes None for all of z; the protocol needs its n)
+        raise TypeError(
+            "`n` (the number of head samples x0 is estimated from) must be an integer, got None."
+        )
     return predict_impl(model, theta, u, z, n, method, kwargs, stacklevel=3, t=t)
 
 

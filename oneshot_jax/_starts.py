@@ -193,7 +193,9 @@ def theta_starts(multistart, theta0, n_x0_starts, x0_note=""):
     if n < 1:
         raise ValueError("`multistart` needs at least one start; the leading axis has size 0.")
     for path, leaf in jax.tree_util.tree_leaves_with_path(stacked):
-        check_finite_starts(leaf, f"theta0{jax.tree_util.keystr(path)}")
+        # (a part given in a dict of starts is named where it came from)
+        where = "multistart" if multistart is not True and tuple(path) in given else "theta0"
+        check_finite_starts(leaf, f"{where}{jax.tree_util.keystr(path)}")
     return stacked, n
 
 

@@ -647,8 +647,11 @@ def residual_correlations(
     L. Ljung, *System Identification: Theory for the User*, 2nd ed., Prentice Hall, 1999,
     Sec. 16.6 (residual analysis).
     """
+    given = np.shape(e)
     e = _trajectories(e, "e")
     N, T, n_z = e.shape
+    if T < 2:  # (before `max_lag`, whose range it would leave empty)
+        raise ValueError(f"`e` must have at least two samples, got shape {given}.")
     if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral):
         raise ValueError(f"`max_lag` must be an integer, got {max_lag!r}.")
     if not 1 <= max_lag <= T - 1:

@@ -679,7 +679,7 @@ FIT_CASES = {
     "inf start of a dict": (
         dict(multistart={"a": np.array([0.5, np.inf])}),
         ValueError,
-        r"`theta0\['a'\]` must be finite; the starts \[1\]",
+        r"`multistart\['a'\]` must be finite; the starts \[1\]",
     ),
     "NaN start of x0": (
         dict(x0=np.array([[0.0], [np.nan]]), multistart={"a": np.array([0.5, 0.6])}),

@@ -130,6 +130,9 @@ def test_physics_first_rejects_bad_arguments(case):
     # (an integer array is data to `fit`, not a parameter; a Python number is one)
     with pytest.raises(ValueError, match="`learned` names 'b', which holds no floating"):
         oj.fit_physics_first(model, {**theta0, "b": np.array(2)}, x0, u, z, learned=("r", "b"))
+    for fn in (oj.fit_physics_first, oj.fit_orthogonal):  # (a physical parameter switched off)
+        with pytest.raises(ValueError, match="`learned` names only single numbers \\('w0sq'\\)"):
+            fn(model, theta0, x0, u, z, learned="w0sq")
     with pytest.raises(ValueError, match="`learned` names every parameter"):
         oj.fit_physics_first(model, {"r": theta0["r"]}, x0, u, z, learned="r")
     with pytest.raises(TypeError, match="`fixed` must be None or a dict"):

@@ -531,8 +531,13 @@ def test_bad_input_errors():
         est(x0=x0, n=0)
     with pytest.raises(ValueError, match="`n` = 26 is more than the 25 samples of `z`"):
         est(x0=x0, n=26)
-    with pytest.raises(ValueError, match="`n` = 20 is more than the 10 samples of `u`"):
-        oj.estimate_x0(LINEAR, 1.0, u[:10], z, n=20, x0=x0)
+    # (z longer than u: its extra rows are another record's; only z[:n] would be read)
+    with pytest.raises(ValueError, match="`z` has 25 rows, more than the 10 samples of `u`"):
+        oj.estimate_x0(LINEAR, 1.0, u[:10], z, n=5, x0=x0)
+    with pytest.raises(ValueError, match="`z` has 25 rows, more than the 10 samples of `u`"):
+        oj.predict(LINEAR, 1.0, u[:10], z, 5, x0=x0)
+    with pytest.raises(TypeError, match=r"`n` \(the number of head samples x0 is estimated"):
+        oj.predict(LINEAR, 1.0, u, z, None, x0=x0)  # (estimate_x0's None: all of z)
     with pytest.raises(TypeError, match="`n`.* must be an integer"):
         est(x0=x0, n=2.5)
     with pytest.raises(ValueError, match=r"`u` must have shape \(T, n_u\)"):

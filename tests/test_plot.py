@@ -484,6 +484,9 @@ def test_plot_arguments_are_checked(fitted):
         oj.plot.compare(z)
     with pytest.raises(ValueError, match="`max_lag`"):
         oj.plot.resid(result, max_lag=0)
+    # (no samples: said of `e`, not of the default max_lag its range leaves out)
+    with pytest.raises(ValueError, match=r"`e` must have at least two samples, got shape \(0, 1\)"):
+        oj.metrics.residual_correlations(np.zeros((0, 1)))
 
 
 def test_missing_matplotlib_names_the_extra(monkeypatch):
