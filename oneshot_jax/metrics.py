@@ -647,11 +647,13 @@ def residual_correlations(
     L. Ljung, *System Identification: Theory for the User*, 2nd ed., Prentice Hall, 1999,
     Sec. 16.6 (residual analysis).
     """
-    given = np.shape(e)
-    e = _trajectories(e, "e")
+    given, e = e, _trajectories(e, "e")
     N, T, n_z = e.shape
     if T < 2:  # (before `max_lag`, whose range it would leave empty)
-        raise ValueError(f"`e` must have at least two samples, got shape {given}.")
+        hint = (
+            f" (`e` holds T = {T} samples of {n_z} outputs: is it transposed?)" if n_z > 1 else ""
+        )
+        raise ValueError(f"`e` must have at least two samples, got shape {np.shape(given)}{hint}.")
     if isinstance(max_lag, bool) or not isinstance(max_lag, numbers.Integral):
         raise ValueError(f"`max_lag` must be an integer, got {max_lag!r}.")
     if not 1 <= max_lag <= T - 1:
