@@ -127,8 +127,11 @@ def _check_head(u, z, n, z_name="z"):
         )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
     if T_z > T:  # (only z[:n] is read: more outputs than inputs is another record)
+        hint = ""
+        if np.shape(u)[1] == T_z:
+            hint = f" (is `u` transposed? it has shape {np.shape(u)})"
         raise ValueError(
-            f"`{z_name}` has {T_z} rows, more than the {T} samples of `u`: give the "
+            f"`{z_name}` has {T_z} rows, more than the {T} samples of `u`{hint}: give the "
             "record's outputs (T rows) or only its first ones."
         )
     if n is None:  # (n is z's length: name z)

@@ -536,6 +536,8 @@ def test_bad_input_errors():
         oj.estimate_x0(LINEAR, 1.0, u[:10], z, n=5, x0=x0)
     with pytest.raises(ValueError, match="`z` has 25 rows, more than the 10 samples of `u`"):
         oj.predict(LINEAR, 1.0, u[:10], z, 5, x0=x0)
+    with pytest.raises(ValueError, match=r"samples of `u` \(is `u` transposed\? it has shape"):
+        oj.predict(LINEAR, 1.0, u.T, z, 5, x0=x0)
     with pytest.raises(TypeError, match=r"`n` \(the number of head samples x0 is estimated"):
         oj.predict(LINEAR, 1.0, u, z, None, x0=x0)  # (estimate_x0's None: all of z)
     with pytest.raises(TypeError, match="`n`.* must be an integer"):
