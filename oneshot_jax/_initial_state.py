@@ -226,9 +226,9 @@ def estimate_x0(
     **Arguments:**
 
     - `model`, `theta`: a `Model` and its parameters (any pytree, as for `simulate`).
-    - `u`: inputs (T, n_u); `z`: measured outputs (T_z, n_z). Only u[:n] and z[:n] are
-        used, so a whole test record can be passed together with the protocol's n.
-    - `n`: the number of head samples, 1 <= n <= min(T, T_z); default T_z.
+    - `u`: inputs (T, n_u); `z`: measured outputs (T_z <= T, n_z). Only u[:n] and z[:n]
+        are used, so a whole test record can be passed together with the protocol's n.
+    - `n`: the number of head samples, 1 <= n <= T_z; default T_z.
     - `method`: `"lsq"` or `"smoother"`.
     - `x0`: the starting guess (lsq) or the prior mean (smoother), shape (n_x,). Default
         z[0] where the model has the default `observe` (z = x, `Model(step)` without
@@ -272,11 +272,11 @@ def estimate_x0(
 
     **Raises:**
 
-    `ValueError` for a method other than "lsq" or "smoother", n outside 1..min(T, T_z),
-    arrays of the wrong shape, a missing `x0` for a partly observed state, smoother
-    arguments with "lsq" (or `solver` with "smoother"), or when the model's simulation of
-    the head from the estimate is not finite (theta makes it blow up there); `TypeError`
-    for a non-integer n.
+    `ValueError` for a method other than "lsq" or "smoother", n outside 1..T_z, more
+    outputs than inputs (T_z > T), arrays of the wrong shape, a missing `x0` for a partly
+    observed state, smoother arguments with "lsq" (or `solver` with "smoother"), or when
+    the model's simulation of the head from the estimate is not finite (theta makes it
+    blow up there); `TypeError` for a non-integer n.
     """
     return _estimate(
         model,
@@ -542,8 +542,8 @@ def predict(
 
     - `model`, `theta`: a `Model` and its parameters.
     - `u`: the record's inputs (T, n_u).
-    - `z`: its measured outputs, the whole record or only the head (T_z >= n rows); only
-        z[:n] is used.
+    - `z`: its measured outputs, the whole record or only the head (n <= T_z <= T rows);
+        only z[:n] is used.
     - `n`: the number of head samples x0 is estimated from (EMPS 20, Cascaded Tanks 5,
         Silverbox and Wiener-Hammerstein 50 under the protocol).
     - `method` and further keyword arguments: as for `estimate_x0` (`x0=` the starting
