@@ -134,8 +134,8 @@ def identified(decomposition: Decomposition):
     variable counts as determined when its null directions, taken with their eigenvalues
     as computed, would add less than w_i (sum_null v_ij^2 / lambda_j < w_i): then the
     pseudo-inverse's standard error is within a factor sqrt(2) of the one that keeps them.
-    An exact null direction has an eigenvalue of round-off size or below zero, which
-    counts as zero: a variable with a component above `NULL_COMPONENT` in it is not
+    An exact null direction has an eigenvalue of round-off size (a huge share) or below
+    zero (counted as zero): a variable with a component above `NULL_COMPONENT` in it is not
     identifiable (a * b entering as their product; c + 1e-5 a next to them, though c's
     column alone is well determined). This matters where a numerically null direction is
     nearly one variable's and its eigenvalue, though below the cut, is that variable's
