@@ -126,6 +126,13 @@ def _check_head(u, z, n, z_name="z"):
             f"`{z_name}` must have shape (T, n_z) (one record), got shape {np.shape(z)}."
         )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
+    if n is None:  # (n is z's length: name z)
+        if not 1 <= T_z <= T:
+            raise ValueError(
+                f"`{z_name}` must have 1 to {T} rows (the first outputs of the record of `u`), "
+                f"got {T_z}."
+            )
+        n = T_z
     if T_z > T:  # (only z[:n] is read: more outputs than inputs is another record)
         hint = ""
         if np.shape(u)[1] == T_z:
@@ -134,13 +141,6 @@ def _check_head(u, z, n, z_name="z"):
             f"`{z_name}` has {T_z} rows, more than the {T} samples of `u`{hint}: give the "
             "record's outputs (T rows) or only its first ones."
         )
-    if n is None:  # (n is z's length: name z)
-        if not 1 <= T_z <= T:
-            raise ValueError(
-                f"`{z_name}` must have 1 to {T} rows (the first outputs of the record of `u`), "
-                f"got {T_z}."
-            )
-        n = T_z
     if not is_count(n, -math.inf):
         raise TypeError(f"`n` (the number of head samples) must be an integer, got {n!r}.")
     n = int(n)
