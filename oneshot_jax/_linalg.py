@@ -99,11 +99,16 @@ def psd_solve(M, b, diag=None):
     return eigh_solve(scaled_eigh(M, diag), b)
 
 
+def _reciprocal(vals, null):
+    """1 / vals, 0 at the null eigenvalues: the pseudo-inverse's spectrum."""
+    return jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
+
+
 def eigh_solve(decomposition, b):
     """`psd_solve` from M's `scaled_eigh` `decomposition`, for a caller that reads the
     decomposition too."""
     d, vals, vecs, null = decomposition
-    inv = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
+    inv = _reciprocal(vals, null)
     vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
     coef = jnp.einsum("...ji,...jk->...ik", vecs, b / d[..., None])
@@ -159,8 +164,7 @@ def identified(decomposition: Decomposition):
     kept = null & (vals > 0)
     share = jnp.where(kept, 1.0 / jnp.where(kept, vals, 1.0), jnp.inf)[..., None, :]
     share = jnp.where(null[..., None, :] & (square > 0), square * share, 0.0)
-    inverse = jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
-    determined = jnp.sum(square * inverse[..., None, :], axis=-1)
+    determined = jnp.sum(square * _reciprocal(vals, null)[..., None, :], axis=-1)
     return ~(touched & (jnp.sum(share, axis=-1) >= determined))
 
 
