@@ -139,11 +139,18 @@ def stop_detail(status: str, info: dict) -> str:
             )
         big = info.get("overflow")
         if big is not None:  # (a finite loss beyond sqrt of the largest float)
-            where = "at the start" if at == 0 else at_step.strip()
+            if at == 0:
+                where, cause = "at the start", "the simulation from theta0 and x0 blows up"
+                remedy = "start where the model is stable, e.g. with bounds, or in windows"
+            else:
+                where, cause = at_step.strip(), "a step took the simulation where it blows up"
+                remedy = (
+                    "keep the parameters where the model is stable, e.g. with bounds, or take "
+                    "shorter steps"
+                )
             return (
                 f"the loss {where}, {_g(big)}, is finite but beyond the square root of the "
-                "largest float, where its gradient overflows: the simulation from theta0 and "
-                "x0 blows up (start where the model is stable, e.g. with bounds, or in windows)"
+                f"largest float, where its gradient overflows: {cause} ({remedy})"
             )
         if at == 0:
             return (

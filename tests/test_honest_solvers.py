@@ -615,6 +615,37 @@ def test_a_float32_start_whose_loss_overflows_its_gradient_says_the_loss_is_fini
     assert "not finite" not in r.message
 
 
+def test_a_step_whose_loss_overflows_its_gradient_blames_the_step_not_the_start():
+    """x+ = a x + b u from a = 0.95, where the loss is small: Adam's first step of 3 takes
+    a to about 4, where the loss over 300 samples is finite and beyond sqrt of the largest
+    float. The message names that step and the step as the cause (it blamed the
+    simulation from theta0 and x0, which is stable)."""
+    rng = np.random.default_rng(1)
+    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    u = rng.standard_normal((300, 1))
+    _, z = oj.simulate(lin, {"a": 0.9, "b": 0.5}, np.zeros(1), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((300, 1))
+    start = {"a": 0.95, "b": 0.3}
+    assert float(oj.loss(lin, start, np.zeros(1), u, z)) < 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(
+            lin,
+            start,
+            np.zeros(1),
+            u,
+            z,
+            solver=oj.Adam(lr_theta=3.0, max_steps=50),
+            estimate_x0=False,
+        )
+    assert r.status == "diverged" and not r.success
+    at = r.stop_info["at_step"]
+    assert at >= 1 and np.sqrt(np.finfo(float).max) < r.stop_info["overflow"] < np.inf
+    assert f"the loss at step {at}, " in r.message
+    assert "a step took the simulation where it blows up" in r.message
+    assert "from theta0 and x0" not in r.message
+
+
 def test_a_gradient_that_is_not_finite_at_a_bound_is_named(tmp_path):
     """Damping sqrt(c) with c >= 0: a step clipped to c = 0 has a finite loss and an
     infinite derivative. The stop is `diverged`, and its message says that the gradient,
