@@ -201,7 +201,7 @@ class Aggregate:
         if t is None:
             ts = np.arange(T, dtype=float)
         else:
-            _intervals(t, "t", T)  # (T,), finite and strictly increasing
+            _intervals(t, "t", T, of="the record")  # (T,), finite and strictly increasing
             ts = np.asarray(t, dtype=float)
         A = np.zeros((len(self.intervals), T))
         for i, (start, stop) in enumerate(self.intervals):

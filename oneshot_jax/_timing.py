@@ -59,15 +59,15 @@ def as_times(a, name):
     return arr.astype(np.float64)
 
 
-def _intervals(t, name, T):
-    """t[k+1] - t[k] of one record of T samples, with 0 appended: (T,). Warns where `t`
-    came in a precision that leaves its intervals fewer than 3 digits (float32 stamps far
-    from 0: 1e6 + k 0.1 s rounds to steps of 0.0625 s)."""
+def _intervals(t, name, T, of="`u`"):
+    """t[k+1] - t[k] of one record of T samples (the samples `of` what), with 0 appended:
+    (T,). Warns where `t` came in a precision that leaves its intervals fewer than 3 digits
+    (float32 stamps far from 0: 1e6 + k 0.1 s rounds to steps of 0.0625 s)."""
     given = None if _is_tracer(t) else getattr(t, "dtype", None)
     t = as_times(t, name)
     if t.ndim != 1 or t.shape[0] != T:
         raise ValueError(
-            f"`{name}` must have shape ({T},): one time stamp per sample of `u` (T = {T}), "
+            f"`{name}` must have shape ({T},): one time stamp per sample of {of} (T = {T}), "
             f"got shape {t.shape}."
         )
     if _is_tracer(t):

@@ -531,7 +531,8 @@ def test_predict_names_z_for_the_length_of_t():
         (-np.arange(6.0), "strictly increasing"),  # it built a matrix of negative intervals
         (np.array([0.0, 1.0, 1.0, 2.0, 3.0, 4.0]), "strictly increasing"),
         (np.array([0.0, 1.0, np.nan, 3.0, 4.0, 5.0]), "NaN or inf"),
-        (np.arange(5.0), r"shape \(6,\)"),
+        # (`operator` takes no `u`: it named one)
+        (np.arange(5.0), r"shape \(6,\): one time stamp per sample of the record"),
     ],
 )
 def test_operator_checks_the_sample_times(t, match):
