@@ -285,6 +285,9 @@ class BasinCheck(eqx.Module):
     - `window`: the window length.
     - `windowed`: the short-window fit's `FitResult` (its theta is a start to refit the
         whole record from).
+
+    `print(check)` gives one line: both FITs and the verdict (a bad basin, none, or
+    inconclusive where the windowed fit did not converge).
     """
 
     bad_basin: bool
@@ -292,6 +295,25 @@ class BasinCheck(eqx.Module):
     window_fit_percent: np.ndarray
     window: int
     windowed: FitResult
+
+    def __str__(self):
+        fmt = lambda a: ", ".join(f"{v:.3g}" for v in np.atleast_1d(a))  # noqa: E731
+        if self.bad_basin:
+            verdict = (
+                "a bad basin: refit the whole record from `windowed.theta`, use "
+                "`fit_continuation`, or multistart over the physical parameters"
+            )
+        elif not self.windowed.success:
+            verdict = "inconclusive: the windowed fit did not converge"
+        else:
+            verdict = "no sign of a bad basin"
+        return (
+            f"Basin check, windows of {self.window} samples: FIT {fmt(self.fit_percent)} % "
+            f"on the whole record, {fmt(self.window_fit_percent)} % in the windows (their "
+            f"fit: {self.windowed.status}): {verdict}."
+        )
+
+    __repr__ = __str__
 
 
 def _held(result):

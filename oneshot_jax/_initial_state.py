@@ -77,6 +77,8 @@ class X0Estimate(eqx.Module):
             rows.append(f"  x0[{i}] {float(v):12.6g}  std {float(s):.3g}{note}")
         return "\n".join(rows)
 
+    __repr__ = __str__
+
     @property
     def success(self) -> bool:
         """Gauss-Newton converged (`"lsq"`), or the smoother's estimate is finite."""
@@ -96,12 +98,22 @@ class X0Estimate(eqx.Module):
 class Prediction(NamedTuple):
     """What `predict` returns: the simulated outputs `z` (T, n_z) and states `x` (T, n_x)
     of the whole record from the estimated initial state `x0` (n_x,), and the
-    `X0Estimate` it came from."""
+    `X0Estimate` it came from. `print` gives the shapes and that estimate."""
 
     z: np.ndarray
     x: np.ndarray
     x0: np.ndarray
     estimate: X0Estimate
+
+    def __str__(self) -> str:
+        """A few lines for `print`: the record simulated and the x0 it started from (the
+        fields hold the arrays)."""
+        return (
+            f"Prediction of {np.shape(self.z)[0]} samples (`z` {np.shape(self.z)}, `x` "
+            f"{np.shape(self.x)}) from the estimated x0:\n{self.estimate}"
+        )
+
+    __repr__ = __str__
 
 
 #

@@ -107,6 +107,12 @@ def test_the_basin_check_warns_on_the_bad_minimum_only(plain, continued):
     good = _no_warnings(oj.check_basin, continued.result, U, Z, window=50)
     assert not good.bad_basin
     assert abs(good.window_fit_percent[0] - good.fit_percent[0]) < 1
+    # Each prints one line with both FITs and its verdict (it dumped the windowed fit)
+    fits = [f"{a[0]:.3g} %" for a in (bad.fit_percent, bad.window_fit_percent)]
+    assert str(bad) == repr(bad) and len(str(bad).splitlines()) == 1
+    assert f"FIT {fits[0]} on the whole record, {fits[1]} in the windows" in str(bad)
+    assert str(bad).endswith("multistart over the physical parameters.")
+    assert str(good).endswith("(their fit: converged): no sign of a bad basin.")
 
 
 def test_continuation_of_a_time_stamped_record():
@@ -454,6 +460,7 @@ def test_basin_check_says_inconclusive_when_its_windowed_fit_fails(plain):
             plain, U, Z, window=50, margin=1e4, solver=oj.LevenbergMarquardt(max_steps=2)
         )
     assert not check.bad_basin and not check.windowed.success
+    assert str(check).endswith("inconclusive: the windowed fit did not converge.")
 
 
 def test_held_window_states_read_off_z_are_not_called_theta0s():

@@ -672,6 +672,12 @@ def test_an_x0_estimate_and_residual_correlations_print_readably():
     assert lines[0].startswith("x0 from the first 20 samples by lsq (")
     assert lines[1].startswith("  x0[0]") and f"std {e.std[0]:.3g}" in lines[1]
     assert "numpy" not in str(e)
+    assert repr(e) == str(e)
+    # A prediction prints its shapes and that estimate (it dumped the arrays)
+    pred = oj.predict(model, PEND_THETA, u[:40] * 0.1, np.asarray(z)[:20], 20, x0=np.zeros(2))
+    lines = str(pred).splitlines()
+    assert lines[0] == "Prediction of 40 samples (`z` (40, 1), `x` (40, 2)) from the estimated x0:"
+    assert lines[1:] == str(pred.estimate).splitlines() and repr(pred) == str(pred)
 
 
 def test_a_masked_fits_predict_takes_the_heads_nan_as_missing(tmp_path):
