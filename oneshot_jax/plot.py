@@ -101,13 +101,28 @@ def _warn_other_record(name, result, zhat, z):
     )
 
 
+def _fixed_dt(result):
+    """The `dt` of a FitResult's `Model.from_ode` model with a fixed sample interval, else
+    None."""
+    step = getattr(getattr(result, "model", None), "step", None)
+    return getattr(step, "dt", None) if isinstance(step, ODE_STEPS) else None
+
+
+def _model_dt(models):
+    """The sample interval the FitResults among `models` share (`_fixed_dt`), for the time
+    axis; None where one has none or they differ."""
+    dts = {_fixed_dt(m) for m in models if isinstance(m, FitResult)}
+    if len(dts) != 1 or None in dts:
+        return None
+    return float(dts.pop())
+
+
 def _check_sample_interval(name, result, Ts):
     """Refuse a record sampled at `Ts` for a FitResult of a `Model.from_ode` model with
     another fixed `dt`: its step advances dt per sample, so the simulation would run on
     the wrong time scale (MATLAB's compare simulates a continuous-time model at the
     data's Ts)."""
-    step = getattr(getattr(result, "model", None), "step", None)
-    dt = getattr(step, "dt", None) if isinstance(step, ODE_STEPS) else None
+    dt = _fixed_dt(result)
     if Ts is None or dt is None or np.isclose(float(Ts), float(dt), rtol=1e-9, atol=0.0):
         return
     raise ValueError(
@@ -200,7 +215,8 @@ def compare(
         `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
         shaped like `z`.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
-    - `t`: the time axis (T,); default the sample index (times `Ts` for a record). A
+    - `t`: the time axis (T,); default the sample index (times `Ts` for a record, or
+        the `dt` of the FitResults' `Model.from_ode` models where they share one). A
         `FitResult` of a model of time-stamped records (`Model.from_ode(rhs, dt=None)`)
         is simulated at these sample times.
     - `n`: the protocol's head: the number of first samples used for x0, left out of the
@@ -211,7 +227,8 @@ def compare(
         MATLAB's `OutputName` and `OutputUnit`); default `"output"` or `"output 0"`, ...
     - `time_label`: the time axis's label, with its unit (`"time (ms)"`; MATLAB's
         `TimeUnit`); default `"sample"`, `"time (s)"` for a record with `Ts`, and
-        `"time"` for a given `t`.
+        `"time"` for a given `t` or for FitResults of `Model.from_ode` models with one
+        fixed `dt` (the axis k dt, in the model's time unit).
 
     **Returns:**
 
@@ -273,8 +290,9 @@ def compare(
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
     times = t  # the sample times a timed model's FitResult is simulated at
     if t is None:
-        t = np.arange(T) * (1.0 if Ts is None else float(Ts))
-        xlabel = "sample" if Ts is None else "time (s)"
+        step = Ts if Ts is not None else _model_dt(models)
+        t = np.arange(T) * (1.0 if step is None else float(step))
+        xlabel = "time (s)" if Ts is not None else "sample" if step is None else "time"
     else:
         t = _as_times(t, "t")
         if t.shape != (T,):

@@ -398,6 +398,14 @@ def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
     zhat = np.asarray(res.simulate(u)[1])
     fit = 100 * (1 - np.linalg.norm(zhat - z) / np.linalg.norm(z - z.mean()))
     assert f"model: FIT {fit:.2f} %" in _legend_texts(fig.axes[0])
+    # The time axis is the model's: k dt (it was the sample index); next to an array of
+    # outputs too, and the index again where no FitResult says its dt
+    for models in ((res,), (res, zhat)):
+        ax = oj.plot.compare(z, *models, u=u).axes[0]
+        assert ax.get_xlabel() == "time"
+        np.testing.assert_allclose(ax.lines[0].get_xdata(), 0.05 * np.arange(200), rtol=1e-15)
+    ax = oj.plot.compare(z, zhat).axes[0]
+    assert ax.get_xlabel() == "sample" and ax.lines[0].get_xdata()[-1] == 199
     z2 = np.asarray(oj.simulate(model, truth, x0, u2)[1])
     with pytest.warns(UserWarning, match="pass `n`"):
         oj.plot.compare(z2, res, u=u2)
