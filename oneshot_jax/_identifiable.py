@@ -75,7 +75,11 @@ class PhysicsFirst(eqx.Module):
             for name, r in (("physics", self.physics), ("hybrid", self.result))
         )
         head = f"{'stage':>8}  {'loss':>12}  stop"
-        return f"Physics first, then the learned terms:\n{head}\n{rows}\n\n{self.result}"
+        note = (
+            "The hybrid stage holds the physical parameters (fixed below): their standard "
+            "errors are those of the physics stage (the field `physics`)."
+        )
+        return f"Physics first, then the learned terms:\n{head}\n{rows}\n{note}\n\n{self.result}"
 
     __repr__ = __str__
 

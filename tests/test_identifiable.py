@@ -83,6 +83,10 @@ def test_physics_first_keeps_the_physics_only_estimates(case):
     assert np.sqrt(r.result.loss) < 0.0101 < 0.014 < np.sqrt(r.physics.loss)
     assert r.physics.success
     assert "Physics first" in str(r)
+    # The printout points to the physics stage's standard errors: the hybrid stage, which
+    # it shows, holds the physical parameters (std 0 there)
+    assert float(r.result.std["w0sq"]) == 0.0 < float(r.physics.std["w0sq"]) < np.inf
+    assert "their standard errors are those of the physics stage (the field `physics`)" in str(r)
 
 
 def test_physics_first_with_starts_on_every_physical_leaf(case):
