@@ -20,6 +20,7 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from ._caller_warnings import at_caller
 from ._checks import x0_mask
 from ._counts import is_count
 from ._fit import fit
@@ -253,23 +254,24 @@ def fit_continuation(
     T = u_np.shape[0]
     schedule = _schedule(windows, start, factor, T)
     stages = []
-    theta, x0_stage, result, w_prev = theta0, x0, None, None
-    for w in schedule:
-        if result is not None:
-            x0_stage = _window_states(model, result, u_np, w_prev, w, kwargs.get("t"))
-        with warnings.catch_warnings():
-            # The tail that fills no window is fitted by the last stage, the whole record.
-            warnings.filterwarnings("ignore", message="the last .* do not fill a window")
-            # (a stage keeps no standard errors: its covariance is not computed)
-            result = fit(model, theta, x0_stage, u, z, window=w, covariance=None, **kwargs)
-        stages.append(_stage(w, result))
-        theta, w_prev = _in_order(result.theta, theta0), w
-    final_x0 = np.asarray(result.x0)[0]
-    if held is not None:
-        final_x0 = np.where(held, np.asarray(x0, final_x0.dtype), final_x0)
-    final = fit(
-        model, theta, final_x0, u, z, covariance=covariance, estimate_x0=estimate_x0, **kwargs
-    )
+    with at_caller():  # (the stages' warnings, at the caller's line)
+        theta, x0_stage, result, w_prev = theta0, x0, None, None
+        for w in schedule:
+            if result is not None:
+                x0_stage = _window_states(model, result, u_np, w_prev, w, kwargs.get("t"))
+            with warnings.catch_warnings():
+                # The tail that fills no window is fitted by the last stage, the whole record.
+                warnings.filterwarnings("ignore", message="the last .* do not fill a window")
+                # (a stage keeps no standard errors: its covariance is not computed)
+                result = fit(model, theta, x0_stage, u, z, window=w, covariance=None, **kwargs)
+            stages.append(_stage(w, result))
+            theta, w_prev = _in_order(result.theta, theta0), w
+        final_x0 = np.asarray(result.x0)[0]
+        if held is not None:
+            final_x0 = np.where(held, np.asarray(x0, final_x0.dtype), final_x0)
+        final = fit(
+            model, theta, final_x0, u, z, covariance=covariance, estimate_x0=estimate_x0, **kwargs
+        )
     stages.append(_stage(None, final))
     return Continuation(result=final, stages=tuple(stages))
 
@@ -436,7 +438,8 @@ def check_basin(
             )
     if "missing" not in kwargs:  # (a fit with missing="mask": z holds its NaN samples)
         kwargs["missing"] = result.missing
-    windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
+    with at_caller():
+        windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])
     short = np.asarray(windowed.metrics["fit_percent"])
     bad = bool(np.any(short - whole > margin))

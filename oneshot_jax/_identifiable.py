@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from ._caller_warnings import at_caller
 from ._checks import as_float, check_data, is_weak
 from ._continuation import check_fit_keywords
 from ._fit import fit
@@ -230,28 +231,29 @@ def fit_physics_first(
             raise ValueError(
                 f"`multistart` has starts of the learned terms {wrong!r}: stage 1 holds them."
             )
-    physics = fit(
-        model,
-        theta_phys,
-        x0,
-        u,
-        z,
-        solver=solver,
-        fixed={k: (True if k in keys else held.get(k, False)) for k in theta0},
-        multistart=multistart,
-        **kwargs,
-    )
-    theta_hybrid = {k: (theta0[k] if k in keys else physics.theta[k]) for k in theta0}
-    result = fit(
-        model,
-        theta_hybrid,
-        physics.x0,
-        u,
-        z,
-        solver=solver if network_solver is None else network_solver,
-        fixed={k: (held.get(k, False) if k in keys else True) for k in theta0},
-        **kwargs,
-    )
+    with at_caller():  # (both stages' warnings, at the caller's line)
+        physics = fit(
+            model,
+            theta_phys,
+            x0,
+            u,
+            z,
+            solver=solver,
+            fixed={k: (True if k in keys else held.get(k, False)) for k in theta0},
+            multistart=multistart,
+            **kwargs,
+        )
+        theta_hybrid = {k: (theta0[k] if k in keys else physics.theta[k]) for k in theta0}
+        result = fit(
+            model,
+            theta_hybrid,
+            physics.x0,
+            u,
+            z,
+            solver=solver if network_solver is None else network_solver,
+            fixed={k: (held.get(k, False) if k in keys else True) for k in theta0},
+            **kwargs,
+        )
     return PhysicsFirst(physics=physics, result=result)
 
 
@@ -541,61 +543,62 @@ def fit_orthogonal(
     est_aug = np.concatenate([est, np.zeros(n_x + p, bool)])
 
     history, result, converged = [], None, False
-    for _ in range(int(rounds)):
-        before = _flat(theta, names)
-        m = _basis(model, theta, x0, u, names, root)
-        if not np.all(np.isfinite(m)):
-            if result is None:
-                raise ValueError(
-                    f"the model's outputs or their sensitivities to the physical parameters "
-                    f"{names} are not finite at theta0 and x0: start where the model simulates "
-                    "(`oneshot_jax.simulate(model, theta0, x0, u)` finite)."
+    with at_caller():  # (the rounds' warnings, at the caller's line)
+        for _ in range(int(rounds)):
+            before = _flat(theta, names)
+            m = _basis(model, theta, x0, u, names, root)
+            if not np.all(np.isfinite(m)):
+                if result is None:
+                    raise ValueError(
+                        f"the model's outputs or their sensitivities to the physical parameters "
+                        f"{names} are not finite at theta0 and x0: start where the model simulates "
+                        "(`oneshot_jax.simulate(model, theta0, x0, u)` finite)."
+                    )
+                break  # not converged: the basis cannot be formed at this estimate
+            u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
+            x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
+            with warnings.catch_warnings():
+                # (The augmented outputs are the penalty's rows, one sample each: `fit`'s
+                # advice to weigh the outputs by their noise is not the user's to act on.)
+                warnings.filterwarnings("ignore", "the weighted residuals of the outputs differ")
+                result = fit(
+                    aug,
+                    theta,
+                    x0_aug,
+                    u_aug,
+                    z_aug,
+                    solver=solver,
+                    weight=w_aug,
+                    fixed=None if fixed is None else {k: held.get(k, False) for k in theta0},
+                    estimate_x0=est_aug,
+                    missing="mask",
+                    **kwargs,
                 )
-            break  # not converged: the basis cannot be formed at this estimate
-        u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
-        x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
-        with warnings.catch_warnings():
-            # (The augmented outputs are the penalty's rows, one sample each: `fit`'s
-            # advice to weigh the outputs by their noise is not the user's to act on.)
-            warnings.filterwarnings("ignore", "the weighted residuals of the outputs differ")
-            result = fit(
-                aug,
-                theta,
-                x0_aug,
-                u_aug,
-                z_aug,
-                solver=solver,
-                weight=w_aug,
-                fixed=None if fixed is None else {k: held.get(k, False) for k in theta0},
-                estimate_x0=est_aug,
-                missing="mask",
-                **kwargs,
+            theta, x0 = result.theta, np.asarray(result.x0)[:n_x]
+            after = _flat(theta, names)
+            step = np.abs(after - before)
+            change = float(np.max(step / np.maximum(np.abs(before), 1e-12)))
+            std = _flat(result.std, names)
+            ok = np.isfinite(std) & (std > 0)
+            moved = float(np.max(np.where(ok, step / np.where(ok, std, 1.0), np.inf)))
+            _, y = simulate(model, theta, x0, u)
+            _, y_off = simulate(model, _off(theta, keys), x0, u)
+            d = (np.asarray(y) - np.asarray(y_off)) @ root
+            along = np.einsum("tj,tjp->p", np.asarray(y) - np.asarray(y_off), m)
+            norm = float(np.linalg.norm(d))
+            history.append(
+                Round(
+                    physics={k: theta[k] for k in names},
+                    loss=float(loss(model, theta, x0, u, z, weight=weight)),
+                    projection=float(np.linalg.norm(along)) / norm if norm > 0 else 0.0,
+                    change=change,
+                    moved=moved,
+                    status=result.status,
+                )
             )
-        theta, x0 = result.theta, np.asarray(result.x0)[:n_x]
-        after = _flat(theta, names)
-        step = np.abs(after - before)
-        change = float(np.max(step / np.maximum(np.abs(before), 1e-12)))
-        std = _flat(result.std, names)
-        ok = np.isfinite(std) & (std > 0)
-        moved = float(np.max(np.where(ok, step / np.where(ok, std, 1.0), np.inf)))
-        _, y = simulate(model, theta, x0, u)
-        _, y_off = simulate(model, _off(theta, keys), x0, u)
-        d = (np.asarray(y) - np.asarray(y_off)) @ root
-        along = np.einsum("tj,tjp->p", np.asarray(y) - np.asarray(y_off), m)
-        norm = float(np.linalg.norm(d))
-        history.append(
-            Round(
-                physics={k: theta[k] for k in names},
-                loss=float(loss(model, theta, x0, u, z, weight=weight)),
-                projection=float(np.linalg.norm(along)) / norm if norm > 0 else 0.0,
-                change=change,
-                moved=moved,
-                status=result.status,
-            )
-        )
-        if moved <= stol or change <= rtol:
-            converged = True
-            break
+            if moved <= stol or change <= rtol:
+                converged = True
+                break
     return Orthogonal(
         theta=theta,
         x0=x0,
