@@ -192,6 +192,20 @@ def check_theta(theta, dtype=None, name="theta"):
     return jax.tree_util.tree_unflatten(treedef, leaves), static
 
 
+def _check_names(model, n_x, n_z):
+    """The model's `states` and `outputs` names against the data's sizes."""
+    for field, names, n, what in (
+        ("states", model.states, n_x, "n_x"),
+        ("outputs", model.outputs, n_z, "n_z"),
+    ):
+        if names is not None and len(names) != n:
+            raise ValueError(
+                f"the model's `{field}` holds {len(names)} name{'s' * (len(names) != 1)} "
+                f"({list(names)}), but the data have {what} = {n}: give one name per entry "
+                f"(`Model(..., {field}=...)`)."
+            )
+
+
 def bind_model(model, static):
     """The model seen with theta's trainable part only (static part bound in)."""
     if not isinstance(model, Model):
@@ -733,6 +747,7 @@ def check_data(
     if known is None:
         model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name, shown)
     n_z = z_hat.shape[0]
+    _check_names(given, x0.shape[-1], n_z)
     u = append_intervals(u, intervals)
 
     mask = None

@@ -243,10 +243,11 @@ def _x0_table(result, shown_max=3):
     shown = n_traj if n_traj <= shown_max else 2
     if batched and not estimated.any():
         return [], n_traj
+    names = _names(getattr(result.model, "states", None), n_x)
     table = []
     for i in range(shown):
-        for j in range(n_x):
-            entry = f"x0[{i}, {j}]" if batched else f"x0[{j}]"
+        for j, name in zip(range(n_x), names, strict=True):
+            entry = f"x0[{i}, {name}]" if batched else f"x0[{name}]"
             v, s = X0[i, j], S0[i, j]
             table.append(
                 (
@@ -314,6 +315,19 @@ def returned_start(result) -> bool:
     their last finite iterate; a solver of one's own that does not returns its own
     non-finite point)."""
     return result.stop_info.get("at_step") in (0, None)
+
+
+def _names(given, n):
+    """The model's names of n entries (`Model(states=..., outputs=...)`), else their
+    indices (no model: a result loaded without one; or names of another size)."""
+    return given if given is not None and len(given) == n else range(n)
+
+
+def _per_output(values, outputs) -> str:
+    """Values of each output, with the model's output names where it has them."""
+    if isinstance(_names(outputs, len(values)), range):
+        return ", ".join(values)
+    return ", ".join(f"{o}: {v}" for o, v in zip(outputs, values, strict=True))
 
 
 def report(result) -> str:
@@ -441,8 +455,9 @@ def report(result) -> str:
         out.append(f"  (fixed, not estimated: result.x0, {left_out} {rows})")
     elif left_out:
         out.append(f"  ... and {left_out} more {rows} (result.x0, result.x0_std)")
-    fitp = ", ".join(f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"]))
-    rmse = ", ".join(f"{f:.4g}" for f in np.ravel(result.metrics["rmse"]))
+    outputs = getattr(result.model, "outputs", None)  # (a result loaded without a model)
+    fitp = _per_output([f"{f:.2f}" for f in np.ravel(result.metrics["fit_percent"])], outputs)
+    rmse = _per_output([f"{f:.4g}" for f in np.ravel(result.metrics["rmse"])], outputs)
     aic = float(result.metrics["aic"])
     fpe = result.metrics.get("fpe")  # (a result saved before FPE was reported has none)
     if np.isnan(aic):

@@ -53,6 +53,8 @@ class X0Estimate(eqx.Module):
         (None for the smoother); `success` and `message` as in `FitResult`.
     - `kalman`: for `"smoother"`, the filtered and smoothed states over the head (a
         `KalmanPath`); None for `"lsq"`.
+    - `states`: the model's names of the state's entries (`Model(states=...)`), which
+        `print` shows; None without them.
     """
 
     x0: np.ndarray
@@ -64,6 +66,7 @@ class X0Estimate(eqx.Module):
     n: int = eqx.field(static=True)
     stop_reason: Any = None
     kalman: KalmanPath | None = None
+    states: tuple | None = eqx.field(static=True, default=None)
 
     def __str__(self) -> str:
         """A few lines for `print`: the estimate with its standard deviations, how it was
@@ -72,7 +75,8 @@ class X0Estimate(eqx.Module):
         if self.stop_reason is not None:
             how += f" ({name_of(self.stop_reason)})"
         rows = [how + f", loss {float(self.loss):.6g}"]
-        for i, (v, s, ok) in enumerate(zip(self.x0, self.std, self.identifiable)):
+        names = self.states if self.states is not None else range(len(self.x0))
+        for i, v, s, ok in zip(names, self.x0, self.std, self.identifiable, strict=True):
             note = "" if ok else "  (not determined by the head)"
             rows.append(f"  x0[{i}] {float(v):12.6g}  std {float(s):.3g}{note}")
         return "\n".join(rows)
@@ -497,6 +501,7 @@ def _estimate(
         n=n,
         stop_reason=stop_reason,
         kalman=kalman,
+        states=model.states,
     ), sim
 
 

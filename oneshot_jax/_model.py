@@ -26,6 +26,21 @@ def _check_input(input):
     return input
 
 
+def _check_names(names, name):
+    """`Model`'s `states` or `outputs`: None, one string (one name), or a sequence of
+    strings, as a tuple."""
+    if names is None:
+        return None
+    if isinstance(names, str):
+        return (names,)
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise TypeError(
+            f"`{name}` must be a string or a list of strings (one name per entry, e.g. "
+            f"['q (m)', 'v (m/s)']), got {names!r}."
+        )
+    return tuple(names)
+
+
 def _check_integrator(rhs, method, substeps) -> int:
     """The checks of `ode_step`'s and `Model.from_ode`'s static arguments; the number of
     substeps as an int."""
@@ -351,14 +366,21 @@ class Model(eqx.Module):
         interval t[k+1] - t[k] to each input sample as its last entry (0 after a record's
         last sample), so `step` and `observe` see u[k] of shape (n_u + 1,) (for "foh"
         the interval of step k is `u_step[0, -1]`).
+    - `states`, `outputs`: optional names of the state's entries (n_x) and of the
+        outputs (n_z), with their units if you like (`["q (m)", "v (m/s)"]`; MATLAB's
+        `InitialStates.Name` and `OutputName`): `print(result)` labels the initial
+        states and the FIT and RMSE per output with them, and `plot.compare` its axes.
+        The data's sizes are checked against them.
     """
 
     step: Callable[[Any, Any, Any], Any]
     observe: Callable[[Any, Any, Any], Any]
     input: str = eqx.field(static=True)
     timed: bool = eqx.field(static=True)
+    states: tuple | None = eqx.field(static=True)
+    outputs: tuple | None = eqx.field(static=True)
 
-    def __init__(self, step, observe=None, *, input="zoh", timed=False):
+    def __init__(self, step, observe=None, *, input="zoh", timed=False, states=None, outputs=None):
         if not callable(step):
             raise ValueError(f"`step` must be callable (x, u, theta) -> x_next, got {step!r}.")
         if observe is not None and not callable(observe):
@@ -380,6 +402,8 @@ class Model(eqx.Module):
         self.observe = _identity_observe if observe is None else observe
         self.input = _check_input(input)
         self.timed = timed
+        self.states = _check_names(states, "states")
+        self.outputs = _check_names(outputs, "outputs")
 
     @property
     def observes_state(self) -> bool:
@@ -404,6 +428,8 @@ class Model(eqx.Module):
         max_step=None,
         observe=None,
         input="zoh",
+        states=None,
+        outputs=None,
     ):
         """Build a `Model` from a continuous-time right-hand side `dx/dt = rhs(x, u, theta)`.
 
@@ -435,6 +461,8 @@ class Model(eqx.Module):
         - `input`: `"zoh"` (default) holds u[k] over [t_k, t_{k+1}); `"foh"`
             interpolates linearly between u[k] and u[k+1], which is what a measured,
             band-limited input needs.
+        - `states`, `outputs`: names of the state's entries and of the outputs, as for
+            `Model`.
 
         **Returns:**
 
@@ -457,14 +485,20 @@ class Model(eqx.Module):
                 raise ValueError(f"`observe` must be callable (x, u, theta) -> z, got {observe!r}.")
             observe = None if observe is None else _WithoutInterval(observe)
             step = _TimedODEStep(rhs, method, substeps, max_step, input)
-            return cls(step, observe, input=input, timed=True)
+            return cls(step, observe, input=input, timed=True, states=states, outputs=outputs)
         if max_step is not None:
             raise ValueError(
                 "`max_step` applies to records with time stamps (`dt=None`); with a fixed "
                 "`dt`, set `substeps` instead."
             )
         dt = _positive_number(dt, "dt", "the sample interval")
-        return cls(_ODEStep(rhs, dt, method, substeps, input), observe, input=input)
+        return cls(
+            _ODEStep(rhs, dt, method, substeps, input),
+            observe,
+            input=input,
+            states=states,
+            outputs=outputs,
+        )
 
 
 ODE_STEPS = (_ODEStep, _TimedODEStep)

@@ -224,7 +224,8 @@ def compare(
     - `labels`: one name per model; default `"model"` or `"model 1"`, `"model 2"`, ...
     - `ax`: matplotlib Axes to draw in, one per output; default a new figure.
     - `outputs`: one name per output for its axis, with its unit (`["q (mm)"]`;
-        MATLAB's `OutputName` and `OutputUnit`); default `"output"` or `"output 0"`, ...
+        MATLAB's `OutputName` and `OutputUnit`); default the `outputs` of a FitResult's
+        model (`Model(..., outputs=...)`), else `"output"` or `"output 0"`, ...
     - `time_label`: the time axis's label, with its unit (`"time (ms)"`; MATLAB's
         `TimeUnit`); default `"sample"`, `"time (s)"` for a record with `Ts`, and
         `"time"` for a given `t` or for FitResults of `Model.from_ode` models with one
@@ -285,6 +286,9 @@ def compare(
         n = int(n)
     n = n or 0
     labels = _names(labels, len(models), "labels", "model", start=1)
+    if outputs is None:  # (the names of the first model that has them for these outputs)
+        given = (getattr(m.model, "outputs", None) for m in models if isinstance(m, FitResult))
+        outputs = next((list(o) for o in given if o is not None and len(o) == n_z), None)
     names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")

@@ -399,6 +399,48 @@ def test_units_are_checked():
         oj.fit(MODEL, theta0, x0, u, z, units=["1/s"])
 
 
+def test_named_states_and_outputs_label_the_printouts_and_the_plot(fitted, tmp_path):
+    """`Model(states=..., outputs=...)` (MATLAB's InitialStates.Name and OutputName) name
+    the initial-state rows, the FIT and RMSE per output, an x0 estimate's rows and
+    `plot.compare`'s axis; the numbers are those of the same fit without names, and a
+    result loaded without the model prints indices again."""
+    named = oj.Model.from_ode(
+        oscillator,
+        DT,
+        observe=lambda x, u, theta: x[:1],
+        states=["q (m)", "v (m/s)"],
+        outputs="q (m)",
+    )
+    assert named.states == ("q (m)", "v (m/s)") and named.outputs == ("q (m)",)
+    x0, u, z = data()
+    kw = dict(fixed={"b": True}, estimate_x0=np.array([True, False]))
+    r = oj.fit(named, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z, **kw)
+    plain = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z, **kw)
+    text, before = str(r), str(plain)
+    assert _row(text, "x0[q (m)]").split()[-4:] == _row(before, "x0[0]").split()[-4:]
+    assert _row(text, "x0[v (m/s)]").endswith("(fixed)")
+    fit, rmse = r.metrics["fit_percent"][0], r.metrics["rmse"][0]
+    assert f"FIT% [q (m): {fit:.2f}]  RMSE [q (m): {rmse:.4g}]" in text
+    assert f"FIT% [{fit:.2f}]  RMSE [{rmse:.4g}]" in before
+    est = r.predict(u, z[:20]).estimate
+    assert str(est).splitlines()[1].startswith("  x0[q (m)]")
+    assert oj.plot.compare(z, r, u=u).axes[0].get_ylabel() == "q (m)"
+    assert oj.plot.compare(z, plain, u=u).axes[0].get_ylabel() == "output"
+    assert "x0[0]" in str(oj.load_result(r.save(tmp_path / "named")))
+    # Several records: the record's index and the name
+    xs, us, zs = data(n_traj=2, T=40)
+    assert "  x0[1, v (m/s)]" in str(oj.fit(named, TRUTH, xs, us, zs))
+    # Names of another count than the data's entries, or not strings, are refused
+    for field, names, count in (("states", ["q"], "n_x = 2"), ("outputs", ["q", "v"], "n_z = 1")):
+        wrong = oj.Model.from_ode(
+            oscillator, DT, observe=lambda x, u, theta: x[:1], **{field: names}
+        )
+        with pytest.raises(ValueError, match=rf"the model's `{field}` holds .* {count}: give one"):
+            oj.fit(wrong, TRUTH, x0, u[:20], z[:20])
+    with pytest.raises(TypeError, match=r"`states` must be a string or a list of strings"):
+        oj.Model(oscillator, states=[0, 1])
+
+
 def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path):
     loaded = oj.load_result(fitted.save(tmp_path / "osc"), model=MODEL)
     assert loaded.theta_order == fitted.theta_order == ("w0sq", "c", "b")
