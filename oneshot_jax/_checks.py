@@ -192,7 +192,7 @@ def check_theta(theta, dtype=None, name="theta"):
     return jax.tree_util.tree_unflatten(treedef, leaves), static
 
 
-def _check_names(model, n_x, n_z):
+def _check_name_counts(model, n_x, n_z):
     """The model's `states` and `outputs` names against the data's sizes."""
     for field, names, n, what in (
         ("states", model.states, n_x, "n_x"),
@@ -747,7 +747,7 @@ def check_data(
     if known is None:
         model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name, shown)
     n_z = z_hat.shape[0]
-    _check_names(given, x0.shape[-1], n_z)
+    _check_name_counts(given, x0.shape[-1], n_z)
     u = append_intervals(u, intervals)
 
     mask = None
