@@ -254,7 +254,7 @@ def fit_continuation(
     T = u_np.shape[0]
     schedule = _schedule(windows, start, factor, T)
     stages = []
-    with at_caller():  # (the stages' warnings, at the caller's line)
+    with at_caller(__file__):  # (the stages' warnings, at the caller's line)
         theta, x0_stage, result, w_prev = theta0, x0, None, None
         for w in schedule:
             if result is not None:
@@ -438,7 +438,7 @@ def check_basin(
             )
     if "missing" not in kwargs:  # (a fit with missing="mask": z holds its NaN samples)
         kwargs["missing"] = result.missing
-    with at_caller():
+    with at_caller(__file__):
         windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])
     short = np.asarray(windowed.metrics["fit_percent"])

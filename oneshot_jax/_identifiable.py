@@ -231,7 +231,7 @@ def fit_physics_first(
             raise ValueError(
                 f"`multistart` has starts of the learned terms {wrong!r}: stage 1 holds them."
             )
-    with at_caller():  # (both stages' warnings, at the caller's line)
+    with at_caller(__file__):  # (both stages' warnings, at the caller's line)
         physics = fit(
             model,
             theta_phys,
@@ -543,7 +543,7 @@ def fit_orthogonal(
     est_aug = np.concatenate([est, np.zeros(n_x + p, bool)])
 
     history, result, converged = [], None, False
-    with at_caller():  # (the rounds' warnings, at the caller's line)
+    with at_caller(__file__):  # (the rounds' warnings, at the caller's line)
         for _ in range(int(rounds)):
             before = _flat(theta, names)
             m = _basis(model, theta, x0, u, names, root)

@@ -76,9 +76,11 @@ class X0Estimate(eqx.Module):
             how += f" ({name_of(self.stop_reason)})"
         rows = [how + f", loss {float(self.loss):.6g}"]
         names = self.states if self.states is not None else range(len(self.x0))
-        for i, v, s, ok in zip(names, self.x0, self.std, self.identifiable, strict=True):
+        labels = [f"x0[{i}]" for i in names]
+        width = max(map(len, labels), default=0)
+        for label, v, s, ok in zip(labels, self.x0, self.std, self.identifiable, strict=True):
             note = "" if ok else "  (not determined by the head)"
-            rows.append(f"  x0[{i}] {float(v):12.6g}  std {float(s):.3g}{note}")
+            rows.append(f"  {label:<{width}} {float(v):12.6g}  std {float(s):.3g}{note}")
         return "\n".join(rows)
 
     __repr__ = __str__

@@ -561,11 +561,21 @@ def _fields(arrays, meta, group, build, static) -> dict:
     )
 
 
+# The model's labels (`Model(states=..., outputs=...)`): not what it computes, so a result
+# loads with the same dynamics named otherwise or not at all (and files saved before the
+# labels existed load).
+_LABELS = ("model.states = ", "model.outputs = ")
+
+
 def _model_signature(model) -> list:
     """What the file records of the model: its static settings (a `Model.from_ode`'s dt,
     method, substeps, input; whether it is timed), not its functions, whose names a
-    script that loads the result may choose differently."""
-    return [s for s in _static_signature(model, "model") if " = function " not in s]
+    script that loads the result may choose differently, nor its labels (`_LABELS`)."""
+    return [
+        s
+        for s in _static_signature(model, "model")
+        if " = function " not in s and not s.startswith(_LABELS)
+    ]
 
 
 def check_model_fits(model, fields):

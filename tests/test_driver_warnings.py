@@ -1,5 +1,6 @@
 """The warnings of the fits that the drivers run point at the user's line, as `fit`'s do."""
 
+import inspect
 import warnings
 
 import jax.numpy as jnp
@@ -11,15 +12,25 @@ import oneshot_jax as oj
 
 def _step(x, u, th):
     # e has no effect (a parameter the data cannot determine: `fit` warns), r is the
-    # learned term of the hybrid drivers
+    # learned term of the hybrid drivers; the model warns too, when it is traced
+    warnings.warn("a warning of the model's own", UserWarning)
     return th["a"] * x + th["b"] * u + th["r"][0] * jnp.tanh(x) + th["r"][1] * u**3 + 0.0 * th["e"]
+
+
+_OWN_LINE = next(
+    i
+    for i, line in enumerate(inspect.getsourcelines(_step)[0], inspect.getsourcelines(_step)[1])
+    if "warnings.warn" in line
+)
 
 
 def _record():
     rng = np.random.default_rng(0)
     u = rng.standard_normal((120, 1))
     truth = {"a": 0.8, "b": 0.5, "r": np.array([0.1, 0.0]), "e": 0.0}
-    _, z = oj.simulate(oj.Model(_step), truth, np.zeros(1), u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the model's own)
+        _, z = oj.simulate(oj.Model(_step), truth, np.zeros(1), u)
     return u, np.asarray(z) + 0.01 * rng.standard_normal((120, 1))
 
 
@@ -53,7 +64,8 @@ def _orthogonal(model, u, z):
 )
 def test_a_drivers_fit_warnings_point_at_its_caller(driver):
     """They pointed at the driver's own line in the library (`_identifiable.py`,
-    `_continuation.py`), where a plain `fit` points at its caller's."""
+    `_continuation.py`), where a plain `fit` points at its caller's. A warning of the
+    model keeps its own line (the first version moved every warning to the caller's)."""
     u, z = _record()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -61,3 +73,6 @@ def test_a_drivers_fit_warnings_point_at_its_caller(driver):
     about_e = [w for w in caught if "e" in str(w.message) and "null space" in str(w.message)]
     assert about_e, [str(w.message)[:120] for w in caught]
     assert {w.filename for w in caught} == {__file__}
+    own = [w for w in caught if "of the model's own" in str(w.message)]
+    assert own and {w.lineno for w in own} == {_OWN_LINE}
+    assert _OWN_LINE not in {w.lineno for w in about_e}

@@ -423,10 +423,19 @@ def test_named_states_and_outputs_label_the_printouts_and_the_plot(fitted, tmp_p
     assert f"FIT% [q (m): {fit:.2f}]  RMSE [q (m): {rmse:.4g}]" in text
     assert f"FIT% [{fit:.2f}]  RMSE [{rmse:.4g}]" in before
     est = r.predict(u, z[:20]).estimate
-    assert str(est).splitlines()[1].startswith("  x0[q (m)]")
+    rows = str(est).splitlines()[1:]
+    assert rows[0].startswith("  x0[q (m)]  ") and rows[1].startswith("  x0[v (m/s)]")
+    assert rows[0].index(" std ") == rows[1].index(" std ")  # (the columns line up)
     assert oj.plot.compare(z, r, u=u).axes[0].get_ylabel() == "q (m)"
     assert oj.plot.compare(z, plain, u=u).axes[0].get_ylabel() == "output"
-    assert "x0[0]" in str(oj.load_result(r.save(tmp_path / "named")))
+    path = r.save(tmp_path / "named")
+    assert "x0[0]" in str(oj.load_result(path))
+    # The names are labels, not what the model computes: the result loads with the same
+    # dynamics named or not (with the names in the file's model record, neither loaded)
+    assert "x0[q (m)]" in str(oj.load_result(path, model=named))
+    assert "x0[0]" in str(oj.load_result(path, model=MODEL))
+    assert "x0[0]" in str(oj.load_result(plain.save(tmp_path / "plain"), model=MODEL))
+    assert "x0[q (m)]" in str(oj.load_result(tmp_path / "plain.npz", model=named))
     # Several records: the record's index and the name
     xs, us, zs = data(n_traj=2, T=40)
     assert "  x0[1, v (m/s)]" in str(oj.fit(named, TRUTH, xs, us, zs))
