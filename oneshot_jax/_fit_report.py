@@ -284,10 +284,11 @@ def _stationary(result) -> bool:
     return not (np.isfinite(fo) and fo > gtol)
 
 
-def _per_record_fit(result, rows, listed_max=6) -> list[str]:
+def _per_record_fit(result, rows, outputs, listed_max=6) -> list[str]:
     """The line of FIT% per trajectory (or window) of a fit of several: each one's
     values, or for more than `listed_max` the lowest and highest per output (none for a
-    result saved before `fit_percent_per_record` existed)."""
+    result saved before `fit_percent_per_record` existed); with the model's `outputs`
+    names where it has them."""
     per = result.metrics.get("fit_percent_per_record")
     if per is None:
         return []
@@ -295,7 +296,7 @@ def _per_record_fit(result, rows, listed_max=6) -> list[str]:
     per = per.reshape(per.shape[0], -1)
 
     def values(v):
-        return "[" + ", ".join(f"{f:.2f}" for f in v) + "]"
+        return "[" + _per_output([f"{f:.2f}" for f in v], outputs) + "]"
 
     one = "window" if rows == "windows" else "trajectory"
     if per.shape[0] <= listed_max:
@@ -473,7 +474,7 @@ def report(result) -> str:
     if x0.ndim == 2 and x0.shape[0] > 1:
         # Pooled: each record against the mean of all (MATLAB's compare: one per experiment)
         out.append(f"pooled over the {x0.shape[0]} {rows}: {scores}")
-        out.extend(_per_record_fit(result, rows))
+        out.extend(_per_record_fit(result, rows, outputs))
     else:
         out.append(scores)
     at_bound = (result.stop_info or {}).get("at_bound")

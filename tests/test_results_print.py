@@ -438,7 +438,10 @@ def test_named_states_and_outputs_label_the_printouts_and_the_plot(fitted, tmp_p
     assert "x0[q (m)]" in str(oj.load_result(tmp_path / "plain.npz", model=named))
     # Several records: the record's index and the name
     xs, us, zs = data(n_traj=2, T=40)
-    assert "  x0[1, v (m/s)]" in str(oj.fit(named, TRUTH, xs, us, zs))
+    both = oj.fit(named, TRUTH, xs, us, zs)
+    per = both.metrics["fit_percent_per_record"][:, 0]
+    assert "  x0[1, v (m/s)]" in str(both)
+    assert f"FIT% per trajectory: [q (m): {per[0]:.2f}], [q (m): {per[1]:.2f}]" in str(both)
     # Names of another count than the data's entries, or not strings, are refused
     for field, names, count in (("states", ["q"], "n_x = 2"), ("outputs", ["q", "v"], "n_z = 1")):
         wrong = oj.Model.from_ode(
