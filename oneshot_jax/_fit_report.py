@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from . import _pytree
+from ._model import model_labels
 
 
 def _child(node, entry):
@@ -243,7 +244,7 @@ def _x0_table(result, shown_max=3):
     shown = n_traj if n_traj <= shown_max else 2
     if batched and not estimated.any():
         return [], n_traj
-    names = _names(getattr(result.model, "states", None), n_x)
+    names = model_labels(getattr(result.model, "states", None), n_x) or range(n_x)
     table = []
     for i in range(shown):
         for j, name in zip(range(n_x), names, strict=True):
@@ -318,17 +319,12 @@ def returned_start(result) -> bool:
     return result.stop_info.get("at_step") in (0, None)
 
 
-def _names(given, n):
-    """The model's names of n entries (`Model(states=..., outputs=...)`), else their
-    indices (no model: a result loaded without one; or names of another size)."""
-    return given if given is not None and len(given) == n else range(n)
-
-
 def _per_output(values, outputs) -> str:
     """Values of each output, with the model's output names where it has them."""
-    if isinstance(_names(outputs, len(values)), range):
+    names = model_labels(outputs, len(values))
+    if names is None:
         return ", ".join(values)
-    return ", ".join(f"{o}: {v}" for o, v in zip(outputs, values, strict=True))
+    return ", ".join(f"{o}: {v}" for o, v in zip(names, values, strict=True))
 
 
 def report(result) -> str:

@@ -24,6 +24,7 @@ from ._checks import check_cost, check_data, check_outside_transformations, chec
 from ._cost import weigh
 from ._counts import is_count
 from ._jit import jit
+from ._model import model_labels
 from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate_impl
 from ._timing import head_times
@@ -75,10 +76,10 @@ class X0Estimate(eqx.Module):
         if self.stop_reason is not None:
             how += f" ({name_of(self.stop_reason)})"
         rows = [how + f", loss {float(self.loss):.6g}"]
-        names = self.states if self.states is not None else range(len(self.x0))
-        labels = [f"x0[{i}]" for i in names]
-        width = max(map(len, labels), default=0)
-        for label, v, s, ok in zip(labels, self.x0, self.std, self.identifiable, strict=True):
+        names = model_labels(self.states, len(self.x0)) or range(len(self.x0))
+        rows_of = [f"x0[{i}]" for i in names]
+        width = max(map(len, rows_of), default=0)
+        for label, v, s, ok in zip(rows_of, self.x0, self.std, self.identifiable, strict=True):
             note = "" if ok else "  (not determined by the head)"
             rows.append(f"  {label:<{width}} {float(v):12.6g}  std {float(s):.3g}{note}")
         return "\n".join(rows)

@@ -41,6 +41,12 @@ def _check_names(names, name):
     return tuple(names)
 
 
+def model_labels(names, n):
+    """The names a `Model` gives n entries (its `states` or `outputs`), or None where it
+    gives none of that count (no names, or a result loaded with another model)."""
+    return names if names is not None and len(names) == n else None
+
+
 def _check_integrator(rhs, method, substeps) -> int:
     """The checks of `ode_step`'s and `Model.from_ode`'s static arguments; the number of
     substeps as an int."""

@@ -17,7 +17,7 @@ import numpy as np
 from . import metrics
 from ._fit_result import FitResult
 from ._initial_state import Prediction
-from ._model import ODE_STEPS
+from ._model import ODE_STEPS, model_labels
 from ._timing import as_times as _as_times
 
 __all__ = ["compare", "resid"]
@@ -288,7 +288,7 @@ def compare(
     labels = _names(labels, len(models), "labels", "model", start=1)
     if outputs is None:  # (the names of the first model that has them for these outputs)
         given = (getattr(m.model, "outputs", None) for m in models if isinstance(m, FitResult))
-        outputs = next((list(o) for o in given if o is not None and len(o) == n_z), None)
+        outputs = next((list(o) for o in given if model_labels(o, n_z) is not None), None)
     names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
