@@ -12,6 +12,7 @@ from . import _pytree
 from . import metrics as _metrics
 from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
 from ._fit_result import FitHistory, FitResult, Starts
+from ._model import model_labels
 from ._optimality import promises_descent, resolution, roundoff_limit
 from ._results import SUCCESS, from_index, name_of
 from ._simulate import simulate_impl
@@ -396,8 +397,11 @@ def assemble(
                 names, scaled.theta_identifiable, "parameters", stop, unconverged, worst
             )
         if not diverged and not scaled.x0_identifiable.all():
+            labels = model_labels(getattr(problem.model, "states", None), X0.shape[1]) or range(
+                X0.shape[1]
+            )
             x0_names = [
-                f"x0[{i}, {j}]" if data.batched else f"x0[{j}]"
+                f"x0[{i}, {labels[j]}]" if data.batched else f"x0[{labels[j]}]"
                 for i in range(X0.shape[0])
                 for j in problem.x0_free
             ]

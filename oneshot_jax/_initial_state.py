@@ -474,7 +474,8 @@ def _estimate(
     if ok is None:
         ok = _observable(data._replace(x0=jnp.asarray(x0_hat)))
     if not np.all(ok):
-        bad = [f"x0[{i}]" for i in np.flatnonzero(~ok)]
+        labels = model_labels(getattr(model, "states", None), len(ok)) or range(len(ok))
+        bad = [f"x0[{labels[i]}]" for i in np.flatnonzero(~ok)]
         then = (
             "along that direction the estimate stays at the starting guess `x0` (a guess of "
             "zeros gives the minimum-norm solution) and their std is inf"

@@ -3,6 +3,7 @@ settings: the stop on one line (never the RESULTS repr), the parameters in theta
 order with their units, x0 with its standard errors, a neural residual as one row, FIT%,
 RMSE and AIC; `theta_order` and `units` survive save and load."""
 
+import re
 import warnings
 
 import equinox as eqx
@@ -451,6 +452,36 @@ def test_named_states_and_outputs_label_the_printouts_and_the_plot(fitted, tmp_p
             oj.fit(wrong, TRUTH, x0, u[:20], z[:20])
     with pytest.raises(TypeError, match=r"`states` must be a string or a list of strings"):
         oj.Model(oscillator, states=[0, 1])
+
+
+def test_warnings_name_the_initial_states_the_model_names():
+    """The rank-deficiency warning of `fit` and the observability warning of
+    `estimate_x0` name an initial state as the printouts do, where the model names it; a
+    state the output never sees is the one named."""
+
+    def step(x, u, theta):
+        return jnp.stack([theta["a"] * x[0] + u[0], x[1]])
+
+    def observe(x, u, theta):
+        return x[:1]
+
+    named = oj.Model(step, observe=observe, states=["q", "idle"], outputs="q")
+    u = np.random.default_rng(0).normal(size=(50, 1))
+    _, z = oj.simulate(named, {"a": 0.5}, np.array([1.0, 2.0]), u)
+    for model, label in ((named, "x0[idle]"), (oj.Model(step, observe=observe), "x0[1]")):
+        with pytest.warns(UserWarning, match=rf"initial states \['{re.escape(label)}'\]"):
+            oj.fit(model, {"a": 0.3}, np.array([0.5, 1.0]), u, z)
+        with pytest.warns(UserWarning, match=rf"entries \['{re.escape(label)}'\] are not"):
+            oj.estimate_x0(model, {"a": 0.5}, u, z, n=10, x0=np.zeros(2))
+    # Several records: the record's index and the name
+    with pytest.warns(UserWarning, match=r"'x0\[0, idle\]', 'x0\[1, idle\]'"):
+        oj.fit(
+            named,
+            {"a": 0.3},
+            np.array([[0.5, 1.0], [0.2, 1.0]]),
+            np.stack([u, u]),
+            np.stack([z, z]),
+        )
 
 
 def test_theta_order_and_units_round_trip_through_save_and_load(fitted, tmp_path):
