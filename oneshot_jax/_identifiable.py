@@ -279,11 +279,21 @@ class Round(eqx.Module):
     moved: float
     status: str
 
-    def __str__(self):
+    def _row(self):
+        """The round's row of `Orthogonal`'s table (loss, projection, change, moved SE,
+        stop)."""
         return (
             f"{self.loss:>12.5g}  {self.projection:>10.3g}  {self.change:>10.3g}  "
             f"{self.moved:>10.3g}  {self.status}"
         )
+
+    def __str__(self):
+        return (
+            f"Round: loss {self.loss:.5g}, projection {self.projection:.3g}, change "
+            f"{self.change:.3g}, moved {self.moved:.3g} SE, stop {self.status}"
+        )
+
+    __repr__ = __str__
 
 
 class Orthogonal(eqx.Module):
@@ -318,7 +328,7 @@ class Orthogonal(eqx.Module):
             f"{'round':>5}  {'loss':>12}  {'projection':>10}  {'change':>10}  {'moved SE':>10}"
             "  stop"
         )
-        rows = "\n".join(f"{i:>5}  {r}" for i, r in enumerate(self.rounds))
+        rows = "\n".join(f"{i:>5}  {r._row()}" for i, r in enumerate(self.rounds))
         state = "converged" if self.converged else "not converged"
         return f"Orthogonal augmentation, {len(self.rounds)} rounds ({state}):\n{head}\n{rows}"
 

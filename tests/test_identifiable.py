@@ -167,6 +167,13 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     assert r.rounds[-1].moved <= 0.1
     assert r.x0.shape == (2,)
     assert "Orthogonal augmentation" in str(r)
+    last = r.rounds[-1]  # (a round prints its fields by name; the table has its header)
+    numbers = [f"{last.loss:.5g}", f"{last.projection:.3g}", f"{last.change:.3g}"]
+    numbers += [f"{last.moved:.3g}", last.status]
+    assert str(r).splitlines()[-1].split() == [str(len(r.rounds) - 1), *numbers]
+    assert str(last) == "Round: loss {}, projection {}, change {}, moved {} SE, stop {}".format(
+        *numbers
+    )
 
 
 def test_physics_first_learns_a_term_written_as_a_python_float(case):
