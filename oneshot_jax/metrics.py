@@ -3,7 +3,10 @@
 `rmse`, `nrmse`, `fit_percent`, `r2`, `aic` and `fpe` take arrays of shape (..., n_z)
 (time and trajectory axes in front) and return one value per output channel (shape
 (n_z,)), except `aic` and `fpe`, which are scalars. The definitions are those of
-MATLAB's System Identification Toolbox (`compare`, `aic`, `fpe`). They are compiled JAX
+MATLAB's System Identification Toolbox (`compare`, `aic`, `fpe`), but for two: `aic`
+leaves out the raw AIC's constant n n_z (log 2 pi + 1), which differences between models
+on the same data do not see, and `nrmse` is the normalised error (0 for a perfect fit),
+where MATLAB's `goodnessOfFit` 'NRMSE' is 1 minus it. They are compiled JAX
 functions (and jittable). Where an output channel is constant over the samples scored,
 `nrmse`, `fit_percent` and `r2` divide by its zero deviation from its mean: inf, -inf
 and -inf for a model that misses it, NaN (0 / 0) for one that reproduces it exactly;
@@ -150,7 +153,12 @@ def _rmse(z, zhat, mask):
 
 
 def nrmse(z, zhat, mask=None):
-    """RMSE divided by the standard deviation of the measured output, per output."""
+    """RMSE divided by the standard deviation of the measured output, per output:
+    ||zhat - z|| / ||z - mean(z)||, 0 for a perfect fit (= 1 - FIT% / 100).
+
+    MATLAB's `goodnessOfFit(..., 'NRMSE')` is the other way round, a fitness
+    1 - ||zhat - z|| / ||z - mean(z)|| (1 for a perfect fit): 1 minus this.
+    """
     _check(z, zhat, mask)
     return _nrmse(z, zhat, mask)
 
@@ -461,10 +469,12 @@ class ResidualCorrelations(NamedTuple):
     - `bound`: the half-width of the confidence band of `auto` (a white residual's),
         z / sqrt(n) per output, shape (n_z,).
     - `white`: per output, whether at most a fraction `tolerance` of the lags 1..max_lag
-        of `auto` lie outside the band (whiteness test), shape (n_z,).
+        of `auto` lie outside the band and none outside `joint_bound` (whiteness test),
+        shape (n_z,).
     - `independent`: per output, whether for every input at most a fraction `tolerance`
-        of the lags 0..max_lag of `cross` lie outside its band `cross_bound`
-        (independence of the current and past inputs), shape (n_z,); None without `u`.
+        of the lags 0..max_lag of `cross` lie outside its band `cross_bound` and none
+        outside `cross_joint_bound` (independence of the current and past inputs), shape
+        (n_z,); None without `u`.
     - `auto_outside`: the fraction of the lags 1..max_lag outside the band, (n_z,).
     - `cross_outside`: the fraction of the lags 0..max_lag outside the band, (n_z, n_u);
         None without `u`.
@@ -472,6 +482,12 @@ class ResidualCorrelations(NamedTuple):
     - `cross_bound`: the half-width of the band of `cross`, z sqrt(P / n) with Ljung's
         P = 1 + 2 sum_{k=1..max_lag} r_e(k) r_u(k) (at least 1: never narrower than
         `bound`), shape (n_z, n_u); None without `u`.
+    - `joint_bound`: the half-width of the joint band of `auto`, z' / sqrt(n) with z' the
+        normal quantile at 1 - (1 - confidence) / (2 max_lag) (Bonferroni over the
+        max_lag lags: a white residual leaves it at some lag with probability at most
+        1 - confidence), shape (n_z,).
+    - `cross_joint_bound`: the same of `cross` over its max_lag + 1 lags, z'' sqrt(P / n),
+        shape (n_z, n_u); None without `u`.
     """
 
     lags: np.ndarray
@@ -484,6 +500,8 @@ class ResidualCorrelations(NamedTuple):
     cross_outside: np.ndarray | None
     n: np.ndarray
     cross_bound: np.ndarray | None = None
+    joint_bound: np.ndarray | None = None
+    cross_joint_bound: np.ndarray | None = None
 
     def __str__(self) -> str:
         """The verdicts per output, with the numbers they rest on (MATLAB's `resid`
@@ -494,17 +512,45 @@ class ResidualCorrelations(NamedTuple):
             white = "white" if bool(np.atleast_1d(self.white)[k]) else "not white"
             line = (
                 f"  output {k}: {white} ({100 * float(self.auto_outside[k]):.0f} % of the lags "
-                f"outside +-{float(self.bound[k]):.3g}, n = {int(self.n[k])})"
+                f"outside +-{float(self.bound[k]):.3g}{self._peak(k)}, n = {int(self.n[k])})"
             )
             if self.independent is not None:
                 ind = bool(self.independent[k])
                 worst = 100 * float(np.max(self.cross_outside[k]))
                 line += (
                     f"; {'independent of' if ind else 'correlated with'} the inputs (at most "
-                    f"{worst:.0f} % of the lags outside the band)"
+                    f"{worst:.0f} % of the lags outside the band{self._cross_peak(k)})"
                 )
             out.append(line)
         return "\n".join(out)
+
+    def _peak(self, k):
+        """ ", r_e(tau) = .. beyond the joint band +-.." where a lag of output k's
+        autocorrelation leaves the joint band (else "")."""
+        if self.joint_bound is None:
+            return ""
+        r_e = np.asarray(self.auto)[len(self.lags) // 2 + 1 :, k]
+        tau = int(np.argmax(np.abs(r_e)))
+        if abs(r_e[tau]) <= float(self.joint_bound[k]):
+            return ""
+        return (
+            f"; r_e({tau + 1}) = {float(r_e[tau]):.3g} beyond the joint band "
+            f"+-{float(self.joint_bound[k]):.3g}"
+        )
+
+    def _cross_peak(self, k):
+        """The same of output k's cross-correlations at lags >= 0, the worst input's."""
+        if self.cross_joint_bound is None:
+            return ""
+        r = np.asarray(self.cross)[len(self.lags) // 2 :, k]  # (max_lag + 1, n_u)
+        over = np.abs(r) / np.asarray(self.cross_joint_bound)[k]
+        tau, j = np.unravel_index(int(np.argmax(over)), over.shape)
+        if over[tau, j] <= 1.0:
+            return ""
+        return (
+            f"; r_eu({tau}) = {float(r[tau, j]):.3g} of input {j} beyond the joint band "
+            f"+-{float(self.cross_joint_bound[k, j]):.3g}"
+        )
 
 
 def _lag_sums(x, max_lag):
@@ -593,14 +639,18 @@ def residual_correlations(
     For a white residual, independent of the input, each is asymptotically normal with
     variance 1/n (Ljung, Sec. 16.6), so |r| <= z / sqrt(n) with z = 2.58 for 99 %. A
     residual is called white when at most a fraction `tolerance` of r_e(1..max_lag) leaves
-    the band, and independent of the inputs when the same holds of r_eu(0..max_lag) for
-    every input: a peak at lag tau > 0 says that the part of the output due to u(t - tau)
-    is not explained by the model. Correlation at negative lags (future inputs) is left
-    out of the verdict: under feedback it appears even for a right model. The
-    cross-correlation's band allows for a coloured residual and a coloured input (the
-    usual case after an output-error fit): its variance is P / n with
-    P = sum_k r_e(k) r_u(k) over |k| <= max_lag (Ljung, Sec. 16.6), taken at least 1
-    (the white band), so `cross_bound` is per output and input.
+    the band and none leaves the joint band of all max_lag lags, and independent of the
+    inputs when the same holds of r_eu(0..max_lag) for every input: a peak at lag tau > 0
+    says that the part of the output due to u(t - tau) is not explained by the model. The
+    joint band is the band at the level that all the lags of the test together keep with
+    probability `confidence` (Bonferroni: z' at 1 - (1 - confidence) / (2 m) for m lags,
+    3.54 for 25 lags at 99 %), so that one large peak (a residual correlated with u(t - 3)
+    alone, say) fails the test, which a count of the lags outside allows. Correlation at
+    negative lags (future inputs) is left out of the verdict: under feedback it appears
+    even for a right model. The cross-correlation's band allows for a coloured residual
+    and a coloured input (the usual case after an output-error fit): its variance is
+    P / n with P = sum_k r_e(k) r_u(k) over |k| <= max_lag (Ljung, Sec. 16.6), taken at
+    least 1 (the white band), so `cross_bound` is per output and input.
 
     Each signal's mean is removed first (`demean`): MATLAB's `resid` correlates the
     signals as given and expects data detrended before the estimation, but grey-box data
@@ -622,11 +672,12 @@ def residual_correlations(
     - `confidence`: the level of the band, 0 < confidence < 1 (z = 2.576 for 0.99).
     - `tolerance`: the fraction of lags allowed outside the band in a verdict,
         0 <= tolerance < 1; 0 is the strict reading, "no lag outside". The verdict allows
-        floor(tolerance max_lag) lags outside the band. For a white residual the count
-        outside is about Binomial(max_lag, 1 - confidence), so the false-alarm rate
-        depends on max_lag: with the defaults it is 2.6 % at MATLAB's max_lag 25 (one lag
-        allowed), but 1 - 0.99^max_lag for max_lag < 20, where no lag is allowed (17 %
-        at 19), and it jumps at each multiple of 20.
+        floor(tolerance max_lag) lags outside the band, none outside the joint band. For a
+        white residual the count outside is about Binomial(max_lag, 1 - confidence), so
+        the count's false-alarm rate depends on max_lag: with the defaults it is 2.6 % at
+        MATLAB's max_lag 25 (one lag allowed), but 1 - 0.99^max_lag for max_lag < 20,
+        where no lag is allowed (17 % at 19), and it jumps at each multiple of 20; the
+        joint band adds at most 1 - `confidence`.
     - `demean`: subtract each channel's mean (over its measured samples, all trajectories
         pooled) first (default); False: the sums of the signals as given, as MATLAB's
         `resid` forms them.
@@ -634,13 +685,14 @@ def residual_correlations(
     **Returns:**
 
     A `ResidualCorrelations(lags, auto, cross, bound, white, independent, auto_outside,
-    cross_outside, n, cross_bound)` of NumPy arrays.
+    cross_outside, n, cross_bound, joint_bound, cross_joint_bound)` of NumPy arrays.
 
     **Raises:**
 
     `ValueError` naming the argument: a shape that is not one of the above, `u` not
     finite or not matching `e`, `max_lag`, `confidence` or `tolerance` out of range, an
-    output with fewer than two measured samples or a residual or an input that is zero.
+    output with fewer than two measured samples, a residual that is zero, or an input that
+    is zero (or, with `demean`, constant).
 
     **Reference:**
 
@@ -708,10 +760,17 @@ def residual_correlations(
     half = _lag_sums(e, max_lag)
     auto = np.concatenate([half[:0:-1], half]) / n / r0
     r_e = auto[max_lag + 1 :]  # lags 1..max_lag
-    bound = special.ndtri(0.5 + 0.5 * float(confidence)) / np.sqrt(n)
+    z = special.ndtri(0.5 + 0.5 * float(confidence))
+    bound = z / np.sqrt(n)
     auto_outside = np.mean(np.abs(r_e) > bound, axis=0)
 
-    cross = independent = cross_outside = cross_bound = None
+    def joint(m):  # the joint band's factor over the band: m lags together (Bonferroni)
+        return special.ndtri(1.0 - 0.5 * (1.0 - float(confidence)) / m) / z
+
+    joint_bound = bound * joint(max_lag)
+    white = (auto_outside <= tolerance) & np.all(np.abs(r_e) <= joint_bound, axis=0)
+
+    cross = independent = cross_outside = cross_bound = cross_joint_bound = None
     if u is not None:
         u, known = _inputs(u, N, T)
         beyond = measured.any(axis=-1) & ~known  # (records given in another order)
@@ -731,7 +790,13 @@ def residual_correlations(
             u = np.where(known[..., None], u - u.sum(axis=(0, 1)) / count, 0.0)
         ru0 = np.sum(u**2, axis=(0, 1)) / count
         if np.any(ru0 <= 0):
-            raise ValueError(f"`u` is zero in input(s) {np.flatnonzero(ru0 <= 0).tolist()}.")
+            flat = np.flatnonzero(ru0 <= 0).tolist()
+            raise ValueError(
+                f"`u` is constant in input(s) {flat}: zero once its mean is removed "
+                "(`demean`), so its correlations are undefined; leave it out of `u`."
+                if demean
+                else f"`u` is zero in input(s) {flat}: its correlations are undefined."
+            )
 
         def lagged(k):  # sum_t e(t) u(t - k), (n_z, n_u)
             if k >= 0:
@@ -745,16 +810,20 @@ def residual_correlations(
         P = np.maximum(1.0 + 2.0 * np.einsum("kz,ku->zu", r_e, r_u), 1.0)
         cross_bound = bound[:, None] * np.sqrt(P)
         cross_outside = np.mean(np.abs(cross[max_lag:]) > cross_bound, axis=0)
-        independent = np.all(cross_outside <= tolerance, axis=1)
+        cross_joint_bound = cross_bound * joint(max_lag + 1)
+        inside = np.all(np.abs(cross[max_lag:]) <= cross_joint_bound, axis=0)
+        independent = np.all((cross_outside <= tolerance) & inside, axis=1)
     return ResidualCorrelations(
         lags=lags,
         auto=auto,
         cross=cross,
         bound=bound,
-        white=auto_outside <= tolerance,
+        white=white,
         independent=independent,
         auto_outside=auto_outside,
         cross_outside=cross_outside,
         n=n,
         cross_bound=cross_bound,
+        joint_bound=joint_bound,
+        cross_joint_bound=cross_joint_bound,
     )

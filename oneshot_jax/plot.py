@@ -361,6 +361,12 @@ def _names(given, count, arg, thing, start, of=""):
     return list(names)
 
 
+def _beyond(out):
+    """ ", k beyond the joint band" for the k lags `out` marks (else "")."""
+    k = int(np.sum(out))
+    return f", {k} beyond the joint band" if k else ""
+
+
 def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True):
     """Plot the residual analysis of MATLAB's `resid`: the autocorrelation of the residuals
     and their cross-correlation with each input, with the confidence band, and the
@@ -370,7 +376,8 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     bounds after Ljung, *System Identification*, Sec. 16.6, and verdicts there): one row
     per output, the autocorrelation over lags 0..max_lag in the first column, the
     cross-correlation with input j over lags -max_lag..max_lag in column j + 1. Points
-    outside the band are drawn in red.
+    outside the band are drawn in red; the dashed lines are the joint band, which no lag
+    of a verdict may leave.
 
     **Arguments:**
 
@@ -426,8 +433,10 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     )
     pct = f"{100 * confidence:g} %"
 
-    def stems(a, lags, r, bound, auto=False):
+    def stems(a, lags, r, bound, joint, auto=False):
         a.axhspan(-bound, bound, color="C0", alpha=0.18, lw=0, label=f"{pct} confidence")
+        a.axhline(joint, color="C0", lw=0.8, ls="--", label="joint band")
+        a.axhline(-joint, color="C0", lw=0.8, ls="--")
         a.axhline(0.0, color="k", lw=0.6)
         a.vlines(lags, 0.0, r, color="C0", lw=1.0)
         out = (np.abs(r) > bound) & ~(auto & (lags == 0))  # r_e(0) = 1 is no test
@@ -438,23 +447,33 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
     verdicts = []
     for i in range(n_z):
         lags = rc.lags[max_lag:]
-        stems(axes[i, 0], lags, rc.auto[max_lag:, i], rc.bound[i], auto=True)
+        r_e = rc.auto[max_lag + 1 :, i]
+        stems(axes[i, 0], lags, rc.auto[max_lag:, i], rc.bound[i], rc.joint_bound[i], auto=True)
         axes[i, 0].set_title(f"autocorrelation of e[{names[i]}]", fontsize=9)
         axes[i, 0].legend(fontsize=7, loc="upper right")
+        peak = _beyond(np.abs(r_e) > rc.joint_bound[i])
         text = (
             f"e[{names[i]}]: {'white' if rc.white[i] else 'not white'} "
-            f"({100 * rc.auto_outside[i]:.0f} % of lags outside)"
+            f"({100 * rc.auto_outside[i]:.0f} % of lags outside{peak})"
         )
         for j in range(n_u):
-            stems(axes[i, j + 1], rc.lags, rc.cross[:, i, j], rc.cross_bound[i, j])
+            stems(
+                axes[i, j + 1],
+                rc.lags,
+                rc.cross[:, i, j],
+                rc.cross_bound[i, j],
+                rc.cross_joint_bound[i, j],
+            )
             axes[i, j + 1].axvline(0.0, color="0.5", lw=0.6, ls=":")
             axes[i, j + 1].set_title(f"cross-correlation of e[{names[i]}] and u[{j}]", fontsize=9)
         if n_u:
             worst = 100 * float(np.max(rc.cross_outside[i]))
+            beyond = np.abs(rc.cross[max_lag:, i]) > rc.cross_joint_bound[i]
+            peak = _beyond(beyond)
             text += (
                 ", independent of past inputs"
                 if rc.independent[i]
-                else f", correlated with past inputs ({worst:.0f} % of lags outside)"
+                else f", correlated with past inputs ({worst:.0f} % of lags outside{peak})"
             )
         verdicts.append(text)
     counts = np.unique(rc.n)

@@ -167,6 +167,40 @@ def test_whiteness_verdict():
     assert rc.white.tolist() == [True] and rc.independent.tolist() == [True]
 
 
+def test_one_large_peak_fails_the_verdicts():
+    """The verdicts counted the lags outside the band and allowed one in 25, however far
+    out: an MA(1) residual (r_e(1) = 0.4, seven times the band) read as white, a residual
+    holding 0.6 u(t - 3) (r_eu(3) = 0.5) as independent of the inputs. No lag may leave the
+    joint band of all the test's lags (Bonferroni), which keeps the false alarms of white
+    residuals near 1 - confidence above the count's."""
+    from scipy.special import ndtri
+
+    rng = np.random.default_rng(0)
+    T, M = 2000, 25
+    w, u = rng.standard_normal(T + 1), rng.standard_normal(T)
+    ma1 = metrics.residual_correlations(w[1:] + 0.5 * w[:-1], u, M)
+    assert ma1.auto_outside[0] <= 0.05 and ma1.white.tolist() == [False]
+    np.testing.assert_allclose(ma1.joint_bound, ndtri(1 - 0.005 / M) / np.sqrt(T), rtol=1e-12)
+    assert "not white (4 % of the lags outside +-0.0576; r_e(1) = 0.391 beyond" in str(ma1)
+    e = rng.standard_normal(T)
+    e[3:] += 0.6 * u[:-3]
+    missed = metrics.residual_correlations(e, u, M)
+    assert missed.cross_outside[0, 0] <= 0.05 and missed.independent.tolist() == [False]
+    assert "correlated with the inputs" in str(missed) and "r_eu(3) = 0.5" in str(missed)
+    fig = oj.plot.resid(e, u, M)
+    assert "correlated with past inputs (4 % of lags outside, 1 beyond the joint band)" in (
+        fig._suptitle.get_text()
+    )
+    alarms = 0
+    for draw in range(200):
+        rc = metrics.residual_correlations(rng.standard_normal(T), rng.standard_normal(T), M)
+        alarms += (not rc.white[0]) + (not rc.independent[0])
+    assert alarms <= 30, alarms  # (of 400 verdicts; about 4 % each)
+    # (a constant input of 3 V was said to be "zero": it is, once its mean is removed)
+    with pytest.raises(ValueError, match=r"`u` is constant in input\(s\) \[0\]: zero once"):
+        metrics.residual_correlations(e, np.full(T, 3.0), M)
+
+
 def test_the_independence_band_allows_for_a_coloured_residual_and_input():
     """A residual and an input both coloured (AR 0.9 and 0.95, as after an output-error
     fit on a slow input) and independent by construction: with the white band z / sqrt(n)
