@@ -439,6 +439,16 @@ def build_problem(
             stacklevel=3,
         )
     n_est = int(np.sum(x0_est))
+    if len(theta_free) and Z.shape[1] * Z.shape[2] <= n_est and inputs.window_starts is None:
+        # (as for windows below: each record's own x0 fits its samples, whatever theta)
+        T, values, several = Z.shape[1], Z.shape[1] * Z.shape[2], X0.shape[0] > 1
+        raise ValueError(
+            f"{'each record' if several else 'the record'} of {T} sample{'s' * (T > 1)} "
+            f"holds {values} output value{'s' * (values > 1)}, no more than the {n_est} "
+            f"entries of {'its own x0' if several else 'x0'} that are estimated: x0 alone fits "
+            "the samples and theta is not determined. Use a longer record, or estimate "
+            "fewer x0 entries (`estimate_x0`)."
+        )
     if inputs.window_starts is not None and len(theta_free) and Z.shape[1] * Z.shape[2] <= n_est:
         raise ValueError(
             f"`window` of {Z.shape[1]} samples holds {Z.shape[1] * Z.shape[2]} output values "

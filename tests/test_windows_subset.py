@@ -105,6 +105,15 @@ def test_windows_no_longer_than_their_x0_are_refused(length):
     # Fewer x0 entries estimated, or longer windows: theta is determined.
     oj.fit(MODEL, TRUTH, x0, u, z, window=2, estimate_x0=np.array([True, False]))
     oj.fit(MODEL, TRUTH, x0, u, z, window=3)
+    # A whole record as short (it returned `converged`, success, with theta at its start),
+    # and records each as short, alike
+    with pytest.raises(ValueError, match=rf"the record of {length} samples? holds {length} "):
+        oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u[:length], z[:length])
+    with pytest.raises(ValueError, match=r"each record of .* no more than the 2 entries of its"):
+        oj.fit(
+            MODEL, TRUTH, np.stack([x0, x0]), np.stack([u[:length]] * 2), np.stack([z[:length]] * 2)
+        )
+    oj.fit(MODEL, TRUTH, x0, u[: length + 1], z[: length + 1], estimate_x0=np.array([True, False]))
 
 
 def test_window_with_an_x0_per_start_is_refused_by_name():
