@@ -43,7 +43,7 @@ class Validation(eqx.Module):
     - `patience`: None (run each solver to its own stop), or stop a solver once its
         score has not improved for this many iterations (early stopping).
     - `x0_steps`: Gauss-Newton steps of each head estimate per iterate (warm-started from
-        the previous iterate's estimate).
+        the previous iterate's estimate), at least 1 (with `n=None` it is not used).
     - `t`: the records' sample times, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`), as `fit`'s `t`.
 
@@ -85,6 +85,12 @@ class Validation(eqx.Module):
         if not is_count(self.x0_steps, 0):
             raise ValueError(
                 f"`Validation(x0_steps=...)` must be an integer >= 0, got {self.x0_steps!r}."
+            )
+        if self.n is not None and self.x0_steps == 0:
+            raise ValueError(
+                "`Validation(x0_steps=0)` with `n` never estimates the initial states from "
+                "the head: every iterate would be scored from the guess `x0`. Give "
+                "x0_steps >= 1, or the known initial states as `x0` with n=None."
             )
 
 
@@ -169,6 +175,11 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     batched = np.ndim(u) == 3
     n_x = np.shape(x0_fit)[-1]
     x0 = validation.x0
+    if x0 is not None and np.ndim(x0) and np.shape(x0)[-1] != n_x:  # (not the model's fault)
+        raise ValueError(
+            f"`validation`: `x0` must have the fitted state's n_x = {n_x} entries (shape "
+            f"({n_x},), or (N, {n_x}) for N records), got shape {np.shape(x0)}."
+        )
     if x0 is None:
         x0 = np.zeros((np.shape(u)[0], n_x) if batched else (n_x,), np.result_type(x0_fit))
     try:

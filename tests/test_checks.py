@@ -750,6 +750,8 @@ def test_the_intersection_of_boxes_that_meet_is_kept():
         (lambda: oj.Validation(_U1, None, n=2), ValueError, r"`Validation` needs `z`"),
         (lambda: oj.Validation(_U1, _Z1, n="all"), ValueError, r"`Validation\(n=...\)`"),
         (lambda: oj.Validation(_U1, _Z1, n=2, x0_steps="5"), ValueError, r"x0_steps"),
+        # (0 steps never estimated the head's x0: every iterate scored from the guess)
+        (lambda: oj.Validation(_U1, _Z1, n=2, x0_steps=0), ValueError, r"never estimates"),
     ],
 )
 def test_options_are_checked_where_they_are_made(make, error, match):
@@ -909,6 +911,29 @@ def test_a_result_checks_inputs_given_as_lists(lin_result):
     # (the baseline: lists of the right width run)
     _, z = lin_result.simulate(_U1.tolist())
     assert np.shape(z) == _Z1.shape
+
+
+def test_an_initial_state_of_another_size_than_the_fitted_one_is_named(lin_result):
+    """An x0 of 3 entries for a fitted state of 1 was blamed on the model ("`step` must
+    return ... shape (3,)"): the result knows n_x, and so does the fit for `Validation`."""
+    match = r"`x0` must have the fitted state's n_x = 1 entries .* got shape \(%s\)"
+    with pytest.raises(ValueError, match=match % "3,"):
+        lin_result.simulate(_U1, np.zeros(3))
+    with pytest.raises(ValueError, match=match % "2, 3"):
+        lin_result.simulate(np.stack([_U1, _U1]), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=match % "3,"):
+        lin_result.predict(_U1, _Z1[:5], x0=np.zeros(3))
+    with pytest.raises(ValueError, match="`validation`: " + match % "3,"):
+        oj.fit(
+            LIN,
+            LIN_THETA,
+            np.zeros(1),
+            _U1,
+            _Z1,
+            validation=oj.Validation(_U1, _Z1, x0=np.zeros(3)),
+        )
+    _, z = lin_result.simulate(np.stack([_U1, _U1]), np.zeros((2, 1)))  # (the right size)
+    assert np.shape(z) == (2, *_Z1.shape)
 
 
 @pytest.mark.parametrize("z_head", [None, 0.3, np.ones(5)])
