@@ -104,6 +104,13 @@ def as_float(a, name, dtype=None, measured=False):
                 else " (an array of real numbers)"
             )
             raise ValueError(f"`{name}` is required{what}, got None.")
+        item = a.item() if a.ndim == 0 else None
+        if hasattr(item, "u") and hasattr(item, "y"):  # (a dataset's `Record`)
+            raise ValueError(
+                f"`{name}` must hold real numbers, got a {type(item).__name__}: pass its "
+                "arrays, u = record.u and z = record.y as (T, n) columns (`[:, None]` for "
+                "one channel)."
+            )
         raise ValueError(f"`{name}` must hold real numbers, got dtype object.")
     if jnp.issubdtype(a.dtype, jnp.complexfloating):
         raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")

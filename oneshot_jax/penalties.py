@@ -52,8 +52,15 @@ def _constants(value, name, fill, positive=False, none_entries=False):
         arr = np.atleast_1d(np.asarray(value, dtype=np.float64))
     except (TypeError, ValueError) as err:
         raise ValueError(f"`{name}` must be a scalar or a 1-D sequence of numbers.") from err
-    if arr.ndim != 1 or arr.size == 0 or np.any(np.isnan(arr)):
+    if arr.ndim != 1 or arr.size == 0:
         raise ValueError(f"`{name}` must be a scalar or a 1-D sequence of numbers, got {value!r}.")
+    if np.any(np.isnan(arr)):
+        where = np.flatnonzero(np.isnan(arr)).tolist()
+        raise ValueError(
+            f"`{name}` holds NaN at {where}: give a number"
+            + (" (or None for no bound there)" if none_entries else "")
+            + f", got {value!r}."
+        )
     if positive and not np.all((arr > 0) & np.isfinite(arr)):
         raise ValueError(f"`{name}` must be finite and > 0, got {value!r}.")
     return tuple(float(a) for a in arr)

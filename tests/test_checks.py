@@ -829,6 +829,13 @@ def test_numbers_given_as_strings_bools_or_complex_are_refused_by_name():
         oj.penalties.state_box(lower=[0.0, np.inf])
     with pytest.raises(ValueError, match="`lower` must be a scalar or a 1-D sequence of real"):
         oj.penalties.state_box(lower="1")
+    # (NaN was "must be a scalar or a 1-D sequence of numbers", which it is)
+    with pytest.raises(ValueError, match=r"`lower` holds NaN at \[0\]: give a number"):
+        oj.penalties.state_box(lower=[np.nan, 0.0])
+    # (a dataset's record passed whole: "dtype object")
+    record = oj.datasets.Record(u=np.ones(10), y=np.ones(10), Ts=0.1)
+    with pytest.raises(ValueError, match=r"`u` must hold real numbers, got a Record: pass its"):
+        oj.fit(LIN, LIN_THETA, np.zeros(1), record, record.y[:, None])
     with pytest.raises(ValueError, match="`radius`"):
         oj.penalties.state_ball(True)
     with pytest.raises(TypeError, match="`u` must hold real numbers"):
