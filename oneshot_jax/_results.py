@@ -42,8 +42,10 @@ class RESULTS(eqx.Enumeration):
         "better start help"
     )
     no_progress = (
-        "no step decreased the loss any more (the damping or the line search gave up) "
-        "before the first-order test held; check the scaling of the problem (a large "
+        "no step decreased the loss any more (the damping or the line search gave up, "
+        "or a wrapped optimistix solver reported a failed step: a linear solve that "
+        "returned NaN on a rank-deficient Jacobian, say) before the first-order test "
+        "held; check the scaling of the problem (a large "
         "output offset leaves the loss too few digits: subtract it) or try another solver "
         "or starting point"
     )

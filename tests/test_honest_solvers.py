@@ -467,6 +467,26 @@ def test_optimistix_failing_at_a_solution_converges_and_says_which_test_held():
         assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-9)
 
 
+def test_optimistix_failing_at_its_first_step_stops_there():
+    """Dogleg's linear solve returns NaN at a start where a Jacobian column is exactly zero
+    (x[k+1] = a x + log(c) u from c = 1, x0 = 0: the state is zero, so is a's column);
+    the fit ran on at its start to max_steps and said "raise max_steps". A failed step
+    that leaves the iterate where it was after one that already had ends the fit:
+    no_progress, with the failure named in the message. (A failed step that moves the
+    iterate is taken: `test_optimistix_failing_at_a_solution_converges...`.)"""
+    model = oj.Model(lambda x, u, p: p["a"] * x + jnp.log(p["c"]) * u)
+    rng = np.random.default_rng(6)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"a": 0.7, "c": 0.05}, np.array([0.3]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    solver = oj.Optimistix(optx.Dogleg(rtol=1e-10, atol=1e-12), max_steps=50)
+    r = oj.fit(model, {"a": 0.5, "c": 1.0}, np.array([0.0]), u, z, solver=solver)
+    assert r.status == "no_progress" and r.num_steps == 2, (r.status, r.num_steps)
+    assert "a wrapped optimistix solver reported a failed step" in r.message
+    # (the library's own solvers take the same start to the optimum)
+    assert oj.fit(model, {"a": 0.5, "c": 1.0}, np.array([0.0]), u, z).success
+
+
 def test_optimistix_in_float32_at_its_last_step_counts_gtol_as_the_resolution():
     """float32: GN through the bridge with tolerances that cannot fire ends at max_steps at
     the optimum (measure about 1e-6) and said "not a stationary point yet": gtol 1e-8 is

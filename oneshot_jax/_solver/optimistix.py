@@ -148,6 +148,7 @@ class _OptxState(NamedTuple):
     last: Params  # the last iterate with a finite loss and gradient, and its loss
     last_loss: jax.Array
     limit: jax.Array  # the round-off limit of a stall at the iterate (`_optimality.stall_limit`)
+    idle: jax.Array  # the failed steps in a row that left the iterate where it was
 
 
 class Optimistix(AbstractSolver):
@@ -258,6 +259,7 @@ class Optimistix(AbstractSolver):
             params,
             loss,
             stall_limit(problem, loss),
+            jnp.array(0),
         )
 
     def step(self, problem, params, state):
@@ -266,6 +268,21 @@ class Optimistix(AbstractSolver):
         args = (problem, state.held)
         y, inner, _ = self.solver.step(fn, state.y, args, {}, state.inner, frozenset())
         inner_done, inner_result = self.solver.terminate(fn, y, args, {}, inner, frozenset())
+        # A failed step (a linear solve that returned NaN, or that reached its own
+        # max_steps) ends optimistix's own loop. Here the fit goes on where such a step
+        # still moves the iterate (an inexact solve: conjugate gradients capped at a few
+        # iterations make an inexact Gauss-Newton method), and stops once a failed step
+        # has left it where it was after one that already had: it would repeat (Dogleg,
+        # its linear solve NaN at the start, ran on there to max_steps). (optimistix's
+        # first step never moves the iterate: one unmoved failure is not yet a stop.)
+        moved = jax.tree_util.tree_reduce(
+            jnp.logical_or,
+            jax.tree_util.tree_map(lambda a, b: jnp.any(a != b), y, state.y),
+            jnp.array(False),
+        )
+        failed = inner_result != optx.RESULTS.successful
+        idle = jnp.where(failed & ~moved, state.idle + 1, 0)
+        inner_done = inner_done | (idle >= 2)
         params = _point(problem, y, state.held)
         loss, g = problem.value_and_grad(params, self.strategy)
         gnorm = grad_norm(g)
@@ -311,6 +328,7 @@ class Optimistix(AbstractSolver):
         held = jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), held, state.held)
 
         done = inner_done & ~restart
+        idle = jnp.where(restart, 0, idle)  # (a fresh inner solve)
         ok = inner_result == optx.RESULTS.successful
         nonfinite = (inner_result == optx.RESULTS.nonfinite) | ~jnp.isfinite(loss)
         # optimistix stops on its step and loss tests: certify the point by the
@@ -366,6 +384,7 @@ class Optimistix(AbstractSolver):
             last,
             last_loss,
             limit,
+            idle,
         )
 
     def terminate(self, problem, params, state):
