@@ -756,7 +756,10 @@ def load_result(path, *, model=None, like=None) -> FitResult:
     - `model`: the `Model`, for `FitResult.simulate` (models are not saved). It must match
         what the file records of the fitted one (a `Model.from_ode`'s dt, method,
         substeps and input) and run with the saved theta, keeping the saved state's size
-        and giving the saved number of outputs: a ValueError names a difference.
+        and giving the saved number of outputs: a ValueError names a difference. The
+        names of its states and outputs (`Model(states=..., outputs=...)`) are labels,
+        not saved: `print` of a result loaded without a model shows indices (`x0[0]`),
+        and with a model, that model's names.
     - `like`: a theta of the fitted structure (e.g. theta0), needed when theta holds
         equinox modules or other nodes that the file's JSON cannot describe; its
         non-numeric parts are put back around the loaded arrays. It must match the saved
