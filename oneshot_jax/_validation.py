@@ -94,6 +94,9 @@ class Validation(eqx.Module):
             )
 
 
+# The head's Gauss-Newton step is halved at most this many times (`Monitor._head_x0`).
+HALVINGS = 10
+
 # Two validation scores tie where they differ by less than this fraction of the score's
 # own standard deviation (`Monitor.tie`).
 TIE = 0.01
@@ -112,8 +115,11 @@ class Monitor(eqx.Module):
     x0_steps: int = eqx.field(static=True)
 
     def _head_x0(self, model, theta, x0, u, z):
-        """Gauss-Newton on the head's weighted output error in x0 (a step is kept only if
-        it lowers that error; pseudo-inverse for unobservable directions)."""
+        """Gauss-Newton on the head's weighted output error in x0 (pseudo-inverse for
+        unobservable directions), each step halved until it lowers that error (at most
+        `HALVINGS` times; the iterate stays where none does). A full step alone, kept
+        only where it lowered the error, left a model nonlinear in x0 (an output
+        x1^3 + x1) at a point that is no minimum, its score 0.6 % off."""
         n = self.n
 
         def residual(x):
@@ -123,10 +129,24 @@ class Monitor(eqx.Module):
         def body(_, x):
             r = residual(x)
             J = jax.jacfwd(residual)(x)
-            trial = x - psd_solve(J.T @ J, J.T @ r)
-            r_trial = residual(trial)
-            better = jnp.all(jnp.isfinite(r_trial)) & (r_trial @ r_trial < r @ r)
-            return jnp.where(better, trial, x)
+            step = -psd_solve(J.T @ J, J.T @ r)
+            now = r @ r
+
+            def lower(alpha):
+                r_trial = residual(x + alpha * step)
+                return jnp.all(jnp.isfinite(r_trial)) & (r_trial @ r_trial < now)
+
+            def halve(carry):
+                alpha, k, _ = carry
+                ok = lower(alpha)
+                return jnp.where(ok, alpha, 0.5 * alpha), k + 1, ok
+
+            alpha, _, ok = jax.lax.while_loop(
+                lambda c: ~c[2] & (c[1] <= HALVINGS),
+                halve,
+                (jnp.ones((), x.dtype), jnp.array(0), jnp.array(False)),
+            )
+            return jnp.where(ok, x + alpha * step, x)
 
         return jax.lax.fori_loop(0, self.x0_steps, body, x0)
 
