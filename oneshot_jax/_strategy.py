@@ -317,7 +317,9 @@ class ParallelInTime(AbstractStrategy):
         carrying the state, lam or S between chunks: memory O(chunk_size n^2) for the
         stacked Jacobians instead of O(T n^2).
     - `jacobian`: `"full"` (DEER / ELK) or `"diagonal"` (quasi-DEER / quasi-ELK: O(T n)
-        memory, linear convergence) for the rollout's Newton iterations.
+        memory, linear convergence) for the rollout's Newton iterations. The diagonal
+        drops the coupling between states: an oscillator (position and velocity driving
+        each other) often does not converge with it and falls back to the sequential loop.
     - `max_iter`: iteration cap of the Newton stage and of the damped stage, each.
     - `rtol`: convergence tolerance on max|increment| / max|x| (None: 256 eps).
     - `damping`: ELK's initial Levenberg-Marquardt lambda (larger: shorter, safer steps).
