@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 from helpers import benchmark_or_skip
@@ -359,6 +360,28 @@ def test_failed_run_replaces_stale_results(tmp_path):
     with pytest.raises(RuntimeError, match="boom"):
         run.execute(_compose(), tmp_path, command="cmd", runner=boom)
     assert not (tmp_path / "fit.npz").exists()
+
+
+def test_every_job_of_a_sweep_compiles_its_own_first_calls(tmp_path, monkeypatch):
+    """A sweep runs its jobs in one process: a job after the first reused the programs an
+    earlier one compiled, while its report said its first calls included compilation.
+    Each job starts with JAX's caches cleared; a persistent cache, where one is set, is
+    named in the conditions."""
+    f = jax.jit(lambda x: x + 1.0)
+    held = []
+
+    def runner(c, o, command):
+        held.append(f._cache_size())  # (the programs this jit holds when the job starts)
+        f(1.0)
+        return {}
+
+    run.execute(_compose(), tmp_path / "job0", command="cmd", runner=runner)
+    out = run.execute(_compose(), tmp_path / "job1", command="cmd", runner=runner)
+    assert held == [0, 0] and "persistent compilation cache" not in out["conditions"]
+    cached = _compose([f"jax_cache_dir={tmp_path / 'xla'}"])
+    monkeypatch.setattr(run, "_setup_cache", lambda d: None)  # (JAX's config is global)
+    out = run.execute(cached, tmp_path / "job2", command="cmd", runner=runner)
+    assert f"persistent compilation cache in {tmp_path / 'xla'}" in out["conditions"]
 
 
 def test_an_experiment_without_a_schema_is_refused_with_what_to_add():
