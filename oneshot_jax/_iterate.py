@@ -16,6 +16,7 @@ scores every iterate on them, keeps the best one across all solvers and stops a 
 after `patience` scores without improvement.
 """
 
+import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 from . import _history
 from ._optimality import Measures
 from ._problem import FitProblem, Params
-from ._results import RESULTS
+from ._results import RESULTS, SUCCESS
 
 
 class Solution(NamedTuple):
@@ -255,6 +256,15 @@ def iterate(
     if mon is not None:
         # The best-scoring iterate replaces the final one where they differ: its loss is
         # evaluated there, and the covariance then takes a fresh Jacobian (no blocks).
+        # A tie keeps the point a solver stopped at only where it stopped with a success
+        # (a solution, a difference of scores the records cannot resolve); any other stop
+        # (its step budget, `patience`) returns the best-scored iterate unless it is
+        # that iterate's score exactly (a rejected last step leaves both as they were).
+        success = functools.reduce(
+            jnp.logical_or, [result == getattr(RESULTS, name) for name in SUCCESS]
+        )
+        here = best.here & (success | (best.last <= best.score))
+        best = best._replace(here=here & (result != RESULTS.validation))
         moved = ~best.here
         result = _where(moved, RESULTS.validation, result)
         out_params = _freeze(moved, best.params, out_params)
