@@ -648,10 +648,12 @@ def fit(
         iterate of every solver is scored on them (x0 estimated from each record's first
         n outputs, the loss over the rest), the iterate with the lowest score is
         returned (stop reason `validation` where it is not the one the solver stopped
-        at) and `Validation(patience=k)` stops a solver after k iterations without
-        improvement. The scores are `result.history.validation`. Where no iterate scores
-        a finite loss (the model blows up on the held-out records), they choose nothing:
-        no patience is spent, the final loss ranks the starts, and `fit` warns.
+        at; a solution within one standard deviation of the lowest score ties with it
+        and is kept, see `Validation`) and `Validation(patience=k)` stops a solver
+        after k iterations without improvement. The scores are
+        `result.history.validation`. Where no iterate scores a finite loss (the model
+        blows up on the held-out records), they choose nothing: no patience is spent,
+        the final loss ranks the starts, and `fit` warns.
     - `multistart`: several starts, run in the one compiled call; the start with the
         least final loss (with `validation`, the lowest score) is returned and
         `result.starts` reports each.
