@@ -151,6 +151,18 @@ class _OptxState(NamedTuple):
     idle: jax.Array  # the failed steps in a row that left the iterate where it was
 
 
+def _differs(a, b):
+    """Whether two pytrees of arrays differ in any entry."""
+    leaves = jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda x, y: jnp.any(x != y), a, b))
+    return jnp.any(jnp.stack(leaves)) if leaves else jnp.array(False)
+
+
+def _finite(tree):
+    """Whether every entry of a pytree of arrays is finite."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
 class Optimistix(AbstractSolver):
     """Any optimistix least-squares solver (`optx.GaussNewton`, `optx.LevenbergMarquardt`,
     `optx.Dogleg`, ...) or minimiser (`optx.BFGS`, ...), fed the closed-form Jacobian or
@@ -269,19 +281,20 @@ class Optimistix(AbstractSolver):
         y, inner, _ = self.solver.step(fn, state.y, args, {}, state.inner, frozenset())
         inner_done, inner_result = self.solver.terminate(fn, y, args, {}, inner, frozenset())
         # A failed step (a linear solve that returned NaN, or that reached its own
-        # max_steps) ends optimistix's own loop. Here the fit goes on where such a step
-        # still moves the iterate (an inexact solve: conjugate gradients capped at a few
-        # iterations make an inexact Gauss-Newton method), and stops once a failed step
-        # has left it where it was after one that already had: it would repeat (Dogleg,
-        # its linear solve NaN at the start, ran on there to max_steps). (optimistix's
-        # first step never moves the iterate: one unmoved failure is not yet a stop.)
-        moved = jax.tree_util.tree_reduce(
-            jnp.logical_or,
-            jax.tree_util.tree_map(lambda a, b: jnp.any(a != b), y, state.y),
-            jnp.array(False),
-        )
+        # max_steps) ends optimistix's own loop. Here the fit goes on where the step's
+        # proposal is finite (an inexact solve: conjugate gradients capped at a few
+        # iterations make an inexact Gauss-Newton method, whose rejected proposals
+        # shrink as the damping grows), and stops once a failed step with a non-finite
+        # proposal has left the iterate where it was after one that already had: it
+        # would repeat (Dogleg, its linear solve NaN at the start, ran on there to
+        # max_steps). (optimistix's first step never moves the iterate: one such
+        # failure is not yet a stop.) A solver without a proposal in its state counts
+        # every failed step that left the iterate where it was.
+        moved = _differs(y, state.y)
+        proposal = getattr(inner, "y_eval", None)
+        hopeless = jnp.array(True) if proposal is None else ~_finite(proposal)
         failed = inner_result != optx.RESULTS.successful
-        idle = jnp.where(failed & ~moved, state.idle + 1, 0)
+        idle = jnp.where(failed & ~moved & hopeless, state.idle + 1, 0)
         inner_done = inner_done | (idle >= 2)
         params = _point(problem, y, state.held)
         loss, g = problem.value_and_grad(params, self.strategy)
