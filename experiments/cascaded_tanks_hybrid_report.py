@@ -194,7 +194,8 @@ def markdown(res) -> str:
                 if jt.get("patience")
                 else ""
             )
-            + "); the iterate of the best held-out score is kept."
+            + "); the iterate of the best held-out score is kept (or a stage's converged "
+            "point, where its score is within one standard deviation of the best)."
             if holdout
             else ""
         ),

@@ -61,6 +61,12 @@ def _setup_cache(cache_dir):
             raise config.ConfigError(f"`jax_cache_dir`: {err}") from None
 
 
+def _cache_dir():
+    """The persistent compilation cache's folder JAX uses, or None (JAX's configuration
+    is global: in a sweep, the one an earlier job set up)."""
+    return jax.config.jax_compilation_cache_dir
+
+
 def write_json(path: Path, obj) -> None:
     """Write `obj` as JSON to `path` atomically (a temporary file, then a rename), so a
     reader sees the old file or the new one, never a partial one."""
@@ -220,10 +226,11 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
     results = {"status": "ok", **results}
     results.setdefault("wall_time_s", time.perf_counter() - t0)
     results.setdefault("conditions", conditions())
-    if conf.jax_cache_dir:  # (first calls then load compiled programs where it has them)
+    cache = _cache_dir()
+    if cache:  # (first calls then load compiled programs where it has them)
         results["conditions"] += (
-            f" JAX's persistent compilation cache in {conf.jax_cache_dir}: a first call "
-            "loads the programs it holds instead of compiling them."
+            f" JAX's persistent compilation cache in {cache}: a first call loads the "
+            "programs it holds instead of compiling them."
         )
     md = outdir / "results.md"
     if md.exists():  # the results' conditions, under the report

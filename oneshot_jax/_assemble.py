@@ -59,7 +59,7 @@ class Out(NamedTuple):
     standard_errors: jax.Array
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
     limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
-    validation_loss: jax.Array | None  # the best start's lowest validation loss, or None
+    validation_loss: jax.Array | None  # the validation loss of the best start's returned point
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
     # Per start (S,): whether its first-order measure is a stall's with vanished columns
     # (a degenerate minimum), the theta columns that vanished along its fit ((S, p), or

@@ -445,9 +445,10 @@ def build_problem(
         raise ValueError(
             f"{'each record' if several else 'the record'} of {T} sample{'s' * (T > 1)} "
             f"holds {values} output value{'s' * (values > 1)}, no more than the {n_est} "
-            f"entries of {'its own x0' if several else 'x0'} that are estimated: x0 alone fits "
-            "the samples and theta is not determined. Use a longer record, or estimate "
-            "fewer x0 entries (`estimate_x0`)."
+            f"entries of {'its own x0' if several else 'x0'} that are estimated: x0 alone can "
+            "fit the samples, whatever theta, so theta is not determined (unless some of "
+            "those entries never act on the outputs: leave them out). Use a longer record, "
+            "or estimate fewer x0 entries (`estimate_x0`)."
         )
     if inputs.window_starts is not None and len(theta_free) and Z.shape[1] * Z.shape[2] <= n_est:
         raise ValueError(

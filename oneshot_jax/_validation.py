@@ -48,12 +48,11 @@ class Validation(eqx.Module):
         (`Model.from_ode(rhs, dt=None)`), as `fit`'s `t`.
 
     The fit returns the iterate with the lowest score over all its solvers, or the one
-    the last solver stopped at on its own test where its score ties with the lowest:
+    the last solver stopped at with a success where its score ties with the lowest:
     above it by less than the score's own standard deviation (score sqrt(2 / n), n the
-    samples scored times the outputs; a difference that the held-out records cannot
-    resolve: the one-standard-error rule of model selection, Hastie, Tibshirani and
-    Friedman, *The Elements of Statistical Learning*, Sec. 7.10). A run that `patience`
-    ends returns the lowest-scored iterate.
+    samples scored times the outputs; a difference that the held-out records do not
+    resolve). A stop that is not a success (the step budget, `patience`, a stall)
+    returns the lowest-scored iterate.
     Where the returned iterate is not the one a solver stopped at, its stop reason is
     `RESULTS.validation` (not a success: the point is not a stationary point of the
     training loss). `FitResult.history.validation` holds the score of each recorded row
@@ -101,7 +100,7 @@ class Validation(eqx.Module):
 HALVINGS = 10
 
 # Two validation scores tie where they differ by less than this fraction of the score's
-# own standard deviation (`Monitor.tie`): the one-standard-error rule. (At 1 % of it, a
+# own standard deviation (`Monitor.tie`). (At 1 % of it, a
 # Levenberg-Marquardt fit of a right model validated on records of the same system
 # returned the iterate before its last step, not a success, in 4 of 8 noise draws, for
 # differences of 0.14 to 0.40 standard deviations.)

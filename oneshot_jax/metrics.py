@@ -486,8 +486,8 @@ class ResidualCorrelations(NamedTuple):
         normal quantile at 1 - (1 - confidence) / (2 max_lag) (Bonferroni over the
         max_lag lags: a white residual leaves it at some lag with probability at most
         1 - confidence), shape (n_z,).
-    - `cross_joint_bound`: the same of `cross` over its max_lag + 1 lags, z'' sqrt(P / n),
-        shape (n_z, n_u); None without `u`.
+    - `cross_joint_bound`: the same of `cross` over the (max_lag + 1) n_u lags of all
+        the inputs together, z'' sqrt(P / n), shape (n_z, n_u); None without `u`.
     """
 
     lags: np.ndarray
@@ -644,13 +644,15 @@ def residual_correlations(
     says that the part of the output due to u(t - tau) is not explained by the model. The
     joint band is the band at the level that all the lags of the test together keep with
     probability `confidence` (Bonferroni: z' at 1 - (1 - confidence) / (2 m) for m lags,
-    3.54 for 25 lags at 99 %), so that one large peak (a residual correlated with u(t - 3)
-    alone, say) fails the test, which a count of the lags outside allows. Correlation at
-    negative lags (future inputs) is left out of the verdict: under feedback it appears
-    even for a right model. The cross-correlation's band allows for a coloured residual
-    and a coloured input (the usual case after an output-error fit): its variance is
-    P / n with P = sum_k r_e(k) r_u(k) over |k| <= max_lag (Ljung, Sec. 16.6), taken at
-    least 1 (the white band), so `cross_bound` is per output and input.
+    3.54 for 25 lags at 99 %; m = max_lag for whiteness, (max_lag + 1) n_u for
+    independence, every input's lags together), so that one large peak (a residual
+    correlated with u(t - 3) alone, say) fails the test, which a count of the lags
+    outside allows. Correlation at negative lags (future inputs) is left out of the
+    verdict: under feedback it appears even for a right model. The cross-correlation's
+    band allows for a coloured residual and a coloured input (the usual case after an
+    output-error fit): its variance is P / n with P = sum_k r_e(k) r_u(k) over
+    |k| <= max_lag (Ljung, Sec. 16.6), taken at least 1 (the white band), so
+    `cross_bound` is per output and input.
 
     Each signal's mean is removed first (`demean`): MATLAB's `resid` correlates the
     signals as given and expects data detrended before the estimation, but grey-box data
@@ -677,7 +679,7 @@ def residual_correlations(
         the count's false-alarm rate depends on max_lag: with the defaults it is 2.6 % at
         MATLAB's max_lag 25 (one lag allowed), but 1 - 0.99^max_lag for max_lag < 20,
         where no lag is allowed (17 % at 19), and it jumps at each multiple of 20; the
-        joint band adds at most 1 - `confidence`.
+        joint band adds at most 1 - `confidence` to each verdict.
     - `demean`: subtract each channel's mean (over its measured samples, all trajectories
         pooled) first (default); False: the sums of the signals as given, as MATLAB's
         `resid` forms them.
@@ -810,7 +812,7 @@ def residual_correlations(
         P = np.maximum(1.0 + 2.0 * np.einsum("kz,ku->zu", r_e, r_u), 1.0)
         cross_bound = bound[:, None] * np.sqrt(P)
         cross_outside = np.mean(np.abs(cross[max_lag:]) > cross_bound, axis=0)
-        cross_joint_bound = cross_bound * joint(max_lag + 1)
+        cross_joint_bound = cross_bound * joint((max_lag + 1) * u.shape[-1])
         inside = np.all(np.abs(cross[max_lag:]) <= cross_joint_bound, axis=0)
         independent = np.all((cross_outside <= tolerance) & inside, axis=1)
     return ResidualCorrelations(

@@ -367,20 +367,20 @@ def test_every_job_of_a_sweep_compiles_its_own_first_calls(tmp_path, monkeypatch
     earlier one compiled, while its report said its first calls included compilation.
     Each job starts with JAX's caches cleared; a persistent cache, where one is set, is
     named in the conditions."""
-    f = jax.jit(lambda x: x + 1.0)
-    held = []
+    traced = []
+    f = jax.jit(lambda x: traced.append(1) or x + 1.0)  # (counts its traces)
 
     def runner(c, o, command):
-        held.append(f._cache_size())  # (the programs this jit holds when the job starts)
         f(1.0)
+        f(2.0)  # (the same program, within a job)
         return {}
 
     run.execute(_compose(), tmp_path / "job0", command="cmd", runner=runner)
     out = run.execute(_compose(), tmp_path / "job1", command="cmd", runner=runner)
-    assert held == [0, 0] and "persistent compilation cache" not in out["conditions"]
-    cached = _compose([f"jax_cache_dir={tmp_path / 'xla'}"])
-    monkeypatch.setattr(run, "_setup_cache", lambda d: None)  # (JAX's config is global)
-    out = run.execute(cached, tmp_path / "job2", command="cmd", runner=runner)
+    assert len(traced) == 2 and "persistent compilation cache" not in out["conditions"]
+    # (JAX's configuration is global: the cache a job would set up, pretended)
+    monkeypatch.setattr(run, "_cache_dir", lambda: str(tmp_path / "xla"))
+    out = run.execute(_compose(), tmp_path / "job2", command="cmd", runner=runner)
     assert f"persistent compilation cache in {tmp_path / 'xla'}" in out["conditions"]
 
 

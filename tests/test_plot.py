@@ -196,6 +196,10 @@ def test_one_large_peak_fails_the_verdicts():
         rc = metrics.residual_correlations(rng.standard_normal(T), rng.standard_normal(T), M)
         alarms += (not rc.white[0]) + (not rc.independent[0])
     assert alarms <= 30, alarms  # (of 400 verdicts; about 4 % each)
+    # Over several inputs the joint band counts every input's lags (Bonferroni over all)
+    two = metrics.residual_correlations(e, np.stack([u, w[:T]], axis=1), M)
+    factor = ndtri(1 - 0.005 / (2 * (M + 1))) / ndtri(0.995)
+    np.testing.assert_allclose(two.cross_joint_bound / two.cross_bound, factor, rtol=1e-12)
     # (a constant input of 3 V was said to be "zero": it is, once its mean is removed)
     with pytest.raises(ValueError, match=r"`u` is constant in input\(s\) \[0\]: zero once"):
         metrics.residual_correlations(e, np.full(T, 3.0), M)
