@@ -73,11 +73,14 @@ def test_one_sample_and_one_sample_windows_report_no_nan(data):
     u, z = data
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = oj.fit(M, TH0, X0, u[:1], z[:1])
+        r = oj.fit(M, TH0, X0, u[:1], z[:1], estimate_x0=False)
     _no_nan(r)
     assert any("not identifiable" in str(w.message) for w in caught)
-    # Windows of one sample: each window's own x0 fits it, theta is not determined (this
-    # fit returned `zero_residual`, a success, with theta at its start): refused.
+    # A sample that the estimated x0 alone fits, and windows of one sample (each
+    # window's own x0 fits it): theta is not determined (such fits returned `converged`
+    # and `zero_residual`, successes, with theta at its start): refused.
+    with pytest.raises(ValueError, match=r"the record of 1 sample holds 1 output value"):
+        oj.fit(M, TH0, X0, u[:1], z[:1])
     with pytest.raises(ValueError, match=r"`window` of 1 samples holds"):
         oj.fit(M, TH0, np.tile(X0, (10, 1)), u[:10], z[:10], window=1)
 
