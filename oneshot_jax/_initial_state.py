@@ -20,7 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_cost, check_data, check_outside_transformations, check_tree
+from ._checks import (
+    check_cost,
+    check_data,
+    check_outside_transformations,
+    check_tree,
+    is_concrete,
+)
 from ._cost import weigh
 from ._counts import is_count
 from ._jit import jit
@@ -360,7 +366,8 @@ def _estimate(
         extra = [k for k, v in given.items() if v is not None]
         if extra:
             raise ValueError(
-                f"{', '.join(f'`{k}`' for k in extra)} only apply to method='smoother'; "
+                f"{', '.join(f'`{k}`' for k in extra)} "
+                f"{'apply' if len(extra) > 1 else 'applies'} only to method='smoother'; "
                 "method='lsq' weighs the outputs by `weight`."
             )
     elif solver is not None:
@@ -374,6 +381,16 @@ def _estimate(
         raise ValueError(
             "`missing=\"mask\"` applies to method='lsq' (the smoother needs every sample)."
         )
+    if method == "smoother" and is_concrete(z):
+        try:
+            gaps = np.isnan(np.asarray(z, float)).any()
+        except (TypeError, ValueError):  # (not numbers: `check_data` names it)
+            gaps = False
+        if gaps:  # (the general message offers missing="mask", which the smoother refuses)
+            raise ValueError(
+                f"`{z_name}` contains NaN: the smoother needs every sample of the head; "
+                "method='lsq' with missing=\"mask\" treats NaN as a missing sample."
+            )
     defaulted = x0 is None
     if x0 is None:
         if not model.observes_state:

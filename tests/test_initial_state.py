@@ -552,8 +552,16 @@ def test_bad_input_errors():
         est()
     with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):
         est(x0=np.zeros((2, 3)))
-    with pytest.raises(ValueError, match="`measurement_noise`.* only apply to method='smoother'"):
+    with pytest.raises(ValueError, match="`measurement_noise` applies only to method='smooth"):
         est(x0=x0, measurement_noise=1.0)
+    with pytest.raises(ValueError, match="`process_noise`, `measurement_noise` apply only to"):
+        est(x0=x0, measurement_noise=1.0, process_noise=1.0)
+    # (NaN in the head: the general message offered missing="mask", which the smoother
+    # refuses)
+    gap = np.array(z, float)
+    gap[3] = np.nan
+    with pytest.raises(ValueError, match="the smoother needs every sample of the head; met"):
+        oj.estimate_x0(LINEAR, 1.0, u, gap, x0=x0, method="smoother")
     with pytest.raises(ValueError, match="`solver` only applies to method='lsq'"):
         est(x0=x0, method="smoother", solver=oj.GaussNewton())
     with pytest.raises(ValueError, match="`measurement_noise` must be positive definite"):
