@@ -15,7 +15,7 @@ the truth) of k, c and x0[0], and the RMS of the reported standard errors of k a
 against the spread of their estimates over the draws. `sandwich_x0.py` is the
 one-parameter counterpart (x[k+1] = a x + b u).
 
-Run: `python benchmarks/sandwich_oscillator.py` (`--draws N`, default 200; `--quick`: 10
+Run: `python benchmarks/sandwich_oscillator.py` (`--draws N`, default 1000; `--quick`: 10
 draws; `--lags L ...`: the sandwich's lags besides the rule's, default 10 20 40).
 """
 
@@ -29,7 +29,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 from hybrid_sandwich import ar1  # noqa: E402
-from sandwich_x0 import arguments  # noqa: E402
+from sandwich_x0 import arguments, monte_carlo_note  # noqa: E402
 from timing import conditions  # noqa: E402
 
 import oneshot_jax as oj  # noqa: E402
@@ -103,6 +103,7 @@ def main(argv=None):
                 f"  {noise:<14}{name:<26}{cover[0]:>12.0f}%{cover[1]:>12.0f}%"
                 f"{cover[2]:>16.0f}%{ratio[0]:>20.2f}{ratio[1]:>20.2f}"
             )
+    print(monte_carlo_note(draws))
     return 0
 
 

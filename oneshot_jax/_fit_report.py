@@ -232,6 +232,16 @@ def _data_rows(result):
     return rows
 
 
+def _weight_text(weight):
+    """The output weight Q in a few words: its diagonal, and whether it has more."""
+    w = np.atleast_1d(np.asarray(weight, float))
+    diag = w if w.ndim == 1 else np.diag(w)
+    text = "diagonal [" + ", ".join(f"{v:.4g}" for v in diag) + "]"
+    if w.ndim == 2 and np.any(w != np.diag(diag)):
+        text += " and off-diagonal terms (`result.weight`)"
+    return text
+
+
 def _x0_table(result, shown_max=3):
     """The initial-state rows: every entry of one trajectory, or of the first two of more
     than `shown_max`; and the number of trajectories left out."""
@@ -432,8 +442,11 @@ def report(result) -> str:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
         out.append(
             f'  (weight="noise": the output weight estimated from the residuals over {rounds} '
-            f"fits, the last one shown, its steps and time those of all {rounds}{starts})"
+            f"fits, the last one shown, its steps and time those of all {rounds}{starts}; "
+            f"Q {_weight_text(result.weight)})"
         )
+    elif getattr(result, "weight", None) is not None:
+        out.append(f"  (output weight Q {_weight_text(result.weight)}, as given)")
     lags = (result.diagnostics or {}).get("covariance_lags")
     if lags is not None:
         out.append(

@@ -634,3 +634,22 @@ def test_an_interval_far_narrower_than_its_value_prints_apart():
     lo, hi = row.split("[")[1].rstrip("]").split(", ")
     assert float(lo) < float(hi), row
     assert float(lo) < float(r.theta["w0sq"]) < float(hi)
+
+
+def test_the_output_weight_is_printed():
+    """MATLAB's nlgreyest report names its OutputWeight; the printout said only that a
+    weight had been estimated (`weight="noise"`), not which, and nothing of one given."""
+    model = oj.Model(lambda x, u, th: jnp.stack([th["a"] * x[0] + u[0], 0.5 * x[0] + 0.3 * x[1]]))
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"a": 0.8}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + np.array([0.01, 0.3]) * rng.standard_normal((200, 2))
+    x0 = np.array([1.0, 0.0])
+    given = oj.fit(model, {"a": 0.5}, x0, u, z, weight=np.array([1.0, 4.0]))
+    assert "  (output weight Q diagonal [1, 4], as given)" in str(given)
+    full = oj.fit(model, {"a": 0.5}, x0, u, z, weight=np.array([[2.0, 0.5], [0.5, 1.0]]))
+    assert "Q diagonal [2, 1] and off-diagonal terms (`result.weight`), as given" in str(full)
+    noise = oj.fit(model, {"a": 0.5}, x0, u, z, weight="noise")
+    q = np.diag(noise.weight) if np.ndim(noise.weight) == 2 else noise.weight
+    assert f"; Q diagonal [{q[0]:.4g}, {q[1]:.4g}]" in str(noise)
+    assert "output weight" not in str(oj.fit(model, {"a": 0.5}, x0, u, z))
