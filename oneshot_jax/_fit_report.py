@@ -233,7 +233,10 @@ def _data_rows(result):
 
 
 def _weight_text(weight):
-    """The output weight Q in a few words: its diagonal, and whether it has more."""
+    """The output weight Q in a few words: its diagonal, and whether it has more (None:
+    the identity)."""
+    if weight is None:
+        return "= I"
     w = np.atleast_1d(np.asarray(weight, float))
     diag = w if w.ndim == 1 else np.diag(w)
     text = "diagonal [" + ", ".join(f"{v:.4g}" for v in diag) + "]"
@@ -440,10 +443,10 @@ def report(result) -> str:
     rounds = (result.stop_info or {}).get("noise_weight_rounds")
     if rounds is not None:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
+        fits = f"{rounds} fits, the last one shown, its steps and time those of all {rounds}"
         out.append(
-            f'  (weight="noise": the output weight estimated from the residuals over {rounds} '
-            f"fits, the last one shown, its steps and time those of all {rounds}{starts}; "
-            f"Q {_weight_text(result.weight)})"
+            f'  (weight="noise": the output weight estimated from the residuals over '
+            f"{fits if rounds > 1 else 'one fit'}{starts}; Q {_weight_text(result.weight)})"
         )
     elif getattr(result, "weight", None) is not None:
         out.append(f"  (output weight Q {_weight_text(result.weight)}, as given)")

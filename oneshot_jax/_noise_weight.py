@@ -197,7 +197,10 @@ def fit_noise_weighted(fit, args):
             )
             break
         Q, factors = weights
-        change = np.inf if w is None else max([_change(Q, w), *_ratios(factors, scales)])
+        # (against the weight this fit used: Q = I and the readings' own in the first, so
+        # that one output, whose Q is 1 whatever its residuals, takes one fit)
+        before = _identity(args["z"]) if w is None else w
+        change = max([_change(Q, before), *_ratios(factors, scales or [1.0] * len(factors))])
         if change <= NOISE_RTOL:
             break
         w, scales = Q, factors

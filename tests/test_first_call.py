@@ -135,7 +135,11 @@ def test_a_noise_weighted_fit_compiles_one_program(n_z):
             result = fit()
     finally:
         logger.removeHandler(solves)
-    assert solves.n == 1 and result.stop_info["noise_weight_rounds"] >= 2
+    assert solves.n == 1
+    if n_z == 1:  # (one output's Q is 1: one fit, `test_noise_weight.py`)
+        assert result.stop_info["noise_weight_rounds"] == 1
+        return
+    assert result.stop_info["noise_weight_rounds"] >= 2
     assert result.num_steps > result.history.loss.shape[0] - 1  # (the last fit's alone)
 
 

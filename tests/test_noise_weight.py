@@ -213,3 +213,18 @@ def test_the_noise_weight_weighs_aggregated_readings_too(records):
         assert abs(float(r.theta[name]) - float(true.theta[name])) < 0.1 * std, name
         assert float(r.std[name]) == pytest.approx(std, rel=0.2), name
     assert float(plain.std["a"]) > 3 * float(true.std["a"])
+
+
+def test_one_output_takes_one_fit():
+    """One output's Q, normalised to det Q = 1, is 1 whatever its residuals: the first fit
+    (Q = I) is the answer, and a second, identical, fit was run anyway."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + u)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"a": 0.8}, np.array([1.0]), u)
+    z = np.asarray(z) + 0.1 * rng.standard_normal((200, 1))
+    noise = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, z, weight="noise")
+    plain = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, z)
+    assert noise.stop_info["noise_weight_rounds"] == 1
+    assert noise.num_steps == plain.num_steps and noise.theta["a"] == plain.theta["a"]
+    assert "estimated from the residuals over one fit; Q = I)" in str(noise)
