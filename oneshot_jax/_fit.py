@@ -604,7 +604,8 @@ def fit(
         some sample measures some outputs only, the diagonal of each output's inverse
         mean squared residual) until it settles, each warm-started (at
         most 10 fits; one where the first fit's residuals give Q = I, as one output's
-        always do; `result.weight` is the Q of the returned fit, None for the first's,
+        always do without `aggregate`; `result.weight` is the Q of the returned fit,
+        None for the first's,
         `stop_info["noise_weight_rounds"]` the number of fits, `num_steps` and
         `wall_time` those of all fits together), so that the standard
         errors hold for outputs of unequal noise. With `aggregate`, each `Aggregate`'s

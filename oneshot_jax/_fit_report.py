@@ -232,6 +232,10 @@ def _data_rows(result):
     return rows
 
 
+# The output weights `print(result)` shows; more are summed up by their count.
+SHOWN_WEIGHTS = 8
+
+
 def _weight_text(weight):
     """The output weight Q in a few words: its diagonal, and whether it has more (None:
     the identity)."""
@@ -239,7 +243,9 @@ def _weight_text(weight):
         return "= I"
     w = np.atleast_1d(np.asarray(weight, float))
     diag = w if w.ndim == 1 else np.diag(w)
-    text = "diagonal [" + ", ".join(f"{v:.4g}" for v in diag) + "]"
+    shown = [f"{v:.4g}" for v in diag[:SHOWN_WEIGHTS]]
+    more = f", ... ({len(diag)} outputs)" if len(diag) > SHOWN_WEIGHTS else ""
+    text = "diagonal [" + ", ".join(shown) + more + "]"
     if w.ndim == 2 and np.any(w != np.diag(diag)):
         text += " and off-diagonal terms (`result.weight`)"
     return text
@@ -444,10 +450,18 @@ def report(result) -> str:
     if rounds is not None:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
         fits = f"{rounds} fits, the last one shown, its steps and time those of all {rounds}"
-        out.append(
-            f'  (weight="noise": the output weight estimated from the residuals over '
-            f"{fits if rounds > 1 else 'one fit'}{starts}; Q {_weight_text(result.weight)})"
-        )
+        if result.stop_info.get("noise_weight_estimated", True) is False:
+            out.append('  (weight="noise": no output weight estimated, see the warning; Q = I)')
+        elif rounds > 1:
+            out.append(
+                f'  (weight="noise": the output weight estimated from the residuals over '
+                f"{fits}{starts}; Q {_weight_text(result.weight)})"
+            )
+        else:
+            out.append(
+                '  (weight="noise": the output weight estimated from the residuals of one '
+                f"fit; Q {_weight_text(result.weight)})"
+            )
     elif getattr(result, "weight", None) is not None:
         out.append(f"  (output weight Q {_weight_text(result.weight)}, as given)")
     lags = (result.diagnostics or {}).get("covariance_lags")

@@ -158,7 +158,8 @@ def fit_noise_weighted(fit, args):
     docstring): from Q = I, at most `NOISE_ROUNDS` fits, each warm-started from the last
     (theta, and x0 where its shape is the one given; a multistart only in the first, whose
     `starts` and `best` the result keeps); the result of the last fit, whose Q the
-    residuals reproduce to `NOISE_RTOL`, with `result.weight` that Q,
+    residuals reproduce to `NOISE_RTOL`, with `result.weight` that Q (None where it is
+    the first fit's Q = I),
     `stop_info["noise_weight_rounds"]` the number of fits, and `num_steps` and
     `wall_time` those of all fits together.
     Only the returned fit's warnings are shown; a Q that has not settled after the last
@@ -197,6 +198,7 @@ def fit_noise_weighted(fit, args):
             )
             break
         Q, factors = weights
+        used = used or [1.0] * len(factors)  # (the first fit: the readings' own weights)
         # (against the weight this fit used: Q = I and the readings' own in the first, so
         # that one output, whose Q is 1 whatever its residuals, takes one fit)
         before = _identity(args["z"]) if w is None else w
@@ -226,7 +228,12 @@ def fit_noise_weighted(fit, args):
         )
     for c in caught:
         warnings.warn(c.message, c.category, stacklevel=3)
+    # (whether a Q was estimated at all: not where the first fit's loss is not finite or
+    # its residuals give none, as the warning says)
+    estimated = w is not None or change <= NOISE_RTOL
     info = {**result.stop_info, "noise_weight_rounds": rounds}
+    if not estimated:
+        info["noise_weight_estimated"] = False
     if used:
         info["reading_weight_factors"] = [float(f) for f in used]
     result = dataclasses.replace(result, stop_info=info, num_steps=steps, wall_time=wall)

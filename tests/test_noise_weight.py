@@ -227,4 +227,17 @@ def test_one_output_takes_one_fit():
     plain = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, z)
     assert noise.stop_info["noise_weight_rounds"] == 1
     assert noise.num_steps == plain.num_steps and noise.theta["a"] == plain.theta["a"]
-    assert "estimated from the residuals over one fit; Q = I)" in str(noise)
+    assert "estimated from the residuals of one fit; Q = I)" in str(noise)
+
+
+def test_a_weight_the_residuals_cannot_give_is_not_called_estimated():
+    """Residuals exactly zero give no noise level: the fit warns and keeps Q = I, and the
+    printout said the weight had been "estimated from the residuals"."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + u)
+    u = np.full((50, 1), 0.5)
+    _, z = oj.simulate(model, {"a": 0.5}, np.array([1.0]), u)
+    with pytest.warns(UserWarning, match="all zero or missing, so there is no noise level"):
+        r = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, np.asarray(z), weight="noise")
+    assert r.stop_info["noise_weight_estimated"] is False
+    assert '(weight="noise": no output weight estimated, see the warning; Q = I)' in str(r)
+    assert "estimated from the residuals" not in str(r)
