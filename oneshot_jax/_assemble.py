@@ -397,12 +397,11 @@ def assemble(
                 names, scaled.theta_identifiable, "parameters", stop, unconverged, worst
             )
         if not diverged and not scaled.x0_identifiable.all():
-            labels = model_labels(getattr(problem.model, "states", None), X0.shape[1]) or range(
-                X0.shape[1]
-            )
+            n_traj, n_x = X0.shape
+            labels = model_labels(getattr(problem.model, "states", None), n_x) or range(n_x)
             x0_names = [
                 f"x0[{i}, {labels[j]}]" if data.batched else f"x0[{labels[j]}]"
-                for i in range(X0.shape[0])
+                for i in range(n_traj)
                 for j in problem.x0_free
             ]
             _warn_identifiability(

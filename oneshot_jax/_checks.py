@@ -147,6 +147,21 @@ def _on_devices(a) -> bool:
     )
 
 
+def check_state_size(x0, n_x, name="`x0`"):
+    """Refuse an initial state (n_x,) or (N, n_x) of another size than a fitted state's
+    n_x (the model would be blamed for it); what is not an array is left to the
+    caller's checks."""
+    try:
+        shape = np.shape(x0)
+    except ValueError:
+        return
+    if shape and shape[-1] != n_x:
+        raise ValueError(
+            f"{name} must have the fitted state's n_x = {n_x} entries (shape ({n_x},), or "
+            f"(N, {n_x}) for N records), got shape {shape}."
+        )
+
+
 def check_finite(a, name, hint=""):
     if isinstance(a, np.ndarray) or is_concrete(a):
         if _spans_hosts(a):

@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
+from ._checks import check_state_size
 from ._fit_report import report, returned_start, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
@@ -425,20 +426,6 @@ class FitResult(eqx.Module):
     # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
     saved_model_signature: tuple | None = eqx.field(static=True, default=None, repr=False)
 
-    def _check_x0(self, x0, name="x0"):
-        """Refuse an initial state of another size than the fitted one's (the model would
-        be blamed for it)."""
-        n_x = np.shape(self.x0)[-1] if np.ndim(self.x0) else None
-        try:
-            shape = np.shape(x0)
-        except ValueError:  # (not an array: `simulate`'s checks name it)
-            return
-        if n_x is not None and shape and shape[-1] != n_x:
-            raise ValueError(
-                f"`{name}` must have the fitted state's n_x = {n_x} entries (shape ({n_x},), "
-                f"or (N, {n_x}) for N records), got shape {shape}."
-            )
-
     def _check_u(self, u):
         """Refuse inputs with another number of columns than the fitted data's (each
         record of a ragged list alike)."""
@@ -572,8 +559,8 @@ class FitResult(eqx.Module):
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.simulate`."
             )
         self._check_u(u)
-        if x0 is not None:
-            self._check_x0(x0)
+        if x0 is not None and np.ndim(self.x0):
+            check_state_size(x0, np.shape(self.x0)[-1])
         if x0 is None:
             x0 = self.x0
             if self.window_starts is not None and np.ndim(u) == 2:
@@ -649,8 +636,8 @@ class FitResult(eqx.Module):
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
         given_x0 = kwargs.get("x0")
-        if given_x0 is not None:
-            self._check_x0(given_x0)
+        if given_x0 is not None and np.ndim(self.x0):
+            check_state_size(given_x0, np.shape(self.x0)[-1])
         if (
             given_x0 is not None
             and np.ndim(self.x0) == 2

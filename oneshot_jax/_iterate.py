@@ -16,7 +16,6 @@ scores every iterate on them, keeps the best one across all solvers and stops a 
 after `patience` scores without improvement.
 """
 
-import functools
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 from . import _history
 from ._optimality import Measures
 from ._problem import FitProblem, Params
-from ._results import RESULTS, SUCCESS
+from ._results import RESULTS, succeeded
 
 
 class Solution(NamedTuple):
@@ -260,10 +259,7 @@ def iterate(
         # (a solution, a difference of scores the records cannot resolve); any other stop
         # (its step budget, `patience`) returns the best-scored iterate unless it is
         # that iterate's score exactly (a rejected last step leaves both as they were).
-        success = functools.reduce(
-            jnp.logical_or, [result == getattr(RESULTS, name) for name in SUCCESS]
-        )
-        here = best.here & (success | (best.last <= best.score))
+        here = best.here & (succeeded(result) | (best.last <= best.score))
         best = best._replace(here=here & (result != RESULTS.validation))
         moved = ~best.here
         result = _where(moved, RESULTS.validation, result)

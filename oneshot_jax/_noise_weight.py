@@ -198,11 +198,11 @@ def fit_noise_weighted(fit, args):
             )
             break
         Q, factors = weights
-        used = used or [1.0] * len(factors)  # (the first fit: the readings' own weights)
-        # (against the weight this fit used: Q = I and the readings' own in the first, so
-        # that one output, whose Q is 1 whatever its residuals, takes one fit)
+        # (against the weights this fit used: Q = I and the readings' own in the first,
+        # so that one output, whose Q is 1 whatever its residuals, takes one fit)
+        used = scales or [1.0] * len(factors)
         before = _identity(args["z"]) if w is None else w
-        change = max([_change(Q, before), *_ratios(factors, scales or [1.0] * len(factors))])
+        change = max([_change(Q, before), *_ratios(factors, used)])
         if change <= NOISE_RTOL:
             break
         w, scales = Q, factors

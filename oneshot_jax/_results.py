@@ -1,7 +1,10 @@
 """Why a fit stopped: one enumeration whose members carry their messages."""
 
+import functools
+
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -144,6 +147,12 @@ def from_name(name: str):
 
 def is_success(item) -> bool:
     return name_of(item) in SUCCESS
+
+
+def succeeded(item):
+    """Whether a `RESULTS` item, concrete or traced (one per start), is a success
+    (`SUCCESS`): a boolean array."""
+    return functools.reduce(jnp.logical_or, [item == from_name(name) for name in SUCCESS])
 
 
 def from_index(index: int):

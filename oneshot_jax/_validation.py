@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import check_data
+from ._checks import check_data, check_state_size
 from ._cost import weigh
 from ._counts import integral, is_count
 from ._linalg import psd_solve
@@ -200,11 +200,8 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     batched = np.ndim(u) == 3
     n_x = np.shape(x0_fit)[-1]
     x0 = validation.x0
-    if x0 is not None and np.ndim(x0) and np.shape(x0)[-1] != n_x:  # (not the model's fault)
-        raise ValueError(
-            f"`validation`: `x0` must have the fitted state's n_x = {n_x} entries (shape "
-            f"({n_x},), or (N, {n_x}) for N records), got shape {np.shape(x0)}."
-        )
+    if x0 is not None:
+        check_state_size(x0, n_x, "`validation`: `x0`")
     if x0 is None:
         x0 = np.zeros((np.shape(u)[0], n_x) if batched else (n_x,), np.result_type(x0_fit))
     try:
