@@ -150,7 +150,7 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         if not n and several and np.ndim(u) == 2:
             raise ValueError(
                 f"`{name}` was fitted on {np.shape(model.x0)[0]} trajectories, each from its "
-                "own x0 (a row of its `x0`): to compare it with one record, pass `n` (its "
+                "own x0 (a row of its `x0`): to compare it with one record, pass `n` >= 1 (its "
                 "initial state is then estimated from the record's first n outputs), or, "
                 "for record i of the fit, its simulation from the fitted initial state, "
                 "`result.simulate(u, x0=result.x0[i])[1]`, as the model output."
@@ -159,7 +159,7 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         if not n and starts is not None and np.ndim(u) == 2 and 0 not in np.asarray(starts):
             raise ValueError(
                 f"`{name}` was fitted on windows (`window=`) none of which starts at sample 0, "
-                "so it has no state for the record's start: pass `n` (its initial state is "
+                "so it has no state for the record's start: pass `n` >= 1 (its initial state is "
                 "then estimated from the record's first n outputs)."
             )
         zhat = model.predict(u, z[:n], t=t, **gaps).z if n else model.simulate(u, t=t)[1]

@@ -452,6 +452,9 @@ def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
     res = oj.fit(model, res.theta, np.zeros(2), u, z, window=oj.Windows(50, starts=[20, 120]))
     with pytest.raises(ValueError, match=r"none of which starts at sample 0.*pass `n`"):
         oj.plot.compare(z, res, u=u)
+    # n=0 (the protocol's range) asks for what it already passed: the remedy says n >= 1
+    with pytest.raises(ValueError, match=r"pass `n` >= 1"):
+        oj.plot.compare(z, res, u=u, n=0)
     assert "FIT" in " ".join(_legend_texts(oj.plot.compare(z, res, u=u, n=10).axes[0]))
 
 
