@@ -623,7 +623,8 @@ def fit(
         C + g(theta): `loss` and the history then report C + g. Only `Adam` (proximal
         Adam: the prox with its per-coordinate steps) and `Optax(transform)` (the prox
         with the regulariser's `learning_rate`) take one; the other solvers raise a
-        ValueError. Each update applies the prox, then the projection.
+        ValueError. Each update applies the prox (a list's in the order `l1`,
+        `group_lasso`, `l2`: see `constraints.combine`), then the projection.
     - `fixed`: a pytree of booleans shaped like theta0 (per leaf, per element, or one
         boolean for a whole subtree): True entries keep their starting value and are
         removed from the variables. Where theta0 is a dict, `fixed` may name some of its

@@ -71,7 +71,10 @@ class ProximalTransformation(NamedTuple):
     - `learning_rate`: the step a regulariser's transform thresholds with after an
         optimiser (a scalar or an optax schedule), or None when none was given (for
         `combine`: the terms' common one, None when they differ).
-    - `terms`: for `combine`, the transformations combined, in order; empty otherwise.
+    - `terms`: for `combine`, the transformations combined, in the order their proxes
+        are applied (see `combine`); empty otherwise.
+    - `kind`: `"l1"`, `"group_lasso"` or `"l2"` for the regularisers of
+        `oneshot_jax.sparsity` (`combine` orders them by it); None otherwise.
     """
 
     init: Callable
@@ -83,6 +86,7 @@ class ProximalTransformation(NamedTuple):
     strength: float | None = None
     learning_rate: Any = None
     terms: tuple = ()
+    kind: str | None = None
 
 
 class ProximalState(NamedTuple):
@@ -386,7 +390,9 @@ def penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTra
     if key is not None:
         prox, value = keyed(prox, (name, "prox", *key)), keyed(value, (name, "value", *key))
     strength = float(strength) if is_concrete(strength) else None
-    return ProximalTransformation(init, update, prox, value, None, None, strength, learning_rate)
+    return ProximalTransformation(
+        init, update, prox, value, None, None, strength, learning_rate, kind=name
+    )
 
 
 def _intersect(boxes):
@@ -483,15 +489,22 @@ def combine(transforms) -> ProximalTransformation | None:
 
     Projections alone make one projection onto the intersection of their sets: boxes clipped
     in turn (their bounds intersected); with a general `project(fn)`, Dykstra's algorithm
-    (`dykstra`, the boxes last), and no bounds. Regularisers add up their penalties; the
-    composition of their proxes is the exact prox of the sum when the terms act on different
-    leaves, and for `l1` followed by `group_lasso` on the same leaves (the sparse group
-    lasso, Friedman, Hastie and Tibshirani, "A note on the group lasso and a sparse group
-    lasso", 2010; this also holds with per-coordinate steps). A regulariser followed by a
-    box projection is the exact prox of g plus the box's indicator for a separable g (`l1`,
-    `l2`: in one dimension the constrained minimiser is the clipped unconstrained one), a
-    feasible approximation of it for a group penalty. With a regulariser, `update` runs each
-    term's update in turn, like `optax.chain`, each with its own `learning_rate`.
+    (`dykstra`, the boxes last), and no bounds. Regularisers add up their penalties; their
+    proxes are composed in a fixed order, whatever the order given: `l1`, then
+    `group_lasso`, then `l2`, then the projections (a combination given inside the list is
+    taken apart into its terms; with a regulariser not made by `oneshot_jax.sparsity`, the
+    regularisers keep the order given, the projections still last). In that order the
+    composition is the exact prox of the sum on the same leaves: `l1` then `group_lasso` is
+    the sparse group lasso's (Friedman, Hastie and Tibshirani, "A note on the group lasso
+    and a sparse group lasso", 2010; this also holds with per-coordinate steps), and `l2`
+    last scales the result by 1 / (1 + step lambda_2), the prox of the sum with the
+    quadratic (the other orders are not exact: `l2` then `l1` thresholds the shrunk values,
+    so a fit's first-order test would measure the distance to the wrong fixed point); on
+    different leaves every order is exact. A regulariser followed by a box projection is the
+    exact prox of g plus the box's indicator for a separable g (`l1`, `l2`: in one
+    dimension the constrained minimiser is the clipped unconstrained one), a feasible
+    approximation of it for a group penalty. With a regulariser, `update` runs each term's
+    update in turn, in that order, like `optax.chain`, each with its own `learning_rate`.
 
     **Arguments:**
 
@@ -501,7 +514,7 @@ def combine(transforms) -> ProximalTransformation | None:
     **Returns:**
 
     None for None, the transformation itself for one, else a `ProximalTransformation`
-    whose `terms` are the given ones.
+    whose `terms` are the given ones, in the order they are applied.
     """
     if transforms is None:
         return None
@@ -519,7 +532,7 @@ def combine(transforms) -> ProximalTransformation | None:
             "box, project) and regularisers from oneshot_jax.sparsity (l1, group_lasso, l2), "
             f"one or a non-empty list of them; got {transforms!r}."
         )
-    transforms = tuple(transforms)
+    transforms = _in_order(transforms)
     if len(transforms) == 1:
         return transforms[0]
 
@@ -577,6 +590,27 @@ def combine(transforms) -> ProximalTransformation | None:
         rates[0] if same else None,
         transforms,
     )
+
+
+# The order in which `combine` composes the regularisers of `oneshot_jax.sparsity`: the
+# composition is then the exact prox of their sum on shared leaves.
+_ORDER = {"l1": 0, "group_lasso": 1, "l2": 2}
+
+
+def _leaves(t: ProximalTransformation) -> list:
+    """The transformations a `combine` was made of (recursively), or `t` alone."""
+    return [p for s in t.terms for p in _leaves(s)] if t.terms else [t]
+
+
+def _in_order(transforms) -> tuple:
+    """`combine`'s terms in the order their proxes are applied: the regularisers first
+    (ordered by `_ORDER` when every one has a kind there, else as given), then the
+    projections, each group otherwise as given."""
+    leaves = [p for t in transforms for p in _leaves(t)]
+    penalties = [t for t in leaves if t.project is None]
+    if all(t.kind in _ORDER for t in penalties):
+        penalties.sort(key=lambda t: _ORDER[t.kind])
+    return tuple(penalties) + tuple(t for t in leaves if t.project is not None)
 
 
 def _kind(t: ProximalTransformation) -> set:

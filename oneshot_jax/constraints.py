@@ -20,7 +20,8 @@ least-squares solvers of `fit` use for an exact active-set treatment.
 `oneshot_jax.sparsity` (`l1`, `group_lasso`, `l2`) go in `fit(regulariser=...)`: the fit
 then minimises C + g(theta), applying the prox (with the solver's step sizes) before the
 projection after every update. `combine` (the same function as `sparsity.combine`)
-composes projections and regularisers in the order given.
+composes projections and regularisers: the regularisers (`l1`, then `group_lasso`, then
+`l2`: the order in which their composition is the prox of the sum), then the projections.
 
 A caveat on projected Adam (Algorithm 1 with a projection): for a box the projection acts
 per coordinate, like Adam's scaling, and the iterates reach the constrained optimum. For a

@@ -20,7 +20,8 @@ Each factory returns a `ProximalTransformation`, the type of the projections of
 = g(params), and an optax `GradientTransformation` (`init`, `update`) to chain *after* a
 gradient step, whose update is `prox(params + updates, learning_rate) - params`.
 `combine` (the same function as `constraints.combine`) composes regularisers and
-projections in order.
+projections: `l1`, then `group_lasso`, then `l2` (the order in which their composition is
+the exact prox of the sum on shared entries), then the projections.
 
 **Step sizes.** The threshold of coordinate i is `step_size_i * strength`; the prox must
 be told the step of the update it follows.
