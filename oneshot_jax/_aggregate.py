@@ -427,8 +427,11 @@ class Augmented(NamedTuple):
             n_free = int(np.count_nonzero(~np.asarray(result.fixed)))
             n_free += int(np.count_nonzero(np.asarray(result.x0_estimated)[:n_x])) * n_traj
             es, ms = np.where(seen, e, 0.0)[..., sampled], seen[..., sampled]
-            metrics["aic"] = float(_metrics.aic(np.zeros_like(es), es, n_free, ms))
-            metrics["fpe"] = float(_metrics.fpe(np.zeros_like(es), es, n_free, ms))
+            # (unchecked: NaN where no sample measures every such output, as in a fit
+            # without aggregates; the checking `metrics.aic` refuses that)
+            zero = np.zeros_like(es)
+            metrics["aic"] = float(_metrics._aic(zero, es, n_free, ms))
+            metrics["fpe"] = float(_metrics._fpe(zero, es, n_free, ms))
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],

@@ -487,9 +487,15 @@ def _flag_infeasible(result, projections, rtol=1e-8):
     if not distance:
         return result
     demoted = result.success
+    held = (
+        " (with fixed entries held, the free ones can lie further from the set than "
+        "that: the projection moves the fixed entries too)"
+        if np.any(np.asarray(result.fixed, bool))
+        else ""
+    )
     warnings.warn(
         f"the estimate lies outside the constraint set: the projection moves it by "
-        f"{distance:.3g}. The projection onto the intersection of the sets (Dykstra's "
+        f"{distance:.3g}{held}. The projection onto the intersection of the sets (Dykstra's "
         "alternating projections, of a constraint list or of a projection with fixed "
         "entries) did not converge within its cycles (sets that meet at a small angle "
         "converge slowly; sets that do not meet never do), so the iterates were not "
@@ -615,7 +621,10 @@ def fit(
         entry 1.
     - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
         `positive`, `project`), or a list of them, on theta: every iterate lies in the
-        intersection of their sets (Section 3.3). A regulariser here (the mixed form of
+        intersection of their sets (Section 3.3; the projection onto an intersection of
+        a general set with others, or with fixed entries, is Dykstra's, capped at its
+        cycles: the estimate is checked against each set, and a success outside one
+        becomes the status `infeasible`). A regulariser here (the mixed form of
         earlier releases) still works, with a DeprecationWarning: pass it as `regulariser`.
     - `regulariser`: a proximal regulariser from `oneshot_jax.sparsity` (`l1`,
         `group_lasso`, `l2`), or a list of them, on theta (their `where` is written on
@@ -874,6 +883,10 @@ def fit(
         result = dataclasses.replace(
             result, diagnostics={**(result.diagnostics or {}), "regularised": True}
         )
+    if penalty is not None and result.covariance.size:  # (likewise)
+        result = dataclasses.replace(
+            result, diagnostics={**(result.diagnostics or {}), "penalised": True}
+        )
     if missing == "mask":  # (`result.predict` takes the head's NaN as missing too)
         result = dataclasses.replace(result, missing="mask")
     if weight is not None:  # (the default of `result.predict`'s x0 estimate)
@@ -886,6 +899,8 @@ def fit(
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)
+    if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
+        result = _flag_infeasible(result, built.sets)  # (before a success is read below)
     # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,
     # all-zero terms, say.)
     worst = worst_fit(result.metrics.get("fit_percent"), weight)
@@ -900,8 +915,6 @@ def fit(
             RuntimeWarning,
             stacklevel=2,
         )
-    if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
-        result = _flag_infeasible(result, built.sets)
     if stability_at is not None:
         warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
     elif aggregate is not None and (window is None or not model.timed):

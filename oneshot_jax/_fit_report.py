@@ -251,6 +251,16 @@ def _weight_text(weight):
     return text
 
 
+def _readings_text(result):
+    """With `weight="noise"` and aggregated readings: the factors their weights got."""
+    factors = (result.stop_info or {}).get("reading_weight_factors")
+    if not factors:
+        return ""
+    shown = ", ".join(f"{f:.4g}" for f in factors[:SHOWN_WEIGHTS])
+    more = f", ... ({len(factors)} Aggregates)" if len(factors) > SHOWN_WEIGHTS else ""
+    return f"; the readings' weights times [{shown}{more}] (one per Aggregate)"
+
+
 def _x0_table(result, shown_max=3):
     """The initial-state rows: every entry of one trajectory, or of the first two of more
     than `shown_max`; and the number of trajectories left out."""
@@ -446,6 +456,12 @@ def report(result) -> str:
             "a biased value and zeros get some too; for inference refit the selected terms "
             "with `fixed=sparsity.fixed_zeros(result.theta, where)`)"
         )
+    if (result.diagnostics or {}).get("penalised") and _computed(result):
+        out.append(
+            "  (penalised: the standard errors and intervals below are those of the data "
+            "term at the penalised estimate; the penalty lambda h does not enter them as "
+            "information)"
+        )
     rounds = (result.stop_info or {}).get("noise_weight_rounds")
     if rounds is not None:
         starts = ", the starts those of the first (Q = I)" if result.starts is not None else ""
@@ -455,12 +471,12 @@ def report(result) -> str:
         elif rounds > 1:
             out.append(
                 f'  (weight="noise": the output weight estimated from the residuals over '
-                f"{fits}{starts}; Q {_weight_text(result.weight)})"
+                f"{fits}{starts}; Q {_weight_text(result.weight)}{_readings_text(result)})"
             )
         else:
             out.append(
                 '  (weight="noise": the output weight estimated from the residuals of one '
-                f"fit; Q {_weight_text(result.weight)})"
+                f"fit; Q {_weight_text(result.weight)}{_readings_text(result)})"
             )
     elif getattr(result, "weight", None) is not None:
         out.append(f"  (output weight Q {_weight_text(result.weight)}, as given)")

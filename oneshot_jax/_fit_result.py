@@ -458,8 +458,9 @@ class FitResult(eqx.Module):
 
     def _measurement_noise(self):
         """The measurement noise covariance the fit estimated, sigma^2 Q^{-1} (Q the fit's
-        weight, I without one; sigma^2 = SSE / dof of its weighted residuals, as its
-        covariance scales, `_covariance.scale`), or None where Q is singular or sigma^2
+        weight, I without one; sigma^2 = SSE / dof of its weighted residuals at the point
+        samples, as its covariance scales, `_covariance.scale`, less an aggregated fit's
+        readings, which `residuals` does not hold), or None where Q is singular or sigma^2
         is not known (no degrees of freedom, or residuals exactly zero)."""
         e = np.asarray(self.residuals, np.float64)
         n_z = e.shape[-1]
@@ -605,7 +606,8 @@ class FitResult(eqx.Module):
             `missing="mask"`, NaN in `z_head` are missing samples (the smoother needs
             every sample). The smoother's measurement noise defaults to the one the fit
             estimated, sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE /
-            dof of its weighted residuals, as its standard errors use): a weight's scale,
+            dof of its weighted residuals at the point samples, `residuals`: as its
+            standard errors use, less the readings of an aggregated fit): a weight's scale,
             which a fit ignores, does not change it. Where Q is singular (an output of
             weight 0) or the residuals are exactly zero, `estimate_x0`'s defaults apply.
             Where the model does not observe its whole state, or `z_head`'s first row has

@@ -43,14 +43,17 @@ def noise_weight(residuals, readings=()):
     the diagonal 1 / (each output's mean squared residual over its samples), (n_z,).
 
     `readings`: one array per `Aggregate`, its readings' residuals times the square root
-    of their given weights (1 where none is given); each gets a factor, 1 / their mean
-    square, for its given weights. Q and the factors are normalised together so that the
-    geometric mean of the noise levels they invert is 1 (det Q = 1 without readings: a fit
-    ignores the weights' common scale; the loss keeps its size); an output measured only
-    in aggregate gets Q's entry 1 (it has no point sample to weigh).
+    of their given weights (1 where none is given; NaN for a reading that is missing or
+    of weight 0); each gets a factor, 1 / their mean square, for its given weights. Q and
+    the factors are normalised together so that the geometric mean of the noise levels
+    they invert is 1 (det Q = 1 without readings: a fit ignores the weights' common scale;
+    the loss keeps its size). An output without point samples (measured only in
+    aggregate, or not at all) gets Q's entry 1, and an Aggregate without a reading that
+    counts the factor 1: they have nothing to weigh.
 
     **Returns:** `((Q, factors), None)`, or `(None, name)` where the residuals of `name`
-    (an output, or an Aggregate) are all zero or missing: no noise level to weigh by."""
+    (an output, an Aggregate, or "the outputs" where nothing is measured) are all zero:
+    no noise level to weigh by."""
     e = np.asarray(residuals, dtype=np.float64)
     e = e.reshape(-1, e.shape[-1])
     n_z = e.shape[-1]
@@ -61,12 +64,15 @@ def noise_weight(residuals, readings=()):
         levels = [np.nanmean(np.asarray(r, dtype=np.float64) ** 2) for r in readings]
     sampled = np.isfinite(var)
     for j in range(n_z):
-        if (sampled[j] and var[j] <= 0) or (not sampled[j] and not readings):
+        if sampled[j] and var[j] <= 0:
             return None, f"output {j}"
+    counted = [bool(np.isfinite(level)) for level in levels]  # (some reading counts)
     for i, level in enumerate(levels):
-        if not (np.isfinite(level) and level > 0):
+        if counted[i] and level <= 0:
             return None, f"aggregate {i}"
-    logs = list(np.log(levels))
+    if not (sampled.any() or any(counted)):
+        return None, "the outputs"
+    logs = [np.log(level) for level, c in zip(levels, counted) if c]
     Q = None
     rows = seen.any(axis=1)  # (samples of no output: left out)
     if n_z > 1 and rows.any() and _all_or_none(seen):
@@ -80,7 +86,7 @@ def noise_weight(residuals, readings=()):
         logs += list(np.log(var[sampled]))
     c = float(np.exp(np.mean(logs)))
     Q = np.where(np.isnan(Q), 1.0, c * Q)  # (an output without point samples: 1)
-    return (Q, [c / level for level in levels]), None
+    return (Q, [c / level if n else 1.0 for level, n in zip(levels, counted)]), None
 
 
 def _ratios(new, old):
@@ -188,7 +194,7 @@ def fit_noise_weighted(fit, args):
             last = "the given weights" if w is None else "the last estimated weights"
             caught.append(
                 warnings.WarningMessage(
-                    f"`weight='noise'`: the residuals of {empty} are all zero or missing, "
+                    f"`weight='noise'`: the residuals of {empty} are all zero, "
                     "so there is no noise level to weigh it by; the result is that of the "
                     f"fit with {last}.",
                     UserWarning,

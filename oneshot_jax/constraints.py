@@ -11,7 +11,9 @@ update is `P(params + updates) - params`.
 
 In floating point, `params + (P(params + u) - params)` can land one ulp outside the set, so
 `fit` projects the parameters again after `optax.apply_updates`: every iterate of `fit` is
-exactly feasible. Do the same in a hand-written loop: `params = tx.project(params)`.
+exactly feasible (for one set; the projection onto an intersection, Dykstra's, is capped at
+its cycles, and `fit` checks the estimate against each set). Do the same in a hand-written
+loop: `params = tx.project(params)`.
 
 Box-type sets (`non_negative`, `positive`, `box`) also expose their bounds, which the
 least-squares solvers of `fit` use for an exact active-set treatment.

@@ -585,3 +585,30 @@ def test_penalty_sees_the_model_states_only():
     np.testing.assert_allclose(C, C_ref, rtol=1e-12)
     np.testing.assert_allclose(g_x0, gx_ref, rtol=1e-12)
     np.testing.assert_allclose(ravel_pytree(g_theta)[0], ravel_pytree(gt_ref)[0], rtol=1e-12)
+
+
+def test_outputs_never_sampled_together_next_to_an_aggregate_have_no_aic():
+    """Point samples of two outputs that never share a sample, a third output measured
+    only in aggregate: the fit solved, then raised ("`mask` leaves no sample where every
+    output is measured") from its AIC. Without the aggregate the AIC is NaN; with it too."""
+    model = oj.Model(
+        lambda x, u, th: th["a"] * x + th["b"] * u,
+        lambda x, u, th: jnp.concatenate([x, 2.0 * x, x + u]),
+    )
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    _, y = oj.simulate(model, {"a": 0.9, "b": 0.5}, np.array([1.0]), u)
+    y = np.asarray(y)
+    z = np.full((200, 3), np.nan)
+    even = np.arange(200) % 2 == 0
+    z[even, 1] = y[even, 1] + 0.1 * rng.standard_normal(even.sum())
+    z[~even, 2] = y[~even, 2] + 0.1 * rng.standard_normal((~even).sum())
+    spans = [(k, k + 20) for k in range(0, 200, 20)]
+    agg = oj.Aggregate(0, spans, y[:, 0].reshape(10, 20).mean(axis=1))
+    kw = dict(missing="mask")
+    plain = oj.fit(model, {"a": 0.8, "b": 0.4}, np.array([0.5]), u, z, **kw)
+    r = oj.fit(model, {"a": 0.8, "b": 0.4}, np.array([0.5]), u, z, aggregate=agg, **kw)
+    for result in (plain, r):
+        assert result.success
+        assert np.isnan(result.metrics["aic"]) and np.isnan(result.metrics["fpe"])
+    assert "AIC nan (fewer samples measure every output than there are outputs)" in str(r)

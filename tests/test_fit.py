@@ -605,6 +605,8 @@ def test_equality_constraint_by_quadratic_penalty(tiny, equality_optimum):
     r = results[1]
     data = float(tiny_cost(r.theta["a"], r.theta["b"], r.x0, tiny["u"], tiny["z"]))
     assert r.loss == pytest.approx(data + 1e4 * violation[1] ** 2, rel=1e-10)
+    # its standard errors are the data term's: the printout says so
+    assert "(penalised: the standard errors and intervals below are those of the data" in str(r)
     opt = equality_optimum
     tol = 5 * violation[1]  # the distance to the constrained optimum is O(1 / lambda)
     np.testing.assert_allclose(r.theta["a"], opt["a"], rtol=0, atol=tol)

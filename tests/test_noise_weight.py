@@ -205,6 +205,9 @@ def test_the_noise_weight_weighs_aggregated_readings_too(records):
     assert 2 <= r.stop_info["noise_weight_rounds"] <= 10
     factors = r.stop_info["reading_weight_factors"]
     assert len(factors) == records
+    # the printout names them next to Q (it showed Q alone, the readings' 1 in it)
+    shown = ", ".join(f"{f:.4g}" for f in factors)
+    assert f"the readings' weights times [{shown}] (one per Aggregate)" in str(r)
     # The readings' weight over the point samples' is the inverse ratio of their variances.
     for f in factors:
         assert 0.5 < f / float(r.weight[1]) / (SIGMA_POINT / SIGMA_READING) ** 2 < 2
@@ -236,8 +239,54 @@ def test_a_weight_the_residuals_cannot_give_is_not_called_estimated():
     model = oj.Model(lambda x, u, th: th["a"] * x + u)
     u = np.full((50, 1), 0.5)
     _, z = oj.simulate(model, {"a": 0.5}, np.array([1.0]), u)
-    with pytest.warns(UserWarning, match="all zero or missing, so there is no noise level"):
+    with pytest.warns(UserWarning, match="all zero, so there is no noise level"):
         r = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, np.asarray(z), weight="noise")
     assert r.stop_info["noise_weight_estimated"] is False
     assert '(weight="noise": no output weight estimated, see the warning; Q = I)' in str(r)
     assert "estimated from the residuals" not in str(r)
+
+
+def _three_outputs(seed=0, T=200):
+    """x[k+1] = a x[k] + b u[k] seen as z = (x, 2 x, x + u): output 0 only in aggregate
+    (10 means of 20 samples), output 1 at 60 % of the samples (noise 0.3), output 2 at
+    every sample (noise 0.01)."""
+    model = oj.Model(
+        lambda x, u, th: th["a"] * x + th["b"] * u,
+        lambda x, u, th: jnp.concatenate([x, 2.0 * x, x + u]),
+    )
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((T, 1))
+    _, y = oj.simulate(model, {"a": 0.9, "b": 0.5}, np.array([1.0]), u)
+    y = np.asarray(y)
+    z = np.full((T, 3), np.nan)
+    keep = rng.random(T) < 0.6
+    z[keep, 1] = y[keep, 1] + 0.3 * rng.standard_normal(keep.sum())
+    z[:, 2] = y[:, 2] + 0.01 * rng.standard_normal(T)
+    spans = [(k, k + 20) for k in range(0, T, 20)]
+    means = y[:, 0].reshape(10, 20).mean(axis=1) + 0.05 * rng.standard_normal(10)
+    return model, u, z, spans, means
+
+
+@pytest.mark.parametrize("empty", ["weight 0", "all missing"])
+def test_an_aggregate_without_readings_leaves_the_other_outputs_weighed(empty):
+    """An `Aggregate` whose readings all have weight 0 (or are all missing) has nothing to
+    weigh: `weight="noise"` gave up on every output ("the residuals of aggregate 0 are
+    all zero or missing"), kept Q = I, and warned that the outputs differ in variance by
+    a factor of 100 or so. It now keeps that Aggregate's factor at 1 and estimates Q for
+    the outputs: their ratio is the inverse ratio of their noise variances (900)."""
+    model, u, z, spans, means = _three_outputs()
+    agg = (
+        oj.Aggregate(0, spans, means, weight=0.0)
+        if empty == "weight 0"
+        else oj.Aggregate(0, spans, np.full(10, np.nan))
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = oj.fit(
+            model, {"a": 0.8, "b": 0.4}, np.array([0.5]), u, z, aggregate=agg,
+            missing="mask", weight="noise",
+        )  # fmt: skip
+    assert r.success and r.weight is not None
+    assert r.stop_info["reading_weight_factors"] == [1.0]
+    ratio = float(r.weight[2]) / float(r.weight[1])
+    assert 900 / 1.5 < ratio < 900 * 1.5
