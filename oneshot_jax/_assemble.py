@@ -460,10 +460,15 @@ def assemble(
         "roundoff_limit": prepared.roundoff_limit,
     }
     limit = float(out.limit)
-    if np.isfinite(limit) and limit > prepared.roundoff_limit * (1.0 + 1e-5):
+    if (
+        np.isfinite(limit)
+        and limit > prepared.roundoff_limit * (1.0 + 1e-5)
+        and not float(out.first_order) <= prepared.gtol
+    ):
         # (`_optimality.stall_limit`: raised by the precision of outputs far above the
-        # residuals; the margin: the limit computed in float32 rounds 10 sqrt(eps) up by
-        # 2e-8 relative, which flagged every float32 stall as this)
+        # residuals, where the measure is above gtol, so that the limit decides; the
+        # margin: the limit computed in float32 rounds 10 sqrt(eps) up by 2e-8 relative,
+        # which flagged every float32 stall as this)
         stop_info.update(roundoff_limit=limit, outputs_precision=True)
     if np.isfinite(prepared.resolution):  # (a first-order solver's floor under gtol)
         stop_info["resolution"] = prepared.resolution

@@ -133,6 +133,12 @@ class _Fn(eqx.Module):
         return out, None
 
 
+# The failed steps in a row, each leaving the iterate where it was, after which the
+# first-order measure is formed at every step, and the fit stops as a stall where it is
+# within the round-off limit (a damped solver whose every proposal is rejected).
+STUCK_STEPS = 10
+
+
 class _OptxState(NamedTuple):
     y: Any  # optimistix's iterate (p_theta, p_x0), possibly outside the box
     inner: Any  # optimistix's solver state
@@ -149,6 +155,7 @@ class _OptxState(NamedTuple):
     last_loss: jax.Array
     limit: jax.Array  # the round-off limit of a stall at the iterate (`_optimality.stall_limit`)
     idle: jax.Array  # the failed steps in a row that left the iterate where it was
+    unmoved: jax.Array  # the failed steps in a row that left it there, finite or not
 
 
 def _differs(a, b):
@@ -180,7 +187,9 @@ class Optimistix(AbstractSolver):
     - `gtol`: the first-order test applied where the optimistix solver stops: the fit
         is `converged` only if the scaled projected gradient there is at most `gtol`, or
         at most its round-off limit (see `oneshot_jax._optimality`); otherwise
-        `stalled`.
+        `stalled`. After `STUCK_STEPS` (10) failed steps in a row that left the iterate
+        where it was (a damped solver whose every proposal is rejected), a measure
+        within the round-off limit ends the fit as `converged` too (a stall).
     - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`,
         `"parallel"`; see `oneshot_jax.value_and_grad`).
     """
@@ -272,6 +281,7 @@ class Optimistix(AbstractSolver):
             loss,
             stall_limit(problem, loss),
             jnp.array(0),
+            jnp.array(0),
         )
 
     def step(self, problem, params, state):
@@ -295,6 +305,7 @@ class Optimistix(AbstractSolver):
         hopeless = jnp.array(True) if proposal is None else ~_finite(proposal)
         failed = inner_result != optx.RESULTS.successful
         idle = jnp.where(failed & ~moved & hopeless, state.idle + 1, 0)
+        unmoved = jnp.where(failed & ~moved, state.unmoved + 1, 0)
         inner_done = inner_done | (idle >= 2)
         params = _point(problem, y, state.held)
         loss, g = problem.value_and_grad(params, self.strategy)
@@ -342,14 +353,18 @@ class Optimistix(AbstractSolver):
 
         done = inner_done & ~restart
         idle = jnp.where(restart, 0, idle)  # (a fresh inner solve)
+        unmoved = jnp.where(restart, 0, unmoved)
         ok = inner_result == optx.RESULTS.successful
         nonfinite = (inner_result == optx.RESULTS.nonfinite) | ~jnp.isfinite(loss)
         # optimistix stops on its step and loss tests: certify the point by the
         # first-order test (its stop counts as a stall: the round-off limit applies).
         # (formed at the last step too: the measure a max_steps stop reports)
         count = state.count + 1
+        # (and after `STUCK_STEPS` failed steps in a row that left the iterate where it
+        # was: a stall there, if the measure is within the round-off limit, below)
+        probe = unmoved >= STUCK_STEPS
         fo = lazy_cond(
-            done | (count >= self.max_steps),
+            done | (count >= self.max_steps) | probe,
             lambda: self._first_order(problem, params, loss, g),
             jnp.array(jnp.nan, loss.dtype),
         )
@@ -363,9 +378,15 @@ class Optimistix(AbstractSolver):
         # At the last step allowed, a point that meets the first-order test (on the box)
         # is a solution: the fit reported max_steps_reached at a measure of 5e-12 where
         # optimistix's own tolerances had not fired yet.
-        at_limit = ~done & (count >= self.max_steps) & (fo <= gtol) & finite
+        # So is one where the solver's steps failed and left the iterate where it was,
+        # at a measure within the round-off limit: a stall there, which ends the fit
+        # after `STUCK_STEPS` such steps (LM with conjugate gradients capped at 2
+        # iterations rejected every proposal from step 150 on, at a measure of 1.8e-8,
+        # and reported max_steps_reached at step 300).
+        stall = failed & ~moved & (fo <= limit) & finite
+        at_limit = ~done & (count >= self.max_steps) & (((fo <= gtol) & finite) | stall)
         own_test = done & ok  # (not a failure of the optimistix solver)
-        done = done | at_limit
+        done = done | at_limit | (probe & stall)
         zero = zero_residual(loss, data_scale(problem))
         result = RESULTS.where(
             stationary,
@@ -375,7 +396,7 @@ class Optimistix(AbstractSolver):
         # A failure of the optimistix solver (its linear solve, say) at a point that meets
         # the first-order test leaves a solution: LM with a capped conjugate-gradient
         # solve reported no_progress at a measure of 9.7e-9 (gtol 1e-8), at the optimum.
-        solved = (fo <= gtol) & finite
+        solved = ((fo <= gtol) & finite) | stall
         result = RESULTS.where(
             ok | solved, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
         )
@@ -398,6 +419,7 @@ class Optimistix(AbstractSolver):
             last_loss,
             limit,
             idle,
+            unmoved,
         )
 
     def terminate(self, problem, params, state):
