@@ -487,6 +487,12 @@ def assemble(
     gone = np.broadcast_to(np.asarray(out.vanished)[best], (len(free),))
     if gone.any():  # (`_optimality.vanished_columns`)
         stop_info["vanished"] = [n for n, g in zip(names, gone) if g]
+    if status == "max_steps_reached" and last_solver.get("solver") == "Adam":
+        # (a gradient far below Adam's eps: the steps are lr |g| / eps, not lr)
+        last = out.stages[-1]
+        norm, eps = float(last.grad_norm[int(last.rows)]), last_solver.get("eps")
+        if np.isfinite(norm) and isinstance(eps, float) and norm < 0.01 * eps:
+            stop_info.update(grad_norm=norm, below_eps=eps)
     if status in ("tol_loss", "tol_grad"):
         last = out.stages[-1]
         stop_info[status] = last_solver.get(status)

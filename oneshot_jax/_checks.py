@@ -476,20 +476,34 @@ def _naming_shapes(what, x_1, u_1, x0, u, theta, theta_name):
         ) from err
 
 
+def _broadcast(*shapes):
+    """The shape the shapes broadcast to, or None where they do not."""
+    try:
+        return np.broadcast_shapes(*shapes)
+    except ValueError:
+        return None
+
+
 def _check_rhs(rhs, x_1, u_1, theta, x0, u, theta_name, shown):
     """`Model.from_ode`'s `rhs` traced once on abstract values: it must return dx/dt of
     the state's shape."""
     with _naming_shapes("the model's `rhs` (`Model.from_ode`)", x_1, u_1, x0, u, shown, theta_name):
         dx = _abstract_call(rhs, x_1, u_1, theta)
     if not isinstance(dx, jax.ShapeDtypeStruct) or dx.shape != x_1.shape:
+        hint = ""
         if isinstance(dx, (list, tuple)):
             got = f"a {type(dx).__name__} (build dx/dt with jnp.stack or jnp.array)"
         else:
             got = getattr(dx, "shape", type(dx).__name__)
+            if u_1.shape != x_1.shape and got == _broadcast(x_1.shape, u_1.shape):
+                hint = (
+                    f" (it has the shape of an input u[k], {u_1.shape}, from `u` of shape "
+                    f"{u.shape}: does `u` have the columns the model reads?)"
+                )
         raise ValueError(
             f"the model's `rhs` (`Model.from_ode`) must return dx/dt as an array of shape "
             f"{x_1.shape} (the shape of x0), got {got}: `rhs` and `x0` (of shape "
-            f"{x0.shape}) must agree on the number of states."
+            f"{x0.shape}) must agree on the number of states{hint}."
         )
     if dx.dtype != x_1.dtype:
         raise ValueError(

@@ -97,7 +97,9 @@ def stop_detail(status: str, info: dict) -> str:
         return f"last step {_g(se)} standard errors <= stol {_g(stol)} (theta rank-deficient, {vs})"
     if status == "stalled":
         # (A first-order solver has no scaled step or linear model: NaN, not shown.)
-        tail = vs + " > gtol" if known else "not stationary"
+        limit = info.get("roundoff_limit", np.nan)
+        beyond = f" and > {_g(limit)}, its round-off limit" if np.isfinite(limit) else ""
+        tail = vs + " > gtol" + beyond if known else "not stationary"
         if info.get("descends_along_vanished"):
             return (
                 "the solver stopped at what read as a degenerate minimum, but a step along "
@@ -194,7 +196,15 @@ def stop_detail(status: str, info: dict) -> str:
             + (f", the solver itself stopped with {solver}" if solver else "")
         )
     if status in ("max_steps_reached", "no_progress") and known:
-        return f"{vs} not met" if fo > gtol else f"{vs} met, after the solver failed"
+        eps = info.get("below_eps")
+        small = (
+            f", with the gradient's norm {_g(info.get('grad_norm'))} far below Adam's eps "
+            f"{_g(eps)}, whose steps are then lr |g| / eps rather than lr: lower eps "
+            "(`Adam(eps=...)`) below the gradient's scale"
+            if eps is not None
+            else ""
+        )
+        return f"{vs} not met{small}" if fo > gtol else f"{vs} met, after the solver failed"
     return ""
 
 

@@ -131,7 +131,8 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     - `x`: the state at t_k.
     - `u`: u[k] (n_u,) for "zoh", or (u[k], u[k+1]) stacked to (2, n_u) for "foh".
     - `theta`: the parameters, passed on to `rhs`.
-    - `dt`: the sample interval.
+    - `dt`: the sample interval, > 0 (checked where it is concrete; a traced one, under
+        `jax.jit` or `jax.vmap`, is not).
     - `method`, `substeps`, `input`: as above.
 
     **Returns:**
@@ -154,7 +155,14 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
             f'`u` must be the pair (u[k], u[k+1]) of shape (2, n_u) for input="foh", got '
             f"shape {jnp.shape(u)}."
         )
-    if not isinstance(dt, jax.core.Tracer):
+    if input == "zoh" and jnp.ndim(u) == 2 and jnp.shape(u)[0] == 2:
+        # (a step of `Model(step, input="foh")` gets the pair: its `ode_step` needs to know)
+        raise ValueError(
+            f'`u` must be u[k] of shape (n_u,) for input="zoh", got the shape {jnp.shape(u)} '
+            'of a pair (u[k], u[k+1]): pass input="foh" to interpolate between them (a '
+            'step of `Model(step, input="foh")` gets that pair).'
+        )
+    if not isinstance(dt, jax.core.Tracer):  # (a traced dt is not checked: jit, vmap)
         dt = _positive_number(dt, "dt", "the sample interval")
     h = dt / substeps
     u_at = _input_at(u, dt, input)

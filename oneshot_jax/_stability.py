@@ -292,6 +292,15 @@ def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability
     return report(model.step, idx, xs, J, data.u)
 
 
+def step_factor(z: complex, method: str) -> complex:
+    """The integrator's step factor R(z), z = lambda h: the amplitude a mode of eigenvalue
+    lambda is multiplied by per step (1 + z for Euler; 1 + z + z^2/2 + z^3/6 + z^4/24 for
+    RK4), against the ODE's exp(z)."""
+    if method == "euler":
+        return 1 + z
+    return 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+
+
 def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitted model") -> None:
     """The warning of `check_stability`, where `report` exceeds its limit, or the range
     where its integrator follows the ODE (`Stability.inaccurate`)."""
@@ -363,8 +372,19 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
             stacklevel=stacklevel + 1,
         )
         return
+    z = complex(lam) * h
+    factor = abs(step_factor(z, report.method))
+    # (past the region: the integrator grows a mode that the ODE damps, or grows faster)
+    past = np.isfinite(factor) and factor > max(1.0, float(np.exp(z.real))) * (1 + 1e-12)
+    where = (
+        f"past its integrator's stability limit (each step multiplies that mode by "
+        f"|R(lambda h)| = {factor:.4g}, the ODE by exp(Re lambda h) = {np.exp(z.real):.4g}: "
+        "the discretised model is unstable where the ODE is not)"
+        if past
+        else "near its integrator's stability limit"
+    )
     warnings.warn(
-        f"{what} runs near its integrator's stability limit: a Jacobian "
+        f"{what} runs {where}: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
         f"{measure} = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
         f"{report.substeps} ({report.method.upper()}: {region}). "

@@ -102,3 +102,23 @@ def test_each_start_of_a_multistart_takes_its_own_magnitude():
         single = oj.fit(model, {"k": k, "c": 0.1}, x0, u, z, solver=solver)
         np.testing.assert_allclose(multi.starts.theta["k"][i], single.theta["k"], rtol=1e-9)
         np.testing.assert_allclose(multi.starts.loss[i], single.loss, rtol=1e-9)
+
+
+def test_a_gradient_far_below_eps_is_named_at_max_steps():
+    """Outputs of scale 1e-6: the gradient (about 1e-13) is far below Adam's eps (1e-8),
+    so each step is lr |g| / eps: 200 steps barely move theta, and the stop said only
+    "raise max_steps (or the learning rates)". It now names eps; outputs of scale 1 do not
+    get the note."""
+    model, u, z, x0 = _data()
+    theta0 = {"k": 12.0, "c": 0.1}
+
+    def scaled(s):
+        m = oj.Model.from_ode(_rhs, DT, observe=lambda x, u, th: s * x[:1])
+        solver = oj.Adam(lr_theta=1e-2, lr_x0=1e-3, scale="theta0", max_steps=200)
+        return oj.fit(m, theta0, x0, u, s * z, solver=solver)
+
+    small, plain = scaled(1e-6), scaled(1.0)
+    assert small.status == plain.status == "max_steps_reached"
+    assert "far below Adam's eps 1e-08" in small.message and "Adam(eps=" in small.message
+    assert small.stop_info["grad_norm"] < 1e-10
+    assert "Adam's eps" not in plain.message and "below_eps" not in plain.stop_info

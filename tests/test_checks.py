@@ -331,6 +331,14 @@ def test_the_rhs_of_a_timed_model_is_checked():
         oj.fit(model, THETA, X0, U, Z, t=t)
 
 
+def test_an_rhs_shaped_by_a_too_wide_u_names_u():
+    """dx/dt = -a x + u with x0 of 1 state and u of 2 columns: the error blamed `rhs`
+    and `x0` (both right) and did not name `u`."""
+    model = oj.Model.from_ode(lambda x, u, th: -th["a"] * x + u, 0.1)
+    with pytest.raises(ValueError, match=r"got \(2,\).*shape of an input u\[k\], \(2,\), from `u`"):
+        oj.simulate(model, {"a": 1.0}, np.zeros(1), np.ones((10, 2)))
+
+
 WEIGHT_VALUES = {
     "negative diagonal": (
         jnp.array([1.0, -0.1]),
@@ -881,6 +889,10 @@ def test_ode_step_takes_a_python_number_state_and_a_list_input():
     # An integer state is the caller's mistake, not `rhs`'s (which was blamed for floats).
     with pytest.raises(TypeError, match=r"`x` must be a floating-point state, got dtype int"):
         oj.ode_step(rhs, [1, 0], [1.0], 0.5, 0.1)
+    # The pair of a "foh" step under the default "zoh": the input is named (rhs was blamed
+    # for dx/dt of shape (2, 1))
+    with pytest.raises(ValueError, match=r'for input="zoh", got the shape \(2, 1\) of a pair'):
+        oj.ode_step(rhs, jnp.zeros(1), jnp.ones((2, 1)), 0.5, 0.1)
 
 
 def test_the_head_length_of_predict_may_be_a_whole_float(lin_result):

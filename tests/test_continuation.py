@@ -222,6 +222,19 @@ def test_stability_warning_after_a_fit_with_too_few_substeps():
     assert abs(float(result.theta["a"]) - 52.0) < 1e-6
 
 
+def test_check_stability_says_when_the_discretised_model_is_unstable():
+    """a = 60 with h = 0.05: lambda h = -3, past RK4's real-axis limit 2.785, where its
+    step multiplies the mode by R(-3) = 1.375 and the simulation grows without bound: the
+    warning said the model runs "near" the limit."""
+    model, u, _ = _lag_data(1)
+    with pytest.warns(RuntimeWarning) as caught:
+        report = oj.check_stability(model, {"a": 60.0}, np.zeros(1), u)
+    text = str(caught[0].message)
+    assert report.value == pytest.approx(3.0)
+    assert text.startswith("the model runs past its integrator's stability limit"), text
+    assert "|R(lambda h)| = 1.375, the ODE by exp(Re lambda h) = 0.04979" in text
+
+
 @pytest.mark.parametrize("substeps, warns", [(1, True), (2, False)])
 def test_check_stability(substeps, warns):
     model, u, _ = _lag_data(substeps)

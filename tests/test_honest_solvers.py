@@ -823,6 +823,10 @@ def test_an_output_offset_does_not_make_a_stalled_fit_a_zero_residual():
         r = oj.fit(model, far, x0, u, z, solver=oj.LevenbergMarquardt())
     assert not r.success and r.status == "stalled", r.message
     assert r.metrics["fit_percent"][0] < 20.0
+    # the message names the limit that decided (it named gtol alone), the raised one here
+    limit = r.stop_info["roundoff_limit"]
+    assert r.stop_info["first_order"] > limit and limit > 10 * np.sqrt(np.finfo(f32).eps)
+    assert f"> gtol and > {limit:.3g}, its round-off limit" in r.message, r.message
     near = {"k": f32(3.0), "c": f32(0.3), "b": f32(0.8)}
     good = oj.fit(model, near, x0, u, z, solver=oj.LevenbergMarquardt())
     assert good.success and good.metrics["fit_percent"][0] > 99.0, good.message
