@@ -658,3 +658,21 @@ def test_combine_applies_l1_group_lasso_l2_in_the_order_that_is_exact():
         )  # fmt: skip
         assert result.status == "converged", result.message
         np.testing.assert_allclose(result.theta["w"], w, atol=1e-9)
+
+
+def test_tol_grad_with_a_regulariser_is_refused():
+    """||grad C|| is small at the least-squares point, where l1 has not acted yet: Adam
+    with tol_grad and l1, started there, stopped at step 0 as a success with every term
+    in. `tol_grad` is refused with a regulariser, for Adam and Optax alike."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((80, 5))
+    z = A @ np.array([1.0, 0.0, -0.5, 0.0, 0.02]) + 0.1 * rng.standard_normal(80)
+    w = np.linalg.lstsq(A, z, rcond=None)[0]
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: u @ th["w"][:, None])
+    for solver, reg in (
+        (oj.Adam(1e-3, tol_grad=1e-3), sp.l1(0.02)),
+        (oj.Optax(optax.sgd(0.1), tol_grad=1e-3), sp.l1(0.02, learning_rate=0.1)),
+    ):
+        with pytest.raises(ValueError, match=r"`tol_grad` \(0.001\) tests \|\|grad C\|\|"):
+            oj.fit(model, {"w": w}, np.zeros(1), A, z[:, None], estimate_x0=False,
+                   solver=solver, regulariser=reg)  # fmt: skip

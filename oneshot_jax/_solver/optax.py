@@ -35,6 +35,7 @@ rate). The loss recorded and returned is then the objective C + g; the gradient 
 that of C. `LBFGS` (a smooth line search) refuses a regulariser.
 """
 
+import numbers
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -178,6 +179,20 @@ class _AbstractOptax(AbstractSolver):
         check_options(
             self, non_negative=("tol_grad",), fractions=("gtol",), integers=("max_steps",)
         )
+
+    def _check_tol_grad(self):
+        """Refuse `tol_grad` with a regulariser: ||grad C|| is not small at the optimum of
+        C + g (where grad C = -a subgradient of g), and small where the regulariser has not
+        acted yet (Adam with l1 from the least-squares point stopped at step 0 as a
+        success, every term still in)."""
+        tol = self.tol_grad
+        if isinstance(tol, numbers.Real) and not isinstance(tol, bool) and tol > 0:
+            raise ValueError(
+                f"`tol_grad` ({tol!r}) tests ||grad C||, which is not small at the optimum "
+                "of C + g with a regulariser (and is small where the regulariser has not "
+                "acted yet): leave tol_grad at 0 with `regulariser=`; the first-order test "
+                "(`gtol`) measures the proximal step's stationarity."
+            )
         if self.tol_loss is not None and not is_real(self.tol_loss):
             raise ValueError(
                 f"`{type(self).__name__}(tol_loss=...)` must be a finite number or None (off), "
@@ -370,7 +385,8 @@ class Optax(_AbstractOptax):
     - `transform`: an `optax.GradientTransformation`.
     - `max_steps`: the number of updates (E_max).
     - `tol_loss`: stop when C < tol_loss (epsilon); None (default) never.
-    - `tol_grad`: stop when ||grad C|| < tol_grad (delta); 0 (default) never.
+    - `tol_grad`: stop when ||grad C|| < tol_grad (delta); 0 (default) never. Not with
+        a regulariser (a ValueError: ||grad C|| is not small at the optimum of C + g).
     - `gtol`: the first-order test: stop (converged) when the scaled projected
         gradient, the largest cosine between the residual and a Jacobian column, is at
         most `gtol` (see `oneshot_jax._optimality`; estimated from the gradient with
@@ -399,6 +415,7 @@ class Optax(_AbstractOptax):
         return self.transform
 
     def check_regulariser(self, regulariser):
+        self._check_tol_grad()
         if regulariser.learning_rate is None:
             raise ValueError(
                 "`Optax(transform)` applies the regulariser's prox after each update with "
@@ -474,6 +491,7 @@ class Adam(_AbstractOptax):
 
     def check_regulariser(self, regulariser):
         del regulariser
+        self._check_tol_grad()
         if self.scale is not None:
             raise ValueError(
                 "`Adam(scale='theta0')` does not take a regulariser (its prox is written in "
