@@ -546,13 +546,15 @@ def combine(transforms) -> ProximalTransformation | None:
     if not penalties:
         boxes = [t.bounds for t in transforms]
         if None not in boxes:  # boxes: clipping in turn projects onto the intersection
+            bounds = _intersect(boxes)
 
             def project(params):
+                bounds(params)  # (refuses an empty intersection where the bounds are concrete)
                 for t in transforms:
                     params = t.project(params)
                 return params
 
-            return indicator(project, _intersect(boxes))._replace(terms=transforms)
+            return indicator(project, bounds)._replace(terms=transforms)
         # A general set with others: its composition with them is neither the projection
         # onto the intersection nor a map into it (positive() then project(fn) left an
         # entry at -0.06). Dykstra's algorithm is; the boxes go last, so that every

@@ -368,7 +368,11 @@ class Features(eqx.Module):
         self.functions = tuple(f for _, f in keep_f)
         self.names = tuple(n for n in names if n not in exclude)
         if not self.names:
-            raise ValueError("the library is empty: give a `degree` >= 1 or `functions`.")
+            raise ValueError(
+                "the library is empty: `exclude` removes every term"
+                if exclude and names
+                else "the library is empty: give a `degree` >= 1 or `functions`."
+            )
 
     def __len__(self):
         return len(self.names)

@@ -653,3 +653,14 @@ def test_an_infeasible_estimate_is_not_called_a_converged_bad_minimum():
     assert r.status == "infeasible" and float(r.metrics["fit_percent"][0]) < 0
     assert any("outside the constraint set" in t for t in texts)
     assert not any("bad minimum" in t for t in texts), texts
+
+
+def test_boxes_that_do_not_meet_are_refused_by_their_projection_too():
+    """`combine([box(lower=1), box(upper=0)]).project(theta)` clipped in turn and returned
+    zeros in silence (a hand-written loop's projection); `fit` refused the same boxes."""
+    both = oc.combine([oc.box(lower=1.0), oc.box(upper=0.0)])
+    with pytest.raises(ValueError, match="the boxes' intersection is empty"):
+        both.project({"w": jnp.ones(3)})
+    meet = oc.combine([oc.box(lower=-1.0), oc.box(upper=0.5)])
+    np.testing.assert_array_equal(meet.project({"w": jnp.array([-3.0, 0.2, 4.0])})["w"],
+                                  [-1.0, 0.2, 0.5])  # fmt: skip

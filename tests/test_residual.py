@@ -388,3 +388,9 @@ def test_dictionary_wrong_state_shape():
         d(jnp.ones(3), jnp.ones(1))
     with pytest.raises(ValueError, match="`u`"):
         d(jnp.ones(2), jnp.ones(2))
+
+
+def test_a_library_emptied_by_exclude_says_so():
+    """Every term excluded: the message asked for a degree >= 1, which was given."""
+    with pytest.raises(ValueError, match="`exclude` removes every term"):
+        Features(2, 0, degree=1, exclude=("x0", "x1"))
