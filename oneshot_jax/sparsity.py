@@ -328,6 +328,12 @@ def _is_float(p):
     return hasattr(p, "dtype") and jnp.issubdtype(p.dtype, jnp.floating)
 
 
+def _short(treedef, most=120):
+    """A pytree structure in at most about `most` characters (a module's is long)."""
+    text = str(treedef)
+    return text if len(text) <= most else text[: most - 5] + " ...)"
+
+
 def _resolve_where(where, params, entries):
     """`where` as a list (one per leaf of params) of False, True or a boolean array."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
@@ -348,7 +354,9 @@ def _resolve_where(where, params, entries):
     if m_def != treedef:
         raise ValueError(
             "`where` must be a pytree of bools with the structure of the parameters (or a "
-            f"callable returning one); got structure {m_def} for parameters {treedef}."
+            f"callable returning one; `sparsity.mask(select)` builds one); got a structure "
+            f"of {m_def.num_leaves} leaves, {_short(m_def)}, for parameters of "
+            f"{treedef.num_leaves} leaves, {_short(treedef)}."
         )
     out = []
     for p, b in zip(leaves, m_leaves):

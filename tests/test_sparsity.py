@@ -676,3 +676,16 @@ def test_tol_grad_with_a_regulariser_is_refused():
         with pytest.raises(ValueError, match=r"`tol_grad` \(0.001\) tests \|\|grad C\|\|"):
             oj.fit(model, {"w": w}, np.zeros(1), A, z[:, None], estimate_x0=False,
                    solver=solver, regulariser=reg)  # fmt: skip
+
+
+def test_a_where_of_another_structure_is_named_briefly():
+    """A `where` not shaped like theta printed both whole structures, hundreds of
+    characters for a Dictionary's names and products."""
+    from oneshot_jax.residual import Dictionary, Features
+
+    theta = {"r": Dictionary(Features(2, 1, degree=3), 1), "c": jnp.array(0.3)}
+    with pytest.raises(ValueError) as err:
+        sp.l1(0.1, where={"c": True}).prox(theta, 1.0)
+    text = str(err.value)
+    assert "got a structure of 1 leaves" in text and "for parameters of" in text
+    assert len(text) < 600, len(text)
