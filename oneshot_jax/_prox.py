@@ -533,6 +533,11 @@ def combine(transforms) -> ProximalTransformation | None:
             f"one or a non-empty list of them; got {transforms!r}."
         )
     transforms = _in_order(transforms)
+    sets = [t for t in transforms if t.project is not None]
+    if len(sets) > 1 and len(sets) < len(transforms):
+        # (after regularisers, the projection onto the sets' intersection: their
+        # combination, not one set after another)
+        transforms = (*transforms[: -len(sets)], combine(sets))
     if len(transforms) == 1:
         return transforms[0]
 
@@ -607,7 +612,8 @@ def _leaves(t: ProximalTransformation) -> list:
 def _in_order(transforms) -> tuple:
     """`combine`'s terms in the order their proxes are applied: the regularisers first
     (ordered by `_ORDER` when every one has a kind there, else as given), then the
-    projections, each group otherwise as given."""
+    projections, each group otherwise as given (`combine` makes several projections after
+    regularisers one, the projection onto their intersection)."""
     leaves = [p for t in transforms for p in _leaves(t)]
     penalties = [t for t in leaves if t.project is None]
     if all(t.kind in _ORDER for t in penalties):

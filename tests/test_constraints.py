@@ -664,3 +664,22 @@ def test_boxes_that_do_not_meet_are_refused_by_their_projection_too():
     meet = oc.combine([oc.box(lower=-1.0), oc.box(upper=0.5)])
     np.testing.assert_array_equal(meet.project({"w": jnp.array([-3.0, 0.2, 4.0])})["w"],
                                   [-1.0, 0.2, 0.5])  # fmt: skip
+
+
+def test_a_regulariser_with_two_sets_projects_onto_their_intersection():
+    """`combine([l1, combine([general, box])])`: the inner combination (Dykstra's
+    projection onto the intersection) was taken apart, and the sets applied one after
+    the other; `combine([l1, general, box])` did so too. The regulariser's prox is now
+    followed by the projection onto the intersection."""
+    import oneshot_jax.sparsity as sp
+
+    def half(th):  # sum(w) <= 1
+        return {"w": th["w"] - jnp.maximum(jnp.sum(th["w"]) - 1.0, 0.0) / th["w"].size}
+
+    sets = [oc.project(half), oc.box(lower=0.0)]
+    v = {"w": jnp.array([2.0, -1.0, 0.5])}
+    expected = oc.combine(sets).project(sp.l1(0.1).prox(v, 1.0))
+    for both in (oc.combine([sp.l1(0.1), oc.combine(sets)]), oc.combine([sp.l1(0.1), *sets])):
+        out = both.prox(v, 1.0)["w"]
+        np.testing.assert_allclose(out, expected["w"], atol=1e-9)
+        assert float(jnp.sum(out)) <= 1.0 + 1e-9 and float(jnp.min(out)) >= 0.0
