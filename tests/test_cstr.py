@@ -1,6 +1,7 @@
 """The CSTR case study (`oneshot_jax.examples.cstr`): the model, its data generator and a
 fit on time-stamped data with the concentration measured only as shift averages."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -90,3 +91,10 @@ def test_fit_recovers_the_parameters_from_averages_and_gappy_samples(short):
     np.testing.assert_allclose(result.theta["ln_k0"], cstr.THETA_TRUE["ln_k0"], atol=1e-4)
     np.testing.assert_allclose(result.theta["UA"], cstr.THETA_TRUE["UA"], rtol=1e-4)
     np.testing.assert_allclose(result.x0, short.x0, rtol=1e-4)
+
+
+def test_the_data_need_float64_and_say_so():
+    """Under float32 `design` returned float32 states behind JAX's "dtype float64 ...
+    truncated" warnings; its docstring says it needs float64."""
+    with jax.enable_x64(False), pytest.raises(RuntimeError, match="need float64"):
+        cstr.design(0, days=1.0)

@@ -122,3 +122,22 @@ def test_tanks_models():
     np.testing.assert_allclose(slope(cascaded_tanks.SENSOR_LEVEL), 1.0)
     with pytest.raises(ValueError, match="kind"):
         cascaded_tanks.model("triple", 4.0)
+
+
+def test_example_helpers_name_bad_arguments():
+    """Raw NumPy errors (broadcast, IndexError, ZeroDivisionError, "need at least one array
+    to stack") and, for `cascaded_tanks.constraints("Overflow")`, the basic model's box in
+    silence."""
+    q = np.linspace(0.0, 1.0, 50)
+    with pytest.raises(ValueError, match="`half` must be an integer >= 1"):
+        emps.velocity_estimate(q, 0.001, half=0)
+    with pytest.raises(ValueError, match="`qm` must be a 1-d record longer than"):
+        emps.velocity_estimate(q, 0.001, half=25)
+    with pytest.raises(ValueError, match="`T` \\(the window length\\)"):
+        emps.window_starts(100, 0)
+    with pytest.raises(ValueError, match="`n` \\(samples per record\\)"):
+        satellite.generate([0], 0)
+    with pytest.raises(ValueError, match="`seeds` must hold at least one"):
+        satellite.generate([], 5)
+    with pytest.raises(ValueError, match="`kind` must be one of"):
+        cascaded_tanks.constraints("Overflow")

@@ -141,6 +141,8 @@ def model(kind, Ts, substeps=1, gate_width=GATE_WIDTH, relu_width=RELU_WIDTH) ->
 
 def constraints(kind):
     """Physical bounds: k1, k3, k4 > 0; for the overflow model h1, h2 >= 0, 0 <= k5 <= 1."""
+    if kind not in KINDS:
+        raise ValueError(f"`kind` must be one of {KINDS}, got {kind!r}.")
     lower = {"k1": 1e-6, "k3": 1e-6, "k4": 1e-6}
     upper = None
     if kind == "overflow":

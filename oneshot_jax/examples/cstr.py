@@ -22,8 +22,11 @@ The constants are Henson and Seborg's with the flow, the rate constant and the h
 transfer slowed down 50 times (a residence time of 50 min instead of 1 min: a larger
 vessel) and a larger heat-transfer area (UA = 3 kJ/(min K)), so that the reactor has one
 stable steady state for every coolant temperature between 310 and 340 K (between 0.93
-and 0.32 mol/L of A) and time constants of 20 to 70 minutes, slow against the sample
-intervals.
+and 0.32 mol/L of A). Its linearised modes there decay with time constants of about 8 to
+120 minutes: up to about 320 K two real modes, of 36 to 46 minutes and of 8 to 12 minutes
+(as long as the longest sample intervals); from about 325 K an oscillatory pair whose
+decay time grows from about 23 minutes to 120 minutes at 340 K (periods of 6 hours down
+to 90 minutes).
 
 The data (`design`, `measure`): sample times with random intervals between about 1 and
 10 minutes over a few days, an instant at every 8-hour shift boundary; the coolant
@@ -211,10 +214,20 @@ def _integrate(x0, u, dt, theta):
     return jnp.concatenate([x0[None], xs])
 
 
+def _check_x64():
+    """Refuse float32: the true states' integral of C_A over days needs float64."""
+    if jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
+        raise RuntimeError(
+            "the CSTR case study's data need float64: call "
+            '`jax.config.update("jax_enable_x64", True)` first.'
+        )
+
+
 def simulate_true(t, u, x0, theta=THETA_TRUE):
     """The true states at the sample times t (T,) and the integral of C_A from t[0],
     by RK4 with 40 substeps per interval (at most 0.26 min, against the model's 2 min),
     the input held. Returns (T, 3): C_A, T and the integral."""
+    _check_x64()
     theta = {k: jnp.asarray(v, jnp.float64) for k, v in theta.items()}
     x0 = jnp.asarray([x0[0], x0[1], 0.0], jnp.float64)
     xs = _integrate(x0, jnp.asarray(u[:-1], jnp.float64), jnp.asarray(np.diff(t)), theta)

@@ -31,6 +31,7 @@ Workshop on Nonlinear System Identification Benchmarks, 2019 (the records are re
 """
 
 import dataclasses
+import numbers
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -177,6 +178,13 @@ def velocity_estimate(qm, Ts, half=5):
     The velocity estimate (n,), m/s.
     """
     qm = np.asarray(qm, dtype=np.float64)
+    if isinstance(half, bool) or not isinstance(half, numbers.Integral) or half < 1:
+        raise ValueError(f"`half` must be an integer >= 1 (samples), got {half!r}.")
+    if qm.ndim != 1 or qm.shape[0] <= 2 * half:
+        raise ValueError(
+            f"`qm` must be a 1-d record longer than 2 half = {2 * half} samples, got shape "
+            f"{qm.shape}."
+        )
     v = np.empty_like(qm)
     v[half:-half] = (qm[2 * half :] - qm[: -2 * half]) / (2 * half * Ts)
     v[:half] = v[half]
@@ -187,6 +195,8 @@ def velocity_estimate(qm, Ts, half=5):
 def window_starts(n, T=None):
     """Start indices of consecutive windows of T samples in a record of n (the tail that
     does not fill a window is dropped), and T; T None (or >= n) is the whole record."""
+    if T is not None and (isinstance(T, bool) or not isinstance(T, numbers.Integral) or T < 1):
+        raise ValueError(f"`T` (the window length) must be None or an integer >= 1, got {T!r}.")
     if T is None or T >= n:
         return np.array([0]), int(n)
     return np.arange(n // T) * T, int(T)

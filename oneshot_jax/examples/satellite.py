@@ -13,6 +13,8 @@ backpropagation for multi-step prediction in physics-based system identification
 Section 4, eq. (22) and the values that follow it.
 """
 
+import numbers
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -137,6 +139,11 @@ def generate(
     A dict of NumPy arrays: `u` (S, n, 3) torque, `x` (S, n, 3) true angular velocity,
     `z` (S, n, 3) measurement, and `t` (n,) the sample times.
     """
+    seeds = list(seeds)
+    if not seeds:
+        raise ValueError("`seeds` must hold at least one integer seed, got none.")
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(f"`n` (samples per record) must be an integer >= 1, got {n!r}.")
     us, es = [], []
     for seed in seeds:
         streams = np.random.SeedSequence(int(seed)).spawn(2)
