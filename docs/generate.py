@@ -1,8 +1,8 @@
 """Write the generated parts of the documentation: the output of the quick start
 (`docs/snippets/quickstart.py`, README's quick start) that the home page shows, in
-`docs/snippets/quickstart.txt`, and what the first code block of each page in
+`docs/snippets/quickstart.txt`, what the first code block of each page in
 `PAGE_OUTPUTS` prints (`print(result)` on the getting-started page), in the snippet named
-there.
+there, and the conditions they were printed under (`docs/snippets/output-conditions.md`).
 
     python docs/generate.py
 
@@ -23,6 +23,9 @@ REPO = Path(__file__).resolve().parent.parent
 SNIPPETS = REPO / "docs" / "snippets"
 QUICK_START = SNIPPETS / "quickstart.py"
 QUICK_START_OUTPUT = SNIPPETS / "quickstart.txt"
+# The conditions the stored outputs were printed under (their wall times are that
+# machine's), a sentence the pages include after them.
+CONDITIONS = SNIPPETS / "output-conditions.md"
 
 # Pages whose first ```python block prints a result, and the snippet of its output that
 # the page includes (`--8<-- "<name>"` in a ```text block after the code).
@@ -64,8 +67,20 @@ def same_output(a: str, b: str, rtol: float = 1e-3, atol: float = 1e-10) -> bool
     return all(math.isclose(float(x), float(y), rel_tol=rtol, abs_tol=atol) for x, y in zip(xs, ys))
 
 
+def conditions() -> str:
+    """The sentence of `CONDITIONS`: hardware, versions and commit (`benchmarks/timing.py`)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from timing import conditions as measured
+
+    return (
+        "The output above is that of a first call: its wall time includes compiling the "
+        "fit. " + measured(argv=["docs/generate.py"]) + "\n"
+    )
+
+
 def main() -> None:
     sys.path.insert(0, str(REPO))  # the package of this checkout
+    CONDITIONS.write_text(conditions())
     text = run_quick_start()
     QUICK_START_OUTPUT.write_text(text)
     print(f"wrote {QUICK_START_OUTPUT}:\n{text}")
