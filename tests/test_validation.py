@@ -438,3 +438,29 @@ def test_a_right_model_validated_on_the_same_system_keeps_its_solution():
             assert r.theta[k] == plain.theta[k]
         scores = np.asarray(r.history.validation)
         assert r.validation_loss - scores.min() <= scores.min() * np.sqrt(2 / (2 * 190 * 2))
+
+
+def test_the_head_estimate_leaves_a_local_minimum_the_warm_start_followed():
+    """z = (x^2, c x) of a constant state, fitted from c = -3 to about 0.3: while c < 0
+    the head's error has its minimum at negative x, and the estimate warm-started from
+    the last iterate's followed it there; once c > 0 that is a local minimum (error 0.36
+    against 0 at x near +1), and the scores stayed on it (0.2 to 0.5 where the head's
+    least-squares x0 from the guess scores 1e-3 to 2e-2; a hybrid's tank level went
+    this way to 1e7). Each iterate now also estimates from the guess `x0` and keeps the
+    lower head error."""
+    from scipy.optimize import least_squares
+
+    model = oj.Model(lambda x, u, p: x, lambda x, u, p: jnp.stack([x[0] ** 2, p["c"] * x[0]]))
+    z = np.tile([1.0, 0.3], (40, 1))
+    val = oj.Validation(np.zeros((20, 0)), np.tile([1.0, 0.3], (20, 1)), n=2, x0=np.array([2.0]))
+    r = oj.fit(model, {"c": -3.0}, np.array([1.0]), np.zeros((40, 0)), z, estimate_x0=False,
+               validation=val, solver=oj.Adam(lr_theta=0.1, max_steps=80))  # fmt: skip
+    c, got = np.asarray(r.history.theta["c"]), np.asarray(r.history.validation)
+
+    def score(c):  # x0 from the guess by least squares, then the error after the head
+        x = least_squares(lambda x: [x[0] ** 2 - 1, c * x[0] - 0.3], [2.0], xtol=1e-15).x[0]
+        return (x**2 - 1) ** 2 + (c * x - 0.3) ** 2
+
+    later = np.flatnonzero(c > 0.1)  # (where the minimum near +1 is the lower one)
+    assert len(later) > 20
+    np.testing.assert_allclose(got[later], [score(v) for v in c[later]], rtol=1e-3, atol=1e-12)
