@@ -179,6 +179,12 @@ class _AbstractOptax(AbstractSolver):
         check_options(
             self, non_negative=("tol_grad",), fractions=("gtol",), integers=("max_steps",)
         )
+        if self.tol_loss is not None and not is_real(self.tol_loss):
+            raise ValueError(
+                f"`{type(self).__name__}(tol_loss=...)` must be a finite number or None (off), "
+                f"got {self.tol_loss!r}."
+            )
+        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
 
     def _check_tol_grad(self):
         """Refuse `tol_grad` with a regulariser: ||grad C|| is not small at the optimum of
@@ -193,12 +199,6 @@ class _AbstractOptax(AbstractSolver):
                 "acted yet): leave tol_grad at 0 with `regulariser=`; the first-order test "
                 "(`gtol`) measures the proximal step's stationarity."
             )
-        if self.tol_loss is not None and not is_real(self.tol_loss):
-            raise ValueError(
-                f"`{type(self).__name__}(tol_loss=...)` must be a finite number or None (off), "
-                f"got {self.tol_loss!r}."
-            )
-        as_strategy(self.strategy, f"`{type(self).__name__}(strategy=...)`")
 
     def init(self, problem, params):
         C, g = problem.value_and_grad(params, self.strategy)
