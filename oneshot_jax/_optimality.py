@@ -30,14 +30,9 @@ also counts as stationary. The residuals r = z - z_hat are themselves known only
 precision of the outputs, eps ||z_hat|| at best (the rounding of z_hat alone): where the
 outputs are far above the residuals (float32 outputs of scale 30 with noise 1e-3), that
 error moves every cosine by up to eps ||z|| / ||r|| (3.6e-3 there), and a stall at the
-optimum measured 4.6e-3, above 10 sqrt(eps) = 3.5e-3. The loss C = ||r||^2 is then known
-to a relative precision of about eps ||z|| / ||r|| too, and a decrease of about fo^2 C
-below that is not seen: a stall on the loss's decrease (a line search's, or a rejected
-damped step's) resolves the measure down to sqrt(eps ||z|| / ||r||) only (L-BFGS in
-float64 with residuals 1e-7 of the outputs stopped at 7e-7, 1e-5 standard errors from
-the optimum). So a stall is tested at `stall_limit`, max(10 sqrt(eps), 10 eps ||z|| /
-||r||, sqrt(eps ||z|| / ||r||)) (the loss's term without the margin of 10; at most
-`STALL_LIMIT_MAX`), which is 10 sqrt(eps) in float64 unless ||r|| is below 1e-2 ||z||.
+optimum measured 4.6e-3, above 10 sqrt(eps) = 3.5e-3. So a stall is tested at
+`stall_limit`, 10 max(sqrt(eps), eps ||z|| / ||r||) (at most `STALL_LIMIT_MAX`), which
+is 10 sqrt(eps) in float64 unless ||r|| is below 1.5e-8 ||z||.
 
 At a degenerate minimum a column of J vanishes with the gradient (a parameter c entering
 as c^2 u, the minimum at c = 0: J e_c = 2 c u and g_c = 2 c u^T r), and its cosine stays
@@ -150,10 +145,9 @@ def roundoff_limit(dtype):
 
 def stall_limit(problem: FitProblem, C):
     """The first-order measure below which a stall (no step decreases C) is stationary to
-    the precision of its loss and of its residuals: max(10 sqrt(eps), 10 eps sqrt(Z / C),
-    sqrt(eps sqrt(Z / C))), with Z = `output_norm` the loss of predicting zero outputs
-    (see the module docstring), at least `roundoff_limit` and at most
-    max(`STALL_LIMIT_MAX`, `roundoff_limit`)."""
+    the precision of its loss and of its residuals: 10 max(sqrt(eps), eps sqrt(Z / C)),
+    with Z = `output_norm` the loss of predicting zero outputs (see the module docstring),
+    at least `roundoff_limit` and at most max(`STALL_LIMIT_MAX`, `roundoff_limit`)."""
     return stall_limit_of(problem.dtype, output_norm(problem), C)
 
 
@@ -162,11 +156,7 @@ def stall_limit_of(dtype, Z, C):
     base = roundoff_limit(dtype)
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
     ratio = jnp.sqrt(Z / jnp.maximum(jnp.abs(C), tiny))
-    # (the residuals' precision, eps ||z|| / ||r||, moves the measure itself; the loss's
-    # relative precision, as much, leaves decreases below it unseen: a stall on the loss
-    # resolves the measure down to its square root, counted without the margin of 10)
-    raised = jnp.maximum(10.0 * eps * ratio, jnp.sqrt(eps * ratio))
-    raised = jnp.minimum(raised, max(STALL_LIMIT_MAX, base))
+    raised = jnp.minimum(10.0 * eps * ratio, max(STALL_LIMIT_MAX, base))
     return jnp.where(jnp.isfinite(raised), jnp.maximum(raised, base), base).astype(dtype)
 
 
