@@ -514,7 +514,9 @@ def combine(transforms) -> ProximalTransformation | None:
     **Returns:**
 
     None for None, the transformation itself for one, else a `ProximalTransformation`
-    whose `terms` are the given ones, in the order they are applied.
+    whose `terms` are the given ones (a combination among them taken apart into its
+    terms; after regularisers, several sets as one combined projection), in the order
+    they are applied.
     """
     if transforms is None:
         return None
@@ -652,11 +654,11 @@ def _items(arg, name, what) -> list:
 
 def split(constraints, regulariser):
     """`fit`'s `constraints` and `regulariser` as (one projection or None, one
-    regulariser or None), each combined from its terms in order.
+    regulariser or None), each combined from its terms (`combine`, which orders the
+    regularisers by kind).
 
     A regulariser given in `constraints` (the mixed form of earlier releases) still works,
-    with a DeprecationWarning naming `regulariser=`; it comes before those of
-    `regulariser`. A projection given in `regulariser` is a ValueError naming the
+    with a DeprecationWarning naming `regulariser=`; it joins those of `regulariser`. A projection given in `regulariser` is a ValueError naming the
     argument. A step of `fit` applies the regulariser's prox, then the projection (see
     `combine`).
     """

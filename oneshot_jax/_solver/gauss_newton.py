@@ -36,7 +36,8 @@ class GaussNewton(AbstractLeastSquares):
     - `rtol`, `atol`: an optional step test (off by default): an accepted step of
         scaled size at most rtol ||D p|| + atol that decreased the loss by at most
         rtol C + atol ends the fit, as `converged` if the first-order measure is at
-        most gtol there, or at most its round-off limit 10 sqrt(eps), and as `stalled`
+        most gtol there, or at most its round-off limit (10 sqrt(eps), raised where the
+        outputs are far above the residuals: `_optimality.stall_limit`), and as `stalled`
         otherwise (see `oneshot_jax._solver.least_squares`). Without it
         the fit runs until the first-order test holds, no step can decrease the loss at
         round-off, or `max_steps`.

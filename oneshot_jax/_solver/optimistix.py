@@ -133,9 +133,9 @@ class _Fn(eqx.Module):
         return out, None
 
 
-# The failed steps in a row, each leaving the iterate where it was, after which the
-# first-order measure is formed at every step, and the fit stops as a stall where it is
-# within the round-off limit (a damped solver whose every proposal is rejected).
+# The failed steps in a row (the linear solve failed), each leaving the iterate where it
+# was, after which the first-order measure is formed at every step, and the fit stops as
+# a stall where it is within the round-off limit.
 STUCK_STEPS = 10
 
 
@@ -187,9 +187,10 @@ class Optimistix(AbstractSolver):
     - `gtol`: the first-order test applied where the optimistix solver stops: the fit
         is `converged` only if the scaled projected gradient there is at most `gtol`, or
         at most its round-off limit (see `oneshot_jax._optimality`); otherwise
-        `stalled`. After `STUCK_STEPS` (10) failed steps in a row that left the iterate
-        where it was (a damped solver whose every proposal is rejected), a measure
-        within the round-off limit ends the fit as `converged` too (a stall).
+        `stalled`. A step that optimistix reports as failed (its linear solve: capped
+        conjugate gradients, or NaN) and that left the iterate where it was is a stall
+        there: with the measure within the round-off limit the fit is `converged`, and
+        after `STUCK_STEPS` (10) such steps in a row it stops.
     - `strategy`: how the derivatives are computed (`"auto"`, `"jacobian"`, `"vjp"`,
         `"parallel"`; see `oneshot_jax.value_and_grad`).
     """
