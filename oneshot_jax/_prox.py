@@ -658,9 +658,9 @@ def split(constraints, regulariser):
     regularisers by kind).
 
     A regulariser given in `constraints` (the mixed form of earlier releases) still works,
-    with a DeprecationWarning naming `regulariser=`; it joins those of `regulariser`. A projection given in `regulariser` is a ValueError naming the
-    argument. A step of `fit` applies the regulariser's prox, then the projection (see
-    `combine`).
+    with a DeprecationWarning naming `regulariser=`; it joins those of `regulariser`. A
+    projection given in `regulariser` is a ValueError naming the argument. A step of
+    `fit` applies the regulariser's prox, then the projection (see `combine`).
     """
     given = _items(
         constraints,
