@@ -14,6 +14,7 @@ from ._aggregate import Aggregate as Aggregate
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._continuation import BasinCheck as BasinCheck
 from ._continuation import Continuation as Continuation
+from ._continuation import Stage as Stage
 from ._continuation import check_basin as check_basin
 from ._continuation import fit_continuation as fit_continuation
 from ._covariance import NeweyWest as NeweyWest
@@ -26,6 +27,7 @@ from ._gradient import literal_value_and_grad as literal_value_and_grad
 from ._gradient import value_and_grad as value_and_grad
 from ._identifiable import Orthogonal as Orthogonal
 from ._identifiable import PhysicsFirst as PhysicsFirst
+from ._identifiable import Round as Round
 from ._identifiable import fit_orthogonal as fit_orthogonal
 from ._identifiable import fit_physics_first as fit_physics_first
 from ._initial_state import Prediction as Prediction
