@@ -522,6 +522,35 @@ def test_optimistix_lm_with_a_capped_linear_solve_runs_to_its_solution():
         assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-9)
 
 
+def test_optimistix_whose_failed_steps_leave_the_optimum_stops_there_as_a_stall():
+    """LM with conjugate gradients capped at 1 or 2 iterations, its own tests off (rtol =
+    atol = 0) and gtol 1e-12: near the optimum every step failed its capped solve and left
+    the iterate where it was, at a measure of 1e-8 to 6e-8 (within the round-off limit
+    1.5e-7), and the fit ran to max_steps (`max_steps_reached`, not a success). After
+    `STUCK_STEPS` such steps in a row it now stops there as `converged`."""
+    lx = pytest.importorskip("lineax")
+    n_x = 8
+    model = oj.Model(
+        lambda x, u, p: jnp.concatenate([u, x[:-1]]),
+        lambda x, u, p: jnp.stack([jnp.tanh(p["w"] @ x) * p["g"]]),
+    )
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((300, 1))
+    truth = {"w": 0.5 * rng.standard_normal(n_x), "g": 2.0}
+    _, z = oj.simulate(model, truth, np.zeros(n_x), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    ref = oj.fit(model, truth, np.zeros(n_x), u, z, estimate_x0=False)
+    start = {"w": np.asarray(ref.theta["w"]) * (1 + 1e-6), "g": float(ref.theta["g"])}
+    for cap in (1, 2):
+        cg = lx.NormalCG(rtol=1e-12, atol=1e-12, max_steps=cap)
+        inner = optx.LevenbergMarquardt(rtol=0.0, atol=0.0, linear_solver=cg)
+        solver = oj.Optimistix(inner, max_steps=400, gtol=1e-12)
+        r = oj.fit(model, start, np.zeros(n_x), u, z, solver=solver, estimate_x0=False)
+        assert r.status == "converged" and r.num_steps < 400, (cap, r.status, r.num_steps)
+        assert r.stop_info["first_order"] <= r.stop_info["roundoff_limit"]
+        assert float(r.loss) == pytest.approx(float(ref.loss), rel=1e-9)
+
+
 def test_optimistix_in_float32_at_its_last_step_counts_gtol_as_the_resolution():
     """float32: GN through the bridge with tolerances that cannot fire ends at max_steps at
     the optimum (measure about 1e-6) and said "not a stationary point yet": gtol 1e-8 is
