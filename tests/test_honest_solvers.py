@@ -487,13 +487,9 @@ def test_optimistix_failing_at_its_first_step_stops_there():
     assert oj.fit(model, {"a": 0.5, "c": 1.0}, np.array([0.0]), u, z).success
 
 
-def test_optimistix_lm_with_a_capped_linear_solve_runs_to_its_solution():
-    """Every step of optimistix's LM with conjugate gradients capped at 2 or 3 iterations
-    reports a failure (the solve's max_steps), with a finite proposal: an inexact
-    Gauss-Newton method, whose rejected proposals shrink as its damping grows. A first
-    rule that stopped on two failed steps in a row that left the iterate where it was
-    (two rejections) ended 7 of 8 such fits as no_progress, at the optimum's loss."""
-    lx = pytest.importorskip("lineax")
+def _shift_register():
+    """z = g tanh(w . (u's last 8)) with noise 0.01, T = 300: the optimistix bridge's
+    capped-solve cases."""
     n_x = 8
     model = oj.Model(
         lambda x, u, p: jnp.concatenate([u, x[:-1]]),  # (a shift register: u's last 8)
@@ -504,6 +500,17 @@ def test_optimistix_lm_with_a_capped_linear_solve_runs_to_its_solution():
     truth = {"w": 0.5 * rng.standard_normal(n_x), "g": 2.0}
     _, z = oj.simulate(model, truth, np.zeros(n_x), u)
     z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    return n_x, model, truth, u, z
+
+
+def test_optimistix_lm_with_a_capped_linear_solve_runs_to_its_solution():
+    """Every step of optimistix's LM with conjugate gradients capped at 2 or 3 iterations
+    reports a failure (the solve's max_steps), with a finite proposal: an inexact
+    Gauss-Newton method, whose rejected proposals shrink as its damping grows. A first
+    rule that stopped on two failed steps in a row that left the iterate where it was
+    (two rejections) ended 7 of 8 such fits as no_progress, at the optimum's loss."""
+    lx = pytest.importorskip("lineax")
+    n_x, model, truth, u, z = _shift_register()
     for seed, cap in ((0, 3), (1, 2)):
         start = {"w": 0.5 * np.random.default_rng(seed + 10).standard_normal(n_x), "g": 0.5}
         cg = lx.NormalCG(rtol=1e-12, atol=1e-12, max_steps=cap)
@@ -529,16 +536,7 @@ def test_optimistix_whose_failed_steps_leave_the_optimum_stops_there_as_a_stall(
     1.5e-7), and the fit ran to max_steps (`max_steps_reached`, not a success). After
     `STUCK_STEPS` such steps in a row it now stops there as `converged`."""
     lx = pytest.importorskip("lineax")
-    n_x = 8
-    model = oj.Model(
-        lambda x, u, p: jnp.concatenate([u, x[:-1]]),
-        lambda x, u, p: jnp.stack([jnp.tanh(p["w"] @ x) * p["g"]]),
-    )
-    rng = np.random.default_rng(0)
-    u = rng.standard_normal((300, 1))
-    truth = {"w": 0.5 * rng.standard_normal(n_x), "g": 2.0}
-    _, z = oj.simulate(model, truth, np.zeros(n_x), u)
-    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    n_x, model, truth, u, z = _shift_register()
     ref = oj.fit(model, truth, np.zeros(n_x), u, z, estimate_x0=False)
     start = {"w": np.asarray(ref.theta["w"]) * (1 + 1e-6), "g": float(ref.theta["g"])}
     for cap in (1, 2):
