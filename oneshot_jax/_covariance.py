@@ -165,7 +165,7 @@ def _pseudo_inverse(blocks, carry=True):
     # (`identifiable`)
     decomposition = scaled_eigh(S, jnp.diag(A))
     S_inv = eigh_solve(decomposition, jnp.eye(p, dtype=S.dtype))
-    d_t, _, vecs, null = decomposition
+    d_t, _, vecs, null, _ = decomposition
     t_ok = identified(decomposition)
     if m and carry:
         # A direction v of the null space of theta's Schur complement moves each x0_i by

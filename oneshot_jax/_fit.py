@@ -28,7 +28,13 @@ from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
 from ._noise_weight import fit_noise_weighted
-from ._optimality import first_order_at, gtol_at_least_resolution, refuted
+from ._optimality import (
+    CHECK_ENTRIES,
+    first_order_at,
+    gauss_newton_refutes,
+    gtol_at_least_resolution,
+    refuted,
+)
 from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
@@ -403,6 +409,40 @@ def _flag_refuted_stop(result, problem, out, strategy):
     return dataclasses.replace(
         result, starts=dataclasses.replace(result.starts, stop_reason=tuple(stops))
     )
+
+
+@eqx.filter_jit
+def _gauss_newton_refutes_at(problem, params, strategy):
+    """`_optimality.gauss_newton_refutes`, compiled once per problem structure and
+    strategy."""
+    return gauss_newton_refutes(problem, params, strategy)
+
+
+def _flag_unresolved_success(result, problem, out, strategy):
+    """`result` with the stop `stalled` (`stop_info["gauss_newton_se"]`: the step's size
+    in standard errors) where a success (`converged`, `statistically_converged`) in a
+    precision below float64 is refuted by the Gauss-Newton step from the Jacobian itself
+    (`_optimality.gauss_newton_refutes`): the normal equations the solvers form lose half
+    the precision's digits, and a direction the data determine can read as null there.
+    Not checked: float64 (whose cut, 1e3 eps, is far below any direction such data
+    determine), a penalty or a regulariser (the step is that of the least-squares loss
+    alone), a Jacobian of more than `CHECK_ENTRIES` entries, and the other starts of a
+    multistart."""
+    problem_ok = problem.cost.penalty is None and problem.regulariser is None
+    low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
+    if not (low and problem_ok and result.status in ("converged", "statistically_converged")):
+        return result
+    N, T, n_z = problem.z.shape
+    best = int(out.best)
+    theta, x0 = np.asarray(out.start_theta[best]), np.asarray(out.start_x0[best])
+    if N * T * n_z * (theta.size + x0.size) > CHECK_ENTRIES:
+        return result
+    params = Params(jnp.asarray(theta), jnp.asarray(x0))
+    down, se = _gauss_newton_refutes_at(problem, params, strategy)
+    if not bool(down):
+        return result
+    precision = np.dtype(problem.dtype).name
+    return _demoted(result, "stalled", gauss_newton_se=float(se), precision=precision)
 
 
 def _warn_unequal_noise(residuals, weight, std, readings=None):
@@ -859,6 +899,7 @@ def fit(
         finals=Params(out.start_theta, out.start_x0),
     )
     result = _flag_refuted_stop(result, built.problem, out, strategy)
+    result = _flag_unresolved_success(result, built.problem, out, strategy)
     result = _measure_unmeasured_success(result, built.problem, out, strategy)
     readings = None
     if aggregate is not None:

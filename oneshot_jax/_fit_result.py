@@ -105,6 +105,15 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped at what read as a degenerate minimum, but a step along "
                 f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
             )
+        if np.isfinite(info.get("gauss_newton_se", np.nan)):
+            return (
+                f"the solver reported {info.get('solver_stop', 'converged')}, but the "
+                "Gauss-Newton step from the Jacobian itself (not from J^T J, which loses "
+                f"half the digits of {info.get('precision', 'this precision')}) lowers the loss "
+                f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
+                "the problem is too ill-conditioned for this precision; fit in float64 "
+                f"(enable jax_enable_x64 and pass float64 data): {tail}"
+            )
         if info.get("unmeasured_claim"):
             return (
                 "the solver reported converged without a first-order measure of its own; "
@@ -372,6 +381,10 @@ class FitResult(eqx.Module):
         the stop `stalled` where the solver reported a zero residual that a step along
         every column still descends from (checked after the solve),
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
+        `stalled` where a float32 (lower than float64) least-squares success is refuted
+        by the Gauss-Newton step from the Jacobian itself (checked after the solve,
+        `_optimality.gauss_newton_refutes`), `gauss_newton_se` (that step's size in
+        standard errors), `precision` and `solver_stop`; with the stop
         `zero_residual`, `residual_nrmse` (the largest of the outputs' NRMSE in
         `metrics`, over the outputs of weight above 0: how far below sqrt(eps) of their
         variation the residuals are).
@@ -635,7 +648,7 @@ class FitResult(eqx.Module):
         `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`. For several records, a
         list of N `Prediction`s, each record predicted alone (as MATLAB's `predict` of
         multi-experiment data); `x0=` then takes one starting guess per record, (N, n_x)
-        (`x0=result.x0` after a fit on the same N records).
+        (`x0=result.x0` after a fit on the same N records), or one for all, (n_x,).
         """
         if self.model is None:
             raise ValueError(

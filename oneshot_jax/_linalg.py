@@ -72,6 +72,7 @@ class Decomposition(NamedTuple):
     vals: jax.Array  # eigenvalues of the scaled matrix
     vecs: jax.Array  # its eigenvectors (columns)
     null: jax.Array  # the eigenvalues at or below 1e3 eps of the largest: numerically null
+    cut: jax.Array  # that cutoff (batched as the largest eigenvalue, with a trailing axis)
 
 
 def scaled_eigh(M, diag=None) -> Decomposition:
@@ -87,16 +88,16 @@ def scaled_eigh(M, diag=None) -> Decomposition:
     if diag is not None:  # judged against the reference's unit diagonal too
         top = jnp.maximum(top, 1.0)
     cut = 1e3 * jnp.finfo(M.dtype).eps * top
-    return Decomposition(d, vals, vecs, vals <= cut)
+    return Decomposition(d, vals, vecs, vals <= cut, cut)
 
 
-def psd_solve(M, b, diag=None):
+def psd_solve(M, b, diag=None, floored=False):
     """M^+ b for symmetric PSD M (batched; b a vector or a matrix per M).
 
     A direction in the null space of M gets a zero step instead of NaN or a huge one.
-    `diag`: as for `scaled_eigh`.
+    `diag`: as for `scaled_eigh`; `floored`: as for `eigh_solve`.
     """
-    return eigh_solve(scaled_eigh(M, diag), b)
+    return eigh_solve(scaled_eigh(M, diag), b, floored)
 
 
 def _reciprocal(vals, null):
@@ -104,11 +105,17 @@ def _reciprocal(vals, null):
     return jnp.where(null, 0.0, 1.0 / jnp.where(null, 1.0, vals))
 
 
-def eigh_solve(decomposition, b):
+def eigh_solve(decomposition, b, floored=False):
     """`psd_solve` from M's `scaled_eigh` `decomposition`, for a caller that reads the
-    decomposition too."""
-    d, vals, vecs, null = decomposition
-    inv = _reciprocal(vals, null)
+    decomposition too. `floored`: solve with the null eigenvalues raised to the cutoff
+    instead of dropped, (M + the null directions at the cutoff)^{-1} b, so that
+    b^T M_c^{-1} b is a lower bound on the decrease the null directions would give
+    where they are directions the data determine weakly rather than round-off."""
+    d, vals, vecs, null, cut = decomposition
+    if floored:
+        inv = 1.0 / jnp.maximum(vals, cut)
+    else:
+        inv = _reciprocal(vals, null)
     vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
     coef = jnp.einsum("...ji,...jk->...ik", vecs, b / d[..., None])
@@ -156,7 +163,7 @@ def identified(decomposition: Decomposition):
     errors at the same point), and every variable with a null component above
     `NULL_COMPONENT` is not identifiable.
     """
-    _, vals, vecs, null = decomposition
+    _, vals, vecs, null, _ = decomposition
     touched = jnp.any(null[..., None, :] & (jnp.abs(vecs) > NULL_COMPONENT), axis=-1)
     if jnp.finfo(vals.dtype).eps > jnp.finfo(jnp.float64).eps:
         return ~touched

@@ -99,6 +99,18 @@ creep of many: where the creep drifts coherently, a loose stol stops early (on t
 pendulum above, stol = 0.03 stopped at step 59 with w0sq 0.89 standard errors from
 where 3000 steps take it; the default 0.01 stopped at step 2494, 0.01 standard errors
 from it).
+
+In a precision below float64 the normal equations lose the weakly determined directions
+first: `_linalg.scaled_eigh`'s cut (1e3 eps, 1.2e-4 of the largest scaled eigenvalue in
+float32) calls a direction null whose singular value in J is 1e-2 of the largest. Such
+a direction is no network's null space: the least-squares steps floor its eigenvalue at
+the cut instead of dropping it (`_linalg.eigh_solve(floored=True)`, in float32 only),
+which moves along it, and the undamped step's decrease counts it the same way (a lower
+bound on what it would give), so that the statistical test does not take it for a null
+space. Where an eigenvalue is far below the cut (round-off in float32) neither helps:
+a success in such a precision is checked after the solve by the Gauss-Newton step
+computed from J itself (`gauss_newton_refutes`), and is `stalled` where that step moves
+the estimates by more than a standard error and the loss confirms it.
 """
 
 import functools
@@ -410,6 +422,75 @@ def refuted(problem: FitProblem, params: Params, along: Params, strategy):
     C, g, d_t, d_x = _evaluated(problem, params, strategy)
     down = descends(problem, params, g, Params(d_t, d_x), along, strategy)
     return down, first_order(problem, params, C, g, d_t, d_x)
+
+
+# `gauss_newton_refutes` forms the whole Jacobian (every trajectory's x0 columns beside
+# theta's) up to this many entries; a larger problem is not checked.
+CHECK_ENTRIES = 2**22
+
+# `gauss_newton_refutes`: a success is refuted where the Gauss-Newton step from J itself
+# moves a quantity the data determine by more than this many of its standard errors.
+CHECK_SE = 1.0
+
+
+def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
+    """After a success in a precision below float64: whether the Gauss-Newton step
+    computed from the residual Jacobian J itself (its singular value decomposition,
+    Jacobi-scaled) refutes it, and that step's size in standard errors.
+
+    The solvers form J^T J (eq. 17/20 give J^T r and J's columns), which squares J's
+    condition number: in float32 its eigenvalues below about 1e-4 of the largest are
+    round-off (`_linalg.scaled_eigh`'s cut), and a direction the data determine with a
+    scaled singular value 1e-3 of the largest is lost. A fit along such a direction
+    reads stationary to the precision of its normal equations (a first-order model whose
+    input, 3 + 0.1 N(0, 1), made the gain, the offset and x0 nearly collinear ended
+    `statistically_converged` 57 standard errors from the optimum, the loss 4.3 times
+    the optimum's), while J itself resolves it (cond J about 200 there). The step
+    h = -J^+ r (singular values below max(R, n) eps of the largest cut, NumPy's lstsq
+    default) predicts the decrease pred = ||U^T r||^2 over the kept singular vectors U;
+    sqrt(pred / sigma^2), sigma^2 = C / (R - rank J), bounds the move of every quantity
+    the data determine in its own standard error (`standard_errors`). Refuted where it
+    is above `CHECK_SE` and the loss confirms it: at one of the step lengths 1, 1/2, 1/4
+    (projected onto the constraints) C falls by at least a quarter of its linear
+    model's (2 a - a^2) pred.
+
+    **Returns:** (refuted, the step's size in standard errors)."""
+    lin = problem.jacobian(params, strategy)
+    N, R = lin.r.shape
+    p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
+    dtype = lin.r.dtype
+    r = lin.r.reshape(-1)
+    eye = jnp.eye(N, dtype=dtype)[:, None, :, None]
+    Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
+    J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
+    d = jnp.sqrt(jnp.sum(J * J, axis=0))
+    d = jnp.where(d > 0, d, 1.0)
+    U, s, Vt = jnp.linalg.svd(J / d, full_matrices=False)
+    kept = s > max(J.shape) * jnp.finfo(dtype).eps * jnp.max(s, initial=0.0)
+    coef = jnp.where(kept, U.T @ r, 0.0)
+    pred = jnp.sum(coef**2)
+    C = jnp.sum(r * r)
+    rank = jnp.sum(kept)
+    se = standard_errors(pred, C, n_observations(problem), rank)
+    h = -(Vt.T @ (coef / jnp.where(kept, s, 1.0))) / d
+    h_t, h_x = h[:p], h[p:].reshape(N, m)
+
+    def objective(q):
+        return problem.loss(q, strategy) + problem.g(q.theta)
+
+    here = objective(params)
+
+    def confirms(a):
+        theta = params.theta + a * h_t
+        if p and (problem.constrained or problem.regulariser is not None):
+            theta = problem.feasible(theta)
+        there = objective(Params(theta, params.x0 + a * h_x))
+        model = (2.0 * a - a * a) * pred / jnp.maximum(C, jnp.finfo(dtype).tiny)
+        return jnp.isfinite(there) & (here - there >= 0.25 * model * jnp.abs(here))
+
+    alphas = jnp.asarray((1.0, 0.5, 0.25), dtype)
+    confirmed = jnp.any(jax.lax.map(confirms, alphas))
+    return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se
 
 
 def first_order_at(problem: FitProblem, params: Params, strategy):

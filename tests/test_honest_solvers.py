@@ -951,6 +951,71 @@ def test_a_float32_x0_fit_does_not_cycle_on_round_off_decreases(solver):
     np.testing.assert_allclose(r.x0, ref.x0, atol=2e-5)
 
 
+def _collinear_first_order(umean, ustd, noise, seed):
+    """x+ = a x + b u, z = x + c with u = umean + ustd N(0, 1): a nearly constant input
+    makes the gain b, the offset c and x0 nearly collinear (float32 data, T = 1000). The
+    start (a, b, c) = (0.8, 0.4, 29) and its x0 from the first output."""
+
+    def f(x, u, th):
+        return th["a"] * x + th["b"] * u
+
+    model = oj.Model(f, lambda x, u, th: x + th["c"])
+    rng = np.random.default_rng(seed)
+    u = umean + ustd * rng.standard_normal((1000, 1))
+    x = np.empty(1000)
+    x[0] = 2.0
+    for k in range(999):
+        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    z = (x + 30.0 + noise * rng.standard_normal(1000))[:, None]
+    theta0 = {"a": 0.8, "b": 0.4, "c": 29.0}
+    x0 = np.array([z[0, 0] - 29.0])
+    return model, theta0, x0, u.astype(np.float32), z.astype(np.float32)
+
+
+def _in_standard_errors(r, ref):
+    """The largest distance of `r`'s estimates from `ref`'s, in `ref`'s standard errors."""
+    d = [abs(float(r.theta[k]) - float(ref.theta[k])) / float(ref.std[k]) for k in ref.theta]
+    d.append(abs(float(r.x0[0]) - float(ref.x0[0])) / float(ref.x0_std[0]))
+    return max(d)
+
+
+@pytest.mark.parametrize("solver", [oj.GaussNewton(), oj.LevenbergMarquardt()], ids=["gn", "lm"])
+def test_a_float32_direction_below_the_null_cut_is_still_fitted(solver):
+    """float32, u = 3 + 0.1 N(0, 1): the scaled J^T J's smallest eigenvalue, 2.7e-5, is
+    below the null cut 1e3 eps = 1.2e-4. The solve dropped that direction, and its
+    false null space switched the statistical test on: `statistically_converged` 57
+    standard errors from the optimum, the loss 4.3 times the optimum's. Its eigenvalue
+    now floors at the cut (`_linalg.eigh_solve(floored=True)`), which moves along it,
+    and the undamped step's decrease counts it: the fit reaches the float64 optimum."""
+    model, theta0, x0, u, z = _collinear_first_order(3.0, 0.1, 3e-3, 0)
+    f32 = {k: np.float32(v) for k, v in theta0.items()}
+    r = oj.fit(model, f32, x0.astype(np.float32), u, z, solver=solver)
+    ref = oj.fit(model, theta0, x0, u.astype(float), z.astype(float), solver=solver)
+    assert ref.status == "converged"
+    assert r.success, r.message
+    assert _in_standard_errors(r, ref) < 1.0
+    assert float(r.loss) <= float(ref.loss) * (1 + 1e-3)
+
+
+def test_a_float32_success_that_its_jacobian_refutes_is_a_stall():
+    """float32, u = 10 + 0.03 N(0, 1): the smallest scaled eigenvalue of J^T J, 8e-8, is
+    round-off in float32; the fit read converged (at the precision of its outputs) 15.6
+    standard errors from the optimum, the loss 1.24 times the optimum's. The
+    Gauss-Newton step from J itself (its SVD: cond J about 4e3) refutes it
+    (`_optimality.gauss_newton_refutes`): `stalled`, and the message says to fit in
+    float64."""
+    model, theta0, x0, u, z = _collinear_first_order(10.0, 0.03, 1e-3, 1)
+    f32 = {k: np.float32(v) for k, v in theta0.items()}
+    r = oj.fit(model, f32, x0.astype(np.float32), u, z, solver=oj.LevenbergMarquardt())
+    ref = oj.fit(model, theta0, x0, u.astype(float), z.astype(float))
+    assert ref.status == "converged"
+    assert _in_standard_errors(r, ref) > 1.0  # (not a solution)
+    assert r.status == "stalled", r.message
+    assert r.stop_info["solver_stop"] in ("converged", "statistically_converged")
+    assert r.stop_info["gauss_newton_se"] > 1.0
+    assert "float64" in r.message and "Gauss-Newton step" in r.message
+
+
 def test_an_ill_conditioned_x0_block_does_not_hide_identifiable_parameters():
     """A partly observed Duffing oscillator from a far start ends at a point where the x0
     columns are nearly parallel (cond(C) about 1e11). The Schur complement formed from

@@ -164,7 +164,10 @@ class DenseLinearisation(AbstractLinearisation):
         act = active.astype(S.dtype)
         keep = 1.0 - act
         S = S * keep[:, None] * keep[None, :] + jnp.diag(act)
-        h_t = -psd_solve(S, rhs * keep) if S.shape[0] else rhs
+        # Below float64 a direction the data determine can fall under the null cut: its
+        # eigenvalue floors at the cut, damped rather than dropped (`_optimality`).
+        low = jnp.finfo(S.dtype).eps > jnp.finfo(jnp.float64).eps
+        h_t = -psd_solve(S, rhs * keep, floored=low) if S.shape[0] else rhs
         return Params(h_t, elim.back(h_t))
 
     def curvature(self, problem, params, st, sx):
@@ -193,7 +196,10 @@ class DenseLinearisation(AbstractLinearisation):
         """(rank J, rank S, g^T (J^T J)^+ g): `rank`, and the decrease of C that the
         undamped Gauss-Newton step (the pseudo-inverse's, without bounds) predicts, from
         the same eigendecomposition of S: sum_i g_i^T C_i^+ g_i + q^T S^+ q with q the
-        reduced right-hand side (`_linalg.Elimination.rhs`)."""
+        reduced right-hand side (`_linalg.Elimination.rhs`), S's null eigenvalues
+        floored at the cut (`_linalg.eigh_solve(floored=True)`: a direction the data
+        determine weakly, below the cut, counts with at least the decrease the cut
+        gives it)."""
         p, m = self.A.shape[0], self.Cb.shape[-1]
         rank_x = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
         elim = eliminate_x0(self.B, self.Cb, self.g_x)
@@ -203,7 +209,7 @@ class DenseLinearisation(AbstractLinearisation):
             decomposition = scaled_eigh(self.S, jnp.diag(self.A))
             rank_t = jnp.sum(~decomposition.null)
             q = elim.rhs(self.B, self.g_t)
-            decrease = decrease + q @ eigh_solve(decomposition, q)
+            decrease = decrease + q @ eigh_solve(decomposition, q, floored=True)
         return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t), decrease
 
 
