@@ -712,6 +712,11 @@ def check_data(
                 "trajectories of different lengths: give both `u` and `z` as lists of "
                 "per-trajectory arrays."
             )
+        if z is not None and len(u) != len(z):
+            raise ValueError(
+                f"`u` holds {len(u)} trajectories but `{z_name}` holds {len(z)}: one output "
+                "record per input record."
+            )
         u, lengths = pad(_checked_trajectories(u, "u", dtype, x0.shape[0]), dtype)
         if z is not None:
             z_padded, z_lengths = pad(

@@ -137,6 +137,13 @@ class Prediction(NamedTuple):
 def _check_head(u, z, n, z_name="z"):
     """u (T, n_u), z (T_z <= T, n_z) and 1 <= n <= T_z, as the number of samples used
     (`z_name`: the caller's name of z)."""
+    for name, a in (("u", u), (z_name, z)):
+        if isinstance(a, (list, tuple)) and any(np.ndim(r) >= 2 for r in a):
+            raise ValueError(
+                f"`{name}` must have shape (T, n) (one record), got a {type(a).__name__} of "
+                f"{len(a)} records (several records: one call each, or `FitResult.predict`, "
+                "which takes them all)."
+            )
     if np.ndim(u) != 2:
         several = (
             " (several records: one call each, or `FitResult.predict`, which takes them all)"

@@ -36,6 +36,12 @@ def _pyplot():
 
 def _columns(a, name):
     """`a` as a float64 (T, n) array."""
+    if isinstance(a, (list, tuple)) and any(np.ndim(r) >= 2 for r in a):
+        raise ValueError(
+            f"`{name}` must have shape (T,) or (T, n) (one record), got a "
+            f"{type(a).__name__} of {len(a)} records. Compare them one at a time, e.g. "
+            "`compare(z[i], result, u=u[i], n=n)`."
+        )
     try:
         complex_ = np.iscomplexobj(a)
         a = a if complex_ else np.asarray(a, dtype=np.float64)

@@ -719,6 +719,12 @@ FIT_CASES = {
         ValueError,
         r"`window` must be a positive integer .*fit_continuation\(windows=",
     ),
+    # (it blamed `x0`, whose rows matched `u`)
+    "ragged records, fewer outputs than inputs": (
+        dict(x0=np.zeros((3, 1)), u=[_U1, _U1[:20], _U1[:10]], z=[_Z1, _Z1[:20]]),
+        ValueError,
+        r"`u` holds 3 trajectories but `z` holds 2: one output record per input record",
+    ),
     "validation of different lengths": (
         dict(validation=oj.Validation([_U1, _U1[:20]], [_Z1, _Z1[:20]], n=2)),
         ValueError,

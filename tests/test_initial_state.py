@@ -548,6 +548,11 @@ def test_bad_input_errors():
         oj.predict(LINEAR, 1.0, np.stack([u, u]), np.stack([z, z]), 5, x0=x0)
     with pytest.raises(ValueError, match=r"`z` must have shape \(T, n_z\)"):
         oj.estimate_x0(LINEAR, 1.0, u, z[None], x0=x0)
+    # (records of unequal lengths in a list: NumPy's "inhomogeneous shape" before)
+    with pytest.raises(ValueError, match=r"`u` .*got a list of 2 records \(several records"):
+        oj.predict(LINEAR, 1.0, [u, u[:15]], [z, z[:15]], 5, x0=x0)
+    with pytest.raises(ValueError, match=r"`z` .*got a list of 2 records"):
+        oj.estimate_x0(LINEAR, 1.0, u, [z[:5], z[:4]], x0=x0)
     with pytest.raises(ValueError, match="`x0` .* is needed"):
         est()
     with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):

@@ -411,6 +411,8 @@ def test_compare_of_a_multi_record_result_without_n_says_to_pass_n():
     with pytest.raises(ValueError, match=r"2 records\. Compare them one at a time") as err:
         oj.plot.compare(np.asarray(z), res, u=u, n=10)
     assert "`compare(z[i], preds[i], n=n)`" in str(err.value)
+    with pytest.raises(ValueError, match=r"got a list of 2 records\. Compare them one at a"):
+        oj.plot.compare([np.asarray(z[0]), np.asarray(z[1])[:40]], res, u=u, n=10)
     preds = res.predict(u, np.asarray(z)[:, :10])
     fig = oj.plot.compare(np.asarray(z[1]), preds[1], n=10)
     assert "FIT 100.00 %" in " ".join(_legend_texts(fig.axes[0]))
