@@ -244,14 +244,18 @@ def test_compiled_calls_return_the_static_outputs_of_their_own_shapes():
 @pytest.mark.parametrize(
     "first, then",
     [
-        (oj.LevenbergMarquardt(), oj.LevenbergMarquardt(gtol=1e-2, mu0=1e-2, rtol=1e-9)),
-        (oj.GaussNewton(), oj.GaussNewton(gtol=1e-2, atol=1e-14)),
+        (
+            oj.LevenbergMarquardt(),
+            oj.LevenbergMarquardt(gtol=1e-2, mu0=1e-2, rtol=1e-9, stol=0.05),
+        ),
+        (oj.GaussNewton(), oj.GaussNewton(gtol=1e-2, atol=1e-14, stol=0.05)),
         (oj.Adam(1e-2, max_steps=400), oj.Adam(1e-2, max_steps=400, tol_grad=1e-2, gtol=1e-2)),
         (oj.LBFGS(), oj.LBFGS(tol_grad=1e-2, gtol=1e-2)),
     ],
 )
 def test_a_new_tolerance_reuses_the_compiled_fit(first, then):
-    """The tolerances and LM's starting damping enter the compiled fit as traced numbers:
+    """The tolerances (the statistical test's stol too) and LM's starting damping enter
+    the compiled fit as traced numbers:
     a sweep over them compiles once, and the new values act (a looser tolerance stops
     earlier)."""
     model = oj.Model.from_ode(cubic, DT)

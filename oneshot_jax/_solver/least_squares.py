@@ -64,6 +64,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._linalg import floor
 from .._optimality import (
@@ -125,11 +126,19 @@ class _Move(NamedTuple):
     same_path_reject: jax.Array
 
 
+def _statistical_off(stol):
+    """Whether `stol` switches the statistical test off: 0 given as a number (a traced
+    stol, `traced_options`, is never 0)."""
+    return isinstance(stol, (int, float, np.integer, np.floating)) and not stol
+
+
 class AbstractLeastSquares(AbstractSolver):
     """The structured least-squares loop: the descent is the linearisation's step
     (`_linearisation`), the search (`_search`) is what a subclass supplies."""
 
-    TRACED_OPTIONS = ("rtol", "atol", "gtol")
+    # (`stol` too, where it is not 0: 0 switches the statistical test off, a branch of
+    # the compiled solve, `traced_options`)
+    TRACED_OPTIONS = ("rtol", "atol", "gtol", "stol")
 
     rtol: eqx.AbstractVar[float]
     atol: eqx.AbstractVar[float]
@@ -140,6 +149,15 @@ class AbstractLeastSquares(AbstractSolver):
     linear_solver: eqx.AbstractVar[str]
     cg_rtol: eqx.AbstractVar[float]
     cg_max_steps: eqx.AbstractVar[int]
+
+    def traced_options(self, dtype):
+        """As `AbstractSolver.traced_options`, with `stol = 0` kept a Python number: it
+        switches the statistical test off (`_statistical`), which the compiled solve
+        then leaves out; any other stol is a threshold like gtol."""
+        out = super().traced_options(dtype)
+        if _statistical_off(self.stol):
+            return eqx.tree_at(lambda s: s.stol, out, self.stol)
+        return out
 
     def _check(self):
         name = type(self).__name__
@@ -558,7 +576,7 @@ class AbstractLeastSquares(AbstractSolver):
         Off (NaN, False) with `stol=0` and where J^T J is not formed
         (`linear_solver="cg"`)."""
         dtype = problem.dtype
-        if not self.stol or not b.forms_normal_matrix:
+        if _statistical_off(self.stol) or not b.forms_normal_matrix:
             return jnp.array(jnp.nan, dtype), jnp.array(False)
         pred = -(
             2.0 * (s.theta @ b.g_t + jnp.sum(s.x0 * b.g_x))
