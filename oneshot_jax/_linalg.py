@@ -91,13 +91,13 @@ def scaled_eigh(M, diag=None) -> Decomposition:
     return Decomposition(d, vals, vecs, vals <= cut, cut)
 
 
-def psd_solve(M, b, diag=None, floored=False):
+def psd_solve(M, b, diag=None):
     """M^+ b for symmetric PSD M (batched; b a vector or a matrix per M).
 
     A direction in the null space of M gets a zero step instead of NaN or a huge one.
-    `diag`: as for `scaled_eigh`; `floored`: as for `eigh_solve`.
+    `diag`: as for `scaled_eigh`.
     """
-    return eigh_solve(scaled_eigh(M, diag), b, floored)
+    return eigh_solve(scaled_eigh(M, diag), b)
 
 
 def _reciprocal(vals, null):

@@ -102,15 +102,16 @@ from it).
 
 In a precision below float64 the normal equations lose the weakly determined directions
 first: `_linalg.scaled_eigh`'s cut (1e3 eps, 1.2e-4 of the largest scaled eigenvalue in
-float32) calls a direction null whose singular value in J is 1e-2 of the largest. Such
-a direction is no network's null space: the least-squares steps floor its eigenvalue at
-the cut instead of dropping it (`_linalg.eigh_solve(floored=True)`, in float32 only),
-which moves along it, and the undamped step's decrease counts it the same way (a lower
-bound on what it would give), so that the statistical test does not take it for a null
-space. Where an eigenvalue is far below the cut (round-off in float32) neither helps:
-a success in such a precision is checked after the solve by the Gauss-Newton step
-computed from J itself (`gauss_newton_refutes`), and is `stalled` where that step moves
-the estimates by more than a standard error and the loss confirms it.
+float32) calls a direction null whose singular value in J is 1e-2 of the largest, and
+the steps do not move along it. Such a direction is no network's null space: the
+undamped step's decrease that the statistical test bounds counts it with its eigenvalue
+floored at the cut (`_linalg.eigh_solve(floored=True)`, a lower bound on what it would
+give), so that the test does not take it for a null space. (Flooring it in the steps
+too moved a float32 hybrid along its network's true null directions, whose gradient is
+round-off, and its statistical stop no longer came.) A success in such a precision is
+checked after the solve by the Gauss-Newton step computed from J itself
+(`gauss_newton_refutes`), and is `stalled` where that step moves the estimates by more
+than a standard error and the loss confirms it.
 """
 
 import functools
@@ -435,24 +436,27 @@ CHECK_SE = 1.0
 
 def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     """After a success in a precision below float64: whether the Gauss-Newton step
-    computed from the residual Jacobian J itself (its singular value decomposition,
-    Jacobi-scaled) refutes it, and that step's size in standard errors.
+    computed from the residual Jacobian J itself (Jacobi-scaled) refutes it, and that
+    step's size in standard errors.
 
     The solvers form J^T J (eq. 17/20 give J^T r and J's columns), which squares J's
     condition number: in float32 its eigenvalues below about 1e-4 of the largest are
     round-off (`_linalg.scaled_eigh`'s cut), and a direction the data determine with a
-    scaled singular value 1e-3 of the largest is lost. A fit along such a direction
-    reads stationary to the precision of its normal equations (a first-order model whose
-    input, 3 + 0.1 N(0, 1), made the gain, the offset and x0 nearly collinear ended
-    `statistically_converged` 57 standard errors from the optimum, the loss 4.3 times
-    the optimum's), while J itself resolves it (cond J about 200 there). The step
-    h = -J^+ r (singular values below max(R, n) eps of the largest cut, NumPy's lstsq
-    default) predicts the decrease pred = ||U^T r||^2 over the kept singular vectors U;
-    sqrt(pred / sigma^2), sigma^2 = C / (R - rank J), bounds the move of every quantity
-    the data determine in its own standard error (`standard_errors`). Refuted where it
-    is above `CHECK_SE` and the loss confirms it: at one of the step lengths 1, 1/2, 1/4
-    (projected onto the constraints) C falls by at least a quarter of its linear
-    model's (2 a - a^2) pred.
+    scaled singular value 1e-2 of the largest is lost. A fit along such a direction
+    reads stationary to the precision of its normal equations (a first-order model with
+    an output offset, whose input 10 + 0.03 N(0, 1) made the gain, the offset and x0
+    nearly collinear, read converged 15.6 standard errors from the optimum, the loss
+    1.24 times the optimum's), while J itself resolves it (cond J about 4e3 there).
+
+    The step h = -J^+ r: J = Q R by Householder QR, then the SVD of the triangle R =
+    U diag(s) V^T (Golub and Van Loan, "Matrix Computations", 4th ed., 2013, Sec. 5.5),
+    singular values below max(rows, columns) eps of the largest cut (NumPy's lstsq
+    default). It predicts the decrease pred = ||U^T Q^T r||^2 over the kept singular
+    vectors, and sqrt(pred / sigma^2), sigma^2 = C / (R - rank J), bounds the move of
+    every quantity the data determine in its own standard error (`standard_errors`).
+    Refuted where that is above `CHECK_SE` and the loss confirms it: at one of the step
+    lengths a = 1, 1/2, 1/4 (projected onto the constraints) C falls by at least a
+    quarter of its linear model's (2 a - a^2) pred.
 
     **Returns:** (refuted, the step's size in standard errors)."""
     lin = problem.jacobian(params, strategy)
@@ -465,9 +469,11 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
     d = jnp.sqrt(jnp.sum(J * J, axis=0))
     d = jnp.where(d > 0, d, 1.0)
-    U, s, Vt = jnp.linalg.svd(J / d, full_matrices=False)
+    # (a tall J: its QR first, then the SVD of the small triangle, R = U s V^T)
+    Q, tri = jnp.linalg.qr(J / d)
+    U, s, Vt = jnp.linalg.svd(tri, full_matrices=False)
     kept = s > max(J.shape) * jnp.finfo(dtype).eps * jnp.max(s, initial=0.0)
-    coef = jnp.where(kept, U.T @ r, 0.0)
+    coef = jnp.where(kept, U.T @ (Q.T @ r), 0.0)
     pred = jnp.sum(coef**2)
     C = jnp.sum(r * r)
     rank = jnp.sum(kept)

@@ -164,10 +164,7 @@ class DenseLinearisation(AbstractLinearisation):
         act = active.astype(S.dtype)
         keep = 1.0 - act
         S = S * keep[:, None] * keep[None, :] + jnp.diag(act)
-        # Below float64 a direction the data determine can fall under the null cut: its
-        # eigenvalue floors at the cut, damped rather than dropped (`_optimality`).
-        low = jnp.finfo(S.dtype).eps > jnp.finfo(jnp.float64).eps
-        h_t = -psd_solve(S, rhs * keep, floored=low) if S.shape[0] else rhs
+        h_t = -psd_solve(S, rhs * keep) if S.shape[0] else rhs
         return Params(h_t, elim.back(h_t))
 
     def curvature(self, problem, params, st, sx):
