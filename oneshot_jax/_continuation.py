@@ -407,13 +407,20 @@ def check_basin(
             f"that record, `u` (T, n_u) and `z` (T, n_z); got x0 {np.shape(result.x0)}, u "
             f"{np.shape(u)}, z {np.shape(z)}."
         )
+    if not is_count(window, -math.inf):  # (a float such as 2.5, a string: the type)
+        raise TypeError(
+            f"`window` must be a positive integer shorter than the record (T = "
+            f"{np.shape(u)[0]}), got {window!r}."
+        )
     if not is_count(window, 1) or window >= np.shape(u)[0]:
         raise ValueError(
             f"`window` must be a positive integer shorter than the record (T = "
             f"{np.shape(u)[0]}), got {window!r}."
         )
     window = int(window)
-    if isinstance(margin, bool) or not isinstance(margin, numbers.Real) or not margin >= 0:
+    if isinstance(margin, bool) or not isinstance(margin, numbers.Real):
+        raise TypeError(f"`margin` must be a non-negative number, got {margin!r}.")
+    if not margin >= 0:
         raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
     check_fit_keywords(kwargs, "check_basin")
     for name in ("window", "multistart"):

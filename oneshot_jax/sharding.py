@@ -113,7 +113,12 @@ def _check_mesh(mesh, fleet=True):
 def fleet_sharding(mesh, ndim):
     """`NamedSharding` splitting the leading (trajectory) axis of an `ndim`-D array."""
     _check_mesh(mesh)
-    if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)) or ndim < 1:
+    if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)):
+        raise TypeError(
+            f"`ndim` must be an integer >= 1 (the array's number of axes, the first the "
+            f"trajectories), got {ndim!r}."
+        )
+    if ndim < 1:
         raise ValueError(
             f"`ndim` must be an integer >= 1 (the array's number of axes, the first the "
             f"trajectories), got {ndim!r}."

@@ -180,6 +180,10 @@ def test_basin_check_rejects_bad_arguments(plain):
         oj.check_basin(plain, U, Z, window=T)
     with pytest.raises(ValueError, match="margin"):
         oj.check_basin(plain, U, Z, margin=-1.0)
+    with pytest.raises(TypeError, match="`window` must be a positive integer"):
+        oj.check_basin(plain, U, Z, window=2.5)
+    with pytest.raises(TypeError, match="`margin` must be a non-negative number"):
+        oj.check_basin(plain, U, Z, margin="5")
     with pytest.raises(ValueError, match=r"must be the record the result was fitted on"):
         oj.check_basin(plain, U[:300], Z[:300])
 

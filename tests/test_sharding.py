@@ -161,7 +161,7 @@ def test_sharded_fleet_equals_unsharded():
         (lambda: sharding.replicate({"k": 1.0}, None), TypeError, "`mesh` must be a"),
         (lambda: sharding.fleet_sharding(None, 2), TypeError, "`mesh` must be a 1-D"),
         (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 0), ValueError, "`ndim`"),
-        (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 1.0), ValueError, "`ndim`"),
+        (lambda: sharding.fleet_sharding(sharding.fleet_mesh(), 1.0), TypeError, "`ndim`"),
         # NumPy's "inhomogeneous shape", and "the same N as `x0`" said of x0 itself.
         (
             lambda: sharding.shard_fleet(np.zeros((2, 1)), [np.zeros((5, 1)), np.zeros((3, 1))]),
