@@ -39,6 +39,7 @@ from ._parallel._report import UNCONVERGED, counting
 from ._problem import Params
 from ._progress import NoProgress
 from ._results import RESULTS, SUCCESS, name_of
+from ._solver.least_squares import AbstractLeastSquares
 from ._stability import (
     jacobians_at,
     rhs_of,
@@ -418,19 +419,35 @@ def _gauss_newton_refutes_at(problem, params, strategy):
     return gauss_newton_refutes(problem, params, strategy)
 
 
-def _flag_unresolved_success(result, problem, out, strategy):
-    """`result` with the stop `stalled` (`stop_info["gauss_newton_se"]`: the step's size
-    in standard errors) where a success (`converged`, `statistically_converged`) in a
-    precision below float64 is refuted by the Gauss-Newton step from the Jacobian itself
-    (`_optimality.gauss_newton_refutes`): the normal equations the solvers form lose half
-    the precision's digits, and a direction the data determine can read as null there.
-    Not checked: float64 (whose cut, 1e3 eps, is far below any direction such data
-    determine), a penalty or a regulariser (the step is that of the least-squares loss
-    alone), a Jacobian of more than `CHECK_ENTRIES` entries, and the other starts of a
-    multistart."""
+def _flag_unresolved_success(result, problem, out, strategy, least_squares):
+    """A fit in a precision below float64, checked by the Gauss-Newton step from the
+    Jacobian itself (`_optimality.gauss_newton_refutes`): the normal equations the
+    solvers form lose half the precision's digits, and a direction the data determine
+    can read as null there.
+
+    Only where the last solver is a least-squares one (`least_squares`: they form J^T J):
+
+    - a success that its normal equations decided, `statistically_converged` or
+      `converged` with the measure above gtol (at its round-off limit), that the step
+      refutes becomes `stalled` (`stop_info["gauss_newton_refuted"]`; a measure within
+      gtol is the user's threshold, whatever the precision);
+    - a failure (`max_steps_reached`, `stalled`, `no_progress`) that the step refutes,
+      where J^T J loses a direction that J keeps, is left as it is, its message then
+      saying that more steps will not help.
+
+    Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
+    `stop_info["precision"]` the dtype. Not checked: float64 (whose cut, 1e3 eps, is far
+    below any direction such data determine), a penalty or a regulariser (the step is
+    that of the least-squares loss alone), a Jacobian of more than `CHECK_ENTRIES`
+    entries, and the other starts of a multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
     low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
-    if not (low and problem_ok and result.status in ("converged", "statistically_converged")):
+    info = result.stop_info
+    within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
+    status = result.status
+    success = status == "statistically_converged" or (status == "converged" and not within_gtol)
+    failure = status in ("max_steps_reached", "stalled", "no_progress")
+    if not (low and problem_ok and least_squares and (success or failure)):
         return result
     N, T, n_z = problem.z.shape
     best = int(out.best)
@@ -438,11 +455,13 @@ def _flag_unresolved_success(result, problem, out, strategy):
     if N * T * n_z * (theta.size + x0.size) > CHECK_ENTRIES:
         return result
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
-    down, se = _gauss_newton_refutes_at(problem, params, strategy)
-    if not bool(down):
-        return result
-    precision = np.dtype(problem.dtype).name
-    return _demoted(result, "stalled", gauss_newton_se=float(se), precision=precision)
+    down, se, lost = _gauss_newton_refutes_at(problem, params, strategy)
+    info = dict(gauss_newton_se=float(se), precision=np.dtype(problem.dtype).name)
+    if success and bool(down):
+        return _demoted(result, "stalled", gauss_newton_refuted=True, **info)
+    if failure and bool(down) and bool(lost):
+        return dataclasses.replace(result, stop_info={**result.stop_info, **info})
+    return result
 
 
 def _warn_unequal_noise(residuals, weight, std, readings=None):
@@ -899,7 +918,8 @@ def fit(
         finals=Params(out.start_theta, out.start_x0),
     )
     result = _flag_refuted_stop(result, built.problem, out, strategy)
-    result = _flag_unresolved_success(result, built.problem, out, strategy)
+    least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
+    result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
     result = _measure_unmeasured_success(result, built.problem, out, strategy)
     readings = None
     if aggregate is not None:

@@ -105,14 +105,14 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped at what read as a degenerate minimum, but a step along "
                 f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
             )
-        if np.isfinite(info.get("gauss_newton_se", np.nan)):
+        if info.get("gauss_newton_refuted"):
             return (
                 f"the solver reported {info.get('solver_stop', 'converged')}, but the "
                 "Gauss-Newton step from the Jacobian itself (not from J^T J, which loses "
                 f"half the digits of {info.get('precision', 'this precision')}) lowers the loss "
                 f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
                 "the problem is too ill-conditioned for this precision; fit in float64 "
-                f"(enable jax_enable_x64 and pass float64 data): {tail}"
+                f"(enable jax_enable_x64 and pass float64 data) ({vs})"
             )
         if info.get("unmeasured_claim"):
             return (
@@ -383,8 +383,11 @@ class FitResult(eqx.Module):
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
         `stalled` where a float32 (lower than float64) least-squares success is refuted
         by the Gauss-Newton step from the Jacobian itself (checked after the solve,
-        `_optimality.gauss_newton_refutes`), `gauss_newton_se` (that step's size in
-        standard errors), `precision` and `solver_stop`; with the stop
+        `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`
+        (that step's size in standard errors), `precision` and `solver_stop`; after a
+        float32 least-squares failure that the same step refutes along a direction that
+        J^T J loses, `gauss_newton_se` and `precision` (the message says to fit in
+        float64); with the stop
         `zero_residual`, `residual_nrmse` (the largest of the outputs' NRMSE in
         `metrics`, over the outputs of weight above 0: how far below sqrt(eps) of their
         variation the residuals are).
@@ -531,6 +534,21 @@ class FitResult(eqx.Module):
         the reason's explanation (`RESULTS`)."""
         detail = stop_detail(self.status, self.stop_info)
         why = RESULTS[self.stop_reason]
+        info = self.stop_info
+        if info.get("gauss_newton_refuted"):
+            why = (
+                "this is not a solution: the solver's own test held in its normal "
+                "equations, which cannot resolve this problem in this precision"
+            )
+        elif "gauss_newton_se" in info:  # (a least-squares failure, `_fit`)
+            why = (
+                "this is not a solution, and more steps will not reach one: the "
+                "Gauss-Newton step from the Jacobian itself moves the estimates by "
+                f"{_g(info['gauss_newton_se'])} standard errors along a direction that "
+                f"J^T J loses in {info.get('precision', 'this precision')} (its eigenvalue "
+                "below the round-off cut); fit in float64 (enable jax_enable_x64 and pass "
+                "float64 data)"
+            )
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
             why = why.replace(
                 "the last finite iterate is returned",

@@ -134,11 +134,22 @@ class Prediction(NamedTuple):
 #
 
 
+def several_records(a):
+    """Whether `a` is a list (or tuple) of records: of 2-D arrays, or of 1-D ones of
+    unequal lengths (rows of one record have equal lengths)."""
+    if not isinstance(a, (list, tuple)) or not a:
+        return False
+    ndims = [np.ndim(r) for r in a]
+    if any(n >= 2 for n in ndims):
+        return True
+    return all(n == 1 for n in ndims) and len({len(r) for r in a}) > 1
+
+
 def _check_head(u, z, n, z_name="z"):
     """u (T, n_u), z (T_z <= T, n_z) and 1 <= n <= T_z, as the number of samples used
     (`z_name`: the caller's name of z)."""
     for name, a in (("u", u), (z_name, z)):
-        if isinstance(a, (list, tuple)) and any(np.ndim(r) >= 2 for r in a):
+        if several_records(a):
             raise ValueError(
                 f"`{name}` must have shape (T, n) (one record), got a {type(a).__name__} of "
                 f"{len(a)} records (several records: one call each, or `FitResult.predict`, "

@@ -110,12 +110,9 @@ def eigh_solve(decomposition, b, floored=False):
     decomposition too. `floored`: solve with the null eigenvalues raised to the cutoff
     instead of dropped, (M + the null directions at the cutoff)^{-1} b, so that
     b^T M_c^{-1} b is a lower bound on the decrease the null directions would give
-    where they are directions the data determine weakly rather than round-off."""
+    where the data determine them weakly rather than not at all."""
     d, vals, vecs, null, cut = decomposition
-    if floored:
-        inv = 1.0 / jnp.maximum(vals, cut)
-    else:
-        inv = _reciprocal(vals, null)
+    inv = 1.0 / jnp.maximum(vals, cut) if floored else _reciprocal(vals, null)
     vector = b.ndim == vecs.ndim - 1
     b = b[..., None] if vector else b
     coef = jnp.einsum("...ji,...jk->...ik", vecs, b / d[..., None])

@@ -106,12 +106,15 @@ float32) calls a direction null whose singular value in J is 1e-2 of the largest
 the steps do not move along it. Such a direction is no network's null space: the
 undamped step's decrease that the statistical test bounds counts it with its eigenvalue
 floored at the cut (`_linalg.eigh_solve(floored=True)`, a lower bound on what it would
-give), so that the test does not take it for a null space. (Flooring it in the steps
-too moved a float32 hybrid along its network's true null directions, whose gradient is
-round-off, and its statistical stop no longer came.) A success in such a precision is
-checked after the solve by the Gauss-Newton step computed from J itself
-(`gauss_newton_refutes`), and is `stalled` where that step moves the estimates by more
-than a standard error and the loss confirms it.
+give), in every precision, so that the test does not take it for a null space.
+(Flooring it in the steps too, or only from a hundredth of the cut up, moved float32
+hybrids along their networks' null directions, whose gradient is round-off: their
+statistical stop no longer came.) After the solve, in such a precision, the
+Gauss-Newton step computed from J itself (`gauss_newton_refutes`) checks a success
+that the normal equations decided (`stalled` where that step moves the estimates by
+more than a standard error and the loss confirms it), and a failure: where J^T J loses
+a direction that J keeps, more steps will not help, and the message says to fit in
+float64.
 """
 
 import functools
@@ -450,15 +453,17 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
 
     The step h = -J^+ r: J = Q R by Householder QR, then the SVD of the triangle R =
     U diag(s) V^T (Golub and Van Loan, "Matrix Computations", 4th ed., 2013, Sec. 5.5),
-    singular values below max(rows, columns) eps of the largest cut (NumPy's lstsq
-    default). It predicts the decrease pred = ||U^T Q^T r||^2 over the kept singular
+    singular values below 10 sqrt(columns) eps of the largest cut (J's round-off). It
+    predicts the decrease pred = ||U^T Q^T r||^2 over the kept singular
     vectors, and sqrt(pred / sigma^2), sigma^2 = C / (R - rank J), bounds the move of
     every quantity the data determine in its own standard error (`standard_errors`).
     Refuted where that is above `CHECK_SE` and the loss confirms it: at one of the step
     lengths a = 1, 1/2, 1/4 (projected onto the constraints) C falls by at least a
     quarter of its linear model's (2 a - a^2) pred.
 
-    **Returns:** (refuted, the step's size in standard errors)."""
+    **Returns:** (refuted, the step's size in standard errors, whether J^T J loses a
+    direction that J keeps: a kept singular value whose square is at most the null cut
+    of `_linalg.scaled_eigh`, 1e3 eps of the largest)."""
     lin = problem.jacobian(params, strategy)
     N, R = lin.r.shape
     p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
@@ -472,7 +477,11 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     # (a tall J: its QR first, then the SVD of the small triangle, R = U s V^T)
     Q, tri = jnp.linalg.qr(J / d)
     U, s, Vt = jnp.linalg.svd(tri, full_matrices=False)
-    kept = s > max(J.shape) * jnp.finfo(dtype).eps * jnp.max(s, initial=0.0)
+    eps = jnp.finfo(dtype).eps
+    # (the cut of J's round-off alone, columnwise relative errors eps: ||dJ|| <= eps
+    # sqrt(columns) ||J||; lstsq's max(rows, columns) eps grows with the record and cut a
+    # direction 2.7e-4 of the largest at T = 2500)
+    kept = s > 10.0 * np.sqrt(J.shape[1]) * eps * jnp.max(s, initial=0.0)
     coef = jnp.where(kept, U.T @ (Q.T @ r), 0.0)
     pred = jnp.sum(coef**2)
     C = jnp.sum(r * r)
@@ -496,7 +505,8 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
 
     alphas = jnp.asarray((1.0, 0.5, 0.25), dtype)
     confirmed = jnp.any(jax.lax.map(confirms, alphas))
-    return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se
+    lost = jnp.any(kept & (s**2 <= 1e3 * eps * jnp.max(s, initial=0.0) ** 2))
+    return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost
 
 
 def first_order_at(problem: FitProblem, params: Params, strategy):

@@ -27,6 +27,7 @@ bounds and a whiteness and an independence verdict (`oneshot_jax.plot.resid` dra
 
 from __future__ import annotations
 
+import math
 import numbers
 import statistics
 import warnings
@@ -625,9 +626,10 @@ def _is_number(value) -> bool:
 
 
 def _normal_quantile(p):
-    """The standard normal distribution's quantile at p in (0, 1) (the standard
-    library's, Wichura's AS 241, accurate to about 1e-16: no SciPy import)."""
-    return statistics.NormalDist().inv_cdf(p)
+    """The standard normal distribution's quantile at p in (0, 1] (the standard
+    library's, Wichura's AS 241, accurate to about 1e-16: no SciPy import); inf at p
+    rounded to 1 (a confidence within eps of 1)."""
+    return math.inf if p >= 1.0 else statistics.NormalDist().inv_cdf(p)
 
 
 def residual_correlations(
@@ -773,6 +775,8 @@ def residual_correlations(
     auto_outside = np.mean(np.abs(r_e) > bound, axis=0)
 
     def joint(m):  # the joint band's factor over the band: m lags together (Bonferroni)
+        if math.isinf(z):  # (a confidence within eps of 1: both bands infinite)
+            return 1.0
         return _normal_quantile(1.0 - 0.5 * (1.0 - float(confidence)) / m) / z
 
     joint_bound = bound * joint(max_lag)

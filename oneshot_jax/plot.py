@@ -16,7 +16,7 @@ import numpy as np
 
 from . import metrics
 from ._fit_result import FitResult
-from ._initial_state import Prediction
+from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
 from ._timing import as_times as _as_times
 
@@ -36,7 +36,7 @@ def _pyplot():
 
 def _columns(a, name):
     """`a` as a float64 (T, n) array."""
-    if isinstance(a, (list, tuple)) and any(np.ndim(r) >= 2 for r in a):
+    if several_records(a):
         raise ValueError(
             f"`{name}` must have shape (T,) or (T, n) (one record), got a "
             f"{type(a).__name__} of {len(a)} records. Compare them one at a time, e.g. "

@@ -553,6 +553,8 @@ def test_bad_input_errors():
         oj.predict(LINEAR, 1.0, [u, u[:15]], [z, z[:15]], 5, x0=x0)
     with pytest.raises(ValueError, match=r"`z` .*got a list of 2 records"):
         oj.estimate_x0(LINEAR, 1.0, u, [z[:5], z[:4]], x0=x0)
+    with pytest.raises(ValueError, match=r"`z` .*got a list of 2 records"):  # (1-D ones)
+        oj.estimate_x0(LINEAR, 1.0, u, [z[:5, 0], z[:4, 0]], x0=x0)
     with pytest.raises(ValueError, match="`x0` .* is needed"):
         est()
     with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):

@@ -356,3 +356,12 @@ def test_an_output_without_residuals_of_its_own_is_named_with_the_ones_to_pass()
         metrics.residual_correlations(e)
     with pytest.raises(ValueError, match=r"output\(s\) \[0\]\.$"):
         metrics.residual_correlations(np.full((50, 1), np.nan))
+
+
+def test_a_confidence_within_eps_of_one_gives_an_infinite_band():
+    """The normal quantile at 1 (a confidence of 1 - 2^-53 rounds 0.5 + 0.5 c to 1) is
+    inf, a band nothing leaves: the standard library's quantile refused it with its own
+    error."""
+    e = np.random.default_rng(0).standard_normal((100, 1))
+    out = metrics.residual_correlations(e, confidence=np.nextafter(1.0, 0.0))
+    assert np.isinf(out.bound) and bool(np.all(out.white))

@@ -52,7 +52,7 @@ class LevenbergMarquardt(AbstractLeastSquares):
         iteration budget per step (with `"cg"`).
     """
 
-    TRACED_OPTIONS = ("rtol", "atol", "gtol", "mu0", "stol")
+    TRACED_OPTIONS = AbstractLeastSquares.TRACED_OPTIONS + ("mu0",)
 
     rtol: float = eqx.field(default=0.0, converter=real)
     atol: float = eqx.field(default=0.0, converter=real)
