@@ -427,6 +427,13 @@ def report(result) -> str:
             if _computed(result)
             else "  (not a solution: see the status)"
         )
+        if "gauss_newton_se" in result.stop_info:  # (`_fit._flag_unresolved_success`)
+            precision = result.stop_info.get("precision", "this precision")
+            out.append(
+                f"  ({precision} cannot resolve this problem in J^T J: the Gauss-Newton "
+                f"step from the Jacobian moves the estimates by "
+                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; fit in float64)"
+            )
     elif result.status in ("tol_loss", "tol_grad") and not _stationary(result):
         # (a success by the user's threshold, at a point the first-order test rejects)
         out.append(

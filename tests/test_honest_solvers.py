@@ -999,6 +999,7 @@ def test_a_float32_direction_below_the_null_cut_is_not_a_null_space(solver):
     assert not r.success or _in_standard_errors(r, ref) < 1.0, r.message
     if not r.success:  # (more steps would not help: the message says so)
         assert r.stop_info["gauss_newton_se"] > 1.0 and "fit in float64" in r.message
+        assert "cannot resolve this problem in J^T J" in str(r)  # (the printout too)
 
 
 @pytest.mark.parametrize("seed, N", [(1, 1), (2, 3)])
@@ -1036,6 +1037,7 @@ def test_a_float32_failure_far_from_its_optimum_is_not_blamed_on_the_precision()
     r = oj.fit(model, f32, x0.astype(np.float32), u, z, solver=solver)
     assert r.status == "max_steps_reached"
     assert "gauss_newton_se" not in r.stop_info and "float64" not in r.message
+    assert "cannot resolve" not in str(r)
 
 
 def test_an_ill_conditioned_x0_block_does_not_hide_identifiable_parameters():
