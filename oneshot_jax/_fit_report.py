@@ -13,6 +13,10 @@ import numpy as np
 from . import _pytree
 from ._model import model_labels
 
+# The remedy where float32 normal equations cannot resolve a fit (`_fit`'s Gauss-Newton
+# check): the printout's and `FitResult.message`'s words.
+FLOAT64 = "fit in float64: enable jax_enable_x64 and pass float64 data"
+
 
 def _child(node, entry):
     """The child of `node` at one entry of a JAX key path (None where it cannot be read)."""
@@ -432,7 +436,7 @@ def report(result) -> str:
             out.append(
                 f"  ({precision} cannot resolve this problem in J^T J: the Gauss-Newton "
                 f"step from the Jacobian moves the estimates by "
-                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; fit in float64)"
+                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; {FLOAT64})"
             )
     elif result.status in ("tol_loss", "tol_grad") and not _stationary(result):
         # (a success by the user's threshold, at a point the first-order test rejects)

@@ -13,7 +13,7 @@ import numpy as np
 
 from . import _io, _pytree
 from ._checks import check_state_size
-from ._fit_report import report, returned_start, vanished_note
+from ._fit_report import FLOAT64, report, returned_start, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
@@ -111,8 +111,7 @@ def stop_detail(status: str, info: dict) -> str:
                 "Gauss-Newton step from the Jacobian itself (not from J^T J, which loses "
                 f"half the digits of {info.get('precision', 'this precision')}) lowers the loss "
                 f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
-                "the problem is too ill-conditioned for this precision; fit in float64 "
-                f"(enable jax_enable_x64 and pass float64 data) ({vs})"
+                f"the problem is too ill-conditioned for this precision; {FLOAT64} ({vs})"
             )
         if info.get("unmeasured_claim"):
             return (
@@ -546,8 +545,7 @@ class FitResult(eqx.Module):
                 "Gauss-Newton step from the Jacobian itself moves the estimates by "
                 f"{_g(info['gauss_newton_se'])} standard errors along a direction that "
                 f"J^T J loses in {info.get('precision', 'this precision')} (its eigenvalue "
-                "below the round-off cut); fit in float64 (enable jax_enable_x64 and pass "
-                "float64 data)"
+                f"below the round-off cut); {FLOAT64}"
             )
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
             why = why.replace(

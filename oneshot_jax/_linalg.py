@@ -53,11 +53,16 @@ def schur_complement(Jt, Jx, A):
         q, t = jnp.linalg.qr(jx / jnp.where(d > 0, d, 1.0)[None, :])
         u, s, _ = jnp.linalg.svd(t, full_matrices=False)
         vals = s**2
-        U = (q @ u) * (vals > 1e3 * eps * jnp.max(vals, initial=0.0))[None, :]
+        U = (q @ u) * (vals > NULL_CUT * eps * jnp.max(vals, initial=0.0))[None, :]
         return jt - U @ (U.T @ jt)
 
     P = jax.vmap(projected)(Jt, Jx)
     return jnp.einsum("nrp,nrq->pq", P, P)
+
+
+# The numerical null cut: eigenvalues of a Jacobi-scaled PSD matrix at or below this many
+# eps of the largest are round-off (`scaled_eigh`, `schur_complement`).
+NULL_CUT = 1e3
 
 
 def floor(d, rel=1e-12):
@@ -87,7 +92,7 @@ def scaled_eigh(M, diag=None) -> Decomposition:
     top = jnp.max(jnp.abs(vals), axis=-1, keepdims=True, initial=0.0)
     if diag is not None:  # judged against the reference's unit diagonal too
         top = jnp.maximum(top, 1.0)
-    cut = 1e3 * jnp.finfo(M.dtype).eps * top
+    cut = NULL_CUT * jnp.finfo(M.dtype).eps * top
     return Decomposition(d, vals, vecs, vals <= cut, cut)
 
 

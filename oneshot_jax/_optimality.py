@@ -125,7 +125,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cost import weigh
-from ._linalg import floor
+from ._linalg import NULL_CUT, floor
 from ._problem import FitProblem, Params
 from ._strategy import dense_jacobian_fits
 
@@ -505,7 +505,7 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
 
     alphas = jnp.asarray((1.0, 0.5, 0.25), dtype)
     confirmed = jnp.any(jax.lax.map(confirms, alphas))
-    lost = jnp.any(kept & (s**2 <= 1e3 * eps * jnp.max(s, initial=0.0) ** 2))
+    lost = jnp.any(kept & (s**2 <= NULL_CUT * eps * jnp.max(s, initial=0.0) ** 2))
     return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost
 
 
