@@ -266,3 +266,23 @@ def test_a_new_tolerance_reuses_the_compiled_fit(first, then):
     b, n = COMPILES.count(lambda: fit(then))
     assert n == 0
     assert len(b.history.loss) < len(a.history.loss)
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [oj.LevenbergMarquardt, oj.GaussNewton, lambda **k: oj.Adam(1e-2, **k), oj.LBFGS],
+)
+def test_a_new_step_budget_reuses_the_compiled_fit(solver):
+    """`max_steps` bounds the loop alone (the history keeps its 1000 rows for every
+    budget): a new budget reuses the compiled fit (each one compiled the whole solve
+    again), and it acts: the short budget stops at it, the longer one goes on."""
+    model = oj.Model.from_ode(cubic, DT)
+    x0, u, z = _data(model, {"a": 0.5, "b": 2.0}, np.array([0.3, -0.2]))
+    z = z + 1e-3 * np.random.default_rng(5).standard_normal(z.shape)
+    fit = lambda s: oj.fit(model, {"a": 0.4, "b": 1.5}, x0[0], u[0], z[0], solver=s)  # noqa: E731
+    short, _ = COMPILES.count(lambda: fit(solver(max_steps=2)))
+    longer, n = COMPILES.count(lambda: fit(solver(max_steps=7)))
+    assert n == 0
+    assert short.status == "max_steps_reached" and short.num_steps == 2
+    assert longer.num_steps > 2
+    assert longer.status != "max_steps_reached" or longer.num_steps == 7

@@ -57,6 +57,11 @@ class AbstractSolver(eqx.Module):
     # fit instead of compiling again. (A learning rate enters the arithmetic, where a
     # traced value rounds differently from a constant: it stays static.)
     TRACED_OPTIONS = ()  # (a class constant: no annotation, so not a field)
+    # The step budget enters the loop's bound alone (and the progress bar's offsets), so
+    # it is traced too, as an int32: a new `max_steps` reuses the compiled fit where the
+    # history buffer keeps its rows (`fit`'s default `history`, 1000 rows, for every
+    # budget).
+    TRACED_INTEGERS = ("max_steps",)
     # Whether a positive gtol counts as at least `_optimality.resolution` (the first-order
     # solvers: they have no stall after which the round-off limit would apply).
     GTOL_AT_LEAST_RESOLUTION = False
@@ -72,12 +77,20 @@ class AbstractSolver(eqx.Module):
             if isinstance(getattr(self, n), (int, float, np.integer, np.floating))
             and not isinstance(getattr(self, n), (bool, np.bool_))
         ]
-        if not names:
+        counts = [
+            n
+            for n in self.TRACED_INTEGERS
+            if isinstance(getattr(self, n, None), (int, np.integer))
+            and not isinstance(getattr(self, n), (bool, np.bool_))
+            and 0 <= getattr(self, n) <= np.iinfo(np.int32).max
+        ]
+        if not names and not counts:
             return self
         return eqx.tree_at(
-            lambda s: [getattr(s, n) for n in names],
+            lambda s: [getattr(s, n) for n in names + counts],
             self,
-            [np.asarray(getattr(self, n), dtype) for n in names],
+            [np.asarray(getattr(self, n), dtype) for n in names]
+            + [np.asarray(getattr(self, n), np.int32) for n in counts],
         )
 
     @abc.abstractmethod
