@@ -482,6 +482,10 @@ def assemble(
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
         stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
+    if status == "statistically_converged" and float(out.step) == 0.0:
+        # (no step taken: a stall that the undamped step's size settled,
+        # `AbstractLeastSquares._settled`; the statistical test of a step needs one)
+        stop_info["settled"] = True
     if bool(out.degenerate[best]):  # (`_optimality.stall_test`: a degenerate minimum)
         stop_info["degenerate"] = True
     gone = np.broadcast_to(np.asarray(out.vanished)[best], (len(free),))

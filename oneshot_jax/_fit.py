@@ -30,9 +30,13 @@ from ._jit import jit
 from ._noise_weight import fit_noise_weighted
 from ._optimality import (
     CHECK_ENTRIES,
+    NEWTON_COLUMNS,
+    SETTLE_SE,
     first_order_at,
     gauss_newton_refutes,
     gtol_at_least_resolution,
+    n_observations,
+    newton_distance,
     refuted,
 )
 from ._parallel._report import UNCONVERGED, counting
@@ -462,6 +466,91 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     if failure and bool(down) and bool(lost):
         return dataclasses.replace(result, stop_info={**result.stop_info, **info})
     return result
+
+
+@eqx.filter_jit
+def _newton_distance_at(problem, params, strategy, held):
+    """`_optimality.newton_distance`, compiled once per problem structure and strategy."""
+    return newton_distance(problem, params, strategy, held)
+
+
+def _settle(result, problem, out, strategy, least_squares):
+    """A stall that the data have settled, checked with the loss's own curvature
+    (`_optimality.newton_distance`: the Newton step, H = 2 (J^T J + sum r_i Hess r_i),
+    measured in standard errors):
+
+    - a least-squares solver's settled stall (`statistically_converged` with
+      `stop_info["settled"]`: its undamped Gauss-Newton step was within stol standard
+      errors, `AbstractLeastSquares._settled`) stays a success where the Newton step is
+      within stol too; else it is `stalled` (`stop_info["newton_se"]`; the Newton step
+      undefined, a saddle or a flat direction, counts as beyond). Where the residuals'
+      curvature cancels most of J^T J the Gauss-Newton step is short of the distance
+      left: a structured misfit stalled 0.6 standard errors from the optimum with a
+      Gauss-Newton step of 1e-3;
+    - a first-order solver's own stall at round-off (L-BFGS's line search failed; not a
+      step test of the user's tolerances, an `Optimistix` solver's rtol and atol) is
+      `statistically_converged` (`stop_info["settled"]`, the solver's stop in
+      `stop_info["solver_stop"]`) where the Newton step is at most `SETTLE_SE` standard
+      errors and no parameter alone would move by one (first-order measure times
+      sqrt(R - columns) at most 1): an output offset of 1e4 around a noise of 1e-3 left
+      L-BFGS `stalled` 4e-5 standard errors from the optimum.
+
+    Entries of theta at a bound are held (the step of the others). Not checked: a
+    penalty, a regulariser or a general projection, more than `NEWTON_COLUMNS` free
+    variables or `CHECK_ENTRIES` Jacobian entries (a least-squares settled stop then
+    stands as its solver's, a first-order stall as a stall), other starts of a
+    multistart."""
+    info = result.stop_info
+    settled = result.status == "statistically_converged" and bool(info.get("settled"))
+    stalled = not least_squares and result.status == "stalled" and "solver_stop" not in info
+    stalled = stalled and not info.get("step_test")  # (the user's tolerances fired: theirs)
+    if not (settled or stalled):
+        return result
+    if problem.cost.penalty is not None or problem.regulariser is not None:
+        return result
+    if problem.project is not None:
+        return result
+    N, T, n_z = problem.z.shape
+    best = int(out.best)
+    theta, x0 = np.asarray(out.start_theta[best]), np.asarray(out.start_x0[best])
+    columns = theta.size + x0.size
+    if columns > NEWTON_COLUMNS or N * T * n_z * columns > CHECK_ENTRIES:
+        return result
+    held = np.zeros(theta.size, bool)
+    if problem.lower is not None:
+        lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
+        held = ((theta <= lo) & np.isfinite(lo)) | ((theta >= hi) & np.isfinite(hi))
+    params = Params(jnp.asarray(theta), jnp.asarray(x0))
+    se, defined = _newton_distance_at(problem, params, strategy, jnp.asarray(held))
+    se, defined = float(se), bool(defined)
+    if settled:
+        stol = info.get("stol", SETTLE_SE)
+        if defined and se <= stol:
+            return dataclasses.replace(result, stop_info={**info, "newton_se": se})
+        rest = {k: v for k, v in info.items() if k != "settled"}
+        demoted = dataclasses.replace(result, stop_info=rest)
+        return _demoted(demoted, "stalled", newton_se=se if defined else float("inf"))
+    dof = int(n_observations(problem)) - (columns - int(held.sum()))
+    fo = info.get("first_order", np.nan)
+    if not (defined and dof > 0 and se <= SETTLE_SE and fo * np.sqrt(dof) <= 1.0):
+        return result
+    new = {
+        **info,
+        "solver_stop": "stalled",
+        "settled": True,
+        "standard_errors": se,
+        "newton_se": se,
+        "stol": SETTLE_SE,
+    }
+    out_result = dataclasses.replace(
+        result, stop_reason=RESULTS.statistically_converged, stop_info=new
+    )
+    if result.starts is not None:
+        reasons = list(result.starts.stop_reason)
+        reasons[result.best] = "statistically_converged"
+        starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
+        out_result = dataclasses.replace(out_result, starts=starts)
+    return out_result
 
 
 def _warn_unequal_noise(residuals, weight, std, readings=None):
@@ -920,6 +1009,7 @@ def fit(
     result = _flag_refuted_stop(result, built.problem, out, strategy)
     least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
     result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
+    result = _settle(result, built.problem, out, strategy, least_squares)
     result = _measure_unmeasured_success(result, built.problem, out, strategy)
     readings = None
     if aggregate is not None:

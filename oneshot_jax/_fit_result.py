@@ -94,6 +94,11 @@ def stop_detail(status: str, info: dict) -> str:
         return out
     if status == "statistically_converged":
         se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
+        if info.get("settled"):
+            return (
+                "no step lowers the loss at its round-off, and the undamped Gauss-Newton "
+                f"step from here is {_g(se)} standard errors <= stol {_g(stol)}; {vs}"
+            )
         return f"last step {_g(se)} standard errors <= stol {_g(stol)} (theta rank-deficient, {vs})"
     if status == "stalled":
         # (A first-order solver has no scaled step or linear model: NaN, not shown.)
@@ -112,6 +117,14 @@ def stop_detail(status: str, info: dict) -> str:
                 f"half the digits of {info.get('precision', 'this precision')}) lowers the loss "
                 f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
                 f"the problem is too ill-conditioned for this precision; {FLOAT64} ({vs})"
+            )
+        if info.get("solver_stop") == "statistically_converged" and "newton_se" in info:
+            return (
+                "no step lowers the loss at its round-off, and the undamped Gauss-Newton "
+                f"step from here is {_g(info.get('standard_errors', np.nan))} standard "
+                "errors, but the Newton step with the residuals' curvature is "
+                f"{_g(info['newton_se'])} (a large misfit whose curvature cancels part of "
+                f"J^T J): not settled, {tail}"
             )
         if info.get("unmeasured_claim"):
             return (
@@ -365,7 +378,13 @@ class FitResult(eqx.Module):
         size relative to the scaled parameters), `decrease` (the decrease of the loss its
         linear model predicted, relative to the loss), `standard_errors` and `stol` (the
         last step's size in standard errors and the tolerance of the statistical test,
-        see `RESULTS.statistically_converged`) and `at_step` (the last solver's
+        see `RESULTS.statistically_converged`; with `settled` (True) where the fit
+        stalled and the size is the undamped Gauss-Newton step's from the returned point,
+        with `solver_stop` "stalled" where a first-order solver's stall was settled after
+        the solve; `newton_se`, the Newton step's size with the loss's own curvature,
+        where a settled stall was checked with it after the solve: `stalled` with
+        `solver_stop` "statistically_converged" where it is beyond stol)
+        and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
         start) and `solver_stop` (the solver's own stop); with the stop `validation`,

@@ -100,6 +100,20 @@ pendulum above, stol = 0.03 stopped at step 59 with w0sq 0.89 standard errors fr
 where 3000 steps take it; the default 0.01 stopped at step 2494, 0.01 standard errors
 from it).
 
+On a regular Jacobian the same measure settles a stall. Where the outputs carry an offset
+far above the noise, the loss has fewer digits than the last steps need (an offset of 1e4
+around a noise of 1e-3: the residuals' round-off, eps 1e4, is 2e-9 of them): no step
+decreases C at its round-off while the measure is still above its round-off limit
+(Levenberg-Marquardt stopped at 7.5e-7, 5e-5 standard errors from the optimum). There the
+undamped Gauss-Newton step predicts what the loss can no longer confirm, and a point from
+which it is at most stol standard errors (pred <= stol^2 sigma^2), with no parameter alone
+moving by one, is `statistically_converged` too (`AbstractLeastSquares._settled`); the
+point the linear model leads to is then within stol standard errors of this one. Where
+the residuals' curvature cancels most of J^T J (a large structured misfit), the
+Gauss-Newton step is short of the distance left, so after the solve the Newton step with
+the loss's own Hessian checks the stop (`newton_distance`); a first-order solver's stall
+(L-BFGS's line search failing there) is settled by that step alone (`SETTLE_SE`).
+
 In a precision below float64 the normal equations lose the weakly determined directions
 first: `_linalg.scaled_eigh`'s cut (1e3 eps, 1.2e-4 of the largest scaled eigenvalue in
 float32) calls a direction null whose singular value in J is 1e-2 of the largest, and
@@ -436,6 +450,11 @@ CHECK_ENTRIES = 2**22
 # moves a quantity the data determine by more than this many of its standard errors.
 CHECK_SE = 1.0
 
+# `_fit._settle_stall`: a first-order solver's stall is settled where the Gauss-Newton step
+# from J itself is at most this many standard errors (the least-squares solvers' default
+# stol, which they test inside their loop: `AbstractLeastSquares._settled`).
+SETTLE_SE = 1e-2
+
 
 def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     """After a success in a precision below float64: whether the Gauss-Newton step
@@ -507,6 +526,68 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     confirmed = jnp.any(jax.lax.map(confirms, alphas))
     lost = jnp.any(kept & (s**2 <= NULL_CUT * eps * jnp.max(s, initial=0.0) ** 2))
     return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost
+
+
+# `newton_distance` forms the loss's Hessian (a forward derivative of the gradient per
+# column) for at most this many free variables; a larger problem is not checked.
+NEWTON_COLUMNS = 256
+
+
+def newton_distance(problem: FitProblem, params: Params, strategy, held):
+    """The Newton step from `params` in standard errors, and whether it is defined: for a
+    stall that the Gauss-Newton step settled (`AbstractLeastSquares._settled`, and
+    `_fit._settle` after a first-order solver), where the loss's curvature need not be
+    J^T J's. With C = ||r||^2 (eq. 5/21), grad C = 2 J^T r (eq. 17/20, the one-shot
+    recursion) and its Hessian H = 2 (J^T J + sum_i r_i Hess r_i), formed as the forward
+    derivative of that gradient, the step is d = -H^-1 grad C and its size
+    sqrt(||J d||^2 / sigma^2) (`standard_errors`): the distance to the optimum of the
+    loss's quadratic model, in the metric of the standard errors. Where the residuals'
+    curvature cancels most of J^T J (a structured misfit: H = 0.002 * 2 J^T J along one
+    parameter), the Gauss-Newton step (J^T J)^-1 J^T r is that fraction of d: a fit
+    stalled 0.6 standard errors from the optimum with a Gauss-Newton step of 1e-3.
+
+    `held`: boolean (p,) theta columns held at a bound (the step of the others, an
+    active set). Defined where J's kept columns have full rank and H restricted to them
+    is positive definite (Jacobi-scaled, eigenvalues above the null cut `NULL_CUT` eps of
+    the largest; a saddle or a flat direction has no Newton step to measure).
+
+    **Returns:** (the step's size in standard errors, whether it is defined)."""
+    lin = problem.jacobian(params, strategy)
+    N, R = lin.r.shape
+    p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
+    dtype = lin.r.dtype
+    eye = jnp.eye(N, dtype=dtype)[:, None, :, None]
+    Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
+    J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
+    keep = jnp.concatenate([~held, jnp.ones(N * m, bool)])
+
+    def gradient(flat):
+        _, g = problem.value_and_grad(Params(flat[:p], flat[p:].reshape(N, m)), strategy)
+        return jnp.concatenate([g.theta, g.x0.reshape(-1)])
+
+    flat = jnp.concatenate([params.theta, params.x0.reshape(-1)])
+    g = gradient(flat)
+    H = jax.jacfwd(gradient)(flat)
+    H = 0.5 * (H + H.T)
+    d = jnp.sqrt(jnp.sum(J * J, axis=0))
+    d = jnp.where(keep & (d > 0), d, 1.0)
+    # (held columns: a unit diagonal apart from the rest, and no gradient)
+    mask = keep[:, None] & keep[None, :]
+    eye_n = jnp.eye(J.shape[1], dtype=dtype)
+    A = jnp.where(mask, (J.T @ J) / (d[:, None] * d[None, :]), eye_n)
+    Hs = jnp.where(mask, H / (d[:, None] * d[None, :]), 2.0 * eye_n)
+    gs = jnp.where(keep, g / d, 0.0)
+    eps = jnp.finfo(dtype).eps
+    a = jnp.linalg.eigvalsh(A)
+    lam, V = jnp.linalg.eigh(Hs)
+    regular = a[0] > NULL_CUT * eps * a[-1]
+    convex = lam[0] > NULL_CUT * eps * jnp.abs(lam[-1])
+    step = -(V @ ((V.T @ gs) / jnp.where(convex, lam, 1.0))) / d
+    Jd = J @ jnp.where(keep, step, 0.0)
+    C = jnp.sum(lin.r * lin.r)
+    rank = jnp.sum(keep)
+    se = standard_errors(jnp.sum(Jd * Jd), C, n_observations(problem), rank)
+    return se, regular & convex & jnp.all(jnp.isfinite(H))
 
 
 def first_order_at(problem: FitProblem, params: Params, strategy):

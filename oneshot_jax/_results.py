@@ -87,14 +87,20 @@ class RESULTS(eqx.Enumeration):
         "away from that point, or fix them"
     )
     statistically_converged = (
-        "statistical convergence, where the Jacobian's theta columns have a null space "
+        "statistical convergence: where the Jacobian's theta columns have a null space "
         "once the initial states are fitted (an "
         "over-parameterised model, such as a network, on which the first-order test "
-        "converges too slowly to be reached): the last accepted least-squares step, its "
+        "converges too slowly to be reached), the last accepted least-squares step, its "
         "predicted decrease confirmed by the actual one, changed the fit by at most the "
         "solver's stol standard errors, no parameter alone would move by a standard error, "
-        "and the undamped Gauss-Newton step is within sqrt(rank J) standard errors, so no "
-        "quantity the data determine can still change significantly (see "
+        "and the undamped Gauss-Newton step is within sqrt(rank J) standard errors; where "
+        "they have full rank but no step lowers the loss at its round-off any more (an "
+        "output offset far above the noise leaves the loss too few digits to confirm the "
+        "last ones), the undamped Gauss-Newton step from the returned point is within stol "
+        "standard errors and no parameter alone would move by one, and so is the Newton "
+        "step with the loss's own curvature, checked after the solve (for a first-order "
+        "solver's stall, that step alone, within 0.01). Either way no quantity "
+        "the data determine can still change significantly (see "
         "`oneshot_jax._optimality.standard_errors`)"
     )
     unconverged_rollout = (

@@ -31,8 +31,11 @@ class GaussNewton(AbstractLeastSquares):
         measure at most 1 / sqrt(observations - rank J)), and the undamped Gauss-Newton
         step (the pseudo-inverse's, of the active set where there are bounds) is at most
         sqrt(rank J) standard errors (predicted decrease at most rank J sigma^2); see
-        `oneshot_jax._optimality`. 0 turns it off. Not tested with
-        `linear_solver="cg"`, which does not form J^T J.
+        `oneshot_jax._optimality`. On a regular Jacobian it also settles a stop where no
+        step lowers the loss at its round-off: `statistically_converged` where the
+        undamped Gauss-Newton step from that point is at most `stol` standard errors and
+        no parameter alone would move by one (`stop_info["settled"]`). 0 turns it off.
+        Not tested with `linear_solver="cg"`, which does not form J^T J.
     - `rtol`, `atol`: an optional step test (off by default): an accepted step of
         scaled size at most rtol ||D p|| + atol that decreased the loss by at most
         rtol C + atol ends the fit, as `converged` if the first-order measure is at

@@ -45,7 +45,13 @@ theta's columns of J, with the x0 columns eliminated, are rank deficient (an
 over-parameterised model, a network in theta), it is
 `statistically_converged` (success) when an accepted step, its predicted decrease confirmed
 by the actual one, moved the fit by at most `stol` standard errors
-(`_optimality.standard_errors`; the first-order test is not reached there). Every
+(`_optimality.standard_errors`; the first-order test is not reached there). Where they
+have full rank and no step decreases C at its round-off (a stall, or a failed search)
+with the measure above its round-off limit, it is `statistically_converged` too when the
+undamped Gauss-Newton step from that point is at most `stol` standard errors (`_settled`:
+an output offset of 1e4 around a noise of 1e-3 leaves the loss too few digits to confirm
+a decrease of 1e-12 of it, and Levenberg-Marquardt stopped there at 5e-5 standard errors
+from the optimum with the measure 7.5e-7). Every
 other stop is a failure that names its test:
 `stalled` when no step decreases C while the linear model's predicted decrease is at
 round-off (MINPACK's ftol test at machine epsilon) or the step is at the round-off
@@ -524,8 +530,15 @@ class AbstractLeastSquares(AbstractSolver):
         degenerate = (round_off | small_step) & ~met & degenerate
         stationary = met | ((round_off | small_step) & still)
         se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
-        fo = jnp.where(degenerate, at_stall, fo)  # (the measure the stop was tested on)
         negative = h_min < 0
+        # Where no step decreases C at its round-off (an output offset far above the noise
+        # leaves the loss too few digits to confirm the last ones), a regular Jacobian's
+        # undamped step within stol standard errors settles the point (`_settled`).
+        stuck = (round_off | gave_up) & ~stationary & ~statistical & ~zero & ~negative
+        se_at, settled = self._settled(problem, params, blocks, fo, stuck)
+        se = jnp.where(settled, se_at, se)
+        statistical = statistical | settled
+        fo = jnp.where(degenerate, at_stall, fo)  # (the measure the stop was tested on)
         done = stationary | statistical | stalled | negative
         result = RESULTS.where(
             stationary,
@@ -596,26 +609,9 @@ class AbstractLeastSquares(AbstractSolver):
         candidate = take & (pred > 0) & (actual > 0) & (actual >= 0.25 * pred)
         candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
         p = s.theta.size
-
-        def ranks_and_full_step():
-            # The undamped step (the pseudo-inverse's Gauss-Newton step, without the
-            # backtracking or the damping that made `s` small) and its predicted decrease:
-            # without bounds from the rank's eigendecomposition of S (no second solve to
-            # compile), with them the step of the active set.
-            if problem.lower is None:
-                rank, rank_t, full = b.rank_and_decrease()
-                return rank.astype(jnp.int32), rank_t.astype(jnp.int32), full
-            act = self._active(problem, old.theta, b.g_t)
-            h = self._solve(problem, old, b, jnp.zeros((), dtype), act)
-            full = -(
-                2.0 * (h.theta @ b.g_t + jnp.sum(h.x0 * b.g_x))
-                + b.curvature(problem, old, h.theta, h.x0)
-            )
-            return tuple(r.astype(jnp.int32) for r in b.rank()) + (full,)
-
         rank, rank_t, pred_full = lazy_cond(
             candidate,
-            ranks_and_full_step,
+            lambda: self._undamped(problem, old, b),
             (jnp.asarray(n_free, jnp.int32), jnp.asarray(p, jnp.int32), jnp.zeros((), dtype)),
         )
         se = standard_errors(pred, C, n_obs, rank)
@@ -631,6 +627,52 @@ class AbstractLeastSquares(AbstractSolver):
         # unobservable state, or x0 columns nearly parallel at a poor point) does not
         # make the steps creep, and the first-order test decides there.
         return se, candidate & (rank_t < p) & within
+
+    def _undamped(self, problem, at, b):
+        """(rank J, rank S, pred): the numerical ranks (`AbstractLinearisation.rank`) and
+        the decrease of C that the undamped step from `at` (linearisation `b`) predicts:
+        the pseudo-inverse's Gauss-Newton step, without the backtracking or the damping
+        of the steps taken. Without bounds from the rank's eigendecomposition of S (no
+        second solve to compile), with them the step of the active set."""
+        if problem.lower is None:
+            rank, rank_t, full = b.rank_and_decrease()
+            return rank.astype(jnp.int32), rank_t.astype(jnp.int32), full
+        act = self._active(problem, at.theta, b.g_t)
+        h = self._solve(problem, at, b, jnp.zeros((), problem.dtype), act)
+        full = -(
+            2.0 * (h.theta @ b.g_t + jnp.sum(h.x0 * b.g_x))
+            + b.curvature(problem, at, h.theta, h.x0)
+        )
+        return tuple(r.astype(jnp.int32) for r in b.rank()) + (full,)
+
+    def _settled(self, problem, params, b, fo, stopped):
+        """The statistical test of a point where no step decreases C at its round-off
+        (`stopped`: a stall or a failed search at `params`, linearisation `b`, measure
+        `fo`) on a regular Jacobian: the undamped Gauss-Newton step from there, a
+        prediction the loss can no longer confirm, is its size in standard errors
+        (`_optimality.standard_errors`). Returns that size (NaN where not tested) and
+        whether the point is settled: theta's columns of J (the x0 columns eliminated)
+        have full rank, the step is at most `stol` standard errors and no parameter
+        alone would move by one (fo sqrt(R - rank J) <= 1). The rank and the step (an
+        eigendecomposition, or a solve under bounds) are formed only where the fit
+        stopped so. Off (NaN, False) with `stol=0` and where J^T J is not formed
+        (`linear_solver="cg"`). (Where the residuals' curvature cancels most of J^T J,
+        the Gauss-Newton step is short of the distance left: `fit` checks a settled
+        stop with the Newton step after the solve, `_optimality.newton_distance`.)"""
+        dtype = problem.dtype
+        off = (jnp.array(jnp.nan, dtype), jnp.array(False))
+        if _statistical_off(self.stol) or not b.forms_normal_matrix:
+            return off
+        n_obs = n_observations(problem)
+        p = params.theta.size
+
+        def test():
+            rank, rank_t, pred = self._undamped(problem, params, b)
+            se = standard_errors(pred, b.C, n_obs, rank)
+            ok = (rank_t == p) & (se <= self.stol) & (fo * jnp.sqrt(n_obs - rank) <= 1.0)
+            return se, ok
+
+        return lazy_cond(stopped, test, off)
 
     def terminate(self, problem, params, state):
         del problem, params
