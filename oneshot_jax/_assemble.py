@@ -11,7 +11,9 @@ import numpy as np
 from . import _pytree
 from . import metrics as _metrics
 from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
+from ._fit_report import FLOAT64, below_float64
 from ._fit_result import FitHistory, FitResult, Starts
+from ._linalg import NULL_CUT
 from ._model import model_labels
 from ._optimality import promises_descent, resolution, roundoff_limit
 from ._results import SUCCESS, from_index, name_of
@@ -237,17 +239,32 @@ def _settings(solver) -> dict:
     return dict(kept[1])
 
 
-def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None):
+def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, low=None):
     """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
     that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
     at a blown-up simulation, say), after `unconverged` parallel rollouts that kept
     Newton's unconverged iterate, or at a success whose simulation fits an output worse
     than its mean (`worst_fit`, its FIT% below 0: a bad minimum, where a chaotic
     trajectory's sensitivities make every column parallel), it may be the point's or
-    the rollouts' only, and the warning says so."""
+    the rollouts' only, and the warning says so. `low`: the name of a precision below
+    float64, where J^T J's round-off alone makes nearly collinear columns read null (an
+    output offset next to an input of large mean: finite standard errors in float64),
+    and the warning says that instead."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
+    if bad and low is not None:
+        listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
+        warnings.warn(
+            f"J^T J is singular to {low} precision where the fit stopped: {what} {listed} "
+            f"enter its numerical null space (its eigenvalues below {NULL_CUT:g} eps of the "
+            f"largest are round-off in {low}, which nearly collinear columns reach though "
+            "the data may determine them); their std is inf, not resolved in this "
+            f"precision. To tell, {FLOAT64}; if they stay unresolved there, hold some of "
+            "them (`fit(..., fixed=...)`) or reparametrise.",
+            stacklevel=4,
+        )
+        return
     if bad:
         # A network's weights are many and never all identifiable: name a few.
         listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
@@ -392,9 +409,10 @@ def assemble(
         diverged = stop == "diverged"
         unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
         worst = worst_fit(met.get("fit_percent"), problem.cost.weight)
+        low = below_float64(problem.dtype)
         if not diverged:
             _warn_identifiability(
-                names, scaled.theta_identifiable, "parameters", stop, unconverged, worst
+                names, scaled.theta_identifiable, "parameters", stop, unconverged, worst, low
             )
         if not diverged and not scaled.x0_identifiable.all():
             n_traj, n_x = X0.shape
@@ -411,6 +429,7 @@ def assemble(
                 stop,
                 unconverged,
                 worst,
+                low,
             )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
         if not diverged and dof <= 0 and n_free:

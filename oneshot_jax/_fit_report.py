@@ -120,6 +120,8 @@ def _interval(value, std, fixed, computed) -> str:
     if not np.isfinite(std):
         if computed == "no_dof":
             return "(unknown: no more data than estimates)"
+        if isinstance(computed, str):  # (a precision below float64: `_computed`)
+            return f"(not resolved in {computed})"
         return "(not identifiable)"
     d = _digits(value, std)
     return f"[{value - 1.96 * std:.{d}g}, {value + 1.96 * std:.{d}g}]"
@@ -142,12 +144,24 @@ def _computed(result):
     """Whether the covariance was computed: an empty one stands for "not computed" (above
     the size limit) only where some entry of theta is free; "diverged" after that stop;
     "no_dof" where the fit had no more measured output values than estimated entries
-    (sigma^2 unknown: every standard error inf, identifiable or not)."""
+    (sigma^2 unknown: every standard error inf, identifiable or not); the precision's
+    name where it was computed below float64 (an inf standard error is then J^T J's
+    round-off, not resolved in that precision, `below_float64`)."""
     if result.status == "diverged":
         return "diverged"
     if (result.diagnostics or {}).get("degrees_of_freedom", 1) <= 0:
         return "no_dof"
-    return np.shape(result.covariance) != (0, 0) or bool(np.all(result.fixed))
+    computed = np.shape(result.covariance) != (0, 0) or bool(np.all(result.fixed))
+    low = below_float64(np.asarray(result.x0).dtype)
+    return low if computed and low is not None else computed
+
+
+def below_float64(dtype):
+    """The name of `dtype` where it is a floating precision below float64, else None."""
+    dtype = np.dtype(dtype)
+    if not np.issubdtype(dtype, np.floating):
+        return None
+    return dtype.name if np.finfo(dtype).eps > np.finfo(np.float64).eps else None
 
 
 def _entry_names(name, shape):

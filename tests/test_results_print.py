@@ -653,3 +653,30 @@ def test_the_output_weight_is_printed():
     q = np.diag(noise.weight) if np.ndim(noise.weight) == 2 else noise.weight
     assert f"; Q diagonal [{q[0]:.4g}, {q[1]:.4g}]" in str(noise)
     assert "output weight" not in str(oj.fit(model, {"a": 0.5}, x0, u, z))
+
+
+def test_float32_standard_errors_lost_to_round_off_say_so():
+    """x+ = a x + b u, z = x + c with the input 10 + 0.03 N(0, 1): the gain, the offset
+    and x0 nearly collinear. In float32, J^T J's round-off makes them read null (std inf)
+    while float64 determines all of them: the printout said "(not identifiable)" and the
+    warning "not identifiable from these data"; they now say "not resolved in float32"
+    and name float64 as the remedy."""
+    rng = np.random.default_rng(0)
+    T = 1000
+    u = 10 + 0.03 * rng.standard_normal((T, 1))
+    x = np.empty(T)
+    x[0] = 2.0
+    for k in range(T - 1):
+        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    z = (x + 3.0 + 0.01 * rng.standard_normal(T))[:, None]
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    f = np.float32
+    theta0 = {"a": f(0.9), "b": f(0.5), "c": f(3.0)}
+    x0 = np.array([z[0, 0] - 3.0], f)
+    with pytest.warns(UserWarning, match="singular to float32 precision") as caught:
+        r = oj.fit(model, theta0, x0, u.astype(f), z.astype(f))
+    assert not np.isfinite(r.std["b"])
+    assert "(not resolved in float32)" in str(r) and "(not identifiable)" not in str(r)
+    assert not any("not identifiable from these data" in str(w.message) for w in caught)
+    r64 = oj.fit(model, {k: float(v) for k, v in theta0.items()}, x0.astype(float), u, z)
+    assert all(np.isfinite(r64.std[k]) for k in "abc")
