@@ -869,17 +869,6 @@ def _check_magnitude(z: np.ndarray, name: str = "z") -> None:
         )
 
 
-def _given_without_penalty(penalty_weight) -> bool:
-    """Whether `penalty_weight` holds a value other than its default 1 (a concrete one:
-    a traced value is not judged)."""
-    if penalty_weight is None or not is_concrete(penalty_weight):
-        return False
-    try:
-        return bool(np.ndim(penalty_weight) != 0 or float(penalty_weight) != 1.0)
-    except (TypeError, ValueError):
-        return True
-
-
 def check_cost(data: Data, penalty, penalty_weight) -> Cost:
     """The `Cost` of validated data: the weight, and the penalty with its multiplier
     lambda as an array in the data's dtype (a penalty must return a scalar)."""
@@ -887,12 +876,6 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
         raise ValueError(f"`penalty` must be callable h(x, theta) -> scalar, got {penalty!r}.")
     dtype = data.x0.dtype
     if penalty is None:
-        if _given_without_penalty(penalty_weight):
-            raise ValueError(
-                f"`penalty_weight` was given ({penalty_weight!r}) without a `penalty`: it is "
-                "the multiplier lambda of a penalty h(x, theta) (eq. 21). Pass `penalty=` "
-                "too, or leave `penalty_weight` at its default."
-            )
         return _pytree.build(
             Cost, weight=data.weight, penalty=None, penalty_weight=np.zeros((), dtype)
         )

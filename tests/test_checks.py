@@ -417,14 +417,6 @@ def test_bad_penalty_weight(penalty_weight, entry):
         call(entry, penalty=penalty, penalty_weight=penalty_weight)
 
 
-@pytest.mark.parametrize("entry", WITH_Z)
-def test_a_penalty_weight_without_a_penalty_is_refused(entry):
-    """It multiplies a penalty; alone it was ignored, and the fit ran without either."""
-    with pytest.raises(ValueError, match=r"`penalty_weight` was given \(5.0\) without a `penalty`"):
-        call(entry, penalty_weight=5.0)
-    call(entry, penalty_weight=1.0)  # (the default, written out: nothing to refuse)
-
-
 @pytest.mark.parametrize("strategy", ["adjoint", "Jacobian", None, "", "literal"])
 def test_bad_strategy(strategy):
     with pytest.raises(
