@@ -94,6 +94,11 @@ def stop_detail(status: str, info: dict) -> str:
         return out
     if status == "statistically_converged":
         se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
+        if info.get("settled") and info.get("solver_stop") == "stalled":
+            return (
+                "the solver stalled (no step lowers the loss at its round-off), and the "
+                f"Newton step from here is {_g(se)} standard errors <= {_g(stol)}; {vs}"
+            )
         if info.get("settled"):
             return (
                 "no step lowers the loss at its round-off, and the undamped Gauss-Newton "
@@ -119,12 +124,19 @@ def stop_detail(status: str, info: dict) -> str:
                 f"the problem is too ill-conditioned for this precision; {FLOAT64} ({vs})"
             )
         if info.get("solver_stop") == "statistically_converged" and "newton_se" in info:
+            gn = _g(info.get("standard_errors", np.nan))
+            if not np.isfinite(info["newton_se"]):
+                return (
+                    "no step lowers the loss at its round-off, and the undamped "
+                    f"Gauss-Newton step from here is {gn} standard errors, but the loss's "
+                    "Hessian there is not positive definite (a saddle or a flat direction: "
+                    f"no Newton step to measure): not settled, {tail}"
+                )
             return (
                 "no step lowers the loss at its round-off, and the undamped Gauss-Newton "
-                f"step from here is {_g(info.get('standard_errors', np.nan))} standard "
-                "errors, but the Newton step with the residuals' curvature is "
-                f"{_g(info['newton_se'])} (a large misfit whose curvature cancels part of "
-                f"J^T J): not settled, {tail}"
+                f"step from here is {gn} standard errors, but the Newton step with the "
+                f"residuals' curvature is {_g(info['newton_se'])} (a large misfit whose "
+                f"curvature cancels part of J^T J): not settled, {tail}"
             )
         if info.get("unmeasured_claim"):
             return (
@@ -379,9 +391,9 @@ class FitResult(eqx.Module):
         linear model predicted, relative to the loss), `standard_errors` and `stol` (the
         last step's size in standard errors and the tolerance of the statistical test,
         see `RESULTS.statistically_converged`; with `settled` (True) where the fit
-        stalled and the size is the undamped Gauss-Newton step's from the returned point,
-        with `solver_stop` "stalled" where a first-order solver's stall was settled after
-        the solve; `newton_se`, the Newton step's size with the loss's own curvature,
+        stalled and the size is that of the undamped Gauss-Newton step from the returned
+        point, or of the Newton step (`newton_se`) with `solver_stop` "stalled" where a
+        first-order solver's stall was settled after the solve; `newton_se`, the Newton step's size with the loss's own curvature,
         where a settled stall was checked with it after the solve: `stalled` with
         `solver_stop` "statistically_converged" where it is beyond stol)
         and `at_step` (the last solver's

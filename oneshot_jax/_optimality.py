@@ -450,9 +450,10 @@ CHECK_ENTRIES = 2**22
 # moves a quantity the data determine by more than this many of its standard errors.
 CHECK_SE = 1.0
 
-# `_fit._settle_stall`: a first-order solver's stall is settled where the Gauss-Newton step
-# from J itself is at most this many standard errors (the least-squares solvers' default
-# stol, which they test inside their loop: `AbstractLeastSquares._settled`).
+# `_fit._settle`: a first-order solver's stall is settled where the Newton step
+# (`newton_distance`) is at most this many standard errors (the least-squares solvers'
+# default stol, with which they settle a stall inside their loop:
+# `AbstractLeastSquares._settled`).
 SETTLE_SE = 1e-2
 
 
@@ -547,9 +548,11 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     stalled 0.6 standard errors from the optimum with a Gauss-Newton step of 1e-3.
 
     `held`: boolean (p,) theta columns held at a bound (the step of the others, an
-    active set). Defined where J's kept columns have full rank and H restricted to them
-    is positive definite (Jacobi-scaled, eigenvalues above the null cut `NULL_CUT` eps of
-    the largest; a saddle or a flat direction has no Newton step to measure).
+    active set). Columns of J that are exactly zero (an initial state that never reaches
+    the outputs) are left out with them. Defined where the kept columns have full rank
+    and H restricted to them is positive definite (Jacobi-scaled, eigenvalues above the
+    null cut `NULL_CUT` eps of the largest; a saddle or a flat direction has no Newton
+    step to measure).
 
     **Returns:** (the step's size in standard errors, whether it is defined)."""
     lin = problem.jacobian(params, strategy)
@@ -559,7 +562,8 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     eye = jnp.eye(N, dtype=dtype)[:, None, :, None]
     Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
     J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
-    keep = jnp.concatenate([~held, jnp.ones(N * m, bool)])
+    norms = jnp.sqrt(jnp.sum(J * J, axis=0))
+    keep = jnp.concatenate([~held, jnp.ones(N * m, bool)]) & (norms > 0)
 
     def gradient(flat):
         _, g = problem.value_and_grad(Params(flat[:p], flat[p:].reshape(N, m)), strategy)
@@ -569,8 +573,7 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     g = gradient(flat)
     H = jax.jacfwd(gradient)(flat)
     H = 0.5 * (H + H.T)
-    d = jnp.sqrt(jnp.sum(J * J, axis=0))
-    d = jnp.where(keep & (d > 0), d, 1.0)
+    d = jnp.where(keep, norms, 1.0)
     # (held columns: a unit diagonal apart from the rest, and no gradient)
     mask = keep[:, None] & keep[None, :]
     eye_n = jnp.eye(J.shape[1], dtype=dtype)

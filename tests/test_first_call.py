@@ -6,6 +6,7 @@ import logging
 import os
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -286,3 +287,36 @@ def test_a_new_step_budget_reuses_the_compiled_fit(solver):
     assert short.status == "max_steps_reached" and short.num_steps == 2
     assert longer.num_steps > 2
     assert longer.status != "max_steps_reached" or longer.num_steps == 7
+
+
+class _BudgetSized(oj.AbstractSolver):
+    """Gradient descent of one's own whose `max_steps` is a static field and sizes an
+    array: it must reach `init` as a Python number (the library's solvers trace theirs)."""
+
+    max_steps: int = eqx.field(static=True, default=7)
+
+    def init(self, problem, params):
+        return problem.value_and_grad(params, "auto"), jnp.zeros(np.arange(self.max_steps).size)
+
+    def step(self, problem, params, state):
+        (_, g), seen = state
+        lr = 0.1 if self.max_steps < 1000 else 0.01
+        new = jax.tree.map(lambda p, d: p - lr * d, params, g)
+        return new, (problem.value_and_grad(new, "auto"), seen)
+
+    def terminate(self, problem, params, state):
+        return jnp.array(False), oj.RESULTS.converged
+
+    def summary(self, state):
+        C, g = state[0]
+        return C, jnp.sqrt(jnp.sum(g.theta**2) + jnp.sum(g.x0**2))
+
+
+def test_a_solver_of_ones_own_gets_its_budget_as_a_number():
+    """Tracing `max_steps` for every solver broke these (an equinox error for the static
+    field, a tracer in np.arange and in `if`)."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u)
+    u = np.random.default_rng(0).standard_normal((50, 1))
+    _, z = oj.simulate(model, {"a": 0.5, "b": 1.0}, np.zeros(1), u)
+    r = oj.fit(model, {"a": 0.2, "b": 0.5}, np.zeros(1), u, z, solver=_BudgetSized())
+    assert r.status == "max_steps_reached" and r.num_steps == 7

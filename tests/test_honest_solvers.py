@@ -938,9 +938,9 @@ def test_a_stall_at_round_off_next_to_the_optimum_is_settled_by_the_undamped_ste
 
 def test_a_first_order_solvers_stall_next_to_the_optimum_is_settled_after_the_solve():
     """L-BFGS on the records above: its line search fails at round-off next to the
-    optimum (the measure 5e-7 to 4e-6), and such fits ended `stalled`. The
-    Gauss-Newton step from the Jacobian, 3e-5 to 2e-4 standard errors, settles them after
-    the solve: successes within 0.01 standard errors of SciPy's optimum."""
+    optimum (the measure 5e-7 to 4e-6), and such fits ended `stalled`. The Newton step
+    with the loss's Hessian, 3e-5 to 2e-4 standard errors, settles them after the solve:
+    successes within 0.01 standard errors of SciPy's optimum."""
     settled = 0
     for offset, seed in ((1e4, 1), (1e4, 2), (1e5, 1)):
         r, fitted, std, optimum, _ = _offset_fit_and_reference(offset, seed, oj.LBFGS())
@@ -948,6 +948,35 @@ def test_a_first_order_solvers_stall_next_to_the_optimum_is_settled_after_the_so
             settled += 1
             assert r.stop_info["solver_stop"] == "stalled"
     assert settled, "no fit stalled at round-off: the case does not test the settling"
+
+
+def test_a_settled_stall_with_an_unobserved_state_stays_settled():
+    """The first record above with a second state that never reaches the outputs (its x0
+    column of J is zero): Levenberg-Marquardt settles its stall as without it, and the
+    Newton check after the solve leaves that state out (it read the Hessian as singular,
+    and the success became `stalled`)."""
+    u, z = _offset_record(1e4, seed=0)
+    model = oj.Model(
+        lambda x, u, th: jnp.stack([th["a"] * x[0] + th["b"] * u[0], 0.5 * x[1]]),
+        lambda x, u, th: x[:1] + th["c"],
+    )
+    theta0 = {"a": 0.85, "b": 0.45, "c": 1e4 - 0.5}
+    x0 = np.array([z[0, 0] - 1e4 + 0.5, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the unobserved state's inf std)
+        r = oj.fit(model, theta0, x0, u, z, solver=oj.LevenbergMarquardt())
+    assert r.success, r.message
+    plain = oj.fit(
+        oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"]),
+        theta0,
+        x0[:1],
+        u,
+        z,
+        solver=oj.LevenbergMarquardt(),
+    )
+    assert r.status == plain.status
+    if r.stop_info.get("settled"):
+        assert np.isfinite(r.stop_info["newton_se"]) and r.stop_info["newton_se"] <= 0.01
 
 
 def _misfit_record(offset=1e6, h=0.002, T=500, seed=3):

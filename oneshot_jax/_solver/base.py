@@ -57,11 +57,12 @@ class AbstractSolver(eqx.Module):
     # fit instead of compiling again. (A learning rate enters the arithmetic, where a
     # traced value rounds differently from a constant: it stays static.)
     TRACED_OPTIONS = ()  # (a class constant: no annotation, so not a field)
-    # The step budget enters the loop's bound alone (and the progress bar's offsets), so
-    # it is traced too, as an int32: a new `max_steps` reuses the compiled fit where the
-    # history buffer keeps its rows (`fit`'s default `history`, 1000 rows, for every
-    # budget).
-    TRACED_INTEGERS = ("max_steps",)
+    # Integer options traced as int32 (the library's solvers: `max_steps`, which enters
+    # the loop's bound alone and the progress bar's offsets, so that a new budget reuses
+    # the compiled fit where the history buffer keeps its rows, `fit`'s default
+    # `history`, 1000 rows, for every budget). Empty here: a solver of one's own may use
+    # its `max_steps` as a Python number (a static field, a shape).
+    TRACED_INTEGERS = ()
     # Whether a positive gtol counts as at least `_optimality.resolution` (the first-order
     # solvers: they have no stall after which the round-off limit would apply).
     GTOL_AT_LEAST_RESOLUTION = False

@@ -145,6 +145,7 @@ class AbstractLeastSquares(AbstractSolver):
     # (`stol` too, where it is not 0: 0 switches the statistical test off, a branch of
     # the compiled solve, `traced_options`)
     TRACED_OPTIONS = ("rtol", "atol", "gtol", "stol")
+    TRACED_INTEGERS = ("max_steps",)
 
     rtol: eqx.AbstractVar[float]
     atol: eqx.AbstractVar[float]

@@ -160,6 +160,7 @@ class _AbstractOptax(AbstractSolver):
     strategy: eqx.AbstractVar[str]
 
     TRACED_OPTIONS = ("tol_loss", "tol_grad", "gtol")
+    TRACED_INTEGERS = ("max_steps",)
     GTOL_AT_LEAST_RESOLUTION = True
 
     # A monotone method (LBFGS's line search) rejects a step that does not decrease the

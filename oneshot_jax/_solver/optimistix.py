@@ -196,6 +196,7 @@ class Optimistix(AbstractSolver):
     """
 
     GTOL_AT_LEAST_RESOLUTION = True  # (at its last step and after a failure: no stall)
+    TRACED_INTEGERS = ("max_steps",)
 
     solver: Any
     max_steps: int = eqx.field(default=256, converter=integral)
