@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
-from ._jit import forward_mode_error
+from ._jit import forward_mode_error, public_jit
 from ._kernels import local_terms
 from ._simulate import rollout, sample_count
 from ._strategy import AbstractStrategy, as_strategy
@@ -79,10 +79,10 @@ def one_shot(model, cost, theta, x0, u, z, strategy, mask=None, norm=None):
     return value_and_grad_of_states(model, cost, theta, xs, u, z, strategy, mask, norm)
 
 
-@eqx.filter_jit
-def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy, mask=None):
-    """Jitted `value_and_grad` on validated inputs (used by `fit`): the one-shot recursion
-    per trajectory, each normalised by the number of time points of all of them."""
+def _value_and_grad(model, cost, theta, x0, u, z, batched, strategy, mask=None):
+    """`value_and_grad` on validated inputs (compiled: `value_and_grad_impl`, used by
+    `fit`): the one-shot recursion per trajectory, each normalised by the number of time
+    points of all of them."""
     norm = sample_count(u, mask, x0.dtype)
     fn = lambda x0, u, z, m: one_shot(model, cost, theta, x0, u, z, strategy, m, norm)  # noqa: E731
     if not batched:
@@ -90,6 +90,10 @@ def value_and_grad_impl(model, cost, theta, x0, u, z, batched, strategy, mask=No
     C, (g_theta, g_x0) = jax.vmap(fn)(x0, u, z, mask)
     g_theta = jax.tree_util.tree_map(lambda g: jnp.sum(g, axis=0), g_theta)
     return jnp.sum(C), (g_theta, g_x0)
+
+
+value_and_grad_impl = eqx.filter_jit(_value_and_grad)
+_value_and_grad_public = public_jit(_value_and_grad)
 
 
 def value_and_grad(
@@ -148,7 +152,7 @@ def value_and_grad(
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
     try:
-        C, (g_theta, g_x0) = value_and_grad_impl(
+        C, (g_theta, g_x0) = _value_and_grad_public(
             data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
         )
     except TypeError as err:

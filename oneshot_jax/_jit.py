@@ -103,6 +103,34 @@ def forward_mode_error(err: TypeError) -> None:
     ) from err
 
 
+def public_jit(fn):
+    """`jit(fn)` for a public function's compiled call (`simulate`, `loss`,
+    `value_and_grad`), which a user may also make inside a JAX transformation of their
+    own (traced arguments, or a model that closes over traced values): there, where JAX
+    refuses compiler options, it is `equinox.filter_jit(fn)`, inlined in the user's trace.
+
+    **Arguments:** `fn`, the function to compile.
+
+    **Returns:** the compiled function.
+    """
+    top = jit(fn)
+    nested = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        leaves = jax.tree_util.tree_leaves((args, kwargs))
+        if any(isinstance(a, jax.core.Tracer) for a in leaves):
+            return nested(*args, **kwargs)
+        try:
+            return top(*args, **kwargs)
+        except ValueError as err:
+            if "inside a JAX transformation" not in str(err):
+                raise
+            return nested(*args, **kwargs)
+
+    return call
+
+
 def jit(fn):
     """`fn` compiled as `equinox.filter_jit(fn)` would (arrays traced, everything else
     static), with `CPU_OPTIONS` on a CPU whose XLA takes them (`compiler_options`).

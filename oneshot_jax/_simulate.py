@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
+from ._jit import public_jit
 from ._kernels import rollout as rollout
 from ._strategy import AbstractStrategy, as_strategy
 
@@ -38,8 +39,7 @@ def states(model, theta, x0, u, strategy="auto"):
     return strategy.states(model, theta, x0, u)
 
 
-@eqx.filter_jit
-def simulate_impl(model, theta, x0, u, batched, strategy="auto"):
+def _simulate(model, theta, x0, u, batched, strategy="auto"):
     def one(x0, u):
         xs = states(model, theta, x0, u, strategy)
         return xs, outputs(model, theta, xs, u)
@@ -47,14 +47,21 @@ def simulate_impl(model, theta, x0, u, batched, strategy="auto"):
     return jax.vmap(one)(x0, u) if batched else one(x0, u)
 
 
-@eqx.filter_jit
-def loss_impl(model, cost, theta, x0, u, z, batched, mask=None, strategy="auto"):
+def _loss(model, cost, theta, x0, u, z, batched, mask=None, strategy="auto"):
     """C of eq. (5)/(21): the sum of T L_k over trajectories and time points, divided by
     the number of time points (the mean over trajectories of each one's C when they are
     all of the same length and nothing is masked)."""
     fn = lambda x0, u, z, m: trajectory_sum(model, cost, theta, x0, u, z, m, strategy)  # noqa: E731
     total = jnp.sum(jax.vmap(fn)(x0, u, z, mask)) if batched else fn(x0, u, z, mask)
     return total / sample_count(u, mask, x0.dtype)
+
+
+# (Inside the library's compiled calls, `fit`'s solve; the public functions take the
+# compiled calls with the library's compiler options, `_jit.public_jit`.)
+simulate_impl = eqx.filter_jit(_simulate)
+loss_impl = eqx.filter_jit(_loss)
+_simulate_public = public_jit(_simulate)
+_loss_public = public_jit(_loss)
 
 
 def simulate(
@@ -97,7 +104,7 @@ def simulate(
     """
     data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
-    x, z = simulate_impl(data.model, data.theta, data.x0, data.u, data.batched, strategy)
+    x, z = _simulate_public(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
         return [x[i, :n] for i, n in enumerate(data.lengths)], [
             z[i, :n] for i, n in enumerate(data.lengths)
@@ -164,6 +171,6 @@ def loss(
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
-    return loss_impl(
+    return _loss_public(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
     )
