@@ -393,9 +393,10 @@ class FitResult(eqx.Module):
         see `RESULTS.statistically_converged`; with `settled` (True) where the fit
         stalled and the size is that of the undamped Gauss-Newton step from the returned
         point, or of the Newton step (`newton_se`) with `solver_stop` "stalled" where a
-        first-order solver's stall was settled after the solve; `newton_se`, the Newton step's size with the loss's own curvature,
-        where a settled stall was checked with it after the solve: `stalled` with
-        `solver_stop` "statistically_converged" where it is beyond stol)
+        first-order solver's stall was settled after the solve; `newton_se`, the Newton
+        step's size with the loss's own curvature, where a settled stall was checked with
+        it after the solve: `stalled` with `solver_stop` "statistically_converged" where
+        it is beyond stol)
         and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
