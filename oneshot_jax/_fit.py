@@ -30,6 +30,7 @@ from ._jit import jit
 from ._noise_weight import fit_noise_weighted
 from ._optimality import (
     CHECK_ENTRIES,
+    CHECK_SE,
     NEWTON_COLUMNS,
     SETTLE_SE,
     first_order_at,
@@ -487,6 +488,13 @@ def _settle(result, problem, out, strategy, least_squares):
       curvature cancels most of J^T J the Gauss-Newton step is short of the distance
       left: a structured misfit stalled 0.6 standard errors from the optimum with a
       Gauss-Newton step of 1e-3;
+    - a first-order solver's `converged` at its round-off limit (the measure above gtol,
+      below the limit of a stall: `_optimality.stall_limit`, raised where the outputs are
+      far above the residuals) is `stalled` (`stop_info["newton_refuted"]`) where the
+      Newton step moves the estimates by more than `CHECK_SE` standard errors: a
+      per-column cosine does not see a direction of nearly collinear columns, and L-BFGS
+      stopped 3 standard errors from the optimum of an output offset 1e7 next to an
+      input 1 + 0.01 N(0, 1) (the measure 2.4e-4 below its limit 2.2e-3);
     - a first-order solver's own stall at round-off (L-BFGS's line search failed; not a
       step test of the user's tolerances, an `Optimistix` solver's rtol and atol) is
       `statistically_converged` (`stop_info["settled"]`, the solver's stop in
@@ -504,7 +512,10 @@ def _settle(result, problem, out, strategy, least_squares):
     settled = result.status == "statistically_converged" and bool(info.get("settled"))
     stalled = not least_squares and result.status == "stalled" and "solver_stop" not in info
     stalled = stalled and not info.get("step_test")  # (the user's tolerances fired: theirs)
-    if not (settled or stalled):
+    # (a first-order solver's success at its round-off limit, the measure above gtol)
+    at_limit = not least_squares and result.status == "converged" and "solver_stop" not in info
+    at_limit = at_limit and info.get("first_order", np.nan) > info.get("gtol", np.nan)
+    if not (settled or stalled or at_limit):
         return result
     if problem.cost.penalty is not None or problem.regulariser is not None:
         return result
@@ -523,6 +534,10 @@ def _settle(result, problem, out, strategy, least_squares):
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
     se, defined = _newton_distance_at(problem, params, strategy, jnp.asarray(held))
     se, defined = float(se), bool(defined)
+    if at_limit:
+        if defined and se > CHECK_SE:
+            return _demoted(result, "stalled", newton_se=se, newton_refuted=True)
+        return result
     if settled:
         stol = info.get("stol", SETTLE_SE)
         if defined and se <= stol:

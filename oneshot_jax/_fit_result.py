@@ -123,6 +123,12 @@ def stop_detail(status: str, info: dict) -> str:
                 f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
                 f"the problem is too ill-conditioned for this precision; {FLOAT64} ({vs})"
             )
+        if info.get("newton_refuted"):
+            return (
+                "the solver stopped at its round-off limit, but the Newton step from here "
+                f"moves the estimates by {_g(info['newton_se'])} standard errors (nearly "
+                f"collinear parameters, which the first-order measure does not see): {tail}"
+            )
         if info.get("solver_stop") == "statistically_converged" and "newton_se" in info:
             gn = _g(info.get("standard_errors", np.nan))
             if not np.isfinite(info["newton_se"]):
@@ -396,7 +402,8 @@ class FitResult(eqx.Module):
         first-order solver's stall was settled after the solve; `newton_se`, the Newton
         step's size with the loss's own curvature, where a settled stall was checked with
         it after the solve: `stalled` with `solver_stop` "statistically_converged" where
-        it is beyond stol)
+        it is beyond stol, and with `newton_refuted` (True) and `solver_stop` "converged"
+        where a first-order solver's success at its round-off limit was refuted by it)
         and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the

@@ -979,6 +979,47 @@ def test_a_settled_stall_with_an_unobserved_state_stays_settled():
         assert np.isfinite(r.stop_info["newton_se"]) and r.stop_info["newton_se"] <= 0.01
 
 
+def test_a_first_order_success_at_its_round_off_limit_is_checked_by_the_newton_step():
+    """An output offset of 1e7 (noise 1e-5) next to an input 1 + 0.01 N(0, 1): the gain,
+    the offset and x0 nearly collinear, and the outputs' precision raises the round-off
+    limit of the first-order measure to 2e-3. L-BFGS from 3 standard errors off in the
+    gain (the rest at their best for it) stopped `converged` there, its measure below
+    that limit: a per-column cosine does not see the collinear direction. The Newton step
+    (3 standard errors) makes it `stalled`; SciPy on residuals with the offset taken out
+    puts the optimum that far away."""
+    rng = np.random.default_rng(0)
+    T, offset = 1000, 1e7
+    u = 1.0 + 0.01 * rng.standard_normal((T, 1))
+    x = np.empty(T)
+    x[0] = 1.0
+    for k in range(T - 1):
+        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    z = (x + offset + 1e-5 * rng.standard_normal(T))[:, None]
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    best = oj.fit(model, {"a": 0.9, "b": 0.5, "c": offset}, np.ones(1), u, z)
+    assert best.success, best.message
+    off = {**best.theta, "b": best.theta["b"] - 3.0 * best.std["b"]}
+    held = oj.fit(model, off, best.x0, u, z, fixed={"b": True})  # (the rest at their best)
+    r = oj.fit(model, held.theta, held.x0, u, z, solver=oj.LBFGS())
+    assert r.status == "stalled" and not r.success, r.message
+    assert r.stop_info["solver_stop"] == "converged" and r.stop_info["newton_refuted"]
+    assert 2.0 < r.stop_info["newton_se"] < 4.0
+    assert "Newton step from here" in r.message
+    dz = z[:, 0] - offset
+
+    def residuals(q):
+        a, b, dc, xk = q
+        out = np.empty(T)
+        for k in range(T):
+            out[k] = xk + dc
+            xk = a * xk + b * u[k, 0]
+        return dz - out
+
+    q0 = [r.theta["a"], r.theta["b"], r.theta["c"] - offset, float(np.ravel(r.x0)[0])]
+    ref = scipy.optimize.least_squares(residuals, q0, method="lm", xtol=1e-15, ftol=1e-15)
+    assert abs(ref.x[1] - r.theta["b"]) > 2.0 * best.std["b"]
+
+
 def _misfit_record(offset=1e6, h=0.002, T=500, seed=3):
     """x+ = a x + b u, z = x + c (a = 0.9, b = 1e-3, c = `offset`, x0 = 0) plus a misfit
     along the residuals' curvature in a (d^2 y / da^2, orthogonal to J's columns) whose
