@@ -662,7 +662,7 @@ def test_float32_standard_errors_lost_to_round_off_say_so():
     warning "not identifiable from these data"; they now say "not resolved in float32"
     and name float64 as the remedy."""
     rng = np.random.default_rng(0)
-    T = 1000
+    T = 300
     u = 10 + 0.03 * rng.standard_normal((T, 1))
     x = np.empty(T)
     x[0] = 2.0
