@@ -872,6 +872,21 @@ def _offset_record(offset, seed, T=2000, noise=1e-3):
     return u, z
 
 
+def _first_order_residuals(u, y):
+    """Our own residuals y - (x + c) of x+ = a x + b u at q = (a, b, c, x0), a loop in
+    NumPy (SciPy's reference; y the outputs, less an offset that c then omits)."""
+
+    def residuals(q):
+        a, b, c, xk = q
+        out = np.empty(len(u))
+        for k in range(len(u)):
+            out[k] = xk + c
+            xk = a * xk + b * u[k, 0]
+        return y - out
+
+    return residuals
+
+
 def _offset_fit_and_reference(offset, seed, solver):
     """The fit of `_offset_record` by `solver` from a start off the optimum, its
     estimates (a, b, c, x0) with their standard errors, and SciPy's optimum of our own
@@ -881,14 +896,7 @@ def _offset_fit_and_reference(offset, seed, solver):
     theta0 = {"a": 0.85, "b": 0.45, "c": offset - 0.5}
     x0 = np.array([z[0, 0] - offset + 0.5])
 
-    def residuals(q):
-        a, b, c, xk = q
-        out = np.empty(len(u))
-        for k in range(len(u)):
-            out[k] = xk + c
-            xk = a * xk + b * u[k, 0]
-        return z[:, 0] - out
-
+    residuals = _first_order_residuals(u, z[:, 0])
     q0 = [theta0["a"], theta0["b"], theta0["c"], x0[0]]
     ref = scipy.optimize.least_squares(residuals, q0, method="lm", xtol=1e-15, ftol=1e-15)
     r = oj.fit(model, theta0, x0, u, z, solver=solver)
@@ -1005,16 +1013,7 @@ def test_a_first_order_success_at_its_round_off_limit_is_checked_by_the_newton_s
     assert r.stop_info["solver_stop"] == "converged" and r.stop_info["newton_refuted"]
     assert 2.0 < r.stop_info["newton_se"] < 4.0
     assert "Newton step from here" in r.message
-    dz = z[:, 0] - offset
-
-    def residuals(q):
-        a, b, dc, xk = q
-        out = np.empty(T)
-        for k in range(T):
-            out[k] = xk + dc
-            xk = a * xk + b * u[k, 0]
-        return dz - out
-
+    residuals = _first_order_residuals(u, z[:, 0] - offset)  # (c less the offset)
     q0 = [r.theta["a"], r.theta["b"], r.theta["c"] - offset, float(np.ravel(r.x0)[0])]
     ref = scipy.optimize.least_squares(residuals, q0, method="lm", xtol=1e-15, ftol=1e-15)
     assert abs(ref.x[1] - r.theta["b"]) > 2.0 * best.std["b"]
@@ -1061,16 +1060,7 @@ def test_a_settled_stall_is_checked_with_the_residuals_curvature():
     assert r.stop_info["solver_stop"] == "statistically_converged"
     assert r.stop_info["standard_errors"] <= 0.01 < 0.1 < r.stop_info["newton_se"]
     assert "settled" not in r.stop_info and "Newton step" in r.message, r.message
-    dz = z[:, 0] - 1e6
-
-    def residuals(q):
-        a, b, dc, xk = q
-        out = np.empty(len(u))
-        for k in range(len(u)):
-            out[k] = xk + dc
-            xk = a * xk + b * u[k, 0]
-        return dz - out
-
+    residuals = _first_order_residuals(u, z[:, 0] - 1e6)  # (c less the offset)
     q0 = [r.theta["a"], r.theta["b"], r.theta["c"] - 1e6, float(np.ravel(r.x0)[0])]
     ref = scipy.optimize.least_squares(residuals, q0, method="lm", xtol=1e-15, ftol=1e-15)
     assert abs(ref.x[0] - r.theta["a"]) > 0.1 * r.std["a"]
