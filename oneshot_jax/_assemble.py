@@ -253,18 +253,6 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, 
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
-    if bad and low is not None:
-        listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
-        warnings.warn(
-            f"J^T J is singular to {low} precision where the fit stopped: {what} {listed} "
-            f"enter its numerical null space (its eigenvalues below {NULL_CUT:g} eps of the "
-            f"largest are round-off in {low}, which nearly collinear columns reach though "
-            "the data may determine them); their std is inf, not resolved in this "
-            f"precision. To tell, {FLOAT64}; if they stay unresolved there, hold some of "
-            "them (`fit(..., fixed=...)`) or reparametrise.",
-            stacklevel=4,
-        )
-        return
     if bad:
         # A network's weights are many and never all identifiable: name a few.
         listed = f"{bad}" if len(bad) <= 10 else f"{bad[:10]} and {len(bad) - 10} more"
@@ -287,14 +275,27 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, 
                 f"where the fit stopped ({stop}: not a solution, see its message)",
                 "not identifiable there, which may be the point's and not the data's",
             )
+        hold = (
+            "hold some of them (`fit(..., fixed=...)`"
+            + (", `estimate_x0=...`" if what == "initial states" else "")
+            + "), reparametrise (a product a * b as one parameter), or add data that "
+            "excite them."
+        )
+        if low is not None:
+            warnings.warn(
+                f"J^T J is singular to {low} precision {where}: {what} {listed} enter its "
+                f"numerical null space (its eigenvalues below {NULL_CUT:g} eps of the "
+                f"largest are round-off in {low}: nearly collinear columns reach it though "
+                "the data may determine them, and columns the outputs do not depend on "
+                "are there in any precision); their std is inf, not resolved in this "
+                f"precision. To tell, {FLOAT64}; if they stay unidentifiable there, {hold}",
+                stacklevel=4,
+            )
+            return
         warnings.warn(
             f"the Jacobian is rank-deficient {where}: {what} {listed} enter its "
             "null space (a change of them, alone or together, that leaves the outputs "
-            f"unchanged: {verdict}); their std is inf. Hold some of "
-            "them (`fit(..., fixed=...)`"
-            + (", `estimate_x0=...`" if what == "initial states" else "")
-            + "), reparametrise (a product a * b as one parameter), or add data that "
-            "excite them.",
+            f"unchanged: {verdict}); their std is inf. {hold[0].upper()}{hold[1:]}",
             stacklevel=4,
         )
 

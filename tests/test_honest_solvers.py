@@ -1019,6 +1019,39 @@ def test_a_first_order_success_at_its_round_off_limit_is_checked_by_the_newton_s
     assert abs(ref.x[1] - r.theta["b"]) > 2.0 * best.std["b"]
 
 
+def test_a_float32_first_order_success_is_checked_by_the_jacobians_step():
+    """float32, an output offset of 30 next to an input 10 + N(0, 1): the gain, the
+    offset and x0 nearly collinear. optimistix's BFGS stopped `converged` (its measure at
+    the round-off limit) 2.2 to 2.3 standard errors from the optimum, where J^T J is singular
+    to float32 and the Newton check has no step; the Gauss-Newton step from J itself (QR)
+    refutes it, as it does the least-squares solvers' successes. SciPy's optimum
+    (float64, our own residuals) is that far away."""
+    rng = np.random.default_rng(4)
+    T = 300
+    u = 10.0 + rng.standard_normal((T, 1))
+    x = np.empty(T)
+    x[0] = 1.0
+    for k in range(T - 1):
+        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    z = (x + 30.0 + 0.01 * rng.standard_normal(T))[:, None]
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    f = np.float32
+    theta0 = {"a": f(0.85), "b": f(0.45), "c": f(30.0)}
+    solver = oj.Optimistix(optx.BFGS(rtol=1e-6, atol=1e-6))
+    r = oj.fit(
+        model, theta0, np.array([z[0, 0] - 30.0], f), u.astype(f), z.astype(f), solver=solver
+    )
+    assert r.status == "stalled" and r.stop_info["solver_stop"] == "converged", r.message
+    assert r.stop_info["gauss_newton_refuted"] and r.stop_info["gauss_newton_se"] > 1.0
+    ref = scipy.optimize.least_squares(
+        _first_order_residuals(u, z[:, 0]), [0.9, 0.5, 30.0, 1.0], method="lm", xtol=1e-15
+    )
+    J = ref.jac
+    se = np.sqrt(np.diag(np.sum(ref.fun**2) / (T - 4) * np.linalg.inv(J.T @ J)))
+    fitted = np.array([r.theta["a"], r.theta["b"], r.theta["c"], np.ravel(r.x0)[0]], float)
+    assert np.max(np.abs(fitted - ref.x) / se) > 1.0
+
+
 def _misfit_record(offset=1e6, h=0.002, T=500, seed=3):
     """x+ = a x + b u, z = x + c (a = 0.9, b = 1e-3, c = `offset`, x0 = 0) plus a misfit
     along the residuals' curvature in a (d^2 y / da^2, orthogonal to J's columns) whose
