@@ -651,3 +651,13 @@ def pendulum_nonlinear_damping(x, u, p):
     q, v = x
     damping = 0.1 * v + 0.3 * jnp.tanh(4.0 * v)
     return jnp.stack([v, -p["w0sq"] * jnp.sin(q) - damping + p["g"] * u[0]])
+
+
+def first_order_states(u, a=0.9, b=0.5, x0=1.0):
+    """x[k+1] = a x[k] + b u[k, 0] from x[0] = x0, a loop in NumPy (float64): the states
+    of the first-order model the stopping tests fit with an output offset."""
+    x = np.empty(len(u))
+    x[0] = x0
+    for k in range(len(u) - 1):
+        x[k + 1] = a * x[k] + b * u[k, 0]
+    return x

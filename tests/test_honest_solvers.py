@@ -18,7 +18,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 import scipy.optimize
-from helpers import own_rk4_step
+from helpers import first_order_states, own_rk4_step
 from hypothesis import HealthCheck, given, settings
 
 import oneshot_jax as oj
@@ -864,10 +864,7 @@ def _offset_record(offset, seed, T=2000, noise=1e-3):
     the loss has about 9 digits at the optimum, fewer than the last steps need."""
     rng = np.random.default_rng(seed)
     u = rng.standard_normal((T, 1))
-    x = np.empty(T)
-    x[0] = 1.0
-    for k in range(T - 1):
-        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    x = first_order_states(u, x0=1.0)
     z = (x + offset + noise * rng.standard_normal(T))[:, None]
     return u, z
 
@@ -998,10 +995,7 @@ def test_a_first_order_success_at_its_round_off_limit_is_checked_by_the_newton_s
     rng = np.random.default_rng(0)
     T, offset = 1000, 1e7
     u = 1.0 + 0.01 * rng.standard_normal((T, 1))
-    x = np.empty(T)
-    x[0] = 1.0
-    for k in range(T - 1):
-        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    x = first_order_states(u, x0=1.0)
     z = (x + offset + 1e-5 * rng.standard_normal(T))[:, None]
     model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
     best = oj.fit(model, {"a": 0.9, "b": 0.5, "c": offset}, np.ones(1), u, z)
@@ -1029,10 +1023,7 @@ def test_a_float32_first_order_success_is_checked_by_the_jacobians_step():
     rng = np.random.default_rng(4)
     T = 300
     u = 10.0 + rng.standard_normal((T, 1))
-    x = np.empty(T)
-    x[0] = 1.0
-    for k in range(T - 1):
-        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    x = first_order_states(u, x0=1.0)
     z = (x + 30.0 + 0.01 * rng.standard_normal(T))[:, None]
     model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
     f = np.float32
@@ -1202,10 +1193,7 @@ def _collinear_first_order(umean, ustd, noise, seed, T=1000):
     model = oj.Model(f, lambda x, u, th: x + th["c"])
     rng = np.random.default_rng(seed)
     u = umean + ustd * rng.standard_normal((T, 1))
-    x = np.empty(T)
-    x[0] = 2.0
-    for k in range(T - 1):
-        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    x = first_order_states(u, x0=2.0)
     z = (x + 30.0 + noise * rng.standard_normal(T))[:, None]
     theta0 = {"a": 0.8, "b": 0.4, "c": 29.0}
     x0 = np.array([z[0, 0] - 29.0])

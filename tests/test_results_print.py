@@ -13,6 +13,7 @@ import numpy as np
 import optax
 import optimistix as optx
 import pytest
+from helpers import first_order_states
 
 import oneshot_jax as oj
 from oneshot_jax.internal import RESULTS_BY_NAME
@@ -664,10 +665,7 @@ def test_float32_standard_errors_lost_to_round_off_say_so():
     rng = np.random.default_rng(0)
     T = 300
     u = 10 + 0.03 * rng.standard_normal((T, 1))
-    x = np.empty(T)
-    x[0] = 2.0
-    for k in range(T - 1):
-        x[k + 1] = 0.9 * x[k] + 0.5 * u[k, 0]
+    x = first_order_states(u, x0=2.0)
     z = (x + 3.0 + 0.01 * rng.standard_normal(T))[:, None]
     model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
     f = np.float32
