@@ -93,7 +93,7 @@ def _value_and_grad(model, cost, theta, x0, u, z, batched, strategy, mask=None):
 
 
 value_and_grad_impl = eqx.filter_jit(_value_and_grad)
-_value_and_grad_public = public_jit(_value_and_grad)
+value_and_grad_compiled = public_jit(_value_and_grad)
 
 
 def value_and_grad(
@@ -152,7 +152,7 @@ def value_and_grad(
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
     try:
-        C, (g_theta, g_x0) = _value_and_grad_public(
+        C, (g_theta, g_x0) = value_and_grad_compiled(
             data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
         )
     except TypeError as err:

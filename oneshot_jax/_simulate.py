@@ -60,8 +60,8 @@ def _loss(model, cost, theta, x0, u, z, batched, mask=None, strategy="auto"):
 # compiled calls with the library's compiler options, `_jit.public_jit`.)
 simulate_impl = eqx.filter_jit(_simulate)
 loss_impl = eqx.filter_jit(_loss)
-_simulate_public = public_jit(_simulate)
-_loss_public = public_jit(_loss)
+simulate_compiled = public_jit(_simulate)
+loss_compiled = public_jit(_loss)
 
 
 def simulate(
@@ -104,7 +104,7 @@ def simulate(
     """
     data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
-    x, z = _simulate_public(data.model, data.theta, data.x0, data.u, data.batched, strategy)
+    x, z = simulate_compiled(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     if data.lengths is not None:  # ragged lists in, ragged lists out
         return [x[i, :n] for i, n in enumerate(data.lengths)], [
             z[i, :n] for i, n in enumerate(data.lengths)
@@ -171,6 +171,6 @@ def loss(
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
-    return _loss_public(
+    return loss_compiled(
         data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
     )

@@ -367,13 +367,13 @@ def test_loss_validates_and_passes_on_its_strategy(data, monkeypatch):
     with pytest.raises(ValueError, match="`strategy` must be"):
         oj.loss(M, TH0, X0, u, z, strategy="fastest")
     seen = []
-    impl = _simulate._loss_public  # (the compiled call `loss` makes)
+    impl = _simulate.loss_compiled  # (the compiled call `loss` makes)
 
     def spy(*args, **kwargs):
         seen.append(args[8] if len(args) > 8 else kwargs.get("strategy"))
         return impl(*args, **kwargs)
 
-    monkeypatch.setattr(_simulate, "_loss_public", spy)
+    monkeypatch.setattr(_simulate, "loss_compiled", spy)
     C = oj.loss(M, TH0, X0, u, z, strategy="vjp")
     assert seen == ["vjp"] and float(C) == pytest.approx(float(oj.loss(M, TH0, X0, u, z)))
 
