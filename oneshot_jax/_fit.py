@@ -287,7 +287,7 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
     if result.success and unconverged(point):
         # (`loss` stays the rollouts', as the history's; the model's, from the sequential
         # loop, goes with the reason)
-        out = _demoted(
+        out = _restated(
             out,
             "unconverged_rollout",
             unconverged_rollouts=counts["unconverged_rollouts"],
@@ -297,11 +297,11 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
     return out
 
 
-def _demoted(result, reason, **info):
-    """`result` with the stop reason `reason` (not a success) where a check after the
-    solve refutes the solver's success: the solver's own stop in
-    `stop_info["solver_stop"]` with `info`, and the best start's stop in `result.starts`
-    too (as the status line's)."""
+def _restated(result, reason, **info):
+    """`result` with the stop reason `reason` where a check after the solve decides the
+    stop (refutes the solver's success, or settles its stall: `_settle`):
+    the solver's own stop in `stop_info["solver_stop"]` with `info`, and the best start's
+    stop in `result.starts` too (as the status line's)."""
     info = {**result.stop_info, "solver_stop": name_of(result.stop_reason), **info}
     out = dataclasses.replace(result, stop_reason=getattr(RESULTS, reason), stop_info=info)
     if result.starts is not None:
@@ -341,7 +341,7 @@ def _measure_unmeasured_success(result, problem, out, strategy):
         return result
     if bool(zero):
         return dataclasses.replace(result, stop_reason=RESULTS.zero_residual)
-    return _demoted(result, "stalled", unmeasured_claim=True)
+    return _restated(result, "stalled", unmeasured_claim=True)
 
 
 @eqx.filter_jit
@@ -402,7 +402,7 @@ def _flag_refuted_stop(result, problem, out, strategy):
             stops[s] = "stalled"
             continue
         info = {k: v for k, v in result.stop_info.items() if k != "degenerate"}
-        result = _demoted(  # (the best start's stop in `result.starts` too)
+        result = _restated(  # (the best start's stop in `result.starts` too)
             dataclasses.replace(result, stop_info={**info, "first_order": fo}),
             "stalled",
             **{flag: True},
@@ -466,7 +466,7 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     down, se, lost = _gauss_newton_refutes_at(problem, params, strategy)
     info = dict(gauss_newton_se=float(se), precision=np.dtype(problem.dtype).name)
     if success and bool(down):
-        return _demoted(result, "stalled", gauss_newton_refuted=True, **info)
+        return _restated(result, "stalled", gauss_newton_refuted=True, **info)
     if failure and bool(down) and bool(lost):
         return dataclasses.replace(result, stop_info={**result.stop_info, **info})
     return result
@@ -539,7 +539,7 @@ def _settle(result, problem, out, strategy, least_squares):
     se, defined = float(se), bool(defined)
     if at_limit:
         if defined and se > CHECK_SE:
-            return _demoted(result, "stalled", newton_se=se, newton_refuted=True)
+            return _restated(result, "stalled", newton_se=se, newton_refuted=True)
         return result
     if settled:
         stol = info.get("stol", SETTLE_SE)
@@ -547,28 +547,19 @@ def _settle(result, problem, out, strategy, least_squares):
             return dataclasses.replace(result, stop_info={**info, "newton_se": se})
         rest = {k: v for k, v in info.items() if k != "settled"}
         demoted = dataclasses.replace(result, stop_info=rest)
-        return _demoted(demoted, "stalled", newton_se=se if defined else float("inf"))
+        return _restated(demoted, "stalled", newton_se=se if defined else float("inf"))
     dof = int(n_observations(problem)) - (columns - int(held.sum()))
     fo = info.get("first_order", np.nan)
     if not (defined and dof > 0 and se <= SETTLE_SE and fo * np.sqrt(dof) <= 1.0):
         return result
-    new = {
-        **info,
-        "solver_stop": "stalled",
-        "settled": True,
-        "standard_errors": se,
-        "newton_se": se,
-        "stol": SETTLE_SE,
-    }
-    out_result = dataclasses.replace(
-        result, stop_reason=RESULTS.statistically_converged, stop_info=new
+    return _restated(
+        result,
+        "statistically_converged",
+        settled=True,
+        standard_errors=se,
+        newton_se=se,
+        stol=SETTLE_SE,
     )
-    if result.starts is not None:
-        reasons = list(result.starts.stop_reason)
-        reasons[result.best] = "statistically_converged"
-        starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
-        out_result = dataclasses.replace(out_result, starts=starts)
-    return out_result
 
 
 def _warn_unequal_noise(residuals, weight, std, readings=None):
@@ -676,7 +667,7 @@ def _flag_infeasible(result, projections, rtol=1e-8):
         RuntimeWarning,
         stacklevel=3,
     )
-    return _demoted(result, "infeasible", infeasible=distance) if demoted else result
+    return _restated(result, "infeasible", infeasible=distance) if demoted else result
 
 
 def _warn_projected(moved, names, theta0):

@@ -457,6 +457,17 @@ CHECK_SE = 1.0
 SETTLE_SE = 1e-2
 
 
+def _whole_jacobian(problem: FitProblem, params: Params, strategy):
+    """The linearisation at `params` and its whole Jacobian J (N R, p + N m): theta's
+    columns beside every trajectory's x0 columns, block-diagonal over the trajectories."""
+    lin = problem.jacobian(params, strategy)
+    N, R = lin.r.shape
+    p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
+    eye = jnp.eye(N, dtype=lin.r.dtype)[:, None, :, None]
+    Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
+    return lin, jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
+
+
 def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     """After a success in a precision below float64: whether the Gauss-Newton step
     computed from the residual Jacobian J itself (Jacobi-scaled) refutes it, and that
@@ -484,14 +495,11 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     **Returns:** (refuted, the step's size in standard errors, whether J^T J loses a
     direction that J keeps: a kept singular value whose square is at most the null cut
     of `_linalg.scaled_eigh`, 1e3 eps of the largest)."""
-    lin = problem.jacobian(params, strategy)
-    N, R = lin.r.shape
+    lin, J = _whole_jacobian(problem, params, strategy)
+    N = lin.r.shape[0]
     p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
     dtype = lin.r.dtype
     r = lin.r.reshape(-1)
-    eye = jnp.eye(N, dtype=dtype)[:, None, :, None]
-    Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
-    J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
     d = jnp.sqrt(jnp.sum(J * J, axis=0))
     d = jnp.where(d > 0, d, 1.0)
     # (a tall J: its QR first, then the SVD of the small triangle, R = U s V^T)
@@ -555,13 +563,10 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     step to measure).
 
     **Returns:** (the step's size in standard errors, whether it is defined)."""
-    lin = problem.jacobian(params, strategy)
-    N, R = lin.r.shape
+    lin, J = _whole_jacobian(problem, params, strategy)
+    N = lin.r.shape[0]
     p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
     dtype = lin.r.dtype
-    eye = jnp.eye(N, dtype=dtype)[:, None, :, None]
-    Jx = (lin.Jx[:, :, None, :] * eye).reshape(N * R, N * m)
-    J = jnp.concatenate([lin.Jt.reshape(N * R, p), Jx], axis=1)
     norms = jnp.sqrt(jnp.sum(J * J, axis=0))
     keep = jnp.concatenate([~held, jnp.ones(N * m, bool)]) & (norms > 0)
 
