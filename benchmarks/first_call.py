@@ -32,7 +32,8 @@ compiled (from `jax.monitoring`; with the cache warm, the programs loaded; on a 
 first fit's count includes the one-element program by which the library asks, once per
 process, whether XLA takes its compiler options); then, over
 `--repeats` later calls with the same shapes, the median of a `fit()` call, of its
-`FitResult.wall_time` (the compiled solve, covariance and metrics) and of the overhead
+`FitResult.wall_time` (the compiled solve, covariance and metrics, and the checks of its
+result) and of the overhead
 (a call's wall time minus its `wall_time`: the input checks, the setup and the assembly
 of the `FitResult`), and the median of a later `predict()`.
 

@@ -346,9 +346,10 @@ class FitResult(eqx.Module):
         converged.
     - `num_steps`: the solver steps taken (all solvers of a sequence together; with
         `weight="noise"`, all its fits together).
-    - `wall_time`: seconds of the compiled solve with its covariance and metrics
-        (compilation included on the first call of a configuration), without the input
-        checks; with `weight="noise"`, of all its fits.
+    - `wall_time`: seconds of the compiled solve with its covariance and metrics and of
+        the checks of its result after it (a Newton step, say: compilation included on the
+        first call of a configuration), without the input checks and the assembly of the
+        `FitResult`; with `weight="noise"`, of all its fits.
     - `history`: a `FitHistory` of the iterates.
     - `residuals`: e = zhat - z, the shape of `z`; (n_windows, window, n_z) for a fit
         with `window=` (each window simulated from its own fitted x0).
