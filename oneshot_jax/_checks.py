@@ -752,6 +752,14 @@ def check_data(
                 f"state; for one trajectory of {x0.shape[0]} states give x0 of shape "
                 f"({x0.shape[0]},) (np.ravel(x0))"
             )
+        elif batched and u.ndim == 2:
+            first = " (x0[0])" if x0.shape[0] == 1 else ""
+            many = "one trajectory" if x0.shape[0] == 1 else f"{x0.shape[0]} trajectories"
+            hint = (
+                f": `x0` of shape {x0.shape} holds one initial state per trajectory "
+                f"({many} of {x0.shape[1]} states); for the one record "
+                f"`u` of shape (T, n_u) give x0 of shape ({x0.shape[1]},){first}"
+            )
         raise ValueError(
             f"`u` must have shape {want} to match `x0` of shape {x0.shape}, got shape "
             f"{u.shape}{hint}."

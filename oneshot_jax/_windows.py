@@ -51,8 +51,9 @@ class Windows(eqx.Module):
 
     - `length`: the samples per window.
     - `every`: take every k-th of the consecutive windows (0, length, 2 length, ...).
-    - `count`: take this many of them, spread evenly over the record (the first and the
-        last included). Not with `every`.
+    - `count`: take this many of them, spread evenly over the consecutive windows (the
+        first and the last of those included: samples past the last whole window, fewer
+        than `length`, are in none). Not with `every`.
     - `starts`: the windows' first samples, given (sorted, each window within the
         record; windows may overlap, but the standard errors then count a sample once per
         window it lies in and are not those of the record: `fit` warns). Not with
@@ -121,7 +122,7 @@ class Windows(eqx.Module):
         if self.every > 1 and s.size > 1 and self.every >= s.size:
             # (a stride read as samples, not windows, would fit one window without a word)
             raise ValueError(
-                f"`Windows(every={self.every})` takes every {self.every}-th window, but the "
+                f"`Windows(every={self.every})` takes one window in {self.every}, but the "
                 f"record (T = {T}) holds only {s.size} windows of {self.length} samples: it "
                 f"would keep the first alone. `every` counts windows, not samples; for one "
                 f"window take `Windows({self.length}, count=1)`."

@@ -574,6 +574,9 @@ def test_natural_mistakes_get_a_hint():
     model = oj.Model.from_ode(_osc, 0.1)
     with pytest.raises(ValueError, match=r"read as 2 trajectories.*shape \(2,\)"):
         oj.simulate(model, OSC, np.array([[1.0], [0.0]]), np.zeros((10, 1)))
+    # x0 as a row of the outputs, z[:1], for one record: the state's shape is named.
+    with pytest.raises(ValueError, match=r"one trajectory of 2 states.*x0 of shape \(2,\)"):
+        oj.fit(model, OSC, np.zeros((1, 2)), np.zeros((10, 1)), np.zeros((10, 1)))
     # A MATLAB user's habits: two records with one x0, u of shape (T,), x0 left out, a
     # mask of the initial states per record.
     with pytest.raises(ValueError, match=r"for 3 records .* x0 of shape \(3, 2\)"):
