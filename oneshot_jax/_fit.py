@@ -502,9 +502,10 @@ def _settle(result, problem, out, strategy, least_squares):
       step test of the user's tolerances, an `Optimistix` solver's rtol and atol) is
       `statistically_converged` (`stop_info["settled"]`, the solver's stop in
       `stop_info["solver_stop"]`) where the Newton step is at most `SETTLE_SE` standard
-      errors and no parameter alone would move by one (first-order measure times
-      sqrt(R - columns) at most 1): an output offset of 1e4 around a noise of 1e-3 left
-      L-BFGS `stalled` 4e-5 standard errors from the optimum.
+      errors, no parameter alone would move by one (first-order measure times
+      sqrt(R - columns) at most 1) and every estimated entry is identifiable there (finite
+      standard errors): an output offset of 1e4 around a noise of 1e-3 left L-BFGS
+      `stalled` 4e-5 standard errors from the optimum.
 
     Entries of theta at a bound are held (the step of the others). Not checked: a
     penalty, a regulariser or a general projection, more than `NEWTON_COLUMNS` free
@@ -551,6 +552,15 @@ def _settle(result, problem, out, strategy, least_squares):
     dof = int(n_observations(problem)) - (columns - int(held.sum()))
     fo = info.get("first_order", np.nan)
     if not (defined and dof > 0 and se <= SETTLE_SE and fo * np.sqrt(dof) <= 1.0):
+        return result
+    # Every estimated entry identifiable there (finite standard errors, the covariance's
+    # own test): sigma^2 is the point's, so a stall far from the optimum inflates the
+    # standard errors that measure its step, and where a direction is unresolved the
+    # quadratic model does not see how far the loss still falls along it (L-BFGS stalled
+    # "0.006 standard errors" from a point of a loss 1e9 times the optimum's: an output
+    # offset held at its bound and a pole near 1, which makes the offset and x0 collinear).
+    cov = out.covariance
+    if cov is None or not (np.all(cov.theta_identifiable) and np.all(cov.x0_identifiable)):
         return result
     return _restated(
         result,

@@ -955,6 +955,38 @@ def test_a_first_order_solvers_stall_next_to_the_optimum_is_settled_after_the_so
     assert settled, "no fit stalled at round-off: the case does not test the settling"
 
 
+def test_a_stall_far_from_the_optimum_is_not_settled_by_its_own_noise_estimate():
+    """An output offset of 1e4 held at its lower bound 9000: L-BFGS stalls where a pole
+    near 1 keeps x near 1000, at a loss 1e9 times the optimum's (which Levenberg-Marquardt
+    reaches from the same start). The standard errors there take sigma^2 from that
+    misfit, and the Newton step was 0.005 of them: the stall was settled as a success.
+    Offset and x0 are collinear there (inf standard errors): no stall is settled where an
+    estimated entry is not identifiable."""
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((200, 1))
+    model = oj.Model(
+        lambda x, u, p: jnp.stack([p["a"] * x[0] + p["b"] * u[0]]),
+        lambda x, u, p: jnp.stack([x[0] + p["off"]]),
+    )
+    _, z = oj.simulate(model, {"a": 0.7, "b": 1.0, "off": 1e4}, np.array([0.5]), u)
+    z = np.asarray(z) + 1e-5 * rng.standard_normal((200, 1))
+    box = oj.constraints.box(lower={"a": 0.70000415, "off": 9000.0}, upper={"off": 11000.0})
+    theta0 = {"a": 0.70000415, "b": 1.2675, "off": 9917.7}
+    fits = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the stall's inf std)
+        for name, solver in (("lbfgs", oj.LBFGS(max_steps=2000)), ("lm", oj.LevenbergMarquardt())):
+            fits[name] = oj.fit(
+                model, theta0, np.array([0.424]), u, z, solver=solver, constraints=box
+            )
+    lm, lbfgs = fits["lm"], fits["lbfgs"]
+    assert lm.success and lm.loss < 1e-9
+    assert float(lbfgs.theta["off"]) == 9000.0 and lbfgs.loss > 1e8 * lm.loss  # (the trap)
+    assert not np.isfinite(float(lbfgs.std["off"]))
+    assert lbfgs.status == "stalled" and not lbfgs.success, lbfgs.message
+    assert "settled" not in lbfgs.stop_info
+
+
 def test_a_settled_stall_with_an_unobserved_state_stays_settled():
     """The first record above with a second state that never reaches the outputs (its x0
     column of J is zero): Levenberg-Marquardt settles its stall as without it, and the
