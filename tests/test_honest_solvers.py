@@ -1348,6 +1348,53 @@ def test_the_step_test_ends_a_fit_as_stalled_unless_first_order_holds():
     assert r.stop_info["step_test"] and r.stop_info["rtol"] == 1e-2
 
 
+def test_a_search_that_gives_up_at_the_round_off_limit_converges_on_a_general_set():
+    """x+ = a x + b u0 + c u1 projected onto the half-plane a + b <= 1.5 (the free optimum
+    has a + b = 1.7): Levenberg-Marquardt's damping and its projected-gradient step both
+    fail at the constrained optimum with the measure 3.4e-8, below its round-off limit
+    1.5e-7, and the fit said `no_progress` there (Gauss-Newton, stopping at round-off,
+    said `converged`). No step lowers the loss either way: the measure decides."""
+    rng = np.random.default_rng(5)
+    u = rng.standard_normal((200, 2))
+
+    def states(a, b, c, x0):
+        x, out = x0, []
+        for k in range(200):
+            out.append(x)
+            x = a * x + b * u[k, 0] + c * u[k, 1]
+        return np.array(out)
+
+    z = states(0.7, 1.0, -0.05, 0.3)[:, None] + 1e-3 * rng.standard_normal((200, 1))
+
+    def half(th):
+        excess = jnp.maximum(th["a"] + th["b"] - 1.5, 0.0)
+        return {"a": th["a"] - excess / 2, "b": th["b"] - excess / 2, "c": th["c"]}
+
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u[0] + th["c"] * u[1])
+    ref = scipy.optimize.minimize(
+        lambda v: np.sum((states(*v) - z[:, 0]) ** 2),
+        np.array([0.6, 0.8, 0.0, z[0, 0]]),
+        method="SLSQP",
+        constraints=[{"type": "ineq", "fun": lambda v: 1.5 - v[0] - v[1]}],
+        options={"ftol": 1e-15, "maxiter": 500},
+    )
+    for solver in (oj.LevenbergMarquardt(), oj.GaussNewton()):
+        r = oj.fit(
+            model,
+            {"a": 0.6, "b": 0.8, "c": 0.0},
+            z[0],
+            u,
+            z,
+            solver=solver,
+            constraints=oj.constraints.project(half),
+        )
+        assert r.status == "converged", (type(solver).__name__, r.message)
+        assert r.stop_info["first_order"] <= r.stop_info["roundoff_limit"]
+        fitted = [float(r.theta[k]) for k in "abc"] + [float(r.x0[0])]
+        assert np.allclose(fitted, ref.x, atol=1e-5), (fitted, ref.x)
+        assert float(r.loss) * 200 == pytest.approx(ref.fun, rel=1e-7)
+
+
 @pytest.mark.parametrize("solver", [oj.LevenbergMarquardt, oj.GaussNewton])
 def test_the_step_test_at_the_round_off_limit_is_a_success(solver):
     """A step test that fires where the first-order measure is below its round-off limit

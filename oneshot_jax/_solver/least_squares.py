@@ -518,9 +518,10 @@ class AbstractLeastSquares(AbstractSolver):
         round_off = round_off | (tiny & zero)
         gave_up = mv.gave_up
         stalled = small_step | round_off | gave_up
-        # Where the fit stops for lack of progress (round-off, or the step test fired), a
-        # measure below its round-off limit is stationary to the precision of the loss
-        # (`_optimality`): the decrease left, about fo^2 C, is at round-off.
+        # Where the fit stops for lack of progress (round-off, the step test fired, or the
+        # damping and the projected-gradient step both gave up), a measure below its
+        # round-off limit is stationary to the precision of the loss (`_optimality`): the
+        # decrease left, about fo^2 C, is at round-off.
         # (the columns that vanished along the fit measured at their largest norm: a
         # degenerate minimum, `_optimality.stall_test`)
         # (`state.top` holds the linearisations before this one, the start's included)
@@ -528,8 +529,8 @@ class AbstractLeastSquares(AbstractSolver):
         top = jax.tree_util.tree_map(jnp.maximum, state.top, Params(d_t, d_x))
         at_stall, still, degenerate = blocks.stall_test(problem, params, top.theta, top.x0, fo)
         met = fo <= self.gtol
-        degenerate = (round_off | small_step) & ~met & degenerate
-        stationary = met | ((round_off | small_step) & still)
+        degenerate = stalled & ~met & degenerate
+        stationary = met | (stalled & still)
         se, statistical = self._statistical(problem, old, s, b, state.loss, loss, primed & take, fo)
         negative = h_min < 0
         # Where no step decreases C at its round-off (an output offset far above the noise
