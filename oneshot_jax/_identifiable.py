@@ -308,7 +308,10 @@ class Orthogonal(eqx.Module):
     - `result`: the last round's `FitResult`, of the augmented model (its `x0`, `residuals`
         and outputs are the augmented ones; its `std` is that of the penalised fit).
     - `converged`: whether the physical parameters moved by less than `stol` standard
-        errors, or by less than `rtol` relative, in the last round.
+        errors, or by less than `rtol` relative, in the last round, and that round's fit
+        succeeded (a fit that stops short of its optimum for the round's basis, on its
+        step budget or with its network's units saturated, moves them little without
+        having settled them).
     """
 
     theta: PyTree
@@ -445,9 +448,9 @@ def fit_orthogonal(
     exact inside a round: the fit is one of an augmented `Model` (the model, its copy
     with the learned terms off, an accumulator of Q_k^T W^{1/2} d_k), so its gradient
     and residual Jacobian are the one-shot closed form of eq. (17)/(20); the copy
-    doubles the state, so a round costs about two plain fits. Rounds stop after one in
-    which no physical parameter moved by more than `stol` of its standard errors (or
-    none by more than `rtol`, relative), or after `rounds`.
+    doubles the state, so a round costs about two plain fits. Rounds stop after one
+    whose fit succeeded and in which no physical parameter moved by more than `stol` of
+    its standard errors (or none by more than `rtol`, relative), or after `rounds`.
 
     **Arguments:**
 
@@ -606,7 +609,10 @@ def fit_orthogonal(
                     status=result.status,
                 )
             )
-            if moved <= stol or change <= rtol:
+            # (only a round whose fit reached its optimum: one that stopped short, on its
+            # step budget or with a network's units saturated and its gradient zero,
+            # moves the physics little without having settled it)
+            if result.success and (moved <= stol or change <= rtol):
                 converged = True
                 break
     return Orthogonal(

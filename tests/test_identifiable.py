@@ -176,6 +176,29 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     )
 
 
+def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case):
+    """A round whose fit stopped short (here its step budget of one step) moves the
+    physics by whatever that fit did: within the tolerances (a loose `rtol` here) it
+    ended the rounds as "converged". A round converges only where its fit succeeded; the
+    rounds then run to their number, and say that they did not converge."""
+    model, theta0, u, z = case
+    r = oj.fit_orthogonal(
+        model,
+        theta0,
+        np.zeros(2),
+        u,
+        z,
+        learned="r",
+        rounds=2,
+        rtol=1e3,
+        solver=oj.LevenbergMarquardt(max_steps=1),
+    )
+    assert [round.status for round in r.rounds] == ["max_steps_reached"] * 2
+    assert all(round.change <= 1e3 for round in r.rounds)  # (the tolerance held)
+    assert not r.converged and not r.success
+    assert "2 rounds (not converged)" in str(r)
+
+
 def test_physics_first_learns_a_term_written_as_a_python_float(case):
     """A learned term written as a Python float (b = 0.2), which `fit` estimates, was
     refused as holding "no floating array to fit": stage 1 holds it, stage 2 fits it."""
