@@ -83,8 +83,10 @@ class RESULTS(eqx.Enumeration):
     zero_gradient = (
         "some free parameters had an exactly zero gradient and Jacobian column at the start "
         "and never moved: the start is a point where they have no effect on the outputs "
-        "(a coupling or gain started at 0, say), so they were not estimated. Start them "
-        "away from that point, or fix them"
+        "(a coupling or gain started at 0, say, or a network's unit saturated, its tanh "
+        "at +-1 to the precision over the whole record), so they were not estimated. "
+        "Start them away from that point (a saturated unit: smaller weights, or inputs "
+        "scaled to order 1), or fix them"
     )
     statistically_converged = (
         "statistical convergence: where the Jacobian's theta columns have a null space "
