@@ -45,7 +45,6 @@ from ._problem import Params
 from ._progress import NoProgress
 from ._results import RESULTS, SUCCESS, name_of
 from ._solver.least_squares import AbstractLeastSquares
-from ._solver_arg import takes_solver_options
 from ._stability import (
     jacobians_at,
     rhs_of,
@@ -723,7 +722,6 @@ def _warn_projected(moved, names, theta0):
     warnings.warn(msg, stacklevel=3)
 
 
-@takes_solver_options
 def fit(
     model,
     theta0: PyTree,

@@ -574,12 +574,6 @@ def test_natural_mistakes_get_a_hint():
     model = oj.Model.from_ode(_osc, 0.1)
     with pytest.raises(ValueError, match=r"read as 2 trajectories.*shape \(2,\)"):
         oj.simulate(model, OSC, np.array([[1.0], [0.0]]), np.zeros((10, 1)))
-    # A solver's option given to `fit`, as `nlgreyestOptions` sets it on the estimation:
-    # the error says where it goes (Python's own named the keyword alone).
-    with pytest.raises(TypeError, match=r"\['max_steps'\], options of a solver.*solver="):
-        oj.fit(model, OSC, np.zeros(2), np.zeros((10, 1)), np.zeros((10, 1)), max_steps=5)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'MaxIterations'"):
-        oj.fit(model, OSC, np.zeros(2), np.zeros((10, 1)), np.zeros((10, 1)), MaxIterations=5)
     # x0 as a row of the outputs, z[:1], for one record: the state's shape is named.
     with pytest.raises(ValueError, match=r"one trajectory of 2 states.*x0 of shape \(2,\)"):
         oj.fit(model, OSC, np.zeros((1, 2)), np.zeros((10, 1)), np.zeros((10, 1)))
