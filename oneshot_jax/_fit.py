@@ -503,8 +503,9 @@ def _settle(result, problem, out, strategy, least_squares):
       `statistically_converged` (`stop_info["settled"]`, the solver's stop in
       `stop_info["solver_stop"]`) where the Newton step is at most `SETTLE_SE` standard
       errors, no parameter alone would move by one (first-order measure times
-      sqrt(R - columns) at most 1) and every estimated entry is identifiable there (finite
-      standard errors): an output offset of 1e4 around a noise of 1e-3 left L-BFGS
+      sqrt(R - columns) at most 1) and every estimated entry that reaches the outputs is
+      identifiable there (its column of J, those at a bound included, of full rank by
+      `newton_distance`'s cut): an output offset of 1e4 around a noise of 1e-3 left L-BFGS
       `stalled` 4e-5 standard errors from the optimum.
 
     Entries of theta at a bound are held (the step of the others). Not checked: a
@@ -536,7 +537,7 @@ def _settle(result, problem, out, strategy, least_squares):
         lo, hi = np.asarray(problem.lower), np.asarray(problem.upper)
         held = ((theta <= lo) & np.isfinite(lo)) | ((theta >= hi) & np.isfinite(hi))
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
-    se, defined = _newton_distance_at(problem, params, strategy, jnp.asarray(held))
+    se, defined, identifiable = _newton_distance_at(problem, params, strategy, jnp.asarray(held))
     se, defined = float(se), bool(defined)
     if at_limit:
         if defined and se > CHECK_SE:
@@ -553,14 +554,13 @@ def _settle(result, problem, out, strategy, least_squares):
     fo = info.get("first_order", np.nan)
     if not (defined and dof > 0 and se <= SETTLE_SE and fo * np.sqrt(dof) <= 1.0):
         return result
-    # Every estimated entry identifiable there (finite standard errors, the covariance's
-    # own test): sigma^2 is the point's, so a stall far from the optimum inflates the
+    # Every estimated entry that reaches the outputs identifiable there, those at a bound
+    # included: sigma^2 is the point's, so a stall far from the optimum inflates the
     # standard errors that measure its step, and where a direction is unresolved the
     # quadratic model does not see how far the loss still falls along it (L-BFGS stalled
     # "0.006 standard errors" from a point of a loss 1e9 times the optimum's: an output
     # offset held at its bound and a pole near 1, which makes the offset and x0 collinear).
-    cov = out.covariance
-    if cov is None or not (np.all(cov.theta_identifiable) and np.all(cov.x0_identifiable)):
+    if not bool(identifiable):
         return result
     return _restated(
         result,

@@ -348,8 +348,10 @@ class FitResult(eqx.Module):
         `weight="noise"`, all its fits together).
     - `wall_time`: seconds of the compiled solve with its covariance and metrics and of
         the checks of its result after it (a Newton step, say: compilation included on the
-        first call of a configuration), without the input checks and the assembly of the
-        `FitResult`; with `weight="noise"`, of all its fits.
+        first call of a configuration), without the input checks, the setup (with
+        `window`, the windows' starting states), the check that the estimate lies in a
+        `project` set and the assembly of the `FitResult`; with `weight="noise"`, of all
+        its fits.
     - `history`: a `FitHistory` of the iterates.
     - `residuals`: e = zhat - z, the shape of `z`; (n_windows, window, n_z) for a fit
         with `window=` (each window simulated from its own fitted x0).

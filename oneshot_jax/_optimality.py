@@ -562,7 +562,9 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     null cut `NULL_CUT` eps of the largest; a saddle or a flat direction has no Newton
     step to measure).
 
-    **Returns:** (the step's size in standard errors, whether it is defined)."""
+    **Returns:** (the step's size in standard errors, whether it is defined, whether the
+    nonzero columns of J, the held ones included, have full rank by the same cut: every
+    variable that reaches the outputs identifiable at `params`)."""
     lin, J = _whole_jacobian(problem, params, strategy)
     N = lin.r.shape[0]
     p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
@@ -590,12 +592,19 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     lam, V = jnp.linalg.eigh(Hs)
     regular = a[0] > NULL_CUT * eps * a[-1]
     convex = lam[0] > NULL_CUT * eps * jnp.abs(lam[-1])
+    reach = norms > 0  # (the held columns too: a variable at its bound still moves them)
+    r_norms = jnp.where(reach, norms, 1.0)
+    whole = jnp.where(
+        reach[:, None] & reach[None, :], (J.T @ J) / (r_norms[:, None] * r_norms[None, :]), eye_n
+    )
+    w = jnp.linalg.eigvalsh(whole)
+    identifiable = w[0] > NULL_CUT * eps * w[-1]
     step = -(V @ ((V.T @ gs) / jnp.where(convex, lam, 1.0))) / d
     Jd = J @ jnp.where(keep, step, 0.0)
     C = jnp.sum(lin.r * lin.r)
     rank = jnp.sum(keep)
     se = standard_errors(jnp.sum(Jd * Jd), C, n_observations(problem), rank)
-    return se, regular & convex & jnp.all(jnp.isfinite(H))
+    return se, regular & convex & jnp.all(jnp.isfinite(H)), identifiable
 
 
 def first_order_at(problem: FitProblem, params: Params, strategy):
