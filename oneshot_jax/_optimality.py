@@ -580,23 +580,25 @@ def newton_distance(problem: FitProblem, params: Params, strategy, held):
     g = gradient(flat)
     H = jax.jacfwd(gradient)(flat)
     H = 0.5 * (H + H.T)
-    d = jnp.where(keep, norms, 1.0)
-    # (held columns: a unit diagonal apart from the rest, and no gradient)
-    mask = keep[:, None] & keep[None, :]
     eye_n = jnp.eye(J.shape[1], dtype=dtype)
-    A = jnp.where(mask, (J.T @ J) / (d[:, None] * d[None, :]), eye_n)
+    eps = jnp.finfo(dtype).eps
+    # J^T J Jacobi-scaled over the nonzero columns (the held ones too: a variable at its
+    # bound still moves the outputs), and over the kept ones alone: held columns get a
+    # unit diagonal apart from the rest, and no gradient.
+    reach = norms > 0
+    scale = jnp.where(reach, norms, 1.0)
+    whole = jnp.where(
+        reach[:, None] & reach[None, :], (J.T @ J) / (scale[:, None] * scale[None, :]), eye_n
+    )
+    d = jnp.where(keep, norms, 1.0)
+    mask = keep[:, None] & keep[None, :]
+    A = jnp.where(mask, whole, eye_n)
     Hs = jnp.where(mask, H / (d[:, None] * d[None, :]), 2.0 * eye_n)
     gs = jnp.where(keep, g / d, 0.0)
-    eps = jnp.finfo(dtype).eps
     a = jnp.linalg.eigvalsh(A)
     lam, V = jnp.linalg.eigh(Hs)
     regular = a[0] > NULL_CUT * eps * a[-1]
     convex = lam[0] > NULL_CUT * eps * jnp.abs(lam[-1])
-    reach = norms > 0  # (the held columns too: a variable at its bound still moves them)
-    r_norms = jnp.where(reach, norms, 1.0)
-    whole = jnp.where(
-        reach[:, None] & reach[None, :], (J.T @ J) / (r_norms[:, None] * r_norms[None, :]), eye_n
-    )
     w = jnp.linalg.eigvalsh(whole)
     identifiable = w[0] > NULL_CUT * eps * w[-1]
     step = -(V @ ((V.T @ gs) / jnp.where(convex, lam, 1.0))) / d
