@@ -86,6 +86,7 @@ def as_float(a, name, dtype=None, measured=False):
     for `measured` outputs (a comparison such as `z > 0` passed for z)."""
     if type(a) is np.ndarray and a.dtype == dtype and a.dtype.kind == "f":
         return a  # already what it would become (the common case of `fit`'s data)
+    a = unmasked(a, name, measured)
     try:
         if isinstance(a, jax.Array):
             a = jnp.asarray(a)
@@ -126,6 +127,26 @@ def as_float(a, name, dtype=None, measured=False):
     if dtype is not None and a.dtype != dtype:
         a = a.astype(dtype)
     return a
+
+
+def unmasked(a, name, measured=False):
+    """The data of a NumPy masked array none of whose entries is masked (`a` itself if it
+    is not one). A masked entry is refused: converting the array to one of NumPy or JAX
+    would drop its mask, and the masked values would count as data."""
+    if not isinstance(a, np.ma.MaskedArray):
+        return a
+    if not np.ma.is_masked(a):
+        return np.ma.getdata(a)
+    count = int(np.ma.count_masked(a))
+    how = (
+        f'pass `{name}.filled(np.nan)` with `missing="mask"` (a NaN output is a missing sample)'
+        if measured
+        else "fill them (`.filled(value)`): every entry here is used"
+    )
+    raise ValueError(
+        f"`{name}` is a NumPy masked array with {count} masked entries, and its mask would be "
+        f"ignored: {how}."
+    )
 
 
 def _spans_hosts(a) -> bool:

@@ -775,10 +775,11 @@ def fit(
         Q with theta (MATLAB's `OutputWeight` "noise"): fits alternate with Q set to the
         inverse covariance of the residuals (of the samples that measure outputs; where
         some sample measures some outputs only, the diagonal of each output's inverse
-        mean squared residual) until it settles, each warm-started (at
-        most 10 fits; one where the first fit's residuals give Q = I, as one output's
-        always do without `aggregate`; `result.weight` is the Q of the returned fit,
-        None for the first's,
+        mean squared residual), scaled to det Q = 1 without `aggregate` (the estimate
+        does not depend on Q's scale; the loss keeps the size of the outputs'), until it
+        settles, each warm-started (at most 10 fits; one where the first fit's residuals
+        give Q = I, as one output's always do without `aggregate`; `result.weight` is
+        the Q of the returned fit, None for the first's,
         `stop_info["noise_weight_rounds"]` the number of fits, `num_steps` and
         `wall_time` those of all fits together), so that the standard
         errors hold for outputs of unequal noise. With `aggregate`, each `Aggregate`'s

@@ -59,6 +59,12 @@ def _check(z, zhat, mask):
     an output."""
     named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
     for name, a in named:
+        if isinstance(a, np.ma.MaskedArray):
+            raise TypeError(
+                f"`{name}` is a NumPy masked array, which the scores do not read: pass its data "
+                f"(`np.ma.getdata({name})`) and the samples to score as `mask=` (true where "
+                "scored, `~np.ma.getmaskarray(z)` for a masked z)."
+            )
         if isinstance(a, jax.Array):  # (a tracer too: its dtype, without its values)
             if a.dtype.kind not in "biuf":
                 raise TypeError(

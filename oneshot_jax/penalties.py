@@ -154,6 +154,11 @@ def state_box(lower=None, upper=None, *, width=1.0, power: int = 2) -> StateBox:
     """
     lo = _constants(lower, "lower", -math.inf, none_entries=True)
     hi = _constants(upper, "upper", math.inf, none_entries=True)
+    if all(v == -math.inf for v in lo) and all(v == math.inf for v in hi):
+        raise ValueError(
+            "`state_box` needs `lower` or `upper` (a finite bound on some state); without "
+            f"one h is zero everywhere (got lower={lower!r}, upper={upper!r})."
+        )
     if math.inf in lo or -math.inf in hi:
         side = "lower" if math.inf in lo else "upper"
         raise ValueError(

@@ -600,6 +600,26 @@ def test_natural_mistakes_get_a_hint():
         oj.fit(model, OSC, np.zeros(2), u, np.zeros((10, 2)), missing="mask")
 
 
+def test_a_masked_array_is_refused_where_its_mask_would_be_dropped():
+    # (a masked z fitted its masked entries as data: its mask was dropped on conversion)
+    model = oj.Model.from_ode(_osc, 0.1)
+    z = np.ma.masked_array(np.zeros((10, 2)), mask=np.zeros((10, 2), bool))
+    z.mask[3] = True
+    with pytest.raises(
+        ValueError,
+        match=r"`z` is a NumPy masked array with 2 masked .*"
+        r"z.filled\(np.nan\)` with `missing=\"mask\"`",
+    ):
+        oj.fit(model, OSC, np.zeros(2), np.zeros((10, 1)), z, missing="mask")
+    u = np.ma.masked_array(np.zeros((10, 1)), mask=np.arange(10)[:, None] == 4)
+    with pytest.raises(ValueError, match=r"`u` is a NumPy masked array with 1 masked"):
+        oj.simulate(model, OSC, np.zeros(2), u)
+    # nothing masked: the array's data, as a plain array gives
+    plain = oj.simulate(model, OSC, np.array([1.0, 0.0]), np.ones((10, 1)))
+    masked = oj.simulate(model, OSC, np.ma.masked_array([1.0, 0.0]), np.ma.ones((10, 1)))
+    np.testing.assert_array_equal(masked[1], plain[1])
+
+
 def test_an_integer_scalar_of_numpy_in_theta0_warns_that_it_is_held():
     """{"k": np.int64(1)} is carried as data (as a module's exponent would be): fit says
     so, naming the entry; a Python int is a parameter and is not named."""

@@ -203,3 +203,24 @@ def test_the_site_renders_without_a_network():
     for entry in conf.get("extra_javascript", []) + conf.get("extra_css", []):
         assert "://" not in str(entry), entry
         assert (ROOT / "docs" / str(entry)).is_file(), entry
+
+
+def test_every_page_that_fits_runs_in_float64_or_continues_one_that_does():
+    # (the real-data guide's code, pasted alone, fitted in float32: another optimum and
+    # stop than the page shows; the tests run with x64 on, so running it could not tell)
+    pages = sorted((ROOT / "docs").rglob("*.md"))
+    checked = 0
+    for page in pages:
+        path = str(page.relative_to(ROOT))
+        code = "\n".join(_blocks(path))
+        if not re.search(r"\boj\.fit\w*\(", code):
+            continue
+        checked += 1
+        head = page.read_text()[:600]
+        continues = "continues the [getting-started](../getting-started.md) page" in head
+        first = _blocks(path)[0]
+        assert continues or 'jax.config.update("jax_enable_x64", True)' in first, (
+            f"{path} fits without enabling float64 in its first code block and does not say "
+            "it continues the getting-started page"
+        )
+    assert checked >= 8

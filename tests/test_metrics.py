@@ -294,6 +294,9 @@ def test_metrics_refuse_what_is_no_record_of_numbers(name):
     # (complex JAX arrays scored a complex "RMSE"; complex NumPy ones were refused)
     with pytest.raises(TypeError, match=r"`zhat` must be a numeric array .*complex128"):
         fn(z, jnp.asarray(z) + 1j)
+    # a masked array: JAX's own error before, which named no argument
+    with pytest.raises(TypeError, match=r"`zhat` is a NumPy masked array.*`mask=`"):
+        fn(z, np.ma.masked_array(z, mask=z > 0))
     with pytest.raises(ValueError, match=r"`z` holds no samples"):
         fn(np.zeros((0, 1)), np.zeros((0, 1)))
     with pytest.raises(ValueError, match=r"`mask` selects no sample of output\(s\) \[1\]"):

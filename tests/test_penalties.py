@@ -144,3 +144,11 @@ def test_0d_jax_arrays_are_numbers():
         state_ball(jnp.asarray(0.0))
     with pytest.raises(ValueError, match="`width`"):
         state_ball(1.0, width=jnp.asarray([1.0]))
+
+
+def test_state_box_without_a_bound_is_refused():
+    # (it made a penalty that is zero everywhere)
+    with pytest.raises(ValueError, match=r"`state_box` needs `lower` or `upper`"):
+        state_box()
+    with pytest.raises(ValueError, match=r"`state_box` needs `lower` or `upper`"):
+        state_box(lower=[None, -np.inf], upper=np.inf)
