@@ -424,11 +424,27 @@ def _gauss_newton_refutes_at(problem, params, strategy):
     return gauss_newton_refutes(problem, params, strategy)
 
 
+def _unresolved_directions(result):
+    """Whether the covariance of a fit calls some free entry not identifiable (an inf
+    standard error from J^T J's null cut, `_linalg.scaled_eigh`), where it was computed
+    and sigma^2 is known."""
+    if np.shape(result.covariance) == (0, 0):
+        return False
+    if (result.diagnostics or {}).get("degrees_of_freedom", 1) <= 0:
+        return False
+    leaves = jax.tree_util.tree_leaves(eqx.filter(result.std, eqx.is_array))
+    leaves = leaves + [np.asarray(result.x0_std)]
+    return any(bool(np.isinf(np.asarray(leaf)).any()) for leaf in leaves)
+
+
 def _flag_unresolved_success(result, problem, out, strategy, least_squares):
-    """A fit in a precision below float64, checked by the Gauss-Newton step from the
-    Jacobian itself (`_optimality.gauss_newton_refutes`): the normal equations the
-    solvers form lose half the precision's digits, and a direction the data determine
-    can read as null there.
+    """A fit in a precision below float64, or one in float64 whose covariance calls some
+    free entry not identifiable, checked by the Gauss-Newton step from the Jacobian
+    itself (`_optimality.gauss_newton_refutes`): the normal equations the solvers form
+    lose half the precision's digits, and a direction the data determine can read as
+    null there (in float64, two columns collinear to 3e-7, cond J 8e6: LM and GN said
+    `statistically_converged` 2.3 standard errors from the optimum, the loss 1.027 times
+    its own).
 
     - a success decided at the precision's limit, `statistically_converged` or
       `converged` with the measure above gtol (at its round-off limit), that the step
@@ -444,12 +460,13 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
       saying that more steps will not help.
 
     Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
-    `stop_info["precision"]` the dtype. Not checked: float64 (whose cut, 1e3 eps, is far
-    below any direction such data determine), a penalty or a regulariser (the step is
-    that of the least-squares loss alone), a Jacobian of more than `CHECK_ENTRIES`
-    entries, and the other starts of a multistart."""
+    `stop_info["precision"]` the dtype. Not checked: a float64 fit whose covariance finds
+    every free entry identifiable or was not computed, a penalty or a regulariser (the
+    step is that of the least-squares loss alone), a Jacobian of more than
+    `CHECK_ENTRIES` entries, and the other starts of a multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
     low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
+    low = low or _unresolved_directions(result)
     info = result.stop_info
     within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
     status = result.status

@@ -16,6 +16,16 @@ from ._model import model_labels
 # The remedy where float32 normal equations cannot resolve a fit (`_fit`'s Gauss-Newton
 # check): the printout's and `FitResult.message`'s words.
 FLOAT64 = "fit in float64: enable jax_enable_x64 and pass float64 data"
+# (the remedy where even float64's J^T J loses a direction that J resolves)
+COLLINEAR = (
+    "reparameterise the nearly collinear entries (as the combinations the data determine), "
+    "or fit with a solver that does not form J^T J (LBFGS)"
+)
+
+
+def unresolved_remedy(precision):
+    """What to do where J^T J in `precision` (a dtype's name) loses a direction of J."""
+    return COLLINEAR if precision == "float64" else FLOAT64
 
 
 def _child(node, entry):
@@ -450,7 +460,8 @@ def report(result) -> str:
             out.append(
                 f"  ({precision} cannot resolve this problem in J^T J: the Gauss-Newton "
                 f"step from the Jacobian moves the estimates by "
-                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; {FLOAT64})"
+                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; "
+                f"{unresolved_remedy(precision)})"
             )
     elif result.status in ("tol_loss", "tol_grad") and not _stationary(result):
         # (a success by the user's threshold, at a point the first-order test rejects)

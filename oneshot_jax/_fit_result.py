@@ -13,7 +13,7 @@ import numpy as np
 
 from . import _io, _pytree
 from ._checks import check_state_size
-from ._fit_report import FLOAT64, report, returned_start, vanished_note
+from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
@@ -121,7 +121,8 @@ def stop_detail(status: str, info: dict) -> str:
                 "Gauss-Newton step from the Jacobian itself (not from J^T J, which loses "
                 f"half the digits of {info.get('precision', 'this precision')}) lowers the loss "
                 f"and moves the estimates by {_g(info['gauss_newton_se'])} standard errors: "
-                f"the problem is too ill-conditioned for this precision; {FLOAT64} ({vs})"
+                "the problem is too ill-conditioned for J^T J in this precision; "
+                f"{unresolved_remedy(info.get('precision'))} ({vs})"
             )
         if info.get("newton_refuted"):
             return (
@@ -422,13 +423,14 @@ class FitResult(eqx.Module):
         the stop `stalled` where the solver reported a zero residual that a step along
         every column still descends from (checked after the solve),
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
-        `stalled` where a float32 (lower than float64) least-squares success is refuted
+        `stalled` where a float32 (lower than float64) least-squares success, or a
+        float64 one whose covariance calls some free entry not identifiable, is refuted
         by the Gauss-Newton step from the Jacobian itself (checked after the solve,
         `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`
-        (that step's size in standard errors), `precision` and `solver_stop`; after a
-        float32 least-squares failure that the same step refutes along a direction that
-        J^T J loses, `gauss_newton_se` and `precision` (the message says to fit in
-        float64); with the stop
+        (that step's size in standard errors), `precision` and `solver_stop`; after such
+        a least-squares failure that the same step refutes along a direction that J^T J
+        loses, `gauss_newton_se` and `precision` (the message says to fit in float64,
+        or in float64 to reparameterise); with the stop
         `zero_residual`, `residual_nrmse` (the largest of the outputs' NRMSE in
         `metrics`, over the outputs of weight above 0: how far below sqrt(eps) of their
         variation the residuals are).
@@ -587,7 +589,7 @@ class FitResult(eqx.Module):
                 "Gauss-Newton step from the Jacobian itself moves the estimates by "
                 f"{_g(info['gauss_newton_se'])} standard errors along a direction that "
                 f"J^T J loses in {info.get('precision', 'this precision')} (its eigenvalue "
-                f"below the round-off cut); {FLOAT64}"
+                f"below the round-off cut); {unresolved_remedy(info.get('precision'))}"
             )
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
             why = why.replace(
@@ -601,6 +603,15 @@ class FitResult(eqx.Module):
         gone = self.stop_info.get("vanished")
         if gone:
             out += f". {vanished_note(gone)}"
+        kept = (self.diagnostics or {}).get("unconverged_rollouts")
+        if kept and not self.success and self.status != "unconverged_rollout":
+            # (the stop's values may be the rollouts': the likelier cause of the failure)
+            out += (
+                f". {kept} of {self.diagnostics.get('parallel_rollouts', '?')} parallel "
+                "rollouts kept Newton's unconverged iterate (`ParallelInTime(fallback=False)`):"
+                " the loss the solver saw may not be the model's; fit with `fallback=True` or "
+                "a sequential strategy"
+            )
         return out
 
     @property

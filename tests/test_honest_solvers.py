@@ -1291,6 +1291,44 @@ def test_a_float32_success_that_its_jacobian_refutes_is_a_stall(seed, N):
     assert "float64" in r.message and "Gauss-Newton step" in r.message
 
 
+@pytest.mark.parametrize("solver", [oj.GaussNewton(), oj.LevenbergMarquardt()], ids=["gn", "lm"])
+def test_a_float64_success_that_its_jacobian_refutes_is_a_stall(solver):
+    """float64, two inputs that differ by 3e-7 of their size: the collinear direction's
+    scaled eigenvalue of J^T J, about 1e-14 of the largest, is below the null cut (1e3
+    eps), so the covariance calls a and b not identifiable and LM and GN read
+    `statistically_converged` 2.3 standard errors (of the exact covariance) from the
+    optimum, the loss 1.027 times the optimum's. J itself resolves it (cond J 8e6): the
+    Gauss-Newton step from J refutes the stop. The model is linear in (a, b, x0), so
+    `numpy.linalg.lstsq` gives the optimum exactly."""
+    T, rng = 200, np.random.default_rng(6)
+    u1, v = rng.standard_normal((T, 1)), rng.standard_normal((T, 1))
+    u = np.concatenate([u1, u1 + 3e-7 * v], axis=1)
+    model = oj.Model(lambda x, u, th: 0.8 * x + th["a"] * u[0] + th["b"] * u[1])
+    _, z = oj.simulate(model, {"a": 1.0, "b": 1.0}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    X = np.zeros((T, 3))  # z[k] = X[k] @ (a, b, x0)
+    for k in range(T):
+        X[k, 2] = 0.8**k
+        if k:
+            X[k, :2] = 0.8 * X[k - 1, :2] + u[k - 1]
+    best, *_ = np.linalg.lstsq(X, z[:, 0], rcond=None)
+    optimum = np.sum((X @ best - z[:, 0]) ** 2) / T
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # (a and b read not identifiable)
+        r = oj.fit(model, {"a": 0.0, "b": 0.0}, np.zeros(1), u, z, solver=solver)
+    assert float(r.loss) > 1.02 * optimum  # (not a solution)
+    assert r.status == "stalled", r.message
+    assert r.stop_info["solver_stop"] == "statistically_converged"
+    assert r.stop_info["gauss_newton_refuted"] and r.stop_info["gauss_newton_se"] > 2.0
+    assert "reparameterise" in r.message and "float64:" not in r.message
+    # From the optimum the check finds nothing to refute: a success there.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        at = oj.fit(model, {"a": best[0], "b": best[1]}, best[2:], u, z, solver=solver)
+    assert at.success, at.message
+    assert float(at.loss) <= optimum * (1 + 1e-9)
+
+
 def test_a_float32_failure_far_from_its_optimum_is_not_blamed_on_the_precision():
     """The Gauss-Newton check's note on a float32 failure ("fit in float64") needs a
     direction that J^T J loses: a well-conditioned fit cut short by max_steps is not

@@ -755,3 +755,5 @@ def test_a_stop_on_unconverged_rollouts_says_so_in_the_printout():
         r = oj.fit(model, theta, x0, u, z, fixed=True, solver=kept)
     assert not r.success and r.diagnostics["unconverged_rollouts"] >= 1
     assert "parallel rollouts kept Newton's unconverged iterate" in str(r)
+    # and the message, which named only the stop's own advice
+    assert "parallel rollouts kept Newton's unconverged iterate" in r.message
