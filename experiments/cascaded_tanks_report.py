@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from oneshot_jax.examples.cascaded_tanks import SENSOR_LEVEL, UNITS
 
+from .common import plus_minus
+
 KEYS = tuple(UNITS)  # the physical parameters, in the tables' order
 LABELS = {"basic": "basic", "overflow": "overflow", "sensor": "overflow + sensor"}
 
@@ -27,14 +29,14 @@ def markdown(res) -> str:
     ]
     for k in KEYS:
         cells = [
-            f"{m[kind]['theta'][k]:.5f} ± {m[kind]['std'][k]:.5f}" if k in m[kind]["theta"] else "-"
+            plus_minus(m[kind]["theta"][k], m[kind]["std"][k], 5) if k in m[kind]["theta"] else "-"
             for kind in kinds
         ]
         L.append(f"| {k} | {UNITS[k]} | " + " | ".join(cells) + " |")
     for i in range(2):
         L.append(
             f"| x0[{i}] | V | "
-            + " | ".join(f"{m[kind]['x0'][i]:.4f} ± {m[kind]['x0_std'][i]:.4f}" for kind in kinds)
+            + " | ".join(plus_minus(m[kind]["x0"][i], m[kind]["x0_std"][i], 4) for kind in kinds)
             + " |"
         )
     L += [

@@ -69,6 +69,17 @@ def make_solver(name: str, kwargs: Mapping) -> oj.AbstractSolver:
     return cls(**kwargs)
 
 
+def plus_minus(value, std, decimals: int, std_decimals: int | None = None) -> str:
+    """ "value ± std" for a results table with `decimals` decimals (`std_decimals` for the
+    standard error, the same by default), but a standard error too large for them (a
+    parameter the data barely determine: 5.6e16) or not finite in three significant
+    digits."""
+    std = float(std)
+    big = not math.isfinite(std) or std >= 1e4
+    places = decimals if std_decimals is None else std_decimals
+    return f"{value:.{decimals}f} ± " + (f"{std:.3g}" if big else f"{std:.{places}f}")
+
+
 def start(cfg, outdir, title: str):
     """The common start of an experiment's `run()`: float64 checked, the configured
     solver built, the output folder made. Returns (solver, outdir, start time)."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from oneshot_jax.examples.emps import PARAMS, UNITS
 
+from .common import plus_minus
+
 NAMES = {"closed_loop": "closed loop", "open_loop": "open loop"}
 
 
@@ -28,7 +30,7 @@ def markdown(res) -> str:
     for k in PARAMS:
         L.append(
             f"| {k} ({UNITS[k]}) | {ref['theta'][k]:.4f} | "
-            + " | ".join(f"{best[f]['theta'][k]:.4f} ± {best[f]['std'][k]:.3f}" for f in fams)
+            + " | ".join(plus_minus(best[f]["theta"][k], best[f]["std"][k], 4, 3) for f in fams)
             + f" | {res['deviation_from_reference_pct'][k]:+.2f} % |"
         )
     L += [

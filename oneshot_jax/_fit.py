@@ -297,6 +297,25 @@ def _flag_unconverged_rollouts(result, problem, theta_flat, x0, strategy, finals
     return out
 
 
+def _flag_plateau_above_start(result, problem, starts, best, strategy):
+    """`result` with the stop `stalled` where it reported convergence at a point where
+    Jacobian columns vanished along the fit (`stop_info["vanished"]`) and the loss is
+    above the best start's: a step onto a plateau, not a minimum (SGD's first step sent
+    a rate a of exp(a dt) to -1e180, where the term underflows to 0 and the gradient is
+    exactly 0; the loss there was 6 times the start's). `stop_info["start_loss"]` is the
+    start's loss. Not checked with a regulariser (its stop weighs C + g)."""
+    if result.status not in ("converged", "statistically_converged"):
+        return result
+    if not result.stop_info.get("vanished") or problem.regulariser is not None:
+        return result
+    start = Params(jnp.asarray(starts.theta[best]), jnp.asarray(starts.x0[best]))
+    before = float(_loss_at(problem, start, strategy))
+    eps = np.finfo(problem.dtype).eps
+    if not (np.isfinite(before) and float(result.loss) > before * (1 + 64 * eps)):
+        return result
+    return _restated(result, "stalled", start_loss=before)
+
+
 def _restated(result, reason, **info):
     """`result` with the stop reason `reason` where a check after the solve decides the
     stop (refutes the solver's success, or settles its stall: `_settle`):
@@ -460,15 +479,21 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
       saying that more steps will not help.
 
     Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
-    `stop_info["precision"]` the dtype. Not checked: a float64 fit whose covariance finds
+    `stop_info["precision"]` the dtype. In float64 a `converged` within gtol is checked
+    too: the measure is a cosine per column, and does not see the collinear direction.
+    Not checked: a float64 fit whose covariance finds
     every free entry identifiable or was not computed, a penalty or a regulariser (the
     step is that of the least-squares loss alone), a Jacobian of more than
     `CHECK_ENTRIES` entries, and the other starts of a multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
     low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
-    low = low or _unresolved_directions(result)
+    unresolved = not low and _unresolved_directions(result)
     info = result.stop_info
+    # (in float64 a measure within gtol too: it is a cosine per column, and two columns
+    # collinear to 1e-7 read 8e-9 <= 1e-8 2.4 standard errors from the optimum)
     within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
+    within_gtol = within_gtol and not unresolved
+    low = low or unresolved
     status = result.status
     success = status == "statistically_converged" or (status == "converged" and not within_gtol)
     failure = least_squares and status in ("max_steps_reached", "stalled", "no_progress")
@@ -1047,6 +1072,7 @@ def fit(
         finals=Params(out.start_theta, out.start_x0),
     )
     result = _flag_refuted_stop(result, built.problem, out, strategy)
+    result = _flag_plateau_above_start(result, built.problem, built.starts, int(out.best), strategy)
     least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
     result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
     result = _settle(result, built.problem, out, strategy, least_squares)

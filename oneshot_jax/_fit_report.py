@@ -18,8 +18,8 @@ from ._model import model_labels
 FLOAT64 = "fit in float64: enable jax_enable_x64 and pass float64 data"
 # (the remedy where even float64's J^T J loses a direction that J resolves)
 COLLINEAR = (
-    "reparameterise the nearly collinear entries (as the combinations the data determine), "
-    "or fit with a solver that does not form J^T J (LBFGS)"
+    "reparameterise the nearly collinear entries as the combinations the data determine "
+    "(a sum and a difference, or one held)"
 )
 
 

@@ -115,6 +115,14 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped at what read as a degenerate minimum, but a step along "
                 f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
             )
+        if "start_loss" in info:
+            return (
+                f"the solver reported {info.get('solver_stop', 'converged')} where Jacobian "
+                "columns vanished along the fit, but the loss there is above the start's "
+                f"({_g(info['start_loss'])}): a plateau reached by a step that switched a term "
+                "off, not a minimum; a smaller step (learning rate), bounds or another start "
+                "keep the term acting"
+            )
         if info.get("gauss_newton_refuted"):
             return (
                 f"the solver reported {info.get('solver_stop', 'converged')}, but the "
@@ -423,7 +431,9 @@ class FitResult(eqx.Module):
         the stop `stalled` where the solver reported a zero residual that a step along
         every column still descends from (checked after the solve),
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
-        `stalled` where a float32 (lower than float64) least-squares success, or a
+        `stalled` where the solver converged where columns vanished, at a loss above the
+        best start's (a plateau), `start_loss` (that start's loss) and `solver_stop`;
+        with the stop `stalled` where a float32 (lower than float64) least-squares success, or a
         float64 one whose covariance calls some free entry not identifiable, is refuted
         by the Gauss-Newton step from the Jacobian itself (checked after the solve,
         `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`
@@ -578,7 +588,12 @@ class FitResult(eqx.Module):
         detail = stop_detail(self.status, self.stop_info)
         why = RESULTS[self.stop_reason]
         info = self.stop_info
-        if info.get("gauss_newton_refuted"):
+        if "start_loss" in info:
+            why = (
+                "this is not a solution: the first-order test holds on the plateau (its "
+                "gradient is 0), but the fit ended higher than it started"
+            )
+        elif info.get("gauss_newton_refuted"):
             why = (
                 "this is not a solution: the solver's own test held in its normal "
                 "equations, which cannot resolve this problem in this precision"

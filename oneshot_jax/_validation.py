@@ -227,6 +227,12 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
             message = (
                 message.split(" (")[0].rstrip(".") + ": held-out records must be fully measured."
             )
+        elif "masked array" in message and "missing=" in message:  # (likewise)
+            message = (
+                message.split(", and its mask")[0]
+                + ": held-out records must be fully measured (score a record without the "
+                "masked samples)."
+            )
         raise type(err)(f"`validation`: {message}") from None
     if data.lengths is not None:
         raise ValueError("`validation`: records of different lengths are not supported.")

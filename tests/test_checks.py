@@ -614,6 +614,10 @@ def test_a_masked_array_is_refused_where_its_mask_would_be_dropped():
     u = np.ma.masked_array(np.zeros((10, 1)), mask=np.arange(10)[:, None] == 4)
     with pytest.raises(ValueError, match=r"`u` is a NumPy masked array with 1 masked"):
         oj.simulate(model, OSC, np.zeros(2), u)
+    # held-out records take no missing samples: not the advice of `missing="mask"`
+    held_out = oj.Validation(np.zeros((10, 1)), z, n=3)
+    with pytest.raises(ValueError, match=r"`validation`: .*masked array.*fully measured"):
+        oj.fit(model, OSC, np.zeros(2), np.zeros((10, 1)), np.zeros((10, 2)), validation=held_out)
     # nothing masked: the array's data, as a plain array gives
     plain = oj.simulate(model, OSC, np.array([1.0, 0.0]), np.ones((10, 1)))
     masked = oj.simulate(model, OSC, np.ma.masked_array([1.0, 0.0]), np.ma.ones((10, 1)))

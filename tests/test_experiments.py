@@ -384,6 +384,14 @@ def test_every_job_of_a_sweep_compiles_its_own_first_calls(tmp_path, monkeypatch
     assert f"persistent compilation cache in {tmp_path / 'xla'}" in out["conditions"]
 
 
+def test_results_tables_show_a_huge_or_infinite_standard_error_in_significant_digits():
+    # (an unidentifiable tank level's 5.6e16 printed as 56317653543639608.00000)
+    assert common.plus_minus(14.716, 5.6317653543639608e16, 5) == "14.71600 ± 5.63e+16"
+    assert common.plus_minus(1.2, float("inf"), 4, 3) == "1.2000 ± inf"
+    assert common.plus_minus(0.05809, 0.00111, 5) == "0.05809 ± 0.00111"
+    assert common.plus_minus(2.0, 0.0123, 4, 3) == "2.0000 ± 0.012"
+
+
 def test_an_experiment_without_a_schema_is_refused_with_what_to_add():
     """A user's YAML that does not start from a registered schema: a ConfigError naming
     the schema line, not an AttributeError of the solver check."""

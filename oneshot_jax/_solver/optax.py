@@ -335,14 +335,19 @@ class _AbstractOptax(AbstractSolver):
         finite = jnp.isfinite(state.loss) & jnp.isfinite(gnorm)
         small_loss, small_grad = self._thresholds(state.loss, gnorm)
         stalled = (state.stalls >= 2) & ~state.stationary
-        result = RESULTS.where(
-            zero_residual(state.smooth, state.data), RESULTS.zero_residual, RESULTS.stalled
-        )
+        # At the last step allowed, a loss at the round-off level of the data is a
+        # solution, not `max_steps_reached` (an exact fit of outputs of size 1e-6 said
+        # "raise max_steps"; `_fit` then checks that no step still lowers the loss
+        # beyond round-off). Not before: a first-order step there still moves the
+        # parameters by more than the outputs resolve.
+        zero = zero_residual(state.smooth, state.data)
+        result = RESULTS.where(zero, RESULTS.zero_residual, RESULTS.stalled)
+        zero = zero & (state.count >= self.max_steps)
         result = RESULTS.where(state.stationary, RESULTS.converged, result)
         result = RESULTS.where(small_grad, RESULTS.tol_grad, result)
         result = RESULTS.where(small_loss, RESULTS.tol_loss, result)
         result = RESULTS.where(~finite, RESULTS.diverged, result)
-        done = (~finite) | small_loss | small_grad | state.stationary | stalled
+        done = (~finite) | small_loss | small_grad | state.stationary | stalled | zero
         return done, result
 
     def summary(self, state):
