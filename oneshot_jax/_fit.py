@@ -481,10 +481,10 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
     `stop_info["precision"]` the dtype. In float64 a `converged` within gtol is checked
     too: the measure is a cosine per column, and does not see the collinear direction.
-    Not checked: a float64 fit whose covariance finds
-    every free entry identifiable or was not computed, a penalty or a regulariser (the
-    step is that of the least-squares loss alone), a Jacobian of more than
-    `CHECK_ENTRIES` entries, and the other starts of a multistart."""
+    Not checked: a float64 fit whose covariance finds every free entry identifiable or
+    was not computed, a penalty or a regulariser (the step is that of the least-squares
+    loss alone), a Jacobian of more than `CHECK_ENTRIES` entries, and the other starts
+    of a multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
     low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
     unresolved = not low and _unresolved_directions(result)

@@ -433,7 +433,7 @@ class FitResult(eqx.Module):
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
         `stalled` where the solver converged where columns vanished, at a loss above the
         best start's (a plateau), `start_loss` (that start's loss) and `solver_stop`;
-        with the stop `stalled` where a float32 (lower than float64) least-squares success, or a
+        with the stop `stalled` where a float32 (lower than float64) success, or a
         float64 one whose covariance calls some free entry not identifiable, is refuted
         by the Gauss-Newton step from the Jacobian itself (checked after the solve,
         `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`

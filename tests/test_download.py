@@ -324,8 +324,12 @@ def test_a_cache_folder_that_cannot_be_made_is_named(server, tmp_path):
     blocker.write_text("not a folder")
     with pytest.raises(ValueError, match=r"`cache_dir`: cannot use .*a_file.*download cache"):
         ds.load_emps(tmp_path / "empty", download=True, cache_dir=blocker / "cache", base_url=base)
-    with pytest.raises(ValueError, match=r"`cache_dir`: cannot use .*a_file"):
+    with pytest.raises(ValueError, match=r"`cache_dir`: .*a_file' is a file"):
         ds.load_emps(tmp_path / "empty", download=True, cache_dir=blocker, base_url=base)
+    # without a download too (searched as a folder, it said only "not found")
+    for load in (ds.load_emps, ds.load_cascaded_tanks, ds.load_silverbox):
+        with pytest.raises(ValueError, match=r"`cache_dir`: .*a_file' is a file"):
+            load(tmp_path / "empty", cache_dir=blocker)
     assert log == []
 
 

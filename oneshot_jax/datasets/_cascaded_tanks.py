@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ._files import (
+    check_cache_dir,
     check_path,
     locate,
     not_found,
@@ -124,7 +125,7 @@ def load_cascaded_tanks(path=None, *, download=False, cache_dir=None, base_url=N
     identification benchmarks", arXiv:2405.10779, 2024.
     """
     check_path(path)
-    check_path(cache_dir, "cache_dir")
+    check_cache_dir(cache_dir)
     if path is not None and Path(path).expanduser().is_file():
         return _read(Path(path).expanduser())
     found, names = locate(

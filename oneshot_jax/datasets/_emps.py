@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import check_path, locate, not_found, require_length
+from ._files import check_cache_dir, check_path, locate, not_found, require_length
 from ._files import read_mat as _read_mat
 from ._locations import DatasetFormatError, DatasetNotFoundError
 from ._record import Record
@@ -168,7 +168,7 @@ def load_emps(path=None, *, download=False, cache_dir=None, base_url=None) -> EM
     arXiv:2405.10779, 2024.
     """
     check_path(path)
-    check_path(cache_dir, "cache_dir")
+    check_cache_dir(cache_dir)
     found, _ = locate(
         path,
         ("emps",),

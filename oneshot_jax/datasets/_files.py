@@ -27,6 +27,17 @@ from ._locations import (
 )
 
 
+def check_cache_dir(cache_dir):
+    """`cache_dir` checked as `check_path` checks a path, and refused where it names a
+    file: searched as a folder, it gave "not found" without saying why."""
+    check_path(cache_dir, "cache_dir", "a folder")
+    if cache_dir is not None and Path(cache_dir).expanduser().is_file():
+        raise ValueError(
+            f"`cache_dir`: {str(cache_dir)!r} is a file; give the folder of the download "
+            "cache (the data files' own path goes to `path`)."
+        )
+
+
 def _folders(target: Path) -> list[Path]:
     """The folders under a download's `target` that hold files, shallowest first (the
     archive may keep the files in a subfolder, e.g. SilverboxFiles/)."""

@@ -5,7 +5,15 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from ._files import check_path, locate, not_found, read_csv, read_mat, require_length
+from ._files import (
+    check_cache_dir,
+    check_path,
+    locate,
+    not_found,
+    read_csv,
+    read_mat,
+    require_length,
+)
 from ._record import Record, split_record
 
 SILVERBOX_N_INIT = 50
@@ -124,7 +132,7 @@ def load_silverbox(path=None, *, download=False, cache_dir=None, base_url=None) 
     system identification benchmarks", arXiv:2405.10779, 2024, and `nonlinear_benchmarks`.
     """
     check_path(path)
-    check_path(cache_dir, "cache_dir")
+    check_cache_dir(cache_dir)
     if path is not None and Path(path).expanduser().is_file():
         return _read(Path(path).expanduser())
     found, names = locate(

@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 from ._files import (
+    check_cache_dir,
     check_path,
     locate,
     not_found,
@@ -107,7 +108,7 @@ def load_wiener_hammerstein(path=None, *, download=False, cache_dir=None, base_u
     benchmarks", arXiv:2405.10779, 2024, and `nonlinear_benchmarks`.
     """
     check_path(path)
-    check_path(cache_dir, "cache_dir")
+    check_cache_dir(cache_dir)
     if path is not None and Path(path).expanduser().is_file():
         return _read(Path(path).expanduser())
     found, names = locate(
