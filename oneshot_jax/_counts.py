@@ -8,12 +8,13 @@ import numpy as np
 
 
 def real(value):
-    """A number given as a concrete 0-d array (NumPy or JAX, of a real dtype) as the Python
-    number it holds; anything else (a Python or NumPy number, a schedule, a wrong value)
+    """A number given as a concrete 0-d array (NumPy or JAX, of a real dtype) or a NumPy
+    scalar as the Python number it holds (equinox takes a NumPy scalar in a static field
+    for an array, and warns); anything else (a Python number, a schedule, a wrong value)
     as given, for the caller's check to accept or refuse by name. The converter of the
     solvers' real options."""
     if (
-        (isinstance(value, np.ndarray) or type(value).__module__.startswith("jax"))
+        (isinstance(value, (np.ndarray, np.generic)) or type(value).__module__.startswith("jax"))
         and getattr(value, "ndim", None) == 0
         and getattr(value, "dtype", np.dtype(object)).kind in "iuf"
     ):

@@ -38,6 +38,7 @@ from ._optimality import (
     gtol_at_least_resolution,
     n_observations,
     newton_distance,
+    output_norm,
     refuted,
 )
 from ._parallel._report import UNCONVERGED, counting
@@ -308,7 +309,10 @@ def _flag_plateau_above_start(result, problem, starts, best, strategy):
         return result
     if not result.stop_info.get("vanished") or problem.regulariser is not None:
         return result
-    start = Params(jnp.asarray(starts.theta[best]), jnp.asarray(starts.x0[best]))
+    theta = jnp.asarray(starts.theta[best])
+    if problem.constrained:  # (where the fit started: an infeasible start is projected)
+        theta = problem.feasible(theta)
+    start = Params(theta, jnp.asarray(starts.x0[best]))
     before = float(_loss_at(problem, start, strategy))
     eps = np.finfo(problem.dtype).eps
     if not (np.isfinite(before) and float(result.loss) > before * (1 + 64 * eps)):
@@ -481,13 +485,22 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
     `stop_info["precision"]` the dtype. In float64 a `converged` within gtol is checked
     too: the measure is a cosine per column, and does not see the collinear direction.
-    Not checked: a float64 fit whose covariance finds every free entry identifiable or
-    was not computed, a penalty or a regulariser (the step is that of the least-squares
-    loss alone), a Jacobian of more than `CHECK_ENTRIES` entries, and the other starts
-    of a multistart."""
+    So is a float64 `zero_residual` whose loss is above the residuals' round-off floor,
+    (64 eps)^2 times the outputs' squared size (`_optimality.output_norm`), refuted where
+    the step would remove half the loss (at round-off, about rank / R of it). Not
+    checked: a float64 fit whose covariance finds every free entry identifiable or was
+    not computed (but for such a zero residual), a penalty or a regulariser (the step is
+    that of the least-squares loss alone), a Jacobian of more than `CHECK_ENTRIES`
+    entries, and the other starts of a multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
-    low = np.finfo(problem.dtype).eps > np.finfo(np.float64).eps
+    eps = np.finfo(problem.dtype).eps
+    low = eps > np.finfo(np.float64).eps
     unresolved = not low and _unresolved_directions(result)
+    # (a zero residual in float64 above the residuals' own round-off floor: noise-free
+    # data of two inputs collinear to 1e-7, where Adam read `zero_residual` at gains
+    # 0.75 and 1.25, truth 1, the loss 8e-16; a fit that reaches the floor is not checked)
+    zero = not low and result.status == "zero_residual"
+    zero = zero and float(result.loss) > (64 * eps) ** 2 * float(output_norm(problem))
     info = result.stop_info
     # (in float64 a measure within gtol too: it is a cosine per column, and two columns
     # collinear to 1e-7 read 8e-9 <= 1e-8 2.4 standard errors from the optimum)
@@ -497,7 +510,7 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     status = result.status
     success = status == "statistically_converged" or (status == "converged" and not within_gtol)
     failure = least_squares and status in ("max_steps_reached", "stalled", "no_progress")
-    if not (low and problem_ok and (success or failure)) or "solver_stop" in info:
+    if not ((low or zero) and problem_ok and (success or failure or zero)) or "solver_stop" in info:
         return result
     N, T, n_z = problem.z.shape
     best = int(out.best)
@@ -507,6 +520,14 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
     down, se, lost = _gauss_newton_refutes_at(problem, params, strategy)
     info = dict(gauss_newton_se=float(se), precision=np.dtype(problem.dtype).name)
+    if zero:
+        # At a genuine round-off residual the part of r in J's range is about rank / R
+        # of it (the step's decrease pred = se^2 C / (R - rank)); along a direction that
+        # J^T J loses, most of it: refuted where the step would remove half the loss.
+        spare = max(float(n_observations(problem)) - theta.size - x0.size, 1.0)
+        if bool(down) and float(se) ** 2 > 0.5 * spare:
+            return _restated(result, "stalled", gauss_newton_refuted=True, **info)
+        return result
     if success and bool(down):
         return _restated(result, "stalled", gauss_newton_refuted=True, **info)
     if failure and bool(down) and bool(lost):

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ._counts import integral
+from ._counts import integral, real
 from ._kernels import (
     forward_sweep,
     push,
@@ -335,8 +335,8 @@ class ParallelInTime(AbstractStrategy):
     chunk_size: int | None = eqx.field(default=None, static=True, converter=integral)
     jacobian: str = eqx.field(default="full", static=True)
     max_iter: int = eqx.field(default=50, static=True, converter=integral)
-    rtol: float | None = eqx.field(default=None, static=True)
-    damping: float = eqx.field(default=1.0, static=True)
+    rtol: float | None = eqx.field(default=None, static=True, converter=real)
+    damping: float = eqx.field(default=1.0, static=True, converter=real)
     fallback: bool = eqx.field(default=True, static=True)
 
     def __check_init__(self):

@@ -815,6 +815,13 @@ def test_options_take_numpy_integers_and_schedules_that_start_at_zero():
     assert oj.LBFGS(tol_grad=jnp.array(1e-9)).tol_grad == 1e-9
     with pytest.raises(ValueError, match=r"`GaussNewton\(gtol=\.\.\.\)` must be a number"):
         oj.GaussNewton(gtol=jnp.array([1e-8, 1e-8]))
+    # the strategy's options alike, and a NumPy scalar (equinox warned of "a JAX array
+    # being set as static" for jnp.array(1e-8) and np.float64(0.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pit = oj.ParallelInTime(rtol=jnp.array(1e-6), damping=np.float64(0.5))
+        lm = oj.LevenbergMarquardt(gtol=np.float64(1e-6))
+    assert (pit.rtol, pit.damping, lm.gtol) == (1e-6, 0.5, 1e-6) and type(pit.damping) is float
 
 
 @pytest.mark.parametrize(

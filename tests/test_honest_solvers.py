@@ -2174,3 +2174,79 @@ def test_a_step_onto_a_plateau_above_the_start_is_not_convergence():
     assert r.stop_info["solver_stop"] == "converged"
     assert r.stop_info["start_loss"] == pytest.approx(float(start), rel=1e-12)
     assert "above the start's" in r.message
+
+
+def test_a_plateau_check_starts_from_the_projected_start():
+    """The start a fit runs from is its projection onto the constraints: a start outside
+    the box (b = 0.48 above its bound 0.3) had a loss below the constrained optimum's,
+    and L-BFGS's genuine optimum there, where c's column vanished (c**2 u, best c = 0),
+    read `stalled` "above the start's". SciPy's bounded optimum is the oracle."""
+    square, _, u, z = _degenerate()
+    box = oj.constraints.box(upper={"b": 0.3})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # (the start is projected)
+        r = oj.fit(
+            square,
+            {"a": 0.8, "b": 0.48, "c": 0.1},
+            np.ones(1),
+            u,
+            z,
+            solver=oj.LBFGS(),
+            constraints=box,
+        )
+
+    def residuals(q):
+        a, b, c, x0 = q
+        xs = [x0]
+        for k in range(99):
+            xs.append(a * xs[-1] + b * u[k, 0] + c * c * u[k, 1])
+        return np.array(xs) - z[:, 0]
+
+    lower, upper = [-np.inf, -np.inf, 0.0, -np.inf], [np.inf, 0.3, np.inf, np.inf]
+    best = scipy.optimize.least_squares(
+        residuals,
+        [0.8, 0.29, 0.1, 1.0],
+        bounds=(lower, upper),
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
+    assert r.status == "converged" and r.stop_info["vanished"] == ["c"], r.message
+    assert float(r.loss) == pytest.approx(np.mean(best.fun**2), rel=1e-10)
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [oj.Adam(1e-9, max_steps=5), oj.LBFGS(max_steps=3)],
+    ids=["adam-last-step", "lbfgs-stall"],
+)
+def test_a_zero_residual_along_a_direction_the_normal_equations_lose_is_refuted(solver):
+    """Noise-free outputs a u1 + b u2 with u2 = u1 + 1e-6 w (w orthogonal to u1), from
+    a = 1.005, b = 0.995 (truth 1, 1): the loss, 2.6e-17, is inside the zero-residual
+    band (eps of the outputs' size) but 1e11 above the residuals' round-off floor, and
+    both gains are 0.5 % off; the per-column measure (6.5e-7) does not promise a
+    descent, and the fit read `zero_residual`. The Gauss-Newton step from J removes
+    nearly all the loss: `stalled`. (Noise-free fits that reach the floor are not
+    checked: `test_noise_free_data_end_as_a_zero_residual_success`.)"""
+    rng = np.random.default_rng(0)
+    u1, w = rng.standard_normal(200), rng.standard_normal(200)
+    w -= (w @ u1) / (u1 @ u1) * u1
+    u = np.stack([u1, u1 + 1e-6 * w], axis=1)
+    model = oj.Model(
+        lambda x, u, th: 0.0 * x, observe=lambda x, u, th: th["a"] * u[:1] + th["b"] * u[1:2]
+    )
+    _, z = oj.simulate(model, {"a": 1.0, "b": 1.0}, np.zeros(1), u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # (no x0 column; J^T J near singular)
+        r = oj.fit(
+            model,
+            {"a": 1.005, "b": 0.995},
+            np.zeros(1),
+            u,
+            np.asarray(z),
+            solver=solver,
+            estimate_x0=False,
+        )
+    assert abs(float(r.theta["a"]) - 1.0) > 1e-3  # (not a solution)
+    assert r.status == "stalled" and r.stop_info["solver_stop"] == "zero_residual", r.message
+    assert r.stop_info["gauss_newton_refuted"]
