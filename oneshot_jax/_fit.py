@@ -485,21 +485,22 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     Either way `stop_info["gauss_newton_se"]` is the step's size in standard errors and
     `stop_info["precision"]` the dtype. In float64 a `converged` within gtol is checked
     too: the measure is a cosine per column, and does not see the collinear direction.
-    So is a float64 `zero_residual` whose loss is above the residuals' round-off floor,
+    So is such a `zero_residual` whose loss is above the residuals' round-off floor,
     (64 eps)^2 times the outputs' squared size (`_optimality.output_norm`), refuted where
     the step would remove half the loss (at round-off, about rank / R of it). Not
     checked: a float64 fit whose covariance finds every free entry identifiable or was
-    not computed (but for such a zero residual), a penalty or a regulariser (the step is
-    that of the least-squares loss alone), a Jacobian of more than `CHECK_ENTRIES`
-    entries, and the other starts of a multistart."""
+    not computed, a penalty or a regulariser (the step is that of the least-squares loss
+    alone), a Jacobian of more than `CHECK_ENTRIES` entries, and the other starts of a
+    multistart."""
     problem_ok = problem.cost.penalty is None and problem.regulariser is None
     eps = np.finfo(problem.dtype).eps
     low = eps > np.finfo(np.float64).eps
     unresolved = not low and _unresolved_directions(result)
-    # (a zero residual in float64 above the residuals' own round-off floor: noise-free
-    # data of two inputs collinear to 1e-7, where Adam read `zero_residual` at gains
-    # 0.75 and 1.25, truth 1, the loss 8e-16; a fit that reaches the floor is not checked)
-    zero = not low and result.status == "zero_residual"
+    # (a zero residual in float64, along such a direction and above the residuals' own
+    # round-off floor: noise-free data of two inputs collinear to 1e-7, where Adam read
+    # `zero_residual` at gains 0.75 and 1.25, truth 1, the loss 8e-16; a fit that
+    # reaches the floor, or whose covariance resolves every entry, is not checked)
+    zero = unresolved and result.status == "zero_residual"
     zero = zero and float(result.loss) > (64 * eps) ** 2 * float(output_norm(problem))
     info = result.stop_info
     # (in float64 a measure within gtol too: it is a cosine per column, and two columns
