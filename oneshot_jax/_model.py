@@ -150,12 +150,14 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
         )
     if isinstance(u, (list, tuple)):
         u = jnp.asarray(u)
-    if _check_input(input) == "foh" and (jnp.ndim(u) != 2 or jnp.shape(u)[0] != 2):
+    # (np.ndim and np.shape: a model without inputs passes u=None, which jnp.ndim
+    # deprecates; a tracer's own shape either way)
+    if _check_input(input) == "foh" and (np.ndim(u) != 2 or np.shape(u)[0] != 2):
         raise ValueError(
             f'`u` must be the pair (u[k], u[k+1]) of shape (2, n_u) for input="foh", got '
             f"shape {jnp.shape(u)}."
         )
-    if input == "zoh" and jnp.ndim(u) == 2 and jnp.shape(u)[0] == 2:
+    if input == "zoh" and np.ndim(u) == 2 and np.shape(u)[0] == 2:
         # (a step of `Model(step, input="foh")` gets the pair: its `ode_step` needs to know)
         raise ValueError(
             f'`u` must be u[k] of shape (n_u,) for input="zoh", got the shape {jnp.shape(u)} '

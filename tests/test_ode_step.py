@@ -10,3 +10,14 @@ def test_ode_step_is_the_from_ode_discretisation():
         model = oj.Model.from_ode(rhs, 0.1, method=method, substeps=substeps)
         direct = oj.ode_step(rhs, x, u, 2.0, 0.1, method=method, substeps=substeps)
         assert jnp.array_equal(model.step(x, u, 2.0), direct)
+
+
+def test_ode_step_of_an_autonomous_rhs_takes_u_none_without_a_deprecation():
+    # (jnp.ndim(None) is deprecated by JAX, to become an error: u=None was checked with it)
+    import warnings
+
+    rhs = lambda x, u, th: jnp.stack([x[1], -th * x[0]])  # noqa: E731
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        x = oj.ode_step(rhs, jnp.array([0.3, -0.1]), None, 2.0, 0.1)
+    assert jnp.array_equal(x, oj.ode_step(rhs, jnp.array([0.3, -0.1]), jnp.zeros(1), 2.0, 0.1))
