@@ -507,11 +507,11 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     # collinear to 1e-7 read 8e-9 <= 1e-8 2.4 standard errors from the optimum)
     within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
     within_gtol = within_gtol and not unresolved
-    low = low or unresolved
     status = result.status
     success = status == "statistically_converged" or (status == "converged" and not within_gtol)
     failure = least_squares and status in ("max_steps_reached", "stalled", "no_progress")
-    if not ((low or zero) and problem_ok and (success or failure or zero)) or "solver_stop" in info:
+    checked = low or unresolved  # (`zero` implies `unresolved`)
+    if not (checked and problem_ok and (success or failure or zero)) or "solver_stop" in info:
         return result
     N, T, n_z = problem.z.shape
     best = int(out.best)
