@@ -54,16 +54,21 @@ __all__ = [
 
 
 def _check(z, zhat, mask):
-    """Refuse what is not a record of numbers, and, on concrete values (not under a
-    transformation), an empty record and a mask that is negative or selects no sample of
+    """`z`, `zhat` and `mask`, a NumPy masked array none of whose entries is masked read
+    as its data; refuse what is not a record of numbers, and, on concrete values (not under
+    a transformation), an empty record and a mask that is negative or selects no sample of
     an output."""
+    z, zhat, mask = (
+        np.ma.getdata(a) if isinstance(a, np.ma.MaskedArray) and not np.ma.is_masked(a) else a
+        for a in (z, zhat, mask)
+    )
     named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
     for name, a in named:
         if isinstance(a, np.ma.MaskedArray):
             raise TypeError(
-                f"`{name}` is a NumPy masked array, which the scores do not read: pass its data "
-                f"(`np.ma.getdata({name})`) and the samples to score as `mask=` (true where "
-                "scored, `~np.ma.getmaskarray(z)` for a masked z)."
+                f"`{name}` is a NumPy masked array with masked entries, which the scores do not "
+                f"read: pass its data (`np.ma.getdata({name})`) and the samples to score as "
+                "`mask=` (true where scored, `~np.ma.getmaskarray(z)` for a masked z)."
             )
         if isinstance(a, jax.Array):  # (a tracer too: its dtype, without its values)
             if a.dtype.kind not in "biuf":
@@ -86,7 +91,7 @@ def _check(z, zhat, mask):
                 + "."
             )
     if any(isinstance(a, jax.core.Tracer) for _, a in named):
-        return
+        return z, zhat, mask
     if np.size(z) == 0:
         raise ValueError(f"`z` holds no samples (shape {np.shape(z)}).")
     shape = np.shape(z)
@@ -114,6 +119,7 @@ def _check(z, zhat, mask):
         if not np.all(per_output > 0):
             empty = np.flatnonzero(per_output <= 0).tolist()
             raise ValueError(f"`mask` selects no sample of output(s) {empty}.")
+    return z, zhat, mask
 
 
 def _flat(z, zhat, mask=None):
@@ -149,7 +155,7 @@ def _mean(a, w):
 def rmse(z, zhat, mask=None):
     """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2), over the samples
     where `mask` (shaped like z, optional) is true."""
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     return _rmse(z, zhat, mask)
 
 
@@ -166,7 +172,7 @@ def nrmse(z, zhat, mask=None):
     MATLAB's `goodnessOfFit(..., 'NRMSE')` is the other way round, a fitness
     1 - ||zhat - z|| / ||z - mean(z)|| (1 for a perfect fit): 1 minus this.
     """
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     return _nrmse(z, zhat, mask)
 
 
@@ -179,7 +185,7 @@ def _nrmse(z, zhat, mask):
 
 def fit_percent(z, zhat, mask=None):
     """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`)."""
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     return _fit_percent(z, zhat, mask)
 
 
@@ -193,7 +199,7 @@ def _fit_percent(z, zhat, mask):
 
 def r2(z, zhat, mask=None):
     """Coefficient of determination R^2 = 1 - SSE / SST per output."""
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     return _r2(z, zhat, mask)
 
 
@@ -216,7 +222,7 @@ def aic(z, zhat, n_params, mask=None):
     output than there are outputs (E^T E / n is then singular).
     """
     _check_n_params(n_params)
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     _check_full_rows(z, mask)
     return _aic(z, zhat, n_params, mask)
 
@@ -230,7 +236,7 @@ def fpe(z, zhat, n_params, mask=None):
     d >= n (no samples left to judge the parameters by).
     """
     _check_n_params(n_params)
-    _check(z, zhat, mask)
+    z, zhat, mask = _check(z, zhat, mask)
     _check_full_rows(z, mask)
     return _fpe(z, zhat, n_params, mask)
 

@@ -309,6 +309,18 @@ def test_metrics_refuse_what_is_no_record_of_numbers(name):
         fn(row, row + 0.1)
 
 
+def test_a_masked_array_with_nothing_masked_scores_as_its_data():
+    # (as `fit` reads one: refused with "pass its data" before, though no entry was masked)
+    rng = np.random.default_rng(0)
+    z, zhat = rng.normal(size=(20, 2)), rng.normal(size=(20, 2))
+    nothing = np.zeros((20, 2), bool)
+    for fn in (metrics.rmse, metrics.fit_percent, metrics.r2):
+        np.testing.assert_array_equal(
+            fn(np.ma.masked_array(z, mask=nothing), np.ma.masked_array(zhat, mask=nothing)),
+            fn(z, zhat),
+        )
+
+
 def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
     rng = np.random.default_rng(0)
     z = rng.standard_normal((40, 2))
