@@ -420,7 +420,7 @@ def check_stability(
     **Arguments:**
 
     - `model`: a `Model` built by `Model.from_ode` (for any other model the check
-        returns None: its step is not a known integrator).
+        returns None once its arguments are checked: its step is not a known integrator).
     - `theta`, `x0`, `u`: as for `oneshot_jax.simulate`.
     - `t`: the sample times, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`): h is then each step's own, its interval over
@@ -444,6 +444,9 @@ def check_stability(
         or points < 1
     ):
         raise ValueError(f"`points` must be a positive integer, got {points!r}.")
+    if not is_ode(model.step):
+        check_data(model, theta, x0, u, t=t)  # (bad arguments are refused all the same)
+        return None
     report = stability(model, theta, x0, u, t=t, points=int(points))
     warn_if_near_limit(report, stacklevel=2, what="the model")
     return report

@@ -1006,6 +1006,13 @@ def test_functions_of_a_model_refuse_a_result(lin_result):
         oj.check_stability(lin_result, lin_result.theta, lin_result.x0, _U1)
 
 
+def test_check_stability_refuses_bad_arguments_of_a_model_it_does_not_check(lin_result):
+    # (a model not built by from_ode returned None, whatever its arguments)
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\)"):
+        oj.check_stability(lin_result.model, lin_result.theta, np.zeros((1, 1, 1)), _U1)
+    assert oj.check_stability(lin_result.model, lin_result.theta, lin_result.x0, _U1) is None
+
+
 def test_save_and_load_name_their_arguments(lin_result, tmp_path):
     with pytest.raises(TypeError, match=r"`path` must be a str or os.PathLike"):
         oj.load_result(123)
