@@ -203,19 +203,20 @@ def _check_head(u, z, n, z_name="z"):
 
 
 @jit
-def _x0_identifiable(model, theta, x0, u, weight):
+def _x0_identifiable(model, theta, x0, u, weight, free):
     """`identifiable_x0` in one compiled call."""
-    return identifiable_x0(model, theta, x0, u, weight)
+    return identifiable_x0(model, theta, x0, u, weight, free)
 
 
-def _observable(data):
+def _observable(data, estimate=None):
     """Per x0 entry, whether the head's (weighted) outputs determine it (`_linalg`'s rule,
-    the one `fit` uses for its covariance)."""
+    the one `fit` uses for its covariance), with the entries `estimate` (a boolean mask,
+    or None: all) free and the others held (identifiable)."""
     sqrt_q = check_cost(data, None, 1.0).sqrt_weight()
     sqrt_q = None if sqrt_q is None else jnp.asarray(sqrt_q, data.x0.dtype)
-    return np.asarray(
-        _x0_identifiable(data.model, data.theta, jnp.asarray(data.x0), jnp.asarray(data.u), sqrt_q)
-    )
+    free = None if estimate is None else tuple(np.flatnonzero(estimate).tolist())
+    x0, u = jnp.asarray(data.x0), jnp.asarray(data.u)
+    return np.asarray(_x0_identifiable(data.model, data.theta, x0, u, sqrt_q, free))
 
 
 #
@@ -249,9 +250,13 @@ def estimate_x0(
         x0, u[:n], z[:n], fixed=True, solver=GaussNewton())`. For a deterministic model it is the
         maximum-likelihood x0 (the least-squares solution; with a nonlinear model, the
         local one nearest the starting guess). Directions of x0 that the head's outputs do
-        not determine get no step (pseudo-inverse): they keep their starting value, so
-        from zeros an entry that never reaches the output stays 0 (the minimum-norm
-        solution); a warning names them and their std is inf.
+        not determine get no step in Gauss-Newton's variables, each entry scaled by the
+        norm of its Jacobian column (the pseudo-inverse there): an entry that never
+        reaches the outputs keeps its starting value (from zeros it stays 0), and along a
+        direction that mixes entries (only x0[0] + 3 x0[1] seen) the estimate is the
+        solution nearest the guess in those scaled variables, the minimum-norm one from
+        zeros only where the entries' columns have equal norms; a warning names them and
+        their std is inf.
     - `method="smoother"`: an extended Kalman filter forward and a Rauch-Tung-Striebel
         smoother backward over the head (Särkkä, *Bayesian Filtering and Smoothing*,
         Cambridge University Press, 2013: the EKF of Algorithm 5.4 and the extended RTS
@@ -507,13 +512,14 @@ def _estimate(
         loss = np.asarray(np.mean(np.sum(np.square(np.asarray(weighted)), axis=1)), guess.dtype)
 
     if ok is None:
-        ok = _observable(data._replace(x0=jnp.asarray(x0_hat)))
+        ok = _observable(data._replace(x0=jnp.asarray(x0_hat)), estimate)
     if not np.all(ok):
         labels = model_labels(getattr(model, "states", None), len(ok)) or range(len(ok))
         bad = [f"x0[{labels[i]}]" for i in np.flatnonzero(~ok)]
         then = (
-            "along that direction the estimate stays at the starting guess `x0` (a guess of "
-            "zeros gives the minimum-norm solution) and their std is inf"
+            "along that direction the estimate stays at the starting guess `x0` in "
+            "Gauss-Newton's variables, each entry scaled by the norm of its Jacobian column "
+            "(an entry that reaches no output keeps its guess), and their std is inf"
             if method == "lsq"
             else "along that direction the smoother leaves the estimate at the prior (mean `x0`, "
             "`prior_covariance`)"

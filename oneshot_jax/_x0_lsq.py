@@ -57,12 +57,14 @@ class X0Fit(NamedTuple):
     record: tuple | None = None
 
 
-def identifiable_x0(model, theta, x0, u, sqrt_q):
+def identifiable_x0(model, theta, x0, u, sqrt_q, free=None):
     """Per x0 entry, whether it is identifiable from Q^{1/2} z[0..n-1]: `identifiable` of
     J^T J, J = Q^{1/2} d z[0..n-1] / d x0 (n n_z, n_x) by forward mode (traced).
 
     **Arguments:** `model`, `theta`; `x0` (n_x,); `u` (n, n_u) the head's inputs;
-    `sqrt_q` Q^{1/2} (`Cost.sqrt_weight`) or None.
+    `sqrt_q` Q^{1/2} (`Cost.sqrt_weight`) or None; `free`: a tuple of the estimated
+    entries (J's columns of those alone; the others, held, count identifiable), or None
+    (all).
 
     **Returns:** (n_x,) booleans.
     """
@@ -71,7 +73,10 @@ def identifiable_x0(model, theta, x0, u, sqrt_q):
         return weigh(outputs(model, theta, rollout(model, theta, x0, u), u), sqrt_q).reshape(-1)
 
     J = jax.jacfwd(weighted_outputs)(x0)
-    return identifiable(J.T @ J)
+    if free is None:
+        return identifiable(J.T @ J)
+    J = J[:, np.asarray(free, int)]
+    return jnp.ones(x0.shape, bool).at[np.asarray(free, int)].set(identifiable(J.T @ J))
 
 
 @jit

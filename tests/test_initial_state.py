@@ -600,6 +600,27 @@ def test_unobservable_combination_warning_names_a_direction_not_a_held_entry():
     assert not est.identifiable.any()
 
 
+def test_holding_an_entry_of_a_combination_makes_the_other_identifiable():
+    """Only x0[0] + 3 x0[1] reaches the outputs: held at its value, x0[1] leaves x0[0]
+    determined. `estimate_x0` judged identifiability with every column free (both flagged,
+    a warning, "(not determined by the head)"), though `predict` and the std did not."""
+    A, C = np.diag([0.9, 0.9, 0.5]), np.array([[1.0, 3.0, 0.0], [0.0, 0.0, 1.0]])
+    model = oj.Model(lambda x, u, th: th["A"] @ x + u[0], lambda x, u, th: th["C"] @ x)
+    theta = {"A": A, "C": C}
+    u = np.zeros((30, 1))
+    _, z = oj.simulate(model, theta, np.array([1.0, 2.0, -1.0]), u)
+    guess, mask = np.array([0.0, 2.0, 0.0]), np.array([True, False, True])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        est = oj.estimate_x0(model, theta, u, z, n=20, x0=guess, estimate=mask)
+    np.testing.assert_allclose(est.x0, [1.0, 2.0, -1.0], atol=1e-12)
+    assert list(est.identifiable) == [True, True, True]
+    assert np.all(np.isfinite(est.std))
+    with pytest.warns(UserWarning, match=r"\['x0\[0\]', 'x0\[1\]'\] are not determined"):
+        free = oj.estimate_x0(model, theta, u, z, n=20, x0=guess)  # (both free: a direction)
+    assert list(free.identifiable) == [False, False, True]
+
+
 @pytest.mark.parametrize("method", ["lsq", "smoother"])
 def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     """A static model (n_x = 0, z = d u + e): `estimate_x0` and `predict` return an empty
