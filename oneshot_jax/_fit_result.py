@@ -332,6 +332,14 @@ def _first_row_missing(z_head) -> bool:
     return first.ndim == 2 and bool(np.isnan(first).any())
 
 
+def _positive_definite(weight) -> bool:
+    """Whether a fit's weight (a vector of per-output weights, or Q) is positive definite,
+    as the smoother reads a weight (the inverse of the measurement noise's covariance)."""
+    w = np.asarray(weight, np.float64)
+    q = np.diag(w) if w.ndim == 1 else w
+    return bool(np.all(np.isfinite(q)) and np.min(np.linalg.eigvalsh(q)) > 0)
+
+
 class FitResult(eqx.Module):
     """The estimate, why the solver stopped, its uncertainty and its fit to the data.
 
@@ -545,7 +553,7 @@ class FitResult(eqx.Module):
         n_z = e.shape[-1]
         w = np.ones(n_z) if self.weight is None else np.asarray(self.weight, np.float64)
         q = np.diag(w) if w.ndim == 1 else w
-        if not np.all(np.isfinite(q)) or np.min(np.linalg.eigvalsh(q)) <= 0:
+        if not _positive_definite(q):
             return None
         e = e.reshape(-1, n_z)
         seen = np.isfinite(e)
@@ -716,7 +724,9 @@ class FitResult(eqx.Module):
             dof of its weighted residuals at the point samples, `residuals`: as its
             standard errors use, less the readings of an aggregated fit): a weight's scale,
             which a fit ignores, does not change it. Where Q is singular (an output of
-            weight 0) or the residuals are exactly zero, `estimate_x0`'s defaults apply.
+            weight 0) or the residuals are exactly zero, `estimate_x0`'s defaults apply
+            (with a singular Q, the smoother's reads every output: pass
+            `measurement_noise=` to trust one less).
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
@@ -767,7 +777,8 @@ class FitResult(eqx.Module):
         if noise is not None:  # Q's scale is arbitrary: the smoother gets sigma^2 Q^{-1}
             kwargs["measurement_noise"] = noise
         elif kwargs.get("weight") is None and self.weight is not None:
-            kwargs["weight"] = self.weight  # the fit's Q: an output it ignored stays ignored
+            if method != "smoother" or _positive_definite(self.weight):
+                kwargs["weight"] = self.weight  # the fit's Q: an output it ignored stays so
         if kwargs.get("x0") is None and (
             not self.model.observes_state or _first_row_missing(z_head)
         ):

@@ -353,6 +353,22 @@ def test_fit_result_predict_smoother_uses_the_noise_the_fit_estimated():
     assert np.all(np.abs(preds[0].x0 - [-0.5, 0.9]) < 4 * preds[0].estimate.std)
 
 
+def test_fit_result_predict_smoother_after_a_fit_that_ignored_an_output():
+    """A fit with weight diag(1, 0): the smoother got that singular weight and refused it
+    ("needs a positive definite weight"), where the docstring promises `estimate_x0`'s
+    defaults; it now gets them, the numbers of `estimate_x0` without a weight."""
+    model = oj.Model(lambda x, u, th: th * x + u[0], lambda x, u, th: jnp.stack([x[0], 2 * x[0]]))
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((50, 1))
+    _, z = oj.simulate(model, 0.8, np.array([1.0]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((50, 2))
+    r = oj.fit(model, 0.5, np.zeros(1), u, z, weight=np.array([1.0, 0.0]))
+    p = r.predict(u, z[:10], method="smoother")
+    ref = oj.estimate_x0(model, r.theta, u, z, n=10, x0=r.x0, method="smoother")
+    np.testing.assert_array_equal(p.x0, ref.x0)
+    assert abs(p.x0[0] - 1.0) < 0.05
+
+
 def test_lsq_is_the_x0_only_fit():
     """`estimate_x0` solves x0 below `fit`, with the numbers of the public x0-only fit
     (every parameter fixed) on the head: a weighted two-output head, Levenberg-Marquardt
