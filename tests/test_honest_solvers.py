@@ -829,6 +829,25 @@ def test_a_first_order_fit_exact_at_its_last_step_is_a_zero_residual_success():
         assert float(exact.theta[k]) == pytest.approx(truth[k], rel=1e-12)
 
 
+def test_an_exact_fit_under_a_regulariser_is_no_zero_residual_success():
+    """Noise-free data of 12 candidate terms over 6 samples, l1 of 1e-9: ISTA's dense exact
+    fit (every term nonzero, C + g 1.5 times basis pursuit's) said `zero_residual` at its
+    last step, a success, though C at round-off says nothing of C + g."""
+    rng = np.random.default_rng(11)
+    phi = rng.standard_normal((6, 12))
+    w = np.zeros(12)
+    w[[1, 7]] = [2.0, -1.0]
+    model = oj.Model(lambda x, u, th: x, lambda x, u, th: jnp.dot(u, th)[None] + 0 * x[:1])
+    rate = 1 / np.linalg.eigvalsh(2 * phi.T @ phi / 6).max()
+    r = oj.fit(
+        model, np.zeros(12), np.zeros(1), phi, (phi @ w)[:, None],
+        solver=oj.Optax(optax.sgd(rate), max_steps=3000), estimate_x0=False, covariance=None,
+        regulariser=oj.sparsity.l1(1e-9, learning_rate=rate),
+    )  # fmt: skip
+    assert np.count_nonzero(r.theta) > 2 and r.loss < 1.6 * 3e-9  # (basis pursuit: 3e-9)
+    assert r.status == "max_steps_reached" and not r.success, r.message
+
+
 @pytest.mark.parametrize("gap", [False, True])
 def test_a_zero_residual_ends_when_its_steps_reach_round_off(gap):
     """Noise-free data of a state starting at 0 (x0[1] = 0): at a zero residual the loss

@@ -330,7 +330,7 @@ class _AbstractOptax(AbstractSolver):
         return small_loss, gnorm < self.tol_grad
 
     def terminate(self, problem, params, state):
-        del problem, params
+        del params
         gnorm = grad_norm(state.grad)
         finite = jnp.isfinite(state.loss) & jnp.isfinite(gnorm)
         small_loss, small_grad = self._thresholds(state.loss, gnorm)
@@ -339,8 +339,10 @@ class _AbstractOptax(AbstractSolver):
         # solution, not `max_steps_reached` (an exact fit of outputs of size 1e-6 said
         # "raise max_steps"; `_fit` then checks that no step still lowers the loss
         # beyond round-off). Not before: a first-order step there still moves the
-        # parameters by more than the outputs resolve.
-        zero = zero_residual(state.smooth, state.data)
+        # parameters by more than the outputs resolve. With a regulariser g, never: C at
+        # round-off says nothing of C + g (lambda 1e-9 keeps the optimum's C in the band,
+        # and a dense exact fit is there too).
+        zero = zero_residual(state.smooth, state.data) & (problem.regulariser is None)
         result = RESULTS.where(zero, RESULTS.zero_residual, RESULTS.stalled)
         zero = zero & (state.count >= self.max_steps)
         result = RESULTS.where(state.stationary, RESULTS.converged, result)
