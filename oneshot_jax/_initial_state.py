@@ -435,8 +435,12 @@ def _estimate(
     try:
         data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t, z_name=z_name)
     except ValueError as err:
-        if not defaulted or (getattr(model, "timed", False) and t is None):
-            raise  # (a time-stamped model without its times: not the guess's fault)
+        if (
+            not defaulted
+            or (getattr(model, "timed", False) and t is None)
+            or "shape" not in str(err)
+        ):
+            raise  # (a time-stamped model without its times, NaN: not the guess's fault)
         # The state's size came from z's columns: a wrong column count surfaces as a
         # wrong state size deep in the model.
         raise ValueError(

@@ -463,6 +463,8 @@ def test_lsq_with_missing_head_samples_is_the_masked_x0_only_fit():
         oj.estimate_x0(model, PEND_THETA, u, z, n=25, **kw)
     with pytest.raises(ValueError, match="applies to method='lsq'"):
         oj.estimate_x0(model, PEND_THETA, u, z, n=25, method="smoother", missing="mask")
+    with pytest.raises(ValueError, match=r"take `missing=\"mask\"`[^\n]*\.$"):
+        oj.estimate_x0(model, PEND_THETA, u, z, n=25)  # (no hint on z's columns: they fit)
     z[0, 1] = np.nan
     with pytest.raises(ValueError, match=r"`x0` .* is needed: z\[0\]"):
         oj.estimate_x0(model, PEND_THETA, u, z, n=25, missing="mask")
