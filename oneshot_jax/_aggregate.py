@@ -430,8 +430,10 @@ class Augmented(NamedTuple):
             # (unchecked: NaN where no sample measures every such output, as in a fit
             # without aggregates; the checking `metrics.aic` refuses that)
             zero = np.zeros_like(es)
-            metrics["aic"] = float(_metrics._aic(zero, es, n_free, ms))
-            metrics["fpe"] = float(_metrics._fpe(zero, es, n_free, ms))
+            for name in _metrics._CRITERIA:
+                if name in metrics:  # (a result saved before AICc and BIC has neither)
+                    score = getattr(_metrics, f"_{name}")
+                    metrics[name] = float(score(zero, es, n_free, ms))
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],

@@ -168,6 +168,8 @@ def post(problem, params, blocks, strategy, lags=None):
         "fit_percent": _metrics.fit_percent(zs, zhat, m),
         "r2": _metrics.r2(zs, zhat, m),
         "aic": _metrics.aic(zs, zhat, n_free, m),
+        "aicc": _metrics.aicc(zs, zhat, n_free, m),
+        "bic": _metrics.bic(zs, zhat, n_free, m),
         "fpe": _metrics.fpe(zs, zhat, n_free, m),
     }
     # MATLAB's compare reports a FIT per experiment: the pooled one above measures each
@@ -468,7 +470,7 @@ def assemble(
             stop_reason=stops,
             solver_stop=tuple(o if r == "validation" else r for r, o in zip(stops, own)),
         )
-    metrics = {k: (float(v) if k in ("aic", "fpe") else v) for k, v in met.items()}
+    metrics = {k: (float(v) if k in _metrics._CRITERIA else v) for k, v in met.items()}
     stop_info = {
         "first_order": float(out.first_order),
         "gtol": prepared.gtol,

@@ -390,15 +390,16 @@ class FitResult(eqx.Module):
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
     - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries.
-    - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC and FPE (Akaike's final
-        prediction error, MATLAB's `fpe`), on the fitted data:
+    - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, AICc, BIC and FPE
+        (`aic`, `aicc`, `bic`, `fpe` of `oneshot_jax.metrics`: MATLAB's report of a fit
+        gives these), on the fitted data:
         pooled over all its records (each against the mean of all, which records at
         different operating points inflate), over the windows of a fit with `window=`
         (each from its own fitted x0, so not the model's open-loop fit of the whole
         record: `simulate` or `predict` that). `fit_percent_per_record` (N, n_z) is the
         FIT% of each record (window), as MATLAB's `compare` reports one per experiment
         (one row for one record). The
-        AIC and FPE count the estimated x0 entries as parameters; they are computed on
+        The criteria count the estimated x0 entries as parameters; they are computed on
         the samples where every output that is ever measured is measured (an output never
         measured is left out), and are NaN where there is no such sample (outputs sampled
         at different times); the FPE is inf where the parameters are as many as those

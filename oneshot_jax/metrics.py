@@ -45,12 +45,19 @@ __all__ = [
     "fit_percent",
     "r2",
     "aic",
+    "aicc",
+    "bic",
     "fpe",
     "benchmark_scores",
     "BenchmarkScores",
     "residual_correlations",
     "ResidualCorrelations",
 ]
+
+
+# The criteria of a whole fit (one float each in `FitResult.metrics`), each computed by
+# this module's function of that name.
+_CRITERIA = ("aic", "aicc", "bic", "fpe")
 
 
 def _check(z, zhat, mask):
@@ -227,6 +234,35 @@ def aic(z, zhat, n_params, mask=None):
     return _aic(z, zhat, n_params, mask)
 
 
+def aicc(z, zhat, n_params, mask=None):
+    """Akaike's criterion corrected for small samples (Hurvich and Tsai 1989),
+    AICc = AIC + 2 d (d + 1) / (n - d - 1), d = `n_params`.
+
+    AIC and n are those of `aic` (MATLAB's `aic(sys, 'AICc')` without its constant
+    n n_z (log 2 pi + 1)); the correction penalises parameters more where they are not
+    few against the samples. inf where n <= d + 1.
+    """
+    _check_n_params(n_params)
+    z, zhat, mask = _check(z, zhat, mask)
+    _check_full_rows(z, mask)
+    return _aicc(z, zhat, n_params, mask)
+
+
+def bic(z, zhat, n_params, mask=None):
+    """Schwarz's Bayesian information criterion, BIC = n log det(E^T E / n) + d log n,
+    d = `n_params`.
+
+    E and n as for `aic` (MATLAB's `aic(sys, 'BIC')` without its constant
+    n n_z (log 2 pi + 1)). Its penalty, log n per parameter against AIC's 2, grows with
+    the record: it picks smaller models than AIC from long records. Lower is better;
+    only differences between models on the same data mean anything.
+    """
+    _check_n_params(n_params)
+    z, zhat, mask = _check(z, zhat, mask)
+    _check_full_rows(z, mask)
+    return _bic(z, zhat, n_params, mask)
+
+
 def fpe(z, zhat, n_params, mask=None):
     """Akaike's final prediction error, FPE = det(E^T E / n) (1 + d / n) / (1 - d / n),
     d = `n_params` (MATLAB's `fpe`).
@@ -293,6 +329,21 @@ def _aic(z, zhat, n_params, mask):
     # fewer full samples than measured outputs: E^T E / n is singular (rank <= n), its
     # log det -inf and the finite slogdet round-off: no AIC (as `fpe`'s d >= n is inf)
     return jnp.where(n >= used, n * logdet + 2.0 * n_params, jnp.nan)
+
+
+@jax.jit
+def _aicc(z, zhat, n_params, mask):
+    _, n, _ = _error_covariance(z, zhat, mask)
+    room = n - n_params - 1
+    extra = jnp.where(room > 0, 2.0 * n_params * (n_params + 1) / jnp.where(room > 0, room, 1), 0)
+    return jnp.where(room > 0, _aic(z, zhat, n_params, mask) + extra, jnp.inf)
+
+
+@jax.jit
+def _bic(z, zhat, n_params, mask):
+    cov, n, used = _error_covariance(z, zhat, mask)
+    _, logdet = jnp.linalg.slogdet(cov)
+    return jnp.where(n >= used, n * logdet + n_params * jnp.log(n), jnp.nan)
 
 
 @jax.jit

@@ -443,6 +443,8 @@ def test_fit_recovers_parameters_from_aggregates(tmp_path):
     e0 = np.asarray(res.residuals)[:, 0][seen]  # (the FPE too, with theta's and x0's 5)
     fpe = np.mean(e0**2) * (1 + 5 / e0.size) / (1 - 5 / e0.size)
     assert res.metrics["fpe"] == pytest.approx(fpe, rel=1e-9)
+    bic = e0.size * np.log(np.mean(e0**2)) + 5 * np.log(e0.size)  # (point samples only too)
+    assert res.metrics["bic"] == pytest.approx(bic, rel=1e-9)
     assert "x0[1]" in str(res) and "x0[2]" not in str(res)
     back = oj.load_result(res.save(tmp_path / "agg.npz"), model=MODEL)
     np.testing.assert_array_equal(back.x0, res.x0)

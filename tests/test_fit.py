@@ -228,6 +228,10 @@ def test_fit_result_metrics_against_hand_computations(sat, sat_gn):
     fpe = np.linalg.det(e.T @ e / SAT_T) * (1 + d) / (1 - d)
     assert r.metrics["fpe"] == pytest.approx(fpe, rel=1e-9)
     assert f"FPE {r.metrics['fpe']:.4g}" in str(r)
+    extra = 2 * n_free * (n_free + 1) / (SAT_T - n_free - 1)  # (MATLAB's report.Fit AICc)
+    assert r.metrics["aicc"] == pytest.approx(aic + extra, rel=1e-9)
+    bic = aic - 2 * n_free + n_free * np.log(SAT_T)
+    assert r.metrics["bic"] == pytest.approx(bic, rel=1e-9)
     # Covariance: sigma^2 (J^T J)^{-1}, sigma^2 = SSE / (n_obs - n_free), J in (theta, x0).
     p = jnp.concatenate([r.theta, r.x0])
     J = np.asarray(jax.jacfwd(lambda p: sat_outputs(p[:3], p[3:], sat["M"]).reshape(-1))(p))

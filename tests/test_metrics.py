@@ -22,6 +22,10 @@ def np_metrics(z, zhat, n_params):
         "r2": 1 - (e**2).sum(axis=0) / (dev**2).sum(axis=0),
         "aic": n * np.log(np.linalg.det(e.T @ e / n)) + 2 * n_params,
         "fpe": np.linalg.det(e.T @ e / n) * (1 + n_params / n) / (1 - n_params / n),
+        "aicc": n * np.log(np.linalg.det(e.T @ e / n))
+        + 2 * n_params
+        + 2 * n_params * (n_params + 1) / (n - n_params - 1),
+        "bic": n * np.log(np.linalg.det(e.T @ e / n)) + n_params * np.log(n),
     }
 
 
@@ -43,8 +47,12 @@ def test_metrics_match_numpy(shape):
     assert float(aic) == pytest.approx(ref["aic"], rel=1e-12)
     fpe = metrics.fpe(z, zhat, 5)
     assert np.shape(fpe) == () and float(fpe) == pytest.approx(ref["fpe"], rel=1e-12)
+    for name in ("aicc", "bic"):
+        got = getattr(metrics, name)(z, zhat, 5)
+        assert np.shape(got) == () and float(got) == pytest.approx(ref[name], rel=1e-12), name
     few = z.reshape(-1, n_z)[:5], zhat.reshape(-1, n_z)[:5]
     assert float(metrics.fpe(*few, 5)) == np.inf  # as many parameters as samples
+    assert float(metrics.aicc(*few, 4)) == np.inf  # (n - d - 1 = 0)
 
 
 def test_masked_metrics_match_numpy_on_the_measured_samples():
@@ -67,6 +75,8 @@ def test_masked_metrics_match_numpy_on_the_measured_samples():
     ref = np_metrics(z[rows], zhat[rows], n_params=3)
     assert float(metrics.aic(z, zhat, 3, mask)) == pytest.approx(ref["aic"], rel=1e-12)
     assert float(metrics.fpe(z, zhat, 3, mask)) == pytest.approx(ref["fpe"], rel=1e-12)
+    assert float(metrics.aicc(z, zhat, 3, mask)) == pytest.approx(ref["aicc"], rel=1e-12)
+    assert float(metrics.bic(z, zhat, 3, mask)) == pytest.approx(ref["bic"], rel=1e-12)
 
 
 def test_missing_samples_without_a_mask_warn_how_to_score_the_measured_ones():
@@ -327,7 +337,7 @@ def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
     zhat = z + 0.1 * rng.standard_normal((40, 2))
     mask = np.zeros((40, 2), bool)
     mask[::2, 0] = mask[1::2, 1] = True  # outputs measured at alternate samples
-    for fn in (metrics.aic, metrics.fpe):
+    for fn in (metrics.aic, metrics.aicc, metrics.bic, metrics.fpe):
         with pytest.raises(ValueError, match="no sample where every output is measured"):
             fn(z, zhat, 3, mask)
     assert "fpe" in metrics.__all__
@@ -344,6 +354,7 @@ def test_aic_is_nan_where_fewer_samples_measure_every_output_than_there_are_outp
     mask[::2, 0] = mask[1::2, 1] = True
     mask[4] = True
     assert np.isnan(float(metrics.aic(z, zhat, 2, mask)))
+    assert np.isnan(float(metrics.bic(z, zhat, 2, mask)))
     assert np.isinf(float(metrics.fpe(z, zhat, 2, mask)))
     mask[6] = True
     e = (zhat - z)[mask.all(axis=1)]
