@@ -69,7 +69,7 @@ def _check_integrator(rhs, method, substeps) -> int:
 def _input_at(u, dt, input):
     """u(t_k + s) over one sample interval of length dt: u[k] held ("zoh"), or the linear
     interpolant of the pair (u[k], u[k+1]) ("foh")."""
-    if _check_input(input) == "foh":
+    if _check_input(input) == "foh" and u is not None:
         u0, du = u[0], (u[1] - u[0]) / dt
         return lambda s: u0 + s * du
     return lambda s: u
@@ -129,7 +129,8 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
 
     - `rhs`: `rhs(x, u, theta) -> dx/dt`, with u of shape (n_u,).
     - `x`: the state at t_k.
-    - `u`: u[k] (n_u,) for "zoh", or (u[k], u[k+1]) stacked to (2, n_u) for "foh".
+    - `u`: u[k] (n_u,) for "zoh", or (u[k], u[k+1]) stacked to (2, n_u) for "foh";
+        None for an autonomous `rhs` (which then gets None as its u).
     - `theta`: the parameters, passed on to `rhs`.
     - `dt`: the sample interval, > 0 (checked where it is concrete; a traced one, under
         `jax.jit` or `jax.vmap`, is not).
@@ -152,7 +153,7 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
         u = jnp.asarray(u)
     # (np.ndim and np.shape: a model without inputs passes u=None, which jnp.ndim
     # deprecates; a tracer's own shape either way)
-    if _check_input(input) == "foh" and (np.ndim(u) != 2 or np.shape(u)[0] != 2):
+    if _check_input(input) == "foh" and u is not None and (np.ndim(u) != 2 or np.shape(u)[0] != 2):
         raise ValueError(
             f'`u` must be the pair (u[k], u[k+1]) of shape (2, n_u) for input="foh", got '
             f"shape {jnp.shape(u)}."
@@ -164,6 +165,8 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
             'of a pair (u[k], u[k+1]): pass input="foh" to interpolate between them (a '
             'step of `Model(step, input="foh")` gets that pair).'
         )
+    if input == "zoh" and np.ndim(u) > 1:
+        raise ValueError(f'`u` must be u[k] of shape (n_u,) for input="zoh", got {np.shape(u)}.')
     if not isinstance(dt, jax.core.Tracer):  # (a traced dt is not checked: jit, vmap)
         dt = _positive_number(dt, "dt", "the sample interval")
     h = dt / substeps

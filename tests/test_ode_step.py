@@ -1,4 +1,5 @@
 import jax.numpy as jnp
+import pytest
 
 import oneshot_jax as oj
 
@@ -21,3 +22,13 @@ def test_ode_step_of_an_autonomous_rhs_takes_u_none_without_a_deprecation():
         warnings.simplefilter("error", DeprecationWarning)
         x = oj.ode_step(rhs, jnp.array([0.3, -0.1]), None, 2.0, 0.1)
     assert jnp.array_equal(x, oj.ode_step(rhs, jnp.array([0.3, -0.1]), jnp.zeros(1), 2.0, 0.1))
+    # and for input="foh" (refused before: "got shape ()")
+    foh = oj.ode_step(rhs, jnp.array([0.3, -0.1]), None, 2.0, 0.1, input="foh")
+    assert jnp.array_equal(foh, x)
+
+
+def test_ode_step_refuses_a_zoh_input_of_several_rows():
+    # (a slice u[k:k+3] ran: the rows broadcast against the state, a wrong model)
+    rhs = lambda x, u, th: -x + u[0]  # noqa: E731
+    with pytest.raises(ValueError, match=r"`u` must be u\[k\] of shape \(n_u,\) .*\(3, 2\)"):
+        oj.ode_step(rhs, jnp.array([1.0, 2.0]), jnp.ones((3, 2)), None, 0.1)
