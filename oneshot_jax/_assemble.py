@@ -314,9 +314,12 @@ def weighed(per_output, weight=None):
 
 
 def worst_fit(fit_percent, weight=None):
-    """The lowest FIT% over the outputs the fit weighs (`weighed`) where it is below 0 (a
-    simulation that fits an output worse than that output's mean), else None."""
+    """The lowest finite FIT% over the outputs the fit weighs (`weighed`) where it is below
+    0 (a simulation that fits an output worse than that output's mean), else None."""
     fits = weighed(fit_percent, weight)
+    # (-inf: an output without spread, measured once or constant, has no FIT to judge by;
+    # `fit_orthogonal`'s penalty rows, say)
+    fits = np.where(np.isfinite(fits), fits, np.nan)
     if not np.isfinite(fits).any() or np.nanmin(fits) >= 0:
         return None
     return float(np.nanmin(fits))

@@ -21,7 +21,9 @@ solver's path ends. Two remedies, both on the public `fit`:
     rounds).
 - `fit_physics_first`: two fits, the physical model alone (the learned terms switched
     off and held), then the learned terms with the physical parameters held. Its
-    physical estimates are those of the physics alone, exactly. For an output-additive
+    physical estimates are those of the physics alone (the learned terms off; a model
+    written without them reaches the same point to the solver's tolerance, its round-off
+    on another path). For an output-additive
     augmentation y = y_p(theta_phys) + P Delta, P the projector off S = d y_p / d
     theta_phys held fixed, the normal equations of theta_phys read
     S^T (y - y_p - P Delta) = S^T (y - y_p) = 0, those of the physics alone: there the
@@ -265,10 +267,16 @@ class Round(eqx.Module):
     - `physics`: the physical parameters at the end of the round (a dict).
     - `loss`: the data cost C of eq. (5) at the end of the round (the penalty excluded).
     - `projection`: ||Q^T W^{1/2} d|| / ||W^{1/2} d||, the share of the learned terms'
-        output contribution d along the round's physical sensitivities (0: orthogonal).
+        output contribution d along the physical sensitivities (0: orthogonal), both at
+        the end of the round (Q recomputed there: the basis the round held moves with
+        the network).
     - `change`: the largest relative change of a physical parameter in the round.
     - `moved`: the largest change of a physical parameter in the round in its standard
         errors (those of the round's fit; inf where one is not finite).
+    - `absorbed`: the physics the learned terms carry at the end of the round: the
+        largest change of a physical parameter that would explain d's part along the
+        sensitivities (least squares), in its standard errors (inf where one is not
+        finite, or the sensitivities are not).
     - `status`: the round's fit's stop reason.
     """
 
@@ -277,20 +285,22 @@ class Round(eqx.Module):
     projection: float
     change: float
     moved: float
+    absorbed: float
     status: str
 
     def _row(self):
         """The round's row of `Orthogonal`'s table (loss, projection, change, moved SE,
-        stop)."""
+        absorbed SE, stop)."""
         return (
             f"{self.loss:>12.5g}  {self.projection:>10.3g}  {self.change:>10.3g}  "
-            f"{self.moved:>10.3g}  {self.status}"
+            f"{self.moved:>10.3g}  {self.absorbed:>11.3g}  {self.status}"
         )
 
     def __str__(self):
         return (
             f"Round: loss {self.loss:.5g}, projection {self.projection:.3g}, change "
-            f"{self.change:.3g}, moved {self.moved:.3g} SE, stop {self.status}"
+            f"{self.change:.3g}, moved {self.moved:.3g} SE, absorbed {self.absorbed:.3g} SE, "
+            f"stop {self.status}"
         )
 
     __repr__ = __str__
@@ -329,6 +339,7 @@ class Orthogonal(eqx.Module):
     def __str__(self):
         head = (
             f"{'round':>5}  {'loss':>12}  {'projection':>10}  {'change':>10}  {'moved SE':>10}"
+            f"  {'absorbed SE':>11}"
             "  stop"
         )
         rows = "\n".join(f"{i:>5}  {r._row()}" for i, r in enumerate(self.rounds))
@@ -375,10 +386,9 @@ def _free_physics(theta, keys, held):
     return [k for k in theta if k not in keys and held.get(k, False) is not True]
 
 
-def _basis(model, theta, x0, u, names, root):
-    """M_k = W^{1/2} Q_k (T, n_z, p): Q an orthonormal basis of the weighted output
-    sensitivities W^{1/2} d yhat_k / d theta_phys over the record (forward-mode autodiff of
-    `simulate`); columns beyond the sensitivities' rank are zero."""
+def _sensitivities(model, theta, x0, u, names, root):
+    """Sw = W^{1/2} d yhat_k / d theta_phys (T n_z, p): the weighted output sensitivities
+    to the physical parameters over the record (forward-mode autodiff of `simulate`)."""
     phys = {k: theta[k] for k in names}
     dyn, static = eqx.partition(phys, eqx.is_inexact_array)
 
@@ -389,11 +399,39 @@ def _basis(model, theta, x0, u, names, root):
     T, n_z = np.shape(u)[0], root.shape[0]
     cols = [np.asarray(j).reshape(T, n_z, -1) for j in jax.tree_util.tree_leaves(jac)]
     S = np.concatenate(cols, axis=2)
-    Sw = np.einsum("ji,tjp->tip", root, S).reshape(T * n_z, -1)
-    q, r = np.linalg.qr(Sw)
+    return np.einsum("ji,tjp->tip", root, S).reshape(T * n_z, -1)
+
+
+def _orthonormal(sw, root):
+    """M_k = W^{1/2} Q_k (T, n_z, p) of `_basis` from the weighted sensitivities `sw`."""
+    n_z = root.shape[0]
+    q, r = np.linalg.qr(sw)
     diag = np.abs(np.diag(r))
     q = q * (diag > 1e-10 * max(diag.max(initial=0.0), np.finfo(float).tiny))
-    return np.einsum("ij,tjp->tip", root, q.reshape(T, n_z, -1))
+    return np.einsum("ij,tjp->tip", root, q.reshape(-1, n_z, q.shape[-1]))
+
+
+def _basis(model, theta, x0, u, names, root):
+    """M_k = W^{1/2} Q_k (T, n_z, p): Q an orthonormal basis of the weighted output
+    sensitivities W^{1/2} d yhat_k / d theta_phys over the record (`_sensitivities`);
+    columns beyond the sensitivities' rank are zero."""
+    return _orthonormal(_sensitivities(model, theta, x0, u, names, root), root)
+
+
+def _absorbed(sw, dw, std, values):
+    """The change of the physical parameters (`values`) whose sensitivities `sw`
+    (T n_z, p) explain the weighted learned contribution `dw` (T n_z,) best (least
+    squares): its largest entry in standard errors `std` (inf where one is not finite)
+    and relative to the value, over the entries the fit moves (std > 0); inf, inf where
+    the sensitivities are not finite."""
+    if not np.all(np.isfinite(sw)):
+        return math.inf, math.inf
+    coef = np.abs(np.linalg.lstsq(sw, dw, rcond=None)[0])
+    free = ~(std == 0)  # (a fixed entry: std 0; NaN and inf count as free)
+    ok = free & np.isfinite(std)
+    se = np.where(ok, coef / np.where(ok, std, 1.0), np.where(free, np.inf, 0.0))
+    rel = np.where(free, coef / np.maximum(np.abs(values), 1e-12), 0.0)
+    return float(np.max(se, initial=0.0)), float(np.max(rel, initial=0.0))
 
 
 def _flat(theta, names):
@@ -449,8 +487,11 @@ def fit_orthogonal(
     with the learned terms off, an accumulator of Q_k^T W^{1/2} d_k), so its gradient
     and residual Jacobian are the one-shot closed form of eq. (17)/(20); the copy
     doubles the state, so a round costs about two plain fits. Rounds stop after one
-    whose fit succeeded and in which no physical parameter moved by more than `stol` of
-    its standard errors (or none by more than `rtol`, relative), or after `rounds`.
+    whose fit succeeded, in which no physical parameter moved by more than `stol` of
+    its standard errors (or none by more than `rtol`, relative), and at whose end, Q
+    recomputed there, the learned contribution along the sensitivities would move none
+    by more than `stol` of its standard errors (`Round.absorbed`; or `rtol`, relative);
+    or after `rounds`.
 
     **Arguments:**
 
@@ -556,17 +597,17 @@ def fit_orthogonal(
     est_aug = np.concatenate([est, np.zeros(n_x + p, bool)])
 
     history, result, converged = [], None, False
+    m = _basis(model, theta, x0, u, names, root)
+    if not np.all(np.isfinite(m)):
+        raise ValueError(
+            f"the model's outputs or their sensitivities to the physical parameters {names} "
+            "are not finite at theta0 and x0: start where the model simulates "
+            "(`oneshot_jax.simulate(model, theta0, x0, u)` finite)."
+        )
     with at_caller(__file__):  # (the rounds' warnings, at the caller's line)
         for _ in range(int(rounds)):
             before = _flat(theta, names)
-            m = _basis(model, theta, x0, u, names, root)
             if not np.all(np.isfinite(m)):
-                if result is None:
-                    raise ValueError(
-                        f"the model's outputs or their sensitivities to the physical parameters "
-                        f"{names} are not finite at theta0 and x0: start where the model simulates "
-                        "(`oneshot_jax.simulate(model, theta0, x0, u)` finite)."
-                    )
                 break  # not converged: the basis cannot be formed at this estimate
             u_aug = np.concatenate([u, m.reshape(T, n_z * p)], axis=1)
             x0_aug = np.concatenate([x0, np.zeros(n_x + p)])
@@ -597,8 +638,15 @@ def fit_orthogonal(
             _, y = simulate(model, theta, x0, u)
             _, y_off = simulate(model, _off(theta, keys), x0, u)
             d = (np.asarray(y) - np.asarray(y_off)) @ root
+            # The basis at the new estimate (the next round's): the network moved in the
+            # round, and with it the sensitivities. The round held Q fixed, so its own
+            # projection, 3e-5, said nothing of the new Q's, 0.38 (a pendulum whose
+            # network carried physics worth 3 standard errors of w0sq, "converged").
+            sw = _sensitivities(model, theta, x0, u, names, root)
+            m = _orthonormal(sw, root)
             along = np.einsum("tj,tjp->p", np.asarray(y) - np.asarray(y_off), m)
             norm = float(np.linalg.norm(d))
+            absorbed, absorbed_change = _absorbed(sw, d.reshape(-1), std, after)
             history.append(
                 Round(
                     physics={k: theta[k] for k in names},
@@ -606,13 +654,18 @@ def fit_orthogonal(
                     projection=float(np.linalg.norm(along)) / norm if norm > 0 else 0.0,
                     change=change,
                     moved=moved,
+                    absorbed=absorbed,
                     status=result.status,
                 )
             )
             # (only a round whose fit reached its optimum: one that stopped short, on its
             # step budget or with a network's units saturated and its gradient zero,
-            # moves the physics little without having settled it)
-            if result.success and (moved <= stol or change <= rtol):
+            # moves the physics little without having settled it; and only where the
+            # network carries no physics worth `stol` standard errors at its end)
+            settled = (moved <= stol or change <= rtol) and (
+                absorbed <= stol or absorbed_change <= rtol
+            )
+            if result.success and settled:
                 converged = True
                 break
     return Orthogonal(

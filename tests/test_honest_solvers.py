@@ -767,6 +767,40 @@ def test_a_clipped_step_no_longer_converges_at_the_start():
             assert r.theta["k"] == pytest.approx(4.0, rel=0.02)
 
 
+@pytest.mark.parametrize("upper", [None, 0.45])
+def test_a_step_a_bound_cuts_short_moves_the_other_entries_for_the_bound(upper):
+    """A tank h' = -a sqrt(h) + b u, the bound b >= 0.31 above b's free optimum 0.30. The
+    first step took b to 0.16, clipped to 0.31, and a and h0 as if b had gone to 0.16: a
+    loss 36 times the free step's, and from there LM crept near sqrt's singularity at
+    h = 0 for 679 steps (max_steps_reached at 100, the default); with a <= 0.45 too, 678.
+    The others now take the step of the linear model with b at its bound: GN's and
+    LM's iterates reach SciPy's optimum in a few steps."""
+    model = oj.Model.from_ode(
+        lambda x, u, th: jnp.stack([-th["a"] * jnp.sqrt(x[0]) + th["b"] * u[0]]), dt=0.5
+    )
+    rng = np.random.default_rng(2)
+    u = np.repeat(np.abs(rng.standard_normal((40, 1))) + 0.5, 10, axis=0)
+    _, z = oj.simulate(model, {"a": 0.5, "b": 0.3}, np.array([0.2]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    box = oj.constraints.box(lower={"b": 0.31}, upper=None if upper is None else {"a": upper})
+
+    def residuals(p):
+        return (np.asarray(oj.simulate(model, {"a": p[0], "b": p[1]}, p[2:], u)[1]) - z).ravel()
+
+    hi = [np.inf if upper is None else upper, np.inf, np.inf]
+    ref = scipy.optimize.least_squares(
+        residuals, [0.3, 0.5, 0.3], bounds=([-np.inf, 0.31, -np.inf], hi), x_scale="jac",
+        xtol=1e-15, ftol=1e-15, gtol=1e-15,
+    )  # fmt: skip
+    for solver in (oj.LevenbergMarquardt(), oj.GaussNewton()):
+        r = oj.fit(
+            model, {"a": 0.3, "b": 0.5}, np.array([0.3]), u, z, constraints=box, solver=solver
+        )
+        assert r.status == "converged" and r.num_steps <= 20, (type(solver).__name__, r.message)
+        got = [float(r.theta["a"]), float(r.theta["b"]), float(r.x0[0])]
+        np.testing.assert_allclose(got, ref.x, rtol=1e-6)
+
+
 def test_parameters_of_unlike_sizes_with_a_constraint_that_does_not_bind():
     """y = c u1 + k u2 with c ~ 1e-4, k ~ 1e4 (SI units; each term of size 1), from
     k = 5000 with c at its best for that k. A general projection that never binds

@@ -169,11 +169,32 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     assert "Orthogonal augmentation" in str(r)
     last = r.rounds[-1]  # (a round prints its fields by name; the table has its header)
     numbers = [f"{last.loss:.5g}", f"{last.projection:.3g}", f"{last.change:.3g}"]
-    numbers += [f"{last.moved:.3g}", last.status]
+    numbers += [f"{last.moved:.3g}", f"{last.absorbed:.3g}", last.status]
     assert str(r).splitlines()[-1].split() == [str(len(r.rounds) - 1), *numbers]
-    assert str(last) == "Round: loss {}, projection {}, change {}, moved {} SE, stop {}".format(
-        *numbers
+    assert str(last) == (
+        "Round: loss {}, projection {}, change {}, moved {} SE, absorbed {} SE, stop {}"
+    ).format(*numbers)
+    # The projection and the physics the network carries, at the returned estimate with
+    # its own sensitivities (the projection was the round's, against the basis it held
+    # from its start: a pendulum "converged" with 0.38 at its end, 3 standard errors of
+    # w0sq carried by the network).
+    names = ["w0sq", "b", "g"]
+
+    def outputs(phys, net):
+        return oj.simulate(model, {**r.theta, **phys, "r": net}, r.x0, u)[1][:, 0]
+
+    phys = {k: jnp.asarray(r.theta[k]) for k in names}
+    off = jax.tree_util.tree_map(
+        lambda a: jnp.zeros_like(a) if eqx.is_inexact_array(a) else a, r.theta["r"]
     )
+    d = np.asarray(outputs(phys, r.theta["r"]) - outputs(phys, off))
+    sens = jax.jacfwd(outputs)(phys, r.theta["r"])
+    S = np.stack([np.asarray(sens[k]) for k in names], axis=1)
+    q = np.linalg.qr(S)[0]
+    assert last.projection == pytest.approx(np.linalg.norm(q.T @ d) / np.linalg.norm(d), rel=1e-6)
+    carried = np.linalg.lstsq(S, d, rcond=None)[0] / np.array([r.result.std[k] for k in names])
+    assert last.absorbed == pytest.approx(np.max(np.abs(carried)), rel=1e-6)
+    assert last.absorbed <= 0.1
 
 
 def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case):

@@ -95,6 +95,18 @@ class AbstractLinearisation(eqx.Module):
         decrease -(2 s^T J^T r + ||J s||^2)."""
 
     @abc.abstractmethod
+    def gram_t(self, problem, params: Params, d) -> Params:
+        """J^T J_t d for a move d (p,) of theta: (J_t^T J_t d, B_i^T d), the change of
+        the gradient (g_t, g_x) that the move makes in the linear model."""
+
+    def shifted(self, problem, params: Params, d):
+        """This linearisation with its residuals moved to r + J_t d (the gradient
+        J^T (r + J_t d)): its `step` with d's entries held is the step of the other
+        entries after theta moves by d (a box's clip, `LeastSquares._descent`)."""
+        g = self.gram_t(problem, params, d)
+        return eqx.tree_at(lambda s: (s.g_t, s.g_x), self, (self.g_t + g.theta, self.g_x + g.x0))
+
+    @abc.abstractmethod
     def covariance_blocks(self, sse):
         """(sse, A, B, C_i) for `_covariance.covariance`, or None where A is not formed."""
 
@@ -174,6 +186,10 @@ class DenseLinearisation(AbstractLinearisation):
             + 2.0 * jnp.einsum("p,npm,nm->", st, self.B, sx)
             + jnp.einsum("nm,nml,nl->", sx, self.Cb, sx)
         )
+
+    def gram_t(self, problem, params, d):
+        del problem, params
+        return Params(self.A @ d, jnp.einsum("npm,p->nm", self.B, d))
 
     def covariance_blocks(self, sse):
         return sse, self.A, self.B, self.Cb, self.S
@@ -267,6 +283,13 @@ class MatrixFreeLinearisation(AbstractLinearisation):
         Js = problem.jvp(params, self.traj, st, zeros_x, self.strategy)
         Js = Js + jnp.einsum("nrm,nm->nr", self.Jx, sx)
         return jnp.sum(Js**2)
+
+    def gram_t(self, problem, params, d):
+        """One J v product and one J^T v product (the x0 part by the formed B)."""
+        zeros_x = jnp.zeros(params.x0.shape, params.x0.dtype)
+        Jd = problem.jvp(params, self.traj, d, zeros_x, self.strategy)
+        JtJd = jnp.sum(problem.vjp(params, self.traj, Jd, self.strategy)[0], axis=0)
+        return Params(JtJd, jnp.einsum("npm,p->nm", self.B, d))
 
     def covariance_blocks(self, sse):
         del sse

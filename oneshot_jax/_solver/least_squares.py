@@ -22,7 +22,9 @@ one pass over the records instead of two (the iterates are the same in exact
 arithmetic).
 
 Bounds and projections: each iterate is projected (a box is clipped), and entries at a
-bound whose gradient points outwards are held for the step (an active set). A step that
+bound whose gradient points outwards are held for the step (an active set). Under a box,
+entries that the clip stops short of their step move to their bound, and the others take
+the step of the damped linear model with that move made (`_descent`). A step that
 fails (one that the projection clipped can predict no decrease at any damping) is
 followed by a projected scaled-gradient step with an Armijo search along the projection
 arc (`_gradient_arc`; Kanzow, Yamashita and Fukushima 2004), which decreases C at every
@@ -316,13 +318,30 @@ class AbstractLeastSquares(AbstractSolver):
         full point. Entries that the projection leaves where they are although the step
         moves them (at a bound, pushed outwards by the coupling with the other entries, or
         held by a general projection) are held too and the step solved again, so that the
-        other entries take the step of the reduced problem."""
+        other entries take the step of the reduced problem. Under a box, so are entries
+        the clip stops short of their step (a bound met on the way): they move to the
+        bound, and the others take the step that minimises the damped linear model with
+        that move made (the gradient shifted by J^T J_t d, `shifted`), not the step that
+        assumed them past it (which the clip made a poor point: a tank's outflow
+        coefficient and level stepped for an inflow gain the bound refused, then 680
+        steps near the level's singularity at 0 where 14 sufficed)."""
         b = state.blocks
         mu = self._search().damping(state.search)
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, mu, act)
         point = self._point(problem, params, h, 1.0)
-        if problem.constrained:
+        if problem.constrained and problem.project is None:  # a box: the clip's moves
+            clipped = (point.theta != params.theta + h.theta) & ~act & jnp.isfinite(h.theta)
+            d = jnp.where(clipped, point.theta - params.theta, 0.0)
+
+            def again():
+                reduced = b.shifted(problem, params, d)
+                h2 = self._solve(problem, params, reduced, mu, act | clipped)
+                h2 = Params(jnp.where(clipped, d, h2.theta), h2.x0)
+                return h2, self._point(problem, params, h2, 1.0)
+
+            h, point = lazy_cond(jnp.any(clipped), again, (h, point))
+        elif problem.constrained:
             blocked = (point.theta == params.theta) & (h.theta != 0) & ~act
 
             def again():
