@@ -11,6 +11,17 @@ KEYS = tuple(UNITS)  # the physical parameters, in the tables' order
 LABELS = {"basic": "basic", "overflow": "overflow", "sensor": "overflow + sensor"}
 
 
+def _kept(starts) -> str:
+    """Which start the fit kept, or, where several reach its loss to the five digits
+    printed, those starts (which of them is kept turns on the last digits)."""
+    loss = starts["loss"]
+    best = starts["best"]
+    ties = [i + 1 for i, v in enumerate(loss) if f"{v:.5g}" == f"{loss[best]:.5g}"]
+    if len(ties) == 1:
+        return f"start {best + 1} kept"
+    return "starts " + ", ".join(map(str, ties[:-1])) + f" and {ties[-1]} reach the lowest"
+
+
 def markdown(res) -> str:
     m = res["models"]
     kinds = [k for k in LABELS if k in m]
@@ -74,7 +85,7 @@ def markdown(res) -> str:
         + " V, from the basic estimate and from the rough guess (k1, k3, k4, c, x0 as the "
         "basic model's start): final losses "
         + ", ".join(f"{v:.5g}" for v in ov["starts"]["loss"])
-        + f" (start {ov['starts']['best'] + 1} kept). The same parameters simulated with twice "
+        + f" ({_kept(ov['starts'])}). The same parameters simulated with twice "
         f"the RK4 substeps change the validation output by at most "
         f"{ov['integration_check_max_abs_V']:.1e} V. The run took {res['total_time_s']:.0f} s.",
         "",
