@@ -409,9 +409,9 @@ class Augmented(NamedTuple):
 
     def restore(self, result):
         """A `FitResult` of the augmented problem as one of the user's model: x0 with its
-        n_x entries, residuals and per-output metrics of z's n_z outputs, the AIC and FPE on the
-        point samples of the outputs that have any (the covariance, from all residuals,
-        counts the readings as observations)."""
+        n_x entries, residuals and per-output metrics of z's n_z outputs, the criteria
+        (AIC, AICc, BIC, FPE) on the point samples of the outputs that have any (the
+        covariance, from all residuals, counts the readings as observations)."""
         n_x, n_z = self.n_x, self.n_z
 
         def per_output(v):
@@ -431,9 +431,7 @@ class Augmented(NamedTuple):
             # without aggregates; the checking `metrics.aic` refuses that)
             zero = np.zeros_like(es)
             for name in _metrics._CRITERIA:
-                if name in metrics:  # (a result saved before AICc and BIC has neither)
-                    score = getattr(_metrics, f"_{name}")
-                    metrics[name] = float(score(zero, es, n_free, ms))
+                metrics[name] = float(getattr(_metrics, f"_{name}")(zero, es, n_free, ms))
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],

@@ -433,7 +433,8 @@ def build_problem(
         warnings.warn(
             f"the box's lower and upper bounds are equal for {pinned}: the fit holds them "
             "there, but they still count as estimated (a standard error of the "
-            "linearisation, and one fewer degree of freedom in sigma^2, the AIC and FPE). "
+            "linearisation, one fewer degree of freedom in sigma^2, and one more parameter in "
+            "the AIC, AICc, BIC and FPE). "
             "To hold a known value, fix it (`fit(..., fixed=...)`, MATLAB's "
             "`Parameters(i).Fixed`).",
             stacklevel=3,

@@ -349,7 +349,8 @@ class FitResult(eqx.Module):
     module, such as a neural residual, as one row with its number of weights; an integer
     of theta, which is data, with its value as "(data, not estimated)"); the initial
     states with their standard errors (the first trajectories of several); FIT% and RMSE
-    per output, and the AIC and FPE (pooled over the trajectories or windows of several,
+    per output, and the AIC and FPE (AICc and BIC are in `metrics`; pooled over the
+    trajectories or windows of several,
     with the FIT% of each on a line of its own).
 
     **Fields:**
@@ -398,12 +399,12 @@ class FitResult(eqx.Module):
         (each from its own fitted x0, so not the model's open-loop fit of the whole
         record: `simulate` or `predict` that). `fit_percent_per_record` (N, n_z) is the
         FIT% of each record (window), as MATLAB's `compare` reports one per experiment
-        (one row for one record). The
-        The criteria count the estimated x0 entries as parameters; they are computed on
-        the samples where every output that is ever measured is measured (an output never
-        measured is left out), and are NaN where there is no such sample (outputs sampled
-        at different times); the FPE is inf where the parameters are as many as those
-        samples.
+        (one row for one record). The criteria count the estimated x0 entries as
+        parameters; they are computed on the samples where every output that is ever
+        measured is measured (an output never measured is left out), and are NaN where
+        there is no such sample (outputs sampled at different times); the FPE is inf
+        where the parameters are as many as those samples, the AICc where they are one
+        fewer.
     - `starts`: for a multistart fit, a `Starts`; `best` is the index of the returned one.
     - `solver`: the settings of the solver(s) that ran, as dicts.
     - `model`: the fitted `Model` (None for a result loaded without one).

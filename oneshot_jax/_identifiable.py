@@ -272,7 +272,8 @@ class Round(eqx.Module):
         the network).
     - `change`: the largest relative change of a physical parameter in the round.
     - `moved`: the largest change of a physical parameter in the round in its standard
-        errors (those of the round's fit; inf where one is not finite).
+        errors (those of the round's fit; inf where one is not finite; an entry held by
+        `fixed` does not count).
     - `absorbed`: the physics the learned terms carry at the end of the round: the
         largest change of a physical parameter that would explain d's part along the
         sensitivities (least squares), in its standard errors (inf where one is not
@@ -418,19 +419,19 @@ def _basis(model, theta, x0, u, names, root):
     return _orthonormal(_sensitivities(model, theta, x0, u, names, root), root)
 
 
-def _absorbed(sw, dw, std, values):
-    """The change of the physical parameters (`values`) whose sensitivities `sw`
-    (T n_z, p) explain the weighted learned contribution `dw` (T n_z,) best (least
-    squares): its largest entry in standard errors `std` (inf where one is not finite)
-    and relative to the value, over the entries the fit moves (std > 0); inf, inf where
-    the sensitivities are not finite."""
+def _absorbed(sw, dw, std, values, free):
+    """The change of the free physical parameters (`values` where `free`) whose
+    sensitivities (`sw`'s columns, T n_z) explain the weighted learned contribution `dw`
+    (T n_z,) best (least squares): its largest entry in standard errors `std` (inf where
+    one is not finite) and relative to the value; inf, inf where the sensitivities are
+    not finite."""
     if not np.all(np.isfinite(sw)):
         return math.inf, math.inf
-    coef = np.abs(np.linalg.lstsq(sw, dw, rcond=None)[0])
-    free = ~(std == 0)  # (a fixed entry: std 0; NaN and inf count as free)
-    ok = free & np.isfinite(std)
-    se = np.where(ok, coef / np.where(ok, std, 1.0), np.where(free, np.inf, 0.0))
-    rel = np.where(free, coef / np.maximum(np.abs(values), 1e-12), 0.0)
+    coef = np.abs(np.linalg.lstsq(sw[:, free], dw, rcond=None)[0])
+    std, values = std[free], values[free]
+    ok = np.isfinite(std) & (std > 0)
+    se = np.where(ok, coef / np.where(ok, std, 1.0), np.inf)
+    rel = coef / np.maximum(np.abs(values), 1e-12)
     return float(np.max(se, initial=0.0)), float(np.max(rel, initial=0.0))
 
 
@@ -633,8 +634,10 @@ def fit_orthogonal(
             step = np.abs(after - before)
             change = float(np.max(step / np.maximum(np.abs(before), 1e-12)))
             std = _flat(result.std, names)
+            held_entry = (std == 0) & (step == 0)  # (fixed: a leaf held in part)
             ok = np.isfinite(std) & (std > 0)
-            moved = float(np.max(np.where(ok, step / np.where(ok, std, 1.0), np.inf)))
+            moved = np.where(ok, step / np.where(ok, std, 1.0), np.inf)
+            moved = float(np.max(np.where(held_entry, 0.0, moved), initial=0.0))
             _, y = simulate(model, theta, x0, u)
             _, y_off = simulate(model, _off(theta, keys), x0, u)
             d = (np.asarray(y) - np.asarray(y_off)) @ root
@@ -646,7 +649,7 @@ def fit_orthogonal(
             m = _orthonormal(sw, root)
             along = np.einsum("tj,tjp->p", np.asarray(y) - np.asarray(y_off), m)
             norm = float(np.linalg.norm(d))
-            absorbed, absorbed_change = _absorbed(sw, d.reshape(-1), std, after)
+            absorbed, absorbed_change = _absorbed(sw, d.reshape(-1), std, after, ~held_entry)
             history.append(
                 Round(
                     physics={k: theta[k] for k in names},

@@ -1,20 +1,21 @@
 """Goodness-of-fit metrics for measured outputs `z` and model outputs `zhat`.
 
-`rmse`, `nrmse`, `fit_percent`, `r2`, `aic` and `fpe` take arrays of shape (..., n_z)
-(time and trajectory axes in front) and return one value per output channel (shape
-(n_z,)), except `aic` and `fpe`, which are scalars. The definitions are those of
-MATLAB's System Identification Toolbox (`compare`, `aic`, `fpe`), but for two: `aic`
-leaves out the raw AIC's constant n n_z (log 2 pi + 1), which differences between models
-on the same data do not see, and `nrmse` is the normalised error (0 for a perfect fit),
-where MATLAB's `goodnessOfFit` 'NRMSE' is 1 minus it. They are compiled JAX
-functions (and jittable). Where an output channel is constant over the samples scored,
-`nrmse`, `fit_percent` and `r2` divide by its zero deviation from its mean: inf, -inf
-and -inf for a model that misses it, NaN (0 / 0) for one that reproduces it exactly;
-`aic` is -inf and `fpe` 0 where the errors are exactly zero (det 0). `benchmark_scores`
-refuses a constant channel instead. A NaN sample (a missing one) counts only through
-`mask`: without one, a NaN in z or zhat makes that output's value NaN (a NaN in a
-concrete z warns); pass `mask=~np.isnan(z)` to leave missing samples out, as
-`FitResult.metrics` does.
+`rmse`, `nrmse`, `fit_percent`, `r2`, `aic`, `aicc`, `bic` and `fpe` take arrays of
+shape (..., n_z) (time and trajectory axes in front) and return one value per output
+channel (shape (n_z,)), except the criteria `aic`, `aicc`, `bic` and `fpe`, which are
+scalars. The definitions are those of MATLAB's System Identification Toolbox (`compare`,
+`aic`, `fpe`), but for two: `aic`, `aicc` and `bic` leave out the raw criteria's constant
+term, which depends on n and n_z only (n n_z (log 2 pi + 1) in the raw AIC) and which
+differences between models on the same data do not see, and `nrmse` is the normalised
+error (0 for a perfect fit), where MATLAB's `goodnessOfFit` 'NRMSE' is 1 minus it. They
+are compiled JAX functions (and jittable). Where an output channel is constant over the
+samples scored, `nrmse`, `fit_percent` and `r2` divide by its zero deviation from its
+mean: inf, -inf and -inf for a model that misses it, NaN (0 / 0) for one that reproduces
+it exactly; `aic`, `aicc` and `bic` are -inf and `fpe` 0 where the errors are exactly
+zero (det 0). `benchmark_scores` refuses a constant channel instead. A NaN sample (a
+missing one) counts only through `mask`: without one, a NaN in z or zhat makes that
+output's value NaN (a NaN in a concrete z warns); pass `mask=~np.isnan(z)` to leave
+missing samples out, as `FitResult.metrics` does.
 
 `benchmark_scores` scores a simulation under the community's benchmark protocol (the
 first n samples are left out) with the definitions of `nonlinear_benchmarks.error_metrics`;
@@ -37,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import unmasked
 from ._counts import integral, real
 
 __all__ = [
@@ -240,7 +242,8 @@ def aicc(z, zhat, n_params, mask=None):
 
     AIC and n are those of `aic` (MATLAB's `aic(sys, 'AICc')` without its constant
     n n_z (log 2 pi + 1)); the correction penalises parameters more where they are not
-    few against the samples. inf where n <= d + 1.
+    few against the samples. inf where n <= d + 1; NaN where the AIC is (fewer samples
+    than outputs measure every output).
     """
     _check_n_params(n_params)
     z, zhat, mask = _check(z, zhat, mask)
@@ -253,7 +256,8 @@ def bic(z, zhat, n_params, mask=None):
     d = `n_params`.
 
     E and n as for `aic` (MATLAB's `aic(sys, 'BIC')` without its constant
-    n n_z (log 2 pi + 1)). Its penalty, log n per parameter against AIC's 2, grows with
+    n n_z (log 2 pi + 1): its constant term, which depends on n and n_z only). Its penalty,
+    log n per parameter against AIC's 2, grows with
     the record: it picks smaller models than AIC from long records. Lower is better;
     only differences between models on the same data mean anything.
     """
@@ -299,8 +303,8 @@ def _check_full_rows(z, mask):
     m = m.reshape(-1, m.shape[-1]) if m.ndim > 1 else m[:, None]
     if not np.any(np.all(m > 0, axis=1)):
         raise ValueError(
-            "`mask` leaves no sample where every output is measured: the AIC and FPE use "
-            "the error covariance E^T E / n over such samples (n = 0 here). Score the "
+            "`mask` leaves no sample where every output is measured: the AIC, AICc, BIC and "
+            "FPE use the error covariance E^T E / n over such samples (n = 0 here). Score the "
             "outputs one at a time, or on the samples they share."
         )
 
@@ -336,7 +340,8 @@ def _aicc(z, zhat, n_params, mask):
     _, n, _ = _error_covariance(z, zhat, mask)
     room = n - n_params - 1
     extra = jnp.where(room > 0, 2.0 * n_params * (n_params + 1) / jnp.where(room > 0, room, 1), 0)
-    return jnp.where(room > 0, _aic(z, zhat, n_params, mask) + extra, jnp.inf)
+    aic = _aic(z, zhat, n_params, mask)  # (NaN where E^T E / n is singular: n too small)
+    return jnp.where(jnp.isnan(aic), jnp.nan, jnp.where(room > 0, aic + extra, jnp.inf))
 
 
 @jax.jit
@@ -402,6 +407,7 @@ def _outputs(value, name):
     """The output array of `value`: the `y` of a record-like object, else the value."""
     if hasattr(value, "y") and hasattr(value, "u"):
         value = value.y
+    value = unmasked(value, name)  # (every sample is scored: a masked one is refused)
     try:
         if np.iscomplexobj(value):
             raise TypeError(f"it holds complex numbers ({np.asarray(value).dtype})")
@@ -625,7 +631,11 @@ def _lag_sums(x, max_lag):
 
 
 def _trajectories(a, name, shape=None):
-    """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have."""
+    """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have. A NumPy masked
+    array of residuals `e` has NaN at its masked entries (a missing sample); one of
+    inputs, masked entries refused (`_checks.unmasked`)."""
+    if isinstance(a, np.ma.MaskedArray):
+        a = np.ma.filled(a.astype(np.float64), np.nan) if name == "e" else unmasked(a, name)
     try:
         complex_ = np.iscomplexobj(a)  # (np.asarray inside: a ragged object raises here)
     except (TypeError, ValueError) as err:

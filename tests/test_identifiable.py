@@ -202,6 +202,29 @@ def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     assert last.absorbed <= 0.1
 
 
+def test_fit_orthogonal_does_not_count_an_entry_held_by_fixed_as_unresolved(case):
+    """A physical leaf held in part (k = [w0sq, b], b fixed): its std is 0, which `moved`
+    read as "not finite", inf in every round, so the rounds could converge only by
+    `rtol`. The held entry does not move and does not count, in `moved` and in
+    `absorbed` (whose least squares is over the free entries)."""
+    _, theta0, u, z = case
+
+    def rhs(x, u, p):
+        q, v = x
+        return jnp.stack(
+            [v, -p["k"][0] * jnp.sin(q) - p["k"][1] * v + p["r"](x)[0] + p["g"] * u[0]]
+        )
+
+    model = oj.Model.from_ode(rhs, DT, observe=observe_angle)
+    start = {"k": np.array([8.0, 0.2]), "g": 1.0, "r": theta0["r"]}
+    r = oj.fit_orthogonal(
+        model, start, np.zeros(2), u, z, learned="r", rounds=1,
+        fixed={"k": np.array([False, True])}, solver=oj.LevenbergMarquardt(max_steps=5),
+    )  # fmt: skip
+    assert float(r.theta["k"][1]) == 0.2 and r.result.std["k"][1] == 0.0
+    assert np.isfinite(r.rounds[0].moved) and np.isfinite(r.rounds[0].absorbed)
+
+
 def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case):
     """A round whose fit stopped short (here its step budget of one step) moves the
     physics by whatever that fit did: within the tolerances (a loose `rtol` here) it

@@ -331,6 +331,22 @@ def test_a_masked_array_with_nothing_masked_scores_as_its_data():
         )
 
 
+def test_protocol_scores_and_residual_analysis_read_a_masked_array_by_its_mask():
+    # (both read the data under the mask: a masked 1e6 made the protocol's RMSE 7e4)
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((50, 1))
+    spiked = np.ma.masked_array(z.copy(), mask=np.zeros((50, 1), bool))
+    spiked[3] = np.ma.masked
+    spiked.data[3] = 1e6
+    with pytest.raises(ValueError, match=r"`z` is a NumPy masked array with 1 masked entries"):
+        metrics.benchmark_scores(spiked, z + 0.1, 5)
+    assert metrics.benchmark_scores(np.ma.masked_array(z), z + 0.1, 5).rmse == pytest.approx(0.1)
+    e = np.where(np.arange(50)[:, None] == 3, np.nan, z)  # the masked sample as missing
+    got, ref = metrics.residual_correlations(spiked), metrics.residual_correlations(e)
+    np.testing.assert_array_equal(got.auto, ref.auto)
+    assert got.n[0] == 49
+
+
 def test_aic_and_fpe_refuse_a_mask_without_a_fully_measured_sample():
     rng = np.random.default_rng(0)
     z = rng.standard_normal((40, 2))
@@ -355,6 +371,7 @@ def test_aic_is_nan_where_fewer_samples_measure_every_output_than_there_are_outp
     mask[4] = True
     assert np.isnan(float(metrics.aic(z, zhat, 2, mask)))
     assert np.isnan(float(metrics.bic(z, zhat, 2, mask)))
+    assert np.isnan(float(metrics.aicc(z, zhat, 2, mask)))  # (inf before, beside NaN)
     assert np.isinf(float(metrics.fpe(z, zhat, 2, mask)))
     mask[6] = True
     e = (zhat - z)[mask.all(axis=1)]
