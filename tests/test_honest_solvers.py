@@ -801,6 +801,34 @@ def test_a_step_a_bound_cuts_short_moves_the_other_entries_for_the_bound(upper):
         np.testing.assert_allclose(got, ref.x, rtol=1e-6)
 
 
+def test_a_re_solved_step_worse_than_the_plain_clip_is_not_taken():
+    """Two nearly collinear gains (u2 = u1 + 0.05 noise), a box, an unstable start: at its
+    fifth step Gauss-Newton's re-solved step (the others' step with the clipped gain at
+    its bound) was worse than the plain clipped one, which had crossed the box to a loss
+    0.68 of the current; backtracked to nothing, the re-solved steps crept for 2000
+    steps at 2000 times the optimum. The plain point is taken where its loss is lower."""
+    model = oj.Model(
+        lambda x, u, th: jnp.stack([x[0] + 0.1 * (-th["a"] * x[0] + th["b"] @ u)]),
+        lambda x, u, th: x + th["c"],
+    )
+    rng = np.random.default_rng(0)
+    u1 = rng.standard_normal((200, 1))
+    u = np.hstack([u1, u1 + 0.05 * rng.standard_normal((200, 1)), rng.standard_normal((200, 1))])
+    truth = {"a": 1.0, "b": np.array([1.0, 2.0, 3.0]), "c": 0.3}
+    _, z = oj.simulate(model, truth, np.array([0.5]), u)
+    z = np.asarray(z) + 0.02 * rng.standard_normal(z.shape)
+    inf = np.inf
+    box = oj.constraints.box(
+        lower={"a": -inf, "b": np.array([-inf, 1.15929952, 2.83810486]), "c": -0.12734963},
+        upper={"a": inf, "b": np.array([inf, inf, 3.06242222]), "c": inf},
+    )
+    start = {"a": -0.7151536, "b": np.array([1.40248465, 1.15929952, 3.06242222]), "c": -0.12734963}
+    r = oj.fit(model, start, np.zeros(1), u, z, constraints=box, solver=oj.GaussNewton())
+    assert r.status == "converged", r.message
+    got = [float(r.theta["a"]), *np.asarray(r.theta["b"]), float(r.theta["c"])]
+    np.testing.assert_allclose(got, [0.99702, 1.08913, 1.89867, 3.00201, 0.29852], atol=2e-5)
+
+
 def test_parameters_of_unlike_sizes_with_a_constraint_that_does_not_bind():
     """y = c u1 + k u2 with c ~ 1e-4, k ~ 1e4 (SI units; each term of size 1), from
     k = 5000 with c at its best for that k. A general projection that never binds

@@ -24,7 +24,8 @@ arithmetic).
 Bounds and projections: each iterate is projected (a box is clipped), and entries at a
 bound whose gradient points outwards are held for the step (an active set). Under a box,
 entries that the clip stops short of their step move to their bound, and the others take
-the step of the damped linear model with that move made (`_descent`). A step that
+the step of the damped linear model with that move made, unless the plain clipped step
+is better (`_descent`). A step that
 fails (one that the projection clipped can predict no decrease at any damping) is
 followed by a projected scaled-gradient step with an Armijo search along the projection
 arc (`_gradient_arc`; Kanzow, Yamashita and Fukushima 2004), which decreases C at every
@@ -318,19 +319,25 @@ class AbstractLeastSquares(AbstractSolver):
         full point. Entries that the projection leaves where they are although the step
         moves them (at a bound, pushed outwards by the coupling with the other entries, or
         held by a general projection) are held too and the step solved again, so that the
-        other entries take the step of the reduced problem. Under a box, so are entries
-        the clip stops short of their step (a bound met on the way): they move to the
-        bound, and the others take the step that minimises the damped linear model with
-        that move made (the gradient shifted by J^T J_t d, `shifted`), not the step that
-        assumed them past it (which the clip made a poor point: a tank's outflow
-        coefficient and level stepped for an inflow gain the bound refused, then 680
-        steps near the level's singularity at 0 where 14 sufficed)."""
+        other entries take the step of the reduced problem. Under a box (with or without a
+        general projection), so are entries the projection stops short of their step (a
+        bound met on the way): they move there, and the others take the step that
+        minimises the damped linear model with that move made (the gradient shifted by
+        J^T J_t d, `shifted`), not the step that assumed them past it (which the clip made
+        a poor point: a tank's outflow coefficient and level stepped for an inflow gain
+        the bound refused, then 680 steps near the level's singularity at 0 where 14
+        sufficed). The linear model can be poor far from a solution, so where the
+        re-solved point has a higher loss than the plain projected one, the plain one is
+        taken (two simulations, only where a step met a bound): the re-solved step of two
+        nearly collinear gains, backtracked to nothing, had made Gauss-Newton creep where
+        the plain one took it to the optimum. A re-solved point that is not finite (the
+        step beyond the model's domain) stays, for the search to damp or shorten."""
         b = state.blocks
         mu = self._search().damping(state.search)
         act = self._active(problem, params.theta, b.g_t)
         h = self._solve(problem, params, b, mu, act)
         point = self._point(problem, params, h, 1.0)
-        if problem.constrained and problem.project is None:  # a box: the clip's moves
+        if problem.lower is not None:  # a box: the projection's moves
             clipped = (point.theta != params.theta + h.theta) & ~act & jnp.isfinite(h.theta)
             d = jnp.where(clipped, point.theta - params.theta, 0.0)
 
@@ -338,7 +345,13 @@ class AbstractLeastSquares(AbstractSolver):
                 reduced = b.shifted(problem, params, d)
                 h2 = self._solve(problem, params, reduced, mu, act | clipped)
                 h2 = Params(jnp.where(clipped, d, h2.theta), h2.x0)
-                return h2, self._point(problem, params, h2, 1.0)
+                point2 = self._point(problem, params, h2, 1.0)
+                # (the lower of the two; a re-solved point that is not finite, the step
+                # out of the model's domain, is left to the search to damp or shorten)
+                C2 = self._loss(problem, point2)
+                better = ~jnp.isfinite(C2) | (C2 <= self._loss(problem, point))
+                pick = lambda a, c: jnp.where(better, a, c)  # noqa: E731
+                return jax.tree_util.tree_map(pick, (h2, point2), (h, point))
 
             h, point = lazy_cond(jnp.any(clipped), again, (h, point))
         elif problem.constrained:
