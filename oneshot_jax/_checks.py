@@ -38,6 +38,7 @@ import numpy as np
 from . import _pytree
 from ._cost import Cost
 from ._indices import out_of_range
+from ._masked import unmasked
 from ._model import ODE_STEPS, FloatObserve, Model
 from ._normalise import fill_missing, is_ragged, pad, sample_mask
 from ._timing import append_intervals, check_times
@@ -127,26 +128,6 @@ def as_float(a, name, dtype=None, measured=False):
     if dtype is not None and a.dtype != dtype:
         a = a.astype(dtype)
     return a
-
-
-def unmasked(a, name, measured=False):
-    """The data of a NumPy masked array none of whose entries is masked (`a` itself if it
-    is not one). A masked entry is refused: converting the array to one of NumPy or JAX
-    would drop its mask, and the masked values would count as data."""
-    if not isinstance(a, np.ma.MaskedArray):
-        return a
-    if not np.ma.is_masked(a):
-        return np.ma.getdata(a)
-    count = int(np.ma.count_masked(a))
-    how = (
-        f'pass `{name}.filled(np.nan)` with `missing="mask"` (a NaN output is a missing sample)'
-        if measured
-        else "fill them (`.filled(value)`): every entry here is used"
-    )
-    raise ValueError(
-        f"`{name}` is a NumPy masked array with {count} masked entries, and its mask would be "
-        f"ignored: {how}."
-    )
 
 
 def _spans_hosts(a) -> bool:

@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import unmasked
 from ._counts import integral, real
+from ._masked import unmasked
 
 __all__ = [
     "rmse",
@@ -633,7 +633,7 @@ def _lag_sums(x, max_lag):
 def _trajectories(a, name, shape=None):
     """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have. A NumPy masked
     array of residuals `e` has NaN at its masked entries (a missing sample); one of
-    inputs, masked entries refused (`_checks.unmasked`)."""
+    inputs, masked entries refused (`_masked.unmasked`)."""
     if isinstance(a, np.ma.MaskedArray):
         a = np.ma.filled(a.astype(np.float64), np.nan) if name == "e" else unmasked(a, name)
     try:

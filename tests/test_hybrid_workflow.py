@@ -152,7 +152,9 @@ def test_statistical_convergence_with_active_bounds():
     ref = oj.fit(
         regular, {"w0sq": 6.0, "c": 0.3}, np.zeros(2), u, z, fixed={"w0sq": True, "c": False}
     )
-    assert float(r.theta["c"]) == pytest.approx(float(ref.theta["c"]), rel=1e-4)
+    # (statistically converged: within `stol`, 0.01 of c's standard error, of the optimum)
+    assert r.status == "statistically_converged", r.message
+    assert abs(float(r.theta["c"]) - float(ref.theta["c"])) <= 0.01 * float(r.std["c"])
 
 
 @pytest.mark.parametrize("stol", [-1.0, float("nan"), True])
