@@ -18,6 +18,7 @@ from ._initial_state import predict_impl
 from ._normalise import is_ragged
 from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate
+from ._x0_smoother import reads_weight
 
 
 def _g(x):
@@ -332,14 +333,6 @@ def _first_row_missing(z_head) -> bool:
     return first.ndim == 2 and bool(np.isnan(first).any())
 
 
-def _positive_definite(weight) -> bool:
-    """Whether a fit's weight (a vector of per-output weights, or Q) is positive definite,
-    as the smoother reads a weight (the inverse of the measurement noise's covariance)."""
-    w = np.asarray(weight, np.float64)
-    q = np.diag(w) if w.ndim == 1 else w
-    return bool(np.all(np.isfinite(q)) and np.min(np.linalg.eigvalsh(q)) > 0)
-
-
 class FitResult(eqx.Module):
     """The estimate, why the solver stopped, its uncertainty and its fit to the data.
 
@@ -555,7 +548,7 @@ class FitResult(eqx.Module):
         n_z = e.shape[-1]
         w = np.ones(n_z) if self.weight is None else np.asarray(self.weight, np.float64)
         q = np.diag(w) if w.ndim == 1 else w
-        if not _positive_definite(q):
+        if not reads_weight(q):
             return None
         e = e.reshape(-1, n_z)
         seen = np.isfinite(e)
@@ -779,7 +772,7 @@ class FitResult(eqx.Module):
         if noise is not None:  # Q's scale is arbitrary: the smoother gets sigma^2 Q^{-1}
             kwargs["measurement_noise"] = noise
         elif kwargs.get("weight") is None and self.weight is not None:
-            if method != "smoother" or _positive_definite(self.weight):
+            if method != "smoother" or reads_weight(self.weight):
                 kwargs["weight"] = self.weight  # the fit's Q: an output it ignored stays so
         if kwargs.get("x0") is None and (
             not self.model.observes_state or _first_row_missing(z_head)

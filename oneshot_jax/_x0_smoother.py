@@ -42,6 +42,14 @@ class KalmanPath(eqx.Module):
     smoothed_covariance: np.ndarray
 
 
+def reads_weight(weight) -> bool:
+    """Whether the smoother can read `weight` (per-output weights, or Q) as the inverse of
+    the measurement noise covariance: finite and positive definite."""
+    w = np.asarray(weight, np.float64)
+    q = np.diag(np.atleast_1d(w)) if w.ndim <= 1 else w
+    return bool(np.all(np.isfinite(q)) and np.min(np.linalg.eigvalsh(q)) > 0)
+
+
 def _covariance_arg(value, size, name, *, definite):
     """A covariance from a scalar (times I), a vector (its diagonal) or a matrix (symmetric,
     positive semi-definite, or definite where `definite`)."""
@@ -146,8 +154,7 @@ def _smoother_defaults(
         R = _covariance_arg(measurement_noise, n_z, "measurement_noise", definite=True)
     elif data.weight is not None:
         w = np.asarray(data.weight, np.float64)
-        ok = np.all(w > 0) if w.ndim == 1 else np.min(np.linalg.eigvalsh(w)) > 0
-        if not ok:
+        if not reads_weight(w):
             raise ValueError(
                 "the smoother reads `weight` as the inverse of the measurement noise "
                 "covariance, which needs a positive definite weight; give "

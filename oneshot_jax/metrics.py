@@ -67,18 +67,16 @@ def _check(z, zhat, mask):
     as its data; refuse what is not a record of numbers, and, on concrete values (not under
     a transformation), an empty record and a mask that is negative or selects no sample of
     an output."""
-    z, zhat, mask = (
-        np.ma.getdata(a) if isinstance(a, np.ma.MaskedArray) and not np.ma.is_masked(a) else a
-        for a in (z, zhat, mask)
-    )
-    named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
-    for name, a in named:
-        if isinstance(a, np.ma.MaskedArray):
+    for name, a in (("z", z), ("zhat", zhat), ("mask", mask)):
+        if isinstance(a, np.ma.MaskedArray) and np.ma.is_masked(a):
             raise TypeError(
                 f"`{name}` is a NumPy masked array with masked entries, which the scores do not "
                 f"read: pass its data (`np.ma.getdata({name})`) and the samples to score as "
                 "`mask=` (true where scored, `~np.ma.getmaskarray(z)` for a masked z)."
             )
+    z, zhat, mask = (unmasked(a, name) for a, name in ((z, "z"), (zhat, "zhat"), (mask, "mask")))
+    named = (("z", z), ("zhat", zhat)) + ((("mask", mask),) if mask is not None else ())
+    for name, a in named:
         if isinstance(a, jax.Array):  # (a tracer too: its dtype, without its values)
             if a.dtype.kind not in "biuf":
                 raise TypeError(
@@ -630,12 +628,13 @@ def _lag_sums(x, max_lag):
     return np.stack([np.sum(x[:, k:] * x[:, : T - k], axis=(0, 1)) for k in range(max_lag + 1)])
 
 
-def _trajectories(a, name, shape=None):
+def _trajectories(a, name, shape=None, missing=False):
     """`a` as a float64 (N, T, n) array; `shape` the (N, T) it must have. A NumPy masked
-    array of residuals `e` has NaN at its masked entries (a missing sample); one of
-    inputs, masked entries refused (`_masked.unmasked`)."""
-    if isinstance(a, np.ma.MaskedArray):
-        a = np.ma.filled(a.astype(np.float64), np.nan) if name == "e" else unmasked(a, name)
+    array has NaN at its masked entries where `missing` (residuals: a missing sample),
+    else its masked entries are refused (`_masked.unmasked`)."""
+    if missing and isinstance(a, np.ma.MaskedArray):
+        a = np.ma.filled(a.astype(np.float64), np.nan)
+    a = unmasked(a, name)
     try:
         complex_ = np.iscomplexobj(a)  # (np.asarray inside: a ragged object raises here)
     except (TypeError, ValueError) as err:
@@ -782,7 +781,7 @@ def residual_correlations(
     L. Ljung, *System Identification: Theory for the User*, 2nd ed., Prentice Hall, 1999,
     Sec. 16.6 (residual analysis).
     """
-    given, e = e, _trajectories(e, "e")
+    given, e = e, _trajectories(e, "e", missing=True)
     N, T, n_z = e.shape
     if T < 2:  # (before `max_lag`, whose range it would leave empty)
         hint = (
