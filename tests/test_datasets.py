@@ -58,7 +58,7 @@ def _write_csv(file, text):
 
 GOOD_CSV = (
     '"uEst","uVal","yEst","yVal","Ts",\n1,2,3,4,4,\n1.5,2.5,3.5,4.5,,\n2,3,4,5,,\n'
-    + "".join(f"{k},{k + 1},{k + 2},{k + 3},,\n" for k in (3, 4, 5))
+    + "".join(f"{k},{k + 1},{k + 2},{k + 3},,\n" for k in (3, 4, 5, 6))
 )
 
 
@@ -241,13 +241,24 @@ def test_emps_inconsistent_controller(tmp_path):
         ds.load_emps(tmp_path)
 
 
+def test_emps_shortest_validation_record_has_a_test_view(tmp_path):
+    # The test view keeps 20 outputs for x0 and the protocol scores at least two more: a
+    # 21-sample file loaded, and its test view then failed naming no file.
+    est = _emps_dict()
+    with pytest.raises(ds.DatasetFormatError, match=r"DATA_EMPS_PULSES\.mat: .* 21 samples.* 22"):
+        ds.load_emps(_write_emps(tmp_path / "a", est, _emps_dict(21, pulses=True)))
+    with pytest.warns(UserWarning, match=r"has 22 samples"):
+        d = ds.load_emps(_write_emps(tmp_path / "b", est, _emps_dict(22, pulses=True)))
+    assert d.test.n == 20 and len(d.test) == 22
+
+
 def test_tanks_good_small_file(tmp_path):
     # (a record that is not the official length loads, with a warning: a file cut short
     # at a line boundary loaded silently)
-    with pytest.warns(UserWarning, match=r"has 6 samples, the official file 1024"):
+    with pytest.warns(UserWarning, match=r"has 7 samples, the official file 1024"):
         d = ds.load_cascaded_tanks(_write_csv(tmp_path / "dataBenchmark.csv", GOOD_CSV))
-    np.testing.assert_array_equal(d.u_est, [1, 1.5, 2, 3, 4, 5])
-    np.testing.assert_array_equal(d.y_val, [4, 4.5, 5, 6, 7, 8])
+    np.testing.assert_array_equal(d.u_est, [1, 1.5, 2, 3, 4, 5, 6])
+    np.testing.assert_array_equal(d.y_val, [4, 4.5, 5, 6, 7, 8, 9])
     assert d.Ts == 4.0
 
 
@@ -367,17 +378,19 @@ def test_tanks_small_file_views_and_mat_fallback(tmp_path):
     assert big.test.n == 5 and len(big.test) == 8
     np.testing.assert_array_equal(big.test.y_head, [3, 4, 5, 6, 7])
     short = GOOD_CSV.split("\n")
-    with pytest.raises(ds.DatasetFormatError, match=r"short\.csv: .* 5 samples.* at least 6"):
-        # five samples cannot hold the test view's five-sample head and a scored sample
-        ds.load_cascaded_tanks(_write_csv(tmp_path / "short.csv", "\n".join(short[:6]) + "\n"))
+    with pytest.raises(ds.DatasetFormatError, match=r"short\.csv: .* 6 samples.* at least 7"):
+        # six samples cannot hold the test view's five-sample head and the two scored
+        # samples the protocol needs (`Record` refused the test view, naming no file)
+        ds.load_cascaded_tanks(_write_csv(tmp_path / "short.csv", "\n".join(short[:7]) + "\n"))
     d = ds.load_cascaded_tanks(_write_csv(tmp_path / "csv" / "dataBenchmark.csv", GOOD_CSV))
+    assert d.test.n == 5 and len(d.test) == 7  # the shortest file has a test view
     # The .mat version of the archive is read when there is no CSV.
     col = lambda *v: np.array(v, dtype=float)[:, None]  # noqa: E731
     mat = {
-        "uEst": col(1, 1.5, 2, 3, 4, 5),
-        "uVal": col(2, 2.5, 3, 4, 5, 6),
-        "yEst": col(3, 3.5, 4, 5, 6, 7),
-        "yVal": col(4, 4.5, 5, 6, 7, 8),
+        "uEst": col(1, 1.5, 2, 3, 4, 5, 6),
+        "uVal": col(2, 2.5, 3, 4, 5, 6, 7),
+        "yEst": col(3, 3.5, 4, 5, 6, 7, 8),
+        "yVal": col(4, 4.5, 5, 6, 7, 8, 9),
         "Ts": np.array([[4.0]]),
     }
     (tmp_path / "mat" / "cascaded_tanks").mkdir(parents=True)

@@ -351,3 +351,9 @@ def test_a_download_in_a_subfolder_of_its_archive_is_found_again(server, tmp_pat
     assert again.estimation.file == first.estimation.file
     found = ds.load_emps(tmp_path / "empty", cache_dir=cache)  # without download=True
     assert found.estimation.file == first.estimation.file
+    # With no argument at all, the cache named by $ONESHOT_JAX_CACHE (a default root) is
+    # searched in the archive's subfolders too (it was not: not found).
+    monkeypatch.setenv(ds.HIDE_ENV_VAR, "1")
+    monkeypatch.delenv(ds.ENV_VAR, raising=False)
+    monkeypatch.setenv(ds.CACHE_ENV_VAR, str(cache))
+    assert ds.load_emps().estimation.file == first.estimation.file

@@ -78,9 +78,10 @@ def _read(file: Path) -> CascadedTanks:
     else:
         d = read_csv(file, _SERIES, ("Ts",), scalar_meaning="the sampling time in s")
     Ts = positive_scalar(file, "Ts", d["Ts"], "sampling time (s)")
-    # The test view keeps TANKS_N_INIT outputs for the initial state: at least one more.
+    # The test view keeps TANKS_N_INIT outputs for the initial state and scores at least
+    # two more (`Record`, `benchmark_scores`).
     require_length(
-        file, "the record uEst, uVal, yEst, yVal", d["uEst"].shape[0], TANKS_N_INIT + 1, 1024
+        file, "the record uEst, uVal, yEst, yVal", d["uEst"].shape[0], TANKS_N_INIT + 2, 1024
     )
     return CascadedTanks(
         u_est=d["uEst"], y_est=d["yEst"], u_val=d["uVal"], y_val=d["yVal"], Ts=Ts, file=file
@@ -115,7 +116,8 @@ def load_cascaded_tanks(path=None, *, download=False, cache_dir=None, base_url=N
 
     `DatasetNotFoundError` if the file is not found (or cannot be downloaded),
     `DatasetFormatError` if it lacks a column, holds non-numeric values, or holds fewer
-    than `TANKS_N_INIT + 1` samples (the test view's initial window and one scored sample).
+    than `TANKS_N_INIT + 2` samples (the test view's initial window and the two scored
+    samples the protocol needs at least).
 
     **Reference:**
 

@@ -102,8 +102,8 @@ def _record(file: Path, with_pulses: bool):
             f"{file}: missing variable pulses_N; the validation file is expected to hold "
             f"{', '.join(_SERIES)}, pulses_N (vectors) and {', '.join(_SCALARS)}."
         )
-    if with_pulses:  # the test view keeps EMPS_N_INIT outputs for the initial state
-        require_length(file, "the record t, qm, qg, vir", d["t"].shape[0], EMPS_N_INIT + 1, 24841)
+    if with_pulses:  # the test view keeps EMPS_N_INIT outputs and scores at least two more
+        require_length(file, "the record t, qm, qg, vir", d["t"].shape[0], EMPS_N_INIT + 2, 24841)
     dt = np.diff(d["t"])
     if not np.all(dt > 0):
         raise DatasetFormatError(f"{file}: variable 't' (time, s) must be strictly increasing.")
@@ -157,8 +157,8 @@ def load_emps(path=None, *, download=False, cache_dir=None, base_url=None) -> EM
 
     `DatasetNotFoundError` if the files are not found (or cannot be downloaded),
     `DatasetFormatError` if a file lacks a variable or has inconsistent shapes, or the
-    validation record holds fewer than `EMPS_N_INIT + 1` samples (the test view's initial
-    window and one scored sample).
+    validation record holds fewer than `EMPS_N_INIT + 2` samples (the test view's initial
+    window and the two scored samples the protocol needs at least).
 
     **Reference:**
 

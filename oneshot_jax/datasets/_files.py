@@ -77,11 +77,16 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
             f"benchmark files (or their subfolders such as '{subdirs[0]}/'), or unset it."
         )
     dirs = candidates(path, subdirs)
+    caches = []  # (download caches searched: what an earlier download unpacked, in
+    # whatever subfolders its archive keeps, is looked for in each)
     if cache_dir is not None or download:
         cache = cache_dir if cache_dir is not None else default_cache_dir()
         dirs += candidates(cache, subdirs)
-        # (what an earlier download unpacked, in whatever subfolders its archive keeps)
-        dirs += _folders(Path(cache).expanduser() / SOURCES[name].subdir)
+        caches.append(Path(cache).expanduser())
+    if path is None and default_cache_dir().resolve() in {d.resolve() for d in dirs}:
+        caches.append(default_cache_dir())  # (a root of the defaults)
+    for folder in caches:
+        dirs += _folders(folder / SOURCES[name].subdir)
     dirs = list(dict.fromkeys(dirs))
     folder, names = find_folder(dirs, alternatives)
     if folder is not None and download:
@@ -199,7 +204,7 @@ def read_mat(file: Path, required_series, required_scalars=(), optional=()) -> d
             raise DatasetFormatError(f"{file}: variable '{k}' must be real, got dtype {a.dtype}.")
         if a.ndim > 2 or (a.ndim == 2 and min(a.shape) != 1) or a.size < 2:
             raise DatasetFormatError(
-                f"{file}: variable '{k}' must be a vector (n x 1), got shape {a.shape}."
+                f"{file}: variable '{k}' must be a vector (n x 1 or 1 x n), got shape {a.shape}."
             )
         a = np.asarray(a, dtype=np.float64).reshape(-1)
         if n is None:
