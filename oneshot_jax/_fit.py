@@ -1081,24 +1081,27 @@ def fit(
     # The checks of the result after the solve (a Newton step, a Gauss-Newton step in low
     # precision, ...: programs of their own on a first call) count in its wall time.
     checking = time.perf_counter()
-    with counting():  # (its rollouts are the check's, not the fit's: no second warning)
+    # (their rollouts are the checks', not the fit's: counted apart, no second warning)
+    with counting():
         result = flag_zero_gradient(
             result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
         )
-    result = _flag_unconverged_rollouts(
-        result,
-        built.problem,
-        out.theta,
-        out.x0,
-        strategy,
-        finals=Params(out.start_theta, out.start_x0),
-    )
-    result = _flag_refuted_stop(result, built.problem, out, strategy)
-    result = _flag_plateau_above_start(result, built.problem, built.starts, int(out.best), strategy)
-    least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
-    result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
-    result = _settle(result, built.problem, out, strategy, least_squares)
-    result = _measure_unmeasured_success(result, built.problem, out, strategy)
+        result = _flag_unconverged_rollouts(
+            result,
+            built.problem,
+            out.theta,
+            out.x0,
+            strategy,
+            finals=Params(out.start_theta, out.start_x0),
+        )
+        result = _flag_refuted_stop(result, built.problem, out, strategy)
+        result = _flag_plateau_above_start(
+            result, built.problem, built.starts, int(out.best), strategy
+        )
+        least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
+        result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
+        result = _settle(result, built.problem, out, strategy, least_squares)
+        result = _measure_unmeasured_success(result, built.problem, out, strategy)
     wall += time.perf_counter() - checking
     readings = None
     if aggregate is not None:

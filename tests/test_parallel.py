@@ -10,6 +10,7 @@ test of the parallel path cannot pass on the sequential fallback.
 """
 
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -595,6 +596,22 @@ def test_a_fallback_is_reported():
             model, theta, x0, u, z, fixed=True, solver=oj.Adam(max_steps=2, strategy="parallel")
         )
     assert r.diagnostics["sequential_fallbacks"] >= 1
+
+
+def test_the_checks_after_a_parallel_fit_count_their_fallbacks_with_no_warning_of_their_own():
+    """The checks of a least-squares success after the solve (a zero-loss fit of a
+    chaotic map, rank-deficient there) ran parallel rollouts outside the fit's count: five
+    more warnings after its one, from JAX's callback frame, and uncounted."""
+    step, theta, x0, _ = FALLBACK_CASES["chaotic_logistic"]
+    model = oj.Model(step)
+    u = jnp.zeros((60, 1))
+    z = np.asarray(oj.simulate(model, theta, x0, u)[1])
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        r = oj.fit(model, theta, x0, u, z, solver=oj.GaussNewton(strategy="parallel", max_steps=2))
+    fallbacks = [w for w in rec if "parallel rollout" in str(w.message)]
+    assert len(fallbacks) == 1, [str(w.message)[:80] for w in fallbacks]
+    assert str(r.diagnostics["sequential_fallbacks"]) in str(fallbacks[0].message)
 
 
 def test_a_rollout_kept_without_fallback_is_reported():
