@@ -353,8 +353,10 @@ def _bic(z, zhat, n_params, mask):
 def _fpe(z, zhat, n_params, mask):
     cov, n, _ = _error_covariance(z, zhat, mask)
     ratio = n_params / n
-    factor = jnp.where(ratio < 1, (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0), jnp.inf)
-    return jnp.linalg.det(cov) * factor
+    factor = (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0)
+    # (det of a singular E^T E / n, an output fitted exactly, can be round-off below 0)
+    det = jnp.maximum(jnp.linalg.det(cov), 0.0)
+    return jnp.where(ratio < 1, det * factor, jnp.inf)
 
 
 # --------------------------------------------------------------------------- protocol

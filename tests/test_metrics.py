@@ -55,6 +55,25 @@ def test_metrics_match_numpy(shape):
     assert float(metrics.aicc(*few, 4)) == np.inf  # (n - d - 1 = 0)
 
 
+def test_fpe_of_a_singular_error_covariance():
+    """E^T E / n singular (the same error in every sample: rank 1): inf where d >= n, as
+    documented, and never below 0 (it was NaN or -inf, and -1e-19 with d < n, as the
+    determinant's round-off fell)."""
+    signs = set()
+    for seed in range(8):
+        z = np.random.default_rng(seed).standard_normal((3, 2))
+        zhat = z + 0.01
+        signs.add(np.sign(np.linalg.det((zhat - z).T @ (zhat - z) / 3)))
+        assert float(metrics.fpe(z, zhat, 10)) == np.inf, seed
+        assert 0.0 <= float(metrics.fpe(z, zhat, 1)) < 1e-15, seed
+    assert -1.0 in signs  # (a case where round-off makes the determinant negative)
+    exact = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 7.0]])
+    zhat = exact.copy()
+    zhat[:, 1] += [0.1, -0.2, 0.05]  # the first output fitted exactly: det 0
+    assert float(metrics.fpe(exact, zhat, 10)) == np.inf
+    assert float(metrics.fpe(exact, zhat, 1)) == 0.0
+
+
 def test_masked_metrics_match_numpy_on_the_measured_samples():
     """With a mask (missing samples, as a masked fit's metrics have them), each channel's
     metrics are those of its measured samples alone (its own mean, not the unmasked one)
