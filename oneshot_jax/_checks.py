@@ -121,6 +121,12 @@ def as_float(a, name, dtype=None, measured=False):
             f"`{name}` must hold real numbers (measured outputs), got dtype bool: pass "
             f"`{name}.astype(float)` for outputs that are 0 or 1."
         )
+    if name == "x0" and a.dtype == jnp.bool_:  # (the mask of `estimate_x0`, misplaced?)
+        raise ValueError(
+            "`x0` must hold real numbers (the initial state), got dtype bool: the entries "
+            "to estimate are marked by `estimate_x0=`; pass `x0.astype(float)` for a state "
+            "of 0s and 1s."
+        )
     if not jnp.issubdtype(a.dtype, jnp.inexact):
         if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
             raise ValueError(f"`{name}` must hold real numbers, got dtype {a.dtype}.")

@@ -51,6 +51,7 @@ from ._fit import fit
 from ._fit_result import FitResult
 from ._model import Model
 from ._simulate import loss, simulate
+from ._solver_arg import as_solvers
 
 
 class PhysicsFirst(eqx.Module):
@@ -208,6 +209,11 @@ def fit_physics_first(
     succeeded.
     """
     check_fit_keywords(kwargs, "fit_physics_first")
+    if network_solver is not None:  # (checked before stage 1 runs, not after it)
+        try:
+            as_solvers(network_solver)
+        except (TypeError, ValueError) as err:
+            raise type(err)(f"`network_solver`: {err}") from None
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
     if multistart is True:

@@ -165,6 +165,7 @@ def test_nan_or_inf(case, entry):
 
 NOT_REAL = {
     "x0 complex": (dict(x0=X0.astype(jnp.complex128)), "x0"),
+    "x0 bool": (dict(x0=X0 > 0), "x0"),  # (the mask of `estimate_x0`, misplaced: it ran)
     "u string": (dict(u=np.array([["a", "b"]] * T)), "u"),
     "z complex": (dict(z=Z + 1j), "z"),
     "z bool": (dict(z=Z > 0), "z"),  # (a comparison passed for the measured outputs)

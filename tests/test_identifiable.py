@@ -141,6 +141,9 @@ def test_physics_first_rejects_bad_arguments(case):
         oj.fit_physics_first(model, {"r": theta0["r"]}, x0, u, z, learned="r")
     with pytest.raises(TypeError, match="`fixed` must be None or a dict"):
         oj.fit_physics_first(model, theta0, x0, u, z, fixed=[True])
+    # (refused before stage 1 runs: it was refused after, as "unknown `solver`")
+    with pytest.raises(ValueError, match="`network_solver`: unknown `solver` 'foo'"):
+        oj.fit_physics_first(model, theta0, x0, u, z, network_solver="foo", fixed={"w0sq": [1]})
     for fn in (oj.fit_physics_first, oj.fit_orthogonal):  # (they said `fit()` got it)
         with pytest.raises(TypeError, match=rf"`{fn.__name__}` got unexpected keyword .*bogus"):
             fn(model, theta0, x0, u, z, bogus=1)
