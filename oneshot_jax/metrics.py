@@ -577,7 +577,8 @@ class ResidualCorrelations(NamedTuple):
         """The verdicts per output, with the numbers they rest on (MATLAB's `resid`
         reading): what `print` shows; the arrays are the fields."""
         max_lag = int(np.max(self.lags))
-        out = [f"residual correlations over lags 1..{max_lag} (0..{max_lag} with the inputs)"]
+        inputs = "" if self.independent is None else f" (0..{max_lag} with the inputs)"
+        out = [f"residual correlations over lags 1..{max_lag}{inputs}"]
         for k in range(len(np.atleast_1d(self.white))):
             white = "white" if bool(np.atleast_1d(self.white)[k]) else "not white"
             line = (
