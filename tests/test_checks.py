@@ -258,6 +258,13 @@ BAD_MODELS = {
         r"the model's `rhs` \(`Model.from_ode`\) must return dx/dt as an array of shape "
         r"\(3,\) \(the shape of x0\), got \(1,\)",
     ),
+    "rhs of more states than x0": (  # (an unmeasured state left out of x0 = z[0])
+        oj.Model.from_ode(
+            lambda x, u, th: th["a"] * jnp.concatenate([x, x[:1]]), 0.1, observe=observe
+        ),
+        r"got \(4,\): `rhs` and `x0` .* must agree on the number of states \(if the model "
+        r"has 4 states, x0 needs all 4, the unmeasured ones too",
+    ),
     "rhs returns a scalar": (
         oj.Model.from_ode(lambda x, u, th: th["a"] * x[0], 0.1, observe=observe),
         r"`rhs` \(`Model.from_ode`\) must return dx/dt as an array of shape \(3,\).*got \(\)",
