@@ -219,10 +219,20 @@ def save_result(result, path):
     if not all(hasattr(result, a) for a in ("theta", "std", "history", "stop_reason")):
         hint = ""
         if all(hasattr(getattr(result, "result", None), a) for a in ("theta", "std", "history")):
+            name = type(result).__name__
+            article = "An" if name[:1].upper() in "AEIOU" else "A"
             hint = (
-                f" A {type(result).__name__} is not saved whole: save its `.result` (a "
+                f" {article} {name} is not saved whole: save its `.result` (a "
                 "`FitResult`; the other fields, such as stages or rounds, are not kept)"
             )
+            if hasattr(result, "rounds"):  # (`fit_orthogonal`: an augmented model's fit)
+                hint = (
+                    f" {article} {name} is not saved whole, and its `.result` is the last "
+                    "round's fit of the augmented model (its x0, inputs and outputs are "
+                    "not your model's; it loads with that model only): keep `.theta` and "
+                    "`.x0`, the estimates for your model (e.g. `eqx.tree_serialise_leaves` "
+                    "for theta)"
+                )
         raise TypeError(
             f"`result` must be a `FitResult` (what `fit` returns), got "
             f"{type(result).__name__}.{hint}"
@@ -650,7 +660,7 @@ def check_model(meta, model):
             def shown(sig):
                 return f"{key} = {sig[key]}" if key in sig else f"no {key}"
 
-            what = f"`model` has {shown(mine)}, the file {shown(theirs)}"
+            what = f"`model` has {shown(mine)}, the file has {shown(theirs)}"
         raise ValueError(
             f"`model` differs from the model the result was fitted with: {what}. Pass the "
             "fitted model (its dt, method, substeps, input)."

@@ -480,7 +480,9 @@ def test_a_loaded_result_saved_again_keeps_the_model_check(tmp_path):
     r = oj.fit(model, {"a": 0.5}, np.ones(1), u, np.asarray(z))
     again = oj.load_result(r.save(tmp_path / "a.npz")).save(tmp_path / "b.npz")
     for path in (tmp_path / "a.npz", again):
-        with pytest.raises(ValueError, match="model.step.dt = 0.5, the file model.step.dt = 0.1"):
+        with pytest.raises(
+            ValueError, match="model.step.dt = 0.5, the file has model.step.dt = 0.1"
+        ):
             oj.load_result(path, model=other)
     assert oj.load_result(again, model=model).theta["a"] == r.theta["a"]
     with pytest.raises(ValueError, match=r"saved theta 1: pass a theta of the fitted structure"):

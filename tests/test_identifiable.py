@@ -277,6 +277,25 @@ def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case):
     assert float(as_int.theta["g"]) == float(as_float.theta["g"]) != 1.0
 
 
+def test_saving_an_orthogonal_result_says_its_result_is_the_augmented_models(case, tmp_path):
+    """`save_result` of an `Orthogonal` said to save its `.result`, which is the last
+    round's fit of the augmented model: it loads with that model only, not the user's."""
+    model, theta0, u, z = case
+    r = oj.fit_orthogonal(
+        model,
+        theta0,
+        np.zeros(2),
+        u,
+        z,
+        learned="r",
+        rounds=1,
+        solver=oj.LevenbergMarquardt(max_steps=1),
+    )
+    with pytest.raises(TypeError, match=r"An Orthogonal is not saved whole, and its `.result` is"):
+        oj.save_result(r, tmp_path / "o.npz")
+    assert np.shape(r.result.x0) != np.shape(r.x0)  # (why: the augmented model's x0)
+
+
 def test_orthogonal_penalty_and_its_gradient():
     """The augmented model's cost is C + strength / T ||Q^T W^{1/2} d||^2 with Q an
     orthonormal basis of the weighted sensitivities, and its one-shot gradient equals
