@@ -128,7 +128,7 @@ class Aggregate:
                     raise ValueError(
                         f"`intervals[{i}]` must be a (start, stop) pair of integers, got {p!r}."
                     )
-                start, stop = p
+                start, stop = p = pairs[i] = (int(p[0]), int(p[1]))  # (plain ints: repr)
                 if start < 0 or stop <= start:
                     raise ValueError(
                         f"`intervals[{i}]` = {p}: need 0 <= start < stop (half-open "
@@ -147,6 +147,10 @@ class Aggregate:
         if vals.shape[0] == 0:
             raise ValueError("an `Aggregate` needs at least one reading.")
         if weight is not None:
+            if isinstance(weight, (bool, np.bool_)) or np.asarray(weight).dtype == np.bool_:
+                raise TypeError(
+                    f"`weight` must be a number or one number per reading, got {weight!r}."
+                )
             w = np.asarray(as_float(weight, "weight"), float)
             if w.shape not in ((), vals.shape):
                 raise ValueError(
@@ -432,6 +436,8 @@ class Augmented(NamedTuple):
             zero = np.zeros_like(es)
             for name in _metrics._CRITERIA:
                 metrics[name] = float(getattr(_metrics, f"_{name}")(zero, es, n_free, ms))
+        elif "aic" in metrics:  # (readings only: no point sample to judge by)
+            metrics.update({name: float("nan") for name in _metrics._CRITERIA})
         return dataclasses.replace(
             result,
             x0=np.asarray(result.x0)[..., :n_x],

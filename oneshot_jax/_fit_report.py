@@ -376,6 +376,13 @@ def returned_start(result) -> bool:
     return result.stop_info.get("at_step") in (0, None)
 
 
+def _any_point_sample(residuals) -> bool:
+    """Whether a fit's residuals (an array, or a list of ragged records) hold a finite
+    entry: a point sample of some output (an aggregated fit may have readings only)."""
+    records = residuals if isinstance(residuals, (list, tuple)) else [residuals]
+    return any(np.isfinite(np.asarray(r, dtype=float)).any() for r in records)
+
+
 def _per_output(values, outputs) -> str:
     """Values of each output, with the model's output names where it has them."""
     names = model_labels(outputs, len(values))
@@ -540,11 +547,11 @@ def report(result) -> str:
     aic = float(result.metrics["aic"])
     fpe = result.metrics.get("fpe")  # (a result saved before FPE was reported has none)
     if np.isnan(aic):
-        why = (
-            "the loss is not finite"
-            if not np.isfinite(float(result.loss))
-            else "fewer samples measure every output than there are outputs"
-        )
+        why = "fewer samples measure every output than there are outputs"
+        if not np.isfinite(float(result.loss)):
+            why = "the loss is not finite"
+        elif not _any_point_sample(result.residuals):
+            why = "no output has a point sample: aggregated readings only"
         criteria = f"AIC nan ({why})"
     else:
         criteria = f"AIC {aic:.4g}" + ("" if fpe is None else f"  FPE {float(fpe):.4g}")

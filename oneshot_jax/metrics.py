@@ -271,7 +271,9 @@ def fpe(z, zhat, n_params, mask=None):
 
     E is the (n, n_z) matrix of errors over the n samples (those where every output is
     measured, when a `mask` is given), as for `aic`. Lower is better; inf where
-    d >= n (no samples left to judge the parameters by).
+    d >= n (no samples left to judge the parameters by); NaN where no sample measures
+    every output, or, with d < n, fewer samples than there are measured outputs (E^T E / n
+    is then singular, as for `aic`).
     """
     _check_n_params(n_params)
     z, zhat, mask = _check(z, zhat, mask)
@@ -351,12 +353,13 @@ def _bic(z, zhat, n_params, mask):
 
 @jax.jit
 def _fpe(z, zhat, n_params, mask):
-    cov, n, _ = _error_covariance(z, zhat, mask)
-    ratio = n_params / n
+    cov, n, used = _error_covariance(z, zhat, mask)
+    ratio = n_params / jnp.maximum(n, 1)
     factor = (1 + ratio) / jnp.where(ratio < 1, 1 - ratio, 1.0)
     # (det of a singular E^T E / n, an output fitted exactly, can be round-off below 0)
     det = jnp.maximum(jnp.linalg.det(cov), 0.0)
-    return jnp.where(ratio < 1, det * factor, jnp.inf)
+    value = jnp.where(n >= used, det * factor, jnp.nan)  # (fewer full samples: as `aic`)
+    return jnp.where(n == 0, jnp.nan, jnp.where(ratio < 1, value, jnp.inf))
 
 
 # --------------------------------------------------------------------------- protocol

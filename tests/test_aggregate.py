@@ -353,6 +353,11 @@ def test_an_output_measured_only_in_aggregate_is_identified():
     r = oj.fit(model, {"a": 0.6, "b": 1.5}, np.array([1.0]), u, z, estimate_x0=False, **kw)
     assert r.success
     np.testing.assert_allclose([r.theta["a"], r.theta["b"]], [0.5, 2.0], rtol=1e-8)
+    # No point sample to score: the criteria are NaN floats, as in any other fit (0-d
+    # arrays, and the printout gave the reason of too few fully measured samples).
+    for name in ("aic", "aicc", "bic", "fpe"):
+        assert type(r.metrics[name]) is float and np.isnan(r.metrics[name]), name
+    assert "AIC nan (no output has a point sample: aggregated readings only)" in str(r)
     empty = oj.Aggregate(0, spans, np.full(10, np.nan), kind="time_mean")
     with pytest.raises(ValueError, match="NaN everywhere"):
         oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask", aggregate=empty)
@@ -477,6 +482,15 @@ def test_fit_refuses_window():
 def test_bad_aggregate(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_an_aggregate_takes_numpy_integers_and_refuses_a_bool_weight():
+    """Intervals from a NumPy array print as plain integers (they printed np.int64(0));
+    `weight=True` is refused as `channel=True` is (it was read as 1)."""
+    a = oj.Aggregate(1, np.array([[0, 5], [5, 10]]), [1.0, 2.0])
+    assert repr(a) == "Aggregate(channel=1, intervals=[(0, 5), (5, 10)], kind='mean', 2 readings)"
+    with pytest.raises(TypeError, match="`weight` must be a number"):
+        oj.Aggregate(1, [(0, 5)], [1.0], weight=True)
 
 
 @pytest.mark.parametrize(

@@ -72,6 +72,15 @@ def test_fpe_of_a_singular_error_covariance():
     zhat[:, 1] += [0.1, -0.2, 0.05]  # the first output fitted exactly: det 0
     assert float(metrics.fpe(exact, zhat, 10)) == np.inf
     assert float(metrics.fpe(exact, zhat, 1)) == 0.0
+    # Two fully measured samples of three outputs: E^T E / n singular, no FPE (as no AIC;
+    # it was the determinant's round-off, about 0, times the factor).
+    rng = np.random.default_rng(0)
+    z, zhat = rng.standard_normal((6, 3)), rng.standard_normal((6, 3))
+    mask = np.ones((6, 3))
+    mask[2:, 2] = 0.0
+    assert np.isnan(float(metrics.aic(z, zhat, 1, mask)))
+    assert np.isnan(float(metrics.fpe(z, zhat, 1, mask)))
+    assert float(metrics.fpe(z, zhat, 2, mask)) == np.inf  # (d >= n)
 
 
 def test_masked_metrics_match_numpy_on_the_measured_samples():
