@@ -73,8 +73,9 @@ def plus_minus(value, std, decimals: int, std_decimals: int | None = None) -> st
     """ "value ± std" for a results table with `decimals` decimals (`std_decimals` for the
     standard error, the same by default), but a standard error too large for them (a
     parameter the data barely determine: 5.6e16) or not finite in three significant
-    digits."""
-    std = float(std)
+    digits. None (a NaN after `to_jsonable`, strict JSON) reads as NaN."""
+    value = math.nan if value is None else float(value)
+    std = math.nan if std is None else float(std)
     big = not math.isfinite(std) or std >= 1e4
     places = decimals if std_decimals is None else std_decimals
     return f"{value:.{decimals}f} ± " + (f"{std:.3g}" if big else f"{std:.{places}f}")

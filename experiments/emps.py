@@ -33,7 +33,7 @@ import oneshot_jax as oj
 from oneshot_jax.examples import emps as example
 
 from . import common
-from .config import as_dict
+from .config import ConfigError, as_dict
 
 PARAMS = example.PARAMS
 
@@ -134,7 +134,7 @@ def _sweep(data, ex, solver, n_used, progress):
     for fam in sweeps:
         for T in getattr(ex, fam).windows:
             if T is not None and T > n_used:
-                continue
+                continue  # (left out: `run` says so)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)
                 row = fitters[fam](data, T, ex, solver, progress=progress)
@@ -167,12 +167,24 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps") -> dic
         f"gtau = {data.gtau:.4f}; tanh(q'/eps) with eps = {ex.eps} m/s; solver {cfg.solver.title}",
         flush=True,
     )
-    sweeps, fitters = _sweep(data, ex, solver, n_used, cfg.progress)
-    if not sweeps:
-        raise ValueError(
-            f"no window fits in the {n_used} estimation samples: lower the windows or raise "
-            "experiment.n_samples."
+    # Windows longer than the record (known only now) are left out, and said so (a quick
+    # run on fewer samples keeps the shorter ones); none left is a configuration error
+    # before any fit (it was a traceback after the data were loaded).
+    skipped = {
+        fam: [T for T in getattr(ex, fam).windows if T is not None and T > n_used]
+        for fam in ("open_loop", "closed_loop")
+    }
+    if not any(T is None or T <= n_used for fam in skipped for T in getattr(ex, fam).windows):
+        raise ConfigError(
+            f"`experiment.open_loop.windows` and `experiment.closed_loop.windows` must hold a "
+            f"window of at most the {n_used} estimation samples used (or None, the whole "
+            f"record, in closed_loop), got {list(ex.open_loop.windows)} and "
+            f"{list(ex.closed_loop.windows)}: lower the windows or raise experiment.n_samples."
         )
+    for fam, Ts in skipped.items():
+        if Ts:
+            print(f"  {fam}: windows {Ts} longer than the {n_used} samples left out", flush=True)
+    sweeps, fitters = _sweep(data, ex, solver, n_used, cfg.progress)
 
     # Within each structure and between them: the smallest closed-loop relative position
     # error on the estimation record (validation is for scoring only).
@@ -224,6 +236,7 @@ def run(cfg, outdir, command="python experiments/run.py experiment=emps") -> dic
         "units": example.UNITS,
         "reference": {"theta": example.REFERENCE, "scores": ref_scores},
         "sweeps": sweeps,
+        "windows_left_out": {fam: Ts for fam, Ts in skipped.items() if Ts},
         "best": best,
         "chosen": chosen,
         "deviation_from_reference_pct": rel_dev,

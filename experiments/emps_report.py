@@ -22,6 +22,16 @@ def markdown(res) -> str:
         f"{solver.get('label') or solver['name']} ({settings}), M, Fv, Fc >= 1e-6 by a box "
         "constraint).",
         "",
+    ]
+    left_out = res.get("windows_left_out") or {}
+    if left_out:
+        L += [
+            "Windows longer than the estimation samples used, left out: "
+            + "; ".join(f"{NAMES[f]} {Ts}" for f, Ts in left_out.items())
+            + ".",
+            "",
+        ]
+    L += [
         "| parameter | IDIM-LS reference | "
         + " | ".join(f"{NAMES[f]} (T = {best[f]['window'] * res['Ts_s']:g} s)" for f in fams)
         + " | kept vs reference |",

@@ -384,12 +384,43 @@ def test_every_job_of_a_sweep_compiles_its_own_first_calls(tmp_path, monkeypatch
     assert f"persistent compilation cache in {tmp_path / 'xla'}" in out["conditions"]
 
 
+def test_an_emps_window_longer_than_the_record_is_refused_before_a_fit(tmp_path):
+    """With no window that fits the estimation record the run stops with a configuration
+    error before any fit (exit status 2; it was a traceback after the data were loaded).
+    A window that does not fit, next to some that do, is left out and said so
+    (`windows_left_out`: it was left out in silence)."""
+    import scipy.io
+
+    t = np.arange(60)[:, None] * 1e-3
+    est = dict(t=t, qm=np.sin(t), qg=np.sin(t), vir=np.cos(t), kp=160.18, kv=243.45, gtau=35.15)
+    folder = tmp_path / "data"
+    folder.mkdir()
+    scipy.io.savemat(folder / "DATA_EMPS.mat", est)
+    scipy.io.savemat(folder / "DATA_EMPS_PULSES.mat", {**est, "pulses_N": np.zeros((60, 1))})
+    cfg = _compose(
+        [
+            "experiment=emps",
+            f"experiment.data_path={folder}",
+            "experiment.open_loop.windows=[100]",
+            "experiment.closed_loop.windows=[200]",
+        ]
+    )
+    with pytest.warns(UserWarning, match="not the official record"):
+        with pytest.raises(config.ConfigError, match=r"must hold a window of at most the 60"):
+            run.execute(cfg, tmp_path / "out", command="cmd")
+
+
 def test_results_tables_show_a_huge_or_infinite_standard_error_in_significant_digits():
     # (an unidentifiable tank level's 5.6e16 printed as 56317653543639608.00000)
     assert common.plus_minus(14.716, 5.6317653543639608e16, 5) == "14.71600 ± 5.63e+16"
     assert common.plus_minus(1.2, float("inf"), 4, 3) == "1.2000 ± inf"
     assert common.plus_minus(0.05809, 0.00111, 5) == "0.05809 ± 0.00111"
     assert common.plus_minus(2.0, 0.0123, 4, 3) == "2.0000 ± 0.012"
+    # A NaN standard error (a diverged fit's) is None once `to_jsonable` has made the
+    # results strict JSON: the tanks report of a Gauss-Newton run crashed on it.
+    std = common.to_jsonable({"k": float("nan")})["k"]
+    assert std is None and common.plus_minus(1.0, std, 5) == "1.00000 ± nan"
+    assert common.plus_minus(None, None, 2) == "nan ± nan"
 
 
 def test_an_experiment_without_a_schema_is_refused_with_what_to_add():

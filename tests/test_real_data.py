@@ -60,7 +60,8 @@ def test_emps_closed_loop_on_six_seconds():
 
 def test_emps_experiment_runs_the_configured_solver(tmp_path):
     """`experiment=emps solver=gauss_newton` runs Gauss-Newton (the solver is honoured,
-    not replaced by the experiment's default), on a reduced sweep."""
+    not replaced by the experiment's default), on a reduced sweep; the closed-loop window,
+    longer than the samples used, is left out and named."""
     _load(ds.load_emps)
     from hydra import compose, initialize_config_dir
 
@@ -73,7 +74,7 @@ def test_emps_experiment_runs_the_configured_solver(tmp_path):
                 "solver=gauss_newton",
                 "experiment.n_samples=3000",
                 "experiment.open_loop.windows=[500]",
-                "experiment.closed_loop.windows=[]",
+                "experiment.closed_loop.windows=[5000]",  # (longer than the 3000 used)
                 "experiment.figures=false",
                 "experiment.check_unconstrained=false",
                 "progress=false",
@@ -85,6 +86,11 @@ def test_emps_experiment_runs_the_configured_solver(tmp_path):
     assert row["n_windows"] == 6 and row["stop_reason"] == "converged"
     assert row["theta"]["M"] == pytest.approx(EMPS_FULL["M"], rel=0.05)
     assert "Gauss-Newton" in (tmp_path / "results.md").read_text()
+    # A window longer than the samples used is left out, and said so (it was silent).
+    assert res["windows_left_out"] == {"closed_loop": [5000]} and not res["sweeps"].get(
+        "closed_loop"
+    )
+    assert "left out: closed loop [5000]" in (tmp_path / "results.md").read_text()
 
 
 def test_tanks_overflow_on_first_600_samples():
