@@ -83,7 +83,7 @@ def test_emps_experiment_runs_the_configured_solver(tmp_path):
     res = emps.run(config.load(cfg), tmp_path, command="test")
     assert res["solver"]["name"] == "gauss_newton"
     (row,) = res["sweeps"]["open_loop"]
-    assert row["n_windows"] == 6 and row["stop_reason"] == "converged"
+    assert row["n_windows"] == 6 and row["stop_reason"] == "converged" and row["success"]
     assert row["theta"]["M"] == pytest.approx(EMPS_FULL["M"], rel=0.05)
     assert "Gauss-Newton" in (tmp_path / "results.md").read_text()
     # A window longer than the samples used is left out, and said so (it was silent).
