@@ -214,6 +214,7 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
             "experiment": name,
             "command": command,
             "wall_time_s": time.perf_counter() - t0,
+            "conditions": conditions(),  # (a failure states its conditions too)
         }
         written = [] if before is None else sorted(_files(outdir) - before)
         write_json(outdir / "results.json", {**failed, **({"files": written} if written else {})})

@@ -317,7 +317,7 @@ def test_python_m_experiments_composes(tmp_path):
 
 def test_failed_run_replaces_stale_results(tmp_path):
     """An earlier run's results.json and results.md are removed at the start; a run that
-    fails leaves results.json with status "failed" and its error."""
+    fails leaves results.json with status "failed", its error and its conditions."""
     (tmp_path / "results.json").write_text(json.dumps({"status": "ok", "figures": ["a.png"]}))
     (tmp_path / "results.md").write_text("old")
     (tmp_path / "a.png").write_bytes(b"old")
@@ -336,6 +336,7 @@ def test_failed_run_replaces_stale_results(tmp_path):
         "experiment": "satellite",
         "command": "cmd",
         "wall_time_s": res["wall_time_s"],
+        "conditions": run.conditions(),  # (a failure states its conditions too)
     }
     assert not (tmp_path / "results.md").exists()
     assert not list(tmp_path.glob(".results.json.*"))  # no temporary file left
