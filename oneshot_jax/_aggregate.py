@@ -438,8 +438,12 @@ class Augmented(NamedTuple):
                 metrics[name] = float(getattr(_metrics, f"_{name}")(zero, es, n_free, ms))
         elif "aic" in metrics:  # (readings only: no point sample to judge by)
             metrics.update({name: float("nan") for name in _metrics._CRITERIA})
+        starts = result.starts
+        if starts is not None and starts.x0 is not None:
+            starts = dataclasses.replace(starts, x0=np.asarray(starts.x0)[..., :n_x])
         return dataclasses.replace(
             result,
+            starts=starts,
             x0=np.asarray(result.x0)[..., :n_x],
             x0_std=np.asarray(result.x0_std)[..., :n_x],
             x0_estimated=np.asarray(result.x0_estimated)[:n_x],

@@ -467,9 +467,14 @@ def assemble(
         rows[:, list(free)] = out.start_theta
         stops = tuple(name_of(from_index(int(c))) for c in results)
         own = (name_of(from_index(int(c))) for c in np.asarray(out.solver_results))
+        # (each start's x0 as `FitResult.x0`: the held entries with the free ones set)
+        base = np.asarray(problem.x0_base)
+        start_x0 = np.broadcast_to(base, (losses.shape[0], *base.shape)).copy()
+        start_x0[..., list(problem.x0_free)] = np.asarray(out.start_x0)
         starts = Starts(
             theta=layout.rows(rows),
             loss=losses,
+            x0=start_x0 if data.batched else start_x0[:, 0],
             stop_reason=stops,
             solver_stop=tuple(o if r == "validation" else r for r, o in zip(stops, own)),
         )

@@ -292,6 +292,10 @@ class Starts(eqx.Module):
 
     - `theta`: theta's parameter pytree with a leading axis of starts.
     - `loss`: the final loss of each start.
+    - `x0`: the initial state each start ended at, with a leading axis of starts (the
+        shape of `FitResult.x0` after it): `oj.loss(model, theta_s, x0[s], u, z)` with
+        `theta_s` the start's row of `theta` gives its `loss`. None in a file saved before
+        it was kept.
     - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
     - `solver_stop`: each start's own solver stop, the same as `stop_reason` except where
         a check after the solver replaced it (`validation`: the best-scoring iterate kept;
@@ -308,6 +312,7 @@ class Starts(eqx.Module):
     loss: np.ndarray
     stop_reason: tuple = eqx.field(static=True)
     solver_stop: tuple = eqx.field(static=True)
+    x0: np.ndarray | None = None
 
 
 _LIBRARY_DIRS = tuple(os.path.dirname(m.__file__) + os.sep for m in (sys.modules[__package__], eqx))

@@ -29,8 +29,8 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage` (and
   `history/validation` for a fit with validation data, `window_starts` for one with
   windows, `weight` for one with `weight=`),
-  `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>` and
-  `starts/loss`.
+  `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>`,
+  `starts/loss` and `starts/x0`.
 
 Values round-trip exactly (same dtypes and bits). Functions cannot be saved: a theta that
 holds equinox modules (a neural residual) is saved by its arrays, and `load_result`
@@ -274,6 +274,8 @@ def save_result(result, path):
         for i, a in enumerate(_leaves(result.starts.theta)):
             arrays[f"starts/theta/{i}"] = a
         arrays["starts/loss"] = np.asarray(result.starts.loss)
+        if result.starts.x0 is not None:
+            arrays["starts/x0"] = np.asarray(result.starts.x0)
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -445,7 +447,7 @@ def read_result(path, *, like=None, model=None) -> dict:
             raise ValueError(
                 f"`like` differs from the saved theta outside its parameters (an activation "
                 f"function, a module's static fields, an integer array): `like` has {diff[0]}, "
-                f"the file {diff[1]}. Pass a theta of the fitted structure (e.g. "
+                f"the file has {diff[1]}. Pass a theta of the fitted structure (e.g. "
                 f"theta0)."
             )
 
@@ -531,6 +533,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         starts = dict(
             theta=build(group("starts/theta/")),
             loss=arrays["starts/loss"],
+            x0=arrays.get("starts/x0"),  # (None in a file saved before it was kept)
             stop_reason=tuple(meta["starts_stop_reason"]),
             # (a file written before `starts_solver_stop` existed: the stops as they were)
             solver_stop=tuple(meta.get("starts_solver_stop") or meta["starts_stop_reason"]),

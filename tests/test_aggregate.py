@@ -365,6 +365,25 @@ def test_an_output_measured_only_in_aggregate_is_identified():
         oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask")
 
 
+def test_each_start_of_an_aggregated_fit_keeps_the_models_initial_state():
+    """`result.starts.x0` of an aggregated fit has the user's model's states (not the
+    augmented model's, whose accumulators are appended), and each start's loss is
+    recomputed from it."""
+    model, truth, t, u = _timed_first_order()
+    _, z = oj.simulate(model, truth, np.array([1.0]), u, t=t)
+    z = np.asarray(z) + 0.02 * np.random.default_rng(5).standard_normal(np.shape(z))
+    spans = [(a, a + 6) for a in range(0, 60, 6)]
+    agg = oj.Aggregate(0, spans, oj.Aggregate(0, spans, np.zeros(10)).predict(z), kind="mean")
+    kw = dict(t=t, missing="mask", aggregate=agg)
+    starts = {"a": np.array([0.6, 0.3]), "b": np.array([1.5, 2.5])}
+    r = oj.fit(model, starts, np.array([0.8]), u, z, multistart=True, **kw)
+    assert r.starts.x0.shape == (2, 1)
+    for s in range(2):
+        theta = {k: r.starts.theta[k][s] for k in starts}
+        C = oj.loss(model, theta, r.starts.x0[s], u, z, **kw)
+        assert float(C) == pytest.approx(float(r.starts.loss[s]), rel=1e-9)
+
+
 def test_readings_of_weight_zero_add_no_observations():
     """Readings of weight 0 leave the loss and the standard errors as without them (they
     counted as observations: std smaller by sqrt(57 / 37) with 20 such readings next to

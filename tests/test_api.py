@@ -244,11 +244,12 @@ def test_load_refuses_a_like_whose_activation_or_static_fields_differ(tmp_path):
     back = oj.load_result(path, like=make(jax.nn.tanh, 0.1), model=model)
     np.testing.assert_array_equal(back.simulate(u)[1], r.simulate(u)[1])
     with pytest.raises(
-        ValueError, match=r"has theta\['r'\]\.net\.activation = function relu, the file "
+        ValueError, match=r"has theta\['r'\]\.net\.activation = function relu, the file has "
     ):
         oj.load_result(path, like=make(jax.nn.relu, 0.1))
     with pytest.raises(
-        ValueError, match=r"has theta\['r'\]\.scale = 2\.0, the file theta\['r'\]\.scale = 0\.1\."
+        ValueError,
+        match=r"has theta\['r'\]\.scale = 2\.0, the file has theta\['r'\]\.scale = 0\.1\.",
     ):
         oj.load_result(path, like=make(jax.nn.tanh, 2.0))
     # An integer array of a dict theta (an exponent) and a partial's arguments.
@@ -257,7 +258,9 @@ def test_load_refuses_a_like_whose_activation_or_static_fields_differ(tmp_path):
     _, z2 = oj.simulate(model2, theta2, np.array([0.2]), u)
     r2 = oj.fit(model2, theta2, np.array([0.2]), u, np.asarray(z2), solver=oj.Adam(max_steps=2))
     path2 = r2.save(tmp_path / "int")
-    with pytest.raises(ValueError, match=r"has theta\['p'\] = array\(1,\) int64 \[3\], the file"):
+    with pytest.raises(
+        ValueError, match=r"has theta\['p'\] = array\(1,\) int64 \[3\], the file has"
+    ):
         oj.load_result(path2, like={"k": 0.5, "p": np.array([3])})
     leaky = functools.partial(jax.nn.leaky_relu, negative_slope=0.5)
     r3 = oj.fit(
@@ -284,7 +287,7 @@ def test_a_result_refuses_inputs_and_models_other_than_the_fitted_ones(sat_lm, t
             assert hint in str(e.value)
     path = r.save(tmp_path / "sat")
     other = oj.Model.from_ode(satellite_rhs, SAT_MODEL.step.dt * 2)
-    with pytest.raises(ValueError, match=r"`model` has model\.step\.dt = .*, the file model"):
+    with pytest.raises(ValueError, match=r"`model` has model\.step\.dt = .*, the file has model"):
         oj.load_result(path, model=other)
     assert oj.load_result(path, model=SAT_MODEL).n_u == 3
 

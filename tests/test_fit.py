@@ -781,6 +781,41 @@ def test_multistart_returns_the_best_start():
     assert np.array_equal(np.asarray(r.x0), x0) and np.all(r.x0_std == 0.0)
 
 
+def test_each_start_keeps_its_initial_state(tmp_path):
+    """`result.starts.x0`: the x0 each start ended at (held entries as given), so that a
+    losing start's loss can be recomputed (only its theta was kept); saved and loaded."""
+
+    def step(x, u, th):
+        return jnp.array([x[0] + 0.1 * x[1], x[1] + 0.1 * (-th["k"] * x[0] - 0.3 * x[1] + u[0])])
+
+    model = oj.Model(step, lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((2, 80, 1))
+    x0 = np.array([[0.5, 0.2], [-0.3, 0.1]])
+    _, z = oj.simulate(model, {"k": 2.0}, x0, u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    guess = np.array([[0.4, 0.2], [-0.2, 0.1]])  # (velocities held at their true values)
+    r = oj.fit(
+        model,
+        {"k": np.array([1.0, 3.0, 6.0])},
+        guess,
+        u,
+        z,
+        multistart=True,
+        estimate_x0=[True, False],
+        solver=oj.LevenbergMarquardt(max_steps=4),
+    )
+    assert r.starts.x0.shape == (3, 2, 2)
+    np.testing.assert_array_equal(r.starts.x0[..., 1], np.broadcast_to(guess[:, 1], (3, 2)))
+    np.testing.assert_array_equal(r.starts.x0[r.best], r.x0)
+    assert len(set(np.round(r.starts.x0[:, 0, 0], 6))) == 3  # (each its own)
+    for s in range(3):
+        C = oj.loss(model, {"k": r.starts.theta["k"][s]}, r.starts.x0[s], u, z)
+        assert float(C) == pytest.approx(float(r.starts.loss[s]), rel=1e-9), s
+    back = oj.load_result(r.save(tmp_path / "r.npz"))
+    np.testing.assert_array_equal(back.starts.x0, r.starts.x0)
+
+
 #
 # Bad input and bad regions.
 #

@@ -476,8 +476,10 @@ def test_load_result_names_the_model_setting_that_differs(tmp_path):
         tmp_path / "timed.npz"
     )
     fixed_dt = oj.Model.from_ode(rhs, dt=0.05, observe=lambda x, u, th: x[:1])
-    with pytest.raises(ValueError, match=r"has model.timed = False, the file model.timed = True"):
+    with pytest.raises(
+        ValueError, match=r"has model.timed = False, the file has model.timed = True"
+    ):
         oj.load_result(path, model=fixed_dt)
     coarse = oj.Model.from_ode(rhs, dt=None, substeps=2, observe=lambda x, u, th: x[:1])
-    with pytest.raises(ValueError, match=r"substeps = 2, the file model.step.substeps = 1"):
+    with pytest.raises(ValueError, match=r"substeps = 2, the file has model.step.substeps = 1"):
         oj.load_result(path, model=coarse)
