@@ -508,7 +508,7 @@ def _check_rhs(rhs, x_1, u_1, theta, x0, u, theta_name, shown):
                     f" (it has the shape of an input u[k], {u_1.shape}, from `u` of shape "
                     f"{u.shape}: does `u` have the columns the model reads?)"
                 )
-            elif len(x_1.shape) == len(got) == 1 and got[0] > x_1.shape[0]:
+            elif isinstance(got, tuple) and len(got) == len(x_1.shape) == 1 and got > x_1.shape:
                 hint = (
                     f" (if the model has {got[0]} states, x0 needs all {got[0]}, the "
                     "unmeasured ones too: e.g. np.r_[z[0], 0.0] for a measured position "
