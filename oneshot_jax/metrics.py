@@ -107,6 +107,13 @@ def _check(z, zhat, mask):
             f"`z` holds T = 1 sample of {shape[-1]} outputs (shape {shape}): is it transposed? "
             "(z is (T, n_z), time first)"
         )
+    if len(shape) == 2 and 2 <= shape[0] < shape[1]:  # (a transposed record of n_z >= 2)
+        warnings.warn(
+            f"`z` holds T = {shape[0]} samples of {shape[1]} outputs (shape {shape}): is it "
+            "transposed? (z is (T, n_z), time first; the scores are one per output)",
+            UserWarning,
+            stacklevel=3,
+        )
     if mask is None and np.isnan(np.asarray(z, dtype=float)).any():
         warnings.warn(
             "`z` holds NaN (missing samples), and every output with one scores NaN: pass "

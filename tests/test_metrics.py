@@ -345,6 +345,10 @@ def test_metrics_refuse_what_is_no_record_of_numbers(name):
     row = np.arange(30.0)[None]
     with pytest.raises(ValueError, match=r"T = 1 sample of 30 outputs .* is it transposed\?"):
         fn(row, row + 0.1)
+    # a record of two outputs transposed, (2, T): scored in silence as T outputs
+    wide = np.random.default_rng(1).standard_normal((2, 30))
+    with pytest.warns(UserWarning, match=r"T = 2 samples of 30 outputs .* is it transposed\?"):
+        fn(wide, wide + 0.1)
 
 
 def test_a_masked_array_with_nothing_masked_scores_as_its_data():
