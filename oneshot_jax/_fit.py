@@ -502,7 +502,7 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     # reaches the floor, or whose covariance resolves every entry, is not checked)
     zero = unresolved and result.status == "zero_residual"
     zero = zero and float(result.loss) > (64 * eps) ** 2 * float(output_norm(problem))
-    info = result.stop_info
+    info = info_in = result.stop_info
     # (in float64 a measure within gtol too: it is a cosine per column, and two columns
     # collinear to 1e-7 read 8e-9 <= 1e-8 2.4 standard errors from the optimum)
     within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
@@ -519,8 +519,21 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     if N * T * n_z * (theta.size + x0.size) > CHECK_ENTRIES:
         return result
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
-    down, se, lost = _gauss_newton_refutes_at(problem, params, strategy)
+    down, se, lost, regular = _gauss_newton_refutes_at(problem, params, strategy)
     info = dict(gauss_newton_se=float(se), precision=np.dtype(problem.dtype).name)
+    regular = not low and bool(regular) and float(se) > CHECK_SE
+    if status == "statistically_converged" and not info_in.get("settled") and regular:
+        # The test of an over-parameterised theta (a null space of its columns once the
+        # x0 columns are eliminated, in J^T J), in float64: where J itself has full rank,
+        # and theta's columns too by themselves, nothing is over-parameterised, and the
+        # step from J moves the fit by more than a standard error: the rank was lost in
+        # J^T J alone, along a direction of the data (an unstable gain on windows of 50
+        # samples, a^49 about 1e14, its column within 4e-14 of the windows' x0 columns:
+        # a success at a loss 600 times the optimum's, the step from J 15 standard
+        # errors, which the loss cannot confirm so far from the point; with x0 refitted
+        # the loss still fell along the gain). An exact null space (an output offset
+        # beside an integrator's x0) leaves J rank-deficient: the stop stands.
+        return _restated(result, "stalled", regular_jacobian=True, **info)
     if zero:
         # At a genuine round-off residual the part of r in J's range is about rank / R
         # of it (the step's decrease pred = se^2 C / (R - rank)); along a direction that

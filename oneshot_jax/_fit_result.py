@@ -124,6 +124,13 @@ def stop_detail(status: str, info: dict) -> str:
                 "off, not a minimum; a smaller step (learning rate), bounds or another start "
                 "keep the term acting"
             )
+        if info.get("regular_jacobian"):
+            return (
+                "the solver reported statistically_converged (theta rank-deficient in J^T "
+                "J), but the Jacobian itself has full rank, theta's columns by themselves "
+                "too, and its Gauss-Newton step moves the estimates by "
+                f"{_g(info['gauss_newton_se'])} standard errors: {tail}"
+            )
         if info.get("gauss_newton_refuted"):
             return (
                 f"the solver reported {info.get('solver_stop', 'converged')}, but the "
@@ -445,7 +452,11 @@ class FitResult(eqx.Module):
         float64 one whose covariance calls some free entry not identifiable, is refuted
         by the Gauss-Newton step from the Jacobian itself (checked after the solve,
         `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`
-        (that step's size in standard errors), `precision` and `solver_stop`; after such
+        (that step's size in standard errors), `precision` and `solver_stop`; with the
+        stop `stalled` where a float64 `statistically_converged` (not settled) had a
+        Jacobian of full rank, theta's columns too by themselves, and a step from it of
+        more than a standard error, `regular_jacobian` with `gauss_newton_se`,
+        `precision` and `solver_stop`; after such
         a least-squares failure that the same step refutes along a direction that J^T J
         loses, `gauss_newton_se` and `precision` (the message says to fit in float64,
         or in float64 to reparameterise); with the stop
@@ -600,6 +611,15 @@ class FitResult(eqx.Module):
             why = (
                 "this is not a solution: the first-order test holds on the plateau (its "
                 "gradient is 0), but the fit ended higher than it started"
+            )
+        elif info.get("regular_jacobian"):
+            why = (
+                "this is not a solution: the statistical test is for an over-parameterised "
+                "theta (a null space of its columns), and nothing is over-parameterised "
+                "here: a direction the data determine lost its rank in J^T J alone, its "
+                "columns nearly collinear with the initial states' (an unstable model's "
+                "sensitivities growing over long windows, say). Try another start, shorter "
+                "windows, or bounds that keep the model stable"
             )
         elif info.get("gauss_newton_refuted"):
             why = (

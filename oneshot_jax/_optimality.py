@@ -139,7 +139,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cost import weigh
-from ._linalg import NULL_CUT, floor
+from ._linalg import NULL_CUT, floor, numerical_rank
 from ._problem import FitProblem, Params
 from ._strategy import dense_jacobian_fits
 
@@ -494,7 +494,9 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
 
     **Returns:** (refuted, the step's size in standard errors, whether J^T J loses a
     direction that J keeps: a kept singular value whose square is at most the null cut
-    of `_linalg.scaled_eigh`, 1e3 eps of the largest)."""
+    of `_linalg.scaled_eigh`, 1e3 eps of the largest, and whether J has full rank and
+    theta's columns too by themselves, judged in J^T J as the solvers judge them:
+    `_linalg.numerical_rank` of J_t^T J_t against its diagonal)."""
     lin, J = _whole_jacobian(problem, params, strategy)
     N = lin.r.shape[0]
     p, m = lin.Jt.shape[-1], lin.Jx.shape[-1]
@@ -534,7 +536,10 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     alphas = jnp.asarray((1.0, 0.5, 0.25), dtype)
     confirmed = jnp.any(jax.lax.map(confirms, alphas))
     lost = jnp.any(kept & (s**2 <= NULL_CUT * eps * jnp.max(s, initial=0.0) ** 2))
-    return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost
+    A = lin.Jt.reshape(-1, p).T @ lin.Jt.reshape(-1, p)  # (theta's columns alone)
+    alone = numerical_rank(A, jnp.diag(A)) == p if p else jnp.array(True)
+    regular = (rank == J.shape[1]) & alone
+    return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost, regular
 
 
 # `newton_distance` forms the loss's Hessian (a forward derivative of the gradient per

@@ -89,8 +89,8 @@ class RESULTS(eqx.Enumeration):
         "scaled to order 1), or fix them"
     )
     statistically_converged = (
-        "statistical convergence: where the Jacobian's theta columns have a null space, "
-        "by themselves and once the initial states are fitted (an "
+        "statistical convergence: where the Jacobian's theta columns have a null space "
+        "once the initial states are fitted (an "
         "over-parameterised model, such as a network, on which the first-order test "
         "converges too slowly to be reached), the last accepted least-squares step, its "
         "predicted decrease confirmed by the actual one, changed the fit by at most the "

@@ -1976,8 +1976,10 @@ def test_a_gain_lost_to_the_windows_x0_columns_is_not_an_over_parameterised_thet
     x0 columns, below the cut of the Schur complement in J^T J (squared). Levenberg-
     Marquardt read theta as rank-deficient and stopped `statistically_converged`, a
     success, at a loss 600 times the optimum's, where the loss still fell along a with
-    x0 refitted (the gain's column alone has full rank: no network, nothing
-    over-parameterised). It stalls there now, as Gauss-Newton does."""
+    x0 refitted. The Jacobian itself has full rank there (the gain's column alone too:
+    nothing is over-parameterised) and its Gauss-Newton step is many standard errors:
+    `stalled` after the solve (`regular_jacobian`). An exact null space (an output
+    offset beside an integrator's x0) keeps the stop: see the next test."""
     model = oj.Model(lambda x, u, th: th["a"] * x + u)
     for seed in (0, 2, 3, 4):
         rng = np.random.default_rng(seed)
@@ -1989,6 +1991,38 @@ def test_a_gain_lost_to_the_windows_x0_columns_is_not_an_over_parameterised_thet
             r = oj.fit(model, {"a": 2.0}, np.zeros(1), u, z, window=50)
         assert float(r.theta["a"]) > 1.9 and float(r.loss) > 1.0  # (the optimum: 2.5e-3)
         assert not r.success and r.status == "stalled", (seed, r.status)
+        assert r.stop_info["regular_jacobian"] and r.stop_info["gauss_newton_se"] > 1.0
+
+
+@pytest.mark.default_optimisation  # (the stop at the optimum is decided at round-off)
+def test_an_offset_beside_an_integrators_x0_still_converges_statistically():
+    """An output offset of 1e4 exactly collinear with an integrator's x0: theta's
+    columns have full rank by themselves and lose it once x0 is eliminated, and J itself
+    is rank-deficient (an exact null space). Levenberg-Marquardt stops at the optimum
+    `statistically_converged` (a rule that asked theta's columns to be deficient by
+    themselves made it `stalled` there)."""
+
+    def step(x, u, th):
+        return jnp.stack([th["a"] * x[0] + th["b"] * u[0], x[1] + th["d"] * u[0]])
+
+    model = oj.Model(step, lambda x, u, th: x[:1] + x[1:] + th["c"])
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((2000, 1))
+    truth = {"a": 0.9, "b": 0.5, "d": 0.01, "c": 1e4}
+    _, z = oj.simulate(model, truth, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + 1e-3 * rng.standard_normal((2000, 1))
+    start = {"a": 0.85, "b": 0.45, "d": 0.02, "c": 1e4 - 0.5}
+    x0 = np.array([float(z[0, 0]) - 1e4 + 0.5, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (c and x0[1] are not identifiable apart)
+        r = oj.fit(model, start, x0, u, z)
+    ref = scipy.optimize.least_squares(
+        lambda p: np.ravel(oj.simulate(model, dict(zip("abdc", p[:4])), p[4:], u)[1] - z),
+        np.r_[[float(r.theta[k]) for k in "abdc"], np.ravel(r.x0)],
+        method="lm",
+    )
+    assert np.sum(ref.fun**2) >= float(r.loss) * 2000 * (1 - 1e-6)  # (at the optimum)
+    assert r.success, (r.status, r.stop_info)
 
 
 def test_the_step_size_in_standard_errors_counts_the_rank():

@@ -120,11 +120,6 @@ class AbstractLinearisation(eqx.Module):
         J^T J is not formed (`forms_normal_matrix` False)."""
         return None
 
-    def rank_alone(self):
-        """The numerical rank of theta's columns of J by themselves (the x0 columns not
-        eliminated), or None where J^T J is not formed."""
-        return None
-
     def diag_x(self) -> jax.Array:
         """diag(J_x,i^T J_x,i) (N, m): Marquardt's diagonal of the x0 columns."""
         return jax.vmap(jnp.diag)(self.Cb)
@@ -209,10 +204,6 @@ class DenseLinearisation(AbstractLinearisation):
         rank_x = jnp.sum(numerical_rank(self.Cb)) if m and self.Cb.shape[0] else 0
         rank_t = numerical_rank(self.S, jnp.diag(self.A)) if p else 0
         return jnp.asarray(rank_x + rank_t), jnp.asarray(rank_t)
-
-    def rank_alone(self):
-        """rank J_t, judged on A = J_t^T J_t against its diagonal, as `rank` judges S."""
-        return jnp.asarray(numerical_rank(self.A, jnp.diag(self.A)) if self.A.shape[0] else 0)
 
     def rank_and_decrease(self):
         """(rank J, rank S, g^T (J^T J)^+ g): `rank`, and the decrease of C that the

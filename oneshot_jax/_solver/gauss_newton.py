@@ -21,8 +21,8 @@ class GaussNewton(AbstractLeastSquares):
         projected gradient, the largest cosine between the residual and a Jacobian
         column, is at most `gtol` (see `oneshot_jax._optimality`).
     - `stol`: the statistical test, only where theta's columns of the Jacobian have a
-        null space, by themselves and once the initial states are fitted (an
-        over-parameterised model such as a network, where the first-order test is not
+        null space once the initial states are fitted (an over-parameterised model such
+        as a network, where the first-order test is not
         reached): the fit converges (succeeds, `statistically_converged`) when an
         accepted step, its predicted decrease of the loss confirmed by the actual one
         (at least a quarter of it), moves the fit by at most `stol` standard errors

@@ -44,8 +44,8 @@ fit, at a degenerate minimum, is measured there at the largest norm it had:
 is `zero_residual` (success) when it can make no further progress with the loss at the
 round-off level of the data (also after an accepted step below round-off of the scaled
 parameters, ||D s|| <= eps ||D p||, where the loss keeps falling by round-off). Where
-theta's columns of J are rank deficient, by themselves and with the x0 columns eliminated
-(an over-parameterised model, a network in theta), it is
+theta's columns of J, with the x0 columns eliminated, are rank deficient (an
+over-parameterised model, a network in theta), it is
 `statistically_converged` (success) when an accepted step, its predicted decrease confirmed
 by the actual one, moved the fit by at most `stol` standard errors
 (`_optimality.standard_errors`; the first-order test is not reached there). Where they
@@ -643,15 +643,10 @@ class AbstractLeastSquares(AbstractSolver):
         candidate = take & (pred > 0) & (actual > 0) & (actual >= 0.25 * pred)
         candidate = candidate & (se_min <= self.stol) & (fo * jnp.sqrt(dof_min) <= 1.0)
         p = s.theta.size
-
-        def formed():
-            return (*self._undamped(problem, old, b), b.rank_alone().astype(jnp.int32))
-
-        full_rank = jnp.asarray(p, jnp.int32)
-        rank, rank_t, pred_full, rank_alone = lazy_cond(
+        rank, rank_t, pred_full = lazy_cond(
             candidate,
-            formed,
-            (jnp.asarray(n_free, jnp.int32), full_rank, jnp.zeros((), dtype), full_rank),
+            lambda: self._undamped(problem, old, b),
+            (jnp.asarray(n_free, jnp.int32), jnp.asarray(p, jnp.int32), jnp.zeros((), dtype)),
         )
         se = standard_errors(pred, C, n_obs, rank)
         within = (se <= self.stol) & (fo * jnp.sqrt(n_obs - rank) <= 1.0)
@@ -664,14 +659,8 @@ class AbstractLeastSquares(AbstractSolver):
         within = within & (se_full**2 <= rank)
         # Over-parameterised theta only: a null space of the initial states alone (an
         # unobservable state, or x0 columns nearly parallel at a poor point) does not
-        # make the steps creep, and the first-order test decides there. Nor does one of
-        # theta's columns alone full rank, lost only once the x0 columns are eliminated:
-        # an unstable first-order model on windows of 50 samples (a^49 about 1e14), its
-        # one gain's column within 4e-14 of the span of the windows' x0 columns (below
-        # S's cut in J^T J, squared), read "rank-deficient" and stopped as a success at
-        # a loss 600 times the optimum's, where the profile over x0 still fell.
-        deficient = (rank_t < p) & (rank_alone < p)
-        return se, candidate & deficient & within
+        # make the steps creep, and the first-order test decides there.
+        return se, candidate & (rank_t < p) & within
 
     def _undamped(self, problem, at, b):
         """(rank J, rank S, pred): the numerical ranks (`AbstractLinearisation.rank`) and

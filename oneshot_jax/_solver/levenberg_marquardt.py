@@ -26,11 +26,11 @@ class LevenbergMarquardt(AbstractLeastSquares):
         projected gradient, the largest cosine between the residual and a Jacobian
         column, is at most `gtol` (see `oneshot_jax._optimality`).
     - `stol`: the statistical test, only where theta's columns of the Jacobian have a
-        null space, by themselves and once the initial states are fitted (a network in
-        theta): the fit converges (succeeds, `statistically_converged`) when an accepted
-        step moves it by at most `stol` standard errors, with the conditions given under
-        `GaussNewton` (and, on a regular Jacobian, settles a stop at round-off as
-        described there). 0 turns it off.
+        null space once the initial states are fitted (a network in theta): the fit
+        converges (succeeds, `statistically_converged`) when an accepted step moves it by
+        at most `stol` standard errors, with the conditions given under `GaussNewton`
+        (and, on a regular Jacobian, settles a stop at round-off as described there).
+        0 turns it off.
     - `rtol`, `atol`: an optional step test (off by default): an accepted step of
         scaled size at most rtol ||D p|| + atol that decreased the loss by at most
         rtol C + atol ends the fit, as `converged` if the first-order measure is at
