@@ -462,7 +462,15 @@ def report(result) -> str:
             if _computed(result)
             else "  (not a solution: see the status)"
         )
-        if "gauss_newton_se" in result.stop_info:  # (`_fit._flag_unresolved_success`)
+        if result.stop_info.get("regular_jacobian"):  # (`_fit._flag_unresolved_success`)
+            out.append(
+                "  (the Jacobian has full rank: the inf standard errors below come from "
+                "J^T J, which loses a direction the data determine; the Gauss-Newton step "
+                f"from the Jacobian moves the estimates by "
+                f"{result.stop_info['gauss_newton_se']:.3g} standard errors; try another "
+                "start, shorter windows, or bounds that keep the model stable)"
+            )
+        elif "gauss_newton_se" in result.stop_info:  # (`_fit._flag_unresolved_success`)
             precision = result.stop_info.get("precision", "this precision")
             out.append(
                 f"  ({precision} cannot resolve this problem in J^T J: the Gauss-Newton "
