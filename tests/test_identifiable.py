@@ -228,7 +228,7 @@ def test_fit_orthogonal_does_not_count_an_entry_held_by_fixed_as_unresolved(case
     assert np.isfinite(r.rounds[0].moved) and np.isfinite(r.rounds[0].absorbed)
 
 
-def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case):
+def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case, tmp_path):
     """A round whose fit stopped short (here its step budget of one step) moves the
     physics by whatever that fit did: within the tolerances (a loose `rtol` here) it
     ended the rounds as "converged". A round converges only where its fit succeeded; the
@@ -249,6 +249,11 @@ def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case):
     assert all(round.change <= 1e3 for round in r.rounds)  # (the tolerance held)
     assert not r.converged and not r.success
     assert "2 rounds (not converged)" in str(r)
+    # `save_result` of an `Orthogonal` said to save its `.result`, which is the last
+    # round's fit of the augmented model: it loads with that model only, not the user's.
+    with pytest.raises(TypeError, match=r"An Orthogonal is not saved whole, and its `.result` is"):
+        oj.save_result(r, tmp_path / "o.npz")
+    assert np.shape(r.result.x0) != np.shape(r.x0)  # (why: the augmented model's x0)
 
 
 def test_physics_first_learns_a_term_written_as_a_python_float(case):
@@ -275,25 +280,6 @@ def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case):
     as_float = oj.fit_orthogonal(model, {**theta0, "g": 1.0}, np.zeros(2), u, z, **short)
     assert len(as_int.rounds) == 2
     assert float(as_int.theta["g"]) == float(as_float.theta["g"]) != 1.0
-
-
-def test_saving_an_orthogonal_result_says_its_result_is_the_augmented_models(case, tmp_path):
-    """`save_result` of an `Orthogonal` said to save its `.result`, which is the last
-    round's fit of the augmented model: it loads with that model only, not the user's."""
-    model, theta0, u, z = case
-    r = oj.fit_orthogonal(
-        model,
-        theta0,
-        np.zeros(2),
-        u,
-        z,
-        learned="r",
-        rounds=1,
-        solver=oj.LevenbergMarquardt(max_steps=1),
-    )
-    with pytest.raises(TypeError, match=r"An Orthogonal is not saved whole, and its `.result` is"):
-        oj.save_result(r, tmp_path / "o.npz")
-    assert np.shape(r.result.x0) != np.shape(r.x0)  # (why: the augmented model's x0)
 
 
 def test_orthogonal_penalty_and_its_gradient():
