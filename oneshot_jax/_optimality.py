@@ -536,8 +536,11 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
     alphas = jnp.asarray((1.0, 0.5, 0.25), dtype)
     confirmed = jnp.any(jax.lax.map(confirms, alphas))
     lost = jnp.any(kept & (s**2 <= NULL_CUT * eps * jnp.max(s, initial=0.0) ** 2))
-    A = lin.Jt.reshape(-1, p).T @ lin.Jt.reshape(-1, p)  # (theta's columns alone)
-    alone = numerical_rank(A, jnp.diag(A)) == p if p else jnp.array(True)
+    alone = jnp.array(True)
+    if p:  # (theta's columns alone; none in an x0-only fit)
+        Jt = lin.Jt.reshape(-1, p)
+        A = Jt.T @ Jt
+        alone = numerical_rank(A, jnp.diag(A)) == p
     regular = (rank == J.shape[1]) & alone
     return (se > CHECK_SE) & confirmed & jnp.isfinite(here), se, lost, regular
 
