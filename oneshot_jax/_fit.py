@@ -477,6 +477,10 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
       from J^T J's diagonal and whose Newton check (`_settle`) has no step where J^T J
       is singular to this precision (L-BFGS in float32 stopped 2.2 standard errors from
       the optimum of an output offset next to an input of large mean);
+    - in float64, a `statistically_converged` that is not a settled stall becomes
+      `stalled` (`stop_info["regular_jacobian"]`) where J has full rank, theta's columns
+      by themselves too, and the step is over `CHECK_SE` standard errors, confirmed or
+      not: the test is for an over-parameterised theta, and none is (see below);
     - where the last solver is a least-squares one (`least_squares`: they form J^T J),
       a failure (`max_steps_reached`, `stalled`, `no_progress`) that the step refutes,
       where J^T J loses a direction that J keeps, is left as it is, its message then
@@ -502,7 +506,7 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     # reaches the floor, or whose covariance resolves every entry, is not checked)
     zero = unresolved and result.status == "zero_residual"
     zero = zero and float(result.loss) > (64 * eps) ** 2 * float(output_norm(problem))
-    info = info_in = result.stop_info
+    info = result.stop_info
     # (in float64 a measure within gtol too: it is a cosine per column, and two columns
     # collinear to 1e-7 read 8e-9 <= 1e-8 2.4 standard errors from the optimum)
     within_gtol = info.get("first_order", np.nan) <= info.get("gtol", np.nan)
@@ -518,11 +522,12 @@ def _flag_unresolved_success(result, problem, out, strategy, least_squares):
     theta, x0 = np.asarray(out.start_theta[best]), np.asarray(out.start_x0[best])
     if N * T * n_z * (theta.size + x0.size) > CHECK_ENTRIES:
         return result
+    settled = info.get("settled")
     params = Params(jnp.asarray(theta), jnp.asarray(x0))
     down, se, lost, regular = _gauss_newton_refutes_at(problem, params, strategy)
     info = dict(gauss_newton_se=float(se), precision=np.dtype(problem.dtype).name)
     regular = not low and bool(regular) and float(se) > CHECK_SE
-    if status == "statistically_converged" and not info_in.get("settled") and regular:
+    if status == "statistically_converged" and not settled and regular:
         # The test of an over-parameterised theta (a null space of its columns once the
         # x0 columns are eliminated, in J^T J), in float64: where J itself has full rank,
         # and theta's columns too by themselves, nothing is over-parameterised, and the

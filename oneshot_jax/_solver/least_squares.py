@@ -319,8 +319,9 @@ class AbstractLeastSquares(AbstractSolver):
         full point. Entries that the projection leaves where they are although the step
         moves them (at a bound, pushed outwards by the coupling with the other entries, or
         held by a general projection) are held too and the step solved again, so that the
-        other entries take the step of the reduced problem. Under a box (with or without a
-        general projection), so are entries the projection stops short of their step (a
+        other entries take the step of the reduced problem. Under a box alone (sets
+        combined with a general projection have no bounds of their own here,
+        `problem.lower` None), so are entries the clip stops short of their step (a
         bound met on the way): they move there, and the others take the step that
         minimises the damped linear model with that move made (the gradient shifted by
         J^T J_t d, `shifted`), not the step that assumed them past it (which the clip made
