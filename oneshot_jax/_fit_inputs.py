@@ -36,7 +36,13 @@ from ._progress import NoProgress, TqdmProgress
 from ._prox import check_projection, check_regulariser, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
-from ._starts import check_finite_starts, check_fixed_starts, check_held_x0_starts, theta_starts
+from ._starts import (
+    as_flag,
+    check_finite_starts,
+    check_fixed_starts,
+    check_held_x0_starts,
+    theta_starts,
+)
 from ._timing import split_intervals
 from ._validation import monitor
 from ._windows import BlowUp, cut
@@ -145,6 +151,7 @@ def check_inputs(
     u_ndim = 3 if is_ragged(u) or is_ragged(z) else np.ndim(u)
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
+    multistart = as_flag(multistart)
     starting = multistart is not False and multistart is not None
     if window is not None and starting and np.ndim(x0) == 3:
         raise ValueError(

@@ -300,9 +300,10 @@ class Starts(eqx.Module):
     - `theta`: theta's parameter pytree with a leading axis of starts.
     - `loss`: the final loss of each start.
     - `x0`: the initial state each start ended at, with a leading axis of starts (the
-        shape of `FitResult.x0` after it): `oj.loss(model, theta_s, x0[s], u, z)` with
-        `theta_s` the start's row of `theta` gives its `loss`. None in a file saved before
-        it was kept.
+        shape of `FitResult.x0` after it): `oj.loss(model, result.start_theta(s),
+        x0[s], u, z)` gives its `loss` (`FitResult.start_theta`: the row of `theta` with
+        theta's parts that are not parameters, which `theta` leaves out). None in a file
+        saved before it was kept.
     - `stop_reason`: the `RESULTS` name of each start's stop (a tuple of strings).
     - `solver_stop`: each start's own solver stop, the same as `stop_reason` except where
         a check after the solver replaced it (`validation`: the best-scoring iterate kept;
@@ -377,7 +378,8 @@ class FitResult(eqx.Module):
         its fits.
     - `history`: a `FitHistory` of the iterates.
     - `residuals`: e = zhat - z, the shape of `z`; (n_windows, window, n_z) for a fit
-        with `window=` (each window simulated from its own fitted x0).
+        with `window=` (each window simulated from its own fitted x0); (N, T_max, n_z)
+        for records of different lengths, NaN past each record's end.
     - `names`: a name per free parameter (`"k"`, `"I[2]"`, `"net.layers.0.weight[1, 3]"`).
     - `fixed`: a flat boolean mask over theta's parameter entries (True where fixed).
     - `covariance`: sigma^2 (J^T J)^+ of the free parameters of theta, its rows and
@@ -674,6 +676,27 @@ class FitResult(eqx.Module):
             lambda v, s: np.asarray(np.asarray(v) + 1.96 * s), params, self.std
         )
         return lo, hi
+
+    def start_theta(self, s):
+        """The whole theta that start `s` of a multistart fit ended at: its row of
+        `starts.theta` (the parameters) with the parts of theta that are not parameters
+        (an equinox module's activation, an integer leaf held as data) as in `theta`, so
+        that `oj.loss(result.model, result.start_theta(s), result.starts.x0[s], u, z)`
+        gives `starts.loss[s]`.
+
+        **Arguments:** `s`, the index of the start (an int, negative from the end).
+
+        **Returns:** theta's pytree.
+        """
+        if self.starts is None:
+            raise ValueError("`start_theta`: this result is not of a multistart fit (no `starts`).")
+        n = int(np.shape(self.starts.loss)[0])
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)):
+            raise TypeError(f"`s` must be the index of a start (an int), got {type(s).__name__}.")
+        if not -n <= s < n:
+            raise ValueError(f"`s` must be the index of one of the {n} starts, got {s}.")
+        row = jax.tree_util.tree_map(lambda a: np.asarray(a)[s], self.starts.theta)
+        return _pytree.combine(row, _pytree.split(self.theta)[1])
 
     def simulate(self, u, x0=None, *, t=None):
         """Simulate the fitted model on inputs `u` (T, n_u) (or (N, T, n_u)), from `x0`,

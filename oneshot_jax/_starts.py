@@ -17,6 +17,12 @@ import numpy as np
 from . import _pytree
 
 
+def as_flag(multistart):
+    """`multistart` with a NumPy bool read as Python's (`np.True_` from a config or an
+    array's `any()`): the checks below test `is True` and `is False`."""
+    return bool(multistart) if isinstance(multistart, np.bool_) else multistart
+
+
 def _name(path) -> str:
     """theta's entry at `path`, written as a user indexes it: `theta['phys']['k']`."""
     return "theta" + jax.tree_util.keystr(tuple(path))

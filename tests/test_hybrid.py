@@ -284,6 +284,19 @@ def test_fit_with_an_mlp_in_theta_fixed_parts_multistart_and_save_load(tmp_path)
     np.testing.assert_array_equal(
         ms.theta["r"].layers[0].weight, ms.starts.theta["r"].layers[0].weight[best]
     )
+    # Each start's whole theta (the module's activation with its row of parameters, which
+    # `starts.theta` holds without it) and x0 give its loss, also after save and load.
+    ms.save(tmp_path / "starts.npz")
+    for r in (ms, oj.load_result(tmp_path / "starts.npz", like=ms.theta)):
+        for s in (0, 1, -1):
+            theta_s = r.start_theta(s)
+            assert isinstance(theta_s["r"], MLP)
+            C = oj.loss(duffing.MODEL, theta_s, r.starts.x0[s], u, z)
+            np.testing.assert_allclose(float(C), r.starts.loss[s], rtol=1e-9)
+    with pytest.raises(ValueError, match=r"`s` must be the index of one of the 2 starts"):
+        ms.start_theta(2)
+    with pytest.raises(ValueError, match=r"not of a multistart fit"):
+        back.start_theta(0)
 
 
 #

@@ -156,6 +156,17 @@ def test_multistart_true_still_needs_every_leaf(data, theta0):
         oj.fit(MODEL, theta0, x0, u, z, multistart=True)
 
 
+def test_numpy_bools_are_read_as_python_bools(data, theta0):
+    """`np.True_` (a config's or an array's `any()`) was refused as "got bool", and
+    `np.False_` started a multistart fit."""
+    x0, u, z = data
+    with pytest.raises(ValueError, match=r"multistart=\{"):
+        oj.fit(MODEL, theta0, x0, u, z, multistart=np.True_)
+    solver = oj.LevenbergMarquardt(max_steps=2)
+    r = oj.fit(MODEL, theta0, x0, u, z, multistart=np.False_, solver=solver)
+    assert r.starts is None
+
+
 @pytest.mark.parametrize(
     "spec, error, match",
     [
