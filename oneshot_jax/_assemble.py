@@ -241,7 +241,9 @@ def _settings(solver) -> dict:
     return dict(kept[1])
 
 
-def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, low=None):
+def _warn_identifiability(
+    names, ok, what, stop, unconverged=0, worst_fit=None, low=None, shrunk=None
+):
     """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
     that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
     at a blown-up simulation, say), after `unconverged` parallel rollouts that kept
@@ -251,7 +253,10 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, 
     the rollouts' only, and the warning says so. `low`: the name of a precision below
     float64, where J^T J's round-off alone makes nearly collinear columns read null (an
     output offset next to an input of large mean: finite standard errors in float64),
-    and the warning says that instead."""
+    and the warning says that instead. `shrunk`: "regularised" or "penalised" for a fit
+    with a regulariser or a penalty, whose solution (a term the regulariser set to zero,
+    whose coefficients then act on nothing) may make columns vanish that the data
+    determine elsewhere."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
@@ -269,6 +274,13 @@ def _warn_identifiability(names, ok, what, stop, unconverged=0, worst_fit=None, 
                 f"where the fit stopped ({stop}, but an output's FIT is {worst_fit:.3g} %, "
                 "worse than its mean: likely a bad minimum, see `oj.check_basin`)",
                 "not identifiable there, which may be the point's and not the data's",
+            )
+        elif stop in SUCCESS and shrunk is not None:
+            where, verdict = (
+                f"at the solution of the {shrunk} problem",
+                "not identifiable there, which may be the point's (a term the "
+                f"{'penalty' if shrunk == 'penalised' else 'regulariser'} switched "
+                "off) and not the data's",
             )
         elif stop in SUCCESS:
             where, verdict = ("at the solution", "not identifiable from these data")
@@ -415,10 +427,22 @@ def assemble(
         diverged = stop == "diverged"
         unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
         worst = worst_fit(met.get("fit_percent"), problem.cost.weight)
+        shrunk = "regularised" if problem.regulariser is not None else None
+        if shrunk is None and problem.cost.penalty is not None:
+            shrunk = "penalised"
+        if shrunk is not None:
+            worst = None  # (their optimum may fit worse than the mean, as `fit` says)
         low = below_float64(problem.dtype)
         if not diverged:
             _warn_identifiability(
-                names, scaled.theta_identifiable, "parameters", stop, unconverged, worst, low
+                names,
+                scaled.theta_identifiable,
+                "parameters",
+                stop,
+                unconverged,
+                worst,
+                low,
+                shrunk,
             )
         if not diverged and not scaled.x0_identifiable.all():
             n_traj, n_x = X0.shape
@@ -436,6 +460,7 @@ def assemble(
                 unconverged,
                 worst,
                 low,
+                shrunk,
             )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
         if not diverged and dof <= 0 and n_free:

@@ -33,7 +33,7 @@ from ._fit_report import check_units
 from ._normalise import is_ragged
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
-from ._prox import check_projection, check_regulariser, split
+from ._prox import check_projection, check_regulariser, check_regulariser_acts, split
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver_arg import as_solvers
 from ._starts import (
@@ -474,6 +474,7 @@ def build_problem(
             s.check_regulariser(reg)
         on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
         check_regulariser(on_theta, data.theta)
+        check_regulariser_acts(on_theta, free.unravel, flat0, theta_free)
         if proj is not None and proj.bounds is None:
             warnings.warn(
                 "a regulariser with a general projection (`constraints.project`, or sets "

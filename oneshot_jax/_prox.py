@@ -264,6 +264,28 @@ def check_regulariser(regulariser, theta):
         )
 
 
+def check_regulariser_acts(regulariser, unravel, flat0, theta_free):
+    """Refuse a regulariser of positive strength whose value does not change with the
+    free entries of theta (its `where` selects nothing that `fit` estimates: nothing, or
+    held entries only, where it added a constant to the loss), checked at two points that
+    differ in every free entry (0.5 and 2 there, theta0's values elsewhere)."""
+    strength = regulariser.strength
+    if strength is None or not strength > 0:  # (lambda = 0: no test to make)
+        return
+    values = []
+    for v in (0.5, 2.0):
+        flat = np.array(flat0, copy=True)
+        flat[np.asarray(theta_free, int)] = v
+        values.append(float(regulariser.value(unravel(flat))))
+    if np.isfinite(values[0]) and values[0] == values[1]:
+        raise ValueError(
+            "`regulariser`: it acts on no entry of theta that the fit estimates (its `where` "
+            "selects no parameter, or only entries held by `fixed`), so it would change "
+            "nothing but add a constant to the loss. Select estimated parameters, or leave "
+            "`regulariser` out."
+        )
+
+
 def step_at(learning_rate, count):
     """The step of `learning_rate` (a number or an optax schedule) at update `count`."""
     return learning_rate(count) if callable(learning_rate) else learning_rate

@@ -534,6 +534,50 @@ def test_fit_takes_regulariser_and_constraints_as_two_keywords():
     _same(new, mixed)
 
 
+@pytest.mark.parametrize(
+    "where, fixed",
+    [({"a": False, "b": False, "c": False}, None), ({"a": False, "b": False, "c": True}, "c")],
+)
+def test_a_regulariser_on_no_estimated_entry_is_refused(where, fixed):
+    """A `where` selecting nothing ran as a plain fit in silence; one selecting held
+    entries only added a constant lambda |c| to the loss. A zero strength is no error
+    (a path of lambdas starts there), nor is a selection of held and estimated entries."""
+    u, z = _lin_data()
+    kw = dict(solver=oj.Adam(5e-2, max_steps=2), fixed=fixed)
+    with pytest.raises(ValueError, match="`regulariser`: it acts on no entry of theta that"):
+        oj.fit(LIN, LIN_THETA0, np.ones(1), u, z, regulariser=sp.l1(0.5, where=where), **kw)
+    oj.fit(LIN, LIN_THETA0, np.ones(1), u, z, regulariser=sp.l1(0.0, where=where), **kw)
+    both = {"a": False, "b": True, "c": True}
+    oj.fit(LIN, LIN_THETA0, np.ones(1), u, z, regulariser=sp.l1(0.5, where=both), **kw)
+
+
+def test_columns_a_regulariser_switched_off_are_not_blamed_on_the_data():
+    """A strong l1 on a gain g sets it to 0 at the solution, where b (which g multiplies)
+    acts on nothing: the warning said "not identifiable from these data", and called the
+    regulariser's optimum (FIT below 0, the outputs' mean fits better) "likely a bad
+    minimum", which `fit` itself does not say with a regulariser."""
+    gain = oj.Model(lambda x, u, th: th["a"] * x + th["g"] * th["b"] * u[0])
+    u = 1.0 + np.random.default_rng(0).standard_normal((30, 1))  # (z's mean is not 0)
+    _, z = oj.simulate(gain, {"a": np.array([0.8]), "g": 1.0, "b": 0.6}, np.zeros(1), u)
+    reg = sp.l1(100.0, where={"a": False, "g": True, "b": False})
+    with pytest.warns(UserWarning) as rec:
+        r = oj.fit(
+            gain,
+            {"a": np.array([0.8]), "g": 1.0, "b": 0.3},
+            np.zeros(1),
+            u,
+            z,
+            solver=oj.Adam(5e-2, max_steps=300),
+            regulariser=reg,
+            fixed={"a": True},
+            estimate_x0=False,
+        )
+    assert r.success and float(r.theta["g"]) == 0.0 and r.metrics["fit_percent"][0] < 0
+    (msg,) = [str(w.message) for w in rec if "rank-deficient" in str(w.message)]
+    assert "at the solution of the regularised problem: parameters ['b']" in msg
+    assert "from these data" not in msg and "bad minimum" not in msg
+
+
 def test_a_regularised_fit_says_what_its_standard_errors_are():
     """The covariance of a regularised fit is that of C alone at the shrunk estimate (a
     probe's intervals excluded the truth, and zeros had intervals): the printout says so
