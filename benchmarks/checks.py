@@ -52,7 +52,7 @@ def row(T, repeats):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--T", type=int, nargs="+", default=[400, 1500])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()

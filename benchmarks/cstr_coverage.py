@@ -134,9 +134,12 @@ def main(argv=None):
         print(table(rec))
     cover = 100 * results["aggregated"]["hit"].mean(0)
     verdict = "within" if np.all((cover >= 90) & (cover <= 99)) else "OUTSIDE"
+    verdict = f"{verdict} 90..99 %"
+    if draws < 20:  # (5 draws cover 0, 20, ..., 100 %: none of them inside the band)
+        verdict = f"{draws} draws are too few to judge a 95 % coverage"
     print(
         f"\nCoverage of (a): {', '.join(f'{n} {c:.0f} %' for n, c in zip(NAMES, cover))}: "
-        f"{verdict} 90..99 %."
+        f"{verdict}."
     )
     return 0
 

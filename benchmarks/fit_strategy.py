@@ -100,7 +100,7 @@ def render(paths):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--nx", type=int, nargs="+", default=[2], help="state sizes")
     ap.add_argument(
         "--horizons", type=float, nargs="+", default=[1_000, 10_000], help="record lengths T"

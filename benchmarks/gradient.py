@@ -245,7 +245,7 @@ def run_timings(horizons, repeats):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="T in {50, 500} only")
     ap.add_argument("--json", metavar="PATH", help="write the numbers to PATH")
     ap.add_argument("--repeats", type=int, default=15, help="samples per median (default 15)")

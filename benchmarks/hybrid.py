@@ -183,7 +183,7 @@ def fit_table(u, z, x0, widths, steps):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small sizes only")
     parser.add_argument("--T", type=int, default=2000, help="samples (default 2000)")
     parser.add_argument("--repeats", type=int, default=5)

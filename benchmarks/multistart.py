@@ -106,7 +106,7 @@ def calls(T, S, solver, same=False):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--T", type=int, nargs="+", default=[500, 2000])
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=7)

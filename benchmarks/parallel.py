@@ -286,7 +286,7 @@ def fit_table(rows):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     grid = ap.add_mutually_exclusive_group()
     grid.add_argument("--quick", action="store_true", help="T in {1e3, 1e4}, n_x in {2, 8}")
     grid.add_argument("--full", action="store_true", help="every T up to 1e6 at every n_x")

@@ -35,7 +35,7 @@ from oneshot_jax.internal import METHOD_NAMES, newton_rollout, rollout  # noqa: 
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--T", type=int, default=2000)
     parser.add_argument(
         "--chunks", nargs="+", default=["none", "500", "100"], help="chunk sizes ('none')"

@@ -51,7 +51,7 @@ def make_data(N, T_w, seed=0):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="N in {10, 50} only")
     parser.add_argument("--figure", default=None, help="save a PNG of time against N")
     parser.add_argument("--json", default=None, help="write the numbers as JSON")

@@ -139,5 +139,19 @@ def test_example_helpers_name_bad_arguments():
         satellite.generate([0], 0)
     with pytest.raises(ValueError, match="`seeds` must hold at least one"):
         satellite.generate([], 5)
+    # (a seed of 0.7 ran as seed 0; a bare int, a 2-entry theta and substeps=0 raised
+    # TypeError, NumPy's broadcast error and ZeroDivisionError; a negative noise ran)
+    bad = [
+        (dict(seeds=[0.7]), "`seeds` must be integers >= 0, got 0.7"),
+        (dict(seeds=0), "`seeds` must be a sequence"),
+        (dict(seeds=[-1]), "`seeds` must be integers >= 0"),
+        (dict(theta=(1.0, 2.0)), "`theta` must hold 3 entries"),
+        (dict(substeps=0), "`substeps` must be an integer >= 1"),
+        (dict(noise_std=-1.0), "`noise_std` must be a finite number >= 0"),
+        (dict(dt=0.0), "`dt` must be positive"),
+    ]
+    for kw, match in bad:
+        with pytest.raises(ValueError, match=match):
+            satellite.generate(**{"seeds": [0], "n": 5, **kw})
     with pytest.raises(ValueError, match="`kind` must be one of"):
         cascaded_tanks.constraints("Overflow")

@@ -107,6 +107,12 @@ def simulate_np(inertia, w0, M, dt=DT, substeps=5):
     return out
 
 
+def _count(value, least) -> bool:
+    """Whether `value` is an integer (not a bool) of at least `least`."""
+    ok = not isinstance(value, (bool, np.bool_)) and isinstance(value, numbers.Integral)
+    return ok and value >= least
+
+
 def generate(
     seeds,
     n,
@@ -139,11 +145,28 @@ def generate(
     A dict of NumPy arrays: `u` (S, n, 3) torque, `x` (S, n, 3) true angular velocity,
     `z` (S, n, 3) measurement, and `t` (n,) the sample times.
     """
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__iter__"):
+        raise ValueError(f"`seeds` must be a sequence of integer seeds, got {seeds!r}.")
     seeds = list(seeds)
     if not seeds:
         raise ValueError("`seeds` must hold at least one integer seed, got none.")
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+    for seed in seeds:
+        if not _count(seed, 0):
+            raise ValueError(f"`seeds` must be integers >= 0, got {seed!r}.")
+    if not _count(n, 1):
         raise ValueError(f"`n` (samples per record) must be an integer >= 1, got {n!r}.")
+    if not _count(substeps, 1):
+        raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
+    for name, value in (("theta", theta), ("w0", w0)):
+        if np.shape(value) != (3,):
+            raise ValueError(
+                f"`{name}` must hold 3 entries (one per axis), got shape {np.shape(value)}."
+            )
+    for name, value in (("dt", dt), ("torque_std", torque_std), ("noise_std", noise_std)):
+        if np.ndim(value) != 0 or not np.isfinite(float(value)) or float(value) < 0:
+            raise ValueError(f"`{name}` must be a finite number >= 0, got {value!r}.")
+    if float(dt) == 0:
+        raise ValueError("`dt` must be positive, got 0.")
     us, es = [], []
     for seed in seeds:
         streams = np.random.SeedSequence(int(seed)).spawn(2)
