@@ -33,8 +33,15 @@ from ._fit_report import check_units
 from ._normalise import is_ragged
 from ._problem import FitProblem, Params, Regulariser
 from ._progress import NoProgress, TqdmProgress
-from ._prox import check_projection, check_regulariser, check_regulariser_acts, split
+from ._prox import (
+    check_projection,
+    check_regulariser,
+    check_regulariser_acts,
+    separable,
+    split,
+)
 from ._solver.least_squares import AbstractLeastSquares
+from ._solver.optax import Adam
 from ._solver_arg import as_solvers
 from ._starts import (
     as_flag,
@@ -472,17 +479,21 @@ def build_problem(
     if reg is not None:
         for s in solvers:
             s.check_regulariser(reg)
-        on_theta = Regulariser(reg.prox, reg.value, data.static, reg.strength, reg.learning_rate)
+        on_theta = Regulariser(
+            reg.prox, reg.value, data.static, reg.strength, reg.learning_rate, separable(reg)
+        )
         check_regulariser(on_theta, data.theta)
         check_regulariser_acts(on_theta, free.unravel, flat0, theta_free)
-        if proj is not None and proj.bounds is None:
+        if proj is not None and proj.bounds is None and any(isinstance(s, Adam) for s in solvers):
             warnings.warn(
                 "a regulariser with a general projection (`constraints.project`, or sets "
-                "combined): each step takes the regulariser's prox, then the projection, "
-                "which is the prox of their sum only for a box. Its fixed points need not be "
+                "combined) and `Adam`: Adam takes the regulariser's prox in its own "
+                "per-coordinate metric, then the projection, which is Euclidean; their "
+                "composition is not the prox of their sum, and its fixed points need not be "
                 "stationary, so the fit can stop at max_steps with its first-order measure "
-                "stuck above gtol, where more steps do not help. Use box bounds with a "
-                "regulariser, or write the set's constraint as a penalty.",
+                "stuck above gtol, where more steps do not help. `Optax(optax.sgd(eta))` "
+                "with the regulariser's learning_rate=eta takes exact proximal steps over the "
+                "set; or use box bounds, or write the set's constraint as a penalty.",
                 stacklevel=3,
             )
     project, sets = None, ()

@@ -317,7 +317,7 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     if problem.project is not None:
         t = jnp.full_like(t, jnp.min(t))
     step = theta - t * 2.0 * g.theta
-    trial = problem.feasible(problem.prox(step, t))
+    trial, resolved = problem.prox_feasible(step, t)
     moved = jnp.maximum(jnp.abs(trial - theta) - 4 * eps * jnp.abs(theta), 0.0)
     c_t = jnp.where(moved == 0, 0.0, moved / (2.0 * t * jnp.sqrt(dt2) * norm))
     # An entry that neither the prox nor the projection moved from the gradient step is
@@ -327,6 +327,8 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     # above read 0, and a fit "converged" at its start, 0.998 from stationary.)
     free = trial == step
     c_t = jnp.where(free, _cosine(g.theta, dt2, norm), c_t)
+    # (a prox of g and a set that its rounds did not resolve certifies nothing: inf)
+    c_t = jnp.where(resolved, c_t, jnp.inf)
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
 
 

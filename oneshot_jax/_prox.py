@@ -633,6 +633,12 @@ def _leaves(t: ProximalTransformation) -> list:
     return [p for s in t.terms for p in _leaves(s)] if t.terms else [t]
 
 
+def separable(t: ProximalTransformation) -> bool:
+    """Whether a regulariser is a sum of per-entry terms (`sparsity.l1`, `l2` and their
+    combinations): its prox then composes with a box's clip into the prox of the sum."""
+    return all(p.kind in ("l1", "l2") for p in _leaves(t))
+
+
 def _in_order(transforms) -> tuple:
     """`combine`'s terms in the order their proxes are applied: the regularisers first
     (ordered by `_ORDER` when every one has a kind there, else as given), then the

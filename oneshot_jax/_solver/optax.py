@@ -171,10 +171,10 @@ class _AbstractOptax(AbstractSolver):
         raise NotImplementedError
 
     def _prox(self, problem: FitProblem, p_theta, count):
-        """The proximal step of the regulariser after an update (none by default: the
-        transform applies it itself)."""
-        del problem, count
-        return p_theta
+        """The proximal step of the regulariser and the projection after an update: the
+        projection alone by default (the transform applies the prox itself)."""
+        del count
+        return problem.feasible(p_theta)
 
     def _check(self):
         check_options(
@@ -277,8 +277,7 @@ class _AbstractOptax(AbstractSolver):
             updates, opt_state = tx.update(g, opt_state, d)
         _check_updates(updates, d)
         new = _as_params(optax.apply_updates(d, updates))
-        theta = self._prox(problem, new.theta, state.count)
-        new = Params(problem.feasible(theta), new.x0)
+        new = Params(self._prox(problem, new.theta, state.count), new.x0)
         C, g_new = problem.value_and_grad(new, self.strategy)
         obj = C + problem.g(new.theta)
         finite = jnp.isfinite(obj) & jnp.isfinite(grad_norm(g_new))
@@ -434,10 +433,13 @@ class Optax(_AbstractOptax):
             )
 
     def _prox(self, problem, p_theta, count):
+        """The prox of the regulariser plus the set's indicator at the transform's one
+        step size (`FitProblem.prox_feasible`: proximal gradient descent on C + g over
+        the set, with `optax.sgd`)."""
         rate = problem.regulariser.learning_rate if problem.regulariser is not None else None
         if rate is None:
-            return p_theta
-        return problem.prox(p_theta, step_at(rate, count))
+            return problem.feasible(p_theta)
+        return problem.prox_feasible(p_theta, step_at(rate, count))[0]
 
 
 class Adam(_AbstractOptax):
@@ -514,10 +516,19 @@ class Adam(_AbstractOptax):
                 theta_tx = optax.chain(theta_tx, _scale_by_start(problem.nuisance))
             return optax.partition({"theta": theta_tx, "x0": x0_tx}, {"theta": "theta", "x0": "x0"})
         # The regulariser as a prox on the flat free entries (what the transform sees).
+        # (with box bounds, whose clip is their prox in Adam's diagonal metric too, the
+        # prox of g plus the box's indicator; a general projection's is Euclidean and
+        # follows the step, see `fit`'s warning)
+        prox = problem.prox
+        if problem.project is None:
+
+            def prox(v, steps):
+                return problem.prox_feasible(v, steps)[0]
+
         flat = ProximalTransformation(
             init=None,
             update=None,
-            prox=problem.prox,
+            prox=prox,
             value=problem.g,
             strength=problem.regulariser.strength,
         )
