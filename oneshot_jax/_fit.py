@@ -923,7 +923,8 @@ def fit(
         starts some parts of theta only, the rest (an equinox network, say) theta0's own
         in every start: its keys name theta0's entries (nested as theta0's dicts; an
         equinox module's field names, a list's indices), each with its starts along a
-        leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`.
+        leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`
+        (or `{"phys.w0sq": ...}`, the printout's name, as `fixed=` takes it).
         Every part given needs the same number S of starts, and a shape (S, *its shape);
         the starts of fixed entries are refused. `x0` starts by its own leading axis of
         starts (S, ...) (`multistart={}` for starts over x0 alone; starts that differ in

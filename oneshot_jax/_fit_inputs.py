@@ -44,7 +44,7 @@ from ._solver.least_squares import AbstractLeastSquares
 from ._solver.optax import Adam
 from ._solver_arg import as_solvers
 from ._starts import (
-    as_flag,
+    as_multistart,
     check_finite_starts,
     check_fixed_starts,
     check_held_x0_starts,
@@ -158,7 +158,7 @@ def check_inputs(
     u_ndim = 3 if is_ragged(u) or is_ragged(z) else np.ndim(u)
     per_window_x0 = window is not None and np.ndim(x0) == 2 and u_ndim == 2
     data_x0_ndim = 2 if (u_ndim == 3 or per_window_x0) else 1
-    multistart = as_flag(multistart)
+    multistart = as_multistart(multistart, theta0)
     starting = multistart is not False and multistart is not None
     if window is not None and starting and np.ndim(x0) == 3:
         raise ValueError(

@@ -52,7 +52,7 @@ from ._fit_result import FitResult
 from ._model import Model
 from ._simulate import loss, simulate
 from ._solver_arg import as_solvers
-from ._starts import as_flag
+from ._starts import as_multistart
 
 
 class PhysicsFirst(eqx.Module):
@@ -217,7 +217,7 @@ def fit_physics_first(
             raise type(err)(f"`network_solver`: {err}") from None
     keys, _ = _learned_keys(theta0, learned)
     held = _fixed(theta0, fixed)
-    multistart = as_flag(multistart)
+    multistart = as_multistart(multistart, theta0)
     if multistart is True:
         # The physical leaves carry the starts, the learned terms (switched off in stage
         # 1) none: the dict form of `fit`, with each physical entry's first start in theta.

@@ -17,10 +17,16 @@ import numpy as np
 from . import _pytree
 
 
-def as_flag(multistart):
+def as_multistart(multistart, theta0):
     """`multistart` with a NumPy bool read as Python's (`np.True_` from a config or an
-    array's `any()`): the checks below test `is True` and `is False`."""
-    return bool(multistart) if isinstance(multistart, np.bool_) else multistart
+    array's `any()`: the checks below test `is True` and `is False`), and a dict's dotted
+    names ("phys.k", as `fixed=` and the printout name a nested parameter) nested as
+    theta0's dicts."""
+    if isinstance(multistart, np.bool_):
+        return bool(multistart)
+    if isinstance(multistart, Mapping) and isinstance(theta0, dict):
+        return _pytree.nest_dotted(dict(multistart), theta0, "multistart")
+    return multistart
 
 
 def _name(path) -> str:

@@ -156,6 +156,21 @@ def test_multistart_true_still_needs_every_leaf(data, theta0):
         oj.fit(MODEL, theta0, x0, u, z, multistart=True)
 
 
+def test_dotted_names_start_nested_parameters_as_fixed_takes_them(data, theta0):
+    """`multistart={"phys.w": ...}` was refused ("names theta['phys.w']") while
+    `fixed="phys.w"` took the printout's name; both spellings give the same starts."""
+    x0, u, z = data
+    solver = oj.LevenbergMarquardt(max_steps=3)
+    nested = oj.fit(MODEL, theta0, x0, u, z, multistart={"phys": {"w": W_STARTS}}, solver=solver)
+    dotted = oj.fit(MODEL, theta0, x0, u, z, multistart={"phys.w": W_STARTS}, solver=solver)
+    np.testing.assert_array_equal(dotted.starts.loss, nested.starts.loss)
+    np.testing.assert_array_equal(
+        dotted.starts.theta["phys"]["w"], nested.starts.theta["phys"]["w"]
+    )
+    with pytest.raises(ValueError, match="`multistart` names a parameter twice"):
+        oj.fit(MODEL, theta0, x0, u, z, multistart={"phys.w": W_STARTS, "phys": {"w": W_STARTS}})
+
+
 def test_numpy_bools_are_read_as_python_bools(data, theta0):
     """`np.True_` (a config's or an array's `any()`) was refused as "got bool", and
     `np.False_` started a multistart fit."""
