@@ -905,6 +905,8 @@ def check_cost(data: Data, penalty, penalty_weight) -> Cost:
     msg = f"`penalty_weight` must be a finite real scalar, got {penalty_weight!r}."
     try:
         ok = np.ndim(pw) == 0 and not np.iscomplexobj(pw) and not isinstance(pw, str)
+        # (a bool is no weight: True ran as lambda = 1)
+        ok = ok and not isinstance(pw, (bool, np.bool_)) and np.asarray(pw).dtype != bool
         ok = ok and (not is_concrete(pw) or bool(np.isfinite(float(pw))))
     except (TypeError, ValueError) as err:
         raise ValueError(msg) from err

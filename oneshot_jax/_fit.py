@@ -175,7 +175,12 @@ def _solve(
     if final.best is not None:
         score = final.best.returned_score()
         rank = jnp.where(jnp.any(jnp.isfinite(score)), score, rank)
-    best = jnp.argmin(jnp.where(jnp.isfinite(rank), rank, jnp.inf))
+    rank = jnp.where(jnp.isfinite(rank), rank, jnp.inf)
+    # (a start stopped by a negative penalty, lambda h < 0, ranks after the others: its
+    # loss is below what the least-squares solvers minimise, a sum of squares)
+    penalised = final.result == RESULTS.negative_penalty
+    fair = jnp.where(penalised, jnp.inf, rank)
+    best = jnp.where(jnp.all(penalised), jnp.argmin(rank), jnp.argmin(fair))
     params = jax.tree_util.tree_map(lambda a: a[best], final.params)
     blocks = (
         None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[best], final.blocks)
@@ -918,7 +923,8 @@ def fit(
         the final loss ranks the starts, and `fit` warns.
     - `multistart`: several starts, run in the one compiled call; the start with the
         least final loss (with `validation`, the lowest score) is returned and
-        `result.starts` reports each.
+        `result.starts` reports each (a start stopped by `negative_penalty`, its loss
+        not the sum of squares a least-squares solver minimises, only where all were).
         `True`: every parameter leaf of `theta0` carries a leading axis of starts. A dict
         starts some parts of theta only, the rest (an equinox network, say) theta0's own
         in every start: its keys name theta0's entries (nested as theta0's dicts; an

@@ -42,6 +42,7 @@ from ._prox import (
 )
 from ._solver.least_squares import AbstractLeastSquares
 from ._solver.optax import Adam
+from ._solver.optimistix import Optimistix
 from ._solver_arg import as_solvers
 from ._starts import (
     as_multistart,
@@ -93,6 +94,14 @@ def _host(a):
     if isinstance(a, jax.Array) and len(a.sharding.device_set) > 1:
         return a
     return np.asarray(a)
+
+
+def _least_squares(solver) -> bool:
+    """Whether `solver` minimises a sum of squares (the library's Gauss-Newton and
+    Levenberg-Marquardt, or an optimistix least-squares solver in `Optimistix`)."""
+    if isinstance(solver, AbstractLeastSquares):
+        return True
+    return isinstance(solver, Optimistix) and not solver._minimise
 
 
 def _meter(progress):
@@ -236,7 +245,7 @@ def check_inputs(
         )
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
-        if any(isinstance(s, AbstractLeastSquares) for s in solvers):
+        if any(_least_squares(s) for s in solvers):
             raise ValueError(
                 f"`penalty_weight` must be >= 0 with a least-squares solver, got "
                 f"{float(cost.penalty_weight)}: it minimises a sum of squares that includes "

@@ -250,6 +250,9 @@ def iterate(
     out_params, out_loss, blocks = _over_starts(
         lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts
     )(c.params, state, result)
+    # (a least-squares stop at lambda h < 0: its sum of squares is not the loss, which
+    # the history's last row gives too)
+    final_loss = jnp.where(result == RESULTS.negative_penalty, out_loss, final_loss)
     best = c.best
     solver_result = result
     if mon is not None:

@@ -418,7 +418,7 @@ def test_penalty_not_callable(entry):
 
 @pytest.mark.parametrize("entry", WITH_Z)
 @pytest.mark.parametrize(
-    "penalty_weight", [jnp.ones(2), float("nan"), float("inf"), "heavy", 1j, None]
+    "penalty_weight", [jnp.ones(2), float("nan"), float("inf"), "heavy", 1j, None, True, np.True_]
 )
 def test_bad_penalty_weight(penalty_weight, entry):
     with pytest.raises(ValueError, match=r"`penalty_weight` must be a finite real scalar"):

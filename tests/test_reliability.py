@@ -99,6 +99,44 @@ def test_negative_penalty_stops_least_squares_with_the_true_loss(data):
         oj.fit(M, TH0, X0, u, z, penalty=lambda x, th: x[0] ** 2, penalty_weight=-1.0)
 
 
+@pytest.mark.parametrize("solver", ["lm", "optimistix_lm"])
+def test_a_penalty_turning_negative_mid_fit_is_named_and_ranked_last(data, solver):
+    """lambda h = c - 0.35 turns negative once the fit moves c towards its truth 0.4:
+    the least-squares stop is `negative_penalty`, the history's last row is the true loss
+    (it held the sum of squares there, not the loss); optimistix's least-squares
+    solvers ran on (`stalled` at a negative loss) and took a negative penalty_weight.
+    A start stopped there ranks after a start that converged, whatever its loss."""
+    import optimistix as optx
+
+    u, z = data
+
+    def h(x, th):
+        return th["c"] - 0.35 + 0.0 * x[0]
+
+    make = {
+        "lm": oj.LevenbergMarquardt,
+        "optimistix_lm": lambda: oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)),
+    }[solver]
+    th0 = {"k": 1.5, "c": 0.5}
+    r = oj.fit(M, th0, X0, u, z, solver=make(), penalty=h, covariance=None)
+    assert r.status == "negative_penalty" and not r.success
+    true = float(oj.loss(M, r.theta, r.x0, u, z, penalty=h))
+    assert float(r.loss) == pytest.approx(true, rel=1e-12)
+    assert float(r.history.loss[-1]) == pytest.approx(true, rel=1e-12)
+    with pytest.raises(ValueError, match="`penalty_weight` must be >= 0"):
+        oj.fit(M, th0, X0, u, z, solver=make(), penalty=h, penalty_weight=-0.5)
+    if solver == "lm":
+        # lambda h = 100 (c - 0.2)^3: start 0 converges where c > 0.2, start 1 starts at
+        # c = 0 (h < 0) and stops there at once with a loss far below start 0's
+        cubic = lambda x, th: (th["c"] - 0.2) ** 3 + 0.0 * x[0]  # noqa: E731
+        starts = {"k": np.array([1.5, 2.0]), "c": np.array([0.5, 0.0])}
+        kw = dict(penalty=cubic, penalty_weight=100.0, covariance=None, multistart=True)
+        ms = oj.fit(M, starts, X0, u, z, **kw)
+        assert ms.starts.stop_reason == ("converged", "negative_penalty")
+        assert ms.starts.loss[1] < ms.starts.loss[0]
+        assert ms.best == 0 and ms.success
+
+
 def test_adam_does_not_stop_on_a_negative_loss(data):
     """0.1 compared C < tol_loss = 0 and stopped at step 0 with success."""
     u, z = data

@@ -267,6 +267,7 @@ class Optimistix(AbstractSolver):
         fo = self._first_order(problem, params, loss, g)
         gtol = gtol_at_least_resolution(self.gtol, problem.dtype)
         done = (fo <= gtol) & jnp.isfinite(loss) & jnp.isfinite(grad_norm(g))
+        done, result = self._negative_penalty(problem, params, done, RESULTS.converged)
         return _OptxState(
             y,
             self._inner_init(problem, y, held),
@@ -274,7 +275,7 @@ class Optimistix(AbstractSolver):
             loss,
             grad_norm(g),
             done,
-            RESULTS.converged,
+            result,
             jnp.array(0),
             fo,
             jnp.array(0),
@@ -285,6 +286,17 @@ class Optimistix(AbstractSolver):
             jnp.array(0),
             jnp.array(0),
         )
+
+    def _negative_penalty(self, problem, params, done, result):
+        """A least-squares solver's residuals hold sqrt(lambda h) (clipped at 0): where
+        lambda h < 0 at `params` they no longer sum to C, and the fit stops there with
+        `negative_penalty`, as the library's least-squares solvers do (a minimiser sees
+        C itself: no test)."""
+        if problem.cost.penalty is None or self._minimise:
+            return done, result
+        _, h_min = problem.residuals(params, strategy=self.strategy)
+        negative = h_min < 0
+        return done | negative, RESULTS.where(negative, RESULTS.negative_penalty, result)
 
     def step(self, problem, params, state):
         del params
@@ -402,6 +414,7 @@ class Optimistix(AbstractSolver):
         result = RESULTS.where(
             ok | solved, result, RESULTS.where(nonfinite, RESULTS.diverged, RESULTS.no_progress)
         )
+        done, result = self._negative_penalty(problem, params, done, result)
         last, last_loss = jax.tree_util.tree_map(
             lambda a, b: jnp.where(finite, a, b), (params, loss), (state.last, state.last_loss)
         )
