@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cost import Cost
 from ._counts import integral
 from ._linalg import (
     NULL_COMPONENT,
@@ -206,7 +207,10 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     residuals' autocovariance pooled over all samples and trajectories (stationary
     residuals): entry (o, p) of Gamma_l is sum_k r_{k,o} r_{k-l,p} over the pairs of
     samples where both outputs are measured, scaled to the record's pairs at lag l over
-    its samples (an output with missing samples is not shrunk), Bartlett-weighted:
+    its samples (an output with missing samples is not shrunk), Bartlett-weighted (with
+    a full weight Q and missing samples, Gamma_l is that of the errors e, and the rows
+    A_k, B_k below are Q Je_k: Q's root spreads a measured error into the row of an
+    output missing at that sample):
 
         K(A, B) = sum_{l=-L..L} w_|l| sum_k A_k^T Gamma_l B_{k-l}   (Gamma_{-l} = Gamma_l^T),
         cov(x0_i) = C_i^+ K(Jx, Jx) C_i^+ - C_i^+ K(Jx, Jt~) S^+ W_i^T
@@ -236,7 +240,7 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     g = jnp.einsum("ntop,nto->ntp", Jt_elim.reshape(N, T, n_z, p), r)  # (N, T, p)
     psi = g @ cov.theta
     theta = jnp.sum(_bartlett(psi, lags), axis=0)
-    x0 = _x0_block(problem, lin, Jt_elim, cov.theta, elim.Cinv, W, theta, lags)
+    x0 = _x0_block(problem, lin, Jt_elim, cov.theta, elim.Cinv, W, theta, lags, params, strategy)
     nuisance = np.asarray(problem.nuisance, int)
     if 0 < nuisance.size < p:  # a network in theta: the named parameters' marginal block
         named_inv, t_ok, G = marginal(S, cov.theta, cov.theta_identifiable, nuisance)
@@ -245,7 +249,7 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
     return cov._replace(theta=theta, x0=x0)
 
 
-def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int):
+def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int, params, strategy):
     """cov(x0_i) of `sandwich`: x0_i's own part with the residuals' autocovariance pooled
     over the record (Gamma_l), its part through theta with the sandwich of theta."""
     N, R, m = lin.Jx.shape
@@ -254,6 +258,21 @@ def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int):
     r = lin.r.reshape(N, T, n_z)
     A = lin.Jx.reshape(N, T, n_z, m)
     B = Jt_elim.reshape(N, T, n_z, -1)
+    Q = problem.cost.weight
+    if Q is not None and Q.ndim == 2 and problem.mask is not None:
+        # A full Q mixes the outputs: its root spreads a measured error into the row of
+        # one missing at that sample, so "the pairs where both outputs are measured" are
+        # those of the errors e themselves. Gamma is theirs, and Q moves to the rows:
+        # sum_k (Q Je_k)^T Gamma_e (Q Je_k-l), which is the weighted form's where nothing
+        # is missing (r = Q^{1/2} e), whatever Q's square root.
+        plain = eqx.tree_at(
+            lambda p: p.cost, problem, Cost(None, None, problem.cost.penalty_weight)
+        )
+        lin_e = plain.jacobian(params, strategy, penalty=False)
+        r = lin_e.r.reshape(N, T, n_z)
+        A = jnp.einsum("op,ntpm->ntom", Q, lin_e.Jx.reshape(N, T, n_z, m))
+        Jt_e = lin_e.Jt - jnp.einsum("nrm,nmp->nrp", lin_e.Jx, W)
+        B = jnp.einsum("op,ntpq->ntoq", Q, Jt_e.reshape(N, T, n_z, -1))
     # The samples behind Gamma: the measured output entries the loss sees, per output.
     seen = jnp.ones((N, T, n_z), bool)
     if problem.mask is not None:

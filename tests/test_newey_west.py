@@ -182,6 +182,75 @@ def test_x0_of_an_output_with_missing_samples_is_not_shrunk():
     assert 0.65 < np.mean(ratios[:, 1]) < 1.35
 
 
+def test_x0_with_a_full_weight_and_missing_samples_takes_the_errors_autocovariance():
+    """A full weight Q (its symmetric root mixes the outputs) with missing samples: the
+    weighted residual r = Q^{1/2} e is not zero in the row of an output missing at that
+    sample, and Gamma summed those rows over a count of the measured pairs (x0's std
+    4 to 6 % too large, and another answer with another root of Q). Now Gamma is that
+    of the errors e over their measured pairs, Q applied to the Jacobian's rows:
+    sum_k (Q Je_k)^T Gamma_e,l (Q Je_k-l), written out here."""
+
+    def f(x, u, th):
+        return jnp.stack([th["a"] * x[0] + u[0], th["b"] * x[1] + 0.5 * x[0] + u[0]])
+
+    model, T, L = oj.Model(f), 120, 3
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(T, 1))
+    z = np.array(oj.simulate(model, {"a": 0.9, "b": 0.7}, jnp.array([1.0, -1.0]), u)[1])
+    z = z + ar1(rng, (T, 2), 0.6, 0.05)
+    z[rng.random(z.shape) < 0.3] = np.nan
+    Q = np.array([[2.0, 0.9], [0.9, 1.0]])
+    r = oj.fit(
+        model,
+        {"a": 0.8, "b": 0.6},
+        jnp.zeros(2),
+        u,
+        z,
+        weight=Q,
+        missing="mask",
+        covariance=oj.NeweyWest(lags=L),
+    )
+    measured = ~np.isnan(z)
+
+    def errors(v, x0):  # e (T, 2), zero where missing
+        _, zhat = oj.simulate(model, {"a": v[0], "b": v[1]}, x0, u)
+        return jnp.where(measured, zhat - np.nan_to_num(z), 0.0)
+
+    v, x0 = jnp.stack([r.theta["a"], r.theta["b"]]), jnp.asarray(r.x0)
+    e = np.asarray(errors(v, x0))
+    Et, Ex = (np.asarray(jax.jacfwd(errors, i)(v, x0)) for i in (0, 1))  # (T, 2, 2)
+    root = np.linalg.cholesky(Q).T  # (any root: r = root e, rows root Je)
+    Jt, Jx = (np.einsum("op,tpa->toa", root, E).reshape(-1, 2) for E in (Et, Ex))
+    C_inv = np.linalg.inv(Jx.T @ Jx)
+    W = C_inv @ Jx.T @ Jt  # C^+ B^T
+    Jte = Jt - Jx @ W
+    S_inv = np.linalg.inv(Jte.T @ Jte)
+    psi = np.einsum("tzp,tz->tp", Jte.reshape(T, 2, 2), e @ root.T) @ S_inv
+    sig = psi.T @ psi
+    for lag in range(1, L + 1):
+        g = psi[lag:].T @ psi[:-lag]
+        sig = sig + (1 - lag / (L + 1)) * (g + g.T)
+    s = measured.astype(float)
+    Ax = np.einsum("op,tpa->toa", Q, Ex)
+    Bx = np.einsum("op,tpa->toa", Q, (Et.reshape(-1, 2) - Ex.reshape(-1, 2) @ W).reshape(T, 2, 2))
+
+    def K(X, Y):
+        out = np.zeros((2, 2))
+        for lag in range(L + 1):
+            gamma = e[lag:].T @ e[: T - lag] * (T - lag)
+            gamma = gamma / np.maximum(s[lag:].T @ s[: T - lag], 1.0) / T
+            w = 1 - lag / (L + 1)
+            out += w * np.einsum("toa,op,tpb->ab", X[lag:], gamma, Y[: T - lag])
+            if lag:
+                out += w * np.einsum("toa,op,tpb->ab", X[: T - lag], gamma.T, Y[lag:])
+        return out
+
+    mix = C_inv @ K(Ax, Bx) @ S_inv @ W.T
+    x0_cov = C_inv @ K(Ax, Ax) @ C_inv - mix - mix.T + W @ sig @ W.T
+    n = int(s.sum())
+    np.testing.assert_allclose(r.x0_covariance, x0_cov * n / (n - 4), rtol=1e-7)
+
+
 def test_default_lags_follow_the_newey_west_rule():
     assert oj.NeweyWest().resolved(100) == 4
     assert oj.NeweyWest().resolved(25000) == int(np.floor(4 * 250 ** (2 / 9)))
