@@ -242,7 +242,7 @@ def _settings(solver) -> dict:
 
 
 def _warn_identifiability(
-    names, ok, what, stop, unconverged=0, worst_fit=None, low=None, shrunk=None
+    names, ok, what, stop, unconverged=0, worst_fit=None, low=None, shrunk=None, gone=()
 ):
     """Warn of the free entries `names` outside the Jacobian's range (`ok` False) at a fit
     that stopped with `stop`: at a solution, a property of the data; elsewhere (a stall
@@ -256,7 +256,10 @@ def _warn_identifiability(
     and the warning says that instead. `shrunk`: "regularised" or "penalised" for a fit
     with a regulariser or a penalty, whose solution (a term the regulariser set to zero,
     whose coefficients then act on nothing) may make columns vanish that the data
-    determine elsewhere."""
+    determine elsewhere. `gone`: the names whose Jacobian columns vanished along the fit
+    (`_optimality.vanished_columns`): a success there is a point where a term switched
+    itself off (a time constant run off to -1e7, where the model is its limit), whose
+    null space is the point's."""
     if ok.all():
         return
     bad = [n for n, k in zip(names, ok) if not k]
@@ -273,6 +276,14 @@ def _warn_identifiability(
             where, verdict = (
                 f"where the fit stopped ({stop}, but an output's FIT is {worst_fit:.3g} %, "
                 "worse than its mean: likely a bad minimum, see `oj.check_basin`)",
+                "not identifiable there, which may be the point's and not the data's",
+            )
+        elif stop in SUCCESS and set(bad) & set(gone):
+            shown = sorted(set(bad) & set(gone), key=bad.index)
+            shown = f"{shown}" if len(shown) <= 10 else f"{shown[:10]} and more"
+            where, verdict = (
+                f"where the fit stopped ({stop}), after the Jacobian columns of {shown} "
+                "vanished along the fit (a term that switched itself off, see the printout)",
                 "not identifiable there, which may be the point's and not the data's",
             )
         elif stop in SUCCESS and shrunk is not None:
@@ -433,6 +444,8 @@ def assemble(
         if shrunk is not None:
             worst = None  # (their optimum may fit worse than the mean, as `fit` says)
         low = below_float64(problem.dtype)
+        gone = np.broadcast_to(np.asarray(out.vanished)[best], (len(free),))
+        gone = [n for n, g in zip(names, gone) if g]
         if not diverged:
             _warn_identifiability(
                 names,
@@ -443,6 +456,7 @@ def assemble(
                 worst,
                 low,
                 shrunk,
+                gone,
             )
         if not diverged and not scaled.x0_identifiable.all():
             n_traj, n_x = X0.shape

@@ -1814,6 +1814,33 @@ def test_a_degenerate_stop_says_so_on_its_status_line():
     assert "vanished along the fit measured at the largest norm" in line, line
 
 
+def test_a_time_constant_run_off_to_infinity_is_not_blamed_on_the_data():
+    """A DC motor (x' = [v, -v / tau + G u / tau]) from tau = -1: the fit runs tau and G
+    off to about -1e7 (the model's limit, an integrator of gain G / tau), where their
+    columns vanish. The warning said "at the solution ... not identifiable from these
+    data" (from tau = 1 both are identified); it names the vanished columns and the
+    point instead."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -x[1] / th["tau"] + th["G"] / th["tau"] * u[0]])
+
+    model = oj.Model.from_ode(rhs, 0.05)
+    rng = np.random.default_rng(1)
+    u = np.repeat(rng.choice([-1.0, 1.0], size=5), 20)[:, None] * 1.5
+    _, y = oj.simulate(model, {"tau": 0.4, "G": 2.5}, np.array([0.3, -0.5]), u)
+    z = np.asarray(y) + np.array([0.02, 0.1]) * rng.standard_normal((100, 2))
+    with pytest.warns(UserWarning) as rec:
+        r = oj.fit(model, {"tau": -1.0, "G": 1.0}, z[0], u, z)
+    assert float(r.theta["tau"]) < -1e5 and sorted(r.stop_info["vanished"]) == ["G", "tau"]
+    (msg,) = [str(w.message) for w in rec if "rank-deficient" in str(w.message)]
+    assert "after the Jacobian columns of ['G', 'tau'] vanished along the fit" in msg
+    assert "from these data" not in msg and "which may be the point's" in msg
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        good = oj.fit(model, {"tau": 1.0, "G": 1.0}, z[0], u, z)
+    assert good.success and np.all(np.isfinite([good.std["tau"], good.std["G"]]))
+
+
 def test_columns_that_vanished_are_named_at_a_plateau_and_at_a_limit():
     """y = a u0 + sigmoid(s) w u1 (data 1.0 u0 + 0.5 u1): from w = -10 L-BFGS closes the
     gate (s to -34), a plateau where every gradient is ~1e-15 and the first-order test
