@@ -42,7 +42,7 @@ from ._strategy import as_strategy
 DYKSTRA_STEPS = 60
 # The most rounds of the Dykstra-like splitting that gives the prox of a regulariser plus
 # a set's indicator where their composition is not it (`FitProblem.prox_feasible`); the
-# rounds stop once an iterate repeats to round-off.
+# rounds stop once an iterate and its corrections repeat to round-off.
 PROX_ROUNDS = 500
 
 
@@ -204,8 +204,8 @@ class FitProblem(eqx.Module):
         (an l1 term on a half-space stopped 0.014 from its optimum with the measure at
         0). There the Dykstra-like splitting of Bauschke and Combettes (2008), which
         alternates the two proxes with their corrections, converges to the prox of the
-        sum; its rounds stop once an iterate repeats to round-off, at most
-        `PROX_ROUNDS` (resolved False if they had not)."""
+        sum; its rounds stop once an iterate and its two corrections repeat to
+        round-off, at most `PROX_ROUNDS` (resolved False if they had not)."""
         exact = self.regulariser is None or (
             self.project is None and (self.lower is None or self.regulariser.separable)
         )
@@ -217,15 +217,20 @@ class FitProblem(eqx.Module):
             i, _, _, _, change = c
             return (i < PROX_ROUNDS) & (change > 0)
 
+        def moved(a, b):  # entries that changed by more than their round-off
+            return jnp.sum(jnp.abs(b - a) > 4 * eps * jnp.maximum(jnp.abs(a), jnp.abs(b)))
+
         def round_(c):
             i, x, p, q, _ = c
             y = self.prox(x + p, steps)
-            p = x + p - y
+            p_new = x + p - y
             x_new = self.feasible(y + q)
-            q = y + q - x_new
-            tol = 4 * eps * jnp.maximum(jnp.abs(x), jnp.abs(x_new))
-            change = jnp.sum(jnp.abs(x_new - x) > tol)
-            return i + 1, x_new, p, q, change
+            q_new = y + q - x_new
+            # (x can repeat for a round while the corrections still move: an l1 term on
+            # a half-space stopped at round 2 at the composition's point; the rounds end
+            # where x and both corrections repeat)
+            change = moved(x, x_new) + moved(p, p_new) + moved(q, q_new)
+            return i + 1, x_new, p_new, q_new, change
 
         zero = jnp.zeros_like(v)
         start = (jnp.array(0), v, zero, zero, jnp.array(1))

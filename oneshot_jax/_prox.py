@@ -233,7 +233,11 @@ def check_projection(proj, theta, rtol=1e-10):
     """Raise a ValueError unless `proj.project` maps theta to a pytree of theta's structure
     (leaves, shapes, dtypes) and is idempotent there: a projection satisfies P(P(p)) =
     P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
-    wherever it happens to stop."""
+    wherever it happens to stop. `rtol` is at least 100 eps of theta's lowest float
+    precision (a half-space's projection in float32 repeats to 6e-8 only)."""
+    dtypes = [np.result_type(v) for v in jax.tree_util.tree_leaves(theta)]
+    eps = [np.finfo(d).eps for d in dtypes if np.issubdtype(d, np.inexact)]
+    rtol = max([rtol, *(100 * float(e) for e in eps)])
     once = _projected(proj, theta)
     _check_like(once, theta)
     if not _same_point(once, _projected(proj, once), rtol):

@@ -183,6 +183,23 @@ def test_a_map_that_is_not_a_projection_is_refused(data):
     u, z = data
     with pytest.raises(ValueError, match="not idempotent"):
         oj.fit(M, TH0, X0, u, z, constraints=oc.project(lambda p: {k: v / 2 for k, v in p.items()}))
+    # In float32 a projection repeats to its round-off only (a half-space's to 6e-8):
+    # it was refused as not idempotent against a tolerance of 1e-10; p / 2 still is.
+    f32 = {"k": np.float32(1.5), "B": np.full(3, 0.3, np.float32)}
+
+    def half_space(p):
+        excess = jnp.minimum(jnp.sum(p["B"]) - 2.0, 0.0) / 3
+        return {**p, "B": p["B"] - excess}
+
+    once = half_space(f32)
+    assert 0 < float(jnp.max(jnp.abs(half_space(once)["B"] - once["B"]))) < 1e-6
+    model = oj.Model(lambda x, u, th: th["k"] * 0.1 * x + jnp.sum(th["B"]) * u)
+    u32, z32 = u.astype(np.float32), z.astype(np.float32)
+    x032, solver = np.zeros(1, np.float32), oj.Adam(1e-2, max_steps=3)
+    oj.fit(model, f32, x032, u32, z32, solver=solver, constraints=oc.project(half_space))
+    with pytest.raises(ValueError, match="not idempotent"):
+        halve = oc.project(lambda p: {k: v / 2 for k, v in p.items()})
+        oj.fit(model, f32, x032, u32, z32, solver=solver, constraints=halve)
 
 
 def test_a_projection_that_raises_is_named(data):

@@ -854,3 +854,60 @@ def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
     assert r.success, r.message
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
     assert float(r.loss) == pytest.approx(best.fun, rel=1e-9)
+
+
+def test_the_splitting_runs_until_its_corrections_settle():
+    """A strong l1 term (30) with the half-space B00 + 2 B02 >= 1: the optimum is
+    B02 = 1/2, the rest 0 (l1 pays 15 there, 18 at the projection of 0, (0.2, 0.4)).
+    The splitting stopped at its second round, where x repeated while its corrections
+    still moved: it returned the composition's point, and ISTA "converged" there at its
+    first step."""
+    from scipy.optimize import minimize
+
+    model, theta0, u, z, Phi, zv = _linear_gains()
+    T, lam = u.shape[0], 30.0
+    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
+    e = np.r_[1.0, 0, 2.0, 0, 0, 0]
+
+    def objective(w):
+        r = zv - Phi @ (w[:6] - w[6:])
+        return r @ r / T + lam * w.sum()
+
+    def gradient(w):
+        g = -2 / T * Phi.T @ (zv - Phi @ (w[:6] - w[6:]))
+        return np.concatenate([g + lam, -g + lam])
+
+    face = {"type": "ineq", "fun": lambda w: e @ (w[:6] - w[6:]) - 1.0}
+    face["jac"] = lambda w: np.concatenate([e, -e])
+    best = minimize(
+        objective,
+        np.full(12, 0.1),
+        jac=gradient,
+        bounds=[(0, None)] * 12,
+        method="SLSQP",
+        constraints=[face],
+        options={"ftol": 1e-15, "maxiter": 2000},
+    )
+    B = best.x[:6] - best.x[6:]
+
+    def half_space(th):
+        b = jnp.asarray(th["B"])
+        excess = jnp.minimum(b[0, 0] + 2 * b[0, 2] - 1.0, 0.0) / 5.0
+        return {**th, "B": b.at[0, 0].add(-excess).at[0, 2].add(-2 * excess)}
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (theta0 is projected onto the set)
+        r = oj.fit(
+            model,
+            theta0,
+            np.zeros(2),
+            u,
+            z,
+            solver=oj.Optax(optax.sgd(1 / L), max_steps=2000),
+            regulariser=sp.l1(lam, where=sp.mask(lambda th: th["B"]), learning_rate=1 / L),
+            constraints=oc.project(half_space),
+            fixed={"A": True},
+            estimate_x0=False,
+        )
+    assert r.success, r.message
+    np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
