@@ -278,6 +278,13 @@ def _warn_identifiability(
                 "worse than its mean: likely a bad minimum, see `oj.check_basin`)",
                 "not identifiable there, which may be the point's and not the data's",
             )
+        elif stop in SUCCESS and shrunk is not None:
+            where, verdict = (
+                f"at the solution of the {shrunk} problem",
+                "not identifiable there, which may be the point's (a term the "
+                f"{'penalty' if shrunk == 'penalised' else 'regulariser'} switched "
+                "off) and not the data's",
+            )
         elif stop in SUCCESS and set(bad) & set(gone):
             shown = sorted(set(bad) & set(gone), key=bad.index)
             shown = f"{shown}" if len(shown) <= 10 else f"{shown[:10]} and more"
@@ -285,13 +292,6 @@ def _warn_identifiability(
                 f"where the fit stopped ({stop}), after the Jacobian columns of {shown} "
                 "vanished along the fit (a term that switched itself off, see the printout)",
                 "not identifiable there, which may be the point's and not the data's",
-            )
-        elif stop in SUCCESS and shrunk is not None:
-            where, verdict = (
-                f"at the solution of the {shrunk} problem",
-                "not identifiable there, which may be the point's (a term the "
-                f"{'penalty' if shrunk == 'penalised' else 'regulariser'} switched "
-                "off) and not the data's",
             )
         elif stop in SUCCESS:
             where, verdict = ("at the solution", "not identifiable from these data")
