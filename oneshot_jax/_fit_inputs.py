@@ -72,6 +72,9 @@ class FitInputs(NamedTuple):
     window_starts: np.ndarray | None = None  # with `window`: each window's first sample
     # a dict `multistart`: theta0's own values (flat), which a fixed entry keeps
     theta_held: np.ndarray | None = None
+    # with `window`, of a model that observes its state: the windows' x0 entries read
+    # from a first sample of z that is missing (`_windows.cut`), or None
+    window_unread: np.ndarray | None = None
 
 
 class Built(NamedTuple):
@@ -220,7 +223,7 @@ def check_inputs(
                 model, theta_s, x0_record, u, z, weight, missing, t, theta_name="theta0"
             )  # fmt: skip
             try:
-                x0_w, u_w, z_w, mask_w, starts = cut(
+                x0_w, u_w, z_w, mask_w, starts, unread = cut(
                     data_s, window, np.asarray(x0) if per_window_x0 else None
                 )
                 break
@@ -239,7 +242,7 @@ def check_inputs(
         if x0_starts is not None:
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
-        starts = None
+        starts = unread = None
         data = check_data(
             model, theta_first, x0, u, z, weight, missing, t, readings, theta_name="theta0"
         )
@@ -256,7 +259,7 @@ def check_inputs(
     if isinstance(multistart, Mapping):  # (its starts replace theta0's values where given)
         held = _pytree.flat_host(_pytree.split(theta0)[0])
     return FitInputs(
-        solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts, held
+        solvers, meter, units, data, cost, theta_params, n_starts, x0_starts, starts, held, unread
     )
 
 
@@ -450,6 +453,19 @@ def build_problem(
     proj, reg = split(constraints, regulariser)
     free = _free(data.theta, flat0.dtype, fixed, estimate_x0, n_x, proj)
     fixed_flat, theta_free, x0_est, x0_free = free.fixed, free.theta, free.x0_mask, free.x0
+    if inputs.window_unread is not None:
+        held_unread = inputs.window_unread & ~np.asarray(x0_est, bool)[None, :]
+        if held_unread.any():
+            rows, cols = np.nonzero(held_unread)
+            first = int(np.asarray(inputs.window_starts)[rows[0]])
+            raise ValueError(
+                f"`estimate_x0` holds x0 entries {sorted(set(cols.tolist()))} of the windows, "
+                "which each window reads from its first sample of z (the model observes its "
+                f"whole state), but z is missing there in {len(set(rows.tolist()))} "
+                f"window(s), the first at sample {first}: estimate those entries, give the "
+                "windows' states in `x0` (one row per window), or let the windows start at "
+                "measured samples (`oj.Windows(starts=...)`)."
+            )
     if free.lower is not None and np.any(free.lower == free.upper):
         names = np.asarray(_pytree.leaf_names(data.theta), object)[theta_free]
         pinned = [str(n) for n in names[free.lower == free.upper]]

@@ -149,13 +149,14 @@ def as_windows(window):
 
 def cut(data, window, x0_windows=None):
     """Windows of one record as N trajectories: (x0_w (N, n_x), u_w (N, length, n_u),
-    z_w (N, length, n_z), mask_w (or None), starts (N,)).
+    z_w (N, length, n_z), mask_w (or None), starts (N,), unread).
 
     `window`: an integer (consecutive windows of that many samples) or a `Windows`. Each
     window's starting state is `x0_windows[i]` when given; else it is taken from z where
     the model observes its whole state (z = x), else estimated from the window's own
     samples with the starting parameters (`window_starts`); a window at sample 0 starts
-    at the given x0.
+    at the given x0. A sixth value, `unread` (N, n_x) or None: the entries taken from a
+    first sample of z that is missing (0 there; `build_problem` refuses to hold them).
     """
     u, z, x0 = data.u, data.z, data.x0
     T = u.shape[0]
@@ -188,7 +189,7 @@ def cut(data, window, x0_windows=None):
         return a[: N * length].reshape(N, length, *a.shape[1:]) if consecutive else a[rows]
 
     u_w, z_w = take(u), take(z)
-    mask_w = None
+    mask_w = unread = None
     if data.mask is not None:
         mask_w = type(data.mask)(take(data.mask.outputs), take(data.mask.samples))
     if x0_windows is not None:
@@ -201,8 +202,14 @@ def cut(data, window, x0_windows=None):
             )
     elif data.model.observes_state:
         x0_w = np.array(z_w[:, 0, :], dtype=np.asarray(x0).dtype)
+        if mask_w is not None:  # (a missing first sample reads 0 there)
+            out = np.asarray(mask_w.outputs)
+            first = out[:, 0] if out.ndim == 3 else np.broadcast_to(out[:, :1], x0_w.shape)
+            unread = np.array(first == 0)
         if starts[0] == 0:
             x0_w[0] = np.asarray(x0)
+            if unread is not None:
+                unread[0] = False
     else:
         x0_w = window_starts(data, u_w, z_w, mask_w, keep_first=bool(starts[0] == 0))
-    return x0_w, u_w, z_w, mask_w, starts
+    return x0_w, u_w, z_w, mask_w, starts, unread

@@ -149,3 +149,25 @@ def test_multistart_windows_take_their_states_from_a_start_that_stays_finite():
     theta0 = {key: np.array([bad[key], bad[key]]) for key in good}
     with pytest.raises(ValueError, match="every one of the 2 starts"):
         oj.fit(MODEL, theta0, x0, u, z, multistart=True, window=100)
+
+
+def test_a_held_state_missing_at_a_windows_first_sample_is_refused():
+    """A model that observes its whole state reads each window's x0 from its first sample
+    of z. Where that sample is missing in an entry `estimate_x0` holds, the entry was held
+    at 0 in silence (a success at a loss 200 times the clean fit's); estimated entries
+    start there and move (the fit is the clean one's)."""
+    model = oj.Model(lambda x, u, th: th["A"] @ x + th["B"] @ u)
+    rng = np.random.default_rng(0)
+    A, B = np.array([[0.9, 0.2], [-0.2, 0.9]]), np.array([[0.0], [0.5]])
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"A": A, "B": B}, np.array([1.0, -0.5]), u)
+    z = np.asarray(z) + 0.02 * rng.standard_normal((200, 2))
+    gap = z.copy()
+    gap[50, 1] = np.nan
+    th0 = {"A": np.array([[0.8, 0.1], [-0.1, 0.8]]), "B": np.array([[0.1], [0.3]])}
+    kw = dict(window=50, missing="mask")
+    with pytest.raises(ValueError, match=r"`estimate_x0` holds x0 entries \[1\] of the windows"):
+        oj.fit(model, th0, z[0], u, gap, estimate_x0=np.array([True, False]), **kw)
+    both = oj.fit(model, th0, z[0], u, gap, **kw)
+    clean = oj.fit(model, th0, z[0], u, z, **kw)
+    assert both.success and float(both.loss) < 1.5 * float(clean.loss)
