@@ -450,6 +450,7 @@ class Augmented(NamedTuple):
             residuals=e,
             metrics=metrics,
             model=self.model.step.model,
+            diagnostics={**(result.diagnostics or {}), "aggregated": True},
         )
 
 

@@ -380,7 +380,7 @@ def check_basin(
     **Arguments:**
 
     - `result`: a `FitResult` of `fit` on one record (its `x0` of shape (n_x,)), holding
-        its model.
+        its model; not of a fit with `aggregate=` (the windows cannot take its readings).
     - `u`, `z`: that record, (T, n_u) and (T, n_z).
     - `window`: the window length in samples (shorter than the record).
     - `margin`: how many FIT points below the windowed fit count as a bad basin.
@@ -426,6 +426,13 @@ def check_basin(
     for name in ("window", "multistart"):
         if name in kwargs:
             raise ValueError(f"`{name}` is not a keyword of the windowed fit of `check_basin`.")
+    if (result.diagnostics or {}).get("aggregated"):
+        raise ValueError(
+            "`check_basin` does not take the result of a fit with `aggregate=`: its windowed "
+            "fit cannot take aggregated readings (windows do not combine with them), so an "
+            "output measured only in aggregate would drop out of the comparison. Compare "
+            "with a fit from other starts (`multistart`) instead."
+        )
     result._check_u(u)
     fitted = np.shape(result.residuals)
     if np.shape(z) != fitted or np.shape(u)[0] != fitted[0]:

@@ -490,7 +490,8 @@ class FitResult(eqx.Module):
         estimated entries (n_obs - n_free <= 0: the noise variance, and with it every
         standard error, is unknown; `fit` warns); `regularised` (True) after a fit with a
         regulariser, whose covariance is that of the smooth loss C at the regularised
-        estimate, without the regulariser (the printout says so).
+        estimate, without the regulariser (the printout says so); `aggregated` (True)
+        after a fit with `aggregate=`, whose readings `residuals` does not hold.
     """
 
     theta: Any

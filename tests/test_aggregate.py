@@ -358,6 +358,11 @@ def test_an_output_measured_only_in_aggregate_is_identified():
     for name in ("aic", "aicc", "bic", "fpe"):
         assert type(r.metrics[name]) is float and np.isnan(r.metrics[name]), name
     assert "AIC nan (no output has a point sample: aggregated readings only)" in str(r)
+    # check_basin's windows cannot take the readings: the output would drop out of its
+    # comparison (it ran the windows on no data and called the basin fine)
+    assert r.diagnostics["aggregated"] is True
+    with pytest.raises(ValueError, match="`check_basin` does not take the result of a fit with"):
+        oj.check_basin(r, u, z, window=20)
     empty = oj.Aggregate(0, spans, np.full(10, np.nan), kind="time_mean")
     with pytest.raises(ValueError, match="NaN everywhere"):
         oj.loss(model, truth, np.array([1.0]), u, z, t=t, missing="mask", aggregate=empty)
