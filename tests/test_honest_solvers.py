@@ -1590,7 +1590,7 @@ def _measure(problem, q, z, lo, hi):
 
 
 @settings(
-    max_examples=12,
+    max_examples=8,
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow],
