@@ -803,16 +803,10 @@ def test_a_group_lasso_in_a_box_reaches_the_prox_gradient_fixed_point(solver):
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
 
 
-def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
-    """l1 on B with sum(B[1]) >= 2 (a general projection): ISTA reported `converged` at a
-    fixed point of prox-then-project 0.014 from the optimum (its KKT multipliers unequal
-    along the active face). The optimum, from SciPy's SLSQP on B = B+ - B-."""
+def _l1_optimum_on_a_half_space(Phi, zv, T, lam, e, bound):
+    """The minimiser of C + lam ||B||_1 over e . vec(B) >= bound, C quadratic in vec(B)
+    (its outputs Phi vec(B)), and that minimum: SciPy's SLSQP on B = B+ - B-."""
     from scipy.optimize import minimize
-
-    model, theta0, u, z, Phi, zv = _linear_gains()
-    T, lam = u.shape[0], 0.05
-    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
-    e = np.r_[0, 0, 0, 1, 1, 1.0]
 
     def objective(w):
         r = zv - Phi @ (w[:6] - w[6:])
@@ -822,7 +816,7 @@ def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
         g = -2 / T * Phi.T @ (zv - Phi @ (w[:6] - w[6:]))
         return np.concatenate([g + lam, -g + lam])
 
-    face = {"type": "ineq", "fun": lambda w: e @ (w[:6] - w[6:]) - 2.0}
+    face = {"type": "ineq", "fun": lambda w: e @ (w[:6] - w[6:]) - bound}
     face["jac"] = lambda w: np.concatenate([e, -e])
     best = minimize(
         objective,
@@ -833,27 +827,44 @@ def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
         constraints=[face],
         options={"ftol": 1e-15, "maxiter": 2000},
     )
-    B = best.x[:6] - best.x[6:]
+    return best.x[:6] - best.x[6:], best.fun
 
-    def half_space(th):
-        B = jnp.asarray(th["B"])
-        return {**th, "B": B.at[1].add(-jnp.minimum(jnp.sum(B[1]) - 2.0, 0.0) / 3)}
 
-    r = oj.fit(
+def _ista_l1(problem, L, lam, projection, max_steps):
+    """ISTA (`optax.sgd(1 / L)`) on C + lam ||B||_1 over a general projection's set, A
+    held and x0 = 0 known: `problem` is (model, theta0, u, z)."""
+    model, theta0, u, z = problem
+    return oj.fit(
         model,
         theta0,
         np.zeros(2),
         u,
         z,
-        solver=oj.Optax(optax.sgd(1 / L), max_steps=20000),
+        solver=oj.Optax(optax.sgd(1 / L), max_steps=max_steps),
         regulariser=sp.l1(lam, where=sp.mask(lambda th: th["B"]), learning_rate=1 / L),
-        constraints=oc.project(half_space),
+        constraints=oc.project(projection),
         fixed={"A": True},
         estimate_x0=False,
     )
+
+
+def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
+    """l1 on B with sum(B[1]) >= 2 (a general projection): ISTA reported `converged` at a
+    fixed point of prox-then-project 0.014 from the optimum (its KKT multipliers unequal
+    along the active face). The optimum, from SciPy's SLSQP on B = B+ - B-."""
+    model, theta0, u, z, Phi, zv = _linear_gains()
+    T, lam = u.shape[0], 0.05
+    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
+    B, best = _l1_optimum_on_a_half_space(Phi, zv, T, lam, np.r_[0, 0, 0, 1, 1, 1.0], 2.0)
+
+    def half_space(th):
+        B = jnp.asarray(th["B"])
+        return {**th, "B": B.at[1].add(-jnp.minimum(jnp.sum(B[1]) - 2.0, 0.0) / 3)}
+
+    r = _ista_l1((model, theta0, u, z), L, lam, half_space, 20000)
     assert r.success, r.message
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
-    assert float(r.loss) == pytest.approx(best.fun, rel=1e-9)
+    assert float(r.loss) == pytest.approx(best, rel=1e-9)
 
 
 def test_the_splitting_runs_until_its_corrections_settle():
@@ -862,33 +873,10 @@ def test_the_splitting_runs_until_its_corrections_settle():
     The splitting stopped at its second round, where x repeated while its corrections
     still moved: it returned the composition's point, and ISTA "converged" there at its
     first step."""
-    from scipy.optimize import minimize
-
     model, theta0, u, z, Phi, zv = _linear_gains()
     T, lam = u.shape[0], 30.0
     L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
-    e = np.r_[1.0, 0, 2.0, 0, 0, 0]
-
-    def objective(w):
-        r = zv - Phi @ (w[:6] - w[6:])
-        return r @ r / T + lam * w.sum()
-
-    def gradient(w):
-        g = -2 / T * Phi.T @ (zv - Phi @ (w[:6] - w[6:]))
-        return np.concatenate([g + lam, -g + lam])
-
-    face = {"type": "ineq", "fun": lambda w: e @ (w[:6] - w[6:]) - 1.0}
-    face["jac"] = lambda w: np.concatenate([e, -e])
-    best = minimize(
-        objective,
-        np.full(12, 0.1),
-        jac=gradient,
-        bounds=[(0, None)] * 12,
-        method="SLSQP",
-        constraints=[face],
-        options={"ftol": 1e-15, "maxiter": 2000},
-    )
-    B = best.x[:6] - best.x[6:]
+    B, _ = _l1_optimum_on_a_half_space(Phi, zv, T, lam, np.r_[1.0, 0, 2.0, 0, 0, 0], 1.0)
 
     def half_space(th):
         b = jnp.asarray(th["B"])
@@ -897,17 +885,6 @@ def test_the_splitting_runs_until_its_corrections_settle():
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # (theta0 is projected onto the set)
-        r = oj.fit(
-            model,
-            theta0,
-            np.zeros(2),
-            u,
-            z,
-            solver=oj.Optax(optax.sgd(1 / L), max_steps=2000),
-            regulariser=sp.l1(lam, where=sp.mask(lambda th: th["B"]), learning_rate=1 / L),
-            constraints=oc.project(half_space),
-            fixed={"A": True},
-            estimate_x0=False,
-        )
+        r = _ista_l1((model, theta0, u, z), L, lam, half_space, 2000)
     assert r.success, r.message
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
