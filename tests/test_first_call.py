@@ -169,6 +169,28 @@ def test_a_regulariser_made_anew_reuses_the_compiled_fit():
     assert COMPILES.count(lambda: fit(sp.l1(2e-3)))[1] > 0  # the strength is a constant
 
 
+def test_a_general_set_with_a_box_made_anew_reuses_the_compiled_fit():
+    """A general projection combined with a box (Dykstra's projection onto their
+    intersection): `fit` takes the combination apart and combines it again, and the
+    combined projection, a new function each time, compiled the whole solve on every
+    call (1.8 s), the same combination or one made alike. It compares by its sets now;
+    another box still compiles."""
+    oc = oj.constraints
+    model = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u)
+    u = np.random.default_rng(4).uniform(-1.0, 1.0, (T + 13, 1))  # shapes no other test has
+    _, z = oj.simulate(model, {"a": 0.5, "b": 1.0}, np.zeros(1), u)
+    below = oc.project(lambda p: {**p, "b": jnp.minimum(p["b"], 0.9)})
+
+    def fit(cons):
+        return oj.fit(model, {"a": 0.3, "b": 0.8}, np.zeros(1), u, z, constraints=cons)
+
+    both = oc.combine([below, oc.box(lower={"a": 0.1})])
+    assert fit(both).theta["b"] == pytest.approx(0.9)  # (the general set binds)
+    assert COMPILES.count(lambda: fit(both))[1] == 0
+    assert COMPILES.count(lambda: fit([below, oc.box(lower={"a": 0.1})]))[1] == 0
+    assert COMPILES.count(lambda: fit([below, oc.box(lower={"a": 0.2})]))[1] > 0
+
+
 def test_predict_matches_estimate_x0_and_simulate():
     """predict's x0 estimate, its identifiable entries and the record simulated from it
     come from one compiled call: the same as `estimate_x0` and `simulate` apart, with an
