@@ -454,16 +454,22 @@ def test_bad_model_construction():
         oj.Model.from_ode(rhs, 0.1, observe=1)
 
 
+def _spring_step(x, u, th):
+    return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
+
+
+# one model for the precision tests below: their simulations (and the float32 fits of the two
+# half precisions, widened alike) share their compiled programs
+_SPRING = oj.Model(_spring_step)
+
+
 def test_float64_host_data_run_in_float32_without_x64():
     """JAX's default (x64 off) with NumPy float64 data, as a user who did not enable x64
     would call it: the data are canonicalised to float32 once, and `simulate`, `fit` and
     `value_and_grad` run and return float32, with the fit recovering the parameters."""
     import jax
 
-    def step(x, u, th):
-        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
-
-    model = oj.Model(step)
+    model = _SPRING
     rng = np.random.default_rng(0)
     u = rng.standard_normal((60, 1))  # float64
     x0 = np.array([1.0, 0.0])
@@ -486,10 +492,7 @@ def test_half_precision_data_are_widened_to_float32(half):
     half-precision routine (LAPACK's eigh failed with "Unsupported dtype float16" deep
     inside), so the data are widened to float32, and the fit runs and recovers k."""
 
-    def step(x, u, th):
-        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
-
-    model = oj.Model(step)
+    model = _SPRING
     dt = jnp.dtype(half)
     rng = np.random.default_rng(0)
     u = rng.standard_normal((60, 1))
@@ -508,10 +511,7 @@ def test_optimistix_trust_region_on_float32_with_x64_is_refused_by_name():
     (the refusal is no broader than the failure)."""
     import jax
 
-    def step(x, u, th):
-        return jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * th["k"] * x[0] + 0.1 * u[0]])
-
-    model = oj.Model(step)
+    model = _SPRING
     rng = np.random.default_rng(0)
     u = rng.standard_normal((60, 1)).astype(np.float32)
     x0 = np.array([1.0, 0.0], np.float32)

@@ -190,18 +190,19 @@ def test_basin_check_rejects_bad_arguments(plain):
 
 def test_basin_check_holds_what_the_fit_held():
     """A parameter held in the fit stays held in the windows (freed, it would let them fit
-    better for that alone: a false alarm); `fixed=` still overrides."""
+    better for that alone: a false alarm); `fixed=` still overrides. (Windows of 50, as
+    in the tests above: the freed windowed fit is their program.)"""
     held = oj.fit(MODEL, TRUTH, np.zeros(2), U, Z, fixed={"w0sq": True, "b": False})
-    check = oj.check_basin(held, U, Z, window=100)
+    check = oj.check_basin(held, U, Z, window=50)
     assert float(check.windowed.theta["w0sq"]) == TRUTH["w0sq"]
     assert check.windowed.names == ("b",)
-    free = oj.check_basin(held, U, Z, window=100, fixed=None)
+    free = oj.check_basin(held, U, Z, window=50, fixed=None)
     assert free.windowed.names == ("b", "w0sq")
     # A fit that took NaN in z as missing samples: the windows do too (they raised).
     gaps = np.array(Z)
     gaps[[7, 250]] = np.nan
     masked = oj.fit(MODEL, TRUTH, np.zeros(2), U, gaps, fixed={"w0sq": True}, missing="mask")
-    check = oj.check_basin(masked, U, gaps, window=100)
+    check = oj.check_basin(masked, U, gaps, window=50)
     assert np.isnan(check.windowed.residuals).sum() == 2
 
 
@@ -457,8 +458,9 @@ def test_held_x0_entries_of_windows_after_the_first_are_named():
     the mask to the last stage only, which ends at the whole-record fit from the truth."""
     mask = np.array([True, False])
     with pytest.warns(UserWarning, match=r"holds x0 entries \[1\] of every window"):
-        oj.fit(MODEL, START, np.zeros(2), U, Z, window=100, estimate_x0=mask)
-    _no_warnings(oj.fit, MODEL, START, np.zeros(2), U, Z, window=100)
+        oj.fit(MODEL, START, np.zeros(2), U, Z, window=50, estimate_x0=mask)
+    # (the windowed fit of test_each_stage_keeps_its_theta: its compiled program)
+    _no_warnings(oj.fit, MODEL, START, np.zeros(2), U, Z, window=50)
     cont = _no_warnings(
         oj.fit_continuation, MODEL, START, np.zeros(2), U, Z, windows=(50,), estimate_x0=mask
     )

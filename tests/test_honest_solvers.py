@@ -8,6 +8,7 @@ are our own RK4 rollout (`lax.scan` over `helpers.own_rk4_step`) and their Jacob
 autodiff's, independent of the library's simulation and sensitivities.
 """
 
+import functools
 import warnings
 
 import equinox as eqx
@@ -341,6 +342,7 @@ def test_optimistix_stops_along_an_active_bound():
     assert float(r.loss) == pytest.approx(float(lm.loss), rel=1e-9)
 
 
+@functools.cache  # (one model: the cases with the same box share the reference's compilation)
 def _oscillator_data(T=120, seed=0):
     def rhs(x, u, th):
         return jnp.stack([x[1], -th["w0sq"] * x[0] - th["c"] * x[1] + th["b"] * u[0]])
@@ -490,6 +492,7 @@ def test_optimistix_failing_at_its_first_step_stops_there():
     assert oj.fit(model, {"a": 0.5, "c": 1.0}, np.array([0.0]), u, z).success
 
 
+@functools.cache  # (one model: the fits of the truth's optimum share a compilation)
 def _shift_register():
     """z = g tanh(w . (u's last 8)) with noise 0.01, T = 300: the optimistix bridge's
     capped-solve cases."""
@@ -676,6 +679,26 @@ def test_a_start_where_the_simulation_diverges_is_a_failure_with_a_reason():
         assert not any("not identifiable" in str(w.message) for w in caught)
 
 
+# Models that several tests below fit, each one function, so that fits of the same shapes
+# with the same solver reuse one compiled program (a new function compiles anew).
+
+
+def _gain_step(x, u, th):
+    return th["a"] * x + th["b"] * u
+
+
+def _plus_c(x, u, th):
+    return x + th["c"]
+
+
+def _state(x, u, th):
+    return x
+
+
+LIN_MODEL = oj.Model(_gain_step, _state)  # x+ = a x + b u, z = x
+OFFSET_MODEL = oj.Model(_gain_step, _plus_c)  # x+ = a x + b u, z = x + c
+
+
 @pytest.mark.parametrize("solver", [oj.LevenbergMarquardt(), oj.LBFGS()], ids=["lm", "lbfgs"])
 def test_a_float32_start_whose_loss_overflows_its_gradient_says_the_loss_is_finite(solver):
     """float32, x+ = a x + b u from a = 1.2 over 200 samples: the loss at the start is
@@ -684,7 +707,7 @@ def test_a_float32_start_whose_loss_overflows_its_gradient_says_the_loss_is_fini
     loss was not finite)."""
     rng = np.random.default_rng(0)
     f32 = np.float32
-    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    lin = LIN_MODEL
     u = rng.standard_normal((200, 1)).astype(f32)
     _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
     z = (np.asarray(z) + 0.05 * rng.standard_normal((200, 1))).astype(f32)
@@ -706,7 +729,7 @@ def test_a_step_whose_loss_overflows_its_gradient_blames_the_step_not_the_start(
     float. The message names that step and the step as the cause (it blamed the
     simulation from theta0 and x0, which is stable)."""
     rng = np.random.default_rng(1)
-    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    lin = LIN_MODEL
     u = rng.standard_normal((300, 1))
     _, z = oj.simulate(lin, {"a": 0.9, "b": 0.5}, np.zeros(1), u)
     z = np.asarray(z) + 0.05 * rng.standard_normal((300, 1))
@@ -769,6 +792,20 @@ def test_a_clipped_step_no_longer_converges_at_the_start():
             assert r.theta["k"] == pytest.approx(4.0, rel=0.02)
 
 
+@functools.cache  # (one model for both cases: the bounds are data, not a new compilation)
+def _sqrt_tank_record():
+    """h' = -a sqrt(h) + b u (dt = 0.5) from h0 = 0.2, a = 0.5, b = 0.3, a staircase input
+    of 400 samples, noise 0.01: (model, u, z)."""
+    model = oj.Model.from_ode(
+        lambda x, u, th: jnp.stack([-th["a"] * jnp.sqrt(x[0]) + th["b"] * u[0]]), dt=0.5
+    )
+    rng = np.random.default_rng(2)
+    u = np.repeat(np.abs(rng.standard_normal((40, 1))) + 0.5, 10, axis=0)
+    _, z = oj.simulate(model, {"a": 0.5, "b": 0.3}, np.array([0.2]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    return model, u, z
+
+
 @pytest.mark.parametrize("upper", [None, 0.45])
 def test_a_step_a_bound_cuts_short_moves_the_other_entries_for_the_bound(upper):
     """A tank h' = -a sqrt(h) + b u, the bound b >= 0.31 above b's free optimum 0.30. The
@@ -777,13 +814,7 @@ def test_a_step_a_bound_cuts_short_moves_the_other_entries_for_the_bound(upper):
     h = 0 for 679 steps (max_steps_reached at 100, the default); with a <= 0.45 too, 678.
     The others now take the step of the linear model with b at its bound: GN's and
     LM's iterates reach SciPy's optimum in a few steps."""
-    model = oj.Model.from_ode(
-        lambda x, u, th: jnp.stack([-th["a"] * jnp.sqrt(x[0]) + th["b"] * u[0]]), dt=0.5
-    )
-    rng = np.random.default_rng(2)
-    u = np.repeat(np.abs(rng.standard_normal((40, 1))) + 0.5, 10, axis=0)
-    _, z = oj.simulate(model, {"a": 0.5, "b": 0.3}, np.array([0.2]), u)
-    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    model, u, z = _sqrt_tank_record()
     box = oj.constraints.box(lower={"b": 0.31}, upper=None if upper is None else {"a": upper})
 
     def residuals(p):
@@ -882,8 +913,9 @@ def test_a_first_order_fit_exact_at_its_last_step_is_a_zero_residual_success():
     _, z = oj.simulate(model, truth, np.array([0.5, 0.0]), u)
     start = {"k": 1.5, "c": 0.5, "g": 0.7}
     runs = {}
+    adam = optax.adam(1e-2, eps=1e-30)  # (one transformation: both runs share a compilation)
     for steps in (300, 1000):
-        solver = oj.Optax(optax.adam(1e-2, eps=1e-30), max_steps=steps)
+        solver = oj.Optax(adam, max_steps=steps)
         runs[steps] = oj.fit(model, start, np.array([0.5, 0.0]), u, z, solver=solver)
     short, exact = runs[300], runs[1000]
     assert short.status == "max_steps_reached", short.message
@@ -912,6 +944,12 @@ def test_an_exact_fit_under_a_regulariser_is_no_zero_residual_success():
     assert r.status == "max_steps_reached" and not r.success, r.message
 
 
+# (one model for both cases, with and without a gap: one compilation)
+SPRING_K_MODEL = oj.Model.from_ode(
+    lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] - 0.3 * x[1] + u[0]]), dt=0.3
+)
+
+
 @pytest.mark.parametrize("gap", [False, True])
 def test_a_zero_residual_ends_when_its_steps_reach_round_off(gap):
     """Noise-free data of a state starting at 0 (x0[1] = 0): at a zero residual the loss
@@ -919,8 +957,7 @@ def test_a_zero_residual_ends_when_its_steps_reach_round_off(gap):
     scaled parameters, and LM ran to max_steps_reached (a failure). A step below
     round-off of the parameters ends the fit, as a zero_residual success; with a masked
     sample as without."""
-    rhs = lambda x, u, th: jnp.stack([x[1], -th["k"] * x[0] - 0.3 * x[1] + u[0]])  # noqa: E731
-    model = oj.Model.from_ode(rhs, dt=0.3)
+    model = SPRING_K_MODEL
     u = np.sin(0.3 * np.arange(60))[:, None]
     _, z = oj.simulate(model, {"k": 2.0}, np.array([0.5, 0.0]), u)
     z = np.asarray(z).copy()
@@ -998,7 +1035,7 @@ def _offset_fit_and_reference(offset, seed, solver):
     estimates (a, b, c, x0) with their standard errors, and SciPy's optimum of our own
     residuals (`least_squares`, method "lm")."""
     u, z = _offset_record(offset, seed)
-    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    model = OFFSET_MODEL
     theta0 = {"a": 0.85, "b": 0.45, "c": offset - 0.5}
     x0 = np.array([z[0, 0] - offset + 0.5])
 
@@ -1114,14 +1151,7 @@ def test_a_settled_stall_with_an_unobserved_state_stays_settled(solver, seed):
         warnings.simplefilter("ignore")  # (the unobserved state's inf std)
         r = oj.fit(model, theta0, x0, u, z, solver=solver())
     assert r.success, r.message
-    plain = oj.fit(
-        oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"]),
-        theta0,
-        x0[:1],
-        u,
-        z,
-        solver=solver(),
-    )
+    plain = oj.fit(OFFSET_MODEL, theta0, x0[:1], u, z, solver=solver())
     assert r.status == plain.status
     if solver is oj.LBFGS:
         assert r.stop_info.get("settled"), "no stall: the case does not test the settling"
@@ -1142,7 +1172,7 @@ def test_a_first_order_success_at_its_round_off_limit_is_checked_by_the_newton_s
     u = 1.0 + 0.01 * rng.standard_normal((T, 1))
     x = first_order_states(u, x0=1.0)
     z = (x + offset + 1e-5 * rng.standard_normal(T))[:, None]
-    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    model = OFFSET_MODEL
     best = oj.fit(model, {"a": 0.9, "b": 0.5, "c": offset}, np.ones(1), u, z)
     assert best.success, best.message
     off = {**best.theta, "b": best.theta["b"] - 3.0 * best.std["b"]}
@@ -1170,7 +1200,7 @@ def test_a_float32_first_order_success_is_checked_by_the_jacobians_step():
     u = 10.0 + rng.standard_normal((T, 1))
     x = first_order_states(u, x0=1.0)
     z = (x + 30.0 + 0.01 * rng.standard_normal(T))[:, None]
-    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    model = OFFSET_MODEL
     f = np.float32
     theta0 = {"a": f(0.85), "b": f(0.45), "c": f(30.0)}
     solver = oj.Optimistix(optx.BFGS(rtol=1e-6, atol=1e-6))
@@ -1222,7 +1252,7 @@ def test_a_settled_stall_is_checked_with_the_residuals_curvature():
     on residuals with the offset taken out (no round-off limit) moves a by more than 0.1
     of its standard error from the returned point (0.27 here)."""
     u, z = _misfit_record()
-    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u, lambda x, u, th: x + th["c"])
+    model = OFFSET_MODEL
     theta0 = {"a": 0.89, "b": 1.02e-3, "c": 1e6 + 1e-4}
     r = oj.fit(model, theta0, np.zeros(1), u, z, solver=oj.LevenbergMarquardt(max_steps=3000))
     assert not r.success and r.status == "stalled", r.message
@@ -1251,16 +1281,21 @@ def test_a_float32_stall_with_outputs_near_their_noise_is_not_blamed_on_their_pr
     assert "outputs_precision" not in r.stop_info and "precision of the outputs" not in r.message
 
 
+def _euler_spring(x, u, th):
+    """An oscillator stepped by explicit Euler (dt = 0.1): x = (position, rate)."""
+    q, v = x[0], x[1]
+    return jnp.stack([q + 0.1 * v, v + 0.1 * (u[0] - th["k"] * q - th["c"] * v)])
+
+
+# (one model for every case below, so that their float64 references share a compilation)
+SCALED_OUTPUTS_MODEL = oj.Model(_euler_spring, lambda x, u, th: jnp.stack([x[0], 100 * x[1]]))
+
+
 def _scaled_outputs_problem(dtype):
     """An oscillator measured as its position and 100 times its rate (outputs of about 30),
     noise 1e-3 on both: in float32 the outputs' precision, eps |z| / |r| = 3.6e-3, moves the
     first-order measure by more than the round-off limit 10 sqrt(eps) = 3.5e-3."""
-
-    def f(x, u, th):
-        q, v = x[0], x[1]
-        return jnp.stack([q + 0.1 * v, v + 0.1 * (u[0] - th["k"] * q - th["c"] * v)])
-
-    model = oj.Model(f, lambda x, u, th: jnp.stack([x[0], 100 * x[1]]))
+    model = SCALED_OUTPUTS_MODEL
     rng = np.random.default_rng(0)
     u = rng.standard_normal((120, 1)).astype(np.float32)
     truth = {"k": np.float32(2.0), "c": np.float32(0.5)}
@@ -1298,6 +1333,10 @@ def test_a_float32_stall_at_the_precision_of_its_outputs_converges(solver):
         assert float(r.theta[k]) == pytest.approx(float(ref.theta[k]), rel=2e-6)
 
 
+# (one model for both cases, so that their float64 references share a compilation)
+OFFSET_SPRING_MODEL = oj.Model(_euler_spring, lambda x, u, th: jnp.stack([100 + x[0], 100 * x[1]]))
+
+
 @pytest.mark.default_optimisation  # (the cycle needs XLA's round-off of its defaults)
 @pytest.mark.parametrize("solver", [oj.GaussNewton(), oj.LevenbergMarquardt()], ids=["gn", "lm"])
 def test_a_float32_x0_fit_does_not_cycle_on_round_off_decreases(solver):
@@ -1306,12 +1345,7 @@ def test_a_float32_x0_fit_does_not_cycle_on_round_off_decreases(solver):
     Gauss-Newton cycled between two points for 100 steps (`max_steps_reached`), each step a
     "decrease" by one of the two programs. A decrease now counts above that difference
     (`least_squares.AbstractLeastSquares._move`): the fit stops at round-off, stationary."""
-
-    def f(x, u, th):
-        q, v = x[0], x[1]
-        return jnp.stack([q + 0.1 * v, v + 0.1 * (u[0] - th["k"] * q - th["c"] * v)])
-
-    model = oj.Model(f, lambda x, u, th: jnp.stack([100 + x[0], 100 * x[1]]))
+    model = OFFSET_SPRING_MODEL
     rng = np.random.default_rng(1)
     u = rng.standard_normal((200, 1)).astype(np.float32)
     theta = {"k": np.float32(2.0), "c": np.float32(0.5)}
@@ -1332,10 +1366,7 @@ def _collinear_first_order(umean, ustd, noise, seed, T=1000):
     makes the gain b, the offset c and x0 nearly collinear (float32 data, T samples).
     The start (a, b, c) = (0.8, 0.4, 29) and its x0 from the first output."""
 
-    def f(x, u, th):
-        return th["a"] * x + th["b"] * u
-
-    model = oj.Model(f, lambda x, u, th: x + th["c"])
+    model = OFFSET_MODEL
     rng = np.random.default_rng(seed)
     u = umean + ustd * rng.standard_normal((T, 1))
     x = first_order_states(u, x0=2.0)
@@ -1880,7 +1911,7 @@ def test_columns_that_shrank_alike_from_an_unstable_start_are_not_a_degenerate_m
     off: the fit goes on to the optimum that LM finds from the truth, and names no column."""
     rng = np.random.default_rng(0)
     u = rng.standard_normal((200, 1))
-    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    lin = LIN_MODEL
     _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
     z = np.asarray(z) + 0.05 * rng.standard_normal((200, 1))
     best = oj.fit(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u, z, solver=oj.LevenbergMarquardt())
@@ -1927,7 +1958,7 @@ def test_a_float32_stop_below_the_data_round_off_that_still_descends_is_not_a_ze
     success at the optimum."""
     rng = np.random.default_rng(0)
     f32 = np.float32
-    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    lin = LIN_MODEL
     u = rng.standard_normal((200, 1))
     _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
     z = np.asarray(z) + 3e-5 * rng.standard_normal((200, 1))
@@ -1987,7 +2018,7 @@ def test_a_backtracked_step_far_from_the_optimum_is_not_statistical_convergence(
     assert best.success
     assert r.success == (float(r.loss) <= float(best.loss) * (1 + 1e-6)), (r.status, r.loss)
     rng = np.random.default_rng(0)
-    lin = oj.Model(lambda x, u, p: p["a"] * x + p["b"] * u, lambda x, u, p: x)
+    lin = LIN_MODEL
     u = rng.standard_normal((200, 1))
     _, z = oj.simulate(lin, {"a": 0.8, "b": 0.5}, np.ones(1), u)
     z = np.asarray(z) + 0.05 * rng.standard_normal((200, 1))

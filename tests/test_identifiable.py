@@ -228,23 +228,23 @@ def test_fit_orthogonal_does_not_count_an_entry_held_by_fixed_as_unresolved(case
     assert np.isfinite(r.rounds[0].moved) and np.isfinite(r.rounds[0].absorbed)
 
 
-def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(case, tmp_path):
+# Two rounds, each fit stopped by its step budget of one step, a loose `rtol`. (Each call
+# of `fit_orthogonal` compiles its own augmented model: the tests below share this one.)
+SHORT_ROUNDS = dict(learned="r", rounds=2, rtol=1e3, solver=oj.LevenbergMarquardt(max_steps=1))
+
+
+@pytest.fixture(scope="module")
+def short_rounds(case):
+    model, theta0, u, z = case
+    return oj.fit_orthogonal(model, theta0, np.zeros(2), u, z, **SHORT_ROUNDS)
+
+
+def test_fit_orthogonal_counts_no_round_whose_fit_failed_as_converged(short_rounds, tmp_path):
     """A round whose fit stopped short (here its step budget of one step) moves the
     physics by whatever that fit did: within the tolerances (a loose `rtol` here) it
     ended the rounds as "converged". A round converges only where its fit succeeded; the
     rounds then run to their number, and say that they did not converge."""
-    model, theta0, u, z = case
-    r = oj.fit_orthogonal(
-        model,
-        theta0,
-        np.zeros(2),
-        u,
-        z,
-        learned="r",
-        rounds=2,
-        rtol=1e3,
-        solver=oj.LevenbergMarquardt(max_steps=1),
-    )
+    r = short_rounds
     assert [round.status for round in r.rounds] == ["max_steps_reached"] * 2
     assert all(round.change <= 1e3 for round in r.rounds)  # (the tolerance held)
     assert not r.converged and not r.success
@@ -267,17 +267,17 @@ def test_physics_first_learns_a_term_written_as_a_python_float(case):
     assert float(r.physics.theta["b"]) == 0.2 != float(r.result.theta["b"])
 
 
-def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case):
+def test_fit_orthogonal_estimates_a_python_int_as_fit_does(case, short_rounds):
     """A physical start written as an int (g = 1): round 2 crashed reshaping the basis,
-    which round 1 had built without g."""
+    which round 1 had built without g. (The same fit from g = 1.0: `short_rounds`.)"""
     model, theta0, u, z = case
-    short = dict(learned="r", rounds=2, solver=oj.LevenbergMarquardt(max_steps=3))
+    assert theta0["g"] == 1.0 and isinstance(theta0["g"], float)
     with warnings.catch_warnings():
         # (one output: fit's advice to weigh the outputs by their noise was given each
         # round, about the penalty's rows, which the user cannot weigh)
         warnings.filterwarnings("error", "the weighted residuals of the outputs differ")
-        as_int = oj.fit_orthogonal(model, {**theta0, "g": 1}, np.zeros(2), u, z, **short)
-    as_float = oj.fit_orthogonal(model, {**theta0, "g": 1.0}, np.zeros(2), u, z, **short)
+        as_int = oj.fit_orthogonal(model, {**theta0, "g": 1}, np.zeros(2), u, z, **SHORT_ROUNDS)
+    as_float = short_rounds
     assert len(as_int.rounds) == 2
     assert float(as_int.theta["g"]) == float(as_float.theta["g"]) != 1.0
 

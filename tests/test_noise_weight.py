@@ -218,10 +218,15 @@ def test_the_noise_weight_weighs_aggregated_readings_too(records):
     assert float(plain.std["a"]) > 3 * float(true.std["a"])
 
 
+# one model of one output for the two tests below, whose noise-weighted fits (of records of
+# the same length) share a compiled program
+ONE_OUTPUT = oj.Model(lambda x, u, th: th["a"] * x + u)
+
+
 def test_one_output_takes_one_fit():
     """One output's Q, normalised to det Q = 1, is 1 whatever its residuals: the first fit
     (Q = I) is the answer, and a second, identical, fit was run anyway."""
-    model = oj.Model(lambda x, u, th: th["a"] * x + u)
+    model = ONE_OUTPUT
     rng = np.random.default_rng(0)
     u = rng.standard_normal((200, 1))
     _, z = oj.simulate(model, {"a": 0.8}, np.array([1.0]), u)
@@ -236,8 +241,8 @@ def test_one_output_takes_one_fit():
 def test_a_weight_the_residuals_cannot_give_is_not_called_estimated():
     """Residuals exactly zero give no noise level: the fit warns and keeps Q = I, and the
     printout said the weight had been "estimated from the residuals"."""
-    model = oj.Model(lambda x, u, th: th["a"] * x + u)
-    u = np.full((50, 1), 0.5)
+    model = ONE_OUTPUT
+    u = np.full((200, 1), 0.5)  # x stays at 1, where it starts
     _, z = oj.simulate(model, {"a": 0.5}, np.array([1.0]), u)
     with pytest.warns(UserWarning, match="all zero, so there is no noise level"):
         r = oj.fit(model, {"a": 0.5}, np.array([1.0]), u, np.asarray(z), weight="noise")

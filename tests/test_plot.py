@@ -450,8 +450,12 @@ def test_compare_of_a_windowed_fit_without_n_simulates_from_its_first_window():
     with pytest.warns(UserWarning, match="pass `n`"):
         oj.plot.compare(z2, res, u=u2)
     # Windows none of which starts at 0: no state for the record's start; `n` is the remedy
-    # inside compare (not simulate's advice of an x0 or `predict`), and n works.
-    res = oj.fit(model, res.theta, np.zeros(2), u, z, window=oj.Windows(50, starts=[20, 120]))
+    # inside compare (not simulate's advice of an x0 or `predict`), and n works. (Four
+    # windows of 50, as above: the fit reuses its compiled program; the last two overlap.)
+    with pytest.warns(UserWarning, match=r"up to 2 windows .*too large"):
+        res = oj.fit(
+            model, res.theta, np.zeros(2), u, z, window=oj.Windows(50, starts=[20, 70, 120, 150])
+        )
     with pytest.raises(ValueError, match=r"none of which starts at sample 0.*pass `n`"):
         oj.plot.compare(z, res, u=u)
     # n=0 (the protocol's range) asks for what it already passed: the remedy says n >= 1

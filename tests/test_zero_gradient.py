@@ -8,6 +8,7 @@ warn; nor does a parameter that acts nowhere on the data (d), whose gradient is 
 everywhere: the covariance reports it as not identifiable.
 """
 
+import functools
 import warnings
 
 import jax
@@ -87,6 +88,7 @@ def test_no_report_for_ordinary_fits(data, theta0):
     np.testing.assert_allclose(r.theta["k12"] * r.theta["g"], 0.8, rtol=1e-8)
 
 
+@functools.cache  # one model function per sign: the fits of a test share their compile
 def _relu_model(sign):
     def rhs(x, u, p):
         return jnp.stack([-p["a"] * x[0] + jax.nn.relu(sign * p["k"]) * u[0]])
