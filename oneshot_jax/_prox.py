@@ -235,7 +235,7 @@ def check_projection(proj, theta, rtol=1e-10):
     P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
     wherever it happens to stop. `rtol` is at least 100 eps of theta's lowest float
     precision (a half-space's projection in float32 repeats to 6e-8 only)."""
-    dtypes = [np.result_type(v) for v in jax.tree_util.tree_leaves(theta)]
+    dtypes = [np.result_type(getattr(v, "dtype", v)) for v in jax.tree_util.tree_leaves(theta)]
     eps = [np.finfo(d).eps for d in dtypes if np.issubdtype(d, np.inexact)]
     rtol = max([rtol, *(100 * float(e) for e in eps)])
     once = _projected(proj, theta)

@@ -218,7 +218,10 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     if x0 is not None:
         check_state_size(x0, n_x, "`validation`: `x0`")
     if x0 is None:
-        x0 = np.zeros((np.shape(u)[0], n_x) if batched else (n_x,), np.result_type(x0_fit))
+        x0 = np.zeros(
+            (np.shape(u)[0], n_x) if batched else (n_x,),
+            np.result_type(getattr(x0_fit, "dtype", x0_fit)),
+        )
     try:
         data = check_data(model, theta, x0, u, validation.z, t=validation.t)
     except (ValueError, TypeError) as err:
@@ -241,7 +244,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
             f"`validation`: `u` must have n_u = {n_u} input columns, as the fitted data "
             f"has; got shape {np.shape(validation.u)}."
         )
-    dtype = np.result_type(x0_fit)
+    dtype = np.result_type(getattr(x0_fit, "dtype", x0_fit))
     U, Z, X0 = (
         jnp.asarray(a, dtype) if data.batched else jnp.asarray(a, dtype)[None]
         for a in (data.u, data.z, data.x0)

@@ -219,10 +219,10 @@ class MLP(eqx.Module):
 
     def __call__(self, features):
         """The residual at one feature vector of shape (in_size,); returns (out_size,)."""
-        if jnp.shape(features) != (self.in_size,):
+        if np.shape(features) != (self.in_size,):
             raise ValueError(
                 f"`features` must have shape ({self.in_size},) (this MLP's in_size), got "
-                f"{jnp.shape(features)}."
+                f"{np.shape(features)}."
             )
         h = jnp.asarray(features)
         if not jnp.issubdtype(h.dtype, jnp.inexact):  # (an integer offset would truncate)
@@ -379,10 +379,10 @@ class Features(eqx.Module):
 
     def __call__(self, x, u):
         """Theta(x, u): the (n_features,) vector of every term at one state and input."""
-        if jnp.shape(x) != (self.n_x,):
-            raise ValueError(f"`x` must have shape ({self.n_x},), got {jnp.shape(x)}.")
-        if jnp.shape(u) != (self.n_u,):
-            raise ValueError(f"`u` must have shape ({self.n_u},), got {jnp.shape(u)}.")
+        if np.shape(x) != (self.n_x,):
+            raise ValueError(f"`x` must have shape ({self.n_x},), got {np.shape(x)}.")
+        if np.shape(u) != (self.n_u,):
+            raise ValueError(f"`u` must have shape ({self.n_u},), got {np.shape(u)}.")
         x, u = jnp.asarray(x), jnp.asarray(u)
         v = jnp.concatenate([x, u]) if self.n_u else x
         if not jnp.issubdtype(v.dtype, jnp.inexact):  # (integer data: `functions` would truncate)

@@ -682,3 +682,16 @@ def test_a_regulariser_with_two_sets_projects_onto_their_intersection():
         out = both.prox(v, 1.0)["w"]
         np.testing.assert_allclose(out, expected["w"], atol=1e-9)
         assert float(jnp.sum(out)) <= 1.0 + 1e-9 and float(jnp.min(out)) >= 0.0
+
+
+def test_a_projection_of_a_jax_array_theta_is_checked_without_a_deprecated_call():
+    """The projection's idempotence check read the dtype of a JAX array theta by
+    `np.result_type(array)`, which NumPy deprecates (an error in its next releases)."""
+    model = oj.Model(lambda x, u, th: th[0] * x + th[1] * u)
+    u, z = np.ones((20, 1)), np.ones((20, 1))
+    cap = oc.project(lambda th: th.at[1].set(jnp.minimum(th[1], 0.3)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        warnings.simplefilter("error", DeprecationWarning)
+        r = oj.fit(model, jnp.array([0.5, 0.2]), np.zeros(1), u, z, constraints=cap)
+    assert float(r.theta[1]) <= 0.3
