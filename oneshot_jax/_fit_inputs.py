@@ -348,8 +348,7 @@ def _bounds(proj, theta):
     key = (
         id(proj) if named is None else named,
         treedef,
-        # (a leaf's own dtype: np.result_type of a JAX array is deprecated in JAX)
-        tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a)) for a in leaves),
+        tuple((np.shape(a), _pytree.leaf_dtype(a)) for a in leaves),
     )
 
     def make():

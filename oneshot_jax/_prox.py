@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from . import _pytree
 from ._checks import is_concrete
 
 __all__ = ["ProximalTransformation", "ProximalState", "combine"]
@@ -235,7 +236,7 @@ def check_projection(proj, theta, rtol=1e-10):
     P(p); a map that is not one (p -> p/2, say) would make every fit report convergence
     wherever it happens to stop. `rtol` is at least 100 eps of theta's lowest float
     precision (a half-space's projection in float32 repeats to 6e-8 only)."""
-    dtypes = [np.result_type(getattr(v, "dtype", v)) for v in jax.tree_util.tree_leaves(theta)]
+    dtypes = [_pytree.leaf_dtype(v) for v in jax.tree_util.tree_leaves(theta)]
     eps = [np.finfo(d).eps for d in dtypes if np.issubdtype(d, np.inexact)]
     rtol = max([rtol, *(100 * float(e) for e in eps)])
     once = _projected(proj, theta)
@@ -502,26 +503,17 @@ def dykstra(projections, max_cycles=1000):
     return project
 
 
-# The combined projections of general sets made so far, by their sets (`_set_key`); bounded.
-_COMBINED = {}
-_COMBINED_KEPT = 32
+# The combined projections of general sets made so far, by their sets (`_set_key`).
+_COMBINED: dict = {}
 
 
 def _combined_projection(general, transforms):
     """`dykstra(general)`, compiled, one function per combination of the same sets:
     `fit` takes a combination apart and combines it again, and a new function there
     compiled the whole solve anew on every call (1.8 s each; its calls on the host, two
-    more small programs)."""
+    more small programs). A set that cannot be hashed gets a function of its own."""
     key = ("dykstra", tuple(map(_set_key, transforms)))
-    try:
-        project = _COMBINED.get(key)
-    except TypeError:  # (a set that cannot be hashed: a function of its own)
-        return jax.jit(dykstra(general))
-    if project is None:
-        if len(_COMBINED) >= _COMBINED_KEPT:
-            _COMBINED.pop(next(iter(_COMBINED)))
-        project = _COMBINED[key] = Keyed(jax.jit(dykstra(general)), key)
-    return project
+    return _pytree.kept(_COMBINED, key, lambda: jax.jit(dykstra(general)), size=32)
 
 
 def _set_key(t):

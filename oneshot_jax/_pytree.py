@@ -177,6 +177,13 @@ def module_entries(theta) -> np.ndarray:
     return np.concatenate([np.ravel(a) for a in leaves]) if leaves else np.zeros(0, bool)
 
 
+def leaf_dtype(leaf):
+    """A leaf's own dtype (a JAX or NumPy array's, a NumPy scalar's), else NumPy's for a
+    Python scalar: `np.result_type` of a JAX array is deprecated."""
+    dtype = getattr(leaf, "dtype", None)
+    return np.result_type(leaf) if dtype is None else dtype
+
+
 def kept(cache: dict, key, make, size: int = 256):
     """`make()`, kept in `cache` under `key` (what depends only on a structure, kept
     between calls); the oldest entry is dropped past `size`, and an unhashable `key`

@@ -25,6 +25,7 @@ from ._cost import weigh
 from ._counts import integral, is_count
 from ._linalg import psd_solve
 from ._normalise import is_ragged
+from ._pytree import leaf_dtype
 from ._simulate import outputs, rollout
 
 
@@ -220,7 +221,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
     if x0 is None:
         x0 = np.zeros(
             (np.shape(u)[0], n_x) if batched else (n_x,),
-            np.result_type(getattr(x0_fit, "dtype", x0_fit)),
+            leaf_dtype(x0_fit),
         )
     try:
         data = check_data(model, theta, x0, u, validation.z, t=validation.t)
@@ -244,7 +245,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
             f"`validation`: `u` must have n_u = {n_u} input columns, as the fitted data "
             f"has; got shape {np.shape(validation.u)}."
         )
-    dtype = np.result_type(getattr(x0_fit, "dtype", x0_fit))
+    dtype = leaf_dtype(x0_fit)
     U, Z, X0 = (
         jnp.asarray(a, dtype) if data.batched else jnp.asarray(a, dtype)[None]
         for a in (data.u, data.z, data.x0)

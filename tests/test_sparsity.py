@@ -848,20 +848,29 @@ def _ista_l1(problem, L, lam, projection, max_steps):
     )
 
 
+def _l1_on_a_half_space(lam, e, bound):
+    """The linear-gains problem with l1 (`lam`) on B over the half-space e . vec(B) >= bound:
+    ((model, theta0, u, z), the gradient's Lipschitz constant L, SciPy's optimum B and
+    its C + g)."""
+    model, theta0, u, z, Phi, zv = _linear_gains()
+    T = u.shape[0]
+    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
+    B, best = _l1_optimum_on_a_half_space(Phi, zv, T, lam, e, bound)
+    return (model, theta0, u, z), L, B, best
+
+
 def test_an_l1_term_on_a_half_space_reaches_its_optimum_by_proximal_gradient():
     """l1 on B with sum(B[1]) >= 2 (a general projection): ISTA reported `converged` at a
     fixed point of prox-then-project 0.014 from the optimum (its KKT multipliers unequal
     along the active face). The optimum, from SciPy's SLSQP on B = B+ - B-."""
-    model, theta0, u, z, Phi, zv = _linear_gains()
-    T, lam = u.shape[0], 0.05
-    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
-    B, best = _l1_optimum_on_a_half_space(Phi, zv, T, lam, np.r_[0, 0, 0, 1, 1, 1.0], 2.0)
+    lam = 0.05
+    problem, L, B, best = _l1_on_a_half_space(lam, np.r_[0, 0, 0, 1, 1, 1.0], 2.0)
 
     def half_space(th):
         B = jnp.asarray(th["B"])
         return {**th, "B": B.at[1].add(-jnp.minimum(jnp.sum(B[1]) - 2.0, 0.0) / 3)}
 
-    r = _ista_l1((model, theta0, u, z), L, lam, half_space, 20000)
+    r = _ista_l1(problem, L, lam, half_space, 20000)
     assert r.success, r.message
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
     assert float(r.loss) == pytest.approx(best, rel=1e-9)
@@ -873,10 +882,8 @@ def test_the_splitting_runs_until_its_corrections_settle():
     The splitting stopped at its second round, where x repeated while its corrections
     still moved: it returned the composition's point, and ISTA "converged" there at its
     first step."""
-    model, theta0, u, z, Phi, zv = _linear_gains()
-    T, lam = u.shape[0], 30.0
-    L = np.linalg.eigvalsh(2 / T * Phi.T @ Phi).max()
-    B, _ = _l1_optimum_on_a_half_space(Phi, zv, T, lam, np.r_[1.0, 0, 2.0, 0, 0, 0], 1.0)
+    lam = 30.0
+    problem, L, B, _ = _l1_on_a_half_space(lam, np.r_[1.0, 0, 2.0, 0, 0, 0], 1.0)
 
     def half_space(th):
         b = jnp.asarray(th["B"])
@@ -885,6 +892,6 @@ def test_the_splitting_runs_until_its_corrections_settle():
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # (theta0 is projected onto the set)
-        r = _ista_l1((model, theta0, u, z), L, lam, half_space, 2000)
+        r = _ista_l1(problem, L, lam, half_space, 2000)
     assert r.success, r.message
     np.testing.assert_allclose(np.ravel(r.theta["B"]), B, atol=1e-6)
