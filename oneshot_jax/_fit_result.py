@@ -12,10 +12,11 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._checks import check_state_size
+from ._checks import check_data, check_state_size
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
+from ._output_std import output_std
 from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate
 from ._x0_smoother import reads_weight
@@ -559,25 +560,35 @@ class FitResult(eqx.Module):
 
     def _measurement_noise(self):
         """The measurement noise covariance the fit estimated, sigma^2 Q^{-1} (Q the fit's
-        weight, I without one; sigma^2 = SSE / dof of its weighted residuals at the point
-        samples, as its covariance scales, `_covariance.scale`, less an aggregated fit's
-        readings, which `residuals` does not hold), or None where Q is singular or sigma^2
-        is not known (no degrees of freedom, or residuals exactly zero)."""
-        e = np.asarray(self.residuals, np.float64)
-        n_z = e.shape[-1]
-        w = np.ones(n_z) if self.weight is None else np.asarray(self.weight, np.float64)
-        q = np.diag(w) if w.ndim == 1 else w
+        weight, I without one; sigma^2 from `_noise_variance`), or None where Q is
+        singular or sigma^2 is not known (no degrees of freedom, or residuals exactly
+        zero)."""
+        q = self._weight_matrix()
         if not reads_weight(q):
             return None
-        e = e.reshape(-1, n_z)
+        s2 = self._noise_variance()
+        return s2 * np.linalg.inv(q) if np.isfinite(s2) and s2 > 0 else None
+
+    def _weight_matrix(self):
+        """The fit's Q as a matrix (I without one)."""
+        n_z = np.shape(self.residuals)[-1]
+        w = np.ones(n_z) if self.weight is None else np.asarray(self.weight, np.float64)
+        return np.diag(w) if w.ndim == 1 else w
+
+    def _noise_variance(self) -> float:
+        """sigma^2 = SSE / dof of the fit's weighted residuals at the point samples, as its
+        covariance scales (`_covariance.scale`), less an aggregated fit's readings, which
+        `residuals` does not hold; inf without degrees of freedom."""
+        e = np.asarray(self.residuals, np.float64)
+        q = self._weight_matrix()
+        e = e.reshape(-1, q.shape[0])
         seen = np.isfinite(e)
         x0_free = np.asarray(self.x0_estimated, bool).sum() * max(
             1, np.size(self.x0) // max(1, np.shape(self.x0)[-1])
         )
         dof = int(seen.sum()) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
         e = np.where(seen, e, 0.0)
-        s2 = float(np.einsum("ki,ij,kj->", e, q, e)) / dof if dof > 0 else 0.0
-        return s2 * np.linalg.inv(q) if np.isfinite(s2) and s2 > 0 else None
+        return float(np.einsum("ki,ij,kj->", e, q, e)) / dof if dof > 0 else np.inf
 
     def _check_z_head(self, z_head):
         """Refuse a head with another number of output columns than the fitted data's (for a
@@ -881,6 +892,69 @@ class FitResult(eqx.Module):
             kw = dict(kwargs, x0=guess[i]) if per_x0 else kwargs
             out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
         return out
+
+    def output_std(self, u, x0=None, *, z_head=None, t=None):
+        """The standard errors of the simulated outputs of one record that come from the
+        estimate's uncertainty (MATLAB's `[y, ysd] = sim(...)`, the confidence region of
+        `compare`): its covariance carried to the outputs to first order (the delta
+        method, with the closed-form output sensitivities; `oneshot_jax._output_std`).
+
+        **Arguments:**
+
+        - `u`: the record's inputs (T, n_u).
+        - `x0`: a known initial state (n_x,): the outputs `result.simulate(u, x0)`, their
+            standard errors from theta's covariance alone (x0 exact).
+        - `z_head`: instead of `x0`, the record's first n measured outputs (n, n_z): the
+            outputs `result.predict(u, z_head).z` (x0 estimated from the head at the
+            fitted theta by least squares, with the fit's weight), their standard errors
+            from theta's covariance, through the prediction and through the estimated x0,
+            and from the head's noise (the fit's estimate of it, as for `std`). On the
+            fitted record with `z_head=z` (all of it, MATLAB's default of `compare`) they
+            are those of the joint covariance of theta and x0. NaN in `z_head` are
+            missing samples.
+        - `t`: the record's sample times (T,), for a model of time-stamped records.
+
+        **Returns:**
+
+        An array (T, n_z): the standard deviation of each simulated output sample; inf
+        where it is not known: the output depends on a parameter whose std is inf (not
+        identifiable, or the covariance not computed, `fit(covariance=None)`; for a
+        theta that holds a network, the network's weights) or on an entry of x0 the
+        head does not determine. An interval zhat +- 1.96 std is the 95 % confidence
+        interval of the model's output (the noise-free simulation), to first order and
+        for a model structure that holds; a measurement adds its own noise.
+        """
+        if self.model is None:
+            raise ValueError(
+                "this result holds no model (it was loaded without one): pass "
+                "`model=` to `oneshot_jax.load_result`."
+            )
+        self._check_u(u)
+        if is_ragged(u) or np.ndim(u) != 2:
+            raise ValueError(
+                f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}: call "
+                "`output_std` once per record."
+            )
+        if (x0 is None) == (z_head is None):
+            raise ValueError(
+                "give one of `x0` (a known initial state, (n_x,)) and `z_head` (the "
+                "record's first measured outputs, (n, n_z), x0 estimated from them as "
+                "`predict` does; `z_head=z` on a fitted record), got "
+                + ("both." if x0 is not None else "neither.")
+            )
+        head = None
+        if z_head is not None:
+            self._check_z_head(z_head)
+            kwargs = {"missing": "mask"} if np.isnan(np.asarray(z_head, float)).any() else {}
+            pred = self.predict(u, z_head, t=t, **kwargs)
+            x0 = pred.x0
+            s2 = self._noise_variance()
+            head = (len(z_head), z_head, self.weight, s2, pred.estimate.identifiable)
+        else:
+            check_state_size(x0, np.shape(self.x0)[-1])
+        data = check_data(self.model, self.theta, x0, u, t=t)
+        std = output_std(data.model, data.theta, self.fixed, self.covariance, data.x0, data.u, head)
+        return std.astype(data.x0.dtype)
 
     def save(self, path):
         """Save to one `.npz` file (`oneshot_jax.save_result`; read it back with

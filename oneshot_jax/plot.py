@@ -10,6 +10,7 @@ figure shows in a notebook or a window as usual, and return it (`fig.savefig(...
 from __future__ import annotations
 
 import numbers
+import statistics
 import warnings
 
 import numpy as np
@@ -192,8 +193,28 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
     return zhat
 
 
+def _band(model, u, z, n, t, confidence):
+    """The half-width (T, n_z) of a FitResult's confidence band (`compare`), NaN where
+    its std is not known; None for another model or without `confidence`."""
+    if confidence is None or not isinstance(model, FitResult):
+        return None
+    t = t if getattr(model.model, "timed", False) else None
+    std = model.output_std(u, z_head=z[:n] if n else z, t=t)
+    q = statistics.NormalDist().inv_cdf(0.5 + 0.5 * confidence)
+    return np.where(np.isfinite(std), q * std, np.nan)
+
+
 def compare(
-    z, *models, u=None, t=None, n=None, labels=None, ax=None, outputs=None, time_label=None
+    z,
+    *models,
+    u=None,
+    t=None,
+    n=None,
+    labels=None,
+    ax=None,
+    outputs=None,
+    time_label=None,
+    confidence=None,
 ):
     """Plot measured outputs against the outputs of one or several models, with each
     model's FIT % in the legend (MATLAB's `compare`).
@@ -236,6 +257,12 @@ def compare(
         `TimeUnit`); default `"sample"`, `"time (s)"` for a record with `Ts`, and
         `"time"` for a given `t` or for FitResults of `Model.from_ode` models with one
         fixed `dt` (the axis k dt, in the model's time unit).
+    - `confidence`: a level in (0, 1), e.g. 0.95: each `FitResult`'s confidence band
+        of its output, zhat +- q std with q the normal quantile of (1 + confidence) / 2
+        and std from `FitResult.output_std` (MATLAB's `showConfidence`): with `n`, of
+        the prediction from the first n samples; without, x0 estimated from the whole
+        record (on the fitted record, the joint covariance of theta and x0). Samples of
+        unknown std (inf) get no band. Default: no band.
 
     **Returns:**
 
@@ -298,6 +325,12 @@ def compare(
     names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
+    if confidence is not None and (
+        isinstance(confidence, bool)
+        or not isinstance(confidence, numbers.Real)
+        or not 0.0 < confidence < 1.0
+    ):
+        raise ValueError(f"`confidence` must be a level in (0, 1), e.g. 0.95, got {confidence!r}.")
     times = t  # the sample times a timed model's FitResult is simulated at
     if t is None:
         step = Ts if Ts is not None else _model_dt(models)
@@ -312,8 +345,10 @@ def compare(
         xlabel = "time"
 
     outputs = []  # a loop, not a comprehension: its warnings point at the caller's line
+    bands = []  # each model's half-width of its confidence band, or None
     for i, m in enumerate(models):
         outputs.append(_model_output(i, m, u, z, n, times, Ts))
+        bands.append(_band(m, u, z, n, times, confidence))
     fig, axes = _axes(ax, n_z, plt, (8.0, 0.6 + 2.6 * n_z))
     measured = np.isfinite(z[n:])  # missing samples are left out of the FIT
     # An output never sampled at an instant (one measured only in aggregate, an all-NaN
@@ -331,9 +366,20 @@ def compare(
     fits = [fit_of(zhat) for zhat in outputs]
     for k, a in enumerate(axes):
         a.plot(t, z[:, k], color="k", lw=1.2, label="measured")
-        for zhat, fit, label in zip(outputs, fits, labels):
+        for zhat, fit, label, band in zip(outputs, fits, labels, bands):
             shown = f"{fit[k]:.2f}" if abs(fit[k]) < 1e4 else f"{fit[k]:.3g}"
-            a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {shown} %")
+            (line,) = a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {shown} %")
+            if band is not None:
+                lo, hi = zhat[:, k] - band[:, k], zhat[:, k] + band[:, k]
+                a.fill_between(
+                    t,
+                    lo,
+                    hi,
+                    color=line.get_color(),
+                    alpha=0.25,
+                    lw=0,
+                    label=f"{label}: {100 * confidence:g} % band",
+                )
         if n:
             a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
             a.axvline(t[n], color="0.4", lw=0.8, ls="--")

@@ -521,6 +521,37 @@ def test_resid_figure(fitted):
     assert "e[0]: not white" in title and "e[1]: white" in title
 
 
+def test_compare_draws_the_confidence_band_of_output_std(fitted):
+    """`confidence=` shades zhat +- q std around each FitResult's output, q the normal
+    quantile, std from `output_std` (from the head with `n`, else the whole record); a
+    Prediction or an array gets none."""
+    model, u, z, result = fitted
+    n = 20
+    pred = result.predict(u, z[:n])
+    fig = oj.plot.compare(z, result, pred, u=u, n=n, confidence=0.9)
+    ax = fig.axes[0]
+    assert "model 1: 90 % band" in _legend_texts(ax)
+    assert not any(t.startswith("model 2: 90") for t in _legend_texts(ax))
+    (band,) = ax.collections
+    vertices = band.get_paths()[0].vertices
+    std = result.output_std(u, z_head=z[:n])[:, 0]
+    q = 1.6448536269514722
+    # (the path runs along the lower edge, then back along the upper one)
+    lower, upper = vertices[1 : len(z) + 1, 1], vertices[len(z) + 2 : -1, 1][::-1]
+    np.testing.assert_allclose(lower, pred.z[:, 0] - q * std, rtol=1e-12)
+    np.testing.assert_allclose(upper, pred.z[:, 0] + q * std, rtol=1e-12)
+    fig = oj.plot.compare(z, result, u=u, confidence=0.95)
+    vertices = fig.axes[0].collections[0].get_paths()[0].vertices
+    std = result.output_std(u, z_head=z)[:, 0]
+    zhat = result.simulate(u)[1][:, 0]
+    np.testing.assert_allclose(
+        vertices[1 : len(z) + 1, 1], zhat - 1.959963984540054 * std, rtol=1e-9
+    )
+    for bad in (0.0, 1.0, True, "0.9"):
+        with pytest.raises(ValueError, match="`confidence`"):
+            oj.plot.compare(z, result, u=u, confidence=bad)
+
+
 def test_plot_arguments_are_checked(fitted):
     model, u, z, result = fitted
     with pytest.raises(ValueError, match=r"`models\[0\]`"):
