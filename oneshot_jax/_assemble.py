@@ -547,6 +547,20 @@ def assemble(
         at = ((p <= lo) & np.isfinite(lo)) | ((p >= hi) & np.isfinite(hi))
         if at.any():
             stop_info["at_bound"] = [n for n, a in zip(names, at) if a]
+    if problem.x0_bounded and x0_free:  # x0 entries its box holds (`fit(x0_bounds=...)`)
+        x = np.asarray(X0)[:, list(x0_free)]
+        lo, hi = np.asarray(problem.x0_lower), np.asarray(problem.x0_upper)
+        at = ((x <= lo) & np.isfinite(lo)) | ((x >= hi) & np.isfinite(hi))
+        state = model_labels(getattr(problem.model, "states", None), X0.shape[1]) or range(
+            X0.shape[1]
+        )
+        state = list(state)
+        rows_at = [
+            f"x0[{i}, {state[x0_free[j]]}]" if data.batched else f"x0[{state[x0_free[j]]}]"
+            for i, j in zip(*np.nonzero(at))
+        ]
+        if rows_at:
+            stop_info["at_bound"] = stop_info.get("at_bound", []) + rows_at
     status = name_of(from_index(int(results[best])))
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances

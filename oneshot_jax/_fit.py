@@ -834,6 +834,7 @@ def fit(
     aggregate=None,
     t: Float[ArrayLike, "*N T"] | None = None,
     covariance="classical",
+    x0_bounds=None,
 ) -> FitResult:
     """Estimate theta and x0 by minimising the multi-step cost C of eq. (5)/(21).
 
@@ -903,6 +904,16 @@ def fit(
         exponent as a leaf of its own, or give it as an integer (data).
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries
         (the same entries of every record).
+    - `x0_bounds`: `(lower, upper)` bounds on the estimated entries of x0 (MATLAB's
+        `InitialStates(i).Minimum` and `Maximum`): each None (unbounded), a number, an
+        array (n_x,) (every record's, or every window's, x0) or, without `window`,
+        (N, n_x) (one row per record); -inf / inf leave an entry unbounded, entries held
+        by `estimate_x0` are not bounded. Every iterate lies in the box (a start outside
+        it is clipped into it, with a warning), and the first-order test is that of the
+        box: an entry at a bound that the gradient pushes outwards is stationary there.
+        Not with `Optimistix` or `aggregate`. (A state that must stay in the model's
+        domain along the whole trajectory, not only at the start, needs a penalty:
+        `oneshot_jax.penalties.state_box`.)
     - `window`: cut one record into consecutive windows of this many samples, each with
         its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them
         (every k-th, a number spread over the record, or given starts).
@@ -1048,6 +1059,11 @@ def fit(
             units=units,
         )
         estimate_x0 = agg.x0_mask(estimate_x0)
+    if x0_bounds is not None and aggregate is not None:
+        raise ValueError(
+            "`x0_bounds` with `aggregate` is not supported: bound the states by a penalty "
+            "(`oneshot_jax.penalties.state_box`)."
+        )
     built = build_problem(
         inputs,
         fixed=fixed,
@@ -1055,6 +1071,7 @@ def fit(
         constraints=constraints,
         regulariser=regulariser,
         validation=validation,
+        x0_bounds=x0_bounds,
     )
     lags = NOT_COMPUTED if robust is NOT_COMPUTED else None
     if isinstance(robust, NeweyWest):

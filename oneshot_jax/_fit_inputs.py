@@ -427,8 +427,68 @@ def _free(theta, dtype, fixed, estimate_x0, n_x, proj) -> _Free:
     return _pytree.kept(_FREE, key, make, size=64)
 
 
+def _x0_box(x0_bounds, shape, dtype, windowed, solvers):
+    """`fit(x0_bounds=(lower, upper))` checked: each None, a number, (n_x,) or, without
+    `window`, (N, n_x) per record; NaN refused, -inf / inf unbounded. Returns the lower
+    and upper bounds broadcast to `shape` (N, n_x), or None where no entry is bounded."""
+    if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
+        raise TypeError(
+            "`x0_bounds` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
+            f"an array (n_x,) or (N, n_x)), got {type(x0_bounds).__name__}."
+        )
+    N, n_x = shape
+    out = []
+    for side, value, fill in (("lower", x0_bounds[0], -np.inf), ("upper", x0_bounds[1], np.inf)):
+        if value is None:
+            out.append(np.full(shape, fill, dtype))
+            continue
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"`x0_bounds`'s {side} bound must be None, a number or an array of numbers, "
+                f"got {type(value).__name__}."
+            ) from None
+        allowed = [(), (n_x,)] + ([] if windowed else [(N, n_x)])
+        if a.shape not in allowed:
+            per_record = "" if windowed else f" or ({N}, n_x) = ({N}, {n_x}), one per record"
+            raise ValueError(
+                f"`x0_bounds`'s {side} bound must have shape (n_x,) = ({n_x},){per_record}, "
+                f"got shape {a.shape}."
+            )
+        if np.isnan(a).any():
+            raise ValueError(
+                f"`x0_bounds`'s {side} bound holds NaN: use -inf or inf for an unbounded entry."
+            )
+        out.append(np.broadcast_to(a, shape).astype(dtype))
+    lower, upper = out
+    if np.any(lower > upper):
+        i = tuple(int(k) for k in np.argwhere(lower > upper)[0])
+        raise ValueError(
+            f"`x0_bounds`: the lower bound is above the upper one at x0 entry {i[-1]}"
+            + (f" of record {i[0]}" if N > 1 else "")
+            + f" ({lower[i]} > {upper[i]})."
+        )
+    if not (np.isfinite(lower).any() or np.isfinite(upper).any()):
+        return None
+    for s in solvers:
+        if isinstance(s, Optimistix):
+            raise ValueError(
+                "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
+                "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
+            )
+    return lower, upper
+
+
 def build_problem(
-    inputs: FitInputs, *, fixed, estimate_x0, constraints, regulariser, validation=None
+    inputs: FitInputs,
+    *,
+    fixed,
+    estimate_x0,
+    constraints,
+    regulariser,
+    validation=None,
+    x0_bounds=None,
 ) -> Built:
     """The `FitProblem` the solvers see and the starts they run from, on the host: the
     free entries of theta and x0, the bounds or projection and the regulariser on theta,
@@ -437,7 +497,8 @@ def build_problem(
     **Arguments:**
 
     - `inputs`: `check_inputs`'s output.
-    - `fixed`, `estimate_x0`, `constraints`, `regulariser`, `validation`: those of `fit`.
+    - `fixed`, `estimate_x0`, `constraints`, `regulariser`, `validation`, `x0_bounds`:
+        those of `fit`.
 
     **Returns:** a `Built`.
     """
@@ -520,6 +581,12 @@ def build_problem(
                 "set; or use box bounds, or write the set's constraint as a penalty.",
                 stacklevel=3,
             )
+    x0_box = None
+    if x0_bounds is not None:
+        windowed = inputs.window_starts is not None
+        x0_box = _x0_box(x0_bounds, X0.shape, X0.dtype, windowed, solvers)
+    if x0_box is not None:
+        x0_box = tuple(a[:, x0_free] for a in x0_box)
     project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:
@@ -544,6 +611,8 @@ def build_problem(
         lower=free.lower,
         upper=free.upper,
         regulariser=on_theta,
+        x0_lower=None if x0_box is None else x0_box[0],
+        x0_upper=None if x0_box is None else x0_box[1],
         validation=None
         if validation is None
         else monitor(
@@ -584,7 +653,25 @@ def build_problem(
         starts_flat if all_t else starts_flat[:, theta_free],
         X0s if all_x else X0s[:, :, x0_free],
     )
+    if x0_box is not None:
+        starts = starts._replace(x0=_x0_starts_in_box(starts.x0, *x0_box, x0_free))
     return Built(problem, starts, fixed_flat, x0_est, sets)
+
+
+def _x0_starts_in_box(x0, lower, upper, x0_free):
+    """The starts' free x0 entries (S, N, m) clipped into their box, with a warning where
+    some were outside (the fit starts from the clipped ones, as theta's projection of an
+    infeasible start). `x0_free`: the indices into x0 of the free entries."""
+    clipped = np.clip(x0, lower, upper)
+    outside = clipped != x0
+    if outside.any():
+        entries = sorted({int(x0_free[i]) for i in np.nonzero(outside)[-1]})
+        warnings.warn(
+            f"the starting x0 lies outside `x0_bounds` in its entries {entries}: the fit "
+            "starts from x0 clipped into the bounds.",
+            stacklevel=4,
+        )
+    return clipped
 
 
 def _sets(t):

@@ -302,10 +302,12 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     rel = jnp.finfo(dtype).eps ** 2
     dt2 = floor(d_t, rel) if d_t.size else d_t
     dx2 = floor(d_x, rel) if d_x.size else d_x
-    # x0 is never constrained: its cosines.
+    # x0's cosines, in its box where it has one (`_box_cosine`).
     # (a column that is exactly zero, every column of a model whose outputs do not
     # depend on the variables, has g_i = 0 and d_i = 0: its cosine is 0, not 0 / 0)
     c_x = _cosine(g.x0, dx2, norm) if g.x0.size else g.x0
+    if g.x0.size and problem.x0_bounded:
+        c_x = _box_cosine(params.x0, g.x0, dx2, norm, problem.feasible_x0, eps)
     theta = params.theta
     if not theta.size:
         return jnp.max(c_x, initial=0.0)
@@ -330,6 +332,19 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     # (a prox of g and a set that its rounds did not resolve certifies nothing: inf)
     c_t = jnp.where(resolved, c_t, jnp.inf)
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
+
+
+def _box_cosine(x, g, d2, norm, clip, eps):
+    """The scaled projected gradient of entries x in a box (`clip`, the projection onto
+    it): the move of the diagonal Gauss-Newton step x - g / d2 clipped into the box, in
+    the units of the cosine; |g_i| / (sqrt(d_i) ||r||) where the box does not clip the
+    step, 0 at a bound that the gradient pushes outwards."""
+    t = 0.5 / jnp.where(d2 > 0, d2, 1.0)
+    step = x - t * 2.0 * g
+    trial = clip(step)
+    moved = jnp.maximum(jnp.abs(trial - x) - 4 * eps * jnp.abs(x), 0.0)
+    c = jnp.where(moved == 0, 0.0, moved / (2.0 * t * jnp.sqrt(d2) * norm))
+    return jnp.where(trial == step, _cosine(g, d2, norm), c)
 
 
 def _cosine(g, d, norm):
@@ -421,7 +436,7 @@ def descends(problem: FitProblem, params: Params, g: Params, d: Params, along: P
         theta = params.theta + alpha * step.theta
         if params.theta.size and (problem.constrained or problem.regulariser is not None):
             theta = problem.feasible(theta)
-        value = objective(Params(theta, params.x0 + alpha * step.x0))
+        value = objective(Params(theta, problem.feasible_x0(params.x0 + alpha * step.x0)))
         return jnp.isfinite(value) & (value < here - resolved)
 
     alphas = jnp.asarray(DESCENT_TRIALS, dtype)
@@ -531,7 +546,7 @@ def gauss_newton_refutes(problem: FitProblem, params: Params, strategy):
         theta = params.theta + a * h_t
         if p and (problem.constrained or problem.regulariser is not None):
             theta = problem.feasible(theta)
-        there = objective(Params(theta, params.x0 + a * h_x))
+        there = objective(Params(theta, problem.feasible_x0(params.x0 + a * h_x)))
         model = (2.0 * a - a * a) * pred / jnp.maximum(C, jnp.finfo(dtype).tiny)
         return jnp.isfinite(there) & (here - there >= 0.25 * model * jnp.abs(here))
 

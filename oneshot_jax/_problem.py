@@ -101,6 +101,10 @@ class FitProblem(eqx.Module):
     # nuisance parameters of the named ones' covariance (`_covariance.marginal`)
     nuisance: tuple = eqx.field(static=True, default=())
     validation: Any = None  # a `_validation.Monitor` (held-out records scored per iterate), or None
+    # box bounds on Params.x0 (N, m), each trajectory's free x0 entries (-inf, inf where
+    # unbounded), or None (`fit(x0_bounds=...)`, MATLAB's `InitialStates(i).Minimum`)
+    x0_lower: jax.Array | None = None
+    x0_upper: jax.Array | None = None
 
     @property
     def dtype(self):
@@ -114,6 +118,17 @@ class FitProblem(eqx.Module):
     def constrained(self) -> bool:
         """Whether theta has bounds or a projection (static: known when tracing)."""
         return self.lower is not None or self.project is not None
+
+    @property
+    def x0_bounded(self) -> bool:
+        """Whether x0 has box bounds (static: known when tracing)."""
+        return self.x0_lower is not None
+
+    def feasible_x0(self, p_x0):
+        """Clip the free x0 entries p_x0 (N, m) into their box (unchanged without one)."""
+        if self.x0_lower is None:
+            return p_x0
+        return jnp.clip(p_x0, self.x0_lower, self.x0_upper)
 
     def theta_of(self, p_theta):
         """theta (the parameters' pytree) with the free entries `p_theta`. A leaf whose

@@ -106,6 +106,17 @@ class AbstractLinearisation(eqx.Module):
         g = self.gram_t(problem, params, d)
         return eqx.tree_at(lambda s: (s.g_t, s.g_x), self, (self.g_t + g.theta, self.g_x + g.x0))
 
+    def holding_x0(self, held):
+        """This linearisation with the x0 entries `held` (N, m) taken out of the step (a
+        box on x0: entries at a bound that the gradient pushes outwards): their columns
+        of B_i, rows and columns of C_i (its diagonal 1 there) and gradient entries zero,
+        so that `step` gives them a zero step and the others the step of the problem
+        reduced to them."""
+        keep = 1.0 - held.astype(self.Cb.dtype)
+        B = self.B * keep[:, None, :]
+        Cb = self.Cb * keep[:, :, None] * keep[:, None, :] + jax.vmap(jnp.diag)(1.0 - keep)
+        return eqx.tree_at(lambda s: (s.B, s.Cb, s.g_x), self, (B, Cb, self.g_x * keep))
+
     @abc.abstractmethod
     def covariance_blocks(self, sse):
         """(sse, A, B, C_i) for `_covariance.covariance`, or None where A is not formed."""

@@ -30,6 +30,9 @@ fails (one that the projection clipped can predict no decrease at any damping) i
 followed by a projected scaled-gradient step with an Armijo search along the projection
 arc (`_gradient_arc`; Kanzow, Yamashita and Fukushima 2004), which decreases C at every
 point that is not stationary. So a bound never stops the fit short of a solution.
+A box on x0 (`fit(x0_bounds=...)`) is treated alike: each iterate's x0 is clipped into
+it, and its entries at a bound whose gradient points outwards, or that the clip leaves
+where they were, are held for the step (`AbstractLinearisation.holding_x0`).
 
 Stopping (`oneshot_jax._optimality`): the fit converges (succeeds) when the first-order
 measure at the current iterate, the scaled projected gradient, is at most `gtol`, or
@@ -225,14 +228,25 @@ class AbstractLeastSquares(AbstractSolver):
             self.cg_max_steps,
         )
 
-    def _solve(self, problem, params, b, mu, active):
-        """The damped Gauss-Newton step (the descent): the linearisation's `step`."""
+    def _solve(self, problem, params, b, mu, active, active_x=None):
+        """The damped Gauss-Newton step (the descent): the linearisation's `step`, the
+        theta entries `active` and the x0 entries `active_x` (or None) held."""
+        if active_x is not None:
+            b = b.holding_x0(active_x)
         return b.step(problem, params, mu, active)
 
     def _active(self, problem, p_theta, g_t):
         if problem.lower is None:
             return jnp.zeros(p_theta.shape, bool)
         return ((p_theta <= problem.lower) & (g_t > 0)) | ((p_theta >= problem.upper) & (g_t < 0))
+
+    def _active_x(self, problem, p_x0, g_x):
+        """The x0 entries at a bound of their box that the gradient pushes outwards, or
+        None without x0 bounds."""
+        if not problem.x0_bounded:
+            return None
+        lo, hi = problem.x0_lower, problem.x0_upper
+        return ((p_x0 <= lo) & (g_x > 0)) | ((p_x0 >= hi) & (g_x < 0))
 
     primes_in_step = True
 
@@ -289,7 +303,9 @@ class AbstractLeastSquares(AbstractSolver):
         t0 = jnp.where(jnp.isfinite(t0) & (t0 > 0), t0, 1.0)
 
         def point(t):
-            new = Params(problem.feasible(params.theta + t * dt), params.x0 + t * dx)
+            new = Params(
+                problem.feasible(params.theta + t * dt), problem.feasible_x0(params.x0 + t * dx)
+            )
             return new, self._loss(problem, new)
 
         def armijo(new, Cn):
@@ -311,7 +327,8 @@ class AbstractLeastSquares(AbstractSolver):
     def _point(self, problem, params, step, alpha):
         """The projected point params + alpha step."""
         return Params(
-            problem.feasible(params.theta + alpha * step.theta), params.x0 + alpha * step.x0
+            problem.feasible(params.theta + alpha * step.theta),
+            problem.feasible_x0(params.x0 + alpha * step.x0),
         )
 
     def _descent(self, problem, params, state):
@@ -336,15 +353,27 @@ class AbstractLeastSquares(AbstractSolver):
         b = state.blocks
         mu = self._search().damping(state.search)
         act = self._active(problem, params.theta, b.g_t)
-        h = self._solve(problem, params, b, mu, act)
+        act_x = self._active_x(problem, params.x0, b.g_x)
+        h = self._solve(problem, params, b, mu, act, act_x)
         point = self._point(problem, params, h, 1.0)
+        if act_x is not None:
+            # x0 entries the box leaves where they are although the step moves them (at
+            # a bound, pushed outwards by the coupling with the other entries): held, and
+            # the step solved again
+            blocked_x = (point.x0 == params.x0) & (h.x0 != 0) & ~act_x
+
+            def again_x():
+                h2 = self._solve(problem, params, b, mu, act, act_x | blocked_x)
+                return h2, self._point(problem, params, h2, 1.0), act_x | blocked_x
+
+            h, point, act_x = lazy_cond(jnp.any(blocked_x), again_x, (h, point, act_x))
         if problem.lower is not None:  # a box: the projection's moves
             clipped = (point.theta != params.theta + h.theta) & ~act & jnp.isfinite(h.theta)
             d = jnp.where(clipped, point.theta - params.theta, 0.0)
 
             def again():
                 reduced = b.shifted(problem, params, d)
-                h2 = self._solve(problem, params, reduced, mu, act | clipped)
+                h2 = self._solve(problem, params, reduced, mu, act | clipped, act_x)
                 h2 = Params(jnp.where(clipped, d, h2.theta), h2.x0)
                 point2 = self._point(problem, params, h2, 1.0)
                 # (the lower of the two; a re-solved point that is not finite, the step
@@ -359,7 +388,7 @@ class AbstractLeastSquares(AbstractSolver):
             blocked = (point.theta == params.theta) & (h.theta != 0) & ~act
 
             def again():
-                h2 = self._solve(problem, params, b, mu, act | blocked)
+                h2 = self._solve(problem, params, b, mu, act | blocked, act_x)
                 return h2, self._point(problem, params, h2, 1.0)
 
             h, point = lazy_cond(jnp.any(blocked), again, (h, point))
@@ -669,11 +698,12 @@ class AbstractLeastSquares(AbstractSolver):
         the pseudo-inverse's Gauss-Newton step, without the backtracking or the damping
         of the steps taken. Without bounds from the rank's eigendecomposition of S (no
         second solve to compile), with them the step of the active set."""
-        if problem.lower is None:
+        if problem.lower is None and not problem.x0_bounded:
             rank, rank_t, full = b.rank_and_decrease()
             return rank.astype(jnp.int32), rank_t.astype(jnp.int32), full
         act = self._active(problem, at.theta, b.g_t)
-        h = self._solve(problem, at, b, jnp.zeros((), problem.dtype), act)
+        act_x = self._active_x(problem, at.x0, b.g_x)
+        h = self._solve(problem, at, b, jnp.zeros((), problem.dtype), act, act_x)
         full = -(
             2.0 * (h.theta @ b.g_t + jnp.sum(h.x0 * b.g_x))
             + b.curvature(problem, at, h.theta, h.x0)

@@ -85,7 +85,7 @@ class _OptaxState(NamedTuple):
     stationary: jax.Array
     degenerate: jax.Array  # whether that measure is a stall's with vanished columns
     stalls: jax.Array  # (LBFGS) consecutive steps that did not decrease the loss
-    held: jax.Array  # (LBFGS) entries of theta held by the constraints at the last step
+    held: Params  # (LBFGS) entries of theta and x0 held by the constraints at the last step
 
 
 def _as_dict(p: Params):
@@ -126,7 +126,7 @@ class _ClosedFormLoss(eqx.Module):
 
 def _make_loss():
     def value(d, problem, strategy):
-        p = Params(problem.feasible(d["theta"]), d["x0"])
+        p = Params(problem.feasible(d["theta"]), problem.feasible_x0(d["x0"]))
         return problem.value_and_grad(p, strategy)
 
     @eqx.filter_custom_vjp
@@ -211,7 +211,7 @@ class _AbstractOptax(AbstractSolver):
             problem, params, C, g, scale, no, self.gtol, self.strategy, fresh=True
         )
         zero = jnp.array(0, jnp.int32)
-        held = jnp.zeros(params.theta.shape, bool)
+        held = Params(jnp.zeros(params.theta.shape, bool), jnp.zeros(params.x0.shape, bool))
         return _OptaxState(
             opt_state,
             obj,
@@ -231,23 +231,27 @@ class _AbstractOptax(AbstractSolver):
         )
 
     def _held(self, problem, params, grad, scale):
-        """Entries of theta that the constraints hold where they are: a projected
+        """Entries of theta that the constraints hold where they are, and of x0 that its
+        box holds (`Params` of masks): a projected
         diagonal-Newton step P(theta - grad C / (2 d^2)) leaves them in place although
         their gradient is not zero (at a bound that the gradient pushes against). Only
         where the projection moved the step: an entry whose step is below its round-off
         (a large column's, next to one 1e7 times smaller) is not held, which reset the
         memory and stalled L-BFGS with an inactive box."""
-        if not problem.constrained:
-            return jnp.zeros(params.theta.shape, bool)
         eps = jnp.finfo(problem.dtype).eps
-        t = 0.5 / floor(scale.d_t)
-        step = params.theta - t * grad.theta
-        trial = problem.feasible(step)
-        return (
-            (trial != step)
-            & (jnp.abs(trial - params.theta) <= 4 * eps * jnp.abs(params.theta))
-            & (grad.theta != 0)
-        )
+
+        def held(x, g, d, project):
+            step = x - 0.5 / floor(d) * g
+            trial = project(step)
+            return (trial != step) & (jnp.abs(trial - x) <= 4 * eps * jnp.abs(x)) & (g != 0)
+
+        t = jnp.zeros(params.theta.shape, bool)
+        if problem.constrained:
+            t = held(params.theta, grad.theta, scale.d_t, problem.feasible)
+        x = jnp.zeros(params.x0.shape, bool)
+        if problem.x0_bounded:  # (the box of x0: held like theta's)
+            x = held(params.x0, grad.x0, scale.d_x, problem.feasible_x0)
+        return Params(t, x)
 
     def step(self, problem, params, state):
         tx = self._transform(problem)
@@ -259,8 +263,9 @@ class _AbstractOptax(AbstractSolver):
             # that the constraints hold is zero for it, and its memory starts afresh when
             # that set changes or after a step that did not decrease the loss.
             held = self._held(problem, params, grad, state.scale)
-            grad = Params(jnp.where(held, 0.0, grad.theta), grad.x0)
-            reset = (state.stalls > 0) | jnp.any(held != state.held)
+            grad = Params(jnp.where(held.theta, 0.0, grad.theta), jnp.where(held.x0, 0.0, grad.x0))
+            changed = jnp.any(held.theta != state.held.theta) | jnp.any(held.x0 != state.held.x0)
+            reset = (state.stalls > 0) | changed
             fresh = tx.init(d)
             opt_state = jax.tree_util.tree_map(
                 lambda a, b: jnp.where(reset, a, b) if eqx.is_array(a) else b,
@@ -277,7 +282,7 @@ class _AbstractOptax(AbstractSolver):
             updates, opt_state = tx.update(g, opt_state, d)
         _check_updates(updates, d)
         new = _as_params(optax.apply_updates(d, updates))
-        new = Params(self._prox(problem, new.theta, state.count), new.x0)
+        new = Params(self._prox(problem, new.theta, state.count), problem.feasible_x0(new.x0))
         C, g_new = problem.value_and_grad(new, self.strategy)
         obj = C + problem.g(new.theta)
         finite = jnp.isfinite(obj) & jnp.isfinite(grad_norm(g_new))

@@ -1,0 +1,170 @@
+"""`fit(x0_bounds=...)`: box bounds on the estimated initial state (MATLAB's
+`InitialStates(i).Minimum` and `Maximum`).
+
+The reference is SciPy's bounded trust-region least squares (`scipy.optimize.
+least_squares`, method "trf") on the residuals of `oneshot_jax.simulate`, and the
+first-order conditions of the box checked on the gradient of a loss written here with
+`jax.grad` (not the library's closed form).
+"""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+import oneshot_jax as oj
+
+DT = 0.05
+
+
+def step(x, u, th):
+    """An explicit Euler pendulum (a plain step: the loss below differentiates it)."""
+    q, v = x[0], x[1]
+    return jnp.stack([q + DT * v, v + DT * (-th["w0sq"] * jnp.sin(q) - th["b"] * v + u[0])])
+
+
+def angle(x, u, th):
+    del u, th
+    return x[:1]
+
+
+MODEL = oj.Model(step, angle, states=["q", "v"])
+THETA0 = {"w0sq": 7.0, "b": 0.3}
+TRUE_X0 = np.array([0.8, -0.5])
+# the true x0 outside the box in both entries: the bounded optimum holds them at 0.7, -0.2
+BOUNDS = (np.array([-np.inf, -0.2]), np.array([0.7, np.inf]))
+
+
+def record(T=80, seed=0, x0=TRUE_X0):
+    rng = np.random.default_rng(seed)
+    u = 0.5 * np.sin(0.3 * np.arange(T) + seed)[:, None]
+    _, z = oj.simulate(MODEL, {"w0sq": 9.0, "b": 0.6}, x0, u)
+    return u, np.asarray(z) + 0.02 * rng.standard_normal(np.shape(z))
+
+
+U, Z = record()
+
+
+def plain_loss(p, u, z):
+    """C of eq. (5) for p = (w0sq, b, x0), by a Python loop of the step: its gradient by
+    jax.grad is independent of the library's."""
+    th, x, total = {"w0sq": p[0], "b": p[1]}, p[2:], 0.0
+    for k in range(len(z)):
+        total = total + jnp.sum((angle(x, u[k], th) - z[k]) ** 2)
+        x = step(x, u[k], th)
+    return total / len(z)
+
+
+def scipy_reference(u, z, lower, upper):
+    def residuals(p):
+        _, zh = oj.simulate(MODEL, {"w0sq": p[0], "b": p[1]}, p[2:], u)
+        return (np.asarray(zh) - z).ravel()
+
+    lo = np.r_[-np.inf, -np.inf, lower]
+    hi = np.r_[np.inf, np.inf, upper]
+    ref = least_squares(residuals, [7.0, 0.3, 0.5, 0.0], bounds=(lo, hi), xtol=1e-15,
+                        ftol=1e-15, gtol=1e-15)  # fmt: skip
+    return ref.x
+
+
+REFERENCE = None
+
+
+def reference():
+    global REFERENCE
+    if REFERENCE is None:
+        REFERENCE = scipy_reference(U, Z, *BOUNDS)
+    return REFERENCE
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [
+        oj.LevenbergMarquardt(),
+        oj.GaussNewton(),
+        oj.LBFGS(max_steps=2000),
+        [oj.Adam(lr_theta=1e-2, lr_x0=1e-2, max_steps=2000), oj.LevenbergMarquardt()],
+    ],
+    ids=["lm", "gn", "lbfgs", "adam_lm"],
+)
+def test_every_solver_reaches_the_bounded_optimum_and_says_the_bound_holds_x0(solver):
+    """Every solver ends at SciPy's bounded optimum, with x0 at its two bounds, reports
+    success, and the box's first-order conditions hold on an independent gradient: zero
+    for theta, pointing out of the box for the two entries at a bound (where a test that
+    ignored the box would never call the point stationary)."""
+    result = oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z, x0_bounds=BOUNDS, solver=solver)
+    assert result.success, result.message
+    p = np.array([result.theta["w0sq"], result.theta["b"], *result.x0])
+    np.testing.assert_allclose(p, reference(), rtol=1e-6, atol=1e-8)
+    assert result.x0[0] == 0.7 and result.x0[1] == -0.2
+    g = np.asarray(jax.grad(plain_loss)(jnp.asarray(p), U, Z))
+    scale = np.abs(g[2:]).max()
+    assert np.all(np.abs(g[:2]) <= 1e-6 * scale), g
+    assert g[2] < 0 and g[3] > 0  # (descent would leave the box: q0 up, v0 down)
+    assert result.stop_info["at_bound"] == ["x0[q]", "x0[v]"]
+    assert "at a bound: x0[q], x0[v]" in str(result)
+
+
+def test_without_bounds_the_fit_leaves_the_box():
+    """(The bounds act: the unbounded optimum is outside them, near the true x0.)"""
+    result = oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z)
+    assert result.success
+    assert result.x0[0] > 0.75 and result.x0[1] < -0.3
+
+
+def test_bounds_per_record_and_an_entry_held_by_estimate_x0():
+    """(N, n_x) bounds give each record its own box: the first record's bound holds its
+    x0, the second's leaves it inside. An entry `estimate_x0` holds keeps its value,
+    even outside the box."""
+    u2, z2 = record(seed=1, x0=np.array([-0.3, 0.4]))
+    lower = np.array([[-np.inf, -np.inf], [-1.0, -1.0]])
+    upper = np.array([[0.7, np.inf], [1.0, 1.0]])
+    x0 = np.array([[0.5, 0.0], [0.0, 0.0]])
+    result = oj.fit(MODEL, THETA0, x0, np.stack([U, u2]), np.stack([Z, z2]),
+                    x0_bounds=(lower, upper))  # fmt: skip
+    assert result.success, result.message
+    assert result.x0[0, 0] == 0.7
+    assert np.all(np.abs(result.x0[1]) < 0.9)
+    assert result.stop_info["at_bound"] == ["x0[0, q]"]
+    held = oj.fit(MODEL, THETA0, np.array([0.5, -0.5]), U, Z, x0_bounds=BOUNDS,
+                  estimate_x0=[True, False])  # fmt: skip
+    assert held.success and held.x0[1] == -0.5 and held.x0[0] <= 0.7
+
+
+def test_a_start_outside_the_box_is_clipped_with_a_warning_and_windows_share_the_box():
+    with pytest.warns(UserWarning, match=r"outside `x0_bounds` in its entries \[0, 1\]"):
+        result = oj.fit(MODEL, THETA0, np.array([0.9, -0.5]), U, Z, x0_bounds=BOUNDS)
+    assert result.success
+    np.testing.assert_allclose(result.x0, reference()[2:], rtol=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the windows' starting states read off z)
+        windowed = oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z, window=40,
+                          x0_bounds=(-0.25, 0.25))  # fmt: skip
+    assert windowed.x0.shape == (2, 2)
+    assert np.all(np.abs(windowed.x0) <= 0.25)
+    assert windowed.stop_info.get("at_bound")
+
+
+@pytest.mark.parametrize(
+    "x0_bounds, kwargs, error, match",
+    [
+        ((0.0,), {}, TypeError, "pair"),
+        ((np.zeros(3), None), {}, ValueError, r"shape \(n_x,\) = \(2,\)"),
+        ((None, np.array([np.nan, 1.0])), {}, ValueError, "NaN"),
+        ((1.0, 0.0), {}, ValueError, "lower bound is above"),
+        (("a", None), {}, TypeError, "numbers"),
+        ((np.zeros((2, 2)), None), {"window": 40}, ValueError, r"shape \(n_x,\)"),
+        ((0.0, None), {"solver": "optimistix"}, ValueError, "Optimistix"),
+    ],
+)
+def test_bad_bounds_are_named(x0_bounds, kwargs, error, match):
+    if "solver" in kwargs:
+        import optimistix as optx
+
+        kwargs = {"solver": oj.Optimistix(optx.LevenbergMarquardt(1e-8, 1e-8))}
+    with pytest.raises(error, match=match), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        oj.fit(MODEL, THETA0, np.zeros(2), U, Z, x0_bounds=x0_bounds, **kwargs)
