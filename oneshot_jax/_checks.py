@@ -1112,6 +1112,55 @@ def check_fixed_bounds(theta, fixed, lower, upper):
                 )
 
 
+def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
+    """Bounds on x0 `(lower, upper)` checked (`fit(x0_bounds=...)`, `estimate_x0(bounds=
+    ...)`): each None, a number, (n_x,) or, with `per_record`, (N, n_x); NaN refused,
+    -inf / inf unbounded. Returns the lower and upper bounds broadcast to `shape`
+    (N, n_x), or None where no entry is bounded."""
+    if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
+        raise TypeError(
+            f"`{name}` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
+            f"an array (n_x,){' or (N, n_x)' if per_record else ''}), got "
+            f"{type(x0_bounds).__name__}."
+        )
+    N, n_x = shape
+    out = []
+    for side, value, fill in (("lower", x0_bounds[0], -np.inf), ("upper", x0_bounds[1], np.inf)):
+        if value is None:
+            out.append(np.full(shape, fill, dtype))
+            continue
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"`{name}`'s {side} bound must be None, a number or an array of numbers, "
+                f"got {type(value).__name__}."
+            ) from None
+        allowed = [(), (n_x,)] + ([(N, n_x)] if per_record else [])
+        if a.shape not in allowed:
+            rows = f" or ({N}, n_x) = ({N}, {n_x}), one per record" if per_record else ""
+            raise ValueError(
+                f"`{name}`'s {side} bound must have shape (n_x,) = ({n_x},){rows}, "
+                f"got shape {a.shape}."
+            )
+        if np.isnan(a).any():
+            raise ValueError(
+                f"`{name}`'s {side} bound holds NaN: use -inf or inf for an unbounded entry."
+            )
+        out.append(np.broadcast_to(a, shape).astype(dtype))
+    lower, upper = out
+    if np.any(lower > upper):
+        i = tuple(int(k) for k in np.argwhere(lower > upper)[0])
+        raise ValueError(
+            f"`{name}`: the lower bound is above the upper one at x0 entry {i[-1]}"
+            + (f" of record {i[0]}" if N > 1 else "")
+            + f" ({lower[i]} > {upper[i]})."
+        )
+    if not (np.isfinite(lower).any() or np.isfinite(upper).any()):
+        return None
+    return lower, upper
+
+
 def x0_mask(estimate_x0, n_x) -> np.ndarray:
     """(n_x,) boolean mask of the initial-state entries to estimate."""
     if estimate_x0 is True or estimate_x0 is False:

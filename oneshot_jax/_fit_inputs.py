@@ -25,6 +25,7 @@ from ._checks import (
     check_fixed_bounds,
     check_outside_transformations,
     check_tree,
+    check_x0_bounds,
     fixed_mask,
     x0_mask,
 )
@@ -427,59 +428,6 @@ def _free(theta, dtype, fixed, estimate_x0, n_x, proj) -> _Free:
     return _pytree.kept(_FREE, key, make, size=64)
 
 
-def _x0_box(x0_bounds, shape, dtype, windowed, solvers):
-    """`fit(x0_bounds=(lower, upper))` checked: each None, a number, (n_x,) or, without
-    `window`, (N, n_x) per record; NaN refused, -inf / inf unbounded. Returns the lower
-    and upper bounds broadcast to `shape` (N, n_x), or None where no entry is bounded."""
-    if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
-        raise TypeError(
-            "`x0_bounds` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
-            f"an array (n_x,) or (N, n_x)), got {type(x0_bounds).__name__}."
-        )
-    N, n_x = shape
-    out = []
-    for side, value, fill in (("lower", x0_bounds[0], -np.inf), ("upper", x0_bounds[1], np.inf)):
-        if value is None:
-            out.append(np.full(shape, fill, dtype))
-            continue
-        try:
-            a = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise TypeError(
-                f"`x0_bounds`'s {side} bound must be None, a number or an array of numbers, "
-                f"got {type(value).__name__}."
-            ) from None
-        allowed = [(), (n_x,)] + ([] if windowed else [(N, n_x)])
-        if a.shape not in allowed:
-            per_record = "" if windowed else f" or ({N}, n_x) = ({N}, {n_x}), one per record"
-            raise ValueError(
-                f"`x0_bounds`'s {side} bound must have shape (n_x,) = ({n_x},){per_record}, "
-                f"got shape {a.shape}."
-            )
-        if np.isnan(a).any():
-            raise ValueError(
-                f"`x0_bounds`'s {side} bound holds NaN: use -inf or inf for an unbounded entry."
-            )
-        out.append(np.broadcast_to(a, shape).astype(dtype))
-    lower, upper = out
-    if np.any(lower > upper):
-        i = tuple(int(k) for k in np.argwhere(lower > upper)[0])
-        raise ValueError(
-            f"`x0_bounds`: the lower bound is above the upper one at x0 entry {i[-1]}"
-            + (f" of record {i[0]}" if N > 1 else "")
-            + f" ({lower[i]} > {upper[i]})."
-        )
-    if not (np.isfinite(lower).any() or np.isfinite(upper).any()):
-        return None
-    for s in solvers:
-        if isinstance(s, Optimistix):
-            raise ValueError(
-                "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
-                "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
-            )
-    return lower, upper
-
-
 def build_problem(
     inputs: FitInputs,
     *,
@@ -584,7 +532,12 @@ def build_problem(
     x0_box = None
     if x0_bounds is not None:
         windowed = inputs.window_starts is not None
-        x0_box = _x0_box(x0_bounds, X0.shape, X0.dtype, windowed, solvers)
+        x0_box = check_x0_bounds(x0_bounds, X0.shape, X0.dtype, per_record=not windowed)
+        if x0_box is not None and any(isinstance(s, Optimistix) for s in solvers):
+            raise ValueError(
+                "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
+                "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
+            )
     if x0_box is not None:
         x0_box = tuple(a[:, x0_free] for a in x0_box)
     project, sets = None, ()
@@ -654,17 +607,20 @@ def build_problem(
         X0s if all_x else X0s[:, :, x0_free],
     )
     if x0_box is not None:
-        starts = starts._replace(x0=_x0_starts_in_box(starts.x0, *x0_box, x0_free))
+        # (a window's starting state, read off z or solved for, is clipped silently)
+        warn = inputs.window_starts is None
+        starts = starts._replace(x0=_x0_starts_in_box(starts.x0, *x0_box, x0_free, warn))
     return Built(problem, starts, fixed_flat, x0_est, sets)
 
 
-def _x0_starts_in_box(x0, lower, upper, x0_free):
+def _x0_starts_in_box(x0, lower, upper, x0_free, warn=True):
     """The starts' free x0 entries (S, N, m) clipped into their box, with a warning where
-    some were outside (the fit starts from the clipped ones, as theta's projection of an
-    infeasible start). `x0_free`: the indices into x0 of the free entries."""
+    some were outside and `warn` (the fit starts from the clipped ones, as theta's
+    projection of an infeasible start). `x0_free`: the indices into x0 of the free
+    entries."""
     clipped = np.clip(x0, lower, upper)
     outside = clipped != x0
-    if outside.any():
+    if warn and outside.any():
         entries = sorted({int(x0_free[i]) for i in np.nonzero(outside)[-1]})
         warnings.warn(
             f"the starting x0 lies outside `x0_bounds` in its entries {entries}: the fit "

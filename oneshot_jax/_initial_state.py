@@ -25,6 +25,7 @@ from ._checks import (
     check_data,
     check_outside_transformations,
     check_tree,
+    check_x0_bounds,
     is_concrete,
 )
 from ._cost import weigh
@@ -241,6 +242,7 @@ def estimate_x0(
     t: Float[ArrayLike, " T"] | None = None,
     missing: str = "raise",
     estimate=None,
+    bounds=None,
 ) -> X0Estimate:
     """Estimate the initial state x0 of a record from its first n samples (MATLAB's
     `findstates`), with theta known.
@@ -312,6 +314,10 @@ def estimate_x0(
         every entry of a new record's x0, also those the fit held (their values were
         the fitted records'); pass `estimate=result.x0_estimated` there to hold them, at
         their values in `x0=`.
+    - `bounds`: `"lsq"` only: `(lower, upper)` bounds on the estimated entries, each
+        None, a number or (n_x,) (-inf / inf unbounded), as `fit(x0_bounds=...)` (MATLAB's
+        `findstates` keeps a model's `InitialStates(i).Minimum` and `Maximum`); a guess
+        outside them is clipped into them, with a warning. Default: none.
 
     **Returns:**
 
@@ -343,6 +349,7 @@ def estimate_x0(
         t=t,
         missing=missing,
         estimate=estimate,
+        bounds=bounds,
     )[0]
 
 
@@ -366,6 +373,7 @@ def _estimate(
     missing="raise",
     z_name="z",
     estimate=None,
+    bounds=None,
 ):
     """`estimate_x0`, with its warnings attributed `stacklevel` frames up. With `record`
     (the whole record's `(u, t)`, whose head is `u`), also the record simulated from the
@@ -399,6 +407,11 @@ def _estimate(
         raise ValueError(
             "`estimate` (a mask of the x0 entries to estimate) applies to method='lsq'; the "
             "smoother holds an entry known through a small `prior_covariance` for it."
+        )
+    if bounds is not None and method != "lsq":
+        raise ValueError(
+            "`bounds` (on x0) applies to method='lsq'; the smoother's estimate is a "
+            "posterior mean, not a bounded least-squares solution."
         )
     if missing == "mask" and method != "lsq":
         raise ValueError(
@@ -482,7 +495,20 @@ def _estimate(
                 "`estimate` holds every x0 entry: there is nothing to estimate; simulate "
                 "from `x0` instead (`oneshot_jax.simulate`)."
             )
-        r = solve_x0(data, solver, record=whole, estimate=estimate)
+        box = None
+        if bounds is not None:
+            box = check_x0_bounds(bounds, (1, guess.size), guess.dtype, False, "bounds")
+        if box is not None:
+            held = np.zeros(guess.size, bool) if estimate is None else ~estimate
+            inside = np.where(held, guess, np.clip(guess, box[0][0], box[1][0]))
+            if np.any(inside != guess):
+                warnings.warn(
+                    "the starting guess `x0` lies outside `bounds`: the estimate starts from "
+                    "it clipped into them.",
+                    stacklevel=stacklevel,
+                )
+            data = data._replace(x0=inside.astype(guess.dtype))
+        r = solve_x0(data, solver, record=whole, estimate=estimate, bounds=box)
         ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]
         cov = np.asarray(r.covariance[0], guess.dtype)
@@ -651,6 +677,7 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None, z
         prior_covariance=None,
         missing="raise",
         estimate=None,
+        bounds=None,
     )
     unknown = sorted(set(kwargs) - set(options))
     if unknown:

@@ -118,7 +118,13 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
 
 
 def solve_x0(
-    data: Data, solver=None, *, with_covariance: bool = True, record=None, estimate=None
+    data: Data,
+    solver=None,
+    *,
+    with_covariance: bool = True,
+    record=None,
+    estimate=None,
+    bounds=None,
 ) -> X0Fit:
     """Minimise C of eq. (5) over the initial states alone, theta fixed.
 
@@ -135,6 +141,8 @@ def solve_x0(
         compiled call (`predict`).
     - `estimate`: an (n_x,) boolean mask of the entries to estimate; the others keep
         their value in `data.x0` (zero variance, counted identifiable). Default: all.
+    - `bounds`: `(lower, upper)` (N, n_x) bounds on x0 (`_checks.check_x0_bounds`), or
+        None; `data.x0` lies in them.
 
     **Returns:**
 
@@ -151,6 +159,8 @@ def solve_x0(
         mask = jax.tree_util.tree_map(
             lambda a: np.asarray(a) if batched else np.asarray(a)[None], data.mask
         )
+    free = tuple(range(X0.shape[1]) if estimate is None else np.flatnonzero(estimate).tolist())
+    lower, upper = (None, None) if bounds is None else (b[:, list(free)] for b in bounds)
     problem = _pytree.build(
         FitProblem,
         model=data.model,
@@ -161,14 +171,14 @@ def solve_x0(
         theta_free=(),
         unravel=unravel,
         x0_base=X0,
-        x0_free=tuple(
-            range(X0.shape[1]) if estimate is None else np.flatnonzero(estimate).tolist()
-        ),
+        x0_free=free,
         project=None,
         lower=None,
         upper=None,
         regulariser=None,
         mask=mask,
+        x0_lower=lower,
+        x0_upper=upper,
     )
     start = Params(np.zeros((1, 0), flat0.dtype), problem.split(flat0, X0).x0[None])
     buffers, layout = _solve(solvers, problem, start, with_covariance, record)

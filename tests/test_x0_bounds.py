@@ -148,6 +148,33 @@ def test_a_start_outside_the_box_is_clipped_with_a_warning_and_windows_share_the
     assert windowed.stop_info.get("at_bound")
 
 
+def test_estimate_x0_and_predict_take_bounds_on_a_new_record():
+    """x0 of a record's head alone, theta known, in a box: SciPy's bounded solution,
+    the guess outside the box clipped with a warning; `predict` passes them on. The
+    smoother refuses them."""
+    theta = {"w0sq": 9.0, "b": 0.6}
+    n = 30
+
+    def residuals(x0):
+        _, zh = oj.simulate(MODEL, theta, x0, U[:n])
+        return (np.asarray(zh) - Z[:n]).ravel()
+
+    ref = least_squares(residuals, [0.5, 0.0], bounds=([-np.inf, -0.2], [0.7, np.inf]),
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15).x  # fmt: skip
+    with pytest.warns(UserWarning, match="outside `bounds`"):
+        est = oj.estimate_x0(MODEL, theta, U, Z, n=n, x0=np.array([0.9, 0.0]), bounds=BOUNDS)
+    assert est.success, est.message
+    np.testing.assert_allclose(est.x0, ref, rtol=1e-7, atol=1e-10)
+    assert est.x0[0] == 0.7 and est.x0[1] == -0.2
+    free = oj.estimate_x0(MODEL, theta, U, Z, n=n, x0=np.array([0.5, 0.0]))
+    assert free.x0[0] > 0.7 and free.x0[1] < -0.2  # (the box acts)
+    pred = oj.predict(MODEL, theta, U, Z, n, x0=np.array([0.5, 0.0]), bounds=BOUNDS)
+    np.testing.assert_allclose(pred.x0, est.x0, rtol=1e-12)
+    with pytest.raises(ValueError, match="method='lsq'"):
+        oj.estimate_x0(MODEL, theta, U, Z, n=n, x0=np.zeros(2), method="smoother",
+                       bounds=BOUNDS)  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "x0_bounds, kwargs, error, match",
     [
