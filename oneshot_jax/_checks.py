@@ -1130,12 +1130,15 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
             out.append(np.full(shape, fill, dtype))
             continue
         try:
+            kind = np.asarray(value).dtype.kind
             a = np.asarray(value, dtype=float)
         except (TypeError, ValueError):
+            kind = None
+        if kind not in ("i", "u", "f"):
             raise TypeError(
                 f"`{name}`'s {side} bound must be None, a number or an array of numbers, "
-                f"got {type(value).__name__}."
-            ) from None
+                + ("got booleans." if kind == "b" else f"got {type(value).__name__}.")
+            )
         allowed = [(), (n_x,)] + ([(N, n_x)] if per_record else [])
         if a.shape not in allowed:
             rows = f" or ({N}, n_x) = ({N}, {n_x}), one per record" if per_record else ""
@@ -1146,6 +1149,11 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
         if np.isnan(a).any():
             raise ValueError(
                 f"`{name}`'s {side} bound holds NaN: use -inf or inf for an unbounded entry."
+            )
+        if np.any(a == -fill):
+            raise ValueError(
+                f"`{name}`'s {side} bound holds {-fill}, which no value meets: use "
+                f"{fill} for an unbounded entry."
             )
         out.append(np.broadcast_to(a, shape).astype(dtype))
     lower, upper = out

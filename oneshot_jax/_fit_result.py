@@ -951,6 +951,11 @@ class FitResult(eqx.Module):
             s2 = self._noise_variance()
             head = (len(z_head), z_head, self.weight, s2, pred.estimate.identifiable)
         else:
+            if np.ndim(x0) != 1:
+                raise ValueError(
+                    f"`x0` must be one initial state (n_x,), got shape {np.shape(x0)}"
+                    + (": pass `x0=result.x0[i]` for record i." if np.ndim(x0) == 2 else ".")
+                )
             check_state_size(x0, np.shape(self.x0)[-1])
         data = check_data(self.model, self.theta, x0, u, t=t)
         std = output_std(data.model, data.theta, self.fixed, self.covariance, data.x0, data.u, head)

@@ -132,6 +132,7 @@ def test_unknown_standard_errors_are_inf():
         ({}, "neither"),
         ({"x0": X0, "z_head": np.zeros((5, 2))}, "both"),
         ({"x0": np.zeros(3)}, "x0"),
+        ({"x0": np.zeros((2, 2))}, r"`x0` must be one initial state \(n_x,\)"),
     ],
 )
 def test_bad_arguments_are_named(kwargs, match):

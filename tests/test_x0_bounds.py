@@ -182,6 +182,8 @@ def test_estimate_x0_and_predict_take_bounds_on_a_new_record():
         ((np.zeros(3), None), {}, ValueError, r"shape \(n_x,\) = \(2,\)"),
         ((None, np.array([np.nan, 1.0])), {}, ValueError, "NaN"),
         ((1.0, 0.0), {}, ValueError, "lower bound is above"),
+        ((np.inf, None), {}, ValueError, "lower bound holds inf, which no value meets"),
+        ((True, None), {}, TypeError, "booleans"),
         (("a", None), {}, TypeError, "numbers"),
         ((np.zeros((2, 2)), None), {"window": 40}, ValueError, r"shape \(n_x,\)"),
         ((0.0, None), {"solver": "optimistix"}, ValueError, "Optimistix"),
