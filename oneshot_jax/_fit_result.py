@@ -908,10 +908,11 @@ class FitResult(eqx.Module):
             outputs `result.predict(u, z_head).z` (x0 estimated from the head at the
             fitted theta by least squares, with the fit's weight), their standard errors
             from theta's covariance, through the prediction and through the estimated x0,
-            and from the head's noise (the fit's estimate of it, as for `std`). On the
-            fitted record with `z_head=z` (all of it, MATLAB's default of `compare`) they
-            are those of the joint covariance of theta and x0. NaN in `z_head` are
-            missing samples.
+            and from the head's noise (the fit's estimate of it, as for `std`). Every
+            entry of x0 is estimated from the head (`predict`'s default). On the fitted
+            record with `z_head=z` (all of it, MATLAB's default of `compare`) they are
+            those of the joint covariance of theta and x0, for a fit that estimated
+            every entry of x0. NaN in `z_head` are missing samples.
         - `t`: the record's sample times (T,), for a model of time-stamped records.
 
         **Returns:**
