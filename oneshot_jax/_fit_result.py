@@ -480,6 +480,10 @@ class FitResult(eqx.Module):
         `reading_weight_factors`, the factor of each `Aggregate`'s weights), which
         `predict` uses by default to
         estimate a new record's x0.
+    - `x0_bounds`: `fit(x0_bounds=...)`, the (lower, upper) bounds on x0 shaped like `x0`
+        (-inf / inf where unbounded or held), or None; `predict` bounds a record's x0 by
+        them by default where every record's are the same (a fit on one record, or
+        bounds of shape (n_x,)).
     - `missing`: `fit(missing=...)`: with `"mask"` (NaN in z marked missing samples),
         `predict` takes NaN in a new record's head as missing too (`"raise"` otherwise).
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
@@ -523,6 +527,7 @@ class FitResult(eqx.Module):
     window_starts: np.ndarray | None = None
     n_u: int | None = eqx.field(static=True, default=None)
     weight: np.ndarray | None = None
+    x0_bounds: tuple | None = None
     missing: str = eqx.field(static=True, default="raise")
     # What a loaded file recorded of the fitted model (`load_result`), kept so that a
     # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
@@ -589,6 +594,14 @@ class FitResult(eqx.Module):
         dof = int(seen.sum()) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
         e = np.where(seen, e, 0.0)
         return float(np.einsum("ki,ij,kj->", e, q, e)) / dof if dof > 0 else np.inf
+
+    def _shared_x0_bounds(self):
+        """The fit's x0 bounds as one (n_x,) pair, where every record's (or window's) are
+        the same; else None."""
+        lo, hi = (np.atleast_2d(np.asarray(b)) for b in self.x0_bounds)
+        if np.all(lo == lo[0]) and np.all(hi == hi[0]):
+            return lo[0], hi[0]
+        return None
 
     def _check_z_head(self, z_head):
         """Refuse a head with another number of output columns than the fitted data's (for a
@@ -790,6 +803,8 @@ class FitResult(eqx.Module):
             of a new one); `estimate=result.x0_estimated` holds them at their values in
             `x0=` (e.g. `x0=result.x0`, for a state known to be the same: a velocity 0
             at rest), as MATLAB's `findstates` holds a model's fixed initial states.
+            `bounds=` defaults to the fit's `x0_bounds` where every record's are the same
+            (as `findstates` keeps a model's bounds); `bounds=(None, None)` lifts them.
 
         **Returns:**
 
@@ -823,6 +838,10 @@ class FitResult(eqx.Module):
                 "record i."
             )
         method = kwargs.pop("method", "lsq")
+        if method == "lsq" and "bounds" not in kwargs and self.x0_bounds is not None:
+            shared = self._shared_x0_bounds()
+            if shared is not None:
+                kwargs["bounds"] = shared  # the fit's box: a fitted record's x0 stays in it
         if method == "lsq" and "missing" not in kwargs and self.missing == "mask":
             kwargs["missing"] = "mask"  # (the fit's NaN were missing samples: the head's too)
         noise = None

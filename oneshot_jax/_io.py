@@ -28,7 +28,8 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `x0_std`, `x0_covariance`, `x0_estimated`, `loss`, `residuals`, `fixed`, `covariance`,
   `history/loss`, `history/grad_norm`, `history/step`, `history/stage` (and
   `history/validation` for a fit with validation data, `window_starts` for one with
-  windows, `weight` for one with `weight=`),
+  windows, `weight` for one with `weight=`, `x0_bounds/lower` and `x0_bounds/upper` for
+  one with `x0_bounds=`),
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>`,
   `starts/loss` and `starts/x0`.
 
@@ -262,6 +263,8 @@ def save_result(result, path):
         arrays["window_starts"] = np.asarray(result.window_starts)
     if getattr(result, "weight", None) is not None:
         arrays["weight"] = np.asarray(result.weight)
+    if getattr(result, "x0_bounds", None) is not None:
+        arrays["x0_bounds/lower"], arrays["x0_bounds/upper"] = map(np.asarray, result.x0_bounds)
     if result.history.validation is not None:
         arrays["history/validation"] = np.asarray(result.history.validation)
     for key in ("x0", "x0_std", "x0_covariance", "x0_estimated", "loss", "residuals"):
@@ -568,6 +571,9 @@ def _fields(arrays, meta, group, build, static) -> dict:
         n_u=meta.get("n_u"),
         missing=meta.get("missing") or "raise",  # (older files: none)
         weight=arrays.get("weight"),
+        x0_bounds=(arrays["x0_bounds/lower"], arrays["x0_bounds/upper"])
+        if "x0_bounds/lower" in arrays
+        else None,
         saved_model_signature=(
             None if meta.get("model_signature") is None else tuple(meta["model_signature"])
         ),

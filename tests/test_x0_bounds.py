@@ -129,6 +129,9 @@ def test_bounds_per_record_and_an_entry_held_by_estimate_x0():
     assert result.x0[0, 0] == 0.7
     assert np.all(np.abs(result.x0[1]) < 0.9)
     assert result.stop_info["at_bound"] == ["x0[0, q]"]
+    assert result.x0_bounds[0].shape == (2, 2)
+    # (each record its own box: a new record's x0 is not bounded by either)
+    assert result.predict(U, Z, x0=np.array([0.5, 0.0])).x0[0] > 0.7
     held = oj.fit(MODEL, THETA0, np.array([0.5, -0.5]), U, Z, x0_bounds=BOUNDS,
                   estimate_x0=[True, False])  # fmt: skip
     assert held.success and held.x0[1] == -0.5 and held.x0[0] <= 0.7
@@ -173,6 +176,27 @@ def test_estimate_x0_and_predict_take_bounds_on_a_new_record():
     with pytest.raises(ValueError, match="method='lsq'"):
         oj.estimate_x0(MODEL, theta, U, Z, n=n, x0=np.zeros(2), method="smoother",
                        bounds=BOUNDS)  # fmt: skip
+
+
+def test_the_result_keeps_the_box_and_predict_bounds_x0_by_it(tmp_path):
+    """`result.x0_bounds` holds the box shaped like x0 (held entries unbounded); it is
+    saved and loaded; `predict` bounds a record's x0 by it by default, so that the fitted
+    record predicted from all of it starts from the fitted x0 at its bounds (unbounded,
+    its x0 leaves the box), and `bounds=(None, None)` lifts it."""
+    result = oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z, x0_bounds=(None, [0.7, np.inf]))
+    lo, hi = result.x0_bounds
+    np.testing.assert_array_equal(lo, [-np.inf, -np.inf])
+    np.testing.assert_array_equal(hi, [0.7, np.inf])
+    pred = result.predict(U, Z)
+    np.testing.assert_allclose(pred.x0, result.x0, rtol=1e-6, atol=1e-9)
+    assert pred.x0[0] == 0.7
+    assert result.predict(U, Z, bounds=(None, None)).x0[0] > 0.7
+    path = tmp_path / "bounded.npz"
+    result.save(path)
+    loaded = oj.load_result(path, model=MODEL)
+    for a, b in zip(loaded.x0_bounds, result.x0_bounds):
+        np.testing.assert_array_equal(a, b)
+    assert loaded.predict(U, Z).x0[0] == 0.7
 
 
 @pytest.mark.parametrize(
