@@ -1112,11 +1112,12 @@ def check_fixed_bounds(theta, fixed, lower, upper):
                 )
 
 
-def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
+def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", estimated=None):
     """Bounds on x0 `(lower, upper)` checked (`fit(x0_bounds=...)`, `estimate_x0(bounds=
     ...)`): each None, a number, (n_x,) or, with `per_record`, (N, n_x); NaN refused,
     -inf / inf unbounded. Returns the lower and upper bounds broadcast to `shape`
-    (N, n_x), or None where no entry is bounded."""
+    (N, n_x), the entries that `estimated` ((n_x,) booleans, or None for all) holds
+    unbounded, or None where no entry is bounded."""
     if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
         raise TypeError(
             f"`{name}` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
@@ -1155,7 +1156,7 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
                 f"`{name}`'s {side} bound holds {-fill}, which no value meets: use "
                 f"{fill} for an unbounded entry."
             )
-        out.append(np.broadcast_to(a, shape).astype(dtype))
+        out.append(np.broadcast_to(a, shape).astype(dtype))  # (a copy: written below)
     lower, upper = out
     if np.any(lower > upper):
         i = tuple(int(k) for k in np.argwhere(lower > upper)[0])
@@ -1166,7 +1167,27 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds"):
         )
     if not (np.isfinite(lower).any() or np.isfinite(upper).any()):
         return None
+    if estimated is not None:  # (a held entry keeps its value: not bounded)
+        held = ~np.asarray(estimated, bool)
+        lower[:, held], upper[:, held] = -np.inf, np.inf
     return lower, upper
+
+
+def clip_x0(x0, box, name, what, stacklevel, warn=True):
+    """x0 (..., n_x) clipped into `box` = (lower, upper) (broadcast against it), with a
+    warning naming the entries that were outside where `warn` (the start of a fit or of an
+    x0 estimate, which then starts from the clipped x0, as theta's projection of an
+    infeasible start). `stacklevel`: that of the caller's frame."""
+    clipped = np.clip(x0, *box).astype(np.asarray(x0).dtype)
+    outside = clipped != x0
+    if warn and outside.any():
+        entries = sorted({int(i) for i in np.nonzero(outside)[-1]})
+        warnings.warn(
+            f"the starting x0 lies outside `{name}` in its entries {entries}: the {what} "
+            "starts from x0 clipped into them.",
+            stacklevel=stacklevel + 1,
+        )
+    return clipped
 
 
 def x0_mask(estimate_x0, n_x) -> np.ndarray:

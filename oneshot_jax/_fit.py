@@ -325,18 +325,6 @@ def _flag_plateau_above_start(result, problem, starts, best, strategy):
     return _restated(result, "stalled", start_loss=before)
 
 
-def _x0_box_of(problem, x0):
-    """The x0 box of `problem` (on the free entries) shaped like `x0`: -inf / inf at the
-    held entries."""
-    N = problem.x0_lower.shape[0]
-    n_x = np.shape(x0)[-1]
-    lo, hi = np.full((N, n_x), -np.inf), np.full((N, n_x), np.inf)
-    free = list(problem.x0_free)
-    lo[:, free], hi[:, free] = np.asarray(problem.x0_lower), np.asarray(problem.x0_upper)
-    dtype = np.asarray(x0).dtype
-    return lo.reshape(np.shape(x0)).astype(dtype), hi.reshape(np.shape(x0)).astype(dtype)
-
-
 def _restated(result, reason, **info):
     """`result` with the stop reason `reason` where a check after the solve decides the
     stop (refutes the solver's success, or settles its stall: `_settle`):
@@ -1196,8 +1184,9 @@ def fit(
         if np.isfinite(nrmse).any():
             info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
             result = dataclasses.replace(result, stop_info=info)
-    if built.problem.x0_bounded:  # (the box as `result.x0`'s shape: `predict` keeps it)
-        result = dataclasses.replace(result, x0_bounds=_x0_box_of(built.problem, result.x0))
+    if built.x0_box is not None:  # (the box as `result.x0`'s shape: `predict` keeps it)
+        box = tuple(b.reshape(np.shape(result.x0)) for b in built.x0_box)
+        result = dataclasses.replace(result, x0_bounds=box)
     if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
         result = _flag_infeasible(result, built.sets)  # (before a success is read below)
     # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,

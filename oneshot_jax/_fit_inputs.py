@@ -26,6 +26,7 @@ from ._checks import (
     check_outside_transformations,
     check_tree,
     check_x0_bounds,
+    clip_x0,
     fixed_mask,
     x0_mask,
 )
@@ -90,6 +91,8 @@ class Built(NamedTuple):
     # a `combine`, on its own): the estimate must lie in every one (`_fit._flag_infeasible`;
     # the projection onto sets that do not meet maps into the last of them only).
     sets: tuple = ()
+    # `fit(x0_bounds=...)` as (lower, upper) (N, n_x), held entries unbounded, or None
+    x0_box: tuple | None = None
 
 
 def _host(a):
@@ -532,14 +535,14 @@ def build_problem(
     x0_box = None
     if x0_bounds is not None:
         windowed = inputs.window_starts is not None
-        x0_box = check_x0_bounds(x0_bounds, X0.shape, X0.dtype, per_record=not windowed)
+        x0_box = check_x0_bounds(
+            x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=x0_est
+        )
         if x0_box is not None and any(isinstance(s, Optimistix) for s in solvers):
             raise ValueError(
                 "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
                 "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
             )
-    if x0_box is not None:
-        x0_box = tuple(a[:, x0_free] for a in x0_box)
     project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:
@@ -564,8 +567,8 @@ def build_problem(
         lower=free.lower,
         upper=free.upper,
         regulariser=on_theta,
-        x0_lower=None if x0_box is None else x0_box[0],
-        x0_upper=None if x0_box is None else x0_box[1],
+        x0_lower=None if x0_box is None else x0_box[0][:, x0_free],
+        x0_upper=None if x0_box is None else x0_box[1][:, x0_free],
         validation=None
         if validation is None
         else monitor(
@@ -601,33 +604,16 @@ def build_problem(
             X0s = np.broadcast_to(X0, (inputs.n_starts, *X0.shape))
     else:
         starts_flat, X0s = np.asarray(flat0)[None], X0[None]
+    if x0_box is not None:
+        # (a window's starting state, read off z or solved for, is clipped silently)
+        windowed = inputs.window_starts is not None
+        X0s = clip_x0(X0s, x0_box, "x0_bounds", "fit", stacklevel=3, warn=not windowed)
     all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x
     starts = Params(
         starts_flat if all_t else starts_flat[:, theta_free],
         X0s if all_x else X0s[:, :, x0_free],
     )
-    if x0_box is not None:
-        # (a window's starting state, read off z or solved for, is clipped silently)
-        warn = inputs.window_starts is None
-        starts = starts._replace(x0=_x0_starts_in_box(starts.x0, *x0_box, x0_free, warn))
-    return Built(problem, starts, fixed_flat, x0_est, sets)
-
-
-def _x0_starts_in_box(x0, lower, upper, x0_free, warn=True):
-    """The starts' free x0 entries (S, N, m) clipped into their box, with a warning where
-    some were outside and `warn` (the fit starts from the clipped ones, as theta's
-    projection of an infeasible start). `x0_free`: the indices into x0 of the free
-    entries."""
-    clipped = np.clip(x0, lower, upper)
-    outside = clipped != x0
-    if warn and outside.any():
-        entries = sorted({int(x0_free[i]) for i in np.nonzero(outside)[-1]})
-        warnings.warn(
-            f"the starting x0 lies outside `x0_bounds` in its entries {entries}: the fit "
-            "starts from x0 clipped into the bounds.",
-            stacklevel=4,
-        )
-    return clipped
+    return Built(problem, starts, fixed_flat, x0_est, sets, x0_box)
 
 
 def _sets(t):

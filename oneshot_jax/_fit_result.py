@@ -969,7 +969,7 @@ class FitResult(eqx.Module):
             pred = self.predict(u, z_head, t=t, **kwargs)
             x0 = pred.x0
             s2 = self._noise_variance()
-            head = (len(z_head), z_head, self.weight, s2, pred.estimate.identifiable)
+            head = (len(z_head), z_head, self._weight_matrix(), s2, pred.estimate.identifiable)
         else:
             if np.ndim(x0) != 1:
                 raise ValueError(

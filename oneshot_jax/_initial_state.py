@@ -26,6 +26,7 @@ from ._checks import (
     check_outside_transformations,
     check_tree,
     check_x0_bounds,
+    clip_x0,
     is_concrete,
 )
 from ._cost import weigh
@@ -497,17 +498,10 @@ def _estimate(
             )
         box = None
         if bounds is not None:
-            box = check_x0_bounds(bounds, (1, guess.size), guess.dtype, False, "bounds")
+            shape = (1, guess.size)
+            box = check_x0_bounds(bounds, shape, guess.dtype, False, "bounds", estimate)
         if box is not None:
-            held = np.zeros(guess.size, bool) if estimate is None else ~estimate
-            inside = np.where(held, guess, np.clip(guess, box[0][0], box[1][0]))
-            if np.any(inside != guess):
-                warnings.warn(
-                    "the starting guess `x0` lies outside `bounds`: the estimate starts from "
-                    "it clipped into them.",
-                    stacklevel=stacklevel,
-                )
-            data = data._replace(x0=inside.astype(guess.dtype))
+            data = data._replace(x0=clip_x0(guess, box, "bounds", "estimate", stacklevel)[0])
         r = solve_x0(data, solver, record=whole, estimate=estimate, bounds=box)
         ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]

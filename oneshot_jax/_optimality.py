@@ -302,12 +302,15 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
     rel = jnp.finfo(dtype).eps ** 2
     dt2 = floor(d_t, rel) if d_t.size else d_t
     dx2 = floor(d_x, rel) if d_x.size else d_x
-    # x0's cosines, in its box where it has one (`_box_cosine`).
+    # x0's cosines, in its box where it has one (its projected gradient).
     # (a column that is exactly zero, every column of a model whose outputs do not
     # depend on the variables, has g_i = 0 and d_i = 0: its cosine is 0, not 0 / 0)
     c_x = _cosine(g.x0, dx2, norm) if g.x0.size else g.x0
     if g.x0.size and problem.x0_bounded:
-        c_x = _box_cosine(params.x0, g.x0, dx2, norm, problem.feasible_x0, eps)
+        t = 0.5 / jnp.where(dx2 > 0, dx2, 1.0)
+        step = params.x0 - t * 2.0 * g.x0
+        trial = problem.feasible_x0(step)
+        c_x = _projected_cosine(params.x0, g.x0, dx2, norm, t, step, trial, eps)
     theta = params.theta
     if not theta.size:
         return jnp.max(c_x, initial=0.0)
@@ -320,28 +323,21 @@ def first_order(problem: FitProblem, params: Params, C, g: Params, d_t, d_x):
         t = jnp.full_like(t, jnp.min(t))
     step = theta - t * 2.0 * g.theta
     trial, resolved = problem.prox_feasible(step, t)
-    moved = jnp.maximum(jnp.abs(trial - theta) - 4 * eps * jnp.abs(theta), 0.0)
-    c_t = jnp.where(moved == 0, 0.0, moved / (2.0 * t * jnp.sqrt(dt2) * norm))
-    # An entry that neither the prox nor the projection moved from the gradient step is
-    # an unconstrained one there: its cosine, |g_i| / (sqrt(d_i) ||r||), exactly. (A
-    # general projection's one common step t, that of the largest column, moves an
-    # entry of a column 1e7 times smaller by less than its round-off: the difference
-    # above read 0, and a fit "converged" at its start, 0.998 from stationary.)
-    free = trial == step
-    c_t = jnp.where(free, _cosine(g.theta, dt2, norm), c_t)
+    c_t = _projected_cosine(theta, g.theta, dt2, norm, t, step, trial, eps)
     # (a prox of g and a set that its rounds did not resolve certifies nothing: inf)
     c_t = jnp.where(resolved, c_t, jnp.inf)
     return jnp.maximum(jnp.max(c_t), jnp.max(c_x, initial=0.0))
 
 
-def _box_cosine(x, g, d2, norm, clip, eps):
-    """The scaled projected gradient of entries x in a box (`clip`, the projection onto
-    it): the move of the diagonal Gauss-Newton step x - g / d2 clipped into the box, in
-    the units of the cosine; |g_i| / (sqrt(d_i) ||r||) where the box does not clip the
-    step, 0 at a bound that the gradient pushes outwards."""
-    t = 0.5 / jnp.where(d2 > 0, d2, 1.0)
-    step = x - t * 2.0 * g
-    trial = clip(step)
+def _projected_cosine(x, g, d2, norm, t, step, trial, eps):
+    """The scaled projected gradient of entries x: the move from x of their gradient step
+    `step` = x - 2 t g after its projection (and prox) `trial`, in the units of the cosine
+    (0 at a bound that the gradient pushes outwards). An entry that neither the prox nor
+    the projection moved from the gradient step is an unconstrained one there: its
+    cosine, |g_i| / (sqrt(d_i) ||r||), exactly. (A general projection's one common step
+    t, that of the largest column, moves an entry of a column 1e7 times smaller by less
+    than its round-off: the difference read 0, and a fit "converged" at its start, 0.998
+    from stationary.)"""
     moved = jnp.maximum(jnp.abs(trial - x) - 4 * eps * jnp.abs(x), 0.0)
     c = jnp.where(moved == 0, 0.0, moved / (2.0 * t * jnp.sqrt(d2) * norm))
     return jnp.where(trial == step, _cosine(g, d2, norm), c)

@@ -61,8 +61,8 @@ def _output_jacobian(model, unravel, flat, free, x0, u):
 def output_std(model, params, fixed, covariance, x0, u, head=None):
     """The standard errors (T, n_z) of the simulated outputs of one record (module
     docstring): x0 known, or, with `head` = (n, z_head, Q, sigma^2, identifiable), x0
-    estimated from the first n outputs `z_head` (NaN where missing) under the weight Q
-    ((n_z,) or (n_z, n_z); None for I), with the fit's noise variance sigma^2 and the
+    estimated from the first n outputs `z_head` (NaN where missing) under the weight
+    matrix Q, with the fit's noise variance sigma^2 and the
     x0 entries the head determines (`identifiable`, from its `X0Estimate`).
 
     `model`, `params`: the model with theta's static part bound in and theta's
@@ -83,10 +83,8 @@ def output_std(model, params, fixed, covariance, x0, u, head=None):
         Jh, Jxh = Jt[:n], Jx[:n]
         seen = np.isfinite(np.asarray(z_head, np.float64))[..., None]
         Jh, Jxh = np.where(seen, Jh, 0.0), np.where(seen, Jxh, 0.0)
-        q = np.eye(Jt.shape[1]) if Q is None else np.asarray(Q, np.float64)
-        q = np.diag(q) if q.ndim == 1 else q
-        C = np.einsum("kia,ij,kjb->ab", Jxh, q, Jxh)
-        Bt = np.einsum("kia,ij,kjb->ab", Jxh, q, Jh)
+        C = np.einsum("kia,ij,kjb->ab", Jxh, Q, Jxh)
+        Bt = np.einsum("kia,ij,kjb->ab", Jxh, Q, Jh)
         # (C^+ [B^T, I]: the pseudo-inverse of `_linalg`, a zero step along C's null space)
         W = np.asarray(psd_solve(jnp.asarray(C), jnp.asarray(np.hstack([Bt, np.eye(len(C))]))))
         dx0, C_inv = W[:, : Bt.shape[1]], W[:, Bt.shape[1] :]

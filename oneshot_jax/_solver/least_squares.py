@@ -144,6 +144,12 @@ def _statistical_off(stol):
     return isinstance(stol, (int, float, np.integer, np.floating)) and not stol
 
 
+def _pushed_out(x, g, lower, upper):
+    """Entries at a bound of their box that the gradient g pushes outwards (the active
+    set of a box)."""
+    return ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
+
+
 class AbstractLeastSquares(AbstractSolver):
     """The structured least-squares loop: the descent is the linearisation's step
     (`_linearisation`), the search (`_search`) is what a subclass supplies."""
@@ -238,15 +244,14 @@ class AbstractLeastSquares(AbstractSolver):
     def _active(self, problem, p_theta, g_t):
         if problem.lower is None:
             return jnp.zeros(p_theta.shape, bool)
-        return ((p_theta <= problem.lower) & (g_t > 0)) | ((p_theta >= problem.upper) & (g_t < 0))
+        return _pushed_out(p_theta, g_t, problem.lower, problem.upper)
 
     def _active_x(self, problem, p_x0, g_x):
         """The x0 entries at a bound of their box that the gradient pushes outwards, or
         None without x0 bounds."""
         if not problem.x0_bounded:
             return None
-        lo, hi = problem.x0_lower, problem.x0_upper
-        return ((p_x0 <= lo) & (g_x > 0)) | ((p_x0 >= hi) & (g_x < 0))
+        return _pushed_out(p_x0, g_x, problem.x0_lower, problem.x0_upper)
 
     primes_in_step = True
 
