@@ -149,7 +149,12 @@ def post(problem, params, blocks, strategy, lags=None):
     m = None if problem.mask is None else problem.mask.outputs
     e = zhat - zs if m is None else jnp.where(m > 0, zhat - zs, jnp.nan)
     cov = None
-    held = blocks is not None and lags is None  # the solver's own Jacobian's blocks
+    # the solver's own Jacobian's blocks (not where a record holds x0 entries the solver
+    # estimates in others: `_covariance.covariance` takes them out of its own)
+    x_held = problem.x0_held
+    if x_held is not None:
+        blocks = None
+    held = blocks is not None and lags is None
     n_cols = params.theta.shape[0] + params.x0.shape[-1]
     if (
         lags != NOT_COMPUTED
@@ -158,10 +163,13 @@ def post(problem, params, blocks, strategy, lags=None):
     ):
         seen = problem.cost.observed()
         if lags is None:
-            cov = scale(covariance(problem, params, strategy, blocks), e, seen)
+            cov = scale(covariance(problem, params, strategy, blocks), e, seen, held=x_held)
         else:
-            cov = scale(sandwich(problem, params, strategy, lags), e, seen, robust=True)
+            cov = sandwich(problem, params, strategy, lags)
+            cov = scale(cov, e, seen, robust=True, held=x_held)
     n_free = params.theta.shape[0] + params.x0.size
+    if x_held is not None:
+        n_free = n_free - jnp.sum(x_held)
     met = {
         "rmse": _metrics.rmse(zs, zhat, m),
         "nrmse": _metrics.nrmse(zs, zhat, m),
@@ -477,6 +485,8 @@ def assemble(
                 shrunk,
             )
         dof, n_free = int(scaled.dof), scaled.theta_std.size + scaled.x0_std.size
+        if problem.x0_held is not None:
+            n_free -= int(np.sum(problem.x0_held))
         if not diverged and dof <= 0 and n_free:
             diagnostics = {**(diagnostics or {}), "degrees_of_freedom": dof}
             warnings.warn(
@@ -551,6 +561,8 @@ def assemble(
         x = np.asarray(X0)[:, list(x0_free)]
         lo, hi = np.asarray(problem.x0_lower), np.asarray(problem.x0_upper)
         at = ((x <= lo) & np.isfinite(lo)) | ((x >= hi) & np.isfinite(hi))
+        if problem.x0_held is not None:  # (held by `estimate_x0` per record, not a bound)
+            at &= ~np.asarray(problem.x0_held)
         state = model_labels(getattr(problem.model, "states", None), X0.shape[1]) or range(
             X0.shape[1]
         )

@@ -1197,11 +1197,9 @@ def x0_mask(estimate_x0, n_x) -> np.ndarray:
     est = np.asarray(estimate_x0)
     if est.dtype == bool and est.ndim == 2 and est.shape[-1] == n_x:
         raise ValueError(
-            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},), one mask "
-            f"for every record; got a mask of shape {est.shape}. A mask per record is not "
-            "supported: estimate the union of the entries (a record whose initial state "
-            "is known, at rest say, then gets its own estimate of it, n_x more "
-            "parameters)."
+            f"`estimate_x0` must be a bool or a boolean mask of shape ({n_x},) here, one "
+            f"mask for every record; got a mask of shape {est.shape}. A mask per record "
+            "(N, n_x) is taken by `fit` on N records without `window` or `aggregate`."
         )
     if est.dtype != bool or est.shape not in ((), (n_x,)):
         raise ValueError(
@@ -1209,3 +1207,31 @@ def x0_mask(estimate_x0, n_x) -> np.ndarray:
             f"got {estimate_x0!r}."
         )
     return np.broadcast_to(est, (n_x,)).copy()
+
+
+def record_x0_mask(estimate_x0, shape, windowed, aggregated):
+    """`fit(estimate_x0=...)` given a mask per record (N, n_x) (MATLAB's
+    `InitialStates(i).Fixed` of a multi-experiment model, 1 x Ne), split into what the
+    problem estimates: the entries estimated in any record (n_x,), and (N, n_x) those of
+    them that a record holds at its value of `x0` (None where no record holds one the
+    others estimate). Any other `estimate_x0` is returned as it is, with None."""
+    est = np.asarray(estimate_x0) if isinstance(estimate_x0, (np.ndarray, list, tuple)) else None
+    if est is None or est.dtype != bool or est.ndim != 2:
+        return estimate_x0, None
+    N, n_x = shape
+    for refused, what in ((windowed, "`window`"), (aggregated, "`aggregate`")):
+        if refused:
+            raise ValueError(
+                f"`estimate_x0` as a mask per record (shape {est.shape}) is not supported "
+                f"with {what}: give one mask ({n_x},) for every "
+                f"{'window' if windowed else 'record'}."
+            )
+    if est.shape != (N, n_x):
+        raise ValueError(
+            f"`estimate_x0` must be a bool, a boolean mask of shape ({n_x},) for every "
+            f"record, or one of shape (N, n_x) = ({N}, {n_x}), a mask per record; got a "
+            f"mask of shape {est.shape}."
+        )
+    union = est.any(axis=0)
+    held = union[None, :] & ~est
+    return union, (held if held.any() else None)

@@ -118,10 +118,28 @@ def as_covariance(value):
     )
 
 
-def _blocks(lin):
-    """(SSE, A, B, C_i, S) of the data residuals from their `Linearisation` `lin`."""
-    A, B, Cb, _, _ = normal_blocks(lin.Jt, lin.Jx, lin.r)
-    return jnp.sum(lin.r**2), A, B, Cb, schur_complement(lin.Jt, lin.Jx, A)
+def _blocks(lin, held=None):
+    """(SSE, A, B, C_i, S) of the data residuals from their `Linearisation` `lin`, with the
+    x0 entries `held` (N, m) (`FitProblem.x0_held`: those a record holds at its value)
+    taken out of the estimate: their Jacobian columns zero, C_i's diagonal 1 there (so
+    that C_i^+ keeps them apart; `_released` then sets their variance to 0)."""
+    Jx = lin.Jx if held is None else lin.Jx * (1.0 - held.astype(lin.Jx.dtype))[:, None, :]
+    A, B, Cb, _, _ = normal_blocks(lin.Jt, Jx, lin.r)
+    if held is not None:
+        Cb = Cb + jax.vmap(jnp.diag)(held.astype(Cb.dtype))
+    return jnp.sum(lin.r**2), A, B, Cb, schur_complement(lin.Jt, Jx, A)
+
+
+def _released(cov, held):
+    """`cov` with the x0 entries `held` (N, m) known: variance and covariances 0, and
+    determined (None: unchanged)."""
+    if held is None:
+        return cov
+    keep = 1.0 - held.astype(cov.x0.dtype)
+    return cov._replace(
+        x0=cov.x0 * keep[:, :, None] * keep[:, None, :],
+        x0_identifiable=cov.x0_identifiable | held,
+    )
 
 
 def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Covariance:
@@ -132,15 +150,16 @@ def covariance(problem: FitProblem, params: Params, strategy, blocks=None) -> Co
     otherwise the Jacobian is evaluated here. With `blocks`, `problem` may be None (then
     no entry is a network's: no `marginal`).
     """
+    held = None if problem is None else problem.x0_held
     if blocks is None:
-        blocks = _blocks(problem.jacobian(params, strategy, penalty=False))
+        blocks = _blocks(problem.jacobian(params, strategy, penalty=False), held)
     nuisance = np.asarray(() if problem is None else problem.nuisance, int)
     cov, _ = _pseudo_inverse(blocks, carry=_carries(problem))
     p = cov.theta.shape[0]
     if 0 < nuisance.size < p:
         S_inv, t_ok, _ = marginal(blocks[4], cov.theta, cov.theta_identifiable, nuisance)
         cov = cov._replace(theta=S_inv, theta_identifiable=t_ok)
-    return cov
+    return _released(cov, held)
 
 
 def _carries(problem) -> bool:
@@ -226,8 +245,9 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
 
     The identifiability flags are those of `covariance`. `lags`: L (static).
     """
+    held = problem.x0_held
     lin = problem.jacobian(params, strategy, penalty=False)
-    blocks = _blocks(lin)
+    blocks = _blocks(lin, held)
     S = blocks[4]
     # S^+ itself: no marginal block yet
     cov, elim = _pseudo_inverse(blocks, carry=_carries(problem))
@@ -246,7 +266,7 @@ def sandwich(problem: FitProblem, params: Params, strategy, lags: int) -> Covari
         named_inv, t_ok, G = marginal(S, cov.theta, cov.theta_identifiable, nuisance)
         theta = _marginal_sandwich(theta, g, G, named_inv, nuisance, lags)
         cov = cov._replace(theta_identifiable=t_ok)
-    return cov._replace(theta=theta, x0=x0)
+    return _released(cov._replace(theta=theta, x0=x0), held)
 
 
 def _x0_block(problem, lin, Jt_elim, S_inv, C_inv, W, theta, lags: int, params, strategy):
@@ -411,7 +431,7 @@ class Scaled(NamedTuple):
     dof: jax.Array  # n_obs - n_free: sigma^2 is unknown (every error inf) where it is <= 0
 
 
-def scale(cov: Covariance, e, observed=None, robust: bool = False) -> Scaled:
+def scale(cov: Covariance, e, observed=None, robust: bool = False, held=None) -> Scaled:
     """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the finite entries of
     the residuals `e` in the outputs `observed`, `Cost.observed`: an output of zero weight
     adds no observations), or for a `sandwich` (`robust`) by n_obs / dof (the small-sample
@@ -419,12 +439,13 @@ def scale(cov: Covariance, e, observed=None, robust: bool = False) -> Scaled:
 
     With J = Q^{1/2} J_e / sqrt(N T), sigma^2 (J_e^T Q J_e)^{-1} = (SSE_r / dof) (J^T J)^{-1}.
     A variable outside the identifiable set gets an infinite variance, and so does every
-    variable when there are no more observations than free variables (dof <= 0).
+    variable when there are no more observations than free variables (dof <= 0). `held`:
+    the x0 entries a record holds (`FitProblem.x0_held`), not free, or None.
     """
     t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
     seen = jnp.isfinite(e)
     n_obs = jnp.sum(seen if observed is None else seen & observed)
-    dof = n_obs - (t_ok.size + x_ok.size)
+    dof = n_obs - (t_ok.size + x_ok.size - (0 if held is None else jnp.sum(held)))
     known = dof > 0
     top = n_obs.astype(cov.sse.dtype) if robust else cov.sse
     s2 = jnp.where(known, top / jnp.where(known, dof, 1).astype(cov.sse.dtype), jnp.inf)

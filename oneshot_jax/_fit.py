@@ -20,7 +20,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post, prepare, weighed, worst_fit
-from ._checks import x0_mask
+from ._checks import record_x0_mask, x0_mask
 from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
 from ._fit_report import theta_order
@@ -903,7 +903,12 @@ def fit(
         respect to it (x**n with respect to n at x < 0) reaches the others: hold such an
         exponent as a leaf of its own, or give it as an integer (data).
     - `estimate_x0`: False keeps x0 fixed; a (n_x,) boolean mask estimates some entries
-        (the same entries of every record).
+        (the same entries of every record); on N records (without `window` or
+        `aggregate`), a (N, n_x) mask estimates each record's own entries (MATLAB's
+        `InitialStates(i).Fixed` per experiment: a record that starts at rest holds its
+        x0, another estimates it). A held entry keeps its value in `x0`; it counts
+        neither in the degrees of freedom nor in the covariance (its `x0_std` is 0). Not
+        with `Optimistix`.
     - `x0_bounds`: `(lower, upper)` bounds on the estimated entries of x0 (MATLAB's
         `InitialStates(i).Minimum` and `Maximum`): each None (unbounded), a number, an
         array (n_x,) (every record's, or every window's, x0) or, without `window`,
@@ -1038,6 +1043,13 @@ def fit(
         t=t,
         readings=aggregate is not None,
     )
+    x0_mask_given = estimate_x0  # (a mask per record: `FitResult.x0_estimated`)
+    estimate_x0, x0_held = record_x0_mask(
+        estimate_x0,
+        np.shape(inputs.data.x0) if inputs.data.batched else (1, np.shape(inputs.data.x0)[-1]),
+        windowed=inputs.window_starts is not None,
+        aggregated=aggregate is not None,
+    )
     _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts, model)
     if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
         agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
@@ -1072,6 +1084,7 @@ def fit(
         regulariser=regulariser,
         validation=validation,
         x0_bounds=x0_bounds,
+        x0_held=x0_held,
     )
     lags = NOT_COMPUTED if robust is NOT_COMPUTED else None
     if isinstance(robust, NeweyWest):
@@ -1096,7 +1109,7 @@ def fit(
             problem=built.problem,
             solvers=inputs.solvers,
             fixed=built.fixed,
-            x0_estimated=built.x0_estimated,
+            x0_estimated=built.x0_estimated if x0_held is None else x0_mask_given,
             theta_order=_theta_order(theta0),
             units=inputs.units,
         ),

@@ -440,6 +440,7 @@ def build_problem(
     regulariser,
     validation=None,
     x0_bounds=None,
+    x0_held=None,
 ) -> Built:
     """The `FitProblem` the solvers see and the starts they run from, on the host: the
     free entries of theta and x0, the bounds or projection and the regulariser on theta,
@@ -449,7 +450,10 @@ def build_problem(
 
     - `inputs`: `check_inputs`'s output.
     - `fixed`, `estimate_x0`, `constraints`, `regulariser`, `validation`, `x0_bounds`:
-        those of `fit`.
+        those of `fit` (`estimate_x0` one mask for every record).
+    - `x0_held`: (N, n_x) the entries of `estimate_x0` that a record holds at its value
+        of x0 (`_checks.record_x0_mask`: `fit` given a mask per record), or None. The
+        problem bounds each by its value (`FitProblem.x0_held`).
 
     **Returns:** a `Built`.
     """
@@ -543,6 +547,25 @@ def build_problem(
                 "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
                 "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
             )
+    # The box the solvers keep x0 in: `x0_bounds`, and an entry a record holds (a mask
+    # per record) bounded above and below by its value.
+    solve_box = x0_box
+    if x0_held is not None:
+        if any(isinstance(s, Optimistix) for s in solvers):
+            raise ValueError(
+                "`estimate_x0` as a mask per record is not available with `Optimistix`: use "
+                "LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax, or one mask for "
+                "every record."
+            )
+        if x0_box is not None:  # (a held entry keeps its value: not bounded)
+            x0_box[0][x0_held], x0_box[1][x0_held] = -np.inf, np.inf
+        lo, hi = (
+            (np.full(X0.shape, -np.inf, X0.dtype), np.full(X0.shape, np.inf, X0.dtype))
+            if x0_box is None
+            else (x0_box[0].copy(), x0_box[1].copy())
+        )
+        lo[x0_held], hi[x0_held] = X0[x0_held], X0[x0_held]
+        solve_box = (lo, hi)
     project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:
@@ -567,8 +590,9 @@ def build_problem(
         lower=free.lower,
         upper=free.upper,
         regulariser=on_theta,
-        x0_lower=None if x0_box is None else x0_box[0][:, x0_free],
-        x0_upper=None if x0_box is None else x0_box[1][:, x0_free],
+        x0_lower=None if solve_box is None else solve_box[0][:, x0_free],
+        x0_upper=None if solve_box is None else solve_box[1][:, x0_free],
+        x0_held=None if x0_held is None else x0_held[:, x0_free],
         validation=None
         if validation is None
         else monitor(
@@ -599,7 +623,7 @@ def build_problem(
         x0_starts = inputs.x0_starts
         if x0_starts is not None:
             X0s = np.asarray(x0_starts if batched else x0_starts[:, None], X0.dtype)
-            check_held_x0_starts(X0s, x0_est)
+            check_held_x0_starts(X0s, x0_est, x0_held)
         else:
             X0s = np.broadcast_to(X0, (inputs.n_starts, *X0.shape))
     else:
@@ -608,6 +632,8 @@ def build_problem(
         # (a window's starting state, read off z or solved for, is clipped silently)
         windowed = inputs.window_starts is not None
         X0s = clip_x0(X0s, x0_box, "x0_bounds", "fit", stacklevel=3, warn=not windowed)
+    if x0_held is not None:  # (the values `x0` gives them: `check_held_x0_starts`)
+        X0s = np.where(x0_held, X0, X0s)
     all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x
     starts = Params(
         starts_flat if all_t else starts_flat[:, theta_free],

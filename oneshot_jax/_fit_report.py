@@ -293,9 +293,10 @@ def _x0_table(result, shown_max=3):
     """The initial-state rows: every entry of one trajectory, or of the first two of more
     than `shown_max`; and the number of trajectories left out."""
     x0, x0_std = np.asarray(result.x0), np.asarray(result.x0_std)
-    estimated = np.asarray(result.x0_estimated, bool)
     batched = x0.ndim == 2
     X0, S0 = (x0, x0_std) if batched else (x0[None], x0_std[None])
+    # (n_x,) for every record, or (N, n_x): a mask per record
+    estimated = np.broadcast_to(np.asarray(result.x0_estimated, bool), X0.shape)
     computed = _computed(result)
     n_traj, n_x = X0.shape
     shown = n_traj if n_traj <= shown_max else 2
@@ -311,9 +312,9 @@ def _x0_table(result, shown_max=3):
                 (
                     entry,
                     "",
-                    f"{v:.{_digits(v, s) if estimated[j] else 6}g}",
+                    f"{v:.{_digits(v, s) if estimated[i, j] else 6}g}",
                     _std(s, computed),
-                    _interval(v, s, not estimated[j], computed),
+                    _interval(v, s, not estimated[i, j], computed),
                 )
             )
     return table, n_traj - shown
@@ -414,7 +415,9 @@ def report(result) -> str:
     states = f"{int(estimated.sum())} of {estimated.size} initial states"
     # A windowed fit (multiple shooting) has one initial state per window.
     rows = "windows" if result.window_starts is not None else "trajectories"
-    if x0.ndim == 2:
+    if estimated.ndim == 2:  # (a mask per trajectory)
+        states += f" ({x0.shape[0]} trajectories, each its own)"
+    elif x0.ndim == 2:
         states += f" (per {'window' if rows == 'windows' else 'trajectory'}, {x0.shape[0]} {rows})"
     solvers = " then ".join(str(s.get("solver", "?")) for s in result.solver) or "?"
     # The stop: FitResult.message's first part (the test that fired, with its values, or

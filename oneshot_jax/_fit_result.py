@@ -398,7 +398,10 @@ class FitResult(eqx.Module):
     - `std`: standard errors shaped like theta's parameters (0 where fixed).
     - `x0_covariance`: (m, m) or (N, m, m) covariance of the estimated x0 entries;
         `x0_std`: standard errors shaped like `x0` (0 where not estimated).
-    - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries.
+    - `x0_estimated`: (n_x,) boolean mask of the estimated x0 entries, or (N, n_x) where
+        `fit` was given a mask per record (the entries a record holds then have a zero
+        row and column in its block of `x0_covariance`, which spans the entries some
+        record estimates).
     - `metrics`: RMSE, NRMSE, FIT% and R^2 per output, and AIC, AICc, BIC and FPE
         (`aic`, `aicc`, `bic`, `fpe` of `oneshot_jax.metrics`: MATLAB's report of a fit
         gives these), on the fitted data:
@@ -588,8 +591,9 @@ class FitResult(eqx.Module):
         q = self._weight_matrix()
         e = e.reshape(-1, q.shape[0])
         seen = np.isfinite(e)
-        x0_free = np.asarray(self.x0_estimated, bool).sum() * max(
-            1, np.size(self.x0) // max(1, np.shape(self.x0)[-1])
+        estimated = np.asarray(self.x0_estimated, bool)  # (n_x,), or (N, n_x) per record
+        x0_free = estimated.sum() * (
+            1 if estimated.ndim == 2 else max(1, np.size(self.x0) // max(1, np.shape(self.x0)[-1]))
         )
         dof = int(seen.sum()) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
         e = np.where(seen, e, 0.0)

@@ -497,7 +497,7 @@ def _check_shapes(arrays, meta, group):
     x0, x0_cov = arrays["x0"], arrays["x0_covariance"]
     if x0.ndim not in (1, 2) or arrays["x0_std"].shape != x0.shape:
         raise ValueError(f"x0 has shape {x0.shape}, x0_std {arrays['x0_std'].shape}")
-    if arrays["x0_estimated"].shape != x0.shape[-1:]:
+    if arrays["x0_estimated"].shape not in (x0.shape[-1:], x0.shape if x0.ndim == 2 else ()):
         raise ValueError(f"x0 has shape {x0.shape}, x0_estimated {arrays['x0_estimated'].shape}")
     # (over the estimated entries of x0, or (0, 0): not computed)
     if x0_cov.ndim < 2 or x0_cov.shape[-1] != x0_cov.shape[-2] or x0_cov.shape[-1] > x0.shape[-1]:

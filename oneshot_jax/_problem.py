@@ -105,6 +105,11 @@ class FitProblem(eqx.Module):
     # unbounded), or None (`fit(x0_bounds=...)`, MATLAB's `InitialStates(i).Minimum`)
     x0_lower: jax.Array | None = None
     x0_upper: jax.Array | None = None
+    # (N, m) the free x0 entries a record holds at its value (`fit` given a mask per
+    # record, MATLAB's `InitialStates(i).Fixed` per experiment), or None: bounded above
+    # and below by that value in `x0_lower`/`x0_upper` for the solvers, and counted
+    # neither in the covariance nor in the degrees of freedom (`_covariance`)
+    x0_held: jax.Array | None = None
 
     @property
     def dtype(self):

@@ -240,14 +240,24 @@ def check_fixed_starts(starts_flat, fixed_flat, theta, held=None):
         )
 
 
-def check_held_x0_starts(x0_starts, x0_est):
+def check_held_x0_starts(x0_starts, x0_est, x0_held=None):
     """A ValueError if the x0 starts (S, N, n_x) of a multistart fit differ in an entry
-    that `estimate_x0` holds (`x0_est`, (n_x,) False there): a held entry keeps one value,
-    so its starts would be silently dropped."""
-    differ = ~np.asarray(x0_est) & np.any(x0_starts != x0_starts[:1], axis=(0, 1))
+    that `estimate_x0` holds (`x0_est`, (n_x,) False there; with a mask per record,
+    `x0_held` (N, n_x) True where a record holds an entry the others estimate): a held
+    entry keeps one value, so its starts would be silently dropped."""
+    held = np.broadcast_to(~np.asarray(x0_est), x0_starts.shape[1:])
+    if x0_held is not None:
+        held = held | x0_held
+    differ = held & np.any(x0_starts != x0_starts[:1], axis=0)
     if differ.any():
         raise ValueError(
             "`x0` gives different starts for initial-state entries that `estimate_x0` holds "
-            f"(entries {np.flatnonzero(differ).tolist()}): a held entry keeps one value. "
+            f"(entries {sorted(set(np.nonzero(differ)[1].tolist()))}"
+            + (
+                f" of records {sorted(set(np.nonzero(differ)[0].tolist()))}"
+                if x0_held is not None
+                else ""
+            )
+            + "): a held entry keeps one value. "
             "Start only estimated entries, or estimate them (`estimate_x0`)."
         )

@@ -593,14 +593,14 @@ def test_natural_mistakes_get_a_hint():
         oj.simulate(model, OSC, np.zeros(2), np.zeros(10))
     with pytest.raises(ValueError, match=r"`x0` is required \(the initial state"):
         oj.fit(model, OSC, None, np.zeros((10, 1)), np.zeros((10, 2)))
-    with pytest.raises(ValueError, match=r"one mask for every record.*per record is not"):
+    with pytest.raises(ValueError, match=r"one of shape \(N, n_x\) = \(2, 2\), a mask per record"):
         oj.fit(
             model,
             OSC,
             np.zeros((2, 2)),
             np.zeros((2, 10, 1)),
             np.zeros((2, 10, 2)),
-            estimate_x0=np.array([[False, False], [True, True]]),
+            estimate_x0=np.array([[False, False], [True, True], [True, True]]),
         )
     u = np.zeros((10, 1))
     u[3] = np.nan
