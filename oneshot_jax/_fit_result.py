@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
+from ._ahead import predict_ahead
 from ._checks import check_data, check_state_size
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
@@ -873,6 +874,72 @@ class FitResult(eqx.Module):
             stacklevel=3 + _frames_to_user(),
             t=t,
             z_name="z_head",
+        )
+
+    def predict_ahead(
+        self,
+        u,
+        z,
+        K,
+        *,
+        process_noise,
+        x0=None,
+        measurement_noise=None,
+        prior_covariance=None,
+        t=None,
+        missing=None,
+    ):
+        """Predict each output of a record from the measurements up to K samples before
+        it, with the fitted model and theta: an extended Kalman filter corrects the state
+        from the outputs (`oneshot_jax.predict_ahead`; MATLAB's `predict(sys, data, K)`).
+
+        **Arguments:**
+
+        - `u`, `z`: one record's inputs (T, n_u) and measured outputs (T, n_z).
+        - `K`: the horizon, an integer >= 1 (K >= T or `math.inf`: the simulation from
+            `x0`).
+        - `process_noise`: the covariance of the process noise per step (required; the
+            fit's output-error model has none).
+        - `x0`: the prior mean of the initial state; default the record's x0 estimated
+            from all of it as `predict(u, z)` does.
+        - `measurement_noise`: default the one the fit estimated, sigma^2 Q^{-1} (as for
+            `predict`'s smoother), else the defaults of `oneshot_jax.predict_ahead`.
+        - `prior_covariance`, `t`: as for `oneshot_jax.predict_ahead`.
+        - `missing`: default the fit's (`"mask"`: NaN in z are missing measurements).
+
+        **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`).
+        """
+        if self.model is None:
+            raise ValueError(
+                "this result holds no model (it was loaded without one): pass "
+                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict_ahead`."
+            )
+        if is_ragged(u) or np.ndim(u) != 2:
+            raise ValueError(
+                f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}: "
+                "`predict_ahead` takes one record per call."
+            )
+        missing = self.missing if missing is None else missing
+        if x0 is None:
+            x0 = self.predict(u, z, t=t, missing=missing).x0
+        weight = None
+        if measurement_noise is None:
+            measurement_noise = self._measurement_noise()
+            if measurement_noise is None and self.weight is not None:
+                weight = self.weight if reads_weight(self.weight) else None
+        return predict_ahead(
+            self.model,
+            self.theta,
+            u,
+            z,
+            K,
+            x0=x0,
+            process_noise=process_noise,
+            measurement_noise=measurement_noise,
+            prior_covariance=prior_covariance,
+            weight=weight,
+            t=t,
+            missing=missing,
         )
 
     def _predict_records(self, u, z_head, t, kwargs):

@@ -621,8 +621,8 @@ def predict(
     benchmark protocol's prediction (the model may use the whole input and z[:n]). This
     is an open-loop simulation (MATLAB's `compare` with an estimated initial state). For an
     output-error model (no noise model, as `idnlgrey`) MATLAB's K-step-ahead `predict` is
-    this same simulation whatever K; a predictor that corrects the state from the outputs
-    (a Kalman filter) is not built here.
+    this same simulation whatever K; `predict_ahead` corrects the state from the outputs
+    with a Kalman filter, given a process noise.
 
     **Arguments:**
 

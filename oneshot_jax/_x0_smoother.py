@@ -84,25 +84,27 @@ def _rms(a, axis=0):
     return np.where(np.isfinite(s) & (s > 0), s, 1.0)
 
 
-@jit
-def _smooth(model, theta, m0, P0, Qp, R, u, z):
-    """Extended Kalman filter and Rauch-Tung-Striebel smoother over one head.
+def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
+    """The extended Kalman filter over a record (Särkkä 2013, Algorithm 5.4): the model
+    x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
+    v_k ~ N(0, R); x[0] ~ N(m0, P0); f and g linearised by `jax.jacfwd` at the predicted
+    and filtered means. A NaN entry of z is a missing measurement: its row of the update
+    is left out (zero row of the Jacobian of g, zero innovation, so zero gain), and a
+    sample with none measured is a prediction alone. Traced (inside the caller's compiled
+    call).
 
-    Model: x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
-    v_k ~ N(0, R); x[0] ~ N(m0, P0). f and g are linearised by `jax.jacfwd` at the filtered
-    and predicted means (Särkkä 2013, Algorithm 5.4); the backward pass is the extended
-    RTS smoother (ibid., Chapter 9; Theorem 8.2 for the linear case):
-
-        G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
-        P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
+    **Returns:** the filtered means and covariances m[k|k], P[k|k] for k = 0..T-2, the
+    predicted m[k+1|k], P[k+1|k] and the Jacobians F_k of f there (the smoother's
+    inputs), and m[T-1|T-1], P[T-1|T-1].
     """
     eye = jnp.eye(m0.shape[0], dtype=m0.dtype)
 
     def update(m, P, u_k, z_k):
-        H = jax.jacfwd(model.observe)(m, u_k, theta)
+        seen = jnp.isfinite(z_k)
+        H = jax.jacfwd(model.observe)(m, u_k, theta) * seen[:, None].astype(m.dtype)
         S = H @ P @ H.T + R
         Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
-        m = m + Kt.T @ (z_k - model.observe(m, u_k, theta))
+        m = m + Kt.T @ jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
         A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
         P = A @ P @ A.T + Kt.T @ R @ Kt
         return m, 0.5 * (P + P.T)
@@ -121,6 +123,19 @@ def _smooth(model, theta, m0, P0, Qp, R, u, z):
         forward, (m0, P0), (u[: n - 1], z[: n - 1], model.step_inputs(u))
     )
     m_last, P_last = update(m, P, u[n - 1], z[n - 1])
+    return (mf, Pf, mp, Pp, F), (m_last, P_last)
+
+
+@jit
+def _smooth(model, theta, m0, P0, Qp, R, u, z):
+    """Extended Kalman filter (`ekf_forward`) and Rauch-Tung-Striebel smoother over one
+    head. The backward pass is the extended RTS smoother (Särkkä 2013, Chapter 9;
+    Theorem 8.2 for the linear case):
+
+        G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
+        P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
+    """
+    (mf, Pf, mp, Pp, F), (m_last, P_last) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
 
     def backward(carry, inp):
         ms, Ps = carry

@@ -462,7 +462,7 @@ def test_optimistix_failing_at_a_solution_converges_and_says_which_test_held():
     z = np.asarray(z) + 0.05 * rng.standard_normal(np.shape(z))
     start = {"a1": 1.0, "a2": -0.3, "b": 0.1}
     ref = oj.fit(model, start, x0, u, z)
-    cg = lx.NormalCG(rtol=1e-12, atol=1e-12, max_steps=4)
+    cg = lx.Normal(lx.CG(rtol=1e-12, atol=1e-12, max_steps=4))
     for inner in (optx.LevenbergMarquardt, optx.GaussNewton):
         optimistix = inner(rtol=1e-8, atol=1e-8, linear_solver=cg)
         solver = oj.Optimistix(optimistix, max_steps=200, gtol=3e-8)  # (measures 1e-8, 6e-9)
@@ -519,7 +519,7 @@ def test_optimistix_lm_with_a_capped_linear_solve_runs_to_its_solution():
     n_x, model, truth, u, z = _shift_register()
     for seed, cap in ((0, 3), (1, 2)):
         start = {"w": 0.5 * np.random.default_rng(seed + 10).standard_normal(n_x), "g": 0.5}
-        cg = lx.NormalCG(rtol=1e-12, atol=1e-12, max_steps=cap)
+        cg = lx.Normal(lx.CG(rtol=1e-12, atol=1e-12, max_steps=cap))
         inner = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12, linear_solver=cg)
         r = oj.fit(
             model,
@@ -546,7 +546,7 @@ def test_optimistix_whose_failed_steps_leave_the_optimum_stops_there_as_a_stall(
     ref = oj.fit(model, truth, np.zeros(n_x), u, z, estimate_x0=False)
     start = {"w": np.asarray(ref.theta["w"]) * (1 + 1e-6), "g": float(ref.theta["g"])}
     for cap in (1, 2):
-        cg = lx.NormalCG(rtol=1e-12, atol=1e-12, max_steps=cap)
+        cg = lx.Normal(lx.CG(rtol=1e-12, atol=1e-12, max_steps=cap))
         inner = optx.LevenbergMarquardt(rtol=0.0, atol=0.0, linear_solver=cg)
         solver = oj.Optimistix(inner, max_steps=400, gtol=1e-12)
         r = oj.fit(model, start, np.zeros(n_x), u, z, solver=solver, estimate_x0=False)

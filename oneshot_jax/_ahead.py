@@ -1,0 +1,180 @@
+"""K-step-ahead prediction: each output predicted from the measurements up to K samples
+before it, by an extended Kalman filter that corrects the state from the outputs
+(`predict_ahead`, MATLAB's `predict(sys, data, K)` for a model with a noise model).
+
+The filter is the one of `estimate_x0(method="smoother")` (`_x0_smoother.ekf_forward`,
+Särkkä, *Bayesian Filtering and Smoothing*, 2013, Algorithm 5.4) over the whole record;
+from each filtered mean x[j|j] the model's step runs K times (all starts side by side,
+one `vmap` per step), so that
+
+    x[k|k-K] = f^K(x[k-K|k-K]),   zhat[k|k-K] = g(x[k|k-K], u[k]),
+
+and for k < K, before any measurement counts, x[k|-1] = f^k(x0): the simulation from the
+prior mean. K = 1 is the filter's one-step prediction (its innovations are z - zhat);
+K >= T is the simulation from x0, the output-error prediction of `simulate`.
+"""
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float, PyTree
+
+from ._checks import check_data, check_tree, is_concrete
+from ._jit import jit
+from ._x0_smoother import _smoother_defaults, ekf_forward
+
+
+class AheadPrediction(NamedTuple):
+    """What `predict_ahead` returns.
+
+    - `z`: (T, n_z) the K-step-ahead predictions zhat[k|k-K] of the outputs.
+    - `x`: (T, n_x) the predicted states x[k|k-K].
+    - `filtered`: (T, n_x) the filter's means x[k|k], given z[0..k].
+    - `K`: the horizon (at most T: the simulation from `x0`).
+    """
+
+    z: np.ndarray
+    x: np.ndarray
+    filtered: np.ndarray
+    K: int
+
+    def __str__(self) -> str:
+        return (
+            f"{self.K}-step-ahead prediction of {np.shape(self.z)[0]} samples (`z` "
+            f"{np.shape(self.z)}, `x` {np.shape(self.x)}, `filtered` "
+            f"{np.shape(self.filtered)})"
+        )
+
+    __repr__ = __str__
+
+
+@jit
+def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
+    """`AheadPrediction`'s z, x and filtered means (the module's docstring), traced: the
+    filter's forward pass, then K steps of every start at once."""
+    (mf, _, _, _, _), (m_last, _) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
+    filtered = jnp.concatenate([mf, m_last[None]])  # (T, n_x)
+    T = u.shape[0]
+    steps = model.step_inputs(u)  # (T-1, ...): the inputs of x[j] -> x[j+1]
+    k = jnp.arange(T)
+    first = k - K  # the sample each prediction starts from (before 0: the prior mean)
+    X = jnp.where((first >= 0)[:, None], filtered[jnp.clip(first, 0, T - 1)], m0[None])
+
+    def one(i, X):  # the (i+1)-th step of every start that has reached sample 0
+        j = first + i
+        moved = jax.vmap(model.step, in_axes=(0, 0, None))(X, steps[jnp.clip(j, 0, T - 2)], theta)
+        return jnp.where((j >= 0)[:, None], moved, X)
+
+    X = jax.lax.fori_loop(0, K, one, X) if T > 1 else X
+    Z = jax.vmap(model.observe, in_axes=(0, 0, None))(X, u, theta)
+    return Z, X, filtered
+
+
+def _horizon(K, T) -> int:
+    if isinstance(K, (bool, np.bool_)) or not (
+        isinstance(K, (int, np.integer)) or (isinstance(K, float) and math.isinf(K))
+    ):
+        raise TypeError(f"`K` must be an integer >= 1 or math.inf, got {K!r}.")
+    if K < 1:
+        raise ValueError(f"`K` must be an integer >= 1 or math.inf, got {K!r}.")
+    return int(min(K, T))
+
+
+def predict_ahead(
+    model,
+    theta: PyTree,
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T n_z"],
+    K,
+    *,
+    x0: Float[ArrayLike, " n_x"] | None = None,
+    process_noise,
+    measurement_noise=None,
+    prior_covariance=None,
+    weight=None,
+    t: Float[ArrayLike, " T"] | None = None,
+    missing: str = "raise",
+) -> AheadPrediction:
+    """Predict each output of a record from the measurements up to K samples before it
+    (MATLAB's `predict(sys, data, K)`; `compare(data, sys, K)` plots it): an extended
+    Kalman filter corrects the state from the outputs z[0..k-K], and the model runs on
+    for K steps from there (the module's docstring). The simulation error that `fit`
+    minimises is an output-error model's, which has no process noise: its K-step
+    prediction is the simulation whatever K (`predict`). With the process noise given
+    here, short horizons show how well the model predicts where it is corrected by the
+    data, long ones how it drifts.
+
+    **Arguments:**
+
+    - `model`, `theta`: a `Model` and its parameters.
+    - `u`: the record's inputs (T, n_u); `z`: its measured outputs (T, n_z).
+    - `K`: the horizon, an integer >= 1 (K >= T, or `math.inf`: the simulation from
+        `x0`).
+    - `x0`: the prior mean of the initial state (n_x,); default z[0] where the model has
+        the default `observe` (z = x), else required.
+    - `process_noise`: the covariance of the process noise w_k per step (n_x): a scalar
+        (times I), a vector of variances or a matrix. Required: it sets how far the filter
+        trusts the data over the model (0 trusts the model: the prediction is then the
+        simulation from the filtered x0).
+    - `measurement_noise`, `prior_covariance`: the covariances of the measurement noise
+        (n_z) and of the prior on x0 around `x0` (n_x), with the defaults of
+        `estimate_x0(method="smoother")` (from `weight` as Q^{-1}, else (0.01 s_z)^2; the
+        prior (100 s_x)^2, broad). `FitResult.predict_ahead` takes the fit's noise
+        variance instead.
+    - `weight`: Q of eq. (4), read as the inverse of the measurement noise covariance
+        where `measurement_noise` is not given.
+    - `t`: the sample times (T,), for a model of time-stamped records.
+    - `missing`: `"mask"` takes NaN entries of z as missing measurements (no correction
+        from them); `"raise"` (default) refuses them.
+
+    **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`).
+
+    **Raises:** `TypeError` for a K that is not an integer (or inf), or a `process_noise`
+    not given; `ValueError` for K < 1, arrays of the wrong shape, covariances that are not
+    ones, NaN in z without `missing="mask"`.
+    """
+    check_tree(theta, "theta")
+    if missing not in ("raise", "mask"):
+        raise ValueError(f'`missing` must be "raise" or "mask", got {missing!r}.')
+    if x0 is None:
+        if not model.observes_state:
+            raise ValueError(
+                "`x0` (the prior mean of the initial state, shape (n_x,)) is needed: the "
+                "model has an `observe` of its own, so the state's size is known only "
+                "from x0."
+            )
+        x0 = np.asarray(z)[0]
+    if np.ndim(x0) != 1:
+        raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
+    if missing == "mask" and is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
+        raise ValueError("`x0` must be finite: give it where z[0] has a missing sample.")
+    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
+    T = int(np.shape(data.u)[0])
+    K = _horizon(K, T)
+    if process_noise is None:
+        raise TypeError(
+            "`process_noise` must be given (a variance per step): it sets how far the "
+            "filter trusts the data over the model."
+        )
+    guess = np.asarray(data.x0)
+    P0, Qp, R = _smoother_defaults(
+        data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
+    )
+    dtype = data.x0.dtype
+    zs = jnp.asarray(data.z)
+    if data.mask is not None:  # (missing samples as NaN: the filter leaves them out)
+        seen = jnp.asarray(data.mask.outputs) > 0
+        zs = jnp.where(seen if seen.ndim == 2 else seen[:, None], zs, jnp.nan)
+    Z, X, filtered = _ahead(
+        data.model,
+        data.theta,
+        jnp.asarray(guess),
+        *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
+        jnp.asarray(data.u),
+        zs,
+        jnp.asarray(K),  # (traced: one program for every horizon)
+    )
+    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K)
