@@ -16,6 +16,7 @@ import warnings
 import numpy as np
 
 from . import metrics
+from ._ahead import AheadPrediction
 from ._fit_result import FitResult
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
@@ -172,7 +173,7 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         zhat = model.predict(u, z[:n], t=t, **gaps).z if n else model.simulate(u, t=t)[1]
         if not n:
             _warn_other_record(name, model, np.asarray(zhat), z)
-    elif isinstance(model, Prediction):
+    elif isinstance(model, (Prediction, AheadPrediction)):
         zhat = model.z
     else:
         zhat = model
@@ -239,8 +240,9 @@ def compare(
         MATLAB's `compare` estimates the initial state too, but from the whole record,
         and scores every sample: pass the `z` of
         `result.predict(u, z)` for its numbers); a
-        `Prediction` from `oneshot_jax.predict` (its `z`); an array of model outputs
-        shaped like `z`.
+        `Prediction` from `oneshot_jax.predict` (its `z`); an `AheadPrediction` from
+        `predict_ahead` (its K-step-ahead `z`: MATLAB's `compare(data, sys, K)`); an
+        array of model outputs shaped like `z`.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
     - `t`: the time axis (T,); default the sample index (times `Ts` for a record, or
         the `dt` of the FitResults' `Model.from_ode` models where they share one). A
@@ -286,7 +288,7 @@ def compare(
     T, n_z = z.shape
 
     def one_model(m):  # (a result, or one output record of z's T samples)
-        if isinstance(m, (FitResult, Prediction)):
+        if isinstance(m, (FitResult, Prediction, AheadPrediction)):
             return True
         return hasattr(m, "shape") and np.ndim(m) in (1, 2) and np.shape(m)[0] == T
 

@@ -141,3 +141,18 @@ def test_bad_arguments_are_named():
     result = oj.fit(LINEAR, {"A": A}, M0, U, Z, fixed=True)
     with pytest.raises(ValueError, match="one record per call"):
         result.predict_ahead(np.stack([U, U]), np.stack([Z, Z]), 2, process_noise=Q)
+
+
+def test_compare_plots_a_k_step_prediction():
+    """`plot.compare(z, ahead)` (MATLAB's `compare(data, sys, K)`) draws its `z` with its
+    FIT against the record."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pred = _ahead(3)
+    fig = oj.plot.compare(Z, pred)
+    fit = 100 * (1 - np.linalg.norm(pred.z - Z) / np.linalg.norm(Z - Z.mean()))
+    texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert f"model: FIT {fit:.2f} %" in texts
+    plt.close(fig)
