@@ -817,7 +817,9 @@ class FitResult(eqx.Module):
         `oneshot_jax.metrics.benchmark_scores(z, prediction.z, n)`. For several records, a
         list of N `Prediction`s, each record predicted alone (as MATLAB's `predict` of
         multi-experiment data); `x0=` then takes one starting guess per record, (N, n_x)
-        (`x0=result.x0` after a fit on the same N records), or one for all, (n_x,).
+        (`x0=result.x0` after a fit on the same N records), or one for all, (n_x,), and
+        `estimate=` one mask per record, (N, n_x) (`result.x0_estimated` after a fit with
+        a mask per record), or one for all.
         """
         if self.model is None:
             raise ValueError(
@@ -977,9 +979,18 @@ class FitResult(eqx.Module):
                 f"`x0` (the starting guesses) must have shape (n_x,) or ({N}, n_x) (one per "
                 f"record of `u`), got shape {np.shape(guess)}."
             )
+        mask = kwargs.get("estimate")
+        per_mask = mask is not None and np.ndim(mask) == 2
+        if per_mask and np.shape(mask)[0] != N:
+            raise ValueError(
+                f"`estimate` (the x0 entries to estimate) must have shape (n_x,) or ({N}, "
+                f"n_x) (one mask per record of `u`), got shape {np.shape(mask)}."
+            )
         out = []
         for i in range(N):
-            kw = dict(kwargs, x0=guess[i]) if per_x0 else kwargs
+            kw = dict(kwargs, x0=guess[i]) if per_x0 else dict(kwargs)
+            if per_mask:  # (`estimate=result.x0_estimated` of a fit with a mask per record)
+                kw["estimate"] = np.asarray(mask)[i]
             out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
         return out
 

@@ -193,3 +193,17 @@ def test_windows_refuse_a_mask_per_record():
                    estimate_x0=np.ones((3, 2), bool))  # fmt: skip
     with pytest.raises(ValueError, match=r"`estimate` must be an \(n_x,\) = \(2,\)"):
         oj.estimate_x0(MODEL, THETA0, U[1], Z[1], n=10, x0=START[1], estimate=MASK)
+
+
+def test_predict_of_the_fitted_records_holds_each_records_own_entries():
+    """`result.predict(U, Z, x0=result.x0, estimate=result.x0_estimated)` predicts each
+    record with its own mask: the held entries keep their values, the others are
+    estimated (from all of each record: the fitted x0 again). (Record 0 holds every
+    entry: nothing to estimate there, which `predict` refuses; it is simulated.)"""
+    result = oj.fit(MODEL, THETA0, START, U, Z, estimate_x0=MASK)
+    preds = result.predict(U[1:], Z[1:], x0=result.x0[1:], estimate=result.x0_estimated[1:])
+    for i, pred in enumerate(preds, start=1):
+        np.testing.assert_array_equal(pred.x0[~MASK[i]], TRUE_X0[i][~MASK[i]])
+        np.testing.assert_allclose(pred.x0, result.x0[i], rtol=1e-6, atol=1e-8)
+    with pytest.raises(ValueError, match=r"one mask per record of `u`"):
+        result.predict(U, Z, x0=result.x0, estimate=MASK[:2])
