@@ -1216,9 +1216,15 @@ def record_x0_mask(estimate_x0, shape, windowed, aggregated):
     them that a record holds at its value of `x0` (None where no record holds one the
     others estimate). Any other `estimate_x0` is returned as it is, with None."""
     est = np.asarray(estimate_x0) if isinstance(estimate_x0, (np.ndarray, list, tuple)) else None
-    if est is None or est.dtype != bool or est.ndim != 2:
+    if est is None or est.ndim != 2:
         return estimate_x0, None
     N, n_x = shape
+    if est.dtype != bool:
+        raise ValueError(
+            f"`estimate_x0` must be a bool, a boolean mask of shape ({n_x},) for every "
+            f"record, or one of shape (N, n_x) = ({N}, {n_x}), a mask per record; got an "
+            f"array of {est.dtype} (True / False entries are needed)."
+        )
     for refused, what in ((windowed, "`window`"), (aggregated, "`aggregate`")):
         if refused:
             raise ValueError(
