@@ -994,6 +994,54 @@ class FitResult(eqx.Module):
             out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
         return out
 
+    def sample_theta(self, n, *, seed=0):
+        """n random draws of theta from the estimate's distribution, N(theta, covariance)
+        over its free entries, the fixed ones at their values (MATLAB's `rsample`): for
+        Monte Carlo studies of the parameters' uncertainty (MATLAB's `simsd`), to
+        first order as `std`, and for starts of `fit(multistart=True)` around an estimate.
+
+        **Arguments:**
+
+        - `n`: the number of draws, an integer >= 1.
+        - `seed`: the seed of NumPy's generator (`np.random.default_rng(seed)`): the same
+            seed gives the same draws.
+
+        **Returns:** theta's pytree with a leading axis n on every parameter leaf (the
+        shape `fit(multistart=True)` takes as `theta0`); simulate the draws with
+        `jax.vmap(lambda th: oneshot_jax.simulate(model, th, x0, u)[1])(draws)`.
+
+        **Raises:** `ValueError` where the covariance is not known: not computed
+        (`fit(covariance=None)`, too many parameters), or with an infinite standard error
+        (a parameter the data do not determine, a network's weights); or for a bad `n`.
+        The draws are Gaussian: they ignore constraints (a draw may leave a box).
+        """
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"`n` (the number of draws) must be an integer >= 1, got {n!r}.")
+        params, static = _pytree.split(self.theta)
+        flat = _pytree.flat_host(params)
+        free = np.flatnonzero(~np.asarray(self.fixed, bool))
+        cov = np.asarray(self.covariance, np.float64)
+        if flat.shape != np.shape(self.fixed) or cov.shape != (free.size, free.size):
+            raise ValueError(
+                "`sample_theta` needs the covariance of theta's free entries, which this "
+                "result does not hold (not computed: `fit(covariance=None)`, or too many "
+                "parameters)."
+            )
+        if not np.all(np.isfinite(cov)):
+            unknown = [nm for nm, d in zip(self.names, np.diag(cov)) if not np.isfinite(d)]
+            shown = ", ".join(unknown[:6]) + (" ..." if len(unknown) > 6 else "")
+            raise ValueError(
+                f"`sample_theta`: the standard errors of {shown} are inf (not determined by "
+                "the data, or a network's weights): no distribution to draw from. Fix them "
+                "(`fit(fixed=...)`) to draw the others."
+            )
+        rng = np.random.default_rng(seed)
+        draws = rng.multivariate_normal(flat[free], cov, size=int(n), method="eigh")
+        rows = np.repeat(flat[None], int(n), axis=0)
+        rows[:, free] = draws
+        drawn = _pytree.layout(params).rows(rows.astype(flat.dtype))
+        return _pytree.ordered_like(_pytree.combine(drawn, static), self.theta)
+
     def output_std(self, u, x0=None, *, z_head=None, t=None):
         """The standard errors of the simulated outputs of one record that come from the
         estimate's uncertainty (MATLAB's `[y, ysd] = sim(...)`, the confidence region of
