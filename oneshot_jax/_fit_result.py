@@ -972,25 +972,25 @@ class FitResult(eqx.Module):
             raise ValueError(
                 f"`t` must hold the sample times of each of the {N} records, got {len(t)}."
             )
-        guess = kwargs.get("x0")
-        per_x0 = guess is not None and np.ndim(guess) == 2
-        if per_x0 and np.shape(guess)[0] != N:
-            raise ValueError(
-                f"`x0` (the starting guesses) must have shape (n_x,) or ({N}, n_x) (one per "
-                f"record of `u`), got shape {np.shape(guess)}."
-            )
-        mask = kwargs.get("estimate")
-        per_mask = mask is not None and np.ndim(mask) == 2
-        if per_mask and np.shape(mask)[0] != N:
-            raise ValueError(
-                f"`estimate` (the x0 entries to estimate) must have shape (n_x,) or ({N}, "
-                f"n_x) (one mask per record of `u`), got shape {np.shape(mask)}."
-            )
+        # (n_x,) for every record, or (N, n_x): a row per record (`x0=result.x0`, and
+        # `estimate=result.x0_estimated` after a fit with a mask per record)
+        rows = {}
+        for key, what in (
+            ("x0", "the starting guesses"),
+            ("estimate", "the x0 entries to estimate"),
+        ):
+            value = kwargs.get(key)
+            if value is None or np.ndim(value) != 2:
+                continue
+            if np.shape(value)[0] != N:
+                raise ValueError(
+                    f"`{key}` ({what}) must have shape (n_x,) or ({N}, n_x) (one per record "
+                    f"of `u`), got shape {np.shape(value)}."
+                )
+            rows[key] = np.asarray(value)
         out = []
         for i in range(N):
-            kw = dict(kwargs, x0=guess[i]) if per_x0 else dict(kwargs)
-            if per_mask:  # (`estimate=result.x0_estimated` of a fit with a mask per record)
-                kw["estimate"] = np.asarray(mask)[i]
+            kw = dict(kwargs, **{key: value[i] for key, value in rows.items()})
             out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
         return out
 

@@ -398,6 +398,21 @@ def angle_only(x, u, theta):
     return x[:1]
 
 
+EULER_DT = 0.05
+
+
+def euler_pendulum_step(x, u, th):
+    """An explicit Euler step of the damped pendulum, th = {"w0sq": g/l, "b": damping}, u
+    the applied angular acceleration: a plain step (no integrator of the library's), so
+    that `jax.grad` of a loss written with it is an independent reference."""
+    q, v = x[0], x[1]
+    dv = -th["w0sq"] * jnp.sin(q) - th["b"] * v + u[0]
+    return jnp.stack([q + EULER_DT * v, v + EULER_DT * dv])
+
+
+EULER_PENDULUM = oj.Model(euler_pendulum_step, angle_only, states=["q", "v"])
+
+
 def pendulum(T=40, seed=1, substeps=2):
     """Pendulum observed through its angle only (n_z = 1 < n_x = 2), two RK4 substeps."""
     rng = _rng(seed)

@@ -4,26 +4,13 @@
 mildly nonlinear model."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import EULER_PENDULUM, angle_only, euler_pendulum_step
 
 import oneshot_jax as oj
 
-DT = 0.05
-
-
-def step(x, u, th):
-    q, v = x[0], x[1]
-    return jnp.stack([q + DT * v, v + DT * (-th["w0sq"] * jnp.sin(q) - th["b"] * v + u[0])])
-
-
-def angle(x, u, th):
-    del u, th
-    return x[:1]
-
-
-MODEL = oj.Model(step, angle)
+MODEL = EULER_PENDULUM
 T = 60
 U = 0.5 * np.sin(0.3 * np.arange(T) + 1.0)[:, None]
 X0 = np.array([0.8, -0.5])
@@ -75,9 +62,9 @@ def test_fixed_entries_keep_their_values_and_unknown_covariances_are_refused():
         oj.fit(MODEL, {"w0sq": 7.0, "b": 0.3}, X0, U, Z, covariance=None).sample_theta(5)
 
     def idle(x, u, th):  # "g" never acts: its std is inf
-        return step(x, u, th) + 0.0 * th["g"]
+        return euler_pendulum_step(x, u, th) + 0.0 * th["g"]
 
-    unknown = oj.fit(oj.Model(idle, angle), {"w0sq": 7.0, "b": 0.3, "g": 1.0}, X0, U, Z)
+    unknown = oj.fit(oj.Model(idle, angle_only), {"w0sq": 7.0, "b": 0.3, "g": 1.0}, X0, U, Z)
     with pytest.raises(ValueError, match=r"standard errors of g are inf"):
         unknown.sample_theta(5)
     for n in (0, 2.5, True):

@@ -13,25 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import EULER_PENDULUM, angle_only, euler_pendulum_step
 from scipy.optimize import least_squares
 
 import oneshot_jax as oj
 
-DT = 0.05
-
-
-def step(x, u, th):
-    """An explicit Euler pendulum (a plain step: the loss below differentiates it)."""
-    q, v = x[0], x[1]
-    return jnp.stack([q + DT * v, v + DT * (-th["w0sq"] * jnp.sin(q) - th["b"] * v + u[0])])
-
-
-def angle(x, u, th):
-    del u, th
-    return x[:1]
-
-
-MODEL = oj.Model(step, angle, states=["q", "v"])
+MODEL = EULER_PENDULUM
 THETA0 = {"w0sq": 7.0, "b": 0.3}
 TRUE_X0 = np.array([0.8, -0.5])
 # the true x0 outside the box in both entries: the bounded optimum holds them at 0.7, -0.2
@@ -53,8 +40,8 @@ def plain_loss(p, u, z):
     jax.grad is independent of the library's."""
     th, x, total = {"w0sq": p[0], "b": p[1]}, p[2:], 0.0
     for k in range(len(z)):
-        total = total + jnp.sum((angle(x, u[k], th) - z[k]) ** 2)
-        x = step(x, u[k], th)
+        total = total + jnp.sum((angle_only(x, u[k], th) - z[k]) ** 2)
+        x = euler_pendulum_step(x, u[k], th)
     return total / len(z)
 
 

@@ -15,24 +15,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
+from helpers import EULER_PENDULUM, angle_only, euler_pendulum_step
 from scipy.optimize import least_squares
 
 import oneshot_jax as oj
 
-DT = 0.05
-
-
-def step(x, u, th):
-    q, v = x[0], x[1]
-    return jnp.stack([q + DT * v, v + DT * (-th["w0sq"] * jnp.sin(q) - th["b"] * v + u[0])])
-
-
-def angle(x, u, th):
-    del u, th
-    return x[:1]
-
-
-MODEL = oj.Model(step, angle, states=["q", "v"])
+MODEL = EULER_PENDULUM
 THETA0 = {"w0sq": 7.0, "b": 0.3}
 TRUE_X0 = np.array([[0.0, 0.0], [0.8, -0.5], [0.3, 0.4]])
 MASK = np.array([[False, False], [True, True], [False, True]])
@@ -53,8 +41,8 @@ def residuals(p):
     out = []
     for i, x in enumerate(x0s):
         for k in range(T):
-            out.append(angle(x, U[i, k], th)[0] - Z[i, k, 0])
-            x = step(x, U[i, k], th)
+            out.append(angle_only(x, U[i, k], th)[0] - Z[i, k, 0])
+            x = euler_pendulum_step(x, U[i, k], th)
     return jnp.stack(out)
 
 
@@ -206,5 +194,8 @@ def test_predict_of_the_fitted_records_holds_each_records_own_entries():
     for i, pred in enumerate(preds, start=1):
         np.testing.assert_array_equal(pred.x0[~MASK[i]], TRUE_X0[i][~MASK[i]])
         np.testing.assert_allclose(pred.x0, result.x0[i], rtol=1e-6, atol=1e-8)
-    with pytest.raises(ValueError, match=r"one mask per record of `u`"):
+    with pytest.raises(
+        ValueError,
+        match=r"`estimate` \(the x0 entries to estimate\) must have shape \(n_x,\) or \(3, n_x\)",
+    ):
         result.predict(U, Z, x0=result.x0, estimate=MASK[:2])
