@@ -117,8 +117,9 @@ def predict_ahead(
         the default `observe` (z = x), else required.
     - `process_noise`: the covariance of the process noise w_k per step (n_x): a scalar
         (times I), a vector of variances or a matrix. Required: it sets how far the filter
-        trusts the data over the model (0 trusts the model: the prediction is then the
-        simulation from the filtered x0).
+        trusts the data over the model (0 trusts the model: each prediction is then a
+        simulation from the initial state that the data up to K samples before it
+        indicate).
     - `measurement_noise`, `prior_covariance`: the covariances of the measurement noise
         (n_z) and of the prior on x0 around `x0` (n_x), with the defaults of
         `estimate_x0(method="smoother")` (from `weight` as Q^{-1}, else (0.01 s_z)^2; the
