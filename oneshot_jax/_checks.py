@@ -1116,8 +1116,8 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", 
     """Bounds on x0 `(lower, upper)` checked (`fit(x0_bounds=...)`, `estimate_x0(bounds=
     ...)`): each None, a number, (n_x,) or, with `per_record`, (N, n_x); NaN refused,
     -inf / inf unbounded. Returns the lower and upper bounds broadcast to `shape`
-    (N, n_x), the entries that `estimated` ((n_x,) booleans, or None for all) holds
-    unbounded, or None where no entry is bounded."""
+    (N, n_x), the entries that `estimated` ((n_x,) booleans, or (N, n_x) with a mask per
+    record; None for all) holds unbounded, or None where no entry is bounded."""
     if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
         raise TypeError(
             f"`{name}` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
@@ -1168,8 +1168,8 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", 
     if not (np.isfinite(lower).any() or np.isfinite(upper).any()):
         return None
     if estimated is not None:  # (a held entry keeps its value: not bounded)
-        held = ~np.asarray(estimated, bool)
-        lower[:, held], upper[:, held] = -np.inf, np.inf
+        held = np.broadcast_to(~np.asarray(estimated, bool), shape)
+        lower[held], upper[held] = -np.inf, np.inf
     return lower, upper
 
 
@@ -1219,12 +1219,12 @@ def record_x0_mask(estimate_x0, shape, windowed, aggregated):
     if est is None or est.ndim != 2:
         return estimate_x0, None
     N, n_x = shape
+    expected = (
+        f"`estimate_x0` must be a bool, a boolean mask of shape ({n_x},) for every record, "
+        f"or one of shape (N, n_x) = ({N}, {n_x}), a mask per record; got "
+    )
     if est.dtype != bool:
-        raise ValueError(
-            f"`estimate_x0` must be a bool, a boolean mask of shape ({n_x},) for every "
-            f"record, or one of shape (N, n_x) = ({N}, {n_x}), a mask per record; got an "
-            f"array of {est.dtype} (True / False entries are needed)."
-        )
+        raise ValueError(expected + f"an array of {est.dtype} (True / False entries are needed).")
     for refused, what in ((windowed, "`window`"), (aggregated, "`aggregate`")):
         if refused:
             raise ValueError(
@@ -1233,11 +1233,7 @@ def record_x0_mask(estimate_x0, shape, windowed, aggregated):
                 f"{'window' if windowed else 'record'}."
             )
     if est.shape != (N, n_x):
-        raise ValueError(
-            f"`estimate_x0` must be a bool, a boolean mask of shape ({n_x},) for every "
-            f"record, or one of shape (N, n_x) = ({N}, {n_x}), a mask per record; got a "
-            f"mask of shape {est.shape}."
-        )
+        raise ValueError(expected + f"a mask of shape {est.shape}.")
     union = est.any(axis=0)
     held = union[None, :] & ~est
     return union, (held if held.any() else None)

@@ -1043,7 +1043,6 @@ def fit(
         t=t,
         readings=aggregate is not None,
     )
-    x0_mask_given = estimate_x0  # (a mask per record: `FitResult.x0_estimated`)
     estimate_x0, x0_held = record_x0_mask(
         estimate_x0,
         np.shape(inputs.data.x0) if inputs.data.batched else (1, np.shape(inputs.data.x0)[-1]),
@@ -1109,7 +1108,8 @@ def fit(
             problem=built.problem,
             solvers=inputs.solvers,
             fixed=built.fixed,
-            x0_estimated=built.x0_estimated if x0_held is None else x0_mask_given,
+            # (with a mask per record, that mask: the union less what each record holds)
+            x0_estimated=built.x0_estimated if x0_held is None else built.x0_estimated & ~x0_held,
             theta_order=_theta_order(theta0),
             units=inputs.units,
         ),

@@ -537,28 +537,16 @@ def build_problem(
                 stacklevel=3,
             )
     x0_box = None
-    if x0_bounds is not None:
+    if x0_bounds is not None:  # (an entry held in a record is not bounded there)
         windowed = inputs.window_starts is not None
+        estimated = x0_est if x0_held is None else x0_est & ~x0_held
         x0_box = check_x0_bounds(
-            x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=x0_est
+            x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=estimated
         )
-        if x0_box is not None and any(isinstance(s, Optimistix) for s in solvers):
-            raise ValueError(
-                "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds): "
-                "use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
-            )
     # The box the solvers keep x0 in: `x0_bounds`, and an entry a record holds (a mask
     # per record) bounded above and below by its value.
     solve_box = x0_box
     if x0_held is not None:
-        if any(isinstance(s, Optimistix) for s in solvers):
-            raise ValueError(
-                "`estimate_x0` as a mask per record is not available with `Optimistix`: use "
-                "LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax, or one mask for "
-                "every record."
-            )
-        if x0_box is not None:  # (a held entry keeps its value: not bounded)
-            x0_box[0][x0_held], x0_box[1][x0_held] = -np.inf, np.inf
         lo, hi = (
             (np.full(X0.shape, -np.inf, X0.dtype), np.full(X0.shape, np.inf, X0.dtype))
             if x0_box is None
@@ -566,6 +554,12 @@ def build_problem(
         )
         lo[x0_held], hi[x0_held] = X0[x0_held], X0[x0_held]
         solve_box = (lo, hi)
+    if solve_box is not None and any(isinstance(s, Optimistix) for s in solvers):
+        what = "`x0_bounds`" if x0_box is not None else "`estimate_x0` as a mask per record"
+        raise ValueError(
+            f"{what} is not available with `Optimistix` (optimistix has no bounds): use "
+            "LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
+        )
     project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:
