@@ -12,6 +12,16 @@ one `vmap` per step), so that
 and for k < K, before any measurement counts, x[k|-1] = f^k(x0): the simulation from the
 prior mean. K = 1 is the filter's one-step prediction (its innovations are z - zhat);
 K >= T is the simulation from x0, the output-error prediction of `simulate`.
+
+The covariance of each prediction follows the same K steps from the filtered covariance
+P[k-K|k-K] (from the prior's P0 before sample K), with F_j the Jacobian of the step at
+the propagated mean and H_k that of g at x[k|k-K] (the EKF's prediction step, Särkkä
+2013, Algorithm 5.4, applied K times):
+
+    P[j+1|k-K] = F_j P[j|k-K] F_j^T + Q_w,   S[k|k-K] = H_k P[k|k-K] H_k^T + R,
+
+S the covariance of the prediction error z[k] - zhat[k|k-K] under the filter's noise
+model; K = 1 gives the filter's innovation covariance.
 """
 
 import math
@@ -34,18 +44,25 @@ class AheadPrediction(NamedTuple):
     - `x`: (T, n_x) the predicted states x[k|k-K].
     - `filtered`: (T, n_x) the filter's means x[k|k], given z[0..k].
     - `K`: the horizon (at most T: the simulation from `x0`).
+    - `std`: (T, n_z) the standard deviation of each prediction's error z[k] -
+        zhat[k|k-K] under the filter's noise model (the square root of the diagonal of
+        S[k|k-K] in the module's docstring: the state's uncertainty K steps on, plus the
+        measurement noise). An interval zhat +- 1.96 std holds a new measurement with
+        probability 95 % where the process and measurement noise are the ones given; the
+        uncertainty of theta is not in it.
     """
 
     z: np.ndarray
     x: np.ndarray
     filtered: np.ndarray
     K: int
+    std: np.ndarray
 
     def __str__(self) -> str:
         return (
             f"{self.K}-step-ahead prediction of {np.shape(self.z)[0]} samples (`z` "
             f"{np.shape(self.z)}, `x` {np.shape(self.x)}, `filtered` "
-            f"{np.shape(self.filtered)})"
+            f"{np.shape(self.filtered)}, `std` {np.shape(self.std)})"
         )
 
     __repr__ = __str__
@@ -53,24 +70,38 @@ class AheadPrediction(NamedTuple):
 
 @jit
 def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
-    """`AheadPrediction`'s z, x and filtered means (the module's docstring), traced: the
-    filter's forward pass, then K steps of every start at once."""
-    (mf, _, _, _, _), (m_last, _) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
+    """`AheadPrediction`'s z, x, filtered means and std (the module's docstring), traced:
+    the filter's forward pass, then K steps of every start's mean and covariance at
+    once."""
+    (mf, Pf, _, _, _), (m_last, P_last) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
     filtered = jnp.concatenate([mf, m_last[None]])  # (T, n_x)
+    covariances = jnp.concatenate([Pf, P_last[None]])
     T = u.shape[0]
     steps = model.step_inputs(u)  # (T-1, ...): the inputs of x[j] -> x[j+1]
     k = jnp.arange(T)
-    first = k - K  # the sample each prediction starts from (before 0: the prior mean)
-    X = jnp.where((first >= 0)[:, None], filtered[jnp.clip(first, 0, T - 1)], m0[None])
+    first = k - K  # the sample each prediction starts from (before 0: the prior)
+    started = (first >= 0)[:, None]
+    X = jnp.where(started, filtered[jnp.clip(first, 0, T - 1)], m0[None])
+    P = jnp.where(started[..., None], covariances[jnp.clip(first, 0, T - 1)], P0[None])
 
-    def one(i, X):  # the (i+1)-th step of every start that has reached sample 0
+    def predict(x, P, u_step):  # the EKF's prediction step
+        F = jax.jacfwd(model.step)(x, u_step, theta)
+        P = F @ P @ F.T + Qp
+        return model.step(x, u_step, theta), 0.5 * (P + P.T)
+
+    def one(i, carry):  # the (i+1)-th step of every start that has reached sample 0
+        X, P = carry
         j = first + i
-        moved = jax.vmap(model.step, in_axes=(0, 0, None))(X, steps[jnp.clip(j, 0, T - 2)], theta)
-        return jnp.where((j >= 0)[:, None], moved, X)
+        moved, P_moved = jax.vmap(predict, in_axes=(0, 0, 0))(X, P, steps[jnp.clip(j, 0, T - 2)])
+        on = j >= 0
+        return jnp.where(on[:, None], moved, X), jnp.where(on[:, None, None], P_moved, P)
 
-    X = jax.lax.fori_loop(0, K, one, X) if T > 1 else X
+    X, P = jax.lax.fori_loop(0, K, one, (X, P)) if T > 1 else (X, P)
     Z = jax.vmap(model.observe, in_axes=(0, 0, None))(X, u, theta)
-    return Z, X, filtered
+    H = jax.vmap(jax.jacfwd(model.observe), in_axes=(0, 0, None))(X, u, theta)
+    S = jnp.einsum("kia,kab,kjb->kij", H, P, H) + R
+    std = jnp.sqrt(jnp.maximum(jnp.diagonal(S, axis1=1, axis2=2), 0.0))
+    return Z, X, filtered, std
 
 
 def _horizon(K, T) -> int:
@@ -131,7 +162,7 @@ def predict_ahead(
     - `missing`: `"mask"` takes NaN entries of z as missing measurements (no correction
         from them); `"raise"` (default) refuses them.
 
-    **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`).
+    **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`, `std`).
 
     **Raises:** `TypeError` for a K that is not an integer (or inf), or a `process_noise`
     not given; `ValueError` for K < 1, arrays of the wrong shape, covariances that are not
@@ -169,7 +200,7 @@ def predict_ahead(
     if data.mask is not None:  # (missing samples as NaN: the filter leaves them out)
         seen = jnp.asarray(data.mask.outputs) > 0
         zs = jnp.where(seen if seen.ndim == 2 else seen[:, None], zs, jnp.nan)
-    Z, X, filtered = _ahead(
+    Z, X, filtered, std = _ahead(
         data.model,
         data.theta,
         jnp.asarray(guess),
@@ -178,4 +209,4 @@ def predict_ahead(
         zs,
         jnp.asarray(K),  # (traced: one program for every horizon)
     )
-    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K)
+    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K, np.asarray(std))

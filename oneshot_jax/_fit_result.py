@@ -348,6 +348,35 @@ def _first_row_missing(z_head) -> bool:
     return first.ndim == 2 and bool(np.isnan(first).any())
 
 
+def _split_records(u, z, t, z_name, what, length):
+    """Several records' inputs `u` ((N, T, n_u) or a list of N arrays), their outputs
+    `z` (one per record, (N, ., n_z) or a list; `what` names one, `length` its sample
+    count) and `t` (None, one (T,) shared, or one per record), as three lists of N."""
+    records = list(u)
+    N = len(records)
+    try:
+        zs = list(z)
+    except TypeError:
+        zs = None
+    one = zs is not None and not is_ragged(z) and np.ndim(z) == 2
+    if zs is None or len(zs) != N or one:
+        shape = "" if zs is None or is_ragged(z) else f" of shape {np.shape(z)}"
+        count = "." if not zs else f" with {len(zs)} {what}s."
+        if one:  # (its rows are samples, not records)
+            count = f", one {what} ({length}, n_z)."
+        raise ValueError(
+            f"`{z_name}` must hold one {what} per record of `u` ({N} records): shape "
+            f"(N, {length}, n_z) or a list of N arrays ({length}, n_z), got "
+            f"{type(z).__name__}{shape}{count}"
+        )
+    per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
+    if per_t and len(t) != N:
+        raise ValueError(
+            f"`t` must hold the sample times of each of the {N} records, got {len(t)}."
+        )
+    return records, zs, list(t) if per_t else [t] * N
+
+
 class FitResult(eqx.Module):
     """The estimate, why the solver stopped, its uncertainty and its fit to the data.
 
@@ -897,30 +926,54 @@ class FitResult(eqx.Module):
 
         **Arguments:**
 
-        - `u`, `z`: one record's inputs (T, n_u) and measured outputs (T, n_z).
+        - `u`, `z`: one record's inputs (T, n_u) and measured outputs (T, n_z); or
+            several records, (N, T, n_u) and (N, T, n_z), or lists of N arrays.
         - `K`: the horizon, an integer >= 1 (K >= T or `math.inf`: the simulation from
             `x0`).
         - `process_noise`: the covariance of the process noise per step (required; the
             fit's output-error model has none).
         - `x0`: the prior mean of the initial state; default the record's x0 estimated
-            from all of it as `predict(u, z)` does.
+            from all of it as `predict(u, z)` does. For several records, one per record,
+            (N, n_x), or one for all, (n_x,).
         - `measurement_noise`: default the one the fit estimated, sigma^2 Q^{-1} (as for
             `predict`'s smoother), else the defaults of `oneshot_jax.predict_ahead`.
-        - `prior_covariance`, `t`: as for `oneshot_jax.predict_ahead`.
+        - `prior_covariance`, `t`: as for `oneshot_jax.predict_ahead` (for several
+            records, `t` one (T_i,) per record, or one shared).
         - `missing`: default the fit's (`"mask"`: NaN in z are missing measurements).
 
-        **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`).
+        **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`, `std`); for several
+        records, a list of N, each record filtered alone (as MATLAB's `predict` of
+        multi-experiment data).
         """
         if self.model is None:
             raise ValueError(
                 "this result holds no model (it was loaded without one): pass "
                 "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict_ahead`."
             )
-        if is_ragged(u) or np.ndim(u) != 2:
-            raise ValueError(
-                f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}: "
-                "`predict_ahead` takes one record per call."
-            )
+        self._check_u(u)
+        given = dict(
+            process_noise=process_noise,
+            measurement_noise=measurement_noise,
+            prior_covariance=prior_covariance,
+            missing=missing,
+        )
+        if is_ragged(u) or np.ndim(u) == 3:
+            records, zs, times = _split_records(u, z, t, "z", "record's outputs", "T")
+            N = len(records)
+            if x0 is not None and np.ndim(x0) == 2 and np.shape(x0)[0] != N:
+                raise ValueError(
+                    f"`x0` (the prior means) must have shape (n_x,) or ({N}, n_x) (one per "
+                    f"record of `u`), got shape {np.shape(x0)}."
+                )
+            rows = np.ndim(x0) == 2
+            return [
+                self.predict_ahead(
+                    records[i], zs[i], K, x0=x0[i] if rows else x0, t=times[i], **given
+                )
+                for i in range(N)
+            ]
+        if np.ndim(u) != 2:
+            raise ValueError(f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}.")
         missing = self.missing if missing is None else missing
         if x0 is None:
             x0 = self.predict(u, z, t=t, missing=missing).x0
@@ -950,28 +1003,8 @@ class FitResult(eqx.Module):
         as one record; `x0=` of shape (N, n_x) (`result.x0` after a fit on N records)
         gives each its own starting guess. A list of N `Prediction`s (MATLAB's `predict`
         of multi-experiment data: one per experiment)."""
-        records = list(u)
+        records, heads, times = _split_records(u, z_head, t, "z_head", "head", "n")
         N = len(records)
-        try:
-            heads = list(z_head)
-        except TypeError:
-            heads = None
-        one = heads is not None and not is_ragged(z_head) and np.ndim(z_head) == 2
-        if heads is None or len(heads) != N or one:
-            shape = "" if heads is None or is_ragged(z_head) else f" of shape {np.shape(z_head)}"
-            count = "." if not heads else f" with {len(heads)} heads."
-            if one:  # (its rows are samples, not heads)
-                count = ", one head (n, n_z)."
-            raise ValueError(
-                f"`z_head` must hold one head per record of `u` ({N} records): shape "
-                f"(N, n, n_z) or a list of N arrays (n, n_z), got "
-                f"{type(z_head).__name__}{shape}{count}"
-            )
-        per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
-        if per_t and len(t) != N:
-            raise ValueError(
-                f"`t` must hold the sample times of each of the {N} records, got {len(t)}."
-            )
         # (n_x,) for every record, or (N, n_x): a row per record (`x0=result.x0`, and
         # `estimate=result.x0_estimated` after a fit with a mask per record)
         rows = {}
@@ -991,7 +1024,7 @@ class FitResult(eqx.Module):
         out = []
         for i in range(N):
             kw = dict(kwargs, **{key: value[i] for key, value in rows.items()})
-            out.append(self.predict(records[i], heads[i], t=t[i] if per_t else t, **kw))
+            out.append(self.predict(records[i], heads[i], t=times[i], **kw))
         return out
 
     def sample_theta(self, n, *, seed=0):

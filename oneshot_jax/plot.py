@@ -195,12 +195,16 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
 
 
 def _band(model, u, z, n, t, confidence):
-    """The half-width (T, n_z) of a FitResult's confidence band (`compare`), NaN where
-    its std is not known; None for another model or without `confidence`."""
-    if confidence is None or not isinstance(model, FitResult):
+    """The half-width (T, n_z) of a FitResult's confidence band or of an AheadPrediction's
+    prediction band (`compare`), NaN where its std is not known; None for another model
+    or without `confidence`."""
+    if confidence is None or not isinstance(model, (FitResult, AheadPrediction)):
         return None
-    t = t if getattr(model.model, "timed", False) else None
-    std = model.output_std(u, z_head=z[:n] if n else z, t=t)
+    if isinstance(model, AheadPrediction):
+        std = np.asarray(model.std, np.float64)
+    else:
+        t = t if getattr(model.model, "timed", False) else None
+        std = model.output_std(u, z_head=z[:n] if n else z, t=t)
     q = statistics.NormalDist().inv_cdf(0.5 + 0.5 * confidence)
     return np.where(np.isfinite(std), q * std, np.nan)
 
@@ -264,7 +268,9 @@ def compare(
         and std from `FitResult.output_std` (MATLAB's `showConfidence`): with `n`, of
         the prediction from the first n samples; without, x0 estimated from the whole
         record (on the fitted record, the joint covariance of theta and x0). Samples of
-        unknown std (inf) get no band. Default: no band.
+        unknown std (inf) get no band. An `AheadPrediction`'s band is its prediction
+        band instead, zhat +- q std with its `std` (where a new measurement lies under
+        the filter's noise model). Default: no band.
 
     **Returns:**
 
@@ -368,7 +374,7 @@ def compare(
     fits = [fit_of(zhat) for zhat in outputs]
     for k, a in enumerate(axes):
         a.plot(t, z[:, k], color="k", lw=1.2, label="measured")
-        for zhat, fit, label, band in zip(outputs, fits, labels, bands):
+        for m, zhat, fit, label, band in zip(models, outputs, fits, labels, bands):
             shown = f"{fit[k]:.2f}" if abs(fit[k]) < 1e4 else f"{fit[k]:.3g}"
             (line,) = a.plot(t, zhat[:, k], lw=1.0, label=f"{label}: FIT {shown} %")
             if band is not None:
@@ -380,7 +386,8 @@ def compare(
                     color=line.get_color(),
                     alpha=0.25,
                     lw=0,
-                    label=f"{label}: {100 * confidence:g} % band",
+                    label=f"{label}: {100 * confidence:g} % "
+                    + ("prediction band" if isinstance(m, AheadPrediction) else "band"),
                 )
         if n:
             a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")

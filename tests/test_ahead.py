@@ -45,22 +45,29 @@ Z = _record()
 
 
 def reference(K, z):
-    """The Kalman filter's means x[k|k] (a NaN sample: no update) and the K-step
-    predictions C A^K-propagated from x[k-K|k-K] (from the prior mean before sample K)."""
-    m, P, filtered = M0.copy(), P0.copy(), []
+    """The Kalman filter's means x[k|k] (a NaN sample: no update), the K-step
+    predictions C A^K-propagated from x[k-K|k-K] (from the prior mean before sample K),
+    and the std of their errors, sqrt(C P[k|k-K] C^T + R) with P[k|k-K] A^K-propagated
+    from P[k-K|k-K] (from the prior's P0 before sample K)."""
+    m, P, filtered, covariances = M0.copy(), P0.copy(), [], []
     for k in range(T):
         if np.all(np.isfinite(z[k])):
             gain = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
             m, P = m + gain @ (z[k] - C @ m), (np.eye(2) - gain @ C) @ P
         filtered.append(m.copy())
+        covariances.append(P.copy())
         m, P = A @ m + B @ U[k], A @ P @ A.T + Q
-    out = []
+    out, std = [], []
     for k in range(T):
-        x, j, n = (filtered[k - K], k - K, K) if k >= K else (M0, 0, k)
+        if k >= K:
+            x, S, j, n = filtered[k - K], covariances[k - K], k - K, K
+        else:
+            x, S, j, n = M0, P0, 0, k
         for i in range(n):
-            x = A @ x + B @ U[j + i]
+            x, S = A @ x + B @ U[j + i], A @ S @ A.T + Q
         out.append(C @ x)
-    return np.array(out), np.array(filtered)
+        std.append(np.sqrt(np.diag(C @ S @ C.T + R)))
+    return np.array(out), np.array(filtered), np.array(std)
 
 
 def _ahead(K, z=Z, **kwargs):
@@ -71,10 +78,16 @@ def _ahead(K, z=Z, **kwargs):
 @pytest.mark.parametrize("K", [1, 3])
 def test_a_linear_model_gives_the_kalman_filters_k_step_predictions(K):
     pred = _ahead(K)
-    z_ref, filtered = reference(K, Z)
+    z_ref, filtered, std = reference(K, Z)
     np.testing.assert_allclose(pred.filtered, filtered, atol=1e-12)
     np.testing.assert_allclose(pred.z, z_ref, atol=1e-12)
-    assert pred.K == K and pred.z.shape == (T, 1) and pred.x.shape == (T, 2)
+    np.testing.assert_allclose(pred.std, std, rtol=1e-10)
+    assert pred.K == K and pred.z.shape == pred.std.shape == (T, 1) and pred.x.shape == (T, 2)
+    # The data were made with this noise: the errors after the prior's first samples,
+    # each divided by its std, have about unit variance (80 samples: 0.16 its std for
+    # K = 1, more for the overlapping errors of K = 3).
+    e = (Z - pred.z)[10:] / pred.std[10:]
+    assert 0.6 < np.mean(e**2) < 1.5
 
 
 def test_a_horizon_past_the_record_is_the_simulation_from_x0():
@@ -89,7 +102,9 @@ def test_a_missing_sample_is_no_correction():
     z = Z.copy()
     z[[10, 11, 40]] = np.nan
     pred = _ahead(2, z, missing="mask")
-    np.testing.assert_allclose(pred.z, reference(2, z)[0], atol=1e-12)
+    z_ref, _, std = reference(2, z)
+    np.testing.assert_allclose(pred.z, z_ref, atol=1e-12)
+    np.testing.assert_allclose(pred.std, std, rtol=1e-10)
     with pytest.raises(ValueError, match="NaN"):
         _ahead(2, z)
 
@@ -139,8 +154,31 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="process_noise"):
         oj.predict_ahead(LINEAR, {"A": A}, U, Z, 2, x0=M0, process_noise=-np.eye(2))
     result = oj.fit(LINEAR, {"A": A}, M0, U, Z, fixed=True)
-    with pytest.raises(ValueError, match="one record per call"):
-        result.predict_ahead(np.stack([U, U]), np.stack([Z, Z]), 2, process_noise=Q)
+    with pytest.raises(ValueError, match="`z` must hold one record's outputs per record"):
+        result.predict_ahead(np.stack([U, U]), Z, 2, process_noise=Q)
+    with pytest.raises(ValueError, match=r"`x0` \(the prior means\) must have shape"):
+        result.predict_ahead([U, U], [Z, Z], 2, process_noise=Q, x0=np.zeros((3, 2)))
+
+
+def test_the_results_method_predicts_each_of_several_records():
+    """Several records (an (N, T, .) array or a list of different lengths) give one
+    `AheadPrediction` per record, each the single-record call on it: the prior means
+    one per row of an (N, n_x) `x0`, or each record's own estimate by default."""
+    result = oj.fit(LINEAR, {"A": A}, M0, U, Z, fixed=True)
+    other = Z[::-1].copy()  # (a second record of other outputs: another x0, other filtering)
+    x0 = np.array([[0.5, 0.0], [-1.0, 0.2]])
+    preds = result.predict_ahead(np.stack([U, U]), np.stack([Z, other]), 3, process_noise=Q,
+                                 x0=x0)  # fmt: skip
+    for pred, z, start in zip(preds, (Z, other), x0, strict=True):
+        alone = result.predict_ahead(U, z, 3, process_noise=Q, x0=start)
+        np.testing.assert_array_equal(pred.z, alone.z)
+        np.testing.assert_array_equal(pred.std, alone.std)
+    assert np.abs(preds[0].z - preds[1].z).max() > 0.1
+    ragged = result.predict_ahead([U, U[:50]], [Z, other[:50]], 3, process_noise=Q)
+    assert [p.z.shape for p in ragged] == [(T, 1), (50, 1)]
+    np.testing.assert_array_equal(
+        ragged[1].z, result.predict_ahead(U[:50], other[:50], 3, process_noise=Q).z
+    )
 
 
 def test_compare_plots_a_k_step_prediction():
@@ -155,4 +193,16 @@ def test_compare_plots_a_k_step_prediction():
     fit = 100 * (1 - np.linalg.norm(pred.z - Z) / np.linalg.norm(Z - Z.mean()))
     texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert f"model: FIT {fit:.2f} %" in texts
+    assert not fig.axes[0].collections  # (no band without `confidence`)
+    plt.close(fig)
+    # With `confidence`, its prediction band: zhat +- q std (q of 90 %).
+    fig = oj.plot.compare(Z, pred, confidence=0.9)
+    texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "model: 90 % prediction band" in texts
+    vertices = fig.axes[0].collections[0].get_paths()[0].vertices
+    # (the path runs along the lower edge, then back along the upper one)
+    lower, upper = vertices[1 : T + 1, 1], vertices[T + 2 : -1, 1][::-1]
+    q = 1.6448536269514722
+    np.testing.assert_allclose(lower, pred.z[:, 0] - q * pred.std[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(upper, pred.z[:, 0] + q * pred.std[:, 0], rtol=1e-12)
     plt.close(fig)
