@@ -351,14 +351,15 @@ def _first_row_missing(z_head) -> bool:
 def _split_records(u, z, t, z_name, what, length):
     """Several records' inputs `u` ((N, T, n_u) or a list of N arrays), their outputs
     `z` (one per record, (N, ., n_z) or a list; `what` names one, `length` its sample
-    count) and `t` (None, one (T,) shared, or one per record), as three lists of N."""
+    count; None: no outputs) and `t` (None, one (T,) shared, or one per record), as
+    three lists of N."""
     records = list(u)
     N = len(records)
     try:
-        zs = list(z)
+        zs = [None] * N if z is None else list(z)
     except TypeError:
         zs = None
-    one = zs is not None and not is_ragged(z) and np.ndim(z) == 2
+    one = z is not None and zs is not None and not is_ragged(z) and np.ndim(z) == 2
     if zs is None or len(zs) != N or one:
         shape = "" if zs is None or is_ragged(z) else f" of shape {np.shape(z)}"
         count = "." if not zs else f" with {len(zs)} {what}s."
@@ -1083,9 +1084,12 @@ class FitResult(eqx.Module):
 
         **Arguments:**
 
-        - `u`: the record's inputs (T, n_u).
+        - `u`: the record's inputs (T, n_u); or several records, (N, T, n_u) or a list of
+            N arrays (T_i, n_u), each taken alone.
         - `x0`: a known initial state (n_x,): the outputs `result.simulate(u, x0)`, their
-            standard errors from theta's covariance alone (x0 exact).
+            standard errors from theta's covariance alone (x0 exact). For several
+            records, one per record, (N, n_x) (`x0=result.x0` on the fitted records), or
+            one for all.
         - `z_head`: instead of `x0`, the record's first n measured outputs (n, n_z): the
             outputs `result.predict(u, z_head).z` (x0 estimated from the head at the
             fitted theta by least squares, with the fit's weight), their standard errors
@@ -1094,12 +1098,15 @@ class FitResult(eqx.Module):
             entry of x0 is estimated from the head (`predict`'s default). On the fitted
             record with `z_head=z` (all of it, MATLAB's default of `compare`) they are
             those of the joint covariance of theta and x0, for a fit that estimated
-            every entry of x0. NaN in `z_head` are missing samples.
-        - `t`: the record's sample times (T,), for a model of time-stamped records.
+            every entry of x0. NaN in `z_head` are missing samples. For several records,
+            one head per record ((N, n, n_z) or a list).
+        - `t`: the record's sample times (T,), for a model of time-stamped records (for
+            several records, one (T_i,) per record, or one shared).
 
         **Returns:**
 
-        An array (T, n_z): the standard deviation of each simulated output sample; inf
+        An array (T, n_z) (for several records (N, T, n_z), or a list of N (T_i, n_z)
+        for a list of records): the standard deviation of each simulated output sample; inf
         where it is not known: the output depends on a parameter whose std is inf (not
         identifiable, or the covariance not computed, `fit(covariance=None)`; for a
         theta that holds a network, the network's weights) or on an entry of x0 the
@@ -1113,17 +1120,32 @@ class FitResult(eqx.Module):
                 "`model=` to `oneshot_jax.load_result`."
             )
         self._check_u(u)
-        if is_ragged(u) or np.ndim(u) != 2:
-            raise ValueError(
-                f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}: call "
-                "`output_std` once per record."
-            )
         if (x0 is None) == (z_head is None):
             raise ValueError(
                 "give one of `x0` (a known initial state, (n_x,)) and `z_head` (the "
                 "record's first measured outputs, (n, n_z), x0 estimated from them as "
                 "`predict` does; `z_head=z` on a fitted record), got "
                 + ("both." if x0 is not None else "neither.")
+            )
+        if is_ragged(u) or np.ndim(u) == 3:
+            N = len(u)
+            if z_head is not None:
+                records, heads, times = _split_records(u, z_head, t, "z_head", "head", "n")
+                out = [self.output_std(records[i], z_head=heads[i], t=times[i]) for i in range(N)]
+            else:
+                records, _, times = _split_records(u, None, t, "z_head", "head", "n")
+                if np.ndim(x0) == 2 and np.shape(x0)[0] != N:
+                    raise ValueError(
+                        f"`x0` must have shape (n_x,) or ({N}, n_x) (one per record of `u`), "
+                        f"got shape {np.shape(x0)}."
+                    )
+                starts = list(x0) if np.ndim(x0) == 2 else [x0] * N
+                out = [self.output_std(records[i], starts[i], t=times[i]) for i in range(N)]
+            return out if is_ragged(u) or isinstance(u, list) else np.stack(out)
+        if np.ndim(u) != 2:
+            raise ValueError(
+                f"`u` must be one record's inputs (T, n_u) or several, (N, T, n_u), got "
+                f"shape {np.shape(u)}."
             )
         head = None
         if z_head is not None:

@@ -142,8 +142,43 @@ def test_bad_arguments_are_named(kwargs, match):
         result.output_std(u, **kwargs)
 
 
-def test_several_records_at_once_are_refused():
-    u, z = record(30, 7, 0.02)
-    result = oj.fit(PENDULUM, TRUTH, X0, u, z)
-    with pytest.raises(ValueError, match="one record"):
-        result.output_std(np.stack([u, u]), x0=X0)
+def test_several_records_take_the_joint_covariance_of_theta_and_every_x0():
+    """On the N fitted records, each with all of it as its head, the standard errors are
+    those of the joint covariance of theta and the N initial states: sigma^2 (J^T J)^-1
+    of (b, w0sq, x0_1, x0_2) by jacfwd of both records' simulations, each record's rows
+    through theta and its own x0 (a record given another's head, or theta's part alone,
+    differs). With x0 known, one row of `x0` per record; a list of records of other
+    lengths gives a list."""
+    (u1, z1), (u2, z2) = record(50, 11, 0.02), record(50, 12, 0.02, x0=np.array([-0.3, 0.8]))
+    U, Z = np.stack([u1, u2]), np.stack([z1, z2])
+    x0 = np.array([X0, [-0.3, 0.8]])
+    result = oj.fit(PENDULUM, {"w0sq": 7.0, "b": 0.3}, x0 + 0.1, U, Z)
+    assert result.success, result.message
+    p = jnp.array([result.theta["b"], result.theta["w0sq"], *result.x0.ravel()])
+
+    def both(p):
+        z_1 = _outputs_of(u1)(jnp.concatenate([p[:2], p[2:4]]))
+        z_2 = _outputs_of(u2)(jnp.concatenate([p[:2], p[4:]]))
+        return jnp.stack([z_1, z_2])
+
+    Jz = np.asarray(jax.jacfwd(both)(p))  # (2, T, n_z, 6)
+    e = np.asarray(both(p)) - Z
+    J = Jz.reshape(-1, 6)
+    M = np.sum(e**2) / (e.size - 6) * np.linalg.inv(J.T @ J)
+    ref = np.sqrt(np.einsum("nkip,pq,nkiq->nki", Jz, M, Jz))
+    s = result.output_std(U, z_head=Z)
+    assert s.shape == (2, 50, 2)
+    np.testing.assert_allclose(s, ref, rtol=1e-7)
+    swapped = result.output_std(U, z_head=Z[::-1])
+    assert np.max(np.abs(swapped - ref) / ref) > 0.1
+    known = result.output_std(U, x0=result.x0)
+    for i in range(2):
+        np.testing.assert_array_equal(known[i], result.output_std(U[i], x0=result.x0[i]))
+    assert np.max(np.abs(known - ref) / ref) > 0.5
+    ragged = result.output_std([u1, u2[:30]], z_head=[z1[:20], z2[:10]])
+    assert [a.shape for a in ragged] == [(50, 2), (30, 2)]
+    np.testing.assert_array_equal(ragged[1], result.output_std(u2[:30], z_head=z2[:10]))
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(n_x,\) or \(2, n_x\)"):
+        result.output_std(U, x0=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="`z_head` must hold one head per record"):
+        result.output_std(U, z_head=z1)
