@@ -916,9 +916,10 @@ def fit(
         by `estimate_x0` are not bounded. Every iterate lies in the box (a start outside
         it is clipped into it, with a warning), and the first-order test is that of the
         box: an entry at a bound that the gradient pushes outwards is stationary there.
-        Not with `Optimistix` or `aggregate`. (A state that must stay in the model's
-        domain along the whole trajectory, not only at the start, needs a penalty:
-        `oneshot_jax.penalties.state_box`.)
+        Not with `Optimistix` or `aggregate`. Where every record's box is the same, the
+        initial states of `validation`'s records are estimated within it too. (A state
+        that must stay in the model's domain along the whole trajectory, not only at the
+        start, needs a penalty: `oneshot_jax.penalties.state_box`.)
     - `window`: cut one record into consecutive windows of this many samples, each with
         its own x0 (multiple shooting), or an `oneshot_jax.Windows` for some of them
         (every k-th, a number spread over the record, or given starts).

@@ -596,6 +596,7 @@ def build_problem(
             X0,
             inputs.cost.sqrt_weight(),
             n_u=np.shape(data.u)[-1],
+            x0_box=_shared_box(x0_bounds, X0, x0_est),
         ),
         nuisance=free.nuisance,
         mask=None
@@ -634,6 +635,19 @@ def build_problem(
         X0s if all_x else X0s[:, :, x0_free],
     )
     return Built(problem, starts, fixed_flat, x0_est, sets, x0_box)
+
+
+def _shared_box(x0_bounds, X0, estimated):
+    """`fit(x0_bounds=...)` as one (lower, upper) pair (n_x,) where every record's (or
+    window's) are the same, for the held-out records' initial states
+    (`_validation.Monitor`); None without bounds, or where the records' differ (as
+    `FitResult.predict` takes the fit's box)."""
+    if x0_bounds is None:
+        return None
+    lo, hi = check_x0_bounds(x0_bounds, X0.shape, X0.dtype, estimated=estimated) or (None, None)
+    if lo is None or not (np.all(lo == lo[0]) and np.all(hi == hi[0])):
+        return None
+    return lo[0], hi[0]
 
 
 def _sets(t):

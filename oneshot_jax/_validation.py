@@ -41,7 +41,9 @@ class Validation(eqx.Module):
         (the benchmark protocol). None: the initial states are known, given as `x0`, and
         every sample counts.
     - `x0`: the records' initial states (n_x,) or (N, n_x): known ones with `n=None`,
-        otherwise the starting guess of their estimate (default zeros).
+        otherwise the starting guess of their estimate (default zeros). The estimates
+        stay within the fit's `x0_bounds` where every fitted record has the same ones
+        (as `FitResult.predict` keeps them).
     - `patience`: None (run each solver to its own stop), or stop a solver once its
         score has not improved for this many iterations (early stopping).
     - `x0_steps`: Gauss-Newton steps of each head estimate per iterate, at least 1 (with
@@ -123,13 +125,27 @@ class Monitor(eqx.Module):
     n: int | None = eqx.field(static=True)
     patience: int | None = eqx.field(static=True)
     x0_steps: int = eqx.field(static=True)
+    # The fit's `x0_bounds` (n_x,) each (-inf / inf unbounded) for the estimates from the
+    # head, or None.
+    x0_lower: Any = None
+    x0_upper: Any = None
+
+    def _clip(self, x):
+        if self.x0_lower is None:
+            return x
+        return jnp.clip(x, self.x0_lower, self.x0_upper)
 
     def _head_x0(self, model, theta, x0, u, z):
         """Gauss-Newton on the head's weighted output error in x0 (pseudo-inverse for
         unobservable directions), each step halved until it lowers that error (at most
         `HALVINGS` times; the iterate stays where none does). A full step alone, kept
         only where it lowered the error, left a model nonlinear in x0 (an output
-        x1^3 + x1) at a point that is no minimum, its score 0.6 % off."""
+        x1^3 + x1) at a point that is no minimum, its score 0.6 % off.
+
+        Within the fit's `x0_bounds`: an entry at a bound that the step pushes outwards
+        is held there (its column of J left out) and the step solved again for the
+        others, then the trial points are clipped into the box (a projected search
+        path)."""
         n = self.n
 
         def residual(x):
@@ -140,10 +156,14 @@ class Monitor(eqx.Module):
             r = residual(x)
             J = jax.jacfwd(residual)(x)
             step = -psd_solve(J.T @ J, J.T @ r)
+            if self.x0_lower is not None:  # (held at a bound it is pushed out of)
+                held = ((x <= self.x0_lower) & (step < 0)) | ((x >= self.x0_upper) & (step > 0))
+                Jf = jnp.where(held[None, :], 0.0, J)
+                step = jnp.where(held, 0.0, -psd_solve(Jf.T @ Jf, Jf.T @ r))
             now = r @ r
 
             def lower(alpha):
-                r_trial = residual(x + alpha * step)
+                r_trial = residual(self._clip(x + alpha * step))
                 return jnp.all(jnp.isfinite(r_trial)) & (r_trial @ r_trial < now)
 
             def halve(carry):
@@ -156,9 +176,9 @@ class Monitor(eqx.Module):
                 halve,
                 (jnp.ones((), x.dtype), jnp.array(0), jnp.array(False)),
             )
-            return jnp.where(ok, x + alpha * step, x)
+            return jnp.where(ok, self._clip(x + alpha * step), x)
 
-        x = jax.lax.fori_loop(0, self.x0_steps, body, x0)
+        x = jax.lax.fori_loop(0, self.x0_steps, body, self._clip(x0))
         r = residual(x)
         return x, jnp.where(jnp.all(jnp.isfinite(r)), r @ r, jnp.inf)
 
@@ -199,10 +219,12 @@ class Monitor(eqx.Module):
         return TIE * score * (2.0 / n) ** 0.5
 
 
-def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
+def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None, x0_box=None):
     """The `Monitor` of `fit(validation=...)`: the records checked against the model like
     `fit`'s own data (errors name `validation`; `n_u` the fitted data's input columns),
-    in the fit's dtype (that of `x0_fit`), or None."""
+    in the fit's dtype (that of `x0_fit`), or None. `x0_box`: the fit's `x0_bounds` as
+    one (lower, upper) pair (n_x,) for the initial states estimated from the heads, or
+    None."""
     if validation is None:
         return None
     if not isinstance(validation, Validation):
@@ -265,4 +287,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None):
             "where the outputs show the state slowly.",
             stacklevel=4,
         )
-    return Monitor(U, Z, X0, sqrt_q, validation.n, validation.patience, validation.x0_steps)
+    lower, upper = (None, None) if x0_box is None else (jnp.asarray(b, dtype) for b in x0_box)
+    return Monitor(
+        U, Z, X0, sqrt_q, validation.n, validation.patience, validation.x0_steps, lower, upper
+    )

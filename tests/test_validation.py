@@ -462,3 +462,53 @@ def test_the_head_estimate_leaves_a_local_minimum_the_warm_start_followed():
     later = np.flatnonzero(c > 0.1)  # (where the minimum near +1 is the lower one)
     assert len(later) > 20
     np.testing.assert_allclose(got[later], [score(v) for v in c[later]], rtol=1e-3, atol=1e-12)
+
+
+def test_the_head_estimates_stay_within_the_fits_x0_bounds():
+    """With `fit(x0_bounds=...)`, each held-out record's x0 is estimated from its head
+    within the same box (as `result.predict` keeps it): the scores at the recorded
+    iterates equal those from SciPy's bounded least squares on the head. The held-out
+    records start just outside the box (x0[0] = -0.15 and -0.1 below a lower bound 0),
+    where the unbounded estimate scores lower: without the box the scores differ."""
+    from scipy.optimize import least_squares
+
+    def record(seed, T, x0):  # (`_record`'s inputs, from this x0)
+        u = _record(seed, T, 0.0)[0]
+        z = np.asarray(oj.simulate(MODEL, TRUTH, np.array(x0), u)[1])
+        return u, z + 0.02 * np.random.default_rng(seed).normal(size=z.shape)
+
+    u, z = record(0, 200, [0.3, 0.2])
+    held = [record(1, 120, [-0.15, 0.3]), record(2, 120, [-0.1, -0.4])]
+    UV, ZV = np.stack([a for a, _ in held]), np.stack([b for _, b in held])
+    n, box = 15, ([0.0, -np.inf], None)
+
+    def outputs(theta, x0, u):
+        return np.asarray(oj.simulate(MODEL, theta, np.asarray(x0), u)[1])
+
+    def score(theta, bounded):
+        lb = np.array([0.0, -np.inf]) if bounded else -np.inf
+        total = 0.0
+        for a, b in held:
+            x0 = least_squares(
+                lambda x: (outputs(theta, x, a[:n]) - b[:n]).ravel(),
+                np.array([0.0, 0.0]),
+                bounds=(lb, np.inf),
+                xtol=1e-15,
+                ftol=1e-15,
+                gtol=1e-15,
+            ).x
+            total += np.sum((outputs(theta, x0, a) - b)[n:] ** 2)
+        return total / (2 * (120 - n))
+
+    val = oj.Validation(UV, ZV, n=n)
+    solver = oj.LevenbergMarquardt(max_steps=8)
+    r = oj.fit(MODEL, {"k": 3.0, "c": 0.4, "g": 0.8}, np.array([0.2, 0.0]), u, z,
+               solver=solver, validation=val, x0_bounds=box)  # fmt: skip
+    h = r.history
+    assert r.success and len(h.validation) > 3
+    rows = range(len(h.validation))
+    thetas = [{k: np.asarray(h.theta[k])[i] for k in TRUTH} for i in rows]
+    got = np.asarray(h.validation)
+    np.testing.assert_allclose(got, [score(th, True) for th in thetas], rtol=1e-6)
+    unbounded = [score(th, False) for th in thetas]
+    assert np.all(np.asarray(unbounded) < 0.9 * got)
