@@ -39,6 +39,10 @@ from ._initial_state import predict as predict
 from ._io import save_result as save_result
 from ._model import Model as Model
 from ._model import ode_step as ode_step
+from ._operating_point import Equilibrium as Equilibrium
+from ._operating_point import LinearModel as LinearModel
+from ._operating_point import find_equilibrium as find_equilibrium
+from ._operating_point import linearise as linearise
 from ._progress import NoProgress as NoProgress
 from ._progress import TqdmProgress as TqdmProgress
 from ._results import RESULTS as RESULTS

@@ -17,6 +17,7 @@ from ._checks import check_data, check_state_size
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
+from ._operating_point import find_equilibrium, linearise
 from ._output_std import output_std
 from ._results import RESULTS, is_success, name_of
 from ._simulate import simulate
@@ -1027,6 +1028,49 @@ class FitResult(eqx.Module):
             kw = dict(kwargs, **{key: value[i] for key, value in rows.items()})
             out.append(self.predict(records[i], heads[i], t=times[i], **kw))
         return out
+
+    def find_equilibrium(self, u, x=None, *, hold=None):
+        """An equilibrium of the fitted model at the constant input `u` (MATLAB's
+        `findop(sys, 'steady', u)`; `oneshot_jax.find_equilibrium` with the fitted
+        theta).
+
+        **Arguments:**
+
+        - `u`: the constant input (n_u,).
+        - `x`: the start of the search (n_x,); default the fitted x0 (the mean over
+            records or windows of a fit of several).
+        - `hold`: an (n_x,) boolean mask of the entries of `x` held at their values.
+
+        **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`).
+        """
+        model = self._model_or_raise("find_equilibrium")
+        if x is None:
+            x0 = np.asarray(self.x0)
+            x = x0 if x0.ndim == 1 else x0.mean(axis=0)
+        elif np.ndim(self.x0):
+            check_state_size(x, np.shape(self.x0)[-1], "`x`")
+        return find_equilibrium(model, self.theta, u, x, hold=hold)
+
+    def linearise(self, x, u, *, dt=None):
+        """The linear model of the fitted model's deviations around (x, u) (MATLAB's
+        `linearize(sys, u0, x0)`; `oneshot_jax.linearise` with the fitted theta), e.g.
+        at `result.find_equilibrium(u).x`.
+
+        **Returns:** a `LinearModel` (`A`, `B`, `C`, `D`; `Ac`, `Bc` for a model built
+        from an ODE; `poles`).
+        """
+        model = self._model_or_raise("linearise")
+        if np.ndim(self.x0):
+            check_state_size(x, np.shape(self.x0)[-1], "`x`")
+        return linearise(model, self.theta, x, u, dt=dt)
+
+    def _model_or_raise(self, name):
+        if self.model is None:
+            raise ValueError(
+                "this result holds no model (it was loaded without one): pass "
+                f"`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.{name}`."
+            )
+        return self.model
 
     def sample_theta(self, n, *, seed=0):
         """n random draws of theta from the estimate's distribution, N(theta, covariance)

@@ -28,6 +28,7 @@ GUIDES = [
     "docs/guides/parallel.md",
     "docs/guides/real-data.md",
     "docs/guides/hybrid.md",
+    "docs/guides/operating-points.md",
 ]
 
 

@@ -1,0 +1,334 @@
+"""Operating points of a model: its equilibria at a constant input (MATLAB's `findop`
+with `'steady'`) and the linear model of the deviations around one (MATLAB's
+`linearize` of an `idnlgrey`).
+
+An equilibrium at the input u is a state x with f(x, u, theta) = x, eq. (1) of the paper
+at rest; for a model built from an ODE (`Model.from_ode`), rhs(x, u, theta) = 0, solved
+on the right-hand side itself (the integrator's fixed points are its zeros, and its
+residual is in the state's units per unit time, independent of dt). The linear model of
+eq. (1)-(2) around (x, u) is the first-order expansion of f and g:
+
+    dx[k+1] = A dx[k] + B du[k],   dz[k] = C dx[k] + D du[k],
+
+A = df/dx, B = df/du, C = dg/dx, D = dg/du at (x, u) (the Jacobians of the one-shot
+recursion, eq. (10)-(12), at one sample), and for an ODE model also the continuous-time
+Ac = d rhs / dx, Bc = d rhs / du.
+"""
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float, PyTree
+
+from . import _pytree
+from ._checks import as_float, check_data
+from ._linalg import psd_solve
+from ._model import ODE_STEPS
+
+
+class Equilibrium(NamedTuple):
+    """What `find_equilibrium` returns.
+
+    - `x`: (n_x,) the state found.
+    - `z`: (n_z,) the outputs there, g(x, u, theta).
+    - `u`: (n_u,) the input.
+    - `residual`: the largest |entry| of the equation's residual at `x`: of rhs(x, u,
+        theta) for a model built from an ODE, else of f(x, u, theta) - x.
+    - `success`: True where the residual is at the round-off level of the equation (at
+        most sqrt(eps) times its scale: the residual at the start plus |J| |x|); False
+        where no equilibrium was reached (none near the start, or none at this input:
+        an integrator driven by a constant force).
+    - `steps`: the Gauss-Newton steps taken.
+    """
+
+    x: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    residual: float
+    success: bool
+    steps: int
+
+    @property
+    def message(self) -> str:
+        """Why the search stopped, in words."""
+        if self.success:
+            return (
+                f"equilibrium: the residual is {self.residual:.3g}, at the round-off level "
+                f"of the equation ({self.steps} Gauss-Newton steps)"
+            )
+        return (
+            f"no equilibrium reached: the residual stays at {self.residual:.3g} after "
+            f"{self.steps} Gauss-Newton steps (none near the start `x`, or none at this "
+            "input); try another start"
+        )
+
+    def __str__(self) -> str:
+        return f"Equilibrium(x={self.x}, z={self.z}): {self.message}"
+
+    __repr__ = __str__
+
+
+class LinearModel(NamedTuple):
+    """What `linearise` returns: the linear model of the deviations around (x, u).
+
+    - `A` (n_x, n_x), `B` (n_x, n_u), `C` (n_z, n_x), `D` (n_z, n_u): the discrete-time
+        model dx[k+1] = A dx[k] + B du[k], dz[k] = C dx[k] + D du[k] of one sample
+        interval (the Jacobians of `step` and `observe`; for `input="foh"`, B is the
+        response to an input held over the interval, u[k+1] = u[k]).
+    - `Ac` (n_x, n_x), `Bc` (n_x, n_u): for a model built from an ODE, the
+        continuous-time d(dx)/dt = Ac dx + Bc du (the Jacobians of `rhs`); None otherwise.
+    - `dt`: the sample interval of A and B (None for a `Model(step)`, whose step has
+        none).
+    - `x`, `u`: the operating point.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    Ac: np.ndarray | None
+    Bc: np.ndarray | None
+    dt: float | None
+    x: np.ndarray
+    u: np.ndarray
+
+    @property
+    def poles(self) -> np.ndarray:
+        """The eigenvalues of A: the discrete-time poles (stable inside the unit circle).
+        The continuous-time ones of an ODE model are `np.linalg.eigvals(lin.Ac)`."""
+        return np.linalg.eigvals(self.A)
+
+    def __str__(self) -> str:
+        kind = "" if self.Ac is None else ", with the continuous-time Ac, Bc"
+        every = "" if self.dt is None else f" of dt = {self.dt:g}"
+        n_x, n_u, n_z = self.A.shape[0], self.B.shape[1], self.C.shape[0]
+        return (
+            f"LinearModel{every}: {n_x} states, {n_u} inputs, {n_z} outputs{kind}; poles "
+            f"{np.round(self.poles, 6)}"
+        )
+
+    __repr__ = __str__
+
+
+def _input(u, dtype=None):
+    """The constant input as an (n_u,) floating array."""
+    a = as_float(u, "u", dtype)
+    if a.ndim != 1:
+        raise ValueError(
+            f"`u` must be the constant input, shape (n_u,) ((0,) for a model without "
+            f"inputs), got shape {a.shape}."
+        )
+    return np.asarray(a)
+
+
+def _checked(model, theta, x, u, dt):
+    """`check_data` of the operating point as a record of two equal samples (the step
+    sees u held over an interval `dt` for a model of time-stamped records)."""
+    u = _input(u)
+    if np.ndim(x) != 1:
+        raise ValueError(f"`x` must be one state, shape (n_x,), got shape {np.shape(x)}.")
+    t = None if not model.timed else np.array([0.0, dt])
+    data = check_data(model, theta, x, np.stack([u, u]), t=t)
+    return data, u
+
+
+def _interval(model, dt, need):
+    """The sample interval of a timed model's A and B (`dt`, given), checked; None for
+    a model of a fixed interval, which refuses one."""
+    if not model.timed:
+        if dt is not None:
+            raise ValueError(
+                "`dt` is for a model of time-stamped records (`Model.from_ode(rhs, "
+                "dt=None)`); this model's step has its own interval."
+            )
+        return None
+    if dt is None:
+        if not need:
+            return 1.0  # (the ODE's equilibria and outputs do not depend on it)
+        raise ValueError(
+            "`dt` (the sample interval of the discrete-time A and B) is needed for a model "
+            "of time-stamped records (`Model.from_ode(rhs, dt=None)`)."
+        )
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.floating, np.integer)):
+        raise TypeError(f"`dt` must be a positive number, got {dt!r}.")
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"`dt` must be a finite positive number, got {dt!r}.")
+    return float(dt)
+
+
+def _rhs(model):
+    return model.step.rhs if isinstance(model.step, ODE_STEPS) else None
+
+
+@eqx.filter_jit
+def _equation(model, rhs, theta, x, su, u):
+    """The residual of the equilibrium's equation at x and its Jacobian in x: rhs(x, u,
+    theta) for an ODE model (`rhs` given, theta whole), else f(x, su, theta) - x (the
+    bound model, theta's parameters)."""
+
+    def residual(x):
+        if rhs is not None:
+            return rhs(x, u, theta)
+        return model.step(x, su, theta) - x
+
+    return residual(x), jax.jacfwd(residual)(x)
+
+
+# At most this many Gauss-Newton steps, and halvings of one (`find_equilibrium`).
+MAX_STEPS = 100
+HALVINGS = 30
+
+
+def find_equilibrium(
+    model,
+    theta: PyTree,
+    u: Float[ArrayLike, " n_u"],
+    x: Float[ArrayLike, " n_x"],
+    *,
+    hold=None,
+) -> Equilibrium:
+    """An equilibrium of the model at a constant input (MATLAB's `findop(sys, 'steady',
+    u)`): a state x with f(x, u, theta) = x, or rhs(x, u, theta) = 0 for a model built
+    from an ODE (the module's docstring).
+
+    Gauss-Newton from the start `x` on the residual of that equation, its step the
+    pseudo-inverse's (a direction along which every state is an equilibrium, a position
+    that no force depends on, keeps its start), each step halved until it lowers the
+    residual's norm.
+
+    **Arguments:**
+
+    - `model`, `theta`: a `Model` and its parameters.
+    - `u`: the constant input (n_u,).
+    - `x`: the start of the search (n_x,), e.g. the fitted x0.
+    - `hold`: None, or an (n_x,) boolean mask of the entries of `x` held at their given
+        values (MATLAB's known states of `findop`); the others are solved for, in the
+        least-squares sense of all the equations.
+
+    **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`);
+    `success` False, with the residual it reached, where none was found.
+
+    **Raises:** `ValueError` for `u` or `x` of the wrong shape (or a state the model does
+    not take), a `hold` that is not an (n_x,) boolean mask.
+    """
+    dt = _interval(model, None, need=False)
+    data, u = _checked(model, theta, x, u, dt)
+    n_x = data.x0.shape[0]
+    free = np.ones(n_x, bool)
+    if hold is not None:
+        mask = np.asarray(hold)
+        if mask.dtype != bool or mask.shape != (n_x,):
+            raise ValueError(
+                f"`hold` must be an (n_x,) = ({n_x},) boolean mask, True for the entries of "
+                f"`x` held at their values, got {hold!r}."
+            )
+        free = ~mask
+    rhs = _rhs(model)
+    whole = _pytree.combine(data.theta, data.static)
+    su = data.model.step_inputs(jnp.asarray(data.u))[0]
+    ue = jnp.asarray(u, data.x0.dtype)
+    params = whole if rhs is not None else data.theta
+
+    def evaluate(x):
+        r, J = _equation(data.model, rhs, params, jnp.asarray(x, data.x0.dtype), su, ue)
+        return np.asarray(r, np.float64), np.asarray(J, np.float64) * free[None, :]
+
+    x = np.asarray(data.x0, np.float64)
+    r, J = evaluate(x)
+    start = np.max(np.abs(r), initial=0.0)
+    eps = float(np.finfo(data.x0.dtype).eps)
+
+    def scale(x, J):  # the equation's: its residual at the start, its terms' size |J| |x|
+        size = np.max(np.abs(J).sum(axis=1), initial=0.0) * np.max(np.abs(x), initial=1.0)
+        return start + size
+
+    steps = 0
+    while (
+        steps < MAX_STEPS
+        and np.all(np.isfinite(r))
+        and np.max(np.abs(r), initial=0.0) > eps * scale(x, J)  # (at round-off: stop)
+    ):
+        step = -np.asarray(psd_solve(jnp.asarray(J.T @ J), jnp.asarray(J.T @ r)))
+        now, alpha = r @ r, 1.0
+        for _ in range(HALVINGS):
+            trial = (x + alpha * step).astype(data.x0.dtype)
+            r_t, J_t = evaluate(trial)
+            if np.all(np.isfinite(r_t)) and r_t @ r_t < now:
+                break
+            alpha *= 0.5
+        else:  # (no step lowers the residual: its round-off floor, or its least-squares
+            break  # minimum where there is no equilibrium)
+        x, r, J, steps = np.asarray(trial, np.float64), r_t, J_t, steps + 1
+    residual = float(np.max(np.abs(r), initial=0.0))
+    success = bool(np.isfinite(residual) and residual <= math.sqrt(eps) * scale(x, J))
+    x = x.astype(data.x0.dtype)
+    z = data.model.observe(jnp.asarray(x), jnp.asarray(data.u[0]), data.theta)
+    return Equilibrium(x, np.asarray(z), u, residual, success, steps)
+
+
+@eqx.filter_jit
+def _jacobians(model, rhs, params, whole, x, su, uo, u):
+    """A, B (summed over a "foh" pair, the interval column left out), C, D, and for an
+    ODE model Ac, Bc."""
+    n_u = u.shape[0]
+    A = jax.jacfwd(model.step, 0)(x, su, params)
+    Bs = jax.jacfwd(model.step, 1)(x, su, params)  # (n_x, [2,] n_u [+ 1])
+    B = (Bs.sum(axis=1) if su.ndim == 2 else Bs)[:, :n_u]
+    C = jax.jacfwd(model.observe, 0)(x, uo, params)
+    D = jax.jacfwd(model.observe, 1)(x, uo, params)[:, :n_u]
+    if rhs is None:
+        return A, B, C, D, None, None
+    return A, B, C, D, jax.jacfwd(rhs, 0)(x, u, whole), jax.jacfwd(rhs, 1)(x, u, whole)
+
+
+def linearise(
+    model,
+    theta: PyTree,
+    x: Float[ArrayLike, " n_x"],
+    u: Float[ArrayLike, " n_u"],
+    *,
+    dt=None,
+) -> LinearModel:
+    """The linear model of the deviations around the operating point (x, u) (MATLAB's
+    `linearize(sys, u0, x0)` of an `idnlgrey`): the Jacobians of the model's step and
+    observation there (the module's docstring), by forward-mode differentiation.
+
+    The point need not be an equilibrium (`find_equilibrium` finds one); away from one,
+    the expansion is that of one step from x, and dx[k] stays small only while the
+    trajectory stays near x.
+
+    **Arguments:**
+
+    - `model`, `theta`: a `Model` and its parameters.
+    - `x`: the state (n_x,); `u`: the input (n_u,) of the operating point.
+    - `dt`: only for a model of time-stamped records (`Model.from_ode(rhs, dt=None)`):
+        the sample interval of A and B.
+
+    **Returns:** a `LinearModel` (`A`, `B`, `C`, `D`; `Ac`, `Bc` for an ODE model; `dt`,
+    `x`, `u`; `poles`).
+
+    **Raises:** `ValueError` for arrays of the wrong shape, a missing or needless `dt`.
+    """
+    interval = _interval(model, dt, need=True)
+    data, u = _checked(model, theta, x, u, interval)
+    rhs = _rhs(model)
+    whole = _pytree.combine(data.theta, data.static)
+    U = jnp.asarray(data.u)
+    x = jnp.asarray(data.x0)
+    out = _jacobians(
+        data.model,
+        rhs,
+        data.theta,
+        whole,
+        x,
+        data.model.step_inputs(U)[0],
+        U[0],
+        jnp.asarray(u, x.dtype),
+    )
+    A, B, C, D, Ac, Bc = (None if a is None else np.asarray(a) for a in out)
+    step_dt = getattr(model.step, "dt", None) if interval is None else interval
+    return LinearModel(A, B, C, D, Ac, Bc, step_dt, np.asarray(x), np.asarray(u, x.dtype))

@@ -1,0 +1,214 @@
+"""Operating points: `find_equilibrium` (MATLAB's `findop(sys, 'steady', u)`) and
+`linearise` (MATLAB's `linearize`). References written here: the pendulum's equilibria
+in closed form (sin q = u / w0^2), its Jacobians by hand, the RK4 step's Jacobian at an
+equilibrium as RK4's stability polynomial of Ac h, and the nonlinear simulation of small
+deviations."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import oneshot_jax as oj
+
+DT = 0.05
+THETA = {"w0sq": 9.0, "b": 0.6}
+
+
+def pendulum(x, u, th):
+    return jnp.stack([x[1], -th["w0sq"] * jnp.sin(x[0]) - th["b"] * x[1] + u[0]])
+
+
+def angle_and_torque(x, u, th):  # (an output that reads the input: D != 0)
+    return jnp.stack([x[0], 0.5 * u[0] + 0.1 * x[1]])
+
+
+def _model(**kwargs):
+    return oj.Model.from_ode(pendulum, DT, observe=angle_and_torque, **kwargs)
+
+
+def _rk4_step_jacobians(Ac, Bc, h, substeps):
+    """A and B of `substeps` RK4 steps of h at an equilibrium under a held input: the
+    stability polynomial P(M) = I + M + M^2/2 + M^3/6 + M^4/24 of M = Ac h per step, and
+    B = sum_j A_h^j h (I + M/2 + M^2/6 + M^3/24) Bc."""
+    eye = np.eye(len(Ac))
+    M = Ac * h
+    P = eye + M + M @ M / 2 + M @ M @ M / 6 + M @ M @ M @ M / 24
+    G = h * (eye + M / 2 + M @ M / 6 + M @ M @ M / 24) @ Bc
+    A, B = eye, np.zeros_like(G)
+    for _ in range(substeps):
+        A, B = P @ A, P @ B + G
+    return A, B
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_the_pendulums_equilibria_and_linear_models(substeps):
+    """At the torque u, sin q = u / w0^2: from near 0 the hanging equilibrium, from near
+    pi the upturned one (unstable: a pole outside the unit circle). Ac and Bc are the
+    Jacobians by hand, A and B those of the model's RK4 steps, C and D of its outputs."""
+    model = _model(substeps=substeps)
+    u = np.array([3.0])
+    for start, q in ((0.0, math.asin(3.0 / 9.0)), (3.0, math.pi - math.asin(3.0 / 9.0))):
+        eq = oj.find_equilibrium(model, THETA, u, np.array([start, 0.5]))
+        assert eq.success and "equilibrium" in eq.message, eq.message
+        np.testing.assert_allclose(eq.x, [q, 0.0], atol=1e-14)
+        np.testing.assert_allclose(eq.z, [q, 1.5], atol=1e-14)
+        lin = oj.linearise(model, THETA, eq.x, u)
+        Ac = np.array([[0.0, 1.0], [-9.0 * math.cos(q), -0.6]])
+        Bc = np.array([[0.0], [1.0]])
+        np.testing.assert_allclose(lin.Ac, Ac, atol=1e-14)
+        np.testing.assert_allclose(lin.Bc, Bc, atol=1e-14)
+        A, B = _rk4_step_jacobians(Ac, Bc, DT / substeps, substeps)
+        np.testing.assert_allclose(lin.A, A, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(lin.B, B, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(lin.C, [[1.0, 0.0], [0.0, 0.1]])
+        np.testing.assert_allclose(lin.D, [[0.0], [0.5]])
+        assert lin.dt == DT
+        unstable = np.max(np.abs(lin.poles)) > 1
+        assert unstable == (start == 3.0)
+
+
+def test_the_linear_model_predicts_small_deviations_to_second_order():
+    """From the equilibrium plus dx0 under u + du (a varying du), the nonlinear simulation
+    minus the operating point equals the linear model's response up to O(delta^2): half
+    the deviations, a quarter of the difference."""
+    model = _model()
+    u = np.array([3.0])
+    eq = oj.find_equilibrium(model, THETA, u, np.zeros(2))
+    lin = oj.linearise(model, THETA, eq.x, u)
+    T = 40
+    shape_u = np.sin(0.3 * np.arange(T))[:, None]
+
+    def difference(delta):
+        dx0, du = delta * np.array([1.0, -0.5]), delta * shape_u
+        _, z = oj.simulate(model, THETA, eq.x + dx0, u + du)
+        dx, dz = dx0, []
+        for k in range(T):
+            dz.append(lin.C @ dx + lin.D @ du[k])
+            dx = lin.A @ dx + lin.B @ du[k]
+        return np.max(np.abs(np.asarray(z) - eq.z - np.array(dz)))
+
+    big, small = difference(2e-3), difference(1e-3)
+    assert 3.5 < big / small < 4.5 and small < 1e-5
+
+
+def test_a_discrete_linear_model_is_its_own_linear_model():
+    """A `Model(step)` with x[k+1] = F x + G u, z = H x + K u: A, B, C, D are F, G, H, K,
+    no continuous-time part, and the equilibrium is (I - F)^{-1} G u."""
+    F = np.array([[0.9, 0.2], [-0.1, 0.7]])
+    G, H, K = np.array([[0.5], [1.0]]), np.array([[1.0, -1.0]]), np.array([[0.3]])
+    model = oj.Model(lambda x, u, th: th["F"] @ x + G @ u, lambda x, u, th: H @ x + K @ u)
+    u = np.array([2.0])
+    eq = oj.find_equilibrium(model, {"F": F}, u, np.zeros(2))
+    want = np.linalg.solve(np.eye(2) - F, G @ u)
+    assert eq.success
+    np.testing.assert_allclose(eq.x, want, rtol=1e-14)
+    lin = oj.linearise(model, {"F": F}, np.array([0.3, -1.0]), u)
+    for got, ref in ((lin.A, F), (lin.B, G), (lin.C, H), (lin.D, K)):
+        np.testing.assert_allclose(got, ref, atol=1e-15)
+    assert lin.Ac is None and lin.Bc is None and lin.dt is None
+    np.testing.assert_allclose(np.sort_complex(lin.poles), np.sort_complex(np.linalg.eigvals(F)))
+
+
+def _cart(x, u, th):
+    return jnp.stack([x[1], -th["c"] * x[1] + u[0]])
+
+
+def test_a_family_of_equilibria_keeps_the_start_and_none_is_said():
+    """A cart: every position is an equilibrium at u = 0 (a rank-deficient Jacobian): the
+    search keeps the start's position, or the one held. With c = 0 and a force, it has
+    none: `success` False, the residual the force."""
+    model = oj.Model.from_ode(_cart, DT)
+    eq = oj.find_equilibrium(model, {"c": 0.4}, [0.0], np.array([0.7, 0.3]))
+    assert eq.success
+    np.testing.assert_allclose(eq.x, [0.7, 0.0], atol=1e-15)
+    eq = oj.find_equilibrium(model, {"c": 0.4}, [0.0], np.array([-2.0, 0.3]),
+                             hold=np.array([True, False]))  # fmt: skip
+    assert eq.success and eq.x[0] == -2.0
+    none = oj.find_equilibrium(model, {"c": 0.0}, [1.0], np.array([0.0, 0.3]))
+    assert not none.success and "no equilibrium" in none.message
+    assert none.residual == pytest.approx(1.0)
+    held = oj.find_equilibrium(model, {"c": 0.4}, [0.0], np.array([0.0, 0.3]),
+                               hold=np.array([False, True]))  # fmt: skip
+    assert not held.success  # (v held at 0.3: the position moves)
+
+
+def test_other_input_models_and_time_stamped_models():
+    """A "foh" model's B is that of an input held over the interval (u[k+1] = u[k]), as
+    the "zoh" model's; a model of time-stamped records needs `dt` for A and B, and then
+    gives the fixed-dt model's, and finds the same equilibria without it."""
+    u, x = np.array([1.0]), np.array([0.2, 0.1])
+    zoh = oj.linearise(_model(), THETA, x, u)
+    foh = oj.linearise(_model(input="foh"), THETA, x, u)
+    np.testing.assert_allclose(foh.A, zoh.A, rtol=1e-13)
+    np.testing.assert_allclose(foh.B, zoh.B, rtol=1e-13)
+    timed = oj.Model.from_ode(pendulum, None, observe=angle_and_torque)
+    lin = oj.linearise(timed, THETA, x, u, dt=DT)
+    for a, b in zip(lin, zoh):
+        if isinstance(a, np.ndarray):
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-16)
+    assert lin.dt == DT
+    with pytest.raises(ValueError, match="`dt`"):
+        oj.linearise(timed, THETA, x, u)
+    with pytest.raises(ValueError, match="`dt`"):
+        oj.linearise(_model(), THETA, x, u, dt=DT)
+    eq = oj.find_equilibrium(timed, THETA, u, np.zeros(2))
+    np.testing.assert_allclose(eq.x, [math.asin(1 / 9), 0.0], atol=1e-14)
+
+
+def test_a_theta_holding_a_network():
+    """A hybrid's theta (a physical parameter and an equinox MLP of the rate): the
+    continuous-time Jacobians are those of `jax.jacfwd` of the rhs with the whole theta,
+    and the equilibrium zeroes the rhs."""
+
+    def rhs(x, u, th):
+        return jnp.stack([x[1], -th["k"] * x[0] + th["net"](x[1:])[0] + u[0]])
+
+    net = eqx.nn.MLP(1, 1, 8, 1, key=jax.random.PRNGKey(0))
+    net = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if eqx.is_array(a) else a, net)
+    theta = {"k": 4.0, "net": net}
+    model = oj.Model.from_ode(rhs, DT)
+    eq = oj.find_equilibrium(model, theta, [0.5], np.zeros(2))
+    assert eq.success
+    assert np.max(np.abs(np.asarray(rhs(jnp.asarray(eq.x), jnp.array([0.5]), theta)))) < 1e-14
+    lin = oj.linearise(model, theta, eq.x, [0.5])
+    np.testing.assert_allclose(lin.Ac, jax.jacfwd(rhs)(jnp.asarray(eq.x), jnp.array([0.5]), theta),
+                               rtol=1e-14)  # fmt: skip
+
+
+def test_the_results_methods_use_the_fitted_theta_and_x0():
+    rng = np.random.default_rng(0)
+    model = _model()
+    u = np.sin(0.3 * np.arange(80))[:, None]
+    _, z = oj.simulate(model, THETA, np.array([0.3, 0.0]), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(np.shape(z))
+    result = oj.fit(model, {"w0sq": 7.0, "b": 0.3}, np.array([0.3, 0.0]), u, z)
+    eq = result.find_equilibrium([2.0])
+    same = oj.find_equilibrium(model, result.theta, [2.0], result.x0)
+    np.testing.assert_array_equal(eq.x, same.x)
+    np.testing.assert_allclose(eq.x[0], math.asin(2.0 / result.theta["w0sq"]), atol=1e-14)
+    lin = result.linearise(eq.x, [2.0])
+    np.testing.assert_array_equal(lin.A, oj.linearise(model, result.theta, eq.x, [2.0]).A)
+    with pytest.raises(ValueError, match="`x` must have the fitted state's n_x = 2"):
+        result.linearise(np.zeros(3), [2.0])
+
+
+@pytest.mark.parametrize(
+    "call, error, match",
+    [
+        (lambda m: oj.find_equilibrium(m, THETA, np.ones((2, 1)), np.zeros(2)), ValueError,
+         r"`u` must be the constant input, shape \(n_u,\)"),
+        (lambda m: oj.find_equilibrium(m, THETA, [1.0], np.zeros((1, 2))), ValueError,
+         r"`x` must be one state"),
+        (lambda m: oj.find_equilibrium(m, THETA, [1.0], np.zeros(2), hold=[1, 0]), ValueError,
+         "`hold` must be an"),
+        (lambda m: oj.linearise(m, THETA, np.zeros(2), ["a"]), ValueError, "`u`"),
+        (lambda m: oj.linearise(m, THETA, np.zeros(3), [1.0]), ValueError, "rhs"),
+    ],
+)  # fmt: skip
+def test_bad_arguments_are_named(call, error, match):
+    with pytest.raises(error, match=match):
+        call(_model())
