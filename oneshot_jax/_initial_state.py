@@ -310,7 +310,9 @@ def estimate_x0(
         (default) refuses them.
     - `estimate`: `"lsq"` only: an (n_x,) boolean mask, True for the entries to
         estimate; the others are known and keep their value in `x0` (variance 0), as
-        with `fit(estimate_x0=mask)` (MATLAB's `InitialStates(i).Fixed`). Default: every
+        with `fit(estimate_x0=mask)` (MATLAB's `InitialStates(i).Fixed`); a mask that
+        holds every entry returns `x0` as given (stop reason `converged`: there is
+        nothing to move). Default: every
         entry. `FitResult.predict` takes it too, with the same default: it estimates
         every entry of a new record's x0, also those the fit held (their values were
         the fitted records'); pass `estimate=result.x0_estimated` there to hold them, at
@@ -485,17 +487,17 @@ def _estimate(
     stop_reason, kalman, e, ok, sim = None, None, None, None, None
     if guess.size == 0:  # a model without state (n_x = 0): nothing to estimate
         x0_hat, cov, loss, ok = guess, np.zeros((0, 0), guess.dtype), None, np.zeros(0, bool)
+    elif method == "lsq" and estimate is not None and not estimate.any():
+        # Every entry held: x0 as given, the minimum over no variables (a first-order
+        # test over none holds), known exactly (as a held entry of a partial mask).
+        x0_hat, cov, loss = guess, np.zeros((guess.size, guess.size), guess.dtype), None
+        ok, stop_reason = np.ones(guess.size, bool), RESULTS.converged
     elif method == "lsq":
         whole = None
         if record is not None:  # the whole record, simulated in the x0 solve's call
             whole = check_data(model, theta, guess, record[0], t=record[1]).u
             if whole.dtype != data.u.dtype:  # simulated apart, in its own dtype
                 whole = None
-        if estimate is not None and not estimate.any():  # nothing to estimate: x0 as given
-            raise ValueError(
-                "`estimate` holds every x0 entry: there is nothing to estimate; simulate "
-                "from `x0` instead (`oneshot_jax.simulate`)."
-            )
         box = None
         if bounds is not None:
             shape = (1, guess.size)

@@ -423,8 +423,14 @@ def test_lsq_holds_the_known_entries_as_the_masked_x0_only_fit():
         oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=[1, 0])
     with pytest.raises(TypeError, match=r"`estimate` must be an \(n_x,\)"):
         oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=True)
-    with pytest.raises(ValueError, match=r"holds every x0 entry: there is nothing"):
-        oj.estimate_x0(PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=~(mask | ~mask))
+    # Every entry held: x0 as given (the minimum over no variables), known exactly.
+    none = oj.estimate_x0(
+        PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=np.zeros(2, bool)
+    )
+    np.testing.assert_array_equal(none.x0, guess)
+    assert none.success and np.all(none.covariance == 0.0) and none.identifiable.all()
+    _, zhat = oj.simulate(PENDULUM, PEND_THETA, guess, u[:N_HEAD])
+    assert none.loss == pytest.approx(np.mean(np.sum((np.asarray(zhat) - z[:N_HEAD]) ** 2, 1)))
     with pytest.raises(ValueError, match=r"`estimate` .* applies to method='lsq'"):
         oj.estimate_x0(
             PENDULUM, PEND_THETA, u, z, n=N_HEAD, x0=guess, estimate=mask, method="smoother"

@@ -187,13 +187,17 @@ def test_windows_refuse_a_mask_per_record():
 def test_predict_of_the_fitted_records_holds_each_records_own_entries():
     """`result.predict(U, Z, x0=result.x0, estimate=result.x0_estimated)` predicts each
     record with its own mask: the held entries keep their values, the others are
-    estimated (from all of each record: the fitted x0 again). (Record 0 holds every
-    entry: nothing to estimate there, which `predict` refuses; it is simulated.)"""
+    estimated (from all of each record: the fitted x0 again). Record 0 holds every
+    entry: its prediction is the simulation from its x0, known exactly."""
     result = oj.fit(MODEL, THETA0, START, U, Z, estimate_x0=MASK)
-    preds = result.predict(U[1:], Z[1:], x0=result.x0[1:], estimate=result.x0_estimated[1:])
-    for i, pred in enumerate(preds, start=1):
+    preds = result.predict(U, Z, x0=result.x0, estimate=result.x0_estimated)
+    for i, pred in enumerate(preds[1:], start=1):
         np.testing.assert_array_equal(pred.x0[~MASK[i]], TRUE_X0[i][~MASK[i]])
         np.testing.assert_allclose(pred.x0, result.x0[i], rtol=1e-6, atol=1e-8)
+    rest = preds[0]
+    np.testing.assert_array_equal(rest.x0, TRUE_X0[0])
+    np.testing.assert_array_equal(rest.z, result.simulate(U[0], TRUE_X0[0])[1])
+    assert rest.estimate.success and np.all(rest.estimate.std == 0.0)
     with pytest.raises(
         ValueError,
         match=r"`estimate` \(the x0 entries to estimate\) must have shape \(n_x,\) or \(3, n_x\)",
