@@ -20,6 +20,7 @@ from ._continuation import Stage as Stage
 from ._continuation import check_basin as check_basin
 from ._continuation import fit_continuation as fit_continuation
 from ._covariance import NeweyWest as NeweyWest
+from ._delta import Derived as Derived
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult

@@ -14,6 +14,7 @@ import numpy as np
 from . import _io, _pytree
 from ._ahead import predict_ahead
 from ._checks import check_data, check_state_size
+from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
 from ._normalise import is_ragged
@@ -1071,6 +1072,31 @@ class FitResult(eqx.Module):
                 f"`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.{name}`."
             )
         return self.model
+
+    def delta_method(self, fn):
+        """The value and standard errors of a quantity derived from the parameters,
+        q = fn(theta): theta's covariance carried through fn to first order (the delta
+        method, `oneshot_jax._delta`), e.g. a natural frequency, a time constant, the
+        magnitude of a pole of the linearised model.
+
+        **Arguments:**
+
+        - `fn`: `fn(theta) -> q`, written in `jax.numpy` (it is differentiated in forward
+            mode), returning real numbers (an array or a scalar); theta as `result.theta`
+            (the fixed entries at their values, which add no uncertainty).
+
+        **Returns:** a `Derived` (`value`, `std`, `covariance`, `ci95`); std inf where q
+        depends on a parameter whose std is inf (not identifiable, a network's weights, or
+        the covariance not computed).
+
+        **Example:**
+
+        ```python
+        f0 = result.delta_method(lambda th: jnp.sqrt(th["w0sq"]) / (2 * jnp.pi))
+        print(f0.value, f0.std)  # the natural frequency in Hz and its standard error
+        ```
+        """
+        return delta_method(fn, self.theta, self.fixed, self.covariance)
 
     def sample_theta(self, n, *, seed=0):
         """n random draws of theta from the estimate's distribution, N(theta, covariance)

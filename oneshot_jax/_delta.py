@@ -1,0 +1,89 @@
+r"""Standard errors of quantities derived from the parameters: the estimate's covariance
+carried through a function of theta to first order (the delta method).
+
+For q = h(theta) (a natural frequency sqrt(k / m), a time constant, a pole of the
+linearised model) with J = dh / d theta over theta's free entries (forward-mode
+differentiation of h) and Sigma their covariance (`FitResult.covariance`: sigma^2
+(J^T J)^+ of the residuals of eq. (4)-(5), or its Newey-West sandwich,
+`oneshot_jax._covariance`; theta's block, the initial states marginalised):
+
+    Cov q = J Sigma J^T,
+
+the first-order approximation, exact for an h linear in theta. Where Sigma is not
+finite in a column that moves q (a parameter the data do not determine, a network's
+weights, a covariance not computed), q's standard error is inf.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _pytree
+
+
+class Derived(NamedTuple):
+    """What `FitResult.delta_method` returns.
+
+    - `value`: h(theta) at the estimate, an array of h's shape.
+    - `std`: its standard errors, of the same shape (inf where not known).
+    - `covariance`: (m, m) the covariance of h's m entries, flattened in C order (inf in
+        the rows and columns of an entry whose std is inf).
+    """
+
+    value: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+
+    @property
+    def ci95(self):
+        """95 % intervals value -+ 1.96 std, as (lower, upper)."""
+        return self.value - 1.96 * self.std, self.value + 1.96 * self.std
+
+    def __str__(self) -> str:
+        rows = [
+            f"{v:.6g} (std {s:.3g})"
+            for v, s in zip(np.ravel(self.value), np.ravel(self.std), strict=True)
+        ]
+        return "Derived: " + ", ".join(rows[:8]) + (" ..." if len(rows) > 8 else "")
+
+    __repr__ = __str__
+
+
+def delta_method(fn, theta, fixed, covariance, name="fn"):
+    """`Derived` of q = fn(theta) (the module's docstring): `theta` the estimate (any
+    pytree), `fixed` the flat mask of its held entries, `covariance` Sigma over the free
+    ones (another shape: not computed, every std inf)."""
+    if not callable(fn):
+        raise TypeError(f"`{name}` must be a function of theta, got {type(fn).__name__}.")
+    params, static = _pytree.split(theta)
+    flat, unravel = _pytree.ravel(params)
+    free = np.flatnonzero(~np.asarray(fixed, bool))
+    base = jnp.asarray(flat)
+
+    def of(p):
+        whole = _pytree.combine(unravel(base.at[free].set(p)), static)
+        q = jnp.asarray(fn(_pytree.ordered_like(whole, theta)))
+        if jnp.iscomplexobj(q) or not jnp.issubdtype(q.dtype, jnp.floating):
+            raise TypeError(
+                f"`{name}` must return real floating values (an array or a number), got "
+                f"dtype {q.dtype}: for a complex quantity (a pole), return its jnp.real and "
+                "jnp.imag, or jnp.abs and jnp.angle."
+            )
+        return q
+
+    p = base[free]
+    value = np.asarray(of(p), np.float64)
+    J = np.asarray(jax.jacfwd(of)(p), np.float64).reshape(value.size, free.size)
+    Sigma = np.asarray(covariance, np.float64)
+    if Sigma.shape != (free.size, free.size):  # (not computed: `fit(covariance=None)`)
+        Sigma = np.full((free.size, free.size), np.inf)
+    known = np.all(np.isfinite(Sigma), axis=0) & np.all(np.isfinite(Sigma), axis=1)
+    S = np.where(known[:, None] & known[None, :], Sigma, 0.0)
+    cov = J @ S @ J.T
+    unknown = np.any(np.abs(J[:, ~known]) > 0, axis=1)
+    cov[unknown, :] = np.inf
+    cov[:, unknown] = np.inf
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return Derived(value, std.reshape(value.shape), 0.5 * (cov + cov.T))
