@@ -102,6 +102,28 @@ class LinearModel(NamedTuple):
         The continuous-time ones of an ODE model are `np.linalg.eigvals(lin.Ac)`."""
         return np.linalg.eigvals(self.A)
 
+    def frequency_response(self, w, *, continuous=False) -> np.ndarray:
+        """The frequency response H (n_w, n_z, n_u) at the angular frequencies `w` (n_w,)
+        (MATLAB's `freqresp`, what `bode` plots): C (e^{j w dt} I - A)^{-1} B + D of the
+        discrete-time model, w in radians per unit of `dt` (per sample where `dt` is
+        None), or with `continuous=True` C (j w I - Ac)^{-1} Bc + D of an ODE model's
+        continuous-time one. |H| is the gain, np.angle(H) the phase."""
+        w = np.asarray(w, np.float64)
+        if w.ndim != 1 or not np.all(np.isfinite(w)):
+            raise ValueError(f"`w` must be a 1-D array of finite frequencies, got {w!r}.")
+        if continuous:
+            if self.Ac is None:
+                raise ValueError(
+                    "`continuous=True` needs a model built from an ODE (`Model.from_ode`): "
+                    "this linear model has no Ac, Bc."
+                )
+            s, A, B = 1j * w, self.Ac, self.Bc
+        else:
+            s, A, B = np.exp(1j * w * (1.0 if self.dt is None else self.dt)), self.A, self.B
+        eye = np.eye(A.shape[0])
+        X = np.linalg.solve(s[:, None, None] * eye - A, np.broadcast_to(B, (len(w), *B.shape)))
+        return self.C @ X + self.D
+
     def __str__(self) -> str:
         kind = "" if self.Ac is None else ", with the continuous-time Ac, Bc"
         every = "" if self.dt is None else f" of dt = {self.dt:g}"

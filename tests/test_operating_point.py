@@ -212,3 +212,22 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
 def test_bad_arguments_are_named(call, error, match):
     with pytest.raises(error, match=match):
         call(_model())
+
+
+def test_frequency_responses():
+    """A first-order lag dx/dt = -a x + a u, z = x: continuous H = a / (j w + a); the
+    discrete one of its Euler step (A = 1 - a dt, B = a dt) is a dt / (e^{j w dt} - 1 +
+    a dt), which tends to the continuous one at low frequency."""
+    a, dt = 2.0, 0.01
+    model = oj.Model.from_ode(lambda x, u, th: th * (u - x), dt, method="euler")
+    lin = oj.linearise(model, a, np.zeros(1), np.zeros(1))
+    w = np.array([0.0, 0.5, 2.0, 20.0])
+    np.testing.assert_allclose(lin.frequency_response(w, continuous=True)[:, 0, 0],
+                               a / (1j * w + a), rtol=1e-14)  # fmt: skip
+    discrete = lin.frequency_response(w)[:, 0, 0]
+    np.testing.assert_allclose(discrete, a * dt / (np.exp(1j * w * dt) - 1 + a * dt), rtol=1e-12)
+    np.testing.assert_allclose(discrete[:3], a / (1j * w[:3] + a), rtol=2e-2)
+    assert lin.frequency_response(w).shape == (4, 1, 1)
+    with pytest.raises(ValueError, match="`continuous=True` needs"):
+        oj.linearise(oj.Model(lambda x, u, th: th * x), 0.5, np.ones(1), np.zeros(0)
+                     ).frequency_response(w, continuous=True)  # fmt: skip
