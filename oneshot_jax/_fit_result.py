@@ -774,11 +774,7 @@ class FitResult(eqx.Module):
 
         `(x, z)` as `oneshot_jax.simulate`.
         """
-        if self.model is None:
-            raise ValueError(
-                "this result holds no model (it was loaded without one): pass "
-                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.simulate`."
-            )
+        self._model_or_raise("simulate")
         self._check_u(u)
         if x0 is not None and np.ndim(self.x0):
             check_state_size(x0, np.shape(self.x0)[-1])
@@ -853,11 +849,7 @@ class FitResult(eqx.Module):
         `estimate=` one mask per record, (N, n_x) (`result.x0_estimated` after a fit with
         a mask per record), or one for all.
         """
-        if self.model is None:
-            raise ValueError(
-                "this result holds no model (it was loaded without one): pass "
-                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict`."
-            )
+        self._model_or_raise("predict")
         self._check_u(u)
         if is_ragged(u) or np.ndim(u) == 3:
             return self._predict_records(u, z_head, t, kwargs)
@@ -948,11 +940,7 @@ class FitResult(eqx.Module):
         records, a list of N, each record filtered alone (as MATLAB's `predict` of
         multi-experiment data).
         """
-        if self.model is None:
-            raise ValueError(
-                "this result holds no model (it was loaded without one): pass "
-                "`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.predict_ahead`."
-            )
+        self._model_or_raise("predict_ahead")
         self._check_u(u)
         given = dict(
             process_noise=process_noise,
@@ -1065,11 +1053,13 @@ class FitResult(eqx.Module):
             check_state_size(x, np.shape(self.x0)[-1], "`x`")
         return linearise(model, self.theta, x, u, dt=dt)
 
-    def _model_or_raise(self, name):
+    def _model_or_raise(self, name=None):
+        """The fitted model; a ValueError for a result loaded without one, naming the
+        function `name` of the library that takes the model itself."""
         if self.model is None:
             raise ValueError(
-                "this result holds no model (it was loaded without one): pass "
-                f"`model=` to `oneshot_jax.load_result`, or call `oneshot_jax.{name}`."
+                "this result holds no model (it was loaded without one): pass `model=` to "
+                "`oneshot_jax.load_result`" + (f", or call `oneshot_jax.{name}`." if name else ".")
             )
         return self.model
 
@@ -1184,11 +1174,7 @@ class FitResult(eqx.Module):
         interval of the model's output (the noise-free simulation), to first order and
         for a model structure that holds; a measurement adds its own noise.
         """
-        if self.model is None:
-            raise ValueError(
-                "this result holds no model (it was loaded without one): pass "
-                "`model=` to `oneshot_jax.load_result`."
-            )
+        self._model_or_raise()
         self._check_u(u)
         if (x0 is None) == (z_head is None):
             raise ValueError(

@@ -207,8 +207,17 @@ def test_save_and_load_a_dict_theta_with_starts(tmp_path):
     loaded = dataclasses.replace(loaded, saved_model_signature=None)
     assert eqx.tree_equal(loaded, eqx.tree_at(lambda x: x.model, r, None)) is True
     assert loaded.starts.stop_reason == r.starts.stop_reason
-    with pytest.raises(ValueError, match="holds no model"):
-        loaded.simulate(u)
+    for call, name in (
+        (lambda: loaded.simulate(u), "simulate"),
+        (lambda: loaded.predict(u, z[:5]), "predict"),
+        (lambda: loaded.predict_ahead(u, z, 2, process_noise=1.0), "predict_ahead"),
+        (lambda: loaded.find_equilibrium(np.zeros(1)), "find_equilibrium"),
+        (lambda: loaded.linearise(np.ones(1), np.zeros(1)), "linearise"),
+    ):
+        with pytest.raises(ValueError, match=rf"holds no model.*`oneshot_jax\.{name}`"):
+            call()
+    with pytest.raises(ValueError, match=r"holds no model .*`oneshot_jax.load_result`\.$"):
+        loaded.output_std(u, x0=np.ones(1))
 
 
 def test_load_finds_the_suffix_and_checks_like(tmp_path):
