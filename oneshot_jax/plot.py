@@ -1,6 +1,7 @@
 """The figures a MATLAB user draws right after a fit: `compare`, the measured outputs
 against the simulated or predicted outputs of one or several models with their FIT %,
-and `resid`, the residual analysis with its 99 % bounds.
+`resid`, the residual analysis with its 99 % bounds, and `bode`, the frequency response
+of a linearised model.
 
 matplotlib is an optional dependency (`pip install "oneshot_jax[plot]"`). It is imported
 when a figure is drawn, never by `import oneshot_jax`; the functions use `pyplot`, so the
@@ -20,9 +21,10 @@ from ._ahead import AheadPrediction
 from ._fit_result import FitResult
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
+from ._operating_point import LinearModel
 from ._timing import as_times as _as_times
 
-__all__ = ["compare", "resid"]
+__all__ = ["bode", "compare", "resid"]
 
 
 def _pyplot():
@@ -63,14 +65,14 @@ def _columns(a, name):
     return a[:, None] if a.ndim == 1 else a
 
 
-def _axes(ax, count, plt, figsize):
+def _axes(ax, count, plt, figsize, what="one per output"):
     """`count` Axes: new ones in a column, or those of `ax` (one Axes or a sequence)."""
     if ax is None:
         fig, axes = plt.subplots(count, 1, sharex=True, squeeze=False, figsize=figsize)
         return fig, list(axes[:, 0])
     axes = list(np.ravel(np.asarray(ax, dtype=object)))
     if len(axes) != count or not all(hasattr(a, "plot") for a in axes):
-        raise ValueError(f"`ax` must be {count} matplotlib Axes (one per output), got {ax!r}.")
+        raise ValueError(f"`ax` must be {count} matplotlib Axes ({what}), got {ax!r}.")
     return axes[0].figure, axes
 
 
@@ -548,4 +550,83 @@ def resid(e, u=None, max_lag=25, *, confidence=0.99, tolerance=0.05, demean=True
         fontsize=10,
     )
     fig.tight_layout()
+    return fig
+
+
+def _default_frequencies(models, continuous):
+    """400 angular frequencies, log-spaced: up to the Nyquist frequency pi / dt of the
+    discrete-time models (three decades below it), or a decade either side of the
+    continuous-time poles' magnitudes."""
+    if continuous:
+        mags = np.concatenate([np.abs(np.linalg.eigvals(m.Ac)) for m in models])
+        mags = mags[mags > 0]
+        lo, hi = (0.1 * mags.min(), 10.0 * mags.max()) if mags.size else (0.01, 100.0)
+    else:
+        hi = min(np.pi / (1.0 if m.dt is None else m.dt) for m in models)
+        lo = 1e-3 * hi
+    return np.logspace(np.log10(lo), np.log10(hi), 400)
+
+
+def bode(*models, w=None, continuous=False, labels=None, ax=None):
+    """Bode plot of one or several linear models (MATLAB's `bode` of `linearize`'s
+    model): the gain in dB and the phase in degrees of each input-output pair against the
+    angular frequency, from `LinearModel.frequency_response`.
+
+    **Arguments:**
+
+    - `models`: `LinearModel`s (from `oneshot_jax.linearise` or `result.linearise`), with
+        the same numbers of inputs and outputs.
+    - `w`: the angular frequencies (n_w,), in radians per unit of the models' `dt` (per
+        sample where `dt` is None); default 400 log-spaced ones up to the Nyquist
+        frequency pi / dt (or a decade either side of the poles with `continuous`).
+    - `continuous`: True: the continuous-time models (Ac, Bc) of ODE models.
+    - `labels`: one name per model; default `"model"` or `"model 1"`, ....
+    - `ax`: two matplotlib Axes (gain, phase); default a new figure.
+
+    **Returns:** the matplotlib `Figure`.
+
+    **Raises:** `TypeError` for a model that is not a `LinearModel`; `ValueError` for
+    models of other sizes, or `continuous` without an ODE model's Ac.
+    """
+    plt = _pyplot()
+    if (
+        len(models) == 1
+        and isinstance(models[0], (list, tuple))
+        and not isinstance(models[0], LinearModel)  # (itself a NamedTuple)
+    ):
+        models = tuple(models[0])
+    if not models:
+        raise ValueError("`models` is empty: pass at least one `LinearModel`.")
+    for i, m in enumerate(models):
+        if not isinstance(m, LinearModel):
+            raise TypeError(
+                f"`models[{i}]` must be a `LinearModel` (from `oneshot_jax.linearise`), got "
+                f"{type(m).__name__}."
+            )
+    sizes = {(m.C.shape[0], m.B.shape[1]) for m in models}
+    if len(sizes) != 1:
+        raise ValueError(
+            f"the models must have the same numbers of outputs and inputs, got {sorted(sizes)}."
+        )
+    n_z, n_u = sizes.pop()
+    w = _default_frequencies(models, continuous) if w is None else np.asarray(w, np.float64)
+    labels = _names(labels, len(models), "labels", "model", start=1)
+    fig, (gain, phase) = _axes(ax, 2, plt, (8.0, 6.0), "gain and phase")
+    for m, label in zip(models, labels):
+        H = m.frequency_response(w, continuous=continuous)
+        for i in range(n_z):
+            for j in range(n_u):
+                pair = "" if n_z * n_u == 1 else f" z[{i}] <- u[{j}]"
+                with np.errstate(divide="ignore"):
+                    gain.semilogx(w, 20 * np.log10(np.abs(H[:, i, j])), label=label + pair)
+                phase.semilogx(w, np.degrees(np.unwrap(np.angle(H[:, i, j]))), label=label + pair)
+    gain.set_ylabel("gain (dB)")
+    phase.set_ylabel("phase (deg)")
+    dt = {m.dt for m in models}
+    per = "sample" if None in dt and not continuous else "time unit"
+    phase.set_xlabel(f"angular frequency (rad per {per})")
+    gain.legend(fontsize=8, loc="best")
+    gain.set_title("Bode plot" + (" (continuous time)" if continuous else ""))
+    if ax is None:
+        fig.tight_layout()
     return fig

@@ -231,3 +231,36 @@ def test_frequency_responses():
     with pytest.raises(ValueError, match="`continuous=True` needs"):
         oj.linearise(oj.Model(lambda x, u, th: th * x), 0.5, np.ones(1), np.zeros(0)
                      ).frequency_response(w, continuous=True)  # fmt: skip
+
+
+def test_bode_draws_the_gain_and_phase_of_the_frequency_response():
+    """`plot.bode` draws 20 log10 |H| and the unwrapped phase of H in degrees against w
+    on a log axis, one line per model; the default frequencies run up to pi / dt."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    model = _model()
+    rest = oj.linearise(model, THETA, np.zeros(2), np.zeros(1))
+    tilted = oj.linearise(model, THETA, np.array([0.5, 0.0]), np.zeros(1))
+    fig = oj.plot.bode(rest, tilted, labels=["rest", "tilted"])
+    gain, phase = fig.axes
+    assert gain.get_xscale() == "log" and len(gain.lines) == 2 * 2  # (2 outputs, 1 input)
+    w, db = gain.lines[0].get_data()
+    H = rest.frequency_response(w)[:, 0, 0]
+    np.testing.assert_allclose(db, 20 * np.log10(np.abs(H)), rtol=1e-12)
+    np.testing.assert_allclose(phase.lines[0].get_ydata(), np.degrees(np.unwrap(np.angle(H))))
+    assert w[-1] == pytest.approx(np.pi / DT)
+    assert gain.lines[2].get_label() == "tilted z[0] <- u[0]"
+    plt.close(fig)
+    fig = oj.plot.bode([rest, tilted])  # (a list, as MATLAB's bode(sys1, sys2) users pass)
+    assert len(fig.axes[0].lines) == 4
+    plt.close(fig)
+    fig = oj.plot.bode(rest, w=np.array([1.0, 2.0]), continuous=True)
+    np.testing.assert_allclose(
+        fig.axes[0].lines[0].get_ydata(),
+        20 * np.log10(np.abs(rest.frequency_response([1.0, 2.0], continuous=True)[:, 0, 0])),
+    )
+    plt.close(fig)
+    with pytest.raises(TypeError, match=r"`models\[0\]` must be a `LinearModel`"):
+        oj.plot.bode(rest.A)
