@@ -136,9 +136,9 @@ class LinearModel(NamedTuple):
     __repr__ = __str__
 
 
-def _input(u, dtype=None):
+def _input(u):
     """The constant input as an (n_u,) floating array."""
-    a = as_float(u, "u", dtype)
+    a = as_float(u, "u")
     if a.ndim != 1:
         raise ValueError(
             f"`u` must be the constant input, shape (n_u,) ((0,) for a model without "
@@ -170,7 +170,7 @@ def _interval(model, dt, need):
         return None
     if dt is None:
         if not need:
-            return 1.0  # (the ODE's equilibria and outputs do not depend on it)
+            return 1.0  # (the step's fixed points, and the outputs, do not depend on it)
         raise ValueError(
             "`dt` (the sample interval of the discrete-time A and B) is needed for a model "
             "of time-stamped records (`Model.from_ode(rhs, dt=None)`)."
