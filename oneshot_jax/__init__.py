@@ -12,6 +12,8 @@ from . import sharding as sharding
 from . import sparsity as sparsity
 from ._aggregate import Aggregate as Aggregate
 from ._ahead import AheadPrediction as AheadPrediction
+from ._ahead import ProcessNoise as ProcessNoise
+from ._ahead import estimate_process_noise as estimate_process_noise
 from ._ahead import predict_ahead as predict_ahead
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._continuation import BasinCheck as BasinCheck

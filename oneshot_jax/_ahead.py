@@ -25,6 +25,7 @@ model; K = 1 gives the filter's innovation covariance.
 """
 
 import math
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -168,6 +169,33 @@ def predict_ahead(
     not given; `ValueError` for K < 1, arrays of the wrong shape, covariances that are not
     ones, NaN in z without `missing="mask"`.
     """
+    if process_noise is None:
+        raise TypeError(
+            "`process_noise` must be given (a variance per step): it sets how far the "
+            "filter trusts the data over the model."
+        )
+    data, guess, covariances, zs = _filter_inputs(
+        model, theta, u, z, x0, process_noise, measurement_noise, prior_covariance, weight, t,
+        missing,
+    )  # fmt: skip
+    K = _horizon(K, int(np.shape(data.u)[0]))
+    Z, X, filtered, std = _ahead(
+        data.model,
+        data.theta,
+        jnp.asarray(guess),
+        *covariances,
+        jnp.asarray(data.u),
+        zs,
+        jnp.asarray(K),  # (traced: one program for every horizon)
+    )
+    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K, np.asarray(std))
+
+
+def _filter_inputs(
+    model, theta, u, z, x0, process_noise, measurement_noise, prior_covariance, weight, t, missing
+):
+    """The checked data of the filter (`_checks.check_data`), its prior mean, its
+    covariances (P0, Q_w, R) in the data's dtype and z with NaN at missing samples."""
     check_tree(theta, "theta")
     if missing not in ("raise", "mask"):
         raise ValueError(f'`missing` must be "raise" or "mask", got {missing!r}.')
@@ -184,13 +212,6 @@ def predict_ahead(
     if missing == "mask" and is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
         raise ValueError("`x0` must be finite: give it where z[0] has a missing sample.")
     data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
-    T = int(np.shape(data.u)[0])
-    K = _horizon(K, T)
-    if process_noise is None:
-        raise TypeError(
-            "`process_noise` must be given (a variance per step): it sets how far the "
-            "filter trusts the data over the model."
-        )
     guess = np.asarray(data.x0)
     P0, Qp, R = _smoother_defaults(
         data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
@@ -200,13 +221,134 @@ def predict_ahead(
     if data.mask is not None:  # (missing samples as NaN: the filter leaves them out)
         seen = jnp.asarray(data.mask.outputs) > 0
         zs = jnp.where(seen if seen.ndim == 2 else seen[:, None], zs, jnp.nan)
-    Z, X, filtered, std = _ahead(
-        data.model,
-        data.theta,
-        jnp.asarray(guess),
-        *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
-        jnp.asarray(data.u),
-        zs,
-        jnp.asarray(K),  # (traced: one program for every horizon)
+    return data, guess, tuple(jnp.asarray(a, dtype) for a in (P0, Qp, R)), zs
+
+
+class ProcessNoise(NamedTuple):
+    """What `estimate_process_noise` returns.
+
+    - `covariance`: (n_x, n_x) the estimate, `scale` times `shape`.
+    - `scale`: the scale q of `shape` that maximises the likelihood of the outputs.
+    - `log_likelihood`: the log-likelihood of the outputs there (the module's
+        innovations, eq. of `estimate_process_noise`).
+    - `scales`, `log_likelihoods`: the grid searched and the log-likelihood at each.
+    - `interior`: False where the highest likelihood of the grid is at its end (the
+        estimate is then that end: the data ask for less, or more, process noise than
+        the grid holds).
+    """
+
+    covariance: np.ndarray
+    scale: float
+    log_likelihood: float
+    scales: np.ndarray
+    log_likelihoods: np.ndarray
+    interior: bool
+
+
+@jit
+def _log_likelihood(model, theta, m0, P0, Qp, R, u, z):
+    """The log-likelihood of the outputs under the filter's model (the prediction-error
+    decomposition: the innovations e_k = z[k] - g(x[k|k-1]) are independent, N(0, S_k),
+    S_k = H_k P[k|k-1] H_k^T + R), the missing entries of z left out."""
+    (_, _, mp, Pp, _), _ = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
+    m = jnp.concatenate([m0[None], mp])  # x[k|k-1], x[0|-1] the prior
+    P = jnp.concatenate([P0[None], Pp])
+
+    def one(m, P, u_k, z_k):
+        seen = jnp.isfinite(z_k)
+        H = jax.jacfwd(model.observe)(m, u_k, theta)
+        S = H @ P @ H.T + R
+        both = seen[:, None] & seen[None, :]
+        S = jnp.where(both, S, jnp.eye(S.shape[0], dtype=S.dtype))
+        e = jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
+        _, logdet = jnp.linalg.slogdet(S)
+        return -0.5 * (logdet + e @ jnp.linalg.solve(S, e) + jnp.sum(seen) * jnp.log(2 * jnp.pi))
+
+    return jnp.sum(jax.vmap(one)(m, P, u, z))
+
+
+def estimate_process_noise(
+    model,
+    theta: PyTree,
+    u: Float[ArrayLike, "T n_u"],
+    z: Float[ArrayLike, "T n_z"],
+    shape,
+    *,
+    x0: Float[ArrayLike, " n_x"] | None = None,
+    measurement_noise=None,
+    prior_covariance=None,
+    weight=None,
+    t: Float[ArrayLike, " T"] | None = None,
+    missing: str = "raise",
+    scales=None,
+) -> ProcessNoise:
+    """The process noise covariance q `shape` of the extended Kalman filter of
+    `predict_ahead` whose scale q maximises the likelihood of the record's outputs, the
+    other covariances given (the prediction-error decomposition: the one-step
+    innovations e_k = z[k] - g(x[k|k-1]) independent and N(0, S_k), S_k = H_k P[k|k-1]
+    H_k^T + R, their log-likelihood -1/2 sum_k (log det S_k + e_k^T S_k^{-1} e_k +
+    n_z log 2 pi)). A grid of scales, then a golden-section search in log q between the
+    best one's neighbours.
+
+    **Arguments:**
+
+    - `model`, `theta`, `u`, `z`, `x0`, `measurement_noise`, `prior_covariance`,
+        `weight`, `t`, `missing`: as for `predict_ahead`.
+    - `shape`: the covariance's shape (n_x): a scalar (times I), a vector of variances or
+        a matrix, e.g. `[0, 1]` for noise that enters through the second state only.
+    - `scales`: the grid of q (increasing, positive); default 10^-12 .. 10^4, 65 points.
+
+    **Returns:** a `ProcessNoise` (`covariance`, `scale`, `log_likelihood`, `scales`,
+    `log_likelihoods`, `interior`); pass its `covariance` as `process_noise=`. With
+    `interior` False the likelihood is highest at the grid's end (a warning says so).
+
+    **Raises:** as `predict_ahead`; `ValueError` for a `scales` that is not an
+    increasing grid of positive numbers.
+    """
+    if shape is None:
+        raise TypeError("`shape` must be given: the process noise covariance's shape (n_x).")
+    data, guess, (P0, Qp, R), zs = _filter_inputs(
+        model, theta, u, z, x0, shape, measurement_noise, prior_covariance, weight, t, missing
     )
-    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K, np.asarray(std))
+    grid = np.logspace(-12.0, 4.0, 65) if scales is None else np.asarray(scales, np.float64)
+    if grid.ndim != 1 or grid.size < 3 or not np.all(grid > 0) or np.any(np.diff(grid) <= 0):
+        raise ValueError(
+            f"`scales` must be an increasing grid of at least 3 positive numbers, got {scales!r}."
+        )
+    args = (data.model, data.theta, jnp.asarray(guess), P0)
+    rest = (R, jnp.asarray(data.u), zs)
+
+    def loglik(q):
+        value = float(_log_likelihood(*args, jnp.asarray(q, Qp.dtype) * Qp, *rest))
+        return value if np.isfinite(value) else -np.inf
+
+    values = np.array([loglik(q) for q in grid])
+    best = int(np.argmax(values))
+    interior = 0 < best < grid.size - 1 and np.isfinite(values[best])
+    scale = float(grid[best])
+    if interior:  # golden section on log q between the best point's neighbours
+        lo, hi = np.log(grid[best - 1]), np.log(grid[best + 1])
+        ratio = (np.sqrt(5.0) - 1.0) / 2.0
+        a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        fa, fb = loglik(np.exp(a)), loglik(np.exp(b))
+        for _ in range(40):
+            if fa >= fb:
+                hi, b, fb = b, a, fa
+                a = hi - ratio * (hi - lo)
+                fa = loglik(np.exp(a))
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + ratio * (hi - lo)
+                fb = loglik(np.exp(b))
+        scale = float(np.exp(0.5 * (lo + hi)))
+    else:
+        warnings.warn(
+            f"estimate_process_noise: the likelihood is highest at the end of the grid of "
+            f"scales (q = {scale:.3g}): the data ask for "
+            + ("less" if best == 0 else "more")
+            + " process noise than the grid holds (a model that fits without any, or one "
+            "that does not fit); extend `scales` or check the model.",
+            stacklevel=2,
+        )
+    covariance = np.asarray(scale * np.asarray(Qp), np.asarray(Qp).dtype)
+    return ProcessNoise(covariance, scale, loglik(scale), grid, values, bool(interior))

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._ahead import predict_ahead
+from ._ahead import estimate_process_noise, predict_ahead
 from ._checks import check_data, check_state_size
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
@@ -965,6 +965,23 @@ class FitResult(eqx.Module):
             ]
         if np.ndim(u) != 2:
             raise ValueError(f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}.")
+        filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
+        return predict_ahead(
+            self.model,
+            self.theta,
+            u,
+            z,
+            K,
+            process_noise=process_noise,
+            prior_covariance=prior_covariance,
+            t=t,
+            **filter_args,
+        )
+
+    def _filter_defaults(self, u, z, x0, measurement_noise, t, missing):
+        """The filter's arguments of `predict_ahead` and `estimate_process_noise` with
+        the fit's defaults: the record's x0 as `predict(u, z)` estimates it, the
+        measurement noise the fit estimated (else its weight), its `missing`."""
         missing = self.missing if missing is None else missing
         if x0 is None:
             x0 = self.predict(u, z, t=t, missing=missing).x0
@@ -973,19 +990,49 @@ class FitResult(eqx.Module):
             measurement_noise = self._measurement_noise()
             if measurement_noise is None and self.weight is not None:
                 weight = self.weight if reads_weight(self.weight) else None
-        return predict_ahead(
+        return dict(x0=x0, measurement_noise=measurement_noise, weight=weight, missing=missing)
+
+    def estimate_process_noise(
+        self,
+        u,
+        z,
+        shape,
+        *,
+        x0=None,
+        measurement_noise=None,
+        prior_covariance=None,
+        t=None,
+        missing=None,
+        scales=None,
+    ):
+        """The process noise covariance q `shape` that maximises the likelihood of a
+        record's outputs under the extended Kalman filter of `predict_ahead`, with the
+        fitted theta (`oneshot_jax.estimate_process_noise`), for `predict_ahead`'s
+        `process_noise`.
+
+        **Arguments:** one record's `u` (T, n_u) and `z` (T, n_z); `shape`, the
+        covariance's shape (n_x): a scalar, a vector of variances or a matrix; the
+        others with the defaults of `predict_ahead` (the record's x0 from `predict(u, z)`,
+        the measurement noise the fit estimated, the fit's `missing`) and `scales` as
+        for `oneshot_jax.estimate_process_noise`.
+
+        **Returns:** a `ProcessNoise` (`covariance`, `scale`, `log_likelihood`, ...).
+        """
+        self._model_or_raise("estimate_process_noise")
+        self._check_u(u)
+        if is_ragged(u) or np.ndim(u) != 2:
+            raise ValueError(f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}.")
+        filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
+        return estimate_process_noise(
             self.model,
             self.theta,
             u,
             z,
-            K,
-            x0=x0,
-            process_noise=process_noise,
-            measurement_noise=measurement_noise,
+            shape,
             prior_covariance=prior_covariance,
-            weight=weight,
             t=t,
-            missing=missing,
+            scales=scales,
+            **filter_args,
         )
 
     def _predict_records(self, u, z_head, t, kwargs):
