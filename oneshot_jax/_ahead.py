@@ -22,6 +22,10 @@ the propagated mean and H_k that of g at x[k|k-K] (the EKF's prediction step, S�
 
 S the covariance of the prediction error z[k] - zhat[k|k-K] under the filter's noise
 model; K = 1 gives the filter's innovation covariance.
+
+`estimate_process_noise` sizes Q_w = q shape by the likelihood of the outputs under the
+same filter: its K = 1 innovations are independent and N(0, S_k) (the prediction-error
+decomposition, Särkkä 2013, Section 12.3), a one-dimensional search over q.
 """
 
 import math
