@@ -25,7 +25,8 @@ model; K = 1 gives the filter's innovation covariance.
 
 `estimate_process_noise` sizes Q_w = q shape by the likelihood of the outputs under the
 same filter: its K = 1 innovations are independent and N(0, S_k) (the prediction-error
-decomposition, Särkkä 2013, Section 12.3), a one-dimensional search over q.
+decomposition of the likelihood, Särkkä 2013, Chapter 12), a one-dimensional search
+over q.
 """
 
 import math
