@@ -1072,7 +1072,8 @@ class FitResult(eqx.Module):
 
         **Arguments:**
 
-        - `u`: the constant input (n_u,).
+        - `u`: the constant input (n_u,), or a sweep of N inputs (N, n_u) (a list of N
+            equilibria, each searched from the one before).
         - `x`: the start of the search (n_x,); default the fitted x0 (the mean over
             records or windows of a fit of several).
         - `hold`: an (n_x,) boolean mask of the entries of `x` held at their values.

@@ -212,7 +212,7 @@ def find_equilibrium(
     x: Float[ArrayLike, " n_x"],
     *,
     hold=None,
-) -> Equilibrium:
+) -> Equilibrium | list[Equilibrium]:
     """An equilibrium of the model at a constant input (MATLAB's `findop(sys, 'steady',
     u)`): a state x with f(x, u, theta) = x, or rhs(x, u, theta) = 0 for a model built
     from an ODE (the module's docstring).
@@ -225,18 +225,34 @@ def find_equilibrium(
     **Arguments:**
 
     - `model`, `theta`: a `Model` and its parameters.
-    - `u`: the constant input (n_u,).
+    - `u`: the constant input (n_u,); or a sweep of N inputs (N, n_u) (the static
+        characteristic: the equilibria along an input's range), each searched from the
+        equilibrium of the row before (continuation along the sweep), from `x` for the
+        first row and after a row without one.
     - `x`: the start of the search (n_x,), e.g. the fitted x0.
     - `hold`: None, or an (n_x,) boolean mask of the entries of `x` held at their given
         values (MATLAB's known states of `findop`); the others are solved for, in the
         least-squares sense of all the equations.
 
     **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`);
-    `success` False, with the residual it reached, where none was found.
+    `success` False, with the residual it reached, where none was found. For a sweep, a
+    list of N.
 
     **Raises:** `ValueError` for `u` or `x` of the wrong shape (or a state the model does
     not take), a `hold` that is not an (n_x,) boolean mask.
     """
+    if np.ndim(u) > 2:
+        raise ValueError(
+            f"`u` must be the constant input (n_u,) or a sweep of N inputs (N, n_u), got "
+            f"shape {np.shape(u)}."
+        )
+    if np.ndim(u) == 2:  # a sweep, continued from row to row
+        out, start = [], x
+        for row in np.asarray(u):
+            eq = find_equilibrium(model, theta, row, start, hold=hold)
+            out.append(eq)
+            start = eq.x if eq.success else x
+        return out
     dt = _interval(model, None, need=False)
     data, u = _checked(model, theta, x, u, dt)
     n_x = data.x0.shape[0]

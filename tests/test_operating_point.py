@@ -199,7 +199,9 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
 @pytest.mark.parametrize(
     "call, error, match",
     [
-        (lambda m: oj.find_equilibrium(m, THETA, np.ones((2, 1)), np.zeros(2)), ValueError,
+        (lambda m: oj.find_equilibrium(m, THETA, np.ones((2, 1, 1)), np.zeros(2)), ValueError,
+         r"`u` must be the constant input \(n_u,\) or a sweep"),
+        (lambda m: oj.linearise(m, THETA, np.zeros(2), np.ones((2, 1))), ValueError,
          r"`u` must be the constant input, shape \(n_u,\)"),
         (lambda m: oj.find_equilibrium(m, THETA, [1.0], np.zeros((1, 2))), ValueError,
          r"`x` must be one state"),
@@ -264,3 +266,18 @@ def test_bode_draws_the_gain_and_phase_of_the_frequency_response():
     plt.close(fig)
     with pytest.raises(TypeError, match=r"`models\[0\]` must be a `LinearModel`"):
         oj.plot.bode(rest.A)
+
+
+def test_a_sweep_of_inputs_follows_one_branch():
+    """u from 0 to 8.5 (below w0^2 = 9): each equilibrium continued from the one before
+    stays on the hanging branch, asin(u / 9); beyond u = 9 there is none, and the next
+    row starts again from `x`."""
+    model = _model()
+    sweep = np.linspace(0.0, 8.5, 12)[:, None]
+    eqs = oj.find_equilibrium(model, THETA, sweep, np.array([0.2, 0.0]))
+    assert all(e.success for e in eqs)
+    np.testing.assert_allclose([e.x[0] for e in eqs], np.arcsin(sweep[:, 0] / 9.0), atol=1e-13)
+    np.testing.assert_array_equal(eqs[5].x, oj.find_equilibrium(model, THETA, sweep[5], eqs[4].x).x)
+    past = oj.find_equilibrium(model, THETA, np.array([[8.0], [9.5], [3.0]]), np.zeros(2))
+    assert [e.success for e in past] == [True, False, True]
+    np.testing.assert_allclose(past[2].x, [math.asin(3.0 / 9.0), 0.0], atol=1e-14)
