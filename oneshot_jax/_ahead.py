@@ -79,7 +79,7 @@ def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
     """`AheadPrediction`'s z, x, filtered means and std (the module's docstring), traced:
     the filter's forward pass, then K steps of every start's mean and covariance at
     once."""
-    (mf, Pf, _, _, _), (m_last, P_last) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
+    (mf, Pf, _, _, _), (m_last, P_last), _ = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
     filtered = jnp.concatenate([mf, m_last[None]])  # (T, n_x)
     covariances = jnp.concatenate([Pf, P_last[None]])
     T = u.shape[0]
@@ -234,8 +234,8 @@ class ProcessNoise(NamedTuple):
 
     - `covariance`: (n_x, n_x) the estimate, `scale` times `shape`.
     - `scale`: the scale q of `shape` that maximises the likelihood of the outputs.
-    - `log_likelihood`: the log-likelihood of the outputs there (the module's
-        innovations, eq. of `estimate_process_noise`).
+    - `log_likelihood`: the log-likelihood of the outputs there (of the filter's
+        innovations, as `estimate_process_noise` describes it).
     - `scales`, `log_likelihoods`: the grid searched and the log-likelihood at each.
     - `interior`: False where the highest likelihood of the grid is at its end (the
         estimate is then that end: the data ask for less, or more, process noise than
@@ -252,24 +252,8 @@ class ProcessNoise(NamedTuple):
 
 @jit
 def _log_likelihood(model, theta, m0, P0, Qp, R, u, z):
-    """The log-likelihood of the outputs under the filter's model (the prediction-error
-    decomposition: the innovations e_k = z[k] - g(x[k|k-1]) are independent, N(0, S_k),
-    S_k = H_k P[k|k-1] H_k^T + R), the missing entries of z left out."""
-    (_, _, mp, Pp, _), _ = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
-    m = jnp.concatenate([m0[None], mp])  # x[k|k-1], x[0|-1] the prior
-    P = jnp.concatenate([P0[None], Pp])
-
-    def one(m, P, u_k, z_k):
-        seen = jnp.isfinite(z_k)
-        H = jax.jacfwd(model.observe)(m, u_k, theta)
-        S = H @ P @ H.T + R
-        both = seen[:, None] & seen[None, :]
-        S = jnp.where(both, S, jnp.eye(S.shape[0], dtype=S.dtype))
-        e = jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
-        _, logdet = jnp.linalg.slogdet(S)
-        return -0.5 * (logdet + e @ jnp.linalg.solve(S, e) + jnp.sum(seen) * jnp.log(2 * jnp.pi))
-
-    return jnp.sum(jax.vmap(one)(m, P, u, z))
+    """The log-likelihood of the outputs under the filter's model (`ekf_forward`'s)."""
+    return ekf_forward(model, theta, m0, P0, Qp, R, u, z)[2]
 
 
 def estimate_process_noise(

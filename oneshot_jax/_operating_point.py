@@ -313,14 +313,12 @@ def _jacobians(model, rhs, params, whole, x, su, uo, u):
     """A, B (summed over a "foh" pair, the interval column left out), C, D, and for an
     ODE model Ac, Bc."""
     n_u = u.shape[0]
-    A = jax.jacfwd(model.step, 0)(x, su, params)
-    Bs = jax.jacfwd(model.step, 1)(x, su, params)  # (n_x, [2,] n_u [+ 1])
+    A, Bs = jax.jacfwd(model.step, (0, 1))(x, su, params)  # Bs: (n_x, [2,] n_u [+ 1])
     B = (Bs.sum(axis=1) if su.ndim == 2 else Bs)[:, :n_u]
-    C = jax.jacfwd(model.observe, 0)(x, uo, params)
-    D = jax.jacfwd(model.observe, 1)(x, uo, params)[:, :n_u]
+    C, D = jax.jacfwd(model.observe, (0, 1))(x, uo, params)
     if rhs is None:
-        return A, B, C, D, None, None
-    return A, B, C, D, jax.jacfwd(rhs, 0)(x, u, whole), jax.jacfwd(rhs, 1)(x, u, whole)
+        return A, B, C, D[:, :n_u], None, None
+    return A, B, C, D[:, :n_u], *jax.jacfwd(rhs, (0, 1))(x, u, whole)
 
 
 def linearise(

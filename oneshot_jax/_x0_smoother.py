@@ -95,7 +95,10 @@ def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
 
     **Returns:** the filtered means and covariances m[k|k], P[k|k] for k = 0..T-2, the
     predicted m[k+1|k], P[k+1|k] and the Jacobians F_k of f there (the smoother's
-    inputs), and m[T-1|T-1], P[T-1|T-1].
+    inputs), m[T-1|T-1], P[T-1|T-1], and the log-likelihood of z under the filter's
+    model: its innovations e_k = z[k] - g(m[k|k-1]) are independent, N(0, S_k), S_k =
+    H_k P[k|k-1] H_k^T + R (the prediction-error decomposition, Särkkä 2013, Chapter
+    12), the missing entries left out.
     """
     eye = jnp.eye(m0.shape[0], dtype=m0.dtype)
 
@@ -104,26 +107,34 @@ def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
         H = jax.jacfwd(model.observe)(m, u_k, theta) * seen[:, None].astype(m.dtype)
         S = H @ P @ H.T + R
         Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
-        m = m + Kt.T @ jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
+        e = jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
+        m = m + Kt.T @ e
         A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
         P = A @ P @ A.T + Kt.T @ R @ Kt
-        return m, 0.5 * (P + P.T)
+        # (the innovation's density over the measured entries: S's other rows unit)
+        both = seen[:, None] & seen[None, :]
+        S_seen = jnp.where(both, S, jnp.eye(S.shape[0], dtype=S.dtype))
+        _, logdet = jnp.linalg.slogdet(S_seen)
+        quad = e @ jnp.linalg.solve(S_seen, e)
+        loglik = -0.5 * (logdet + quad + jnp.sum(seen) * jnp.log(2 * jnp.pi))
+        return m, 0.5 * (P + P.T), loglik
 
     def forward(carry, inp):
-        m, P = carry
+        m, P, total = carry
         u_k, z_k, u_step = inp
-        mf, Pf = update(m, P, u_k, z_k)
+        mf, Pf, loglik = update(m, P, u_k, z_k)
         F = jax.jacfwd(model.step)(mf, u_step, theta)
         Pp = F @ Pf @ F.T + Qp
         mp = model.step(mf, u_step, theta)
-        return (mp, 0.5 * (Pp + Pp.T)), (mf, Pf, mp, Pp, F)
+        return (mp, 0.5 * (Pp + Pp.T), total + loglik), (mf, Pf, mp, Pp, F)
 
     n = u.shape[0]
-    (m, P), (mf, Pf, mp, Pp, F) = jax.lax.scan(
-        forward, (m0, P0), (u[: n - 1], z[: n - 1], model.step_inputs(u))
+    zero = jnp.zeros((), m0.dtype)
+    (m, P, total), (mf, Pf, mp, Pp, F) = jax.lax.scan(
+        forward, (m0, P0, zero), (u[: n - 1], z[: n - 1], model.step_inputs(u))
     )
-    m_last, P_last = update(m, P, u[n - 1], z[n - 1])
-    return (mf, Pf, mp, Pp, F), (m_last, P_last)
+    m_last, P_last, loglik = update(m, P, u[n - 1], z[n - 1])
+    return (mf, Pf, mp, Pp, F), (m_last, P_last), total + loglik
 
 
 @jit
@@ -135,7 +146,7 @@ def _smooth(model, theta, m0, P0, Qp, R, u, z):
         G_k = P[k|k] F_k^T P[k+1|k]^+,   m[k|n] = m[k|k] + G_k (m[k+1|n] - m[k+1|k]),
         P[k|n] = P[k|k] + G_k (P[k+1|n] - P[k+1|k]) G_k^T.
     """
-    (mf, Pf, mp, Pp, F), (m_last, P_last) = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
+    (mf, Pf, mp, Pp, F), (m_last, P_last), _ = ekf_forward(model, theta, m0, P0, Qp, R, u, z)
 
     def backward(carry, inp):
         ms, Ps = carry
