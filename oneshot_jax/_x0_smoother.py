@@ -89,9 +89,10 @@ def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
     x[k+1] = f(x[k], u_step[k]) + w_k, w_k ~ N(0, Qp); z[k] = g(x[k], u[k]) + v_k,
     v_k ~ N(0, R); x[0] ~ N(m0, P0); f and g linearised by `jax.jacfwd` at the predicted
     and filtered means. A NaN entry of z is a missing measurement: its row of the update
-    is left out (zero row of the Jacobian of g, zero innovation, so zero gain), and a
-    sample with none measured is a prediction alone. Traced (inside the caller's compiled
-    call).
+    is left out (zero row of the Jacobian of g, zero innovation, and R's covariances
+    between it and the measured entries dropped, so zero gain and the measured entries'
+    update that of their own block of R), and a sample with none measured is a
+    prediction alone. Traced (inside the caller's compiled call).
 
     **Returns:** the filtered means and covariances m[k|k], P[k|k] for k = 0..T-2, the
     predicted m[k+1|k], P[k+1|k] and the Jacobians F_k of f there (the smoother's
@@ -105,14 +106,15 @@ def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
     def update(m, P, u_k, z_k):
         seen = jnp.isfinite(z_k)
         H = jax.jacfwd(model.observe)(m, u_k, theta) * seen[:, None].astype(m.dtype)
-        S = H @ P @ H.T + R
+        both = seen[:, None] & seen[None, :]
+        R_k = jnp.where(both | jnp.eye(R.shape[0], dtype=bool), R, 0.0)  # (measured block)
+        S = H @ P @ H.T + R_k
         Kt = jsl.cho_solve(jsl.cho_factor(S), H @ P)  # K^T = S^{-1} H P
         e = jnp.where(seen, z_k - model.observe(m, u_k, theta), 0.0)
         m = m + Kt.T @ e
         A = eye - Kt.T @ H  # Joseph form: stays symmetric PSD
-        P = A @ P @ A.T + Kt.T @ R @ Kt
+        P = A @ P @ A.T + Kt.T @ R_k @ Kt
         # (the innovation's density over the measured entries: S's other rows unit)
-        both = seen[:, None] & seen[None, :]
         S_seen = jnp.where(both, S, jnp.eye(S.shape[0], dtype=S.dtype))
         _, logdet = jnp.linalg.slogdet(S_seen)
         quad = e @ jnp.linalg.solve(S_seen, e)

@@ -273,3 +273,26 @@ def test_no_process_noise_in_the_data_is_said():
         oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, 1.0, x0=M0, scales=[1.0, 0.1, 2.0])
     with pytest.raises(TypeError, match="`shape` must be given"):
         oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, None, x0=M0)
+
+
+def test_a_missing_entry_leaves_its_noise_covariances_out():
+    """Two correlated measurement noises, one of them missing at some samples: the
+    filter updates from the measured entry with its own variance (the Kalman filter of
+    the measured rows), not with a covariance to the one not measured."""
+    C2, R2 = np.eye(2), np.array([[4e-4, 3e-4], [3e-4, 9e-4]])
+    model = oj.Model(step, lambda x, u, th: x)
+    z = np.stack([C2 @ x for x in np.asarray(oj.simulate(LINEAR, {"A": A}, M0 + 1, U)[0])])
+    z = z + 0.02 * rng.standard_normal(z.shape)
+    z[[5, 6, 30], 1] = np.nan
+    z[[12, 50], 0] = np.nan
+    m, P, filtered = M0.copy(), P0.copy(), []
+    for k in range(T):
+        seen = np.isfinite(z[k])
+        Cs, Rs = C2[seen], R2[np.ix_(seen, seen)]
+        gain = P @ Cs.T @ np.linalg.inv(Cs @ P @ Cs.T + Rs)
+        m, P = m + gain @ (z[k][seen] - Cs @ m), (np.eye(2) - gain @ Cs) @ P
+        filtered.append(m.copy())
+        m, P = A @ m + B @ U[k], A @ P @ A.T + Q
+    pred = oj.predict_ahead(model, {"A": A}, U, z, 1, x0=M0, process_noise=Q,
+                            measurement_noise=R2, prior_covariance=P0, missing="mask")  # fmt: skip
+    np.testing.assert_allclose(pred.filtered, np.array(filtered), atol=1e-12)
