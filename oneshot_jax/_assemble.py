@@ -302,7 +302,12 @@ def _warn_identifiability(
                 "not identifiable there, which may be the point's and not the data's",
             )
         elif stop in SUCCESS:
-            where, verdict = ("at the solution", "not identifiable from these data")
+            where, verdict = (
+                "at the solution",
+                "not identifiable from these data around this estimate: the rank is the "
+                "Jacobian's here, and in another minimum, or with bounds that keep the "
+                "states physical, it may be full",
+            )
         else:
             where, verdict = (
                 f"where the fit stopped ({stop}: not a solution, see its message)",
