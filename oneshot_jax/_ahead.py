@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._checks import check_data, check_tree, is_concrete
+from ._checks import as_float, check_data, check_tree, is_concrete
 from ._jit import jit
 from ._x0_smoother import _smoother_defaults, ekf_forward
 
@@ -111,6 +111,8 @@ def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
 
 
 def _horizon(K, T) -> int:
+    if hasattr(K, "item") and np.shape(K) == () and is_concrete(K):
+        K = K.item()  # (a 0-d array)
     if isinstance(K, (bool, np.bool_)) or not (
         isinstance(K, (int, np.integer)) or (isinstance(K, float) and math.isinf(K))
     ):
@@ -197,10 +199,22 @@ def predict_ahead(
 
 
 def _filter_inputs(
-    model, theta, u, z, x0, process_noise, measurement_noise, prior_covariance, weight, t, missing
+    model,
+    theta,
+    u,
+    z,
+    x0,
+    process_noise,
+    measurement_noise,
+    prior_covariance,
+    weight,
+    t,
+    missing,
+    process_name="process_noise",
 ):
     """The checked data of the filter (`_checks.check_data`), its prior mean, its
-    covariances (P0, Q_w, R) in the data's dtype and z with NaN at missing samples."""
+    covariances (P0, Q_w, R) in the data's dtype and z with NaN at missing samples
+    (`process_name`: the argument that gave `process_noise`)."""
     check_tree(theta, "theta")
     if missing not in ("raise", "mask"):
         raise ValueError(f'`missing` must be "raise" or "mask", got {missing!r}.')
@@ -219,7 +233,13 @@ def _filter_inputs(
     data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
     guess = np.asarray(data.x0)
     P0, Qp, R = _smoother_defaults(
-        data, model.observes_state, guess, process_noise, measurement_noise, prior_covariance
+        data,
+        model.observes_state,
+        guess,
+        process_noise,
+        measurement_noise,
+        prior_covariance,
+        process_name,
     )
     dtype = data.x0.dtype
     zs = jnp.asarray(data.z)
@@ -248,6 +268,25 @@ class ProcessNoise(NamedTuple):
     scales: np.ndarray
     log_likelihoods: np.ndarray
     interior: bool
+
+
+def _grid(scales):
+    """The grid of scales, checked: increasing, positive, finite, at least 3."""
+    if np.asarray(scales).dtype == bool:
+        raise TypeError(f"`scales` must hold numbers, got {scales!r}.")
+    grid = np.asarray(as_float(scales, "scales"), np.float64)
+    if (
+        grid.ndim != 1
+        or grid.size < 3
+        or not np.all(np.isfinite(grid))
+        or not np.all(grid > 0)
+        or np.any(np.diff(grid) <= 0)
+    ):
+        raise ValueError(
+            "`scales` must be an increasing grid of at least 3 finite positive numbers, got "
+            f"{scales!r}."
+        )
+    return grid
 
 
 @jit
@@ -297,13 +336,15 @@ def estimate_process_noise(
     if shape is None:
         raise TypeError("`shape` must be given: the process noise covariance's shape (n_x).")
     data, guess, (P0, Qp, R), zs = _filter_inputs(
-        model, theta, u, z, x0, shape, measurement_noise, prior_covariance, weight, t, missing
-    )
-    grid = np.logspace(-12.0, 4.0, 65) if scales is None else np.asarray(scales, np.float64)
-    if grid.ndim != 1 or grid.size < 3 or not np.all(grid > 0) or np.any(np.diff(grid) <= 0):
+        model, theta, u, z, x0, shape, measurement_noise, prior_covariance, weight, t, missing,
+        process_name="shape",
+    )  # fmt: skip
+    if not np.any(np.asarray(Qp) != 0):
         raise ValueError(
-            f"`scales` must be an increasing grid of at least 3 positive numbers, got {scales!r}."
+            "`shape` must have a nonzero entry: q `shape` is the process noise covariance, "
+            f"zero for every q with `shape` = {shape!r}."
         )
+    grid = np.logspace(-12.0, 4.0, 65) if scales is None else _grid(scales)
     args = (data.model, data.theta, jnp.asarray(guess), P0)
     rest = (R, jnp.asarray(data.u), zs)
 
@@ -336,7 +377,9 @@ def estimate_process_noise(
             f"scales (q = {scale:.3g}): the data ask for "
             + ("less" if best == 0 else "more")
             + " process noise than the grid holds (a model that fits without any, or one "
-            "that does not fit); extend `scales` or check the model.",
+            "that does not fit, or a `shape` whose entries are not in the states' scales: "
+            "q is one factor for all of them); extend `scales`, give `shape` per state, or "
+            "check the model.",
             stacklevel=2,
         )
     covariance = np.asarray(scale * np.asarray(Qp), np.asarray(Qp).dtype)

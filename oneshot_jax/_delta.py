@@ -64,7 +64,26 @@ def delta_method(fn, theta, fixed, covariance, name="fn"):
 
     def of(p):
         whole = _pytree.combine(unravel(base.at[free].set(p)), static)
-        q = jnp.asarray(fn(_pytree.ordered_like(whole, theta)))
+        try:
+            out = fn(_pytree.ordered_like(whole, theta))
+        except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+            raise TypeError(
+                f"`{name}` must be written in jax.numpy (it is differentiated by "
+                "jax.jacfwd: NumPy functions, float(), Python branches on theta's values, "
+                "and oneshot_jax.linearise and find_equilibrium, which return NumPy arrays, "
+                "cannot follow it; write a Jacobian as jax.jacfwd(rhs)(x, u, theta))."
+            ) from None
+        except Exception as err:  # noqa: BLE001 - re-raised naming the call
+            raise ValueError(
+                f"calling `{name}(theta)` failed: {type(err).__name__}: {err}"
+            ) from err
+        try:
+            q = jnp.asarray(out)
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"`{name}` must return real floating values (an array or a number), got "
+                f"{type(out).__name__}: stack several quantities with jnp.stack."
+            ) from None
         if jnp.iscomplexobj(q) or not jnp.issubdtype(q.dtype, jnp.floating):
             raise TypeError(
                 f"`{name}` must return real floating values (an array or a number), got "
@@ -75,6 +94,11 @@ def delta_method(fn, theta, fixed, covariance, name="fn"):
 
     p = base[free]
     value = np.asarray(of(p), np.float64)
+    if not np.all(np.isfinite(value)):
+        raise ValueError(
+            f"`{name}(theta)` is not finite at the estimate ({value!r}): its standard error "
+            "would mean nothing there."
+        )
     J = np.asarray(jax.jacfwd(of)(p), np.float64).reshape(value.size, free.size)
     Sigma = np.asarray(covariance, np.float64)
     if Sigma.shape != (free.size, free.size):  # (not computed: `fit(covariance=None)`)

@@ -13,7 +13,7 @@ import numpy as np
 
 from . import _io, _pytree
 from ._ahead import estimate_process_noise, predict_ahead
-from ._checks import check_data, check_state_size
+from ._checks import as_float, check_data, check_state_size
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
@@ -350,6 +350,35 @@ def _first_row_missing(z_head) -> bool:
     return first.ndim == 2 and bool(np.isnan(first).any())
 
 
+def _ndim(a) -> int:
+    """np.ndim(a), or -1 for a list that is no array (arrays of different shapes)."""
+    try:
+        return np.ndim(a)
+    except ValueError:
+        return -1
+
+
+def _several(u) -> bool:
+    """Whether `u` holds several records: (N, T, n_u), or a list of N arrays (of different
+    lengths or shapes: each record's own checks name what is wrong with it)."""
+    if is_ragged(u):
+        return True
+    n = _ndim(u)
+    return n == 3 or (n == -1 and isinstance(u, (list, tuple)))
+
+
+def _x0_prior(estimate):
+    """The prior covariance of the filter of `predict_ahead` whose mean is the x0
+    estimated from the record (`X0Estimate`): that estimate's covariance, where it is
+    finite and positive definite (every entry determined by the record); else None (the
+    filter's broad default)."""
+    P = np.asarray(estimate.covariance, np.float64)
+    if P.ndim != 2 or not np.all(np.isfinite(P)) or not np.all(estimate.identifiable):
+        return None
+    P = 0.5 * (P + P.T)
+    return P if np.min(np.linalg.eigvalsh(P)) > 1e-12 * max(np.max(np.abs(P)), 1e-300) else None
+
+
 def _split_records(u, z, t, z_name, what, length):
     """Several records' inputs `u` ((N, T, n_u) or a list of N arrays), their outputs
     `z` (one per record, (N, ., n_z) or a list; `what` names one, `length` its sample
@@ -357,14 +386,16 @@ def _split_records(u, z, t, z_name, what, length):
     three lists of N."""
     records = list(u)
     N = len(records)
+    if N == 0:
+        raise ValueError("`u` holds no records: give (N, T, n_u) or a list of N arrays, N >= 1.")
     try:
         zs = [None] * N if z is None else list(z)
     except TypeError:
         zs = None
-    one = z is not None and zs is not None and not is_ragged(z) and np.ndim(z) == 2
+    one = z is not None and zs is not None and not is_ragged(z) and _ndim(z) == 2
     if zs is None or len(zs) != N or one:
-        shape = "" if zs is None or is_ragged(z) else f" of shape {np.shape(z)}"
-        count = "." if not zs else f" with {len(zs)} {what}s."
+        shape = "" if zs is None or _ndim(z) < 0 or is_ragged(z) else f" of shape {np.shape(z)}"
+        count = "." if not zs else f" ({len(zs)} given)."
         if one:  # (its rows are samples, not records)
             count = f", one {what} ({length}, n_z)."
         raise ValueError(
@@ -372,7 +403,7 @@ def _split_records(u, z, t, z_name, what, length):
             f"(N, {length}, n_z) or a list of N arrays ({length}, n_z), got "
             f"{type(z).__name__}{shape}{count}"
         )
-    per_t = t is not None and (is_ragged(t) or np.ndim(t) == 2)
+    per_t = t is not None and (is_ragged(t) or _ndim(t) in (-1, 2))
     if per_t and len(t) != N:
         raise ValueError(
             f"`t` must hold the sample times of each of the {N} records, got {len(t)}."
@@ -572,6 +603,11 @@ class FitResult(eqx.Module):
     def _check_u(self, u):
         """Refuse inputs with another number of columns than the fitted data's (each
         record of a ragged list alike)."""
+        if isinstance(u, (list, tuple)) and not u:
+            raise ValueError(
+                "`u` is empty: give one record's inputs (T, n_u), or several records, "
+                "(N, T, n_u) or a list of N arrays."
+            )
         if self.n_u is None:
             return
         for record in list(u) if is_ragged(u) else [u]:
@@ -583,6 +619,8 @@ class FitResult(eqx.Module):
                 hint = (
                     " (is it transposed? u is (T, n_u))"
                     if len(shape) >= 2 and shape[-2] == self.n_u
+                    else " (a record of T samples of one input is (T, 1): u[:, None])"
+                    if len(shape) == 1 and self.n_u == 1
                     else ""
                 )
                 raise ValueError(
@@ -851,7 +889,7 @@ class FitResult(eqx.Module):
         """
         self._model_or_raise("predict")
         self._check_u(u)
-        if is_ragged(u) or np.ndim(u) == 3:
+        if _several(u):
             return self._predict_records(u, z_head, t, kwargs)
         self._check_z_head(z_head)
         kwargs = dict(kwargs)
@@ -932,8 +970,14 @@ class FitResult(eqx.Module):
             (N, n_x), or one for all, (n_x,).
         - `measurement_noise`: default the one the fit estimated, sigma^2 Q^{-1} (as for
             `predict`'s smoother), else the defaults of `oneshot_jax.predict_ahead`.
-        - `prior_covariance`, `t`: as for `oneshot_jax.predict_ahead` (for several
-            records, `t` one (T_i,) per record, or one shared).
+        - `prior_covariance`: the covariance of the prior on x0; default, with the
+            default `x0`, that estimate's covariance (`predict(u, z).estimate`: the
+            uncertainty of the mean the filter starts from, so the first K predictions'
+            `std` is that of a simulation from it), or the broad default of
+            `oneshot_jax.predict_ahead` where the record does not determine every entry
+            of x0 or `x0` is given.
+        - `t`: as for `oneshot_jax.predict_ahead` (for several records, one (T_i,) per
+            record, or one shared).
         - `missing`: default the fit's (`"mask"`: NaN in z are missing measurements).
 
         **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`, `std`); for several
@@ -948,7 +992,7 @@ class FitResult(eqx.Module):
             prior_covariance=prior_covariance,
             missing=missing,
         )
-        if is_ragged(u) or np.ndim(u) == 3:
+        if _several(u):
             records, zs, times = _split_records(u, z, t, "z", "record's outputs", "T")
             N = len(records)
             if x0 is not None and np.ndim(x0) == 2 and np.shape(x0)[0] != N:
@@ -965,7 +1009,11 @@ class FitResult(eqx.Module):
             ]
         if np.ndim(u) != 2:
             raise ValueError(f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}.")
+        self._check_record_z(u, z, missing)
         filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
+        estimate = filter_args.pop("estimate")
+        if prior_covariance is None and estimate is not None:
+            prior_covariance = _x0_prior(estimate)
         return predict_ahead(
             self.model,
             self.theta,
@@ -978,19 +1026,55 @@ class FitResult(eqx.Module):
             **filter_args,
         )
 
+    def _check_record_z(self, u, z, missing):
+        """Refuse a record's measured outputs `z` for the filter that are not (T, n_z),
+        T the samples of `u` and n_z the fitted data's, or hold NaN where `missing`
+        (default the fit's) does not allow them (before the default x0's `predict(u, z)`,
+        whose errors would name its `z_head`)."""
+        T = np.shape(u)[0]
+        if T == 0:
+            raise ValueError(
+                f"`u` must hold at least one sample (T >= 1), got shape {np.shape(u)}."
+            )
+        if np.asarray(z).dtype == bool:
+            raise ValueError("`z` must hold real numbers (measured outputs), got dtype bool.")
+        zs = np.asarray(as_float(z, "z"), np.float64)
+        n_z = np.shape(self.residuals)[-1] if np.ndim(self.residuals) else None
+        if zs.ndim != 2 or zs.shape[0] != T or (n_z is not None and zs.shape[1] != n_z):
+            hint = " (is it transposed? z is (T, n_z))" if zs.shape[::-1] == (T, n_z) else ""
+            raise ValueError(
+                f"`z` must have shape ({T}, {'n_z' if n_z is None else n_z}) (the measured "
+                f"outputs of the {T} samples of `u`), got shape {zs.shape}{hint}."
+            )
+        if np.isinf(zs).any():
+            raise ValueError("`z` contains inf values.")
+        if (self.missing if missing is None else missing) == "raise" and np.isnan(zs).any():
+            raise ValueError(
+                '`z` contains NaN values: pass missing="mask" to take them as missing samples.'
+            )
+
     def _filter_defaults(self, u, z, x0, measurement_noise, t, missing):
         """The filter's arguments of `predict_ahead` and `estimate_process_noise` with
         the fit's defaults: the record's x0 as `predict(u, z)` estimates it, the
-        measurement noise the fit estimated (else its weight), its `missing`."""
+        measurement noise the fit estimated (else its weight), its `missing`; and under
+        `"estimate"` that x0's `X0Estimate` (None where `x0` is given)."""
         missing = self.missing if missing is None else missing
+        estimate = None
         if x0 is None:
-            x0 = self.predict(u, z, t=t, missing=missing).x0
+            pred = self.predict(u, z, t=t, missing=missing)
+            x0, estimate = pred.x0, pred.estimate
         weight = None
         if measurement_noise is None:
             measurement_noise = self._measurement_noise()
             if measurement_noise is None and self.weight is not None:
                 weight = self.weight if reads_weight(self.weight) else None
-        return dict(x0=x0, measurement_noise=measurement_noise, weight=weight, missing=missing)
+        return dict(
+            x0=x0,
+            measurement_noise=measurement_noise,
+            weight=weight,
+            missing=missing,
+            estimate=estimate,
+        )
 
     def estimate_process_noise(
         self,
@@ -1011,18 +1095,22 @@ class FitResult(eqx.Module):
         `process_noise`.
 
         **Arguments:** one record's `u` (T, n_u) and `z` (T, n_z); `shape`, the
-        covariance's shape (n_x): a scalar, a vector of variances or a matrix; the
-        others with the defaults of `predict_ahead` (the record's x0 from `predict(u, z)`,
-        the measurement noise the fit estimated, the fit's `missing`) and `scales` as
+        covariance's shape (n_x): a scalar, a vector of variances or a matrix, in the
+        states' units (the scale q is one for all its entries); the others with the
+        defaults of `predict_ahead` (the record's x0 from `predict(u, z)`, the
+        measurement noise the fit estimated, the fit's `missing`), except the prior
+        covariance, broad by default (the likelihood's diffuse start), and `scales` as
         for `oneshot_jax.estimate_process_noise`.
 
         **Returns:** a `ProcessNoise` (`covariance`, `scale`, `log_likelihood`, ...).
         """
         self._model_or_raise("estimate_process_noise")
         self._check_u(u)
-        if is_ragged(u) or np.ndim(u) != 2:
+        if is_ragged(u) or _ndim(u) != 2:
             raise ValueError(f"`u` must be one record's inputs (T, n_u), got shape {np.shape(u)}.")
+        self._check_record_z(u, z, missing)
         filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
+        filter_args.pop("estimate")
         return estimate_process_noise(
             self.model,
             self.theta,
@@ -1081,6 +1169,7 @@ class FitResult(eqx.Module):
         **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`).
         """
         model = self._model_or_raise("find_equilibrium")
+        self._check_u(u)
         if x is None:
             x0 = np.asarray(self.x0)
             x = x0 if x0.ndim == 1 else x0.mean(axis=0)
@@ -1097,6 +1186,7 @@ class FitResult(eqx.Module):
         from an ODE; `poles`).
         """
         model = self._model_or_raise("linearise")
+        self._check_u(u)
         if np.ndim(self.x0):
             check_state_size(x, np.shape(self.x0)[-1], "`x`")
         return linearise(model, self.theta, x, u, dt=dt)
@@ -1231,7 +1321,7 @@ class FitResult(eqx.Module):
                 "`predict` does; `z_head=z` on a fitted record), got "
                 + ("both." if x0 is not None else "neither.")
             )
-        if is_ragged(u) or np.ndim(u) == 3:
+        if _several(u):
             N = len(u)
             if z_head is not None:
                 records, heads, times = _split_records(u, z_head, t, "z_head", "head", "n")
@@ -1254,7 +1344,7 @@ class FitResult(eqx.Module):
         head = None
         if z_head is not None:
             self._check_z_head(z_head)
-            kwargs = {"missing": "mask"} if np.isnan(np.asarray(z_head, float)).any() else {}
+            kwargs = {"missing": "mask"} if np.isnan(as_float(z_head, "z_head")).any() else {}
             pred = self.predict(u, z_head, t=t, **kwargs)
             x0 = pred.x0
             s2 = self._noise_variance()

@@ -27,7 +27,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._checks import as_float, check_data
 from ._linalg import psd_solve
-from ._model import ODE_STEPS
+from ._model import ODE_STEPS, Model
 
 
 class Equilibrium(NamedTuple):
@@ -107,10 +107,9 @@ class LinearModel(NamedTuple):
         (MATLAB's `freqresp`, what `bode` plots): C (e^{j w dt} I - A)^{-1} B + D of the
         discrete-time model, w in radians per unit of `dt` (per sample where `dt` is
         None), or with `continuous=True` C (j w I - Ac)^{-1} Bc + D of an ODE model's
-        continuous-time one. |H| is the gain, np.angle(H) the phase."""
-        w = np.asarray(w, np.float64)
-        if w.ndim != 1 or not np.all(np.isfinite(w)):
-            raise ValueError(f"`w` must be a 1-D array of finite frequencies, got {w!r}.")
+        continuous-time one. |H| is the gain, np.angle(H) the phase; at a frequency on a
+        pole (an integrator's w = 0) H is infinite, as MATLAB's `freqresp` gives it."""
+        w = frequencies(w)
         if continuous:
             if self.Ac is None:
                 raise ValueError(
@@ -121,8 +120,19 @@ class LinearModel(NamedTuple):
         else:
             s, A, B = np.exp(1j * w * (1.0 if self.dt is None else self.dt)), self.A, self.B
         eye = np.eye(A.shape[0])
-        X = np.linalg.solve(s[:, None, None] * eye - A, np.broadcast_to(B, (len(w), *B.shape)))
-        return self.C @ X + self.D
+        M = s[:, None, None] * eye - A
+        try:
+            X = np.linalg.solve(M, np.broadcast_to(B, (len(w), *B.shape)))
+        except np.linalg.LinAlgError:  # (a frequency on a pole: H infinite there)
+            X = np.empty((len(w), *B.shape), complex)
+            for i in range(len(w)):
+                try:
+                    X[i] = np.linalg.solve(M[i], B)
+                except np.linalg.LinAlgError:
+                    X[i] = complex(np.inf, 0.0)
+        with np.errstate(invalid="ignore"):
+            H = self.C @ X + self.D
+        return np.where(np.isfinite(X).all(axis=(1, 2))[:, None, None], H, complex(np.inf, 0.0))
 
     def __str__(self) -> str:
         kind = "" if self.Ac is None else ", with the continuous-time Ac, Bc"
@@ -134,6 +144,29 @@ class LinearModel(NamedTuple):
         )
 
     __repr__ = __str__
+
+
+def frequencies(w, positive=False):
+    """Angular frequencies as a 1-D float64 array of finite real numbers (positive ones
+    for a log axis where `positive`)."""
+    if np.asarray(w).dtype == bool:
+        raise TypeError(f"`w` must hold angular frequencies (real numbers), got {w!r}.")
+    a = np.asarray(as_float(w, "w"), np.float64)
+    if a.ndim != 1 or a.size == 0 or not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"`w` must be a non-empty 1-D array of finite angular frequencies, got {w!r}."
+        )
+    if positive and np.any(a <= 0):
+        raise ValueError(
+            f"`w` must hold positive angular frequencies (the Bode plot's axis is "
+            f"logarithmic), got {np.min(a):g} among them."
+        )
+    return a
+
+
+def _model(model):
+    if not isinstance(model, Model):
+        raise TypeError(f"`model` must be a oneshot_jax.Model, got {type(model).__name__}.")
 
 
 def _input(u):
@@ -175,6 +208,8 @@ def _interval(model, dt, need):
             "`dt` (the sample interval of the discrete-time A and B) is needed for a model "
             "of time-stamped records (`Model.from_ode(rhs, dt=None)`)."
         )
+    if hasattr(dt, "item") and np.shape(dt) == ():
+        dt = dt.item()  # (a 0-d array)
     if isinstance(dt, bool) or not isinstance(dt, (int, float, np.floating, np.integer)):
         raise TypeError(f"`dt` must be a positive number, got {dt!r}.")
     if not (math.isfinite(dt) and dt > 0):
@@ -239,8 +274,11 @@ def find_equilibrium(
     list of N.
 
     **Raises:** `ValueError` for `u` or `x` of the wrong shape (or a state the model does
-    not take), a `hold` that is not an (n_x,) boolean mask.
+    not take), a `hold` that is not an (n_x,) boolean mask; `TypeError` for a `model`
+    that is not a `Model`.
     """
+    _model(model)
+    u = as_float(u, "u")
     if np.ndim(u) > 2:
         raise ValueError(
             f"`u` must be the constant input (n_u,) or a sweep of N inputs (N, n_u), got "
@@ -347,8 +385,10 @@ def linearise(
     **Returns:** a `LinearModel` (`A`, `B`, `C`, `D`; `Ac`, `Bc` for an ODE model; `dt`,
     `x`, `u`; `poles`).
 
-    **Raises:** `ValueError` for arrays of the wrong shape, a missing or needless `dt`.
+    **Raises:** `ValueError` for arrays of the wrong shape, a missing or needless `dt`;
+    `TypeError` for a `model` that is not a `Model`.
     """
+    _model(model)
     interval = _interval(model, dt, need=True)
     data, u = _checked(model, theta, x, u, interval)
     rhs = _rhs(model)

@@ -166,9 +166,16 @@ def _smooth(model, theta, m0, P0, Qp, R, u, z):
 
 
 def _smoother_defaults(
-    data, observes_state, guess, process_noise, measurement_noise, prior_covariance
+    data,
+    observes_state,
+    guess,
+    process_noise,
+    measurement_noise,
+    prior_covariance,
+    process_name="process_noise",
 ):
-    """The covariances of the smoother, defaults from the scales of the head."""
+    """The covariances of the smoother, defaults from the scales of the head
+    (`process_name`: the argument that gave `process_noise`, for the errors)."""
     n_x, n_z = guess.shape[0], data.n_z
     z = np.asarray(data.z)
     s_z = _rms(z)
@@ -192,7 +199,7 @@ def _smoother_defaults(
     else:
         R = np.diag((MEASUREMENT_NOISE_REL * s_z) ** 2)
     if process_noise is not None:
-        Qp = _covariance_arg(process_noise, n_x, "process_noise", definite=False)
+        Qp = _covariance_arg(process_noise, n_x, process_name, definite=False)
     else:
         Qp = np.diag((PROCESS_NOISE_REL * s_x) ** 2)
     if prior_covariance is not None:

@@ -21,7 +21,7 @@ from ._ahead import AheadPrediction
 from ._fit_result import FitResult
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
-from ._operating_point import LinearModel
+from ._operating_point import LinearModel, frequencies
 from ._timing import as_times as _as_times
 
 __all__ = ["bode", "compare", "resid"]
@@ -335,6 +335,8 @@ def compare(
     names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):
         raise TypeError(f"`time_label` must be a string, got {time_label!r}.")
+    if hasattr(confidence, "item") and np.shape(confidence) == ():
+        confidence = confidence.item()  # (a 0-d array)
     if confidence is not None and (
         isinstance(confidence, bool)
         or not isinstance(confidence, numbers.Real)
@@ -583,10 +585,14 @@ def bode(*models, w=None, continuous=False, labels=None, ax=None):
     - `labels`: one name per model; default `"model"` or `"model 1"`, ....
     - `ax`: two matplotlib Axes (gain, phase); default a new figure.
 
+    A pair whose response is zero (no path from the input to the output: |H| at the
+    round-off of the other pairs' at every frequency) is not drawn; the legend says so.
+
     **Returns:** the matplotlib `Figure`.
 
     **Raises:** `TypeError` for a model that is not a `LinearModel`; `ValueError` for
-    models of other sizes, or `continuous` without an ODE model's Ac.
+    models of other sizes, `continuous` without an ODE model's Ac, or frequencies that
+    are not positive.
     """
     plt = _pyplot()
     if (
@@ -609,14 +615,25 @@ def bode(*models, w=None, continuous=False, labels=None, ax=None):
             f"the models must have the same numbers of outputs and inputs, got {sorted(sizes)}."
         )
     n_z, n_u = sizes.pop()
-    w = _default_frequencies(models, continuous) if w is None else np.asarray(w, np.float64)
+    if continuous and any(m.Ac is None for m in models):
+        raise ValueError(
+            "`continuous=True` needs models built from an ODE (`Model.from_ode`): a model "
+            "here has no Ac, Bc."
+        )
+    w = _default_frequencies(models, continuous) if w is None else frequencies(w, positive=True)
     labels = _names(labels, len(models), "labels", "model", start=1)
     fig, (gain, phase) = _axes(ax, 2, plt, (8.0, 6.0), "gain and phase")
     for m, label in zip(models, labels):
         H = m.frequency_response(w, continuous=continuous)
+        finite = np.abs(H[np.isfinite(H)])
+        # (a pair without a path from input to output: its H is round-off of the others')
+        floor = 1e3 * np.finfo(np.float64).eps * (finite.max() if finite.size else 0.0)
         for i in range(n_z):
             for j in range(n_u):
                 pair = "" if n_z * n_u == 1 else f" z[{i}] <- u[{j}]"
+                if np.all(np.abs(H[:, i, j]) <= floor):
+                    gain.plot([], [], label=f"{label}{pair}: no response (zero)")
+                    continue
                 with np.errstate(divide="ignore"):
                     gain.semilogx(w, 20 * np.log10(np.abs(H[:, i, j])), label=label + pair)
                 phase.semilogx(w, np.degrees(np.unwrap(np.angle(H[:, i, j]))), label=label + pair)

@@ -120,13 +120,21 @@ def test_the_results_method_takes_the_fits_noise_and_x0():
     result = oj.fit(LINEAR, theta0, M0, U, Z, fixed={"A": np.array([[True, True], [False, False]])})
     assert result.success
     mine = result.predict_ahead(U, Z, 2, process_noise=Q)
-    x0 = result.predict(U, Z).x0
+    estimate = result.predict(U, Z).estimate
+    x0, P0_fit = estimate.x0, estimate.covariance
     noise = result._measurement_noise()
     same = oj.predict_ahead(LINEAR, result.theta, U, Z, 2, x0=x0, process_noise=Q,
-                            measurement_noise=noise)  # fmt: skip
+                            measurement_noise=noise, prior_covariance=P0_fit)  # fmt: skip
     np.testing.assert_allclose(mine.z, same.z, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(mine.std, same.std, rtol=1e-12)
     other = oj.predict_ahead(LINEAR, result.theta, U, Z, 2, x0=x0, process_noise=Q)
     assert np.abs(other.z - mine.z).max() > 1e-4
+    # The prior is the x0 estimate's covariance, not the function's broad default: the
+    # first predictions (a simulation from x0) have the std of that x0's uncertainty.
+    broad = oj.predict_ahead(LINEAR, result.theta, U, Z, 2, x0=x0, process_noise=Q,
+                             measurement_noise=noise)  # fmt: skip
+    assert np.all(np.isfinite(P0_fit)) and mine.std[0, 0] < 0.1 * broad.std[0, 0]
+    np.testing.assert_allclose(mine.std[0], np.sqrt(C @ P0_fit @ C.T + noise).ravel(), rtol=1e-10)
     rmse = [oj.metrics.rmse(Z, result.predict_ahead(U, Z, K, process_noise=Q).z)[0]
             for K in (1, 5)]  # fmt: skip
     assert rmse[0] < 0.8 * rmse[1]
@@ -138,12 +146,14 @@ def test_the_results_method_takes_the_fits_noise_and_x0():
         (0, ValueError, "integer >= 1"),
         (2.5, TypeError, "integer >= 1"),
         (True, TypeError, "integer >= 1"),
-        (jnp.array(2), TypeError, "integer >= 1"),
+        (jnp.array([2]), TypeError, "integer >= 1"),
+        (np.array(2.0), TypeError, "integer >= 1"),
     ],
 )
 def test_bad_horizons_are_named(K, error, match):
     with pytest.raises(error, match=match):
         _ahead(K)
+    assert _ahead(np.array(2)).K == _ahead(jnp.array(2)).K == 2  # (0-d integer arrays)
 
 
 def test_bad_arguments_are_named():
@@ -158,6 +168,37 @@ def test_bad_arguments_are_named():
         result.predict_ahead(np.stack([U, U]), Z, 2, process_noise=Q)
     with pytest.raises(ValueError, match=r"`x0` \(the prior means\) must have shape"):
         result.predict_ahead([U, U], [Z, Z], 2, process_noise=Q, x0=np.zeros((3, 2)))
+    # The result's methods name their own `z` (not the head of the default x0's
+    # `predict`), and records that are not records.
+    for z, match in (
+        (Z[:, 0], r"`z` must have shape \(80, 1\)"),
+        (Z.T, r"is it transposed\? z is \(T, n_z\)"),
+        (Z[:70], r"`z` must have shape \(80, 1\)"),
+        (np.where(np.arange(T)[:, None] == 5, np.nan, Z), "`z` contains NaN values: pass"),
+        (None, "`z` is required"),
+    ):  # fmt: skip
+        for method in (result.predict_ahead, result.estimate_process_noise):
+            with pytest.raises(ValueError, match=match):
+                method(U, z, 2, **({"process_noise": Q} if method == result.predict_ahead else {}))
+    with pytest.raises(ValueError, match=r"\(T, 1\): u\[:, None\]"):
+        result.predict_ahead(U[:, 0], Z, 2, process_noise=Q)
+    with pytest.raises(ValueError, match=r"`u` must hold at least one sample"):
+        result.predict_ahead(U[:0], Z[:0], 2, process_noise=Q)
+    with pytest.raises(ValueError, match="`u` holds no records"):
+        result.predict_ahead(np.zeros((0, T, 1)), np.zeros((0, T, 1)), 2, process_noise=Q)
+    with pytest.raises(ValueError, match="`u` is empty"):
+        result.output_std([], x0=M0)
+    with pytest.raises(ValueError, match="`z` must have shape"):  # (a record of two outputs)
+        result.predict_ahead([U, U], [np.ones((T, 2)), Z], 2, process_noise=Q)
+    # `estimate_process_noise`'s `shape` and `scales` are named as such.
+    for shape, match in ((-np.eye(2), "`shape` must be positive semi-definite"),
+                         (np.ones(3), r"`shape` must be a scalar, a \(2,\) vector"),
+                         (0.0, "`shape` must have a nonzero entry")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, shape, x0=M0, measurement_noise=R)
+    for scales in ([1.0, 10.0, np.inf], "abc"):
+        with pytest.raises(ValueError, match="`scales` must"):
+            result.estimate_process_noise(U, Z, 1.0, scales=scales)
 
 
 def test_the_results_method_predicts_each_of_several_records():

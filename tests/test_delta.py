@@ -67,6 +67,24 @@ def test_the_poles_of_the_linear_model(fitted):
     np.testing.assert_allclose(poles.std, [f0.std] * 2, rtol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "fn, error, match",
+    [
+        (lambda th: {"a": th["b"]}, TypeError, "must return real floating values"),
+        (lambda th: (th["b"], jnp.stack([th["b"], th["b"]])), TypeError, "jnp.stack"),
+        (lambda th: np.sqrt(th["w0sq"]), TypeError, "written in jax.numpy"),
+        (lambda th: float(th["w0sq"]), TypeError, "written in jax.numpy"),
+        (lambda th: th["nope"], ValueError, r"calling `fn\(theta\)` failed: KeyError"),
+        (lambda th: jnp.log(-th["b"]), ValueError, "not finite at the estimate"),
+        (3.0, TypeError, "`fn` must be a function of theta"),
+        (lambda th: jnp.linalg.eigvals(jnp.eye(2) * th["b"]), TypeError, "jnp.real"),
+    ],
+)  # fmt: skip
+def test_bad_functions_are_named(fitted, fn, error, match):
+    with pytest.raises(error, match=match):
+        fitted.delta_method(fn)
+
+
 def test_fixed_and_unknown_parameters():
     """A fixed parameter adds no uncertainty (std 0 of a function of it alone); without a
     covariance every std that depends on a parameter is inf, one that depends on none 0."""
@@ -80,10 +98,3 @@ def test_fixed_and_unknown_parameters():
     mixed = r.delta_method(lambda th: jnp.stack([th["b"], jnp.float64(1.0)]))
     assert np.isinf(mixed.std[0]) and mixed.std[1] == 0.0
     assert np.isinf(mixed.covariance[0]).all() and mixed.covariance[1, 1] == 0.0
-
-
-def test_bad_functions_are_named(fitted):
-    with pytest.raises(TypeError, match="`fn` must be a function of theta"):
-        fitted.delta_method(3.0)
-    with pytest.raises(TypeError, match="jnp.real"):
-        fitted.delta_method(lambda th: jnp.linalg.eigvals(jnp.eye(2) * th["b"]))

@@ -194,6 +194,13 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
     np.testing.assert_array_equal(lin.A, oj.linearise(model, result.theta, eq.x, [2.0]).A)
     with pytest.raises(ValueError, match="`x` must have the fitted state's n_x = 2"):
         result.linearise(np.zeros(3), [2.0])
+    for call in (
+        lambda: result.find_equilibrium([2.0, 1.0]),  # (the model reads u[0] alone)
+        lambda: result.find_equilibrium(np.linspace(0.0, 2.0, 5)[None, :]),  # (transposed)
+        lambda: result.linearise(eq.x, [2.0, 1.0]),
+    ):
+        with pytest.raises(ValueError, match="`u` must have n_u = 1 input columns"):
+            call()
 
 
 @pytest.mark.parametrize(
@@ -209,6 +216,12 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
          "`hold` must be an"),
         (lambda m: oj.linearise(m, THETA, np.zeros(2), ["a"]), ValueError, "`u`"),
         (lambda m: oj.linearise(m, THETA, np.zeros(3), [1.0]), ValueError, "rhs"),
+        (lambda m: oj.find_equilibrium(pendulum, THETA, [1.0], np.zeros(2)), TypeError,
+         "`model` must be a oneshot_jax.Model, got function"),
+        (lambda m: oj.linearise(None, THETA, np.zeros(2), [1.0]), TypeError,
+         "`model` must be a oneshot_jax.Model"),
+        (lambda m: oj.find_equilibrium(m, THETA, [[1.0], [2.0, 3.0]], np.zeros(2)), ValueError,
+         "`u` must hold real numbers"),
     ],
 )  # fmt: skip
 def test_bad_arguments_are_named(call, error, match):
@@ -233,6 +246,15 @@ def test_frequency_responses():
     with pytest.raises(ValueError, match="`continuous=True` needs"):
         oj.linearise(oj.Model(lambda x, u, th: th * x), 0.5, np.ones(1), np.zeros(0)
                      ).frequency_response(w, continuous=True)  # fmt: skip
+    # A frequency on a pole (an integrator's w = 0) gives an infinite H (as `freqresp`).
+    one, zero = np.ones((1, 1)), np.zeros((1, 1))
+    integrator = oj.LinearModel(one, 2 * one, one, zero, None, None, 0.1, np.zeros(1), np.zeros(1))
+    H = integrator.frequency_response([0.0, 1.0])[:, 0, 0]
+    assert np.isinf(H[0]) and H[1] == pytest.approx(2 / (np.exp(0.1j) - 1), rel=1e-14)
+    for bad, error in (([1 + 2j], ValueError), ([True, False], TypeError), ([], ValueError),
+                       ("abc", ValueError), ([[1.0]], ValueError)):  # fmt: skip
+        with pytest.raises(error, match="`w` must"):
+            integrator.frequency_response(bad)
 
 
 def test_bode_draws_the_gain_and_phase_of_the_frequency_response():
@@ -266,6 +288,21 @@ def test_bode_draws_the_gain_and_phase_of_the_frequency_response():
     plt.close(fig)
     with pytest.raises(TypeError, match=r"`models\[0\]` must be a `LinearModel`"):
         oj.plot.bode(rest.A)
+    with pytest.raises(ValueError, match="positive angular frequencies"):
+        oj.plot.bode(rest, w=[0.0, 1.0])
+    # A pair without a path from input to output (x[0] is driven by u[0] alone; z = x)
+    # is left out, and the legend says so.
+    two = oj.LinearModel(np.array([[0.9, 0.0], [0.3, 0.5]]), np.eye(2), np.eye(2),
+                         np.zeros((2, 2)), None, None, 0.1, np.zeros(2), np.zeros(2))  # fmt: skip
+    fig = oj.plot.bode(two)
+    labels = [line.get_label() for line in fig.axes[0].lines]
+    assert labels == ["model z[0] <- u[0]", "model z[0] <- u[1]: no response (zero)",
+                      "model z[1] <- u[0]", "model z[1] <- u[1]"]  # fmt: skip
+    assert len(fig.axes[1].lines) == 3
+    plt.close(fig)
+    step_only = two._replace(Ac=None)
+    with pytest.raises(ValueError, match="`continuous=True` needs models built from an ODE"):
+        oj.plot.bode(step_only, continuous=True)
 
 
 def test_a_sweep_of_inputs_follows_one_branch():
