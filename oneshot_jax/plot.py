@@ -272,7 +272,9 @@ def compare(
         record (on the fitted record, the joint covariance of theta and x0). Samples of
         unknown std (inf) get no band. An `AheadPrediction`'s band is its prediction
         band instead, zhat +- q std with its `std` (where a new measurement lies under
-        the filter's noise model). Default: no band.
+        the filter's noise model). Default: no band. The y-axis holds the measured and
+        model outputs; a band reaching more than their range beyond them (the first K
+        samples of a K-step prediction from a broad prior, say) is cut at the axis.
 
     **Returns:**
 
@@ -393,6 +395,14 @@ def compare(
                     label=f"{label}: {100 * confidence:g} % "
                     + ("prediction band" if isinstance(m, AheadPrediction) else "band"),
                 )
+        if any(b is not None for b in bands):  # (the axis the outputs' range, not a band's)
+            values = np.concatenate([z[:, k], *(zhat[:, k] for zhat in outputs)])
+            values = values[np.isfinite(values)]
+            if values.size:
+                low, high = float(values.min()), float(values.max())
+                span = max(high - low, 1e-12 * max(abs(low), abs(high)), 1e-300)
+                shown_low, shown_high = a.get_ylim()
+                a.set_ylim(max(shown_low, low - span), min(shown_high, high + span))
         if n:
             a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
             a.axvline(t[n], color="0.4", lw=0.8, ls="--")

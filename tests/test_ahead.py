@@ -247,6 +247,17 @@ def test_compare_plots_a_k_step_prediction():
     np.testing.assert_allclose(lower, pred.z[:, 0] - q * pred.std[:, 0], rtol=1e-12)
     np.testing.assert_allclose(upper, pred.z[:, 0] + q * pred.std[:, 0], rtol=1e-12)
     plt.close(fig)
+    # A broad prior's band over the first K samples (std ~ 1000 against outputs of ~1)
+    # is cut at the axis, which holds the outputs' range and no more than it beyond.
+    broad = oj.predict_ahead(LINEAR, {"A": A}, U, Z, 3, x0=M0, process_noise=Q,
+                             measurement_noise=R, prior_covariance=1e6)  # fmt: skip
+    assert broad.std[0, 0] > 100
+    fig = oj.plot.compare(Z, broad, confidence=0.95)
+    low, high = fig.axes[0].get_ylim()
+    values = np.concatenate([Z[:, 0], broad.z[:, 0]])
+    span = values.max() - values.min()
+    assert values.min() - span <= low < values.min() and values.max() < high <= values.max() + span
+    plt.close(fig)
 
 
 def reference_log_likelihood(q, z):
