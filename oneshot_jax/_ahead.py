@@ -40,6 +40,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from ._checks import as_float, check_data, check_tree, is_concrete
 from ._jit import jit
+from ._model import model_labels
 from ._x0_smoother import _smoother_defaults, ekf_forward
 
 
@@ -56,6 +57,8 @@ class AheadPrediction(NamedTuple):
         measurement noise). An interval zhat +- 1.96 std holds a new measurement with
         probability 95 % where the process and measurement noise are the ones given; the
         uncertainty of theta is not in it.
+    - `outputs`: the model's names of the outputs (`Model(outputs=...)`), which
+        `plot.compare` shows; None without them.
     """
 
     z: np.ndarray
@@ -63,6 +66,7 @@ class AheadPrediction(NamedTuple):
     filtered: np.ndarray
     K: int
     std: np.ndarray
+    outputs: tuple | None = None
 
     def __str__(self) -> str:
         return (
@@ -195,7 +199,15 @@ def predict_ahead(
         zs,
         jnp.asarray(K),  # (traced: one program for every horizon)
     )
-    return AheadPrediction(np.asarray(Z), np.asarray(X), np.asarray(filtered), K, np.asarray(std))
+    names = model_labels(getattr(model, "outputs", None), np.shape(Z)[-1])
+    return AheadPrediction(
+        np.asarray(Z),
+        np.asarray(X),
+        np.asarray(filtered),
+        K,
+        np.asarray(std),
+        None if names is None else tuple(names),
+    )
 
 
 def _filter_inputs(

@@ -332,7 +332,11 @@ def compare(
     n = n or 0
     labels = _names(labels, len(models), "labels", "model", start=1)
     if outputs is None:  # (the names of the first model that has them for these outputs)
-        given = (getattr(m.model, "outputs", None) for m in models if isinstance(m, FitResult))
+        given = (
+            getattr(m.model, "outputs", None) if isinstance(m, FitResult) else m.outputs
+            for m in models
+            if isinstance(m, (FitResult, AheadPrediction))
+        )
         outputs = next((list(o) for o in given if model_labels(o, n_z) is not None), None)
     names = _names(outputs, n_z, "outputs", "output", start=0, of=" of `z`")
     if time_label is not None and not isinstance(time_label, str):

@@ -258,6 +258,13 @@ def test_compare_plots_a_k_step_prediction():
     span = values.max() - values.min()
     assert values.min() - span <= low < values.min() and values.max() < high <= values.max() + span
     plt.close(fig)
+    # The model's names of its outputs label the axes.
+    named = oj.predict_ahead(oj.Model(step, observe, outputs="q (m)"), {"A": A}, U, Z, 3, x0=M0,
+                             process_noise=Q, measurement_noise=R)  # fmt: skip
+    assert named.outputs == ("q (m)",) and pred.outputs is None
+    fig = oj.plot.compare(Z, named)
+    assert fig.axes[0].get_ylabel() == "q (m)"
+    plt.close(fig)
 
 
 def reference_log_likelihood(q, z):
