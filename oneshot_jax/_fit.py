@@ -874,7 +874,9 @@ def fit(
         weights get a factor alike, the inverse mean square of its readings' residuals
         on the same scale as Q (`stop_info["reading_weight_factors"]`, one per
         Aggregate, records in order); an output measured only in aggregate gets Q's
-        entry 1.
+        entry 1. A weight that does not settle in the 10 fits, or runs away (outputs or
+        readings the model fits exactly, whose weight grows without bound), ends with
+        the stop `noise_weight_unsettled`, not a success.
     - `constraints`: a projection from `oneshot_jax.constraints` (`box`, `non_negative`,
         `positive`, `project`), or a list of them, on theta: every iterate lies in the
         intersection of their sets (Section 3.3; the projection onto an intersection of

@@ -229,6 +229,12 @@ def stop_detail(status: str, info: dict) -> str:
             f"{listed} never moved from the start, where their gradient and Jacobian column "
             f"are exactly zero (the solver stopped with {info.get('solver_stop', '?')})"
         )
+    if status == "noise_weight_unsettled":
+        rounds = info.get("noise_weight_rounds", "?")
+        return (
+            f"the output weight did not settle in {rounds} fits (the last one stopped with "
+            f"{info.get('solver_stop', '?')})"
+        )
     if status == "unconverged_rollout":
         return (
             f"{info.get('unconverged_rollouts', '?')} of {info.get('parallel_rollouts', '?')} "
@@ -504,7 +510,8 @@ class FitResult(eqx.Module):
         and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
-        start) and `solver_stop` (the solver's own stop); with the stop `validation`,
+        start) and `solver_stop` (the solver's own stop); with the stop
+        `noise_weight_unsettled`, `solver_stop` (the last fit's); with the stop `validation`,
         `validation_loss`, `patience` and, where the last solver stopped on a test of its
         own (`diverged`, `converged`, ...), `solver_stop`; with the stop `diverged`
         (or a `solver_stop` `diverged`),

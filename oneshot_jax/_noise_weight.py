@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 
 from ._aggregate import _per_record, record_times
+from ._results import RESULTS, is_success, name_of
 
 # Rounds of the alternation at most, and the change of Q (relative, in the Frobenius
 # norm, Q normalised to det Q = 1) at which it counts as settled.
@@ -173,6 +174,7 @@ def fit_noise_weighted(fit, args):
     given_x0 = np.shape(args["x0"])
     aggregate = args.get("aggregate")
     w, scales, used, change, rounds, result, first = None, [], [], np.inf, 0, None, None
+    unsettled = False  # (the alternation ran its rounds, or ran away)
     steps, wall = 0, 0.0
     for rounds in range(1, NOISE_ROUNDS + 1):
         with warnings.catch_warnings(record=True) as caught:
@@ -191,6 +193,7 @@ def fit_noise_weighted(fit, args):
         )
         weights, empty = noise_weight(result.residuals, readings)
         if weights is None:
+            unsettled = w is not None  # (after a reweighting: its own weight ran away)
             last = "the given weights" if w is None else "the last estimated weights"
             caught.append(
                 warnings.WarningMessage(
@@ -222,6 +225,7 @@ def fit_noise_weighted(fit, args):
         if aggregate is not None:
             args["aggregate"] = _reweighted(aggregate, factors)
     else:
+        unsettled = True
         caught.append(
             warnings.WarningMessage(
                 f"`weight='noise'`: the weight had not settled after {NOISE_ROUNDS} fits "
@@ -242,7 +246,13 @@ def fit_noise_weighted(fit, args):
         info["noise_weight_estimated"] = False
     if used:
         info["reading_weight_factors"] = [float(f) for f in used]
-    result = dataclasses.replace(result, stop_info=info, num_steps=steps, wall_time=wall)
+    reason = result.stop_reason
+    if unsettled and is_success(reason):  # (a solution of the last weights only)
+        info["solver_stop"] = name_of(reason)
+        reason = RESULTS.noise_weight_unsettled
+    result = dataclasses.replace(
+        result, stop_reason=reason, stop_info=info, num_steps=steps, wall_time=wall
+    )
     if first.starts is not None and result.starts is None:  # (the first fit's multistart)
         result = dataclasses.replace(result, starts=first.starts, best=first.best)
     return result

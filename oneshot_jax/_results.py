@@ -112,6 +112,15 @@ class RESULTS(eqx.Enumeration):
         "solution. Use the default fallback=True (the sequential loop where a rollout does "
         "not converge), or a sequential strategy"
     )
+    noise_weight_unsettled = (
+        "`weight='noise'`: the estimated output weight did not settle: its alternation of "
+        "fits and re-estimated weights ran its rounds without converging, or ran away (a "
+        "weight grew without bound while the residuals it weighs fell to zero: outputs or "
+        "readings the model can fit exactly, whose noise level the data cannot tell). The "
+        "estimate is the last fit's, a solution for that fit's weights, not the fixed "
+        "point of `weight='noise'`: give the weight (`fit(weight=Q)`, "
+        "`Aggregate(weight=...)`)"
+    )
 
 
 SUCCESS = ("converged", "statistically_converged", "zero_residual", "tol_loss", "tol_grad")

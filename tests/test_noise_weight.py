@@ -295,3 +295,29 @@ def test_an_aggregate_without_readings_leaves_the_other_outputs_weighed(empty):
     assert r.stop_info["reading_weight_factors"] == [1.0]
     ratio = float(r.weight[2]) / float(r.weight[1])
     assert 900 / 1.5 < ratio < 900 * 1.5
+
+
+def test_a_weight_that_runs_away_is_no_success():
+    """Two readings of means that the model fits exactly (with x0 free): each round
+    weighs them more (a factor of 1e13 after 10 fits) and the point samples less, until
+    their residuals are all zero. The fit reported `converged`, a success, with the
+    point samples weighted by 6e-14; it now ends `noise_weight_unsettled`, naming the
+    last fit's own stop."""
+    model = oj.Model(
+        lambda x, u, th: (
+            jnp.array([[th["a"], 0.1], [-0.1, 0.9]]) @ x + jnp.array([0.0, th["b"]]) * u[0]
+        ),
+        lambda x, u, th: x[:1],
+    )
+    rng = np.random.default_rng(0)
+    x0, T = np.array([0.5, -0.3]), 40
+    u = np.sin(0.3 * np.arange(T))[:, None] + 0.3 * rng.standard_normal((T, 1))
+    _, z = oj.simulate(model, {"a": 0.8, "b": 0.5}, x0, u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((T, 1))
+    agg = oj.Aggregate(0, [(0, 10), (10, 20)], [z[:10].mean(), z[10:20].mean()])
+    with pytest.warns(UserWarning, match="residuals of aggregate 0 are all zero"):
+        r = oj.fit(model, {"a": 0.7, "b": 0.4}, x0, u, z, weight="noise", aggregate=agg)
+    assert r.status == "noise_weight_unsettled" and not r.success
+    assert r.stop_info["solver_stop"] in ("converged", "statistically_converged", "zero_residual")
+    assert r.stop_info["reading_weight_factors"][0] > 1e6
+    assert "the output weight did not settle in" in r.message
