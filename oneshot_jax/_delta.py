@@ -10,8 +10,10 @@ differentiation of h) and Sigma their covariance (`FitResult.covariance`: sigma^
     Cov q = J Sigma J^T,
 
 the first-order approximation, exact for an h linear in theta. Where Sigma is not
-finite in a column that moves q (a parameter the data do not determine, a network's
-weights, a covariance not computed), q's standard error is inf.
+finite in an entry that q takes (J_i Sigma_ij J_j with J_i, J_j nonzero: a parameter
+the data do not determine, a network's weights, a covariance not computed), q's standard
+error is inf; a q of a hybrid's physical parameters alone takes their block of Sigma,
+which is finite, and none of its covariances with the network's weights.
 """
 
 from typing import NamedTuple
@@ -103,10 +105,13 @@ def delta_method(fn, theta, fixed, covariance, name="fn"):
     Sigma = np.asarray(covariance, np.float64)
     if Sigma.shape != (free.size, free.size):  # (not computed: `fit(covariance=None)`)
         Sigma = np.full((free.size, free.size), np.inf)
-    known = np.all(np.isfinite(Sigma), axis=0) & np.all(np.isfinite(Sigma), axis=1)
-    S = np.where(known[:, None] & known[None, :], Sigma, 0.0)
-    cov = J @ S @ J.T
-    unknown = np.any(np.abs(J[:, ~known]) > 0, axis=1)
+    known = np.isfinite(Sigma)
+    cov = J @ np.where(known, Sigma, 0.0) @ J.T
+    # (an entry of Cov q is unknown where it takes an unknown entry of Sigma: a
+    # hybrid's physical block is known, its covariances with the network's weights not)
+    moves = (np.abs(J) > 0).astype(np.float64)
+    cov[moves @ (~known).astype(np.float64) @ moves.T > 0] = np.inf
+    unknown = np.isinf(np.diag(cov))
     cov[unknown, :] = np.inf
     cov[:, unknown] = np.inf
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))

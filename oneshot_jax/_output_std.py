@@ -67,9 +67,10 @@ def output_std(model, params, fixed, covariance, x0, u, head=None):
 
     `model`, `params`: the model with theta's static part bound in and theta's
     parameters (`_checks.Data`); `fixed`: the flat mask of the held entries;
-    `covariance`: Sigma over the free entries. Where Sigma is not finite in a column that
-    moves an output sample (a parameter not identifiable, a covariance not computed),
-    or an x0 entry the head does not determine moves it, its standard error is inf."""
+    `covariance`: Sigma over the free entries. Where Sigma is not finite in an entry that
+    an output sample takes (of two parameters that both move it: a parameter not
+    identifiable, a covariance not computed), or an x0 entry the head does not determine
+    moves it, its standard error is inf."""
     free = np.flatnonzero(~np.asarray(fixed, bool))
     flat, unravel = _pytree.ravel(params)
     out = _output_jacobian(model, unravel, flat, free, x0, u)
@@ -94,8 +95,8 @@ def output_std(model, params, fixed, covariance, x0, u, head=None):
         unknown |= np.any(np.abs(Jx[..., blind]) > 0, axis=-1)
     else:
         var = np.zeros(Jt.shape[:2])
-    known = np.all(np.isfinite(Sigma), axis=0) & np.all(np.isfinite(Sigma), axis=1)
-    unknown |= np.any(np.abs(Jt[..., ~known]) > 0, axis=-1)
-    S = np.where(known[:, None] & known[None, :], Sigma, 0.0)
-    var = var + np.einsum("kip,pq,kiq->ki", Jt, S, Jt)
+    known = np.isfinite(Sigma)  # (a sample takes an unknown entry of Sigma: inf)
+    moves = (np.abs(Jt) > 0).astype(np.float64)
+    unknown |= np.einsum("kip,pq,kiq->ki", moves, (~known).astype(np.float64), moves) > 0
+    var = var + np.einsum("kip,pq,kiq->ki", Jt, np.where(known, Sigma, 0.0), Jt)
     return np.where(unknown, np.inf, np.sqrt(np.maximum(var, 0.0)))

@@ -2,6 +2,8 @@
 here: the derivatives by hand carried through `result.covariance`, and the spread of
 `sample_theta`'s draws pushed through the function."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -83,6 +85,24 @@ def test_the_poles_of_the_linear_model(fitted):
 def test_bad_functions_are_named(fitted, fn, error, match):
     with pytest.raises(error, match=match):
         fitted.delta_method(fn)
+
+
+def test_a_function_takes_only_the_covariances_it_moves(fitted):
+    """w0sq and b with their variances, their covariance unknown (as a hybrid's physical
+    parameters with the network's weights): a function of w0sq alone takes its variance
+    (the whole column held an inf, and its std was inf), one of both is inf."""
+    S = np.array(fitted.covariance)
+    S[0, 1] = S[1, 0] = np.inf
+    r = dataclasses.replace(fitted, covariance=S)
+    alone = r.delta_method(lambda th: jnp.stack([jnp.sqrt(th["w0sq"]), th["b"]]))
+    np.testing.assert_allclose(
+        alone.std,
+        [fitted.std["w0sq"] / (2 * np.sqrt(fitted.theta["w0sq"])), fitted.std["b"]],
+        rtol=1e-12,
+    )
+    assert np.isinf(alone.covariance[0, 1]) and np.isfinite(alone.covariance[1, 1])
+    both = r.delta_method(lambda th: jnp.stack([th["w0sq"] * th["b"], th["b"]]))
+    assert np.isinf(both.std[0]) and np.isfinite(both.std[1])
 
 
 def test_fixed_and_unknown_parameters():

@@ -142,6 +142,11 @@ def test_over_parameterised_network_leaves_the_physics_identifiable():
     # The initial states, which the outputs determine, keep finite standard errors: the
     # network's numerically null directions are not carried over to them.
     assert np.all(np.isfinite(res.x0_std)) and np.all(res.x0_std > 0)
+    # A quantity of the physics alone carries its block (the covariances with the
+    # network's weights are inf): sqrt(w0sq) has std / (2 sqrt(w0sq)), not inf.
+    f0 = res.delta_method(lambda th: jnp.sqrt(th["w0sq"]))
+    np.testing.assert_allclose(f0.std, std / (2 * np.sqrt(res.theta["w0sq"])), rtol=1e-12)
+    assert np.isinf(res.delta_method(lambda th: th["net"](jnp.array([0.3]))[0]).std)
 
 
 def test_exact_confounding_stays_not_identifiable():
