@@ -325,6 +325,23 @@ def _flag_plateau_above_start(result, problem, starts, best, strategy):
     return _restated(result, "stalled", start_loss=before)
 
 
+def _flag_every_column_vanished(result, problem):
+    """`result` with the stop `stalled` where it reported statistical convergence after
+    the Jacobian columns of every free parameter of theta vanished along the fit
+    (`stop_info["vanished"]`): the parameters ran to where they no longer move the
+    outputs (a mass-spring-damper fitted from a far start ran to m = 5e6, k = 2e7, c =
+    2e6, its output then nearly the initial state's, FIT 7 %), so that "no quantity the
+    data determine can still change" holds because the data determine none: a limit,
+    not a solution. `stop_info["all_vanished"]`. Not checked with a regulariser (a
+    sparse fit may switch every term off)."""
+    if result.status != "statistically_converged" or problem.regulariser is not None:
+        return result
+    names = set(result.names)
+    if not names or not names <= set(result.stop_info.get("vanished") or ()):
+        return result
+    return _restated(result, "stalled", all_vanished=True)
+
+
 def _restated(result, reason, **info):
     """`result` with the stop reason `reason` where a check after the solve decides the
     stop (refutes the solver's success, or settles its stall: `_settle`):
@@ -1156,6 +1173,7 @@ def fit(
         result = _flag_plateau_above_start(
             result, built.problem, built.starts, int(out.best), strategy
         )
+        result = _flag_every_column_vanished(result, built.problem)
         least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
         result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
         result = _settle(result, built.problem, out, strategy, least_squares)

@@ -120,6 +120,14 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped at what read as a degenerate minimum, but a step along "
                 f"the Jacobian columns that vanished along the fit still lowers the loss: {tail}"
             )
+        if info.get("all_vanished"):
+            return (
+                "the solver reported statistically_converged, but the Jacobian columns of "
+                "every parameter vanished along the fit: the parameters ran to where they no "
+                "longer move the outputs (a limit, not a minimum; the data determine none of "
+                "them there); a start nearer the data's, windows (`fit_continuation`) or "
+                f"multistart find the basin ({tail})"
+            )
         if "start_loss" in info:
             return (
                 f"the solver reported {info.get('solver_stop', 'converged')} where Jacobian "
@@ -525,11 +533,14 @@ class FitResult(eqx.Module):
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
         `stalled` where the solver converged where columns vanished, at a loss above the
         best start's (a plateau), `start_loss` (that start's loss) and `solver_stop`;
-        with the stop `stalled` where a float32 (lower than float64) success, or a
-        float64 one whose covariance calls some free entry not identifiable, is refuted
-        by the Gauss-Newton step from the Jacobian itself (checked after the solve,
-        `_optimality.gauss_newton_refutes`), `gauss_newton_refuted`, `gauss_newton_se`
-        (that step's size in standard errors), `precision` and `solver_stop`; with the
+        with the stop `stalled` where the solver reported statistically_converged after
+        the columns of every free parameter vanished along the fit (a limit),
+        `all_vanished` and `solver_stop`; with the stop `stalled` where a float32 (lower
+        than float64) success, or a float64 one whose covariance calls some free entry
+        not identifiable, is refuted by the Gauss-Newton step from the Jacobian itself
+        (checked after the solve, `_optimality.gauss_newton_refutes`),
+        `gauss_newton_refuted`, `gauss_newton_se` (that step's size in standard errors),
+        `precision` and `solver_stop`; with the
         stop `stalled` where a float64 `statistically_converged` (not settled) had a
         Jacobian of full rank, theta's columns too by themselves, and a step from it of
         more than a standard error, `regular_jacobian` with `gauss_newton_se`,
