@@ -372,12 +372,26 @@ class Data(NamedTuple):
     lengths: Any = None  # each trajectory's length when they were given as ragged lists
 
 
+def _given_dtype(a):
+    """The dtype `a` holds as given (an array's, or NumPy's reading of a list or a
+    number); object where it has none."""
+    dtype = getattr(a, "dtype", None)
+    if dtype is None:
+        try:
+            dtype = np.asarray(a).dtype
+        except (TypeError, ValueError):
+            return np.dtype(object)
+    return np.dtype(dtype)
+
+
 def check_weight(weight, n_z, dtype):
     """`weight` as a (n_z,) vector (diagonal Q) or an (n_z, n_z) PSD matrix (a scalar for
     one output, as a (1,) vector); None stays None."""
     if weight is None:
         return None
     w = as_float(weight, "weight", dtype)
+    if _given_dtype(weight) == np.bool_:  # (as_float takes booleans as 0 and 1)
+        raise TypeError(f"`weight` must hold numbers (Q of eq. 4), got the boolean {weight!r}.")
     if w.ndim == 0:
         # (its sign first: a wrong shape would hide it)
         check_finite(w, "weight")

@@ -47,6 +47,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from ._caller_warnings import at_caller
 from ._checks import as_float, check_data, is_weak
 from ._continuation import check_fit_keywords
+from ._counts import integral, real
 from ._fit import fit
 from ._fit_result import FitResult
 from ._model import Model
@@ -524,7 +525,7 @@ def fit_orthogonal(
         parameters without a finite standard error).
     - `solver`, `weight`, `fixed`, `estimate_x0`: as for `fit` (`fixed` a dict over
         theta0's keys; a key held as a whole is not among the physical parameters of Q;
-        `estimate_x0` a boolean or an (n_x,) mask).
+        `estimate_x0` a boolean or an (n_x,) mask; `weight` a given Q, not "noise").
     - `**kwargs`: other keywords of `fit` (`constraints`, `progress`, `history`,
         `units`, ...), passed to every round; `aggregate`, `window`, `t`, `multistart`,
         `validation`, `penalty` and `missing` are refused.
@@ -542,10 +543,21 @@ def fit_orthogonal(
     refused = sorted(k for k in kwargs if k in _REFUSED)
     if refused:
         raise ValueError(f"`fit_orthogonal` does not take {refused}: fit one plain record.")
-    if not isinstance(strength, numbers.Real) or not 0 < strength < math.inf:
+    strength, rounds = real(strength), integral(rounds)
+    if (
+        isinstance(strength, (bool, np.bool_))
+        or not isinstance(strength, numbers.Real)
+        or not 0 < strength < math.inf
+    ):
         raise ValueError(f"`strength` must be a finite number > 0, got {strength!r}.")
     if isinstance(rounds, bool) or not isinstance(rounds, numbers.Integral) or rounds < 1:
         raise ValueError(f"`rounds` must be an integer >= 1, got {rounds!r}.")
+    if isinstance(weight, str):
+        raise ValueError(
+            f"`weight` must be Q (a vector of per-output weights or a matrix): "
+            f"`fit_orthogonal` does not estimate it, got {weight!r}; fit with "
+            "`weight='noise'` first and pass its `result.weight`."
+        )
     for name, value in (("stol", stol), ("rtol", rtol)):
         if not isinstance(value, numbers.Real) or not 0 < value < math.inf:
             raise ValueError(f"`{name}` must be a finite number > 0, got {value!r}.")

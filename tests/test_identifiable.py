@@ -355,12 +355,18 @@ def test_fit_orthogonal_rejects_bad_arguments(case):
         oj.fit_orthogonal(model, [1.0], x0, u, z)
     with pytest.raises(ValueError, match="`learned` names 'net'"):
         oj.fit_orthogonal(model, theta0, x0, u, z, learned="net")
-    for bad in (0.0, -1.0, float("inf"), "1"):
+    for bad in (0.0, -1.0, float("inf"), "1", True):
         with pytest.raises(ValueError, match="`strength` must be a finite number > 0"):
             oj.fit_orthogonal(model, theta0, x0, u, z, strength=bad)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="`rounds` must be an integer >= 1"):
             oj.fit_orthogonal(model, theta0, x0, u, z, rounds=bad)
+    # `weight="noise"` is `fit`'s alone (named here); `rounds=2.0`, an integral float, passes
+    # its check to reach it.
+    with pytest.raises(ValueError, match="`fit_orthogonal` does not estimate it"):
+        oj.fit_orthogonal(model, theta0, x0, u, z, rounds=2.0, weight="noise")
+    with pytest.raises(TypeError, match="`weight` must hold numbers"):
+        oj.fit_orthogonal(model, theta0, x0, u, z, weight=True)
     with pytest.raises(ValueError, match="`stol` must be a finite number > 0"):
         oj.fit_orthogonal(model, theta0, x0, u, z, stol=0.0)
     with pytest.raises(ValueError, match="`rtol` must be a finite number > 0"):

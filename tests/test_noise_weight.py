@@ -112,6 +112,9 @@ def test_a_weight_that_is_no_array_nor_noise_is_named():
     u, z = _data()
     with pytest.raises(ValueError, match=r"`weight` must be None, an array .* or \"noise\""):
         oj.fit(MODEL, THETA0, np.zeros(2), u, z, weight="inverse")
+    for weight in (True, np.array([True, False])):  # (was taken as Q = 1 and [1, 0])
+        with pytest.raises(TypeError, match="`weight` must hold numbers"):
+            oj.fit(MODEL, THETA0, np.zeros(2), u, z, weight=weight)
 
 
 def _tanks_step(x, u, p):
