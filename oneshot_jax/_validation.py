@@ -77,6 +77,15 @@ class Validation(eqx.Module):
     def __check_init__(self):
         if self.z is None:
             raise ValueError("`Validation` needs `z`, the held-out records' measured outputs.")
+        try:
+            z = np.asarray(self.z, dtype=float)
+        except (TypeError, ValueError):  # (not numbers, ragged: `fit` names it)
+            z = None
+        if z is not None and np.isnan(z).any():
+            raise ValueError(
+                "`Validation`: `z` holds NaN: held-out records must be fully measured (score "
+                "a record without its missing samples)."
+            )
         if self.n is not None and not is_count(self.n, 1):
             raise ValueError(
                 f"`Validation(n=...)` must be None or an integer >= 1, got {self.n!r}."
@@ -244,6 +253,15 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None, x0_box=None):
         x0 = np.zeros(
             (np.shape(u)[0], n_x) if batched else (n_x,),
             leaf_dtype(x0_fit),
+        )
+    try:
+        shape = np.shape(u)
+    except ValueError:  # (a list that is no array: `check_data` names it)
+        shape = ()
+    if n_u is not None and len(shape) in (2, 3) and shape[-1] != n_u:
+        raise ValueError(
+            f"`validation`: `u` must have n_u = {n_u} input columns, as the fitted data "
+            f"has; got shape {shape}."
         )
     try:
         data = check_data(model, theta, x0, u, validation.z, t=validation.t)

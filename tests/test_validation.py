@@ -287,9 +287,17 @@ def test_validation_checks():
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, z, n=50))
     bad = z.copy()
     bad[3] = np.nan
-    # (not fit's hint of missing="mask": that option is for the fitted z)
-    with pytest.raises(ValueError, match="NaN.*held-out records must be fully measured.$"):
+    # (not fit's hint of missing="mask": that option is for the fitted z; said when the
+    # records are given, as the docstring's "no NaN" asks)
+    with pytest.raises(ValueError, match="NaN: held-out records must be fully measured"):
+        oj.Validation(u, bad, n=5)
+    bad[3] = np.inf
+    with pytest.raises(ValueError, match="inf.*held-out records must be fully measured.$"):
         oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(u, bad, n=5))
+    # Inputs of another width are named before the model is called on them (u of no
+    # columns reached the model: an IndexError inside it).
+    with pytest.raises(ValueError, match=r"`validation`: `u` must have n_u = 1 input columns"):
+        oj.fit(MODEL, TRUTH, x0, u, z, validation=oj.Validation(np.zeros((50, 0)), z, n=5))
     # A head of one output value for two initial states does not determine them (as
     # `predict` with n = 1 warns); a head of two does.
     solver = oj.LevenbergMarquardt(max_steps=2)
