@@ -352,6 +352,26 @@ def check_fit_keywords(kwargs, where):
         )
 
 
+def _check_fitted_record(result, u, z, t):
+    """Refuse a record of the fitted shape that is not the fitted one: the result's
+    simulation on `u` must be z + its residuals (the fit's zhat) to round-off (sqrt(eps)
+    of the outputs' scale), where both are measured."""
+    zhat = np.asarray(result.simulate(u, t=t)[1], np.float64)
+    fitted = np.asarray(z, np.float64) + np.asarray(result.residuals, np.float64)
+    seen = np.isfinite(fitted) & np.isfinite(zhat)
+    if not seen.any():
+        return
+    scale = max(float(np.max(np.abs(fitted[seen]))), float(np.finfo(np.float64).tiny))
+    tol = np.sqrt(np.finfo(np.asarray(result.residuals).dtype).eps) * scale
+    if float(np.max(np.abs(zhat[seen] - fitted[seen]))) > tol:
+        raise ValueError(
+            "`u` and `z` must be the record the result was fitted on: the result's "
+            "simulation on this `u` differs from the fitted outputs (z + residuals) by "
+            f"{float(np.max(np.abs(zhat[seen] - fitted[seen]))):.3g}, beyond round-off "
+            f"({tol:.3g})."
+        )
+
+
 def check_basin(
     result: FitResult,
     u: Float[ArrayLike, "T n_u"],
@@ -440,6 +460,7 @@ def check_basin(
             f"`u` and `z` must be the record the result was fitted on (its residuals have "
             f"shape {fitted}); got u {np.shape(u)}, z {np.shape(z)}."
         )
+    _check_fitted_record(result, u, z, kwargs.get("t"))
     if "fixed" not in kwargs:
         kwargs["fixed"] = _held(result)
         if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():

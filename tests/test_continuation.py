@@ -186,6 +186,13 @@ def test_basin_check_rejects_bad_arguments(plain):
         oj.check_basin(plain, U, Z, margin="5")
     with pytest.raises(ValueError, match=r"must be the record the result was fitted on"):
         oj.check_basin(plain, U[:300], Z[:300])
+    # Another record of the same shape (the windows would be fitted to it and compared
+    # with the result's FIT on its own): the result's simulation on it is not z +
+    # residuals.
+    with pytest.raises(ValueError, match=r"fitted on: the result's simulation on this `u`"):
+        oj.check_basin(plain, U[::-1], Z[::-1])
+    with pytest.raises(ValueError, match=r"fitted on: the result's simulation on this `u`"):
+        oj.check_basin(plain, U, Z + 0.01)
 
 
 def test_basin_check_holds_what_the_fit_held():
