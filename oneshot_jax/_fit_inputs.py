@@ -212,9 +212,26 @@ def check_inputs(
             )
             raise ValueError(f"`window` needs one record: `u` of shape (T, n_u), got {given}.")
         x0_record = np.asarray(x0)[0] if per_window_x0 else x0
-        data = check_data(
-            model, theta_first, x0_record, u, z, weight, missing, t, theta_name="theta0"
-        )
+        try:
+            data = check_data(
+                model, theta_first, x0_record, u, z, weight, missing, t, theta_name="theta0"
+            )
+        except ValueError as err:  # (the state checked is x0's first row: say so)
+            if not per_window_x0:
+                raise
+            row, given = np.shape(x0_record), np.shape(x0)
+            message = (
+                str(err)
+                .replace(
+                    f"(from `x0` of shape {row})",
+                    f"(a row of `x0` of shape {given}, one initial state per window)",
+                )
+                .replace(
+                    f"`x0` (of shape {row})",
+                    f"`x0` (of shape {given}, one initial state {row} per window)",
+                )
+            )
+            raise ValueError(message) from err
         # The windows' starting states are estimated with one start's theta: the first
         # whose simulation stays finite over the windows (one start that blows up does not
         # refuse a multistart fit, whatever its place among the starts).

@@ -176,3 +176,14 @@ def test_a_held_state_missing_at_a_windows_first_sample_is_refused():
     both = oj.fit(model, th0, z[0], u, gap, **kw)
     clean = oj.fit(model, th0, z[0], u, z, **kw)
     assert both.success and float(both.loss) < 1.5 * float(clean.loss)
+
+
+def test_an_x0_per_window_of_the_wrong_state_size_names_its_shape():
+    """`x0` of shape (n_windows, 3) for a model of 2 states: the error of the model's call
+    said "from `x0` of shape (3,)", the shape of the row it was called with."""
+    u, z, _ = _record()
+    with pytest.raises(ValueError, match=r"`x0` \(of shape \(4, 3\), one initial state \(3,\) per"):
+        oj.fit(MODEL, TRUTH, np.zeros((4, 3)), u, z, window=10)
+    step = oj.Model(lambda x, u, th: th["A"] @ x, lambda x, u, th: x[:1])
+    with pytest.raises(ValueError, match=r"a row of `x0` of shape \(4, 3\), one initial state per"):
+        oj.fit(step, {"A": 0.9 * np.eye(2)}, np.zeros((4, 3)), u, z, window=10)
