@@ -130,6 +130,19 @@ def _meter(progress):
     )
 
 
+def _starts_note(theta_params, n_starts) -> str:
+    """What `multistart=True` made of theta0's leaves, for an error of the model's call
+    with the first start (a leaf without an axis of starts reads as one)."""
+    shapes = [np.shape(a)[1:] for a in jax.tree_util.tree_leaves(theta_params)]
+    return (
+        f"(With `multistart=True` the leading axis of every parameter leaf of theta0 holds "
+        f"the starts: it was read as {n_starts} starts, each leaf of shape "
+        f"{', '.join(map(str, shapes[:6]))}{' ...' if len(shapes) > 6 else ''}; for a leaf "
+        "that is one start, give its starts an axis of their own, or name the starting "
+        "values with `multistart={...}`.)"
+    )
+
+
 def check_inputs(
     model,
     theta0,
@@ -264,9 +277,14 @@ def check_inputs(
             raise ValueError("`window` with per-start x0 is not supported: give one x0.")
     else:
         starts = unread = None
-        data = check_data(
-            model, theta_first, x0, u, z, weight, missing, t, readings, theta_name="theta0"
-        )
+        try:
+            data = check_data(
+                model, theta_first, x0, u, z, weight, missing, t, readings, theta_name="theta0"
+            )
+        except ValueError as err:
+            if multistart is not True or not str(err).startswith("calling the model"):
+                raise
+            raise ValueError(f"{err} {_starts_note(theta_params, n_starts)}") from err
     cost = check_cost(data, penalty, penalty_weight)
     if cost.penalty is not None and float(cost.penalty_weight) < 0:
         if any(_least_squares(s) for s in solvers):

@@ -283,3 +283,14 @@ def test_window_states_are_not_read_as_starts_of_x0(data, theta0):
     x0, u, z = data
     with pytest.raises(ValueError, match=r"is one state per window, not starts"):
         oj.fit(MODEL, theta0, np.stack([x0, x0]), u, z, window=T // 2, multistart={})
+
+
+def test_multistart_true_says_how_it_read_a_leaf_without_starts():
+    """A (2,) leaf indexed as a vector by the model, given to `multistart=True` without
+    an axis of starts, is read as 2 starts of shape (): the model's IndexError said
+    nothing of the starts."""
+    model = oj.Model(lambda x, u, th: th["v"][0] * x + th["v"][1] * u)
+    u = np.ones((20, 1))
+    _, z = oj.simulate(model, {"v": np.array([0.5, 1.0])}, np.zeros(1), u)
+    with pytest.raises(ValueError, match=r"read as 2 starts, each leaf of shape \(\)"):
+        oj.fit(model, {"v": np.array([0.5, 1.0])}, np.zeros(1), u, z, multistart=True)
