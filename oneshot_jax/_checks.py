@@ -1009,13 +1009,31 @@ def _held_names(fixed, theta):
                 "booleans shaped like theta0."
             )
         return None
-    if (
-        _is_module(theta)
-        and isinstance(fixed, dict)
-        and all(isinstance(v, (bool, np.bool_)) for v in fixed.values())
-    ):
-        return [str(k) for k, v in fixed.items() if v]
+    flat = _dotted_booleans(fixed)
+    if flat is not None and (isinstance(theta, dict) or _is_module(theta)):
+        # (a dict of single booleans, nested or by dotted names: the True ones are held,
+        # each name checked against theta's, into an equinox module's fields too)
+        _pytree.named_mask(list(flat), theta, "fixed")
+        return [k for k, v in flat.items() if v]
     return None
+
+
+def _dotted_booleans(fixed, prefix=""):
+    """A dict of single booleans (nested dicts of them too) as {dotted name: bool}, or
+    None where `fixed` is no such dict (an array mask inside, say)."""
+    if not isinstance(fixed, dict) or not fixed:
+        return None
+    out = {}
+    for key, value in fixed.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, (bool, np.bool_)):
+            out[name] = bool(value)
+        else:
+            inner = _dotted_booleans(value, f"{name}.")
+            if inner is None:
+                return None
+            out.update(inner)
+    return out
 
 
 def _is_module(theta) -> bool:

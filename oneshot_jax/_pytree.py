@@ -229,15 +229,16 @@ def named_mask(names, theta, name) -> np.ndarray:
 
 def nest_dotted(named, theta, name):
     """A dict over theta's dict keys, with dotted names ("phys.k", as the printout and
-    `units` name a nested parameter) turned into nested dicts ({"phys": {"k": ...}}), so
-    that `fixed=` and the bounds take either spelling. A key of theta that holds a dot
+    `units` name a nested parameter, or "net.a", a field of an equinox module in theta)
+    turned into nested dicts ({"phys": {"k": ...}}), so that `fixed=`, the bounds and
+    `multistart=` take either spelling. A key of theta that holds a dot
     is kept as it is; naming one parameter both ways is an error (`name`: the argument)."""
     if not (isinstance(named, dict) and isinstance(theta, dict)):
         return named
     out = {}
     for key, value in named.items():
         head, _, rest = str(key).partition(".")
-        if key in theta or not rest or not isinstance(theta.get(head), dict):
+        if key in theta or not rest or not isinstance(theta.get(head), (dict, eqx.Module)):
             parts = [(key, value)]
         else:
             parts = [(head, {rest: value})]

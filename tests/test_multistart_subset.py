@@ -294,3 +294,38 @@ def test_multistart_true_says_how_it_read_a_leaf_without_starts():
     _, z = oj.simulate(model, {"v": np.array([0.5, 1.0])}, np.zeros(1), u)
     with pytest.raises(ValueError, match=r"read as 2 starts, each leaf of shape \(\)"):
         oj.fit(model, {"v": np.array([0.5, 1.0])}, np.zeros(1), u, z, multistart=True)
+
+
+class _Gains(eqx.Module):
+    a: jax.Array
+    b: jax.Array
+
+
+def test_the_printouts_names_of_a_modules_fields_work_in_every_option():
+    """theta0 = {"p": a module with fields a, b}: the printout names them "p.a", "p.b",
+    and `fixed="p.a"` held a; `fixed={"p.a": True}`, `fixed={"p": {"a": True}}`,
+    `box(upper={"p.a": ...})` and `multistart={"p.a": ...}` were refused ("theta0 has
+    ['p']"). Each spelling now gives what its nested or string form gives."""
+    model = oj.Model(lambda x, u, th: th["p"].a * x + th["p"].b * u)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((30, 1))
+    _, z = oj.simulate(model, {"p": _Gains(jnp.array(0.8), jnp.array(0.5))}, np.zeros(1), u)
+    theta0 = {"p": _Gains(jnp.array(0.7), jnp.array(0.4))}
+    solver = oj.LevenbergMarquardt(max_steps=5)
+
+    def fit(**kw):
+        return oj.fit(model, theta0, np.zeros(1), u, z, solver=solver, **kw)
+
+    held = fit(fixed="p.a")
+    assert held.names == ("p.b",) and float(held.theta["p"].a) == 0.7
+    for fixed in ({"p.a": True}, {"p": {"a": True}}, {"p": {"a": True, "b": False}}):
+        same = fit(fixed=fixed)
+        np.testing.assert_array_equal(same.fixed, held.fixed)
+        assert float(same.theta["p"].b) == float(held.theta["p"].b)
+    with pytest.raises(ValueError, match=r"theta0 has \['p.a', 'p.b'\]"):
+        fit(fixed={"p.c": True})
+    bounded = fit(constraints=oj.constraints.box(upper={"p.a": 0.75}))
+    assert float(bounded.theta["p"].a) == 0.75
+    starts = fit(multistart={"p.a": jnp.array([0.6, 0.9])})
+    nested = fit(multistart={"p": {"a": jnp.array([0.6, 0.9])}})
+    np.testing.assert_array_equal(starts.starts.loss, nested.starts.loss)
