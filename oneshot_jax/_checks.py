@@ -1027,12 +1027,14 @@ def _dotted_booleans(fixed, prefix=""):
     for key, value in fixed.items():
         name = f"{prefix}{key}"
         if isinstance(value, (bool, np.bool_)):
-            out[name] = bool(value)
+            inner = {name: bool(value)}
         else:
             inner = _dotted_booleans(value, f"{name}.")
             if inner is None:
                 return None
-            out.update(inner)
+        if set(inner) & set(out):
+            raise ValueError("`fixed` names a parameter twice (dotted and nested).")
+        out.update(inner)
     return out
 
 

@@ -258,7 +258,9 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None, x0_box=None):
         shape = np.shape(u)
     except ValueError:  # (a list that is no array: `check_data` names it)
         shape = ()
-    if n_u is not None and len(shape) in (2, 3) and shape[-1] != n_u:
+    # (before the model's call; a timed model's checked inputs hold the intervals too,
+    # compared after `check_data` below)
+    if n_u is not None and not model.timed and len(shape) in (2, 3) and shape[-1] != n_u:
         raise ValueError(
             f"`validation`: `u` must have n_u = {n_u} input columns, as the fitted data "
             f"has; got shape {shape}."
