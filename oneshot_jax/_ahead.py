@@ -38,7 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from . import _pytree
 from ._checks import as_float, check_data, check_tree, is_concrete
+from ._covariance import carried_variance
 from ._jit import jit
 from ._model import model_labels
 from ._x0_smoother import _smoother_defaults, ekf_forward
@@ -56,7 +58,8 @@ class AheadPrediction(NamedTuple):
         S[k|k-K] in the module's docstring: the state's uncertainty K steps on, plus the
         measurement noise). An interval zhat +- 1.96 std holds a new measurement with
         probability 95 % where the process and measurement noise are the ones given; the
-        uncertainty of theta is not in it.
+        uncertainty of theta is not in it (`FitResult.predict_ahead(parameters=True)`
+        adds it).
     - `outputs`: the model's names of the outputs (`Model(outputs=...)`), which
         `plot.compare` shows; None without them.
     """
@@ -78,8 +81,7 @@ class AheadPrediction(NamedTuple):
     __repr__ = __str__
 
 
-@jit
-def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
+def _ahead_impl(model, theta, m0, P0, Qp, R, u, z, K):
     """`AheadPrediction`'s z, x, filtered means and std (the module's docstring), traced:
     the filter's forward pass, then K steps of every start's mean and covariance at
     once."""
@@ -112,6 +114,60 @@ def _ahead(model, theta, m0, P0, Qp, R, u, z, K):
     S = jnp.einsum("kia,kab,kjb->kij", H, P, H) + R
     std = jnp.sqrt(jnp.maximum(jnp.diagonal(S, axis1=1, axis2=2), 0.0))
     return Z, X, filtered, std
+
+
+_ahead = jit(_ahead_impl)
+
+
+@jit
+def _ahead_jacobian(model, unravel, flat, free, m0, P0, Qp, R, u, z, K):
+    """d zhat[k|k-K] / d theta (T, n_z, p) over theta's free entries `free` (an int array
+    into theta's flat parameters `flat`, `unravel` their inverse), by forward-mode
+    differentiation through the filter and its K steps."""
+    base = jnp.asarray(flat, m0.dtype)
+
+    def predictions(p):
+        theta = unravel(base.at[free].set(p))
+        return _ahead_impl(model, theta, m0, P0, Qp, R, u, z, K)[0]
+
+    return jax.jacfwd(predictions)(base[free])
+
+
+def theta_variance(model, theta, u, z, K, fixed, covariance, **filter_args):
+    """The variance (T, n_z) that theta's uncertainty adds to each K-step prediction of
+    `predict_ahead` (same arguments, `filter_args` its keywords), to first order: J Sigma
+    J^T per sample with J = d zhat[k|k-K] / d theta over the free entries (`fixed`: the
+    flat mask of the held ones) and Sigma their covariance; inf where a prediction takes
+    an unknown entry of Sigma (`_covariance.carried_variance`). The prior mean x0 is held (its
+    uncertainty is the prior covariance's)."""
+    data, guess, covariances, zs = _filter_inputs(
+        model,
+        theta,
+        u,
+        z,
+        filter_args.get("x0"),
+        filter_args["process_noise"],
+        filter_args.get("measurement_noise"),
+        filter_args.get("prior_covariance"),
+        filter_args.get("weight"),
+        filter_args.get("t"),
+        filter_args.get("missing", "raise"),
+    )
+    K = _horizon(K, int(np.shape(data.u)[0]))
+    free = np.flatnonzero(~np.asarray(fixed, bool))
+    flat, unravel = _pytree.ravel(data.theta)
+    J = _ahead_jacobian(
+        data.model,
+        unravel,
+        flat,
+        free,
+        jnp.asarray(guess),
+        *covariances,
+        jnp.asarray(data.u),
+        zs,
+        jnp.asarray(K),
+    )
+    return carried_variance(np.asarray(J, np.float64), covariance, free.size)
 
 
 def _horizon(K, T) -> int:

@@ -37,6 +37,40 @@ from ._linalg import (
 from ._problem import FitProblem, Params
 
 
+def _known(covariance, p):
+    """Sigma (p, p) as float64 (all inf where it has another shape: not computed) and
+    the mask of its finite entries."""
+    Sigma = np.asarray(covariance, np.float64)
+    if Sigma.shape != (p, p):  # (not computed: `fit(covariance=None)`)
+        Sigma = np.full((p, p), np.inf)
+    return Sigma, np.isfinite(Sigma)
+
+
+def carried_covariance(J, covariance, p):
+    """J Sigma J^T (m, m) for J (m, p), the Jacobian of m quantities in theta's p free
+    entries, Sigma their covariance (another shape: not computed, every entry unknown);
+    inf where an entry takes an unknown entry of Sigma (J_ri Sigma_ij J_sj with J_ri,
+    J_sj nonzero and Sigma_ij not finite: a parameter the data do not determine, a
+    network's weights), so that a quantity of a hybrid's physical parameters alone
+    takes their finite block. Of `FitResult.delta_method`."""
+    Sigma, known = _known(covariance, p)
+    cov = J @ np.where(known, Sigma, 0.0) @ J.T
+    moves = (np.abs(J) > 0).astype(np.float64)
+    cov[moves @ (~known).astype(np.float64) @ moves.T > 0] = np.inf
+    return cov
+
+
+def carried_variance(J, covariance, p):
+    """The diagonal of `carried_covariance` for J (..., p), a row per quantity (a sample
+    of an output): the variance of each, inf where unknown. Of `output_std` and
+    `FitResult.predict_ahead(parameters=True)`."""
+    Sigma, known = _known(covariance, p)
+    moves = (np.abs(J) > 0).astype(np.float64)
+    unknown = np.einsum("...p,pq,...q->...", moves, (~known).astype(np.float64), moves) > 0
+    var = np.einsum("...p,pq,...q->...", J, np.where(known, Sigma, 0.0), J)
+    return np.where(unknown, np.inf, np.maximum(var, 0.0))
+
+
 class Covariance(NamedTuple):
     """(J^T J)^+ blocks (unscaled: multiply by sigma^2 = SSE / dof, see `FitResult`)."""
 

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
+from ._covariance import carried_covariance
 
 
 class Derived(NamedTuple):
@@ -102,15 +103,9 @@ def delta_method(fn, theta, fixed, covariance, name="fn"):
             "would mean nothing there."
         )
     J = np.asarray(jax.jacfwd(of)(p), np.float64).reshape(value.size, free.size)
-    Sigma = np.asarray(covariance, np.float64)
-    if Sigma.shape != (free.size, free.size):  # (not computed: `fit(covariance=None)`)
-        Sigma = np.full((free.size, free.size), np.inf)
-    known = np.isfinite(Sigma)
-    cov = J @ np.where(known, Sigma, 0.0) @ J.T
     # (an entry of Cov q is unknown where it takes an unknown entry of Sigma: a
     # hybrid's physical block is known, its covariances with the network's weights not)
-    moves = (np.abs(J) > 0).astype(np.float64)
-    cov[moves @ (~known).astype(np.float64) @ moves.T > 0] = np.inf
+    cov = carried_covariance(J, covariance, free.size)
     unknown = np.isinf(np.diag(cov))
     cov[unknown, :] = np.inf
     cov[:, unknown] = np.inf

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._ahead import estimate_process_noise, predict_ahead
+from ._ahead import estimate_process_noise, predict_ahead, theta_variance
 from ._checks import as_float, check_data, check_state_size
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
@@ -970,6 +970,7 @@ class FitResult(eqx.Module):
         prior_covariance=None,
         t=None,
         missing=None,
+        parameters=False,
     ):
         """Predict each output of a record from the measurements up to K samples before
         it, with the fitted model and theta: an extended Kalman filter corrects the state
@@ -997,11 +998,18 @@ class FitResult(eqx.Module):
         - `t`: as for `oneshot_jax.predict_ahead` (for several records, one (T_i,) per
             record, or one shared).
         - `missing`: default the fit's (`"mask"`: NaN in z are missing measurements).
+        - `parameters`: True adds theta's uncertainty to `std`: J Sigma J^T per sample,
+            J = d zhat[k|k-K] / d theta by forward-mode differentiation through the filter
+            and Sigma the fit's covariance (to first order, as `output_std`; inf where a
+            prediction depends on a parameter of unknown std, such as a network's
+            weights). Default False: the filter's noise model alone.
 
         **Returns:** an `AheadPrediction` (`z`, `x`, `filtered`, `K`, `std`); for several
         records, a list of N, each record filtered alone (as MATLAB's `predict` of
         multi-experiment data).
         """
+        if not isinstance(parameters, (bool, np.bool_)):
+            raise TypeError(f"`parameters` must be True or False, got {parameters!r}.")
         self._model_or_raise("predict_ahead")
         self._check_u(u)
         given = dict(
@@ -1009,6 +1017,7 @@ class FitResult(eqx.Module):
             measurement_noise=measurement_noise,
             prior_covariance=prior_covariance,
             missing=missing,
+            parameters=parameters,
         )
         if _several(u):
             records, zs, times = _split_records(u, z, t, "z", "record's outputs", "T")
@@ -1032,17 +1041,14 @@ class FitResult(eqx.Module):
         estimate = filter_args.pop("estimate")
         if prior_covariance is None and estimate is not None:
             prior_covariance = _x0_prior(estimate)
-        return predict_ahead(
-            self.model,
-            self.theta,
-            u,
-            z,
-            K,
-            process_noise=process_noise,
-            prior_covariance=prior_covariance,
-            t=t,
-            **filter_args,
-        )
+        args = (self.model, self.theta, u, z, K)
+        kwargs = dict(process_noise=process_noise, prior_covariance=prior_covariance, t=t)
+        out = predict_ahead(*args, **kwargs, **filter_args)
+        if not parameters:
+            return out
+        var = theta_variance(*args, self.fixed, self.covariance, **kwargs, **filter_args)
+        std = np.sqrt(np.square(np.asarray(out.std, np.float64)) + var)
+        return out._replace(std=std.astype(np.asarray(out.std).dtype))
 
     def _check_record_z(self, u, z, missing):
         """Refuse a record's measured outputs `z` for the filter that are not (T, n_z),

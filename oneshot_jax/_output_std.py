@@ -26,6 +26,7 @@ import numpy as np
 
 from . import _pytree
 from ._cost import Cost
+from ._covariance import carried_variance
 from ._jit import jit
 from ._linalg import psd_solve
 from ._sensitivity import trajectory_jacobian
@@ -75,9 +76,6 @@ def output_std(model, params, fixed, covariance, x0, u, head=None):
     flat, unravel = _pytree.ravel(params)
     out = _output_jacobian(model, unravel, flat, free, x0, u)
     _, Jt, Jx = (np.asarray(a, np.float64) for a in out)
-    Sigma = np.asarray(covariance, np.float64)
-    if Sigma.shape != (free.size, free.size):  # (not computed: `fit(covariance=None)`)
-        Sigma = np.full((free.size, free.size), np.inf)
     unknown = np.zeros(Jt.shape[:2], bool)
     if head is not None:
         n, z_head, Q, s2, identifiable = head
@@ -95,8 +93,5 @@ def output_std(model, params, fixed, covariance, x0, u, head=None):
         unknown |= np.any(np.abs(Jx[..., blind]) > 0, axis=-1)
     else:
         var = np.zeros(Jt.shape[:2])
-    known = np.isfinite(Sigma)  # (a sample takes an unknown entry of Sigma: inf)
-    moves = (np.abs(Jt) > 0).astype(np.float64)
-    unknown |= np.einsum("kip,pq,kiq->ki", moves, (~known).astype(np.float64), moves) > 0
-    var = var + np.einsum("kip,pq,kiq->ki", Jt, np.where(known, Sigma, 0.0), Jt)
+    var = var + carried_variance(Jt, covariance, free.size)  # (inf where unknown)
     return np.where(unknown, np.inf, np.sqrt(np.maximum(var, 0.0)))

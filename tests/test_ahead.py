@@ -2,6 +2,7 @@
 `predict(sys, data, K)`). The reference is a Kalman filter written here in NumPy for a
 linear model (where the EKF is the Kalman filter), with its K-step propagation."""
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -355,3 +356,39 @@ def test_a_missing_entry_leaves_its_noise_covariances_out():
     pred = oj.predict_ahead(model, {"A": A}, U, z, 1, x0=M0, process_noise=Q,
                             measurement_noise=R2, prior_covariance=P0, missing="mask")  # fmt: skip
     np.testing.assert_allclose(pred.filtered, np.array(filtered), atol=1e-12)
+
+
+def test_the_uncertainty_of_theta_adds_j_sigma_j_to_the_band():
+    """`parameters=True` adds J Sigma J^T per sample, J = d zhat[k|k-K] / d theta over the
+    free entries (here A's second row): checked with J by central differences of the
+    function's predictions (x0, the noises and the prior held), to 1e-6. A covariance
+    not computed makes every such std inf."""
+    theta0 = {"A": np.array([[0.95, 0.1], [0.0, 0.8]])}
+    fixed = {"A": np.array([[True, True], [False, False]])}
+    result = oj.fit(LINEAR, theta0, M0, U, Z, fixed=fixed)
+    plain = result.predict_ahead(U, Z, 3, process_noise=Q)
+    both = result.predict_ahead(U, Z, 3, process_noise=Q, parameters=True)
+    np.testing.assert_array_equal(both.z, plain.z)
+    estimate = result.predict(U, Z).estimate
+    kw = dict(x0=estimate.x0, process_noise=Q, measurement_noise=result._measurement_noise(),
+              prior_covariance=estimate.covariance)  # fmt: skip
+    A_hat, h, columns = np.asarray(result.theta["A"]), 1e-6, []
+    for i, j in ((1, 0), (1, 1)):  # (the free entries, in `result.names`' order)
+        step = np.zeros((2, 2))
+        step[i, j] = h
+        up = oj.predict_ahead(LINEAR, {"A": A_hat + step}, U, Z, 3, **kw).z
+        down = oj.predict_ahead(LINEAR, {"A": A_hat - step}, U, Z, 3, **kw).z
+        columns.append((up - down)[:, 0] / (2 * h))
+    J = np.stack(columns, axis=1)
+    added = np.einsum("kp,pq,kq->k", J, result.covariance, J)
+    assert added.max() > 1e-3 * np.max(plain.std**2)  # (not negligible here)
+    np.testing.assert_allclose(both.std[:, 0] ** 2 - plain.std[:, 0] ** 2, added, rtol=1e-6)
+    # Without a covariance, every prediction that theta moves has std inf; the first two
+    # (C x0 and C A x0, A's first row held) keep the filter's.
+    unknown = dataclasses.replace(result, covariance=np.zeros((0, 0)))
+    std = unknown.predict_ahead(U, Z, 3, process_noise=Q, parameters=True).std[:, 0]
+    moved = np.abs(J).max(axis=1) > 0
+    assert not moved[:2].any() and moved[2:].all()
+    assert np.isinf(std[moved]).all() and np.array_equal(std[~moved], plain.std[~moved, 0])
+    with pytest.raises(TypeError, match="`parameters` must be True or False"):
+        result.predict_ahead(U, Z, 3, process_noise=Q, parameters="yes")
