@@ -133,43 +133,6 @@ def _ahead_jacobian(model, unravel, flat, free, m0, P0, Qp, R, u, z, K):
     return jax.jacfwd(predictions)(base[free])
 
 
-def theta_variance(model, theta, u, z, K, fixed, covariance, **filter_args):
-    """The variance (T, n_z) that theta's uncertainty adds to each K-step prediction of
-    `predict_ahead` (same arguments, `filter_args` its keywords), to first order: J Sigma
-    J^T per sample with J = d zhat[k|k-K] / d theta over the free entries (`fixed`: the
-    flat mask of the held ones) and Sigma their covariance; inf where a prediction takes
-    an unknown entry of Sigma (`_covariance.carried_variance`). The prior mean x0 is held (its
-    uncertainty is the prior covariance's)."""
-    data, guess, covariances, zs = _filter_inputs(
-        model,
-        theta,
-        u,
-        z,
-        filter_args.get("x0"),
-        filter_args["process_noise"],
-        filter_args.get("measurement_noise"),
-        filter_args.get("prior_covariance"),
-        filter_args.get("weight"),
-        filter_args.get("t"),
-        filter_args.get("missing", "raise"),
-    )
-    K = _horizon(K, int(np.shape(data.u)[0]))
-    free = np.flatnonzero(~np.asarray(fixed, bool))
-    flat, unravel = _pytree.ravel(data.theta)
-    J = _ahead_jacobian(
-        data.model,
-        unravel,
-        flat,
-        free,
-        jnp.asarray(guess),
-        *covariances,
-        jnp.asarray(data.u),
-        zs,
-        jnp.asarray(K),
-    )
-    return carried_variance(np.asarray(J, np.float64), covariance, free.size)
-
-
 def _horizon(K, T) -> int:
     if hasattr(K, "item") and np.shape(K) == () and is_concrete(K):
         K = K.item()  # (a 0-d array)
@@ -236,6 +199,33 @@ def predict_ahead(
     not given; `ValueError` for K < 1, arrays of the wrong shape, covariances that are not
     ones, NaN in z without `missing="mask"`.
     """
+    return predict_ahead_impl(
+        model, theta, u, z, K, x0, process_noise, measurement_noise, prior_covariance, weight,
+        t, missing,
+    )  # fmt: skip
+
+
+def predict_ahead_impl(
+    model,
+    theta,
+    u,
+    z,
+    K,
+    x0,
+    process_noise,
+    measurement_noise,
+    prior_covariance,
+    weight,
+    t,
+    missing,
+    parameters=None,
+):
+    """`predict_ahead` with its arguments positional; `parameters`: None, or (fixed,
+    covariance), the flat mask of theta's held entries and Sigma over the free ones:
+    `std` then holds theta's uncertainty too, J Sigma J^T per sample to first order, J =
+    d zhat[k|k-K] / d theta over the free entries (`_ahead_jacobian`; the prior mean
+    held), inf where a prediction takes an unknown entry of Sigma
+    (`_covariance.carried_variance`). Of `FitResult.predict_ahead(parameters=True)`."""
     if process_noise is None:
         raise TypeError(
             "`process_noise` must be given (a variance per step): it sets how far the "
@@ -246,15 +236,16 @@ def predict_ahead(
         missing,
     )  # fmt: skip
     K = _horizon(K, int(np.shape(data.u)[0]))
-    Z, X, filtered, std = _ahead(
-        data.model,
-        data.theta,
-        jnp.asarray(guess),
-        *covariances,
-        jnp.asarray(data.u),
-        zs,
-        jnp.asarray(K),  # (traced: one program for every horizon)
-    )
+    # (K traced: one program for every horizon)
+    args = (jnp.asarray(guess), *covariances, jnp.asarray(data.u), zs, jnp.asarray(K))
+    Z, X, filtered, std = _ahead(data.model, data.theta, *args)
+    if parameters is not None:
+        fixed, covariance = parameters
+        free = np.flatnonzero(~np.asarray(fixed, bool))
+        flat, unravel = _pytree.ravel(data.theta)
+        J = _ahead_jacobian(data.model, unravel, flat, free, *args)
+        var = carried_variance(np.asarray(J, np.float64), covariance, free.size)
+        std = np.sqrt(np.square(np.asarray(std, np.float64)) + var).astype(std.dtype)
     names = model_labels(getattr(model, "outputs", None), np.shape(Z)[-1])
     return AheadPrediction(
         np.asarray(Z),

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from . import _io, _pytree
-from ._ahead import estimate_process_noise, predict_ahead, theta_variance
+from ._ahead import estimate_process_noise, predict_ahead_impl
 from ._checks import as_float, check_data, check_state_size
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
@@ -379,6 +379,35 @@ def _several(u) -> bool:
         return True
     n = _ndim(u)
     return n == 3 or (n == -1 and isinstance(u, (list, tuple)))
+
+
+def is_fitted_record(result, zhat, z) -> bool:
+    """Whether z is the record `result` was fitted on, zhat the result's simulation of it
+    from its fitted x0: zhat - residuals is that record's z (rtol 1e-5; after a `window=`
+    fit, over its window at sample 0; a shorter z, the head of the fitted record). True
+    where there is no one record to tell (a fit on several records)."""
+    zhat, z = np.asarray(zhat), np.asarray(z)
+    e = np.asarray(result.residuals)
+    starts = result.window_starts
+    if starts is not None:  # a `window=` fit, simulated from its window at sample 0
+        first = e[int(np.flatnonzero(np.asarray(starts) == 0)[0])]
+        e, zhat, z = first, zhat[: first.shape[0]], z[: first.shape[0]]
+    elif np.ndim(result.x0) != 1:  # several records: no one record to tell
+        return True
+    if e.ndim == z.ndim and z.shape[0] < e.shape[0]:  # (the head of the fitted record)
+        e = e[: z.shape[0]]
+    if e.shape != z.shape:
+        return False
+    fitted = zhat.reshape(z.shape) - e
+    both = np.isfinite(fitted) & np.isfinite(z)
+    scale = max(1.0, float(np.nanmax(np.abs(z)))) if both.any() else 1.0
+    # zhat - e cancels: its round-off is that of zhat (huge after a fit that blew up).
+    eps = np.finfo(np.result_type(zhat.dtype, e.dtype, np.float32)).eps
+    big = float(np.nanmax(np.abs(zhat))) if np.isfinite(zhat).any() else 0.0
+    return bool(
+        both.any()
+        and np.allclose(fitted[both], z[both], rtol=1e-5, atol=1e-5 * scale + 64 * eps * big)
+    )
 
 
 def _x0_prior(estimate):
@@ -1041,14 +1070,21 @@ class FitResult(eqx.Module):
         estimate = filter_args.pop("estimate")
         if prior_covariance is None and estimate is not None:
             prior_covariance = _x0_prior(estimate)
-        args = (self.model, self.theta, u, z, K)
-        kwargs = dict(process_noise=process_noise, prior_covariance=prior_covariance, t=t)
-        out = predict_ahead(*args, **kwargs, **filter_args)
-        if not parameters:
-            return out
-        var = theta_variance(*args, self.fixed, self.covariance, **kwargs, **filter_args)
-        std = np.sqrt(np.square(np.asarray(out.std, np.float64)) + var)
-        return out._replace(std=std.astype(np.asarray(out.std).dtype))
+        return predict_ahead_impl(
+            self.model,
+            self.theta,
+            u,
+            z,
+            K,
+            filter_args["x0"],
+            process_noise,
+            filter_args["measurement_noise"],
+            prior_covariance,
+            filter_args["weight"],
+            t,
+            filter_args["missing"],
+            parameters=(self.fixed, self.covariance) if parameters else None,
+        )
 
     def _check_record_z(self, u, z, missing):
         """Refuse a record's measured outputs `z` for the filter that are not (T, n_z),
@@ -1060,9 +1096,7 @@ class FitResult(eqx.Module):
             raise ValueError(
                 f"`u` must hold at least one sample (T >= 1), got shape {np.shape(u)}."
             )
-        if np.asarray(z).dtype == bool:
-            raise ValueError("`z` must hold real numbers (measured outputs), got dtype bool.")
-        zs = np.asarray(as_float(z, "z"), np.float64)
+        zs = np.asarray(as_float(z, "z", measured=True), np.float64)
         n_z = np.shape(self.residuals)[-1] if np.ndim(self.residuals) else None
         if zs.ndim != 2 or zs.shape[0] != T or (n_z is not None and zs.shape[1] != n_z):
             hint = " (is it transposed? z is (T, n_z))" if zs.shape[::-1] == (T, n_z) else ""

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import metrics
 from ._ahead import AheadPrediction
-from ._fit_result import FitResult
+from ._fit_result import FitResult, is_fitted_record
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
 from ._operating_point import LinearModel, frequencies
@@ -78,30 +78,11 @@ def _axes(ax, count, plt, figsize, what="one per output"):
 
 def _warn_other_record(name, result, zhat, z):
     """Warn where a one-record `FitResult` is simulated from its fitted x0 on a record
-    that is not the one it was fitted on (zhat - residuals is that record's z; after a
-    `window=` fit, over its window at sample 0): MATLAB's
+    that is not the one it was fitted on (`_fit_result.is_fitted_record`): MATLAB's
     `compare` estimates the initial state, and a user who expects it reads a FIT% of
     the wrong initial state."""
-    e = np.asarray(result.residuals)
-    starts = result.window_starts
-    if starts is not None:  # a `window=` fit, simulated from its window at sample 0
-        first = e[int(np.flatnonzero(np.asarray(starts) == 0)[0])]
-        e, zhat, z = first, zhat[: first.shape[0]], z[: first.shape[0]]
-    elif np.ndim(result.x0) != 1:  # several records: no one record to tell
+    if is_fitted_record(result, zhat, z):
         return
-    if e.ndim == z.ndim and z.shape[0] < e.shape[0]:  # (the head of the fitted record)
-        e = e[: z.shape[0]]
-    if e.shape == z.shape:
-        fitted = zhat.reshape(z.shape) - e
-        both = np.isfinite(fitted) & np.isfinite(z)
-        scale = max(1.0, float(np.nanmax(np.abs(z)))) if both.any() else 1.0
-        # zhat - e cancels: its round-off is that of zhat (huge after a fit that blew up).
-        eps = np.finfo(np.result_type(zhat.dtype, e.dtype, np.float32)).eps
-        big = float(np.nanmax(np.abs(zhat))) if np.isfinite(zhat).any() else 0.0
-        if both.any() and np.allclose(
-            fitted[both], z[both], rtol=1e-5, atol=1e-5 * scale + 64 * eps * big
-        ):
-            return
     warnings.warn(
         f"`{name}` is simulated from the x0 fitted on its own data, which is not this "
         "record: pass `n` (e.g. n=20) to estimate x0 from the first n samples of `z`, as "
