@@ -30,7 +30,6 @@ over q.
 """
 
 import math
-import warnings
 from typing import NamedTuple
 
 import jax
@@ -39,6 +38,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._checks import as_float, check_data, check_tree, is_concrete
 from ._covariance import carried_variance
 from ._jit import jit
@@ -178,7 +178,8 @@ def predict_ahead(
     - `x0`: the prior mean of the initial state (n_x,); default z[0] where the model has
         the default `observe` (z = x), else required.
     - `process_noise`: the covariance of the process noise w_k per step (n_x): a scalar
-        (times I), a vector of variances or a matrix. Required: it sets how far the filter
+        (times I), a vector of variances or a matrix, or the `ProcessNoise` that
+        `estimate_process_noise` returns (its `covariance`). Required: it sets how far the filter
         trusts the data over the model (0 trusts the model: each prediction is then a
         simulation from the initial state that the data up to K samples before it
         indicate).
@@ -275,6 +276,8 @@ def _filter_inputs(
     covariances (P0, Q_w, R) in the data's dtype and z with NaN at missing samples
     (`process_name`: the argument that gave `process_noise`)."""
     check_tree(theta, "theta")
+    if isinstance(process_noise, ProcessNoise):  # (`estimate_process_noise`'s estimate)
+        process_noise = process_noise.covariance
     if missing not in ("raise", "mask"):
         raise ValueError(f'`missing` must be "raise" or "mask", got {missing!r}.')
     if x0 is None:
@@ -386,7 +389,7 @@ def estimate_process_noise(
     - `scales`: the grid of q (increasing, positive); default 10^-12 .. 10^4, 65 points.
 
     **Returns:** a `ProcessNoise` (`covariance`, `scale`, `log_likelihood`, `scales`,
-    `log_likelihoods`, `interior`); pass its `covariance` as `process_noise=`. With
+    `log_likelihoods`, `interior`); pass it (or its `covariance`) as `process_noise=`. With
     `interior` False the likelihood is highest at the grid's end (a warning says so).
 
     **Raises:** as `predict_ahead`; `ValueError` for a `scales` that is not an
@@ -431,7 +434,7 @@ def estimate_process_noise(
                 fb = loglik(np.exp(b))
         scale = float(np.exp(0.5 * (lo + hi)))
     else:
-        warnings.warn(
+        warn(
             f"estimate_process_noise: the likelihood is highest at the end of the grid of "
             f"scales (q = {scale:.3g}): the data ask for "
             + ("less" if best == 0 else "more")

@@ -1,7 +1,6 @@
 """From the solvers' raw output to a `FitResult`: the traced post-processing inside the
 fit's compiled call (`post`), and the host-side assembly (`assemble`)."""
 
-import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -10,6 +9,7 @@ import numpy as np
 
 from . import _pytree
 from . import metrics as _metrics
+from ._caller_warnings import warn
 from ._covariance import NOT_COMPUTED, covariance, sandwich, scale
 from ._fit_report import FLOAT64, below_float64
 from ._fit_result import FitHistory, FitResult, Starts
@@ -320,7 +320,7 @@ def _warn_identifiability(
             "excite them."
         )
         if low is not None:
-            warnings.warn(
+            warn(
                 f"J^T J is singular to {low} precision {where}: {what} {listed} enter its "
                 f"numerical null space (its eigenvalues below {NULL_CUT:g} eps of the "
                 f"largest are round-off in {low}: nearly collinear columns reach it though "
@@ -330,7 +330,7 @@ def _warn_identifiability(
                 stacklevel=4,
             )
             return
-        warnings.warn(
+        warn(
             f"the Jacobian is rank-deficient {where}: {what} {listed} enter its "
             "null space (a change of them, alone or together, that leaves the outputs "
             f"unchanged: {verdict}); their std is inf. {hold[0].upper()}{hold[1:]}",
@@ -434,7 +434,7 @@ def assemble(
                 "fit a part of the record for standard errors)"
             )
         if why is not None:
-            warnings.warn(
+            warn(
                 f"the covariance of the estimates is not computed {why}: std and x0_std are "
                 "inf (unknown).",
                 stacklevel=3,
@@ -494,7 +494,7 @@ def assemble(
             n_free -= int(np.sum(problem.x0_held))
         if not diverged and dof <= 0 and n_free:
             diagnostics = {**(diagnostics or {}), "degrees_of_freedom": dof}
-            warnings.warn(
+            warn(
                 f"no more measured output values ({n_free + dof}) than estimated entries "
                 f"({n_free}): the noise variance sigma^2 = SSE / (n_obs - n_free) is "
                 "unknown, so every std is inf, whether or not the data determine the "

@@ -1,4 +1,9 @@
-"""The warnings of the fits a driver runs, shown at the driver's caller.
+"""The library's warnings: raised (`warn`), kept with a fit's result (`recording`), and
+those of the fits a driver runs shown at the driver's caller (`at_caller`).
+
+Every warning of the library goes through `warn`, which also hands its message to the
+`recording` blocks around it: `fit` keeps those of its own run in `FitResult.warnings`,
+which its printout shows, whatever the user's filters display.
 
 `fit` points its warnings at the line that called it (`stacklevel`). Inside a driver
 (`fit_continuation`, `check_basin`, `fit_physics_first`, `fit_orthogonal`) that line is
@@ -8,6 +13,7 @@ its own line, module and filters.
 """
 
 import contextlib
+import contextvars
 import os
 import warnings
 
@@ -35,3 +41,40 @@ def at_caller(driver_file):
                 warnings.warn(w.message, w.category, stacklevel=4)
             else:  # (the filters passed it at its own line: shown, not decided again)
                 warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
+
+
+class _Record:
+    """The messages of the warnings raised through `warn` while a `recording` block runs,
+    in order, each once."""
+
+    def __init__(self):
+        self.messages: list[str] = []
+
+    def add(self, message: str):
+        if message not in self.messages:
+            self.messages.append(message)
+
+
+_RECORDS: contextvars.ContextVar[tuple] = contextvars.ContextVar("oneshot_jax_records", default=())
+
+
+@contextlib.contextmanager
+def recording():
+    """Record the messages of the warnings the library raises (`warn`) in the block,
+    whatever the user's filters show or hide: `fit` keeps them in its result
+    (`FitResult.warnings`, printed with it). A block inside another records into both."""
+    record = _Record()
+    token = _RECORDS.set((*_RECORDS.get(), record))
+    try:
+        yield record
+    finally:
+        _RECORDS.reset(token)
+
+
+def warn(message, category=UserWarning, stacklevel=1):
+    """`warnings.warn` for the library's own warnings: the message is also kept by every
+    `recording` block around the call. `stacklevel` counts from the caller, as for
+    `warnings.warn`."""
+    for record in _RECORDS.get():
+        record.add(str(message))
+    warnings.warn(message, category, stacklevel=stacklevel + 1)

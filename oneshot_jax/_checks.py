@@ -28,7 +28,6 @@ expected, so that nothing reaches a tracing error.
 import contextlib
 import functools
 import os
-import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -36,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._cost import Cost
 from ._indices import out_of_range
 from ._masked import unmasked
@@ -51,7 +51,15 @@ def is_concrete(*arrays) -> bool:
 def check_tree(tree, name="theta"):
     """A ValueError naming `name` where JAX cannot flatten `tree` (a dict whose keys
     cannot be sorted against each other, {0: ..., "b": ...}): JAX's own error names no
-    argument."""
+    argument. A TypeError where `tree` is a `FitResult` (nlgreyest's habit of passing the
+    estimated model): its `theta` is meant."""
+    if hasattr(tree, "stop_reason") and hasattr(tree, "theta") and hasattr(tree, "x0"):
+        x0 = " and `result.x0` as x0" if name == "theta0" else ""
+        raise TypeError(
+            f"`{name}` is a FitResult: pass its parameters, `result.theta`{x0} (to go on "
+            "from a fit, give its other arguments again, `fixed`, `constraints`, ...: the "
+            "result does not keep them)."
+        )
     try:
         jax.tree_util.tree_structure(tree)
     except (TypeError, ValueError) as err:
@@ -1136,7 +1144,7 @@ def check_fixed_bounds(theta, fixed, lower, upper):
             ("upper", upper[i], values[i] > upper[i]),
         ):
             if outside:
-                warnings.warn(
+                warn(
                     f"fixed parameter {names[i]!r} = {float(values[i])!r} is "
                     f"{'below' if side == 'lower' else 'above'} its {side} bound "
                     f"{float(bound)!r} of `constraints`: a fixed entry keeps its given value "
@@ -1216,7 +1224,7 @@ def clip_x0(x0, box, name, what, stacklevel, warn=True):
     outside = clipped != x0
     if warn and outside.any():
         entries = sorted({int(i) for i in np.nonzero(outside)[-1]})
-        warnings.warn(
+        warn(
             f"the starting x0 lies outside `{name}` in its entries {entries}: the {what} "
             "starts from x0 clipped into them.",
             stacklevel=stacklevel + 1,

@@ -20,7 +20,7 @@ import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._caller_warnings import at_caller
+from ._caller_warnings import at_caller, warn
 from ._checks import x0_mask
 from ._counts import is_count
 from ._fit import fit
@@ -362,6 +362,15 @@ def _check_fitted_record(result, u, z, t):
         )
 
 
+def _shape_text(a):
+    """`a`'s shape, or where its rows differ in length (records of a ragged list) the
+    words "a list of N records"."""
+    try:
+        return np.shape(a)
+    except ValueError:
+        return f"a list of {len(a)} records"
+
+
 def check_basin(
     result: FitResult,
     u: Float[ArrayLike, "T n_u"],
@@ -411,11 +420,13 @@ def check_basin(
         raise TypeError(f"`result` must be a FitResult, got {type(result).__name__}.")
     if result.model is None:
         raise ValueError("`result` holds no model (loaded without one): load it with `model=`.")
-    if np.ndim(result.x0) != 1 or np.ndim(u) != 2 or np.ndim(z) != 2:
+    shapes = [_shape_text(a) for a in (result.x0, u, z)]
+    if [len(s) if isinstance(s, tuple) else 0 for s in shapes] != [1, 2, 2]:
         raise ValueError(
             "`check_basin` takes the result of a fit on one record (`x0` of shape (n_x,)) and "
-            f"that record, `u` (T, n_u) and `z` (T, n_z); got x0 {np.shape(result.x0)}, u "
-            f"{np.shape(u)}, z {np.shape(z)}."
+            f"that record, `u` (T, n_u) and `z` (T, n_z); got x0 {shapes[0]}, u "
+            f"{shapes[1]}, z {shapes[2]} (for a fit on several records, check each record "
+            "by a fit on it alone)."
         )
     if not is_count(window, -math.inf):  # (a float such as 2.5, a string: the type)
         raise TypeError(
@@ -454,7 +465,7 @@ def check_basin(
     if "fixed" not in kwargs:
         kwargs["fixed"] = _held(result)
         if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():
-            warnings.warn(
+            warn(
                 "`check_basin` cannot carry the result's fixed entries to the windowed fit "
                 "for this theta (not a dict of arrays): they are free there. Pass `fixed` "
                 "as for the fit.",
@@ -470,7 +481,7 @@ def check_basin(
     bad = bool(np.any(short - whole > margin))
     if bad:
         fmt = lambda a: ", ".join(f"{v:.3g}" for v in a)  # noqa: E731
-        warnings.warn(
+        warn(
             f"the fit ({result.status}) reaches FIT {fmt(whole)} % on the whole record, but "
             f"a fit with windows of {window} samples from its theta reaches {fmt(short)} % "
             "(each window from its own x0): it sits in a bad minimum of the simulation "
@@ -481,7 +492,7 @@ def check_basin(
             stacklevel=2,
         )
     elif not windowed.success:
-        warnings.warn(
+        warn(
             f"check_basin is inconclusive: its windowed fit did not converge "
             f"({windowed.status}: {windowed.message}), so its FIT "
             f"{', '.join(f'{v:.3g}' for v in short)} % need not be what the windows can reach, "

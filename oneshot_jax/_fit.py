@@ -20,6 +20,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 from . import _pytree
 from ._aggregate import augment, check_window
 from ._assemble import assemble, collect, post, prepare, weighed, worst_fit
+from ._caller_warnings import recording, warn
 from ._checks import record_x0_mask, x0_mask
 from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
@@ -98,7 +99,7 @@ def _warn_held_window_states(window, x0, estimate_x0, window_starts, model):
     held = ~x0_mask(estimate_x0, np.shape(x0)[0])
     if not held.any():
         return
-    warnings.warn(
+    warn(
         f"`estimate_x0` holds x0 entries {np.flatnonzero(held).tolist()} of every window, and "
         f"the {len(window_starts) - 1} windows after the first start from states estimated "
         "with theta0, not measured: those held states are theta0's, and the estimates are biased "
@@ -122,7 +123,7 @@ def _flag_diverged_stages(result):
     if not bad:
         return result
     first = int(np.asarray(result.history.step)[(stage == bad[0]) & ~np.isfinite(loss)][0])
-    warnings.warn(
+    warn(
         f"solver {bad[0] + 1} of the {last + 1} in the sequence "
         f"({result.solver[bad[0]]['solver']}) diverged: its "
         f"loss was not finite at step {first}"
@@ -238,7 +239,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     out, jacobians = _pytree.unpack(buffers, layout)
     diagnostics = dict(counts) if counts["parallel_rollouts"] else {}
     if counts["sequential_fallbacks"]:
-        warnings.warn(
+        warn(
             f"{counts['sequential_fallbacks']} of {counts['parallel_rollouts']} parallel "
             "rollouts did not converge and fell back to the sequential loop (the results are "
             "exact; see FitResult.diagnostics).",
@@ -246,7 +247,7 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
             stacklevel=3,  # `fit`'s caller
         )
     if counts["unconverged_rollouts"]:
-        warnings.warn(
+        warn(
             f"{counts['unconverged_rollouts']} of {counts['parallel_rollouts']} parallel "
             f"rollouts: {UNCONVERGED} The fit's result is not reliable.",
             RuntimeWarning,
@@ -712,7 +713,7 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
         else "each `Aggregate`'s `weight` about 1 / (its readings' noise variance), on the "
         'same scale; or weight="noise", which estimates both with theta'
     )
-    warnings.warn(
+    warn(
         f"the weighted residuals of the {which} differ in variance by a factor "
         f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
         "outputs, so they hold only where `weight` is about 1 / (each output's noise "
@@ -764,7 +765,7 @@ def _flag_infeasible(result, projections, rtol=1e-8):
         if np.any(np.asarray(result.fixed, bool))
         else ""
     )
-    warnings.warn(
+    warn(
         f"the estimate lies outside the constraint set: the projection moves it by "
         f"{distance:.3g}{held}. The projection onto the intersection of the sets (Dykstra's "
         "alternating projections, of a constraint list or of a projection with fixed "
@@ -823,7 +824,7 @@ def _warn_projected(moved, names, theta0):
             "box(lower={'k': 0.0}) for a dict theta, or with a pytree of theta's own "
             "structure holding None where unbounded (a module of bounds)."
         )
-    warnings.warn(msg, stacklevel=3)
+    warn(msg, stacklevel=3)
 
 
 def fit(
@@ -1025,226 +1026,232 @@ def fit(
     whose simulation fits an output worse than its mean (FIT below 0) warns of a bad
     minimum.
     """
-    if isinstance(weight, str):
-        if weight != "noise":
-            raise ValueError(
-                f'`weight` must be None, an array (Q of eq. 4) or "noise" (Q estimated '
-                f"from the residuals), got {weight!r}."
+    with recording() as record:
+        if isinstance(weight, str):
+            if weight != "noise":
+                raise ValueError(
+                    f'`weight` must be None, an array (Q of eq. 4) or "noise" (Q estimated '
+                    f"from the residuals), got {weight!r}."
+                )
+            result = fit_noise_weighted(
+                fit, {k: v for k, v in locals().items() if k not in ("weight", "record")}
             )
-        return fit_noise_weighted(fit, {k: v for k, v in locals().items() if k != "weight"})
-    check_window(aggregate, window)
-    robust = as_covariance(covariance)
-    if isinstance(robust, NeweyWest) and penalty is not None:
-        raise ValueError(
-            "`covariance=NeweyWest(...)` is not available with `penalty`: the penalty's "
-            'rows are not observations; use covariance="classical".'
-        )
-    if aggregate is not None and validation is not None:
-        raise ValueError(
-            "`validation` with `aggregate` is not supported: score the held-out records "
-            "after the fit (`oneshot_jax.loss` takes `aggregate=`)."
-        )
-    inputs = check_inputs(
-        model,
-        theta0,
-        x0,
-        u,
-        z,
-        solver=solver,
-        weight=weight,
-        penalty=penalty,
-        penalty_weight=penalty_weight,
-        window=window,
-        missing=missing,
-        multistart=multistart,
-        progress=progress,
-        history=history,
-        units=units,
-        t=t,
-        readings=aggregate is not None,
-    )
-    estimate_x0, x0_held = record_x0_mask(
-        estimate_x0,
-        np.shape(inputs.data.x0) if inputs.data.batched else (1, np.shape(inputs.data.x0)[-1]),
-        windowed=inputs.window_starts is not None,
-        aggregated=aggregate is not None,
-    )
-    _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts, model)
-    if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
-        agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
+            return dataclasses.replace(result, warnings=tuple(record.messages))
+        check_window(aggregate, window)
+        robust = as_covariance(covariance)
+        if isinstance(robust, NeweyWest) and penalty is not None:
+            raise ValueError(
+                "`covariance=NeweyWest(...)` is not available with `penalty`: the penalty's "
+                'rows are not observations; use covariance="classical".'
+            )
+        if aggregate is not None and validation is not None:
+            raise ValueError(
+                "`validation` with `aggregate` is not supported: score the held-out records "
+                "after the fit (`oneshot_jax.loss` takes `aggregate=`)."
+            )
         inputs = check_inputs(
-            agg.model,
+            model,
             theta0,
-            agg.x0,
-            agg.u,
-            agg.z,
+            x0,
+            u,
+            z,
             solver=solver,
-            weight=agg.weight,
-            penalty=agg.penalty(penalty),
+            weight=weight,
+            penalty=penalty,
             penalty_weight=penalty_weight,
             window=window,
-            missing="mask",
+            missing=missing,
             multistart=multistart,
             progress=progress,
             history=history,
             units=units,
+            t=t,
+            readings=aggregate is not None,
         )
-        estimate_x0 = agg.x0_mask(estimate_x0)
-    if x0_bounds is not None and aggregate is not None:
-        raise ValueError(
-            "`x0_bounds` with `aggregate` is not supported: bound the states by a penalty "
-            "(`oneshot_jax.penalties.state_box`)."
+        estimate_x0, x0_held = record_x0_mask(
+            estimate_x0,
+            np.shape(inputs.data.x0) if inputs.data.batched else (1, np.shape(inputs.data.x0)[-1]),
+            windowed=inputs.window_starts is not None,
+            aggregated=aggregate is not None,
         )
-    built = build_problem(
-        inputs,
-        fixed=fixed,
-        estimate_x0=estimate_x0,
-        constraints=constraints,
-        regulariser=regulariser,
-        validation=validation,
-        x0_bounds=x0_bounds,
-        x0_held=x0_held,
-    )
-    lags = NOT_COMPUTED if robust is NOT_COMPUTED else None
-    if isinstance(robust, NeweyWest):
-        lengths = inputs.data.lengths
-        lags = robust.resolved(
-            int(built.problem.u.shape[1]), None if lengths is None else int(min(lengths))
+        _warn_held_window_states(window, x0, estimate_x0, inputs.window_starts, model)
+        if aggregate is not None:  # the readings as accumulator states (`_aggregate`)
+            agg = augment(inputs.data, aggregate, model, x0, missing, t=t)
+            inputs = check_inputs(
+                agg.model,
+                theta0,
+                agg.x0,
+                agg.u,
+                agg.z,
+                solver=solver,
+                weight=agg.weight,
+                penalty=agg.penalty(penalty),
+                penalty_weight=penalty_weight,
+                window=window,
+                missing="mask",
+                multistart=multistart,
+                progress=progress,
+                history=history,
+                units=units,
+            )
+            estimate_x0 = agg.x0_mask(estimate_x0)
+        if x0_bounds is not None and aggregate is not None:
+            raise ValueError(
+                "`x0_bounds` with `aggregate` is not supported: bound the states by a penalty "
+                "(`oneshot_jax.penalties.state_box`)."
+            )
+        built = build_problem(
+            inputs,
+            fixed=fixed,
+            estimate_x0=estimate_x0,
+            constraints=constraints,
+            regulariser=regulariser,
+            validation=validation,
+            x0_bounds=x0_bounds,
+            x0_held=x0_held,
         )
-    # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
-    # Jacobians along the fitted trajectory come from the solve's compiled call.
-    rhs = rhs_of(model, inputs.data) if aggregate is None else None
-    idx = None if rhs is None else sample_points(inputs.data, timed=model.timed)
-    stability_at = None if idx is None else (rhs, idx)
-    out, wall, diagnostics, jacobians, prepared = _run(
-        inputs.solvers,
-        built.problem,
-        built.starts,
-        history,
-        inputs.meter,
-        stability_at,
-        meanwhile=lambda: prepare(
-            data=inputs.data,
-            problem=built.problem,
-            solvers=inputs.solvers,
-            fixed=built.fixed,
-            # (with a mask per record, that mask: the union less what each record holds)
-            x0_estimated=built.x0_estimated if x0_held is None else built.x0_estimated & ~x0_held,
-            theta_order=_theta_order(theta0),
-            units=inputs.units,
-        ),
-        lags=lags,
-    )
-    if lags == NOT_COMPUTED:
-        diagnostics = {**diagnostics, "covariance": NOT_COMPUTED}
-    elif lags is not None:
-        diagnostics = {**diagnostics, "covariance": "newey_west", "covariance_lags": lags}
-    _warn_projected(out.moved, prepared.names, theta0)
-    result = assemble(
-        prepared=prepared,
-        model=model,
-        problem=built.problem,
-        data=inputs.data,
-        out=out,
-        wall_time=wall,
-        multistart=inputs.n_starts is not None,
-        diagnostics=diagnostics,
-        window_starts=inputs.window_starts,
-        n_u=int(np.shape(u[0] if isinstance(u, (list, tuple)) else u)[-1]),
-    )
-    strategy = getattr(inputs.solvers[-1], "strategy", "auto")
-    # The checks of the result after the solve (a Newton step, a Gauss-Newton step in low
-    # precision, ...: programs of their own on a first call) count in its wall time.
-    checking = time.perf_counter()
-    # (their rollouts are the checks', not the fit's: counted apart, no second warning)
-    with counting():
-        result = flag_zero_gradient(
-            result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
-        )
-        result = _flag_unconverged_rollouts(
-            result,
+        lags = NOT_COMPUTED if robust is NOT_COMPUTED else None
+        if isinstance(robust, NeweyWest):
+            lengths = inputs.data.lengths
+            lags = robust.resolved(
+                int(built.problem.u.shape[1]), None if lengths is None else int(min(lengths))
+            )
+        # A `Model.from_ode` model near its integrator's stability limit (`_stability`): the
+        # Jacobians along the fitted trajectory come from the solve's compiled call.
+        rhs = rhs_of(model, inputs.data) if aggregate is None else None
+        idx = None if rhs is None else sample_points(inputs.data, timed=model.timed)
+        stability_at = None if idx is None else (rhs, idx)
+        out, wall, diagnostics, jacobians, prepared = _run(
+            inputs.solvers,
             built.problem,
-            out.theta,
-            out.x0,
-            strategy,
-            finals=Params(out.start_theta, out.start_x0),
+            built.starts,
+            history,
+            inputs.meter,
+            stability_at,
+            meanwhile=lambda: prepare(
+                data=inputs.data,
+                problem=built.problem,
+                solvers=inputs.solvers,
+                fixed=built.fixed,
+                # (with a mask per record, that mask: the union less what each record holds)
+                x0_estimated=built.x0_estimated
+                if x0_held is None
+                else built.x0_estimated & ~x0_held,
+                theta_order=_theta_order(theta0),
+                units=inputs.units,
+            ),
+            lags=lags,
         )
-        result = _flag_refuted_stop(result, built.problem, out, strategy)
-        result = _flag_plateau_above_start(
-            result, built.problem, built.starts, int(out.best), strategy
+        if lags == NOT_COMPUTED:
+            diagnostics = {**diagnostics, "covariance": NOT_COMPUTED}
+        elif lags is not None:
+            diagnostics = {**diagnostics, "covariance": "newey_west", "covariance_lags": lags}
+        _warn_projected(out.moved, prepared.names, theta0)
+        result = assemble(
+            prepared=prepared,
+            model=model,
+            problem=built.problem,
+            data=inputs.data,
+            out=out,
+            wall_time=wall,
+            multistart=inputs.n_starts is not None,
+            diagnostics=diagnostics,
+            window_starts=inputs.window_starts,
+            n_u=int(np.shape(u[0] if isinstance(u, (list, tuple)) else u)[-1]),
         )
-        result = _flag_every_column_vanished(result, built.problem)
-        least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
-        result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
-        result = _settle(result, built.problem, out, strategy, least_squares)
-        result = _measure_unmeasured_success(result, built.problem, out, strategy)
-    wall += time.perf_counter() - checking
-    readings = None
-    if aggregate is not None:
-        readings = agg.reading_mean_squares(result)
-        result = agg.restore(result)
-    result = _flag_diverged_stages(result)
-    if result.validation_loss is not None and not np.isfinite(result.validation_loss):
-        warnings.warn(
-            "`validation`: no iterate scored a finite validation loss (the model blows up "
-            "on the held-out records, or their head estimate fails): the held-out data "
-            "chose nothing, and the result is the solvers' own.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    result = dataclasses.replace(
-        result,
-        theta=_pytree.ordered_like(result.theta, theta0),
-        std=_pytree.ordered_like(result.std, theta0),
-    )
-    if built.problem.regulariser is not None and result.covariance.size:
-        # (`FitResult.__str__` says what its standard errors are then)
-        result = dataclasses.replace(
-            result, diagnostics={**(result.diagnostics or {}), "regularised": True}
-        )
-    if penalty is not None and result.covariance.size:  # (likewise)
-        result = dataclasses.replace(
-            result, diagnostics={**(result.diagnostics or {}), "penalised": True}
-        )
-    if missing == "mask":  # (`result.predict` takes the head's NaN as missing too)
-        result = dataclasses.replace(result, missing="mask")
-    if weight is not None:  # (the default of `result.predict`'s x0 estimate)
-        q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
-        result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
-    if result.status != "zero_residual":  # (round-off residuals have no noise level)
-        _warn_unequal_noise(result.residuals, weight, result.std, readings)
-    else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
-        nrmse = weighed(result.metrics.get("nrmse"), weight)  # (weight 0: not fitted)
-        if np.isfinite(nrmse).any():
-            info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
-            result = dataclasses.replace(result, stop_info=info)
-    if built.x0_box is not None:  # (the box as `result.x0`'s shape: `predict` keeps it)
-        box = tuple(b.reshape(np.shape(result.x0)) for b in built.x0_box)
-        result = dataclasses.replace(result, x0_bounds=box)
-    if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
-        result = _flag_infeasible(result, built.sets)  # (before a success is read below)
-    # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,
-    # all-zero terms, say.)
-    worst = worst_fit(result.metrics.get("fit_percent"), weight)
-    if result.success and worst is not None and regulariser is None and penalty is None:
-        held = "" if constraints is None else ", or constraints that keep it from the data"
-        warnings.warn(
-            f"the fit reports {result.status}, but its simulation fits an output worse than "
-            f"that output's mean (FIT {worst:.3g} %): most often a bad minimum of the "
-            f"simulation error (or a model that cannot describe these data{held}). "
-            "`oj.check_basin(result, u, z)` compares it with a fit over short windows, "
-            "each from its own x0; `oj.fit_continuation` starts from such windows.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-    if stability_at is not None:
-        warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
-    elif aggregate is not None and (window is None or not model.timed):
-        # (with windows, the windows' records: for a timed model they carry their
-        # intervals already, which `stability` would take for an input)
+        strategy = getattr(inputs.solvers[-1], "strategy", "auto")
+        # The checks of the result after the solve (a Newton step, a Gauss-Newton step in low
+        # precision, ...: programs of their own on a first call) count in its wall time.
         checking = time.perf_counter()
-        fitted_u, fitted_t = (u, t) if window is None else (inputs.data.u, None)
-        report = stability(model, result.theta, result.x0, fitted_u, t=fitted_t)
-        warn_if_near_limit(report, stacklevel=2)
+        # (their rollouts are the checks', not the fit's: counted apart, no second warning)
+        with counting():
+            result = flag_zero_gradient(
+                result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
+            )
+            result = _flag_unconverged_rollouts(
+                result,
+                built.problem,
+                out.theta,
+                out.x0,
+                strategy,
+                finals=Params(out.start_theta, out.start_x0),
+            )
+            result = _flag_refuted_stop(result, built.problem, out, strategy)
+            result = _flag_plateau_above_start(
+                result, built.problem, built.starts, int(out.best), strategy
+            )
+            result = _flag_every_column_vanished(result, built.problem)
+            least_squares = isinstance(inputs.solvers[-1], AbstractLeastSquares)
+            result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
+            result = _settle(result, built.problem, out, strategy, least_squares)
+            result = _measure_unmeasured_success(result, built.problem, out, strategy)
         wall += time.perf_counter() - checking
-    return dataclasses.replace(result, wall_time=wall)
+        readings = None
+        if aggregate is not None:
+            readings = agg.reading_mean_squares(result)
+            result = agg.restore(result)
+        result = _flag_diverged_stages(result)
+        if result.validation_loss is not None and not np.isfinite(result.validation_loss):
+            warn(
+                "`validation`: no iterate scored a finite validation loss (the model blows up "
+                "on the held-out records, or their head estimate fails): the held-out data "
+                "chose nothing, and the result is the solvers' own.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        result = dataclasses.replace(
+            result,
+            theta=_pytree.ordered_like(result.theta, theta0),
+            std=_pytree.ordered_like(result.std, theta0),
+        )
+        if built.problem.regulariser is not None and result.covariance.size:
+            # (`FitResult.__str__` says what its standard errors are then)
+            result = dataclasses.replace(
+                result, diagnostics={**(result.diagnostics or {}), "regularised": True}
+            )
+        if penalty is not None and result.covariance.size:  # (likewise)
+            result = dataclasses.replace(
+                result, diagnostics={**(result.diagnostics or {}), "penalised": True}
+            )
+        if missing == "mask":  # (`result.predict` takes the head's NaN as missing too)
+            result = dataclasses.replace(result, missing="mask")
+        if weight is not None:  # (the default of `result.predict`'s x0 estimate)
+            q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
+            result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
+        if result.status != "zero_residual":  # (round-off residuals have no noise level)
+            _warn_unequal_noise(result.residuals, weight, result.std, readings)
+        else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
+            nrmse = weighed(result.metrics.get("nrmse"), weight)  # (weight 0: not fitted)
+            if np.isfinite(nrmse).any():
+                info = {**result.stop_info, "residual_nrmse": float(np.nanmax(nrmse))}
+                result = dataclasses.replace(result, stop_info=info)
+        if built.x0_box is not None:  # (the box as `result.x0`'s shape: `predict` keeps it)
+            box = tuple(b.reshape(np.shape(result.x0)) for b in built.x0_box)
+            result = dataclasses.replace(result, x0_bounds=box)
+        if built.problem.project is not None:  # (Dykstra's cycles are capped: check the estimate)
+            result = _flag_infeasible(result, built.sets)  # (before a success is read below)
+        # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,
+        # all-zero terms, say.)
+        worst = worst_fit(result.metrics.get("fit_percent"), weight)
+        if result.success and worst is not None and regulariser is None and penalty is None:
+            held = "" if constraints is None else ", or constraints that keep it from the data"
+            warn(
+                f"the fit reports {result.status}, but its simulation fits an output worse than "
+                f"that output's mean (FIT {worst:.3g} %): most often a bad minimum of the "
+                f"simulation error (or a model that cannot describe these data{held}). "
+                "`oj.check_basin(result, u, z)` compares it with a fit over short windows, "
+                "each from its own x0; `oj.fit_continuation` starts from such windows.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        if stability_at is not None:
+            warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
+        elif aggregate is not None and (window is None or not model.timed):
+            # (with windows, the windows' records: for a timed model they carry their
+            # intervals already, which `stability` would take for an input)
+            checking = time.perf_counter()
+            fitted_u, fitted_t = (u, t) if window is None else (inputs.data.u, None)
+            report = stability(model, result.theta, result.x0, fitted_u, t=fitted_t)
+            warn_if_near_limit(report, stacklevel=2)
+            wall += time.perf_counter() - checking
+        return dataclasses.replace(result, wall_time=wall, warnings=tuple(record.messages))

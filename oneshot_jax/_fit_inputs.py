@@ -9,7 +9,6 @@ only `fit` has: its keywords, the starts of a multistart fit, the windows of one
 the free entries of theta and x0 and the bounds on them.
 """
 
-import warnings
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -18,6 +17,7 @@ import jax
 import numpy as np
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._checks import (
     Data,
     check_cost,
@@ -322,7 +322,7 @@ def _warn_integer_entries(theta0) -> None:
             kind = f"{dtype}" if not shape else f"{dtype}, shape {shape}"
             named.append(f"theta0{jax.tree_util.keystr(path)} ({kind})")
     if named:
-        warnings.warn(
+        warn(
             f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: an integer "
             "scalar or array of NumPy or JAX, or a bool, is held fixed as data, not "
             "estimated (right for an exponent, an index or a switch). To estimate it, give "
@@ -348,7 +348,7 @@ def _warn_module_python_ints(theta0) -> None:
             if isinstance(value, int) and not isinstance(value, bool):
                 named.append(f"theta0{jax.tree_util.keystr(path)}{jax.tree_util.keystr(inner)}")
     if named:
-        warnings.warn(
+        warn(
             f"{', '.join(named[:6])}{' and more' if len(named) > 6 else ''}: a Python int "
             "field of an equinox module is a parameter here, estimated as a float (as "
             "{'k': 2} is). To keep it an integer, declare the field "
@@ -519,7 +519,7 @@ def build_problem(
     if free.lower is not None and np.any(free.lower == free.upper):
         names = np.asarray(_pytree.leaf_names(data.theta), object)[theta_free]
         pinned = [str(n) for n in names[free.lower == free.upper]]
-        warnings.warn(
+        warn(
             f"the box's lower and upper bounds are equal for {pinned}: the fit holds them "
             "there, but they still count as estimated (a standard error of the "
             "linearisation, one fewer degree of freedom in sigma^2, and one more parameter in "
@@ -560,7 +560,7 @@ def build_problem(
         check_regulariser(on_theta, data.theta)
         check_regulariser_acts(on_theta, free.unravel, flat0, theta_free)
         if proj is not None and proj.bounds is None and any(isinstance(s, Adam) for s in solvers):
-            warnings.warn(
+            warn(
                 "a regulariser with a general projection (`constraints.project`, or sets "
                 "combined) and `Adam`: Adam takes the regulariser's prox in its own "
                 "per-coordinate metric, then the projection, which is Euclidean; their "

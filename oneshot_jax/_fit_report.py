@@ -392,6 +392,18 @@ def _per_output(values, outputs) -> str:
     return ", ".join(f"{o}: {v}" for o, v in zip(names, values, strict=True))
 
 
+def _loss_meaning(result) -> str:
+    """What the printed loss is: C of eq. (5) (with a regulariser g or a penalty, eq. 21,
+    added)."""
+    out = "mean over the samples of e'Qe, e the output error"
+    diagnostics = result.diagnostics or {}
+    if diagnostics.get("regularised"):
+        out += ", plus the regulariser"
+    elif diagnostics.get("penalised"):
+        out += ", plus the penalty"
+    return out
+
+
 def report(result) -> str:
     """What `print(result)` shows (see `FitResult`)."""
     table, modules = _parameter_table(result)
@@ -427,7 +439,8 @@ def report(result) -> str:
         f"oneshot_jax fit by {solvers}: {int(np.sum(~fixed))} of {fixed.size} parameters "
         f"and {states} estimated",
         f"status: {result.status} ({stop})",
-        f"loss {float(result.loss):.6e} after {result.num_steps} steps in "
+        f"loss {float(result.loss):.6e} ({_loss_meaning(result)}) after {result.num_steps} "
+        f"steps in "
         f"{_seconds(result.wall_time)} s (wall; a first call includes compiling)",
     ]
     if result.validation_loss is not None:
@@ -592,4 +605,6 @@ def report(result) -> str:
             f"  (over the {len(result.window_starts)} windows, each from its own fitted x0: "
             "not a simulation of the whole record; see result.simulate or result.predict)"
         )
+    # (what `fit` warned of, also where the filters hid it: `FitResult.warnings`)
+    out.extend(f"warning: {message}" for message in getattr(result, "warnings", ()))
     return "\n".join(out)

@@ -465,7 +465,8 @@ class FitResult(eqx.Module):
     states with their standard errors (the first trajectories of several); FIT% and RMSE
     per output, and the AIC and FPE (AICc and BIC are in `metrics`; pooled over the
     trajectories or windows of several,
-    with the FIT% of each on a line of its own).
+    with the FIT% of each on a line of its own); last, what `fit` warned of about
+    this fit, a line per warning (`warnings`).
 
     **Fields:**
 
@@ -598,6 +599,10 @@ class FitResult(eqx.Module):
         (-inf / inf where unbounded or held), or None; `predict` bounds a record's x0 by
         them by default where every record's are the same (a fit on one record, or
         bounds of shape (n_x,)).
+    - `warnings`: the messages of the warnings `fit` raised about this fit (an integrator
+        near its stability limit, outputs of unequal noise, a fit worse than the mean,
+        ...), in the order raised, whatever the warning filters showed; `print(result)`
+        lists them. Empty in a file saved before they were kept.
     - `missing`: `fit(missing=...)`: with `"mask"` (NaN in z marked missing samples),
         `predict` takes NaN in a new record's head as missing too (`"raise"` otherwise).
     - `diagnostics`: counts about how the fit was computed; with a parallel-in-time
@@ -643,6 +648,7 @@ class FitResult(eqx.Module):
     weight: np.ndarray | None = None
     x0_bounds: tuple | None = None
     missing: str = eqx.field(static=True, default="raise")
+    warnings: tuple = ()
     # What a loaded file recorded of the fitted model (`load_result`), kept so that a
     # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
     saved_model_signature: tuple | None = eqx.field(static=True, default=None, repr=False)
@@ -1011,8 +1017,9 @@ class FitResult(eqx.Module):
             several records, (N, T, n_u) and (N, T, n_z), or lists of N arrays.
         - `K`: the horizon, an integer >= 1 (K >= T or `math.inf`: the simulation from
             `x0`).
-        - `process_noise`: the covariance of the process noise per step (required; the
-            fit's output-error model has none).
+        - `process_noise`: the covariance of the process noise per step, or the
+            `ProcessNoise` of `estimate_process_noise` (required; the fit's
+            output-error model has none).
         - `x0`: the prior mean of the initial state; default the record's x0 estimated
             from all of it as `predict(u, z)` does. For several records, one per record,
             (N, n_x), or one for all, (n_x,).

@@ -12,7 +12,6 @@ functions, their checks and results, and the observability check of an estimate.
 """
 
 import math
-import warnings
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -20,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
+from ._caller_warnings import warn
 from ._checks import (
     check_cost,
     check_data,
@@ -83,7 +83,7 @@ class X0Estimate(eqx.Module):
         how = f"x0 from the first {self.n} samples by {self.method}"
         if self.stop_reason is not None:
             how += f" ({name_of(self.stop_reason)})"
-        rows = [how + f", loss {float(self.loss):.6g}"]
+        rows = [how + f", loss {float(self.loss):.6g} (the head's mean of e'Qe)"]
         names = model_labels(self.states, len(self.x0)) or range(len(self.x0))
         rows_of = [f"x0[{i}]" for i in names]
         width = max(map(len, rows_of), default=0)
@@ -550,14 +550,14 @@ def _estimate(
             else "along that direction the smoother leaves the estimate at the prior (mean `x0`, "
             "`prior_covariance`)"
         )
-        warnings.warn(
+        warn(
             f"initial state entries {bad} are not determined by the first n = {n} outputs "
             "with these parameters (not observable from this head: a change of them, alone "
             f"or together, leaves those outputs unchanged): {then}.",
             stacklevel=stacklevel,
         )
     if stop_reason is not None and not is_success(stop_reason):
-        warnings.warn(
+        warn(
             f"estimate_x0: the least-squares solver stopped: {RESULTS[stop_reason]}",
             stacklevel=stacklevel,
         )
@@ -597,7 +597,7 @@ def _warn_default_noise(e, z, n, stacklevel):
     rms = np.sqrt(np.sum(np.where(seen, e * e, 0.0), axis=0) / np.maximum(seen.sum(axis=0), 1))
     ratio = float(np.max(rms / assumed))
     if n >= 5 and ratio > NOISE_MISMATCH:
-        warnings.warn(
+        warn(
             f"estimate_x0(method='smoother') assumed a measurement noise of 1 % of each "
             f"output's RMS over the head, and the head's residuals from its estimate are "
             f"{ratio:.3g} times that: its std (covariance) assumes data more precise than "

@@ -15,7 +15,8 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   `RESULTS` name), `num_steps`, `wall_time`, `best`, `solver` (the settings of each
   solver), the metric names, `starts_stop_reason` and `starts_solver_stop`, `diagnostics` and
   `stop_info` (JSON objects), `theta_order` (a list of names), `units` (a JSON object),
-  `validation_loss` (a number or null) and `static_signature` (what `load_result(like=)`
+  `validation_loss` (a number or null), `warnings` (the fit's warnings, a list of
+  strings) and `static_signature` (what `load_result(like=)`
   compares beyond shapes and names: the static fields of theta's equinox modules and its
   non-parameter leaves such as an activation function, each in words), `n_u` (the
   fitted data's input columns, which `FitResult.simulate`/`predict` check) and
@@ -299,6 +300,7 @@ def save_result(result, path):
         "theta_order": list(result.theta_order),
         "units": dict(result.units),
         "validation_loss": result.validation_loss,
+        "warnings": list(result.warnings),
         "static_signature": _static_signature(result.theta),
         "n_u": result.n_u,
         "missing": result.missing,
@@ -567,6 +569,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
         theta_order=order,
         units=dict(meta.get("units") or {}),
         validation_loss=meta.get("validation_loss"),
+        warnings=tuple(meta.get("warnings") or ()),  # (older files: none)
         window_starts=arrays["window_starts"] if "window_starts" in arrays else None,
         n_u=meta.get("n_u"),
         missing=meta.get("missing") or "raise",  # (older files: none)

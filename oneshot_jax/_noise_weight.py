@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 
 from ._aggregate import _per_record, record_times
+from ._caller_warnings import warn
 from ._results import RESULTS, is_success, name_of
 
 # Rounds of the alternation at most, and the change of Q (relative, in the Frobenius
@@ -237,7 +238,7 @@ def fit_noise_weighted(fit, args):
             )
         )
     for c in caught:
-        warnings.warn(c.message, c.category, stacklevel=3)
+        warn(c.message, c.category, stacklevel=3)
     # (whether a Q was estimated at all: not where the first fit's loss is not finite or
     # its residuals give none, as the warning says)
     estimated = w is not None or change <= NOISE_RTOL

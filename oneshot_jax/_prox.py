@@ -28,7 +28,6 @@ the prox to Adam's per-coordinate steps is `oneshot_jax._solver.optax.proximal_a
 beside `Adam`.
 """
 
-import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -38,6 +37,7 @@ import numpy as np
 import optax
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._checks import is_concrete
 
 __all__ = ["ProximalTransformation", "ProximalState", "combine"]
@@ -727,7 +727,7 @@ def split(constraints, regulariser):
     )
     moved = [t for t in given if t.project is None]
     if moved:
-        warnings.warn(
+        warn(
             "a proximal regulariser (l1, group_lasso, l2) in `fit(constraints=...)` is "
             "deprecated: pass it as `fit(regulariser=...)`; `constraints=` takes the "
             "projections (box, non_negative, positive, project).",

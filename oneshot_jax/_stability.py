@@ -16,7 +16,6 @@ interval.
 
 import functools
 import math
-import warnings
 from typing import NamedTuple
 
 import jax
@@ -25,6 +24,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._checks import check_data
 from ._jit import jit
 from ._model import Model, _ODEStep, _TimedODEStep, _WithoutInterval, interval_count
@@ -359,7 +359,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
         else f"stable up to about {report.limit:g}"
     )
     if not report.near_limit:  # (RK4 inside its stability margin, past its accurate range)
-        warnings.warn(
+        warn(
             f"{what} runs where its integrator no longer follows the ODE: a Jacobian "
             f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, "
             f"gives |lambda| h = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
@@ -383,7 +383,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
         if past
         else "near its integrator's stability limit"
     )
-    warnings.warn(
+    warn(
         f"{what} runs {where}: a Jacobian "
         f"eigenvalue of the right-hand side, lambda = {lam.real:.4g}{lam.imag:+.4g}j, gives "
         f"{measure} = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "

@@ -12,12 +12,13 @@ constant of the step, like u[k]. `check_data` calls these functions after it has
 u, so that its errors about u name the user's n_u.
 """
 
-import warnings
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from ._caller_warnings import warn
 
 
 class Intervals(NamedTuple):
@@ -85,7 +86,7 @@ def _intervals(t, name, T, of="`u`"):
         top = float(np.max(np.abs(t)))
         resolution = float(np.finfo(given).eps) * top
         if resolution > 1e-3 * float(np.min(dt)):
-            warnings.warn(
+            warn(
                 f"`{name}` is stored in {given}, whose resolution at |{name}| up to "
                 f"{top:.3g} is {resolution:.2g}, "
                 f"{resolution / float(np.min(dt)):.2g} of the shortest interval: the "

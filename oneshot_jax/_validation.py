@@ -12,7 +12,6 @@ a run is never split into blocks (Adam's moments are not reset), and stops a sol
 `patience` scores without improvement.
 """
 
-import warnings
 from typing import Any
 
 import equinox as eqx
@@ -20,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._caller_warnings import warn
 from ._checks import check_data, check_state_size
 from ._cost import weigh
 from ._counts import integral, is_count
@@ -299,7 +299,7 @@ def monitor(validation, model, theta, x0_fit, sqrt_q, n_u=None, x0_box=None):
         )
     n_z = Z.shape[-1]
     if validation.n is not None and validation.n * n_z < n_x:
-        warnings.warn(
+        warn(
             f"`Validation(n={validation.n})`: the head holds {validation.n * n_z} output "
             f"values, fewer than the {n_x} initial states estimated from it, so they are not "
             "determined by it (the estimate keeps its start along the others, and the score "

@@ -1,10 +1,9 @@
 """Cutting one long record into windows, each with an initial state of its own."""
 
-import warnings
-
 import equinox as eqx
 import numpy as np
 
+from ._caller_warnings import warn
 from ._counts import is_count
 from ._x0_lsq import solve_x0
 
@@ -167,14 +166,12 @@ def cut(data, window, x0_windows=None):
     N = starts.size
     covered = int(starts[-1]) + length
     if consecutive and covered != T:
-        warnings.warn(
-            f"the last {T - covered} samples do not fill a window and are dropped.", stacklevel=4
-        )
+        warn(f"the last {T - covered} samples do not fill a window and are dropped.", stacklevel=4)
     rows = starts[:, None] + np.arange(length)[None, :]  # (N, length) sample indices
     copies = np.bincount(rows.ravel(), minlength=T)
     if copies.max() > 1:
         mean = float(copies.sum() / np.count_nonzero(copies))
-        warnings.warn(
+        warn(
             f"the windows overlap: a sample lies in up to {int(copies.max())} windows "
             f"({mean:.3g} on average). The covariance counts each copy as an independent "
             "observation, each window with an initial state of its own, so the standard "

@@ -53,8 +53,11 @@ def reads_weight(weight) -> bool:
 def _covariance_arg(value, size, name, *, definite):
     """A covariance from a scalar (times I), a vector (its diagonal) or a matrix (symmetric,
     positive semi-definite, or definite where `definite`)."""
-    if np.asarray(value).dtype == bool:
-        raise TypeError(f"`{name}` must be a variance or a covariance (numbers), got {value!r}.")
+    if np.asarray(value).dtype == bool or isinstance(value, str):
+        raise TypeError(
+            f"`{name}` must be a variance or a covariance (numbers: a scalar, a ({size},) "
+            f"vector of variances or a ({size}, {size}) matrix), got {value!r}."
+        )
     a = np.asarray(as_float(value, name), dtype=np.float64)
     if a.shape == ():
         a = np.full(size, float(a))

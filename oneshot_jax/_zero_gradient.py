@@ -16,13 +16,13 @@ the start too, and every parameter of a fit that reproduces the outputs exactly
 """
 
 import dataclasses
-import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
+from ._caller_warnings import warn
 from ._fit_result import stop_detail
 from ._jit import jit
 from ._problem import Params
@@ -194,7 +194,7 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, fi
         "zero_gradient": [all_names[free[i]] for i in entries],
         "solver_stop": stop,
     }
-    warnings.warn(
+    warn(
         f"{stop_detail('zero_gradient', info)}; {RESULTS[RESULTS.zero_gradient]}.",
         RuntimeWarning,
         stacklevel=3,  # `fit`'s caller

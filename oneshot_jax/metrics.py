@@ -31,13 +31,13 @@ from __future__ import annotations
 import math
 import numbers
 import statistics
-import warnings
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._caller_warnings import warn
 from ._counts import integral, real
 from ._masked import unmasked
 
@@ -108,14 +108,14 @@ def _check(z, zhat, mask):
             "(z is (T, n_z), time first)"
         )
     if len(shape) == 2 and 2 <= shape[0] < shape[1]:  # (a transposed record of n_z >= 2)
-        warnings.warn(
+        warn(
             f"`z` holds T = {shape[0]} samples of {shape[1]} outputs (shape {shape}): is it "
             "transposed? (z is (T, n_z), time first; the scores are one per output)",
             UserWarning,
             stacklevel=3,
         )
     if mask is None and np.isnan(np.asarray(z, dtype=float)).any():
-        warnings.warn(
+        warn(
             "`z` holds NaN (missing samples), and every output with one scores NaN: pass "
             "`mask=~np.isnan(z)` to score the measured samples only (as `FitResult.metrics` "
             "does).",
@@ -568,6 +568,8 @@ class ResidualCorrelations(NamedTuple):
         1 - confidence), shape (n_z,).
     - `cross_joint_bound`: the same of `cross` over the (max_lag + 1) n_u lags of all
         the inputs together, z'' sqrt(P / n), shape (n_z, n_u); None without `u`.
+    - `confidence`: the level of the bands (`residual_correlations(confidence=...)`),
+        which `print` states.
     """
 
     lags: np.ndarray
@@ -582,13 +584,15 @@ class ResidualCorrelations(NamedTuple):
     cross_bound: np.ndarray | None = None
     joint_bound: np.ndarray | None = None
     cross_joint_bound: np.ndarray | None = None
+    confidence: float | None = None
 
     def __str__(self) -> str:
         """The verdicts per output, with the numbers they rest on (MATLAB's `resid`
         reading): what `print` shows; the arrays are the fields."""
         max_lag = int(np.max(self.lags))
         inputs = "" if self.independent is None else f" (0..{max_lag} with the inputs)"
-        out = [f"residual correlations over lags 1..{max_lag}{inputs}"]
+        level = "" if self.confidence is None else f", {100 * self.confidence:g} % bands"
+        out = [f"residual correlations over lags 1..{max_lag}{inputs}{level}"]
         for k in range(len(np.atleast_1d(self.white))):
             white = "white" if bool(np.atleast_1d(self.white)[k]) else "not white"
             line = (
@@ -758,7 +762,9 @@ def residual_correlations(
     - `e`: the residuals, shape (T,), (T, n_z) or (N, T, n_z) (N trajectories, pooled:
         the sums run over each trajectory, never across two, and n counts all of them).
         NaN marks a missing sample (as in `FitResult.residuals`): the products with it
-        are left out and it is not counted in n.
+        are left out and it is not counted in n. The inputs, known at every sample of
+        their records, keep all of them in their own mean and R_u(0), so that a missing
+        output does not change what is measured of the input.
     - `u`: the inputs, shape (T,), (T, n_u) or (N, T, n_u) with the N and T of `e`, or
         a list of N records (T_i, n_u) of different lengths, as `fit` takes them (`e`
         then NaN past each record's end, as `FitResult.residuals` is); finite. None:
@@ -780,7 +786,8 @@ def residual_correlations(
     **Returns:**
 
     A `ResidualCorrelations(lags, auto, cross, bound, white, independent, auto_outside,
-    cross_outside, n, cross_bound, joint_bound, cross_joint_bound)` of NumPy arrays.
+    cross_outside, n, cross_bound, joint_bound, cross_joint_bound, confidence)` of NumPy
+    arrays (and the level, a float).
 
     **Raises:**
 
@@ -923,4 +930,5 @@ def residual_correlations(
         cross_bound=cross_bound,
         joint_bound=joint_bound,
         cross_joint_bound=cross_joint_bound,
+        confidence=float(confidence),
     )

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import numbers
 import statistics
-import warnings
 
 import numpy as np
 
 from . import metrics
 from ._ahead import AheadPrediction
+from ._caller_warnings import warn
 from ._fit_result import FitResult, is_fitted_record
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
@@ -83,7 +83,7 @@ def _warn_other_record(name, result, zhat, z):
     the wrong initial state."""
     if is_fitted_record(result, zhat, z):
         return
-    warnings.warn(
+    warn(
         f"`{name}` is simulated from the x0 fitted on its own data, which is not this "
         "record: pass `n` (e.g. n=20) to estimate x0 from the first n samples of `z`, as "
         "the benchmark protocol does (MATLAB's compare estimates it from the whole record: "
@@ -291,7 +291,7 @@ def compare(
     if not models:
         raise ValueError("`models` is empty: pass at least one model (or model output).")
     if n_z > T:
-        warnings.warn(
+        warn(
             f"`z` holds T = {T} samples of {n_z} outputs, one axis per output: is it "
             f"transposed? `compare` takes samples along the first axis, shape (T, n_z).",
             UserWarning,

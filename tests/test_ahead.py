@@ -302,6 +302,12 @@ def test_the_process_noise_of_the_highest_likelihood():
     np.testing.assert_allclose(pn.log_likelihood, reference_log_likelihood(pn.scale, z),
                                rtol=1e-11)  # fmt: skip
     np.testing.assert_allclose(pn.covariance, pn.scale * np.eye(2))
+    # The estimate itself is a `process_noise` (it was refused as an array of 6 fields)
+    kw = dict(x0=M0, measurement_noise=R, prior_covariance=P0, missing="mask")
+    given = oj.predict_ahead(LINEAR, {"A": A}, U, z, 3, process_noise=pn, **kw)
+    by_hand = oj.predict_ahead(LINEAR, {"A": A}, U, z, 3, process_noise=pn.covariance, **kw)
+    np.testing.assert_array_equal(given.z, by_hand.z)
+    np.testing.assert_array_equal(given.std, by_hand.std)
     rng = np.random.default_rng(1)
     n = 2000
     u, x, zs = rng.standard_normal((n, 1)), np.zeros(2), []
@@ -333,6 +339,9 @@ def test_no_process_noise_in_the_data_is_said():
         oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, 1.0, x0=M0, scales=[1.0, 0.1, 2.0])
     with pytest.raises(TypeError, match="`shape` must be given"):
         oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, None, x0=M0)
+    # (a word such as "diagonal": what is wanted, not a dtype)
+    with pytest.raises(TypeError, match=r"`shape` must be .* a \(2,\) vector of variances"):
+        oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, "diagonal", x0=M0)
 
 
 def test_a_missing_entry_leaves_its_noise_covariances_out():

@@ -329,6 +329,49 @@ def test_nothing_in_the_package_imports_internal():
     assert not users, f"oneshot_jax.internal is for tests, benchmarks and experiments: {users}"
 
 
+def direct_warnings(source: str) -> list[int]:
+    """The lines of `source` that call `warnings.warn` (or `warn` imported from warnings)."""
+    tree = ast.parse(source)
+    names = {
+        a.asname or a.name
+        for n in ast.walk(tree)
+        if isinstance(n, ast.ImportFrom) and n.module == "warnings"
+        for a in n.names
+        if a.name == "warn"
+    }
+    return [
+        n.lineno
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call)
+        and (
+            (
+                isinstance(n.func, ast.Attribute)
+                and n.func.attr == "warn"
+                and getattr(n.func.value, "id", None) == "warnings"
+            )
+            or (isinstance(n.func, ast.Name) and n.func.id in names)
+        )
+    ]
+
+
+def test_the_direct_warning_finder():
+    assert direct_warnings("import warnings\nwarnings.warn('a')\n") == [2]
+    assert direct_warnings("from warnings import warn as w\nw('a')\n") == [2]
+    assert direct_warnings("from ._caller_warnings import warn\nwarn('a')\n") == []
+
+
+def test_every_warning_goes_through_the_recorded_warn():
+    """The package warns through `_caller_warnings.warn` only, so that `fit` keeps every
+    warning of its run in `FitResult.warnings` (`at_caller` raises again warnings that
+    were recorded where they were first raised)."""
+    found = {
+        module: lines
+        for module, path in package_modules().items()
+        if module != "oneshot_jax._caller_warnings" and (lines := direct_warnings(path.read_text()))
+    }
+    assert not found, f"warnings.warn called directly (use _caller_warnings.warn): {found}"
+
+
 def test_import_loads_neither_the_examples_nor_matplotlib():
     code = (
         "import sys, oneshot_jax\n"

@@ -1463,3 +1463,22 @@ def test_an_optax_transform_whose_update_does_not_match_the_parameters_is_named(
     )
     with pytest.raises(ValueError, match=r"`Optax\(transform\)`: the transform's update must"):
         oj.fit(MODEL, THETA, X0, U, Z, solver=oj.Optax(bad, max_steps=3))
+
+
+def test_a_fit_result_given_as_theta_names_its_theta():
+    """nlgreyest's habit, `fit(model, estimated, ...)`: the FitResult is named, with its
+    `theta` (and for `fit`, its `x0`) to pass; it failed on a string inside the result
+    ("`theta0` must hold real numbers, got 'auto'")."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = oj.fit(
+            MODEL, THETA, jnp.zeros(N_X), U, Z, solver=oj.LevenbergMarquardt(max_steps=2)
+        )
+    with pytest.raises(
+        TypeError, match=r"`theta0` is a FitResult: .*`result.theta` and `result.x0`"
+    ):
+        oj.fit(MODEL, result, jnp.zeros(N_X), U, Z)
+    with pytest.raises(
+        TypeError, match=r"`theta` is a FitResult: pass its parameters, `result.theta` \("
+    ):
+        oj.simulate(MODEL, result, jnp.zeros(N_X), U)

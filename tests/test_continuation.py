@@ -186,6 +186,9 @@ def test_basin_check_rejects_bad_arguments(plain):
         oj.check_basin(plain, U, Z, margin="5")
     with pytest.raises(ValueError, match=r"must be the record the result was fitted on"):
         oj.check_basin(plain, U[:300], Z[:300])
+    # Records of different lengths (a fit on several): named, not NumPy's ragged-array error
+    with pytest.raises(ValueError, match=r"u a list of 2 records, z a list of 2 records"):
+        oj.check_basin(plain, [U, U[:300]], [Z, Z[:300]])
     # Another record of the same shape (the windows would be fitted to it and compared
     # with the result's FIT on its own): the result's simulation on it is not z +
     # residuals.

@@ -719,15 +719,17 @@ def test_an_x0_estimate_and_residual_correlations_print_readably():
     white = rng.standard_normal((200, 1))
     rc = oj.metrics.residual_correlations(white, u, 10)
     text = str(rc)
-    assert text.splitlines()[0] == "residual correlations over lags 1..10 (0..10 with the inputs)"
+    assert text.splitlines()[0] == (
+        "residual correlations over lags 1..10 (0..10 with the inputs), 99 % bands"
+    )
     verdict = "white" if rc.white[0] else "not white"
     share = f"{100 * rc.auto_outside[0]:.0f} % of the lags outside +-{rc.bound[0]:.3g}"
     assert text.splitlines()[1].startswith(f"  output 0: {verdict} ({share}, n = 200); ")
     coloured = np.convolve(white[:, 0], np.ones(5), "same")[:, None]
-    alone = str(oj.metrics.residual_correlations(coloured, None, 10))
+    alone = str(oj.metrics.residual_correlations(coloured, None, 10, confidence=0.95))
     assert "output 0: not white" in alone
     # (without inputs the header names none: it said "(0..10 with the inputs)")
-    assert alone.splitlines()[0] == "residual correlations over lags 1..10"
+    assert alone.splitlines()[0] == "residual correlations over lags 1..10, 95 % bands"
     model = oj.Model.from_ode(pendulum_rhs, DT, observe=angle)
     _, z = oj.simulate(model, PEND_THETA, np.array([0.3, 0.0]), u[:40] * 0.1)
     e = oj.estimate_x0(model, PEND_THETA, u[:40] * 0.1, np.asarray(z), n=20, x0=np.zeros(2))

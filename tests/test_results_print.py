@@ -670,3 +670,40 @@ def test_float32_standard_errors_lost_to_round_off_say_so():
     assert not any("not identifiable from these data" in str(w.message) for w in caught)
     r64 = oj.fit(model, {k: float(v) for k, v in theta0.items()}, x0.astype(float), u, z)
     assert all(np.isfinite(r64.std[k]) for k in "abc")
+
+
+def _lag(x, u, theta):
+    # x' = (K u - x) / tau: at tau = 0.02 s and dt = 0.05 s, |lambda| h = 2.5 for RK4
+    return (theta["K"] * u - x) / theta["tau"]
+
+
+def test_a_fits_warnings_are_kept_and_printed_whatever_the_filters_show(tmp_path):
+    """What `fit` warns of about a fit (here a mode beyond RK4's accurate range) is in
+    `result.warnings` and in its printout also where the filters hide it, survives save
+    and load, and is still shown where they do not; a fit with nothing to warn of has
+    none."""
+    model = oj.Model.from_ode(_lag, 0.05)
+    rng = np.random.default_rng(0)
+    u = np.sin(0.1 * np.arange(200))[:, None]
+    truth = {"tau": 0.02, "K": 2.0}
+    _, z = oj.simulate(model, truth, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(model, {"tau": 0.021, "K": 2.0}, np.zeros(1), u, z)
+    assert r.success
+    (message,) = r.warnings
+    assert "stability limit" in message and "substeps=2" in message
+    assert f"warning: {message}" in str(r).splitlines()
+    path = r.save(tmp_path / "r.npz")
+    assert oj.load_result(path, model=model).warnings == r.warnings
+    with pytest.warns(RuntimeWarning, match="stability limit"):
+        shown = oj.fit(model, {"tau": 0.021, "K": 2.0}, np.zeros(1), u, z)
+    assert shown.warnings == r.warnings
+    slow = {"tau": 0.5, "K": 2.0}  # (|lambda| h = 0.1: nothing to warn of)
+    _, z = oj.simulate(model, slow, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet = oj.fit(model, {"tau": 0.4, "K": 1.5}, np.zeros(1), u, z)
+    assert quiet.success and quiet.warnings == () and "warning:" not in str(quiet)

@@ -9,10 +9,11 @@ Outside `fit` each is a warning; `fit` counts them over its run, reports the cou
 """
 
 import threading
-import warnings
 
 import jax
 import numpy as np
+
+from .._caller_warnings import warn
 
 # Process-wide (host callbacks run on XLA's threads, not the caller's).
 _STACK: list = []
@@ -54,9 +55,9 @@ def _host(fallback, converged):
             _STACK[-1]["unconverged_rollouts"] += int(np.sum(kept))
             return
     if np.any(kept):
-        warnings.warn(UNCONVERGED, RuntimeWarning, stacklevel=2)
+        warn(UNCONVERGED, RuntimeWarning, stacklevel=2)
     if np.any(fallback):
-        warnings.warn(
+        warn(
             "the parallel rollout did not converge (unstable or chaotic dynamics, or a "
             "record too long for Newton's method) and fell back to the sequential loop "
             "where it did not (the record, or with `chunk_size` those chunks): every state "

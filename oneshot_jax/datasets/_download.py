@@ -17,11 +17,11 @@ import os
 import shutil
 import tempfile
 import urllib.request
-import warnings
 import zipfile
 import zlib
 from pathlib import Path
 
+from .._caller_warnings import warn
 from ._locations import (
     CACHE_ENV_VAR,
     DatasetFormatError,
@@ -281,7 +281,7 @@ def fetch(name, *, cache_dir=None, base_url=None, alternatives=None) -> Path:
                             f"Download it by hand from {src.page}."
                         ) from err
                 if src.files[f] is None:
-                    warnings.warn(
+                    warn(
                         f"{f} from {url}: no reference SHA-256 is known for this file, so it "
                         f"is not verified; its SHA-256 is {got}.",
                         UserWarning,

@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import csv
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from .._caller_warnings import warn
 from .._checks import check_path as check_path
 from ._download import SOURCES, fetch, sha256
 from ._locations import (
@@ -92,7 +92,7 @@ def locate(path, subdirs, alternatives, *, name, download, cache_dir, base_url, 
     if folder is not None and download:
         changed = _changed_in_cache(folder, names, name, cache)
         if changed:
-            warnings.warn(
+            warn(
                 f"{', '.join(changed)} in the download cache {folder} no longer "
                 f"match{'es' if len(changed) == 1 else ''} the official file's SHA-256 "
                 "(damaged or edited since it was downloaded): downloading the files again.",
@@ -333,7 +333,7 @@ def require_length(file, what, n, minimum, official):
             f"(the official file has {official})."
         )
     if n != official:
-        warnings.warn(
+        warn(
             f"{file}: {what} has {n} samples, the official file {official}: not the "
             "official record (cut short or edited?), so scores on it are not the "
             "benchmark's.",
