@@ -28,6 +28,7 @@ from ._fit_report import theta_order
 from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
+from ._model import model_labels
 from ._noise_weight import fit_noise_weighted
 from ._optimality import (
     CHECK_ENTRIES,
@@ -40,6 +41,7 @@ from ._optimality import (
     n_observations,
     newton_distance,
     output_norm,
+    outputs_above_round_off,
     refuted,
 )
 from ._parallel._report import UNCONVERGED, counting
@@ -356,6 +358,27 @@ def _restated(result, reason, **info):
         starts = dataclasses.replace(result.starts, stop_reason=tuple(reasons))
         out = dataclasses.replace(out, starts=starts)
     return out
+
+
+def _flag_hidden_outputs(result, problem, max_steps):
+    """A `zero_residual` that holds of the outputs together but not of each
+    (`_optimality.outputs_above_round_off`: an output of a large size, reproduced
+    exactly, can hide another output's misfit): not a solution. The stop is then what the
+    solver's would have been without that test: `max_steps_reached` where its last stage
+    took its `max_steps` (a first-order solver reads a zero residual at its last step),
+    else `stalled` (no step progressed), with `stop_info["unresolved_outputs"]` naming
+    the outputs and `solver_stop` "zero_residual"."""
+    if result.status != "zero_residual":
+        return result
+    e = jnp.asarray(np.reshape(np.asarray(result.residuals), problem.z.shape), problem.dtype)
+    above = np.asarray(outputs_above_round_off(problem, e))
+    if not above.any():
+        return result
+    labels = model_labels(getattr(problem.model, "outputs", None), above.size)
+    names = [str(labels[j]) if labels is not None else str(j) for j in np.flatnonzero(above)]
+    ran_out = max_steps is not None and result.stop_info.get("at_step", -1) >= max_steps
+    reason = "max_steps_reached" if ran_out else "stalled"
+    return _restated(result, reason, unresolved_outputs=names)
 
 
 @jit
@@ -1165,6 +1188,8 @@ def fit(
         checking = time.perf_counter()
         # (their rollouts are the checks', not the fit's: counted apart, no second warning)
         with counting():
+            max_steps = getattr(inputs.solvers[-1], "max_steps", None)
+            result = _flag_hidden_outputs(result, built.problem, max_steps)
             result = flag_zero_gradient(
                 result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
             )
@@ -1185,6 +1210,7 @@ def fit(
             result = _flag_unresolved_success(result, built.problem, out, strategy, least_squares)
             result = _settle(result, built.problem, out, strategy, least_squares)
             result = _measure_unmeasured_success(result, built.problem, out, strategy)
+            result = _flag_hidden_outputs(result, built.problem, max_steps)
         wall += time.perf_counter() - checking
         readings = None
         if aggregate is not None:

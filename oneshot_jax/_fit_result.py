@@ -59,6 +59,15 @@ def stop_detail(status: str, info: dict) -> str:
             # (A wrapped solver's own test, such as optimistix's on the step and the loss.)
             else f"the solver's own test on its step and loss fired ({tolerances})"
         )
+    hidden = info.get("unresolved_outputs")
+    if hidden and status in ("stalled", "max_steps_reached"):  # (`_fit._flag_hidden_outputs`)
+        listed = ", ".join(hidden[:6]) + (f" and {len(hidden) - 6} more" if len(hidden) > 6 else "")
+        ran_out = "took its max_steps" if status == "max_steps_reached" else "stalled"
+        return (
+            "the loss is at the round-off level of the outputs taken together, but output "
+            f"{listed} is far from its own (a larger output's precision hid its misfit): "
+            f"not a zero residual, and the solver {ran_out} with the {vs}"
+        )
     if status == "converged" and known:
         degenerate = (
             ", with the Jacobian columns that vanished along the fit measured at the largest "
