@@ -580,6 +580,10 @@ def assemble(
             stop_info["at_bound"] = stop_info.get("at_bound", []) + rows_at
     status = name_of(from_index(int(results[best])))
     last_solver = prepared.solver[-1] if prepared.solver else {}
+    if status == "stalled" and last_solver.get("solver") == "LBFGS":
+        # (its stall: two steps in a row whose line search found no decrease, the second
+        # from a fresh memory; not a round-off test)
+        stop_info["line_search_failed"] = True
     if bool(out.step_test):  # which of the stopping tests fired, with its tolerances
         stop_info.update(step_test=True, rtol=last_solver.get("rtol"), atol=last_solver.get("atol"))
     if status == "statistically_converged" and float(out.step) == 0.0:

@@ -192,6 +192,11 @@ def stop_detail(status: str, info: dict) -> str:
                 "the solver stopped with the loss below the round-off level of the data (a "
                 f"zero residual), but a step still lowers the loss beyond round-off: {tail}"
             )
+        if info.get("line_search_failed"):
+            return (
+                "the line search found no step that lowers the loss, twice in a row (the "
+                f"second from a fresh quasi-Newton memory): stalled, {tail}"
+            )
         if step_test:
             return f"{step_test}: stalled, {tail}"
         if np.isfinite(step) and np.isfinite(decrease):
@@ -538,7 +543,8 @@ class FitResult(eqx.Module):
     - `model`: the fitted `Model` (None for a result loaded without one).
     - `stop_info`: the values the stop was tested on, at the last solver's last iterate
         (the returned point, except after a validation stop, which returns the best
-        iterate): `first_order` (the scaled projected gradient, see
+        iterate, and whose `first_order` is measured there after the solve):
+        `first_order` (the scaled projected gradient, see
         `oneshot_jax._optimality`; a first-order solver scales it by the Jacobian's
         column norms, which it forms anew only where the measure may pass gtol or the
         fit stalls, so after another stop it is an estimate with older norms),
@@ -570,6 +576,11 @@ class FitResult(eqx.Module):
         the stop `stalled` where the solver reported a zero residual that a step along
         every column still descends from (checked after the solve),
         `descends_from_zero_residual` and `solver_stop` `zero_residual`; with the stop
+        `max_steps_reached` or `stalled` where the solver read a zero residual of the
+        outputs together that some output, on its own, is far from,
+        `unresolved_outputs` (their names) and `solver_stop` `zero_residual`; with the
+        stop `stalled` of LBFGS, `line_search_failed` (True: two steps in a row without
+        a decrease); with the stop
         `stalled` where the solver converged where columns vanished, at a loss above the
         best start's (a plateau), `start_loss` (that start's loss) and `solver_stop`;
         with the stop `stalled` where the solver reported statistically_converged after
@@ -784,6 +795,14 @@ class FitResult(eqx.Module):
                 "columns nearly collinear with the initial states' (an unstable model's "
                 "sensitivities growing over long windows, say). Try another start, shorter "
                 "windows, or bounds that keep the model stable"
+            )
+        elif info.get("line_search_failed"):
+            why = (
+                "this is not a solution: a line search that fails away from a stationary "
+                "point most often meets free entries of very different scales, whose "
+                "Jacobian columns differ by orders of magnitude (an output offset next to "
+                "small gains, say); rescale them to order 1, or go on from here with "
+                "LevenbergMarquardt, which scales the columns itself"
             )
         elif info.get("gauss_newton_refuted"):
             why = (

@@ -2510,3 +2510,29 @@ def test_a_zero_residual_of_the_outputs_together_must_hold_of_each():
     assert "output small is far from its own" in r.message
     exact = oj.fit(model, theta0, np.zeros(1), u, z, **kw)
     assert exact.success and abs(float(exact.theta["c"]) - 1.0) < 1e-12
+
+
+def _micro_oscillator(x, u, th):
+    return jnp.stack(
+        [x[0] + 0.05 * x[1], x[1] + 0.05 * (-th["k"] * x[0] - th["c"] * x[1] + th["g"] * u[0])]
+    )
+
+
+def test_a_failed_line_search_is_said_so():
+    """An output in small units (1e-6) next to a free output offset: their Jacobian
+    columns differ by 1e6, and LBFGS's line search stops finding a decrease at a loss
+    thousands of times the optimum's. The stop says so (it read "no step decreases the
+    loss", a round-off stop) and names the remedy; Levenberg-Marquardt from there
+    converges."""
+    model = oj.Model(_micro_oscillator, lambda x, u, th: 1e-6 * x[:1] + th["off"])
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((300, 1))
+    _, z = oj.simulate(model, {"k": 15.0, "c": 1.0, "g": 0.1, "off": 0.0}, np.zeros(2), u)
+    z = np.asarray(z) + 0.01 * np.std(z) * rng.standard_normal(np.shape(z))
+    theta0 = {"k": 10.0, "c": 2.0, "g": 0.2, "off": 0.0}
+    r = oj.fit(model, theta0, np.zeros(2), u, z, solver=oj.LBFGS(max_steps=2000))
+    assert r.status == "stalled" and r.stop_info["line_search_failed"]
+    assert r.message.startswith("the line search found no step that lowers the loss")
+    assert "go on from here with LevenbergMarquardt" in r.message
+    lm = oj.fit(model, r.theta, r.x0, u, z)
+    assert lm.success and float(r.loss) > 100 * float(lm.loss)

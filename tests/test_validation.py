@@ -520,3 +520,34 @@ def test_the_head_estimates_stay_within_the_fits_x0_bounds():
     np.testing.assert_allclose(got, [score(th, True) for th in thetas], rtol=1e-6)
     unbounded = [score(th, False) for th in thetas]
     assert np.all(np.asarray(unbounded) < 0.9 * got)
+
+
+def _ar(x, u, th):
+    return th["a"] * x + th["b"] * u
+
+
+def test_a_validation_stops_measure_is_that_of_the_returned_point():
+    """Adam stopped by patience returns its best-scored iterate; `stop_info["first_order"]`
+    held the solver's own estimate at its last iterate (1.56, where a cosine is at most
+    1). It is the largest cosine between the residual and a Jacobian column at the
+    returned point, computed here from the residuals' Jacobian by forward differentiation."""
+    model = oj.Model(_ar)
+    rng = np.random.default_rng(0)
+    u, u_val = rng.standard_normal((200, 1)), rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"a": 0.8, "b": 1.0}, np.array([0.5]), u)
+    _, z_val = oj.simulate(model, {"a": 0.8, "b": 1.0}, np.array([0.2]), u_val)
+    z = np.asarray(z) + 0.01 * rng.standard_normal((200, 1))
+    z_val = np.asarray(z_val) + 0.01 * rng.standard_normal((200, 1))
+    r = oj.fit(model, {"a": 0.3, "b": 2.0}, np.zeros(1), u, z,
+               validation=oj.Validation(u_val, z_val, n=5, patience=20),
+               solver=oj.Adam(lr_theta=1e-2, max_steps=500))  # fmt: skip
+    assert r.status == "validation"
+
+    def residual(v):
+        _, zhat = oj.simulate(model, {"a": v[0], "b": v[1]}, v[2:], jnp.asarray(u))
+        return (zhat - z).ravel()
+
+    v = jnp.array([r.theta["a"], r.theta["b"], r.x0[0]])
+    e, J = residual(v), jax.jacfwd(residual)(v)
+    cosines = np.abs(J.T @ e) / (np.linalg.norm(J, axis=0) * np.linalg.norm(e))
+    np.testing.assert_allclose(r.stop_info["first_order"], cosines.max(), rtol=1e-8)
