@@ -922,7 +922,7 @@ class FitResult(eqx.Module):
                     )
         return simulate(self.model, self.theta, x0, u, t=t)
 
-    def predict(self, u, z_head, *, t=None, **kwargs):
+    def predict(self, u, z_head, *horizon, t=None, **kwargs):
         """Predict a new record from its first measured outputs: estimate its x0 from
         `z_head` (the first n outputs, n = len(z_head)) and simulate the whole input `u`
         with the fitted model and theta (see `oneshot_jax.predict`).
@@ -968,6 +968,13 @@ class FitResult(eqx.Module):
         `estimate=` one mask per record, (N, n_x) (`result.x0_estimated` after a fit with
         a mask per record), or one for all.
         """
+        if horizon:  # (MATLAB's predict(sys, data, K))
+            raise TypeError(
+                "`FitResult.predict` takes `u` and `z_head` only (a third argument was "
+                "given): it simulates the whole record from an x0 estimated from the head. "
+                "The K-step-ahead prediction of MATLAB's predict(sys, data, K) is "
+                "`result.predict_ahead(u, z, K, process_noise=...)`."
+            )
         self._model_or_raise("predict")
         self._check_u(u)
         if _several(u):

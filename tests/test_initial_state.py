@@ -226,6 +226,10 @@ def test_fit_result_predict():
     np.testing.assert_array_equal(pred.z, ref.z)
     np.testing.assert_allclose(pred.x0, [-0.5, 0.9], rtol=1e-7)
     np.testing.assert_allclose(pred.z, z_new, atol=1e-7)
+    # MATLAB's predict(sys, data, K): the horizon is predict_ahead's (it said "takes 3
+    # positional arguments but 4 were given")
+    with pytest.raises(TypeError, match=r"is `result.predict_ahead\(u, z, K, process_noise"):
+        r.predict(u_new, z_new, 5)
 
 
 def test_one_record_of_a_multi_record_fit_is_named_by_its_row_of_x0():
