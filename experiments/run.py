@@ -23,6 +23,7 @@ Benchmark files that are not found end the run with exit status 2 and a message 
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -170,6 +171,53 @@ def command_line() -> str:
     return " ".join(["python experiments/run.py", *overrides])
 
 
+RUNNING = ".running"  # the file that holds a run's folder while it runs (`claimed`)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process `pid` runs (on this machine)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # (another user's process)
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def claimed(outdir: Path):
+    """Hold `outdir` for this run: the file `.running` with this process's id, created
+    exclusively and removed at the end. A folder that another running process holds is
+    refused (`config.ConfigError`) before anything is written there: two runs started in
+    the same folder mixed their files. A `.running` left by a process that no longer
+    runs (killed) is taken over."""
+    lock = outdir / RUNNING
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _alive(pid):
+                raise config.ConfigError(
+                    f"the output folder {outdir} is in use by another run (process {pid}): "
+                    "give this run a folder of its own (hydra.run.dir=<folder>)."
+                ) from None
+            lock.unlink(missing_ok=True)
+    else:  # (another process took it over in between)
+        raise config.ConfigError(f"the output folder {outdir} is in use by another run.")
+    with os.fdopen(fd, "w") as f:
+        f.write(str(os.getpid()))
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+
+
 def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=None) -> dict:
     """Run the configured experiment into `outdir` and write the run's files.
 
@@ -183,10 +231,17 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
     **Returns:**
 
     The results dict, as written to results.json. A failure writes results.json with
-    `"status": "failed"` and the error, then raises.
+    `"status": "failed"` and the error, then raises. A folder that another running
+    process writes into is refused (`claimed`).
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
+    with claimed(outdir):
+        return _execute(cfg, outdir, command, runner)
+
+
+def _execute(cfg, outdir, command, runner) -> dict:
+    """`execute` in a folder this run holds."""
     clear_stale(outdir)
     command = command or command_line()
     t0 = time.perf_counter()

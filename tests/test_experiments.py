@@ -3,6 +3,7 @@ before anything runs, results.json says whether the run succeeded, and the entry
 run end to end."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -361,6 +362,37 @@ def test_failed_run_replaces_stale_results(tmp_path):
     with pytest.raises(RuntimeError, match="boom"):
         run.execute(_compose(), tmp_path, command="cmd", runner=boom)
     assert not (tmp_path / "fit.npz").exists()
+
+
+def test_a_folder_another_running_process_holds_is_refused(tmp_path):
+    """Two runs started in the same second wrote into one folder: the second run's
+    results beside the first run's configuration. A run holds its folder while it runs
+    (`.running`, this process's id); another live process's folder is refused before
+    anything is written there, a dead one's is taken over, and the file is gone after
+    the run, a failed one's too."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / run.RUNNING).write_text(str(other.pid))
+        (tmp_path / "results.json").write_text('{"status": "ok", "mine": 1}')
+        with pytest.raises(
+            config.ConfigError, match=rf"in use by another run \(process {other.pid}\)"
+        ):
+            run.execute(_compose(), tmp_path, command="cmd", runner=lambda c, o, command: {})
+        assert json.loads((tmp_path / "results.json").read_text()) == {"status": "ok", "mine": 1}
+    finally:
+        other.kill()
+        other.wait()
+    out = run.execute(_compose(), tmp_path, command="cmd", runner=lambda c, o, command: {})
+    assert out["status"] == "ok" and not (tmp_path / run.RUNNING).exists()
+    assert "files" not in out  # (the claim is not among the run's files)
+
+    def boom(c, o, command):
+        assert (o / run.RUNNING).read_text() == str(os.getpid())
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        run.execute(_compose(), tmp_path, command="cmd", runner=boom)
+    assert not (tmp_path / run.RUNNING).exists()
 
 
 def test_every_job_of_a_sweep_compiles_its_own_first_calls(tmp_path, monkeypatch):
