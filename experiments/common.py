@@ -325,6 +325,24 @@ def _objective(model, estimate_x0, with_grad, p, theta_like, x0_fixed, u, z):
     return C, (jnp.concatenate([g, jnp.ravel(g_x0)]) if estimate_x0 else g)
 
 
+# The scipy methods that take no gradient (`jac` is then not used).
+GRADIENT_FREE = ("nelder-mead", "powell", "cobyla", "cobyqa")
+
+
+def scipy_label(kwargs) -> str:
+    """What a scipy baseline's options make of it, in words: its method, its gradient
+    (closed-form, finite differences, or none for a gradient-free method) and whether the
+    problem is scaled ("SLSQP + finite differences (raw)")."""
+    method = str(kwargs.get("method", "SLSQP"))
+    if method.lower() in GRADIENT_FREE:
+        gradient = "no gradient"
+    elif kwargs.get("jac", "closed_form") == "closed_form":
+        gradient = "closed-form gradient"
+    else:
+        gradient = "finite differences"
+    return f"{method} + {gradient} ({'scaled' if kwargs.get('scale', False) else 'raw'})"
+
+
 def _solve_scipy(model, theta0, x0, u, z, kw, constraints, estimate_x0):
     method = kw.get("method", "SLSQP")
     jac = kw.get("jac", "closed_form")

@@ -66,7 +66,7 @@ def _integer(key, value, lo, hi=None):
 
 
 def _vector(key, value, n, *, positive=False):
-    if len(value) != n:
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != n:
         _fail(key, f"a list of {n} numbers", value)
     for i, v in enumerate(value):
         _number(f"{key}[{i}]", v, lo=0.0 if positive else None, lo_open=positive)
@@ -129,7 +129,22 @@ class SolverConfig:
 
     @property
     def title(self) -> str:
-        return self.label or self.name
+        """The label (`described`)."""
+        return self.described(self.label)
+
+    def described(self, label: str | None) -> str:
+        """`label` (else the name); for a scipy baseline, the label its options make
+        (`common.scipy_label`) where `label` does not name them all
+        (`solver.kwargs.jac=fd` on `solver=slsqp` kept "closed-form gradient")."""
+        if self.name != "scipy":
+            return label or self.name
+        from . import common
+
+        made = common.scipy_label(self.kwargs)
+        method, rest = made.split(" + ", 1)
+        gradient, scaling = rest[:-1].split(" (")
+        named = label is not None and all(w in label for w in (method, gradient, scaling))
+        return label if named else made
 
 
 # --------------------------------------------------------------------------- satellite
@@ -210,9 +225,20 @@ class SatelliteConfig:
         _integer(k + "model_substeps", self.model_substeps, 1)
         _number(k + "theta_lower", self.theta_lower, lo=0.0, lo_open=True)
         _vector(k + "init.theta0", self.init.theta0, 3, positive=True)
+        if self.theta_lower >= min(self.theta_true):
+            # (every estimate would sit on the bound: the errors and the Cramer-Rao tables
+            # would measure the bound, not the method)
+            _fail(
+                k + "theta_lower",
+                f"below every entry of experiment.theta_true (the bound theta_i >= "
+                f"theta_lower must keep the true values, the smallest {min(self.theta_true):g})",
+                self.theta_lower,
+            )
         if isinstance(self.init.x0, str):
             if self.init.x0 != "first_sample":
                 _fail(k + "init.x0", "'first_sample' or a list of 3 numbers", self.init.x0)
+        elif self.init.x0 is None or not hasattr(self.init.x0, "__len__"):
+            _fail(k + "init.x0", "'first_sample' or a list of 3 numbers", self.init.x0)
         else:
             _vector(k + "init.x0", list(self.init.x0), 3)
         _integer(k + "n_seeds", self.n_seeds, 1)

@@ -134,7 +134,7 @@ def _methods(cfg):
         if m.cost == "multi_step" and common.same_solver(m.solver, cfg.solver):
             aliases[key] = "proposed"
             continue
-        methods[key] = {"label": m.label, "cost": m.cost, "solver": m.solver}
+        methods[key] = {"label": m.solver.described(m.label), "cost": m.cost, "solver": m.solver}
     return methods, aliases
 
 

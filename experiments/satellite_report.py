@@ -124,7 +124,7 @@ def markdown(res: dict) -> str:
         f"{res['theta_lower']:g} by projection; initial values theta0 = "
         f"{_vec(res['init_theta0'])} kg m^2 and x0 = {x0_text}. The multi-step cost is C = "
         f"{_e(res['initial_loss'])} (rad/s)^2 at the initial values and {_e(main['loss'])} "
-        "at the estimate (3 sigma^2 = "
+        f"at the {'estimate' if main.get('success', True) else 'returned point'} (3 sigma^2 = "
         f"{_e(3 * res['noise_std'] ** 2)})."
     )
     w("")
@@ -147,11 +147,18 @@ def markdown(res: dict) -> str:
     )
     std = main.get("theta_std") or [None] * 3
     sims = res["simulation"]["rmse_vs_true"]
-    w(
-        f"| **{main['label']}** | "
-        + " | ".join(f"**{v:.5f}** ± {_f(s, 2)}" for v, s in zip(main["theta"]["I"], std))
-        + f" | **{_e(main['error_l2'])}** | {_e(sims.get('proposed'))} |"
-    )
+    if main.get("success", True):
+        w(
+            f"| **{main['label']}** | "
+            + " | ".join(f"**{v:.5f}** ± {_f(s, 2)}" for v, s in zip(main["theta"]["I"], std))
+            + f" | **{_e(main['error_l2'])}** | {_e(sims.get('proposed'))} |"
+        )
+    else:  # (the returned point of a failed fit: no estimate, no standard errors)
+        w(
+            f"| {main['label']} ({main['stop_reason']}: not an estimate) | "
+            + " | ".join(f"{v:.5f}" for v in main["theta"]["I"])
+            + f" | {_e(main['error_l2'])} | {_e(sims.get('proposed'))} |"
+        )
     failing = _failing_on_purpose(res)
     dagger = {k: " †" for k in failing}
     for key, est in res["seed0_estimates"].items():
@@ -170,6 +177,13 @@ def markdown(res: dict) -> str:
         f"deviations at T = {T}: {_vec(crb_std, 2)} kg m^2."
     )
     w("")
+    if not main.get("success", True):
+        w(
+            f"**The proposed method's fit on this draw did not converge**: it stopped with "
+            f"`{main['stop_reason']}` ({main.get('message', '').split(';')[0]}). Its row is "
+            "the point the solver returned, not an estimate, and has no standard errors."
+        )
+        w("")
     if failing:
         w(_failing_caption(res, failing))
         w("")

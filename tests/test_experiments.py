@@ -197,6 +197,11 @@ BAD = [
         ],
         "`experiment.joint.scale` must be null with joint.weight_decay > 0",
     ),
+    # (a bound above the truth pinned every estimate on it, "converged 2/2")
+    (["experiment.theta_lower=0.1"], "`experiment.theta_lower` must be below every entry"),
+    # (not a list: it said "'NoneType' object is not iterable", naming no key)
+    (["experiment.init.x0=null"], "`experiment.init.x0` must be 'first_sample' or a list"),
+    (["experiment.init.x0=5"], "`experiment.init.x0` must be 'first_sample' or a list"),
     (
         ["experiment=cascaded_tanks_hybrid", "experiment.joint.holdout=0.9"],
         "`experiment.joint.holdout` must be a finite number >= 0",
@@ -513,6 +518,17 @@ def test_run_end_to_end(tmp_path):
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
     # the recorded path (Figs. 2, 3: FitResult.history) ends at the estimate
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
+    # A fit that did not converge (Adam at lr 1e-2 diverged at step 1) is not shown as an
+    # estimate: no bold row with standard errors, and a sentence that names its stop.
+    from experiments import satellite_report
+
+    assert main["success"] and f"| **{main['label']}** | **" in md
+    failed = {**main, "success": False, "stop_reason": "diverged", "message": "the loss became"
+              " non-finite at step 1; the simulation diverged"}  # fmt: skip
+    text = satellite_report.markdown({**res, "main_fit": failed})
+    assert f"| {main['label']} (diverged: not an estimate) | " in text
+    assert f"| **{main['label']}** | **" not in text and "at the returned point" in text
+    assert "did not converge**: it stopped with `diverged` (the loss became non-finite" in text
 
 
 def test_emps_hybrid_end_to_end(tmp_path):
@@ -619,3 +635,18 @@ def test_cascaded_tanks_hybrid_end_to_end(tmp_path):
     assert res["seeds"][0]["committee_rmse_test_V"] == committee["protocol"]["rmse_V"]
     assert all(np.isfinite(r["committee_rmse_test_V"]) for r in res["seeds"])
     assert "committee of 2 (mean output)" in (out / "results.md").read_text()
+
+
+def test_a_scipy_baselines_label_names_the_options_that_run():
+    """`solver=slsqp solver.kwargs.jac=fd solver.kwargs.scale=false` was labelled "SLSQP +
+    closed-form gradient (scaled)" (the YAML's label), and a gradient-free method kept
+    the gradient; a label that names the options stays (the study's methods keep theirs)."""
+    cfg = _compose(["solver=slsqp", "solver.kwargs.jac=fd", "solver.kwargs.scale=false"])
+    assert config.load(cfg).solver.title == "SLSQP + finite differences (raw)"
+    cfg = _compose(["solver=slsqp", "solver.kwargs.method=Nelder-Mead"])
+    assert config.load(cfg).solver.title == "Nelder-Mead + no gradient (scaled)"
+    assert config.load(_compose(["solver=slsqp"])).solver.title == (
+        "SLSQP + closed-form gradient (scaled)"
+    )
+    for m in config.load(_compose()).experiment.methods.values():
+        assert m.solver.described(m.label) == m.label
