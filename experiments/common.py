@@ -218,7 +218,8 @@ class Estimate:
     `FitResult.wall_time` for the library (compilation included on the first call of a
     shape), the `minimize` call for scipy (objective compiled before the clock starts).
     `path` holds the theta iterates (rows, flattened; start first, estimate last) and
-    `path_steps` the step of each row (the library thins long paths evenly)."""
+    `path_steps` the step of each row (the library thins long paths evenly); `result`
+    the library's `FitResult` (None for scipy), which a run saves (`FitResult.save`)."""
 
     theta: Any
     theta_flat: np.ndarray
@@ -233,6 +234,7 @@ class Estimate:
     theta_std: np.ndarray | None = None
     path: np.ndarray | None = None
     path_steps: np.ndarray | None = None
+    result: Any = None  # (the library's `FitResult`, which a run saves; None for scipy)
 
     def summary(self) -> dict:
         """JSON-friendly summary (no path)."""
@@ -275,6 +277,7 @@ def from_fit(result: oj.FitResult) -> Estimate:
         theta_std=flat_host(result.std),
         path=flat_rows(h.theta),
         path_steps=np.asarray(h.step) + _stage_offsets(h),
+        result=result,
     )
 
 

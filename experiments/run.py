@@ -339,9 +339,27 @@ def check_groups(argv) -> str | None:
     return None
 
 
+def check_added_methods(argv) -> str | None:
+    """The message for a method added on the command line (`+experiment.methods.mine=...`),
+    which Hydra refuses with "Invalid type assigned: dict is not a subclass of Method";
+    None if there is none."""
+    for arg in argv:
+        key = arg.partition("=")[0]
+        if arg.startswith("+") and key.lstrip("+").startswith("experiment.methods."):
+            return (
+                f"{arg!r}: a method cannot be added on the command line (Hydra cannot add "
+                "an entry to the typed `experiment.methods`): add it under `methods:` in "
+                "configs/experiment/<experiment>.yaml, as the others are written, and "
+                "select it with experiment.run_methods=[...]; an existing method's fields "
+                "can be overridden, e.g. experiment.methods.slsqp_fd.solver.kwargs.maxiter=50."
+            )
+    return None
+
+
 def cli() -> None:
-    """The command line: Hydra's `main`, after `check_groups`."""
-    if (message := check_groups(sys.argv[1:])) is not None:
+    """The command line: Hydra's `main`, after `check_groups` and `check_added_methods`."""
+    message = check_groups(sys.argv[1:]) or check_added_methods(sys.argv[1:])
+    if message is not None:
         print(f"invalid configuration: {message}", file=sys.stderr)
         sys.exit(2)
     main()

@@ -20,6 +20,8 @@ listed in `experiment.methods`:
 - Fig. 5: ||theta-hat - theta||_2 over `n_seeds` noise draws (box plots) per method.
 - Fig. 6: estimation error and time against the horizon T, with the Cramer-Rao bound.
 - `results.md`: the tables (`satellite_report.py`).
+- `fit.npz`: the main fit's `FitResult` where the proposed method is one of the library's
+  solvers (`oneshot_jax.load_result(path, model=examples.satellite.model(dt))`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ from . import common
 from .config import as_dict
 
 PAPER_THETA_HAT_T50 = (0.0398, 0.0389, 0.0076)
+FIT_FILE = "fit.npz"  # the main fit's FitResult (`FitResult.save`)
+
 FIGURES = {
     "fig2": "fig2_loss_landscape.png",
     "fig3": "fig3_parameter_evolution.png",
@@ -394,6 +398,9 @@ def run(cfg, outdir, command="python experiments/run.py") -> dict:
         "stages_s": stages,
         "figures": [Path(f).name for f in figs],
     }
+    if main.result is not None:  # (`oj.load_result(path, model=example.model(dt))`)
+        main.result.save(outdir / FIT_FILE)
+        results["fit_file"] = FIT_FILE
     results = common.to_jsonable(results)
     from . import satellite_report
 

@@ -370,8 +370,7 @@ def _flag_hidden_outputs(result, problem, max_steps):
     the outputs and `solver_stop` "zero_residual"."""
     if result.status != "zero_residual":
         return result
-    e = jnp.asarray(np.reshape(np.asarray(result.residuals), problem.z.shape), problem.dtype)
-    above = np.asarray(outputs_above_round_off(problem, e))
+    above = outputs_above_round_off(problem, np.reshape(result.residuals, problem.z.shape))
     if not above.any():
         return result
     labels = model_labels(getattr(problem.model, "outputs", None), above.size)

@@ -648,22 +648,21 @@ def _evaluated(problem: FitProblem, params: Params, strategy):
     return C, Params(0.5 * grad.theta, 0.5 * grad.x0), d_t, d_x
 
 
-def _output_scales(problem: FitProblem):
-    """Per output (of Q^{1/2} z, in the loss's scaling): the loss of predicting its mean,
-    sum over the counted samples of (Q^{1/2} (z_k - zbar))_j^2 / T, plus 100 eps times
-    the loss of predicting it zero (its own round-off: an RMS residual of 10 eps |z_j|),
-    (n_z,)."""
-    z, m = problem.z, _measured(problem)
-    sqrt_q, s = problem.cost.sqrt_weight(), problem._scale()
+def _output_scales(z, m, sqrt_q, s, xp):
+    """Per output (of Q^{1/2} z times the loss's scaling `s`): the loss of predicting its
+    mean, sum over the counted samples (mask `m`, or None) of (s Q^{1/2} (z_k - zbar))_j^2,
+    plus 100 eps times the loss of predicting it zero (its own round-off: an RMS
+    residual of 10 eps |z_j|), (n_z,). `xp`: `jax.numpy` (traced) or `numpy` (on the
+    host, where `fit` checks a result without compiling)."""
     axes = tuple(range(z.ndim - 1))
     if m is None:
-        dev, zm = z - jnp.mean(z, axis=axes), z
+        dev, zm = z - xp.mean(z, axis=axes), z
     else:
-        zbar = jnp.sum(z * m, axis=axes) / jnp.maximum(jnp.sum(m, axis=axes), 1)
+        zbar = xp.sum(z * m, axis=axes) / xp.maximum(xp.sum(m, axis=axes), 1)
         dev, zm = (z - zbar) * m, z * m
     w, v = weigh(dev, sqrt_q) * s, weigh(zm, sqrt_q) * s
-    eps = jnp.finfo(jnp.result_type(w)).eps
-    return jnp.sum(w * w, axis=axes) + 100.0 * eps * jnp.sum(v * v, axis=axes)
+    eps = xp.finfo(xp.result_type(w)).eps
+    return xp.sum(w * w, axis=axes) + 100.0 * eps * xp.sum(v * v, axis=axes)
 
 
 def data_scale(problem: FitProblem):
@@ -675,23 +674,39 @@ def data_scale(problem: FitProblem):
     offset (a temperature in kelvin, 300 + 0.05 x) made a fit stalled at FIT 8 % look
     exact. Summed over the outputs, it is the solvers' test (they hold C alone); `fit`
     checks a zero residual per output after the solve (`outputs_above_round_off`)."""
-    return jnp.sum(_output_scales(problem))
+    sqrt_q, s = problem.cost.sqrt_weight(), problem._scale()
+    return jnp.sum(_output_scales(problem.z, _measured(problem), sqrt_q, s, jnp))
 
 
-def outputs_above_round_off(problem: FitProblem, e):
+def outputs_above_round_off(problem: FitProblem, e) -> np.ndarray:
     """Which outputs' residuals `e` (zhat - z, the shape of the problem's z; NaN where not
     measured) are not at the round-off level of that output (`zero_residual` of each
-    output alone, its share of C against its own `_output_scales`), (n_z,) booleans.
-    A zero residual of the outputs together can hide one: a fixed term reproducing an
-    output of size 1e14 exactly made eps `data_scale` 1e12, and a second output, of size
-    1 and NRMSE 0.5, read as exact."""
-    z, m = problem.z, _measured(problem)
-    e = jnp.where(jnp.isfinite(e), e, 0.0)
+    output alone, its share of C against its own `_output_scales`), (n_z,) booleans. On
+    the host (NumPy: no program to compile). A zero residual of the outputs together can
+    hide one: a fixed term reproducing an output of size 1e14 exactly made eps
+    `data_scale` 1e12, and a second output, of size 1 and NRMSE 0.5, read as exact."""
+    z = np.asarray(problem.z)
+    m = None
+    if problem.mask is not None:
+        out = np.asarray(problem.mask.outputs)
+        m = np.broadcast_to(out if out.ndim == z.ndim else out[..., None], z.shape)
+    q = problem.cost.weight
+    sqrt_q = None
+    if q is not None:
+        q = np.asarray(q)
+        if q.ndim == 1:
+            sqrt_q = np.sqrt(q)
+        else:
+            vals, vecs = np.linalg.eigh(q)
+            sqrt_q = (vecs * np.sqrt(np.maximum(vals, 0.0))) @ vecs.T
+    e = np.where(np.isfinite(e), np.asarray(e, z.dtype), 0.0)
     e = e if m is None else e * m
     axes = tuple(range(z.ndim - 1))
-    w = weigh(e, problem.cost.sqrt_weight()) * problem._scale()
-    eps = jnp.finfo(jnp.result_type(w)).eps
-    return jnp.sum(w * w, axis=axes) > ZERO_RESIDUAL_RTOL * eps * _output_scales(problem)
+    w = weigh(e, sqrt_q)  # (the loss's scaling, common to both sides, left out)
+    eps = np.finfo(z.dtype).eps
+    return np.sum(w * w, axis=axes) > ZERO_RESIDUAL_RTOL * eps * _output_scales(
+        z, m, sqrt_q, 1.0, np
+    )
 
 
 def zero_residual(C, scale):

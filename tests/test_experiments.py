@@ -16,6 +16,8 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+import oneshot_jax as oj
+
 REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "configs"
 if str(REPO) not in sys.path:
@@ -279,6 +281,17 @@ def test_cli_refuses_a_group_set_to_null(tmp_path):
         assert "Traceback" not in proc.stderr
 
 
+def test_cli_says_where_a_method_is_added():
+    """A method added with `+` (Hydra: "Invalid type assigned: dict is not a subclass of
+    Method") is answered with where methods are written."""
+    arg = "+experiment.methods.mine={label:mine,cost:multi_step,solver:{name:gauss_newton}}"
+    message = run.check_added_methods(["experiment.T=20", arg])
+    assert (
+        message.startswith(repr(arg)) and "add it under `methods:` in configs/experiment" in message
+    )
+    assert run.check_added_methods(["experiment.methods.slsqp_fd.solver.kwargs.maxiter=50"]) is None
+
+
 def test_cli_names_experiment_data_path_when_the_benchmark_files_are_missing(tmp_path):
     """A real-data run without its files stops with exit status 2 and says how a run is
     given them (`experiment.data_path`), not only the loader's own `path=`."""
@@ -518,6 +531,13 @@ def test_run_end_to_end(tmp_path):
     assert all(np.isfinite(res["crb_rmse"][k]) for k in res["crb_rmse"])
     # the recorded path (Figs. 2, 3: FitResult.history) ends at the estimate
     np.testing.assert_allclose(main["path_end"], main["theta"]["I"], rtol=1e-12)
+    # the main fit is saved, and loads with the example's model to the reported estimate
+    from oneshot_jax.examples import satellite as example
+
+    assert res["fit_file"] == "fit.npz" and "fit.npz" in res["files"]
+    fit = oj.load_result(out / "fit.npz", model=example.model(res["dt"], 1))
+    np.testing.assert_array_equal(fit.theta["I"], main["theta"]["I"])
+    assert fit.status == main["stop_reason"]
     # A fit that did not converge (Adam at lr 1e-2 diverged at step 1) is not shown as an
     # estimate: no bold row with standard errors, and a sentence that names its stop.
     from experiments import satellite_report
