@@ -58,11 +58,13 @@ def _number(key, value, *, lo=None, hi=None, lo_open=False, hi_open=False):
         _fail(key, "a finite number" + (" " + " and ".join(parts) if parts else ""), value)
 
 
-def _integer(key, value, lo, hi=None):
+def _integer(key, value, lo, hi=None, hi_name=None):
+    """An integer in [lo, hi]; `hi_name`: the key `hi` comes from, named in the message."""
+    top = "" if hi is None else f" and <= {hi}" + (f" ({hi_name})" if hi_name else "")
     if isinstance(value, bool) or not isinstance(value, int) or value < lo:
-        _fail(key, f"an integer >= {lo}" + (f" and <= {hi}" if hi is not None else ""), value)
+        _fail(key, f"an integer >= {lo}{top}", value)
     if hi is not None and value > hi:
-        _fail(key, f"an integer >= {lo} and <= {hi}", value)
+        _fail(key, f"an integer >= {lo}{top}", value)
 
 
 def _vector(key, value, n, *, positive=False):
@@ -244,7 +246,7 @@ class SatelliteConfig:
         _integer(k + "n_seeds", self.n_seeds, 1)
         for i, h in enumerate(self.horizons):
             _integer(f"{k}horizons[{i}]", h, 2)
-        _integer(k + "horizon_seeds", self.horizon_seeds, 0, hi=self.n_seeds)
+        _integer(k + "horizon_seeds", self.horizon_seeds, 0, hi=self.n_seeds, hi_name=k + "n_seeds")
         _number(k + "simulate_time", self.simulate_time, lo=self.dt)
         _history(k + "history", self.history)
         pair = list(self.fig2.pair)

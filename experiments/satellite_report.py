@@ -229,7 +229,7 @@ def markdown(res: dict) -> str:
     hs = res["horizons"]
     if hs:
         n_h = len(next(iter(hs.values()))["errors"])
-        w(f"### Horizon sweep (proposed method, {n_h} seeds per T)")
+        w(f"### Horizon sweep (proposed method, {n_h} seed{'' if n_h == 1 else 's'} per T)")
         w("")
         w(
             "| T | RMS ‖theta-hat - theta‖_2 | CRB | RMS / CRB | median time [ms] | first call "
@@ -257,8 +257,9 @@ def markdown(res: dict) -> str:
             )
         w("")
 
-    w("### Figures")
-    w("")
+    if res.get("figures"):
+        w("### Figures")
+        w("")
     for fig in res.get("figures", []):
         w(f"![{CAPTIONS.get(fig, fig)}]({fig})")
         w("")

@@ -172,7 +172,7 @@ BAD = [
     (["experiment=emps", "experiment.eps=0"], "`experiment.eps` must be a finite number > 0"),
     (
         ["experiment.horizon_seeds=50"],
-        r"`experiment.horizon_seeds` must be an integer >= 0 and <= 20",
+        r"`experiment.horizon_seeds` must be an integer >= 0 and <= 20 \(experiment.n_seeds\)",
     ),
     (["experiment=emps", "experiment.open_loop.windows=[1]"], r"open_loop.windows\[0\]"),
     (["experiment=emps_hybrid", "experiment.inputs=x"], "`experiment.inputs` must be one of"),
