@@ -12,6 +12,7 @@ import numpy as np
 
 from . import _pytree
 from ._model import model_labels
+from .metrics import residual_correlations
 
 # The remedy where float32 normal equations cannot resolve a fit (`_fit`'s Gauss-Newton
 # check): the printout's and `FitResult.message`'s words.
@@ -392,10 +393,58 @@ def _per_output(values, outputs) -> str:
     return ", ".join(f"{o}: {v}" for o, v in zip(names, values, strict=True))
 
 
+def _whiteness_note(result, outputs) -> str | None:
+    """The printout's line where the residuals are not white by MATLAB's `resid` test
+    (`metrics.residual_correlations` at its defaults, lags 1..min(25, T - 1), each record
+    or window on its own), for the outputs the fit weighs; None where they are, or where
+    there is nothing to test (a zero residual, a loss that is not finite). A model
+    error, coloured noise and a bad minimum leave such residuals, and the classical
+    standard errors assume white ones."""
+    e = np.asarray(result.residuals, np.float64)
+    if e.ndim < 2 or result.status == "zero_residual" or not np.isfinite(float(result.loss)):
+        return None
+    T = e.shape[-2]
+    if T < 3:
+        return None
+    try:
+        rc = residual_correlations(e, None, min(25, T - 1))
+    except ValueError:  # (an output with fewer than two measured samples, or zero)
+        return None
+    weight = getattr(result, "weight", None)
+    weighed = np.ones(e.shape[-1], bool)
+    if weight is not None:
+        q = np.asarray(weight)
+        weighed = (q if q.ndim == 1 else np.diag(q)) > 0
+    bad = [k for k in np.flatnonzero(~np.atleast_1d(rc.white)) if weighed[k]]
+    if not bad:
+        return None
+    names = model_labels(outputs, e.shape[-1])
+    lag = len(rc.lags) // 2 + 1  # (the row of lag 1)
+    said = [
+        f"{names[k] if names is not None else f'output {k}'}: r_e(1) = "
+        f"{float(rc.auto[lag, k]):.3g}, {100 * float(rc.auto_outside[k]):.0f} % of the lags "
+        f"outside +-{float(rc.bound[k]):.3g}"
+        for k in bad[:3]
+    ]
+    more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
+    robust = (result.diagnostics or {}).get("covariance_lags") is not None
+    errors = (
+        ""
+        if robust
+        else "; the standard errors assume white residuals (`covariance=oj.NeweyWest()` "
+        "allows for correlated ones)"
+    )
+    return (
+        f"  residuals not white ({'; '.join(said)}{more}; 99 % band, lags 1.."
+        f"{int(np.max(rc.lags))}): a model error, coloured noise or a bad minimum"
+        f"{errors}; `oj.plot.resid(result.residuals)` shows them"
+    )
+
+
 def _loss_meaning(result) -> str:
     """What the printed loss is: C of eq. (5) (with a regulariser g or a penalty, eq. 21,
     added)."""
-    out = "mean over the samples of e'Qe, e the output error"
+    out = "the samples' mean of e'Qe, e the output error"
     diagnostics = result.diagnostics or {}
     if diagnostics.get("regularised"):
         out += ", plus the regulariser"
@@ -586,6 +635,9 @@ def report(result) -> str:
         out.extend(_per_record_fit(result, rows, outputs))
     else:
         out.append(scores)
+    white = _whiteness_note(result, outputs)
+    if white is not None:
+        out.append(white)
     at_bound = (result.stop_info or {}).get("at_bound")
     if at_bound:
         listed = ", ".join(at_bound[:8]) + (

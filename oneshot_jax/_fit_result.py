@@ -479,8 +479,10 @@ class FitResult(eqx.Module):
     states with their standard errors (the first trajectories of several); FIT% and RMSE
     per output, and the AIC and FPE (AICc and BIC are in `metrics`; pooled over the
     trajectories or windows of several,
-    with the FIT% of each on a line of its own); last, what `fit` warned of about
-    this fit, a line per warning (`warnings`).
+    with the FIT% of each on a line of its own); where the residuals are not white by
+    MATLAB's `resid` test (`metrics.residual_correlations`, lags 1..25), a line saying so
+    with its numbers; last, what `fit` warned of about this fit, a line per warning
+    (`warnings`).
 
     **Fields:**
 
