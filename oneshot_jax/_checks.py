@@ -1215,14 +1215,14 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", 
     return lower, upper
 
 
-def clip_x0(x0, box, name, what, stacklevel, warn=True):
+def clip_x0(x0, box, name, what, stacklevel, warning=True):
     """x0 (..., n_x) clipped into `box` = (lower, upper) (broadcast against it), with a
-    warning naming the entries that were outside where `warn` (the start of a fit or of an
+    warning naming the entries that were outside where `warning` (the start of a fit or of an
     x0 estimate, which then starts from the clipped x0, as theta's projection of an
     infeasible start). `stacklevel`: that of the caller's frame."""
     clipped = np.clip(x0, *box).astype(np.asarray(x0).dtype)
     outside = clipped != x0
-    if warn and outside.any():
+    if warning and outside.any():
         entries = sorted({int(i) for i in np.nonzero(outside)[-1]})
         warn(
             f"the starting x0 lies outside `{name}` in its entries {entries}: the {what} "

@@ -661,7 +661,7 @@ def build_problem(
     if x0_box is not None:
         # (a window's starting state, read off z or solved for, is clipped silently)
         windowed = inputs.window_starts is not None
-        X0s = clip_x0(X0s, x0_box, "x0_bounds", "fit", stacklevel=3, warn=not windowed)
+        X0s = clip_x0(X0s, x0_box, "x0_bounds", "fit", stacklevel=3, warning=not windowed)
     if x0_held is not None:  # (the values `x0` gives them: `check_held_x0_starts`)
         X0s = np.where(x0_held, X0, X0s)
     all_t, all_x = theta_free.size == starts_flat.shape[1], x0_free.size == n_x

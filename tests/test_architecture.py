@@ -370,6 +370,26 @@ def test_every_warning_goes_through_the_recorded_warn():
         if module != "oneshot_jax._caller_warnings" and (lines := direct_warnings(path.read_text()))
     }
     assert not found, f"warnings.warn called directly (use _caller_warnings.warn): {found}"
+    # (and no module that imports it hides it behind a local name: a parameter `warn=True`
+    # of `clip_x0` made every x0 start outside its bounds fail with "'bool' object is not
+    # callable")
+    hidden = {}
+    for module, path in package_modules().items():
+        tree = ast.parse(path.read_text())
+        if not any(
+            isinstance(n, ast.ImportFrom) and any(a.name == "warn" for a in n.names)
+            for n in ast.walk(tree)
+        ):
+            continue
+        lines = [
+            n.lineno
+            for n in ast.walk(tree)
+            if (isinstance(n, ast.arg) and n.arg == "warn")
+            or (isinstance(n, ast.Name) and n.id == "warn" and isinstance(n.ctx, ast.Store))
+        ]
+        if lines:
+            hidden[module] = lines
+    assert not hidden, f"a local name `warn` hides the imported function: {hidden}"
 
 
 def test_import_loads_neither_the_examples_nor_matplotlib():
