@@ -141,8 +141,10 @@ def ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, input="zoh"):
     The state at t_{k+1}.
     """
     substeps = _check_integrator(rhs, method, substeps)
-    if not isinstance(x, (jax.Array, np.ndarray)):
-        x = jnp.asarray(x)  # a list, a tuple or a Python number
+    if not isinstance(x, jax.Array):
+        # (a list, a tuple, a Python number, or a NumPy array, in JAX's dtype: float64
+        # data with x64 off are float32, as `rhs` computes them)
+        x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         # (`rhs` was blamed for returning floats to an integer state)
         raise TypeError(
@@ -232,6 +234,7 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
 
     The state at t[k+1].
     """
+    x = x if isinstance(x, jax.Array) else jnp.asarray(x)  # (JAX's dtype, as `ode_step`)
     dt = jnp.asarray(dt, x.dtype)
     if max_step is None:
         n = substeps

@@ -484,6 +484,12 @@ def test_float64_host_data_run_in_float32_without_x64():
         C, (g, gx) = oj.value_and_grad(model, {"k": np.array(2.0)}, x0, u, z)
         assert C.dtype == jnp.float32 and g["k"].dtype == jnp.float32
         assert float(C) < 1e-10
+        # An ODE model's step called with NumPy float64 arrays (the uncertainty guide's
+        # process-noise example): JAX's float32, not "`rhs` must return ... dtype float64"
+        rhs = lambda x, u, th: -th["k"] * x + u[0]  # noqa: E731
+        ode = oj.Model.from_ode(rhs, 0.1)
+        for step in (ode.step, lambda x, u, th: oj.ode_step(rhs, x, u, th, 0.1)):
+            assert step(x0, u[0], {"k": np.array(2.0)}).dtype == jnp.float32
 
 
 @pytest.mark.parametrize("half", ["float16", "bfloat16"])
