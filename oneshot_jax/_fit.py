@@ -712,6 +712,46 @@ def _settle(result, problem, out, strategy, least_squares):
     )
 
 
+def _warn_narrowed_outputs(z, residuals, dtype, outputs=None):
+    """Warn where the outputs `z` were given in float64 and the fit ran in a lower
+    precision `dtype` (JAX's x64 off), and rounding them to it changed an output by more
+    than a quarter of its residual RMS (`residuals`, the fit's): the noise of outputs
+    far from zero (an offset of 300, noise 1e-6) is then below that precision's
+    resolution of them, and a float32 fit read the rounded data exactly (loss 0,
+    standard errors 0, a converged estimate 3 standard errors from float64's)."""
+    if np.finfo(dtype).eps <= np.finfo(np.float64).eps:
+        return
+    records = list(z) if isinstance(z, (list, tuple)) else [z]
+    given = [np.asarray(r) for r in records]
+    if not all(g.dtype == np.float64 for g in given):
+        return
+    n_z = given[0].shape[-1]
+    flat = np.concatenate([g.reshape(-1, n_z) for g in given])
+    lost = flat - flat.astype(dtype).astype(np.float64)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (an output with no sample: NaN)
+        n = np.sqrt(np.nanmean(lost**2, axis=0))
+        e = np.asarray(residuals, np.float64).reshape(-1, n_z)
+        r = np.sqrt(np.nanmean(e**2, axis=0))
+    bad = np.flatnonzero(n > 0.25 * r)
+    if not bad.size:
+        return
+    labels = model_labels(outputs, n_z)
+    j = int(bad[np.argmax(n[bad] / np.maximum(r[bad], np.finfo(np.float64).tiny))])
+    name = f"output {labels[j] if labels is not None else j}"
+    share = "" if r[j] == 0 else f", {n[j] / r[j]:.2g} times its residual RMS {r[j]:.3g}"
+    more = f" (and {bad.size - 1} more)" if bad.size > 1 else ""
+    warn(
+        f"the outputs were given in float64 and the fit ran in {np.dtype(dtype).name} (JAX's "
+        f"x64 is off): rounding them changed {name}{more} by an RMS of {n[j]:.3g}{share}. "
+        "The fit, its standard errors and its stop read the rounded data, whose noise is "
+        "partly lost (the resolution of outputs far from zero, an offset, is coarse): enable "
+        'float64 before fitting, jax.config.update("jax_enable_x64", True).',
+        RuntimeWarning,
+        stacklevel=3,
+    )
+
+
 def _warn_unequal_noise(residuals, weight, std, readings=None):
     """Warn where the weighted residuals of the outputs differ in variance by more than a
     factor of 10: the covariance pools one noise level sigma^2 over all outputs, which is
@@ -1257,6 +1297,9 @@ def fit(
         if weight is not None:  # (the default of `result.predict`'s x0 estimate)
             q = np.asarray(weight, result.x0.dtype)  # (a scalar: one output's (1,) diagonal)
             result = dataclasses.replace(result, weight=q.reshape(1) if q.ndim == 0 else q)
+        _warn_narrowed_outputs(
+            z, result.residuals, built.problem.dtype, getattr(model, "outputs", None)
+        )
         if result.status != "zero_residual":  # (round-off residuals have no noise level)
             _warn_unequal_noise(result.residuals, weight, result.std, readings)
         else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)

@@ -1488,3 +1488,35 @@ def test_a_fit_result_given_as_theta_names_its_theta():
         TypeError, match=r"`theta` is a FitResult: pass its parameters, `result.theta` \("
     ):
         oj.simulate(MODEL, result, jnp.zeros(N_X), U)
+
+
+def _lag_with_offset(x, u, th):
+    return th["a"] * x + th["b"] * u
+
+
+def test_outputs_rounded_to_float32_below_their_noise_are_warned_of():
+    """x64 off and float64 outputs of offset 300 with noise 1e-6, below float32's
+    resolution of them (3e-5): the float32 fit read the rounded outputs exactly (loss 0,
+    every std 0, "converged", the estimate 3 standard errors from float64's) without a
+    word. It warns, and keeps the warning in the result; the same data given in float32
+    (nothing rounded by the fit) and a float64 fit do not."""
+    import jax
+
+    model = oj.Model(_lag_with_offset, lambda x, u, th: x + th["c"])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    with jax.enable_x64(True):
+        _, z = oj.simulate(model, {"a": 0.8, "b": 1.0, "c": 300.0}, np.zeros(1), u)
+    z = np.asarray(z, np.float64) + 1e-6 * rng.standard_normal((200, 1))
+    theta0 = {"a": 0.7, "b": 0.9, "c": 299.0}
+    with jax.enable_x64(False), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = oj.fit(model, theta0, np.zeros(1), u, z)
+        said = [str(w.message) for w in caught if "rounding them changed" in str(w.message)]
+        assert len(said) == 1 and said[0] in r.warnings
+        assert said[0].startswith("the outputs were given in float64 and the fit ran in float32")
+        mine = oj.fit(model, theta0, np.zeros(1), u.astype(np.float32), z.astype(np.float32))
+        assert not [w for w in mine.warnings if "rounding them changed" in w]
+    with jax.enable_x64(True):
+        wide = oj.fit(model, theta0, np.zeros(1), u, z)
+    assert wide.success and not [w for w in wide.warnings if "rounding them changed" in w]
