@@ -393,9 +393,13 @@ def _measure_unmeasured_success(result, problem, out, strategy):
     the data's precision) and above the round-off limit is `stalled`
     (`stop_info["unmeasured_claim"]`), or `zero_residual` where the residual is at the
     round-off level of the data (where the measure says nothing): every solver's success
-    is the same test."""
+    is the same test. Its `max_steps_reached` is measured too, so that its message says
+    how far from stationary the returned point is (the solver's own test may not be one
+    that can pass in this precision)."""
     info = result.stop_info
-    if not result.success or np.isfinite(info.get("first_order", np.nan)):
+    if np.isfinite(info.get("first_order", np.nan)):
+        return result
+    if not result.success and result.status != "max_steps_reached":
         return result
     best = int(out.best)
     params = Params(jnp.asarray(out.start_theta[best]), jnp.asarray(out.start_x0[best]))
@@ -405,7 +409,7 @@ def _measure_unmeasured_success(result, problem, out, strategy):
     gtol = 1e-8 if not np.isfinite(gtol) else gtol
     tol = max(float(gtol_at_least_resolution(gtol, problem.dtype)), info["roundoff_limit"])
     result = dataclasses.replace(result, stop_info={**info, "first_order": fo, "gtol": gtol})
-    if result.status != "converged" or fo <= tol:
+    if result.status != "converged" or fo <= tol:  # (`max_steps_reached`: measured only)
         return result
     if bool(zero):
         return dataclasses.replace(result, stop_reason=RESULTS.zero_residual)

@@ -2343,6 +2343,11 @@ def test_a_success_claimed_by_a_solver_of_ones_own_is_measured():
         oj.fit(model, {"a": np.array([0.1])}, np.zeros(1), u, z, estimate_x0=False).theta["a"],
         rtol=1e-9,
     )
+    # Its budget's end is measured too: the message said "not a stationary point yet"
+    # with the measure NaN, nothing measured.
+    short = fit(_GradientDescent(lr=0.01, claim_at=10**6, max_steps=5))
+    assert short.status == "max_steps_reached" and short.stop_info["first_order"] > 0.5
+    assert short.message.startswith("first-order measure ") and " not met;" in short.message
     # A solver of one's own that returns a NaN point was said to return the start.
     lost = fit(_NaNAfterTwo(claim_at=50))
     assert lost.status == "diverged" and lost.stop_info["at_step"] > 0
