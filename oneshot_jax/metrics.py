@@ -278,9 +278,10 @@ def fpe(z, zhat, n_params, mask=None):
 
     E is the (n, n_z) matrix of errors over the n samples (those where every output is
     measured, when a `mask` is given), as for `aic`. Lower is better; inf where
-    d >= n (no samples left to judge the parameters by); NaN where no sample measures
-    every output, or, with d < n, fewer samples than there are measured outputs (E^T E / n
-    is then singular, as for `aic`).
+    d >= n (no samples left to judge the parameters by); NaN where, with d < n, fewer
+    samples measure every output than there are outputs (E^T E / n is then singular, as
+    for `aic`). `ValueError` where `mask` leaves no sample with every output measured
+    (outputs sampled at different times), as for `aic`.
     """
     _check_n_params(n_params)
     z, zhat, mask = _check(z, zhat, mask)
