@@ -331,6 +331,24 @@ class ProcessNoise(NamedTuple):
     log_likelihoods: np.ndarray
     interior: bool
 
+    def __str__(self) -> str:
+        """A few lines for `print`: the scale, its likelihood and where it lies in the grid
+        (the fields hold the arrays)."""
+        where = (
+            "inside the grid"
+            if self.interior
+            else "at the grid's end: the data ask for less, or more, than the grid holds"
+        )
+        diagonal = np.diag(np.asarray(self.covariance))
+        return (
+            f"process noise q = {self.scale:.4g} times the shape (log-likelihood "
+            f"{self.log_likelihood:.6g}, {where}; grid {float(self.scales[0]):.3g} .. "
+            f"{float(self.scales[-1]):.3g}, {len(self.scales)} points)\n"
+            f"  covariance diagonal [{', '.join(f'{v:.4g}' for v in diagonal)}]"
+        )
+
+    __repr__ = __str__
+
 
 def _grid(scales):
     """The grid of scales, checked: increasing, positive, finite, at least 3."""

@@ -136,6 +136,27 @@ class Stability(NamedTuple):
         `fit` warn."""
         return bool(self.value > min(self.accurate_limit, self.limit))
 
+    def __str__(self) -> str:
+        """One line for `print`: the measure against the integrator's limits, and where."""
+        lam = complex(self.eigenvalue)
+        verdict = (
+            "past its stability margin"
+            if self.near_limit
+            else "past its accurate range"
+            if self.inaccurate
+            else "inside its accurate range"
+        )
+        accurate = (
+            f", accurate to {self.accurate_limit:g}" if math.isfinite(self.accurate_limit) else ""
+        )
+        return (
+            f"{self.method.upper()} with h = dt / substeps = {self.dt:g} / {self.substeps}: "
+            f"largest |lambda| h {self.value:.3g} (lambda = {lam.real:.4g}{lam.imag:+.4g}j at "
+            f"sample {self.sample}), {verdict} (limit {self.limit:g}{accurate})"
+        )
+
+    __repr__ = __str__
+
 
 def is_ode(step) -> bool:
     """Whether `step` is an explicit integrator of `Model.from_ode` (a fixed `dt`, or a

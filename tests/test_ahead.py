@@ -302,6 +302,10 @@ def test_the_process_noise_of_the_highest_likelihood():
     np.testing.assert_allclose(pn.log_likelihood, reference_log_likelihood(pn.scale, z),
                                rtol=1e-11)  # fmt: skip
     np.testing.assert_allclose(pn.covariance, pn.scale * np.eye(2))
+    # (print: a few lines, not the dataclass with its 65-point grid)
+    text = str(pn)
+    assert text.startswith(f"process noise q = {pn.scale:.4g} times the shape (log-likelihood ")
+    assert "inside the grid" in text and "array" not in text and repr(pn) == text
     # The estimate itself is a `process_noise` (it was refused as an array of 6 fields)
     kw = dict(x0=M0, measurement_noise=R, prior_covariance=P0, missing="mask")
     given = oj.predict_ahead(LINEAR, {"A": A}, U, z, 3, process_noise=pn, **kw)

@@ -86,6 +86,11 @@ def test_fit_warns_of_the_stability_limit_as_check_stability(n_traj, window):
     assert found[0].startswith("the fitted model runs near")
     assert found[0].replace("the fitted model", "the model", 1) == str(direct[0].message)
     assert f"|lambda| h = {report.value:.3g}" in found[0]
+    # (print: one line with the measure and the limits, not the raw tuple)
+    assert str(report).startswith(f"RK4 with h = dt / substeps = {report.dt:g} / 1: largest ")
+    assert f"|lambda| h {report.value:.3g}" in str(report) and "past its stability margin" in str(
+        report
+    )
 
 
 def test_first_fit_and_predict_compile_one_program_each():
