@@ -681,32 +681,26 @@ def data_scale(problem: FitProblem):
 def outputs_above_round_off(problem: FitProblem, e) -> np.ndarray:
     """Which outputs' residuals `e` (zhat - z, the shape of the problem's z; NaN where not
     measured) are not at the round-off level of that output (`zero_residual` of each
-    output alone, its share of C against its own `_output_scales`), (n_z,) booleans. On
-    the host (NumPy: no program to compile). A zero residual of the outputs together can
-    hide one: a fixed term reproducing an output of size 1e14 exactly made eps
-    `data_scale` 1e12, and a second output, of size 1 and NRMSE 0.5, read as exact."""
+    output alone: its sum of squared residuals against its own `_output_scales`,
+    unweighted, since a weight's cross terms would mix the outputs' sizes), (n_z,)
+    booleans, False for an output of weight 0 (not fitted). On the host (NumPy: no
+    program to compile). A zero residual of the outputs together can hide one: a fixed
+    term reproducing an output of size 1e14 exactly made eps `data_scale` 1e12, and a
+    second output, of size 1 and NRMSE 0.5, read as exact."""
     z = np.asarray(problem.z)
     m = None
     if problem.mask is not None:
         out = np.asarray(problem.mask.outputs)
         m = np.broadcast_to(out if out.ndim == z.ndim else out[..., None], z.shape)
-    q = problem.cost.weight
-    sqrt_q = None
-    if q is not None:
-        q = np.asarray(q)
-        if q.ndim == 1:
-            sqrt_q = np.sqrt(q)
-        else:
-            vals, vecs = np.linalg.eigh(q)
-            sqrt_q = (vecs * np.sqrt(np.maximum(vals, 0.0))) @ vecs.T
     e = np.where(np.isfinite(e), np.asarray(e, z.dtype), 0.0)
     e = e if m is None else e * m
     axes = tuple(range(z.ndim - 1))
-    w = weigh(e, sqrt_q)  # (the loss's scaling, common to both sides, left out)
     eps = np.finfo(z.dtype).eps
-    return np.sum(w * w, axis=axes) > ZERO_RESIDUAL_RTOL * eps * _output_scales(
-        z, m, sqrt_q, 1.0, np
+    above = np.sum(e * e, axis=axes) > ZERO_RESIDUAL_RTOL * eps * _output_scales(
+        z, m, None, 1.0, np
     )
+    seen = problem.cost.observed()
+    return above if seen is None else above & np.asarray(seen)
 
 
 def zero_residual(C, scale):

@@ -2513,6 +2513,13 @@ def test_a_zero_residual_of_the_outputs_together_must_hold_of_each():
     assert r.stop_info["unresolved_outputs"] == ["small"]
     assert r.stop_info["solver_stop"] == "zero_residual"
     assert "output small is far from its own" in r.message
+    # (a weight with cross terms, which mix the outputs' sizes in Q^{1/2} e: the same)
+    Q = np.array([[1.0, 0.1], [0.1, 2.0]])
+    adam = oj.Adam(lr_theta=1e-3, max_steps=200)
+    mixed = oj.fit(model, theta0, np.zeros(1), u, z, solver=adam, weight=Q, **kw)
+    assert mixed.status == "max_steps_reached" and mixed.stop_info["unresolved_outputs"] == [
+        "small"
+    ]
     exact = oj.fit(model, theta0, np.zeros(1), u, z, **kw)
     assert exact.success and abs(float(exact.theta["c"]) - 1.0) < 1e-12
 
