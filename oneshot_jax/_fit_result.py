@@ -1065,8 +1065,8 @@ class FitResult(eqx.Module):
         - `prior_covariance`: the covariance of the prior on x0; default, with the
             default `x0`, that estimate's covariance (`predict(u, z).estimate`: the
             uncertainty of the mean the filter starts from, so the first K predictions'
-            `std` is that of a simulation from it; sigma_rec^2 (J^T J)^{-1} with the
-            record's own noise variance sigma_rec^2 = SSE / (R - n_x) of that estimate,
+            `std` is that of a simulation from it; sigma_rec^2 (J^T Q J)^{-1} with the
+            record's own sigma_rec^2 = SSE / (m - n_x) of that estimate, `X0Estimate`'s,
             not the fit's sigma^2, which the measurement noise takes), or the broad
             default of
             `oneshot_jax.predict_ahead` where the record does not determine every entry
