@@ -455,9 +455,10 @@ def _measure_validated_point(result, problem, out, strategy):
     return dataclasses.replace(result, stop_info={**result.stop_info, "first_order": float(fo)})
 
 
-def _flag_refuted_stop(result, problem, out, strategy):
-    """`result` with the stop `stalled` where the solver's stop says no step lowers the
-    loss but one does by more than sqrt(eps) of it and its round-off
+def _flag_refuted_stop(result, problem, out, strategy, max_steps=None):
+    """`result` with the stop `stalled` (`max_steps_reached` where a zero residual was
+    read at the solver's last step, `max_steps`) where the solver's stop says no step
+    lowers the loss but one does by more than sqrt(eps) of it and its round-off
     (`_optimality.refuted`), its first-order measure then the plain one and
     `stop_info["solver_stop"]` the solver's own stop:
 
@@ -487,9 +488,13 @@ def _flag_refuted_stop(result, problem, out, strategy):
             stops[s] = "stalled"
             continue
         info = {k: v for k, v in result.stop_info.items() if k != "degenerate"}
+        # (a first-order solver reads a zero residual at its last step: where the budget
+        # ran out, that is the stop, with its remedy, more steps)
+        ran_out = max_steps is not None and info.get("at_step", -1) >= max_steps
+        reason = "max_steps_reached" if ran_out and flag != "descends_along_vanished" else "stalled"
         result = _restated(  # (the best start's stop in `result.starts` too)
             dataclasses.replace(result, stop_info={**info, "first_order": fo}),
-            "stalled",
+            reason,
             **{flag: True},
         )
     if not listed:
@@ -1257,7 +1262,7 @@ def fit(
                 strategy,
                 finals=Params(out.start_theta, out.start_x0),
             )
-            result = _flag_refuted_stop(result, built.problem, out, strategy)
+            result = _flag_refuted_stop(result, built.problem, out, strategy, max_steps)
             result = _flag_plateau_above_start(
                 result, built.problem, built.starts, int(out.best), strategy
             )

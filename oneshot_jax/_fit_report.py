@@ -167,6 +167,12 @@ def _computed(result):
     return low if computed and low is not None else computed
 
 
+def _has_intervals(result) -> bool:
+    """Whether the printout shows standard errors and intervals (`_computed`: not after a
+    divergence, without a covariance or without degrees of freedom)."""
+    return _computed(result) not in (False, "diverged", "no_dof")
+
+
 def below_float64(dtype):
     """The name of `dtype` where it is a floating precision below float64, else None."""
     dtype = np.dtype(dtype)
@@ -397,11 +403,13 @@ def _whiteness_note(result, outputs) -> str | None:
     """The printout's line where the residuals are not white by MATLAB's `resid` test
     (`metrics.residual_correlations` at its defaults, lags 1..min(25, T - 1), each record
     or window on its own), for the outputs the fit weighs; None where they are, or where
-    there is nothing to test (a zero residual, a loss that is not finite). A model
-    error, coloured noise and a bad minimum leave such residuals, and the classical
-    standard errors assume white ones."""
+    there is nothing to test (a zero residual, a diverged fit, a loss that is not
+    finite). A model error, coloured noise and a bad minimum leave such residuals, and
+    the classical standard errors, where the printout has them, assume white ones."""
     e = np.asarray(result.residuals, np.float64)
-    if e.ndim < 2 or result.status == "zero_residual" or not np.isfinite(float(result.loss)):
+    if result.status in ("zero_residual", "diverged") or not np.isfinite(float(result.loss)):
+        return None  # (nothing to test, or a point that is not a fit's: a divergence's)
+    if e.ndim < 2:
         return None
     T = e.shape[-2]
     if T < 3:
@@ -430,7 +438,7 @@ def _whiteness_note(result, outputs) -> str | None:
     robust = (result.diagnostics or {}).get("covariance_lags") is not None
     errors = (
         ""
-        if robust
+        if robust or not _has_intervals(result)
         else "; the standard errors assume white residuals (`covariance=oj.NeweyWest()` "
         "allows for correlated ones)"
     )
@@ -644,8 +652,12 @@ def report(result) -> str:
             f" and {len(at_bound) - 8} more" if len(at_bound) > 8 else ""
         )
         out.append(
-            f"  at a bound: {listed} (the intervals ignore the bound, which cuts the "
-            "estimate's distribution)"
+            f"  at a bound: {listed}"
+            + (
+                " (the intervals ignore the bound, which cuts the estimate's distribution)"
+                if _has_intervals(result)
+                else ""
+            )
         )
     gone = (result.stop_info or {}).get("vanished")
     if gone:

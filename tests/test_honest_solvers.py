@@ -2548,3 +2548,33 @@ def test_a_failed_line_search_is_said_so():
     assert "go on from here with LevenbergMarquardt" in r.message
     lm = oj.fit(model, r.theta, r.x0, u, z)
     assert lm.success and float(r.loss) > 100 * float(lm.loss)
+
+
+def _spike_and_gain(x, u, th):
+    return th["b"] * u[:1] + th["c"] * u[1:2]
+
+
+def test_a_zero_residual_refuted_at_the_budgets_end_asks_for_more_steps():
+    """One output with a spike of 1e10 that a held term fits exactly, its other samples
+    of size 1: Adam's last step (c = 0.49, truth 1) read as a zero residual, which the
+    step check refuted, and the stop said `stalled` ("the step ... reached round-off,
+    check the scaling"). The budget ran out: `max_steps_reached`, whose remedy is more
+    steps; with them the fit converges to c = 1."""
+    model = oj.Model(lambda x, u, th: x, _spike_and_gain)
+    u = np.zeros((200, 2))
+    u[100, 0] = 1e10
+    u[:, 1] = np.random.default_rng(0).standard_normal(200)
+    z = u[:, :1] + u[:, 1:2]
+    kw = dict(fixed={"b": True, "c": False}, estimate_x0=False)
+
+    def fit(steps):
+        adam = oj.Adam(lr_theta=1e-3, max_steps=steps)
+        return oj.fit(model, {"b": 1.0, "c": 0.3}, np.zeros(1), u, z, solver=adam, **kw)
+
+    short = fit(200)
+    assert short.status == "max_steps_reached" and not short.success
+    assert short.stop_info["solver_stop"] == "zero_residual"
+    assert short.stop_info["descends_from_zero_residual"]
+    assert "raise max_steps" in short.message
+    long = fit(20000)
+    assert long.success and abs(float(long.theta["c"]) - 1.0) < 1e-6

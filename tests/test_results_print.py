@@ -741,3 +741,10 @@ def test_residuals_that_are_not_white_are_said_so():
     robust = oj.fit(MODEL, theta0, x0, u, coloured, covariance=oj.NeweyWest())
     (line,) = [s for s in str(robust).splitlines() if "residuals not white" in s]
     assert "assume white" not in line
+    # A diverged fit's returned point is not a fit's: no line (it advised on standard
+    # errors the printout does not have)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lost = oj.fit(MODEL, theta0, x0, u, coloured, solver=oj.Adam(lr_theta=1e3, max_steps=50))
+    assert lost.status == "diverged" and np.isfinite(float(lost.loss))
+    assert "residuals not white" not in str(lost)
