@@ -354,7 +354,7 @@ def run(cfg, outdir, command="python experiments/run.py") -> dict:
     results = {
         "experiment": "satellite",
         "command": command,
-        "solver": as_dict(cfg.solver),
+        "solver": {**as_dict(cfg.solver), "label": cfg.solver.title},
         "seed": seed,
         "T": T,
         "dt": dt,

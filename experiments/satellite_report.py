@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from . import common
+
 CAPTIONS = {
     "fig2_loss_landscape.png": "Fig. 2: loss C over two components of theta (third component "
     "and x0 at the estimate) with the recorded path of the main fit.",
@@ -45,6 +47,8 @@ def _kind(spec):
     if spec["name"] == "scipy":
         kw = spec.get("kwargs") or {}
         grad = "closed form" if kw.get("jac", "closed_form") == "closed_form" else "finite diff."
+        if str(kw.get("method", "SLSQP")).lower() in common.GRADIENT_FREE:
+            grad = "none"
         return grad, ("scaled" if kw.get("scale") else "raw")
     return "closed form", "raw"
 
@@ -178,10 +182,12 @@ def markdown(res: dict) -> str:
     )
     w("")
     if not main.get("success", True):
+        detail = (main.get("message") or "").split(";")[0]
+        detail = f" ({detail})" if detail and detail not in main["stop_reason"] else ""
         w(
             f"**The proposed method's fit on this draw did not converge**: it stopped with "
-            f"`{main['stop_reason']}` ({main.get('message', '').split(';')[0]}). Its row is "
-            "the point the solver returned, not an estimate, and has no standard errors."
+            f"`{main['stop_reason']}`{detail}. Its row is the point the solver returned, not "
+            "an estimate, and has no standard errors."
         )
         w("")
     if failing:

@@ -665,6 +665,11 @@ def test_a_scipy_baselines_label_names_the_options_that_run():
     assert config.load(cfg).solver.title == "SLSQP + finite differences (raw)"
     cfg = _compose(["solver=slsqp", "solver.kwargs.method=Nelder-Mead"])
     assert config.load(cfg).solver.title == "Nelder-Mead + no gradient (scaled)"
+    from experiments import satellite_report
+
+    assert satellite_report._kind({"name": "scipy", "kwargs": {"method": "Nelder-Mead"}})[0] == (
+        "none"
+    )
     assert config.load(_compose(["solver=slsqp"])).solver.title == (
         "SLSQP + closed-form gradient (scaled)"
     )
