@@ -1223,10 +1223,17 @@ def clip_x0(x0, box, name, what, stacklevel, warning=True):
     clipped = np.clip(x0, *box).astype(np.asarray(x0).dtype)
     outside = clipped != x0
     if warning and outside.any():
-        entries = sorted({int(i) for i in np.nonzero(outside)[-1]})
+        where = np.nonzero(outside)
+        if outside.ndim >= 2 and outside.shape[-2] > 1:  # (several records: name each)
+            pairs = sorted({(int(i), int(j)) for i, j in zip(where[-2], where[-1])})
+            entries = "x0[" + "], x0[".join(f"{i}, {j}" for i, j in pairs[:10]) + "]"
+            entries += f" and {len(pairs) - 10} more" if len(pairs) > 10 else ""
+            said = f"in {entries} (record, state)"
+        else:
+            said = f"in its entries {sorted({int(j) for j in where[-1]})}"
         warn(
-            f"the starting x0 lies outside `{name}` in its entries {entries}: the {what} "
-            "starts from x0 clipped into them.",
+            f"the starting x0 lies outside `{name}` {said}: the {what} starts from x0 "
+            "clipped into them.",
             stacklevel=stacklevel + 1,
         )
     return clipped

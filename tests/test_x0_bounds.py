@@ -129,6 +129,10 @@ def test_a_start_outside_the_box_is_clipped_with_a_warning_and_windows_share_the
         result = oj.fit(MODEL, THETA0, np.array([0.9, -0.5]), U, Z, x0_bounds=BOUNDS)
     assert result.success
     np.testing.assert_allclose(result.x0, reference()[2:], rtol=1e-6)
+    # (several records: the record is named; it said "entries [0]")
+    starts = np.array([[0.5, 0.0], [0.9, 0.0]])
+    with pytest.warns(UserWarning, match=r"outside `x0_bounds` in x0\[1, 0\] \(record, state\)"):
+        oj.fit(MODEL, THETA0, starts, np.stack([U, U]), np.stack([Z, Z]), x0_bounds=BOUNDS)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # (the windows' starting states read off z)
         windowed = oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z, window=40,
