@@ -332,10 +332,10 @@ def _objective(model, estimate_x0, with_grad, p, theta_like, x0_fixed, u, z):
 GRADIENT_FREE = ("nelder-mead", "powell", "cobyla", "cobyqa")
 
 
-def scipy_label(kwargs) -> str:
+def scipy_words(kwargs) -> tuple[str, str, str]:
     """What a scipy baseline's options make of it, in words: its method, its gradient
-    (closed-form, finite differences, or none for a gradient-free method) and whether the
-    problem is scaled ("SLSQP + finite differences (raw)")."""
+    ("closed-form gradient", "finite differences", or "no gradient" for a gradient-free
+    method) and whether the problem is "scaled" or "raw"."""
     method = str(kwargs.get("method", "SLSQP"))
     if method.lower() in GRADIENT_FREE:
         gradient = "no gradient"
@@ -343,7 +343,14 @@ def scipy_label(kwargs) -> str:
         gradient = "closed-form gradient"
     else:
         gradient = "finite differences"
-    return f"{method} + {gradient} ({'scaled' if kwargs.get('scale', False) else 'raw'})"
+    return method, gradient, "scaled" if kwargs.get("scale", False) else "raw"
+
+
+def scipy_label(kwargs) -> str:
+    """A scipy baseline's label from its options (`scipy_words`): "SLSQP + finite
+    differences (raw)"."""
+    method, gradient, scaling = scipy_words(kwargs)
+    return f"{method} + {gradient} ({scaling})"
 
 
 def _solve_scipy(model, theta0, x0, u, z, kw, constraints, estimate_x0):

@@ -142,11 +142,9 @@ class SolverConfig:
             return label or self.name
         from . import common
 
-        made = common.scipy_label(self.kwargs)
-        method, rest = made.split(" + ", 1)
-        gradient, scaling = rest[:-1].split(" (")
-        named = label is not None and all(w in label for w in (method, gradient, scaling))
-        return label if named else made
+        words = common.scipy_words(self.kwargs)
+        named = label is not None and all(w in label for w in words)
+        return label if named else common.scipy_label(self.kwargs)
 
 
 # --------------------------------------------------------------------------- satellite

@@ -42,14 +42,19 @@ def _vec(v, digits=4):
     return "[" + ", ".join(f"{x:.{digits}g}" for x in v) + "]"
 
 
+# The table's word for each gradient of `common.scipy_words`.
+_GRADIENT_COLUMN = {
+    "closed-form gradient": "closed form",
+    "finite differences": "finite diff.",
+    "no gradient": "none",
+}
+
+
 def _kind(spec):
     """(gradient, problem) columns of a method's solver spec."""
     if spec["name"] == "scipy":
-        kw = spec.get("kwargs") or {}
-        grad = "closed form" if kw.get("jac", "closed_form") == "closed_form" else "finite diff."
-        if str(kw.get("method", "SLSQP")).lower() in common.GRADIENT_FREE:
-            grad = "none"
-        return grad, ("scaled" if kw.get("scale") else "raw")
+        _, gradient, scaling = common.scipy_words(spec.get("kwargs") or {})
+        return _GRADIENT_COLUMN[gradient], scaling
     return "closed form", "raw"
 
 
