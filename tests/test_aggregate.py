@@ -330,12 +330,19 @@ def test_an_integral_of_a_fixed_dt_ode_model_is_over_time():
     assert oj.Aggregate(1, [(0, 11)], [reading], kind="mean").predict(np.asarray(xs)).shape == (1,)
 
 
+def _first_order_rhs(x, u, th):
+    return -th["a"] * x + th["b"] * u
+
+
+# (one model object for the tests below, so that they share its compiled programs)
+TIMED_FIRST_ORDER = oj.Model.from_ode(_first_order_rhs, dt=None)
+
+
 def _timed_first_order():
-    rhs = lambda x, u, th: -th["a"] * x + th["b"] * u  # noqa: E731
     T = 60
     t = np.cumsum(np.r_[0.0, np.random.default_rng(0).uniform(0.05, 1.0, T - 1)])
     u = (np.sin(0.5 * t) > 0).astype(float)[:, None]
-    return oj.Model.from_ode(rhs, dt=None), {"a": 0.5, "b": 2.0}, t, u
+    return TIMED_FIRST_ORDER, {"a": 0.5, "b": 2.0}, t, u
 
 
 def test_an_output_measured_only_in_aggregate_is_identified():

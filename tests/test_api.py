@@ -328,8 +328,8 @@ def test_result_simulate_runs_the_fitted_model(sat, sat_lm):
     assert x2.shape == (10, 3) and np.array_equal(x2[0], SAT_W0)
 
 
+# (Gauss-Newton is the last stage of "sequence": it solves the x0-only fit there)
 X0_ONLY_SOLVERS = {
-    "gauss_newton": lambda: oj.GaussNewton(),
     "levenberg_marquardt": lambda: oj.LevenbergMarquardt(),
     "adam": lambda: oj.Adam(lr_x0=2e-5, max_steps=3000),
     "lbfgs": lambda: oj.LBFGS(max_steps=100),
@@ -396,14 +396,15 @@ def _sat_fit(sat, **kwargs):
 def test_history_is_bounded_and_evenly_thinned(sat):
     """A step budget of 10^9 allocates nothing per step: the history keeps at most
     `history` rows, evenly strided, with the final iterate last."""
+    # (history=4, as in the test below: the same compiled fit, the thresholds being data)
     r = _sat_fit(
         sat,
-        history=8,
+        history=4,
         solver=oj.Adam(lr_x0=1e-5, max_steps=10**9, tol_grad=1e-6),
     )
     assert r.stop_reason == oj.RESULTS.tol_grad
     h = r.history
-    assert 2 <= len(h) <= 9
+    assert 2 <= len(h) <= 5
     assert h.step[-1] == r.num_steps and h.step[0] == 0
     strides = np.diff(h.step[:-1])
     assert np.all(strides == strides[0])  # one stride, a power of two

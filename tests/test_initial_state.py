@@ -44,6 +44,18 @@ def duffing_rhs(x, u, th):
 
 
 DUFFING = oj.Model.from_ode(duffing_rhs, DT, observe=angle)
+
+
+def whole_state(x, u, th):
+    del u, th
+    return x
+
+
+# The pendulum with its whole state measured by an `observe` of its own (and a zero-order
+# hold): one model object for the tests of weighted heads, so that their equal
+# configurations (a fit of 60 samples with a (2, 2) weight, a head of N_HEAD samples)
+# share compiled programs.
+PENDULUM_X = oj.Model.from_ode(pendulum_rhs, DT, observe=whole_state)
 DUFFING_THETA = np.array([4.0, 0.3, 1.0])
 
 
@@ -299,7 +311,7 @@ def test_fit_result_predict_weights_the_head_as_the_fit_did(tmp_path):
     """An output the fit ignored (weight 0: a sensor with an offset of 5) stays ignored when
     `predict` estimates a new record's x0, also after save and load; it used the identity
     weight (FIT -118 % in a probe)."""
-    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    model = PENDULUM_X
     q = np.diag([1.0, 0.0])
 
     def record(T, seed, x0):
@@ -328,7 +340,7 @@ def test_fit_result_predict_smoother_uses_the_noise_the_fit_estimated():
     `FitResult.predict` gives it sigma^2 W^{-1} (sigma^2 = SSE / dof of the fit's weighted
     residuals): the same prediction for W, 1e4 W and 1e-4 W, and the same as
     `estimate_x0` with that noise computed here."""
-    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    model = PENDULUM_X
     rng = np.random.default_rng(3)
     u = 0.5 * np.sin(0.3 * np.arange(60))[:, None]
     z = np.asarray(oj.simulate(model, PEND_THETA, np.array([0.8, -0.3]), u)[1])
@@ -377,7 +389,7 @@ def test_lsq_is_the_x0_only_fit():
     """`estimate_x0` solves x0 below `fit`, with the numbers of the public x0-only fit
     (every parameter fixed) on the head: a weighted two-output head, Levenberg-Marquardt
     from zeros. A solve that dropped the weight would land elsewhere."""
-    model = oj.Model.from_ode(pendulum_rhs, DT, observe=lambda x, u, th: x)
+    model = PENDULUM_X
     rng = np.random.default_rng(5)
     u = 0.5 * np.sin(0.3 * np.arange(40))[:, None]
     _, z = oj.simulate(model, PEND_THETA, np.array([0.8, -0.3]), u)
@@ -385,16 +397,23 @@ def test_lsq_is_the_x0_only_fit():
     weight = np.array([[4.0, 0.5], [0.5, 0.25]])
     solver = oj.LevenbergMarquardt()
     est = oj.estimate_x0(
-        model, PEND_THETA, u, z, n=25, x0=np.zeros(2), weight=weight, solver=solver
+        model, PEND_THETA, u, z, n=N_HEAD, x0=np.zeros(2), weight=weight, solver=solver
     )
     ref = oj.fit(
-        model, PEND_THETA, np.zeros(2), u[:25], z[:25], fixed=True, weight=weight, solver=solver
+        model,
+        PEND_THETA,
+        np.zeros(2),
+        u[:N_HEAD],
+        z[:N_HEAD],
+        fixed=True,
+        weight=weight,
+        solver=solver,
     )
     np.testing.assert_array_equal(est.x0, ref.x0)
     np.testing.assert_array_equal(est.covariance, ref.x0_covariance)
     np.testing.assert_array_equal(est.loss, ref.loss)
     assert est.stop_reason == ref.stop_reason
-    unweighted = oj.estimate_x0(model, PEND_THETA, u, z, n=25, x0=np.zeros(2), solver=solver)
+    unweighted = oj.estimate_x0(model, PEND_THETA, u, z, n=N_HEAD, x0=np.zeros(2), solver=solver)
     assert np.max(np.abs(unweighted.x0 - est.x0)) > 1e-3
 
 
@@ -649,6 +668,10 @@ def test_holding_an_entry_of_a_combination_makes_the_other_identifiable():
     assert list(free.identifiable) == [False, False, True]
 
 
+# (module-level: both cases of the test below reuse its compiled fit)
+STATIC = oj.Model(lambda x, u, th: x, lambda x, u, th: th["d"] * u + th["e"])
+
+
 @pytest.mark.parametrize("method", ["lsq", "smoother"])
 def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     """A static model (n_x = 0, z = d u + e): `estimate_x0` and `predict` return an empty
@@ -656,7 +679,7 @@ def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     printout says the model has no state (it said x0 was fixed, for 0 trajectories)."""
     rng = np.random.default_rng(1)
     u = rng.standard_normal((20, 1))
-    model = oj.Model(lambda x, u, th: x, lambda x, u, th: th["d"] * u + th["e"])
+    model = STATIC
     z = 1.5 * u + 0.3 + 0.01 * rng.standard_normal((20, 1))
     r = oj.fit(model, {"d": 1.0, "e": 0.0}, np.zeros(0), u, z)
     assert "(none: the model has no state, n_x = 0)" in str(r)
@@ -667,14 +690,18 @@ def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     assert est.x0.shape == (0,)
 
 
+def _oscillator_rhs(x, u, th):
+    return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
+
+
+# (module-level: the smoother tests below share its compiled programs)
+OSCILLATOR = oj.Model.from_ode(_oscillator_rhs, 0.05, observe=angle)
+
+
 def _smoother_case():
     """A damped oscillator, its position measured without noise over 60 samples: (model,
     theta, u, z, the generator for the noise)."""
-
-    def rhs(x, u, th):
-        return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
-
-    model = oj.Model.from_ode(rhs, 0.05, observe=lambda x, u, th: x[:1])
+    model = OSCILLATOR
     theta = {"c": 0.3, "k": 2.0}
     rng = np.random.default_rng(0)
     u = rng.standard_normal((60, 1))

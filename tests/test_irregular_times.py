@@ -259,16 +259,18 @@ def test_equal_intervals_reproduce_from_ode_exactly(input, max_step):
         np.testing.assert_allclose(np.asarray(g_a[name]), np.asarray(g_b[name]), rtol=1e-14)
 
 
+def tank(x, u, th):
+    """A tank's outflow (module-level: both cases below share the regular model's
+    compiled programs)."""
+    return -th["k"][0] * jnp.sqrt(x) - th["k"][1] * x
+
+
 @pytest.mark.parametrize("strategy", ["auto", "vjp"])
 def test_masked_substeps_keep_the_gradient_finite(strategy):
     """The substeps an interval does not need were full RK4 steps from its end state,
     masked afterwards: a tank's outflow -k sqrt(x) stepped below x = 0 there, and the
     masked NaN reached the reverse-mode gradient (0 * nan); L-BFGS stopped at step 0 with
     'the gradient overflowed'. The gradient now equals the regular model's."""
-
-    def tank(x, u, th):
-        return -th["k"][0] * jnp.sqrt(x) - th["k"][1] * x
-
     T, dt = 10, 0.1
     u, x0, th = np.zeros((T, 1)), np.array([1.0]), {"k": np.array([1.9, 0.0])}
     regular = oj.Model.from_ode(tank, dt)

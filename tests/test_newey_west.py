@@ -45,40 +45,42 @@ def dense_sandwich(model, theta, x0, u, z, lags, free_x0):
         return (zhat - z).reshape(N, T * n_z)
 
     v = jnp.concatenate([jnp.stack([theta["c"], theta["k"]]), x0[:, free_x0].ravel()])
-    e = residuals(v)
-    J = jax.jacfwd(residuals)(v)  # (N, T n_z, q)
+    # (the algebra in NumPy: JAX's slices and `.at[...].set`, run eagerly, compile a
+    # program per new slice, hundreds of them)
+    e = np.asarray(jax.jit(residuals)(v))
+    J = np.asarray(jax.jit(jax.jacfwd(residuals))(v))  # (N, T n_z, q)
     q = J.shape[-1]
-    H = jnp.einsum("nra,nrb->ab", J, J)
-    s = jnp.einsum("ntoa,nto->nta", J.reshape(N, T, n_z, q), e.reshape(N, T, n_z))
-    omega = jnp.einsum("nta,ntb->ab", s, s)
+    H = np.einsum("nra,nrb->ab", J, J)
+    s = np.einsum("ntoa,nto->nta", J.reshape(N, T, n_z, q), e.reshape(N, T, n_z))
+    omega = np.einsum("nta,ntb->ab", s, s)
     for lag in range(1, lags + 1):
-        g = jnp.einsum("nta,ntb->ab", s[:, lag:], s[:, :-lag])
+        g = np.einsum("nta,ntb->ab", s[:, lag:], s[:, :-lag])
         omega = omega + (1 - lag / (lags + 1)) * (g + g.T)
-    Hinv = jnp.linalg.inv(H)
+    Hinv = np.linalg.inv(H)
     n = N * T * n_z
     cov = Hinv @ omega @ Hinv * n / (n - q)
     # x0_i: its own part with the residuals' autocovariance pooled over every sample,
     # Gamma_l = sum e_k e_{k-l}^T / (N T), as a dense block-Toeplitz Sigma per trajectory;
     # its part through theta with theta's sandwich.
     ek = e.reshape(N, T, n_z)
-    sigma = jnp.zeros((T * n_z, T * n_z))
+    sigma = np.zeros((T * n_z, T * n_z))
     for lag in range(lags + 1):
-        gamma = jnp.einsum("nto,ntp->op", ek[:, lag:], ek[:, : T - lag]) / (N * T)
+        gamma = np.einsum("nto,ntp->op", ek[:, lag:], ek[:, : T - lag]) / (N * T)
         w = 1 - lag / (lags + 1)
         for k in range(lag, T):
             rows, cols = slice(k * n_z, (k + 1) * n_z), slice((k - lag) * n_z, (k - lag + 1) * n_z)
-            sigma = sigma.at[rows, cols].set(w * gamma)
-            sigma = sigma.at[cols, rows].set(w * gamma.T)
+            sigma[rows, cols] = w * gamma
+            sigma[cols, rows] = w * gamma.T
     x0_cov = []
     for i in range(N):
         rows = slice(2 + i * m, 2 + (i + 1) * m)
-        W = -Hinv[rows, :2] @ jnp.linalg.inv(Hinv[:2, :2])  # C_i^+ B_i^T
+        W = -Hinv[rows, :2] @ np.linalg.inv(Hinv[:2, :2])  # C_i^+ B_i^T
         own = Hinv[rows] @ J[i].T  # x0_i's move per residual of trajectory i
         b = W @ (Hinv[:2] @ J[i].T)  # the part of it through theta
         a = own + b
         pooled = a @ sigma @ a.T - a @ sigma @ b.T - b @ sigma @ a.T
         x0_cov.append(pooled * n / (n - q) + W @ cov[:2, :2] @ W.T)
-    return cov[:2, :2], jnp.stack(x0_cov)
+    return cov[:2, :2], np.stack(x0_cov)
 
 
 @pytest.fixture(scope="module")
@@ -318,6 +320,8 @@ def dense_marginal_sandwich(theta, x0, u, z, lags, free_x0):
     v = jnp.concatenate(
         [jnp.atleast_1d(theta["k"]), r_net.w1, r_net.b1, r_net.w2, x0[:, free_x0].ravel()]
     )
+    # (the algebra in NumPy: JAX's slices and `.at[...].set`, run eagerly, compile a
+    # program per new slice, hundreds of them)
     e = np.asarray(residuals(v))
     J = np.asarray(jax.jacfwd(residuals)(v))
     U, s, _ = np.linalg.svd(J[:, 1:], full_matrices=False)

@@ -8,9 +8,11 @@ docs/case-studies/cascaded_tanks.md. These tests skip, naming the files, when th
 benchmark files are not found (they are not in the repository).
 """
 
+import functools
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import benchmark_or_skip
@@ -93,19 +95,37 @@ def test_emps_experiment_runs_the_configured_solver(tmp_path):
     assert "left out: closed loop [5000]" in (tmp_path / "results.md").read_text()
 
 
-def test_tanks_overflow_on_first_600_samples():
-    """Overflow model on the first 600 of 1024 estimation samples (both overflow episodes
-    start before sample 600), from the full-run parameters perturbed by +-10 %: lands
-    within 20 % of them, and its validation RMSE stays below 0.40 V."""
+@functools.cache
+def _overflow_on_768():
+    """The overflow model on the first 768 of 1024 estimation samples (both overflow
+    episodes start before sample 600) from the full-run parameters perturbed by +-10 %,
+    the signs alternating, and by the opposite signs: two starts in one multistart, the
+    call `cascaded_tanks.fit_overflow` makes in
+    `test_tanks_overflow_starts_from_the_rough_guess_too` (the same model, solver and
+    shapes: the module compiles that fit once)."""
     data = _load(ds.load_cascaded_tanks)
     ex = config.TanksConfig()
-    start = {k: v * (1.1 if i % 2 else 0.9) for i, (k, v) in enumerate(TANKS_FULL.items())}
-    solver = oj.LevenbergMarquardt(max_steps=150)
-    res, model = cascaded_tanks.fit_model("overflow", data, ex, start, [9.0, 7.0], solver, n=600)
-    th = {k: float(v) for k, v in res.theta.items()}
-    for k, v in TANKS_FULL.items():
-        assert th[k] == pytest.approx(v, rel=0.2), (k, th)
-    assert 0.0 <= th["k5"] <= 1.0
+    signs = [(1.1 if i % 2 else 0.9) for i in range(len(TANKS_FULL))]
+    starts = {
+        k: jnp.asarray([v * s, v * (2.0 - s)]) for (k, v), s in zip(TANKS_FULL.items(), signs)
+    }
+    solver = oj.LevenbergMarquardt(max_steps=300)
+    x0 = [[9.0, 7.0], [9.0, 7.0]]
+    return cascaded_tanks.fit_model("overflow", data, ex, starts, x0, solver, 768, True)
+
+
+def test_tanks_overflow_on_first_768_samples():
+    """Overflow model on the first 768 of 1024 estimation samples (both overflow episodes
+    start before sample 600), from the full-run parameters perturbed by +-10 % in two
+    directions (`_overflow_on_768`): both starts land within 20 % of them, and the
+    validation RMSE stays below 0.40 V."""
+    data = _load(ds.load_cascaded_tanks)
+    res, model = _overflow_on_768()
+    for start in range(2):
+        th = {k: float(v[start]) for k, v in res.starts.theta.items()}
+        for k, v in TANKS_FULL.items():
+            assert th[k] == pytest.approx(v, rel=0.2), (start, k, th)
+        assert 0.0 <= th["k5"] <= 1.0
     y_val = cascaded_tanks.simulate(model, res.theta, res.x0, data.u_val)
     assert float(oj.metrics.rmse(data.y_val, y_val)[0]) < 0.40
 
@@ -132,19 +152,22 @@ def test_tanks_overflow_starts_from_the_rough_guess_too():
 
 
 def test_tanks_quadratic_sensor_lowers_the_estimation_error():
-    """The quadratic sensor (c2) beside the overflow model's estimate, from c2 = 0 on the
-    whole estimation record: the fit curves the sensor (c2 > 0) and lowers the
-    estimation RMSE from about 0.26 V (the overflow model alone) below 0.2 V. Without the
-    sensor term in `observe`, c2 would have no effect and the RMSE could not drop."""
+    """The quadratic sensor (c2) beside the overflow model's estimate on the first 768
+    samples (`_overflow_on_768`, both starts converged to one optimum), from c2 = 0: the
+    fit curves the sensor (c2 > 0) and lowers the estimation RMSE by more than a fifth
+    (from about 0.23 V, the overflow model alone, to about 0.14 V). Without the sensor
+    term in `observe`, c2 would have no effect and the RMSE could not drop."""
     data = _load(ds.load_cascaded_tanks)
     ex = config.TanksConfig()
-    solver = oj.LevenbergMarquardt(max_steps=300)
-    base, model = cascaded_tanks.fit_model("overflow", data, ex, TANKS_FULL, [9.2, 7.1], solver)
+    base, _ = _overflow_on_768()
+    assert base.starts.stop_reason == ("converged", "converged")
+    np.testing.assert_allclose(base.starts.loss[0], base.starts.loss[1], rtol=1e-6)
     rmse0 = float(np.atleast_1d(base.metrics["rmse"])[0])
     start = {**{k: float(v) for k, v in base.theta.items()}, "c2": 0.0}
-    res, _ = cascaded_tanks.fit_model("overflow", data, ex, start, base.x0, solver)
+    solver = oj.LevenbergMarquardt(max_steps=300)
+    res, _ = cascaded_tanks.fit_model("overflow", data, ex, start, base.x0, solver, 768)
     rmse = float(np.atleast_1d(res.metrics["rmse"])[0])
-    assert rmse0 > 0.25 and rmse < 0.2, (rmse0, rmse)
+    assert rmse0 > 0.2 and rmse < 0.8 * rmse0, (rmse0, rmse)
     assert float(res.theta["c2"]) > 0.05
 
 

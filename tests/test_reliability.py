@@ -85,12 +85,14 @@ def test_one_sample_and_one_sample_windows_report_no_nan(data):
         oj.fit(M, TH0, np.tile(X0, (10, 1)), u[:10], z[:10], window=1)
 
 
+def negative_penalty(x, th):
+    """A penalty below zero (module-level: the two tests below share the compiled loss)."""
+    return -0.5 * x[0] ** 2
+
+
 def test_negative_penalty_stops_least_squares_with_the_true_loss(data):
     u, z = data
-
-    def penalty(x, th):
-        return -0.5 * x[0] ** 2
-
+    penalty = negative_penalty
     r = oj.fit(M, TH0, X0, u, z, penalty=penalty)
     assert r.stop_reason == oj.RESULTS.negative_penalty and not r.success
     true = float(oj.loss(M, r.theta, r.x0, u, z, penalty=penalty))
@@ -140,10 +142,7 @@ def test_a_penalty_turning_negative_mid_fit_is_named_and_ranked_last(data, solve
 def test_adam_does_not_stop_on_a_negative_loss(data):
     """0.1 compared C < tol_loss = 0 and stopped at step 0 with success."""
     u, z = data
-
-    def penalty(x, th):
-        return -0.5 * x[0] ** 2
-
+    penalty = negative_penalty
     r = oj.fit(M, TH0, X0, u, z, penalty=penalty, solver=oj.Adam(max_steps=20))
     assert r.num_steps == 20 and r.stop_reason == oj.RESULTS.max_steps_reached
     assert float(r.loss) == pytest.approx(
@@ -339,8 +338,10 @@ def test_integer_leaves_of_theta_are_not_parameters(data, tmp_path):
 
 @pytest.fixture(scope="module")
 def saved(data, tmp_path_factory):
+    """A fit of the module's data and its file (the default solver: the compiled fit of
+    `test_mixed_precision_is_promoted_everywhere`)."""
     u, z = data
-    r = oj.fit(M, TH0, X0, u, z, solver=oj.GaussNewton())
+    r = oj.fit(M, TH0, X0, u, z)
     return r, r.save(tmp_path_factory.mktemp("saved") / "r.npz")
 
 

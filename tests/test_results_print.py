@@ -229,7 +229,9 @@ def test_max_steps_of_an_optimistix_solver_and_a_validation_stop_give_their_numb
     validation stop neither the score that chose the point nor the patience."""
     x0, u, z = data()
     start = {"w0sq": 3.0, "c": 0.2, "b": 1.0}
-    short = oj.Optimistix(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), max_steps=8)
+    # (the solver of `test_an_optimistix_solver_stop_names_its_own_tolerances`'s fit at a
+    # solution, stopped short: the same compiled fit, max_steps being data)
+    short = oj.Optimistix(optx.GaussNewton(rtol=1e-10, atol=1e-14), max_steps=2)
     r = oj.fit(MODEL, start, x0, u, z, solver=short)
     assert r.status == "max_steps_reached" and np.isfinite(r.stop_info["first_order"])
     assert r.message.startswith(f"first-order measure {r.stop_info['first_order']:.3g} (gtol")
@@ -255,13 +257,14 @@ def test_x0_rows_show_their_standard_errors(fitted):
 
 
 def test_several_trajectories_show_the_first_rows_and_a_count():
-    x0, u, z = data(n_traj=5)
+    # (the records of the pooled test's many-records case: the same compiled fit)
+    x0, u, z = data(n_traj=8, T=60)
     r = oj.fit(MODEL, {"w0sq": 3.0, "c": 0.2, "b": 1.0}, x0, u, z)
     text = str(r)
-    assert "5 trajectories" in text
+    assert "8 trajectories" in text
     row = _row(text, "x0[1, 0]")
     assert f"{r.x0[1, 0]:.6g}" in row and f"{r.x0_std[1, 0]:.3g}" in row
-    assert "x0[4, 0]" not in text and "3 more trajectories" in text
+    assert "x0[4, 0]" not in text and "6 more trajectories" in text
 
 
 def test_a_pooled_fit_says_so_and_gives_each_trajectory_s_fit(fitted, tmp_path):
@@ -720,15 +723,18 @@ def test_residuals_that_are_not_white_are_said_so():
     numbers (`metrics.residual_correlations`) and that the classical standard errors
     assume white residuals; with white noise, no line; with Newey-West standard errors,
     no remark on them."""
+    # (T = 120, the length of `data()`: the fits of the white and the coloured record are
+    # the compiled fit of the module's other plain fits)
+    T = 120
     rng = np.random.default_rng(3)
-    u = rng.standard_normal((300, 1))
+    u = rng.standard_normal((T, 1))
     x0 = np.array([1.0, 0.0])
     _, z = oj.simulate(MODEL, TRUTH, x0, u)
     theta0 = {"w0sq": 3.5, "c": 0.4, "b": 0.8}
-    white = oj.fit(MODEL, theta0, x0, u, np.asarray(z) + 0.02 * rng.standard_normal((300, 1)))
+    white = oj.fit(MODEL, theta0, x0, u, np.asarray(z) + 0.02 * rng.standard_normal((T, 1)))
     assert white.success and "residuals not white" not in str(white)
-    noise = np.zeros(300)
-    for k in range(1, 300):
+    noise = np.zeros(T)
+    for k in range(1, T):
         noise[k] = 0.9 * noise[k - 1] + 0.02 * rng.standard_normal()
     coloured = np.asarray(z) + noise[:, None]
     r = oj.fit(MODEL, theta0, x0, u, coloured)

@@ -153,7 +153,9 @@ def test_a_solver_that_converges_past_the_best_score_by_a_tie_keeps_its_solution
     last steps move the score by 1e-8 to 2e-4 of it, far less than the records resolve.
     The converged point is returned with its status, not an iterate before it as a
     `validation` stop (which it was, GN and LM for 2e-8 of the score, 1e-6 of its
-    standard deviation). The history's last row holds that point's score."""
+    standard deviation). The history's last row holds that point's score, and that
+    point: the returned theta and loss are the last recorded iterate's (the solver's
+    own end), not those of the best-scored row before it."""
     model = oj.Model.from_ode(_oscillator, DT, observe=lambda x, u, th: x[:1])
     rng = np.random.default_rng(4)
     t = DT * np.arange(800)
@@ -166,14 +168,22 @@ def test_a_solver_that_converges_past_the_best_score_by_a_tie_keeps_its_solution
     val = oj.Validation(uv, zv, n=20)
     start = {"k": 8.0, "c": 0.5}
     for solver in (oj.LevenbergMarquardt(), oj.GaussNewton(), oj.LBFGS()):
-        plain = oj.fit(model, start, np.zeros(2), u, z, solver=solver)
         res = oj.fit(model, start, np.zeros(2), u, z, solver=solver, validation=val)
-        assert plain.status == "converged"
         assert res.status == "converged" and res.success, res.message
-        np.testing.assert_allclose(res.loss, plain.loss, rtol=1e-9)
-        scores = res.history.validation
+        h = res.history
+        for k in start:
+            assert res.theta[k] == h.theta[k][-1]
+        np.testing.assert_allclose(res.loss, h.loss[-1], rtol=1e-12)
+        if isinstance(solver, oj.LBFGS):
+            # the scores leave the solver's path as it was (for LM and GN: the tests of
+            # validation on the fit's own record and of the right model)
+            plain = oj.fit(model, start, np.zeros(2), u, z, solver=solver)
+            np.testing.assert_allclose(res.loss, plain.loss, rtol=1e-9)
+        scores = h.validation
         assert np.all(np.isfinite(scores))
         np.testing.assert_allclose(scores[-1], res.validation_loss, rtol=1e-12)
+        # (the case: an earlier row scores lower, by less than the tie's margin)
+        assert np.argmin(scores) < len(scores) - 1
         # (a tie, here even below 1 % of the score's standard deviation, the earlier rule)
         assert 0 <= res.validation_loss - np.min(scores) <= 0.01 * np.min(scores) * np.sqrt(2 / 280)
 
