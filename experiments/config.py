@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import string
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -585,8 +586,27 @@ class Config:
             )
 
 
+# Characters kept in a sweep job's folder name (`swept`); any other becomes "-".
+_NAME_CHARACTERS = frozenset(string.ascii_letters + string.digits + "._=,+-")
+SWEPT_LENGTH = 120  # the longest suffix `swept` makes (a folder name holds 255 bytes)
+
+
+def swept(overrides: str) -> str:
+    """The suffix of a sweep job's folder (`hydra.sweep.subdir` in configs/config.yaml):
+    the job's own overrides as Hydra joins them (`hydra.job.override_dirname`, less the
+    keys the name already holds), `_seed=1,experiment.T=100`, or "" where there are
+    none. A character that a folder name should not hold (`/`, a space, a bracket)
+    becomes "-", and a suffix longer than `SWEPT_LENGTH` is cut there: the job's
+    `.hydra/overrides.yaml` keeps them whole."""
+    text = "".join(c if c in _NAME_CHARACTERS else "-" for c in str(overrides))
+    return f"_{text[:SWEPT_LENGTH]}" if text else ""
+
+
 def register() -> None:
-    """Register the schemas with Hydra's ConfigStore (idempotent)."""
+    """Register the schemas with Hydra's ConfigStore, and the resolver `oj_swept`
+    (`swept`) that names a sweep's folders (idempotent)."""
+    if not OmegaConf.has_resolver("oj_swept"):
+        OmegaConf.register_new_resolver("oj_swept", swept)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(group="schema/experiment", name="satellite", node=SatelliteConfig)

@@ -259,6 +259,21 @@ def test_cli_refuses_a_bad_value_before_running(tmp_path):
     assert not list(out.glob("*.log"))
 
 
+def test_a_sweeps_job_folders_name_their_overrides(tmp_path):
+    """A sweep's job folders were `0_satellite_adam`, `1_satellite_adam`: which seed or
+    horizon a folder held was in its `.hydra/` files only. The name now ends with the job's
+    other overrides, in a form a folder name holds (a bad value stops the sweep at its
+    first job, after Hydra made the folder)."""
+    out = tmp_path / "sweep"
+    args = ["-m", "seed=1,2", "experiment.T=1", "experiment.horizons=[10,20]"]
+    proc = _cli([*args, f"hydra.sweep.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    folders = [p.name for p in out.iterdir() if p.is_dir()]
+    assert folders == ["0_satellite_adam_experiment.T=1,experiment.horizons=-10,20-,seed=1"]
+    assert config.swept("") == "" and config.swept("a=x/y z") == "_a=x-y-z"
+    assert len(config.swept("seed=" + "1" * 300)) == 1 + config.SWEPT_LENGTH
+
+
 def test_cli_names_a_cache_folder_it_cannot_make(tmp_path):
     """`jax_cache_dir` under a regular file ended in a Python traceback (exit 1)."""
     (tmp_path / "file").write_text("")
