@@ -421,6 +421,7 @@ def assemble(
     x0_free = problem.x0_free
     flat_std = np.zeros(theta_flat.shape, theta_flat.dtype)  # (the data's dtype, float32 too)
     x0_std = np.zeros(X0.shape, X0.dtype)
+    theta_null = False  # (theta's columns rank deficient where the fit stopped)
     if cov is None:  # not computed (a large theta): no (p, p) matrix, unknown (inf) errors
         if (diagnostics or {}).get("covariance") == NOT_COMPUTED:  # asked for none
             why = None
@@ -445,6 +446,7 @@ def assemble(
         x0_cov = np.full((X0.shape[0], len(x0_free), len(x0_free)), np.inf)
     else:
         scaled = cov  # sigma^2 (J^T J)^+ and its standard errors (`scale`, in the solve)
+        theta_null = not np.all(np.asarray(scaled.theta_identifiable))
         # (After a diverged simulation the linearisation says nothing of identifiability:
         # the stop reason speaks.)
         stop = name_of(from_index(int(out.results[best])))
@@ -590,6 +592,10 @@ def assemble(
         # (no step taken: a stall that the undamped step's size settled,
         # `AbstractLeastSquares._settled`; the statistical test of a step needs one)
         stop_info["settled"] = True
+    if status == "max_steps_reached" and theta_null and prepared.stol > 0:
+        # (the statistical test, for a theta with a null space, did not fire either: the
+        # message gives the last step's size in standard errors next to stol)
+        stop_info["theta_null_space"] = True
     if bool(out.degenerate[best]):  # (`_optimality.stall_test`: a degenerate minimum)
         stop_info["degenerate"] = True
     gone = np.broadcast_to(np.asarray(out.vanished)[best], (len(free),))

@@ -40,6 +40,28 @@ def _pair(a, b) -> tuple[str, str]:
     return x, y
 
 
+def _statistical_unmet(info: dict) -> str:
+    """The clause of a least-squares fit that took its max_steps at a point where theta's
+    columns are rank deficient (`stop_info["theta_null_space"]`), where the statistical
+    test (`RESULTS.statistically_converged`) could have stopped it: its last step's size
+    in standard errors next to stol, or, where that size passed, that another of the
+    test's conditions did not hold (empty where the test did not apply)."""
+    se, stol = info.get("standard_errors", np.nan), info.get("stol", np.nan)
+    if not info.get("theta_null_space") or not np.isfinite(se) or not stol > 0:
+        return ""
+    if se > stol:
+        return (
+            ", nor the statistical test of a theta with a null space (the last step "
+            f"{_g(se)} standard errors > stol {_g(stol)})"
+        )
+    return (
+        f", nor the statistical test of a theta with a null space (the last step {_g(se)} "
+        f"standard errors <= stol {_g(stol)}, but not a step whose decrease the loss "
+        "confirmed, with no parameter alone a standard error away and the undamped step "
+        "within the confidence region)"
+    )
+
+
 def stop_detail(status: str, info: dict) -> str:
     """The test that fired and its values, in one line without a semicolon (empty where
     unknown): `FitResult.message` appends to it after one, and `print(result)` shows it up
@@ -292,7 +314,9 @@ def stop_detail(status: str, info: dict) -> str:
             if eps is not None
             else ""
         )
-        return f"{vs} not met{small}" if fo > gtol else f"{vs} met, after the solver failed"
+        if not fo > gtol:
+            return f"{vs} met, after the solver failed"
+        return f"{vs} not met{small}{_statistical_unmet(info)}"
     return ""
 
 
@@ -561,7 +585,10 @@ class FitResult(eqx.Module):
         step's size with the loss's own curvature, where a settled stall was checked with
         it after the solve: `stalled` with `solver_stop` "statistically_converged" where
         it is beyond stol, and with `newton_refuted` (True) and `solver_stop` "converged"
-        where a first-order solver's success at its round-off limit was refuted by it)
+        where a first-order solver's success at its round-off limit was refuted by it;
+        with `theta_null_space` (True) where a least-squares fit took its max_steps at a
+        point where theta's columns are rank deficient, so that the statistical test
+        applied and did not fire either, as its message says)
         and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the

@@ -119,6 +119,25 @@ def test_a_small_step_far_from_the_optimum_is_not_convergence():
     assert r.stop_info["standard_errors"] <= r.stop_info["stol"]  # the step is tiny
     assert r.status == "max_steps_reached" and not r.success, r.message
     assert r.stop_info["first_order"] * np.sqrt(u.shape[0]) > 1.0
+    # The message names both tests that could have stopped it (it named the first-order
+    # test alone): the statistical test's step passed, another of its conditions did not.
+    se = r.stop_info["standard_errors"]
+    assert f"nor the statistical test of a theta with a null space (the last step {se:.3g} " in (
+        r.message
+    )
+    assert "<= stol 0.01, but not a step whose decrease the loss confirmed" in r.message
+    # Undamped, the step is too long in standard errors: that is the condition named.
+    r = oj.fit(
+        model,
+        {"a": 3.0, "b": 3.5, "c": 0.3},
+        np.zeros(2),
+        u,
+        z,
+        solver=oj.LevenbergMarquardt(max_steps=2),
+    )
+    assert r.status == "max_steps_reached" and r.stop_info["standard_errors"] > 0.01
+    se = r.stop_info["standard_errors"]
+    assert f"(the last step {se:.3g} standard errors > stol 0.01);" in r.message
 
 
 def test_regular_jacobians_stop_as_before():
@@ -135,6 +154,9 @@ def test_regular_jacobians_stop_as_before():
     off = oj.fit(model, theta0, np.zeros(2), u, z, solver=oj.LevenbergMarquardt(stol=0.0))
     assert on.status == off.status == "converged"
     assert on.num_steps == off.num_steps
+    # Where it takes its max_steps, its message names the first-order test alone.
+    short = oj.fit(model, theta0, np.zeros(2), u, z, solver=oj.LevenbergMarquardt(max_steps=2))
+    assert short.status == "max_steps_reached" and "statistical" not in short.message
     assert float(on.theta["w0sq"]) == pytest.approx(float(off.theta["w0sq"]), rel=1e-14)
     assert float(on.theta["c"]) == pytest.approx(float(off.theta["c"]), rel=1e-14)
 
