@@ -161,12 +161,12 @@ def post(problem, params, blocks, strategy, lags=None):
         and params.theta.shape[0] <= COVARIANCE_MAX_THETA
         and (held or dense_jacobian_fits(problem, n_cols))
     ):
-        seen = problem.cost.observed()
+        cost = problem.cost
         if lags is None:
-            cov = scale(covariance(problem, params, strategy, blocks), e, seen, held=x_held)
+            cov = scale(covariance(problem, params, strategy, blocks), e, cost, held=x_held)
         else:
             cov = sandwich(problem, params, strategy, lags)
-            cov = scale(cov, e, seen, robust=True, held=x_held)
+            cov = scale(cov, e, cost, robust=True, held=x_held)
     n_free = params.theta.shape[0] + params.x0.size
     if x_held is not None:
         n_free = n_free - jnp.sum(x_held)

@@ -64,6 +64,34 @@ class Cost(eqx.Module):
             return None
         return w > 0 if w.ndim == 1 else jnp.any(w != 0, axis=-1)
 
+    def observations(self, measured):
+        """The number R of observations among the output entries `measured` ((..., n_z)
+        booleans: the measured samples), for sigma^2's degrees of freedom
+        (`_covariance.scale`) and the least-squares stopping test (`_optimality`): where Q
+        is I or diagonal, the measured entries of the outputs of nonzero weight; where Q is
+        a matrix, at each sample the rank of Q restricted to the outputs measured there,
+        summed (a Q = v v^T of rank 1 weighs one combination of the outputs: one
+        observation per sample, as the one-output model that observes v^T x has). The
+        ranks are formed only where Q is singular: a principal part of a positive
+        definite Q has full rank."""
+        w = self.weight
+        seen = self.observed()
+        if w is None or w.ndim == 1:
+            return jnp.sum(measured if seen is None else measured & seen)
+        n_z = w.shape[-1]
+        measured = jnp.broadcast_to(measured, measured.shape[:-1] + (n_z,)).reshape(-1, n_z)
+
+        def rank(q):  # (eigenvalues above n_z eps of the largest one)
+            vals = jnp.linalg.eigvalsh(q)
+            top = jnp.max(jnp.abs(vals))
+            return jnp.sum(vals > n_z * jnp.finfo(vals.dtype).eps * top)
+
+        def per_sample():
+            pairs = measured[:, :, None] & measured[:, None, :]
+            return jnp.sum(jax.vmap(rank)(jnp.where(pairs, w, 0.0)))
+
+        return jax.lax.cond(rank(w) == n_z, lambda: jnp.sum(measured), per_sample)
+
     def sqrt_weight(self):
         """Q^{1/2} (a vector for a diagonal Q, the symmetric root of a matrix Q), or None."""
         w = self.weight

@@ -465,11 +465,12 @@ class Scaled(NamedTuple):
     dof: jax.Array  # n_obs - n_free: sigma^2 is unknown (every error inf) where it is <= 0
 
 
-def scale(cov: Covariance, e, observed=None, robust: bool = False, held=None) -> Scaled:
-    """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the finite entries of
-    the residuals `e` in the outputs `observed`, `Cost.observed`: an output of zero weight
-    adds no observations), or for a `sandwich` (`robust`) by n_obs / dof (the small-sample
-    factor of the sandwich); traced, inside the compiled call that made `cov`.
+def scale(cov: Covariance, e, cost=None, robust: bool = False, held=None) -> Scaled:
+    """Multiply by sigma^2 = SSE / dof (dof = n_obs - n_free, n_obs the observations among
+    the finite entries of the residuals `e`, `Cost.observations` of the problem's `cost`:
+    an output of zero weight adds none, a singular weight matrix its rank per sample), or
+    for a `sandwich` (`robust`) by n_obs / dof (the small-sample factor of the sandwich);
+    traced, inside the compiled call that made `cov`.
 
     With J = Q^{1/2} J_e / sqrt(N T), sigma^2 (J_e^T Q J_e)^{-1} = (SSE_r / dof) (J^T J)^{-1}.
     A variable outside the identifiable set gets an infinite variance, and so does every
@@ -478,7 +479,7 @@ def scale(cov: Covariance, e, observed=None, robust: bool = False, held=None) ->
     """
     t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
     seen = jnp.isfinite(e)
-    n_obs = jnp.sum(seen if observed is None else seen & observed)
+    n_obs = jnp.sum(seen) if cost is None else cost.observations(seen)
     dof = n_obs - (t_ok.size + x_ok.size - (0 if held is None else jnp.sum(held)))
     known = dof > 0
     top = n_obs.astype(cov.sse.dtype) if robust else cov.sse

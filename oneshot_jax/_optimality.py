@@ -240,13 +240,14 @@ def _measured(problem: FitProblem):
 
 
 def n_observations(problem: FitProblem):
-    """The number R of measured output samples (the data residuals the loss counts; an
-    output of zero weight counts none, `Cost.observed`)."""
-    m, seen = _measured(problem), problem.cost.observed()
-    if seen is None:
-        return problem.z.size if m is None else jnp.sum(m)
+    """The number R of observations among the measured output samples
+    (`Cost.observations`: an output of zero weight counts none, and a singular weight
+    matrix counts its rank per sample)."""
+    m = _measured(problem)
+    if m is None and problem.cost.weight is None:
+        return problem.z.size
     m = jnp.ones(problem.z.shape, bool) if m is None else m > 0
-    return jnp.sum(m & seen)
+    return problem.cost.observations(m)
 
 
 def standard_errors(pred, C, n_obs, rank):

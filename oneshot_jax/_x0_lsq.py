@@ -105,7 +105,7 @@ def _solve(solvers, problem: FitProblem, start: Params, with_covariance: bool, r
         blocks = (
             None if final.blocks is None else jax.tree_util.tree_map(lambda a: a[0], final.blocks)
         )
-        cov = scale(covariance(problem, params, strategy, blocks), e, problem.cost.observed())
+        cov = scale(covariance(problem, params, strategy, blocks), e, problem.cost)
     extra = None
     if record is not None:
         if cov is None:

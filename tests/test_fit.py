@@ -20,6 +20,7 @@ import pytest
 
 import oneshot_jax as oj
 from oneshot_jax import constraints as oc
+from oneshot_jax.internal import Cost
 
 #
 # The satellite of Section 4: I w' = M - w x (I w), diagonal I = theta, z = w + noise.
@@ -1032,6 +1033,42 @@ def test_an_output_of_zero_weight_is_not_counted_as_observations():
     e1 = oj.estimate_x0(one, r1.theta, u, z[:, :1], x0=x0)
     e2 = oj.estimate_x0(two, r1.theta, u, z, x0=x0, weight=np.array([1.0, 0.0]))
     np.testing.assert_allclose(e2.std[0], e1.std[0], rtol=1e-6)
+
+
+def test_a_singular_weight_matrix_counts_its_rank_per_sample_as_observations():
+    """A weight Q = v v^T of rank 1 weighs one combination of the outputs: the fit is that
+    of the one-output model observing v^T x, standard errors included (sigma^2 counted
+    both outputs of every sample as observations: std 30 % too small, while a diagonal
+    weight [1, 0] was counted right). With missing samples, each sample counts the rank of
+    Q on the outputs measured there."""
+
+    def step(x, u, th):
+        return jnp.array([th["a"] * x[0] + th["b"] * u[0], th["c"] * x[1] - u[0]])
+
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((80, 1))
+    v = np.array([1.0, 2.0]) / np.sqrt(5.0)
+    two = oj.Model(step)
+    one = oj.Model(step, lambda x, u, th: jnp.atleast_1d(x @ jnp.asarray(v)))
+    _, x = oj.simulate(two, {"a": 0.9, "b": 0.5, "c": 0.3}, np.array([1.0, -1.0]), u)
+    z = np.asarray(x) + 0.05 * rng.standard_normal(x.shape)
+    th0, x0 = {"a": 0.8, "b": 0.4, "c": 0.4}, np.zeros(2)
+    r1 = oj.fit(one, th0, x0, u, z @ v[:, None])
+    r2 = oj.fit(two, th0, x0, u, z, weight=np.outer(v, v))
+    for name in th0:
+        np.testing.assert_allclose(r2.std[name], r1.std[name], rtol=1e-6)
+    np.testing.assert_allclose(r2.x0_std, r1.x0_std, rtol=1e-6)
+    # The count itself, with missing samples: the rank of Q on each sample's measured
+    # outputs (1 where either is measured, 0 where neither), against NumPy's.
+    measured = rng.random((3, 40, 2)) < 0.6
+    for Q in (np.diag([1.0, 0.0]), np.array([[1.0, 0.5], [0.5, 2.0]]), np.outer(v, v)):
+        cost = Cost(jnp.asarray(Q), None, jnp.zeros(()))
+        sub = [
+            np.linalg.matrix_rank(Q[np.ix_(m, m)]) if m.any() else 0
+            for m in measured.reshape(-1, 2)
+        ]
+        assert int(cost.observations(jnp.asarray(measured))) == sum(sub)
+    assert sum(sub) == np.any(measured, axis=-1).sum() < measured.sum()  # (rank 1)
 
 
 def test_a_held_exponent_at_negative_states_leaves_the_other_derivatives_finite():
