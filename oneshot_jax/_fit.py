@@ -1070,7 +1070,8 @@ def fit(
         `{"phys": {"c": ...}}` for a nested one), e.g. `{"I": "kg m^2"}`, shown by
         `print(result)`.
     - `aggregate`: aggregated readings of some outputs, as for `loss` (an `Aggregate`,
-        a list of them, or a list per trajectory); not with `window`. The readings count
+        a list of them, or a list per trajectory); not with `window`, `validation` or
+        `x0_bounds`. The readings count
         as observations in the covariance; the result's `x0`, `residuals` and `metrics`
         are those of the model's own states and outputs.
     - `t`: the sample times of a timed model's records (`Model.from_ode(rhs, dt=None)`),

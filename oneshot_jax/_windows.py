@@ -48,7 +48,8 @@ class Windows(eqx.Module):
 
     **Arguments:**
 
-    - `length`: the samples per window.
+    - `length`: the samples per window (alone: the consecutive windows of
+        `fit(window=length)`, whose samples past the last whole window `fit` warns of).
     - `every`: take every k-th of the consecutive windows (0, length, 2 length, ...).
     - `count`: take this many of them, spread evenly over the consecutive windows (the
         first and the last of those included: samples past the last whole window, fewer
@@ -88,6 +89,13 @@ class Windows(eqx.Module):
             if every != 1 or count is not None:
                 raise ValueError("`Windows(starts=...)` does not combine with `every` or `count`.")
             arr = np.asarray(starts)
+            if (
+                arr.ndim == 1
+                and np.issubdtype(arr.dtype, np.floating)
+                and np.all(np.isfinite(arr))
+                and np.all(arr == np.round(arr))
+            ):  # (whole numbers as floats, as `fit(window=50.0)` takes them)
+                arr = arr.astype(np.int64)
             if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
                 raise ValueError(
                     f"`Windows(starts=...)` must be a non-empty 1-D sequence of sample indices, "
@@ -165,7 +173,9 @@ def cut(data, window, x0_windows=None):
     length = window.length
     N = starts.size
     covered = int(starts[-1]) + length
-    if consecutive and covered != T:
+    # (`Windows(length)` alone is the same windows as the integer: the same warning)
+    every_window = window.every == 1 and window.count is None and window.starts is None
+    if every_window and covered != T:
         warn(f"the last {T - covered} samples do not fill a window and are dropped.", stacklevel=4)
     rows = starts[:, None] + np.arange(length)[None, :]  # (N, length) sample indices
     copies = np.bincount(rows.ravel(), minlength=T)

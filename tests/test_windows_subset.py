@@ -98,6 +98,17 @@ def test_windows_checks():
     with pytest.raises(ValueError, match=r"holds only 4 windows .*counts windows, not samples"):
         oj.fit(MODEL, TRUTH, x0, u, z, window=oj.Windows(100, every=4))
     np.testing.assert_array_equal(oj.Windows(100, every=3).first_samples(T), [0, 300])
+    # Whole numbers as floats, as `fit(window=50.0)` takes them (they were refused).
+    assert oj.Windows(50, starts=[0.0, 100.0]).starts == (0, 100)
+    with pytest.raises(ValueError, match="sample indices"):
+        oj.Windows(50, starts=[0.0, 100.5])
+    # `Windows(length)` alone is the integer's windows, and says so of the samples past
+    # the last window as the integer does (it dropped them without a word). (4 windows of
+    # 100, as in test_subsets_of_windows: the same compiled fit)
+    u2, z2 = np.concatenate([u, u[:30]]), np.concatenate([z, z[:30]])
+    with pytest.warns(UserWarning, match="the last 30 samples do not fill a window"):
+        res = oj.fit(MODEL, {"k": 3.0, "c": 0.3}, x0, u2, z2, window=oj.Windows(100))
+    np.testing.assert_array_equal(res.window_starts, [0, 100, 200, 300])
 
 
 @pytest.mark.parametrize("length", [1, 2])
