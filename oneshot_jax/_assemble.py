@@ -61,7 +61,7 @@ class Out(NamedTuple):
     standard_errors: jax.Array
     step_test: jax.Array  # whether the optional step test (rtol, atol) fired
     limit: jax.Array  # the round-off limit of a stall at the best start's point (or NaN)
-    validation_loss: jax.Array | None  # the validation loss of the best start's returned point
+    validation_loss: jax.Array | None  # (S,) the validation loss of each start's returned point
     solver_results: jax.Array  # (S,) the last solver's own stop per start (before validation)
     # Per start (S,): whether its first-order measure is a stall's with vanished columns
     # (a degenerate minimum), the theta columns that vanished along its fit ((S, p), or
@@ -124,7 +124,7 @@ def collect(problem, stages, best, moved, posted) -> Out:
         m.standard_errors[best],
         m.step_test[best],
         m.limit[best],
-        None if final.best is None else final.best.returned_score()[best],
+        None if final.best is None else final.best.returned_score(),
         final.solver_result._value,
         m.degenerate,
         m.vanished,
@@ -533,6 +533,9 @@ def assemble(
             x0=start_x0 if data.batched else start_x0[:, 0],
             stop_reason=stops,
             solver_stop=tuple(o if r == "validation" else r for r, o in zip(stops, own)),
+            validation_loss=None
+            if out.validation_loss is None
+            else np.asarray(out.validation_loss),
         )
     metrics = {k: (float(v) if k in _metrics._CRITERIA else v) for k, v in met.items()}
     stop_info = {
@@ -628,7 +631,7 @@ def assemble(
         if np.isfinite(C) and abs(C) >= big:  # (finite, but its gradient overflows)
             stop_info["overflow"] = float(C)
     if status == "validation":  # the score that chose the point, and the patience
-        stop_info["validation_loss"] = float(out.validation_loss)
+        stop_info["validation_loss"] = float(out.validation_loss[best])
         stop_info["patience"] = problem.validation.patience
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
@@ -658,7 +661,7 @@ def assemble(
         stop_info=stop_info,
         theta_order=prepared.theta_order,
         units=prepared.units,
-        validation_loss=None if out.validation_loss is None else float(out.validation_loss),
+        validation_loss=None if out.validation_loss is None else float(out.validation_loss[best]),
         window_starts=None if window_starts is None else np.asarray(window_starts),
         n_u=n_u,
     )

@@ -484,10 +484,12 @@ def report(result) -> str:
     states = f"{int(estimated.sum())} of {estimated.size} initial states"
     # A windowed fit (multiple shooting) has one initial state per window.
     rows = "windows" if result.window_starts is not None else "trajectories"
+    row = "window" if rows == "windows" else "trajectory"
+    count = f"{x0.shape[0]} {row if x0.shape[0] == 1 else rows}"
     if estimated.ndim == 2:  # (a mask per trajectory)
-        states += f" ({x0.shape[0]} trajectories, each its own)"
+        states += f" ({count}, each its own)"
     elif x0.ndim == 2:
-        states += f" (per {'window' if rows == 'windows' else 'trajectory'}, {x0.shape[0]} {rows})"
+        states += f" (per {row}, {count})"
     solvers = " then ".join(str(s.get("solver", "?")) for s in result.solver) or "?"
     # The stop: FitResult.message's first part (the test that fired, with its values, or
     # the reason's own words), never the RESULTS repr.
@@ -514,8 +516,14 @@ def report(result) -> str:
         own = ""
         if starts.solver_stop != starts.stop_reason:  # (validation or the rollout check)
             own = f" (the solvers' own stops: {counts(starts.solver_stop)})"
+        scores = starts.validation_loss
+        by = (
+            " by validation loss"
+            if scores is not None and np.any(np.isfinite(np.asarray(scores)))
+            else ""
+        )
         out.append(
-            f"multistart: the best of {len(starts.stop_reason)} starts (index "
+            f"multistart: the best of {len(starts.stop_reason)} starts{by} (index "
             f"{result.best}); stops: {counts(starts.stop_reason)}{own}"
         )
     if result.status == "diverged":

@@ -367,6 +367,9 @@ class Starts(eqx.Module):
         lowers the loss from a degenerate minimum or a zero residual, each start checked):
         there the solver's stop (`diverged`, `converged`, ...), as
         `stop_info["solver_stop"]` for the returned start.
+    - `validation_loss`: with `fit(validation=...)`, the validation loss of each start's
+        returned point, which chose the returned start (the lowest; by the loss where no
+        start has a finite score); else None.
 
     With `fit(weight="noise")` these are the starts of its first fit (Q = I); the later
     fits refine the best start only.
@@ -377,6 +380,7 @@ class Starts(eqx.Module):
     stop_reason: tuple = eqx.field(static=True)
     solver_stop: tuple = eqx.field(static=True)
     x0: np.ndarray | None = None
+    validation_loss: np.ndarray | None = None
 
 
 _LIBRARY_DIRS = tuple(os.path.dirname(m.__file__) + os.sep for m in (sys.modules[__package__], eqx))

@@ -32,7 +32,7 @@ The file is a NumPy `.npz` archive (readable with `numpy.load` alone, no pickle)
   windows, `weight` for one with `weight=`, `x0_bounds/lower` and `x0_bounds/upper` for
   one with `x0_bounds=`),
   `history/theta/<i>`, `metrics/<name>`, and for multistart fits `starts/theta/<i>`,
-  `starts/loss` and `starts/x0`.
+  `starts/loss`, `starts/x0` and, with validation data, `starts/validation_loss`.
 
 Values round-trip exactly (same dtypes and bits). Functions cannot be saved: a theta that
 holds equinox modules (a neural residual) is saved by its arrays, and `load_result`
@@ -280,6 +280,8 @@ def save_result(result, path):
         arrays["starts/loss"] = np.asarray(result.starts.loss)
         if result.starts.x0 is not None:
             arrays["starts/x0"] = np.asarray(result.starts.x0)
+        if result.starts.validation_loss is not None:
+            arrays["starts/validation_loss"] = np.asarray(result.starts.validation_loss)
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -539,6 +541,7 @@ def _fields(arrays, meta, group, build, static) -> dict:
             theta=build(group("starts/theta/")),
             loss=arrays["starts/loss"],
             x0=arrays.get("starts/x0"),  # (None in a file saved before it was kept)
+            validation_loss=arrays.get("starts/validation_loss"),
             stop_reason=tuple(meta["starts_stop_reason"]),
             # (a file written before `starts_solver_stop` existed: the stops as they were)
             solver_stop=tuple(meta.get("starts_solver_stop") or meta["starts_stop_reason"]),

@@ -141,7 +141,9 @@ def loss(
     - `model`, `theta`, `x0`, `u`: as for `simulate`.
     - `z`: measured outputs, shape (T, n_z) or (N, T, n_z), or a list like `u`.
     - `weight`: Q of eq. (4), a (n_z,) vector (diagonal) or an (n_z, n_z) PSD matrix
-        (for one output also a scalar); identity by default. Its entries are >= 0.
+        (for one output also a scalar); identity by default. A vector's entries are
+        >= 0; a matrix is symmetric positive semi-definite (its off-diagonal entries may
+        be negative). Checked where concrete: a traced weight is taken as given.
     - `penalty`: h(x, theta) -> scalar of eq. (21), or None.
     - `penalty_weight`: the multiplier lambda of eq. (21), applied with the 1/T of the
         error (the paper's eq. (21) adds lambda h to the sum of the L_k without it: its
