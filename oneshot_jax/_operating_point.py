@@ -39,7 +39,8 @@ class Equilibrium(NamedTuple):
     - `residual`: the largest |entry| of the equation's residual at `x`: of rhs(x, u,
         theta) for a model built from an ODE, else of f(x, u, theta) - x.
     - `success`: True where the residual is at the round-off level of the equation (at
-        most sqrt(eps) times its scale: the residual at the start plus |J| |x|); False
+        most sqrt(eps) times its scale at `x`, |J| |x|: the largest row sum of the
+        Jacobian's magnitudes times the largest |entry| of x, at least 1); False
         where no equilibrium was reached (none near the start, or none at this input:
         an integrator driven by a constant force).
     - `steps`: the Gauss-Newton steps taken.
@@ -315,12 +316,15 @@ def find_equilibrium(
 
     x = np.asarray(data.x0, np.float64)
     r, J = evaluate(x)
-    start = np.max(np.abs(r), initial=0.0)
     eps = float(np.finfo(data.x0.dtype).eps)
 
-    def scale(x, J):  # the equation's: its residual at the start, its terms' size |J| |x|
-        size = np.max(np.abs(J).sum(axis=1), initial=0.0) * np.max(np.abs(x), initial=1.0)
-        return start + size
+    def scale(x, J):
+        # The equation's at x: the size of its terms that depend on the state, |J| |x|
+        # (the round-off of a residual whose terms cancel). Not the residual at the start:
+        # a far start made it loose, and a point that was no equilibrium passed (u - (x -
+        # 1000)^2 = 0 at u = -1e-3 has none; from x = 0, residual 1e6 there, the least-
+        # squares point, residual 1e-3, read success).
+        return np.max(np.abs(J).sum(axis=1), initial=0.0) * np.max(np.abs(x), initial=1.0)
 
     steps = 0
     while (

@@ -318,3 +318,22 @@ def test_a_sweep_of_inputs_follows_one_branch():
     past = oj.find_equilibrium(model, THETA, np.array([[8.0], [9.5], [3.0]]), np.zeros(2))
     assert [e.success for e in past] == [True, False, True]
     np.testing.assert_allclose(past[2].x, [math.asin(3.0 / 9.0), 0.0], atol=1e-14)
+
+
+def test_a_far_start_neither_passes_a_non_equilibrium_nor_stops_short():
+    """The success threshold was sqrt(eps) times the residual at the start plus |J| |x|:
+    just past the pendulum's fold (u = 9 + 1e-7, where sin q = u / w0^2 has no solution)
+    the least-squares point, residual 1e-7, read success from a start of residual 9; and
+    dx/dt = u - (x - 1000)^2 at u = -1e-3 (no equilibrium) read success from x = 0 and
+    failure from x = 999, at the same point. The search also stopped short of the
+    equilibrium from a far start (dx/dt = 1 - exp(x) from x = 35: x = 0.108, success)."""
+    past = oj.find_equilibrium(_model(), THETA, np.array([9.0 + 1e-7]), np.zeros(2))
+    assert not past.success and past.residual == pytest.approx(1e-7, rel=1e-3)
+    quadratic = oj.Model.from_ode(lambda x, u, th: u - (x - 1000.0) ** 2, DT)
+    for start in (999.0, 0.0):
+        eq = oj.find_equilibrium(quadratic, {}, np.array([-1e-3]), np.array([start]))
+        assert not eq.success and eq.residual == pytest.approx(1e-3, rel=1e-6)
+        assert eq.message.startswith("no equilibrium reached")
+    exponential = oj.Model.from_ode(lambda x, u, th: u - jnp.exp(x), DT)
+    eq = oj.find_equilibrium(exponential, {}, np.array([1.0]), np.array([35.0]))
+    assert eq.success and abs(float(eq.x[0])) < 1e-14
