@@ -78,13 +78,19 @@ class LinearModel(NamedTuple):
 
     - `A` (n_x, n_x), `B` (n_x, n_u), `C` (n_z, n_x), `D` (n_z, n_u): the discrete-time
         model dx[k+1] = A dx[k] + B du[k], dz[k] = C dx[k] + D du[k] of one sample
-        interval (the Jacobians of `step` and `observe`; for `input="foh"`, B is the
-        response to an input held over the interval, u[k+1] = u[k]).
+        interval (the Jacobians of `step` and `observe`). For `input="foh"`, whose step
+        dx[k+1] = A dx[k] + B0 du[k] + B1 du[k+1] reads the next sample's input too, the
+        model is that step's exact state-space form (MATLAB's `c2d(sys, dt, 'foh')`
+        form): B = B0 + A B1 and D = D_g + C B1 (D_g the Jacobian of `observe`), for the
+        state xi[k] = dx[k] - B1 du[k] (`B_next` is B1); its frequency response is the
+        foh model's, C (z I - A)^{-1} (B0 + z B1) + D_g.
     - `Ac` (n_x, n_x), `Bc` (n_x, n_u): for a model built from an ODE, the
         continuous-time d(dx)/dt = Ac dx + Bc du (the Jacobians of `rhs`); None otherwise.
     - `dt`: the sample interval of A and B (None for a `Model(step)`, whose step has
         none).
     - `x`, `u`: the operating point.
+    - `B_next` (n_x, n_u): for `input="foh"`, B1, the step's Jacobian with respect to
+        the next sample's input (dx[k] = xi[k] + B1 du[k]); None otherwise.
     """
 
     A: np.ndarray
@@ -96,6 +102,7 @@ class LinearModel(NamedTuple):
     dt: float | None
     x: np.ndarray
     u: np.ndarray
+    B_next: np.ndarray | None = None
 
     @property
     def poles(self) -> np.ndarray:
@@ -137,6 +144,8 @@ class LinearModel(NamedTuple):
 
     def __str__(self) -> str:
         kind = "" if self.Ac is None else ", with the continuous-time Ac, Bc"
+        if self.B_next is not None:
+            kind += "; foh: state xi = dx - B_next du"
         every = "" if self.dt is None else f" of dt = {self.dt:g}"
         n_x, n_u, n_z = self.A.shape[0], self.B.shape[1], self.C.shape[0]
         return (
@@ -181,14 +190,23 @@ def _input(u):
     return np.asarray(a)
 
 
-def _checked(model, theta, x, u, dt):
+def _checked(model, theta, x, u, dt, call):
     """`check_data` of the operating point as a record of two equal samples (the step
-    sees u held over an interval `dt` for a model of time-stamped records)."""
+    sees u held over an interval `dt` for a model of time-stamped records). A state or
+    an input that does not fit the model is refused naming `x` and `u` and the order
+    `call` takes them in (`linearise` and `find_equilibrium` differ: a swap is the likely
+    cause; check_data's own words speak of a record's x0 and u)."""
     u = _input(u)
     if np.ndim(x) != 1:
         raise ValueError(f"`x` must be one state, shape (n_x,), got shape {np.shape(x)}.")
     t = None if not model.timed else np.array([0.0, dt])
-    data = check_data(model, theta, x, np.stack([u, u]), t=t)
+    try:
+        data = check_data(model, theta, x, np.stack([u, u]), t=t)
+    except ValueError as err:
+        raise ValueError(
+            f"`x` (shape {np.shape(x)}) and `u` (shape {np.shape(u)}) do not fit the model "
+            f"(`{call}`: are they swapped?): {err}"
+        ) from None
     return data, u
 
 
@@ -293,7 +311,7 @@ def find_equilibrium(
             start = eq.x if eq.success else x
         return out
     dt = _interval(model, None, need=False)
-    data, u = _checked(model, theta, x, u, dt)
+    data, u = _checked(model, theta, x, u, dt, "find_equilibrium(model, theta, u, x)")
     n_x = data.x0.shape[0]
     free = np.ones(n_x, bool)
     if hold is not None:
@@ -352,15 +370,21 @@ def find_equilibrium(
 
 @eqx.filter_jit
 def _jacobians(model, rhs, params, whole, x, su, uo, u):
-    """A, B (summed over a "foh" pair, the interval column left out), C, D, and for an
-    ODE model Ac, Bc."""
+    """A, B, C, D (the interval column left out), for an ODE model Ac, Bc, and for a
+    "foh" pair B1: B and D then those of its state-space form (`LinearModel`), B0 + A B1
+    and D + C B1."""
     n_u = u.shape[0]
     A, Bs = jax.jacfwd(model.step, (0, 1))(x, su, params)  # Bs: (n_x, [2,] n_u [+ 1])
-    B = (Bs.sum(axis=1) if su.ndim == 2 else Bs)[:, :n_u]
     C, D = jax.jacfwd(model.observe, (0, 1))(x, uo, params)
+    D, B1 = D[:, :n_u], None
+    if su.ndim == 2:  # (u[k] and u[k+1])
+        B0, B1 = Bs[:, 0, :n_u], Bs[:, 1, :n_u]
+        B, D = B0 + A @ B1, D + C @ B1
+    else:
+        B = Bs[:, :n_u]
     if rhs is None:
-        return A, B, C, D[:, :n_u], None, None
-    return A, B, C, D[:, :n_u], *jax.jacfwd(rhs, (0, 1))(x, u, whole)
+        return A, B, C, D, None, None, B1
+    return A, B, C, D, *jax.jacfwd(rhs, (0, 1))(x, u, whole), B1
 
 
 def linearise(
@@ -394,7 +418,7 @@ def linearise(
     """
     _model(model)
     interval = _interval(model, dt, need=True)
-    data, u = _checked(model, theta, x, u, interval)
+    data, u = _checked(model, theta, x, u, interval, "linearise(model, theta, x, u)")
     rhs = _rhs(model)
     whole = _pytree.combine(data.theta, data.static)
     U = jnp.asarray(data.u)
@@ -409,6 +433,6 @@ def linearise(
         U[0],
         jnp.asarray(u, x.dtype),
     )
-    A, B, C, D, Ac, Bc = (None if a is None else np.asarray(a) for a in out)
+    A, B, C, D, Ac, Bc, B1 = (None if a is None else np.asarray(a) for a in out)
     step_dt = getattr(model.step, "dt", None) if interval is None else interval
-    return LinearModel(A, B, C, D, Ac, Bc, step_dt, np.asarray(x), np.asarray(u, x.dtype))
+    return LinearModel(A, B, C, D, Ac, Bc, step_dt, np.asarray(x), np.asarray(u, x.dtype), B1)

@@ -137,14 +137,29 @@ def test_a_family_of_equilibria_keeps_the_start_and_none_is_said():
 
 
 def test_other_input_models_and_time_stamped_models():
-    """A "foh" model's B is that of an input held over the interval (u[k+1] = u[k]), as
-    the "zoh" model's; a model of time-stamped records needs `dt` for A and B, and then
-    gives the fixed-dt model's, and finds the same equilibria without it."""
+    """A "foh" model's step reads u[k] and u[k + 1] (B0, B1): its linear model is the
+    step's state-space form, B = B0 + A B1, D = D_g + C B1 for the state dx - B1 du,
+    whose frequency response is the foh step's own (B was B0 + B1, an input held over
+    the interval, whose response lags the foh model's by half a sample: 28.6 degrees at
+    10 rad/s with dt = 0.1). A model of time-stamped records needs `dt` for A and B, and
+    then gives the fixed-dt model's, and finds the same equilibria without it."""
     u, x = np.array([1.0]), np.array([0.2, 0.1])
     zoh = oj.linearise(_model(), THETA, x, u)
-    foh = oj.linearise(_model(input="foh"), THETA, x, u)
+    model = _model(input="foh")
+    foh = oj.linearise(model, THETA, x, u)
     np.testing.assert_allclose(foh.A, zoh.A, rtol=1e-13)
-    np.testing.assert_allclose(foh.B, zoh.B, rtol=1e-13)
+    assert zoh.B_next is None and "foh: state xi = dx - B_next du" in str(foh)
+    pair = jnp.stack([jnp.asarray(u)] * 2)  # (u[k], u[k + 1])
+    steps = np.asarray(jax.jacfwd(model.step, 1)(jnp.asarray(x), pair, THETA))
+    B0, B1 = steps[:, 0, :1], steps[:, 1, :1]
+    np.testing.assert_allclose(B0 + B1, zoh.B, rtol=1e-13)  # (a held input)
+    np.testing.assert_allclose(foh.B_next, B1, rtol=1e-13)
+    w = np.array([0.5, 3.0, 10.0, 40.0])
+    exact = [
+        foh.C @ np.linalg.solve(q * np.eye(2) - foh.A, B0 + q * B1) + zoh.D
+        for q in np.exp(1j * w * DT)
+    ]
+    np.testing.assert_allclose(foh.frequency_response(w), exact, rtol=1e-12, atol=1e-15)
     timed = oj.Model.from_ode(pendulum, None, observe=angle_and_torque)
     lin = oj.linearise(timed, THETA, x, u, dt=DT)
     for a, b in zip(lin, zoh):
@@ -216,6 +231,12 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
          "`hold` must be an"),
         (lambda m: oj.linearise(m, THETA, np.zeros(2), ["a"]), ValueError, "`u`"),
         (lambda m: oj.linearise(m, THETA, np.zeros(3), [1.0]), ValueError, "rhs"),
+        # (x and u swapped: the order each takes them in is named)
+        (lambda m: oj.linearise(m, THETA, [3.0], np.zeros(2)), ValueError,
+         r"`x` \(shape \(1,\)\) and `u` \(shape \(2,\)\) do not fit the model "
+         r"\(`linearise\(model, theta, x, u\)`: are they swapped\?\)"),
+        (lambda m: oj.find_equilibrium(m, THETA, np.zeros(2), [3.0]), ValueError,
+         r"\(`find_equilibrium\(model, theta, u, x\)`: are they swapped\?\)"),
         (lambda m: oj.find_equilibrium(pendulum, THETA, [1.0], np.zeros(2)), TypeError,
          "`model` must be a oneshot_jax.Model, got function"),
         (lambda m: oj.linearise(None, THETA, np.zeros(2), [1.0]), TypeError,
