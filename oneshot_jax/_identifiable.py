@@ -328,10 +328,11 @@ class Orthogonal(eqx.Module):
     - `result`: the last round's `FitResult`, of the augmented model (its `x0`, `residuals`
         and outputs are the augmented ones; its `std` is that of the penalised fit).
     - `converged`: whether the physical parameters moved by less than `stol` standard
-        errors, or by less than `rtol` relative, in the last round, and that round's fit
-        succeeded (a fit that stops short of its optimum for the round's basis, on its
-        step budget or with its network's units saturated, moves them little without
-        having settled them).
+        errors, or by less than `rtol` relative, in the last round, the physics the
+        network carries at its end (`Round.absorbed`) is below `stol` standard errors
+        or `rtol` relative to the parameters, and that round's fit succeeded (a fit that stops
+        short of its optimum for the round's basis, on its step budget or with its
+        network's units saturated, moves them little without having settled them).
     """
 
     theta: PyTree
@@ -413,11 +414,20 @@ def _sensitivities(model, theta, x0, u, names, root):
 
 
 def _orthonormal(sw, root):
-    """M_k = W^{1/2} Q_k (T, n_z, p) of `_basis` from the weighted sensitivities `sw`."""
+    """M_k = W^{1/2} Q_k (T, n_z, p) of `_basis` from the weighted sensitivities `sw`
+    (T n_z, p): Q from their QR factorisation where R's diagonal has no entry below 1e-10
+    of its largest (full rank); else their left singular vectors of a singular value
+    above 1e-10 of the largest, the other columns zero. (The QR's Q with its columns
+    zeroed where R's diagonal was small spanned the wrong space where a zero or
+    dependent column came before others: an input gain written ga * gb left 20 % of
+    w0sq's sensitivity outside it.) Non-finite sensitivities give a non-finite Q."""
     n_z = root.shape[0]
     q, r = np.linalg.qr(sw)
     diag = np.abs(np.diag(r))
-    q = q * (diag > 1e-10 * max(diag.max(initial=0.0), np.finfo(float).tiny))
+    small = diag <= 1e-10 * max(diag.max(initial=0.0), np.finfo(float).tiny)
+    if np.all(np.isfinite(sw)) and small.any():
+        q, sv, _ = np.linalg.svd(sw, full_matrices=False)
+        q = q * (sv > 1e-10 * max(sv.max(initial=0.0), np.finfo(float).tiny))
     return np.einsum("ij,tjp->tip", root, q.reshape(-1, n_z, q.shape[-1]))
 
 

@@ -311,6 +311,15 @@ def test_orthogonal_penalty_and_its_gradient():
     sens = jax.jacfwd(outputs)({k: theta[k] for k in names})
     s_w = np.stack([np.asarray(sens[k]) @ root for k in names], axis=-1).reshape(2 * T, 3)
     np.testing.assert_allclose(q @ (q.T @ s_w), s_w, rtol=1e-10, atol=1e-12)
+    # Sensitivities of rank 2, a zero column first and a dependent one (a gain written
+    # as a product, ga * gb): the basis spans them all, with one zero column (a QR's Q,
+    # zeroed where R's diagonal was small, missed part of the later columns).
+    deficient = np.stack([np.zeros(2 * T), s_w[:, 0], 2.0 * s_w[:, 0], s_w[:, 2]], axis=1)
+    q2 = np.einsum(
+        "ij,tjp->tip", np.linalg.inv(root), internal.orthonormal_basis(deficient, root)
+    ).reshape(2 * T, 4)
+    assert np.sum(np.linalg.norm(q2, axis=0) > 0.5) == 2
+    np.testing.assert_allclose(q2 @ (q2.T @ deficient), deficient, rtol=1e-10, atol=1e-12)
 
     aug = internal.orthogonal_model(model, ("r",), 2, 1, 2, 3)
     u_aug = np.concatenate([u, m.reshape(T, 6)], axis=1)
