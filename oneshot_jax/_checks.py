@@ -1154,12 +1154,20 @@ def check_fixed_bounds(theta, fixed, lower, upper):
                 )
 
 
+def _none_as(value, fill):
+    """A list or tuple of bounds (nested per record) with its None entries as `fill`."""
+    if isinstance(value, (list, tuple)):
+        return [fill if v is None else _none_as(v, fill) for v in value]
+    return value
+
+
 def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", estimated=None):
     """Bounds on x0 `(lower, upper)` checked (`fit(x0_bounds=...)`, `estimate_x0(bounds=
     ...)`): each None, a number, (n_x,) or, with `per_record`, (N, n_x); NaN refused,
-    -inf / inf unbounded. Returns the lower and upper bounds broadcast to `shape`
-    (N, n_x), the entries that `estimated` ((n_x,) booleans, or (N, n_x) with a mask per
-    record; None for all) holds unbounded, or None where no entry is bounded."""
+    -inf / inf or a None entry of a list unbounded. Returns the lower and upper bounds
+    broadcast to `shape` (N, n_x), the entries that `estimated` ((n_x,) booleans, or
+    (N, n_x) with a mask per record; None for all) holds unbounded, or None where no
+    entry is bounded."""
     if not isinstance(x0_bounds, (tuple, list)) or len(x0_bounds) != 2:
         raise TypeError(
             f"`{name}` must be a pair (lower, upper) of bounds on x0 (each None, a number, "
@@ -1172,6 +1180,7 @@ def check_x0_bounds(x0_bounds, shape, dtype, per_record=True, name="x0_bounds", 
         if value is None:
             out.append(np.full(shape, fill, dtype))
             continue
+        value = _none_as(value, fill)  # (an entry None: unbounded, as `constraints.box`)
         try:
             kind = np.asarray(value).dtype.kind
             a = np.asarray(value, dtype=float)

@@ -1016,10 +1016,11 @@ def fit(
     - `x0_bounds`: `(lower, upper)` bounds on the estimated entries of x0 (MATLAB's
         `InitialStates(i).Minimum` and `Maximum`): each None (unbounded), a number, an
         array (n_x,) (every record's, or every window's, x0) or, without `window`,
-        (N, n_x) (one row per record); -inf / inf leave an entry unbounded, entries held
-        by `estimate_x0` are not bounded. Every iterate lies in the box (a start outside
-        it is clipped into it, with a warning), and the first-order test is that of the
-        box: an entry at a bound that the gradient pushes outwards is stationary there.
+        (N, n_x) (one row per record); -inf / inf (or None in a list) leave an entry
+        unbounded, entries held by `estimate_x0` are not bounded. Every iterate lies in
+        the box (a start outside it is clipped into it, with a warning), and the
+        first-order test is that of the box: an entry at a bound that the gradient
+        pushes outwards is stationary there.
         Not with `Optimistix` or `aggregate`. Where every record's box is the same, the
         initial states of `validation`'s records are estimated within it too. (A state
         that must stay in the model's domain along the whole trajectory, not only at the

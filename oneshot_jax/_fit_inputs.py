@@ -578,6 +578,18 @@ def build_problem(
         x0_box = check_x0_bounds(
             x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=estimated
         )
+        if x0_box is not None and np.any(x0_box[0] == x0_box[1]):
+            rows, cols = np.nonzero(x0_box[0] == x0_box[1])
+            pinned = sorted({int(c) for c in cols})
+            warn(
+                f"`x0_bounds`' lower and upper bounds are equal for x0 entries {pinned}"
+                + (f" (in {len(set(rows.tolist()))} records)" if X0.shape[0] > 1 else "")
+                + ": the fit holds them there, but they still count as estimated (a "
+                "standard error of the linearisation, one fewer degree of freedom in "
+                "sigma^2). To hold a known value, hold it (`estimate_x0=` a mask, MATLAB's "
+                "`InitialStates(i).Fixed`).",
+                stacklevel=3,
+            )
     # The box the solvers keep x0 in: `x0_bounds`, and an entry a record holds (a mask
     # per record) bounded above and below by its value.
     solve_box = x0_box

@@ -124,6 +124,23 @@ def test_bounds_per_record_and_an_entry_held_by_estimate_x0():
     assert held.success and held.x0[1] == -0.5 and held.x0[0] <= 0.7
 
 
+def test_none_entries_are_unbounded_and_equal_bounds_say_they_still_count():
+    """A None entry in a list of bounds is unbounded, as `constraints.box` takes it (it
+    was refused: "must be None, a number or an array of numbers, got list"); equal lower
+    and upper bounds hold an entry but count it as estimated, which `fit` says, as it does
+    for theta's box (it said nothing, and gave a standard error of a value that cannot
+    move)."""
+    listed = oj.fit(
+        MODEL, THETA0, np.array([0.5, 0.0]), U, Z, x0_bounds=([None, -0.2], [0.7, None])
+    )
+    np.testing.assert_allclose(listed.x0, reference()[2:], rtol=1e-6)
+    with pytest.warns(UserWarning, match=r"bounds are equal for x0 entries \[1\]: .* still count"):
+        pinned = oj.fit(
+            MODEL, THETA0, np.array([0.5, -0.5]), U, Z, x0_bounds=([None, -0.5], [0.7, -0.5])
+        )
+    assert pinned.x0[1] == -0.5
+
+
 def test_a_start_outside_the_box_is_clipped_with_a_warning_and_windows_share_the_box():
     with pytest.warns(UserWarning, match=r"outside `x0_bounds` in its entries \[0, 1\]"):
         result = oj.fit(MODEL, THETA0, np.array([0.9, -0.5]), U, Z, x0_bounds=BOUNDS)
