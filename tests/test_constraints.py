@@ -321,6 +321,44 @@ def test_a_fit_with_a_box_and_a_general_set_stays_in_both():
     np.testing.assert_allclose(losses[1], losses[0], rtol=1e-6)
 
 
+def test_a_general_set_active_at_the_optimum_with_a_parameter_in_small_units_converges():
+    """a + b <= C active at the optimum, b entering the model as 0.01 b (its column 0.019
+    of a's): started at the constrained optimum (SciPy's, on the face), LM, Gauss-Newton
+    and L-BFGS said `stalled` or `no_progress`, "not a solution", with the measure 1.6e-6:
+    each moved entry's cosine divided the gradient's round-off along the face by its own
+    small column norm. The entries the projection moves are measured together now."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(0)
+    T, S = 300, 0.01
+    u = rng.standard_normal((T, 1))
+
+    def simulate(a, b, d, x0):
+        x, out = x0, []
+        for k in range(T):
+            out.append(x)
+            x = a * x + b * u[k, 0] + d
+        return np.array(out)
+
+    z = (simulate(0.8, 0.5, -0.1, 1.0) + 0.05 * rng.standard_normal(T))[:, None]
+    C = 0.8 + 0.4 / S  # (the unconstrained optimum has a + b = 0.8 + 0.5 / S)
+    model = oj.Model(lambda x, u, th: th["a"] * x + S * th["b"] * u + th["d"])
+
+    def face(th):
+        over = jnp.maximum(th["a"] + th["b"] - C, 0.0)
+        return {"a": th["a"] - over / 2, "b": th["b"] - over / 2, "d": th["d"]}
+
+    ref = least_squares(
+        lambda p: simulate(p[0], S * (C - p[0]), p[1], p[2]) - z[:, 0],
+        [0.5, 0.0, 0.0], xtol=1e-15, ftol=1e-15, gtol=1e-15,
+    )  # fmt: skip
+    start = {"a": ref.x[0], "b": C - ref.x[0], "d": ref.x[1]}
+    for solver in (oj.LevenbergMarquardt(), oj.GaussNewton(), oj.LBFGS()):
+        r = oj.fit(model, start, ref.x[2:], u, z, solver=solver, constraints=oc.project(face))
+        assert r.status == "converged", (solver, r.message)
+        assert float(r.loss) == pytest.approx(np.mean(ref.fun**2), rel=1e-12)
+
+
 def test_an_estimate_a_slow_intersection_leaves_outside_is_named():
     """The wedge 0 <= I1 <= 0.01 I0 as a box and a halfspace: they meet at an angle of
     0.01, and Dykstra's alternating projections need about 1e4 cycles; capped at 1000 they
