@@ -19,7 +19,9 @@ gradient points into the box, it starts again from the bound. The returned point
 feasible (a diverged fit returns its last finite iterate); whether it satisfies the
 optimality conditions on the box is the first-order test's to say (`converged`, or
 `stalled` where it does not). A general projection (`constraints.project`) is applied as
-P(y) without an active set.
+P(y) without an active set; for LM and the minimisers the derivatives are those of
+C(P(y)) through P's own (forward mode), and where the inner solve stops beyond the set it
+starts again from P(y).
 """
 
 from typing import Any, NamedTuple
@@ -69,6 +71,19 @@ def _flat(problem: FitProblem, y, held: _Held, beyond: bool):
     return held.mask | (y[0] < problem.lower) | (y[0] > problem.upper)
 
 
+def _through_projection(problem: FitProblem, y, d_theta, beyond: bool):
+    """The tangent of the model's theta P(y) along `d_theta`: for a general projection
+    (`constraints.project`) and a solver that damps its step (`beyond`, as `_flat`), the
+    projection's own derivative (forward mode through `FitProblem.feasible`), so that
+    the derivatives are those of C(P(y)); `d_theta` itself otherwise (a box's clipped
+    entries are `_flat`'s). With the unprojected tangent optimistix's LM went after
+    decreases that P undoes, and stalled 2.8 to 3.5 % above the constrained optimum of
+    a bound written as a clipping projection, which the same bound as a box reaches."""
+    if problem.project is None or not beyond:
+        return d_theta
+    return jax.jvp(problem.feasible, (y[0],), (d_theta,))[1]
+
+
 @eqx.filter_custom_jvp
 def _residuals(y, *, problem, held, strategy, beyond):
     r, _ = problem.residuals(_point(problem, y, held), strategy=strategy)
@@ -89,7 +104,8 @@ def _residuals_jvp(primals, tangents, *, problem, held, strategy, beyond):
     d_extra = jnp.zeros(extra.shape, extra.dtype)
     if d_theta is not None:
         flat = _flat(problem, y, held, beyond)
-        dr = dr + jnp.einsum("nrp,p->nr", lin.Jt, jnp.where(flat, 0.0, d_theta))
+        d_model = _through_projection(problem, y, d_theta, beyond)
+        dr = dr + jnp.einsum("nrp,p->nr", lin.Jt, jnp.where(flat, 0.0, d_model))
         d_extra = jnp.where(held.mask, d_theta, 0.0)
     if d_x0 is not None:
         dr = dr + jnp.einsum("nrm,nm->nr", lin.Jx, d_x0)
@@ -113,7 +129,8 @@ def _loss_jvp(primals, tangents, *, problem, held, strategy, beyond):
     dC = jnp.zeros((), C.dtype)
     if d_theta is not None:
         slope = jnp.where(_flat(problem, y, held, beyond), 0.0, g.theta)
-        dC = dC + jnp.sum(jnp.where(held.mask, 2.0 * extra, slope) * d_theta)
+        d_model = _through_projection(problem, y, d_theta, beyond)
+        dC = dC + jnp.sum(jnp.where(held.mask, 2.0 * extra * d_theta, slope * d_model))
     if d_x0 is not None:
         dC = dC + jnp.sum(g.x0 * d_x0)
     return C + jnp.sum(extra**2), dC
@@ -350,6 +367,13 @@ class Optimistix(AbstractSolver):
                 stop = stop | jnp.any(push & ~state.held.mask)
         else:
             new_mask = state.held.mask
+        if problem.project is not None and self._damped:
+            # A general projection: where the inner solve stops with its iterate beyond
+            # the set (P moved it by more than round-off), it starts again from P(y), on
+            # the set: beyond it, C(P(y)) has no slope back into the set
+            # (`_through_projection`), where the optimum may lie.
+            gap = jnp.abs(y[0] - params.theta) > 4 * jnp.finfo(problem.dtype).eps * jnp.abs(y[0])
+            stuck = stuck | (inner_done & jnp.any(gap & ~state.held.mask))
         changed = jnp.any(new_mask != state.held.mask) | stuck
         n_rounds = 4 * (params.theta.shape[0] + 1)
         restart = stop & changed & (state.rounds < n_rounds)
