@@ -4,7 +4,7 @@ import equinox as eqx
 import numpy as np
 
 from ._caller_warnings import warn
-from ._counts import is_count
+from ._counts import integral, is_count
 from ._x0_lsq import solve_x0
 
 
@@ -88,18 +88,14 @@ class Windows(eqx.Module):
         if starts is not None:
             if every != 1 or count is not None:
                 raise ValueError("`Windows(starts=...)` does not combine with `every` or `count`.")
+            given = starts
+            if np.ndim(starts) == 1:  # (whole numbers as floats, as `fit(window=50.0)`)
+                starts = [integral(s) for s in np.asarray(starts).tolist()]
             arr = np.asarray(starts)
-            if (
-                arr.ndim == 1
-                and np.issubdtype(arr.dtype, np.floating)
-                and np.all(np.isfinite(arr))
-                and np.all(arr == np.round(arr))
-            ):  # (whole numbers as floats, as `fit(window=50.0)` takes them)
-                arr = arr.astype(np.int64)
             if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
                 raise ValueError(
                     f"`Windows(starts=...)` must be a non-empty 1-D sequence of sample indices, "
-                    f"got {starts!r}."
+                    f"got {given!r}."
                 )
             if np.any(np.diff(arr) <= 0) or arr[0] < 0:
                 raise ValueError("`Windows(starts=...)` must be non-negative and increasing.")
