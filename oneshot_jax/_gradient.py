@@ -45,6 +45,7 @@ from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
 from ._jit import forward_mode_error, public_jit
 from ._kernels import local_terms
+from ._parallel._report import counting, warn_counted
 from ._simulate import rollout, sample_count
 from ._strategy import AbstractStrategy, as_strategy
 
@@ -152,12 +153,22 @@ def value_and_grad(
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
     try:
-        C, (g_theta, g_x0) = value_and_grad_compiled(
-            data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, strategy, data.mask
-        )
+        with counting() as counts:  # (a parallel rollout's fallbacks: warned at the caller's)
+            C, (g_theta, g_x0) = value_and_grad_compiled(
+                data.model,
+                cost,
+                data.theta,
+                data.x0,
+                data.u,
+                data.z,
+                data.batched,
+                strategy,
+                data.mask,
+            )
     except TypeError as err:
         forward_mode_error(err)
         raise
+    warn_counted(counts, stacklevel=2)
     if aggregate is not None:  # the accumulators' initial states are not variables
         g_x0 = g_x0[..., : agg.n_x]
     return C, (g_theta, g_x0)

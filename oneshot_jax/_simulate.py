@@ -10,6 +10,7 @@ from ._aggregate import Aggregate, augment
 from ._checks import check_cost, check_data
 from ._jit import public_jit
 from ._kernels import rollout as rollout
+from ._parallel._report import counting, warn_counted
 from ._strategy import AbstractStrategy, as_strategy
 
 
@@ -104,7 +105,9 @@ def simulate(
     """
     data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
-    x, z = simulate_compiled(data.model, data.theta, data.x0, data.u, data.batched, strategy)
+    with counting() as counts:  # (a parallel rollout's fallbacks: warned at the caller's line)
+        x, z = simulate_compiled(data.model, data.theta, data.x0, data.u, data.batched, strategy)
+    warn_counted(counts, stacklevel=2)
     if data.lengths is not None:  # ragged lists in, ragged lists out
         return [x[i, :n] for i, n in enumerate(data.lengths)], [
             z[i, :n] for i, n in enumerate(data.lengths)
@@ -173,6 +176,9 @@ def loss(
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
     as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
-    return loss_compiled(
-        data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
-    )
+    with counting() as counts:
+        C = loss_compiled(
+            data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
+        )
+    warn_counted(counts, stacklevel=2)
+    return C

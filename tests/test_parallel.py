@@ -614,6 +614,31 @@ def test_the_checks_after_a_parallel_fit_count_their_fallbacks_with_no_warning_o
     assert str(r.diagnostics["sequential_fallbacks"]) in str(fallbacks[0].message)
 
 
+def test_each_call_outside_fit_warns_at_its_callers_line():
+    """`simulate`, `loss` and `value_and_grad` warned from JAX's callback frame: under the
+    default filters every later rollout kept unconverged (wrong states, loss and gradient)
+    went unreported after the first, and an "error" filter gave an XLA error, not the
+    RuntimeWarning. Each call now warns at its caller's line, after the call."""
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    model = oj.Model(step)
+    u = jnp.zeros((T, 1))
+    z = np.asarray(oj.simulate(model, theta, x0, u)[1])
+    kept = oj.ParallelInTime(fallback=False)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("default")
+        oj.simulate(model, theta, x0, u, strategy=kept)
+        oj.loss(model, theta, x0, u, z, strategy=kept)
+        oj.value_and_grad(model, theta, x0, u, z, strategy=kept)
+    kept_warnings = [w for w in rec if "kept Newton's best iterate" in str(w.message)]
+    assert len(kept_warnings) == 3, [(w.filename, w.lineno) for w in rec]
+    assert {w.filename for w in kept_warnings} == {__file__}
+    assert len({w.lineno for w in kept_warnings}) == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(RuntimeWarning, match="kept Newton's best iterate"):
+            oj.loss(model, theta, x0, u, z, strategy=kept)
+
+
 def test_a_rollout_kept_without_fallback_is_reported():
     """With fallback=False a chaotic map's rollout keeps Newton's best iterate, whose loss
     is not the model's (0.38 against 0.18 in an audit): a warning outside fit, a count and

@@ -4,11 +4,14 @@ A parallel rollout that does not converge falls back to the sequential loop: the
 are the same, only slower. With `ParallelInTime(fallback=False)` it keeps Newton's best
 iterate instead, whose states, loss and gradient are not the model's. The compiled code
 reports each rollout (whether it fell back, whether it converged) by a host callback.
-Outside `fit` each is a warning; `fit` counts them over its run, reports the counts in
-`FitResult.diagnostics` and warns.
+`fit` counts them over its run (`counting`), reports the counts in `FitResult.diagnostics`
+and warns; `simulate`, `loss` and `value_and_grad` count them over their call and warn at
+their caller's line (`warn_counted`) after it. A rollout that runs outside such a call
+(under the user's own `jax.jit`) warns from the callback itself, every time.
 """
 
 import threading
+import warnings
 
 import jax
 import numpy as np
@@ -45,28 +48,52 @@ UNCONVERGED = (
 )
 
 
+FELL_BACK = (
+    "the parallel rollout did not converge (unstable or chaotic dynamics, or a record too "
+    "long for Newton's method) and fell back to the sequential loop where it did not (the "
+    "record, or with `chunk_size` those chunks): every state is the model's step of the "
+    "one before to round-off (with chunks of chaotic dynamics, not necessarily the "
+    "sequential rollout's trajectory: see the parallel guide)."
+)
+
+
+def _messages(counts):
+    """The warnings a call's counted rollouts ask for (`counting`'s counts)."""
+    out = []
+    if counts["unconverged_rollouts"]:
+        out.append(UNCONVERGED)
+    if counts["sequential_fallbacks"]:
+        out.append(FELL_BACK)
+    return out
+
+
+def warn_counted(counts, stacklevel=1):
+    """Warn of the rollouts a call counted (`counting`) that kept Newton's unconverged
+    iterate or fell back to the sequential loop, at the line `stacklevel` frames above the
+    caller (as `warnings.warn`), after the call: the user's filters decide each at that
+    line, and an "error" filter raises it there."""
+    for message in _messages(counts):
+        warn(message, RuntimeWarning, stacklevel=stacklevel + 1)
+
+
 def _host(fallback, converged):
     fallback = np.asarray(fallback).reshape(-1)
     kept = ~np.asarray(converged).reshape(-1) & ~fallback  # the best iterate, not the model's
+    counts = {
+        "parallel_rollouts": int(fallback.size),
+        "sequential_fallbacks": int(np.sum(fallback)),
+        "unconverged_rollouts": int(np.sum(kept)),
+    }
     with _LOCK:
         if _STACK:
-            _STACK[-1]["parallel_rollouts"] += int(fallback.size)
-            _STACK[-1]["sequential_fallbacks"] += int(np.sum(fallback))
-            _STACK[-1]["unconverged_rollouts"] += int(np.sum(kept))
+            for key, n in counts.items():
+                _STACK[-1][key] += n
             return
-    if np.any(kept):
-        warn(UNCONVERGED, RuntimeWarning, stacklevel=2)
-    if np.any(fallback):
-        warn(
-            "the parallel rollout did not converge (unstable or chaotic dynamics, or a "
-            "record too long for Newton's method) and fell back to the sequential loop "
-            "where it did not (the record, or with `chunk_size` those chunks): every state "
-            "is the model's step of the one before to round-off (with chunks of chaotic "
-            "dynamics, not necessarily the sequential rollout's trajectory: see the "
-            "parallel guide).",
-            RuntimeWarning,
-            stacklevel=2,
-        )
+    # A rollout outside a counting call (under the user's `jax.jit`): warned from here, with
+    # a registry of its own so that the filters' "default" shows every such rollout, not
+    # the first alone (every one of them comes from this one line).
+    for message in _messages(counts):
+        warnings.warn_explicit(message, RuntimeWarning, __file__, 0, registry={})
 
 
 def report(info):
