@@ -774,12 +774,18 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
         return
     e = e.reshape(-1, n_z)
     q = np.ones(n_z) if weight is None else np.asarray(weight, dtype=np.float64)
-    q = np.diag(q) if q.ndim == 2 else np.broadcast_to(q, (n_z,))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # an output with no sample: NaN
-        var = np.array([np.nanmean(e[:, j] ** 2) * q[j] for j in range(n_z)])
-    names = [f"output {j}" for j in range(n_z) if np.isfinite(var[j]) and q[j] > 0]
-    var = var[np.isfinite(var) & (q > 0)]
+    if q.ndim == 2:
+        var = _whitened_variances(e, q)
+        if var is None:
+            return
+        names = [f"whitened output {j}" for j in range(var.size)]
+    else:
+        q = np.broadcast_to(q, (n_z,))
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an output with no sample: NaN
+            var = np.array([np.nanmean(e[:, j] ** 2) * q[j] for j in range(n_z)])
+        names = [f"output {j}" for j in range(n_z) if np.isfinite(var[j]) and q[j] > 0]
+        var = var[np.isfinite(var) & (q > 0)]
     readings = {c: v for c, v in (readings or {}).items() if np.isfinite(v)}
     names += [f"the readings of output {c}" for c in readings]
     var = np.concatenate([var, list(readings.values())])
@@ -804,6 +810,22 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
         f"variance); {remedy}.",
         stacklevel=3,
     )
+
+
+def _whitened_variances(e, Q):
+    """The variances of the residuals whitened by a weight matrix Q: the eigenvalues of
+    Q^{1/2} (mean of e e^T) Q^{1/2} on the range of Q (all equal where Q is the inverse
+    noise covariance, correlated outputs too: each output's own mean(e_j^2) Q_jj is not),
+    from the samples where every output is present; None with fewer such samples than
+    outputs."""
+    rows = e[np.all(np.isfinite(e), axis=1)]
+    if rows.shape[0] <= e.shape[1]:
+        return None
+    lam, V = np.linalg.eigh(0.5 * (Q + Q.T))
+    keep = lam > lam.max() * e.shape[1] * np.finfo(np.float64).eps
+    W = V[:, keep] * np.sqrt(lam[keep])  # Q = W W^T on its range
+    w = rows @ W
+    return np.linalg.eigvalsh(w.T @ w / rows.shape[0])
 
 
 def _flag_infeasible(result, projections, rtol=1e-8):

@@ -324,3 +324,30 @@ def test_a_weight_that_runs_away_is_no_success():
     assert r.stop_info["solver_stop"] in ("converged", "statistically_converged", "zero_residual")
     assert r.stop_info["reading_weight_factors"][0] > 1e6
     assert "the output weight did not settle in" in r.message
+
+
+def test_a_weight_matrix_is_judged_by_the_residuals_it_whitens():
+    """Three outputs of equal noise variance, two of them correlated 0.995: the exact
+    weight inv(S) whitens the residuals (equal variances), yet fit warned that they differ
+    by a factor 99 (each output's mean(e_j^2) Q_jj is 1 / (1 - R_j^2) there, not 1). The
+    identity, which does not whiten them, is still warned of."""
+
+    def step(x, u, th):
+        return th["a"] * x + th["b"] * u[0]
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(0)
+    T = 300
+    u = rng.standard_normal((T, 1))
+    truth = {"a": np.array([0.9, 0.8, 0.7]), "b": np.array([1.0, 0.5, 0.2])}
+    _, x = oj.simulate(model, truth, np.array([1.0, -1.0, 0.5]), u)
+    S = 0.01 * np.array([[1.0, 0.995, 0.0], [0.995, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    z = np.asarray(x) + rng.multivariate_normal(np.zeros(3), S, T)
+    theta0 = {"a": np.full(3, 0.5), "b": np.full(3, 0.1)}
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        r = oj.fit(model, theta0, z[0], u, z, weight=np.linalg.inv(S))
+    assert r.success
+    assert not [w for w in rec if "differ in variance" in str(w.message)]
+    with pytest.warns(UserWarning, match="differ in variance"):
+        oj.fit(model, theta0, z[0], u, z, weight=np.eye(3))
