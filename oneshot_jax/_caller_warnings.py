@@ -71,6 +71,18 @@ def recording():
         _RECORDS.reset(token)
 
 
+@contextlib.contextmanager
+def unrecorded():
+    """The block's warnings reach no `recording` block around it: the fits of a driver
+    that re-raises the warnings it keeps (`weight="noise"`: those of its returned fit
+    alone, not of the rounds before it)."""
+    token = _RECORDS.set(())
+    try:
+        yield
+    finally:
+        _RECORDS.reset(token)
+
+
 def warn(message, category=UserWarning, stacklevel=1):
     """`warnings.warn` for the library's own warnings: the message is also kept by every
     `recording` block around the call. `stacklevel` counts from the caller, as for

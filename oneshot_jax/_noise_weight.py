@@ -22,7 +22,7 @@ import warnings
 import numpy as np
 
 from ._aggregate import _per_record, record_times
-from ._caller_warnings import warn
+from ._caller_warnings import unrecorded, warn
 from ._results import RESULTS, is_success, name_of
 
 # Rounds of the alternation at most, and the change of Q (relative, in the Frobenius
@@ -170,15 +170,16 @@ def fit_noise_weighted(fit, args):
     the first fit's Q = I),
     `stop_info["noise_weight_rounds"]` the number of fits, and `num_steps` and
     `wall_time` those of all fits together.
-    Only the returned fit's warnings are shown; a Q that has not settled after the last
-    round, or residuals that give none, get a warning of their own."""
+    Only the returned fit's warnings are shown and kept (`FitResult.warnings`: not those
+    of the rounds before it); a Q that has not settled after the last round, or residuals
+    that give none, get a warning of their own."""
     given_x0 = np.shape(args["x0"])
     aggregate = args.get("aggregate")
     w, scales, used, change, rounds, result, first = None, [], [], np.inf, 0, None, None
     unsettled = False  # (the alternation ran its rounds, or ran away)
     steps, wall = 0, 0.0
     for rounds in range(1, NOISE_ROUNDS + 1):
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True) as caught, unrecorded():
             warnings.simplefilter("always")
             result = fit(**{**args, "weight": _identity(args["z"]) if w is None else w})
         steps, wall = steps + result.num_steps, wall + result.wall_time
@@ -238,7 +239,10 @@ def fit_noise_weighted(fit, args):
             )
         )
     for c in caught:
-        warn(c.message, c.category, stacklevel=3)
+        if c.filename == __file__ or str(c.message) in result.warnings:
+            warn(c.message, c.category, stacklevel=3)  # (the result keeps it: `fit`'s record)
+        else:  # (not the library's: shown, as without the weight, and not kept)
+            warnings.warn(c.message, c.category, stacklevel=3)
     # (whether a Q was estimated at all: not where the first fit's loss is not finite or
     # its residuals give none, as the warning says)
     estimated = w is not None or change <= NOISE_RTOL

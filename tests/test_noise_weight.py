@@ -42,6 +42,9 @@ def test_the_noise_weight_gives_the_fit_and_standard_errors_of_the_true_weight()
         r = oj.fit(MODEL, THETA0, np.zeros(2), u, z, weight="noise")
     assert r.success and true.success
     assert 2 <= r.stop_info["noise_weight_rounds"] <= 10
+    # Its result keeps the warnings of its own fit, not those of the rounds before it
+    # (the first, with Q = I, warned of the unequal variances that the last one settles).
+    assert r.warnings == () and "differ in variance" not in str(r)
     assert "the output weight estimated from the residuals" in str(r)
     assert float(plain.std["k"]) > 5 * float(true.std["k"])
     for name in ("k", "c"):
@@ -206,6 +209,9 @@ def test_the_noise_weight_weighs_aggregated_readings_too(records):
         r = oj.fit(TANKS, theta0, x0, u, z, aggregate=agg, weight="noise", **kw)
     assert r.success and true.success
     assert 2 <= r.stop_info["noise_weight_rounds"] <= 10
+    # Its result keeps the warnings of its own fit, not those of the rounds before it
+    # (the first, with Q = I, warned of the unequal variances that the last one settles).
+    assert r.warnings == () and "differ in variance" not in str(r)
     factors = r.stop_info["reading_weight_factors"]
     assert len(factors) == records
     # the printout names them next to Q (it showed Q alone, the readings' 1 in it)
