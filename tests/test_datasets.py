@@ -81,7 +81,7 @@ def test_emps_shapes_and_values():
     assert d.kp == pytest.approx(160.18)
     assert d.kv == pytest.approx(243.45)
     assert d.gtau == pytest.approx(35.15, abs=0.01)
-    assert d.Ts == pytest.approx(1e-3)  # 1 kHz
+    assert d.Ts == 1e-3  # 1 kHz (the spacings of t carry round-off: median 0.99998 ms)
     assert not d.estimation.pulses.any()
     assert set(np.unique(d.validation.pulses)) == {0.0, 5.0}
     # The recorded force command is the benchmark's PD law on the recorded positions.
@@ -124,6 +124,18 @@ def test_emps_from_env_var(tmp_path, monkeypatch):
     d = ds.load_emps()
     assert d.estimation.file == folder / "DATA_EMPS.mat"
     assert len(d.validation) == 50 and d.Ts == pytest.approx(1e-3)
+
+
+def test_emps_sampling_time_is_the_records_own(tmp_path):
+    """A record in EMPS's format at another rate: Ts was rounded to 6 decimals (1/3000 s
+    read 0.000333, 1e-3 off; 2.5e-7 s read 0, refused by the views as no sampling time)."""
+    for i, dt in enumerate((1 / 3000, 2.5e-7)):
+        est, val = _emps_dict(), _emps_dict(pulses=True)
+        for d in (est, val):
+            d["t"] = d["t"] / 1e-3 * dt
+        data = ds.load_emps(_write_emps(tmp_path / str(i), est, val))
+        assert data.Ts == pytest.approx(dt, rel=1e-9)
+        assert data.test.Ts == data.Ts
 
 
 def test_an_env_var_that_names_no_folder_is_an_error(tmp_path, monkeypatch):
