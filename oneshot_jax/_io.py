@@ -496,6 +496,14 @@ def _check_shapes(arrays, meta, group):
             f"std's leaves have shapes {[a.shape for a in std]}, theta's {[a.shape for a in theta]}"
         )
     p = len(meta["names"])
+    entries = sum(int(a.size) for a in theta)
+    fixed = np.asarray(arrays["fixed"])
+    if fixed.shape != (entries,) or entries - int(np.count_nonzero(fixed)) != p:
+        raise ValueError(
+            f"fixed has shape {fixed.shape} and frees {fixed.size - np.count_nonzero(fixed)} "
+            f"entries: ({entries},), one flag per entry of theta, freeing the {p} named ones, "
+            "expected"
+        )
     if arrays["covariance"].shape not in ((p, p), (0, 0)):  # ((0, 0): not computed)
         raise ValueError(f"covariance has shape {arrays['covariance'].shape}, not ({p}, {p})")
     x0, x0_cov = arrays["x0"], arrays["x0_covariance"]
@@ -512,6 +520,11 @@ def _check_shapes(arrays, meta, group):
             f"{np.shape(arrays['residuals'])}: a scalar and (..., T, n_z) expected"
         )
     n = np.shape(arrays["history/loss"])
+    for key in ("grad_norm", "step", "stage"):
+        if np.shape(arrays[f"history/{key}"]) != n:
+            raise ValueError(
+                f"history's {key} has shape {np.shape(arrays[f'history/{key}'])}, its loss {n}"
+            )
     for i, (h, a) in enumerate(zip(group("history/theta/"), theta, strict=True)):
         if h.shape != (*n, *a.shape):
             raise ValueError(

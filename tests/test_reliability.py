@@ -389,6 +389,13 @@ def test_a_damaged_result_file_gives_one_clear_error(saved, tmp_path):
         "undigested_text.npz": lambda f: _rewrite(
             path, f, **{"__meta__": undigested, "theta/0": np.array("x")}
         ),
+        # (a mask of the wrong length loaded, and sample_theta said "no covariance")
+        "undigested_fixed.npz": lambda f: _rewrite(
+            path, f, __meta__=undigested, fixed=np.array([False, True, True, False, True])
+        ),
+        "undigested_stage.npz": lambda f: _rewrite(
+            path, f, **{"__meta__": undigested, "history/stage": np.zeros(2, np.int32)}
+        ),
     }
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
