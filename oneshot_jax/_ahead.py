@@ -41,6 +41,7 @@ from . import _pytree
 from ._caller_warnings import warn
 from ._checks import as_float, check_data, check_tree, is_concrete
 from ._covariance import carried_variance
+from ._initial_state import several_records
 from ._jit import jit
 from ._model import model_labels
 from ._x0_smoother import _smoother_defaults, ekf_forward
@@ -280,19 +281,41 @@ def _filter_inputs(
         process_noise = process_noise.covariance
     if missing not in ("raise", "mask"):
         raise ValueError(f'`missing` must be "raise" or "mask", got {missing!r}.')
-    if x0 is None:
+    for name, a, shape in (("u", u, "(T, n_u)"), ("z", z, "(T, n_z)")):
+        if several_records(a) or np.ndim(a) == 3:
+            raise ValueError(
+                f"`{name}` must have shape {shape} (one record), got "
+                + (f"a list of {len(a)} records" if several_records(a) else f"{np.shape(a)}")
+                + " (several records: one call each, or the `FitResult` method of the same "
+                "name, which takes them all)."
+            )
+    defaulted = x0 is None
+    if defaulted:
         if not model.observes_state:
             raise ValueError(
                 "`x0` (the prior mean of the initial state, shape (n_x,)) is needed: the "
                 "model has an `observe` of its own, so the state's size is known only "
                 "from x0."
             )
+        if np.ndim(z) != 2 or np.shape(z)[0] == 0:
+            raise ValueError(
+                f"`z` must have shape (T, n_z) with T >= 1, got {np.shape(z)} (`x0` "
+                "defaults to z[0], the model observing its state)."
+            )
         x0 = np.asarray(z)[0]
     if np.ndim(x0) != 1:
         raise ValueError(f"`x0` must have shape (n_x,) (one record), got {np.shape(x0)}.")
     if missing == "mask" and is_concrete(x0) and not np.all(np.isfinite(np.asarray(x0))):
         raise ValueError("`x0` must be finite: give it where z[0] has a missing sample.")
-    data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
+    try:
+        data = check_data(model, theta, x0, u, z, weight, missing=missing, t=t)
+    except ValueError as err:
+        if not defaulted:
+            raise
+        raise ValueError(
+            f"{err} (`x0` was not given: it defaults to z[0], so `z` needs one column per "
+            "state of the model; give `x0` of shape (n_x,) otherwise.)"
+        ) from err
     guess = np.asarray(data.x0)
     P0, Qp, R = _smoother_defaults(
         data,

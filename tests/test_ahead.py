@@ -191,6 +191,22 @@ def test_bad_arguments_are_named():
         result.output_std([], x0=M0)
     with pytest.raises(ValueError, match="`z` must have shape"):  # (a record of two outputs)
         result.predict_ahead([U, U], [np.ones((T, 2)), Z], 2, process_noise=Q)
+    # The free functions take one record, and name `z` where x0 defaults to z[0] (they
+    # advised an x0 of shape (N, n_x), then refused it; named `x0` for a 1-D z; raised an
+    # IndexError on an empty record; a step's error on z of too few columns).
+    state = oj.Model(step)  # (z = x: x0 defaults to z[0])
+    X = np.asarray(oj.simulate(state, {"A": A}, M0, U)[1])
+    for f in (oj.predict_ahead, oj.estimate_process_noise):
+        for u, z, x0, match in (
+            (np.stack([U, U]), np.stack([X, X]), M0, r"`u` must have shape \(T, n_u\) \(one"),
+            ([U, U], [X, X], None, "`u` must have shape .* got a list of 2 records"),
+            (U, X[:, 0], None, r"`z` must have shape \(T, n_z\) with T >= 1, got \(80,\)"),
+            (U[:0], X[:0], None, r"`z` must have shape \(T, n_z\) with T >= 1, got \(0, 2\)"),
+            (U, X[:, :1], None, r"it defaults to z\[0\], so `z` needs one column per state"),
+        ):  # fmt: skip
+            with pytest.raises(ValueError, match=match):
+                f(state, {"A": A}, u, z, 1.0 if f is oj.estimate_process_noise else 2,
+                  x0=x0, **({"process_noise": Q} if f is oj.predict_ahead else {}))  # fmt: skip
     # `estimate_process_noise`'s `shape` and `scales` are named as such.
     for shape, match in ((-np.eye(2), "`shape` must be positive semi-definite"),
                          (np.ones(3), r"`shape` must be a scalar, a \(2,\) vector"),
