@@ -37,7 +37,21 @@ def _all_or_none(seen):
     return bool((seen.all(axis=1) | ~seen.any(axis=1)).all())
 
 
-def noise_weight(residuals, readings=()):
+def _output_scales(z, n_z):
+    """Each output's largest magnitude over its finite samples (every record's), (n_z,):
+    the scale of its round-off (`noise_weight`'s `scales`); 0 for an output without one."""
+    records = z if isinstance(z, (list, tuple)) else [z]
+    rows = [np.asarray(r, dtype=np.float64).reshape(-1, n_z) for r in records]
+    a = np.abs(np.concatenate(rows)) if rows else np.zeros((0, n_z))
+    return np.max(np.where(np.isfinite(a), a, 0.0), axis=0, initial=0.0)
+
+
+# Residuals of an output whose root mean square is below this many units of round-off of
+# its largest sample count as zero: the model fits it exactly, there is no noise level.
+ROUND_OFF_UNITS = 64
+
+
+def noise_weight(residuals, readings=(), scales=None):
     """Q from a fit's residuals: the inverse of E^T E / n over the samples (every record's,
     pooled) where every output is measured, (n_z, n_z), where every sample measures all
     outputs or none (a sample of none, such as the padding past the end of a shorter
@@ -53,9 +67,14 @@ def noise_weight(residuals, readings=()):
     aggregate, or not at all) gets Q's entry 1, and an Aggregate without a reading that
     counts the factor 1: they have nothing to weigh.
 
+    `scales`: each output's data scale (`_output_scales`), or None: an output whose
+    residuals' root mean square is below `ROUND_OFF_UNITS` units of round-off (of the
+    residuals' dtype) of its scale counts as all zero.
+
     **Returns:** `((Q, factors), None)`, or `(None, name)` where the residuals of `name`
     (an output, an Aggregate, or "the outputs" where nothing is measured) are all zero:
     no noise level to weigh by."""
+    eps = np.finfo(np.result_type(np.asarray(residuals).dtype, np.float32)).eps
     e = np.asarray(residuals, dtype=np.float64)
     e = e.reshape(-1, e.shape[-1])
     n_z = e.shape[-1]
@@ -65,8 +84,9 @@ def noise_weight(residuals, readings=()):
         var = np.nanmean(np.where(seen, e**2, np.nan), axis=0)
         levels = [np.nanmean(np.asarray(r, dtype=np.float64) ** 2) for r in readings]
     sampled = np.isfinite(var)
+    floor = np.zeros(n_z) if scales is None else (ROUND_OFF_UNITS * eps * np.asarray(scales)) ** 2
     for j in range(n_z):
-        if sampled[j] and var[j] <= 0:
+        if sampled[j] and var[j] <= floor[j]:
             return None, f"output {j}"
     counted = [bool(np.isfinite(level)) for level in levels]  # (some reading counts)
     for i, level in enumerate(levels):
@@ -193,15 +213,17 @@ def fit_noise_weighted(fit, args):
             if aggregate is None
             else _reading_residuals(result, {**args, "aggregate": aggregate})
         )
-        weights, empty = noise_weight(result.residuals, readings)
+        n_z = np.shape(result.residuals)[-1]
+        weights, empty = noise_weight(result.residuals, readings, _output_scales(args["z"], n_z))
         if weights is None:
             unsettled = w is not None  # (after a reweighting: its own weight ran away)
             last = "the given weights" if w is None else "the last estimated weights"
             caught.append(
                 warnings.WarningMessage(
                     f"`weight='noise'`: the residuals of {empty} are all zero, "
-                    "so there is no noise level to weigh it by; the result is that of the "
-                    f"fit with {last}.",
+                    "so there is no noise level to weigh it by (residuals at the round-off "
+                    "of the data count as zero: the model fits them exactly); the result is "
+                    f"that of the fit with {last}.",
                     UserWarning,
                     __file__,
                     0,

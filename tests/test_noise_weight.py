@@ -357,3 +357,19 @@ def test_a_weight_matrix_is_judged_by_the_residuals_it_whitens():
     assert not [w for w in rec if "differ in variance" in str(w.message)]
     with pytest.warns(UserWarning, match="differ in variance"):
         oj.fit(model, theta0, z[0], u, z, weight=np.eye(3))
+
+
+def test_an_output_fitted_to_its_round_off_is_no_noise_level():
+    """An output measured without noise: each round weighed it more (Q diagonal 3e-15
+    against 3e14 after 7 fits) until its residuals sat at round-off, where the weight
+    "settled"; the fit ended `stalled`, blaming the problem's scaling, where the docs
+    promise `noise_weight_unsettled`. Residuals at the round-off of their data now count
+    as zero: no noise level to weigh by."""
+    rng = np.random.default_rng(41)
+    u = rng.standard_normal((150, 1))
+    _, z = oj.simulate(MODEL, {"k": 4.0, "c": 0.5}, np.array([1.0, 0.0]), u)
+    z = np.asarray(z) + np.array([0.05, 0.0]) * rng.standard_normal((150, 2))
+    with pytest.warns(UserWarning, match="residuals of output 1 are all zero"):
+        r = oj.fit(MODEL, THETA0, z[0], u, z, weight="noise")
+    assert r.status == "noise_weight_unsettled" and not r.success
+    assert r.stop_info["noise_weight_rounds"] < 10
