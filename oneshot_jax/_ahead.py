@@ -344,7 +344,8 @@ class ProcessNoise(NamedTuple):
     - `scales`, `log_likelihoods`: the grid searched and the log-likelihood at each.
     - `interior`: False where the highest likelihood of the grid is at its end (the
         estimate is then that end: the data ask for less, or more, process noise than
-        the grid holds).
+        the grid holds), or where it is the same at every scale (the outputs do not see
+        the noise `shape` describes: q is not determined).
     """
 
     covariance: np.ndarray
@@ -431,7 +432,7 @@ def estimate_process_noise(
 
     **Returns:** a `ProcessNoise` (`covariance`, `scale`, `log_likelihood`, `scales`,
     `log_likelihoods`, `interior`); pass it (or its `covariance`) as `process_noise=`. With
-    `interior` False the likelihood is highest at the grid's end (a warning says so).
+    `interior` False the likelihood is highest at the grid's end, or flat (a warning says so).
 
     **Raises:** as `predict_ahead`; `ValueError` for a `scales` that is not an
     increasing grid of positive numbers.
@@ -458,8 +459,19 @@ def estimate_process_noise(
     values = np.array([loglik(q) for q in grid])
     best = int(np.argmax(values))
     interior = 0 < best < grid.size - 1 and np.isfinite(values[best])
+    spread = float(np.ptp(values)) if np.all(np.isfinite(values)) else np.inf
+    flat = spread <= 1e-9 * max(1.0, float(np.max(np.abs(values))))
     scale = float(grid[best])
-    if interior:  # golden section on log q between the best point's neighbours
+    if flat:  # (no q is more likely than another: noise on states the outputs do not see)
+        interior = False
+        warn(
+            f"estimate_process_noise: the likelihood is the same at every scale of the grid "
+            f"(it spans {spread:.3g}): the outputs do not depend on the process noise that "
+            "`shape` describes (noise on states they do not see), so these data do not "
+            "determine q; give `shape` on the states the outputs see.",
+            stacklevel=2,
+        )
+    elif interior:  # golden section on log q between the best point's neighbours
         lo, hi = np.log(grid[best - 1]), np.log(grid[best + 1])
         ratio = (np.sqrt(5.0) - 1.0) / 2.0
         a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)

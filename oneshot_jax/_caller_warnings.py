@@ -23,12 +23,13 @@ def _same_file(a, b) -> bool:
 
 
 @contextlib.contextmanager
-def at_caller(driver_file):
+def at_caller(driver_file, skip=0):
     """Record the warnings raised in the block; on leaving it (also when the block raises),
     raise those that point at `driver_file` (the driver's module, `__file__`) again at the
-    caller of the function that holds the `with` statement, and show the others as they
-    were. The user's filters decide every warning at its own line, as without the driver:
-    those pointed at the driver again at the caller's."""
+    caller of the function that holds the `with` statement (`skip` frames further out:
+    the wrappers equinox puts around a module's bound methods), and show the others as
+    they were. The user's filters decide every warning at its own line, as without the
+    driver: those pointed at the driver again at the caller's."""
     caught = []
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -38,7 +39,7 @@ def at_caller(driver_file):
         for w in caught:
             if _same_file(w.filename, driver_file):
                 # (1: here, 2: contextlib's __exit__, 3: the driver, 4: its caller)
-                warnings.warn(w.message, w.category, stacklevel=4)
+                warnings.warn(w.message, w.category, stacklevel=4 + skip)
             else:  # (the filters passed it at its own line: shown, not decided again)
                 warnings.showwarning(w.message, w.category, w.filename, w.lineno, w.file, w.line)
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from . import _io, _pytree
 from ._ahead import estimate_process_noise, predict_ahead_impl
+from ._caller_warnings import at_caller
 from ._checks import as_float, check_data, check_state_size
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
@@ -1247,17 +1248,18 @@ class FitResult(eqx.Module):
         self._check_record_z(u, z, missing)
         filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
         filter_args.pop("estimate")
-        return estimate_process_noise(
-            self.model,
-            self.theta,
-            u,
-            z,
-            shape,
-            prior_covariance=prior_covariance,
-            t=t,
-            scales=scales,
-            **filter_args,
-        )
+        with at_caller(__file__, _frames_to_user()):  # (its warning at the caller's line)
+            return estimate_process_noise(
+                self.model,
+                self.theta,
+                u,
+                z,
+                shape,
+                prior_covariance=prior_covariance,
+                t=t,
+                scales=scales,
+                **filter_args,
+            )
 
     def _predict_records(self, u, z_head, t, kwargs):
         """`predict` of several records (u (N, T, n_u) or a list of N records, z_head

@@ -347,7 +347,10 @@ def test_no_process_noise_in_the_data_is_said():
     with pytest.warns(UserWarning, match="less process noise than the grid holds"):
         pn = oj.estimate_process_noise(LINEAR, {"A": A}, U, z, 1.0, x0=M0, measurement_noise=R)
     assert not pn.interior and pn.scale == pn.scales[0]
-    result = oj.fit(LINEAR, {"A": A}, M0, U, Z, fixed=True)
+    result = oj.fit(LINEAR, {"A": A}, M0, U, z, fixed=True)
+    with pytest.warns(UserWarning, match="less process noise") as rec:  # (at this line:
+        result.estimate_process_noise(U, z, 1.0)  # it was the method's own, in the library)
+    assert {w.filename for w in rec} == {__file__}
     mine = result.estimate_process_noise(U, Z, [0.0, 1.0], scales=np.logspace(-6, 0, 7))
     same = oj.estimate_process_noise(
         LINEAR, {"A": A}, U, Z, [0.0, 1.0], x0=result.predict(U, Z).x0,
@@ -362,6 +365,22 @@ def test_no_process_noise_in_the_data_is_said():
     # (a word such as "diagonal": what is wanted, not a dtype)
     with pytest.raises(TypeError, match=r"`shape` must be .* a \(2,\) vector of variances"):
         oj.estimate_process_noise(LINEAR, {"A": A}, U, Z, "diagonal", x0=M0)
+
+
+def test_noise_on_a_state_the_outputs_do_not_see_is_not_estimated():
+    """Process noise on a third state that neither the output nor the other states see:
+    the likelihood is the same at every scale, and the warning said "the data ask for
+    less process noise", advising a wider grid. It now says that q is not determined."""
+
+    def step3(x, u, th):
+        return jnp.concatenate([th["A"] @ x[:2] + B @ u, 0.5 * x[2:]])
+
+    model = oj.Model(step3, lambda x, u, th: C @ x[:2])
+    with pytest.warns(UserWarning, match="the likelihood is the same at every scale"):
+        pn = oj.estimate_process_noise(
+            model, {"A": A}, U, Z, [0.0, 0.0, 1.0], x0=np.zeros(3), measurement_noise=R
+        )
+    assert not pn.interior
 
 
 def test_a_missing_entry_leaves_its_noise_covariances_out():
