@@ -84,10 +84,21 @@ def unrecorded():
         _RECORDS.reset(token)
 
 
-def warn(message, category=UserWarning, stacklevel=1):
+def warn(message, category=UserWarning, stacklevel=1, *, kept=True):
     """`warnings.warn` for the library's own warnings: the message is also kept by every
-    `recording` block around the call. `stacklevel` counts from the caller, as for
-    `warnings.warn`."""
+    `recording` block around the call (not with `kept=False`: a warning of the user's
+    model or of another library, raised again at the caller's line). `stacklevel` counts
+    from the caller, as for `warnings.warn`."""
+    if kept:
+        for record in _RECORDS.get():
+            record.add(str(message))
+    warnings.warn(message, category, stacklevel=stacklevel + 1)
+
+
+def warn_each_time(message, category, filename):
+    """`warn` where no caller's line is known (a host callback of compiled code, at the
+    line `filename`:0): with a registry of its own, so that the filters' "default" shows
+    every such warning, not the first alone (all of them come from one line)."""
     for record in _RECORDS.get():
         record.add(str(message))
-    warnings.warn(message, category, stacklevel=stacklevel + 1)
+    warnings.warn_explicit(message, category, filename, 0, registry={})

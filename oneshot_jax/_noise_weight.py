@@ -264,7 +264,7 @@ def fit_noise_weighted(fit, args):
         if c.filename == __file__ or str(c.message) in result.warnings:
             warn(c.message, c.category, stacklevel=3)  # (the result keeps it: `fit`'s record)
         else:  # (not the library's: shown, as without the weight, and not kept)
-            warnings.warn(c.message, c.category, stacklevel=3)
+            warn(c.message, c.category, stacklevel=3, kept=False)
     # (whether a Q was estimated at all: not where the first fit's loss is not finite or
     # its residuals give none, as the warning says)
     estimated = w is not None or change <= NOISE_RTOL

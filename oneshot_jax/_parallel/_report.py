@@ -11,12 +11,11 @@ their caller's line (`warn_counted`) after it. A rollout that runs outside such 
 """
 
 import threading
-import warnings
 
 import jax
 import numpy as np
 
-from .._caller_warnings import warn
+from .._caller_warnings import warn, warn_each_time
 
 # Process-wide (host callbacks run on XLA's threads, not the caller's).
 _STACK: list = []
@@ -89,11 +88,10 @@ def _host(fallback, converged):
             for key, n in counts.items():
                 _STACK[-1][key] += n
             return
-    # A rollout outside a counting call (under the user's `jax.jit`): warned from here, with
-    # a registry of its own so that the filters' "default" shows every such rollout, not
-    # the first alone (every one of them comes from this one line).
+    # A rollout outside a counting call (under the user's `jax.jit`): warned from here,
+    # every such rollout (not the first alone: all come from this one line).
     for message in _messages(counts):
-        warnings.warn_explicit(message, RuntimeWarning, __file__, 0, registry={})
+        warn_each_time(message, RuntimeWarning, __file__)
 
 
 def report(info):
