@@ -47,7 +47,7 @@ from ._jit import forward_mode_error, public_jit
 from ._kernels import local_terms
 from ._parallel._report import counting, warn_counted
 from ._simulate import rollout, sample_count
-from ._strategy import AbstractStrategy, as_strategy
+from ._strategy import AbstractStrategy, as_strategy, may_run_parallel
 
 
 def value_and_grad_of_states(model, cost, theta, xs, u, z, strategy, mask=None, norm=None):
@@ -153,7 +153,8 @@ def value_and_grad(
     cost = check_cost(data, penalty, penalty_weight)
     strategy = as_strategy(strategy)
     try:
-        with counting() as counts:  # (a parallel rollout's fallbacks: warned at the caller's)
+        # (a parallel rollout's fallbacks: warned at the caller's line)
+        with counting(may_run_parallel(strategy)) as counts:
             C, (g_theta, g_x0) = value_and_grad_compiled(
                 data.model,
                 cost,

@@ -11,7 +11,7 @@ from ._checks import check_cost, check_data
 from ._jit import public_jit
 from ._kernels import rollout as rollout
 from ._parallel._report import counting, warn_counted
-from ._strategy import AbstractStrategy, as_strategy
+from ._strategy import AbstractStrategy, as_strategy, may_run_parallel
 
 
 def outputs(model, theta, xs, u):
@@ -105,7 +105,8 @@ def simulate(
     """
     data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
-    with counting() as counts:  # (a parallel rollout's fallbacks: warned at the caller's line)
+    # (a parallel rollout's fallbacks: warned at the caller's line)
+    with counting(may_run_parallel(strategy)) as counts:
         x, z = simulate_compiled(data.model, data.theta, data.x0, data.u, data.batched, strategy)
     warn_counted(counts, stacklevel=2)
     if data.lengths is not None:  # ragged lists in, ragged lists out
@@ -175,8 +176,8 @@ def loss(
         data = check_data(agg.model, theta, agg.x0, agg.u, agg.z, agg.weight, "mask")
         penalty = agg.penalty(penalty)
     cost = check_cost(data, penalty, penalty_weight)
-    as_strategy(strategy)  # validated here; an alias string goes on as given (one cache key)
-    with counting() as counts:
+    # (validated here; an alias string goes on as given: one cache key)
+    with counting(may_run_parallel(as_strategy(strategy))) as counts:
         C = loss_compiled(
             data.model, cost, data.theta, data.x0, data.u, data.z, data.batched, data.mask, strategy
         )

@@ -126,6 +126,16 @@ def theta_forward_mode(n_theta, n_x, T, itemsize):
     return n_theta <= max(n_x, THETA_FORWARD_MIN) and T * n_x * n_theta * itemsize <= JACOBIAN_BYTES
 
 
+def may_run_parallel(strategy) -> bool:
+    """Whether a strategy's rollouts may be parallel in time (whose fallbacks the calls
+    count and report, `_parallel._report.counting`): `ParallelInTime`, and `Auto` on a GPU
+    or TPU (`Auto.resolve` takes it only there). (A function, not a method: an equinox
+    module's bound method costs some 25 microseconds a call.)"""
+    if isinstance(strategy, ParallelInTime):
+        return True
+    return isinstance(strategy, Auto) and jax.default_backend() in ACCELERATORS
+
+
 class AbstractStrategy(eqx.Module):
     """How the rollout of eq. (7), the reverse recursion of the one-shot gradient (eq. 17,
     20) and the forward sensitivities are evaluated. Pass one as `strategy=` to
@@ -332,6 +342,7 @@ class ParallelInTime(AbstractStrategy):
     """
 
     name: ClassVar[str] = "parallel"
+
     chunk_size: int | None = eqx.field(default=None, static=True, converter=integral)
     jacobian: str = eqx.field(default="full", static=True)
     max_iter: int = eqx.field(default=50, static=True, converter=integral)

@@ -24,18 +24,24 @@ _LOCK = threading.Lock()
 
 class counting:
     """Context manager: count the parallel rollouts and their fallbacks instead of
-    warning (`fit` wraps its compiled call in it)."""
+    warning (`fit` wraps its compiled call in it). With `active=False` (a call whose
+    strategy is sequential) the counts stay zero and the call is not waited for."""
+
+    def __init__(self, active=True):
+        self.active = active
 
     def __enter__(self):
         self.counts = {"parallel_rollouts": 0, "sequential_fallbacks": 0, "unconverged_rollouts": 0}
-        with _LOCK:
-            _STACK.append(self.counts)
+        if self.active:
+            with _LOCK:
+                _STACK.append(self.counts)
         return self.counts
 
     def __exit__(self, *exc):
-        jax.effects_barrier()
-        with _LOCK:
-            _STACK.remove(self.counts)
+        if self.active:
+            jax.effects_barrier()
+            with _LOCK:
+                _STACK.remove(self.counts)
         return False
 
 
