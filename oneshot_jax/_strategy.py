@@ -342,7 +342,6 @@ class ParallelInTime(AbstractStrategy):
     """
 
     name: ClassVar[str] = "parallel"
-
     chunk_size: int | None = eqx.field(default=None, static=True, converter=integral)
     jacobian: str = eqx.field(default="full", static=True)
     max_iter: int = eqx.field(default=50, static=True, converter=integral)
