@@ -64,6 +64,9 @@ class X0Estimate(eqx.Module):
         `KalmanPath`); None for `"lsq"`.
     - `states`: the model's names of the state's entries (`Model(states=...)`), which
         `print` shows; None without them.
+    - `head`: the outputs z[:n] it was estimated from, as given (None under a JAX
+        transformation): `plot.compare` warns where a `Prediction` is scored against
+        another record.
     """
 
     x0: np.ndarray
@@ -76,6 +79,7 @@ class X0Estimate(eqx.Module):
     stop_reason: Any = None
     kalman: KalmanPath | None = None
     states: tuple | None = eqx.field(static=True, default=None)
+    head: np.ndarray | None = None
 
     def __str__(self) -> str:
         """A few lines for `print`: the estimate with its standard deviations, how it was
@@ -573,6 +577,7 @@ def _estimate(
         stop_reason=stop_reason,
         kalman=kalman,
         states=model.states,
+        head=np.asarray(z) if is_concrete(z) else None,
     ), sim
 
 

@@ -139,6 +139,12 @@ def _check(z, zhat, mask):
 def _flat(z, zhat, mask=None):
     """(n, n_z) views of z, zhat and the weights of the samples (1, or the mask)."""
     z, zhat = jnp.asarray(z), jnp.asarray(zhat)
+    # (T,) is one output channel, the same as (T, 1), as for `benchmark_scores`.
+    if z.ndim == 1 and zhat.shape == (*z.shape, 1):
+        z = z[:, None]
+        mask = None if mask is None or jnp.ndim(mask) != 1 else jnp.asarray(mask)[:, None]
+    elif zhat.ndim == 1 and z.shape == (*zhat.shape, 1):
+        zhat = zhat[:, None]
     if z.shape != zhat.shape:
         raise ValueError(
             f"`z` and `zhat` must have the same shape, got {z.shape} and {zhat.shape}."

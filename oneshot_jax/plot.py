@@ -18,6 +18,7 @@ import numpy as np
 from . import metrics
 from ._ahead import AheadPrediction
 from ._caller_warnings import warn
+from ._counts import integral
 from ._fit_result import FitResult, is_fitted_record
 from ._initial_state import Prediction, several_records
 from ._model import ODE_STEPS, model_labels
@@ -92,6 +93,32 @@ def _warn_other_record(name, result, zhat, z):
     )
 
 
+def _warn_other_head(name, prediction, z):
+    """Warn where a `Prediction` was made from the first n outputs of a record other
+    than `z` (its `X0Estimate.head` differs from z[:n]): its FIT would score one record's
+    prediction against another record (a list of per-record predictions passed whole)."""
+    head = getattr(prediction.estimate, "head", None)
+    if head is None:
+        return
+    head = np.asarray(head, np.float64)
+    head = head.reshape(head.shape[0], -1) if head.ndim else head
+    if head.ndim != 2 or head.shape[1] != z.shape[1] or head.shape[0] > z.shape[0]:
+        return  # (a shape mismatch is refused with the model's output)
+    ours = z[: head.shape[0]]
+    scale = np.nanmax(np.abs(ours), initial=0.0)
+    if np.array_equal(np.isnan(head), np.isnan(ours)) and np.allclose(
+        head, ours, rtol=1e-6, atol=1e-6 * scale, equal_nan=True
+    ):
+        return
+    warn(
+        f"`{name}` is a Prediction made from the first {head.shape[0]} outputs of another "
+        "record (they differ from those of `z`): its FIT scores that record's prediction "
+        "against this one. Pass the Prediction of this record (`predictions[i]` for "
+        "record i).",
+        stacklevel=4,
+    )
+
+
 def _fixed_dt(result):
     """The `dt` of a FitResult's `Model.from_ode` model with a fixed sample interval, else
     None."""
@@ -157,6 +184,8 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         if not n:
             _warn_other_record(name, model, np.asarray(zhat), z)
     elif isinstance(model, (Prediction, AheadPrediction)):
+        if isinstance(model, Prediction):
+            _warn_other_head(name, model, z)
         zhat = model.z
     else:
         zhat = model
@@ -229,14 +258,16 @@ def compare(
         `result.predict(u, z)` for its numbers); a
         `Prediction` from `oneshot_jax.predict` (its `z`); an `AheadPrediction` from
         `predict_ahead` (its K-step-ahead `z`: MATLAB's `compare(data, sys, K)`); an
-        array of model outputs shaped like `z`.
+        array of model outputs shaped like `z`. A `Prediction` made from the head of
+        another record than `z` warns.
     - `u`: the inputs (T,) or (T, n_u), needed to simulate a `FitResult`.
     - `t`: the time axis (T,); default the sample index (times `Ts` for a record, or
         the `dt` of the FitResults' `Model.from_ode` models where they share one). A
         `FitResult` of a model of time-stamped records (`Model.from_ode(rhs, dt=None)`)
         is simulated at these sample times.
     - `n`: the protocol's head: the number of first samples used for x0, left out of the
-        FIT; 0 <= n <= T - 2. Default: none (the record's `n` for a record).
+        FIT; an integer 0 <= n <= T - 2 (an integral float such as 20.0 counts). Default:
+        none (the record's `n` for a record).
     - `labels`: one name per model; default `"model"` or `"model 1"`, `"model 2"`, ...
     - `ax`: matplotlib Axes to draw in, one per output; default a new figure.
     - `outputs`: one name per output for its axis, with its unit (`["q (mm)"]`;
@@ -264,9 +295,9 @@ def compare(
     **Raises:**
 
     `ImportError` without matplotlib (install the `plot` extra); `ValueError` naming the
-    argument for a shape that does not match `z`, a missing `u`, or `n`, `t`, `labels`,
-    `outputs` or `ax` that do not fit; `TypeError` for `labels`, `outputs` or
-    `time_label` that are not strings.
+    argument for a shape that does not match `z`, a missing `u`, `simulate`'s `(x, z)`
+    passed whole as the models, or `n`, `t`, `labels`, `outputs` or `ax` that do not
+    fit; `TypeError` for `labels`, `outputs` or `time_label` that are not strings.
     """
     plt = _pyplot()
     Ts = None
@@ -283,6 +314,19 @@ def compare(
             return True
         return hasattr(m, "shape") and np.ndim(m) in (1, 2) and np.shape(m)[0] == T
 
+    results = (FitResult, Prediction, AheadPrediction)
+    if (
+        len(models) == 1
+        and isinstance(models[0], tuple)
+        and len(models[0]) == 2
+        and not any(isinstance(m, results) for m in models[0])
+        and all(hasattr(m, "shape") or isinstance(m, (list, tuple)) for m in models[0])
+    ):  # (the states would be drawn and scored as a model's outputs)
+        raise ValueError(
+            "`models` holds one tuple of two arrays: is it what `simulate` returns, the "
+            "states and the outputs `(x, z)`? Pass the outputs (`result.simulate(u)[1]`); "
+            "pass several model outputs as separate arguments or as a list."
+        )
     if (
         len(models) == 1 and isinstance(models[0], (list, tuple)) and all(map(one_model, models[0]))
     ):  # (a list of models, as MATLAB's compare(data, sys1, sys2) users may pass them; a
@@ -307,6 +351,7 @@ def compare(
             )
             raise ValueError(f"`u` must have the T = {T} samples of `z`, got {u.shape[0]}{hint}.")
     if n is not None:
+        n = integral(n)  # (20.0, as a configuration file may write it, or a 0-d array)
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 0 <= n <= T - 2:
             raise ValueError(f"`n` must be an integer with 0 <= n <= T - 2 = {T - 2}, got {n!r}.")
         n = int(n)

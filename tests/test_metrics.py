@@ -164,6 +164,22 @@ def test_shape_mismatch_raises(name):
         metrics.aic(jnp.zeros((10, 2)), jnp.zeros((9, 2)), 1)
 
 
+@pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2", "aic", "fpe"])
+def test_one_output_as_1d_or_column(name):
+    """A one-output record (T,) against a model's (T, 1) outputs, either way round (with a
+    mask of z's shape), is that single channel, as for `benchmark_scores`: the scores of
+    the two columns, never a broadcast (T, T) or an error."""
+    z, zhat = _pair((60,), 4)
+    mask = np.arange(60) % 7 != 3
+    args = (3,) if name in ("aic", "fpe") else ()
+    f = getattr(metrics, name)
+    ref = f(z[:, None], zhat[:, None], *args, mask=mask[:, None])
+    for a, b, m in ((z, zhat[:, None], mask), (z[:, None], zhat, mask[:, None])):
+        got = f(a, b, *args, mask=m)
+        assert np.shape(got) == np.shape(ref)
+        np.testing.assert_array_equal(got, ref)
+
+
 # ----------------------------------------------------------------------- benchmark protocol
 
 

@@ -504,6 +504,52 @@ def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
         oj.plot.compare(z[::-1][:60], result, u=u[::-1][:60])
 
 
+def test_compare_warns_on_a_prediction_of_another_record(fitted):
+    """A list of per-record Predictions (what `FitResult.predict` returns for several
+    records) passed whole with one record's `z` scores the other records' predictions
+    against it: `compare` warns at the caller's line, naming the model. The Prediction of
+    this record passes silently, also when the head was cast to float32 and back."""
+    model, u, z, result = fitted
+    rng = np.random.default_rng(8)
+    u2 = rng.standard_normal(u.shape)
+    _, z2 = oj.simulate(model, result.theta, np.array([0.5]), u2)
+    z2 = np.asarray(z2) + 0.02 * rng.standard_normal(z.shape)
+    ours, theirs = result.predict(u, z[:20]), result.predict(u2, z2[:20])
+    np.testing.assert_array_equal(ours.estimate.head, z[:20])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.plot.compare(z, ours, n=20)
+        oj.plot.compare(z, result.predict(u, z[:20].astype(np.float32)), n=20)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        oj.plot.compare(z, [ours, theirs], n=20)
+    assert len(caught) == 1, [str(w.message) for w in caught]
+    assert "`models[1]` is a Prediction made from the first 20 outputs of another record" in (
+        str(caught[0].message)
+    )
+    assert caught[0].filename == __file__
+
+
+def test_compare_refuses_what_simulate_returns(fitted):
+    """`simulate` returns (x, z): passed whole, a model whose states are its outputs would
+    be drawn twice, the states scored as a model; refused, naming the outputs' index."""
+    model, u, z, result = fitted
+    with pytest.raises(ValueError, match=r"`result.simulate\(u\)\[1\]`"):
+        oj.plot.compare(z, result.simulate(u))
+    fig = oj.plot.compare(z, [result.simulate(u)[1], z + 0.1])  # a list of two outputs
+    assert len(_legend_texts(fig.axes[0])) == 3
+
+
+def test_compare_takes_an_integral_float_head(fitted):
+    """`n=20.0` (as a configuration file may write it) is the head of 20, as for
+    `benchmark_scores`; 20.5 is refused."""
+    model, u, z, result = fitted
+    texts = _legend_texts(oj.plot.compare(z, result, u=u, n=20.0).axes[0])
+    assert texts == _legend_texts(oj.plot.compare(z, result, u=u, n=20).axes[0])
+    with pytest.raises(ValueError, match="`n` must be an integer"):
+        oj.plot.compare(z, result, u=u, n=20.5)
+
+
 def test_resid_figure(fitted):
     model, u, z, result = fitted
     rng = np.random.default_rng(7)
