@@ -357,6 +357,11 @@ def compare(
         n = int(n)
     n = n or 0
     labels = _names(labels, len(models), "labels", "model", start=1)
+    # (MATLAB's compare names the horizon of a K-step prediction)
+    labels = [
+        f"{label} ({m.K}-step ahead)" if isinstance(m, AheadPrediction) else label
+        for m, label in zip(models, labels)
+    ]
     if outputs is None:  # (the names of the first model that has them for these outputs)
         given = (
             getattr(m.model, "outputs", None) if isinstance(m, FitResult) else m.outputs
@@ -439,9 +444,11 @@ def compare(
         a.set_ylabel(names[k])
         a.legend(fontsize=8, loc="best")
     axes[-1].set_xlabel(xlabel if time_label is None else time_label)
+    simulated = not n and any(isinstance(m, FitResult) for m in models)
     axes[0].set_title(
         "Measured and model outputs"
         + (f" (x0 from the first {n} samples, FIT over the rest)" if n else "")
+        + (" (FitResults simulated from their fitted x0)" if simulated else "")
     )
     if ax is None:
         fig.tight_layout()

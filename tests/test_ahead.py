@@ -250,13 +250,13 @@ def test_compare_plots_a_k_step_prediction():
     fig = oj.plot.compare(Z, pred)
     fit = 100 * (1 - np.linalg.norm(pred.z - Z) / np.linalg.norm(Z - Z.mean()))
     texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
-    assert f"model: FIT {fit:.2f} %" in texts
+    assert f"model (3-step ahead): FIT {fit:.2f} %" in texts  # (MATLAB names K too)
     assert not fig.axes[0].collections  # (no band without `confidence`)
     plt.close(fig)
     # With `confidence`, its prediction band: zhat +- q std (q of 90 %).
     fig = oj.plot.compare(Z, pred, confidence=0.9)
     texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
-    assert "model: 90 % prediction band" in texts
+    assert "model (3-step ahead): 90 % prediction band" in texts
     vertices = fig.axes[0].collections[0].get_paths()[0].vertices
     # (the path runs along the lower edge, then back along the upper one)
     lower, upper = vertices[1 : T + 1, 1], vertices[T + 2 : -1, 1][::-1]

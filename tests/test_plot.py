@@ -316,6 +316,11 @@ def test_compare_figure(fitted):
     fit = 100 * (1 - np.linalg.norm(other - z) / np.linalg.norm(z - z.mean()))
     assert texts[2] == f"noisy: FIT {fit:.2f} %"
     assert texts[1].startswith("fit: FIT ") and texts[1].endswith(" %")
+    title = fig.axes[0].get_title()
+    assert title == "Measured and model outputs (FitResults simulated from their fitted x0)"
+    title = oj.plot.compare(z, result, u=u, n=20).axes[0].get_title()
+    assert title == "Measured and model outputs (x0 from the first 20 samples, FIT over the rest)"
+    assert oj.plot.compare(z, other).axes[0].get_title() == "Measured and model outputs"
     # Several results may come as one list (as MATLAB's compare users may pass them).
     listed = oj.plot.compare(z, [result, result], u=u, labels=["a", "b"])
     assert _legend_texts(listed.axes[0])[1:] == [
