@@ -50,11 +50,12 @@ from ._progress import NoProgress
 from ._results import RESULTS, SUCCESS, name_of
 from ._solver.least_squares import AbstractLeastSquares
 from ._stability import (
-    jacobians_at,
+    checked_states,
     rhs_of,
     row_bound,
     sample_points,
     stability,
+    step_weights,
     warn_after_fit,
     warn_if_near_limit,
 )
@@ -156,9 +157,9 @@ def _solve(
     them (side by side, or with `in_turn` one after another: `_iterate.run`), pick the best
     start and post-process it (covariance and metrics; with `lags`, the Newey-West
     sandwich of that many lags), and with `stability_at` (a `Model.from_ode` model's
-    right-hand side and the flattened indices of the states to check, `_stability`) the
-    Jacobians there. Returns what `assemble` reads (an `Out`) and those Jacobians (or
-    None), packed."""
+    right-hand side, the flattened indices of the evenly spaced states to check and each
+    state's step h, `_stability.checked_states`) the states checked and the Jacobians
+    there. Returns what `assemble` reads (an `Out`) and those (or None), packed."""
     projected = jax.vmap(problem.feasible)(starts.theta)
     moved = projected != starts.theta  # (S, p): the entries each start had outside
     starts = Params(projected, starts.x0)
@@ -193,10 +194,10 @@ def _solve(
     out = collect(problem, stages, best, moved, posted)
     jacobians = None
     if stability_at is not None:
-        rhs, idx = stability_at
+        rhs, idx, h = stability_at
         theta = problem.theta_of(params.theta)
-        xs, J = jacobians_at(rhs, theta, posted[-1], problem.u, idx)
-        jacobians = (xs, J, row_bound(xs, J))
+        idx, xs, J = checked_states(rhs, theta, posted[-1], problem.u, idx, h)
+        jacobians = (idx, xs, J, row_bound(xs, J))
     # One buffer per dtype to the host instead of one per array (`_pytree.pack`).
     return _pytree.pack((out, jacobians))
 
@@ -1228,7 +1229,7 @@ def fit(
         # Jacobians along the fitted trajectory come from the solve's compiled call.
         rhs = rhs_of(model, inputs.data) if aggregate is None else None
         idx = None if rhs is None else sample_points(inputs.data, timed=model.timed)
-        stability_at = None if idx is None else (rhs, idx)
+        stability_at = None if idx is None else (rhs, idx, step_weights(inputs.data, model.step))
         out, wall, diagnostics, jacobians, prepared = _run(
             inputs.solvers,
             built.problem,
@@ -1360,7 +1361,7 @@ def fit(
                 stacklevel=2,
             )
         if stability_at is not None:
-            warn_after_fit(model.step, idx, *jacobians, u=inputs.data.u, stacklevel=2)
+            warn_after_fit(model.step, *jacobians, u=inputs.data.u, stacklevel=2)
         elif aggregate is not None and (window is None or not model.timed):
             # (with windows, the windows' records: for a timed model they carry their
             # intervals already, which `stability` would take for an input)

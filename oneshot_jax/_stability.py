@@ -4,8 +4,10 @@ An explicit integrator (`ode_step`: RK4 or Euler, h = dt / substeps) is stable o
 of the right-hand side's Jacobian only while lambda h lies in its stability region. A fit
 knows nothing of that region: it can move a stiff mode (a friction, a fast pole) out to
 where the discrete step f of eq. (1) is no longer the ODE's flow, and the estimates then
-depend on `substeps`. `check_stability` evaluates the Jacobian of the right-hand side at
-a few states of the fitted trajectory (eq. 7) and compares max |lambda| h with the
+depend on `substeps`. `check_stability` bounds |lambda| h at every state of the fitted
+trajectory (eq. 7) by the row sums of the right-hand side's Jacobian, takes the
+eigenvalues at the states of the largest bounds and at a few evenly spaced ones, and
+compares max |lambda| h with the
 integrator's limit, and for RK4 with the range where its step follows the ODE's flow
 (`ACCURATE`: past 1.6 a faster mode steps like a slower one); `fit` calls it after every
 fit of such a model. A model of
@@ -74,8 +76,10 @@ def _decays(eig):
 # steps is not reported (Euler grows one at any h, by sqrt(1 + |lambda h|^2) a step).
 SMALL_GROWTH = 0.01
 
-# The states the Jacobian is evaluated at: this many, evenly spaced over all samples of
-# all trajectories (a few small Jacobians: cheap next to the fit).
+# The states the Jacobian's eigenvalues are taken at: this many, evenly spaced over all
+# samples of all trajectories, and as many where its row bound on |lambda| h is largest
+# (`stiffest`: a mode that an input or a contact switches on at a few samples falls
+# between evenly spaced ones; a gated lag fitted 13 standard errors off unwarned).
 POINTS = 32
 
 
@@ -221,6 +225,39 @@ def _evenly(n: int, points: int) -> np.ndarray:
     return idx
 
 
+def step_weights(data, step) -> np.ndarray:
+    """Each flattened state's h, the integrator's step from it (`step_sizes`), 0 at the
+    padding of ragged trajectories, in the checked data's dtype (host): the weights of
+    the row bounds that `stiffest` ranks."""
+    rows = math.prod(np.shape(data.u)[:-1])
+    h = step_sizes(step, data.u, np.arange(rows))[2]
+    if data.mask is not None:
+        h = np.where(np.asarray(data.mask.samples).reshape(-1) > 0, h, 0.0)
+    return np.asarray(h, np.asarray(data.u).dtype)
+
+
+# The states whose row bounds `stiffest` forms at once (memory O(this n_x^2)).
+BOUND_BATCH = 256
+
+
+def stiffest(rhs, theta, xs, u, h, k):
+    """The flattened indices of the `k` states of a trajectory xs (..., T, n_x) (inputs u
+    (..., T, n_u)) where the row bound ||J||_inf h on |lambda| h is largest, J = d rhs / d x
+    and h (rows,) the step from each state (`step_weights`; 0 where there is none): every
+    state's Jacobian is formed, in batches, and only its bound kept. Non-finite states
+    rank last (the report leaves them out). Traced."""
+    rows = math.prod(xs.shape[:-1])
+    X, U = xs.reshape(rows, xs.shape[-1]), u.reshape(rows, u.shape[-1])
+
+    def bound(xu):
+        J = jax.jacfwd(rhs)(xu[0], xu[1], theta)
+        return jnp.max(jnp.sum(jnp.abs(J), axis=-1), initial=0.0)
+
+    b = jax.lax.map(bound, (X, U), batch_size=min(rows, BOUND_BATCH))
+    score = jnp.where(jnp.isfinite(b) & (h > 0), b * h, -jnp.inf)
+    return jax.lax.top_k(score, min(k, rows))[1]
+
+
 def jacobians_at(rhs, theta, xs, u, idx):
     """The states of a trajectory xs (..., T, n_x) at the flattened indices `idx`, and
     d rhs / d x there with their inputs u (..., T, n_u) (forward mode: the state is
@@ -240,12 +277,20 @@ def row_bound(xs, J):
     return jnp.max(jnp.where(finite, rows, -jnp.inf), initial=-jnp.inf)
 
 
+def checked_states(rhs, theta, xs, u, idx, h):
+    """The flattened indices `idx` (evenly spaced, `sample_points`) and as many where the
+    row bound is largest (`stiffest`, weights `h`), the states of the trajectory xs there
+    and d rhs / d x at them (`jacobians_at`). Traced."""
+    idx = jnp.concatenate([jnp.asarray(idx), stiffest(rhs, theta, xs, u, h, len(idx))])
+    return (idx, *jacobians_at(rhs, theta, xs, u, idx))
+
+
 @jit
-def _jacobians(model, params, x0, u, batched, rhs, idx):
-    """The states of eq. (7) and d rhs / d x at the flattened states `idx`, in one
+def _jacobians(model, params, x0, u, batched, rhs, idx, h):
+    """The states of eq. (7) checked (`checked_states`) and d rhs / d x there, in one
     compiled call."""
     xs, _ = simulate_impl(model, params, x0, u, batched)
-    return jacobians_at(rhs, params, xs, u, idx)
+    return checked_states(rhs, params, xs, u, idx, h)
 
 
 def report(step, idx, xs, J, u) -> Stability | None:
@@ -286,9 +331,10 @@ def report(step, idx, xs, J, u) -> Stability | None:
 
 
 def warn_after_fit(step, idx, xs, J, bound, u, stacklevel: int) -> None:
-    """`fit`'s warning from the Jacobians `J` at the fitted states `xs` (`jacobians_at`)
-    and their `row_bound`, the inputs in the checked data's `u`. Where max |lambda| h is
-    within the limit by that bound times the largest h, no eigenvalue is computed."""
+    """`fit`'s warning from the Jacobians `J` at the fitted states `xs`, flattened
+    indices `idx` (`checked_states`), and their `row_bound`, the inputs in the checked
+    data's `u`. Where max |lambda| h is within the limit by that bound times the largest
+    h, no eigenvalue is computed."""
     h = step_sizes(step, u, idx)[2]
     # (|lambda| <= bound: within the limit, or no finite state: -inf. Euler's measure
     # exceeds |lambda| h for a lightly damped mode: always computed.)
@@ -307,8 +353,9 @@ def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability
     idx = sample_points(data, points, timed=isinstance(model.step, _TimedODEStep))
     if idx is None:
         return None
-    xs, J = _jacobians(
-        data.model, data.theta, data.x0, data.u, data.batched, rhs_of(model, data), idx
+    h = step_weights(data, model.step)
+    idx, xs, J = _jacobians(
+        data.model, data.theta, data.x0, data.u, data.batched, rhs_of(model, data), idx, h
     )
     return report(model.step, idx, xs, J, data.u)
 
@@ -428,8 +475,11 @@ def check_stability(
     """Check that a `Model.from_ode` model runs inside its integrator's stability region.
 
     Simulates the model (eq. 7), evaluates the Jacobian of the right-hand side d rhs / d x
-    at `points` states evenly spaced along the trajectory (with their inputs) and returns
-    the largest |lambda| h, h = dt / substeps, over their eigenvalues lambda. Above about
+    at `points` states evenly spaced along the trajectory (with their inputs) and at the
+    `points` states where its bound ||J||_inf h on |lambda| h is largest (formed at every
+    state: a mode that an input or a contact switches on at a few samples is not missed
+    between evenly spaced ones), and returns the largest |lambda| h, h = dt / substeps,
+    over their eigenvalues lambda. Above about
     1.6 for RK4 (where its step stops following the ODE's flow: a faster mode then steps
     like a slower one; its stability region reaches 2.785 on the negative real axis,
     2.828 on the imaginary one), or outside Euler's disc |1 + lambda h| <= 1
@@ -447,7 +497,8 @@ def check_stability(
         (`Model.from_ode(rhs, dt=None)`): h is then each step's own, its interval over
         the number of integrator steps it takes (`substeps`, or with `max_step`
         ceil(interval / max_step)).
-    - `points`: how many states to evaluate the Jacobian at.
+    - `points`: how many states to take the eigenvalues at, evenly spaced (and as many
+        of the largest bound).
 
     **Returns:**
 

@@ -347,6 +347,31 @@ def test_euler_warns_of_an_undamped_mode_at_any_step():
     assert not report.near_limit  # lambda = 0: neither grows nor decays
 
 
+def gated(x, u, p):
+    """A lag whose rate a second input multiplies by 11 where it is on."""
+    return p["a"] * (1.0 + 10.0 * u[1]) * (u[0] - x)
+
+
+def test_a_stiff_mode_switched_on_between_the_evenly_spaced_states_is_found():
+    """A lag gated 11 times faster at 39 of 300 samples, none of them among the 32 evenly
+    spaced states: the default check read 0.176 there, and a fit with h = dt (data of
+    a = 2.4 from 20 substeps) converged 13 standard errors off (a = 1.76) unwarned. The
+    row bound at every state finds the gated samples: |lambda| h = 11 a dt there."""
+    T = 300
+    evenly = set(np.unique(np.linspace(0, T - 1, 32).astype(int)).tolist())
+    gate = np.array([k % 7 == 3 and k not in evenly for k in range(T)], float)
+    k = np.arange(T)
+    u = np.stack([np.sin(0.07 * k) + np.sign(np.sin(0.23 * k)), gate], 1)
+    coarse = oj.Model.from_ode(gated, 0.1)
+    with pytest.warns(RuntimeWarning, match=r"\|lambda\| h = 2\.64 .*substeps=2"):
+        report = oj.check_stability(coarse, {"a": 2.4}, np.zeros(1), u)
+    assert report.value == pytest.approx(2.4 * 11 * 0.1) and gate[report.sample] == 1
+    _, z = oj.simulate(oj.Model.from_ode(gated, 0.1, substeps=20), {"a": 2.4}, np.zeros(1), u)
+    z = np.asarray(z) + 0.001 * np.random.default_rng(0).standard_normal((T, 1))
+    with pytest.warns(RuntimeWarning, match="no longer follows the ODE"):
+        oj.fit(coarse, {"a": 2.0}, np.zeros(1), u, z)
+
+
 def _timed_lag_data():
     """The lag sampled every 0.04 except one interval of 0.052, away from the states
     `check_stability` spaces evenly: a = 52 gives |lambda| h = 2.08 on the others and
