@@ -237,7 +237,7 @@ def step_weights(data, step) -> np.ndarray:
 
 
 # The states whose row bounds `stiffest` forms at once (memory O(this n_x^2)).
-BOUND_BATCH = 256
+BOUND_BATCH = 4096
 
 
 def stiffest(rhs, theta, xs, u, h, k):
