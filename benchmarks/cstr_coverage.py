@@ -26,6 +26,7 @@ design; `--quick`: 5 draws on two days).
 import argparse
 import sys
 import time
+import warnings
 
 import jax
 import numpy as np
@@ -68,14 +69,20 @@ def study(design, draws, seed):
     """Estimates, standard errors and interval hits per variant over `draws` draws."""
     model = cstr.model()
     rng = np.random.default_rng(seed)
-    out = {v: {"theta": [], "std": [], "hit": [], "success": [], "time": 0.0} for v in VARIANTS}
+    out = {
+        v: {"theta": [], "std": [], "hit": [], "success": [], "warned": [], "time": 0.0}
+        for v in VARIANTS
+    }
     for i in range(draws):
         z, averages = cstr.measure(design, seed * 100_000 + i)
         theta0, x0 = start(rng, z, averages)
         for variant, rec in out.items():
             tic = time.perf_counter()
-            result = fit(variant, design, model, z, averages, theta0, x0)
+            with warnings.catch_warnings():  # (counted in the table: `result.warnings`)
+                warnings.simplefilter("ignore")
+                result = fit(variant, design, model, z, averages, theta0, x0)
             rec["time"] += time.perf_counter() - tic
+            rec["warned"].append(result.warnings[0] if result.warnings else "")
             lo, hi = result.ci95
             est = [float(result.theta[n]) for n in NAMES]
             rec["theta"].append(est)
@@ -87,7 +94,19 @@ def study(design, draws, seed):
                     for n in NAMES
                 ]
             )
-    return {v: {k: np.asarray(a) for k, a in rec.items()} for v, rec in out.items()}
+    return {
+        v: {k: a if k == "warned" else np.asarray(a) for k, a in rec.items()}
+        for v, rec in out.items()
+    }
+
+
+def warned(rec):
+    """How many fits warned, with the start of the first warning."""
+    said = [w for w in rec["warned"] if w]
+    if not said:
+        return "none warned"
+    head = said[0].split(":")[0]
+    return f"{len(said)} warned (first: \"{head}: ...\")"
 
 
 def table(rec):
@@ -129,7 +148,8 @@ def main(argv=None):
     for variant, title in VARIANTS.items():
         rec = results[variant]
         print(
-            f"\n{title}: {rec['success'].sum()}/{draws} fits succeeded, {rec['time']:.1f} s in all"
+            f"\n{title}: {rec['success'].sum()}/{draws} fits succeeded, {warned(rec)}, "
+            f"{rec['time']:.1f} s in all"
         )
         print(table(rec))
     cover = 100 * results["aggregated"]["hit"].mean(0)

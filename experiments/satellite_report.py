@@ -232,7 +232,9 @@ def markdown(res: dict) -> str:
         "compilation included. *Converged*: the solver's own success flag (library: "
         "`FitResult.success`; scipy: `OptimizeResult.success`). *raw*: the problem in SI "
         "units; *scaled*: variables divided by their initial magnitudes and C by its initial "
-        "value."
+        "value. The finite-difference rows depend on round-off in their difference "
+        "quotients: on another machine or library build their distances and iteration "
+        "counts can differ in the last digits."
     )
     w("")
 
