@@ -1077,9 +1077,9 @@ def fit(
         leading axis, e.g. `multistart={"phys": {"w0sq": jnp.array([1.0, 4.0, 9.0, 16.0])}}`
         (or `{"phys.w0sq": ...}`, the printout's name, as `fixed=` takes it).
         Every part given needs the same number S of starts, and a shape (S, *its shape);
-        the starts of fixed entries are refused. `x0` starts by its own leading axis of
-        starts (S, ...) (`multistart={}` for starts over x0 alone; starts that differ in
-        an entry `estimate_x0` holds are refused). With `weight="noise"` the starts
+        starts of a fixed entry that differ from its value are refused. `x0` starts by
+        its own leading axis of starts (S, ...) (`multistart={}` for starts over x0
+        alone; starts that differ in an entry `estimate_x0` holds are refused). With `weight="noise"` the starts
         run in its first fit (Q = I): `result.starts` reports that fit's losses and
         points, and the later fits refine the best start's. On a CPU the starts run in turn, each
         stopping on its own tests (`lax.scan`); on an accelerator side by side
