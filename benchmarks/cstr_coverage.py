@@ -106,7 +106,7 @@ def warned(rec):
     if not said:
         return "none warned"
     head = said[0].split(":")[0]
-    return f"{len(said)} warned (first: \"{head}: ...\")"
+    return f'{len(said)} warned (first: "{head}: ...")'
 
 
 def table(rec):

@@ -1079,11 +1079,11 @@ def fit(
         Every part given needs the same number S of starts, and a shape (S, *its shape);
         starts of a fixed entry that differ from its value are refused. `x0` starts by
         its own leading axis of starts (S, ...) (`multistart={}` for starts over x0
-        alone; starts that differ in an entry `estimate_x0` holds are refused). With `weight="noise"` the starts
-        run in its first fit (Q = I): `result.starts` reports that fit's losses and
-        points, and the later fits refine the best start's. On a CPU the starts run in turn, each
-        stopping on its own tests (`lax.scan`); on an accelerator side by side
-        (vmapped), every start stepping until the last one stops
+        alone; starts that differ in an entry `estimate_x0` holds are refused). With
+        `weight="noise"` the starts run in its first fit (Q = I): `result.starts` reports
+        that fit's losses and points, and the later fits refine the best start's. On a CPU
+        the starts run in turn, each stopping on its own tests (`lax.scan`); on an
+        accelerator side by side (vmapped), every start stepping until the last one stops
         (`benchmarks/multistart.py`).
     - `progress`: True shows a progress bar with the loss (tqdm), or a progress object
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
