@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 # The suite is dominated by XLA's compilation of CPU kernels, so the tests (and the
-# experiment runs they start) compile with three options that shorten it, set before JAX
+# experiment runs they start) compile with four options that shorten it, set before JAX
 # starts, and only where this XLA knows them (an XLA without one, jaxlib 0.11 for the
 # first, aborts the process on an unknown flag in XLA_FLAGS): one probe in a child process;
 # the answer is kept in the environment for the pytest-xdist workers and the runs the
@@ -27,9 +27,16 @@ from pathlib import Path
 #   a pytest-xdist worker per core the threads only contend: one part per program took
 #   6-9 % off the time of two sets of test files run as CI runs them (two workers on two
 #   cores), for the same kernels (the split changes where code goes, not what it does).
+# - XLA's HLO simplification pipeline runs its passes again until none changes the
+#   program: on a fit's nested while loops (solver, line search, rollouts) it went 14
+#   rounds, most of its time in loop-invariant code motion and the while-loop simplifier,
+#   which move and drop code without changing what is computed (slower loops, at O0
+#   already). Without those two, a 2-state fit's HLO passes took about 35 % less time and
+#   tests/test_honest_solvers.py 8 % less in one process (473 -> 434 s).
 FUSION_FLAG = "--xla_cpu_use_fusion_emitters=false"
 OPT_FLAG = "--xla_backend_optimization_level=0"
 SPLIT_FLAG = "--xla_cpu_parallel_codegen_split_count=1"
+PASSES_FLAG = "--xla_disable_hlo_passes=while-loop-invariant-code-motion,simplify-while-loops"
 PROBED = "ONESHOT_JAX_TESTS_XLA_PROBED"
 
 
@@ -47,7 +54,7 @@ def _xla_takes(flag):
 
 if PROBED not in os.environ:
     os.environ[PROBED] = "1"
-    for flag in (FUSION_FLAG, OPT_FLAG, SPLIT_FLAG):
+    for flag in (FUSION_FLAG, OPT_FLAG, SPLIT_FLAG, PASSES_FLAG):
         name = flag.split("=")[0].lstrip("-")
         if name not in os.environ.get("XLA_FLAGS", "") and _xla_takes(flag):
             os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
@@ -119,7 +126,7 @@ def pytest_unconfigure(config):
 
 def _run_in_child(item):
     """{test name: (outcome, text)} of every `default_optimisation` test in `item`'s file,
-    run in one child pytest process without `OPT_FLAG`."""
+    run in one child pytest process without `OPT_FLAG` and `PASSES_FLAG`."""
     import xml.etree.ElementTree as ET
 
     marked = [
@@ -127,7 +134,8 @@ def _run_in_child(item):
         for i in item.session.items
         if i.path == item.path and i.get_closest_marker("default_optimisation") is not None
     ]
-    flags = os.environ.get("XLA_FLAGS", "").replace(OPT_FLAG, "").strip()
+    flags = os.environ.get("XLA_FLAGS", "").replace(OPT_FLAG, "").replace(PASSES_FLAG, "")
+    flags = " ".join(flags.split())
     env = dict(os.environ, XLA_FLAGS=flags)
     env.pop("PYTEST_XDIST_WORKER", None)
     with tempfile.TemporaryDirectory() as tmp:
@@ -184,7 +192,8 @@ def _shared_child_outcomes(item, wait=3600.0):
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_call(item):
     """A test marked `default_optimisation` runs in a child pytest process whose XLA
-    compiles at its default optimisation level (without `OPT_FLAG`), where this process
+    compiles at its default optimisation level (without `OPT_FLAG`, and with every HLO
+    pass), where this process
     has the flag (one child per test file); its failure or skip is this test's."""
     if item.get_closest_marker("default_optimisation") is None:
         return
