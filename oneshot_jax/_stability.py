@@ -7,13 +7,11 @@ where the discrete step f of eq. (1) is no longer the ODE's flow, and the estima
 depend on `substeps`. `check_stability` bounds |lambda| h at every state of the fitted
 trajectory (eq. 7) by the row sums of the right-hand side's Jacobian, takes the
 eigenvalues at the states of the largest bounds and at a few evenly spaced ones, and
-compares max |lambda| h with the
-integrator's limit, and for RK4 with the range where its step follows the ODE's flow
-(`ACCURATE`: past 1.6 a faster mode steps like a slower one); `fit` calls it after every
-fit of such a model. A model of
-time-stamped records (`Model.from_ode(rhs, dt=None)`) takes each step's own h, its
-interval over its number of integrator steps, and is checked also before its longest
-interval.
+compares max |lambda| h with the integrator's limit, and for RK4 with the range where
+its step follows the ODE's flow (`ACCURATE`: past 1.6 a faster mode steps like a slower
+one); `fit` calls it after every fit of such a model. A model of time-stamped records
+(`Model.from_ode(rhs, dt=None)`) takes each step's own h, its interval over its number
+of integrator steps, and is checked also before its longest interval.
 """
 
 import functools
@@ -479,13 +477,13 @@ def check_stability(
     `points` states where its bound ||J||_inf h on |lambda| h is largest (formed at every
     state: a mode that an input or a contact switches on at a few samples is not missed
     between evenly spaced ones), and returns the largest |lambda| h, h = dt / substeps,
-    over their eigenvalues lambda. Above about
-    1.6 for RK4 (where its step stops following the ODE's flow: a faster mode then steps
-    like a slower one; its stability region reaches 2.785 on the negative real axis,
-    2.828 on the imaginary one), or outside Euler's disc |1 + lambda h| <= 1
-    (`Stability.value`; an undamped mode, which Euler grows at any h, where it grows by
-    more than 1 % over a record), it warns (RuntimeWarning), naming the eigenvalue
-    and how many substeps would bring it back inside. `fit` runs this check on the
+    over their eigenvalues lambda. Above about 1.6 for RK4 (where its step stops
+    following the ODE's flow: a faster mode then steps like a slower one; its stability
+    region reaches 2.785 on the negative real axis, 2.828 on the imaginary one), or
+    outside Euler's disc |1 + lambda h| <= 1 (`Stability.value`; an undamped mode, which
+    Euler grows at any h, where it grows by more than 1 % over a record), it warns
+    (RuntimeWarning), naming the eigenvalue and how many substeps would bring it back
+    inside. `fit` runs this check on the
     fitted theta and x0 after every fit of a `Model.from_ode` model.
 
     **Arguments:**
