@@ -44,7 +44,7 @@ from ._covariance import carried_variance
 from ._initial_state import several_records
 from ._jit import jit
 from ._model import model_labels
-from ._x0_smoother import _smoother_defaults, ekf_forward
+from ._x0_smoother import _smoother_defaults, ekf_forward, with_gaps
 
 
 class AheadPrediction(NamedTuple):
@@ -317,8 +317,9 @@ def _filter_inputs(
             "state of the model; give `x0` of shape (n_x,) otherwise.)"
         ) from err
     guess = np.asarray(data.x0)
+    zs = with_gaps(data)  # (missing samples as NaN: the filter leaves them out)
     P0, Qp, R = _smoother_defaults(
-        data,
+        data._replace(z=zs),
         model.observes_state,
         guess,
         process_noise,
@@ -327,10 +328,6 @@ def _filter_inputs(
         process_name,
     )
     dtype = data.x0.dtype
-    zs = jnp.asarray(data.z)
-    if data.mask is not None:  # (missing samples as NaN: the filter leaves them out)
-        seen = jnp.asarray(data.mask.outputs) > 0
-        zs = jnp.where(seen if seen.ndim == 2 else seen[:, None], zs, jnp.nan)
     return data, guess, tuple(jnp.asarray(a, dtype) for a in (P0, Qp, R)), zs
 
 

@@ -971,16 +971,15 @@ class FitResult(eqx.Module):
             (for several records, one (T_i,) per record, or one shared).
         - keyword arguments: as for `oneshot_jax.estimate_x0` (`method="lsq"` or
             `"smoother"`, `x0=` the starting guess, `weight=` by default the fit's, ...).
-            `missing=` is by default the fit's for `method="lsq"`: after a fit with
-            `missing="mask"`, NaN in `z_head` are missing samples (the smoother needs
-            every sample). The smoother's measurement noise defaults to the one the fit
-            estimated, sigma^2 Q^{-1} (Q the fit's weight, I without one; sigma^2 = SSE /
-            dof of its weighted residuals at the point samples, `residuals`: as its
-            standard errors use, less the readings of an aggregated fit): a weight's scale,
-            which a fit ignores, does not change it. Where Q is singular (an output of
-            weight 0) or the residuals are exactly zero, `estimate_x0`'s defaults apply
-            (with a singular Q, the smoother's reads every output: pass
-            `measurement_noise=` to trust one less).
+            `missing=` is by default the fit's: after a fit with `missing="mask"`, NaN in
+            `z_head` are missing samples. The smoother's measurement noise defaults to the
+            one the fit estimated, sigma^2 Q^{-1} (Q the fit's weight, I without one;
+            sigma^2 = SSE / dof of its weighted residuals at the point samples,
+            `residuals`: as its standard errors use, less the readings of an aggregated
+            fit): a weight's scale, which a fit ignores, does not change it. Where Q is
+            singular (an output of weight 0) or the residuals are exactly zero,
+            `estimate_x0`'s defaults apply (with a singular Q, the smoother's reads every
+            output: pass `measurement_noise=` to trust one less).
             Where the model does not observe its whole state, or `z_head`'s first row has
             a missing (NaN) sample, the starting guess defaults to the fitted x0 (the mean
             over trajectories of a multi-trajectory fit): a typical state of the system.
@@ -1033,7 +1032,7 @@ class FitResult(eqx.Module):
             shared = self._shared_x0_bounds()
             if shared is not None:
                 kwargs["bounds"] = shared  # the fit's box: a fitted record's x0 stays in it
-        if method == "lsq" and "missing" not in kwargs and self.missing == "mask":
+        if "missing" not in kwargs and self.missing == "mask":
             kwargs["missing"] = "mask"  # (the fit's NaN were missing samples: the head's too)
         noise = None
         given = kwargs.get("measurement_noise") is not None or kwargs.get("weight") is not None

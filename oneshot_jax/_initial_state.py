@@ -310,8 +310,8 @@ def estimate_x0(
     - `t`: the sample times (T,) of the record, for a model of time-stamped records
         (`Model.from_ode(rhs, dt=None)`); t[:n] is used with the head.
     - `missing`: `"mask"` takes NaN entries of the head's z as missing samples, left out
-        of the cost (`"lsq"` only; then `x0` is needed where z[0] has one); `"raise"`
-        (default) refuses them.
+        of the cost (`"lsq"`) or of the filter's updates (`"smoother"`; then `x0` is
+        needed where z[0] has one); `"raise"` (default) refuses them.
     - `estimate`: `"lsq"` only: an (n_x,) boolean mask, True for the entries to
         estimate; the others are known and keep their value in `x0` (variance 0), as
         with `fit(estimate_x0=mask)` (MATLAB's `InitialStates(i).Fixed`); a mask that
@@ -420,19 +420,15 @@ def _estimate(
             "`bounds` (on x0) applies to method='lsq'; the smoother's estimate is a "
             "posterior mean, not a bounded least-squares solution."
         )
-    if missing == "mask" and method != "lsq":
-        raise ValueError(
-            "`missing=\"mask\"` applies to method='lsq' (the smoother needs every sample)."
-        )
-    if method == "smoother" and is_concrete(z):
+    if method == "smoother" and missing != "mask" and is_concrete(z):
         try:
             gaps = np.isnan(np.asarray(z, float)).any()
         except (TypeError, ValueError):  # (not numbers: `check_data` names it)
             gaps = False
-        if gaps:  # (the general message offers missing="mask", which the smoother refuses)
+        if gaps:
             raise ValueError(
-                f"`{z_name}` contains NaN: the smoother needs every sample of the head; "
-                "method='lsq' with missing=\"mask\" treats NaN as a missing sample."
+                f'`{z_name}` contains NaN: pass missing="mask" to treat NaN as a missing '
+                "sample (the filter then leaves it out of its update)."
             )
     defaulted = x0 is None
     if x0 is None:
@@ -524,10 +520,12 @@ def _estimate(
         loss = None
 
     x0_hat = x0_hat.astype(guess.dtype)
+    # (e is NaN at a missing sample)
+    measured = np.isfinite(np.asarray(z, np.float64)).reshape(np.shape(data.z))
     if e is None:
         _, zhat = simulate_impl(data.model, data.theta, jnp.asarray(x0_hat), data.u, False)
         e = np.asarray(zhat, np.float64) - np.asarray(data.z, np.float64)
-    measured = np.isfinite(np.asarray(z, np.float64))  # (e is NaN at a missing sample)
+        e = np.where(measured, e, np.nan)
     if not (np.all(np.isfinite(x0_hat)) and np.all(np.isfinite(e)[measured])):
         raise ValueError(
             f"simulating the model over the first n = {n} samples from the estimated x0 "
@@ -538,7 +536,9 @@ def _estimate(
     if method == "smoother" and measurement_noise is None and weight is None:
         _warn_default_noise(e, z, n, stacklevel + 1)
     if loss is None:  # C of eq. (5) over the head: the mean over k of |Q^{1/2} e_k|^2
-        weighted = weigh(jnp.asarray(e), check_cost(data, None, 1.0).sqrt_weight())
+        # (a missing entry of e counts as zero, as in the fit's loss: `_cost.Cost.local`)
+        e0 = np.where(measured, e, 0.0)
+        weighted = weigh(jnp.asarray(e0), check_cost(data, None, 1.0).sqrt_weight())
         loss = np.asarray(np.mean(np.sum(np.square(np.asarray(weighted)), axis=1)), guess.dtype)
 
     if ok is None:

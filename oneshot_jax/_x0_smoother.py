@@ -82,9 +82,23 @@ def _covariance_arg(value, size, name, *, definite):
 
 
 def _rms(a, axis=0):
-    """Root-mean-square per column, with 1 where it is zero or not finite."""
-    s = np.sqrt(np.mean(np.square(np.asarray(a, np.float64)), axis=axis))
+    """Root-mean-square per column over its finite entries (NaN: a missing sample), with
+    1 where it is zero or has none."""
+    a = np.asarray(a, np.float64)
+    seen = np.isfinite(a)
+    s = np.sqrt(np.sum(np.where(seen, a * a, 0.0), axis=axis) / np.sum(seen, axis=axis))
     return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+
+
+def with_gaps(data):
+    """The checked data's z with NaN at its missing samples (`missing="mask"`, which the
+    checks replace by a value and a mask): the filter's missing measurements
+    (`ekf_forward`)."""
+    z = jnp.asarray(data.z)
+    if data.mask is None:
+        return z
+    seen = jnp.asarray(data.mask.outputs) > 0
+    return jnp.where(seen if seen.ndim == 2 else seen[:, None], z, jnp.nan)
 
 
 def ekf_forward(model, theta, m0, P0, Qp, R, u, z):
@@ -216,12 +230,14 @@ def kalman_path(
     data, observes_state, process_noise, measurement_noise, prior_covariance
 ) -> KalmanPath:
     """The filtered and smoothed states over the head of checked data (one trajectory,
-    `_checks.check_data`), from `data.x0` as the prior mean, with the covariances of
-    `_smoother_defaults`."""
+    `_checks.check_data`; missing samples left out of the updates), from `data.x0` as
+    the prior mean, with the covariances of `_smoother_defaults`."""
     guess = np.asarray(data.x0)
+    z = with_gaps(data)
     P0, Qp, R = _smoother_defaults(
-        data, observes_state, guess, process_noise, measurement_noise, prior_covariance
-    )
+        data._replace(z=z), observes_state, guess, process_noise, measurement_noise,
+        prior_covariance,
+    )  # fmt: skip
     dtype = data.x0.dtype
     (mf, Pf), (ms, Ps) = _smooth(
         data.model,
@@ -229,6 +245,6 @@ def kalman_path(
         jnp.asarray(guess),
         *(jnp.asarray(a, dtype) for a in (P0, Qp, R)),
         jnp.asarray(data.u),
-        jnp.asarray(data.z),
+        z,
     )
     return KalmanPath(*(np.asarray(a) for a in (mf, Pf, ms, Ps)))

@@ -118,6 +118,63 @@ def test_lsq_and_smoother_agree_within_their_std():
     assert lsq.loss <= sm.loss < 2 * NOISE**2
 
 
+def _linear_posterior_x0(u, z, m0, P0, Qp, R):
+    """The posterior mean and covariance of x0 of `LINEAR` (theta 1) given the measured
+    entries of z (NaN: missing), by Gaussian conditioning on the stacked outputs: x_k =
+    A^k x0 + sum_{j<k} A^(k-1-j) (B u_j + w_j), z_k = x_k[0] + v_k (what the extended RTS
+    smoother computes exactly for a linear model)."""
+    n, n_x = len(z), 3
+    size = n_x * n  # xi = (x0, w_0, .., w_{n-2})
+    rows, means = [], []
+    for k in range(n):
+        M, c = np.zeros((n_x, size)), np.zeros(n_x)
+        M[:, :n_x] = np.linalg.matrix_power(A, k)
+        for j in range(k):
+            G = np.linalg.matrix_power(A, k - 1 - j)
+            M[:, n_x * (j + 1) : n_x * (j + 2)] = G
+            c += G @ (B @ u[j])
+        rows.append(M[0])
+        means.append(M[0, :n_x] @ m0 + c[0])
+    seen = np.isfinite(z[:, 0])
+    H, mean = np.array(rows)[seen], np.array(means)[seen]
+    cov = np.zeros((size, size))
+    cov[:n_x, :n_x] = P0
+    for j in range(n - 1):
+        cov[n_x * (j + 1) : n_x * (j + 2), n_x * (j + 1) : n_x * (j + 2)] = Qp
+    S = H @ cov @ H.T + R * np.eye(len(H))
+    K = cov[:n_x] @ H.T @ np.linalg.inv(S)
+    return m0 + K @ (z[seen, 0] - mean), P0 - K @ H @ cov[:, :n_x]
+
+
+def test_smoother_leaves_missing_samples_out_of_its_updates():
+    """`estimate_x0(method="smoother", missing="mask")`: NaN in the head are missing
+    measurements, left out of the filter's updates; the estimate and its covariance are
+    the Gaussian posterior of x0 given the measured samples (a linear model, computed
+    by conditioning here), not those of the head with the gaps filled. Without
+    `missing="mask"` the NaN are refused, naming the option; `predict` and
+    `FitResult.predict` take it too."""
+    rng = np.random.default_rng(3)
+    n = 20
+    u = rng.standard_normal((n, 1))
+    _, z = oj.simulate(LINEAR, 1.0, np.array([1.0, -0.5, 0.3]), u)
+    z = np.asarray(z) + 0.05 * rng.standard_normal((n, 1))
+    z[[2, 7, 8, 15]] = np.nan
+    m0, P0, Qp, R = np.zeros(3), 4.0 * np.eye(3), 1e-3 * np.eye(3), 0.05**2
+    kw = dict(n=n, x0=m0, method="smoother", prior_covariance=P0, process_noise=Qp,
+              measurement_noise=R)  # fmt: skip
+    est = oj.estimate_x0(LINEAR, 1.0, u, z, missing="mask", **kw)
+    mean, cov = _linear_posterior_x0(u, z, m0, P0, Qp, R)
+    np.testing.assert_allclose(est.x0, mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(est.covariance, cov, rtol=1e-8, atol=1e-12)
+    filled = _linear_posterior_x0(u, np.nan_to_num(z), m0, P0, Qp, R)[0]
+    assert np.max(np.abs(filled - mean)) > 1e-2  # (the gaps matter)
+    assert np.isfinite(est.loss) and est.head is not None
+    with pytest.raises(ValueError, match=r"pass missing=\"mask\" to treat NaN as a missing"):
+        oj.estimate_x0(LINEAR, 1.0, u, z, **kw)
+    pred = oj.predict(LINEAR, 1.0, u, z, missing="mask", **kw)
+    np.testing.assert_array_equal(pred.x0, est.x0)
+
+
 def test_smoother_is_less_biased_than_lsq_on_a_long_head_of_an_imperfect_model():
     """Parameters 3-10 % off over a head of 200 samples: the least-squares x0 fits one
     simulation of the whole head and is pulled far off; the smoother, whose process noise
@@ -490,8 +547,6 @@ def test_lsq_with_missing_head_samples_is_the_masked_x0_only_fit():
     np.testing.assert_array_equal(pred.x0, est.x0)
     with pytest.raises(ValueError, match=r"`z` contains NaN .*`estimate_x0` and `predict` take"):
         oj.estimate_x0(model, PEND_THETA, u, z, n=25, **kw)
-    with pytest.raises(ValueError, match="applies to method='lsq'"):
-        oj.estimate_x0(model, PEND_THETA, u, z, n=25, method="smoother", missing="mask")
     with pytest.raises(ValueError, match=r"take `missing=\"mask\"`[^\n]*\.$"):
         oj.estimate_x0(model, PEND_THETA, u, z, n=25)  # (no hint on z's columns: they fit)
     z[0, 1] = np.nan
@@ -610,11 +665,10 @@ def test_bad_input_errors():
         est(x0=x0, measurement_noise=1.0)
     with pytest.raises(ValueError, match="`process_noise`, `measurement_noise` apply only to"):
         est(x0=x0, measurement_noise=1.0, process_noise=1.0)
-    # (NaN in the head: the general message offered missing="mask", which the smoother
-    # refuses)
+    # (NaN in the head: the smoother's message names missing="mask" as the general one)
     gap = np.array(z, float)
     gap[3] = np.nan
-    with pytest.raises(ValueError, match="the smoother needs every sample of the head; met"):
+    with pytest.raises(ValueError, match=r"`z` contains NaN: pass missing=\"mask\" to treat"):
         oj.estimate_x0(LINEAR, 1.0, u, gap, x0=x0, method="smoother")
     with pytest.raises(ValueError, match="`solver` only applies to method='lsq'"):
         est(x0=x0, method="smoother", solver=oj.GaussNewton())
