@@ -9,12 +9,14 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from . import _io, _pytree
 from ._ahead import estimate_process_noise, predict_ahead_impl
 from ._caller_warnings import at_caller
 from ._checks import as_float, check_data, check_state_size
+from ._cost import Cost
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
@@ -773,7 +775,11 @@ class FitResult(eqx.Module):
         x0_free = estimated.sum() * (
             1 if estimated.ndim == 2 else max(1, np.size(self.x0) // max(1, np.shape(self.x0)[-1]))
         )
-        dof = int(seen.sum()) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
+        # (the observations as the covariance counts them: the measured entries of outputs
+        # of nonzero weight, or the rank of a matrix Q over each sample's measured ones)
+        weight = None if self.weight is None else jnp.asarray(self.weight)
+        observations = Cost(weight, None, jnp.zeros(())).observations(jnp.asarray(seen))
+        dof = int(observations) - int(np.sum(~np.asarray(self.fixed, bool))) - int(x0_free)
         e = np.where(seen, e, 0.0)
         return float(np.einsum("ki,ij,kj->", e, q, e)) / dof if dof > 0 else np.inf
 
@@ -1405,9 +1411,9 @@ class FitResult(eqx.Module):
                 "(`fit(fixed=...)`) to draw the others."
             )
         rng = np.random.default_rng(seed)
-        draws = rng.multivariate_normal(flat[free], cov, size=int(n), method="eigh")
         rows = np.repeat(flat[None], int(n), axis=0)
-        rows[:, free] = draws
+        if free.size:  # (every entry fixed: n copies of theta)
+            rows[:, free] = rng.multivariate_normal(flat[free], cov, size=int(n), method="eigh")
         drawn = _pytree.layout(params).rows(rows.astype(flat.dtype))
         return _pytree.ordered_like(_pytree.combine(drawn, static), self.theta)
 

@@ -441,6 +441,12 @@ def _estimate(
                 "training data, say) is better where the model is singular at zero."
             )
         x0 = z[0]
+        if np.any(np.isinf(np.asarray(x0, float))):  # (not a missing sample: a bad value)
+            raise ValueError(
+                f"`{z_name}` contains inf values (in its first row, the default guess of "
+                "`x0`): outputs must be finite, or NaN for a missing sample with "
+                "missing=\"mask\"."
+            )
         if not np.all(np.isfinite(np.asarray(x0, float))):
             raise ValueError(
                 "`x0` (the starting guess, shape (n_x,)) is needed: z[0], the default where "

@@ -146,6 +146,20 @@ def _linear_posterior_x0(u, z, m0, P0, Qp, R):
     return m0 + K @ (z[seen, 0] - mean), P0 - K @ H @ cov[:, :n_x]
 
 
+def test_inf_in_the_first_row_of_the_head_is_named_as_a_bad_value():
+    """An inf in z[0], the default guess of x0 of a model that observes its state, is a
+    bad value of `z` (`z_head` for `FitResult.predict`), not a missing sample for which
+    a guess of x0 would be needed."""
+    model = oj.Model(lambda x, u, th: th * x + u)
+    u, z = np.ones((10, 1)), np.linspace(1.0, 2.0, 10)[:, None]
+    z[0] = np.inf
+    with pytest.raises(ValueError, match=r"^`z` contains inf values \(in its first row"):
+        oj.estimate_x0(model, 0.9, u, z, n=5)
+    result = oj.fit(model, 0.5, np.ones(1), u[1:], z[1:])
+    with pytest.raises(ValueError, match=r"^`z_head` contains inf values \(in its first row"):
+        result.predict(u, z[:5])
+
+
 def test_smoother_leaves_missing_samples_out_of_its_updates():
     """`estimate_x0(method="smoother", missing="mask")`: NaN in the head are missing
     measurements, left out of the filter's updates; the estimate and its covariance are

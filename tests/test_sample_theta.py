@@ -58,6 +58,12 @@ def test_fixed_entries_keep_their_values_and_unknown_covariances_are_refused():
     draws = held.sample_theta(5)
     np.testing.assert_array_equal(draws["b"], 0.6)
     assert np.unique(draws["w0sq"]).size == 5
+    # Every entry fixed (x0 estimated alone): n copies of theta (NumPy's draw failed on a
+    # covariance of no entries).
+    x0_only = oj.fit(MODEL, {"w0sq": 9.0, "b": 0.6}, X0, U, Z, fixed=True)
+    draws = x0_only.sample_theta(3)
+    np.testing.assert_array_equal(draws["w0sq"], [9.0] * 3)
+    np.testing.assert_array_equal(draws["b"], [0.6] * 3)
     with pytest.raises(ValueError, match="not computed"):
         oj.fit(MODEL, {"w0sq": 7.0, "b": 0.3}, X0, U, Z, covariance=None).sample_theta(5)
 
