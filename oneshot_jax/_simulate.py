@@ -101,7 +101,8 @@ def simulate(
 
     `(x, z)` with `x` of shape (T, n_x) (`x[0] = x0`, `x[k+1] = step(x[k], u[k], theta)`)
     and `z[k] = observe(x[k], u[k], theta)` of shape (T, n_z); with a leading N axis for
-    several trajectories (lists of arrays for a list `u`).
+    several trajectories (lists of arrays for a list `u` of records of different lengths;
+    a list of records of one length gives the stacked arrays).
     """
     data = check_data(model, theta, x0, u, t=t)
     strategy = as_strategy(strategy)
