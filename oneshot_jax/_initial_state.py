@@ -445,7 +445,7 @@ def _estimate(
             raise ValueError(
                 f"`{z_name}` contains inf values (in its first row, the default guess of "
                 "`x0`): outputs must be finite, or NaN for a missing sample with "
-                "missing=\"mask\"."
+                'missing="mask".'
             )
         if not np.all(np.isfinite(np.asarray(x0, float))):
             raise ValueError(
