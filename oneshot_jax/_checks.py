@@ -178,14 +178,30 @@ def check_state_size(x0, n_x, name="`x0`"):
         )
 
 
-def check_finite(a, name, hint=""):
+def check_finite(a, name, hint="", leaf=None):
+    """A ValueError naming `name` (and, on one host, its first entry that is not finite:
+    of a stack of records (N, T, n), record i's sample k) where a concrete `a` holds NaN
+    or inf; `hint` follows the name. `leaf`: the name of `a` in that entry, where `a` is
+    a leaf of `name` (`theta['k']`)."""
+    leaf = name if leaf is None else leaf
     if isinstance(a, np.ndarray) or is_concrete(a):
         if _spans_hosts(a):
-            finite = bool(jnp.isfinite(a).all())
+            finite, where = bool(jnp.isfinite(a).all()), ""
         else:
-            finite = np.isfinite(np.asarray(a)).all()
+            bad = ~np.isfinite(np.asarray(a))
+            finite = not bad.any()
+            if not finite and bad.ndim:
+                first = [int(i) for i in np.argwhere(bad)[0]]
+                at = (
+                    f"{leaf}[{first[0]}][{', '.join(map(str, first[1:]))}]"
+                    if bad.ndim == 3
+                    else f"{leaf}[{', '.join(map(str, first))}]"
+                )
+                where = f"; the first is `{at}`"
+            else:
+                where = f"; the first is `{leaf}`" if leaf != name else ""
         if not finite:
-            raise ValueError(f"`{name}` contains NaN or inf values{hint}.")
+            raise ValueError(f"`{name}` contains NaN or inf values{hint}{where}.")
 
 
 def common_dtype(*trees):
@@ -225,8 +241,13 @@ def check_theta(theta, dtype=None, name="theta"):
         params, static = _pytree.split(theta)
         leaves, treedef = jax.tree_util.tree_flatten(params)
     leaves = [as_float(leaf, name, dtype) for leaf in leaves]
-    for leaf in leaves:
-        check_finite(leaf, name)
+    for i, leaf in enumerate(leaves):
+        try:
+            check_finite(leaf, name)
+        except ValueError:  # (named by its path in theta, found only then)
+            params = jax.tree_util.tree_unflatten(treedef, leaves)
+            path = jax.tree_util.tree_flatten_with_path(params)[0][i][0]
+            check_finite(leaf, name, leaf=f"{name}{jax.tree_util.keystr(path)}")
     return jax.tree_util.tree_unflatten(treedef, leaves), static
 
 

@@ -163,6 +163,24 @@ def test_nan_or_inf(case, entry):
         call(entry, **overrides)
 
 
+def test_nan_or_inf_names_its_first_entry():
+    """The error names the first entry that is not finite: a record of a ragged list
+    and its sample (the padded stack's index would point past a short record), a leaf of
+    a dict theta by its key."""
+    model = oj.Model(lambda x, u, th: th["a"][0] * x + u[:1])
+    short, long = np.ones((5, 1)), np.ones((8, 1))
+    long[3] = np.nan
+    with pytest.raises(
+        ValueError, match=r"^`u` contains NaN or inf values; the first is `u\[1\]\[3, 0\]`\.$"
+    ):
+        oj.simulate(model, {"a": np.ones(2)}, np.zeros((2, 1)), [short, long])
+    with pytest.raises(
+        ValueError,
+        match=r"^`theta` contains NaN or inf values; the first is `theta\['a'\]\[1\]`\.$",
+    ):
+        oj.simulate(model, {"a": np.array([1.0, np.inf])}, np.zeros(1), short)
+
+
 NOT_REAL = {
     "x0 complex": (dict(x0=X0.astype(jnp.complex128)), "x0"),
     "x0 bool": (dict(x0=X0 > 0), "x0"),  # (the mask of `estimate_x0`, misplaced: it ran)
