@@ -396,7 +396,9 @@ def _measure_unmeasured_success(result, problem, out, strategy):
     round-off level of the data (where the measure says nothing): every solver's success
     is the same test. Its `max_steps_reached` is measured too, so that its message says
     how far from stationary the returned point is (the solver's own test may not be one
-    that can pass in this precision)."""
+    that can pass in this precision); where the measure meets that test, the last step
+    allowed left a solution: `converged` (as `Optimistix` at its last step; the message
+    read "met" and "not a stationary point yet" together)."""
     info = result.stop_info
     if np.isfinite(info.get("first_order", np.nan)):
         return result
@@ -410,7 +412,9 @@ def _measure_unmeasured_success(result, problem, out, strategy):
     gtol = 1e-8 if not np.isfinite(gtol) else gtol
     tol = max(float(gtol_at_least_resolution(gtol, problem.dtype)), info["roundoff_limit"])
     result = dataclasses.replace(result, stop_info={**info, "first_order": fo, "gtol": gtol})
-    if result.status != "converged" or fo <= tol:  # (`max_steps_reached`: measured only)
+    if result.status == "max_steps_reached":
+        return _restated(result, "converged") if fo <= tol else result
+    if fo <= tol:
         return result
     if bool(zero):
         return dataclasses.replace(result, stop_reason=RESULTS.zero_residual)

@@ -2405,6 +2405,13 @@ def test_a_success_claimed_by_a_solver_of_ones_own_is_measured():
     short = fit(_GradientDescent(lr=0.01, claim_at=10**6, max_steps=5))
     assert short.status == "max_steps_reached" and short.stop_info["first_order"] > 0.5
     assert short.message.startswith("first-order measure ") and " not met;" in short.message
+    # Its budget's end at a point that meets the test is a solution (as `Optimistix` at
+    # its last step): it read max_steps_reached, "met" and "not a stationary point yet".
+    at = fit(_GradientDescent(claim_at=10**6, max_steps=200))
+    assert at.stop_info["first_order"] <= 1e-8
+    assert at.status == "converged" and at.success, at.message
+    assert at.stop_info["solver_stop"] == "max_steps_reached"
+    assert "not a stationary point" not in at.message
     # A solver of one's own that returns a NaN point was said to return the start.
     lost = fit(_NaNAfterTwo(claim_at=50))
     assert lost.status == "diverged" and lost.stop_info["at_step"] > 0
