@@ -86,7 +86,8 @@ def _rms(a, axis=0):
     1 where it is zero or has none."""
     a = np.asarray(a, np.float64)
     seen = np.isfinite(a)
-    s = np.sqrt(np.sum(np.where(seen, a * a, 0.0), axis=axis) / np.sum(seen, axis=axis))
+    count = np.maximum(np.sum(seen, axis=axis), 1)  # (a column without one: 0, then 1)
+    s = np.sqrt(np.sum(np.where(seen, a * a, 0.0), axis=axis) / count)
     return np.where(np.isfinite(s) & (s > 0), s, 1.0)
 
 
