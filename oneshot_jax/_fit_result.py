@@ -858,12 +858,20 @@ class FitResult(eqx.Module):
                 f"below the round-off cut); {unresolved_remedy(info.get('precision'))}"
             )
         if self.status == "diverged" and not np.isfinite(self.loss):  # (no finite iterate)
+            finite = all(
+                np.all(np.isfinite(np.asarray(a, np.float64)))
+                for a in (*jax.tree_util.tree_leaves(_pytree.split(self.theta)[0]), self.x0)
+            )
+            kept = (  # (finite values whose loss overflows, or values that are not)
+                "the returned point's loss is not finite (its values are finite; the solver "
+                "did not keep its last iterate of finite loss)"
+                if finite
+                else "the returned point is not finite (the solver did not keep its last "
+                "finite iterate)"
+            )
             why = why.replace(
                 "the last finite iterate is returned",
-                "the start is returned"
-                if returned_start(self)
-                else "the returned point is not finite (the solver did not keep its last "
-                "finite iterate)",
+                "the start is returned" if returned_start(self) else kept,
             )
         out = f"{detail}; {why}" if detail else why
         gone = self.stop_info.get("vanished")

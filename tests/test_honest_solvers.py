@@ -2418,6 +2418,15 @@ def test_a_success_claimed_by_a_solver_of_ones_own_is_measured():
     assert "the start is returned" not in lost.message
     assert "did not keep its last finite iterate" in lost.message
     assert "the solver returned a point that is not finite" in str(lost)
+    # One whose step overflows the simulation (a = 29 on x+ = a x + u) returns finite
+    # values of infinite loss: the message said the point was not finite.
+    lag = oj.Model(lambda x, u, th: th["a"] * x + u, lambda x, u, th: x)
+    _, zl = oj.simulate(lag, {"a": np.array([0.7])}, np.zeros(1), u)
+    far = oj.fit(lag, {"a": np.array([0.5])}, np.zeros(1), u, np.asarray(zl),
+                 solver=_GradientDescent(lr=50.0, claim_at=50), estimate_x0=False)  # fmt: skip
+    assert far.status == "diverged" and not np.isfinite(far.loss)
+    assert np.all(np.isfinite(far.theta["a"])), far.theta
+    assert "the returned point's loss is not finite (its values are finite" in far.message
 
 
 def test_a_step_onto_a_plateau_above_the_start_is_not_convergence():
