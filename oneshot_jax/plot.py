@@ -309,12 +309,13 @@ def compare(
     z = _columns(z, "z")
     T, n_z = z.shape
 
+    results = (FitResult, Prediction, AheadPrediction)
+
     def one_model(m):  # (a result, or one output record of z's T samples)
-        if isinstance(m, (FitResult, Prediction, AheadPrediction)):
+        if isinstance(m, results):
             return True
         return hasattr(m, "shape") and np.ndim(m) in (1, 2) and np.shape(m)[0] == T
 
-    results = (FitResult, Prediction, AheadPrediction)
     if (
         len(models) == 1
         and isinstance(models[0], tuple)
