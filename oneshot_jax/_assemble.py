@@ -71,6 +71,9 @@ class Out(NamedTuple):
     degenerate: jax.Array
     vanished: jax.Array
     promises_descent: jax.Array
+    # With validation data: the solver (stage) and step of the best start's lowest-scored
+    # iterate, which the fit returns where its stop is `validation`; else None.
+    validation_at: jax.Array | None = None
 
 
 def _stage_out(s, best) -> StageOut:
@@ -129,6 +132,7 @@ def collect(problem, stages, best, moved, posted) -> Out:
         m.degenerate,
         m.vanished,
         promises_descent(problem, final.loss, m.first_order),
+        None if final.best is None else jnp.stack([final.best.stage[best], final.best.step[best]]),
     )
 
 
@@ -189,11 +193,41 @@ def post(problem, params, blocks, strategy, lags=None):
     return theta_flat, X0, e, cov, met, xs
 
 
-def _history(problem, stages, layout):
+def _with_row(h: StageOut, row) -> StageOut:
+    """`h`'s rows with `row` = (step, loss, theta, validation) among them, at its step,
+    unless a row of that step is there (its gradient norm NaN: not at hand)."""
+    step, loss, theta, score = row
+    k = int(h.rows) + 1
+    steps = np.asarray(h.step[:k])
+    if np.any(steps == step):
+        return h
+    i = int(np.searchsorted(steps, step))
+
+    def put(a, value):
+        a = np.asarray(a[:k])
+        return np.concatenate([a[:i], np.asarray(value, a.dtype)[None], a[i:]])
+
+    return StageOut(
+        put(h.step, step),
+        put(h.loss, loss),
+        put(h.grad_norm, np.nan),
+        put(h.theta, theta),
+        k,
+        h.num_steps,
+        None if h.validation is None else put(h.validation, score),
+    )
+
+
+def _history(problem, stages, layout, chosen=None):
     """One `FitHistory` from every stage's bounded buffer (`StageOut`s): the best start's
-    rows before its last step, then its last iterate."""
+    rows before its last step, then its last iterate. `chosen`: where a `validation` stop
+    returns an earlier iterate, (stage, step, loss, free theta, score) of it: a row of the
+    history wherever thinning left it out."""
     base = problem.theta_base
     free = problem.theta_free
+    if chosen is not None:
+        at, *row = chosen
+        stages = tuple(_with_row(h, row) if i == at else h for i, h in enumerate(stages))
     losses, gnorms, paths, steps, stage_ids, scores = [], [], [], [], [], []
     for i, h in enumerate(stages):
         k = int(h.rows) + 1
@@ -395,6 +429,21 @@ def prepare(*, data, problem, solvers, fixed, x0_estimated, theta_order=(), unit
         resolution(problem.dtype)
         if getattr(solvers[-1], "GTOL_AT_LEAST_RESOLUTION", False)
         else np.nan,
+    )
+
+
+def _chosen(out: Out, status, best):
+    """The returned iterate's (stage, step, loss, free theta, validation loss) where a
+    `validation` stop returns the lowest-scored one, for `_history`; else None."""
+    if status != "validation" or out.validation_at is None:
+        return None
+    stage, step = (int(v) for v in np.asarray(out.validation_at))
+    return (
+        stage,
+        step,
+        out.losses[best],
+        out.start_theta[best],
+        out.validation_loss[best],
     )
 
 
@@ -633,6 +682,9 @@ def assemble(
     if status == "validation":  # the score that chose the point, and the patience
         stop_info["validation_loss"] = float(out.validation_loss[best])
         stop_info["patience"] = problem.validation.patience
+        if out.validation_at is not None:  # (a row of `FitResult.history`: `_chosen`)
+            stage, step = (int(v) for v in np.asarray(out.validation_at))
+            stop_info.update(validation_stage=stage, validation_step=step)
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
     return _pytree.build(
@@ -643,7 +695,7 @@ def assemble(
         stop_reason=from_index(int(results[best])),
         num_steps=int(sum(int(s.num_steps) for s in out.stages)),
         wall_time=float(wall_time),
-        history=_history(problem, out.stages, layout),
+        history=_history(problem, out.stages, layout, _chosen(out, status, best)),
         residuals=e,
         names=names,
         fixed=prepared.fixed,

@@ -337,7 +337,9 @@ class FitHistory(eqx.Module):
     - `step`: the step each row was recorded at, counted from the start of its stage.
     - `stage`: which solver of a sequence the row belongs to (0 for a single solver).
     - `validation`: with `fit(validation=...)`, the validation loss of each row, else
-        None.
+        None. Where a `validation` stop returns an earlier iterate, that iterate is a row
+        (`stop_info["validation_stage"]` and `["validation_step"]` give its `stage` and
+        `step`), put back where thinning left it out, with `grad_norm` NaN.
     """
 
     loss: np.ndarray

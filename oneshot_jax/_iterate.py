@@ -47,9 +47,10 @@ class Solution(NamedTuple):
 
 
 class Best(NamedTuple):
-    """With validation data: per start, the lowest validation loss so far, its iterate,
-    the records' initial states of the last score (the next one's warm start) and the
-    scores since it improved."""
+    """With validation data: per start, the lowest validation loss so far, its iterate
+    and where it was taken (the solver of a sequence and its step, as the history counts
+    them), the records' initial states of the last score (the next one's warm start) and
+    the scores since it improved."""
 
     score: jax.Array  # (S,)
     params: Params  # (S, ...)
@@ -57,6 +58,8 @@ class Best(NamedTuple):
     since: jax.Array  # (S,) int
     here: jax.Array  # (S,) bool: the best iterate is this solver's current one (or ties it)
     last: jax.Array  # (S,) the score of this solver's current iterate
+    stage: jax.Array  # (S,) int: the solver of the sequence that took the best iterate
+    step: jax.Array  # (S,) int: the step of that solver at which it was taken
 
     def returned_score(self):
         """The score of the iterate the fit returns: the current one where it is the best
@@ -116,7 +119,7 @@ def _scores(problem: FitProblem, params: Params, val_x0):
     )
 
 
-def _update_best(best: Best, params, score, val_x0, running, tie):
+def _update_best(best: Best, params, score, val_x0, running, tie, stage, step):
     """Keep the iterate where its score improves on the best; count the others (a start
     that has stopped keeps its count). The current iterate stands for the best one
     (`here`) where it improves on it or ties with it, within `tie` (`Monitor.tie`) of the
@@ -136,6 +139,8 @@ def _update_best(best: Best, params, score, val_x0, running, tie):
         ),
         (score <= lowest + tie(lowest)) | (best.here & ~running),
         score,
+        jnp.where(better, jnp.asarray(stage, best.stage.dtype), best.stage),
+        jnp.where(better, jnp.asarray(step, best.step.dtype), best.step),
     )
 
 
@@ -146,11 +151,19 @@ def _shown(done_low, loss):
 
 
 def iterate(
-    solver, problem: FitProblem, params: Params, *, history_size, meter, meter_args, best=None
+    solver,
+    problem: FitProblem,
+    params: Params,
+    *,
+    history_size,
+    meter,
+    meter_args,
+    best=None,
+    stage=0,
 ):
     """Run `solver` from the S starts `params` (leading axis S) until every start has
     terminated or `solver.max_steps` steps are taken. `best`: the previous solver's
-    `Best` (with validation data)."""
+    `Best` (with validation data); `stage`: this solver's place in the sequence."""
     n_starts = params.theta.shape[0]
     mon = problem.validation
 
@@ -189,10 +202,19 @@ def iterate(
                 jnp.zeros(n_starts, jnp.int32),
                 jnp.ones(n_starts, bool),
                 score,
+                jnp.full(n_starts, stage, jnp.int32),
+                jnp.zeros(n_starts, jnp.int32),
             )
         else:  # the starting point is the last solver's final iterate
             best = _update_best(
-                best._replace(here=jnp.zeros_like(best.here)), params, score, val_x0, ~done, mon.tie
+                best._replace(here=jnp.zeros_like(best.here)),
+                params,
+                score,
+                val_x0,
+                ~done,
+                mon.tie,
+                stage,
+                0,
             )
             best = best._replace(since=jnp.zeros_like(best.since))
     if hist is not None and not primes:
@@ -215,7 +237,7 @@ def iterate(
         score, best = None, c.best
         if mon is not None:
             score, val_x0 = _scores(problem, params, c.best.val_x0)
-            best = _update_best(c.best, params, score, val_x0, ~c.done, mon.tie)
+            best = _update_best(c.best, params, score, val_x0, ~c.done, mon.tie, stage, step)
             if primes:  # (the start's score is in `best` already)
                 best = _where(step == 0, c.best, best)
             if mon.patience is not None:
@@ -368,7 +390,7 @@ def _run(
     stages = []
     offset = jnp.asarray(offset, jnp.int32)
     best = None
-    for solver in solvers:
+    for i, solver in enumerate(solvers):
         sol = iterate(
             solver,
             problem,
@@ -377,6 +399,7 @@ def _run(
             meter=meter,
             meter_args=(bar_id, offset, done_low),
             best=best,
+            stage=i,
         )
         best = sol.best
         stages.append(sol)

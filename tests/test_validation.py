@@ -589,3 +589,42 @@ def test_a_validation_stops_measure_is_that_of_the_returned_point():
     e, J = residual(v), jax.jacfwd(residual)(v)
     cosines = np.abs(J.T @ e) / (np.linalg.norm(J, axis=0) * np.linalg.norm(e))
     np.testing.assert_allclose(r.stop_info["first_order"], cosines.max(), rtol=1e-8)
+
+
+def test_a_thinned_history_keeps_the_returned_iterate():
+    """Held-out records of another system (a = 0.8; the fit's a = 0.9): the score is lowest
+    midway along the second solver's path. A history of 4 rows per solver thins that
+    iterate away; it is still a row of the history (where the full history has it: same
+    solver, step, theta and score), and `stop_info` names its solver and step."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + u[0], lambda x, u, th: x)
+    rng = np.random.default_rng(0)
+    u, uv = rng.normal(size=(200, 1)), rng.normal(size=(200, 1))
+    _, z = oj.simulate(model, {"a": 0.9}, jnp.zeros(1), u)
+    _, zv = oj.simulate(model, {"a": 0.8}, jnp.zeros(1), uv)
+    solver = [oj.Adam(lr_theta=5e-3, max_steps=50), oj.Adam(lr_theta=1e-2, max_steps=250)]
+    val = oj.Validation(uv, zv, x0=jnp.zeros(1))
+    fits = [
+        oj.fit(model, {"a": 0.3}, jnp.zeros(1), u, z, solver=solver, validation=val, history=h)
+        for h in (4, 1000)
+    ]
+    thin, full = fits
+    assert len(full.history) == 302  # (every step of both solvers: nothing thinned)
+    i = int(np.argmin(full.history.validation))
+    stage, step = int(full.history.stage[i]), int(full.history.step[i])
+    assert stage == 1 and 0 < step < 250
+    for res in fits:
+        assert res.stop_reason == oj.RESULTS.validation
+        assert (res.stop_info["validation_stage"], res.stop_info["validation_step"]) == (
+            stage,
+            step,
+        )
+        h = res.history
+        (row,) = np.flatnonzero((h.stage == stage) & (h.step == step))
+        np.testing.assert_array_equal(h.theta["a"][row], res.theta["a"])
+        assert h.validation[row] == res.validation_loss
+        np.testing.assert_allclose(h.theta["a"][row], full.history.theta["a"][i], rtol=1e-14)
+    # (rows in order: the thinned history's steps increase within each solver)
+    h = thin.history
+    assert len(h) < 20
+    for s in (0, 1):
+        assert np.all(np.diff(h.step[h.stage == s]) > 0)
