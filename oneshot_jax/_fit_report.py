@@ -298,7 +298,8 @@ def _readings_text(result):
 
 def _x0_table(result, shown_max=3):
     """The initial-state rows: every entry of one trajectory, or of the first two of more
-    than `shown_max`; and the number of trajectories left out."""
+    than `shown_max` (a window's with the sample it starts at); and the number of
+    trajectories left out."""
     x0, x0_std = np.asarray(result.x0), np.asarray(result.x0_std)
     batched = x0.ndim == 2
     X0, S0 = (x0, x0_std) if batched else (x0[None], x0_std[None])
@@ -310,10 +311,13 @@ def _x0_table(result, shown_max=3):
     if batched and not estimated.any():
         return [], n_traj
     names = model_labels(getattr(result.model, "states", None), n_x) or range(n_x)
+    # A windowed fit's rows: each window's state at its first sample of the record.
+    starts = getattr(result, "window_starts", None)
     table = []
     for i in range(shown):
+        at = "" if starts is None else f" (sample {int(starts[i])})"
         for j, name in zip(range(n_x), names, strict=True):
-            entry = f"x0[{i}, {name}]" if batched else f"x0[{name}]"
+            entry = f"x0[{i}, {name}]{at}" if batched else f"x0[{name}]"
             v, s = X0[i, j], S0[i, j]
             table.append(
                 (

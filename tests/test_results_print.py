@@ -385,6 +385,9 @@ def test_a_windowed_fit_says_its_fit_is_over_the_windows(fitted):
     # Its initial states are the windows', not trajectories.
     assert "(per window, 6 windows)" in text and "trajector" not in text
     assert "... and 4 more windows (result.x0" in text
+    # Each window's rows say the sample it starts at (window 1: sample 20).
+    assert f"  x0[1, 0] (sample {int(r.window_starts[1])})" in text
+    assert int(r.window_starts[1]) == 20
 
 
 def test_units_are_checked():
