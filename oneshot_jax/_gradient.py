@@ -1,11 +1,13 @@
 r"""The one-shot closed-form gradient of the multi-step cost, Section 3 of the paper.
 
 Notation (the paper's): x_{k+1} = f(x_k, u_k, theta), e_k = g(x_k) - z_k, and
-L_k = (1/T) (e_k^T Q e_k + lambda h(x_k, theta)) (eq. 4, 21), C = sum_k L_k (eq. 5).
+L_k = (1/T) (e_k^T Q e_k + lambda h(x_k, theta)) (eq. 4, 21; the paper's lambda of
+eq. 21 is lambda / T here), C = sum_k L_k (eq. 5).
 
 - J^{x/x}_k = d x_k / d x_{k-1} = f_x(x_{k-1}, u_{k-1}, theta)
 - J^{x/theta}_k = the direct derivative of x_k = f(x_{k-1}, u_{k-1}, theta) in theta
-- gamma_k = dL_k/dtheta (direct), Gamma_k = dL_k/de J^{e/z} J^{z/x} = dL_k/dx_k (eq. 14).
+- gamma_k = dL_k/dtheta (direct), Gamma_k = dL_k/dx_k: dL_k/de J^{e/z} J^{z/x} (eq. 14),
+  plus (lambda/T) dh/dx_k with a penalty on the states.
 
 The paper's closed form (eq. 17 and 20) is
 

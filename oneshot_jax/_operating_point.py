@@ -10,8 +10,9 @@ eq. (1)-(2) around (x, u) is the first-order expansion of f and g:
 
     dx[k+1] = A dx[k] + B du[k],   dz[k] = C dx[k] + D du[k],
 
-A = df/dx, B = df/du, C = dg/dx, D = dg/du at (x, u) (the Jacobians of the one-shot
-recursion, eq. (10)-(12), at one sample), and for an ODE model also the continuous-time
+A = df/dx, B = df/du, C = dg/dx, D = dg/du at (x, u) (A and C are the one-shot
+recursion's J^{x/x} and J^{z/x} of eq. (12)-(13) at one sample; the input's B and D are
+not in the paper), and for an ODE model also the continuous-time
 Ac = d rhs / dx, Bc = d rhs / du.
 """
 

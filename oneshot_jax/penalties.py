@@ -4,6 +4,9 @@ Section 3.3 of the paper adds a penalty to the multi-step cost,
 
     C = (1/T) sum_k [ e_k^T Q e_k + lambda h(x_k, theta) ],   (eq. 21)
 
+here with the 1/T of the error: the paper's eq. (21) adds lambda h without it, so its
+lambda is `penalty_weight / T`.
+
 and names an exponential barrier on the states as one use. For hybrid models the barrier
 guards stability: a learned residual can make the simulated trajectory leave the region
 where the real system lives and then diverge, and the multi-step cost and its gradient

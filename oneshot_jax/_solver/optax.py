@@ -448,8 +448,9 @@ class Optax(_AbstractOptax):
 
 
 class Adam(_AbstractOptax):
-    """Algorithm 1 of the paper: Adam (eq. 8-9) with separate learning rates for theta
-    and x0, on the one-shot closed-form gradient.
+    """Algorithm 1 of the paper: Adam (its step 7, in place of the gradient steps of
+    eq. 8-9) with separate learning rates for theta and x0, on the one-shot closed-form
+    gradient.
 
     With a regulariser g (`sparsity.l1`, `group_lasso`, `l2`) in `fit(regulariser=...)`, theta
     takes proximal Adam steps (`proximal_adam`): with Adam's bias-corrected
@@ -554,8 +555,9 @@ def proximal_adam(
 ) -> optax.GradientTransformation:
     """Adam with a proximal step in its own diagonal metric, for C + g with g non-smooth.
 
-    This is the theta part of `Adam` with a regulariser: the paper's Algorithm 1 (Adam,
-    eq. 8-9) with the prox of g where Section 3.3 puts the projection. With Adam's
+    This is the theta part of `Adam` with a regulariser: the paper's Algorithm 1 (Adam in
+    its step 7, in place of the gradient step of eq. 8) with the prox of g where Section
+    3.3 puts the projection. With Adam's
     bias-corrected moments m_hat, v_hat (Kingma and Ba 2015, Algorithm 1) and the
     per-coordinate steps
 
