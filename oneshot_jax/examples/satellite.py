@@ -25,7 +25,8 @@ DT = 0.1
 THETA_TRUE = (0.0403, 0.0404, 0.0080)
 """True diagonal of the inertia I, kg m^2."""
 THETA0 = (0.05, 0.03, 0.01)
-"""The paper's tentative initial values of theta (+24 %, -26 %, +25 %), kg m^2."""
+"""A tentative start of theta (+24 %, -26 %, +25 % off the truth), kg m^2. (The paper
+starts from tentative values; its text does not give them.)"""
 W0 = (9.915e-6, -1.102e-3, 1.3179e-5)
 """True initial angular velocity w(0), rad/s."""
 TORQUE_MEAN = 1.0e-5
