@@ -414,6 +414,10 @@ def compare(
         return out
 
     fits = [fit_of(zhat) for zhat in outputs]
+    # The head: where a FitResult's or a Prediction's initial state was estimated from;
+    # for plain arrays and K-step predictions only the samples the FIT leaves out.
+    estimated = any(isinstance(m, (FitResult, Prediction)) for m in models)
+    head = "x0, not scored" if estimated else "not scored"
     for k, a in enumerate(axes):
         a.plot(t, z[:, k], color="k", lw=1.2, label="measured")
         for m, zhat, fit, label, band in zip(models, outputs, fits, labels, bands):
@@ -440,7 +444,7 @@ def compare(
                 shown_low, shown_high = a.get_ylim()
                 a.set_ylim(max(shown_low, low - span), min(shown_high, high + span))
         if n:
-            a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples (x0)")
+            a.axvspan(t[0], t[n], color="0.85", zorder=0, label=f"first {n} samples ({head})")
             a.axvline(t[n], color="0.4", lw=0.8, ls="--")
         a.set_ylabel(names[k])
         a.legend(fontsize=8, loc="best")

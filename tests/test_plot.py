@@ -336,10 +336,12 @@ def test_compare_figure(fitted):
     for ax in fig.axes:
         texts = _legend_texts(ax)
         assert f"model: FIT {fit:.2f} %" in texts
-        assert f"first {n} samples (x0)" in texts
+        # (plain arrays: compare estimated no initial state from the head)
+        assert f"first {n} samples (not scored)" in texts
     fig = oj.plot.compare(z, result, pred, u=u, n=n)
     texts = _legend_texts(fig.axes[0])
     assert texts[1].split(":")[1] == texts[2].split(":")[1] == f" FIT {fit:.2f} %"
+    assert f"first {n} samples (x0, not scored)" in texts
 
     # A record brings u, n and the time axis; several models on given Axes.
     record = oj.datasets.Record(u=u[:, 0], y=z[:, 0], Ts=0.5, n=n)
