@@ -144,6 +144,76 @@ def _update_best(best: Best, params, score, val_x0, running, tie, stage, step):
     )
 
 
+def _got(value) -> str:
+    """What a solver's method returned, in words, for its error message."""
+    if hasattr(value, "_fields"):  # (a NamedTuple: Params, a solver's state)
+        return type(value).__name__
+    if isinstance(value, (tuple, list)):
+        return f"a {type(value).__name__} of {len(value)}: ({', '.join(map(_got, value))})"
+    if hasattr(value, "shape") and hasattr(value, "dtype"):
+        return f"an array of shape {tuple(value.shape)} and dtype {value.dtype}"
+    return type(value).__name__
+
+
+def _returns(solver, method, ok, out, expected):
+    if not ok:
+        raise TypeError(
+            f"`{type(solver).__name__}.{method}` must return {expected}; got {_got(out)}. "
+            "(See `oneshot_jax.AbstractSolver` and the solvers guide's `GradientDescent`.)"
+        )
+    return out
+
+
+def _scalar(v, kind="floating") -> bool:
+    return hasattr(v, "dtype") and jnp.ndim(v) == 0 and jnp.issubdtype(v.dtype, getattr(jnp, kind))
+
+
+def _summary(solver, state):
+    """`solver.summary(state)`, checked (a solver of one's own): two scalars."""
+    out = solver.summary(state)
+    ok = isinstance(out, tuple) and len(out) == 2 and all(_scalar(v) for v in out)
+    return _returns(
+        solver, "summary(state)", ok, out, "(C, gradient norm): a tuple of two float scalars"
+    )
+
+
+def _terminate(solver, problem, params, state):
+    """`solver.terminate(...)`, checked: a boolean scalar and a `RESULTS` item."""
+    out = solver.terminate(problem, params, state)
+    ok = (
+        isinstance(out, tuple)
+        and len(out) == 2
+        and _scalar(out[0], "bool_")
+        and getattr(out[1], "_enumeration", None) is RESULTS
+    )
+    return _returns(
+        solver,
+        "terminate(problem, params, state)",
+        ok,
+        out,
+        "(done, result): a boolean scalar and a oneshot_jax.RESULTS item (RESULTS.converged, say)",
+    )
+
+
+def _step(solver, problem, params, state):
+    """`solver.step(...)`, checked: the next `Params` and a state of the same structure."""
+    out = solver.step(problem, params, state)
+    ok = (
+        isinstance(out, tuple)
+        and len(out) == 2
+        and isinstance(out[0], Params)
+        and jax.tree_util.tree_structure(out[1]) == jax.tree_util.tree_structure(state)
+    )
+    return _returns(
+        solver,
+        "step(problem, params, state)",
+        ok,
+        out,
+        "(params, state): the next iterate as `Params` (its `theta` and `x0` as in `params`: "
+        "`params._replace(theta=...)`) and a state shaped as `init`'s",
+    )
+
+
 def _shown(done_low, loss):
     """The loss a progress bar shows: the smallest over the starts' `loss` (NaN left out)
     and `done_low` (the final losses of the starts already run in turn)."""
@@ -168,8 +238,8 @@ def iterate(
     mon = problem.validation
 
     def check(p, s):
-        loss, gnorm = solver.summary(s)
-        done, result = solver.terminate(problem, p, s)
+        loss, gnorm = _summary(solver, s)
+        done, result = _terminate(solver, problem, p, s)
         finite = jnp.isfinite(loss) & jnp.isfinite(gnorm)
         return done | ~finite, RESULTS.where(finite, result, RESULTS.diverged), loss, gnorm
 
@@ -180,7 +250,7 @@ def iterate(
     primes = solver.primes_in_step
     if primes:
         done = jnp.zeros(n_starts, bool)
-        result = _over_starts(lambda p, s: solver.terminate(problem, p, s)[1], n_starts)(
+        result = _over_starts(lambda p, s: _terminate(solver, problem, p, s)[1], n_starts)(
             params, state
         )
     else:
@@ -221,7 +291,7 @@ def iterate(
         hist = _history.first(hist, loss, gnorm, params.theta, score)
     dynamic, static = eqx.partition(state, eqx.is_array)
     bar_id, offset, done_low = meter_args
-    step_all = _over_starts(lambda p, s: solver.step(problem, p, s), n_starts)
+    step_all = _over_starts(lambda p, s: _step(solver, problem, p, s), n_starts)
 
     def cond(c):
         return jnp.any(~c.done) & (c.step < solver.max_steps)
@@ -266,7 +336,7 @@ def iterate(
     c = jax.lax.while_loop(cond, body, init)
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
-    final_loss, final_gnorm = _over_starts(solver.summary, n_starts)(state)
+    final_loss, final_gnorm = _over_starts(lambda s: _summary(solver, s), n_starts)(state)
     meter.finish(bar_id, offset, c.step, _shown(done_low, final_loss))
     measures = _over_starts(solver.measures, n_starts)(state)
     out_params, out_loss, blocks = _over_starts(

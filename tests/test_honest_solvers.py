@@ -9,6 +9,7 @@ autodiff's, independent of the library's simulation and sensitivities.
 """
 
 import functools
+import re
 import warnings
 
 import equinox as eqx
@@ -2427,6 +2428,42 @@ def test_a_success_claimed_by_a_solver_of_ones_own_is_measured():
     assert far.status == "diverged" and not np.isfinite(far.loss)
     assert np.all(np.isfinite(far.theta["a"])), far.theta
     assert "the returned point's loss is not finite (its values are finite" in far.message
+
+
+class _Misshaped(_GradientDescent):
+    """A solver of one's own whose method `wrong` returns the wrong kind of value."""
+
+    wrong: str = "summary"
+
+    def step(self, problem, params, state):
+        new, state = super().step(problem, params, state)
+        return (new.theta, state) if self.wrong == "step" else (new, state)
+
+    def terminate(self, problem, params, state):
+        done, result = super().terminate(problem, params, state)
+        return done if self.wrong == "terminate" else (done, result)
+
+    def summary(self, state):
+        C, g = super().summary(state)
+        return C if self.wrong == "summary" else (C, g)
+
+
+@pytest.mark.parametrize(
+    "wrong, said",
+    [
+        ("summary", "`_Misshaped.summary(state)` must return (C, gradient norm)"),
+        ("step", "`_Misshaped.step(problem, params, state)` must return (params, state)"),
+        ("terminate", "must return (done, result): a boolean scalar and a oneshot_jax.RESULTS"),
+    ],
+)
+def test_a_solver_of_ones_own_that_returns_the_wrong_kind_of_value_is_named(wrong, said):
+    """It got JAX's errors from inside the loop ("iteration over a 0-d array", a pytree
+    structure mismatch) that named neither the method nor what it should return."""
+    model = oj.Model(lambda x, u, th: th["a"] * u, lambda x, u, th: x)
+    u = np.ones((10, 1))
+    with pytest.raises(TypeError, match=re.escape(said)) as err:
+        oj.fit(model, {"a": 0.1}, np.zeros(1), u, u, solver=_Misshaped(wrong=wrong))
+    assert "got " in str(err.value)
 
 
 def test_a_step_onto_a_plateau_above_the_start_is_not_convergence():
