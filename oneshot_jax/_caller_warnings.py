@@ -15,7 +15,25 @@ its own line, module and filters.
 import contextlib
 import contextvars
 import os
+import sys
 import warnings
+
+import equinox as eqx
+
+# This library's files and equinox's (the wrappers around a module's bound methods).
+_LIBRARY_DIRS = tuple(os.path.dirname(m.__file__) + os.sep for m in (sys.modules[__package__], eqx))
+
+
+def frames_to_user() -> int:
+    """The frames between the caller of this function's caller and the user's code: the
+    wrappers equinox puts around a module's bound methods, and this library's functions
+    on the way (`plot.compare` calling a method, `simulate` calling the checks), so that
+    a warning points at the user's line (`warn(..., stacklevel=2 + frames_to_user())`
+    from the function that warns)."""
+    frame, count = sys._getframe(2), 0
+    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
+        frame, count = frame.f_back, count + 1
+    return count
 
 
 def _same_file(a, b) -> bool:

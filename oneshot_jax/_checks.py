@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _pytree
-from ._caller_warnings import warn
+from ._caller_warnings import frames_to_user, warn
 from ._cost import Cost
 from ._indices import out_of_range
 from ._masked import unmasked
@@ -594,6 +594,39 @@ def _check_indices(model, theta, x_1, u_step, u_seen, n_u):
         )
 
 
+def _warn_if_transposed(model, theta, x0, u, lead):
+    """Warn where `u` holds one sample of n_u > 1 inputs of which the model reads only the
+    first (its step and observation unchanged when the others change): a one-input
+    record of n_u samples given transposed, (1, T). Without z nothing else can tell (a
+    one-sample simulation is valid); evaluated on the values, concrete ones only."""
+    if not is_concrete(theta, x0, u):
+        return
+    first = (0,) * len(lead)
+    x, u_k = jnp.asarray(x0[first]), jnp.asarray(u[first][0])
+    other = u_k.at[1:].add(1.0 + jnp.abs(u_k[1:]))  # (every input but the first moved)
+
+    def seen(u_k):
+        u_step = jnp.stack([u_k, u_k]) if model.input == "foh" else u_k
+        return model.step(x, u_step, theta), model.observe(x, u_k, theta)
+
+    try:
+        same = all(
+            bool(jnp.array_equal(a, b))
+            for a, b in zip(jax.tree.leaves(seen(u_k)), jax.tree.leaves(seen(other)))
+        )
+    except Exception:  # (the model's own errors are reported where it runs)
+        return
+    if same:
+        n = u_k.shape[0]
+        level = 2 + frames_to_user()  # (at the user's line, whichever function checks)
+        warn(
+            f"`u` has shape {u.shape}: one sample of {n} inputs, and the model reads only "
+            f"the first input. Is it transposed? A one-input record of {n} samples is u "
+            f"of shape ({n}, 1) (u.T); u is (T, n_u).",
+            stacklevel=level,
+        )
+
+
 def _check_model(model, theta, x0, u, lead, dtype, theta_name="theta", shown=None):
     """Trace the user's functions once on abstract values, so that a step that changes the
     state's shape or dtype is reported here and not as an error deep inside a scan.
@@ -852,6 +885,8 @@ def check_data(
             )
     if known is None:
         model, z_hat = _check_model(model, theta, x0, u, lead, dtype, theta_name, shown)
+    if T == 1 and u_shape[-1] > 1 and z is None and not model.timed:
+        _warn_if_transposed(model, theta, x0, u, lead)
     n_z = z_hat.shape[0]
     _check_name_counts(given, x0.shape[-1], n_z)
     u = append_intervals(u, intervals)

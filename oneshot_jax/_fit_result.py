@@ -3,8 +3,6 @@ reports), a pytree of data that prints as a parameter table; its `simulate`, `pr
 and `save` are thin calls of `oneshot_jax.simulate`, `oneshot_jax._initial_state` and
 `oneshot_jax._io`, and `load_result` builds one from a saved file."""
 
-import os
-import sys
 from typing import Any
 
 import equinox as eqx
@@ -14,7 +12,7 @@ import numpy as np
 
 from . import _io, _pytree
 from ._ahead import estimate_process_noise, predict_ahead_impl
-from ._caller_warnings import at_caller
+from ._caller_warnings import at_caller, frames_to_user
 from ._checks import as_float, check_data, check_state_size
 from ._cost import Cost
 from ._delta import delta_method
@@ -386,19 +384,6 @@ class Starts(eqx.Module):
     solver_stop: tuple = eqx.field(static=True)
     x0: np.ndarray | None = None
     validation_loss: np.ndarray | None = None
-
-
-_LIBRARY_DIRS = tuple(os.path.dirname(m.__file__) + os.sep for m in (sys.modules[__package__], eqx))
-
-
-def _frames_to_user() -> int:
-    """The frames between the caller of this function's caller and the user's code: the
-    wrappers equinox puts around a module's bound methods, and this library's functions
-    that call the method (`plot.compare`), so that a warning points at the user's line."""
-    frame, count = sys._getframe(2), 0
-    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
-        frame, count = frame.f_back, count + 1
-    return count
 
 
 def _first_row_missing(z_head) -> bool:
@@ -1072,7 +1057,7 @@ class FitResult(eqx.Module):
             None,
             method,
             kwargs,
-            stacklevel=3 + _frames_to_user(),
+            stacklevel=3 + frames_to_user(),
             t=t,
             z_name="z_head",
         )
@@ -1263,7 +1248,7 @@ class FitResult(eqx.Module):
         self._check_record_z(u, z, missing)
         filter_args = self._filter_defaults(u, z, x0, measurement_noise, t, missing)
         filter_args.pop("estimate")
-        with at_caller(__file__, _frames_to_user()):  # (its warning at the caller's line)
+        with at_caller(__file__, frames_to_user()):  # (its warning at the caller's line)
             return estimate_process_noise(
                 self.model,
                 self.theta,

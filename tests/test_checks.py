@@ -348,6 +348,24 @@ def test_a_transposed_input_is_named():
         oj.loss(model, THETA, X0, U.T, jnp.ones((6, N_Z)))
 
 
+def test_a_one_sample_input_whose_other_columns_the_model_ignores_warns():
+    """A one-input record given as (1, T) simulated one sample without a word when the
+    model reads only u[0] (`simulate` has no z to compare it with). It warns at the
+    caller's line; a model that reads both inputs of a one-sample record does not."""
+    one = oj.Model(lambda x, u, th: th["a"] * x + u[0], lambda x, u, th: x)
+    u = np.linspace(0.0, 1.0, 50)[None]
+    with pytest.warns(UserWarning, match=r"`u` has shape \(1, 50\).*Is it transposed") as w:
+        oj.simulate(one, {"a": 0.5}, np.zeros(1), u)
+    assert w[0].filename == __file__
+    with pytest.warns(UserWarning, match="Is it transposed"):
+        oj.check_stability(one, {"a": 0.5}, np.zeros(1), u)
+    two = oj.Model(lambda x, u, th: th["a"] * x + u[0] - u[1], lambda x, u, th: x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.simulate(two, {"a": 0.5}, np.zeros(1), np.ones((1, 2)))
+        oj.simulate(one, {"a": 0.5}, np.zeros(1), u.T)
+
+
 def test_the_rhs_of_a_timed_model_is_checked():
     model = oj.Model.from_ode(lambda x, u, th: th["a"] * x[:1], observe=observe)
     t = 0.1 * jnp.arange(T)
