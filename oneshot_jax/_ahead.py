@@ -199,7 +199,8 @@ def predict_ahead(
 
     **Raises:** `TypeError` for a K that is not an integer (or inf), or a `process_noise`
     not given; `ValueError` for K < 1, arrays of the wrong shape, covariances that are not
-    ones, NaN in z without `missing="mask"`.
+    ones, NaN in z without `missing="mask"`, and a filter that breaks down in its
+    arithmetic (NaN predictions: covariances of very different scales).
     """
     return predict_ahead_impl(
         model, theta, u, z, K, x0, process_noise, measurement_noise, prior_covariance, weight,
@@ -241,6 +242,16 @@ def predict_ahead_impl(
     # (K traced: one program for every horizon)
     args = (jnp.asarray(guess), *covariances, jnp.asarray(data.u), zs, jnp.asarray(K))
     Z, X, filtered, std = _ahead(data.model, data.theta, *args)
+    bad = np.isnan(np.asarray(Z)).any(axis=-1) | np.isnan(np.asarray(std)).any(axis=-1)
+    if bad.any():
+        raise ValueError(
+            f"predict_ahead: the filter's predictions are NaN from sample "
+            f"{int(np.argmax(bad))} on ({int(bad.sum())} of {bad.size}): the filter broke "
+            "down in its arithmetic (covariances of very different scales: a "
+            "`prior_covariance` or `process_noise` far broader than the states' scale, or "
+            "a model that blows up over the record). Give `prior_covariance` (x0's "
+            "uncertainty in the states' units) and check `theta`."
+        )
     if parameters is not None:
         fixed, covariance = parameters
         free = np.flatnonzero(~np.asarray(fixed, bool))
@@ -432,7 +443,9 @@ def estimate_process_noise(
     `interior` False the likelihood is highest at the grid's end, or flat (a warning says so).
 
     **Raises:** as `predict_ahead`; `ValueError` for a `scales` that is not an
-    increasing grid of positive numbers.
+    increasing grid of positive numbers, or where the filter's likelihood is not finite
+    at any of its scales (at some of them, a warning names them and the search keeps to
+    the others).
     """
     if shape is None:
         raise TypeError("`shape` must be given: the process noise covariance's shape (n_x).")
@@ -454,10 +467,31 @@ def estimate_process_noise(
         return value if np.isfinite(value) else -np.inf
 
     values = np.array([loglik(q) for q in grid])
+    finite = np.isfinite(values)
+    if not finite.any():
+        raise ValueError(
+            "estimate_process_noise: the filter's log-likelihood is not finite at any scale "
+            "of the grid: the filter breaks down on this record (a model that blows up over "
+            "it, or a `prior_covariance` far broader than the states' scale); check `theta`, "
+            "give `prior_covariance` (x0's uncertainty in the states' units), or `scales`."
+        )
+    if not finite.all():
+        broke = grid[~finite]
+        warn(
+            f"estimate_process_noise: the filter broke down (a log-likelihood that is not "
+            f"finite) at {broke.size} of the grid's {grid.size} scales (q from "
+            f"{broke.min():.3g} to {broke.max():.3g}); the estimate comes from the others. "
+            "A filter that breaks down at some scales is near the end of its arithmetic: "
+            "give `prior_covariance` (x0's uncertainty in the states' units), check "
+            "`theta`, or keep `scales` to a sensible range.",
+            stacklevel=2,
+        )
     best = int(np.argmax(values))
-    interior = 0 < best < grid.size - 1 and np.isfinite(values[best])
-    spread = float(np.ptp(values)) if np.all(np.isfinite(values)) else np.inf
-    flat = spread <= 1e-9 * max(1.0, float(np.max(np.abs(values))))
+    interior = 0 < best < grid.size - 1
+    # (flat: the same likelihood at every scale; a scale where the filter broke down is
+    # no evidence of that, and the search keeps to the finite ones)
+    spread = float(np.ptp(values[finite]))
+    flat = finite.all() and spread <= 1e-9 * max(1.0, float(np.max(np.abs(values))))
     scale = float(grid[best])
     if flat:  # (no q is more likely than another: noise on states the outputs do not see)
         interior = False

@@ -299,7 +299,9 @@ def estimate_x0(
         of the prior on x0 around `x0` (n_x): each a scalar (times I), a vector of
         variances or a matrix. Defaults, from the head's scales (s_z the root-mean-square
         of each output over z[:n]; s_x the same of each state, over z[:n] when z = x,
-        else over a simulation of the head from `x0`, 1 where zero): measurement noise
+        else over a simulation of the head from `x0` until its outputs leave the measured
+        ones' range by 100 times their RMS (an unstable model's grows without bound), 1
+        where zero): measurement noise
         Q^{-1} when `weight` is given, else (0.01 s_z)^2 (1 % noise); process noise
         (0.001 s_x)^2 per step; prior (100 s_x)^2 (broad). The smoother's covariance
         reflects these assumptions: give `measurement_noise` for calibrated ones. In

@@ -91,6 +91,23 @@ def _rms(a, axis=0):
     return np.where(np.isfinite(s) & (s > 0), s, 1.0)
 
 
+# The simulation that sizes the states (`_smoother_defaults`) counts until its outputs
+# leave the measured ones' range by this many times their RMS.
+LEFT_DATA = 1e2
+
+
+def _within_data(xs, zhat, z):
+    """The simulated states (T, n_x) up to the first sample whose simulated outputs leave
+    the measured outputs' range by more than `LEFT_DATA` times their RMS (at least x0; an
+    unstable model's simulation grows without bound, and the RMS of all of it made a prior
+    of 1e21 on which the filter broke down), and up to the first non-finite state."""
+    span = np.max(np.where(np.isfinite(z), np.abs(z), 0.0), axis=0) + LEFT_DATA * _rms(z)
+    out = ~np.all(np.isfinite(zhat) & (np.abs(zhat) <= span), axis=1)
+    out |= ~np.all(np.isfinite(xs), axis=1)
+    k = int(np.argmax(out)) if out.any() else xs.shape[0]
+    return xs[: max(k, 1)]
+
+
 def with_gaps(data):
     """The checked data's z with NaN at its missing samples (`missing="mask"`, which the
     checks replace by a value and a mask): the filter's missing measurements
@@ -200,9 +217,8 @@ def _smoother_defaults(
     if observes_state:
         s_x = s_z
     else:
-        xs, _ = simulate_impl(data.model, data.theta, jnp.asarray(guess), data.u, False)
-        xs = np.asarray(xs, np.float64)
-        s_x = _rms(xs) if np.all(np.isfinite(xs)) else _rms(guess[None])
+        xs, zhat = simulate_impl(data.model, data.theta, jnp.asarray(guess), data.u, False)
+        s_x = _rms(_within_data(np.asarray(xs, np.float64), np.asarray(zhat, np.float64), z))
     if measurement_noise is not None:
         R = _covariance_arg(measurement_noise, n_z, "measurement_noise", definite=True)
     elif data.weight is not None:

@@ -440,3 +440,56 @@ def test_the_uncertainty_of_theta_adds_j_sigma_j_to_the_band():
     assert np.isinf(std[moved]).all() and np.array_equal(std[~moved], plain.std[~moved, 0])
     with pytest.raises(TypeError, match="`parameters` must be True or False"):
         result.predict_ahead(U, Z, 3, process_noise=Q, parameters="yes")
+
+
+def _unstable_record():
+    """A partly observed oscillator with negative damping (poles at 1/s and 2/s): its
+    simulation over the 10 s record grows to about 3e8, the data are a stable one's."""
+    rhs = lambda x, u, th: jnp.array([x[1], -th["k"] * x[0] - th["c"] * x[1] + u[0]])  # noqa: E731
+    model = oj.Model.from_ode(rhs, dt=0.05, observe=lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((200, 1))
+    _, z = oj.simulate(model, {"k": 2.0, "c": 0.5}, np.array([0.5, -0.2]), u)
+    return model, u, np.asarray(z) + 1e-3 * rng.standard_normal((200, 1))
+
+
+def test_the_default_prior_of_an_unstable_model_is_sized_before_it_blows_up():
+    """The default prior (100 s_x)^2 took s_x over the whole open-loop simulation: about
+    3e8, a prior of 1e21 on which the filter broke down, and 197 of 200 predictions
+    came back NaN without a word. s_x now counts the samples until the simulated output
+    leaves the data's range; the one-step predictions are those of a prior of 1 to 1e-6
+    of the outputs' scale. A prior that breaks the filter is refused, naming it."""
+    model, u, z = _unstable_record()
+    theta, x0 = {"k": 2.0, "c": -3.0}, np.array([0.5, -0.2])
+    kw = dict(x0=x0, process_noise=[0.0, 1.0])
+    default = oj.predict_ahead(model, theta, u, z, 1, **kw)
+    given = oj.predict_ahead(model, theta, u, z, 1, prior_covariance=1.0, **kw)
+    assert np.all(np.isfinite(default.z)) and np.all(np.isfinite(default.std))
+    rms = lambda p: float(np.sqrt(np.mean((p.z - z) ** 2)))  # noqa: E731
+    np.testing.assert_allclose(rms(default), rms(given), rtol=1e-5)
+    assert rms(given) < 0.01
+    with pytest.raises(ValueError, match=r"NaN from sample \d+ on .*Give `prior_covariance`"):
+        oj.predict_ahead(model, theta, u, z, 1, prior_covariance=1e18, **kw)
+
+
+def test_a_grid_scale_where_the_filter_breaks_down_is_not_a_flat_likelihood():
+    """One scale of the grid where the filter's likelihood was -inf made it read as the
+    same at every scale: the search was skipped and `interior` False (scale 1 of the
+    grid, against 0.81 from the finite ones). Now the search keeps to the finite ones and
+    a warning names the scales where the filter broke down; none finite is an error."""
+    model, u, z = _unstable_record()
+    z = z + 0.02 * np.random.default_rng(5).standard_normal(z.shape)
+    theta, x0 = {"k": 2.0, "c": 0.5}, np.array([0.5, -0.2])
+    grid = np.logspace(-8, 2, 21)
+    plain = oj.estimate_process_noise(model, theta, u, z, [0.0, 1.0], x0=x0, scales=grid)
+    assert plain.interior and not np.all(np.isin(plain.scale, grid))
+    with pytest.warns(UserWarning, match=r"broke down .* at 1 of the grid's 22 scales"):
+        wide = oj.estimate_process_noise(
+            model, theta, u, z, [0.0, 1.0], x0=x0, scales=np.r_[grid, 1.5e308]
+        )
+    assert not np.isfinite(wide.log_likelihoods[-1])
+    assert wide.interior and wide.scale == plain.scale
+    with pytest.raises(ValueError, match="not finite at any scale of the grid"):
+        oj.estimate_process_noise(
+            model, theta, u, z, [0.0, 1.0], x0=x0, scales=[1.5e308, 1.6e308, 1.7e308]
+        )
