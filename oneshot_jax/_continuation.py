@@ -245,6 +245,12 @@ def fit_continuation(
             "`fit_continuation` takes one record: `x0` of shape (n_x,), `u` (T, n_u) and `z` "
             f"(T, n_z); got shapes {np.shape(x0)}, {np.shape(u)}, {np.shape(z)}."
         )
+    if np.shape(u)[0] != np.shape(z)[0]:  # (before the windows, which T sizes)
+        flipped = " (is `u` transposed? u is (T, n_u))" if np.shape(u)[1] == np.shape(z)[0] else ""
+        raise ValueError(
+            f"`u` and `z` must hold the same number of samples T: got u {np.shape(u)}, z "
+            f"{np.shape(z)}{flipped}."
+        )
     covariance = kwargs.pop("covariance", "classical")
     estimate_x0 = kwargs.pop("estimate_x0", True)
     # (checked here, not after the windowed stages; the entries the last stage holds
@@ -428,6 +434,7 @@ def check_basin(
             f"{shapes[1]}, z {shapes[2]} (for a fit on several records, check each record "
             "by a fit on it alone)."
         )
+    result._check_u(u)  # (a transposed u before the window: its T would be wrong)
     if not is_count(window, -math.inf):  # (a float such as 2.5, a string: the type)
         raise TypeError(
             f"`window` must be a positive integer shorter than the record (T = "
@@ -454,7 +461,6 @@ def check_basin(
             "output measured only in aggregate would drop out of the comparison. Compare "
             "with a fit from other starts (`multistart`) instead."
         )
-    result._check_u(u)
     fitted = np.shape(result.residuals)
     if np.shape(z) != fitted or np.shape(u)[0] != fitted[0]:
         raise ValueError(

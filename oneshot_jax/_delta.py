@@ -88,10 +88,17 @@ def delta_method(fn, theta, fixed, covariance, name="fn"):
                 f"{type(out).__name__}: stack several quantities with jnp.stack."
             ) from None
         if jnp.iscomplexobj(q) or not jnp.issubdtype(q.dtype, jnp.floating):
+            hint = (
+                "for a complex quantity (a pole), return its jnp.real and jnp.imag, or "
+                "jnp.abs and jnp.angle"
+                if jnp.iscomplexobj(q)
+                else "integers and booleans have no derivative in theta (a value that does "
+                "not depend on theta, or a comparison); return a floating quantity computed "
+                "from theta"
+            )
             raise TypeError(
                 f"`{name}` must return real floating values (an array or a number), got "
-                f"dtype {q.dtype}: for a complex quantity (a pole), return its jnp.real and "
-                "jnp.imag, or jnp.abs and jnp.angle."
+                f"dtype {q.dtype}: {hint}."
             )
         return q
 

@@ -696,9 +696,10 @@ class FitResult(eqx.Module):
     # result loaded without `model=` and saved again keeps the check of `load_result(model=)`.
     saved_model_signature: tuple | None = eqx.field(static=True, default=None, repr=False)
 
-    def _check_u(self, u):
+    def _check_u(self, u, point=None):
         """Refuse inputs with another number of columns than the fitted data's (each
-        record of a ragged list alike)."""
+        record of a ragged list alike). `point`: for an operating point's constant input
+        (n_u,), the state given with it (or True), whose hint is not a record's."""
         if isinstance(u, (list, tuple)) and not u:
             raise ValueError(
                 "`u` is empty: give one record's inputs (T, n_u), or several records, "
@@ -711,6 +712,13 @@ class FitResult(eqx.Module):
                 shape = np.shape(record)
             except ValueError:  # a list that is no array: `simulate`'s checks name it
                 continue
+            if shape and shape[-1] != self.n_u and point is not None:
+                swapped = point is not True and np.shape(point) == (self.n_u,)
+                hint = " (are `x` and `u` swapped?)" if swapped else ""
+                raise ValueError(
+                    f"`u` must be the operating point's constant input, of n_u = {self.n_u} "
+                    f"entries as the fitted data had; got shape {shape}{hint}."
+                )
             if shape and shape[-1] != self.n_u:
                 hint = (
                     " (is it transposed? u is (T, n_u))"
@@ -1307,7 +1315,7 @@ class FitResult(eqx.Module):
         **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`).
         """
         model = self._model_or_raise("find_equilibrium")
-        self._check_u(u)
+        self._check_u(u, point=True)
         if x is None:
             x0 = np.asarray(self.x0)
             x = x0 if x0.ndim == 1 else x0.mean(axis=0)
@@ -1324,7 +1332,7 @@ class FitResult(eqx.Module):
         from an ODE; `poles`).
         """
         model = self._model_or_raise("linearise")
-        self._check_u(u)
+        self._check_u(u, point=x)
         if np.ndim(self.x0):
             check_state_size(x, np.shape(self.x0)[-1], "`x`")
         return linearise(model, self.theta, x, u, dt=dt)
@@ -1405,7 +1413,13 @@ class FitResult(eqx.Module):
                 "the data, or a network's weights): no distribution to draw from. Fix them "
                 "(`fit(fixed=...)`) to draw the others."
             )
-        rng = np.random.default_rng(seed)
+        try:
+            rng = np.random.default_rng(seed)
+        except (TypeError, ValueError):
+            raise ValueError(
+                "`seed` must be a non-negative integer (or a sequence of them, or a NumPy "
+                f"Generator or SeedSequence; `np.random.default_rng(seed)`), got {seed!r}."
+            ) from None
         rows = np.repeat(flat[None], int(n), axis=0)
         if free.size:  # (every entry fixed: n copies of theta)
             rows[:, free] = rng.multivariate_normal(flat[free], cov, size=int(n), method="eigh")

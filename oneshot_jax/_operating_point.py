@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
-from ._checks import as_float, check_data
+from ._checks import as_float, check_data, check_finite
 from ._linalg import psd_solve
 from ._model import ODE_STEPS, Model
 
@@ -119,6 +119,8 @@ class LinearModel(NamedTuple):
         continuous-time one. |H| is the gain, np.angle(H) the phase; at a frequency on a
         pole (an integrator's w = 0) H is infinite, as MATLAB's `freqresp` gives it."""
         w = frequencies(w)
+        if not isinstance(continuous, (bool, np.bool_)):
+            raise TypeError(f"`continuous` must be True or False, got {continuous!r}.")
         if continuous:
             if self.Ac is None:
                 raise ValueError(
@@ -198,17 +200,34 @@ def _checked(model, theta, x, u, dt, call):
     `call` takes them in (`linearise` and `find_equilibrium` differ: a swap is the likely
     cause; check_data's own words speak of a record's x0 and u)."""
     u = _input(u)
+    if isinstance(x, Equilibrium):
+        raise TypeError("`x` is an Equilibrium: pass its state, `eq.x` (and its input `eq.u`).")
     if np.ndim(x) != 1:
         raise ValueError(f"`x` must be one state, shape (n_x,), got shape {np.shape(x)}.")
+    x = as_float(x, "x")
+    check_finite(x, "x")
+    check_finite(u, "u")
     t = None if not model.timed else np.array([0.0, dt])
     try:
         data = check_data(model, theta, x, np.stack([u, u]), t=t)
     except ValueError as err:
+        # (a swap is named only where the swapped pair fits the model)
+        swapped = np.shape(x) != np.shape(u) and _fits(model, theta, u, x, t)
+        question = f" (`{call}`: they are swapped)" if swapped else ""
         raise ValueError(
-            f"`x` (shape {np.shape(x)}) and `u` (shape {np.shape(u)}) do not fit the model "
-            f"(`{call}`: are they swapped?): {err}"
+            f"`x` (shape {np.shape(x)}) and `u` (shape {np.shape(u)}) do not fit the model"
+            f"{question}; as a record's x0 and u (two samples of u): {err}"
         ) from None
     return data, u
+
+
+def _fits(model, theta, x, u, t) -> bool:
+    """Whether the state `x` and the input `u` pass `check_data` for `model`."""
+    try:
+        check_data(model, theta, x, np.stack([u, u]), t=t)
+    except (ValueError, TypeError):
+        return False
+    return True
 
 
 def _interval(model, dt, need):

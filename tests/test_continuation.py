@@ -171,6 +171,9 @@ def test_continuation_rejects_bad_arguments(kwargs, match):
 def test_continuation_takes_one_record():
     with pytest.raises(ValueError, match="one record"):
         oj.fit_continuation(MODEL, START, np.zeros((2, 2)), U[None], Z[None])
+    # A transposed u was blamed on the windows ("shorter than the record (T = 1)").
+    with pytest.raises(ValueError, match=r"same number of samples .*is `u` transposed"):
+        oj.fit_continuation(MODEL, START, np.zeros(2), U.T, Z, windows=[50])
 
 
 def test_basin_check_rejects_bad_arguments(plain):
@@ -178,6 +181,8 @@ def test_basin_check_rejects_bad_arguments(plain):
         oj.check_basin(START, U, Z)
     with pytest.raises(ValueError, match="window"):
         oj.check_basin(plain, U, Z, window=T)
+    with pytest.raises(ValueError, match=r"is it transposed\? u is \(T, n_u\)"):
+        oj.check_basin(plain, U.T, Z)
     with pytest.raises(ValueError, match="margin"):
         oj.check_basin(plain, U, Z, margin=-1.0)
     with pytest.raises(TypeError, match="`window` must be a positive integer"):

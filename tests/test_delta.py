@@ -80,6 +80,9 @@ def test_the_poles_of_the_linear_model(fitted):
         (lambda th: jnp.log(-th["b"]), ValueError, "not finite at the estimate"),
         (3.0, TypeError, "`fn` must be a function of theta"),
         (lambda th: jnp.linalg.eigvals(jnp.eye(2) * th["b"]), TypeError, "jnp.real"),
+        # (an integer is no complex number: the hint was the complex one)
+        (lambda th: 3, TypeError, "dtype int.*: integers and booleans have no derivative"),
+        (lambda th: th["b"] > 0, TypeError, "dtype bool: integers and booleans"),
     ],
 )  # fmt: skip
 def test_bad_functions_are_named(fitted, fn, error, match):

@@ -643,6 +643,9 @@ def test_bad_input_errors():
     est = functools.partial(oj.estimate_x0, LINEAR, 1.0, u, z)
     with pytest.raises(ValueError, match="`method` must be 'lsq' or 'smoother'"):
         est(x0=x0, method="kalman")
+    # (an empty record: it said "`z` must have 1 to 0 rows")
+    with pytest.raises(ValueError, match=r"`u` must hold at least one sample \(T >= 1\)"):
+        oj.estimate_x0(LINEAR, 1.0, u[:0], z[:0], x0=x0)
     with pytest.raises(ValueError, match="`n`.* must be >= 1"):
         est(x0=x0, n=0)
     with pytest.raises(ValueError, match="`n` = 26 is more than the 25 samples of `z`"):

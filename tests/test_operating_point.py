@@ -214,8 +214,14 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
         lambda: result.find_equilibrium(np.linspace(0.0, 2.0, 5)[None, :]),  # (transposed)
         lambda: result.linearise(eq.x, [2.0, 1.0]),
     ):
-        with pytest.raises(ValueError, match="`u` must have n_u = 1 input columns"):
+        with pytest.raises(ValueError, match="`u` must be the operating point's constant input"):
             call()
+    # x and u swapped (it gave a record's hint, "(T, 1): u[:, None]"), an Equilibrium
+    # where its state is meant (NumPy's inhomogeneous-shape error).
+    with pytest.raises(ValueError, match=r"got shape \(2,\) \(are `x` and `u` swapped\?\)"):
+        result.linearise([2.0], eq.x)
+    with pytest.raises(TypeError, match=r"`x` is an Equilibrium: pass its state, `eq.x`"):
+        result.linearise(eq, [2.0])
 
 
 @pytest.mark.parametrize(
@@ -234,9 +240,20 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
         # (x and u swapped: the order each takes them in is named)
         (lambda m: oj.linearise(m, THETA, [3.0], np.zeros(2)), ValueError,
          r"`x` \(shape \(1,\)\) and `u` \(shape \(2,\)\) do not fit the model "
-         r"\(`linearise\(model, theta, x, u\)`: are they swapped\?\)"),
+         r"\(`linearise\(model, theta, x, u\)`: they are swapped\)"),
         (lambda m: oj.find_equilibrium(m, THETA, np.zeros(2), [3.0]), ValueError,
-         r"\(`find_equilibrium\(model, theta, u, x\)`: are they swapped\?\)"),
+         r"\(`find_equilibrium\(model, theta, u, x\)`: they are swapped\)"),
+        # (a bad value or theta is named as such, not as a swap of x and u that fit)
+        (lambda m: oj.find_equilibrium(m, THETA, [1.0], [np.inf, 0.0]), ValueError,
+         r"^`x` contains NaN or inf values; the first is `x\[0\]`"),
+        (lambda m: oj.linearise(m, THETA, np.zeros(2), [np.nan]), ValueError,
+         r"^`u` contains NaN or inf values"),
+        (lambda m: oj.linearise(m, {"w0sq": 9.0}, np.zeros(2), [1.0]), ValueError,
+         r"do not fit the model; as a record's x0 and u"),
+        (lambda m: oj.linearise(m, THETA, oj.find_equilibrium(m, THETA, [1.0], np.zeros(2)),
+                                [1.0]), TypeError, "`x` is an Equilibrium"),
+        (lambda m: oj.linearise(m, THETA, np.zeros(2), [1.0]).frequency_response(
+            [1.0], continuous="no"), TypeError, "`continuous` must be True or False"),
         (lambda m: oj.find_equilibrium(pendulum, THETA, [1.0], np.zeros(2)), TypeError,
          "`model` must be a oneshot_jax.Model, got function"),
         (lambda m: oj.linearise(None, THETA, np.zeros(2), [1.0]), TypeError,

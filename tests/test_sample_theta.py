@@ -76,3 +76,6 @@ def test_fixed_entries_keep_their_values_and_unknown_covariances_are_refused():
     for n in (0, 2.5, True):
         with pytest.raises(ValueError, match="`n`"):
             result().sample_theta(n)
+    for seed in ("a", -1, 1.5):  # (NumPy's SeedSequence messages named no argument)
+        with pytest.raises(ValueError, match="`seed` must be a non-negative integer"):
+            result().sample_theta(3, seed=seed)
