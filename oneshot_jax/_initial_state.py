@@ -176,9 +176,7 @@ def _check_head(u, z, n, z_name="z"):
         )
     T, T_z = np.shape(u)[0], np.shape(z)[0]
     if T == 0:
-        raise ValueError(
-            f"`u` must hold at least one sample (T >= 1), got shape {np.shape(u)}."
-        )
+        raise ValueError(f"`u` must hold at least one sample (T >= 1), got shape {np.shape(u)}.")
     if n is None:  # (n is z's length: name z)
         if not 1 <= T_z <= T:
             raise ValueError(

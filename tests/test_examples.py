@@ -8,7 +8,7 @@ import pytest
 
 import oneshot_jax as oj
 from oneshot_jax import datasets as ds
-from oneshot_jax.examples import cascaded_tanks, chain, emps, satellite
+from oneshot_jax.examples import cascaded_tanks, chain, cstr, emps, satellite
 
 
 def test_satellite_model_matches_numpy_generator():
@@ -155,3 +155,20 @@ def test_example_helpers_name_bad_arguments():
             satellite.generate(**{"seeds": [0], "n": 5, **kw})
     with pytest.raises(ValueError, match="`kind` must be one of"):
         cascaded_tanks.constraints("Overflow")
+    # The builders converted counts and widths themselves: 2.7 substeps ran as 2, a chain
+    # of 2.7 masses as 2, a relu width of 0 simulated NaN, a negative gate width reversed
+    # the overflow gate, and a NaN mean torque gave NaN records.
+    builders = [
+        (lambda: satellite.generate([0], 5, torque_mean=np.nan), "`torque_mean` must be a finite"),
+        (lambda: cascaded_tanks.model("basic", 4.0, substeps=2.7), "`substeps` must be an integer"),
+        (lambda: cascaded_tanks.model("overflow", 4.0, relu_width=0.0), "`relu_width` must be a"),
+        (lambda: cascaded_tanks.model("overflow", 4.0, gate_width=-0.05), "`gate_width` must"),
+        (lambda: chain.model(2.7), "`n` must be an integer >= 1"),
+        (lambda: emps.open_loop_model(0.001, substeps=True), "`substeps` must be an integer"),
+        (lambda: emps.open_loop_model(0.001, eps=0.0), "`eps` must be a finite number > 0"),
+        (lambda: emps.closed_loop_model(0.001, 1.0, 1.0, 1.0, substeps=1.5), "`substeps` must"),
+        (lambda: cstr.model(substeps=2.5), "`substeps` must be an integer >= 1"),
+    ]
+    for build, match in builders:
+        with pytest.raises(ValueError, match=match):
+            build()

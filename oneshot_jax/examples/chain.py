@@ -20,6 +20,8 @@ import numpy as np
 
 import oneshot_jax as oj
 
+from ._arguments import count
+
 DT = 0.05
 """Sampling time, s."""
 NOISE_STD = 1e-3
@@ -58,7 +60,8 @@ class Positions(eqx.Module):
 def model(n, dt=DT) -> oj.Model:
     """The chain of `n` masses by RK4 (one step per sample, the force held), observing
     the positions; theta = {"k": (n,), "c": (n,)}."""
-    return oj.Model.from_ode(ChainRHS(int(n)), dt, observe=Positions(int(n)))
+    n = count(n, "n")
+    return oj.Model.from_ode(ChainRHS(n), dt, observe=Positions(n))
 
 
 def _rhs_np(x, u, k, c, n):

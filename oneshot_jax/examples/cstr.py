@@ -48,6 +48,8 @@ import numpy as np
 
 import oneshot_jax as oj
 
+from ._arguments import count, positive
+
 FLOW = 2.0
 """q, feed flow (L/min)."""
 VOLUME = 100.0
@@ -110,7 +112,11 @@ def model(dt=None, *, max_step=MAX_STEP, substeps=8) -> oj.Model:
     """
     if dt is None:
         return oj.Model.from_ode(
-            rhs, None, method="rk4", substeps=int(substeps), max_step=float(max_step)
+            rhs,
+            None,
+            method="rk4",
+            substeps=count(substeps, "substeps"),
+            max_step=positive(max_step, "max_step"),
         )
     return oj.Model.from_ode(rhs, dt, method="rk4", substeps=max(1, math.ceil(dt / max_step)))
 

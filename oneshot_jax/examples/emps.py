@@ -40,6 +40,8 @@ import numpy as np
 import oneshot_jax as oj
 from oneshot_jax.datasets import EMPS_IDIM_LS_REFERENCE
 
+from ._arguments import count, positive
+
 PARAMS = ("M", "Fv", "Fc", "offset")
 """The estimated parameters, in order."""
 UNITS = {"M": "kg", "Fv": "N/(m/s)", "Fc": "N", "offset": "N"}
@@ -101,7 +103,8 @@ def open_loop_model(Ts, eps=EPS, substeps=1) -> oj.Model:
     An `oneshot_jax.Model`; models built with the same arguments compare equal, so
     repeated fits reuse their compilation.
     """
-    return oj.Model.from_ode(Plant(float(eps)), Ts, substeps=int(substeps), observe=_position)
+    plant, substeps = Plant(positive(eps, "eps")), count(substeps, "substeps")
+    return oj.Model.from_ode(plant, Ts, substeps=substeps, observe=_position)
 
 
 def controller(x, u, kp, kv, Ts, nu_max=NU_MAX):
@@ -157,7 +160,8 @@ def closed_loop_model(Ts, kp, kv, gtau, eps=EPS, substeps=1, nu_max=NU_MAX) -> o
     An `oneshot_jax.Model`.
     """
     Ts, kp, kv = float(Ts), float(kp), float(kv)
-    step = ClosedLoopStep(Ts, kp, kv, float(gtau), float(eps), int(substeps), float(nu_max))
+    eps, substeps = positive(eps, "eps"), count(substeps, "substeps")
+    step = ClosedLoopStep(Ts, kp, kv, float(gtau), eps, substeps, float(nu_max))
     return oj.Model(step, ClosedLoopOutput(Ts, kp, kv, float(nu_max)))
 
 

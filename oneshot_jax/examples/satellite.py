@@ -13,12 +13,12 @@ backpropagation for multi-step prediction in physics-based system identification
 Section 4, eq. (22) and the values that follow it.
 """
 
-import numbers
-
 import jax.numpy as jnp
 import numpy as np
 
 import oneshot_jax as oj
+
+from ._arguments import is_count
 
 DT = 0.1
 """Sampling time, s."""
@@ -108,12 +108,6 @@ def simulate_np(inertia, w0, M, dt=DT, substeps=5):
     return out
 
 
-def _count(value, least) -> bool:
-    """Whether `value` is an integer (not a bool) of at least `least`."""
-    ok = not isinstance(value, (bool, np.bool_)) and isinstance(value, numbers.Integral)
-    return ok and value >= least
-
-
 def generate(
     seeds,
     n,
@@ -152,17 +146,19 @@ def generate(
     if not seeds:
         raise ValueError("`seeds` must hold at least one integer seed, got none.")
     for seed in seeds:
-        if not _count(seed, 0):
+        if not is_count(seed, 0):
             raise ValueError(f"`seeds` must be integers >= 0, got {seed!r}.")
-    if not _count(n, 1):
+    if not is_count(n, 1):
         raise ValueError(f"`n` (samples per record) must be an integer >= 1, got {n!r}.")
-    if not _count(substeps, 1):
+    if not is_count(substeps, 1):
         raise ValueError(f"`substeps` must be an integer >= 1, got {substeps!r}.")
     for name, value in (("theta", theta), ("w0", w0)):
         if np.shape(value) != (3,):
             raise ValueError(
                 f"`{name}` must hold 3 entries (one per axis), got shape {np.shape(value)}."
             )
+    if np.ndim(torque_mean) != 0 or not np.isfinite(float(torque_mean)):
+        raise ValueError(f"`torque_mean` must be a finite number, got {torque_mean!r}.")
     for name, value in (("dt", dt), ("torque_std", torque_std), ("noise_std", noise_std)):
         if np.ndim(value) != 0 or not np.isfinite(float(value)) or float(value) < 0:
             raise ValueError(f"`{name}` must be a finite number >= 0, got {value!r}.")
