@@ -1299,7 +1299,7 @@ class FitResult(eqx.Module):
             out.append(self.predict(records[i], heads[i], t=times[i], **kw))
         return out
 
-    def find_equilibrium(self, u, x=None, *, hold=None):
+    def find_equilibrium(self, u, x=None, *, hold=None, dt=None):
         """An equilibrium of the fitted model at the constant input `u` (MATLAB's
         `findop(sys, 'steady', u)`; `oneshot_jax.find_equilibrium` with the fitted
         theta).
@@ -1311,6 +1311,8 @@ class FitResult(eqx.Module):
         - `x`: the start of the search (n_x,); default the fitted x0 (the mean over
             records or windows of a fit of several).
         - `hold`: an (n_x,) boolean mask of the entries of `x` held at their values.
+        - `dt`: for a `Model(step, timed=True)`, the interval of the step (as
+            `oneshot_jax.find_equilibrium`).
 
         **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`).
         """
@@ -1321,7 +1323,7 @@ class FitResult(eqx.Module):
             x = x0 if x0.ndim == 1 else x0.mean(axis=0)
         elif np.ndim(self.x0):
             check_state_size(x, np.shape(self.x0)[-1], "`x`")
-        return find_equilibrium(model, self.theta, u, x, hold=hold)
+        return find_equilibrium(model, self.theta, u, x, hold=hold, dt=dt)
 
     def linearise(self, x, u, *, dt=None):
         """The linear model of the fitted model's deviations around (x, u) (MATLAB's

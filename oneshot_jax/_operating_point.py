@@ -39,9 +39,9 @@ class Equilibrium(NamedTuple):
     - `u`: (n_u,) the input.
     - `residual`: the largest |entry| of the equation's residual at `x`: of rhs(x, u,
         theta) for a model built from an ODE, else of f(x, u, theta) - x.
-    - `success`: True where the residual is at the round-off level of the equation (at
-        most sqrt(eps) times its scale at `x`, |J| |x|: the largest row sum of the
-        Jacobian's magnitudes times the largest |entry| of x, at least 1); False
+    - `success`: True where the residual is at the round-off level of the equation (each
+        entry at most sqrt(eps) times its row's scale at `x`, sum_j |J_ij| max(|x_j|, 1):
+        the size of its terms that depend on the state); False
         where no equilibrium was reached (none near the start, or none at this input:
         an integrator driven by a constant force).
     - `steps`: the Gauss-Newton steps taken.
@@ -92,6 +92,8 @@ class LinearModel(NamedTuple):
     - `x`, `u`: the operating point.
     - `B_next` (n_x, n_u): for `input="foh"`, B1, the step's Jacobian with respect to
         the next sample's input (dx[k] = xi[k] + B1 du[k]); None otherwise.
+    - `D_observe` (n_z, n_u): for `input="foh"`, D_g, the Jacobian of `observe` in u (the
+        continuous-time model's feedthrough; `D` is D_g + C B1); None otherwise.
     """
 
     A: np.ndarray
@@ -104,6 +106,7 @@ class LinearModel(NamedTuple):
     x: np.ndarray
     u: np.ndarray
     B_next: np.ndarray | None = None
+    D_observe: np.ndarray | None = None
 
     @property
     def poles(self) -> np.ndarray:
@@ -127,9 +130,12 @@ class LinearModel(NamedTuple):
                     "`continuous=True` needs a model built from an ODE (`Model.from_ode`): "
                     "this linear model has no Ac, Bc."
                 )
+            # (the ODE's own feedthrough: a foh model's D holds C B1 of its sampling too)
             s, A, B = 1j * w, self.Ac, self.Bc
+            D = self.D if self.D_observe is None else self.D_observe
         else:
             s, A, B = np.exp(1j * w * (1.0 if self.dt is None else self.dt)), self.A, self.B
+            D = self.D
         eye = np.eye(A.shape[0])
         M = s[:, None, None] * eye - A
         try:
@@ -142,7 +148,7 @@ class LinearModel(NamedTuple):
                 except np.linalg.LinAlgError:
                     X[i] = complex(np.inf, 0.0)
         with np.errstate(invalid="ignore"):
-            H = self.C @ X + self.D
+            H = self.C @ X + D
         return np.where(np.isfinite(X).all(axis=(1, 2))[:, None, None], H, complex(np.inf, 0.0))
 
     def __str__(self) -> str:
@@ -213,7 +219,9 @@ def _checked(model, theta, x, u, dt, call):
     except ValueError as err:
         # (a swap is named only where the swapped pair fits the model)
         swapped = np.shape(x) != np.shape(u) and _fits(model, theta, u, x, t)
-        question = f" (`{call}`: they are swapped)" if swapped else ""
+        question = (
+            f" (`{call}`: are they swapped? they fit it the other way round)" if swapped else ""
+        )
         raise ValueError(
             f"`x` (shape {np.shape(x)}) and `u` (shape {np.shape(u)}) do not fit the model"
             f"{question}; as a record's x0 and u (two samples of u): {err}"
@@ -231,8 +239,9 @@ def _fits(model, theta, x, u, t) -> bool:
 
 
 def _interval(model, dt, need):
-    """The sample interval of a timed model's A and B (`dt`, given), checked; None for
-    a model of a fixed interval, which refuses one."""
+    """The sample interval of a timed model's step (`dt`, given), checked; None for a
+    model of a fixed interval, which refuses one, and for a timed model where it is not
+    `need`ed and not given."""
     if not model.timed:
         if dt is not None:
             raise ValueError(
@@ -242,10 +251,10 @@ def _interval(model, dt, need):
         return None
     if dt is None:
         if not need:
-            return 1.0  # (the step's fixed points, and the outputs, do not depend on it)
+            return None
         raise ValueError(
-            "`dt` (the sample interval of the discrete-time A and B) is needed for a model "
-            "of time-stamped records (`Model.from_ode(rhs, dt=None)`)."
+            "`dt` (the sample interval of the step) is needed for a model of time-stamped "
+            "records (`Model.from_ode(rhs, dt=None)`, or `Model(step, timed=True)`)."
         )
     if hasattr(dt, "item") and np.shape(dt) == ():
         dt = dt.item()  # (a 0-d array)
@@ -286,6 +295,7 @@ def find_equilibrium(
     x: Float[ArrayLike, " n_x"],
     *,
     hold=None,
+    dt=None,
 ) -> Equilibrium | list[Equilibrium]:
     """An equilibrium of the model at a constant input (MATLAB's `findop(sys, 'steady',
     u)`): a state x with f(x, u, theta) = x, or rhs(x, u, theta) = 0 for a model built
@@ -307,6 +317,9 @@ def find_equilibrium(
     - `hold`: None, or an (n_x,) boolean mask of the entries of `x` held at their given
         values (MATLAB's known states of `findop`); the others are solved for, in the
         least-squares sense of all the equations.
+    - `dt`: only for a model of time-stamped records whose step is not built from an ODE
+        (`Model(step, timed=True)`): the sample interval whose step's fixed points are
+        sought (they depend on it; an ODE's zeros of rhs do not, and need none).
 
     **Returns:** an `Equilibrium` (`x`, `z`, `u`, `residual`, `success`, `steps`);
     `success` False, with the residual it reached, where none was found. For a sweep, a
@@ -326,11 +339,14 @@ def find_equilibrium(
     if np.ndim(u) == 2:  # a sweep, continued from row to row
         out, start = [], x
         for row in np.asarray(u):
-            eq = find_equilibrium(model, theta, row, start, hold=hold)
+            eq = find_equilibrium(model, theta, row, start, hold=hold, dt=dt)
             out.append(eq)
             start = eq.x if eq.success else x
         return out
-    dt = _interval(model, None, need=False)
+    # (an ODE's zeros of rhs do not depend on the interval: any will do)
+    dt = _interval(model, dt, need=_rhs(model) is None)
+    if dt is None and model.timed:
+        dt = 1.0
     data, u = _checked(model, theta, x, u, dt, "find_equilibrium(model, theta, u, x)")
     n_x = data.x0.shape[0]
     free = np.ones(n_x, bool)
@@ -362,13 +378,16 @@ def find_equilibrium(
         # a far start made it loose, and a point that was no equilibrium passed (u - (x -
         # 1000)^2 = 0 at u = -1e-3 has none; from x = 0, residual 1e6 there, the least-
         # squares point, residual 1e-3, read success).
-        return np.max(np.abs(J).sum(axis=1), initial=0.0) * np.max(np.abs(x), initial=1.0)
+        # Per equation (row): states in units of very different sizes (a level in m
+        # next to a pressure in Pa) made one scale for all of them 1e9 times a level's,
+        # and a tank that overflowed at 1 m/s read as an equilibrium.
+        return np.abs(J) @ np.maximum(np.abs(x), 1.0)
 
     steps = 0
     while (
         steps < MAX_STEPS
         and np.all(np.isfinite(r))
-        and np.max(np.abs(r), initial=0.0) > eps * scale(x, J)  # (at round-off: stop)
+        and np.any(np.abs(r) > eps * scale(x, J))  # (at round-off: stop)
     ):
         step = -np.asarray(psd_solve(jnp.asarray(J.T @ J), jnp.asarray(J.T @ r)))
         now, alpha = r @ r, 1.0
@@ -382,7 +401,7 @@ def find_equilibrium(
             break  # minimum where there is no equilibrium)
         x, r, J, steps = np.asarray(trial, np.float64), r_t, J_t, steps + 1
     residual = float(np.max(np.abs(r), initial=0.0))
-    success = bool(np.isfinite(residual) and residual <= math.sqrt(eps) * scale(x, J))
+    success = bool(np.all(np.isfinite(r)) and np.all(np.abs(r) <= math.sqrt(eps) * scale(x, J)))
     x = x.astype(data.x0.dtype)
     z = data.model.observe(jnp.asarray(x), jnp.asarray(data.u[0]), data.theta)
     return Equilibrium(x, np.asarray(z), u, residual, success, steps)
@@ -391,20 +410,20 @@ def find_equilibrium(
 @eqx.filter_jit
 def _jacobians(model, rhs, params, whole, x, su, uo, u):
     """A, B, C, D (the interval column left out), for an ODE model Ac, Bc, and for a
-    "foh" pair B1: B and D then those of its state-space form (`LinearModel`), B0 + A B1
-    and D + C B1."""
+    "foh" pair B1 and D_g, the observation's own: B and D then those of its state-space
+    form (`LinearModel`), B0 + A B1 and D_g + C B1."""
     n_u = u.shape[0]
     A, Bs = jax.jacfwd(model.step, (0, 1))(x, su, params)  # Bs: (n_x, [2,] n_u [+ 1])
     C, D = jax.jacfwd(model.observe, (0, 1))(x, uo, params)
-    D, B1 = D[:, :n_u], None
+    D, B1, D_g = D[:, :n_u], None, None
     if su.ndim == 2:  # (u[k] and u[k+1])
-        B0, B1 = Bs[:, 0, :n_u], Bs[:, 1, :n_u]
+        B0, B1, D_g = Bs[:, 0, :n_u], Bs[:, 1, :n_u], D
         B, D = B0 + A @ B1, D + C @ B1
     else:
         B = Bs[:, :n_u]
     if rhs is None:
-        return A, B, C, D, None, None, B1
-    return A, B, C, D, *jax.jacfwd(rhs, (0, 1))(x, u, whole), B1
+        return A, B, C, D, None, None, B1, D_g
+    return A, B, C, D, *jax.jacfwd(rhs, (0, 1))(x, u, whole), B1, D_g
 
 
 def linearise(
@@ -453,6 +472,7 @@ def linearise(
         U[0],
         jnp.asarray(u, x.dtype),
     )
-    A, B, C, D, Ac, Bc, B1 = (None if a is None else np.asarray(a) for a in out)
+    A, B, C, D, Ac, Bc, B1, D_g = (None if a is None else np.asarray(a) for a in out)
     step_dt = getattr(model.step, "dt", None) if interval is None else interval
-    return LinearModel(A, B, C, D, Ac, Bc, step_dt, np.asarray(x), np.asarray(u, x.dtype), B1)
+    point = (np.asarray(x), np.asarray(u, x.dtype))
+    return LinearModel(A, B, C, D, Ac, Bc, step_dt, *point, B1, D_g)

@@ -240,9 +240,10 @@ def test_the_results_methods_use_the_fitted_theta_and_x0():
         # (x and u swapped: the order each takes them in is named)
         (lambda m: oj.linearise(m, THETA, [3.0], np.zeros(2)), ValueError,
          r"`x` \(shape \(1,\)\) and `u` \(shape \(2,\)\) do not fit the model "
-         r"\(`linearise\(model, theta, x, u\)`: they are swapped\)"),
+         r"\(`linearise\(model, theta, x, u\)`: are they swapped\? they fit it the other "
+         r"way round\)"),
         (lambda m: oj.find_equilibrium(m, THETA, np.zeros(2), [3.0]), ValueError,
-         r"\(`find_equilibrium\(model, theta, u, x\)`: they are swapped\)"),
+         r"\(`find_equilibrium\(model, theta, u, x\)`: are they swapped\?"),
         # (a bad value or theta is named as such, not as a swap of x and u that fit)
         (lambda m: oj.find_equilibrium(m, THETA, [1.0], [np.inf, 0.0]), ValueError,
          r"^`x` contains NaN or inf values; the first is `x\[0\]`"),
@@ -284,6 +285,17 @@ def test_frequency_responses():
     with pytest.raises(ValueError, match="`continuous=True` needs"):
         oj.linearise(oj.Model(lambda x, u, th: th * x), 0.5, np.ones(1), np.zeros(0)
                      ).frequency_response(w, continuous=True)  # fmt: skip
+    # With input="foh" the sampled model's D holds C B1 besides the observation's own
+    # feedthrough; the continuous-time response added it too (a gain of 0.05 at 1e6 rad/s
+    # for the angle, which reads no input).
+    foh = oj.linearise(_model(input="foh"), THETA, np.array([0.2, 0.0]), np.array([1.0]))
+    assert np.any(np.abs(foh.C @ foh.B_next) > 1e-3)  # (the term that was added)
+    w = np.array([0.0, 1.0, 3.0, 1e6])
+    X = np.linalg.solve(1j * w[:, None, None] * np.eye(2) - foh.Ac, foh.Bc)
+    np.testing.assert_allclose(foh.frequency_response(w, continuous=True),
+                               foh.C @ X + foh.D_observe, rtol=1e-13, atol=1e-15)  # fmt: skip
+    np.testing.assert_array_equal(foh.D_observe, [[0.0], [0.5]])
+    assert abs(foh.frequency_response([1e9], continuous=True)[0, 0, 0]) < 1e-8
     # A frequency on a pole (an integrator's w = 0) gives an infinite H (as `freqresp`).
     one, zero = np.ones((1, 1)), np.zeros((1, 1))
     integrator = oj.LinearModel(one, 2 * one, one, zero, None, None, 0.1, np.zeros(1), np.zeros(1))
@@ -375,3 +387,35 @@ def test_a_far_start_neither_passes_a_non_equilibrium_nor_stops_short():
     exponential = oj.Model.from_ode(lambda x, u, th: u - jnp.exp(x), DT)
     eq = oj.find_equilibrium(exponential, {}, np.array([1.0]), np.array([35.0]))
     assert eq.success and abs(float(eq.x[0])) < 1e-14
+
+
+def test_each_equation_is_at_round_off_on_its_own_scale():
+    """A level h in m that integrates inflow minus outflow, next to a pressure p in Pa that
+    lags 1e5 + rho g h: with the inflow above the outflow there is no equilibrium (h
+    rises for ever), but one scale for both equations (the largest row sum of |J| times
+    the largest |x|, 1e4 x 1e5) passed a residual dh/dt of 1 m/s as round-off. Each
+    equation is now held to its own scale; with the flows balanced it is an equilibrium."""
+
+    def tank(x, u, th):
+        return jnp.stack([u[0] - u[1], (1e5 + 1000.0 * 9.81 * x[0] - x[1]) / th["tau"]])
+
+    model = oj.Model.from_ode(tank, 1.0)
+    for imbalance in (1e-2, 1.0):
+        eq = oj.find_equilibrium(model, {"tau": 1.0}, [0.1 + imbalance, 0.1], [1.0, 1.1e5])
+        assert not eq.success and eq.residual == pytest.approx(imbalance, rel=1e-9)
+    eq = oj.find_equilibrium(model, {"tau": 1.0}, [0.1, 0.1], [1.0, 1.0e5], hold=[True, False])
+    assert eq.success and eq.x[1] == pytest.approx(1e5 + 9810.0, rel=1e-14)
+
+
+def test_a_timed_step_of_ones_own_needs_the_interval_of_its_fixed_points():
+    """x+ = e^{-h} x + u, h the interval a `Model(step, timed=True)` sees: its fixed point
+    u / (1 - e^{-h}) depends on h, and `find_equilibrium` took h = 1 without a word. It
+    now takes `dt` (needed there); an ODE's zeros of rhs need none."""
+    dose = oj.Model(lambda x, u, th: jnp.exp(-u[-1]) * x + u[0], timed=True)
+    with pytest.raises(ValueError, match="`dt` .* is needed for a model of time-stamped"):
+        oj.find_equilibrium(dose, {}, [1.0], np.zeros(1))
+    for h in (0.1, 1.0):
+        eq = oj.find_equilibrium(dose, {}, [1.0], np.zeros(1), dt=h)
+        assert eq.success and eq.x[0] == pytest.approx(1.0 / (1.0 - np.exp(-h)), rel=1e-12)
+    ode = oj.Model.from_ode(lambda x, u, th: u[:1] - x, None)
+    assert oj.find_equilibrium(ode, {}, [2.0], np.zeros(1)).x[0] == pytest.approx(2.0)
