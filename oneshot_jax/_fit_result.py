@@ -889,6 +889,24 @@ class FitResult(eqx.Module):
         return name_of(self.stop_reason)
 
     @property
+    def correlation(self) -> np.ndarray:
+        """The correlation matrix of theta's free entries, C_ij / sqrt(C_ii C_jj) of
+        `covariance` (rows and columns in the order of `names`): entries near +-1 mark
+        parameters the data determine only together (MATLAB users read it from
+        `getcov`). NaN in the rows and columns of a parameter whose std is inf or 0; an
+        empty (0, 0) array where the covariance was not computed."""
+        cov = np.asarray(self.covariance, np.float64)
+        if cov.size == 0:
+            return np.zeros((0, 0))
+        d = np.sqrt(np.diag(cov))
+        known = np.isfinite(d) & (d > 0)
+        out = np.full(cov.shape, np.nan)
+        k = np.flatnonzero(known)
+        out[np.ix_(k, k)] = cov[np.ix_(k, k)] / np.outer(d[k], d[k])
+        out[k, k] = 1.0
+        return out
+
+    @property
     def ci95(self):
         """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper) of NumPy arrays
         shaped like theta's parameters, as `std` (0-d for a scalar, not np.float64)."""

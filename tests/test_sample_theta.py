@@ -79,3 +79,26 @@ def test_fixed_entries_keep_their_values_and_unknown_covariances_are_refused():
     for seed in ("a", -1, 1.5):  # (NumPy's SeedSequence messages named no argument)
         with pytest.raises(ValueError, match="`seed` must be a non-negative integer"):
             result().sample_theta(3, seed=seed)
+
+
+def test_the_correlation_matrix_is_the_covariance_at_unit_diagonal():
+    """C_ij / sqrt(C_ii C_jj), by name; NaN for a parameter the data do not determine
+    (std inf), the others' entries unchanged by it."""
+    r = result()
+    C, std = np.asarray(r.covariance), [float(r.std[name]) for name in r.names]
+    np.testing.assert_allclose(r.correlation, C / np.outer(std, std), rtol=1e-12)
+    np.testing.assert_array_equal(np.diag(r.correlation), 1.0)
+    assert -1.0 < r.correlation[0, 1] < 1.0 and r.correlation[0, 1] != 0.0
+
+    def idle(x, u, th):  # "g" never acts: its std is inf
+        return euler_pendulum_step(x, u, th) + 0.0 * th["g"]
+
+    three = oj.fit(oj.Model(idle, angle_only), {"w0sq": 7.0, "b": 0.3, "g": 1.0}, X0, U, Z)
+    assert three.names == ("b", "g", "w0sq")
+    rho = three.correlation
+    assert np.all(np.isnan(rho[1])) and np.all(np.isnan(rho[:, 1]))
+    np.testing.assert_allclose(rho[0, 2], r.correlation[0, 1], rtol=1e-6)
+    assert oj.fit(MODEL, {"w0sq": 7.0, "b": 0.3}, X0, U, Z, covariance=None).correlation.shape == (
+        0,
+        0,
+    )
