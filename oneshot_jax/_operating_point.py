@@ -114,6 +114,32 @@ class LinearModel(NamedTuple):
         The continuous-time ones of an ODE model are `np.linalg.eigvals(lin.Ac)`."""
         return np.linalg.eigvals(self.A)
 
+    def dcgain(self, *, continuous=False) -> np.ndarray:
+        """The steady-state gain (n_z, n_u) of the deviations (MATLAB's `dcgain`): the
+        frequency response at w = 0, C (I - A)^{-1} B + D, or with `continuous=True`
+        -C Ac^{-1} Bc + D of an ODE model's continuous-time one (the same up to the
+        integrator's error). Infinite where the model integrates (a pole at 1, or at 0)."""
+        return self.frequency_response(np.zeros(1), continuous=continuous)[0].real
+
+    def step_response(self, n) -> np.ndarray:
+        """The discrete-time response to a unit step of each input from rest (MATLAB's
+        `step` of the sampled model): an array (n, n_z, n_u), entry [k, i, j] the
+        deviation of output i at sample k after input j steps to 1 at sample 0 (the
+        state at rest, dx[0] = 0: dz[0] = D). For `input="foh"` the step is the input's
+        samples, interpolated between them as the model runs them."""
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(
+                f"`n` (the samples of the response) must be an integer >= 1, got {n!r}."
+            )
+        n_x, n_u = self.B.shape
+        # (the state-space form's state xi = dx - B1 du: -B1 at rest with du = 1)
+        xi = np.zeros((n_x, n_u)) if self.B_next is None else -np.asarray(self.B_next)
+        out = np.empty((int(n), self.C.shape[0], n_u))
+        for k in range(int(n)):
+            out[k] = self.C @ xi + self.D
+            xi = self.A @ xi + self.B
+        return out
+
     def frequency_response(self, w, *, continuous=False) -> np.ndarray:
         """The frequency response H (n_w, n_z, n_u) at the angular frequencies `w` (n_w,)
         (MATLAB's `freqresp`, what `bode` plots): C (e^{j w dt} I - A)^{-1} B + D of the

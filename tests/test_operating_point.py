@@ -419,3 +419,33 @@ def test_a_timed_step_of_ones_own_needs_the_interval_of_its_fixed_points():
         assert eq.success and eq.x[0] == pytest.approx(1.0 / (1.0 - np.exp(-h)), rel=1e-12)
     ode = oj.Model.from_ode(lambda x, u, th: u[:1] - x, None)
     assert oj.find_equilibrium(ode, {}, [2.0], np.zeros(1)).x[0] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("input", ["zoh", "foh"])
+def test_the_step_response_and_dc_gain(input):
+    """`step_response` is the sampled model's response to a unit step from rest: the
+    nonlinear model's response to a small step from an equilibrium, divided by it, to
+    first order (1e-6 of a 1e-4 step); for zoh, SciPy's `dstep` of (A, B, C, D)
+    exactly. `dcgain` is the response's limit, the equilibrium output's slope in u, and
+    the continuous-time model's within RK4's error."""
+    from scipy import signal
+
+    model = _model(input=input)
+    eq = oj.find_equilibrium(model, THETA, [1.0], np.zeros(2))
+    lin = oj.linearise(model, THETA, eq.x, [1.0])
+    T, d = 400, 1e-4
+    _, z0 = oj.simulate(model, THETA, eq.x, np.ones((T, 1)))
+    _, z1 = oj.simulate(model, THETA, eq.x, np.full((T, 1), 1.0 + d))
+    step = lin.step_response(T)
+    assert step.shape == (T, 2, 1)
+    np.testing.assert_allclose(step[:, :, 0], (np.asarray(z1) - np.asarray(z0)) / d, atol=1e-6)
+    np.testing.assert_array_equal(step[0], lin.D if input == "zoh" else lin.D_observe)
+    if input == "zoh":
+        _, (y,) = signal.dstep(signal.dlti(lin.A, lin.B, lin.C, lin.D, dt=DT), n=T)
+        np.testing.assert_allclose(step[:, :, 0], y, rtol=1e-13, atol=1e-15)
+    slope = (oj.find_equilibrium(model, THETA, [1.0 + d], eq.x).z - eq.z) / d
+    np.testing.assert_allclose(lin.dcgain()[:, 0], slope, rtol=1e-3)
+    np.testing.assert_allclose(step[-1], lin.dcgain(), atol=2e-3)  # (settled, b = 0.6)
+    np.testing.assert_allclose(lin.dcgain(continuous=True), lin.dcgain(), rtol=1e-4)
+    with pytest.raises(ValueError, match="`n` .* must be an integer >= 1"):
+        lin.step_response(0)
