@@ -12,12 +12,13 @@ import numpy as np
 
 from . import _io, _pytree
 from ._ahead import estimate_process_noise, predict_ahead_impl
-from ._caller_warnings import at_caller, frames_to_user
+from ._caller_warnings import at_caller, frames_to_user, warn
 from ._checks import as_float, check_data, check_state_size
 from ._cost import Cost
 from ._delta import delta_method
 from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
 from ._initial_state import predict_impl
+from ._model import model_labels
 from ._normalise import is_ragged
 from ._operating_point import find_equilibrium, linearise
 from ._output_std import output_std
@@ -1055,10 +1056,12 @@ class FitResult(eqx.Module):
                 "record i."
             )
         method = kwargs.pop("method", "lsq")
+        inherited = False
         if method == "lsq" and "bounds" not in kwargs and self.x0_bounds is not None:
             shared = self._shared_x0_bounds()
             if shared is not None:
                 kwargs["bounds"] = shared  # the fit's box: a fitted record's x0 stays in it
+                inherited = True
         if "missing" not in kwargs and self.missing == "mask":
             kwargs["missing"] = "mask"  # (the fit's NaN were missing samples: the head's too)
         noise = None
@@ -1075,18 +1078,42 @@ class FitResult(eqx.Module):
         ):
             x0 = np.asarray(self.x0)
             kwargs["x0"] = x0 if x0.ndim == 1 else x0.mean(axis=0)
-        return predict_impl(
-            self.model,
-            self.theta,
-            u,
-            z_head,
-            None,
-            method,
-            kwargs,
-            stacklevel=3 + frames_to_user(),
-            t=t,
+        level = 3 + frames_to_user()
+        out = predict_impl(
+            self.model, self.theta, u, z_head, None, method, kwargs, stacklevel=level, t=t,
             z_name="z_head",
-        )
+        )  # fmt: skip
+        if inherited:  # (a bound the caller did not give: say where it held an estimate)
+            self._warn_at_fit_bounds(out, kwargs["bounds"], level)
+        return out
+
+    def _warn_at_fit_bounds(self, predictions, box, stacklevel):
+        """Warn where a record's x0 estimate ended on the fit's `x0_bounds` (`box`), which
+        `predict` applied by default: a new record can start outside the fitted one's box.
+        (Also where the fit's own x0 is on that bound: the fitted record, predicted, starts
+        there, but a new record that asks for a value beyond it cannot be told apart.)"""
+        x0 = np.atleast_2d(np.asarray(self.x0))
+        fitted = np.any((x0 == box[0]) | (x0 == box[1]), axis=0)
+        several = isinstance(predictions, list)
+        labels = model_labels(getattr(self.model, "states", None), np.shape(self.x0)[-1])
+        names = labels or [str(j) for j in range(np.shape(self.x0)[-1])]
+        hits = []
+        for i, p in enumerate(predictions if several else [predictions]):
+            edge = p.estimate.at_bound
+            if edge is not None and edge.any():
+                which = ", ".join(
+                    f"x0[{names[j]}]" + (" (the fit's x0 is on it too)" if fitted[j] else "")
+                    for j in np.flatnonzero(edge)
+                )
+                hits.append(f"{which} of record {i}" if several else which)
+        if hits:
+            warn(
+                f"predict: the estimate of {'; '.join(hits)} ended on the fit's `x0_bounds`, "
+                "which `predict` bounds a record's x0 by unless told otherwise: the head asks "
+                "for a value beyond it. Where this record may start outside the fitted "
+                "record's box, pass `bounds=(None, None)` (or bounds of its own).",
+                stacklevel=stacklevel + 1,  # (`predict`'s level, from this method)
+            )
 
     def predict_ahead(
         self,

@@ -67,6 +67,8 @@ class X0Estimate(eqx.Module):
     - `head`: the outputs z[:n] it was estimated from, as given (None under a JAX
         transformation): `plot.compare` warns where a `Prediction` is scored against
         another record.
+    - `at_bound`: with `bounds`, (n_x,) booleans, True for an entry that ended on its
+        bound (the head asks for a value beyond it; `print` says so); else None.
     """
 
     x0: np.ndarray
@@ -80,6 +82,7 @@ class X0Estimate(eqx.Module):
     kalman: KalmanPath | None = None
     states: tuple | None = eqx.field(static=True, default=None)
     head: np.ndarray | None = None
+    at_bound: np.ndarray | None = None
 
     def __str__(self) -> str:
         """A few lines for `print`: the estimate with its standard deviations, how it was
@@ -91,8 +94,13 @@ class X0Estimate(eqx.Module):
         names = model_labels(self.states, len(self.x0)) or range(len(self.x0))
         rows_of = [f"x0[{i}]" for i in names]
         width = max(map(len, rows_of), default=0)
-        for label, v, s, ok in zip(rows_of, self.x0, self.std, self.identifiable, strict=True):
+        bound = np.zeros(len(self.x0), bool) if self.at_bound is None else self.at_bound
+        for label, v, s, ok, edge in zip(
+            rows_of, self.x0, self.std, self.identifiable, bound, strict=True
+        ):
             note = "" if ok else "  (not determined by the head)"
+            if edge:  # (its std is that of the unbounded estimate there)
+                note += "  (at a bound)"
             rows.append(f"  {label:<{width}} {float(v):12.6g}  std {float(s):.3g}{note}")
         return "\n".join(rows)
 
@@ -494,7 +502,7 @@ def _estimate(
             )
         estimate = None if mask.all() else mask
 
-    stop_reason, kalman, e, ok, sim = None, None, None, None, None
+    stop_reason, kalman, e, ok, sim, at_bound = None, None, None, None, None, None
     if guess.size == 0:  # a model without state (n_x = 0): nothing to estimate
         x0_hat, cov, loss, ok = guess, np.zeros((0, 0), guess.dtype), None, np.zeros(0, bool)
     elif method == "lsq" and estimate is not None and not estimate.any():
@@ -517,6 +525,9 @@ def _estimate(
         r = solve_x0(data, solver, record=whole, estimate=estimate, bounds=box)
         ok, sim = r.identifiable, r.record
         x0_hat = r.x0[0]
+        if box is not None:
+            lower, upper = (np.asarray(b)[0] for b in box)
+            at_bound = np.asarray((x0_hat <= lower) | (x0_hat >= upper))
         cov = np.asarray(r.covariance[0], guess.dtype)
         loss = np.asarray(r.loss)
         stop_reason = r.stop_reason
@@ -588,6 +599,7 @@ def _estimate(
         kalman=kalman,
         states=model.states,
         head=np.asarray(z) if is_concrete(z) else None,
+        at_bound=at_bound,
     ), sim
 
 

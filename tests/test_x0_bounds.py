@@ -195,16 +195,39 @@ def test_the_result_keeps_the_box_and_predict_bounds_x0_by_it(tmp_path):
     lo, hi = result.x0_bounds
     np.testing.assert_array_equal(lo, [-np.inf, -np.inf])
     np.testing.assert_array_equal(hi, [0.7, np.inf])
-    pred = result.predict(U, Z)
+    with pytest.warns(UserWarning, match=r"x0\[q\] \(the fit's x0 is on it too\) ended on"):
+        pred = result.predict(U, Z)
     np.testing.assert_allclose(pred.x0, result.x0, rtol=1e-6, atol=1e-9)
     assert pred.x0[0] == 0.7
+    assert pred.estimate.at_bound.tolist() == [True, False]
+    assert "(at a bound)" in str(pred)
     assert result.predict(U, Z, bounds=(None, None)).x0[0] > 0.7
     path = tmp_path / "bounded.npz"
     result.save(path)
     loaded = oj.load_result(path, model=MODEL)
     for a, b in zip(loaded.x0_bounds, result.x0_bounds):
         np.testing.assert_array_equal(a, b)
-    assert loaded.predict(U, Z).x0[0] == 0.7
+    with pytest.warns(UserWarning, match="ended on the fit's `x0_bounds`"):
+        assert loaded.predict(U, Z).x0[0] == 0.7
+
+
+def test_a_new_record_held_by_the_fits_box_is_said():
+    """A record that starts outside the fitted one's box (v = 0.4 above the fit's upper
+    bound 0.0): `predict` held its x0 at the bound in silence, its printout the plain
+    std. It now warns at the caller's line and marks the entry; a box the caller gives,
+    or none, says nothing of the fit's."""
+    result = oj.fit(MODEL, THETA0, np.array([0.5, -0.5]), U, Z, x0_bounds=(None, [np.inf, 0.0]))
+    assert result.x0[1] < 0.0  # (the fitted record's x0 is inside the box)
+    u, z = record(seed=3, x0=np.array([0.2, 0.4]))
+    with pytest.warns(UserWarning, match=r"estimate of x0\[v\] ended on the fit's") as w:
+        held = result.predict(u, z[:30])
+    assert w[0].filename == __file__
+    assert held.x0[1] == 0.0 and held.estimate.at_bound.tolist() == [False, True]
+    assert "(at a bound)" in str(held.estimate)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        free = result.predict(u, z[:30], bounds=(None, None))
+    assert free.x0[1] == pytest.approx(0.4, abs=0.05) and free.estimate.at_bound is None
 
 
 @pytest.mark.parametrize(
