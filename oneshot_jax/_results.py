@@ -25,8 +25,10 @@ class RESULTS(eqx.Enumeration):
     zero_residual = (
         "zero residual: the loss is at the round-off level of the data, where no step can "
         "decrease it further: the model reproduces the outputs to within sqrt(eps) of their "
-        "variation (a residual RMS of 1.5e-8 of it in float64, 3.5e-4 in float32), where the "
-        "loss cannot tell noise from round-off"
+        "variation (a residual RMS of 1.5e-8 of it in float64, 3.5e-4 in float32) plus the "
+        "outputs' own round-off (an RMS of 10 eps |z|: larger for an output far above its "
+        "variation, a pressure of 1e5 Pa in float32), where the loss cannot tell noise from "
+        "round-off"
     )
     tol_loss = "the loss fell below tol_loss (the paper's epsilon)"
     tol_grad = "the gradient norm fell below tol_grad (the paper's delta)"
