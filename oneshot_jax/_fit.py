@@ -1038,8 +1038,9 @@ def fit(
         `aggregate`), a (N, n_x) mask estimates each record's own entries (MATLAB's
         `InitialStates(i).Fixed` per experiment: a record that starts at rest holds its
         x0, another estimates it). A held entry keeps its value in `x0`; it counts
-        neither in the degrees of freedom nor in the covariance (its `x0_std` is 0). Not
-        with `Optimistix`.
+        neither in the degrees of freedom nor in the covariance (its `x0_std` is 0). The
+        mask per record is not available with `Optimistix` (its held entries are kept as
+        a box of one point, and optimistix has no bounds); the (n_x,) mask is.
     - `x0_bounds`: `(lower, upper)` bounds on the estimated entries of x0 (MATLAB's
         `InitialStates(i).Minimum` and `Maximum`): each None (unbounded), a number, an
         array (n_x,) (every record's, or every window's, x0) or, without `window`,

@@ -578,6 +578,14 @@ def build_problem(
         x0_box = check_x0_bounds(
             x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=estimated
         )
+        given = check_x0_bounds(x0_bounds, X0.shape, X0.dtype, per_record=not windowed)
+        bounded = x0_box is not None and any(np.isfinite(b).any() for b in x0_box)
+        if given is not None and not bounded:  # (every bounded entry held)
+            warn(
+                "`x0_bounds` bounds only x0 entries that `estimate_x0` holds, and held "
+                "entries keep their values in `x0`: the bounds have no effect.",
+                stacklevel=3,
+            )
         if x0_box is not None and np.any(x0_box[0] == x0_box[1]):
             rows, cols = np.nonzero(x0_box[0] == x0_box[1])
             pinned = sorted({int(c) for c in cols})
@@ -602,11 +610,14 @@ def build_problem(
         lo[x0_held], hi[x0_held] = X0[x0_held], X0[x0_held]
         solve_box = (lo, hi)
     if solve_box is not None and any(isinstance(s, Optimistix) for s in solvers):
-        what = "`x0_bounds`" if x0_box is not None else "`estimate_x0` as a mask per record"
-        raise ValueError(
-            f"{what} is not available with `Optimistix` (optimistix has no bounds): use "
-            "LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax."
+        what = (
+            "`x0_bounds` is not available with `Optimistix` (optimistix has no bounds)"
+            if x0_box is not None
+            else "`estimate_x0` as a mask per record is not available with `Optimistix` "
+            "(the entries a record holds are kept as a box of one point, and optimistix has "
+            "no bounds; an (n_x,) mask, the same entries of every record, is)"
         )
+        raise ValueError(f"{what}: use LevenbergMarquardt, GaussNewton, Adam, LBFGS or Optax.")
     project, sets = None, ()
     if proj is not None:
         if proj.bounds is not None:

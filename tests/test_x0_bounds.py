@@ -252,3 +252,18 @@ def test_bad_bounds_are_named(x0_bounds, kwargs, error, match):
     with pytest.raises(error, match=match), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         oj.fit(MODEL, THETA0, np.zeros(2), U, Z, x0_bounds=x0_bounds, **kwargs)
+
+
+def test_bounds_on_held_entries_alone_are_said_to_do_nothing():
+    """`estimate_x0=False` (or a mask holding every bounded entry) with `x0_bounds`: the
+    bounds were dropped without a word (held entries keep their values)."""
+    with pytest.warns(UserWarning, match="bounds only x0 entries that `estimate_x0` holds"):
+        held = oj.fit(MODEL, THETA0, TRUE_X0, U, Z, estimate_x0=False, x0_bounds=BOUNDS)
+    np.testing.assert_array_equal(held.x0, TRUE_X0)
+    with pytest.warns(UserWarning, match="the bounds have no effect"):
+        oj.fit(MODEL, THETA0, TRUE_X0, U, Z, estimate_x0=[False, True],
+               x0_bounds=([-np.inf, -np.inf], [0.7, np.inf]))  # fmt: skip
+    with warnings.catch_warnings():  # (a bound on an estimated entry: no such warning)
+        warnings.filterwarnings("error", message=".*have no effect")
+        oj.fit(MODEL, THETA0, np.array([0.5, 0.0]), U, Z, estimate_x0=[True, False],
+               x0_bounds=([-np.inf, -np.inf], [0.7, np.inf]))  # fmt: skip

@@ -163,7 +163,10 @@ def test_bounds_and_multistart_with_a_mask_per_record(tmp_path):
         (dict(estimate_x0=MASK[:2]), r"shape \(N, n_x\) = \(3, 2\)"),
         (dict(estimate_x0=MASK.T), r"shape \(N, n_x\) = \(3, 2\)"),
         (dict(estimate_x0=MASK.astype(int)), r"array of int64 \(True / False"),
-        (dict(solver=oj.Optimistix(optx.LevenbergMarquardt(1e-8, 1e-8))), "Optimistix"),
+        (
+            dict(solver=oj.Optimistix(optx.LevenbergMarquardt(1e-8, 1e-8))),
+            r"mask per record is not available with `Optimistix` \(the entries a record holds",
+        ),
         (dict(aggregate=oj.Aggregate(0, [(0, 3)], [1.0])), "with `aggregate`"),
     ],
     ids=["records", "transposed", "integers", "optimistix", "aggregate"],
