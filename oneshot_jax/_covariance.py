@@ -96,10 +96,12 @@ class NeweyWest(eqx.Module):
     **Arguments:**
 
     - `lags`: the largest lag L of the residuals' autocovariance that counts (weights
-        1 - l / (L + 1), l = 0..L), at most a trajectory's length less one. None: Newey
-        and West's (1994) rule floor(4 (T / 100)^(2/9)) for trajectories of T samples,
-        which suits short correlations only: choose L where the residuals'
-        autocorrelation has died out (`oneshot_jax.metrics.residual_correlations`).
+        1 - l / (L + 1), l = 0..L), at most the shortest trajectory's length less one.
+        None: Newey and West's (1994) rule floor(4 (T / 100)^(2/9)) for trajectories of T
+        samples (T the longest one's; a shorter trajectory's autocovariance beyond its own
+        length is zero), which suits short correlations only: choose L where the
+        residuals' autocorrelation has died out
+        (`oneshot_jax.metrics.residual_correlations`).
 
     Trajectories (records, or windows of a `window=` fit) count as independent of each
     other. For a theta that holds a network (an equinox module), the named parameters'
