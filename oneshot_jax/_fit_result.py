@@ -1309,8 +1309,9 @@ class FitResult(eqx.Module):
         **Arguments:** one record's `u` (T, n_u) and `z` (T, n_z); `shape`, the
         covariance's shape (n_x): a scalar, a vector of variances or a matrix, in the
         states' units (the scale q is one for all its entries); the others with the
-        defaults of `predict_ahead` (the record's x0 from `predict(u, z)`, the
-        measurement noise the fit estimated, the fit's `missing`), except the prior
+        defaults of `predict_ahead` (the record's x0 from `predict(u, z)` by least
+        squares, the process noise being what is sought; the measurement noise the fit
+        estimated, the fit's `missing`), except the prior
         covariance, broad by default (the likelihood's diffuse start), and `scales` as
         for `oneshot_jax.estimate_process_noise`.
 
