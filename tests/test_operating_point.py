@@ -406,13 +406,17 @@ def test_each_equation_is_at_round_off_on_its_own_scale():
     eq = oj.find_equilibrium(model, {"tau": 1.0}, [0.1, 0.1], [1.0, 1.0e5], hold=[True, False])
     assert eq.success and eq.x[1] == pytest.approx(1e5 + 9810.0, rel=1e-14)
     # An equation of held entries alone is held to the scale of its terms too (with the
-    # held columns left out of the scale, its round-off, 9e-18, read as no equilibrium).
+    # held columns left out of the scale, a residual at round-off, 1e-16 here, read as
+    # no equilibrium).
     torricelli = oj.Model.from_ode(
-        lambda x, u, th: jnp.stack([u[0] - 0.1 * jnp.sqrt(x[0]), 1e5 + 9810.0 * x[0] - x[1]]),
+        lambda x, u, th: jnp.stack(
+            [u[0] - th["k"] * jnp.sqrt(x[0]), (1e5 + 1000.0 * 9.81 * x[0] - x[1]) / th["tau"]]
+        ),
         1.0,
     )
-    eq = oj.find_equilibrium(torricelli, {}, [0.1 * np.sqrt(2.0)], [2.0, 1e5], hold=[True, False])
-    assert eq.success and 0.0 < eq.residual < 1e-16
+    theta, u = {"k": 0.1, "tau": 1.0}, [0.1 * np.sqrt(2.0) * (1.0 + 4e-16)]
+    eq = oj.find_equilibrium(torricelli, theta, u, [2.0, 1e5], hold=[True, False])
+    assert eq.success and 1e-17 < eq.residual < 1e-15
 
 
 def test_a_timed_step_of_ones_own_needs_the_interval_of_its_fixed_points():
