@@ -1154,9 +1154,9 @@ class FitResult(eqx.Module):
             filter starts from, so the first K predictions' `std` is that of a simulation
             from it): the smoother's P[0 | T-1] under the process noise (the
             least-squares estimate's sigma^2 (J^T Q J)^{-1} takes the residuals as white,
-            which the process noise makes them not: the band of the first prediction
-            held 72 % of the measurements at the 95 % level; the record's data, used
-            again by the filter, make this one conservative there), or the broad default
+            which the process noise makes them not, so it is too small and the first
+            predictions' bands too narrow; the record's data, used again by the filter,
+            make this one conservative there instead), or the broad default
             of `oneshot_jax.predict_ahead` where the record does not determine every entry
             of x0 or `x0` is given.
         - `t`: as for `oneshot_jax.predict_ahead` (for several records, one (T_i,) per

@@ -431,9 +431,7 @@ def find_equilibrium(
         x, r, J, J_all = np.asarray(trial, np.float64), r_t, J_t, J_all_t
         steps += 1
     residual = float(np.max(np.abs(r), initial=0.0))
-    success = bool(
-        np.all(np.isfinite(r)) and np.all(np.abs(r) <= math.sqrt(eps) * scale(x, J_all))
-    )
+    success = bool(np.all(np.isfinite(r)) and np.all(np.abs(r) <= math.sqrt(eps) * scale(x, J_all)))
     x = x.astype(data.x0.dtype)
     z = data.model.observe(jnp.asarray(x), jnp.asarray(data.u[0]), data.theta)
     return Equilibrium(x, np.asarray(z), u, residual, success, steps)
