@@ -633,6 +633,7 @@ def assemble(
         if rows_at:
             stop_info["at_bound"] = stop_info.get("at_bound", []) + rows_at
     status = name_of(from_index(int(results[best])))
+    chosen = _chosen(out, status, best)  # (a validation stop's returned iterate, or None)
     last_solver = prepared.solver[-1] if prepared.solver else {}
     if status == "stalled" and last_solver.get("solver") == "LBFGS":
         # (its stall: two steps in a row whose line search found no decrease, the second
@@ -682,9 +683,8 @@ def assemble(
     if status == "validation":  # the score that chose the point, and the patience
         stop_info["validation_loss"] = float(out.validation_loss[best])
         stop_info["patience"] = problem.validation.patience
-        if out.validation_at is not None:  # (a row of `FitResult.history`: `_chosen`)
-            stage, step = (int(v) for v in np.asarray(out.validation_at))
-            stop_info.update(validation_stage=stage, validation_step=step)
+        if chosen is not None:  # (a row of `FitResult.history`)
+            stop_info.update(validation_stage=chosen[0], validation_step=chosen[1])
     if not data.batched:
         X0, e, x0_std, x0_cov = X0[0], e[0], x0_std[0], x0_cov[0]
     return _pytree.build(
@@ -695,7 +695,7 @@ def assemble(
         stop_reason=from_index(int(results[best])),
         num_steps=int(sum(int(s.num_steps) for s in out.stages)),
         wall_time=float(wall_time),
-        history=_history(problem, out.stages, layout, _chosen(out, status, best)),
+        history=_history(problem, out.stages, layout, chosen),
         residuals=e,
         names=names,
         fixed=prepared.fixed,

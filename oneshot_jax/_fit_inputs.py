@@ -578,9 +578,8 @@ def build_problem(
         x0_box = check_x0_bounds(
             x0_bounds, X0.shape, X0.dtype, per_record=not windowed, estimated=estimated
         )
-        given = check_x0_bounds(x0_bounds, X0.shape, X0.dtype, per_record=not windowed)
-        bounded = x0_box is not None and any(np.isfinite(b).any() for b in x0_box)
-        if given is not None and not bounded:  # (every bounded entry held)
+        # (a box, None where no entry is bounded, whose bounded entries are all held)
+        if x0_box is not None and not any(np.isfinite(b).any() for b in x0_box):
             warn(
                 "`x0_bounds` bounds only x0 entries that `estimate_x0` holds, and held "
                 "entries keep their values in `x0`: the bounds have no effect.",

@@ -27,6 +27,7 @@ from jaxtyping import ArrayLike, Float, PyTree
 
 from . import _pytree
 from ._checks import as_float, check_data, check_finite
+from ._counts import is_count
 from ._linalg import psd_solve
 from ._model import ODE_STEPS, Model
 
@@ -127,7 +128,7 @@ class LinearModel(NamedTuple):
         deviation of output i at sample k after input j steps to 1 at sample 0 (the
         state at rest, dx[0] = 0: dz[0] = D). For `input="foh"` the step is the input's
         samples, interpolated between them as the model runs them."""
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+        if not is_count(n, 1):
             raise ValueError(
                 f"`n` (the samples of the response) must be an integer >= 1, got {n!r}."
             )
