@@ -1282,7 +1282,13 @@ def fit(
             max_steps = getattr(inputs.solvers[-1], "max_steps", None)
             result = _flag_hidden_outputs(result, built.problem, max_steps)
             result = flag_zero_gradient(
-                result, built.problem, built.starts, out.theta, strategy, finals=out.start_theta
+                result,
+                built.problem,
+                built.starts,
+                out.theta,
+                strategy,
+                finals=out.start_theta,
+                finals_x0=out.start_x0,
             )
             result = _flag_unconverged_rollouts(
                 result,

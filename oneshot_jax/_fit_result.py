@@ -268,6 +268,14 @@ def stop_detail(status: str, info: dict) -> str:
                 "stable, e.g. with bounds, or in windows)"
             )
         return "the loss became non-finite" + at_step
+    if status == "zero_gradient" and info.get("no_effect"):
+        return (
+            "no estimated parameter or initial state moved from the start, where the "
+            "gradient of every one of them is exactly zero: the outputs do not change with "
+            "any of them there (piecewise-constant outputs, from a `jnp.round`, an integer "
+            "cast or a comparison in the model, have no derivative for any solver) (the "
+            f"solver stopped with {info.get('solver_stop', '?')})"
+        )
     if status == "zero_gradient":
         names = info.get("zero_gradient", [])
         listed = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
@@ -587,7 +595,8 @@ class FitResult(eqx.Module):
         and `at_step` (the last solver's
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
-        start) and `solver_stop` (the solver's own stop); with the stop
+        start), `solver_stop` (the solver's own stop) and, where no parameter or initial
+        state had a gradient there, `no_effect` (True); with the stop
         `noise_weight_unsettled`, `solver_stop` (the last fit's); with the stop `validation`,
         `validation_loss`, `patience` and, where the last solver stopped on a test of its
         own (`diverged`, `converged`, ...), `solver_stop`; with the stop `diverged`

@@ -88,7 +88,10 @@ class RESULTS(eqx.Enumeration):
         "(a coupling or gain started at 0, say, or a network's unit saturated, its tanh "
         "at +-1 to the precision over the whole record), so they were not estimated. "
         "Start them away from that point (a saturated unit: smaller weights, or inputs "
-        "scaled to order 1), or fix them"
+        "scaled to order 1), or fix them. Where none of the parameters and initial "
+        "states has a gradient there (`stop_info['no_effect']`), the model's outputs may "
+        "be piecewise constant in them (rounded, cast to integers, compared with a "
+        "threshold): keep such steps out of the model that is fitted"
     )
     statistically_converged = (
         "statistical convergence: where the Jacobian's theta columns have a null space "

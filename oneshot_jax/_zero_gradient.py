@@ -12,7 +12,12 @@ away from it; it warns, naming them, and makes the stop reason
 `zero_gradient`. The compiled solve is unchanged. A parameter without effect away from
 the start too, and every parameter of a fit that reproduces the outputs exactly
 (`zero_residual`), is one these data do not determine, which the covariance reports
-(std inf): not a start to move from.
+(std inf): not a start to move from. The exception is a success where nothing moved and
+the gradient of every free entry of theta and x0 is exactly zero while the loss changes
+a little away from the start (`_no_effect`): outputs piecewise constant in them (a
+rounding sensor), which no solver can fit; the stop is then `zero_gradient` too, with
+`stop_info["no_effect"]`. Outputs that depend on none of them keep their success: their
+loss is the same everywhere.
 """
 
 import dataclasses
@@ -50,6 +55,35 @@ def _columns(problem, params, entries, strategy):
 def _gradient(problem, params, strategy):
     """The gradient (eq. 17, 20) of the free entries of theta at `params`, (p,)."""
     return problem.value_and_grad(params, strategy)[1].theta
+
+
+@jit
+def _moved_losses(problem, params, strategy):
+    """The loss with every free entry of theta and x0 moved together by 1e-3, 1e-2 and
+    1e-1 of its size (at least of 1), up and down, in two patterns of signs (all alike,
+    alternating), each within the box: (12,)."""
+
+    def moved(v, size, sign, pattern):
+        signs = jnp.where(pattern & (jnp.arange(v.size) % 2 == 1), -sign, sign)
+        return v + size * signs.reshape(v.shape) * jnp.maximum(jnp.abs(v), 1.0)
+
+    def loss(size, sign, pattern):
+        theta = moved(params.theta, size, sign, pattern)
+        x0 = moved(params.x0, size, sign, pattern)
+        if problem.constrained:
+            theta = problem.feasible(theta)
+        if problem.x0_bounded:
+            x0 = problem.feasible_x0(x0)
+        return problem.loss(Params(theta, x0), strategy)
+
+    grid = [(a, b, c) for a in (1e-3, 1e-2, 1e-1) for b in (1.0, -1.0) for c in (False, True)]
+    return jnp.stack([loss(a, b, c) for a, b, c in grid])
+
+
+@jit
+def _value_and_gradient(problem, params, strategy):
+    """The loss and its gradient (eq. 17, 20) in the free entries of theta and x0."""
+    return problem.value_and_grad(params, strategy)
 
 
 @jit
@@ -152,13 +186,38 @@ def _with_stops(result, reasons):
     )
 
 
-def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, finals=None):
+def _no_effect(problem, start: Params, final_theta, final_x0, strategy) -> bool:
+    """Whether no free entry of theta or x0 moved from `start`, where the gradient (eq.
+    17, 20) of every one of them is exactly zero (with a loss that is not): the outputs
+    do not change with anything the fit estimates there (piecewise-constant outputs, from
+    a `jnp.round`, an integer cast or a comparison in the model, have a zero derivative
+    everywhere), so a first-order test passes at a point that no solver could leave."""
+    if not (np.asarray(final_theta) == np.asarray(start.theta)).all():
+        return False
+    if final_x0 is not None and not (np.asarray(final_x0) == np.asarray(start.x0)).all():
+        return False
+    params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
+    value, grads = _value_and_gradient(problem, params, strategy)
+    if not np.isfinite(value) or value == 0:
+        return False
+    if np.asarray(grads.theta).any() or np.asarray(grads.x0).any():
+        return False
+    # Outputs that do not depend on any of them at all: the loss is the same everywhere,
+    # and the start one of its minima (a success). Piecewise-constant ones change it.
+    moved = np.asarray(_moved_losses(problem, params, strategy))
+    return bool(np.any(np.isfinite(moved) & (moved != np.asarray(value))))
+
+
+def flag_zero_gradient(
+    result, problem, starts: Params, theta_flat, strategy, finals=None, finals_x0=None
+):
     """`result`, with the stop reason `zero_gradient` and a warning if some free entries of
     theta never moved from the best start, where their gradient and Jacobian column are
-    exactly zero though they act away from it (`zero_gradient_entries`); else `result`
-    itself. With several starts, each other start that reported a success is checked
-    the same way (its stop in `result.starts` becomes `zero_gradient`, without a
-    warning).
+    exactly zero though they act away from it (`zero_gradient_entries`), or if a success
+    left every free entry of theta and x0 where the gradient of each is exactly zero
+    (`_no_effect`: `stop_info["no_effect"]`); else `result` itself. With several starts,
+    each other start that reported a success is checked the same way for the first case
+    (its stop in `result.starts` becomes `zero_gradient`, without a warning).
 
     **Arguments:**
 
@@ -168,6 +227,7 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, fi
     - `theta_flat`: the returned theta, flat (fixed entries included).
     - `strategy`: the strategy of the derivatives.
     - `finals`: the free entries of theta each start ended at (S, p), or None.
+    - `finals_x0`: the free entries of x0 each start ended at (S, N, m), or None.
 
     **Returns:** a `FitResult`.
     """
@@ -184,16 +244,19 @@ def flag_zero_gradient(result, problem, starts: Params, theta_flat, strategy, fi
         # data do not determine (the covariance reports it), not a start to move from.
         return result
     entries = zero_gradient_entries(problem, start, final, strategy)
-    if not entries.size:
-        return result
     all_names = _pytree.indexed_names(_pytree.split(result.theta)[0])
     free = np.asarray(free, int)
     stop = name_of(result.stop_reason)
-    info = {
-        **result.stop_info,
-        "zero_gradient": [all_names[free[i]] for i in entries],
-        "solver_stop": stop,
-    }
+    info = {**result.stop_info, "solver_stop": stop}
+    if entries.size:
+        info["zero_gradient"] = [all_names[free[i]] for i in entries]
+    elif result.success and _no_effect(
+        problem, start, final, None if finals_x0 is None else finals_x0[best], strategy
+    ):
+        info["zero_gradient"] = [all_names[i] for i in free]
+        info["no_effect"] = True
+    else:
+        return result
     warn(
         f"{stop_detail('zero_gradient', info)}; {RESULTS[RESULTS.zero_gradient]}.",
         RuntimeWarning,

@@ -171,3 +171,28 @@ def test_outputs_independent_of_every_variable_are_stationary(solver, constraine
         )
     assert r.stop_info["first_order"] == 0.0
     assert r.success
+
+
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "lbfgs"])
+def test_outputs_piecewise_constant_in_every_variable_are_no_success(solver):
+    """A quantised sensor (`observe` rounds to 0.01): every gradient is exactly zero
+    everywhere, yet the outputs change with theta and x0 (in steps). The fit cannot move
+    from its start, far from the truth (a loss of 0 there), and must not call that a
+    success, unlike outputs that depend on nothing (above), whose loss is the same
+    everywhere."""
+    dt = 0.1
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + dt * x[1], x[1] + dt * (u[0] - th["c"] * x[1] - th["k"] * x[0])])
+
+    model = oj.Model(step, lambda x, u, th: jnp.round(100 * x[:1]) / 100)
+    u = np.random.default_rng(0).standard_normal((200, 1))
+    x0 = np.array([1.0, 0.0])
+    _, z = oj.simulate(model, {"c": 0.4, "k": 2.0}, x0, u)
+    with pytest.warns(RuntimeWarning, match="piecewise-constant outputs"):
+        r = oj.fit(model, {"c": 0.6, "k": 1.5}, x0, u, np.asarray(z), solver=solver)
+    assert not r.success and r.status == "zero_gradient"
+    assert r.stop_info["no_effect"] and r.stop_info["solver_stop"] == "converged"
+    assert r.stop_info["zero_gradient"] == ["theta['c']", "theta['k']"]
+    assert r.loss > 0.01
+    assert oj.loss(model, {"c": 0.4, "k": 2.0}, x0, u, np.asarray(z)) == 0.0
