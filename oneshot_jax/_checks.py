@@ -61,12 +61,23 @@ def check_tree(tree, name="theta"):
             "result does not keep them)."
         )
     try:
-        jax.tree_util.tree_structure(tree)
+        leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
     except (TypeError, ValueError) as err:
         raise ValueError(
             f"`{name}` must be a pytree that JAX can flatten (a dict's keys must sort "
             f"against each other: all str, or all int), got {_theta_summary(tree)}: {err}"
         ) from None
+    for path, leaf in leaves:
+        # An array of another library (a pandas Series or DataFrame) is no JAX array: JAX
+        # takes it as an opaque leaf, held with the model, whose hash then failed ("`step`
+        # must be hashable ... got an unhashable Series").
+        if hasattr(leaf, "__array__") and not isinstance(leaf, (np.ndarray, np.generic, jax.Array)):
+            where = f"`{name}{jax.tree_util.keystr(path)}`" if path else f"`{name}`"
+            raise TypeError(
+                f"{where} is a {type(leaf).__name__}, not a parameter JAX can take: give "
+                "its values as a NumPy or JAX array (`.to_numpy()`; a pandas Series of "
+                "named parameters as a dict, `series.to_dict()`)."
+            )
 
 
 def check_path(path, name="path", what="a file or folder", optional=True):

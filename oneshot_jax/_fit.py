@@ -1182,6 +1182,7 @@ def fit(
             t=t,
             readings=aggregate is not None,
         )
+        history = int(history)  # (checked: a NumPy integer or an integral float too)
         estimate_x0, x0_held = record_x0_mask(
             estimate_x0,
             np.shape(inputs.data.x0) if inputs.data.batched else (1, np.shape(inputs.data.x0)[-1]),

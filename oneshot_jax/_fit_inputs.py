@@ -31,6 +31,7 @@ from ._checks import (
     x0_mask,
 )
 from ._cost import Cost
+from ._counts import is_count
 from ._fit_report import check_units
 from ._normalise import is_ragged
 from ._problem import FitProblem, Params, Regulariser
@@ -179,7 +180,7 @@ def check_inputs(
     _warn_module_python_ints(theta0)
     units = check_units(units, theta0)
     solvers = as_solvers(solver)
-    if isinstance(history, bool) or not isinstance(history, int) or history < 2 or history % 2:
+    if not is_count(history, 2) or int(history) % 2:
         raise ValueError(f"`history` must be an even integer >= 2, got {history!r}.")
     meter = _meter(progress)
 

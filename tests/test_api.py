@@ -426,6 +426,19 @@ def test_history_thins_only_when_a_row_is_due(sat, steps, kept):
     assert list(r.history.step) == kept
 
 
+def test_history_takes_numpy_and_integral_counts_and_refuses_others(sat):
+    """`history` reads a NumPy integer and an integral float as the count they hold, as
+    every other count of the library does (they were refused as not integers)."""
+    solver = oj.Adam(lr_x0=1e-5, max_steps=7, gtol=0.0)
+    want = _sat_fit(sat, history=4, solver=solver)
+    for history in (np.int64(4), 4.0):
+        r = _sat_fit(sat, history=history, solver=solver)
+        assert list(r.history.step) == list(want.history.step) == [0, 2, 4, 6, 7]
+    for bad in (3, True, 2.5, 0, "4"):
+        with pytest.raises(ValueError, match="`history` must be an even integer >= 2"):
+            _sat_fit(sat, history=bad, solver=solver)
+
+
 def test_progress_bar_shows_the_loss(sat, capsys):
     _sat_fit(
         sat,

@@ -1556,3 +1556,29 @@ def test_outputs_rounded_to_float32_below_their_noise_are_warned_of():
     with jax.enable_x64(True):
         wide = oj.fit(model, theta0, np.zeros(1), u, z)
     assert wide.success and not [w for w in wide.warnings if "rounding them changed" in w]
+
+
+class _Series:
+    """An array of another library (a pandas Series, say): NumPy reads it through
+    `__array__`; to JAX it is an opaque leaf."""
+
+    def __init__(self, a):
+        self._a = np.asarray(a)
+
+    def __array__(self, dtype=None, copy=None):
+        return self._a if dtype is None else self._a.astype(dtype)
+
+
+@pytest.mark.parametrize("entry", ENTRY_POINTS + ["fit"])
+def test_a_parameter_of_another_array_library_is_refused_by_name(entry):
+    """A theta leaf (or theta itself) that is an array of another library: a TypeError
+    naming the leaf and the fix, where it was held with the model and refused as "`step`
+    must be hashable ... got an unhashable" object."""
+    theta = {"a": _Series(0.9), "B": THETA["B"]}
+    where = "theta0" if entry == "fit" else "theta"
+    for bad, name in ((theta, rf"`{where}\['a'\]`"), (_Series([0.9]), rf"`{where}`")):
+        with pytest.raises(TypeError, match=rf"{name} is a _Series, not a parameter .*to_numpy"):
+            if entry == "fit":
+                oj.fit(MODEL, bad, X0, U, Z)
+            else:
+                call(entry, theta=bad)

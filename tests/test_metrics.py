@@ -456,3 +456,36 @@ def test_a_confidence_within_eps_of_one_gives_an_infinite_band():
     e = np.random.default_rng(0).standard_normal((100, 1))
     out = metrics.residual_correlations(e, confidence=np.nextafter(1.0, 0.0))
     assert np.isinf(out.bound) and bool(np.all(out.white))
+
+
+class _Frame:
+    """An array-like of another library (a pandas DataFrame, say): NumPy reads it through
+    `__array__`, JAX does not take it as an argument."""
+
+    def __init__(self, a):
+        self._a = np.asarray(a)
+
+    def __array__(self, dtype=None, copy=None):
+        return self._a if dtype is None else self._a.astype(dtype)
+
+
+@pytest.mark.parametrize("name", ["rmse", "nrmse", "fit_percent", "r2", "aic", "fpe"])
+def test_metrics_read_array_likes_and_score_half_precision_in_float32(name):
+    """An array-like (a DataFrame) scored as its values (JAX's own error before, naming no
+    argument); float16 outputs of a few hundred scored in float32 (their sum of squares
+    overflowed float16: an RMSE of inf, a FIT of NaN)."""
+    rng = np.random.default_rng(0)
+    z = 300.0 + 100.0 * rng.standard_normal((200, 1))
+    zhat = z + 30.0 * rng.standard_normal((200, 1))
+    mask = rng.random((200, 1)) < 0.9
+    fn = getattr(metrics, name)
+    kw = {"n_params": 2} if name in ("aic", "fpe") else {}
+    want = np.asarray(fn(z, zhat, mask=mask, **kw))
+    got = np.asarray(fn(_Frame(z), _Frame(zhat), mask=_Frame(mask), **kw))
+    np.testing.assert_array_equal(got, want)
+    z16, zhat16 = z.astype(np.float16), zhat.astype(np.float16)
+    want16 = np.asarray(fn(z16.astype(np.float64), zhat16.astype(np.float64), **kw))
+    for a, b in ((z16, zhat16), (jnp.asarray(z16), jnp.asarray(zhat16))):
+        got16 = np.asarray(fn(a, b, **kw))
+        assert got16.dtype == np.float32
+        np.testing.assert_allclose(got16, want16, rtol=1e-5)
