@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
-from ._caller_warnings import warn
+from ._caller_warnings import frames_to_user, warn
 from ._checks import (
     check_cost,
     check_data,
@@ -726,4 +726,21 @@ def predict_impl(model, theta, u, z, n, method, kwargs, *, stacklevel, t=None, z
         data = check_data(model, theta, est.x0, u, t=t)
         sim = simulate_impl(data.model, data.theta, data.x0, data.u, False)
     x, zhat = sim
-    return Prediction(np.asarray(zhat), np.asarray(x), est.x0, est)
+    zhat = np.asarray(zhat)
+    _warn_not_finite(zhat)
+    return Prediction(zhat, np.asarray(x), est.x0, est)
+
+
+def _warn_not_finite(zhat):
+    """Warn where a prediction (T, n_z) is not finite: returned as it is, with no word, its
+    NaN samples showed only as a FIT of NaN."""
+    bad = ~np.isfinite(zhat).reshape(len(zhat), -1).all(axis=1)
+    if bad.any():
+        warn(
+            f"the prediction is not finite from sample {int(np.argmax(bad))} on "
+            f"({int(bad.sum())} of {len(bad)} samples NaN or inf): simulated from the "
+            "estimated x0 with these parameters, the model leaves its domain (a square root "
+            "of a negative level, say) or blows up on this record.",
+            RuntimeWarning,
+            stacklevel=2 + frames_to_user(),
+        )

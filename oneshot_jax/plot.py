@@ -17,7 +17,7 @@ import numpy as np
 
 from . import metrics
 from ._ahead import AheadPrediction
-from ._caller_warnings import warn
+from ._caller_warnings import frames_to_user, warn
 from ._counts import integral
 from ._fit_result import FitResult, is_fitted_record
 from ._initial_state import Prediction, several_records
@@ -202,6 +202,17 @@ def _model_output(i, model, u, z, n, t=None, Ts=None):
         )
         raise ValueError(
             f"the output of `{name}` must have the shape of `z` {z.shape}, got {zhat.shape}{hint}."
+        )
+    bad = np.isfinite(z) & ~np.isfinite(zhat)
+    predicted = isinstance(model, Prediction) or (isinstance(model, FitResult) and n)
+    if bad.any() and not predicted:  # (`predict` warned of its own)
+        first = int(np.argmax(bad.any(axis=1)))
+        warn(
+            f"the output of `{name}` is not finite at {int(bad.sum())} measured samples, the "
+            f"first at sample {first} (the model leaves its domain or blows up on this "
+            "record): its FIT is NaN.",
+            RuntimeWarning,
+            stacklevel=2 + frames_to_user(),
         )
     return zhat
 

@@ -808,3 +808,35 @@ def test_plot_and_resid_refuse_complex_and_ragged_arrays(fitted):
         oj.plot.compare(z, z + 1j)
     with pytest.raises(ValueError, match=r"`e` must be a numeric array"):
         oj.plot.resid([np.zeros(3), np.zeros(4)])
+
+
+def test_predictions_and_compared_outputs_that_are_not_finite_are_warned_of():
+    """A tank model, sqrt of its level, fitted and then run on a record where the tank
+    drains: the model leaves its domain (NaN from sample 89 on). `predict` returned the NaN
+    samples without a word and `compare` showed "FIT nan %": each warns, once, at the
+    caller's line, naming the first sample."""
+
+    def step(x, u, th):
+        return jnp.stack([x[0] + 0.1 * (th["b"] * u[0] ** 2 - th["a"] * jnp.sqrt(x[0]))])
+
+    model = oj.Model(step)
+    theta = {"a": 0.5, "b": 0.5}
+    u = np.r_[np.ones((50, 1)), np.zeros((150, 1))]
+    x, zhat = oj.simulate(model, theta, np.array([1.0]), u)
+    nan = np.isnan(np.asarray(zhat))[:, 0]
+    assert nan[89:].all() and not nan[:89].any()
+    z = np.nan_to_num(np.asarray(zhat))  # the real tank is empty
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        p = oj.predict(model, theta, u, z, 20, x0=np.array([0.9]))
+        oj.plot.compare(z, np.asarray(zhat))
+        oj.plot.compare(z, p, n=20)  # (predict warned of it)
+    messages = [str(w.message) for w in caught]
+    assert len(caught) == 2, messages
+    first = int(np.argmax(np.isnan(p.z[:, 0])))
+    assert np.isnan(p.z[first:]).all() and 80 < first < 100
+    assert f"prediction is not finite from sample {first} on ({200 - first} of 200" in messages[0]
+    assert (
+        "`models[0]` is not finite at 111 measured samples, the first at sample 89" in (messages[1])
+    )
+    assert all(w.filename == __file__ for w in caught), [w.filename for w in caught]
