@@ -30,6 +30,7 @@ import functools
 import os
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -516,8 +517,17 @@ def _checked_trajectories(items, name, dtype, n_traj, measured=False):
 
 def _theta_summary(theta, limit=200):
     """A short description of theta's structure: its type, and its leaves' shapes."""
+
+    def describe(a):
+        if isinstance(a, eqx.Module):  # (a network inside theta: its size, not its repr)
+            arrays = jax.tree_util.tree_leaves(eqx.filter(a, eqx.is_array))
+            return f"{type(a).__name__} of {sum(x.size for x in arrays)} numbers"
+        return getattr(a, "shape", type(a).__name__)
+
     try:
-        shapes = jax.tree_util.tree_map(lambda a: getattr(a, "shape", type(a).__name__), theta)
+        shapes = jax.tree_util.tree_map(
+            describe, theta, is_leaf=lambda a: isinstance(a, eqx.Module) and a is not theta
+        )
         text = f"a {type(theta).__name__}, leaf shapes {shapes}"
     except Exception:  # noqa: BLE001 - a description only
         text = f"a {type(theta).__name__}"

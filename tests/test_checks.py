@@ -340,6 +340,19 @@ def test_a_failing_model_call_describes_the_held_leaves_of_theta():
         oj.simulate(model, theta, X0, U)
 
 
+def test_a_failing_model_call_describes_a_network_in_theta_by_its_size():
+    """A network inside theta was described by its repr, cut after 200 characters and
+    spread over several lines; now by its class and its count of numbers."""
+    import equinox as eqx
+
+    net = eqx.nn.MLP(3, 3, 8, 1, key=jax.random.PRNGKey(0))
+    model = oj.Model(lambda x, u, th: th["missing"] * x + th["r"](x), observe)
+    with pytest.raises(
+        ValueError, match=r"leaf shapes \{'B': \(3, 2\), 'a': \(\), 'r': 'MLP of 59 numbers'\}\) "
+    ):
+        oj.simulate(model, {**THETA, "r": net}, X0, U)
+
+
 def test_a_transposed_input_is_named():
     with pytest.raises(
         ValueError, match=r"`u` of shape \(2, 6\) holds T = 2 samples of 6 inputs: "
