@@ -110,6 +110,22 @@ def forward_mode_error(err: TypeError) -> None:
     ) from err
 
 
+def callback_vmap_error(err: NotImplementedError) -> None:
+    """Re-raise JAX's refusal to vmap a `jax.pure_callback` without a `vmap_method`, met
+    while tracing the model's functions, as a NotImplementedError that says where this
+    library vmaps the model and what to pass; return for any other error."""
+    if "pure_callback" not in str(err) or "vmap_method" not in str(err):
+        return
+    raise NotImplementedError(
+        "the model's `step`, `observe` or `rhs` calls `jax.pure_callback` without a "
+        "`vmap_method`, and this library maps the model over several evaluations at once "
+        "(`jax.vmap`: the Jacobian's columns, the records, windows and starts of a fit): "
+        'pass `vmap_method="sequential"` to `jax.pure_callback` ("expand_dims" where the '
+        "function takes a leading axis of evaluations), and give the function a derivative "
+        f"with `jax.custom_jvp` (`fit` differentiates the model). (JAX: {err})"
+    ) from err
+
+
 def public_jit(fn):
     """`jit(fn)` for a public function's compiled call (`simulate`, `loss`,
     `value_and_grad`), which a user may also make inside a JAX transformation of their
@@ -169,6 +185,9 @@ def jit(fn):
             out_arrays, out_structure = f(arrays)
         except TypeError as err:
             forward_mode_error(err)
+            raise
+        except NotImplementedError as err:
+            callback_vmap_error(err)
             raise
         except ValueError as err:
             if "top-level" not in str(err):

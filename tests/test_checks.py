@@ -1454,6 +1454,23 @@ def test_a_custom_vjp_in_the_model_names_forward_mode():
     assert np.isfinite(C) and np.isfinite(float(g["a"]))
 
 
+def test_a_pure_callback_without_a_vmap_method_names_it():
+    """A step that calls NumPy through `jax.pure_callback` without a `vmap_method`: `fit`
+    failed with JAX's bare "vmap is only supported for the pure_callback primitive when
+    vmap_method is one of ..." from 29 frames deep; now the error says where the library
+    maps the model and what to pass. `simulate` (no vmap) still works."""
+
+    def cube(a):
+        return jax.pure_callback(lambda b: np.asarray(b**3, b.dtype), a, a)
+
+    model = oj.Model(lambda x, u, th: 0.5 * x - th["a"] * cube(x) + th["b"] * u)
+    u = np.random.default_rng(0).standard_normal((20, 1))
+    theta, x0 = {"a": 0.1, "b": 0.7}, np.array([0.1])
+    _, z = oj.simulate(model, theta, x0, u)
+    with pytest.raises(NotImplementedError, match=r'pure_callback.*vmap_method="sequential"'):
+        oj.fit(model, theta, x0, u, np.asarray(z) + 0.1)
+
+
 def test_a_probe_s_misuses_name_their_argument(tmp_path):
     """A bool in theta0 was held fixed silently (a Python int is estimated); loss and
     value_and_grad without z failed inside a trace ('BatchTracer' - 'NoneType'); a save
