@@ -896,14 +896,23 @@ def _flag_infeasible(result, projections, rtol=1e-8):
     return _restated(result, "infeasible", infeasible=distance) if demoted else result
 
 
-def _warn_projected(moved, names, theta0):
+def _warn_projected(moved, names, theta0, starts=None, lower=None):
     """Warn that theta0 (a start) lay outside the constraint set, naming the parameters the
     projection moved; where theta holds a network, say that a scalar bound applies to its
-    weights too."""
+    weights too; where a positive start lay below a positive lower bound (`positive()`'s
+    eps of 1e-12, a parameter small in its units), name the bound. `starts` (S, p), `lower`
+    (p,): the starts' free entries and their lower bounds (or None)."""
     per_start = np.atleast_2d(np.asarray(moved, bool))  # (S, p)
     moved = per_start.any(axis=0)
     if not moved.any():
         return
+    below = None
+    if starts is not None and lower is not None:
+        starts, lower = np.atleast_2d(np.asarray(starts)), np.asarray(lower)
+        tiny = per_start & (starts > 0) & (starts < lower) & (lower > 0)
+        if tiny.any():
+            i = int(np.flatnonzero(tiny.any(axis=0))[0])
+            below = (names[i], float(starts[tiny[:, i], i][0]), float(lower[i]))
     counts = {}
     for name, m in zip(names, moved):
         if m:
@@ -934,6 +943,14 @@ def _warn_projected(moved, names, theta0):
             "network's weights too; bound the physical parameters by name, e.g. "
             "box(lower={'k': 0.0}) for a dict theta, or with a pytree of theta's own "
             "structure holding None where unbounded (a module of bounds)."
+        )
+    if below is not None:
+        name, value, bound = below
+        msg += (
+            f" The start {name} = {value:.3g} is positive but below its lower bound "
+            f"{bound:.3g} (`constraints.positive()` bounds every parameter by eps = 1e-12): "
+            "for parameters that small in their units, give a smaller bound "
+            "(`positive(eps=...)`, `box(lower=...)`) or rescale them to order 1."
         )
     warn(msg, stacklevel=3)
 
@@ -1261,7 +1278,7 @@ def fit(
             diagnostics = {**diagnostics, "covariance": NOT_COMPUTED}
         elif lags is not None:
             diagnostics = {**diagnostics, "covariance": "newey_west", "covariance_lags": lags}
-        _warn_projected(out.moved, prepared.names, theta0)
+        _warn_projected(out.moved, prepared.names, theta0, built.starts.theta, built.problem.lower)
         result = assemble(
             prepared=prepared,
             model=model,
