@@ -256,7 +256,9 @@ def ordered_like(tree, like):
     """`tree` with the keys of its dicts in the order written in `like` (JAX returns them
     sorted): the same pytree, so that a fit started from a result's theta prints its
     parameters in the order of the first fit's theta0."""
-    if isinstance(tree, dict) and isinstance(like, dict):
+    # (a plain dict only: a subclass, an OrderedDict or a user's attribute dict, is a
+    # node of its own type, which a plain dict in its place would change)
+    if type(tree) is dict and isinstance(like, dict):
         keys = [k for k in like if k in tree] + [k for k in tree if k not in like]
         return {k: ordered_like(tree[k], like.get(k)) for k in keys}
     return tree

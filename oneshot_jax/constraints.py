@@ -110,7 +110,9 @@ def _fill_like(bound, params, fill, name, where=""):
     if isinstance(bound, (list, tuple)) and isinstance(params, (list, tuple)):
         if len(bound) != len(params):
             raise ValueError(f"`{name}` must have one entry per parameter leaf ({len(params)}).")
-        return type(params)(_fill_like(b, p, fill, name) for b, p in zip(bound, params))
+        filled = [_fill_like(b, p, fill, name) for b, p in zip(bound, params)]
+        # (a NamedTuple takes its fields as arguments, a list or tuple one iterable)
+        return type(params)(*filled) if hasattr(params, "_fields") else type(params)(filled)
     leaves, treedef = jax.tree_util.tree_flatten(params)
     # A pytree of theta's own structure (an equinox module of bounds, say; None leaves
     # unbounded), leaf by leaf.

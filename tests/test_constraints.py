@@ -1,6 +1,7 @@
 """Projections onto convex parameter sets (Section 3.3) as optax transforms."""
 
 import re
+import typing
 import warnings
 from typing import Any
 
@@ -733,3 +734,24 @@ def test_a_projection_of_a_jax_array_theta_is_checked_without_a_deprecated_call(
         warnings.simplefilter("error", DeprecationWarning)
         r = oj.fit(model, jnp.array([0.5, 0.2]), np.zeros(1), u, z, constraints=cap)
     assert float(r.theta[1]) <= 0.3
+
+
+class _Phys(typing.NamedTuple):
+    k: Any
+    c: Any
+
+
+def test_box_bounds_of_a_namedtuple_theta_in_its_own_form():
+    """Bounds given as a NamedTuple (or a tuple, a list) of theta's own NamedTuple form,
+    alone or inside a dict: a bare "P.__new__() missing 2 required positional arguments"
+    before (a NamedTuple takes its fields as arguments)."""
+    theta = _Phys(k=jnp.asarray(3.0), c=jnp.asarray([0.5, -2.0]))
+    for upper in (_Phys(k=1.9, c=0.0), (1.9, 0.0), [1.9, 0.0]):
+        projected = oc.box(upper=upper).project(theta)
+        assert isinstance(projected, _Phys)
+        np.testing.assert_array_equal(projected.k, 1.9)
+        np.testing.assert_array_equal(projected.c, [0.0, -2.0])
+    nested = {"phys": theta, "g": jnp.asarray(5.0)}
+    projected = oc.box(upper={"phys": _Phys(k=1.9, c=0.0)}).project(nested)
+    np.testing.assert_array_equal(projected["phys"].k, 1.9)
+    np.testing.assert_array_equal(projected["g"], 5.0)

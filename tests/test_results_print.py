@@ -518,6 +518,48 @@ def test_nested_dicts_keep_their_written_order():
     assert theta_order(theta) == ("z.q", "z.a", "b.0", "b.1", "m")
 
 
+class _AttrDict(dict):
+    """A dict with attribute access (as easydict or ml_collections give), a pytree node of
+    its own type."""
+
+    def __getattr__(self, name):
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+
+jax.tree_util.register_pytree_with_keys(
+    _AttrDict,
+    lambda d: ([(jax.tree_util.DictKey(k), d[k]) for k in sorted(d)], tuple(sorted(d))),
+    lambda keys, values: _AttrDict(zip(keys, values)),
+)
+
+
+def test_a_dict_subclass_theta_comes_back_in_its_own_type():
+    """A theta0 of a dict subclass (attribute access) or an OrderedDict: `result.theta`
+    was rebuilt as a plain dict in theta0's written order, on which a model reading
+    `theta.w0sq` failed in `result.simulate` and a refit, and whose structure differed
+    from theta0's. Each now comes back in its own type."""
+    x0, u, z = data()
+
+    def attribute(x, u, th):
+        return oscillator(x, u, {"w0sq": th.w0sq, "c": th.c, "b": th.b})
+
+    model = oj.Model.from_ode(attribute, DT, observe=lambda x, u, theta: x[:1])
+    r = oj.fit(model, _AttrDict(w0sq=3.0, c=0.2, b=1.0), x0, u, z)
+    assert type(r.theta) is _AttrDict and type(r.std) is _AttrDict
+    np.testing.assert_allclose(np.asarray(r.simulate(u)[1]), r.residuals + z, atol=1e-12)
+    again = oj.fit(model, r.theta, r.x0, u, z)
+    assert type(again.theta) is _AttrDict
+    import collections
+
+    theta0 = collections.OrderedDict(w0sq=3.0, c=0.2, b=1.0)
+    r = oj.fit(MODEL, theta0, x0, u, z)
+    assert type(r.theta) is collections.OrderedDict and list(r.theta) == ["w0sq", "c", "b"]
+    assert jax.tree_util.tree_structure(r.theta) == jax.tree_util.tree_structure(theta0)
+
+
 def test_solver_reprs_show_every_setting():
     lm = oj.LevenbergMarquardt()
     assert repr(lm) == (
