@@ -937,7 +937,10 @@ def _warn_projected(moved, names, theta0, starts=None, lower=None):
             f"{int(moved.sum())} entries moved, in {listed}."
         )
     is_module = lambda a: isinstance(a, eqx.Module)  # noqa: E731
-    if any(is_module(a) for a in jax.tree_util.tree_leaves(theta0, is_leaf=is_module)):
+    # A network's weights: entries of a matrix ("[i, j]") the projection moved, in a theta
+    # that holds a module (not a module of scalar physical parameters alone).
+    weights = any(m and "," in n.rsplit("[", 1)[-1] for n, m in zip(names, moved) if "[" in n)
+    if weights and any(is_module(a) for a in jax.tree_util.tree_leaves(theta0, is_leaf=is_module)):
         msg += (
             " A bound given for every parameter (positive(), box(lower=0)) holds a "
             "network's weights too; bound the physical parameters by name, e.g. "

@@ -89,6 +89,14 @@ def _fill_like(bound, params, fill, name, where=""):
             k: _fill_like(bound.get(k), v, fill, name, f"{where}.{k}" if where else str(k))
             for k, v in params.items()
         }
+    if isinstance(params, eqx.Module) and type(bound) is type(params):
+        # (a module of bounds, theta's own class: field by field, a None field unbounded,
+        # a network's among them; flattened whole, its None fields had no leaves)
+        bound = {
+            f.name: getattr(bound, f.name)
+            for f in dataclasses.fields(params)
+            if not f.metadata.get("static", False)
+        }
     if isinstance(params, eqx.Module) and isinstance(bound, dict):
         # (a module's fields by name, as `fit`'s `fixed` and `units` take them)
         fields = [f.name for f in dataclasses.fields(params) if not f.metadata.get("static", False)]

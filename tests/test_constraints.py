@@ -755,3 +755,28 @@ def test_box_bounds_of_a_namedtuple_theta_in_its_own_form():
     projected = oc.box(upper={"phys": _Phys(k=1.9, c=0.0)}).project(nested)
     np.testing.assert_array_equal(projected["phys"].k, 1.9)
     np.testing.assert_array_equal(projected["g"], 5.0)
+
+
+class _PhysNet(eqx.Module):
+    k: Any
+    c: Any
+    net: eqx.nn.MLP
+
+
+def test_a_module_of_bounds_with_none_for_its_network():
+    """Bounds as a module of theta's own class, None where unbounded (the network's field,
+    or a network of None leaves), as `fit`'s warning recommends: refused before ("`lower`
+    must hold real numbers"), the None fields having no leaves when the module was
+    flattened whole."""
+    net = eqx.nn.MLP(2, 1, 4, 1, key=jax.random.PRNGKey(0))
+    # (the arrays of theta, as `fit` projects them)
+    theta = eqx.filter(_PhysNet(jnp.asarray(3.0), jnp.asarray(-1.0), net), eqx.is_array)
+    nones = jax.tree_util.tree_map(lambda _: None, net)
+    for unbounded in (None, nones):
+        transform = oc.box(
+            lower=_PhysNet(0.0, 0.0, unbounded), upper=_PhysNet(1.9, None, unbounded)
+        )
+        projected = transform.project(theta)
+        assert float(projected.k) == 1.9 and float(projected.c) == 0.0
+        for a, b in zip(leaves(eqx.filter(projected.net, eqx.is_array)), leaves(net)):
+            np.testing.assert_array_equal(a, b)  # the network unbounded

@@ -15,6 +15,7 @@ import sys
 import types
 import warnings
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -332,6 +333,31 @@ def test_a_bound_for_every_parameter_on_a_hybrid_names_the_network_weights_it_mo
     )
     assert f"{int(np.sum(weights <= 0))} entries moved, in r." in msg
     assert "box(lower={'k': 0.0})" in msg
+
+
+class _Scalars(eqx.Module):
+    a: Any
+    b: Any
+
+
+def test_a_module_of_physical_parameters_gets_no_advice_about_network_weights():
+    """A theta that is a module of scalar parameters, its start outside a bound given for
+    one of them: the warning spoke of "a network's weights" there too (it fired for any
+    module in theta)."""
+    model = oj.Model(lambda x, u, th: th.a * x + th.b * u)
+    u = np.random.default_rng(0).standard_normal((30, 1))
+    _, z = oj.simulate(model, _Scalars(0.5, 1.0), np.zeros(1), u)
+    with pytest.warns(UserWarning, match="outside the constraint set") as record:
+        oj.fit(
+            model,
+            _Scalars(jnp.asarray(0.95), jnp.asarray(1.0)),
+            np.zeros(1),
+            u,
+            np.asarray(z),
+            constraints=oj.constraints.box(upper={"a": 0.9}),
+            estimate_x0=False,
+        )
+    assert not any("network" in str(w.message) for w in record)
 
 
 def test_prox_in_fit_gives_exact_zeros_that_stay_zero_and_reports_c_plus_g():
