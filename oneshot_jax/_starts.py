@@ -24,6 +24,9 @@ def as_multistart(multistart, theta0):
     theta0's dicts."""
     if isinstance(multistart, np.bool_):
         return bool(multistart)
+    if isinstance(multistart, Mapping) and not multistart and not jax.tree_util.tree_leaves(theta0):
+        # (starts over x0 alone, of a theta0 without parameters: the rows of x0, as True)
+        return True
     if isinstance(multistart, Mapping) and isinstance(theta0, dict):
         return _pytree.nest_dotted(dict(multistart), theta0, "multistart")
     return multistart

@@ -124,6 +124,13 @@ def test_starts_over_x0_with_theta_shared(data, theta0):
     r = oj.fit(MODEL, theta, X0s, u, z, fixed=True, multistart={})
     assert r.starts.loss.shape == (3,)
     np.testing.assert_allclose(r.x0, x0, atol=1e-10)
+    # A model without parameters (theta0 {} or None, the structure known): the same
+    # starts over x0 (refused before: "`multistart` gives a dict for theta, which is a
+    # leaf of theta0").
+    known = oj.Model(lambda x, u, th: step(x, u, theta))
+    for empty in ({}, None):
+        e = oj.fit(known, empty, X0s, u, z, multistart={})
+        np.testing.assert_array_equal(e.starts.loss, r.starts.loss)
 
 
 def test_x0_starts_of_held_entries_are_refused(data, theta0):
