@@ -369,7 +369,9 @@ class Model(eqx.Module):
     `value_and_grad(strategy="vjp")`). The model is immutable and hashable: pass
     it to a function under `eqx.filter_jit` (as the library does), as a static argument
     of `jax.jit`, or close over it; plain `jax.jit` cannot take it as a traced argument
-    because it holds functions.
+    because it holds functions. `step` and `observe` (or `rhs`) may be an
+    `equinox.Module` with a `__call__`: its array fields are data, traced with the model
+    and never estimated (a network to be fitted belongs in theta).
 
     **Arguments:**
 
