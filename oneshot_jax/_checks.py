@@ -292,7 +292,10 @@ def bind_model(model, static):
 
 
 @functools.lru_cache(maxsize=256)
-def _cached_eval_shape(fn, x, u, theta_leaves, treedef):
+def _cached_eval_shape(fn, x, u, theta_leaves, treedef, x64):
+    """(`x64`: JAX's jax_enable_x64 when called, part of the key: the model's own
+    constants, `jnp.zeros(1)` say, take their dtype from it.)"""
+    del x64
     return jax.eval_shape(fn, x, u, jax.tree_util.tree_unflatten(treedef, theta_leaves))
 
 
@@ -305,7 +308,7 @@ def _abstract_call(fn, x, u, theta):
         hash(fn)
     except TypeError:  # an unhashable callable: no caching
         return jax.eval_shape(fn, x, u, theta)
-    return _cached_eval_shape(fn, x, u, structs, treedef)
+    return _cached_eval_shape(fn, x, u, structs, treedef, jax.config.jax_enable_x64)
 
 
 @functools.lru_cache(maxsize=256)

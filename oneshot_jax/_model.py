@@ -363,9 +363,12 @@ class Model(eqx.Module):
     pure and traceable by JAX: a value they read from a global or a closure is frozen into
     each compiled function at its first call (a later `simulate` keeps the old value, a
     `fit` compiled after the change takes the new one); pass a value that changes as an
-    entry of theta (held by `fit(fixed=...)`). They are differentiated in forward mode
-    (`jax.jvp`) as well as in reverse mode: a function with a custom derivative inside them
-    needs `jax.custom_jvp` (a `jax.custom_vjp` works only with
+    entry of theta (held by `fit(fixed=...)`). The same holds of a function edited in
+    place (IPython's `%autoreload` gives the function object a new body): the compiled
+    programs of a model built from it keep the old body, a rebuilt model's too (it
+    equals the old one); call `jax.clear_caches()` after such an edit. They are
+    differentiated in forward mode (`jax.jvp`) as well as in reverse mode: a function with
+    a custom derivative inside them needs `jax.custom_jvp` (a `jax.custom_vjp` works only with
     `value_and_grad(strategy="vjp")`). The model is immutable and hashable: pass
     it to a function under `eqx.filter_jit` (as the library does), as a static argument
     of `jax.jit`, or close over it; plain `jax.jit` cannot take it as a traced argument

@@ -1612,3 +1612,22 @@ def test_a_parameter_of_another_array_library_is_refused_by_name(entry):
                 oj.fit(MODEL, bad, X0, U, Z)
             else:
                 call(entry, theta=bad)
+
+
+def test_the_model_check_reads_the_x64_switch_of_each_call():
+    """A step with a constant of JAX's default dtype (`jnp.zeros(1)`) on float32 data: with
+    x64 on it promotes the state to float64 (refused), with x64 off it keeps float32
+    (accepted). The check's cache was keyed without the switch: after a call with x64 on,
+    one with it off was refused as well, which a fresh process accepts."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + u + jnp.zeros(1))
+    theta = {"a": np.float32(0.9)}
+    x0, u = np.ones(1, np.float32), np.ones((5, 1), np.float32)
+    assert jax.config.jax_enable_x64
+    with pytest.raises(ValueError, match="must keep the state's dtype float32"):
+        oj.simulate(model, theta, x0, u)
+    try:
+        jax.config.update("jax_enable_x64", False)
+        _, z = oj.simulate(model, theta, x0, u)
+        assert z.dtype == np.float32
+    finally:
+        jax.config.update("jax_enable_x64", True)
