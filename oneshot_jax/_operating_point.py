@@ -392,14 +392,13 @@ def find_equilibrium(
     params = whole if rhs is not None else data.theta
 
     def evaluate(x):
-        """The residual, its Jacobian in the free entries, and in all (for `scale`: a
-        held entry's terms are the equation's too)."""
+        """The residual and its Jacobian in all the entries (for `scale`: a held entry's
+        terms are the equation's too; the step takes the free entries' columns)."""
         r, J = _equation(data.model, rhs, params, jnp.asarray(x, data.x0.dtype), su, ue)
-        J = np.asarray(J, np.float64)
-        return np.asarray(r, np.float64), J * free[None, :], J
+        return np.asarray(r, np.float64), np.asarray(J, np.float64)
 
     x = np.asarray(data.x0, np.float64)
-    r, J, J_all = evaluate(x)
+    r, J_all = evaluate(x)
     eps = float(np.finfo(data.x0.dtype).eps)
 
     def scale(x, J):
@@ -419,17 +418,18 @@ def find_equilibrium(
         and np.all(np.isfinite(r))
         and np.any(np.abs(r) > eps * scale(x, J_all))  # (at round-off: stop)
     ):
+        J = J_all * free[None, :]
         step = -np.asarray(psd_solve(jnp.asarray(J.T @ J), jnp.asarray(J.T @ r)))
         now, alpha = r @ r, 1.0
         for _ in range(HALVINGS):
             trial = (x + alpha * step).astype(data.x0.dtype)
-            r_t, J_t, J_all_t = evaluate(trial)
+            r_t, J_all_t = evaluate(trial)
             if np.all(np.isfinite(r_t)) and r_t @ r_t < now:
                 break
             alpha *= 0.5
         else:  # (no step lowers the residual: its round-off floor, or its least-squares
             break  # minimum where there is no equilibrium)
-        x, r, J, J_all = np.asarray(trial, np.float64), r_t, J_t, J_all_t
+        x, r, J_all = np.asarray(trial, np.float64), r_t, J_all_t
         steps += 1
     residual = float(np.max(np.abs(r), initial=0.0))
     success = bool(np.all(np.isfinite(r)) and np.all(np.abs(r) <= math.sqrt(eps) * scale(x, J_all)))

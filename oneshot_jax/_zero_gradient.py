@@ -52,12 +52,6 @@ def _columns(problem, params, entries, strategy):
 
 
 @jit
-def _gradient(problem, params, strategy):
-    """The gradient (eq. 17, 20) of the free entries of theta at `params`, (p,)."""
-    return problem.value_and_grad(params, strategy)[1].theta
-
-
-@jit
 def _moved_losses(problem, params, strategy):
     """The loss with every free entry of theta and x0 moved together by 1e-3, 1e-2 and
     1e-1 of its size (at least of 1), up and down, in two patterns of signs (all alike,
@@ -82,7 +76,8 @@ def _moved_losses(problem, params, strategy):
 
 @jit
 def _value_and_gradient(problem, params, strategy):
-    """The loss and its gradient (eq. 17, 20) in the free entries of theta and x0."""
+    """The loss and its gradient (eq. 17, 20) in the free entries of theta and x0 at
+    `params` (one compiled program for both checks)."""
     return problem.value_and_grad(params, strategy)
 
 
@@ -148,7 +143,8 @@ def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.n
     params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
     # The gradient first (one reverse pass): an entry held where it is not flat (at a
     # bound, say) needs no Jacobian columns.
-    flat = unmoved[np.asarray(_gradient(problem, params, strategy))[unmoved] == 0]
+    gradient = _value_and_gradient(problem, params, strategy)[1].theta
+    flat = unmoved[np.asarray(gradient)[unmoved] == 0]
     if not flat.size:
         return flat
     entries, valid = _padded(flat, np.size(start.theta))
