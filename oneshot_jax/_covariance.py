@@ -481,6 +481,13 @@ def scale(cov: Covariance, e, cost=None, robust: bool = False, held=None) -> Sca
     """
     t_ok, x_ok = cov.theta_identifiable, cov.x0_identifiable
     seen = jnp.isfinite(e)
+    # An output reproduced exactly at every sample (a logged setpoint the model returns)
+    # has no noise: its zeros are no observations of sigma^2 (they would shrink it), unless
+    # every output is (a zero residual: sigma^2 = 0).
+    over = tuple(range(e.ndim - 1))
+    measured = jnp.any(seen, axis=over)
+    exact = measured & jnp.all((e == 0) | ~seen, axis=over)
+    seen = seen & ~(exact & jnp.any(measured & ~exact))
     n_obs = jnp.sum(seen) if cost is None else cost.observations(seen)
     dof = n_obs - (t_ok.size + x_ok.size - (0 if held is None else jnp.sum(held)))
     known = dof > 0

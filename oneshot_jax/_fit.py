@@ -794,7 +794,9 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
     readings = {c: v for c, v in (readings or {}).items() if np.isfinite(v)}
     names += [f"the readings of output {c}" for c in readings]
     var = np.concatenate([var, list(readings.values())])
-    if var.size < 2 or var.min() <= 0 or var.max() <= 10 * var.min():
+    # (an output reproduced exactly has no noise to compare: `_warn_exact_outputs`)
+    names, var = [n for n, v in zip(names, var) if v > 0], var[var > 0]
+    if var.size < 2 or var.max() <= 10 * var.min():
         return
     which = (
         "outputs"
@@ -813,6 +815,37 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
         f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
         "outputs, so they hold only where `weight` is about 1 / (each output's noise "
         f"variance); {remedy}.",
+        stacklevel=3,
+    )
+
+
+def _warn_exact_outputs(residuals, weight, outputs=None):
+    """Warn where the fit reproduces an output of nonzero weight exactly at every measured
+    sample while others keep a residual (a logged setpoint or flag that `observe` returns
+    as it is): such an output carries no noise, so it is left out of the noise level
+    sigma^2 of the standard errors (`_covariance.scale`) and of the printout's residual
+    tests, and it makes the AIC and BIC -inf and the FPE 0 (the log determinant of the
+    errors' covariance)."""
+    e = np.asarray(residuals, np.float64)
+    n_z = e.shape[-1]
+    e = e.reshape(-1, n_z)
+    seen = np.isfinite(e)
+    q = np.ones(n_z) if weight is None else np.asarray(weight, np.float64)
+    weighed = np.any(q != 0, axis=-1) if q.ndim == 2 else np.broadcast_to(q, (n_z,)) > 0
+    measured = seen.any(axis=0) & weighed
+    exact = measured & np.all((e == 0) | ~seen, axis=0)
+    if not exact.any() or not (measured & ~exact).any():
+        return
+    labels = model_labels(outputs, n_z)
+    listed = ", ".join(
+        f"output {labels[j] if labels is not None else j}" for j in np.flatnonzero(exact)
+    )
+    warn(
+        f"the fit reproduces {listed} exactly at every sample (a zero residual: a logged "
+        "setpoint or flag the model returns as it is, say): it carries no noise, so it is "
+        "left out of the noise level of the standard errors and of the residual tests, and "
+        "it makes the AIC and BIC -inf and the FPE 0, which then compare no models; leave "
+        "it out of `z` to compare models by them.",
         stacklevel=3,
     )
 
@@ -1159,7 +1192,26 @@ def fit(
     ones the data do not determine: their std is inf and a warning names them. A success
     whose simulation fits an output worse than its mean (FIT below 0) warns of a bad
     minimum.
+
+    **JAX's debugging flags.** `fit` runs with `jax_debug_nans` and `jax_debug_infs` off
+    (its compiled outputs hold NaN where a quantity does not exist: the history's rows
+    after the last step, a solver's measures it does not have), so that the flags leave
+    a fit as it is; to find where a model first makes a NaN, call `value_and_grad` or
+    `simulate` at the point under the flag. Under `jax.disable_jit()` `fit` raises a
+    RuntimeError: its solve is one compiled program (step through the model with
+    `simulate` or `value_and_grad` there).
     """
+    if jax.config.jax_disable_jit:
+        raise RuntimeError(
+            "`fit` does not run under `jax.disable_jit()` (or jax_disable_jit): its solve "
+            "is one compiled program, whose loop state is traced. To step through the model "
+            "(print, a debugger), call `oneshot_jax.simulate` or `value_and_grad` under it, "
+            "and `fit` outside it."
+        )
+    if jax.config.jax_debug_nans or jax.config.jax_debug_infs:
+        # (the library's own NaN, where a quantity does not exist, are no model's NaN)
+        with jax.debug_nans(False), jax.debug_infs(False):
+            return fit(**locals())
     with recording() as record:
         if isinstance(weight, str):
             if weight != "noise":
@@ -1368,6 +1420,7 @@ def fit(
         )
         if result.status != "zero_residual":  # (round-off residuals have no noise level)
             _warn_unequal_noise(result.residuals, weight, result.std, readings)
+            _warn_exact_outputs(result.residuals, weight, getattr(model, "outputs", None))
         else:  # (how close to round-off: float32's limit, sqrt(eps), is 3.5e-4 of the outputs)
             nrmse = weighed(result.metrics.get("nrmse"), weight)  # (weight 0: not fitted)
             if np.isfinite(nrmse).any():

@@ -346,6 +346,18 @@ def vanished_note(names) -> str:
     )
 
 
+def without_effect_note(names) -> str:
+    """What the parameters a success left where they have no effect mean
+    (`stop_info["without_effect"]`, `_zero_gradient`)."""
+    listed = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+    return (
+        f"{listed} never moved from the start, where the outputs do not depend on them "
+        "(Jacobian columns exactly zero there and a little away), though they do "
+        "elsewhere: the start lies on a flat piece of the model (a saturation or dead zone "
+        "beyond the data's range, a relu that is off); start them where they act"
+    )
+
+
 def _stationary(result) -> bool:
     """Whether the returned point passed the first-order test (its measure at most gtol),
     as the status line judges a stop by a user's threshold (`stop_detail`)."""
@@ -418,25 +430,32 @@ def _whiteness_note(result, outputs) -> str | None:
     T = e.shape[-2]
     if T < 3:
         return None
+    # (an output reproduced exactly, a zero residual, has no correlations: the others')
+    flat = e.reshape(-1, e.shape[-1])
+    noisy = np.flatnonzero(np.any(np.isfinite(flat) & (flat != 0), axis=0))
+    if not noisy.size:
+        return None
     try:
-        rc = residual_correlations(e, None, min(25, T - 1))
-    except ValueError:  # (an output with fewer than two measured samples, or zero)
+        rc = residual_correlations(e[..., noisy], None, min(25, T - 1))
+    except ValueError:  # (an output with fewer than two measured samples, or none left)
         return None
     weight = getattr(result, "weight", None)
     weighed = np.ones(e.shape[-1], bool)
     if weight is not None:
         q = np.asarray(weight)
         weighed = (q if q.ndim == 1 else np.diag(q)) > 0
-    bad = [k for k in np.flatnonzero(~np.atleast_1d(rc.white)) if weighed[k]]
+    # (i: the column of `rc`, k: the output)
+    bad = [(i, int(noisy[i])) for i in np.flatnonzero(~np.atleast_1d(rc.white))]
+    bad = [(i, k) for i, k in bad if weighed[k]]
     if not bad:
         return None
     names = model_labels(outputs, e.shape[-1])
     lag = len(rc.lags) // 2 + 1  # (the row of lag 1)
     said = [
         f"{names[k] if names is not None else f'output {k}'}: r_e(1) = "
-        f"{float(rc.auto[lag, k]):.3g}, {100 * float(rc.auto_outside[k]):.0f} % of the lags "
-        f"outside +-{float(rc.bound[k]):.3g}"
-        for k in bad[:3]
+        f"{float(rc.auto[lag, i]):.3g}, {100 * float(rc.auto_outside[i]):.0f} % of the lags "
+        f"outside +-{float(rc.bound[i]):.3g}"
+        for i, k in bad[:3]
     ]
     more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
     robust = (result.diagnostics or {}).get("covariance_lags") is not None
@@ -674,6 +693,9 @@ def report(result) -> str:
     gone = (result.stop_info or {}).get("vanished")
     if gone:
         out.append(f"  ({vanished_note(gone)})")
+    idle = (result.stop_info or {}).get("without_effect")
+    if idle:
+        out.append(f"  ({without_effect_note(idle)})")
     if result.window_starts is not None:
         # Multiple shooting restarts every window from its own fitted x0: the model's own
         # open-loop fit of the record can be far lower.

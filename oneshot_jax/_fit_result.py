@@ -16,7 +16,13 @@ from ._caller_warnings import at_caller, frames_to_user, warn
 from ._checks import as_float, check_data, check_state_size
 from ._cost import Cost
 from ._delta import delta_method
-from ._fit_report import report, returned_start, unresolved_remedy, vanished_note
+from ._fit_report import (
+    report,
+    returned_start,
+    unresolved_remedy,
+    vanished_note,
+    without_effect_note,
+)
 from ._initial_state import predict_impl
 from ._model import model_labels
 from ._normalise import is_ragged
@@ -596,7 +602,11 @@ class FitResult(eqx.Module):
         step count); NaN where the solver has no such quantity. With the stop
         `zero_gradient`, also `zero_gradient` (the names of the parameters left at the
         start), `solver_stop` (the solver's own stop) and, where no parameter or initial
-        state had a gradient there, `no_effect` (True); with the stop
+        state had a gradient there, `no_effect` (True); with a success that left some
+        free parameters at their start, where their Jacobian columns are exactly zero there
+        and a little away though not further away (a flat piece of the model: a
+        saturation above the data's range, say), `without_effect` (their names); with
+        the stop
         `noise_weight_unsettled`, `solver_stop` (the last fit's); with the stop `validation`,
         `validation_loss`, `patience` and, where the last solver stopped on a test of its
         own (`diverged`, `converged`, ...), `solver_stop`; with the stop `diverged`
@@ -847,7 +857,9 @@ class FitResult(eqx.Module):
                 "point most often meets free entries of very different scales, whose "
                 "Jacobian columns differ by orders of magnitude (an output offset next to "
                 "small gains, say); rescale them to order 1, or go on from here with "
-                "LevenbergMarquardt, which scales the columns itself"
+                "LevenbergMarquardt, which scales the columns itself. A model that is "
+                "not differentiable there (abs, sign, clip, a switching mode: a kink) "
+                "fails a line search too"
             )
         elif info.get("gauss_newton_refuted"):
             why = (
@@ -882,6 +894,9 @@ class FitResult(eqx.Module):
         gone = self.stop_info.get("vanished")
         if gone:
             out += f". {vanished_note(gone)}"
+        idle = self.stop_info.get("without_effect")
+        if idle:
+            out += f". {without_effect_note(idle)}"
         kept = (self.diagnostics or {}).get("unconverged_rollouts")
         if kept and not self.success and self.status != "unconverged_rollout":
             # (the stop's values may be the rollouts': the likelier cause of the failure)

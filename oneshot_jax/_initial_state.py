@@ -169,6 +169,11 @@ def _check_head(u, z, n, z_name="z"):
                 f"{len(a)} records (several records: one call each, or `FitResult.predict`, "
                 "which takes them all)."
             )
+    if u is None:
+        raise ValueError(
+            "`u` is required, the inputs (T, n_u); a model without inputs takes "
+            "np.zeros((T, 0)), which gives the record its length T."
+        )
     if np.ndim(u) != 2:
         several = (
             " (several records: one call each, or `FitResult.predict`, which takes them all)"

@@ -126,6 +126,28 @@ def callback_vmap_error(err: NotImplementedError) -> None:
     ) from err
 
 
+_REVERSE_MODE = "the model's `step`, `observe` or `rhs` has a `jax.lax.while_loop`"
+
+
+def reverse_mode_error(err: ValueError) -> None:
+    """Re-raise JAX's refusal to differentiate a `lax.while_loop` in reverse mode, met
+    while tracing the model's functions, as a ValueError that says which of this
+    library's derivatives need reverse mode and what to do; return for any other error."""
+    if "Reverse-mode differentiation does not work for lax.while_loop" not in str(err):
+        return
+    if str(err).startswith(_REVERSE_MODE):  # (said already, by a compiled call inside)
+        return
+    raise ValueError(
+        _REVERSE_MODE + " (or a `fori_loop` whose bounds are not Python integers), which "
+        "JAX cannot differentiate in reverse mode, and this library differentiates the "
+        "model in reverse mode: the gradient (eq. 17, 20) of L-BFGS and Adam, the "
+        "Jacobian's rows of a least-squares step with more than a few parameters. Iterate "
+        "a fixed number of times (`lax.fori_loop` with integer bounds, `lax.scan`), or "
+        "solve the implicit equation with `lax.custom_root` (differentiated implicitly). "
+        f"(JAX: {err})"
+    ) from err
+
+
 def public_jit(fn):
     """`jit(fn)` for a public function's compiled call (`simulate`, `loss`,
     `value_and_grad`), which a user may also make inside a JAX transformation of their
@@ -190,6 +212,7 @@ def jit(fn):
             callback_vmap_error(err)
             raise
         except ValueError as err:
+            reverse_mode_error(err)
             if "top-level" not in str(err):
                 raise
             # (JAX refuses compiler options on a nested jit: this call is inside a trace)

@@ -44,7 +44,9 @@ class RESULTS(eqx.Enumeration):
         "Check the scaling of the problem (an output with a large offset, 1e4 around a "
         "noise of 1e-4, leaves the loss too few digits: subtract it from the data "
         "first); bounds that keep the model stable, windows (multiple shooting) or a "
-        "better start help"
+        "better start help. A model that is not differentiable there (abs, sign, clip, "
+        "max, a switching mode: a kink, where the measure need not reach zero even at a "
+        "minimum) stops so too"
     )
     no_progress = (
         "no step decreased the loss any more (the damping or the line search gave up, "
@@ -52,7 +54,8 @@ class RESULTS(eqx.Enumeration):
         "returned NaN on a rank-deficient Jacobian, say) before the first-order test "
         "held; check the scaling of the problem (a large "
         "output offset leaves the loss too few digits: subtract it) or try another solver "
-        "or starting point"
+        "or starting point; at a point where the model is not differentiable (abs, sign, "
+        "clip, max, a switching mode: a kink) no test of a derivative can hold"
     )
     diverged = (
         "the simulation diverged (a non-finite loss or gradient); the last finite iterate "

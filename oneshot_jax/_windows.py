@@ -20,6 +20,8 @@ def window_starts(data, u_w, z_w, mask_w=None, keep_first=True):
     window keeps the given x0 (with `keep_first`: it starts at sample 0)."""
     N = u_w.shape[0]
     guess = np.broadcast_to(np.asarray(data.x0), (N, np.shape(data.x0)[-1]))
+    if guess.shape[1] == 0:  # a model without state (n_x = 0): nothing to estimate
+        return np.zeros(guess.shape, np.asarray(data.x0).dtype)
     windows = data._replace(x0=guess, u=u_w, z=z_w, mask=mask_w, batched=True, lengths=None)
     r = solve_x0(windows, with_covariance=False)
     observed = np.ones(r.residuals.shape, bool) if mask_w is None else mask_w.outputs > 0

@@ -70,10 +70,10 @@ def _covariance_arg(value, size, name, *, definite):
         )
     if not np.all(np.isfinite(a)):
         raise ValueError(f"`{name}` contains NaN or inf values.")
-    scale = max(float(np.max(np.abs(a))), 1e-300)
+    scale = max(float(np.max(np.abs(a), initial=0.0)), 1e-300)  # (n_x = 0: empty)
     if not np.allclose(a, a.T, rtol=1e-10, atol=1e-12 * scale):
         raise ValueError(f"`{name}` must be a symmetric matrix.")
-    low = float(np.min(np.linalg.eigvalsh(a)))
+    low = float(np.min(np.linalg.eigvalsh(a), initial=np.inf))
     if definite and low <= 0:
         raise ValueError(f"`{name}` must be positive definite (variances > 0).")
     if low < -1e-10 * scale:

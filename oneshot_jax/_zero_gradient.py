@@ -17,7 +17,11 @@ the gradient of every free entry of theta and x0 is exactly zero while the loss 
 a little away from the start (`_no_effect`): outputs piecewise constant in them (a
 rounding sensor), which no solver can fit; the stop is then `zero_gradient` too, with
 `stop_info["no_effect"]`. Outputs that depend on none of them keep their success: their
-loss is the same everywhere.
+loss is the same everywhere. A success that left a parameter (not a network's weight)
+where its column is zero there and a little away, though not at points further away
+(`acting_elsewhere`: its start times 0.01 to 10, -1, plus or minus 1 and 10), keeps its
+success too, a flat local minimum, but names it (`stop_info["without_effect"]`) and warns:
+the start lies on a flat piece of the model (a saturation above the data's range).
 """
 
 import dataclasses
@@ -87,9 +91,10 @@ def _stuck(problem, params, entries, valid, strategy):
     array to a size that is compiled once, `_padded`), all of an exactly zero gradient at
     `params` (`_gradient`), has an exactly zero Jacobian column there too, and one that
     is not zero once they are all moved a little away from it, up or down within the box
-    (not zero, or not finite: it acts away from the start). The columns at the start and
-    at the two moved points are one vmapped evaluation (one copy of the sensitivities to
-    compile)."""
+    (not zero, or not finite: it acts away from the start); and whether it has an exactly
+    zero column there and at both moved points (no effect around the start). The columns
+    at the start and at the two moved points are one vmapped evaluation (one copy of the
+    sensitivities to compile)."""
     values = params.theta[entries]
     move = jnp.where(valid, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
     # Both ways (relu(-k) acts below a start at 0 only), each within the box.
@@ -108,7 +113,44 @@ def _stuck(problem, params, entries, valid, strategy):
             inside = (moved >= problem.lower[entries]) & (moved <= problem.upper[entries])
         c = cols[k]
         acts = acts | (inside & (jnp.any(c != 0, 1) | ~jnp.all(jnp.isfinite(c), 1)))
-    return zero & acts
+    return zero & acts, zero & ~acts
+
+
+# Where an entry without effect around its start is tried further away (`_acts_elsewhere`):
+# its start times these factors, and these offsets from it.
+_FACTORS = (2.0, 10.0, 0.5, 0.1, 0.01, 0.0, -0.01, -0.1, -1.0)
+_OFFSETS = (1.0, -1.0, 10.0, -10.0)
+
+
+@jit
+def _acts_elsewhere(problem, params, entries, valid, strategy):
+    """For the free entries `entries` of theta (where `valid`, as for `_stuck`), without
+    effect around `params`: the values they are tried at further away (`_FACTORS` times
+    them, `_OFFSETS` from them, all moved together), (n_points, k), and whether each one's
+    Jacobian column is finite and not zero there, within the box (it acts there: the
+    start lies on a flat piece of the model, a saturation above the data's range, say)."""
+    values = params.theta[entries]
+    tried = jnp.concatenate(
+        [
+            jnp.asarray(_FACTORS, values.dtype)[:, None] * values[None, :],
+            values[None, :] + jnp.asarray(_OFFSETS, values.dtype)[:, None],
+        ]
+    )
+    tried = jnp.where(valid, tried, values)  # (a padding entry stays)
+    # (added: a padding entry repeats a valid one and adds 0 to it)
+    cols = jax.vmap(
+        lambda v: _columns(
+            problem,
+            params._replace(theta=params.theta.at[entries].add(v - values)),
+            entries,
+            strategy,
+        )
+    )(tried)
+    inside = jnp.ones(tried.shape, bool)
+    if problem.lower is not None:
+        inside = (tried >= problem.lower[entries]) & (tried <= problem.upper[entries])
+    finite = jnp.all(jnp.isfinite(cols), axis=-1)
+    return tried, valid & inside & finite & jnp.any(cols != 0, axis=-1)
 
 
 def _padded(unmoved, p):
@@ -122,7 +164,9 @@ def _padded(unmoved, p):
     return entries, np.arange(size) < len(unmoved)
 
 
-def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.ndarray:
+def zero_gradient_entries(
+    problem, start: Params, final_theta, strategy, *, without_effect=False
+) -> np.ndarray:
     """The free entries of theta (indices into `problem.theta_free`) that never moved from
     `start`, whose gradient and Jacobian column are exactly zero there, and which act on
     the outputs a little away from it (a parameter that acts nowhere is one the data do not
@@ -134,22 +178,44 @@ def zero_gradient_entries(problem, start: Params, final_theta, strategy) -> np.n
     - `start`: the best start's free variables (theta (p,), x0 (N, m)).
     - `final_theta`: the free entries of theta the fit returned (p,).
     - `strategy`: the strategy of the derivatives.
+    - `without_effect`: also return the unmoved entries whose Jacobian column is exactly
+        zero at the start and a little away from it (no effect around the start).
 
-    **Returns:** the indices, a NumPy integer array (empty for an ordinary fit).
+    **Returns:** the indices, a NumPy integer array (empty for an ordinary fit); with
+    `without_effect`, a pair of them.
     """
     unmoved = np.flatnonzero(np.asarray(final_theta) == np.asarray(start.theta))
+    none = (unmoved[:0], unmoved[:0]) if without_effect else unmoved[:0]
     if not unmoved.size:  # every free entry moved: nothing to evaluate
-        return unmoved
+        return none
     params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
     # The gradient first (one reverse pass): an entry held where it is not flat (at a
     # bound, say) needs no Jacobian columns.
     gradient = _value_and_gradient(problem, params, strategy)[1].theta
     flat = unmoved[np.asarray(gradient)[unmoved] == 0]
     if not flat.size:
-        return flat
+        return none
     entries, valid = _padded(flat, np.size(start.theta))
-    stuck = np.asarray(_stuck(problem, params, jnp.asarray(entries), valid, strategy))
-    return flat[stuck[: len(flat)]]
+    stuck, idle = _stuck(problem, params, jnp.asarray(entries), valid, strategy)
+    stuck = flat[np.asarray(stuck)[: len(flat)]]
+    return (stuck, flat[np.asarray(idle)[: len(flat)]]) if without_effect else stuck
+
+
+def acting_elsewhere(problem, start: Params, idle, strategy) -> dict:
+    """Of the free entries `idle` of theta (indices into `problem.theta_free`) without
+    effect around `start` (`zero_gradient_entries(..., without_effect=True)`), those that
+    act further away (`_acts_elsewhere`): {index: the first value tried where it acts}.
+    The others act nowhere tried: the data do not determine them (the covariance says
+    so), not a start to move from."""
+    params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
+    entries, valid = _padded(np.asarray(idle), np.size(start.theta))
+    tried, acts = _acts_elsewhere(problem, params, jnp.asarray(entries), valid, strategy)
+    tried, acts = np.asarray(tried), np.asarray(acts)
+    return {
+        int(i): float(tried[np.flatnonzero(acts[:, j])[0], j])
+        for j, i in enumerate(idle)
+        if acts[:, j].any()
+    }
 
 
 def _starts_flagged(result, problem, starts: Params, finals, strategy):
@@ -182,6 +248,28 @@ def _with_stops(result, reasons):
     )
 
 
+def _flag_without_effect(result, acting):
+    """`result` with `stop_info["without_effect"]`, the free entries of theta that a
+    success left at their start, where their Jacobian columns are exactly zero and stay
+    zero a little away, though they act further away (`acting`: {name: a value where it
+    acts}), and a warning: the start lies on a flat piece of the model (a saturation
+    above the data's range, a relu or a dead zone that is off), where a first-order test
+    passes though elsewhere they act."""
+    names = list(acting)
+    shown = [f"{n} (acts at {acting[n]:.3g})" for n in names[:10]]
+    listed = ", ".join(shown) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+    warn(
+        f"{listed} never moved from the start, where the outputs do "
+        "not depend on them (their Jacobian columns are exactly zero there and a little "
+        "away), though they do elsewhere: the start lies on a flat piece of the model (a "
+        "saturation or dead zone beyond the data's range, a relu, max or clip that is "
+        "off), where any first-order test passes; start them where they act.",
+        RuntimeWarning,
+        stacklevel=4,  # `fit`'s caller
+    )
+    return dataclasses.replace(result, stop_info={**result.stop_info, "without_effect": names})
+
+
 def _no_effect(problem, start: Params, final_theta, final_x0, strategy) -> bool:
     """Whether no free entry of theta or x0 moved from `start`, where the gradient (eq.
     17, 20) of every one of them is exactly zero (with a loss that is not): the outputs
@@ -211,7 +299,11 @@ def flag_zero_gradient(
     theta never moved from the best start, where their gradient and Jacobian column are
     exactly zero though they act away from it (`zero_gradient_entries`), or if a success
     left every free entry of theta and x0 where the gradient of each is exactly zero
-    (`_no_effect`: `stop_info["no_effect"]`); else `result` itself. With several starts,
+    (`_no_effect`: `stop_info["no_effect"]`); with a warning and
+    `stop_info["without_effect"]` if a success left free entries of theta outside a
+    network (an equinox module) at their start, without effect around it though with
+    effect further away (`acting_elsewhere`: a start on a flat piece of the model); else
+    `result` itself. With several starts,
     each other start that reported a success is checked the same way for the first case
     (its stop in `result.starts` becomes `zero_gradient`, without a warning).
 
@@ -239,10 +331,18 @@ def flag_zero_gradient(
         # The outputs are reproduced exactly: a parameter without effect there is one the
         # data do not determine (the covariance reports it), not a start to move from.
         return result
-    entries = zero_gradient_entries(problem, start, final, strategy)
+    entries, idle = zero_gradient_entries(problem, start, final, strategy, without_effect=True)
     all_names = _pytree.indexed_names(_pytree.split(result.theta)[0])
     free = np.asarray(free, int)
     stop = name_of(result.stop_reason)
+    # (a network's weights: units dead over the data are many, and no start to pick)
+    idle = idle[~_pytree.module_entries(result.theta)[free[idle]]] if idle.size else idle
+    if idle.size and not entries.size and result.success:
+        elsewhere = acting_elsewhere(problem, start, idle, strategy)
+        if elsewhere:
+            result = _flag_without_effect(
+                result, {all_names[free[i]]: v for i, v in elsewhere.items()}
+            )
     info = {**result.stop_info, "solver_stop": stop}
     if entries.size:
         info["zero_gradient"] = [all_names[free[i]] for i in entries]

@@ -789,8 +789,8 @@ def residual_correlations(
         output does not change what is measured of the input.
     - `u`: the inputs, shape (T,), (T, n_u) or (N, T, n_u) with the N and T of `e`, or
         a list of N records (T_i, n_u) of different lengths, as `fit` takes them (`e`
-        then NaN past each record's end, as `FitResult.residuals` is); finite. None:
-        autocorrelation only.
+        then NaN past each record's end, as `FitResult.residuals` is); finite. None, or
+        inputs of no columns (a model without inputs, u (T, 0)): autocorrelation only.
     - `max_lag`: the largest lag, an integer, 1 <= max_lag <= T - 1 (MATLAB's default 25).
     - `confidence`: the level of the band, 0 < confidence < 1 (z = 2.576 for 0.99).
     - `tolerance`: the fraction of lags allowed outside the band in a verdict,
@@ -908,6 +908,9 @@ def residual_correlations(
                 f"residuals up to sample {last}: give the records of `u` in the order of "
                 "`e`'s, each as long as its record."
             )
+        if u.shape[-1] == 0:  # (a model without inputs, u (T, 0): nothing to correlate)
+            u = None
+    if u is not None:
         if not np.all(np.isfinite(u[known])):
             raise ValueError("`u` contains NaN or inf values: the inputs must be known.")
         count = known.sum()

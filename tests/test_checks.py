@@ -627,6 +627,14 @@ def test_a_model_without_inputs_fits_on_u_with_no_columns():
     assert r.success and abs(float(r.theta["k"]) - 2.0) < 3 * float(r.std["k"]) + 1e-3
     with pytest.raises(ValueError, match=r"`u` is required.*np.zeros\(\(T, 0\)\)"):
         oj.fit(model, {"k": 1.5, "c": 0.2}, np.array([1.0, 0.0]), None, noisy)
+    # (the residual test and `predict` take that u too: they divided by its 0 columns,
+    # and said "got shape ()" for None)
+    rc = oj.metrics.residual_correlations(r.residuals, u)
+    alone = oj.metrics.residual_correlations(r.residuals)
+    assert rc.cross is None and rc.independent is None
+    np.testing.assert_array_equal(rc.auto, alone.auto)
+    with pytest.raises(ValueError, match=r"`u` is required.*np.zeros\(\(T, 0\)\)"):
+        r.predict(None, noisy[:20])
 
 
 def test_natural_mistakes_get_a_hint():
@@ -1452,6 +1460,43 @@ def test_a_custom_vjp_in_the_model_names_forward_mode():
     assert str(raised.value).count("Define that function's derivative") == 1  # (said once)
     C, (g, _) = oj.value_and_grad(model, theta, x0, u, np.asarray(z) + 0.1, strategy="vjp")
     assert np.isfinite(C) and np.isfinite(float(g["a"]))
+
+
+def test_a_while_loop_in_the_model_names_reverse_mode():
+    """A step that solves its implicit equation by Newton iterations in a
+    `lax.while_loop` (backward Euler): the gradient failed with JAX's bare
+    "Reverse-mode differentiation does not work for lax.while_loop", which names neither
+    the model nor a remedy; now a ValueError says what needs reverse mode and what to
+    use. The same step with a fixed count of iterations (`fori_loop`) fits."""
+    dt = 0.05
+
+    def step_of(loop):
+        def step(x, u, th):
+            def g(y):
+                return y - x - dt * (-th["k"] * y**3 + th["b"] * u[0])
+
+            def newton(y):
+                return y - g(y) / (1.0 + 3 * dt * th["k"] * y**2)
+
+            return loop(x, newton, g)
+
+        return step
+
+    def until_small(x, newton, g):
+        return jax.lax.while_loop(lambda y: jnp.any(jnp.abs(g(y)) > 1e-13), newton, x)
+
+    def twelve_times(x, newton, g):
+        return jax.lax.fori_loop(0, 12, lambda i, y: newton(y), x)
+
+    u = 3 * np.sin(0.05 * np.arange(100))[:, None]
+    theta, x0 = {"k": 5.0, "b": 1.0}, np.array([0.5])
+    fixed = oj.Model(step_of(twelve_times))
+    _, z = oj.simulate(fixed, theta, x0, u)
+    start = {"k": 2.0, "b": 0.5}
+    with pytest.raises(ValueError, match=r"while_loop.*reverse mode.*`lax\.custom_root`"):
+        oj.fit(oj.Model(step_of(until_small)), start, x0, u, z, solver="lbfgs")
+    r = oj.fit(fixed, start, x0, u, z, solver="lbfgs")
+    assert r.success and float(r.theta["k"]) == pytest.approx(5.0, rel=1e-4)
 
 
 def test_a_pure_callback_without_a_vmap_method_names_it():

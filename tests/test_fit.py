@@ -1003,6 +1003,67 @@ def test_outputs_with_unequal_noise_warn_that_the_errors_pool_one_level():
         assert r.status == "zero_residual"
 
 
+def test_jax_debugging_flags_leave_a_fit_as_it_is():
+    """`jax_debug_nans` on (a user hunting a NaN in a model): every healthy fit raised
+    FloatingPointError at the library's own NaN (the history's unfilled rows), after an
+    op-by-op re-run. `fit` runs with the flag off and returns the plain fit. Under
+    `jax.disable_jit()` it failed after minutes of op-by-op solving with an
+    AttributeError; it says at once that it needs jit."""
+    model = oj.Model(lambda x, u, th: th["a"] * x + th["b"] * u)
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((40, 1))
+    _, z = oj.simulate(model, {"a": 0.7, "b": 0.5}, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    plain = oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z, solver="lbfgs")
+    with jax.debug_nans(True), jax.debug_infs(True):
+        flagged = oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z, solver="lbfgs")
+        assert jax.config.jax_debug_nans  # (the user's setting, restored)
+    assert flagged.success and flagged.loss == plain.loss
+    with jax.disable_jit(), pytest.raises(RuntimeError, match=r"disable_jit\(\)"):
+        oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z)
+
+
+def test_an_output_reproduced_exactly_is_no_observation_of_the_noise():
+    """A third output that `observe` returns as a constant (a logged setpoint): its zero
+    residuals once counted as observations of sigma^2, which shrank the standard errors
+    by sqrt(2/3), hid the warning of unequal noise of the other two outputs (which
+    returned early at a zero variance) and the printout's whiteness line (the residual
+    test refused the zero output). The standard errors are now those of the fit without
+    it, the warnings name it and the unequal noise, and the line is printed."""
+
+    def step(x, u, th):
+        return jnp.array([th["a"] * x[0] + u[0], th["b"] * x[1] + u[1]])
+
+    two = oj.Model(step, lambda x, u, th: x)
+    three = oj.Model(step, lambda x, u, th: jnp.array([x[0], x[1], 5.0]))
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal((400, 2))
+    _, z2 = oj.simulate(two, {"a": 0.9, "b": 0.7}, np.zeros(2), u)
+    # (noise levels 1e3 apart, the first one coloured: its residuals are not white)
+    noise = np.stack(
+        [
+            np.convolve(rng.standard_normal(400), np.ones(8), "same"),
+            1e-3 * rng.standard_normal(400),
+        ],
+        axis=1,
+    )
+    z2 = np.asarray(z2) + noise
+    z3 = np.concatenate([z2, np.full((400, 1), 5.0)], axis=1)
+    th0 = {"a": 0.5, "b": 0.5}
+    with pytest.warns(UserWarning) as caught:
+        r2 = oj.fit(two, th0, np.zeros(2), u, z2)
+    with pytest.warns(UserWarning) as caught3:
+        r3 = oj.fit(three, th0, np.zeros(2), u, z3)
+    said = [str(w.message) for w in caught3]
+    assert any("differ in variance" in m for m in said), said
+    assert any("reproduces output 2 exactly" in m for m in said), said
+    assert any("differ in variance" in str(w.message) for w in caught)
+    for k in ("a", "b"):
+        assert float(r3.std[k]) == pytest.approx(float(r2.std[k]), rel=1e-6)
+    assert "residuals not white (output 0" in str(r3)
+    assert np.isneginf(r3.metrics["aic"])
+
+
 def test_an_output_of_zero_weight_is_not_counted_as_observations():
     """weight 0 on an output: the standard errors of a fit that does not observe it (the
     zero-weight residuals once doubled n_obs and halved sigma^2: std 30 % too small)."""

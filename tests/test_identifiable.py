@@ -153,15 +153,19 @@ def test_physics_first_rejects_bad_arguments(case):
         oj.fit_physics_first(model, theta0, x0, u, z, multistart={"r": np.zeros(3)})
 
 
-# (Its rounds converge where the inner fits of the augmented model stop on their statistical
-# test; at the tests' LLVM level 0 their round-off leaves them on their step budget, and
-# whether the rounds settle within 10 then turns on the last bits of unrelated code.)
+# (Its rounds converge where the inner fits of the augmented model succeed. At gtol 1e-8
+# they stopped on their statistical test on one machine and on their step budget on
+# another (the first-order measure levels off near 1e-3 on the network's weights, whose
+# steps the statistical test then weighs): whether the rounds settle within 10 turned on
+# the last bits of the machine's code. gtol 1e-3, a largest cosine of 1e-3 between the
+# residual and a Jacobian column, is a test the inner fits pass, and the rounds settle.)
 @pytest.mark.default_optimisation
 def test_fit_orthogonal_keeps_the_restoring_force_in_the_physics(case):
     model, theta0, u, z = case
+    solver = oj.LevenbergMarquardt(gtol=1e-3)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = oj.fit_orthogonal(model, theta0, np.zeros(2), u, z, learned="r")
+        r = oj.fit_orthogonal(model, theta0, np.zeros(2), u, z, learned="r", solver=solver)
     # (the penalty's rows, measured at one sample, have FIT -inf: a round that succeeded
     # warned of a bad minimum, "worse than that output's mean")
     assert not [w for w in caught if "worse than that output's mean" in str(w.message)]

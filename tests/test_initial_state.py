@@ -761,6 +761,26 @@ def test_a_model_without_state_has_no_initial_state_to_estimate(method):
     assert est.x0.shape == (0,)
 
 
+def test_a_model_without_state_fits_in_windows_and_predicts_ahead():
+    """A static model in windows (`fit(window=...)`, `check_basin`) and ahead
+    (`predict_ahead`): each window's x0 solve had no unknowns and failed in a reshape
+    (ZeroDivisionError), the Kalman predictor's check of `process_noise` took the largest
+    entry of an empty matrix. Windows change nothing without a state (the fit equals the
+    whole record's), and the k-step prediction of a static model is its simulation."""
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((60, 1))
+    z = 1.5 * u + 0.3 + 0.01 * rng.standard_normal((60, 1))
+    whole = oj.fit(STATIC, {"d": 1.0, "e": 0.0}, np.zeros(0), u, z)
+    windowed = oj.fit(STATIC, {"d": 1.0, "e": 0.0}, np.zeros(0), u, z, window=oj.Windows(20))
+    assert windowed.success, windowed.message
+    for k in ("d", "e"):
+        assert float(windowed.theta[k]) == pytest.approx(float(whole.theta[k]), rel=1e-8)
+    basin = oj.check_basin(whole, u, z, window=20)
+    assert not basin.bad_basin and basin.windowed.success
+    ahead = oj.predict_ahead(STATIC, whole.theta, u, z, 3, x0=np.zeros(0), process_noise=0.0)
+    np.testing.assert_allclose(ahead.z, oj.simulate(STATIC, whole.theta, np.zeros(0), u)[1])
+
+
 def _oscillator_rhs(x, u, th):
     return jnp.stack([x[1], u[0] - th["c"] * x[1] - th["k"] * x[0]])
 

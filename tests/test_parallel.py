@@ -560,6 +560,39 @@ def test_parallel_strategy_with_foh_input_missing_samples_and_several_trajectori
     assert_tree_rel_close(got, want, rtol=RTOL)
 
 
+def test_fits_in_threads_count_their_own_rollouts():
+    """Two fits at once in two threads, one whose parallel rollouts all fall back (a
+    chaotic logistic map), one whose never do: the counts of the open calls were one
+    process-wide stack, so that each callback counted for whichever call opened last (the
+    other thread's), and the exit removed its counts by value, which failed with
+    `list.remove(x): x not in list`. Each fit now counts its own thread's rollouts, as it
+    does alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    step, theta, x0, T = FALLBACK_CASES["chaotic_logistic"]
+    chaotic = oj.Model(step)
+    u = np.zeros((T, 1))
+    z = np.asarray(oj.simulate(chaotic, theta, x0, u)[0])
+    benign = oj.Model(lambda x, u, th: th["a"] * x + u)
+    ub = np.random.default_rng(0).standard_normal((T, 1))
+    zb = np.asarray(oj.simulate(benign, {"a": 0.5}, np.zeros(1), ub)[0])
+
+    def fit(model, theta, x0, u, z):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            solver = oj.Adam(max_steps=20, strategy="parallel")
+            return oj.fit(model, theta, x0, u, z, fixed=True, solver=solver, covariance=None)
+
+    alone = fit(chaotic, theta, x0, u, z).diagnostics
+    assert alone["sequential_fallbacks"] == alone["parallel_rollouts"] > 0
+    with ThreadPoolExecutor(2) as pool:
+        for _ in range(3):
+            a = pool.submit(fit, chaotic, theta, x0, u, z)
+            b = pool.submit(fit, benign, {"a": 0.5}, np.zeros(1), ub, zb)
+            assert a.result().diagnostics == alone
+            assert b.result().diagnostics["sequential_fallbacks"] == 0
+
+
 def test_fit_with_parallel_solvers_equals_the_sequential_fit():
     model, theta, x0, u, z = case("satellite")[:5]
     _, zt = oj.simulate(model, theta, x0, u)

@@ -196,3 +196,31 @@ def test_outputs_piecewise_constant_in_every_variable_are_no_success(solver):
     assert r.stop_info["zero_gradient"] == ["theta['c']", "theta['k']"]
     assert r.loss > 0.01
     assert oj.loss(model, {"c": 0.4, "k": 2.0}, x0, u, np.asarray(z)) == 0.0
+
+
+def test_a_start_on_a_flat_piece_of_the_model_is_named():
+    """A saturation level started above every input (clip(u, -s, s) from s = 50, the
+    inputs within +-4): s's column is zero at the start and a little away, the fit left it
+    there and said `converged` at a loss hundreds of times the optimum's, with nothing
+    but "not identifiable" about s. It acts at s = 0.5 (the start times 0.01): the success
+    names it in `stop_info["without_effect"]` and warns where it acts; a refit from there
+    reaches the optimum. (A parameter that acts nowhere tried, `d` of
+    `test_no_report_for_ordinary_fits`, is not named.)"""
+
+    def step(x, u, th):
+        return jnp.array([0.8 * x[0] + th["b"] * jnp.clip(u[0], -th["s"], th["s"])])
+
+    model = oj.Model(step)
+    rng = np.random.default_rng(8)
+    u = np.clip(2.0 * rng.standard_normal((200, 1)), -4.0, 4.0)
+    truth = {"b": 1.0, "s": 1.5}
+    _, z = oj.simulate(model, truth, np.zeros(1), u)
+    z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
+    with pytest.warns(RuntimeWarning, match=r"theta\['s'\] \(acts at 0\.5\) never moved"):
+        r = oj.fit(model, {"b": 0.5, "s": 50.0}, np.zeros(1), u, z)
+    assert r.success and float(r.theta["s"]) == 50.0
+    assert r.stop_info["without_effect"] == ["theta['s']"]
+    assert "though they do elsewhere" in str(r) and "start them where they act" in r.message
+    again = oj.fit(model, {**r.theta, "s": 0.5}, r.x0, u, z)
+    assert again.success and float(again.loss) < 1e-2 * float(r.loss)
+    assert float(again.theta["s"]) == pytest.approx(1.5, rel=1e-2)

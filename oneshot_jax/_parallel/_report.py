@@ -17,8 +17,11 @@ import numpy as np
 
 from .._caller_warnings import warn, warn_each_time
 
-# Process-wide (host callbacks run on XLA's threads, not the caller's).
-_STACK: list = []
+# The open counting calls, per thread of their caller (each thread's innermost last): a
+# callback counts for its own thread's innermost call, or, run on a thread of XLA's own
+# (a GPU's), for the one thread with an open call; with several, it cannot tell whose
+# rollout it reports, and warns from the callback instead.
+_STACKS: dict = {}
 _LOCK = threading.Lock()
 
 
@@ -34,14 +37,19 @@ class counting:
         self.counts = {"parallel_rollouts": 0, "sequential_fallbacks": 0, "unconverged_rollouts": 0}
         if self.active:
             with _LOCK:
-                _STACK.append(self.counts)
+                _STACKS.setdefault(threading.get_ident(), []).append(self.counts)
         return self.counts
 
     def __exit__(self, *exc):
         if self.active:
             jax.effects_barrier()
             with _LOCK:
-                _STACK.remove(self.counts)
+                thread = threading.get_ident()
+                stack = _STACKS[thread]
+                # (by identity: another call's counts may equal these)
+                del stack[next(i for i, c in enumerate(stack) if c is self.counts)]
+                if not stack:
+                    del _STACKS[thread]
         return False
 
 
@@ -90,12 +98,16 @@ def _host(fallback, converged):
         "unconverged_rollouts": int(np.sum(kept)),
     }
     with _LOCK:
-        if _STACK:
+        stack = _STACKS.get(threading.get_ident())
+        if stack is None and len(_STACKS) == 1:  # (a callback on a thread of XLA's)
+            (stack,) = _STACKS.values()
+        if stack:
             for key, n in counts.items():
-                _STACK[-1][key] += n
+                stack[-1][key] += n
             return
-    # A rollout outside a counting call (under the user's `jax.jit`): warned from here,
-    # every such rollout (not the first alone: all come from this one line).
+    # A rollout outside a counting call (under the user's `jax.jit`), or one whose call
+    # cannot be told among the calls of several threads: warned from here, every such
+    # rollout (not the first alone: all come from this one line).
     for message in _messages(counts):
         warn_each_time(message, RuntimeWarning, __file__)
 
