@@ -202,6 +202,10 @@ def _solve(
     return _pytree.pack((out, jacobians))
 
 
+# The most memory the iterate history's theta rows take (`fit(history=...)`).
+HISTORY_BYTES = 64 * 2**20
+
+
 def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=None, lags=None):
     """The solve: `_solve` from every start, timed, with the progress bar open around it.
     Returns its output unpacked (an `Out`), the wall time, the counts of parallel
@@ -218,6 +222,10 @@ def _run(solvers, problem, starts, history, meter, stability_at=None, meanwhile=
     # shared by every step budget): `history=10**9` must not allocate 10**9 rows.
     most = sum(s.max_steps for s in solvers) + len(solvers) + 1
     history = min(history, max(1000, most + most % 2))
+    # No more than `HISTORY_BYTES` of theta rows (a network of 1e5 weights: 1000 rows
+    # were 0.8 GB per start); fewer rows only thin the record sooner.
+    row = n_starts * max(starts.theta.shape[-1], 1) * np.dtype(problem.dtype).itemsize
+    history = min(history, max(2, (HISTORY_BYTES // row) // 2 * 2))
     try:
         with counting() as counts:
             t0 = time.perf_counter()
@@ -1147,7 +1155,8 @@ def fit(
         (`oneshot_jax.TqdmProgress(refresh_steps=...)`).
     - `history`: the most rows of iterates each solver keeps (even, >= 2), besides its
         final iterate (a sequence of solvers keeps that many per solver); longer runs are
-        thinned evenly (see `FitHistory`).
+        thinned evenly (see `FitHistory`). Fewer where the rows' copies of theta would
+        take more than 64 MiB (a theta of more than about 8000 entries in float64).
     - `units`: a unit string per parameter name of theta0 (its dict keys, `"phys.c"` or
         `{"phys": {"c": ...}}` for a nested one), e.g. `{"I": "kg m^2"}`, shown by
         `print(result)`.

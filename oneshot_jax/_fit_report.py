@@ -202,6 +202,21 @@ def _module_row(module, values, fixed) -> str:
     return desc + (f", {n_zero} zero" if n_zero else "")
 
 
+# An array parameter of more entries than this prints as one line (`_array_row`).
+ARRAY_ROWS = 100
+
+
+def _array_row(shape, values, fixed) -> str:
+    """An array parameter of many entries in a few words: its shape, its range, how many
+    entries are fixed (its values and standard errors: `result.theta`, `result.std`)."""
+    n, n_fixed = values.size, int(np.sum(fixed))
+    desc = f"array of shape {tuple(shape)}, {n} numbers in [{values.min():.4g}, "
+    desc += f"{values.max():.4g}]"
+    if n_fixed:
+        desc += " (fixed)" if n_fixed == n else f", {n_fixed} fixed"
+    return desc + " (each in result.theta, result.std)"
+
+
 def _parameter_table(result):
     """The parameter rows (name, unit, value, std, interval) in theta0's order, and the
     indices of the module rows (name, unit and a description only)."""
@@ -217,6 +232,10 @@ def _parameter_table(result):
         if module is not None:
             modules.add(len(table))
             table.append((name, unit, _module_row(module, flat[a:b], fixed[a:b]), "", ""))
+            continue
+        if b - a > ARRAY_ROWS:  # (a 256 x 256 matrix printed 65536 rows)
+            modules.add(len(table))
+            table.append((name, unit, _array_row(shape, flat[a:b], fixed[a:b]), "", ""))
             continue
         for i, entry in enumerate(_entry_names(name, shape), start=a):
             v, s = flat[i], std[i]

@@ -86,28 +86,28 @@ def _value_and_gradient(problem, params, strategy):
 
 
 @jit
-def _stuck(problem, params, entries, valid, strategy):
+def _stuck(problem, params, entries, valid, moving, strategy):
     """Whether each free entry `entries` of theta (where `valid`; the others pad the
     array to a size that is compiled once, `_padded`), all of an exactly zero gradient at
     `params` (`_gradient`), has an exactly zero Jacobian column there too, and one that
-    is not zero once they are all moved a little away from it, up or down within the box
-    (not zero, or not finite: it acts away from the start); and whether it has an exactly
-    zero column there and at both moved points (no effect around the start). The columns
-    at the start and at the two moved points are one vmapped evaluation (one copy of the
-    sensitivities to compile)."""
+    is not zero once the entries `moving` ((p,) booleans: all those checked, in every
+    part of them, `_chunks`) are all moved a little away from it, up or down within the
+    box (not zero, or not finite: it acts away from the start); and whether it has an
+    exactly zero column there and at both moved points (no effect around the start). The
+    columns at the start and at the two moved points are one vmapped evaluation (one
+    copy of the sensitivities to compile)."""
     values = params.theta[entries]
-    move = jnp.where(valid, _AWAY * jnp.maximum(jnp.abs(values), 1.0), 0.0)
+    step = jnp.where(moving, _AWAY * jnp.maximum(jnp.abs(params.theta), 1.0), 0.0)
     # Both ways (relu(-k) acts below a start at 0 only), each within the box.
     signs = jnp.array([0.0, 1.0, -1.0], values.dtype)
-    # (added: a padding entry repeats a valid one and adds 0 to it)
-    thetas = jax.vmap(lambda sgn: params.theta.at[entries].add(sgn * move))(signs)
+    thetas = jax.vmap(lambda sgn: params.theta + sgn * step)(signs)
     cols = jax.vmap(
         lambda theta: _columns(problem, params._replace(theta=theta), entries, strategy)
     )(thetas)
     zero = valid & jnp.all(cols[0] == 0, 1)
     acts = jnp.zeros(values.shape, bool)
     for k in (1, 2):
-        moved = values + signs[k] * move
+        moved = thetas[k][entries]
         inside = jnp.ones(values.shape, bool)
         if problem.lower is not None:
             inside = (moved >= problem.lower[entries]) & (moved <= problem.upper[entries])
@@ -123,29 +123,22 @@ _OFFSETS = (1.0, -1.0, 10.0, -10.0)
 
 
 @jit
-def _acts_elsewhere(problem, params, entries, valid, strategy):
+def _acts_elsewhere(problem, params, entries, valid, moving, strategy):
     """For the free entries `entries` of theta (where `valid`, as for `_stuck`), without
     effect around `params`: the values they are tried at further away (`_FACTORS` times
-    them, `_OFFSETS` from them, all moved together), (n_points, k), and whether each one's
-    Jacobian column is finite and not zero there, within the box (it acts there: the
-    start lies on a flat piece of the model, a saturation above the data's range, say)."""
-    values = params.theta[entries]
-    tried = jnp.concatenate(
-        [
-            jnp.asarray(_FACTORS, values.dtype)[:, None] * values[None, :],
-            values[None, :] + jnp.asarray(_OFFSETS, values.dtype)[:, None],
-        ]
+    them, `_OFFSETS` from them, with all the entries `moving` moved alike), (n_points, k),
+    and whether each one's Jacobian column is finite and not zero there, within the box
+    (it acts there: the start lies on a flat piece of the model, a saturation above the
+    data's range, say)."""
+    theta = params.theta
+    factors = jnp.asarray(_FACTORS, theta.dtype)[:, None]
+    offsets = jnp.asarray(_OFFSETS, theta.dtype)[:, None]
+    thetas = jnp.concatenate([factors * theta[None, :], theta[None, :] + offsets])
+    thetas = jnp.where(moving, thetas, theta)
+    cols = jax.vmap(lambda t: _columns(problem, params._replace(theta=t), entries, strategy))(
+        thetas
     )
-    tried = jnp.where(valid, tried, values)  # (a padding entry stays)
-    # (added: a padding entry repeats a valid one and adds 0 to it)
-    cols = jax.vmap(
-        lambda v: _columns(
-            problem,
-            params._replace(theta=params.theta.at[entries].add(v - values)),
-            entries,
-            strategy,
-        )
-    )(tried)
+    tried = thetas[:, entries]
     inside = jnp.ones(tried.shape, bool)
     if problem.lower is not None:
         inside = (tried >= problem.lower[entries]) & (tried <= problem.upper[entries])
@@ -153,15 +146,37 @@ def _acts_elsewhere(problem, params, entries, valid, strategy):
     return tried, valid & inside & finite & jnp.any(cols != 0, axis=-1)
 
 
-def _padded(unmoved, p):
+def _padded(unmoved, p, size=None):
     """`unmoved` (k entries of p) padded by repeating its first entry to a size that
-    changes rarely (8, then powers of two, at most p), so that the checks of fits and
-    starts with different counts of unmoved entries share one compiled `_stuck`; and
-    the mask of the real entries."""
-    size = min(p, max(8, 1 << (len(unmoved) - 1).bit_length()))
+    changes rarely (8, then powers of two, at most p; or `size`), so that the checks of
+    fits and starts with different counts of unmoved entries share one compiled
+    `_stuck`; and the mask of the real entries."""
+    if size is None:
+        size = min(p, max(8, 1 << (len(unmoved) - 1).bit_length()))
     entries = np.full(size, unmoved[0], unmoved.dtype)
     entries[: len(unmoved)] = unmoved
     return entries, np.arange(size) < len(unmoved)
+
+
+# The most entries of Jacobian columns one evaluation of the checks holds (columns times
+# the record's N T n_z, each at 3 points or more): a network's dead units leave hundreds
+# of unmoved entries, whose columns of a long record at once ran out of memory after
+# the solve had finished.
+_COLUMN_ENTRIES = 2**21
+
+
+def _chunks(flat, problem, p, points):
+    """`flat` (the entries to check) in parts of at most a power of two of entries whose
+    columns at `points` points hold at most `_COLUMN_ENTRIES` numbers (at least 1), each
+    padded (`_padded`: all parts but a single one to that one size, one compiled check)."""
+    rows = max(int(np.prod(np.shape(problem.z))), 1) * points
+    cap = 1 << max(int(_COLUMN_ENTRIES // rows).bit_length() - 1, 0)
+    if len(flat) <= cap:
+        yield flat, _padded(flat, p)
+        return
+    for i in range(0, len(flat), cap):
+        part = flat[i : i + cap]
+        yield part, _padded(part, p, cap)
 
 
 def zero_gradient_entries(
@@ -195,10 +210,15 @@ def zero_gradient_entries(
     flat = unmoved[np.asarray(gradient)[unmoved] == 0]
     if not flat.size:
         return none
-    entries, valid = _padded(flat, np.size(start.theta))
-    stuck, idle = _stuck(problem, params, jnp.asarray(entries), valid, strategy)
-    stuck = flat[np.asarray(stuck)[: len(flat)]]
-    return (stuck, flat[np.asarray(idle)[: len(flat)]]) if without_effect else stuck
+    stuck, idle = [], []
+    moving = np.zeros(np.size(start.theta), bool)
+    moving[flat] = True
+    for part, (entries, valid) in _chunks(flat, problem, np.size(start.theta), 3):
+        s, i = _stuck(problem, params, jnp.asarray(entries), valid, moving, strategy)
+        stuck.append(part[np.asarray(s)[: len(part)]])
+        idle.append(part[np.asarray(i)[: len(part)]])
+    stuck, idle = np.concatenate(stuck), np.concatenate(idle)
+    return (stuck, idle) if without_effect else stuck
 
 
 def acting_elsewhere(problem, start: Params, idle, strategy) -> dict:
@@ -208,14 +228,19 @@ def acting_elsewhere(problem, start: Params, idle, strategy) -> dict:
     The others act nowhere tried: the data do not determine them (the covariance says
     so), not a start to move from."""
     params = Params(jnp.asarray(start.theta), jnp.asarray(start.x0))
-    entries, valid = _padded(np.asarray(idle), np.size(start.theta))
-    tried, acts = _acts_elsewhere(problem, params, jnp.asarray(entries), valid, strategy)
-    tried, acts = np.asarray(tried), np.asarray(acts)
-    return {
-        int(i): float(tried[np.flatnonzero(acts[:, j])[0], j])
-        for j, i in enumerate(idle)
-        if acts[:, j].any()
-    }
+    out = {}
+    points = len(_FACTORS) + len(_OFFSETS)
+    moving = np.zeros(np.size(start.theta), bool)
+    moving[np.asarray(idle)] = True
+    for part, (entries, valid) in _chunks(np.asarray(idle), problem, np.size(start.theta), points):
+        tried, acts = _acts_elsewhere(
+            problem, params, jnp.asarray(entries), valid, moving, strategy
+        )
+        tried, acts = np.asarray(tried), np.asarray(acts)
+        for j, i in enumerate(part):
+            if acts[:, j].any():
+                out[int(i)] = float(tried[np.flatnonzero(acts[:, j])[0], j])
+    return out
 
 
 def _starts_flagged(result, problem, starts: Params, finals, strategy):

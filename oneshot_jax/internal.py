@@ -18,6 +18,7 @@ end are for tests that replace one of a module's globals (`monkeypatch.setattr(m
 name, value)`), which needs the module itself.
 """
 
+from . import _zero_gradient as zero_gradient_checks  # noqa: F401  (its memory cap)
 from ._aggregate import augment as aggregate_augment  # noqa: F401
 from ._checks import _STRUCTURE as CHECK_DATA_STRUCTURES  # noqa: F401
 from ._checks import check_cost as check_cost

@@ -1014,10 +1014,14 @@ def test_jax_debugging_flags_leave_a_fit_as_it_is():
     u = rng.standard_normal((40, 1))
     _, z = oj.simulate(model, {"a": 0.7, "b": 0.5}, np.zeros(1), u)
     z = np.asarray(z) + 0.01 * rng.standard_normal(z.shape)
-    plain = oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z, solver="lbfgs")
-    with jax.debug_nans(True), jax.debug_infs(True):
+    # (flagged first: a program compiled before the flag was set was not checked)
+    jax.config.update("jax_debug_nans", True)
+    try:
         flagged = oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z, solver="lbfgs")
         assert jax.config.jax_debug_nans  # (the user's setting, restored)
+    finally:
+        jax.config.update("jax_debug_nans", False)
+    plain = oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z, solver="lbfgs")
     assert flagged.success and flagged.loss == plain.loss
     with jax.disable_jit(), pytest.raises(RuntimeError, match=r"disable_jit\(\)"):
         oj.fit(model, {"a": 0.5, "b": 0.3}, np.zeros(1), u, z)

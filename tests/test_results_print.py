@@ -799,3 +799,33 @@ def test_residuals_that_are_not_white_are_said_so():
         lost = oj.fit(MODEL, theta0, x0, u, coloured, solver=oj.Adam(lr_theta=1e3, max_steps=50))
     assert lost.status == "diverged" and np.isfinite(float(lost.loss))
     assert "residuals not white" not in str(lost)
+
+
+def test_an_array_parameter_of_many_entries_prints_as_one_line():
+    """A 12 x 12 matrix A (144 entries) printed 144 rows (a 256 x 256 one 65536, 3.4 MB
+    of "inf (not computed)"); an array of more than 100 entries is one line with its shape
+    and range, as a module is, and a smaller one keeps its rows."""
+    n = 12
+    model = oj.Model(lambda x, u, th: th["A"] @ x + u[0] * th["b"], lambda x, u, th: x[:1])
+    rng = np.random.default_rng(0)
+    A = 0.5 * np.eye(n) + 0.01 * rng.standard_normal((n, n))
+    u = rng.standard_normal((50, 1))
+    _, z = oj.simulate(model, {"A": A, "b": np.ones(n)}, np.zeros(n), u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = oj.fit(
+            model,
+            {"A": 0.9 * A, "b": np.ones(n)},
+            np.zeros(n),
+            u,
+            np.asarray(z),
+            solver=oj.LBFGS(max_steps=1),
+            covariance=None,
+            estimate_x0=False,
+        )
+    lines = str(r).splitlines()
+    (row,) = [line for line in lines if line.lstrip().startswith("A ")]
+    flat = np.asarray(r.theta["A"]).ravel()
+    assert f"array of shape (12, 12), 144 numbers in [{flat.min():.4g}, {flat.max():.4g}]" in row
+    assert not any(line.lstrip().startswith("A[") for line in lines)
+    assert sum(line.lstrip().startswith("b[") for line in lines) == n
