@@ -291,6 +291,15 @@ def bind_model(model, static):
     )
 
 
+def require_inputs(u) -> None:
+    """A ValueError where `u` is None: a model without inputs takes u of shape (T, 0)."""
+    if u is None:
+        raise ValueError(
+            "`u` is required, the inputs (T, n_u); a model without inputs takes "
+            "np.zeros((T, 0)), which gives the record its length T."
+        )
+
+
 @functools.lru_cache(maxsize=256)
 def _cached_eval_shape(fn, x, u, theta_leaves, treedef, x64):
     """(`x64`: JAX's jax_enable_x64 when called, part of the key: the model's own
@@ -843,11 +852,7 @@ def check_data(
                         "needs one output sample per input sample."
                     )
             z = z_padded
-    if u is None:
-        raise ValueError(
-            "`u` is required, the inputs (T, n_u); a model without inputs takes "
-            "np.zeros((T, 0)), which gives the record its length T."
-        )
+    require_inputs(u)
     u = as_float(u, "u", dtype)
     lead = x0.shape[:1] if batched else ()
     if u.ndim != len(lead) + 2 or u.shape[: len(lead)] != lead:

@@ -365,15 +365,18 @@ def vanished_note(names) -> str:
     )
 
 
-def without_effect_note(names) -> str:
+def without_effect_note(names, acting=None) -> str:
     """What the parameters a success left where they have no effect mean
-    (`stop_info["without_effect"]`, `_zero_gradient`)."""
-    listed = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+    (`stop_info["without_effect"]`, `_zero_gradient`); with `acting` ({name: a value
+    where it acts}), each name says where it acts (the warning's text)."""
+    shown = [n if acting is None else f"{n} (acts at {acting[n]:.3g})" for n in names[:8]]
+    listed = ", ".join(shown) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
     return (
         f"{listed} never moved from the start, where the outputs do not depend on them "
         "(Jacobian columns exactly zero there and a little away), though they do "
         "elsewhere: the start lies on a flat piece of the model (a saturation or dead zone "
-        "beyond the data's range, a relu that is off); start them where they act"
+        "beyond the data's range, a relu, max or clip that is off), where any first-order "
+        "test passes; start them where they act"
     )
 
 

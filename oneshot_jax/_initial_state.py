@@ -28,6 +28,7 @@ from ._checks import (
     check_x0_bounds,
     clip_x0,
     is_concrete,
+    require_inputs,
 )
 from ._cost import weigh
 from ._counts import is_count
@@ -169,11 +170,7 @@ def _check_head(u, z, n, z_name="z"):
                 f"{len(a)} records (several records: one call each, or `FitResult.predict`, "
                 "which takes them all)."
             )
-    if u is None:
-        raise ValueError(
-            "`u` is required, the inputs (T, n_u); a model without inputs takes "
-            "np.zeros((T, 0)), which gives the record its length T."
-        )
+    require_inputs(u)
     if np.ndim(u) != 2:
         several = (
             " (several records: one call each, or `FitResult.predict`, which takes them all)"

@@ -88,64 +88,67 @@ def compiler_options():
     return CPU_OPTIONS if OPTIONS_TAKEN[0] else {}
 
 
-_FORWARD_MODE = "the model's `step`, `observe` or `rhs` calls a function with a `jax.custom_vjp`"
+def _restate(err, cls, markers, said, rest):
+    """Raise `cls(said + rest + JAX's message)` from `err` where its message holds every
+    one of `markers` (JAX's refusal, met while tracing the model's functions) and was not
+    restated already (by a compiled call inside: it starts with `said`); else return."""
+    text = str(err)
+    if not all(m in text for m in markers) or text.startswith(said):
+        return
+    raise cls(f"{said}{rest} (JAX: {err})") from err
 
 
 def forward_mode_error(err: TypeError) -> None:
-    """Re-raise JAX's refusal to differentiate a `jax.custom_vjp` in forward mode, met
-    while tracing the model's functions, as a TypeError that says which of this library's
-    derivatives need forward mode and what to do; return for any other TypeError."""
-    if "custom_vjp" not in str(err) or "forward-mode" not in str(err):
-        return
-    if str(err).startswith(_FORWARD_MODE):  # (said already, by a compiled call inside)
-        return
-    raise TypeError(
-        _FORWARD_MODE + ", "
-        "which JAX cannot differentiate in forward mode, and this library differentiates the "
-        "model in forward mode: the Jacobian of the least-squares solvers, the first-order "
-        "tests and the standard errors of `fit`, `estimate_x0`, and the strategy "
-        "'jacobian' (which 'auto' takes for a small theta). Define that function's "
+    """Re-raise JAX's refusal to differentiate a `jax.custom_vjp` in forward mode as a
+    TypeError that says which of this library's derivatives need forward mode and what to
+    do; return for any other TypeError."""
+    _restate(
+        err,
+        TypeError,
+        ("custom_vjp", "forward-mode"),
+        "the model's `step`, `observe` or `rhs` calls a function with a `jax.custom_vjp`",
+        ", which JAX cannot differentiate in forward mode, and this library differentiates "
+        "the model in forward mode: the Jacobian of the least-squares solvers, the "
+        "first-order tests and the standard errors of `fit`, `estimate_x0`, and the "
+        "strategy 'jacobian' (which 'auto' takes for a small theta). Define that function's "
         "derivative with `jax.custom_jvp` instead; of the gradient paths only "
-        f"`value_and_grad(..., strategy='vjp')` works with a custom_vjp. (JAX: {err})"
-    ) from err
+        "`value_and_grad(..., strategy='vjp')` works with a custom_vjp.",
+    )
 
 
 def callback_vmap_error(err: NotImplementedError) -> None:
-    """Re-raise JAX's refusal to vmap a `jax.pure_callback` without a `vmap_method`, met
-    while tracing the model's functions, as a NotImplementedError that says where this
-    library vmaps the model and what to pass; return for any other error."""
-    if "pure_callback" not in str(err) or "vmap_method" not in str(err):
-        return
-    raise NotImplementedError(
-        "the model's `step`, `observe` or `rhs` calls `jax.pure_callback` without a "
-        "`vmap_method`, and this library maps the model over several evaluations at once "
-        "(`jax.vmap`: the Jacobian's columns, the records, windows and starts of a fit): "
-        'pass `vmap_method="sequential"` to `jax.pure_callback` ("expand_dims" where the '
+    """Re-raise JAX's refusal to vmap a `jax.pure_callback` without a `vmap_method` as a
+    NotImplementedError that says where this library vmaps the model and what to pass;
+    return for any other error."""
+    _restate(
+        err,
+        NotImplementedError,
+        ("pure_callback", "vmap_method"),
+        "the model's `step`, `observe` or `rhs` calls `jax.pure_callback` without a `vmap_method`",
+        ", and this library maps the model over several evaluations at once (`jax.vmap`: "
+        "the Jacobian's columns, the records, windows and starts of a fit): pass "
+        '`vmap_method="sequential"` to `jax.pure_callback` ("expand_dims" where the '
         "function takes a leading axis of evaluations), and give the function a derivative "
-        f"with `jax.custom_jvp` (`fit` differentiates the model). (JAX: {err})"
-    ) from err
-
-
-_REVERSE_MODE = "the model's `step`, `observe` or `rhs` has a `jax.lax.while_loop`"
+        "with `jax.custom_jvp` (`fit` differentiates the model).",
+    )
 
 
 def reverse_mode_error(err: ValueError) -> None:
-    """Re-raise JAX's refusal to differentiate a `lax.while_loop` in reverse mode, met
-    while tracing the model's functions, as a ValueError that says which of this
-    library's derivatives need reverse mode and what to do; return for any other error."""
-    if "Reverse-mode differentiation does not work for lax.while_loop" not in str(err):
-        return
-    if str(err).startswith(_REVERSE_MODE):  # (said already, by a compiled call inside)
-        return
-    raise ValueError(
-        _REVERSE_MODE + " (or a `fori_loop` whose bounds are not Python integers), which "
-        "JAX cannot differentiate in reverse mode, and this library differentiates the "
-        "model in reverse mode: the gradient (eq. 17, 20) of L-BFGS and Adam, the "
-        "Jacobian's rows of a least-squares step with more than a few parameters. Iterate "
-        "a fixed number of times (`lax.fori_loop` with integer bounds, `lax.scan`), or "
-        "solve the implicit equation with `lax.custom_root` (differentiated implicitly). "
-        f"(JAX: {err})"
-    ) from err
+    """Re-raise JAX's refusal to differentiate a `lax.while_loop` in reverse mode as a
+    ValueError that says which of this library's derivatives need reverse mode and what
+    to do; return for any other error."""
+    _restate(
+        err,
+        ValueError,
+        ("Reverse-mode differentiation does not work for lax.while_loop",),
+        "the model's `step`, `observe` or `rhs` has a `jax.lax.while_loop`",
+        " (or a `fori_loop` whose bounds are not Python integers), which JAX cannot "
+        "differentiate in reverse mode, and this library differentiates the model in "
+        "reverse mode: the gradient (eq. 17, 20) of L-BFGS and Adam, the Jacobian's rows "
+        "of a least-squares step with more than a few parameters. Iterate a fixed number "
+        "of times (`lax.fori_loop` with integer bounds, `lax.scan`), or solve the implicit "
+        "equation with `lax.custom_root` (differentiated implicitly).",
+    )
 
 
 def public_jit(fn):

@@ -32,6 +32,7 @@ import numpy as np
 
 from . import _pytree
 from ._caller_warnings import warn
+from ._fit_report import without_effect_note
 from ._fit_result import stop_detail
 from ._jit import jit
 from ._problem import Params
@@ -88,14 +89,14 @@ def _value_and_gradient(problem, params, strategy):
 @jit
 def _stuck(problem, params, entries, valid, moving, strategy):
     """Whether each free entry `entries` of theta (where `valid`; the others pad the
-    array to a size that is compiled once, `_padded`), all of an exactly zero gradient at
-    `params` (`_gradient`), has an exactly zero Jacobian column there too, and one that
-    is not zero once the entries `moving` ((p,) booleans: all those checked, in every
-    part of them, `_chunks`) are all moved a little away from it, up or down within the
-    box (not zero, or not finite: it acts away from the start); and whether it has an
-    exactly zero column there and at both moved points (no effect around the start). The
-    columns at the start and at the two moved points are one vmapped evaluation (one
-    copy of the sensitivities to compile)."""
+    array to a size that is compiled once, `_padded`), all of an exactly zero gradient
+    at `params` (`_value_and_gradient`), has an exactly zero Jacobian column there too,
+    and one that is not zero once the entries `moving` ((p,) booleans: all those checked,
+    in every part of them, `_chunks`) are all moved a little away from it, up or down
+    within the box (not zero, or not finite: it acts away from the start); and whether
+    it has an exactly zero column there and at both moved points (no effect around the
+    start). The columns at the start and at the two moved points are one vmapped
+    evaluation (one copy of the sensitivities to compile)."""
     values = params.theta[entries]
     step = jnp.where(moving, _AWAY * jnp.maximum(jnp.abs(params.theta), 1.0), 0.0)
     # Both ways (relu(-k) acts below a start at 0 only), each within the box.
@@ -281,17 +282,7 @@ def _flag_without_effect(result, acting):
     above the data's range, a relu or a dead zone that is off), where a first-order test
     passes though elsewhere they act."""
     names = list(acting)
-    shown = [f"{n} (acts at {acting[n]:.3g})" for n in names[:10]]
-    listed = ", ".join(shown) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-    warn(
-        f"{listed} never moved from the start, where the outputs do "
-        "not depend on them (their Jacobian columns are exactly zero there and a little "
-        "away), though they do elsewhere: the start lies on a flat piece of the model (a "
-        "saturation or dead zone beyond the data's range, a relu, max or clip that is "
-        "off), where any first-order test passes; start them where they act.",
-        RuntimeWarning,
-        stacklevel=4,  # `fit`'s caller
-    )
+    warn(f"{without_effect_note(names, acting)}.", RuntimeWarning, stacklevel=4)  # (fit's caller)
     return dataclasses.replace(result, stop_info={**result.stop_info, "without_effect": names})
 
 
