@@ -28,6 +28,7 @@ the prox to Adam's per-coordinate steps is `oneshot_jax._solver.optax.proximal_a
 beside `Adam`.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -319,6 +320,20 @@ def _zero(params):
     return 0.0
 
 
+def _empty_init(params):
+    del params
+    return optax.EmptyState()
+
+
+def _indicator_prox(project, params, step_size):
+    del step_size
+    return project(params)
+
+
+def _indicator_update(prox, updates, state, params=None):
+    return _moved(prox, params, updates, None), state
+
+
 def indicator(project, bounds=None) -> ProximalTransformation:
     """The proximal transformation of the indicator of a convex set (Section 3.3).
 
@@ -331,21 +346,12 @@ def indicator(project, bounds=None) -> ProximalTransformation:
 
     A `ProximalTransformation` whose `prox(params, step)` is `project(params)` for every
     step, whose `value` is 0, and whose optax update is `P(params + updates) - params`
-    (no state).
+    (no state). Its functions are module-level functions and partials of them, so that
+    it pickles where `project` and `bounds` do (a process pool takes it).
     """
-
-    def prox(params, step_size):
-        del step_size
-        return project(params)
-
-    def init(params):
-        del params
-        return optax.EmptyState()
-
-    def update(updates, state, params=None):
-        return _moved(prox, params, updates, None), state
-
-    return ProximalTransformation(init, update, prox, _zero, project, bounds)
+    prox = functools.partial(_indicator_prox, project)
+    update = functools.partial(_indicator_update, prox)
+    return ProximalTransformation(_empty_init, update, prox, _zero, project, bounds)
 
 
 class Keyed:
@@ -379,6 +385,22 @@ def keyed(fn, key):
     return Keyed(fn, key)
 
 
+def _penalty_init(learning_rate, name, params):
+    del params
+    if learning_rate is None:
+        raise ValueError(
+            f"chaining `{name}` after an optimiser needs its `learning_rate` (the step "
+            f"of that optimiser): {name}(..., learning_rate=eta). For Adam use "
+            f"`proximal_adam(eta, {name}(...))`."
+        )
+    return ProximalState(count=jnp.zeros([], jnp.int32))
+
+
+def _penalty_update(prox, learning_rate, updates, state, params=None):
+    out = _moved(prox, params, updates, step_at(learning_rate, state.count))
+    return out, ProximalState(count=optax.safe_increment(state.count))
+
+
 def penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTransformation:
     """The proximal transformation of a penalty g (Parikh and Boyd 2014, Sec. 4.2).
 
@@ -399,21 +421,8 @@ def penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTra
     `prox(params + updates, learning_rate(count)) - params`.
     """
     check_learning_rate(learning_rate, allow_none=True)
-
-    def init(params):
-        del params
-        if learning_rate is None:
-            raise ValueError(
-                f"chaining `{name}` after an optimiser needs its `learning_rate` (the step "
-                f"of that optimiser): {name}(..., learning_rate=eta). For Adam use "
-                f"`proximal_adam(eta, {name}(...))`."
-            )
-        return ProximalState(count=jnp.zeros([], jnp.int32))
-
-    def update(updates, state, params=None):
-        out = _moved(prox, params, updates, step_at(learning_rate, state.count))
-        return out, ProximalState(count=optax.safe_increment(state.count))
-
+    init = functools.partial(_penalty_init, learning_rate, name)
+    update = functools.partial(_penalty_update, prox, learning_rate)
     if key is not None:
         prox, value = keyed(prox, (name, "prox", *key)), keyed(value, (name, "value", *key))
     strength = float(strength) if is_concrete(strength) else None
@@ -424,26 +433,26 @@ def penalty(prox, value, strength, learning_rate, name, key=None) -> ProximalTra
 
 def _intersect(boxes):
     """The bounds of the intersection of boxes: the largest lower and smallest upper."""
+    return functools.partial(_intersection_bounds, tuple(boxes))
 
-    def bounds(params):
-        los, his = zip(*(b(params) for b in boxes))
-        lo = jax.tree_util.tree_map(lambda *a: jnp.max(jnp.stack(a), axis=0), *los)
-        hi = jax.tree_util.tree_map(lambda *a: jnp.min(jnp.stack(a), axis=0), *his)
-        if is_concrete(lo, hi):
-            flat_lo = jax.tree_util.tree_leaves_with_path(lo)
-            empty = [
-                jax.tree_util.keystr(path)
-                for (path, a), b in zip(flat_lo, jax.tree_util.tree_leaves(hi))
-                if np.any(np.asarray(a) > np.asarray(b))
-            ]
-            if empty:
-                raise ValueError(
-                    "`constraints`: the boxes' intersection is empty (a lower bound above "
-                    f"an upper bound) for theta{', theta'.join(empty)}."
-                )
-        return lo, hi
 
-    return bounds
+def _intersection_bounds(boxes, params):
+    los, his = zip(*(b(params) for b in boxes))
+    lo = jax.tree_util.tree_map(lambda *a: jnp.max(jnp.stack(a), axis=0), *los)
+    hi = jax.tree_util.tree_map(lambda *a: jnp.min(jnp.stack(a), axis=0), *his)
+    if is_concrete(lo, hi):
+        flat_lo = jax.tree_util.tree_leaves_with_path(lo)
+        empty = [
+            jax.tree_util.keystr(path)
+            for (path, a), b in zip(flat_lo, jax.tree_util.tree_leaves(hi))
+            if np.any(np.asarray(a) > np.asarray(b))
+        ]
+        if empty:
+            raise ValueError(
+                "`constraints`: the boxes' intersection is empty (a lower bound above "
+                f"an upper bound) for theta{', theta'.join(empty)}."
+            )
+    return lo, hi
 
 
 def dykstra(projections, max_cycles=1000):
@@ -464,43 +473,44 @@ def dykstra(projections, max_cycles=1000):
 
     **Returns:** `params -> params`.
     """
+    return functools.partial(_dykstra_project, tuple(projections), max_cycles)
 
-    def project(params):
-        leaves, treedef = jax.tree_util.tree_flatten(params)
-        leaves = [jnp.asarray(a) for a in leaves]
-        eps = max(float(jnp.finfo(a.dtype).eps) for a in leaves)
 
-        def cycle(carry):
-            x, increments, k, _ = carry
-            start = x
-            out = []
-            for P, p in zip(projections, increments):
-                shifted = [a + b for a, b in zip(x, p)]
-                y = jax.tree_util.tree_leaves(P(jax.tree_util.tree_unflatten(treedef, shifted)))
-                out.append([a - b for a, b in zip(shifted, y)])
-                x = y
-            # x can stand still for a cycle while the increments still change (the box
-            # clips the same point twice): converged only when both have settled.
-            changes = [jnp.max(jnp.abs(a - b), initial=0.0) for a, b in zip(x, start)]
-            changes += [
-                jnp.max(jnp.abs(a - b), initial=0.0)
-                for new_p, old_p in zip(out, increments)
-                for a, b in zip(new_p, old_p)
-            ]
-            moved = jnp.max(jnp.stack(changes))
-            return x, out, k + 1, moved
+def _dykstra_project(projections, max_cycles, params):
+    """`dykstra(projections, max_cycles)(params)`."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    leaves = [jnp.asarray(a) for a in leaves]
+    eps = max(float(jnp.finfo(a.dtype).eps) for a in leaves)
 
-        def going(carry):
-            x, _, k, moved = carry
-            size = jnp.max(jnp.stack([jnp.max(jnp.abs(a), initial=0.0) for a in x]))
-            return (k < max_cycles) & (moved > 10.0 * eps * jnp.maximum(size, 1.0))
+    def cycle(carry):
+        x, increments, k, _ = carry
+        start = x
+        out = []
+        for P, p in zip(projections, increments):
+            shifted = [a + b for a, b in zip(x, p)]
+            y = jax.tree_util.tree_leaves(P(jax.tree_util.tree_unflatten(treedef, shifted)))
+            out.append([a - b for a, b in zip(shifted, y)])
+            x = y
+        # x can stand still for a cycle while the increments still change (the box
+        # clips the same point twice): converged only when both have settled.
+        changes = [jnp.max(jnp.abs(a - b), initial=0.0) for a, b in zip(x, start)]
+        changes += [
+            jnp.max(jnp.abs(a - b), initial=0.0)
+            for new_p, old_p in zip(out, increments)
+            for a, b in zip(new_p, old_p)
+        ]
+        moved = jnp.max(jnp.stack(changes))
+        return x, out, k + 1, moved
 
-        zeros = [[jnp.zeros_like(a) for a in leaves] for _ in projections]
-        first = cycle((leaves, zeros, jnp.asarray(0), jnp.asarray(0.0, leaves[0].dtype)))
-        x, _, _, _ = jax.lax.while_loop(going, cycle, first)
-        return jax.tree_util.tree_unflatten(treedef, x)
+    def going(carry):
+        x, _, k, moved = carry
+        size = jnp.max(jnp.stack([jnp.max(jnp.abs(a), initial=0.0) for a in x]))
+        return (k < max_cycles) & (moved > 10.0 * eps * jnp.maximum(size, 1.0))
 
-    return project
+    zeros = [[jnp.zeros_like(a) for a in leaves] for _ in projections]
+    first = cycle((leaves, zeros, jnp.asarray(0), jnp.asarray(0.0, leaves[0].dtype)))
+    x, _, _, _ = jax.lax.while_loop(going, cycle, first)
+    return jax.tree_util.tree_unflatten(treedef, x)
 
 
 # The combined projections of general sets made so far, by their sets (`_set_key`).
@@ -513,7 +523,25 @@ def _combined_projection(general, transforms):
     compiled the whole solve anew on every call (1.8 s each; its calls on the host, two
     more small programs). A set that cannot be hashed gets a function of its own."""
     key = ("dykstra", tuple(map(_set_key, transforms)))
-    return _pytree.kept(_COMBINED, key, lambda: jax.jit(dykstra(general)), size=32)
+    return _pytree.kept(
+        _COMBINED, key, lambda: _Compiled(general, transforms, jax.jit(dykstra(general))), 32
+    )
+
+
+class _Compiled:
+    """A combined projection, compiled, that pickles as its sets (`_combined_projection`
+    of them again: a compiled function does not pickle)."""
+
+    __slots__ = ("general", "transforms", "fn")
+
+    def __init__(self, general, transforms, fn):
+        self.general, self.transforms, self.fn = tuple(general), tuple(transforms), fn
+
+    def __call__(self, params):
+        return self.fn(params)
+
+    def __reduce__(self):
+        return _combined_projection, (self.general, self.transforms)
 
 
 def _set_key(t):
@@ -528,6 +556,46 @@ def _same_number(a, b):
         return not callable(a) and not callable(b) and float(a) == float(b)
     except (TypeError, ValueError):
         return False
+
+
+# `combine`'s maps, as module-level functions (partials of them pickle).
+
+
+def _proxes_in_turn(transforms, params, step_size):
+    for t in transforms:
+        params = t.prox(params, step_size)
+    return params
+
+
+def _clipped_in_turn(bounds, transforms, params):
+    bounds(params)  # (refuses an empty intersection where the bounds are concrete)
+    for t in transforms:
+        params = t.project(params)
+    return params
+
+
+def _projected_in_turn(projections, params):
+    for project in projections:
+        params = project(params)
+    return params
+
+
+def _sum_of_values(penalties, params):
+    return sum(t.value(params) for t in penalties)
+
+
+def _chain_init(transforms, params):
+    """`optax.chain(*transforms).init(params)`."""
+    return tuple(t.init(params) for t in transforms)
+
+
+def _chain_update(transforms, updates, state, params=None):
+    """`optax.chain(*transforms).update(updates, state, params)`."""
+    new_state = []
+    for t, s in zip(transforms, state, strict=True):
+        updates, s = t.update(updates, s, params)
+        new_state.append(s)
+    return updates, tuple(new_state)
 
 
 def combine(transforms) -> ProximalTransformation | None:
@@ -590,24 +658,16 @@ def combine(transforms) -> ProximalTransformation | None:
     if len(transforms) == 1:
         return transforms[0]
 
-    def prox(params, step_size):
-        for t in transforms:
-            params = t.prox(params, step_size)
-        return params
-
     penalties = [t for t in transforms if t.project is None]
-    prox = keyed(prox, ("combine", "prox", tuple(t.prox for t in transforms)))
+    prox = keyed(
+        functools.partial(_proxes_in_turn, transforms),
+        ("combine", "prox", tuple(t.prox for t in transforms)),
+    )
     if not penalties:
         boxes = [t.bounds for t in transforms]
         if None not in boxes:  # boxes: clipping in turn projects onto the intersection
             bounds = _intersect(boxes)
-
-            def project(params):
-                bounds(params)  # (refuses an empty intersection where the bounds are concrete)
-                for t in transforms:
-                    params = t.project(params)
-                return params
-
+            project = functools.partial(_clipped_in_turn, bounds, transforms)
             return indicator(project, bounds)._replace(terms=transforms)
         # A general set with others: its composition with them is neither the projection
         # onto the intersection nor a map into it (positive() then project(fn) left an
@@ -616,28 +676,20 @@ def combine(transforms) -> ProximalTransformation | None:
         general = [t.project for t in transforms if t.bounds is None]
         boxed = [t.project for t in transforms if t.bounds is not None]
         if boxed:
-
-            def box(params):
-                for b in boxed:
-                    params = b(params)
-                return params
-
-            general.append(box)
+            general.append(functools.partial(_projected_in_turn, tuple(boxed)))
         return indicator(_combined_projection(general, transforms))._replace(terms=transforms)
 
-    def value(params):
-        return sum(t.value(params) for t in penalties)
-
-    value = keyed(value, ("combine", "value", tuple(t.value for t in penalties)))
-
-    chained = optax.chain(*(optax.GradientTransformation(t.init, t.update) for t in transforms))
+    value = keyed(
+        functools.partial(_sum_of_values, tuple(penalties)),
+        ("combine", "value", tuple(t.value for t in penalties)),
+    )
     strengths = [t.strength for t in penalties]
     strength = None if None in strengths else max(strengths)
     rates = [t.learning_rate for t in penalties]
     same = all(r is rates[0] or _same_number(r, rates[0]) for r in rates)
     return ProximalTransformation(
-        chained.init,
-        chained.update,
+        functools.partial(_chain_init, transforms),
+        functools.partial(_chain_update, transforms),
         prox,
         value,
         None,

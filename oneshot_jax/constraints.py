@@ -34,6 +34,7 @@ least-squares solver there.
 """
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -171,12 +172,35 @@ def box(lower=None, upper=None) -> ProximalTransformation:
     A `ProximalTransformation` (the prox of the box's indicator: elementwise clipping,
     whatever the step) with `bounds`.
     """
-
     kinds = [(_value_key(b) or ("other",))[0] for b in (lower, upper)]
     if kinds == ["scalar", "scalar"] and lower > upper:  # (`bounds` checks the rest)
         raise ValueError(f"`box` needs lower <= upper, got lower {lower!r} > upper {upper!r}.")
 
-    def bounds(params):
+    bounds = _BoxBounds(lower, upper)
+    return indicator(functools.partial(_clip, bounds), bounds)
+
+
+def _clip(bounds, params):
+    lo, hi = bounds(params)
+    return jax.tree_util.tree_map(lambda p, a, b: jnp.clip(p, a, b), params, lo, hi)
+
+
+class _BoxBounds:
+    """`box`'s bounds, `params -> (lower, upper)` pytrees shaped like `params`. Bounds
+    made of scalars (or dicts of them) have a `key` that names them by value (others have
+    none): `fit` keeps what it derives from equal boxes (a `positive()` made anew on every
+    call) between calls."""
+
+    __slots__ = ("lower", "upper", "key")
+
+    def __init__(self, lower, upper):
+        self.lower, self.upper = lower, upper
+        key = (_value_key(lower), _value_key(upper))
+        if None not in key:  # (else no `key`, as for any other bounds)
+            self.key = ("box", *key)
+
+    def __call__(self, params):
+        lower, upper = self.lower, self.upper
         lo = _fill_like(lower, params, -jnp.inf, "lower")
         hi = _fill_like(upper, params, jnp.inf, "upper")
         bad = jax.tree_util.tree_map(lambda a, b: a > b, lo, hi)
@@ -204,17 +228,6 @@ def box(lower=None, upper=None) -> ProximalTransformation:
                 if np.any(leaf == wrong):
                     raise ValueError(f"`box`: `{name}` holds {what}: no value satisfies it.")
         return lo, hi
-
-    def proj(params):
-        lo, hi = bounds(params)
-        return jax.tree_util.tree_map(lambda p, a, b: jnp.clip(p, a, b), params, lo, hi)
-
-    # Bounds of scalars (or dicts of them) name the box by value: `fit` keeps what it
-    # derives from equal boxes (a `positive()` made anew on every call) between calls.
-    key = (_value_key(lower), _value_key(upper))
-    if None not in key:
-        bounds.key = ("box", *key)
-    return indicator(proj, bounds)
 
 
 def _value_key(bound):

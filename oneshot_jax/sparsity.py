@@ -66,6 +66,7 @@ theta, optax's masked transforms do the same with `mask` from this module, e.g.
 zeros survive `optax.apply_updates`.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -251,27 +252,29 @@ def mask(select: Callable[[Any], Any]) -> Callable[[Any], Any]:
     if not callable(select):
         raise ValueError(f"`select` must be callable params -> node(s), got {select!r}.")
 
-    def where(params):
-        false = jax.tree_util.tree_map(lambda _: False, params)
-        mark = lambda node: jax.tree_util.tree_map(lambda _: True, node)  # noqa: E731
-        try:
-            picked = eqx.tree_at(select, false, replace_fn=mark)
-        except Exception as err:  # noqa: BLE001 - re-raised naming the argument
-            raise ValueError(
-                f"`select` must pick nodes of the parameter pytree: {type(err).__name__}: {err}"
-            ) from err
-        # Only floating leaves are parameters: a module's activation function or integer
-        # buffers below a selected node stay unselected.
-        out = jax.tree_util.tree_map(lambda b, p: b and _is_float(p), picked, params)
-        if not any(jax.tree_util.tree_leaves(out)):
-            raise ValueError(
-                "`select` picks no floating parameter (an activation function, a static "
-                "field or an integer array is not a parameter): the regulariser would act on "
-                "nothing."
-            )
-        return out
+    return functools.partial(_masked, select)
 
-    return where
+
+def _masked(select, params):
+    """`mask(select)(params)`."""
+    false = jax.tree_util.tree_map(lambda _: False, params)
+    mark = lambda node: jax.tree_util.tree_map(lambda _: True, node)  # noqa: E731
+    try:
+        picked = eqx.tree_at(select, false, replace_fn=mark)
+    except Exception as err:  # noqa: BLE001 - re-raised naming the argument
+        raise ValueError(
+            f"`select` must pick nodes of the parameter pytree: {type(err).__name__}: {err}"
+        ) from err
+    # Only floating leaves are parameters: a module's activation function or integer
+    # buffers below a selected node stay unselected.
+    out = jax.tree_util.tree_map(lambda b, p: b and _is_float(p), picked, params)
+    if not any(jax.tree_util.tree_leaves(out)):
+        raise ValueError(
+            "`select` picks no floating parameter (an activation function, a static "
+            "field or an integer array is not a parameter): the regulariser would act on "
+            "nothing."
+        )
+    return out
 
 
 def fixed_zeros(theta, where=None):
@@ -428,6 +431,60 @@ def _map_selected(fn, params, sel, step_size):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
+# The regularisers' maps, as module-level functions: partials of them pickle (a process
+# pool takes the regularisers) where `where` does.
+
+
+def _l1_prox(strength, where, params, step_size):
+    sel = _resolve_where(where, params, entries=True)
+    return _map_selected(lambda p, s, _: soft_threshold(p, s * strength), params, sel, step_size)
+
+
+def _l1_value(strength, where, params):
+    sel = _resolve_where(where, params, entries=True)
+    total = 0.0
+    for p, b in zip(jax.tree_util.tree_leaves(params), sel):
+        if b is not False:
+            total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
+    return strength * total
+
+
+def _l2_prox(strength, where, params, step_size):
+    sel = _resolve_where(where, params, entries=True)
+    return _map_selected(lambda p, s, _: p / (1 + s * strength), params, sel, step_size)
+
+
+def _l2_value(strength, where, params):
+    sel = _resolve_where(where, params, entries=True)
+    total = 0.0
+    for p, b in zip(jax.tree_util.tree_leaves(params), sel):
+        if b is not False:
+            total = total + jnp.sum(jnp.where(b, p * p, 0))
+    return 0.5 * strength * total
+
+
+def _group_lasso_prox(strength, where, axis, params, step_size):
+    sel = _resolve_where(where, params, entries=False)
+
+    def one(p, s, scalar):
+        _check_axes(axis, jnp.shape(p), "a selected parameter")
+        if scalar:
+            return block_soft_threshold(p, s * strength, axis=axis)
+        return _block_soft_threshold_metric(p, s, jnp.asarray(strength, p.dtype), axis)
+
+    return _map_selected(one, params, sel, step_size)
+
+
+def _group_lasso_value(strength, where, axis, params):
+    sel = _resolve_where(where, params, entries=False)
+    total = 0.0
+    for p, b in zip(jax.tree_util.tree_leaves(params), sel):
+        if b:
+            _check_axes(axis, jnp.shape(p), "a selected parameter")
+            total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
+    return strength * total
+
+
 def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     """L1 regularisation `strength * ||w||_1` as an exact proximal (soft-thresholding) step.
 
@@ -449,21 +506,8 @@ def l1(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     steps), and `value(params)` is `strength * sum |w|` over them.
     """
     check_non_negative_scalar(strength, "strength")
-
-    def prox(params, step_size):
-        sel = _resolve_where(where, params, entries=True)
-        return _map_selected(
-            lambda p, s, _: soft_threshold(p, s * strength), params, sel, step_size
-        )
-
-    def value(params):
-        sel = _resolve_where(where, params, entries=True)
-        total = 0.0
-        for p, b in zip(jax.tree_util.tree_leaves(params), sel):
-            if b is not False:
-                total = total + jnp.sum(jnp.where(b, jnp.abs(p), 0))
-        return strength * total
-
+    prox = functools.partial(_l1_prox, strength, where)
+    value = functools.partial(_l1_value, strength, where)
     return penalty(prox, value, strength, learning_rate, "l1", _key(strength, where))
 
 
@@ -484,19 +528,8 @@ def l2(strength, where=None, *, learning_rate=None) -> ProximalTransformation:
     A `ProximalTransformation`.
     """
     check_non_negative_scalar(strength, "strength")
-
-    def prox(params, step_size):
-        sel = _resolve_where(where, params, entries=True)
-        return _map_selected(lambda p, s, _: p / (1 + s * strength), params, sel, step_size)
-
-    def value(params):
-        sel = _resolve_where(where, params, entries=True)
-        total = 0.0
-        for p, b in zip(jax.tree_util.tree_leaves(params), sel):
-            if b is not False:
-                total = total + jnp.sum(jnp.where(b, p * p, 0))
-        return 0.5 * strength * total
-
+    prox = functools.partial(_l2_prox, strength, where)
+    value = functools.partial(_l2_value, strength, where)
     return penalty(prox, value, strength, learning_rate, "l2", _key(strength, where))
 
 
@@ -526,28 +559,6 @@ def group_lasso(strength, where=None, *, axis=None, learning_rate=None) -> Proxi
     """
     check_non_negative_scalar(strength, "strength")
     axis = _normalise_axis(axis)
-
-    def _check_axis(p):
-        _check_axes(axis, jnp.shape(p), "a selected parameter")
-
-    def prox(params, step_size):
-        sel = _resolve_where(where, params, entries=False)
-
-        def one(p, s, scalar):
-            _check_axis(p)
-            if scalar:
-                return block_soft_threshold(p, s * strength, axis=axis)
-            return _block_soft_threshold_metric(p, s, jnp.asarray(strength, p.dtype), axis)
-
-        return _map_selected(one, params, sel, step_size)
-
-    def value(params):
-        sel = _resolve_where(where, params, entries=False)
-        total = 0.0
-        for p, b in zip(jax.tree_util.tree_leaves(params), sel):
-            if b:
-                _check_axis(p)
-                total = total + jnp.sum(jnp.sqrt(jnp.sum(p * p, axis=axis)))
-        return strength * total
-
+    prox = functools.partial(_group_lasso_prox, strength, where, axis)
+    value = functools.partial(_group_lasso_value, strength, where, axis)
     return penalty(prox, value, strength, learning_rate, "group_lasso", _key(strength, where, axis))
