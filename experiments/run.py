@@ -28,8 +28,9 @@ import importlib
 import json
 import os
 import shutil
+import signal
 import sys
-import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -42,6 +43,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from experiments import config  # noqa: E402
+from oneshot_jax.internal import replace_atomically  # noqa: E402
 
 # Identification runs in float64; the library never enables it itself.
 jax.config.update("jax_enable_x64", True)
@@ -71,18 +73,8 @@ def _cache_dir():
 def write_json(path: Path, obj) -> None:
     """Write `obj` as JSON to `path` atomically (a temporary file, then a rename), so a
     reader sees the old file or the new one, never a partial one."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=2, allow_nan=False)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give it a normal file's mode
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with replace_atomically(path, "w") as f:
+        json.dump(obj, f, indent=2, allow_nan=False)
 
 
 def _files(outdir: Path) -> set[str]:
@@ -236,8 +228,39 @@ def execute(cfg: DictConfig, outdir: Path, command: str | None = None, runner=No
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    with claimed(outdir):
+    with claimed(outdir), terminated_as_exit():
         return _execute(cfg, outdir, command, runner)
+
+
+class Terminated(SystemExit):
+    """The run was sent SIGTERM (`kill`, `timeout`, a scheduler's time limit): it ends as
+    a failure, with exit status 143 (128 + SIGTERM), as Python's default handling would."""
+
+    def __init__(self):
+        super().__init__(128 + signal.SIGTERM)
+
+    def __str__(self):
+        return "terminated by SIGTERM (kill, timeout or a scheduler's time limit)"
+
+
+@contextlib.contextmanager
+def terminated_as_exit():
+    """SIGTERM raises `Terminated` while the block runs (in the main thread; elsewhere
+    signals cannot be handled), so that a run stopped at a time limit writes its
+    results.json as failed and gives its folder back, as Ctrl-C does; the handler before
+    is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    before = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def _execute(cfg, outdir, command, runner) -> dict:

@@ -548,16 +548,23 @@ def _theta_summary(theta, limit=200):
 
 @contextlib.contextmanager
 def _naming_shapes(what, x_1, u_1, x0, u, theta, theta_name):
-    """Re-raise an error of tracing `what` as a ValueError with the arguments' shapes."""
+    """Re-raise an error of tracing `what` as a ValueError with the arguments' shapes; an
+    exception of the user's own class (not Python's or JAX's) is re-raised as itself, with
+    the shapes added as a note, so that `except MyError:` around `fit` catches it wherever
+    the model raises it."""
     try:
         yield
     except Exception as err:  # noqa: BLE001 - re-raised with the arguments' shapes
-        raise ValueError(
+        text = (
             f"calling {what} on a state of shape {x_1.shape} (from `x0` of shape {x0.shape}), "
             f"an input of shape {u_1.shape} (from `u` of shape {u.shape}) and the "
-            f"parameters `{theta_name}` ({_theta_summary(theta)}) failed: "
-            f"{type(err).__name__}: {err}"
-        ) from err
+            f"parameters `{theta_name}` ({_theta_summary(theta)}) failed"
+        )
+        module = type(err).__module__.split(".")[0]
+        if module not in ("builtins", "jax", "jaxlib", "equinox", "numpy", "oneshot_jax"):
+            err.add_note(text)
+            raise
+        raise ValueError(f"{text}: {type(err).__name__}: {err}") from err
 
 
 def _broadcast(*shapes):

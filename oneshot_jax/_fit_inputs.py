@@ -127,7 +127,7 @@ def _meter(progress):
         return progress
     raise TypeError(
         "`progress` must be a bool or a progress object with methods open, update and close "
-        f"(as oneshot_jax.TqdmProgress), got {progress!r}."
+        f"(and optionally finish, as oneshot_jax.TqdmProgress), got {progress!r}."
     )
 
 

@@ -42,10 +42,13 @@ never saved (pass `model=` to `load_result` to simulate). A file that is damaged
 short, edited, or another program's archive) is refused with one ValueError naming it.
 """
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
 import json
+import os
+import tempfile
 import zipfile
 import zlib
 from itertools import zip_longest
@@ -240,8 +243,17 @@ def save_result(result, path):
             f"{type(result).__name__}.{hint}"
         )
     path = _as_path(path)
+    if path.is_dir():  # (before the suffix: "results/" is no file beside the folder)
+        raise ValueError(
+            f"`path`: {str(path)!r} is a folder; give the file to write, e.g. "
+            f"{str(path / 'fit.npz')!r}."
+        )
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
+    if path.is_dir():
+        raise ValueError(f"`path`: {str(path)!r} is a folder; give the file to write.")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise ValueError(f"`path`: {str(path.parent)!r} is a file, not a folder.")
     if not path.parent.is_dir():
         raise ValueError(
             f"`path`: the folder {str(path.parent)!r} does not exist; create it first "
@@ -315,9 +327,30 @@ def save_result(result, path):
     }
     meta["digest"] = _digest(arrays, meta)
     arrays["__meta__"] = np.array(json.dumps(meta))
-    with open(path, "wb") as fh:
+    with replaced(path) as fh:
         np.savez(fh, **arrays)
     return path
+
+
+@contextlib.contextmanager
+def replaced(path, mode="wb"):
+    """A file opened for writing (`mode`) that replaces the file at `path` once written
+    and closed: a temporary file in the same folder, renamed onto `path` (`os.replace`,
+    atomic). A reader sees the old file or the new one, never a partial one; a write that
+    fails (a full disk, an interrupt) leaves the old file as it was and nothing beside it.
+    The new file gets the mode a file created by `open` would have."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # (mkstemp creates it 0600)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _as_path(path) -> Path:
@@ -387,6 +420,8 @@ def read_result(path, *, like=None, model=None) -> dict:
     path = _as_path(path)
     if not path.is_file() and Path(f"{path}.npz").is_file():  # as `save` names it
         path = Path(f"{path}.npz")
+    if path.is_dir():
+        raise ValueError(f"`path`: {str(path)!r} is a folder, not a saved result's file.")
     if not path.is_file():
         raise FileNotFoundError(f"`path`: no saved result at {path}.")
     arrays = _read_arrays(path)
@@ -636,8 +671,9 @@ def check_model_fits(model, fields):
         z = eqx.filter_eval_shape(model.observe, x, u, theta)
     except Exception as err:  # (any error of the user's functions, named below)
         raise ValueError(
-            f"`model` does not run with the saved result's theta, a state of {x.shape[0]} "
-            f"and {fields['n_u']} inputs: {type(err).__name__}: {err}. Pass the fitted model."
+            f"`model` does not run with the saved result's theta, {x.shape[0]} states and "
+            f"{fields['n_u']} inputs: {type(err).__name__}: {str(err).rstrip('.')}. Pass "
+            "the fitted model."
         ) from err
     if getattr(x_next, "shape", None) != x.shape:
         raise ValueError(

@@ -337,7 +337,8 @@ def iterate(
     state = eqx.combine(c.state, static)
     result = _where(c.done, c.result, RESULTS.max_steps_reached)
     final_loss, final_gnorm = _over_starts(lambda s: _summary(solver, s), n_starts)(state)
-    meter.finish(bar_id, offset, c.step, _shown(done_low, final_loss))
+    if callable(getattr(meter, "finish", None)):  # (optional: `TqdmProgress`)
+        meter.finish(bar_id, offset, c.step, _shown(done_low, final_loss))
     measures = _over_starts(solver.measures, n_starts)(state)
     out_params, out_loss, blocks = _over_starts(
         lambda p, s, r: solver.postprocess(problem, p, s, r), n_starts

@@ -19,6 +19,11 @@ _IDS = itertools.count(1)
 class TqdmProgress(eqx.Module):
     """A tqdm progress bar with the loss, refreshed every `refresh_steps` steps.
 
+    A progress object of one's own (`fit(progress=...)`) has its methods: `open` and
+    `close` run on the host, `update` (every step) and, where it has one, `finish` (once
+    after each solver's loop) inside the compiled loop, where they show values through
+    `jax.debug.callback`.
+
     **Arguments:**
 
     - `refresh_steps`: steps between two updates of the bar (each update is one host

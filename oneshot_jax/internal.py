@@ -35,6 +35,7 @@ from ._gradient import value_and_grad_of_states as value_and_grad_of_states
 from ._identifiable import _augmented as orthogonal_model  # noqa: F401
 from ._identifiable import _basis as orthogonal_basis  # noqa: F401
 from ._identifiable import _orthonormal as orthonormal_basis  # noqa: F401
+from ._io import replaced as replace_atomically  # noqa: F401
 from ._linalg import eliminate_x0 as eliminate_x0
 from ._linalg import identifiable as identifiable
 from ._linalg import normal_blocks as normal_blocks

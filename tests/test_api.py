@@ -186,6 +186,38 @@ def test_save_result_is_fit_result_save(sat_lm, tmp_path):
             np.testing.assert_array_equal(a[key], b[key])
 
 
+def test_a_save_that_fails_leaves_the_file_saved_before(sat_lm, tmp_path, monkeypatch):
+    """A save writes a file beside the target and renames it onto it: one that fails part
+    way (a full disk, an interrupt) leaves the file saved before as it was, and nothing
+    beside it (the target was truncated first, and lost). A folder given as `path`, or a
+    file as its folder, is refused naming `path`."""
+    path = sat_lm.save(tmp_path / "fit.npz")
+    before = path.read_bytes()
+
+    def savez_cut_short(fh, **arrays):
+        fh.write(b"PK\x03\x04 half an archive")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", savez_cut_short)
+    with pytest.raises(OSError, match="No space left"):
+        sat_lm.save(path)
+    monkeypatch.undo()
+    assert path.read_bytes() == before and sorted(tmp_path.iterdir()) == [path]
+    assert eqx.tree_equal(oj.load_result(path, model=SAT_MODEL), sat_lm) is True
+
+    (tmp_path / "results").mkdir()
+    with pytest.raises(ValueError, match=r"`path`: '.*results' is a folder.*results/fit.npz"):
+        sat_lm.save(f"{tmp_path / 'results'}/")  # (it wrote results.npz beside the folder)
+    (tmp_path / "d.npz").mkdir()
+    with pytest.raises(ValueError, match=r"`path`: '.*d.npz' is a folder"):
+        sat_lm.save(tmp_path / "d")
+    with pytest.raises(ValueError, match=r"`path`: '.*fit.npz' is a file, not a folder"):
+        sat_lm.save(path / "x.npz")
+    with pytest.raises(ValueError, match=r"`path`: '.*d.npz' is a folder, not a saved result"):
+        oj.load_result(tmp_path / "d.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.npz", "fit.npz", "results"]
+
+
 def test_save_and_load_a_dict_theta_with_starts(tmp_path):
     model = oj.Model(lambda x, u, th: th["a"] * x + th["b"][0] * u)
     u = np.ones((30, 1))

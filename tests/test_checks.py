@@ -1143,6 +1143,44 @@ def test_progress_objects_are_checked():
     with pytest.raises(TypeError, match=r"open, update and close"):
         oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, progress=NoClose())
 
+    # The methods the message names are enough: `finish` is optional (it was called, and
+    # a meter without it failed with a bare AttributeError).
+    class Meter(NoClose):
+        closed = []
+
+        def close(self, bar_id):
+            self.closed.append(bar_id)
+
+    r = oj.fit(LIN, LIN_THETA, np.zeros(1), _U1, _Z1, progress=Meter())
+    assert r.success and Meter.closed == [0]
+
+
+class LookupTableMissing(Exception):
+    """An exception of the user's own."""
+
+
+def test_an_exception_of_the_users_own_class_comes_through_as_itself():
+    """Raised by the model on its first call (the entry check, which re-raises Python's
+    and JAX's errors as a ValueError with the arguments' shapes), the user's own exception
+    class comes through as itself, the shapes in a note, as it does from a later call."""
+    calls = []
+
+    def step(x, u, th):
+        calls.append(1)
+        if len(calls) == 1:
+            raise LookupTableMissing("lookup table not loaded")
+        return th["a"] * x + u
+
+    with pytest.raises(LookupTableMissing, match="lookup table") as caught:
+        oj.fit(oj.Model(step, lambda x, u, th: x), {"a": 0.3}, np.zeros(1), _U1, _Z1)
+    assert any("a state of shape (1,)" in note for note in caught.value.__notes__)
+
+    def step(x, u, th):  # (Python's own errors are still named with the shapes)
+        return th["b"] * x + u
+
+    with pytest.raises(ValueError, match=r"a state of shape \(1,\).*KeyError"):
+        oj.fit(oj.Model(step, lambda x, u, th: x), {"a": 0.3}, np.zeros(1), _U1, _Z1)
+
 
 def test_a_fixed_mask_must_have_its_parameters_shape():
     model = oj.Model(

@@ -354,6 +354,26 @@ def test_python_m_experiments_composes(tmp_path):
     assert (cfg.solver.name, cfg.experiment.T, cfg.seed) == ("gauss_newton", 100, 3)
 
 
+def test_a_run_sent_sigterm_is_recorded_as_failed_and_gives_its_folder_back(tmp_path):
+    """SIGTERM (`kill`, `timeout`, a scheduler's time limit) ends a run as Ctrl-C does:
+    results.json says it failed and why, `.running` is removed, and the exit status is
+    143; the handler before the run is restored. (Python's default ended the process with
+    neither.)"""
+    import signal
+
+    def killed(cfg, outdir, command):
+        signal.raise_signal(signal.SIGTERM)
+        raise AssertionError("not reached: the handler raises")
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as stopped:
+        run.execute(_compose(), tmp_path, command="cmd", runner=killed)
+    assert stopped.value.code == 143 and signal.getsignal(signal.SIGTERM) is before
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["status"] == "failed" and "SIGTERM" in res["error"]
+    assert not (tmp_path / run.RUNNING).exists()
+
+
 def test_failed_run_replaces_stale_results(tmp_path):
     """An earlier run's results.json and results.md are removed at the start; a run that
     fails leaves results.json with status "failed", its error and its conditions."""
