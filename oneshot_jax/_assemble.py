@@ -383,13 +383,27 @@ def weighed(per_output, weight=None):
     return values
 
 
-def worst_fit(fit_percent, weight=None):
+def worst_fit(fit_percent, weight=None, residuals=None):
     """The lowest finite FIT% over the outputs the fit weighs (`weighed`) where it is below
-    0 (a simulation that fits an output worse than that output's mean), else None."""
+    0 (a simulation that fits an output worse than that output's mean) by more than the
+    noise explains, else None.
+
+    An output whose signal s is small next to its noise (std ratio r) has FIT about
+    50 r^2 % at the true parameters, give or take 100 r / sqrt(n) % over its n measured
+    samples (`residuals`' finite entries, the last axis the outputs): a FIT below 0 is
+    then no sign of a bad minimum. Three of those deviations less the FIT of the truth,
+    300 r / sqrt(n) - 50 r^2, is largest at r = 3 / sqrt(n): 450 / n %. A FIT below
+    -450 / n % (-2.25 % over 200 samples) is beyond three deviations of that chance at
+    any r; a bad minimum's is far lower (-139 % in the minima guide)."""
     fits = weighed(fit_percent, weight)
     # (-inf: an output without spread, measured once or constant, has no FIT to judge by;
     # `fit_orthogonal`'s penalty rows, say)
     fits = np.where(np.isfinite(fits), fits, np.nan)
+    if residuals is not None and fits.ndim == 1:
+        e = np.asarray(residuals)
+        n = np.isfinite(e.reshape(-1, e.shape[-1])).sum(axis=0) if e.ndim else np.zeros(0)
+        if n.shape == fits.shape:
+            fits = np.where(fits < -450.0 / np.maximum(n, 1), fits, np.nan)
     if not np.isfinite(fits).any() or np.nanmin(fits) >= 0:
         return None
     return float(np.nanmin(fits))
@@ -501,7 +515,7 @@ def assemble(
         stop = name_of(from_index(int(out.results[best])))
         diverged = stop == "diverged"
         unconverged = int((diagnostics or {}).get("unconverged_rollouts", 0))
-        worst = worst_fit(met.get("fit_percent"), problem.cost.weight)
+        worst = worst_fit(met.get("fit_percent"), problem.cost.weight, e)
         shrunk = "regularised" if problem.regulariser is not None else None
         if shrunk is None and problem.cost.penalty is not None:
             shrunk = "penalised"

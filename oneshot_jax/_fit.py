@@ -1199,8 +1199,8 @@ def fit(
     is then `zero_gradient` (not a success); parameters without effect in a whole
     neighbourhood (the weights of a network's units that are dead over the data) are
     ones the data do not determine: their std is inf and a warning names them. A success
-    whose simulation fits an output worse than its mean (FIT below 0) warns of a bad
-    minimum.
+    whose simulation fits an output worse than its mean (FIT below 0, by more than the
+    noise explains: below -450 / n % over its n measured samples) warns of a bad minimum.
 
     **JAX's debugging flags.** `fit` runs with `jax_debug_nans` and `jax_debug_infs` off
     (its compiled outputs hold NaN where a quantity does not exist: the history's rows
@@ -1442,7 +1442,7 @@ def fit(
             result = _flag_infeasible(result, built.sets)  # (before a success is read below)
         # (Not with a regulariser or a penalty: their optimum may fit worse than the mean,
         # all-zero terms, say.)
-        worst = worst_fit(result.metrics.get("fit_percent"), weight)
+        worst = worst_fit(result.metrics.get("fit_percent"), weight, result.residuals)
         if result.success and worst is not None and regulariser is None and penalty is None:
             held = "" if constraints is None else ", or constraints that keep it from the data"
             warn(

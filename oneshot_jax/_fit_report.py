@@ -442,8 +442,9 @@ def _whiteness_note(result, outputs) -> str | None:
     (`metrics.residual_correlations` at its defaults, lags 1..min(25, T - 1), each record
     or window on its own), for the outputs the fit weighs; None where they are, or where
     there is nothing to test (a zero residual, a diverged fit, a loss that is not
-    finite). A model error, coloured noise and a bad minimum leave such residuals, and
-    the classical standard errors, where the printout has them, assume white ones."""
+    finite). A model error, coloured noise and a bad minimum leave such residuals (and a
+    weight far from unequal noise levels, where the fit warned of them), and the
+    classical standard errors, where the printout has them, assume white ones."""
     e = np.asarray(result.residuals, np.float64)
     if result.status in ("zero_residual", "diverged") or not np.isfinite(float(result.loss)):
         return None  # (nothing to test, or a point that is not a fit's: a divergence's)
@@ -487,9 +488,18 @@ def _whiteness_note(result, outputs) -> str | None:
         else "; the standard errors assume white residuals (`covariance=oj.NeweyWest()` "
         "allows for correlated ones)"
     )
+    # (a weight far from the outputs' noise levels lets the noisy output pull the others
+    # off their own fit: the fit's unequal-noise warning names it)
+    unequal = any("differ in variance by a factor" in w for w in getattr(result, "warnings", ()))
+    causes = (
+        "a weight far from the outputs' unequal noise (see the warning below), a model "
+        "error, coloured noise or a bad minimum"
+        if unequal
+        else "a model error, coloured noise or a bad minimum"
+    )
     return (
         f"  residuals not white ({'; '.join(said)}{more}; 99 % band, lags 1.."
-        f"{int(np.max(rc.lags))}): a model error, coloured noise or a bad minimum"
+        f"{int(np.max(rc.lags))}): {causes}"
         f"{errors}; `oj.plot.resid(result.residuals)` shows them"
     )
 

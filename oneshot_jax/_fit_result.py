@@ -430,7 +430,8 @@ def _several(u) -> bool:
 
 def is_fitted_record(result, zhat, z) -> bool:
     """Whether z is the record `result` was fitted on, zhat the result's simulation of it
-    from its fitted x0: zhat - residuals is that record's z (rtol 1e-5; after a `window=`
+    from its fitted x0: zhat - residuals is that record's z (to 1e-5 of z's largest
+    magnitude, whatever its units, and the round-off of zhat; after a `window=`
     fit, over its window at sample 0; a shorter z, the head of the fitted record). True
     where there is no one record to tell (a fit on several records)."""
     zhat, z = np.asarray(zhat), np.asarray(z)
@@ -447,7 +448,8 @@ def is_fitted_record(result, zhat, z) -> bool:
         return False
     fitted = zhat.reshape(z.shape) - e
     both = np.isfinite(fitted) & np.isfinite(z)
-    scale = max(1.0, float(np.nanmax(np.abs(z)))) if both.any() else 1.0
+    # (in z's units: a floor at 1 took any other record of outputs of order 1e-6 for it)
+    scale = float(np.nanmax(np.abs(z[both]))) if both.any() else 0.0
     # zhat - e cancels: its round-off is that of zhat (huge after a fit that blew up).
     eps = np.finfo(np.result_type(zhat.dtype, e.dtype, np.float32)).eps
     big = float(np.nanmax(np.abs(zhat))) if np.isfinite(zhat).any() else 0.0
@@ -934,7 +936,10 @@ class FitResult(eqx.Module):
     @property
     def ci95(self):
         """95 % intervals theta -+ 1.96 std, as two pytrees (lower, upper) of NumPy arrays
-        shaped like theta's parameters, as `std` (0-d for a scalar, not np.float64)."""
+        shaped like theta's parameters, as `std` (0-d for a scalar, not np.float64): the
+        large-sample (normal) interval; on a record of a few tens of samples, where
+        sigma^2's estimate varies, the t quantile of n_obs - n_free degrees of freedom
+        gives a wider one that holds 95 % there."""
         params, _ = _pytree.split(self.theta)
         lo = jax.tree_util.tree_map(
             lambda v, s: np.asarray(np.asarray(v) - 1.96 * s), params, self.std

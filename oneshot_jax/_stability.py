@@ -8,10 +8,11 @@ depend on `substeps`. `check_stability` bounds |lambda| h at every state of the 
 trajectory (eq. 7) by the row sums of the right-hand side's Jacobian, takes the
 eigenvalues at the states of the largest bounds and at a few evenly spaced ones, and
 compares max |lambda| h with the integrator's limit, and for RK4 with the range where
-its step follows the ODE's flow (`ACCURATE`: past 1.6 a faster mode steps like a slower
-one); `fit` calls it after every fit of such a model. A model of time-stamped records
-(`Model.from_ode(rhs, dt=None)`) takes each step's own h, its interval over its number
-of integrator steps, and is checked also before its longest interval.
+its step follows the ODE's flow (`ACCURATE`: past 1.5, near RK4's fold at 1.596, a
+faster mode steps like a slower one); `fit` calls it after every fit of such a model. A
+model of time-stamped records (`Model.from_ode(rhs, dt=None)`) takes each step's own h,
+its interval over its number of integrator steps, and is checked also before its
+longest interval.
 """
 
 import functools
@@ -43,9 +44,15 @@ LIMITS = {"rk4": 2.5, "euler": 2.0}
 # to z = -1.596, where R' = 0 (the other zeros of R', -0.70 +- 1.81j, lie farther out); past
 # it a faster mode steps like a slower one: R(-2.456) = R(-0.5) = e^-0.5, so a fitted lag
 # converged to a = 24.6 with a = 5's loss (h = 0.1), inside the stability margin and
-# without a warning. An undamped mode loses 8 % of its amplitude a step at 1.6 too.
+# without a warning. An undamped mode loses 8 % of its amplitude a step at 1.6 too. The
+# warning starts short of the fold: a fit that the data pull past it stops at the fold
+# itself (a lag's estimate sat at |lambda| h = 1.596, 'stalled', unwarned by a limit of
+# 1.6), and R' has fallen to a quarter of the ODE's e^z by 1.5 (R'(-1.5) = 0.0625,
+# e^-1.5 = 0.223): the step barely tells the mode's speed there. Below it the step still
+# errs (R(-1.2) = 0.318 against e^-1.2 = 0.301, 6 % a step), which biases estimates by
+# the record's information: where they matter, refit with more substeps and compare.
 # Euler's factor 1 + z is one-to-one: its measure is judged against its disc alone.
-ACCURATE = {"rk4": 1.6, "euler": 2.0}
+ACCURATE = {"rk4": 1.5, "euler": 2.0}
 
 
 def scaled_eigenvalues(eig, h, method):
@@ -100,19 +107,20 @@ class Stability(NamedTuple):
         integrator steps it is split into there.
     - `max_step`: a time-stamped model's largest integrator step, or None.
     - `accurate_limit`: the largest `value` at which the integrator's step still follows
-        the ODE's flow: 1.6 for RK4 (past it, its step factor R(lambda h) no longer
-        decreases along the negative real axis, so a faster mode steps like a slower
-        one, and a fit cannot tell them apart); `limit` for Euler.
+        the ODE's flow: 1.5 for RK4 (its step factor R(lambda h) stops decreasing along
+        the negative real axis at 1.596, so a faster mode steps like a slower one and a
+        fit cannot tell them apart; the warning starts short of it, where R' is a
+        quarter of the ODE's e^z); `limit` for Euler.
     - `growth`: for Euler and an undamped mode (`value` inf), the factor by which the
         integrator grows that mode's amplitude over a record's steps, (1 + |lambda
         h|^2)^(N/2); None otherwise.
 
     **Properties:**
 
-    - `inaccurate`: whether `value` exceeds min(`accurate_limit`, `limit`) (1.6 for
+    - `inaccurate`: whether `value` exceeds min(`accurate_limit`, `limit`) (1.5 for
         RK4, 2 for Euler): the condition on which `check_stability` and `fit` warn.
     - `near_limit`: whether `value` exceeds `limit` (2.5 for RK4, 2 for Euler), past
-        the integrator's stability margin. For RK4 a `value` between 1.6 and 2.5 is
+        the integrator's stability margin. For RK4 a `value` between 1.5 and 2.5 is
         `inaccurate` (it warns) but not `near_limit`; for Euler the two agree.
     """
 
@@ -477,8 +485,8 @@ def check_stability(
     `points` states where its bound ||J||_inf h on |lambda| h is largest (formed at every
     state: a mode that an input or a contact switches on at a few samples is not missed
     between evenly spaced ones), and returns the largest |lambda| h, h = dt / substeps,
-    over their eigenvalues lambda. Above about 1.6 for RK4 (where its step stops
-    following the ODE's flow: a faster mode then steps like a slower one; its stability
+    over their eigenvalues lambda. Above 1.5 for RK4 (near where its step stops
+    following the ODE's flow, 1.596: a faster mode then steps like a slower one; its stability
     region reaches 2.785 on the negative real axis, 2.828 on the imaginary one), or
     outside Euler's disc |1 + lambda h| <= 1 (`Stability.value`; an undamped mode, which
     Euler grows at any h, where it grows by more than 1 % over a record), it warns

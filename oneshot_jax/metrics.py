@@ -798,9 +798,15 @@ def residual_correlations(
         floor(tolerance max_lag) lags outside the band, none outside the joint band. For a
         white residual the count outside is about Binomial(max_lag, 1 - confidence), so
         the count's false-alarm rate depends on max_lag: with the defaults it is 2.6 % at
-        MATLAB's max_lag 25 (one lag allowed), but 1 - 0.99^max_lag for max_lag < 20,
-        where no lag is allowed (17 % at 19), and it jumps at each multiple of 20; the
-        joint band adds at most 1 - `confidence` to each verdict.
+        MATLAB's max_lag 25 (one lag allowed), but up to 1 - 0.99^max_lag for max_lag <
+        20, where no lag is allowed (17 % at 19), and it jumps at each multiple of 20; the
+        joint band adds at most 1 - `confidence` to each verdict. These rates hold on long
+        records (T of some hundreds). On a short one the band, z / sqrt(n) at every lag,
+        is wider than the spread of r(tau) (a sum of n - tau products over n: standard
+        deviation sqrt(n - tau) / n), so the test alarms less often than that, and it
+        detects coloured residuals less often too: a "white" verdict on a record of a few
+        tens of samples says little. Each output is tested on its own: over several
+        outputs the chance that some verdict alarms grows with their number.
     - `demean`: subtract each channel's mean (over its measured samples, all trajectories
         pooled) first (default); False: the sums of the signals as given, as MATLAB's
         `resid` forms them.

@@ -1065,6 +1065,8 @@ def test_an_output_reproduced_exactly_is_no_observation_of_the_noise():
     for k in ("a", "b"):
         assert float(r3.std[k]) == pytest.approx(float(r2.std[k]), rel=1e-6)
     assert "residuals not white (output 0" in str(r3)
+    # (the line names the weighting among its causes where the fit warned of it)
+    assert "a weight far from the outputs' unequal noise (see the warning below)" in str(r3)
     assert np.isneginf(r3.metrics["aic"])
 
 

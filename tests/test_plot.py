@@ -1,6 +1,7 @@
 """`metrics.residual_correlations` against correlations written out with `np.correlate`,
 and the figures of `oneshot_jax.plot` (Agg backend)."""
 
+import dataclasses
 import subprocess
 import sys
 import warnings
@@ -509,6 +510,16 @@ def test_compare_warns_on_a_record_the_result_was_not_fitted_on(fitted):
         oj.plot.compare(z[:60], result, u=u[:60])
     with pytest.warns(UserWarning, match="not this record"):  # a head of other data
         oj.plot.compare(z[::-1][:60], result, u=u[::-1][:60])
+    # The same in units where the outputs are of order 1e-6 (a micro-vibration in metres):
+    # the linear model's result for the data times s is the result times s (its x0 and
+    # residuals); a tolerance floored at 1e-5 took any other record for the fitted one.
+    s = 1e-6
+    small = dataclasses.replace(result, x0=result.x0 * s, residuals=result.residuals * s)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        oj.plot.compare(z * s, small, u=u * s)
+    with pytest.warns(UserWarning, match="not this record"):
+        oj.plot.compare(z[::-1] * s, small, u=u[::-1] * s)
 
 
 def test_compare_warns_on_a_prediction_of_another_record(fitted):

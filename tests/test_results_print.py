@@ -789,6 +789,7 @@ def test_residuals_that_are_not_white_are_said_so():
     assert f"r_e(1) = {rc.auto[26, 0]:.3g}" in line
     assert f"{100 * rc.auto_outside[0]:.0f} % of the lags outside +-{rc.bound[0]:.3g}" in line
     assert "the standard errors assume white residuals" in line
+    assert ": a model error, coloured noise or a bad minimum" in line  # (no weight named)
     robust = oj.fit(MODEL, theta0, x0, u, coloured, covariance=oj.NeweyWest())
     (line,) = [s for s in str(robust).splitlines() if "residuals not white" in s]
     assert "assume white" not in line
