@@ -24,7 +24,7 @@ from ._caller_warnings import recording, warn
 from ._checks import record_x0_mask, x0_mask
 from ._covariance import NOT_COMPUTED, NeweyWest, as_covariance
 from ._fit_inputs import build_problem, check_inputs
-from ._fit_report import theta_order
+from ._fit_report import UNEQUAL_NOISE, theta_order
 from ._fit_result import FitResult
 from ._iterate import run, starts_in_turn
 from ._jit import jit
@@ -819,7 +819,7 @@ def _warn_unequal_noise(residuals, weight, std, readings=None):
         'same scale; or weight="noise", which estimates both with theta'
     )
     warn(
-        f"the weighted residuals of the {which} differ in variance by a factor "
+        f"the weighted residuals of the {which} {UNEQUAL_NOISE} "
         f"{var.max() / var.min():.3g}: the standard errors pool one noise level over all "
         "outputs, so they hold only where `weight` is about 1 / (each output's noise "
         f"variance); {remedy}.",

@@ -437,6 +437,11 @@ def _per_output(values, outputs) -> str:
     return ", ".join(f"{o}: {v}" for o, v in zip(names, values, strict=True))
 
 
+# The words of `fit`'s warning of outputs of unequal noise (`_fit._warn_unequal_noise`),
+# by which the non-white line knows that the fit warned of them.
+UNEQUAL_NOISE = "differ in variance by a factor"
+
+
 def _whiteness_note(result, outputs) -> str | None:
     """The printout's line where the residuals are not white by MATLAB's `resid` test
     (`metrics.residual_correlations` at its defaults, lags 1..min(25, T - 1), each record
@@ -490,7 +495,7 @@ def _whiteness_note(result, outputs) -> str | None:
     )
     # (a weight far from the outputs' noise levels lets the noisy output pull the others
     # off their own fit: the fit's unequal-noise warning names it)
-    unequal = any("differ in variance by a factor" in w for w in getattr(result, "warnings", ()))
+    unequal = any(UNEQUAL_NOISE in w for w in getattr(result, "warnings", ()))
     causes = (
         "a weight far from the outputs' unequal noise (see the warning below), a model "
         "error, coloured noise or a bad minimum"

@@ -567,17 +567,15 @@ def _proxes_in_turn(transforms, params, step_size):
     return params
 
 
-def _clipped_in_turn(bounds, transforms, params):
-    bounds(params)  # (refuses an empty intersection where the bounds are concrete)
-    for t in transforms:
-        params = t.project(params)
-    return params
-
-
 def _projected_in_turn(projections, params):
     for project in projections:
         params = project(params)
     return params
+
+
+def _clipped_in_turn(bounds, projections, params):
+    bounds(params)  # (refuses an empty intersection where the bounds are concrete)
+    return _projected_in_turn(projections, params)
 
 
 def _sum_of_values(penalties, params):
@@ -667,7 +665,8 @@ def combine(transforms) -> ProximalTransformation | None:
         boxes = [t.bounds for t in transforms]
         if None not in boxes:  # boxes: clipping in turn projects onto the intersection
             bounds = _intersect(boxes)
-            project = functools.partial(_clipped_in_turn, bounds, transforms)
+            projections = tuple(t.project for t in transforms)
+            project = functools.partial(_clipped_in_turn, bounds, projections)
             return indicator(project, bounds)._replace(terms=transforms)
         # A general set with others: its composition with them is neither the projection
         # onto the intersection nor a map into it (positive() then project(fn) left an
