@@ -23,6 +23,8 @@ from ._continuation import check_basin as check_basin
 from ._continuation import fit_continuation as fit_continuation
 from ._covariance import NeweyWest as NeweyWest
 from ._delta import Derived as Derived
+from ._discretisation import DiscretisationCheck as DiscretisationCheck
+from ._discretisation import check_discretisation as check_discretisation
 from ._fit import fit as fit
 from ._fit_result import FitHistory as FitHistory
 from ._fit_result import FitResult as FitResult

@@ -50,7 +50,7 @@ LIMITS = {"rk4": 2.5, "euler": 2.0}
 # 1.6), and R' has fallen to a quarter of the ODE's e^z by 1.5 (R'(-1.5) = 0.0625,
 # e^-1.5 = 0.223): the step barely tells the mode's speed there. Below it the step still
 # errs (R(-1.2) = 0.318 against e^-1.2 = 0.301, 6 % a step), which biases estimates by
-# the record's information: where they matter, refit with more substeps and compare.
+# the record's information: `check_discretisation` measures that bias on a fit's data.
 # Euler's factor 1 + z is one-to-one: its measure is judged against its disc alone.
 ACCURATE = {"rk4": 1.5, "euler": 2.0}
 
@@ -375,6 +375,13 @@ def step_factor(z: complex, method: str) -> complex:
     return 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
 
 
+# The check that refits with finer steps, as the warning names it.
+CHECK = (
+    "`oneshot_jax.check_discretisation(result, u, z)` refits with finer steps and measures "
+    "the moves"
+)
+
+
 def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitted model") -> None:
     """The warning of `check_stability`, where `report` exceeds its limit, or the range
     where its integrator follows the ODE (`Stability.inaccurate`)."""
@@ -441,7 +448,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
             f"factor follows the ODE's flow only up to about {report.accurate_limit:g}; past "
             "it a faster mode steps like a slower one, R(-2.46) = R(-0.5), so the fit "
             "cannot tell them apart). The estimates may describe the discretisation "
-            f"rather than the ODE: refit with {remedy}, and compare.",
+            f"rather than the ODE: refit with {remedy}, and compare ({CHECK}).",
             RuntimeWarning,
             stacklevel=stacklevel + 1,
         )
@@ -463,7 +470,7 @@ def warn_if_near_limit(report: Stability | None, stacklevel: int, what="the fitt
         f"{measure} = {report.value:.3g} with h = dt / substeps = {report.dt:g} / "
         f"{report.substeps} ({report.method.upper()}: {region}). "
         f"The estimates may depend on the discretisation rather than on the ODE: refit with "
-        f"{remedy}, and compare.",
+        f"{remedy}, and compare ({CHECK}).",
         RuntimeWarning,
         stacklevel=stacklevel + 1,
     )
