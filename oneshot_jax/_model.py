@@ -206,7 +206,9 @@ class _ODEStep(eqx.Module):
         )
 
 
-def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=None, input="zoh"):
+def timed_ode_step(
+    rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=None, input="zoh", refine=1
+):
     """Advance `dx/dt = rhs(x, u, theta)` over one interval `dt` of a time-stamped record,
     t[k+1] - t[k], with `dt` a traced value (data, not a parameter): the step f of eq. (1)
     of a model built by `Model.from_ode(rhs, dt=None)`.
@@ -229,6 +231,10 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
     - `dt`: the interval t[k+1] - t[k] (>= 0), a scalar array.
     - `substeps`: the number of steps (without `max_step`), or their upper bound.
     - `max_step`: the largest integrator step, or None.
+    - `refine`: with `max_step`, each interval's steps split into this many equal ones
+        (`refine` times ceil(dt / max_step) steps, the loop's bound `substeps * refine`):
+        the same model with steps `refine` times shorter everywhere, which `max_step /
+        refine` is not (an interval shorter than it still takes one step).
 
     **Returns:**
 
@@ -245,7 +251,7 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
         # the tolerance into one constant); a count above the loop's bound would leave the
         # rest of the interval unintegrated)
         count = interval_count(dt, max_step, jnp)
-        n = jnp.minimum(count, substeps)
+        n = jnp.minimum(count, substeps) * refine
         h = dt / jnp.maximum(n, 1.0)
         # An interval the host did not check (a traced `t`) that needs more than one step
         # beyond the bound, or that is negative or not finite, gives NaN states: steps
@@ -271,7 +277,7 @@ def timed_ode_step(rhs, x, u, theta, dt, *, method="rk4", substeps=1, max_step=N
         for j in range(substeps):
             x = substep(j, x)
         return x
-    x = jax.lax.fori_loop(0, substeps, substep, x)
+    x = jax.lax.fori_loop(0, substeps * (1 if max_step is None else refine), substep, x)
     return x if max_step is None else jnp.where(bad, jnp.nan, x)
 
 
@@ -294,6 +300,8 @@ class _TimedODEStep(eqx.Module):
     substeps: int = eqx.field(static=True)
     max_step: float | None = eqx.field(static=True)
     input: str = eqx.field(static=True)
+    # (`check_discretisation`'s finer model: each interval's steps split `refine` times)
+    refine: int = eqx.field(static=True, default=1)
 
     def __call__(self, x, u, theta):
         if self.input == "foh":
@@ -309,6 +317,7 @@ class _TimedODEStep(eqx.Module):
             method=self.method,
             substeps=self.substeps,
             max_step=self.max_step,
+            refine=self.refine,
             input=self.input,
         )
 

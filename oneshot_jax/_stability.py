@@ -201,7 +201,7 @@ def step_sizes(step, u, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if step.max_step is None:
             n = np.full(idx.shape, step.substeps)
         else:
-            n = np.maximum(interval_count(dt, step.max_step), 1).astype(int)
+            n = np.maximum(interval_count(dt, step.max_step), 1).astype(int) * step.refine
     return dt, n, dt / n
 
 
@@ -330,7 +330,7 @@ def report(step, idx, xs, J, u) -> Stability | None:
         method=step.method,
         substeps=int(n[i]),
         dt=float(dt[i]),
-        max_step=getattr(step, "max_step", None),
+        max_step=None if getattr(step, "max_step", None) is None else step.max_step / step.refine,
         accurate_limit=ACCURATE[step.method],
         growth=growth,
     )

@@ -41,8 +41,9 @@ def _fit(substeps):
 def test_a_fit_biased_by_its_step_is_refitted_with_finer_steps_and_warns():
     """One RK4 step a sample at |lambda| h = 1.29 (inside the accurate range: no stability
     warning) puts a at 12.89 from the ODE's own samples (a = 12); the check's refit is the
-    fit of the model with two substeps, the move is measured in the fit's standard error,
-    and the held gain stays held (no move to measure)."""
+    fit of the model with two substeps, its refit at one step stays at the converged
+    estimate, the move is measured in that refit's standard error, and the held gain
+    stays held (no move to measure)."""
     coarse = _fit(1)
     assert coarse.success
     assert not oj.check_stability(coarse.model, coarse.theta, coarse.x0, U).inaccurate
@@ -53,7 +54,8 @@ def test_a_fit_biased_by_its_step_is_refitted_with_finer_steps_and_warns():
     assert check.refit.success
     np.testing.assert_allclose(check.refit.theta["a"], fine.theta["a"], rtol=1e-9)
     assert check.refit.theta["g"] == 1.0 and np.isnan(check.shift["g"])
-    expected = (fine.theta["a"] - coarse.theta["a"]) / coarse.std["a"]
+    np.testing.assert_allclose(check.coarse.theta["a"], coarse.theta["a"], rtol=1e-9)
+    expected = (fine.theta["a"] - check.coarse.theta["a"]) / check.coarse.std["a"]
     np.testing.assert_allclose(check.shift["a"], expected, rtol=1e-6)
     assert expected < -20 and check.largest == pytest.approx(-expected)
     assert "depend on the integrator's step" in str(check)
@@ -74,20 +76,41 @@ def test_a_fit_whose_step_is_fine_enough_passes_in_silence():
     assert "inconclusive" in str(stopped)
 
 
-def test_a_time_stamped_model_is_refitted_with_half_its_max_step():
-    """A model of time-stamped records with `max_step` 0.1 (intervals 0.05 to 0.15): the
-    refit is the fit of the same model with `max_step` 0.05 and twice the loop's bound."""
+def test_a_time_stamped_model_is_refitted_with_each_intervals_steps_split():
+    """A model of time-stamped records with `max_step` 0.25 over intervals of 0.05 to
+    0.15: one step an interval, and as many with `max_step` halved (0.125); the refit
+    takes two steps on every interval, the model of two substeps without `max_step`."""
     rng = np.random.default_rng(1)
     t = np.cumsum(np.r_[0.0, rng.uniform(0.05, 0.15, T - 1)])
     u, z = _record(t)
-    timed = oj.Model.from_ode(lag, None, max_step=0.1, substeps=2)
+    timed = oj.Model.from_ode(lag, None, max_step=0.25, substeps=2)
     result = oj.fit(timed, THETA0, np.zeros(1), u, z, t=t, fixed=["g"])
     with pytest.warns(RuntimeWarning, match="depend on the integrator's step"):
         check = oj.check_discretisation(result, u, z, t=t)
-    finer = oj.Model.from_ode(lag, None, max_step=0.05, substeps=4)
+    finer = oj.Model.from_ode(lag, None, substeps=2)
     direct = oj.fit(finer, THETA0, np.zeros(1), u, z, t=t, fixed=["g"])
     np.testing.assert_allclose(check.refit.theta["a"], direct.theta["a"], rtol=1e-9)
-    assert abs(check.refit.theta["a"] - result.theta["a"]) > 3 * result.std["a"]
+    assert check.depends and check.coarse.success
+
+
+def test_an_unfinished_fit_is_measured_against_its_own_refit():
+    """A fit stopped after two steps (at a = 11.1 where the optimum is at 12.05), with
+    a step fine enough (four substeps): the move to the finer refit is measured from the
+    refit at the fit's own step, which goes on to the optimum, so the rest of the
+    optimisation is not blamed on the step; the held x0 stays held in both refits."""
+    model = oj.Model.from_ode(lag, DT, substeps=4)
+    solver = oj.LevenbergMarquardt(max_steps=2)
+    start = {"a": 5.0, "g": 1.0}
+    stopped = oj.fit(model, start, np.zeros(1), U, Z, fixed=["g"], estimate_x0=False, solver=solver)
+    assert not stopped.success
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check = oj.check_discretisation(stopped, U, Z)
+    assert check.coarse.success and not check.depends and check.largest < 0.1
+    optimum = oj.fit(model, start, np.zeros(1), U, Z, fixed=["g"], estimate_x0=False)
+    np.testing.assert_allclose(check.coarse.theta["a"], optimum.theta["a"], rtol=1e-8)
+    assert abs(stopped.theta["a"] - optimum.theta["a"]) > 10 * optimum.std["a"]
+    assert check.refit.x0 == 0.0 and check.coarse.x0 == 0.0
 
 
 def test_check_discretisation_refuses_what_it_cannot_check():
@@ -108,6 +131,9 @@ def test_check_discretisation_refuses_what_it_cannot_check():
         oj.check_discretisation(coarse, U, Z, substep=2)
     with pytest.raises(ValueError, match="the record the result was fitted on"):
         oj.check_discretisation(coarse, U[::-1], Z[::-1])
+    windowed = oj.fit(_fit(4).model, THETA0, np.zeros((8, 1)), U, Z, window=50, fixed=["g"])
+    with pytest.raises(ValueError, match="pass `window=`"):
+        oj.check_discretisation(windowed, U, Z)
     discrete = oj.Model(lambda x, u, p: 0.3 * x + p["b"] * u, lambda x, u, p: x)
     result = oj.fit(discrete, {"b": 0.5}, np.zeros(1), U[:50], Z[:50])
     with pytest.raises(ValueError, match="`Model.from_ode` model"):
