@@ -95,10 +95,12 @@ from .sparsity import _is_float as is_float_leaf  # noqa: F401
 # Modules whose globals a test replaces with `monkeypatch.setattr`: `COVARIANCE_MAX_THETA`
 # of `assemble_module`, `STARTS_IN_TURN` of `iterate_module`, `CPU_OPTIONS` of
 # `jit_module`, `TRIAL_COLUMNS` of `least_squares_module`, `loss_impl` of
-# `simulate_module`, `newton_rollout` of `strategy_module`.
+# `simulate_module`, `newton_rollout` of `strategy_module`, `__file__` of
+# `locations_module`.
 from . import _assemble as assemble_module  # noqa: F401
 from . import _iterate as iterate_module  # noqa: F401
 from . import _jit as jit_module  # noqa: F401
 from . import _simulate as simulate_module  # noqa: F401
 from . import _strategy as strategy_module  # noqa: F401
 from ._solver import least_squares as least_squares_module  # noqa: F401
+from .datasets import _locations as locations_module  # noqa: F401

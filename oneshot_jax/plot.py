@@ -3,7 +3,8 @@ against the simulated or predicted outputs of one or several models with their F
 `resid`, the residual analysis with its 99 % bounds, and `bode`, the frequency response
 of a linearised model.
 
-matplotlib is an optional dependency (`pip install "oneshot_jax[plot]"`). It is imported
+matplotlib is an optional dependency (`pip install matplotlib`; from a checkout,
+`pip install -e ".[plot]"`, the `plot` extra). It is imported
 when a figure is drawn, never by `import oneshot_jax`; the functions use `pyplot`, so the
 figure shows in a notebook or a window as usual, and return it (`fig.savefig(...)`).
 """
@@ -33,8 +34,9 @@ def _pyplot():
         import matplotlib.pyplot as plt
     except ImportError as err:
         raise ImportError(
-            "oneshot_jax.plot draws with matplotlib, which is not installed: "
-            'pip install "oneshot_jax[plot]" (the `plot` extra).'
+            "oneshot_jax.plot draws with matplotlib, which is not installed: pip install "
+            'matplotlib (from a checkout of oneshot_jax, pip install -e ".[plot]", the `plot` '
+            "extra)."
         ) from err
     return plt
 

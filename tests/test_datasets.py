@@ -7,6 +7,7 @@ run.
 """
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from helpers import benchmark_or_skip
 
 import oneshot_jax as oj
 from oneshot_jax import datasets as ds
+from oneshot_jax.internal import locations_module
 
 
 def _emps_or_skip():
@@ -116,6 +118,15 @@ def test_explicit_paths_and_env_var(tmp_path, monkeypatch):
     monkeypatch.setenv(ds.ENV_VAR, str(root))
     assert ds.default_data_dirs()[0] == root
     assert ds.load_cascaded_tanks().file == root / "cascaded_tanks" / "dataBenchmark.csv"
+
+
+def test_a_package_installed_right_under_the_root_searches_its_other_folders(monkeypatch):
+    """Installed as /oneshot_jax (a container's copy), the package has no checkout folder
+    three levels up to look beside: the working directory's and the cache's are searched."""
+    monkeypatch.delenv(ds.HIDE_ENV_VAR, raising=False)
+    monkeypatch.setattr(locations_module, "__file__", "/oneshot_jax/datasets/_locations.py")
+    monkeypatch.setenv(ds.ENV_VAR, "/nowhere/data")
+    assert ds.default_data_dirs()[0] == Path("/nowhere/data")
 
 
 def test_emps_from_env_var(tmp_path, monkeypatch):

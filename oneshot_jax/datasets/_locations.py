@@ -64,11 +64,11 @@ def default_data_dirs() -> list[Path]:
     if data_hidden():
         found = [default_cache_dir()] if os.environ.get(CACHE_ENV_VAR) else []
     else:
-        found = [
-            Path(__file__).resolve().parents[3] / "shared" / "data",
-            Path.cwd().resolve().parent / "shared" / "data",
-            default_cache_dir(),
-        ]
+        # (the checkout's parent: oneshot_jax/datasets/_locations.py three folders up; a
+        # package installed right under the root has none)
+        parents = Path(__file__).resolve().parents
+        beside = [parents[3] / "shared" / "data"] if len(parents) > 3 else []
+        found = [*beside, Path.cwd().resolve().parent / "shared" / "data", default_cache_dir()]
     for p in found:
         if p.is_dir() and all(p.resolve() != q.resolve() for q in out):
             out.append(p)
