@@ -346,6 +346,33 @@ def _held(result):
     return out if at == mask.size else None
 
 
+def check_margin(margin):
+    """A TypeError or ValueError unless `margin` is a non-negative number."""
+    if isinstance(margin, bool) or not isinstance(margin, numbers.Real):
+        raise TypeError(f"`margin` must be a non-negative number, got {margin!r}.")
+    if not margin >= 0:
+        raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
+
+
+def carry_held(result, kwargs, where, refit, stacklevel):
+    """`kwargs` of a check's refit (`refit`, in words) with `fixed` and `missing`
+    defaulting to what the result held: its fixed entries (`_held`; a UserWarning, at
+    `stacklevel` from here, where they cannot be said per key) and its missing samples
+    (with missing="mask", z holds its NaN samples)."""
+    kwargs = dict(kwargs)
+    if "fixed" not in kwargs:
+        kwargs["fixed"] = _held(result)
+        if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():
+            warn(
+                f"{where} cannot carry the result's fixed entries to {refit} for this theta "
+                "(not a dict of arrays): they are free there. Pass `fixed` as for the fit.",
+                UserWarning,
+                stacklevel=stacklevel,
+            )
+    kwargs.setdefault("missing", result.missing)
+    return kwargs
+
+
 def check_fit_keywords(kwargs, where):
     """A TypeError naming `where` for keywords that neither it nor `fit` takes (they were
     reported as `fit()`'s)."""
@@ -446,10 +473,7 @@ def check_basin(
             f"{np.shape(u)[0]}), got {window!r}."
         )
     window = int(window)
-    if isinstance(margin, bool) or not isinstance(margin, numbers.Real):
-        raise TypeError(f"`margin` must be a non-negative number, got {margin!r}.")
-    if not margin >= 0:
-        raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
+    check_margin(margin)
     check_fit_keywords(kwargs, "check_basin")
     for name in ("window", "multistart"):
         if name in kwargs:
@@ -468,18 +492,7 @@ def check_basin(
             f"shape {fitted}); got u {np.shape(u)}, z {np.shape(z)}."
         )
     _check_fitted_record(result, u, z, kwargs.get("t"))
-    if "fixed" not in kwargs:
-        kwargs["fixed"] = _held(result)
-        if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():
-            warn(
-                "`check_basin` cannot carry the result's fixed entries to the windowed fit "
-                "for this theta (not a dict of arrays): they are free there. Pass `fixed` "
-                "as for the fit.",
-                UserWarning,
-                stacklevel=2,
-            )
-    if "missing" not in kwargs:  # (a fit with missing="mask": z holds its NaN samples)
-        kwargs["missing"] = result.missing
+    kwargs = carry_held(result, kwargs, "`check_basin`", "the windowed fit", stacklevel=3)
     with at_caller(__file__):
         windowed = fit(result.model, result.theta, result.x0, u, z, window=window, **kwargs)
     whole = np.asarray(result.metrics["fit_percent"])

@@ -10,15 +10,13 @@ the model twice from the estimate, on the same data, at its own step and with st
 standard errors: what the estimates owe to the step rather than to the data.
 """
 
-import numbers
-
 import equinox as eqx
 import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from ._caller_warnings import at_caller, warn
-from ._continuation import _check_fitted_record, _held, check_fit_keywords
+from ._continuation import _check_fitted_record, carry_held, check_fit_keywords, check_margin
 from ._counts import is_count
 from ._fit import fit
 from ._fit_result import FitResult
@@ -178,18 +176,7 @@ def _carried(result, kwargs):
             "`aggregate`: the result is of a fit with aggregated readings: pass `aggregate=` "
             "(and the other keywords) as for the fit."
         )
-    kwargs = dict(kwargs)
-    if "fixed" not in kwargs:
-        kwargs["fixed"] = _held(result)
-        if kwargs["fixed"] is None and np.asarray(result.fixed, bool).any():
-            warn(
-                "`check_discretisation` cannot carry the result's fixed entries to its refits "
-                "for this theta (not a dict of arrays): they are free there. Pass `fixed` "
-                "as for the fit.",
-                UserWarning,
-                stacklevel=3,
-            )
-    kwargs.setdefault("missing", result.missing)
+    kwargs = carry_held(result, kwargs, "`check_discretisation`", "its refits", stacklevel=4)
     if "weight" not in kwargs and result.weight is not None:
         kwargs["weight"] = result.weight
     if "estimate_x0" not in kwargs and result.x0_estimated is not None:
@@ -270,10 +257,7 @@ def check_discretisation(
     if not is_count(factor, 2):
         raise ValueError(f"`factor` must be an integer >= 2, got {factor!r}.")
     factor = int(factor)
-    if isinstance(margin, bool) or not isinstance(margin, numbers.Real):
-        raise TypeError(f"`margin` must be a non-negative number, got {margin!r}.")
-    if not margin >= 0:
-        raise ValueError(f"`margin` must be a non-negative number, got {margin!r}.")
+    check_margin(margin)
     check_fit_keywords(kwargs, "check_discretisation")
     if "multistart" in kwargs:
         raise ValueError(
