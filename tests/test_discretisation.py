@@ -138,3 +138,15 @@ def test_check_discretisation_refuses_what_it_cannot_check():
     result = oj.fit(discrete, {"b": 0.5}, np.zeros(1), U[:50], Z[:50])
     with pytest.raises(ValueError, match="`Model.from_ode` model"):
         oj.check_discretisation(result, U[:50], Z[:50])
+
+
+def test_fixed_entries_of_a_theta_that_is_no_dict_are_named_as_not_carried():
+    """A theta of one array with an entry held: `fixed` cannot be said per key, so the
+    check warns that the refits free it, and holds it where `fixed` is passed again."""
+    model = oj.Model.from_ode(lambda x, u, p: p[0] * (p[1] * u - x), DT, substeps=4)
+    result = oj.fit(model, np.array([10.0, 1.0]), np.zeros(1), U, Z, fixed=np.array([False, True]))
+    with pytest.warns(UserWarning, match="cannot carry the result's fixed entries to its refits"):
+        freed = oj.check_discretisation(result, U, Z)
+    assert freed.refit.theta[1] != 1.0 and np.isfinite(freed.shift[1])
+    held = oj.check_discretisation(result, U, Z, fixed=np.array([False, True]))
+    assert held.refit.theta[1] == 1.0 and np.isnan(held.shift[1]) and not held.depends
