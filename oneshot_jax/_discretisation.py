@@ -16,7 +16,13 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from ._caller_warnings import at_caller, warn
-from ._continuation import _check_fitted_record, carry_held, check_fit_keywords, check_margin
+from ._continuation import (
+    _check_fitted_record,
+    _shape_text,
+    carry_held,
+    check_fit_keywords,
+    check_margin,
+)
 from ._counts import is_count
 from ._fit import fit
 from ._fit_result import FitResult
@@ -263,6 +269,15 @@ def check_discretisation(
         raise ValueError(
             "`multistart` is not a keyword of `check_discretisation`: its refits start from "
             "the result's estimate."
+        )
+    shapes = [_shape_text(a) for a in (u, z)]
+    if (
+        all(isinstance(s, tuple) and len(s) >= 2 for s in shapes)
+        and shapes[0][:-1] != shapes[1][:-1]
+    ):
+        raise ValueError(
+            f"`u` and `z` must be the data the result was fitted on, with the same records "
+            f"and samples (all axes but the last); got u {shapes[0]}, z {shapes[1]}."
         )
     if np.ndim(result.x0) == 1 and np.shape(result.residuals) == np.shape(z):
         _check_fitted_record(result, u, z, kwargs.get("t"))

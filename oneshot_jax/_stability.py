@@ -369,10 +369,13 @@ def stability(model, theta, x0, u, *, t=None, points: int = POINTS) -> Stability
 def step_factor(z: complex, method: str) -> complex:
     """The integrator's step factor R(z), z = lambda h: the amplitude a mode of eigenvalue
     lambda is multiplied by per step (1 + z for Euler; 1 + z + z^2/2 + z^3/6 + z^4/24 for
-    RK4), against the ODE's exp(z)."""
+    RK4), against the ODE's exp(z). In NumPy's complex: a z past 1e77 overflows to inf
+    (Python's complex power raises OverflowError)."""
+    z = np.complex128(z)
     if method == "euler":
-        return 1 + z
-    return 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+        return complex(1 + z)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return complex(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
 
 
 # The check that refits with finer steps, as the warning names it.

@@ -656,8 +656,9 @@ def bode(*models, w=None, continuous=False, labels=None, ax=None):
     **Returns:** the matplotlib `Figure`.
 
     **Raises:** `TypeError` for a model that is not a `LinearModel`; `ValueError` for
-    models of other sizes, `continuous` without an ODE model's Ac, or frequencies that
-    are not positive.
+    models of other sizes, models with and without `dt` together (their frequencies are
+    per time unit and per sample), `continuous` without an ODE model's Ac, or
+    frequencies that are not positive.
     """
     plt = _pyplot()
     if (
@@ -680,6 +681,13 @@ def bode(*models, w=None, continuous=False, labels=None, ax=None):
             f"the models must have the same numbers of outputs and inputs, got {sorted(sizes)}."
         )
     n_z, n_u = sizes.pop()
+    steps = {m.dt is None for m in models}
+    if len(steps) > 1 and not continuous:
+        raise ValueError(
+            "`models` mix frequency units: a model without `dt` (a `Model` of its own step) "
+            "has its response in radians per sample, one with `dt` (`Model.from_ode`) in "
+            "radians per time unit; draw them on separate plots."
+        )
     if continuous and any(m.Ac is None for m in models):
         raise ValueError(
             "`continuous=True` needs models built from an ODE (`Model.from_ode`): a model "

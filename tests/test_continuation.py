@@ -272,6 +272,16 @@ def test_check_stability_says_when_the_discretised_model_is_unstable():
     assert "|R(lambda h)| = 1.375, the ODE by exp(Re lambda h) = 0.04979" in text
 
 
+def test_a_mode_too_stiff_for_a_complex_power_is_reported_past_the_limit():
+    """a = 1e100 (a log-parameterised rate held far out): RK4's step factor at lambda h =
+    -5e98 overflows a float; Python's complex power raised OverflowError out of the check
+    that `fit` runs after a fit, losing the finished result. It reports past the limit."""
+    model, u, _ = _lag_data(1)
+    with pytest.warns(RuntimeWarning, match="the simulated states grow without bound"):
+        report = oj.check_stability(model, {"a": 1e100}, np.zeros(1), u[:5])
+    assert report.value == pytest.approx(5e98) and report.near_limit
+
+
 @pytest.mark.parametrize("substeps, warns", [(1, True), (2, False)])
 def test_check_stability(substeps, warns):
     model, u, _ = _lag_data(substeps)

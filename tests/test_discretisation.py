@@ -131,6 +131,8 @@ def test_check_discretisation_refuses_what_it_cannot_check():
         oj.check_discretisation(coarse, U, Z, substep=2)
     with pytest.raises(ValueError, match="the record the result was fitted on"):
         oj.check_discretisation(coarse, U[::-1], Z[::-1])
+    with pytest.raises(ValueError, match=r"same records and samples.*u \(100, 1\), z \(400, 1\)"):
+        oj.check_discretisation(coarse, U[:100], Z)
     windowed = oj.fit(_fit(4).model, THETA0, np.zeros((8, 1)), U, Z, window=50, fixed=["g"])
     with pytest.raises(ValueError, match="pass `window=`"):
         oj.check_discretisation(windowed, U, Z)

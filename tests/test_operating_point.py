@@ -340,6 +340,14 @@ def test_bode_draws_the_gain_and_phase_of_the_frequency_response():
         oj.plot.bode(rest.A)
     with pytest.raises(ValueError, match="positive angular frequencies"):
         oj.plot.bode(rest, w=[0.0, 1.0])
+    # A model of its own step (no dt: radians per sample) beside an ODE model's (radians
+    # per time unit): one axis cannot carry both (its curve was drawn per time unit on
+    # an axis labelled per sample).
+    one, zero = np.ones((1, 1)), np.zeros((1, 1))
+    per_second = oj.LinearModel(one, one, one, zero, None, None, 0.1, np.zeros(1), np.zeros(1))
+    per_sample = oj.LinearModel(one, one, one, zero, None, None, None, np.zeros(1), np.zeros(1))
+    with pytest.raises(ValueError, match="`models` mix frequency units"):
+        oj.plot.bode(per_second, per_sample)
     # A pair without a path from input to output (x[0] is driven by u[0] alone; z = x)
     # is left out, and the legend says so.
     two = oj.LinearModel(np.array([[0.9, 0.0], [0.3, 0.5]]), np.eye(2), np.eye(2),
