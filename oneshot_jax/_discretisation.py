@@ -290,12 +290,18 @@ def check_discretisation(
     depends = bool(largest > margin)
     check = DiscretisationCheck(depends, shift, largest, name, factor, refit, coarse, float(margin))
     if depends:
+        exact = (
+            " (The fit's residual is zero: the data are the model's own at its step, its "
+            "standard errors are round-off, and any move counts; judge by the relative move.)"
+            if coarse.status == "zero_residual" or np.isinf(largest)
+            else ""
+        )
         warn(
             f"the estimates depend on the integrator's step: with steps {factor} times "
             f"finer, {name} moves by {largest:.3g} standard errors "
             f"({_values(before[at], after[at])}), more than {margin:g}: an error of the "
             "step, not of the data, of about that size. Use the finer model's fit "
-            "(`check.refit`, its model `check.refit.model`), and check it in turn.",
+            f"(`check.refit`, its model `check.refit.model`), and check it in turn.{exact}",
             RuntimeWarning,
             stacklevel=2,
         )

@@ -187,6 +187,16 @@ def _mean(a, w):
     return jnp.sum(w * a, axis=0) / jnp.sum(w, axis=0)
 
 
+def _spread(z, w):
+    """||z - mean(z)|| per output (the denominator of FIT% and R^2), NaN where it is at
+    the round-off of the mean (a constant output, one measured sample): its value there
+    is the mean's rounding, and FIT% came out as -3e17 %, -inf or NaN by chance."""
+    spread = jnp.sqrt(jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0))
+    eps = jnp.finfo(z.dtype).eps
+    noise = 16.0 * eps * jnp.sqrt(jnp.sum(w, axis=0)) * jnp.max(w * jnp.abs(z), axis=0)
+    return jnp.where(spread > noise, spread, jnp.nan)
+
+
 def rmse(z, zhat, mask=None):
     """Root-mean-square error per output: sqrt(mean_k (zhat_k - z_k)^2), over the samples
     where `mask` (shaped like z, optional) is true."""
@@ -205,7 +215,8 @@ def nrmse(z, zhat, mask=None):
     ||zhat - z|| / ||z - mean(z)||, 0 for a perfect fit (= 1 - FIT% / 100).
 
     MATLAB's `goodnessOfFit(..., 'NRMSE')` is the other way round, a fitness
-    1 - ||zhat - z|| / ||z - mean(z)|| (1 for a perfect fit): 1 minus this.
+    1 - ||zhat - z|| / ||z - mean(z)|| (1 for a perfect fit): 1 minus this. NaN for an
+    output without spread (constant, or measured once), where it is undefined.
     """
     z, zhat, mask = _check(z, zhat, mask)
     return _nrmse(z, zhat, mask)
@@ -214,12 +225,13 @@ def nrmse(z, zhat, mask=None):
 @jax.jit  # (one compiled call per shape, not one per operation)
 def _nrmse(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
-    std = jnp.sqrt(_mean((z - _mean(z, w)) ** 2, w))
-    return jnp.sqrt(_mean((zhat - z) ** 2, w)) / std
+    return jnp.sqrt(jnp.sum(w * (zhat - z) ** 2, axis=0)) / _spread(z, w)
 
 
 def fit_percent(z, zhat, mask=None):
-    """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`)."""
+    """FIT% = 100 (1 - ||zhat - z|| / ||z - mean(z)||) per output (MATLAB's `compare`);
+    NaN for an output without spread (constant, or measured once: `_spread`), where it
+    is undefined."""
     z, zhat, mask = _check(z, zhat, mask)
     return _fit_percent(z, zhat, mask)
 
@@ -228,12 +240,13 @@ def fit_percent(z, zhat, mask=None):
 def _fit_percent(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     num = jnp.sqrt(jnp.sum(w * (zhat - z) ** 2, axis=0))
-    den = jnp.sqrt(jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0))
+    den = _spread(z, w)
     return 100.0 * (1.0 - num / den)
 
 
 def r2(z, zhat, mask=None):
-    """Coefficient of determination R^2 = 1 - SSE / SST per output."""
+    """Coefficient of determination R^2 = 1 - SSE / SST per output; NaN for an output
+    without spread (constant, or measured once), where it is undefined."""
     z, zhat, mask = _check(z, zhat, mask)
     return _r2(z, zhat, mask)
 
@@ -242,7 +255,7 @@ def r2(z, zhat, mask=None):
 def _r2(z, zhat, mask):
     z, zhat, w = _flat(z, zhat, mask)
     sse = jnp.sum(w * (zhat - z) ** 2, axis=0)
-    sst = jnp.sum(w * (z - _mean(z, w)) ** 2, axis=0)
+    sst = _spread(z, w) ** 2
     return 1.0 - sse / sst
 
 

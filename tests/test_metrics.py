@@ -307,6 +307,19 @@ def test_benchmark_scores_bad_input(z_shape, zhat_shape, n, error, pattern):
         metrics.benchmark_scores(rng.standard_normal(z_shape), rng.standard_normal(zhat_shape), n)
 
 
+def test_an_output_without_spread_has_no_fit_percent_r2_or_nrmse():
+    """A constant output (a stuck sensor): ||z - mean(z)|| is 0 but for the mean's
+    round-off, which made FIT% -3.3e17 % (and R^2 -1.1e31), -inf or NaN by chance. Each
+    is undefined there: NaN. An output whose spread is small but real keeps its scores."""
+    z = np.column_stack([np.full(100, 0.7382), np.linspace(0.0, 1.0, 100)])
+    zhat = z + 0.1
+    for name in ("fit_percent", "r2", "nrmse"):
+        score = getattr(metrics, name)(z, zhat)
+        assert np.isnan(score[0]) and np.isfinite(score[1]), name
+    small = np.column_stack([0.7382 + 1e-9 * np.sin(np.arange(100.0))])
+    assert np.isfinite(metrics.fit_percent(small, small + 1e-10)).all()
+
+
 def test_benchmark_scores_refuses_diverged_output_and_constant_data():
     z, zhat = _pair((50, 2), 6)
     zhat[30:, 1] = np.nan
