@@ -396,8 +396,8 @@ def worst_fit(fit_percent, weight=None, residuals=None):
     -450 / n % (-2.25 % over 200 samples) is beyond three deviations of that chance at
     any r; a bad minimum's is far lower (-139 % in the minima guide)."""
     fits = weighed(fit_percent, weight)
-    # (-inf: an output without spread, measured once or constant, has no FIT to judge by;
-    # `fit_orthogonal`'s penalty rows, say)
+    # (NaN: an output without spread, measured once or constant, has no FIT to judge by,
+    # `metrics.fit_percent`; `fit_orthogonal`'s penalty rows, say)
     fits = np.where(np.isfinite(fits), fits, np.nan)
     if residuals is not None and fits.ndim == 1:
         e = np.asarray(residuals)

@@ -51,6 +51,10 @@ class DiscretisationCheck(eqx.Module):
         where it had not converged, this one goes on to the optimum).
     - `margin`: the move, in standard errors, past which `depends` is True.
 
+    **Properties:**
+
+    - `converged`: whether both refits converged (else the check is inconclusive).
+
     `print(check)` gives one line: the largest move and the verdict (the estimates depend
     on the step, they do not, or inconclusive where a refit did not converge).
     """
